@@ -1,0 +1,27 @@
+//! `posecast-proto`: what the posecast server and its clients agree on.
+//!
+//! - [`transform`]: translation · rotation · scale, and polar decomposition of affine matrices.
+//! - [`skeleton`]: a validated joint tree with rest transforms and inverse bind matrices.
+//! - [`fk`]: forward kinematics `W_j = W_parent(j) · D_j` and skinning matrices `M_j = W_j · B_j⁻¹`.
+//! - [`skinning`]: the CPU linear-blend-skinning reference every GPU path is tested against.
+//! - [`bind`]: seed 001's identities between local, world, bind and user transforms.
+//! - [`dof`]: joint types, degrees of freedom and their limits (seed 002).
+//! - [`quant`]: smallest-three quaternion quantisation for the wire.
+//!
+//! Conventions: column vectors, right-handed, Y up, metres, seconds (see DESIGN.md).
+
+pub mod bind;
+pub mod dof;
+pub mod fk;
+pub mod quant;
+pub mod skeleton;
+pub mod skinning;
+#[cfg(any(test, feature = "testing"))]
+#[allow(clippy::expect_used)]
+pub mod testing;
+pub mod transform;
+
+pub use dof::{Dof, JointDofs, JointType};
+pub use skeleton::{Skeleton, SkeletonError};
+pub use skinning::{MeshError, SkinnedMesh};
+pub use transform::{DecomposeError, Transform};

@@ -1,0 +1,122 @@
+//! Random skeletons, transforms and poses for property tests (here and in other crates'
+//! tests, through the `testing` feature).
+
+use crate::fk::forward_kinematics;
+use crate::skeleton::Skeleton;
+use crate::transform::Transform;
+use glam::{Mat4, Quat, Vec3};
+use proptest::prelude::*;
+use std::ops::Range;
+
+/// A uniformly random unit quaternion (normalised 4-D Gaussian-ish box sample).
+pub fn arb_quat() -> impl Strategy<Value = Quat> {
+    prop::array::uniform4(-1.0f32..1.0)
+        .prop_filter("not near zero", |v| {
+            v.iter().map(|x| x * x).sum::<f32>() > 0.01
+        })
+        .prop_map(|v| Quat::from_array(v).normalize())
+}
+
+/// A random transform: translation within ±1, any rotation, scale in [0.8, 1.25].
+pub fn arb_transform() -> impl Strategy<Value = Transform> {
+    (
+        prop::array::uniform3(-1.0f32..1.0),
+        arb_quat(),
+        prop::array::uniform3(0.8f32..1.25),
+    )
+        .prop_map(|(t, rotation, s)| Transform {
+            translation: Vec3::from(t),
+            rotation,
+            scale: Vec3::from(s),
+        })
+}
+
+/// A rigid random transform (unit scale).
+pub fn arb_rigid() -> impl Strategy<Value = Transform> {
+    (prop::array::uniform3(-1.0f32..1.0), arb_quat())
+        .prop_map(|(t, r)| Transform::from_translation_rotation(Vec3::from(t), r))
+}
+
+/// `n` random transforms.
+pub fn arb_transforms(n: usize) -> impl Strategy<Value = Vec<Transform>> {
+    prop::collection::vec(arb_transform(), n)
+}
+
+/// `n` random rigid transforms.
+pub fn arb_rigid_transforms(n: usize) -> impl Strategy<Value = Vec<Transform>> {
+    prop::collection::vec(arb_rigid(), n)
+}
+
+/// Random parent lists: joint `j`'s parent is any earlier joint, or none (a new root) with
+/// probability about 1 in 20, so forests and deep chains both occur.
+pub fn arb_parents(count: Range<usize>) -> impl Strategy<Value = Vec<Option<usize>>> {
+    count.prop_flat_map(|n| {
+        prop::collection::vec((0.0f64..1.0, 0.0f64..1.0), n).prop_map(|draws| {
+            draws
+                .iter()
+                .enumerate()
+                .map(|(j, &(root, pick))| {
+                    if j == 0 || root < 0.05 {
+                        None
+                    } else {
+                        // Favour recent joints so chains get long.
+                        let back = ((pick * pick) * j as f64) as usize;
+                        Some(j - 1 - back.min(j - 1))
+                    }
+                })
+                .collect()
+        })
+    })
+}
+
+/// A random skeleton whose bind pose is its rest pose (`B_j = W_j(rest)`), with scaled joints.
+pub fn arb_skeleton(count: Range<usize>) -> impl Strategy<Value = Skeleton> {
+    arb_parents(count).prop_flat_map(|parents| {
+        let n = parents.len();
+        (Just(parents), arb_transforms(n))
+            .prop_map(|(parents, rest)| skeleton_bound_at_rest(parents, rest))
+    })
+}
+
+/// A random rigid skeleton (no scale anywhere) bound at rest.
+pub fn arb_rigid_skeleton(count: Range<usize>) -> impl Strategy<Value = Skeleton> {
+    arb_parents(count).prop_flat_map(|parents| {
+        let n = parents.len();
+        (Just(parents), arb_rigid_transforms(n))
+            .prop_map(|(parents, rest)| skeleton_bound_at_rest(parents, rest))
+    })
+}
+
+/// Builds a skeleton named `j0..` whose inverse binds are the inverses of its rest-pose worlds.
+///
+/// # Panics
+/// If the parents are not ordered (the generators above always are).
+#[must_use]
+pub fn skeleton_bound_at_rest(parents: Vec<Option<usize>>, rest: Vec<Transform>) -> Skeleton {
+    let n = parents.len();
+    let names = (0..n).map(|j| format!("j{j}")).collect();
+    let provisional = Skeleton::new(
+        names,
+        parents.clone(),
+        rest.clone(),
+        vec![Mat4::IDENTITY; n],
+    )
+    .expect("generated skeleton is valid");
+    let mut world = vec![Mat4::IDENTITY; n];
+    forward_kinematics(&provisional, &rest, &mut world);
+    let names = (0..n).map(|j| format!("j{j}")).collect();
+    Skeleton::new(
+        names,
+        parents,
+        rest,
+        world.iter().map(Mat4::inverse).collect(),
+    )
+    .expect("generated skeleton is valid")
+}
+
+/// `|a - b| ≤ tol · (1 + max|b|)` element-wise.
+#[must_use]
+pub fn mat_close(a: &Mat4, b: &Mat4, tol: f32) -> bool {
+    let scale = 1.0 + b.to_cols_array().iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    a.abs_diff_eq(*b, tol * scale)
+}

@@ -1,0 +1,236 @@
+//! Translation · rotation · scale transforms and the polar decomposition that splits an affine
+//! matrix into them (seed 000: "If `U_i` carries scale, split it by polar decomposition").
+
+use glam::{Affine3A, Mat3, Mat4, Quat, Vec3};
+use serde::{Deserialize, Serialize};
+
+/// A local transform `D = T(t) · R · S`, applied to column vectors (scale first).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Transform {
+    /// `t`, in the parent's space, metres once the rig is normalised.
+    pub translation: Vec3,
+    /// `R`, a unit quaternion.
+    pub rotation: Quat,
+    /// `S`, per-axis scale in the joint's own space.
+    pub scale: Vec3,
+}
+
+impl Default for Transform {
+    fn default() -> Self {
+        Self::IDENTITY
+    }
+}
+
+/// Why an affine matrix could not be split into translation, rotation and scale.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum DecomposeError {
+    /// The linear part has a negative determinant: a mirror, which no rotation can express.
+    #[error("matrix is a reflection (determinant {determinant})")]
+    Reflection { determinant: f32 },
+    /// The linear part is singular or not finite.
+    #[error("matrix is singular or not finite (determinant {determinant})")]
+    Degenerate { determinant: f32 },
+    /// The stretch `S` of `M = Q S` is not diagonal: the matrix shears, or scales along axes
+    /// other than the joint's own, which a per-axis scale cannot hold.
+    #[error("matrix has shear or off-axis scale (largest off-diagonal stretch {off_diagonal})")]
+    Shear { off_diagonal: f32 },
+}
+
+/// Result of [`polar_decompose`]: `M = rotation · stretch`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Polar {
+    /// `Q`, orthonormal with determinant +1.
+    pub rotation: Mat3,
+    /// `S = Qᵀ M`, symmetric positive definite.
+    pub stretch: Mat3,
+}
+
+/// Polar decomposition `M = Q S` of a 3×3 matrix by Higham's iteration
+/// `Q_{k+1} = (Q_k + Q_k⁻ᵀ) / 2`, which converges quadratically to the orthogonal factor.
+///
+/// Errors on a singular or non-finite matrix and on a reflection (`det M < 0`), which would give
+/// an improper `Q` that no quaternion represents.
+pub fn polar_decompose(m: Mat3) -> Result<Polar, DecomposeError> {
+    let determinant = m.determinant();
+    let scale = m.x_axis.length() + m.y_axis.length() + m.z_axis.length();
+    if !determinant.is_finite() || determinant.abs() <= 1e-12 * scale.powi(3).max(f32::MIN_POSITIVE)
+    {
+        return Err(DecomposeError::Degenerate { determinant });
+    }
+    if determinant < 0.0 {
+        return Err(DecomposeError::Reflection { determinant });
+    }
+    let mut q = m;
+    for _ in 0..64 {
+        let next = (q + q.inverse().transpose()) * 0.5;
+        let change = (next - q)
+            .to_cols_array()
+            .iter()
+            .fold(0.0f32, |a, v| a.max(v.abs()));
+        q = next;
+        if change <= 1e-7 {
+            break;
+        }
+    }
+    // Re-orthonormalise through a quaternion so `rotation` is exactly a rotation.
+    let rotation = Mat3::from_quat(Quat::from_mat3(&q).normalize());
+    let stretch = rotation.transpose() * m;
+    Ok(Polar { rotation, stretch })
+}
+
+impl Transform {
+    /// The transform that changes nothing.
+    pub const IDENTITY: Self = Self {
+        translation: Vec3::ZERO,
+        rotation: Quat::IDENTITY,
+        scale: Vec3::ONE,
+    };
+
+    /// A pure translation `T(t)`.
+    #[must_use]
+    pub fn from_translation(translation: Vec3) -> Self {
+        Self {
+            translation,
+            ..Self::IDENTITY
+        }
+    }
+
+    /// `T(t) · R`.
+    #[must_use]
+    pub fn from_translation_rotation(translation: Vec3, rotation: Quat) -> Self {
+        Self {
+            translation,
+            rotation,
+            scale: Vec3::ONE,
+        }
+    }
+
+    /// The matrix `T(t) · R · S`.
+    #[must_use]
+    pub fn to_mat4(&self) -> Mat4 {
+        Mat4::from_scale_rotation_translation(self.scale, self.rotation, self.translation)
+    }
+
+    /// The same as [`Transform::to_mat4`], as an affine matrix.
+    #[must_use]
+    pub fn to_affine(&self) -> Affine3A {
+        Affine3A::from_scale_rotation_translation(self.scale, self.rotation, self.translation)
+    }
+
+    /// Splits an affine matrix into `T(t) · R · S` by polar decomposition of its linear part.
+    ///
+    /// Errors when the matrix mirrors, is singular, or shears (a stretch that is not diagonal
+    /// within a relative tolerance of 1e-4); [`polar_decompose`] gives the full stretch then.
+    pub fn try_from_mat4(m: &Mat4) -> Result<Self, DecomposeError> {
+        let linear = Mat3::from_mat4(*m);
+        let polar = polar_decompose(linear)?;
+        let s = polar.stretch;
+        let diag = Vec3::new(s.x_axis.x, s.y_axis.y, s.z_axis.z);
+        let off = [
+            s.x_axis.y, s.x_axis.z, s.y_axis.x, s.y_axis.z, s.z_axis.x, s.z_axis.y,
+        ]
+        .iter()
+        .fold(0.0f32, |a, v| a.max(v.abs()));
+        if off > 1e-4 * diag.abs().max_element() {
+            return Err(DecomposeError::Shear { off_diagonal: off });
+        }
+        Ok(Self {
+            translation: m.w_axis.truncate(),
+            rotation: Quat::from_mat3(&polar.rotation).normalize(),
+            scale: diag,
+        })
+    }
+
+    /// `self · other` as transforms, exact when neither carries non-uniform scale that
+    /// meets a rotation; otherwise goes through matrices and may fail like `try_from_mat4`.
+    pub fn try_mul(&self, other: &Transform) -> Result<Self, DecomposeError> {
+        Self::try_from_mat4(&(self.to_mat4() * other.to_mat4()))
+    }
+
+    /// Whether every component is finite.
+    #[must_use]
+    pub fn is_finite(&self) -> bool {
+        self.translation.is_finite() && self.rotation.is_finite() && self.scale.is_finite()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn quat_strategy() -> impl Strategy<Value = Quat> {
+        (-1.0f32..1.0, -1.0f32..1.0, -1.0f32..1.0, -1.0f32..1.0)
+            .prop_filter("non-zero", |(x, y, z, w)| {
+                x * x + y * y + z * z + w * w > 0.01
+            })
+            .prop_map(|(x, y, z, w)| Quat::from_xyzw(x, y, z, w).normalize())
+    }
+
+    proptest! {
+        #[test]
+        fn decomposition_round_trips(
+            t in prop::array::uniform3(-10.0f32..10.0),
+            r in quat_strategy(),
+            s in prop::array::uniform3(0.1f32..5.0),
+        ) {
+            let original = Transform {
+                translation: Vec3::from(t), rotation: r, scale: Vec3::from(s),
+            };
+            let m = original.to_mat4();
+            let back = Transform::try_from_mat4(&m).unwrap();
+            prop_assert!(back.to_mat4().abs_diff_eq(m, 1e-4 * (1.0 + m.abs().to_cols_array()
+                .iter().cloned().fold(0.0, f32::max))));
+            prop_assert!((back.scale - original.scale).abs().max_element() < 1e-3);
+        }
+
+        #[test]
+        fn polar_factor_is_a_rotation(
+            cols in prop::array::uniform9(-3.0f32..3.0),
+        ) {
+            let m = Mat3::from_cols_array(&cols);
+            if let Ok(p) = polar_decompose(m) {
+                let qtq = p.rotation.transpose() * p.rotation;
+                prop_assert!(qtq.abs_diff_eq(Mat3::IDENTITY, 1e-4));
+                prop_assert!((p.rotation.determinant() - 1.0).abs() < 1e-4);
+                prop_assert!((p.rotation * p.stretch).abs_diff_eq(m, 1e-3 * (1.0 + m.abs()
+                    .to_cols_array().iter().cloned().fold(0.0, f32::max))));
+                // S symmetric
+                prop_assert!(p.stretch.abs_diff_eq(p.stretch.transpose(), 2e-3));
+            } else {
+                prop_assert!(m.determinant() <= 1e-9 || m.determinant() < 0.0);
+            }
+        }
+    }
+
+    #[test]
+    fn mirror_is_reported() {
+        let m = Mat4::from_scale(Vec3::new(-1.0, 1.0, 1.0));
+        assert!(matches!(
+            Transform::try_from_mat4(&m),
+            Err(DecomposeError::Reflection { .. })
+        ));
+    }
+
+    #[test]
+    fn shear_is_reported() {
+        let m = Mat4::from_cols_array(&[
+            1.0, 0.0, 0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0,
+        ]);
+        assert!(matches!(
+            Transform::try_from_mat4(&m),
+            Err(DecomposeError::Shear { .. })
+        ));
+    }
+
+    #[test]
+    fn singular_is_reported() {
+        let m = Mat4::from_scale(Vec3::new(1.0, 0.0, 1.0));
+        assert!(matches!(
+            Transform::try_from_mat4(&m),
+            Err(DecomposeError::Degenerate { .. })
+        ));
+        let nan = Mat4::from_translation(Vec3::X) * Mat4::from_scale(Vec3::splat(f32::NAN));
+        assert!(Transform::try_from_mat4(&nan).is_err());
+    }
+}

@@ -1,0 +1,5 @@
+//! `posecast`: starts the server.
+
+fn main() -> anyhow::Result<()> {
+    Ok(())
+}
