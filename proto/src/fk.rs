@@ -90,9 +90,9 @@ mod tests {
         })) {
             let mut world = vec![Mat4::IDENTITY; s.len()];
             forward_kinematics(&s, &locals, &mut world);
-            for j in 0..s.len() {
+            for (j, w) in world.iter().enumerate() {
                 let expected = world_recursive(&s, &locals, j);
-                prop_assert!(mat_close(&world[j], &expected, 1e-4), "joint {j}: {:?} vs {expected:?}", world[j]);
+                prop_assert!(mat_close(w, &expected, 1e-4), "joint {j}: {w:?} vs {expected:?}");
             }
         }
     }

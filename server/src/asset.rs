@@ -1,0 +1,1 @@
+//! Imported assets (placeholder until the importers land).

@@ -1,0 +1,1 @@
+//! Animation clips and sampling.
