@@ -120,3 +120,12 @@ pub fn mat_close(a: &Mat4, b: &Mat4, tol: f32) -> bool {
     let scale = 1.0 + b.to_cols_array().iter().fold(0.0f32, |m, v| m.max(v.abs()));
     a.abs_diff_eq(*b, tol * scale)
 }
+
+/// The shared third-party test files (`../shared/testdata` beside the repository), read in
+/// place. `relative` is a path inside that folder, e.g. `"gltf/CesiumMan/glTF/CesiumMan.gltf"`.
+#[must_use]
+pub fn testdata(relative: &str) -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/testdata")
+        .join(relative)
+}
