@@ -7,12 +7,20 @@
 //! - [`bind`]: seed 001's identities between local, world, bind and user transforms.
 //! - [`dof`]: joint types, degrees of freedom and their limits (seed 002).
 //! - [`quant`]: smallest-three quaternion quantisation for the wire.
+//! - [`msg`]: the websocket protocol's messages (versioned hello, subscribe, errors, …).
+//! - [`description`]: an avatar's rig as sent to clients, with its hash.
+//! - [`frame`]: binary pose frames (keyframes and deltas).
+//! - [`command`]: control commands shared by REST and websocket.
 //!
 //! Conventions: column vectors, right-handed, Y up, metres, seconds (see DESIGN.md).
 
 pub mod bind;
+pub mod command;
+pub mod description;
 pub mod dof;
 pub mod fk;
+pub mod frame;
+pub mod msg;
 pub mod quant;
 pub mod skeleton;
 pub mod skinning;

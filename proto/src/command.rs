@@ -1,0 +1,269 @@
+//! Control commands: the same types over REST (JSON bodies) and over the websocket
+//! ([`crate::msg::ClientMsg::Command`]). Every command is acknowledged with a JSON result or a
+//! typed error.
+
+use crate::msg::{AvatarId, SceneId};
+use serde::{Deserialize, Serialize};
+
+/// Something a dashboard or application asks the server to do.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "op", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Command {
+    /// Scenes with their avatars. Result: `[SceneInfo]`.
+    ListScenes,
+    /// Loaded rigs (assets) and their clips. Result: `[AssetInfo]`.
+    ListAssets,
+    /// One avatar's state. Result: `AvatarState`.
+    GetAvatar {
+        /// The avatar.
+        avatar: AvatarId,
+    },
+    /// Create an empty scene.
+    CreateScene {
+        /// Its id (letters, digits, `-`, `_`; at most 64).
+        scene: SceneId,
+    },
+    /// Delete a scene and its avatars; subscribers receive `unsubscribed`.
+    DeleteScene {
+        /// The scene.
+        scene: SceneId,
+    },
+    /// Add an avatar of a loaded rig to a scene. Result: `{ "avatar": id }`.
+    AddAvatar {
+        /// The scene.
+        scene: SceneId,
+        /// The rig's asset name.
+        asset: String,
+        /// The avatar's id; chosen by the server when absent.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        avatar: Option<AvatarId>,
+        /// The clip to start playing, if any.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        clip: Option<String>,
+    },
+    /// Remove an avatar from its scene.
+    RemoveAvatar {
+        /// The avatar.
+        avatar: AvatarId,
+    },
+    /// Play a clip on an avatar, cross-fading from what it plays now.
+    Play {
+        /// The avatar.
+        avatar: AvatarId,
+        /// The clip's name.
+        clip: String,
+        /// Take the clip from another loaded rig and retarget it; absent: the avatar's own rig.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        from_asset: Option<String>,
+        /// Playback speed (1 = authored; negative plays backwards). Default 1.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        speed: Option<f32>,
+        /// Loop (default) or hold the last pose.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        looping: Option<bool>,
+        /// Start offset into the clip, seconds from its start. Default 0.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        start: Option<f32>,
+        /// Cross-fade duration in seconds. Default 0.25.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        fade: Option<f32>,
+    },
+    /// Freeze the clock of the avatar's clip.
+    Pause {
+        /// The avatar.
+        avatar: AvatarId,
+    },
+    /// Restart a paused clip's clock.
+    Resume {
+        /// The avatar.
+        avatar: AvatarId,
+    },
+    /// Jump to a clip time (seconds from the clip's start).
+    Seek {
+        /// The avatar.
+        avatar: AvatarId,
+        /// Clip time.
+        time: f32,
+    },
+    /// Change the playback speed.
+    SetSpeed {
+        /// The avatar.
+        avatar: AvatarId,
+        /// New speed.
+        speed: f32,
+    },
+    /// Stop the clip; the avatar holds its neutral (rest) pose.
+    Stop {
+        /// The avatar.
+        avatar: AvatarId,
+    },
+    /// Override a joint's local rotation (layered over the clip until released).
+    SetJointRotation {
+        /// The avatar.
+        avatar: AvatarId,
+        /// Joint name.
+        joint: String,
+        /// Local rotation `[x, y, z, w]`.
+        rotation: [f32; 4],
+    },
+    /// Override a joint with its DOF values (radians for rotations), clamped to its limits.
+    SetJointDofs {
+        /// The avatar.
+        avatar: AvatarId,
+        /// Joint name.
+        joint: String,
+        /// One value per DOF of the joint's type.
+        values: Vec<f32>,
+    },
+    /// Apply a local increment `Ul' = incr · Ul` to the joint's current rotation.
+    RotateJointLocal {
+        /// The avatar.
+        avatar: AvatarId,
+        /// Joint name.
+        joint: String,
+        /// The increment `[x, y, z, w]`.
+        rotation: [f32; 4],
+    },
+    /// Apply a world-space increment `U` so that `W' = U · W` (seed 001:
+    /// `Ul' = L⁻¹ W_parent⁻¹ U W`). The result is clamped to the joint's limits.
+    RotateJointWorld {
+        /// The avatar.
+        avatar: AvatarId,
+        /// Joint name.
+        joint: String,
+        /// The world-space rotation `[x, y, z, w]`.
+        rotation: [f32; 4],
+    },
+    /// Release a joint's override (or every override when `joint` is absent).
+    Release {
+        /// The avatar.
+        avatar: AvatarId,
+        /// Joint name, or all.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        joint: Option<String>,
+    },
+}
+
+impl Command {
+    /// The scene a command is about, when it names one directly.
+    #[must_use]
+    pub fn scene(&self) -> Option<&SceneId> {
+        match self {
+            Self::CreateScene { scene }
+            | Self::DeleteScene { scene }
+            | Self::AddAvatar { scene, .. } => Some(scene),
+            _ => None,
+        }
+    }
+
+    /// The avatar a command is about, when it names one.
+    #[must_use]
+    pub fn avatar(&self) -> Option<&AvatarId> {
+        match self {
+            Self::GetAvatar { avatar }
+            | Self::RemoveAvatar { avatar }
+            | Self::Play { avatar, .. }
+            | Self::Pause { avatar }
+            | Self::Resume { avatar }
+            | Self::Seek { avatar, .. }
+            | Self::SetSpeed { avatar, .. }
+            | Self::Stop { avatar }
+            | Self::SetJointRotation { avatar, .. }
+            | Self::SetJointDofs { avatar, .. }
+            | Self::RotateJointLocal { avatar, .. }
+            | Self::RotateJointWorld { avatar, .. }
+            | Self::Release { avatar, .. } => Some(avatar),
+            Self::AddAvatar { avatar, .. } => avatar.as_ref(),
+            _ => None,
+        }
+    }
+
+    /// Whether the command only reads (allowed with a view token).
+    #[must_use]
+    pub fn is_read_only(&self) -> bool {
+        matches!(
+            self,
+            Self::ListScenes | Self::ListAssets | Self::GetAvatar { .. }
+        )
+    }
+}
+
+/// A scene as listed.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SceneInfo {
+    /// The scene.
+    pub scene: SceneId,
+    /// Its avatars.
+    pub avatars: Vec<AvatarState>,
+    /// Current subscriber count.
+    pub subscribers: usize,
+}
+
+/// A loaded rig as listed.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AssetInfo {
+    /// The asset's name (what `add_avatar` and `from_asset` take).
+    pub name: String,
+    /// Joint count.
+    pub joints: usize,
+    /// Its clips.
+    pub clips: Vec<ClipInfo>,
+    /// What the import pipeline did to the rig, in order.
+    pub pipeline: Vec<String>,
+}
+
+/// A clip as listed.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ClipInfo {
+    /// Its name.
+    pub name: String,
+    /// Duration in seconds.
+    pub duration: f32,
+}
+
+/// An avatar's playback state.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AvatarState {
+    /// The avatar.
+    pub avatar: AvatarId,
+    /// Its scene.
+    pub scene: SceneId,
+    /// The rig it uses.
+    pub asset: String,
+    /// The clip playing, if any.
+    pub clip: Option<String>,
+    /// The asset the clip came from when retargeted.
+    pub clip_asset: Option<String>,
+    /// Clip time in seconds from the clip's start.
+    pub time: f32,
+    /// Playback speed.
+    pub speed: f32,
+    /// Whether it loops.
+    pub looping: bool,
+    /// Whether paused.
+    pub paused: bool,
+    /// Joints with an override.
+    pub overrides: Vec<String>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn commands_are_tagged_by_op_and_reject_unknown_fields() {
+        let c = Command::Seek {
+            avatar: AvatarId("a".into()),
+            time: 1.5,
+        };
+        let text = serde_json::to_string(&c).unwrap();
+        assert_eq!(text, r#"{"op":"seek","avatar":"a","time":1.5}"#);
+        assert_eq!(serde_json::from_str::<Command>(&text).unwrap(), c);
+        assert!(
+            serde_json::from_str::<Command>(r#"{"op":"seek","avatar":"a","time":1,"x":2}"#)
+                .is_err()
+        );
+        assert!(serde_json::from_str::<Command>(r#"{"op":"fly"}"#).is_err());
+        assert!(c.avatar().is_some() && !c.is_read_only());
+    }
+}

@@ -1,0 +1,563 @@
+//! Binary pose frames: keyframes and delta frames against the last keyframe.
+//!
+//! A frame is a 32-byte header followed by one chunk per avatar. All integers and floats are
+//! little-endian.
+//!
+//! ```text
+//! header   0  u8   magic 0x50 ('P')
+//!          1  u8   kind: 1 = keyframe, 2 = delta
+//!          2  u16  avatar chunk count
+//!          4  u32  scene number (from `subscribed`)
+//!          8  u64  seq: the scene's tick number
+//!         16  u64  server time at the tick, µs since the Unix epoch
+//!         24  u64  base seq: the keyframe a delta refers to (== seq for a keyframe)
+//! chunk       u32  avatar number (from its description)
+//!             u64  description hash
+//!             u16  joint count J, u16 translation count T, u16 scale count S
+//!             rotations:
+//!               keyframe: J × 6 bytes, smallest-three (crate::quant)
+//!               delta:    ⌈J/4⌉ bytes of 2-bit tags (joint j at bits 2(j mod 4) of byte j/4),
+//!                         then per joint by tag: 0 = unchanged from the keyframe, no bytes;
+//!                         1 = same dropped component, three i8 level differences (3 bytes);
+//!                         2 = full 6-byte rotation; 3 is invalid.
+//!             T × 3 f32 translations, S × 3 f32 scales (joints listed in the description)
+//! ```
+//!
+//! Why deltas against the *keyframe* rather than the previous frame: a slow subscriber only
+//! ever receives the newest frame (older ones are dropped), so a delta must be decodable from
+//! the keyframe alone. The server sends a keyframe at least once a second, whenever the set of
+//! avatars or a rig changes, and the scene's last keyframe to every new subscriber before any
+//! delta; the per-connection queue never drops a keyframe that a pending delta needs.
+//! Translations and scales are few (roots, mostly) and sent as f32 in every frame.
+
+use crate::quant;
+use glam::{Quat, Vec3};
+use std::collections::HashMap;
+
+/// First byte of every binary frame.
+pub const MAGIC: u8 = 0x50;
+/// Header size in bytes.
+pub const HEADER_BYTES: usize = 32;
+
+/// Keyframe or delta.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FrameKind {
+    /// Every rotation in full.
+    Key,
+    /// Rotations relative to the keyframe `base_seq`.
+    Delta,
+}
+
+/// The header of a binary frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FrameHeader {
+    /// Keyframe or delta.
+    pub kind: FrameKind,
+    /// The scene's number.
+    pub scene_num: u32,
+    /// Tick number.
+    pub seq: u64,
+    /// Server time at the tick, µs since the Unix epoch.
+    pub server_time_us: u64,
+    /// The keyframe a delta refers to; `seq` for a keyframe.
+    pub base_seq: u64,
+}
+
+/// One avatar's pose, as the server produces it and a client decodes it.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct AvatarPose {
+    /// The avatar's number.
+    pub avatar_num: u32,
+    /// Its description hash.
+    pub hash: u64,
+    /// Local rotation of every joint.
+    pub rotations: Vec<Quat>,
+    /// Local translations of the description's `translated_joints`, in order.
+    pub translations: Vec<Vec3>,
+    /// Local scales of the description's `scaled_joints`, in order.
+    pub scales: Vec<Vec3>,
+}
+
+/// A decoded frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Frame {
+    /// Its header.
+    pub header: FrameHeader,
+    /// One pose per avatar chunk.
+    pub avatars: Vec<AvatarPose>,
+}
+
+/// Why a binary frame could not be decoded.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum FrameError {
+    /// Shorter than its own counts say.
+    #[error("frame truncated at byte {at} (needed {needed} more)")]
+    Truncated {
+        /// Offset where data ran out.
+        at: usize,
+        /// Bytes missing.
+        needed: usize,
+    },
+    /// Not a posecast frame.
+    #[error("bad magic byte {0:#04x}")]
+    Magic(u8),
+    /// Unknown frame kind.
+    #[error("unknown frame kind {0}")]
+    Kind(u8),
+    /// Bytes left over after the last chunk.
+    #[error("{0} trailing bytes after the last avatar chunk")]
+    Trailing(usize),
+    /// A delta tag of 3.
+    #[error("avatar {avatar}: invalid delta tag for joint {joint}")]
+    Tag {
+        /// The avatar.
+        avatar: u32,
+        /// The joint.
+        joint: usize,
+    },
+    /// A delta whose keyframe this decoder does not hold (it was never received, or a newer
+    /// keyframe replaced it). Wait for the next keyframe.
+    #[error("avatar {avatar}: delta against keyframe {base_seq}, which this decoder does not hold")]
+    MissingKeyframe {
+        /// The avatar.
+        avatar: u32,
+        /// The keyframe the delta needs.
+        base_seq: u64,
+    },
+    /// A delta whose joint count differs from its keyframe's.
+    #[error("avatar {avatar}: delta has {actual} joints, its keyframe {expected}")]
+    JointCount {
+        /// The avatar.
+        avatar: u32,
+        /// The keyframe's joint count.
+        expected: usize,
+        /// The delta's.
+        actual: usize,
+    },
+}
+
+/// Writes a frame header. `avatar_count` is the number of chunks that follow.
+pub fn write_header(header: &FrameHeader, avatar_count: u16, out: &mut Vec<u8>) {
+    out.push(MAGIC);
+    out.push(match header.kind {
+        FrameKind::Key => 1,
+        FrameKind::Delta => 2,
+    });
+    out.extend_from_slice(&avatar_count.to_le_bytes());
+    out.extend_from_slice(&header.scene_num.to_le_bytes());
+    out.extend_from_slice(&header.seq.to_le_bytes());
+    out.extend_from_slice(&header.server_time_us.to_le_bytes());
+    out.extend_from_slice(&header.base_seq.to_le_bytes());
+}
+
+/// Encodes one avatar's chunks. Holds the quantised rotations of the last keyframe, so deltas
+/// can refer to them; one encoder per avatar per scene.
+#[derive(Debug, Default, Clone)]
+pub struct ChunkEncoder {
+    key: Vec<u64>,
+    scratch: Vec<u64>,
+}
+
+impl ChunkEncoder {
+    /// A fresh encoder (its first chunk must be a keyframe).
+    #[must_use]
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Whether a delta can be encoded: a keyframe with this joint count was encoded before.
+    #[must_use]
+    pub fn has_key(&self, joint_count: usize) -> bool {
+        !self.key.is_empty() && self.key.len() == joint_count
+    }
+
+    /// Appends `pose`'s chunk to `out`. A keyframe chunk becomes the new reference for deltas.
+    /// A delta needs a keyframe with the same joint count (check [`Self::has_key`]; the server
+    /// forces a keyframe when any avatar lacks one): without one, every joint is written in
+    /// full, and a decoder rejects the chunk for its joint count.
+    pub fn encode(&mut self, pose: &AvatarPose, kind: FrameKind, out: &mut Vec<u8>) {
+        let joints = pose.rotations.len();
+        out.extend_from_slice(&pose.avatar_num.to_le_bytes());
+        out.extend_from_slice(&pose.hash.to_le_bytes());
+        for n in [joints, pose.translations.len(), pose.scales.len()] {
+            out.extend_from_slice(&(n.min(usize::from(u16::MAX)) as u16).to_le_bytes());
+        }
+        self.scratch.clear();
+        self.scratch
+            .extend(pose.rotations.iter().map(|&q| quant::encode(q)));
+        match kind {
+            FrameKind::Key => {
+                for bits in &self.scratch {
+                    out.extend_from_slice(&bits.to_le_bytes()[..quant::BYTES]);
+                }
+                std::mem::swap(&mut self.key, &mut self.scratch);
+            }
+            FrameKind::Delta => {
+                let tags_at = out.len();
+                out.resize(tags_at + joints.div_ceil(4), 0);
+                for (j, &bits) in self.scratch.iter().enumerate() {
+                    let tag = match self.key.get(j) {
+                        Some(&key) if key == bits => 0u8,
+                        Some(&key) => match small_difference(key, bits) {
+                            Some(d) => {
+                                out.extend(d.map(|v| v as u8));
+                                1
+                            }
+                            None => {
+                                out.extend_from_slice(&bits.to_le_bytes()[..quant::BYTES]);
+                                2
+                            }
+                        },
+                        None => {
+                            out.extend_from_slice(&bits.to_le_bytes()[..quant::BYTES]);
+                            2
+                        }
+                    };
+                    out[tags_at + j / 4] |= tag << (2 * (j % 4));
+                }
+            }
+        }
+        for v in pose.translations.iter().chain(&pose.scales) {
+            for c in v.to_array() {
+                out.extend_from_slice(&c.to_le_bytes());
+            }
+        }
+    }
+}
+
+const LEVEL_MASK: u64 = (1 << 15) - 1;
+
+fn levels(bits: u64) -> (u64, [i32; 3]) {
+    let index = (bits >> 45) & 3;
+    let l = |k: u32| ((bits >> (15 * (2 - k))) & LEVEL_MASK) as i32;
+    (index, [l(0), l(1), l(2)])
+}
+
+fn small_difference(key: u64, bits: u64) -> Option<[i8; 3]> {
+    let (ki, kl) = levels(key);
+    let (bi, bl) = levels(bits);
+    if ki != bi {
+        return None;
+    }
+    let mut d = [0i8; 3];
+    for k in 0..3 {
+        d[k] = i8::try_from(bl[k] - kl[k]).ok()?;
+    }
+    Some(d)
+}
+
+fn apply_difference(key: u64, d: [i8; 3]) -> u64 {
+    let (index, l) = levels(key);
+    let mut bits = index;
+    for k in 0..3 {
+        let level = (l[k] + i32::from(d[k])).clamp(0, LEVEL_MASK as i32) as u64;
+        bits = (bits << 15) | level;
+    }
+    bits
+}
+
+/// Decodes binary frames, keeping the last keyframe of every (scene, avatar) for deltas.
+#[derive(Debug, Default)]
+pub struct FrameDecoder {
+    keys: HashMap<(u32, u32), (u64, Vec<u64>)>,
+}
+
+struct Reader<'a> {
+    bytes: &'a [u8],
+    at: usize,
+}
+
+impl<'a> Reader<'a> {
+    fn take(&mut self, n: usize) -> Result<&'a [u8], FrameError> {
+        let end = self
+            .at
+            .checked_add(n)
+            .filter(|&e| e <= self.bytes.len())
+            .ok_or(FrameError::Truncated {
+                at: self.at,
+                needed: n.saturating_sub(self.bytes.len() - self.at),
+            })?;
+        let s = &self.bytes[self.at..end];
+        self.at = end;
+        Ok(s)
+    }
+    fn array<const N: usize>(&mut self) -> Result<[u8; N], FrameError> {
+        let mut a = [0u8; N];
+        a.copy_from_slice(self.take(N)?);
+        Ok(a)
+    }
+    fn u8(&mut self) -> Result<u8, FrameError> {
+        Ok(self.array::<1>()?[0])
+    }
+    fn u16(&mut self) -> Result<u16, FrameError> {
+        Ok(u16::from_le_bytes(self.array()?))
+    }
+    fn u32(&mut self) -> Result<u32, FrameError> {
+        Ok(u32::from_le_bytes(self.array()?))
+    }
+    fn u64(&mut self) -> Result<u64, FrameError> {
+        Ok(u64::from_le_bytes(self.array()?))
+    }
+    fn quat_bits(&mut self) -> Result<u64, FrameError> {
+        let mut b = [0u8; 8];
+        b[..quant::BYTES].copy_from_slice(self.take(quant::BYTES)?);
+        Ok(u64::from_le_bytes(b))
+    }
+    fn vec3(&mut self) -> Result<Vec3, FrameError> {
+        let b: [u8; 12] = self.array()?;
+        let f = |i: usize| f32::from_le_bytes([b[i], b[i + 1], b[i + 2], b[i + 3]]);
+        Ok(Vec3::new(f(0), f(4), f(8)))
+    }
+}
+
+/// Reads just the header of a binary frame.
+///
+/// # Errors
+/// Truncated, bad magic or unknown kind.
+pub fn read_header(bytes: &[u8]) -> Result<(FrameHeader, u16), FrameError> {
+    let mut r = Reader { bytes, at: 0 };
+    header(&mut r)
+}
+
+fn header(r: &mut Reader<'_>) -> Result<(FrameHeader, u16), FrameError> {
+    let magic = r.u8()?;
+    if magic != MAGIC {
+        return Err(FrameError::Magic(magic));
+    }
+    let kind = match r.u8()? {
+        1 => FrameKind::Key,
+        2 => FrameKind::Delta,
+        k => return Err(FrameError::Kind(k)),
+    };
+    let count = r.u16()?;
+    let scene_num = r.u32()?;
+    let seq = r.u64()?;
+    let server_time_us = r.u64()?;
+    let base_seq = r.u64()?;
+    Ok((
+        FrameHeader {
+            kind,
+            scene_num,
+            seq,
+            server_time_us,
+            base_seq,
+        },
+        count,
+    ))
+}
+
+impl FrameDecoder {
+    /// A decoder holding no keyframes.
+    #[must_use]
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Forgets the keyframes of a scene (on unsubscribe).
+    pub fn forget_scene(&mut self, scene_num: u32) {
+        self.keys.retain(|&(s, _), _| s != scene_num);
+    }
+
+    /// Decodes one binary frame. A keyframe's rotations become the reference for later deltas
+    /// of the same scene and avatar. On error nothing is changed.
+    ///
+    /// # Errors
+    /// Malformed bytes, or a delta whose keyframe this decoder does not hold.
+    pub fn decode(&mut self, bytes: &[u8]) -> Result<Frame, FrameError> {
+        let mut r = Reader { bytes, at: 0 };
+        let (header, count) = header(&mut r)?;
+        let mut avatars = Vec::with_capacity(usize::from(count).min(bytes.len() / 16));
+        let mut new_keys = Vec::new();
+        for _ in 0..count {
+            let avatar_num = r.u32()?;
+            let hash = r.u64()?;
+            let joints = usize::from(r.u16()?);
+            let translations = usize::from(r.u16()?);
+            let scales = usize::from(r.u16()?);
+            let mut bits = Vec::with_capacity(joints.min(bytes.len()));
+            match header.kind {
+                FrameKind::Key => {
+                    for _ in 0..joints {
+                        bits.push(r.quat_bits()?);
+                    }
+                    new_keys.push(((header.scene_num, avatar_num), bits.clone()));
+                }
+                FrameKind::Delta => {
+                    let key = match self.keys.get(&(header.scene_num, avatar_num)) {
+                        Some((seq, key)) if *seq == header.base_seq => key,
+                        _ => {
+                            return Err(FrameError::MissingKeyframe {
+                                avatar: avatar_num,
+                                base_seq: header.base_seq,
+                            });
+                        }
+                    };
+                    if key.len() != joints {
+                        return Err(FrameError::JointCount {
+                            avatar: avatar_num,
+                            expected: key.len(),
+                            actual: joints,
+                        });
+                    }
+                    let tags = r.take(joints.div_ceil(4))?;
+                    for (j, &key_bits) in key.iter().enumerate() {
+                        let tag = (tags[j / 4] >> (2 * (j % 4))) & 3;
+                        bits.push(match tag {
+                            0 => key_bits,
+                            1 => {
+                                let d: [u8; 3] = r.array()?;
+                                apply_difference(key_bits, d.map(|v| v as i8))
+                            }
+                            2 => r.quat_bits()?,
+                            _ => {
+                                return Err(FrameError::Tag {
+                                    avatar: avatar_num,
+                                    joint: j,
+                                });
+                            }
+                        });
+                    }
+                }
+            }
+            let mut pose = AvatarPose {
+                avatar_num,
+                hash,
+                rotations: bits.iter().map(|&b| quant::decode(b)).collect(),
+                translations: Vec::with_capacity(translations.min(bytes.len() / 12)),
+                scales: Vec::with_capacity(scales.min(bytes.len() / 12)),
+            };
+            for _ in 0..translations {
+                pose.translations.push(r.vec3()?);
+            }
+            for _ in 0..scales {
+                pose.scales.push(r.vec3()?);
+            }
+            avatars.push(pose);
+        }
+        if r.at != bytes.len() {
+            return Err(FrameError::Trailing(bytes.len() - r.at));
+        }
+        for (k, bits) in new_keys {
+            self.keys.insert(k, (header.seq, bits));
+        }
+        Ok(Frame { header, avatars })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::testing::arb_quat;
+    use proptest::prelude::*;
+
+    fn frame(
+        kind: FrameKind,
+        seq: u64,
+        base: u64,
+        enc: &mut ChunkEncoder,
+        pose: &AvatarPose,
+    ) -> Vec<u8> {
+        let mut out = Vec::new();
+        let h = FrameHeader {
+            kind,
+            scene_num: 3,
+            seq,
+            server_time_us: 99,
+            base_seq: base,
+        };
+        write_header(&h, 1, &mut out);
+        enc.encode(pose, kind, &mut out);
+        out
+    }
+
+    fn pose(rotations: Vec<Quat>) -> AvatarPose {
+        AvatarPose {
+            avatar_num: 7,
+            hash: 0xabcd,
+            rotations,
+            translations: vec![Vec3::new(1.0, 2.0, 3.0)],
+            scales: vec![],
+        }
+    }
+
+    proptest! {
+        #[test]
+        fn key_then_delta_decode_within_the_quantisation_bound(
+            key in prop::collection::vec(arb_quat(), 1..70),
+            nudges in prop::collection::vec((arb_quat(), 0.0f32..1.0, 0u8..3), 70),
+        ) {
+            // Each joint of the delta pose is unchanged, nudged slightly, or arbitrary.
+            let delta: Vec<Quat> = key.iter().zip(&nudges).map(|(&k, &(r, t, kind))| match kind {
+                0 => k,
+                1 => k.slerp(r, t * 1e-3).normalize(),
+                _ => r,
+            }).collect();
+            let mut enc = ChunkEncoder::new();
+            let mut dec = FrameDecoder::new();
+            let kb = frame(FrameKind::Key, 10, 10, &mut enc, &pose(key.clone()));
+            let df = frame(FrameKind::Delta, 11, 10, &mut enc, &pose(delta.clone()));
+            let k = dec.decode(&kb).unwrap();
+            let d = dec.decode(&df).unwrap();
+            prop_assert!(df.len() <= kb.len() + key.len().div_ceil(4));
+            for (expected, frame) in [(&key, &k), (&delta, &d)] {
+                let got = &frame.avatars[0];
+                prop_assert_eq!(got.hash, 0xabcd);
+                prop_assert_eq!(&got.translations, &vec![Vec3::new(1.0, 2.0, 3.0)]);
+                for (a, b) in expected.iter().zip(&got.rotations) {
+                    prop_assert!(quant::angle_between_degrees(*a, *b) <= quant::MAX_ERROR_DEGREES);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn unchanged_delta_is_tags_only_and_missing_key_is_reported() {
+        let q = vec![Quat::from_rotation_y(0.3); 8];
+        let mut enc = ChunkEncoder::new();
+        let kb = frame(FrameKind::Key, 1, 1, &mut enc, &pose(q.clone()));
+        let db = frame(FrameKind::Delta, 2, 1, &mut enc, &pose(q.clone()));
+        // header + chunk head (4 + 8 + 6) + 2 tag bytes + one translation
+        assert_eq!(db.len(), HEADER_BYTES + 18 + 2 + 12);
+        assert_eq!(kb.len(), HEADER_BYTES + 18 + 8 * 6 + 12);
+        let mut dec = FrameDecoder::new();
+        assert_eq!(
+            dec.decode(&db),
+            Err(FrameError::MissingKeyframe {
+                avatar: 7,
+                base_seq: 1
+            })
+        );
+        dec.decode(&kb).unwrap();
+        dec.decode(&db).unwrap();
+    }
+
+    #[test]
+    fn every_truncation_and_trailing_byte_is_an_error_not_a_panic() {
+        let q = vec![Quat::from_rotation_x(1.0); 5];
+        let mut enc = ChunkEncoder::new();
+        let kb = frame(FrameKind::Key, 1, 1, &mut enc, &pose(q));
+        for len in 0..kb.len() {
+            assert!(
+                FrameDecoder::new().decode(&kb[..len]).is_err(),
+                "length {len}"
+            );
+        }
+        let mut long = kb.clone();
+        long.push(0);
+        assert_eq!(
+            FrameDecoder::new().decode(&long),
+            Err(FrameError::Trailing(1))
+        );
+    }
+
+    proptest! {
+        #[test]
+        fn garbage_never_panics(bytes in prop::collection::vec(any::<u8>(), 0..400)) {
+            let mut dec = FrameDecoder::new();
+            let _ = dec.decode(&bytes);
+            let mut framed = vec![MAGIC, 1];
+            framed.extend_from_slice(&bytes);
+            let _ = dec.decode(&framed);
+        }
+    }
+}

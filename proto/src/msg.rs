@@ -1,0 +1,297 @@
+//! The messages of the posecast websocket protocol (version [`PROTOCOL_VERSION`]).
+//!
+//! Control messages travel as JSON text frames in both encodings: serde enums tagged by
+//! `"type"`, snake_case. Pose frames travel as JSON text ([`FrameJson`]) for the `json`
+//! encoding and as compact binary frames ([`crate::frame`]) for the `binary` encoding. A client
+//! always speaks first with [`ClientMsg::Hello`]; the server answers [`ServerMsg::Welcome`] or an
+//! error and a close. See `proto/PROTOCOL.md` for the whole exchange with examples.
+
+use crate::description::AvatarDescription;
+use serde::{Deserialize, Serialize};
+use std::fmt;
+
+/// The protocol version this crate speaks. A hello with any other version is refused with
+/// [`ErrorCode::UnsupportedVersion`].
+pub const PROTOCOL_VERSION: u32 = 1;
+
+/// Largest message the server accepts from a client, in bytes (hello, subscribe, commands).
+/// Uploads of assets go through HTTP, not the websocket.
+pub const MAX_CLIENT_MESSAGE_BYTES: usize = 64 * 1024;
+
+/// A scene's id, chosen by whoever creates the scene (`"default"` for the built-in one).
+#[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(transparent)]
+pub struct SceneId(pub String);
+
+/// An avatar's id, unique on the server.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(transparent)]
+pub struct AvatarId(pub String);
+
+impl fmt::Display for SceneId {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl fmt::Display for AvatarId {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+/// How pose frames reach a client.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Encoding {
+    /// Binary websocket frames with smallest-three quantised rotations ([`crate::frame`]).
+    Binary,
+    /// JSON text frames with float quaternions ([`FrameJson`]), for dashboards and debugging.
+    Json,
+}
+
+/// Everything a client may send.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum ClientMsg {
+    /// First message of every connection.
+    Hello {
+        /// Must equal [`PROTOCOL_VERSION`].
+        version: u32,
+        /// The encoding of pose frames the client wants.
+        encoding: Encoding,
+        /// A view or control token, when the server requires one.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        token: Option<String>,
+        /// Free text naming the client, for logs.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        client: Option<String>,
+    },
+    /// Start receiving a scene's descriptions and frames. `avatars` limits the frames to the
+    /// listed avatars; `None` means every avatar in the scene, including ones added later.
+    Subscribe {
+        /// The scene.
+        scene: SceneId,
+        /// Only these avatars, or all.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        avatars: Option<Vec<AvatarId>>,
+    },
+    /// Stop receiving a scene.
+    Unsubscribe {
+        /// The scene.
+        scene: SceneId,
+    },
+    /// Clock probe: the server echoes `client_time_us` in a [`ServerMsg::Pong`].
+    Ping {
+        /// Chosen by the client, echoed back.
+        id: u32,
+        /// The client's clock when sending, in microseconds (any epoch).
+        client_time_us: u64,
+    },
+    /// A control command (see [`crate::command`]); answered by [`ServerMsg::Ack`] or
+    /// [`ServerMsg::Error`] carrying the same `id`.
+    Command {
+        /// Chosen by the client, echoed back.
+        id: u64,
+        /// What to do.
+        command: crate::command::Command,
+    },
+}
+
+/// Everything the server may send as a text message.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum ServerMsg {
+    /// Answer to a valid hello.
+    Welcome {
+        /// The protocol version in use.
+        version: u32,
+        /// The encoding of pose frames on this connection.
+        encoding: Encoding,
+        /// Server name and version, for logs.
+        server: String,
+        /// Ticks (pose frames) per second of every scene.
+        tick_rate: f32,
+        /// The server clock when sending, microseconds since the Unix epoch.
+        server_time_us: u64,
+    },
+    /// Subscription confirmed. Descriptions of the scene's avatars follow, then a keyframe.
+    Subscribed {
+        /// The scene.
+        scene: SceneId,
+        /// The scene's number in binary frames.
+        scene_num: u32,
+    },
+    /// Subscription ended (on request or because the scene was deleted).
+    Unsubscribed {
+        /// The scene.
+        scene: SceneId,
+    },
+    /// An avatar's rig, sent once per subscription and again whenever it changes.
+    Description {
+        /// The scene the avatar is in.
+        scene: SceneId,
+        /// The rig.
+        avatar: Box<AvatarDescription>,
+    },
+    /// The avatar left the scene; frames no longer carry it.
+    AvatarRemoved {
+        /// The scene.
+        scene: SceneId,
+        /// The avatar.
+        avatar: AvatarId,
+    },
+    /// Answer to a ping.
+    Pong {
+        /// The ping's id.
+        id: u32,
+        /// The ping's client time, echoed.
+        client_time_us: u64,
+        /// The server clock when answering, microseconds since the Unix epoch.
+        server_time_us: u64,
+    },
+    /// A command succeeded.
+    Ack {
+        /// The command's id.
+        id: u64,
+        /// What the command returned (its shape depends on the command).
+        #[serde(default, skip_serializing_if = "serde_json::Value::is_null")]
+        result: serde_json::Value,
+    },
+    /// A pose frame in the JSON encoding.
+    Frame(FrameJson),
+    /// Something went wrong. `id` is the command's id when a command failed.
+    Error(ProtocolError),
+}
+
+/// A typed error: a stable machine-readable code and a human message.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, thiserror::Error)]
+#[error("{code:?}: {message}")]
+pub struct ProtocolError {
+    /// What kind of error.
+    pub code: ErrorCode,
+    /// What happened, for people.
+    pub message: String,
+    /// The id of the command that failed, if a command failed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub id: Option<u64>,
+}
+
+impl ProtocolError {
+    /// An error with no command id.
+    #[must_use]
+    pub fn new(code: ErrorCode, message: impl Into<String>) -> Self {
+        Self {
+            code,
+            message: message.into(),
+            id: None,
+        }
+    }
+
+    /// The same error, answering command `id`.
+    #[must_use]
+    pub fn for_command(mut self, id: u64) -> Self {
+        self.id = Some(id);
+        self
+    }
+}
+
+/// Stable error codes. New codes may be added in later versions; clients treat an unknown code
+/// as a generic failure.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ErrorCode {
+    /// Not valid JSON, or not a known message shape.
+    BadMessage,
+    /// A binary message from the client (clients send text only).
+    UnexpectedBinary,
+    /// Larger than [`MAX_CLIENT_MESSAGE_BYTES`].
+    MessageTooLarge,
+    /// Hello carried a version other than [`PROTOCOL_VERSION`].
+    UnsupportedVersion,
+    /// A message other than hello before the hello, or a second hello.
+    NotAllowedNow,
+    /// No such scene.
+    UnknownScene,
+    /// No such avatar.
+    UnknownAvatar,
+    /// No such clip.
+    UnknownClip,
+    /// No such joint.
+    UnknownJoint,
+    /// A value that is out of range or not finite (e.g. a NaN quaternion).
+    InvalidValue,
+    /// Missing or wrong token.
+    Unauthorized,
+    /// The token is valid but does not allow this.
+    Forbidden,
+    /// The thing already exists.
+    Conflict,
+    /// An uploaded asset could not be imported.
+    ImportFailed,
+    /// The request is too large.
+    TooLarge,
+    /// The server failed; the request may be retried.
+    Internal,
+}
+
+/// A pose frame in the JSON encoding: the same content as a binary keyframe, with float
+/// quaternions `[x, y, z, w]` (unquantised).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameJson {
+    /// The scene.
+    pub scene: SceneId,
+    /// Tick number of the scene, +1 per tick (ticks skipped under load leave gaps).
+    pub seq: u64,
+    /// The server clock at the tick, microseconds since the Unix epoch.
+    pub server_time_us: u64,
+    /// One entry per avatar the subscription covers.
+    pub avatars: Vec<AvatarPoseJson>,
+}
+
+/// One avatar's pose in a [`FrameJson`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AvatarPoseJson {
+    /// The avatar.
+    pub avatar: AvatarId,
+    /// The description hash the pose belongs to (16 hex digits).
+    pub hash: String,
+    /// Local rotation of every joint, `[x, y, z, w]`, in description order.
+    pub rotations: Vec<[f32; 4]>,
+    /// Local translation of every joint in the description's `translated_joints`, in order.
+    pub translations: Vec<[f32; 3]>,
+    /// Local scale of every joint in the description's `scaled_joints`, in order.
+    pub scales: Vec<[f32; 3]>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn hello_round_trips_and_unknown_fields_are_refused() {
+        let hello = ClientMsg::Hello {
+            version: PROTOCOL_VERSION,
+            encoding: Encoding::Json,
+            token: None,
+            client: Some("test".into()),
+        };
+        let text = serde_json::to_string(&hello).unwrap();
+        assert_eq!(
+            text,
+            r#"{"type":"hello","version":1,"encoding":"json","client":"test"}"#
+        );
+        assert_eq!(serde_json::from_str::<ClientMsg>(&text).unwrap(), hello);
+        assert!(serde_json::from_str::<ClientMsg>(r#"{"type":"hello","version":1}"#).is_err());
+        assert!(serde_json::from_str::<ClientMsg>(r#"{"type":"launch"}"#).is_err());
+    }
+
+    #[test]
+    fn errors_serialise_with_snake_case_codes() {
+        let e = ServerMsg::Error(ProtocolError::new(ErrorCode::UnknownScene, "no scene x"));
+        assert_eq!(
+            serde_json::to_string(&e).unwrap(),
+            r#"{"type":"error","code":"unknown_scene","message":"no scene x"}"#
+        );
+    }
+}
