@@ -59,9 +59,50 @@ pub(crate) fn from_slice_with_base(
         source,
     })?;
     let doc = &gltf.document;
+    check_channel_targets(name, doc)?;
+    // The gltf crate's accessors index the document with `unwrap` after its validation; a
+    // gap in that validation must not take the server down, so a panic in it becomes an
+    // error here (the explicit checks above and in `accessor` cover every case we know of).
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        import_document(name, doc, gltf.blob.clone(), base)
+    }))
+    .unwrap_or_else(|_| {
+        Err(ImportError::Unsupported {
+            file: name.to_owned(),
+            message: "the glTF parser failed on malformed input".to_owned(),
+        })
+    })
+}
+
+/// gltf-json 1.4 does not validate animation channel targets, and `Target::node` unwraps.
+fn check_channel_targets(file: &str, doc: &gltf::Document) -> Result<(), ImportError> {
+    let nodes = doc.nodes().len();
+    for (a, anim) in doc.as_json().animations.iter().enumerate() {
+        for (c, ch) in anim.channels.iter().enumerate() {
+            let node = ch.target.node.value();
+            if node >= nodes {
+                return Err(ImportError::Node {
+                    file: file.to_owned(),
+                    node,
+                    message: format!(
+                        "animation {a} channel {c} targets a node that does not exist"
+                    ),
+                });
+            }
+        }
+    }
+    Ok(())
+}
+
+fn import_document(
+    name: &str,
+    doc: &gltf::Document,
+    blob: Option<Vec<u8>>,
+    base: Option<&Path>,
+) -> Result<Vec<Asset>, ImportError> {
     let buffers = Buffers {
         file: name,
-        data: load_buffers(name, doc, gltf.blob.clone(), base)?,
+        data: load_buffers(name, doc, blob, base)?,
     };
     let nodes = Nodes::new(name, doc)?;
     let skins: Vec<gltf::Skin<'_>> = doc.skins().collect();
