@@ -485,7 +485,7 @@ mod tests {
         assert_eq!(out[0].translation, Vec3::X);
         assert_eq!(out[0].rotation, rest[0].rotation);
         assert_eq!(out[1].translation, Vec3::Z);
-        assert!(out[1].rotation.angle_between(Quat::from_rotation_z(0.5)) < 1e-5);
+        assert!(out[1].rotation.dot(Quat::from_rotation_z(0.5)).abs() > 1.0 - 1e-6);
         assert_eq!(out[2], rest[2]);
         // Short buffers: no panic, only the overlap is written.
         let mut short = [Transform::IDENTITY; 1];
@@ -526,7 +526,7 @@ mod tests {
         assert!(after[0].translation.abs_diff_eq(expected_t, 1e-5));
         let q = before[1].rotation;
         let expected_q = b.rot_pre * (a.rot_pre * q * a.rot_post) * b.rot_post;
-        assert!(after[1].rotation.angle_between(expected_q) < 1e-4);
+        assert!(after[1].rotation.dot(expected_q).abs() > 1.0 - 1e-5);
     }
 
     #[test]
@@ -554,7 +554,7 @@ mod tests {
         c.sample(0.5, &[Transform::IDENTITY], &mut out);
         let expected =
             Quat::from_rotation_z(1.1) * Quat::from_rotation_y(-0.4) * Quat::from_rotation_x(0.3);
-        assert!(out[0].rotation.angle_between(expected) < 1e-5);
+        assert!(out[0].rotation.dot(expected).abs() > 1.0 - 1e-6);
         assert!(c.is_static(0));
     }
 }
