@@ -1,1 +1,137 @@
-//! Importers, one file per format.
+//! Importers, one file per format, all producing [`Asset`]s.
+//!
+//! - [`gltf`]: glTF 2.0 (`.gltf` with embedded or external buffers, `.glb`).
+//! - [`skel`], [`skin`], [`anim`], assembled by [`cse169`]: the UCSD CSE169 course formats.
+//! - [`bvh`]: Biovision hierarchy motion capture.
+//!
+//! Every importer works on bytes or text so the server can import uploads; [`load_path`]
+//! adds the file-system conventions. Malformed input gives an [`ImportError`] naming the file
+//! and the place, never a panic; counts in files are checked against the remaining input
+//! before anything is allocated for them.
+
+mod accessor;
+pub mod anim;
+pub mod bvh;
+pub mod cse169;
+mod error;
+pub mod gltf;
+pub mod skel;
+pub mod skin;
+mod text;
+
+pub use error::ImportError;
+
+use std::path::{Path, PathBuf};
+
+use crate::asset::Asset;
+
+/// Largest file [`load_path`] reads.
+pub const MAX_FILE_BYTES: u64 = 1 << 30;
+
+/// Loads the assets in a file, by extension (case-insensitive):
+/// - `.gltf` / `.glb`: one asset per skin (see [`gltf::from_slice`]); external buffers are
+///   read relative to the file's folder.
+/// - `.skel`: one asset. A `.skin` with the same stem in the same folder is its mesh, and
+///   `<stem>.anim` and `<stem>_*.anim` there are its clips (e.g. `wasp.skel`, `wasp.skin`,
+///   `wasp_walk.anim`), in name order.
+/// - `.bvh`: one asset with one clip.
+///
+/// A `.skin` or `.anim` alone is refused: it needs its `.skel`.
+pub fn load_path(path: &Path) -> Result<Vec<Asset>, ImportError> {
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .unwrap_or_default();
+    let name = file_name(path);
+    let stem = path
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .unwrap_or("asset")
+        .to_owned();
+    match ext.as_str() {
+        "gltf" | "glb" => {
+            let bytes = read(path)?;
+            gltf::from_slice_with_base(&name, &bytes, path.parent())
+        }
+        "bvh" => Ok(vec![bvh::parse(&name, &read_text(path)?)?]),
+        "skel" => {
+            let skel = skel::parse(&name, &read_text(path)?)?;
+            let skin_path = path.with_extension("skin");
+            let skin = if skin_path.is_file() {
+                let text = read_text(&skin_path)?;
+                Some(skin::parse(&file_name(&skin_path), &text, &skel.skeleton)?)
+            } else {
+                None
+            };
+            let mut clips = Vec::new();
+            for anim_path in sibling_anims(path, &stem) {
+                let text = read_text(&anim_path)?;
+                let mut clip = anim::parse(&file_name(&anim_path), &text, &skel.skeleton)?;
+                if let Some(s) = anim_path.file_stem().and_then(|s| s.to_str()) {
+                    clip.set_name(s);
+                }
+                clips.push(clip);
+            }
+            Ok(vec![cse169::assemble(&stem, skel, skin, clips)?])
+        }
+        "skin" | "anim" => Err(ImportError::Unsupported {
+            file: name,
+            message: format!("a .{ext} file needs its .skel: load the .skel instead"),
+        }),
+        _ => Err(ImportError::UnknownFormat {
+            path: path.to_owned(),
+        }),
+    }
+}
+
+fn file_name(path: &Path) -> String {
+    path.file_name().map_or_else(
+        || path.display().to_string(),
+        |n| n.to_string_lossy().into_owned(),
+    )
+}
+
+fn sibling_anims(skel: &Path, stem: &str) -> Vec<PathBuf> {
+    let dir = skel.parent().unwrap_or(Path::new("."));
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return Vec::new();
+    };
+    let prefix = format!("{stem}_");
+    let mut found: Vec<PathBuf> = entries
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .filter(|p| {
+            let is_anim = p
+                .extension()
+                .and_then(|e| e.to_str())
+                .is_some_and(|e| e.eq_ignore_ascii_case("anim"));
+            let s = p.file_stem().and_then(|s| s.to_str()).unwrap_or("");
+            is_anim && (s == stem || s.starts_with(&prefix))
+        })
+        .collect();
+    found.sort();
+    found
+}
+
+pub(crate) fn read(path: &Path) -> Result<Vec<u8>, ImportError> {
+    let io = |source| ImportError::Io {
+        path: path.to_owned(),
+        source,
+    };
+    let len = std::fs::metadata(path).map_err(io)?.len();
+    if len > MAX_FILE_BYTES {
+        return Err(io(std::io::Error::other(format!(
+            "file is {len} bytes, more than the {MAX_FILE_BYTES} limit"
+        ))));
+    }
+    std::fs::read(path).map_err(io)
+}
+
+fn read_text(path: &Path) -> Result<String, ImportError> {
+    let bytes = read(path)?;
+    String::from_utf8(bytes).map_err(|e| ImportError::Io {
+        path: path.to_owned(),
+        source: std::io::Error::new(std::io::ErrorKind::InvalidData, e),
+    })
+}

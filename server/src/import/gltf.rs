@@ -1,0 +1,708 @@
+//! glTF 2.0 (`.gltf` + `.bin`, embedded data URIs, `.glb`) through the `gltf` crate's parser
+//! and validator, with bounds-checked accessor reading of our own.
+//!
+//! **One asset per skin.** A file with several skins (RecursiveSkeletons: 84 skins sharing one
+//! mesh) gives several assets, `<stem>#<skin name or index>`, each with the meshes of the
+//! nodes that use that skin and the clips that move its joints. A file without skins is
+//! refused.
+//!
+//! **Non-joint ancestors.** The skeleton of a skin is its joints plus every ancestor node of a
+//! joint. Ancestors that are not joints are folded into their children when they are static
+//! (no animation channel) and rigid (unit scale): e.g. the `Z_UP` and `Armature` nodes of
+//! COLLADA2GLTF exports become part of the root joint's rest transform, and a
+//! [`ChannelMap`] on the root's channels applies them to animation too, so world matrices
+//! equal the file's node globals exactly. Ancestors that are animated or scaled are kept as
+//! joints (listed in [`SourceInfo::helper_joints`], bound at rest, weighted by nothing).
+//!
+//! **Meshes.** Vertices stay in mesh space; the skinned mesh node's own transform is ignored,
+//! as the glTF spec requires. Triangle primitives only; `JOINTS_0`/`WEIGHTS_0` (u8 or u16,
+//! float or normalised weights) and `JOINTS_1`/`WEIGHTS_1` when present (8 influences).
+//! Normals are computed when absent.
+//!
+//! **Animations.** Translation, rotation and scale channels with `STEP`, `LINEAR` (slerp for
+//! rotations) and `CUBICSPLINE`; a clip's range is its first to last key, so it may start
+//! after 0. Morph-target weights are skipped with a note.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use base64::Engine as _;
+use glam::{Mat4, Quat, Vec3};
+use gltf::accessor::Dimensions;
+use gltf::animation::{Interpolation as GltfInterpolation, Property};
+use gltf::mesh::{Mode, Semantic};
+use posecast_proto::skeleton::topological_order;
+use posecast_proto::{Skeleton, SkinnedMesh, Transform};
+
+use super::ImportError;
+use super::accessor::Buffers;
+use super::skel::unique_names;
+use crate::asset::{Asset, AssetMesh, SourceFormat, SourceInfo, UpAxis};
+use crate::clip::{
+    ChannelMap, Clip, Interpolation, JointChannels, RotationChannel, Track, VectorChannel,
+};
+
+/// Imports a `.glb` or a `.gltf` whose buffers are embedded (GLB binary chunk or `data:`
+/// URIs). External buffer files are refused: use [`super::load_path`] for those.
+pub fn from_slice(name: &str, bytes: &[u8]) -> Result<Vec<Asset>, ImportError> {
+    from_slice_with_base(name, bytes, None)
+}
+
+/// As [`from_slice`], resolving relative buffer URIs against `base` when given.
+pub(crate) fn from_slice_with_base(
+    name: &str,
+    bytes: &[u8],
+    base: Option<&Path>,
+) -> Result<Vec<Asset>, ImportError> {
+    let gltf = gltf::Gltf::from_slice(bytes).map_err(|source| ImportError::Gltf {
+        file: name.to_owned(),
+        source,
+    })?;
+    let doc = &gltf.document;
+    check_channel_targets(name, doc)?;
+    // The gltf crate's accessors index the document with `unwrap` after its validation; a
+    // gap in that validation must not take the server down, so a panic in it becomes an
+    // error here (the explicit checks above and in `accessor` cover every case we know of).
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        import_document(name, doc, gltf.blob.clone(), base)
+    }))
+    .unwrap_or_else(|_| {
+        Err(ImportError::Unsupported {
+            file: name.to_owned(),
+            message: "the glTF parser failed on malformed input".to_owned(),
+        })
+    })
+}
+
+/// gltf-json 1.4 does not validate animation channel targets, and `Target::node` unwraps.
+fn check_channel_targets(file: &str, doc: &gltf::Document) -> Result<(), ImportError> {
+    let nodes = doc.nodes().len();
+    for (a, anim) in doc.as_json().animations.iter().enumerate() {
+        for (c, ch) in anim.channels.iter().enumerate() {
+            let node = ch.target.node.value();
+            if node >= nodes {
+                return Err(ImportError::Node {
+                    file: file.to_owned(),
+                    node,
+                    message: format!(
+                        "animation {a} channel {c} targets a node that does not exist"
+                    ),
+                });
+            }
+        }
+    }
+    Ok(())
+}
+
+fn import_document(
+    name: &str,
+    doc: &gltf::Document,
+    blob: Option<Vec<u8>>,
+    base: Option<&Path>,
+) -> Result<Vec<Asset>, ImportError> {
+    let buffers = Buffers {
+        file: name,
+        data: load_buffers(name, doc, blob, base)?,
+    };
+    let nodes = Nodes::new(name, doc)?;
+    let skins: Vec<gltf::Skin<'_>> = doc.skins().collect();
+    if skins.is_empty() {
+        return Err(ImportError::Unsupported {
+            file: name.to_owned(),
+            message: "no skins: posecast imports skinned rigs".to_owned(),
+        });
+    }
+    let stem = name.rsplit_once('.').map_or(name, |(s, _)| s);
+    let mut animated = vec![false; nodes.local.len()];
+    for a in doc.animations() {
+        for c in a.channels() {
+            if c.target().property() != Property::MorphTargetWeights {
+                if let Some(x) = animated.get_mut(c.target().node().index()) {
+                    *x = true;
+                }
+            }
+        }
+    }
+    let ctx = Context {
+        file: name,
+        doc,
+        buffers: &buffers,
+        nodes: &nodes,
+        animated: &animated,
+    };
+    skins
+        .iter()
+        .map(|skin| {
+            let asset_name = if skins.len() == 1 {
+                stem.to_owned()
+            } else {
+                match skin.name() {
+                    Some(n) if !n.is_empty() => format!("{stem}#{n}"),
+                    _ => format!("{stem}#skin{}", skin.index()),
+                }
+            };
+            ctx.skin(skin, asset_name)
+        })
+        .collect()
+}
+
+fn load_buffers(
+    file: &str,
+    doc: &gltf::Document,
+    mut blob: Option<Vec<u8>>,
+    base: Option<&Path>,
+) -> Result<Vec<Vec<u8>>, ImportError> {
+    let err = |buffer: usize, message: String| ImportError::Buffer {
+        file: file.to_owned(),
+        buffer,
+        message,
+    };
+    let mut out = Vec::new();
+    for buffer in doc.buffers() {
+        let i = buffer.index();
+        let data = match buffer.source() {
+            gltf::buffer::Source::Bin => blob
+                .take()
+                .ok_or_else(|| err(i, "refers to a GLB binary chunk the file lacks".into()))?,
+            gltf::buffer::Source::Uri(uri) => {
+                if let Some(rest) = uri.strip_prefix("data:") {
+                    let (_, data) = rest
+                        .split_once(";base64,")
+                        .ok_or_else(|| err(i, "data URI is not base64".into()))?;
+                    base64::engine::general_purpose::STANDARD
+                        .decode(data)
+                        .map_err(|e| err(i, format!("bad base64: {e}")))?
+                } else if let Some(base) = base {
+                    let relative = Path::new(uri);
+                    let safe = !uri.contains(':')
+                        && relative.components().all(|c| {
+                            matches!(
+                                c,
+                                std::path::Component::Normal(_) | std::path::Component::CurDir
+                            )
+                        });
+                    if !safe {
+                        return Err(err(i, format!("URI {uri:?} is not a plain relative path")));
+                    }
+                    let path = base.join(uri.replace("%20", " "));
+                    super::read(&path)?
+                } else {
+                    return Err(err(
+                        i,
+                        format!("external file {uri:?} cannot be read when importing from bytes"),
+                    ));
+                }
+            }
+        };
+        if data.len() < buffer.length() {
+            return Err(err(
+                i,
+                format!("has {} bytes, declares {}", data.len(), buffer.length()),
+            ));
+        }
+        out.push(data);
+    }
+    Ok(out)
+}
+
+/// Every node's parent and local transform.
+struct Nodes {
+    parent: Vec<Option<usize>>,
+    local: Vec<Transform>,
+    names: Vec<String>,
+}
+
+impl Nodes {
+    fn new(file: &str, doc: &gltf::Document) -> Result<Self, ImportError> {
+        let count = doc.nodes().len();
+        let err = |node: usize, message: String| ImportError::Node {
+            file: file.to_owned(),
+            node,
+            message,
+        };
+        let mut parent = vec![None; count];
+        let mut local = Vec::with_capacity(count);
+        let mut names = Vec::with_capacity(count);
+        for node in doc.nodes() {
+            let n = node.index();
+            for child in node.children() {
+                let c = child.index();
+                if c == n || parent[c].is_some() {
+                    return Err(err(c, "has more than one parent".into()));
+                }
+                parent[c] = Some(n);
+            }
+            let t = match node.transform() {
+                gltf::scene::Transform::Matrix { matrix } => {
+                    Transform::try_from_mat4(&Mat4::from_cols_array_2d(&matrix))
+                        .map_err(|e| err(n, format!("matrix: {e}")))?
+                }
+                gltf::scene::Transform::Decomposed {
+                    translation,
+                    rotation,
+                    scale,
+                } => Transform {
+                    translation: Vec3::from(translation),
+                    rotation: Quat::from_array(rotation),
+                    scale: Vec3::from(scale),
+                },
+            };
+            let len = t.rotation.length();
+            if !t.is_finite() || len < 1e-6 {
+                return Err(err(
+                    n,
+                    "transform is not finite or has a zero rotation".into(),
+                ));
+            }
+            local.push(Transform {
+                rotation: t.rotation / len,
+                ..t
+            });
+            names.push(match node.name() {
+                Some(s) if !s.is_empty() => s.to_owned(),
+                _ => format!("node{n}"),
+            });
+        }
+        Ok(Self {
+            parent,
+            local,
+            names,
+        })
+    }
+
+    /// Global matrix of `node`'s parent (the product of its ancestors' locals).
+    fn parent_global(&self, node: usize) -> Mat4 {
+        let mut m = Mat4::IDENTITY;
+        let mut cur = self.parent.get(node).copied().flatten();
+        let mut steps = 0;
+        while let Some(p) = cur {
+            if steps > self.parent.len() {
+                break;
+            }
+            m = self.local[p].to_mat4() * m;
+            cur = self.parent[p];
+            steps += 1;
+        }
+        m
+    }
+}
+
+/// `a · b` for a rigid `a` (unit scale), exact in TRS form.
+fn compose_rigid(a: &Transform, b: &Transform) -> Transform {
+    Transform {
+        translation: a.translation + a.rotation * b.translation,
+        rotation: (a.rotation * b.rotation).normalize(),
+        scale: b.scale,
+    }
+}
+
+fn is_rigid(t: &Transform) -> bool {
+    (t.scale - Vec3::ONE).abs().max_element() < 1e-6
+}
+
+struct Context<'a> {
+    file: &'a str,
+    doc: &'a gltf::Document,
+    buffers: &'a Buffers<'a>,
+    nodes: &'a Nodes,
+    animated: &'a [bool],
+}
+
+impl Context<'_> {
+    fn node_err(&self, node: usize, message: impl Into<String>) -> ImportError {
+        ImportError::Node {
+            file: self.file.to_owned(),
+            node,
+            message: message.into(),
+        }
+    }
+
+    fn skin(&self, skin: &gltf::Skin<'_>, name: String) -> Result<Asset, ImportError> {
+        let nodes = self.nodes;
+        let node_count = nodes.local.len();
+        let joints: Vec<usize> = skin.joints().map(|n| n.index()).collect();
+        if joints.is_empty() {
+            return Err(ImportError::Unsupported {
+                file: self.file.to_owned(),
+                message: format!("skin {} has no joints", skin.index()),
+            });
+        }
+        let mut skin_index_of: HashMap<usize, usize> = HashMap::with_capacity(joints.len());
+        for (k, &j) in joints.iter().enumerate() {
+            if skin_index_of.insert(j, k).is_some() {
+                return Err(self.node_err(j, format!("listed twice in skin {}", skin.index())));
+            }
+        }
+        // The joints and all their ancestors.
+        let mut in_set = vec![false; node_count];
+        for &j in &joints {
+            let mut cur = Some(j);
+            while let Some(x) = cur {
+                if in_set[x] {
+                    break;
+                }
+                in_set[x] = true;
+                cur = nodes.parent[x];
+            }
+        }
+        let members: Vec<usize> = (0..node_count).filter(|&n| in_set[n]).collect();
+        let mut member_of = vec![usize::MAX; node_count];
+        for (i, &n) in members.iter().enumerate() {
+            member_of[n] = i;
+        }
+        let member_parent: Vec<Option<usize>> = members
+            .iter()
+            .map(|&n| nodes.parent[n].map(|p| member_of[p]))
+            .collect();
+        let order = topological_order(&member_parent)
+            .map_err(|e| self.node_err(members.first().copied().unwrap_or(0), e.to_string()))?;
+
+        // Fold static rigid non-joint nodes into their children.
+        let m = members.len();
+        let mut kept = vec![false; m];
+        let mut prefix = vec![Transform::IDENTITY; m];
+        let mut kept_parent: Vec<Option<usize>> = vec![None; m]; // nearest kept ancestor
+        let mut skel_index = vec![usize::MAX; m];
+        let mut skel_nodes = Vec::new();
+        let mut skel_parents = Vec::new();
+        let mut rest = Vec::new();
+        let mut maps = Vec::new();
+        let mut helpers = Vec::new();
+        for &i in &order {
+            let n = members[i];
+            let local = &nodes.local[n];
+            let (pre, up) = match member_parent[i] {
+                None => (Transform::IDENTITY, None),
+                Some(p) if kept[p] => (Transform::IDENTITY, Some(p)),
+                Some(p) => (
+                    compose_rigid(&prefix[p], &nodes.local[members[p]]),
+                    kept_parent[p],
+                ),
+            };
+            prefix[i] = pre;
+            kept_parent[i] = up;
+            let is_joint = skin_index_of.contains_key(&n);
+            if !is_joint && !self.animated[n] && is_rigid(local) {
+                continue;
+            }
+            kept[i] = true;
+            skel_index[i] = skel_nodes.len();
+            if !is_joint {
+                helpers.push(skel_nodes.len());
+            }
+            skel_nodes.push(n);
+            skel_parents.push(up.map(|u| skel_index[u]));
+            rest.push(compose_rigid(&pre, local));
+            maps.push(ChannelMap {
+                rot_pre: pre.rotation,
+                trans_rot: pre.rotation,
+                trans_offset: pre.translation,
+                ..ChannelMap::IDENTITY
+            });
+        }
+        let count = skel_nodes.len();
+        let mut skel_of_node: HashMap<usize, usize> = HashMap::with_capacity(count);
+        for (s, &n) in skel_nodes.iter().enumerate() {
+            skel_of_node.insert(n, s);
+        }
+        // skin joint k -> skeleton joint
+        let skin_to_skel: Vec<usize> = joints
+            .iter()
+            .map(|j| skel_of_node.get(j).copied().unwrap_or(0))
+            .collect();
+
+        // Inverse binds: the skin's, or bound at rest for helpers.
+        let mut world = vec![Mat4::IDENTITY; count];
+        for s in 0..count {
+            let l = rest[s].to_mat4();
+            world[s] = match skel_parents[s] {
+                Some(p) => world[p] * l,
+                None => l,
+            };
+        }
+        let mut inverse_bind: Vec<Mat4> = world.iter().map(Mat4::inverse).collect();
+        let mut notes = Vec::new();
+        match skin.inverse_bind_matrices() {
+            Some(acc) => {
+                let v = self
+                    .buffers
+                    .read_as(&acc, Dimensions::Mat4, "inverseBindMatrices")?;
+                if v.len() < joints.len() * 16 {
+                    return Err(ImportError::Accessor {
+                        file: self.file.to_owned(),
+                        accessor: acc.index(),
+                        message: format!(
+                            "{} inverse bind matrices for {} joints",
+                            v.len() / 16,
+                            joints.len()
+                        ),
+                    });
+                }
+                for (k, chunk) in v.chunks_exact(16).take(joints.len()).enumerate() {
+                    let mut a = [0.0f32; 16];
+                    a.copy_from_slice(chunk);
+                    inverse_bind[skin_to_skel[k]] = Mat4::from_cols_array(&a);
+                }
+            }
+            None => {
+                for k in 0..joints.len() {
+                    inverse_bind[skin_to_skel[k]] = Mat4::IDENTITY;
+                }
+                notes.push("skin has no inverseBindMatrices: identity used".to_owned());
+            }
+        }
+        let names = unique_names(skel_nodes.iter().map(|&n| nodes.names[n].clone()));
+        let skeleton =
+            Skeleton::new(names, skel_parents, rest, inverse_bind).map_err(|source| {
+                ImportError::Skeleton {
+                    file: self.file.to_owned(),
+                    source,
+                }
+            })?;
+
+        let meshes = self.meshes(skin, &skin_to_skel, count, &mut notes)?;
+        let clips = self.clips(&skel_of_node, &maps, count, &mut notes)?;
+
+        let mut source = SourceInfo::new(SourceFormat::Gltf);
+        source.helper_joints = helpers;
+        source.notes = notes;
+        // The frame the joints hang in: a Z-up authoring frame maps +Z to +Y.
+        let root = order
+            .iter()
+            .map(|&i| members[i])
+            .find(|n| skin_index_of.contains_key(n))
+            .unwrap_or(joints[0]);
+        let above = nodes.parent_global(root);
+        if above
+            .transform_vector3(Vec3::Z)
+            .normalize_or_zero()
+            .dot(Vec3::Y)
+            > 0.99
+        {
+            source.up_axis = UpAxis::Z;
+        }
+        Ok(Asset {
+            name,
+            skeleton,
+            meshes,
+            clips,
+            source,
+            boxes: None,
+        })
+    }
+
+    fn meshes(
+        &self,
+        skin: &gltf::Skin<'_>,
+        skin_to_skel: &[usize],
+        joint_count: usize,
+        notes: &mut Vec<String>,
+    ) -> Result<Vec<AssetMesh>, ImportError> {
+        let mut out = Vec::new();
+        for node in self.doc.nodes() {
+            let (Some(s), Some(mesh)) = (node.skin(), node.mesh()) else {
+                continue;
+            };
+            if s.index() != skin.index() {
+                continue;
+            }
+            let prims = mesh.primitives().len();
+            for prim in mesh.primitives() {
+                let mut label = match mesh.name() {
+                    Some(n) if !n.is_empty() => n.to_owned(),
+                    _ => format!("mesh{}", mesh.index()),
+                };
+                if prims > 1 {
+                    label = format!("{label}#{}", prim.index());
+                }
+                if prim.mode() != Mode::Triangles {
+                    notes.push(format!("{label}: {:?} primitive skipped", prim.mode()));
+                    continue;
+                }
+                let Some(pos) = prim.get(&Semantic::Positions) else {
+                    notes.push(format!("{label}: primitive without POSITION skipped"));
+                    continue;
+                };
+                let positions: Vec<Vec3> = self
+                    .buffers
+                    .read_as(&pos, Dimensions::Vec3, "POSITION")?
+                    .chunks_exact(3)
+                    .map(Vec3::from_slice)
+                    .collect();
+                let n = positions.len();
+                let normals = match prim.get(&Semantic::Normals) {
+                    Some(a) => self
+                        .buffers
+                        .read_as(&a, Dimensions::Vec3, "NORMAL")?
+                        .chunks_exact(3)
+                        .map(|c| Vec3::from_slice(c).normalize_or(Vec3::Y))
+                        .collect(),
+                    None => Vec::new(),
+                };
+                let indices = match prim.indices() {
+                    Some(a) => self.buffers.read_indices(&a)?,
+                    None => (0..u32::try_from(n).unwrap_or(u32::MAX)).collect(),
+                };
+                let mut sets = Vec::new();
+                for set in 0..2 {
+                    match (
+                        prim.get(&Semantic::Joints(set)),
+                        prim.get(&Semantic::Weights(set)),
+                    ) {
+                        (Some(j), Some(w)) => sets.push((j, w)),
+                        (None, None) => {}
+                        _ => {
+                            return Err(ImportError::Mesh {
+                                file: self.file.to_owned(),
+                                mesh: label,
+                                source: posecast_proto::MeshError::NoInfluences,
+                            });
+                        }
+                    }
+                }
+                if sets.is_empty() {
+                    notes.push(format!("{label}: primitive without JOINTS_0 skipped"));
+                    continue;
+                }
+                let influences = 4 * sets.len();
+                let mut js = vec![0u16; n * influences];
+                let mut ws = vec![0.0f32; n * influences];
+                for (s, (ja, wa)) in sets.iter().enumerate() {
+                    let jv = self.buffers.read_as(ja, Dimensions::Vec4, "JOINTS")?;
+                    let wv = self.buffers.read_as(wa, Dimensions::Vec4, "WEIGHTS")?;
+                    if jv.len() != n * 4 || wv.len() != n * 4 {
+                        return Err(ImportError::Accessor {
+                            file: self.file.to_owned(),
+                            accessor: ja.index(),
+                            message: format!("JOINTS/WEIGHTS counts differ from {n} vertices"),
+                        });
+                    }
+                    for v in 0..n {
+                        for c in 0..4 {
+                            let j = jv[v * 4 + c];
+                            let w = wv[v * 4 + c];
+                            let slot = v * influences + s * 4 + c;
+                            ws[slot] = w;
+                            if w == 0.0 {
+                                continue;
+                            }
+                            let skel = skin_to_skel
+                                .get(j as usize)
+                                .filter(|_| j >= 0.0 && j.fract() == 0.0)
+                                .ok_or_else(|| ImportError::Accessor {
+                                    file: self.file.to_owned(),
+                                    accessor: ja.index(),
+                                    message: format!(
+                                        "vertex {v} uses joint {j}, the skin has {}",
+                                        skin_to_skel.len()
+                                    ),
+                                })?;
+                            js[slot] = u16::try_from(*skel).unwrap_or(0);
+                        }
+                    }
+                }
+                let mesh =
+                    SkinnedMesh::new(positions, normals, indices, influences, js, ws, joint_count)
+                        .map_err(|source| ImportError::Mesh {
+                            file: self.file.to_owned(),
+                            mesh: label.clone(),
+                            source,
+                        })?;
+                out.push(AssetMesh { name: label, mesh });
+            }
+        }
+        Ok(out)
+    }
+
+    fn clips(
+        &self,
+        skel_of_node: &HashMap<usize, usize>,
+        maps: &[ChannelMap],
+        count: usize,
+        notes: &mut Vec<String>,
+    ) -> Result<Vec<Clip>, ImportError> {
+        let mut clips = Vec::new();
+        for anim in self.doc.animations() {
+            let a = anim.index();
+            let clip_name = match anim.name() {
+                Some(n) if !n.is_empty() => n.to_owned(),
+                _ => format!("animation{a}"),
+            };
+            let mut channels = vec![JointChannels::default(); count];
+            let mut any = false;
+            for (c, ch) in anim.channels().enumerate() {
+                let target = ch.target();
+                let Some(&joint) = skel_of_node.get(&target.node().index()) else {
+                    continue;
+                };
+                let sampler = ch.sampler();
+                let interpolation = match sampler.interpolation() {
+                    GltfInterpolation::Step => Interpolation::Step,
+                    GltfInterpolation::Linear => Interpolation::Linear,
+                    GltfInterpolation::CubicSpline => Interpolation::CubicSpline,
+                };
+                let times = self.buffers.read_as(
+                    &sampler.input(),
+                    Dimensions::Scalar,
+                    "animation input",
+                )?;
+                let place = || format!("animation {a} ({clip_name}) channel {c}");
+                let clip_err = |source| ImportError::Clip {
+                    file: self.file.to_owned(),
+                    place: place(),
+                    source,
+                };
+                let out = sampler.output();
+                let slot = &mut channels[joint];
+                match target.property() {
+                    Property::Translation | Property::Scale => {
+                        let v: Vec<Vec3> = self
+                            .buffers
+                            .read_as(&out, Dimensions::Vec3, "animation output")?
+                            .chunks_exact(3)
+                            .map(Vec3::from_slice)
+                            .collect();
+                        let track = Track::new(interpolation, times, v).map_err(clip_err)?;
+                        if target.property() == Property::Translation {
+                            slot.translation = Some(VectorChannel::Keys(track));
+                        } else {
+                            slot.scale = Some(VectorChannel::Keys(track));
+                        }
+                    }
+                    Property::Rotation => {
+                        let v: Vec<Quat> = self
+                            .buffers
+                            .read_as(&out, Dimensions::Vec4, "animation output")?
+                            .chunks_exact(4)
+                            .map(|q| Quat::from_xyzw(q[0], q[1], q[2], q[3]))
+                            .collect();
+                        let track = Track::new(interpolation, times, v).map_err(clip_err)?;
+                        slot.rotation = Some(RotationChannel::Keys(track));
+                    }
+                    Property::MorphTargetWeights => {
+                        notes.push(format!("{}: morph target weights skipped", place()));
+                        continue;
+                    }
+                }
+                any = true;
+            }
+            if !any {
+                continue;
+            }
+            let mut clip = Clip::new(clip_name.clone(), channels, None).map_err(|source| {
+                ImportError::Clip {
+                    file: self.file.to_owned(),
+                    place: format!("animation {a} ({clip_name})"),
+                    source,
+                }
+            })?;
+            for (j, map) in maps.iter().enumerate() {
+                if *map != ChannelMap::IDENTITY {
+                    clip.map_joint(j, *map);
+                }
+            }
+            clips.push(clip);
+        }
+        Ok(clips)
+    }
+}

@@ -1,0 +1,369 @@
+//! glTF importer on the sample models in ../shared/testdata/gltf: counts and clip ranges from
+//! SOURCES.md, the bind-pose check `W_j(rest) · B_j⁻¹ = mesh node global` against the node
+//! hierarchy read independently with the `gltf` crate, rest-pose skinning, and sampled joint
+//! world matrices against the file's own keyframes composed node by node.
+
+#![allow(clippy::unwrap_used)]
+
+use std::path::PathBuf;
+
+use glam::{Mat4, Quat, Vec3};
+use posecast_proto::Transform;
+use posecast_proto::fk::PoseBuffers;
+use posecast_proto::skinning::skin_cpu;
+use posecast_proto::testing::testdata;
+use posecast_server::asset::{Asset, UpAxis};
+use posecast_server::import::{self, ImportError, gltf as gltf_import};
+
+fn path(rel: &str) -> Option<PathBuf> {
+    let p = testdata(rel);
+    if p.exists() {
+        Some(p)
+    } else {
+        eprintln!(
+            "skipping: {} is absent (../shared/testdata not checked out)",
+            p.display()
+        );
+        None
+    }
+}
+
+fn load(rel: &str) -> Option<Vec<Asset>> {
+    path(rel).map(|p| import::load_path(&p).unwrap())
+}
+
+/// Independent reference: the file's node hierarchy through the `gltf` crate's own importer.
+struct Reference {
+    doc: gltf::Document,
+    buffers: Vec<gltf::buffer::Data>,
+    parent: Vec<Option<usize>>,
+}
+
+impl Reference {
+    fn new(rel: &str) -> Self {
+        let (doc, buffers, _) = gltf::import(testdata(rel)).unwrap();
+        let mut parent = vec![None; doc.nodes().len()];
+        for n in doc.nodes() {
+            for c in n.children() {
+                parent[c.index()] = Some(n.index());
+            }
+        }
+        Self {
+            doc,
+            buffers,
+            parent,
+        }
+    }
+
+    fn local(&self, node: usize) -> Mat4 {
+        let n = self.doc.nodes().nth(node).unwrap();
+        Mat4::from_cols_array_2d(&n.transform().matrix())
+    }
+
+    /// Global matrix with `local` supplying each node's local matrix.
+    fn global_with(&self, node: usize, local: &dyn Fn(usize) -> Mat4) -> Mat4 {
+        match self.parent[node] {
+            Some(p) => self.global_with(p, local) * local(node),
+            None => local(node),
+        }
+    }
+
+    fn global(&self, node: usize) -> Mat4 {
+        self.global_with(node, &|n| self.local(n))
+    }
+
+    fn skinned_mesh_node(&self) -> usize {
+        self.doc
+            .nodes()
+            .find(|n| n.skin().is_some() && n.mesh().is_some())
+            .unwrap()
+            .index()
+    }
+
+    /// Each node's local matrix at key `k` of animation 0 (only for files whose channels
+    /// share their key times), read with the gltf crate's reader.
+    fn animated_locals(&self, k: usize) -> Vec<Mat4> {
+        let mut trs: Vec<(Vec3, Quat, Vec3)> = self
+            .doc
+            .nodes()
+            .map(|n| {
+                let (t, r, s) = n.transform().decomposed();
+                (Vec3::from(t), Quat::from_array(r), Vec3::from(s))
+            })
+            .collect();
+        let anim = self.doc.animations().next().unwrap();
+        for ch in anim.channels() {
+            let reader = ch.reader(|b| Some(&self.buffers[b.index()]));
+            let node = ch.target().node().index();
+            use gltf::animation::util::ReadOutputs;
+            match reader.read_outputs().unwrap() {
+                ReadOutputs::Translations(mut it) => trs[node].0 = Vec3::from(it.nth(k).unwrap()),
+                ReadOutputs::Rotations(it) => {
+                    trs[node].1 = Quat::from_array(it.into_f32().nth(k).unwrap())
+                }
+                ReadOutputs::Scales(mut it) => trs[node].2 = Vec3::from(it.nth(k).unwrap()),
+                ReadOutputs::MorphTargetWeights(_) => {}
+            }
+        }
+        trs.iter()
+            .map(|&(t, r, s)| Mat4::from_scale_rotation_translation(s, r, t))
+            .collect()
+    }
+
+    fn key_time(&self, k: usize) -> f32 {
+        let anim = self.doc.animations().next().unwrap();
+        let ch = anim.channels().next().unwrap();
+        let reader = ch.reader(|b| Some(&self.buffers[b.index()]));
+        reader.read_inputs().unwrap().nth(k).unwrap()
+    }
+}
+
+fn max_abs_diff(a: &Mat4, b: &Mat4) -> f32 {
+    (*a - *b)
+        .to_cols_array()
+        .iter()
+        .fold(0.0f32, |m, v| m.max(v.abs()))
+}
+
+fn rest_buffers(a: &Asset) -> PoseBuffers {
+    let mut b = PoseBuffers::new(&a.skeleton);
+    b.update(&a.skeleton, a.skeleton.rest());
+    b
+}
+
+fn skin_joints(a: &Asset) -> usize {
+    a.skeleton.len() - a.source.helper_joints.len()
+}
+
+fn vertex_and_triangle_counts(a: &Asset) -> (usize, usize) {
+    a.meshes.iter().fold((0, 0), |(v, t), m| {
+        (v + m.mesh.vertex_count(), t + m.mesh.indices().len() / 3)
+    })
+}
+
+#[test]
+fn figures_match_sources() {
+    // (file, skin joints, vertices, triangles, clip start, clip end, up axis)
+    let cases: [(&str, usize, usize, usize, f32, f32, UpAxis); 7] = [
+        (
+            "gltf/RiggedSimple/glTF-Binary/RiggedSimple.glb",
+            2,
+            160,
+            188,
+            0.0417,
+            2.0833,
+            UpAxis::Z,
+        ),
+        (
+            "gltf/RiggedSimple/glTF/RiggedSimple.gltf",
+            2,
+            160,
+            188,
+            0.0417,
+            2.0833,
+            UpAxis::Z,
+        ),
+        (
+            "gltf/RiggedFigure/glTF-Binary/RiggedFigure.glb",
+            19,
+            370,
+            256,
+            0.0,
+            1.25,
+            UpAxis::Z,
+        ),
+        (
+            "gltf/CesiumMan/glTF-Binary/CesiumMan.glb",
+            19,
+            3273,
+            4672,
+            0.0417,
+            2.0,
+            UpAxis::Z,
+        ),
+        (
+            "gltf/SimpleSkin/glTF/SimpleSkin.gltf",
+            2,
+            10,
+            8,
+            0.0,
+            5.5,
+            UpAxis::Y,
+        ),
+        (
+            "gltf/SimpleSkin/glTF-Embedded/SimpleSkin.gltf",
+            2,
+            10,
+            8,
+            0.0,
+            5.5,
+            UpAxis::Y,
+        ),
+        (
+            "gltf/RecursiveSkeletons/glTF-Binary/RecursiveSkeletons.glb",
+            10,
+            40,
+            76,
+            0.0,
+            2.0,
+            UpAxis::Y,
+        ),
+    ];
+    for (rel, joints, verts, tris, start, end, up) in cases {
+        let Some(assets) = load(rel) else { return };
+        let a = &assets[0];
+        assert_eq!(skin_joints(a), joints, "{rel}");
+        assert_eq!(vertex_and_triangle_counts(a), (verts, tris), "{rel}");
+        assert_eq!(a.clips.len(), 1, "{rel}");
+        let c = &a.clips[0];
+        assert!(
+            (c.start() - start).abs() < 1e-3 && (c.end() - end).abs() < 1e-3,
+            "{rel}: {} – {}",
+            c.start(),
+            c.end()
+        );
+        assert_eq!(a.source.up_axis, up, "{rel}");
+    }
+}
+
+#[test]
+fn recursive_skeletons_gives_one_asset_per_skin() {
+    let Some(assets) = load("gltf/RecursiveSkeletons/glTF-Binary/RecursiveSkeletons.glb") else {
+        return;
+    };
+    assert_eq!(assets.len(), 84);
+    let names: std::collections::HashSet<&str> = assets.iter().map(|a| a.name.as_str()).collect();
+    assert_eq!(names.len(), 84);
+    for a in &assets {
+        assert_eq!(skin_joints(a), 10, "{}", a.name);
+        assert_eq!(vertex_and_triangle_counts(a), (40, 76));
+        assert_eq!(a.clips[0].name(), "Track0");
+    }
+}
+
+#[test]
+fn bind_pose_check_equals_mesh_node_global() {
+    for rel in [
+        "gltf/RiggedFigure/glTF-Binary/RiggedFigure.glb",
+        "gltf/CesiumMan/glTF-Binary/CesiumMan.glb",
+    ] {
+        let Some(assets) = load(rel) else { return };
+        let a = &assets[0];
+        let r = Reference::new(rel);
+        let mesh_global = r.global(r.skinned_mesh_node());
+        let b = rest_buffers(a);
+        for j in 0..a.skeleton.len() {
+            let d = max_abs_diff(&b.skinning[j], &mesh_global);
+            assert!(d < 1e-4, "{rel} joint {j}: {d}");
+        }
+        // Skinning the rest pose therefore places the mesh as its node would.
+        let mesh = &a.meshes[0].mesh;
+        let mut p = vec![Vec3::ZERO; mesh.vertex_count()];
+        let mut n = vec![Vec3::ZERO; mesh.vertex_count()];
+        skin_cpu(mesh, &b.skinning, &mut p, &mut n);
+        for (got, v) in p.iter().zip(mesh.positions()) {
+            assert!((*got - mesh_global.transform_point3(*v)).length() < 1e-4);
+        }
+    }
+}
+
+#[test]
+fn rigged_simple_uses_z_up_not_mesh_node() {
+    let rel = "gltf/RiggedSimple/glTF-Binary/RiggedSimple.glb";
+    let Some(assets) = load(rel) else { return };
+    let a = &assets[0];
+    let r = Reference::new(rel);
+    // SOURCES.md: glob(J)·IBM equals the root Z_UP matrix, not the mesh node's global.
+    let z_up = r
+        .doc
+        .nodes()
+        .find(|n| n.name() == Some("Z_UP"))
+        .unwrap()
+        .index();
+    let z_up_m = r.global(z_up);
+    let b = rest_buffers(a);
+    for j in 0..a.skeleton.len() {
+        assert!(max_abs_diff(&b.skinning[j], &z_up_m) < 1e-4, "joint {j}");
+    }
+    assert!(max_abs_diff(&z_up_m, &r.global(r.skinned_mesh_node())) > 0.5);
+}
+
+#[test]
+fn simple_skin_rest_and_t0_reproduce_the_mesh() {
+    for rel in [
+        "gltf/SimpleSkin/glTF/SimpleSkin.gltf",
+        "gltf/SimpleSkin/glTF-Embedded/SimpleSkin.gltf",
+    ] {
+        let Some(assets) = load(rel) else { return };
+        let a = &assets[0];
+        let mesh = &a.meshes[0].mesh;
+        let mut pose = a.skeleton.rest().to_vec();
+        a.clips[0].sample(0.0, a.skeleton.rest(), &mut pose);
+        for locals in [a.skeleton.rest().to_vec(), pose] {
+            let mut b = PoseBuffers::new(&a.skeleton);
+            b.update(&a.skeleton, &locals);
+            let mut p = vec![Vec3::ZERO; mesh.vertex_count()];
+            let mut n = vec![Vec3::ZERO; mesh.vertex_count()];
+            skin_cpu(mesh, &b.skinning, &mut p, &mut n);
+            for (got, v) in p.iter().zip(mesh.positions()) {
+                assert!((*got - *v).length() < 1e-5, "{rel}: {got} vs {v}");
+            }
+        }
+    }
+}
+
+#[test]
+fn sampled_worlds_match_the_files_keyframes() {
+    // CesiumMan: all 57 channels share 48 key times; compose the file's own TRS at key k
+    // through the node tree (Z_UP and Armature included) and compare joint world matrices.
+    for rel in [
+        "gltf/CesiumMan/glTF-Binary/CesiumMan.glb",
+        "gltf/RiggedFigure/glTF-Binary/RiggedFigure.glb",
+        "gltf/RiggedSimple/glTF-Binary/RiggedSimple.glb",
+    ] {
+        let Some(assets) = load(rel) else { return };
+        let a = &assets[0];
+        let r = Reference::new(rel);
+        let skin = r.doc.skins().next().unwrap();
+        for k in [0usize, 1] {
+            let locals = r.animated_locals(k);
+            let t = r.key_time(k);
+            let mut pose = vec![Transform::IDENTITY; a.skeleton.len()];
+            a.clips[0].sample(t, a.skeleton.rest(), &mut pose);
+            let mut b = PoseBuffers::new(&a.skeleton);
+            b.update(&a.skeleton, &pose);
+            for joint in skin.joints() {
+                let want = r.global_with(joint.index(), &|n| locals[n]);
+                let name = joint.name().unwrap();
+                let j = a.skeleton.find(name).unwrap();
+                let d = max_abs_diff(&b.world[j], &want);
+                assert!(d < 1e-4, "{rel} key {k} joint {name}: {d}");
+            }
+        }
+    }
+}
+
+#[test]
+fn bytes_api_refuses_external_buffers_but_reads_embedded() {
+    let Some(ext) = path("gltf/SimpleSkin/glTF/SimpleSkin.gltf") else {
+        return;
+    };
+    let bytes = std::fs::read(ext).unwrap();
+    let e = gltf_import::from_slice("SimpleSkin.gltf", &bytes).unwrap_err();
+    assert!(matches!(e, ImportError::Buffer { .. }), "{e}");
+    assert!(e.to_string().contains("SimpleSkin.gltf"));
+    let emb = std::fs::read(testdata("gltf/SimpleSkin/glTF-Embedded/SimpleSkin.gltf")).unwrap();
+    assert_eq!(
+        gltf_import::from_slice("SimpleSkin.gltf", &emb)
+            .unwrap()
+            .len(),
+        1
+    );
+    let glb = std::fs::read(testdata("gltf/CesiumMan/glTF-Binary/CesiumMan.glb")).unwrap();
+    assert_eq!(
+        gltf_import::from_slice("CesiumMan.glb", &glb)
+            .unwrap()
+            .len(),
+        1
+    );
+}
