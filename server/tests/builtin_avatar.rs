@@ -329,6 +329,7 @@ fn mesh_is_big_enough_and_smoothly_weighted() {
     );
     assert!(!a.mesh.indices().is_empty() && a.mesh.indices().len() % 3 == 0);
     let mut blended = 0;
+    let mut three_or_more = 0;
     for (v, (joints, weights)) in a.raw_joints.iter().zip(&a.raw_weights).enumerate() {
         let used: Vec<(u16, f32)> = joints
             .iter()
@@ -345,11 +346,19 @@ fn mesh_is_big_enough_and_smoothly_weighted() {
         if weights.iter().filter(|&&w| w > 0.05).count() >= 2 {
             blended += 1;
         }
+        if weights.iter().filter(|&&w| w > 0.0).count() >= 3 {
+            three_or_more += 1;
+        }
     }
     // Smooth, not rigid: a good share of vertices is shared between joints.
     assert!(
         blended * 10 > a.raw_weights.len(),
         "only {blended} blended vertices"
+    );
+    // Where the limbs meet the torso, more than two joints share a vertex.
+    assert!(
+        three_or_more >= 50,
+        "only {three_or_more} vertices with 3+ influences"
     );
     for n in a.mesh.normals() {
         assert!((n.length() - 1.0).abs() < 1e-4);

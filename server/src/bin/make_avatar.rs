@@ -2,11 +2,14 @@
 //! (default `assets/avatar.glb` at the repository root).
 
 use anyhow::Context;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 fn main() -> anyhow::Result<()> {
     let path = std::env::args_os().nth(1).map_or_else(
-        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../assets/avatar.glb"),
+        || {
+            let server = Path::new(env!("CARGO_MANIFEST_DIR"));
+            server.parent().unwrap_or(server).join("assets/avatar.glb")
+        },
         PathBuf::from,
     );
     let bytes = posecast_server::builtin::try_generate()?;

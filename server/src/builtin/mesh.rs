@@ -43,6 +43,11 @@ struct Segment {
     /// one's, and weights cross-fade over `blend` metres either side of every joint centre.
     chain: &'static [usize],
     blend: f64,
+    /// Joints off the axis that pull nearby vertices along (the hips on the pelvis, the
+    /// shoulders on the chest): `(joint, reach, share)` takes up to `share` of a vertex's weight
+    /// at the joint centre, fading to nothing `reach` metres away. Centre segments only, as
+    /// [`Segment::mirrored`] keeps them as they are.
+    attach: &'static [(usize, f64, f64)],
 }
 
 impl Segment {
@@ -112,6 +117,12 @@ const CENTRE: [Segment; 4] = [
         sides: 24,
         chain: SPINE,
         blend: 0.06,
+        attach: &[
+            (joint::L_HIP, 0.22, 0.7),
+            (joint::R_HIP, 0.22, 0.7),
+            (joint::L_SHOULDER, 0.15, 0.5),
+            (joint::R_SHOULDER, 0.15, 0.5),
+        ],
     },
     Segment {
         start: [0.0, 1.40, -0.02],
@@ -123,6 +134,7 @@ const CENTRE: [Segment; 4] = [
         sides: 14,
         chain: NECK,
         blend: 0.04,
+        attach: &[],
     },
     Segment {
         start: [0.0, 1.535, 0.015],
@@ -138,6 +150,7 @@ const CENTRE: [Segment; 4] = [
         sides: 20,
         chain: NECK,
         blend: 0.04,
+        attach: &[],
     },
     Segment {
         start: [0.0, 1.655, 0.085],
@@ -149,6 +162,7 @@ const CENTRE: [Segment; 4] = [
         sides: 8,
         chain: &[joint::SKULLBASE],
         blend: 0.04,
+        attach: &[],
     },
 ];
 
@@ -164,6 +178,7 @@ const LEFT: [Segment; 7] = [
         sides: 12,
         chain: LEFT_ARM,
         blend: 0.04,
+        attach: &[],
     },
     // Upper arm.
     Segment {
@@ -180,6 +195,7 @@ const LEFT: [Segment; 7] = [
         sides: 14,
         chain: LEFT_ARM,
         blend: 0.05,
+        attach: &[],
     },
     // Forearm.
     Segment {
@@ -196,6 +212,7 @@ const LEFT: [Segment; 7] = [
         sides: 14,
         chain: LEFT_ARM,
         blend: 0.05,
+        attach: &[],
     },
     // Hand, palm down.
     Segment {
@@ -212,6 +229,7 @@ const LEFT: [Segment; 7] = [
         sides: 12,
         chain: LEFT_ARM,
         blend: 0.03,
+        attach: &[],
     },
     // Thigh.
     Segment {
@@ -228,6 +246,7 @@ const LEFT: [Segment; 7] = [
         sides: 14,
         chain: LEFT_LEG,
         blend: 0.06,
+        attach: &[],
     },
     // Shin.
     Segment {
@@ -244,6 +263,7 @@ const LEFT: [Segment; 7] = [
         sides: 14,
         chain: LEFT_LEG,
         blend: 0.05,
+        attach: &[],
     },
     // Foot: its widest, lowest ring sits on y = 0.
     Segment {
@@ -260,6 +280,7 @@ const LEFT: [Segment; 7] = [
         sides: 14,
         chain: LEFT_FOOT,
         blend: 0.04,
+        attach: &[],
     },
 ];
 
@@ -325,7 +346,7 @@ fn tessellate(seg: &Segment, mesh: &mut MeshData) {
     let b = d.cross(a);
     let base = mesh.positions.len();
     let push = |p: DVec3, mesh: &mut MeshData| {
-        let (joints, weights) = skin_weights(seg, (p - start).dot(d));
+        let (joints, weights) = skin_weights(seg, p);
         mesh.positions.push(p.as_vec3());
         mesh.joints.push(joints);
         mesh.weights.push(weights);
@@ -370,13 +391,16 @@ fn tessellate(seg: &Segment, mesh: &mut MeshData) {
     }
 }
 
-/// Weights of a vertex `u` metres along the segment's axis: joint `k` of the chain gets
-/// `σ_k(u) − σ_{k+1}(u)`, where `σ_k` rises smoothly from 0 to 1 across joint `k`'s centre
+/// Weights of the vertex at `p`, `u` metres along the segment's axis: joint `k` of the chain
+/// gets `σ_k(u) − σ_{k+1}(u)`, where `σ_k` rises smoothly from 0 to 1 across joint `k`'s centre
 /// (`σ_0 = 1`, `σ_n = 0`). The sum telescopes to one, and every segment that shares a chain
-/// and an axis line blends the same way, so overlapping tubes move together.
-fn skin_weights(seg: &Segment, u: f64) -> ([u16; INFLUENCES], [f32; INFLUENCES]) {
+/// and an axis line blends the same way, so overlapping tubes move together. Attached joints
+/// then take their share `a_i` and the chain keeps `1 − Σ a_i`. The heaviest
+/// [`INFLUENCES`] are kept and renormalised.
+fn skin_weights(seg: &Segment, p: DVec3) -> ([u16; INFLUENCES], [f32; INFLUENCES]) {
     let start = DVec3::from(seg.start);
     let d = (DVec3::from(seg.end) - start).normalize();
+    let u = (p - start).dot(d);
     let rise = |k: usize| -> f64 {
         if k == 0 {
             1.0
@@ -392,8 +416,19 @@ fn skin_weights(seg: &Segment, u: f64) -> ([u16; INFLUENCES], [f32; INFLUENCES])
         .iter()
         .enumerate()
         .map(|(k, &j)| (j, rise(k) - rise(k + 1)))
-        .filter(|&(_, w)| w >= MIN_WEIGHT)
         .collect();
+    let attached: Vec<(usize, f64)> = seg
+        .attach
+        .iter()
+        .map(|&(j, reach, share)| {
+            let distance = p.distance(DVec3::from(JOINTS[j].head));
+            (j, share * (1.0 - smoothstep(0.0, reach, distance)))
+        })
+        .collect();
+    let taken: f64 = attached.iter().map(|a| a.1).sum::<f64>().min(1.0);
+    pairs.iter_mut().for_each(|pair| pair.1 *= 1.0 - taken);
+    pairs.extend(attached);
+    pairs.retain(|&(_, w)| w >= MIN_WEIGHT);
     pairs.sort_by(|p, q| q.1.total_cmp(&p.1).then(p.0.cmp(&q.0)));
     pairs.truncate(INFLUENCES);
     let sum: f64 = pairs.iter().map(|p| p.1).sum();
@@ -466,14 +501,18 @@ mod tests {
         let thigh = LEFT[4];
         let knee = (DVec3::from(JOINTS[joint::L_KNEE].head) - DVec3::from(thigh.start))
             .dot((DVec3::from(thigh.end) - DVec3::from(thigh.start)).normalize());
-        let (j, w) = skin_weights(&thigh, knee);
+        let on_axis = |u: f64| {
+            let start = DVec3::from(thigh.start);
+            start + (DVec3::from(thigh.end) - start).normalize() * u
+        };
+        let (j, w) = skin_weights(&thigh, on_axis(knee));
         let mut at_knee: Vec<(u16, f32)> = j.into_iter().zip(w).filter(|p| p.1 > 0.0).collect();
         at_knee.sort_by_key(|p| p.0);
         assert_eq!(at_knee.len(), 2);
         assert_eq!(at_knee[0].0 as usize, joint::L_HIP);
         assert_eq!(at_knee[1].0 as usize, joint::L_KNEE);
         assert!((at_knee[0].1 - 0.5).abs() < 1e-6);
-        let (j, w) = skin_weights(&thigh, knee - 0.2);
+        let (j, w) = skin_weights(&thigh, on_axis(knee - 0.2));
         assert_eq!((j[0] as usize, w[0]), (joint::L_HIP, 1.0));
     }
 }
