@@ -2,7 +2,8 @@
 //! `assets/avatar.glb`, the default the server loads with no setup.
 //!
 //! - [`skeleton`]: 23 H-Anim joints in T-pose with bind frames along each bone.
-//! - [`mesh`]: rounded tubes per body segment, smoothly weighted along each limb.
+//! - `body`: the body's segments as data (rounded, tapered tubes and the joints that skin them).
+//! - [`mesh`]: those tubes tessellated and smoothly weighted along each limb.
 //! - [`clips`]: looping `idle`, `walk` and `wave`, sampled at 30 Hz.
 //! - [`glb`]: the binary glTF writer.
 //!
@@ -11,6 +12,7 @@
 //! Generation is deterministic (no randomness, no hash-map order, `f64` maths rounded once),
 //! and `make-avatar` writes the committed file from [`generate`].
 
+mod body;
 pub mod clips;
 pub mod glb;
 pub mod mesh;
