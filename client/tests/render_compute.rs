@@ -4,6 +4,8 @@
 //! poses)`: random rigs with tube meshes, the procedural figure, a mesh with more than four
 //! influences; the glTF rigs of ../shared/testdata and the built-in avatar join once the
 //! importers land.
+// Helpers outside #[test] functions are test code too.
+#![allow(clippy::unwrap_used)]
 
 mod render_support;
 
