@@ -13,16 +13,18 @@ use posecast_client::render::{Offscreen, Renderer, RendererOptions, Tolerance};
 use render_support::{golden, gpu};
 
 /// The golden was made on lavapipe (llvmpipe, Vulkan). Other GPUs rasterise triangles by the
-/// same rules but with their own sub-pixel precision, and evaluate lighting with their own
-/// rounding (fused multiply-add, `pow`, sRGB encoding): interior pixels then differ by a few
-/// 8-bit steps, and pixels on silhouettes and grid lines can change a lot. So: a mean under 1.5
-/// steps per channel, and at most 1.5 % of the pixels off by more than 32 steps (the figure's
-/// silhouette alone is about 3 % of this image). Moving a limb, a wrong normal, or a shifted
-/// camera each break both limits.
+/// same rules (the grid is shaded per pixel on a ground quad, not drawn as line primitives,
+/// whose rasterisation varies far more) but with their own rounding in lighting (fused
+/// multiply-add, `pow`, sRGB encoding) and in the derivatives that anti-alias the grid: most
+/// pixels then differ by a few 8-bit steps, which the mean limit of 1 step per channel absorbs.
+/// Larger differences only arise where a pixel centre lies within sub-pixel precision of a
+/// triangle edge; 0.4 % of the image (about 300 pixels, a third of the figure's silhouette) may
+/// be off by more than 32 steps. Turning the figure's stride by 0.1 rad already breaks both
+/// limits (mean 1.6, 0.48 % outliers), so posing, skinning or camera regressions show.
 const ACROSS_GPUS: Tolerance = Tolerance {
-    mean: 1.5,
+    mean: 1.0,
     outlier_threshold: 32,
-    outlier_fraction: 0.015,
+    outlier_fraction: 0.004,
 };
 
 #[test]
