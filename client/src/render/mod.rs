@@ -27,6 +27,7 @@ mod pipelines;
 pub mod procedural;
 pub mod renderer;
 mod shader;
+pub mod viewer;
 
 pub use bounds::Aabb;
 pub use camera::Camera;
@@ -37,3 +38,4 @@ pub use gpu_types::{GPU_INFLUENCES, MAX_JOINTS_PER_AVATAR};
 pub use image::{RgbaImage, Tolerance};
 pub use offscreen::Offscreen;
 pub use renderer::{AvatarHandle, Renderer, RendererOptions, SkinningPath};
+pub use viewer::{AvatarUpdate, PoseSource, ViewerOptions, run_viewer};
