@@ -1,1 +1,41 @@
-//! The wgpu renderer.
+//! The wgpu renderer: GPU skinning (vertex shader and compute), offscreen rendering to PNG and a
+//! windowed viewer.
+//!
+//! - [`gpu`]: headless device creation ([`Gpu::headless`]), with a typed error when no adapter
+//!   exists.
+//! - [`gpu_types`]: every struct the GPU reads, the influence count and the per-avatar joint
+//!   limit.
+//! - `skinning.wgsl`: the one skinning function, shared by [`compute`] and the vertex shader.
+//! - [`compute`]: compute skinning ([`ComputeSkinner`]), the path tested against the CPU
+//!   reference `posecast_proto::skinning::skin_cpu`.
+//! - [`renderer`]: the scene ([`Renderer`]): avatars, ground grid, skeleton overlay, camera.
+//! - [`offscreen`]: render to a texture and read back an [`RgbaImage`]; [`image`] writes PNGs
+//!   and compares images.
+//! - [`viewer`]: a window showing avatars from a [`PoseSource`].
+//! - [`procedural`]: tube meshes along bones and a small figure, for demos and tests.
+
+mod avatar;
+pub mod bounds;
+pub mod camera;
+pub mod compute;
+pub mod error;
+pub mod gpu;
+pub mod gpu_types;
+pub mod image;
+pub mod offscreen;
+mod pipelines;
+pub mod procedural;
+pub mod renderer;
+mod shader;
+pub mod viewer;
+
+pub use bounds::Aabb;
+pub use camera::Camera;
+pub use compute::{ComputeSkinner, SkinningKernel};
+pub use error::RenderError;
+pub use gpu::Gpu;
+pub use gpu_types::{GPU_INFLUENCES, MAX_JOINTS_PER_AVATAR};
+pub use image::{RgbaImage, Tolerance};
+pub use offscreen::Offscreen;
+pub use renderer::{AvatarHandle, Renderer, RendererOptions, SkinningPath};
+pub use viewer::{AvatarUpdate, PoseSource, ViewerOptions, run_viewer};
