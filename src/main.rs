@@ -1,5 +1,95 @@
-//! `posecast`: starts the server.
+//! `posecast`: starts the server. With no flags it loads the built-in avatar into scene
+//! `default` playing `idle` on 127.0.0.1:8080 at 60 Hz. Every flag is also an environment
+//! variable.
 
-fn main() -> anyhow::Result<()> {
+use clap::Parser;
+use posecast_server::startup::{DEFAULT_SCENE, Server};
+use posecast_server::state::Config;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+/// posecast: a network animation server for virtual humans.
+#[derive(Debug, Parser)]
+#[command(version, about)]
+struct Args {
+    /// Address to listen on.
+    #[arg(long, env = "POSECAST_LISTEN", default_value = "127.0.0.1:8080")]
+    listen: SocketAddr,
+    /// Folders whose assets (.glb, .gltf, .bvh, .skel) are loaded at start (repeatable).
+    #[arg(long = "assets", env = "POSECAST_ASSETS", value_delimiter = ',')]
+    assets: Vec<PathBuf>,
+    /// Pose frames per second of every scene.
+    #[arg(long, env = "POSECAST_TICK_RATE", default_value_t = 60.0)]
+    tick_rate: f32,
+    /// Do not load the built-in avatar and the default scene.
+    #[arg(long, env = "POSECAST_NO_BUILTIN")]
+    no_builtin: bool,
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .init();
+    let args = Args::parse();
+    anyhow::ensure!(
+        args.tick_rate.is_finite() && args.tick_rate > 0.0 && args.tick_rate <= 1000.0,
+        "--tick-rate must be in (0, 1000]"
+    );
+    let config = Config {
+        listen: args.listen,
+        tick_rate: args.tick_rate,
+        asset_dirs: args.assets,
+        builtin: !args.no_builtin,
+    };
+    let mut server = Server::start(config).await?;
+    let shutdown = server.take_shutdown();
+    println!("posecast listening on {}", server.http_url());
+    println!(
+        "  websocket: {}  (scene \"{DEFAULT_SCENE}\")",
+        server.ws_url()
+    );
+    println!(
+        "  health:    {}/healthz   metrics: {}/metrics",
+        server.http_url(),
+        server.http_url()
+    );
+    tokio::spawn(async move {
+        shutdown_signal().await;
+        if let Some(tx) = shutdown {
+            tx.send(()).ok();
+        }
+    });
+    server.wait().await?;
     Ok(())
+}
+
+async fn shutdown_signal() {
+    let ctrl_c = async {
+        if let Err(e) = tokio::signal::ctrl_c().await {
+            tracing::warn!(error = %e, "cannot listen for Ctrl-C");
+            std::future::pending::<()>().await;
+        }
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(e) => {
+                tracing::warn!(error = %e, "cannot listen for SIGTERM");
+                std::future::pending::<()>().await;
+            }
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        () = ctrl_c => {}
+        () = term => {}
+    }
 }

@@ -5,8 +5,23 @@
 //! - [`import`]: one importer per format (glTF, CSE169 `.skel/.skin/.anim`, BVH).
 //! - [`clip`]: the one in-memory clip representation and its samplers.
 //! - [`builtin`]: the generator of the built-in avatar shipped in `assets/`.
+//! - [`library`]: the rigs the server can put in scenes.
+//! - [`scene`]: scenes, avatars, playback and the tick task.
+//! - [`stream`]: per-connection outboxes (bounded fan-out).
+//! - [`control`]: control commands (shared by REST and websocket).
+//! - [`service`]: the axum router (`app`), websocket and HTTP endpoints.
+//! - [`state`]: configuration and shared state; [`metrics`]: counters.
+//! - [`startup`]: [`startup::Server`] — load rigs, create the default scene, serve.
 
 pub mod asset;
 pub mod builtin;
 pub mod clip;
+pub mod control;
 pub mod import;
+pub mod library;
+pub mod metrics;
+pub mod scene;
+pub mod service;
+pub mod startup;
+pub mod state;
+pub mod stream;

@@ -1,0 +1,704 @@
+//! [`Client`]: a handle to a background task that owns the websocket.
+
+use super::clock::ClockEstimator;
+use super::jitter::JitterBuffer;
+use futures_util::{SinkExt, StreamExt};
+use posecast_proto::command::Command;
+use posecast_proto::description::AvatarDescription;
+use posecast_proto::frame::{AvatarPose, FrameDecoder};
+use posecast_proto::msg::{
+    AvatarId, ClientMsg, Encoding, FrameJson, PROTOCOL_VERSION, ProtocolError, SceneId, ServerMsg,
+};
+use posecast_proto::{Skeleton, Transform};
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use tokio::sync::{broadcast, mpsc, oneshot};
+use tokio_tungstenite::tungstenite::Message;
+use tracing::{debug, warn};
+
+/// Microseconds since the Unix epoch on this machine.
+#[must_use]
+pub fn unix_micros() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_micros() as u64)
+}
+
+/// How to connect.
+#[derive(Debug, Clone)]
+pub struct ClientOptions {
+    /// The websocket URL, e.g. `ws://127.0.0.1:8080/ws`.
+    pub url: String,
+    /// Pose frame encoding.
+    pub encoding: Encoding,
+    /// View or control token.
+    pub token: Option<String>,
+    /// Scenes to subscribe to (and optional avatar filters), again after every reconnect.
+    pub subscriptions: Vec<(SceneId, Option<Vec<AvatarId>>)>,
+    /// Reconnect with exponential back-off (100 ms doubling to 5 s) when the connection drops.
+    pub reconnect: bool,
+    /// How often to ping for clock offset and round-trip time.
+    pub ping_interval: Duration,
+    /// Name sent in hello.
+    pub name: String,
+}
+
+impl ClientOptions {
+    /// Binary frames, subscribed to `scene`, reconnecting, pinging every second.
+    #[must_use]
+    pub fn new(url: impl Into<String>, scene: &str) -> Self {
+        Self {
+            url: url.into(),
+            encoding: Encoding::Binary,
+            token: None,
+            subscriptions: vec![(SceneId(scene.to_string()), None)],
+            reconnect: true,
+            ping_interval: Duration::from_secs(1),
+            name: "posecast-client".into(),
+        }
+    }
+}
+
+/// Client failures.
+#[derive(Debug, thiserror::Error)]
+pub enum ClientError {
+    /// Could not connect or the connection failed.
+    #[error("connection to {url} failed: {message}")]
+    Connect {
+        /// The URL.
+        url: String,
+        /// Why.
+        message: String,
+    },
+    /// The server answered with a typed error.
+    #[error("server error: {0}")]
+    Server(#[from] ProtocolError),
+    /// No answer in time.
+    #[error("timed out waiting for {0}")]
+    Timeout(&'static str),
+    /// The client was shut down.
+    #[error("client closed")]
+    Closed,
+}
+
+/// One decoded pose.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PoseSample {
+    /// The scene's tick number.
+    pub seq: u64,
+    /// Server time of the tick, µs since the Unix epoch.
+    pub server_time_us: u64,
+    /// When it arrived, µs since the Unix epoch on this machine.
+    pub received_us: u64,
+    /// Local transform of every joint (rest translation / scale where not streamed).
+    pub locals: Vec<Transform>,
+}
+
+/// What the client knows about one avatar.
+#[derive(Debug, Clone)]
+pub struct AvatarView {
+    /// Its scene.
+    pub scene: SceneId,
+    /// Its description.
+    pub description: Arc<AvatarDescription>,
+    /// The skeleton rebuilt from the description.
+    pub skeleton: Arc<Skeleton>,
+    /// The newest pose.
+    pub latest: Option<PoseSample>,
+    /// Recent poses for interpolation.
+    pub jitter: JitterBuffer,
+}
+
+/// Things that happened, for callers that wait on them (tests, the CLI).
+#[derive(Debug, Clone)]
+pub enum Event {
+    /// Connected and welcomed (again, after a reconnect).
+    Connected,
+    /// A description arrived (new or changed avatar).
+    Description(AvatarId),
+    /// A frame was decoded.
+    Frame {
+        /// Its scene.
+        scene_num: u32,
+        /// Its tick.
+        seq: u64,
+        /// Whether it was a keyframe (binary) — JSON frames count as keyframes.
+        key: bool,
+        /// Payload bytes.
+        bytes: usize,
+    },
+    /// An avatar left.
+    AvatarRemoved(AvatarId),
+    /// The server sent an error that answered no command.
+    Error(ProtocolError),
+    /// The connection dropped.
+    Disconnected,
+}
+
+/// Running totals.
+#[derive(Debug, Clone, Default)]
+pub struct Stats {
+    /// Frames decoded.
+    pub frames: u64,
+    /// Keyframes among them.
+    pub keyframes: u64,
+    /// Frame payload bytes received.
+    pub frame_bytes: u64,
+    /// Frames that could not be decoded (missing keyframe, stale rig, malformed).
+    pub undecodable: u64,
+    /// Frames for an avatar whose description hash differs (stale rig).
+    pub stale: u64,
+    /// Connections made.
+    pub connects: u64,
+    /// Sum and count of tick→receive latencies (µs), offset-corrected.
+    pub latency_sum_us: f64,
+    /// See `latency_sum_us`.
+    pub latency_count: u64,
+    /// Largest tick→receive latency seen, µs.
+    pub latency_max_us: f64,
+}
+
+#[derive(Default)]
+struct Shared {
+    tick_rate: f32,
+    connected: bool,
+    avatars: HashMap<AvatarId, AvatarView>,
+    by_num: HashMap<u32, AvatarId>,
+    scene_nums: HashMap<u32, SceneId>,
+    pending: HashMap<u64, oneshot::Sender<Result<serde_json::Value, ProtocolError>>>,
+    pings: HashMap<u32, u64>,
+    clock: ClockEstimator,
+    stats: Stats,
+}
+
+/// A connection to a posecast server. Dropping it stops the background task.
+pub struct Client {
+    shared: Arc<Mutex<Shared>>,
+    outgoing: mpsc::Sender<ClientMsg>,
+    events: broadcast::Sender<Event>,
+    next_id: AtomicU64,
+    task: tokio::task::JoinHandle<()>,
+}
+
+impl std::fmt::Debug for Client {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Client")
+            .field("connected", &self.is_connected())
+            .finish_non_exhaustive()
+    }
+}
+
+impl Drop for Client {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
+
+fn lock(shared: &Mutex<Shared>) -> MutexGuard<'_, Shared> {
+    shared
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+impl Client {
+    /// Connects, says hello, subscribes, and waits (up to 10 s) for the welcome.
+    ///
+    /// # Errors
+    /// The first connection fails or the server refuses the hello.
+    pub async fn connect(options: ClientOptions) -> Result<Self, ClientError> {
+        let shared = Arc::new(Mutex::new(Shared::default()));
+        let (outgoing, rx) = mpsc::channel(256);
+        let (events, _) = broadcast::channel(1024);
+        let mut first = events.subscribe();
+        let (ready_tx, ready_rx) = oneshot::channel();
+        let task = tokio::spawn(run(
+            options,
+            shared.clone(),
+            rx,
+            events.clone(),
+            Some(ready_tx),
+        ));
+        let client = Self {
+            shared,
+            outgoing,
+            events,
+            next_id: AtomicU64::new(1),
+            task,
+        };
+        match tokio::time::timeout(Duration::from_secs(10), ready_rx).await {
+            Ok(Ok(Ok(()))) => {}
+            Ok(Ok(Err(e))) => return Err(e),
+            Ok(Err(_)) => return Err(ClientError::Closed),
+            Err(_) => return Err(ClientError::Timeout("welcome")),
+        }
+        // Drain the Connected event so callers' subscriptions start clean.
+        while first.try_recv().is_ok() {}
+        Ok(client)
+    }
+
+    /// A receiver of [`Event`]s from now on (lagging receivers lose the oldest events).
+    #[must_use]
+    pub fn events(&self) -> broadcast::Receiver<Event> {
+        self.events.subscribe()
+    }
+
+    /// Sends a message as is (subscribe, unsubscribe, ping…).
+    ///
+    /// # Errors
+    /// The client was shut down.
+    pub async fn send(&self, msg: ClientMsg) -> Result<(), ClientError> {
+        self.outgoing
+            .send(msg)
+            .await
+            .map_err(|_| ClientError::Closed)
+    }
+
+    /// Sends a command and waits (up to 10 s) for its acknowledgement.
+    ///
+    /// # Errors
+    /// The server's typed error, a timeout, or a closed client.
+    pub async fn command(&self, command: Command) -> Result<serde_json::Value, ClientError> {
+        let id = self.next_id.fetch_add(1, Ordering::Relaxed);
+        let (tx, rx) = oneshot::channel();
+        lock(&self.shared).pending.insert(id, tx);
+        self.send(ClientMsg::Command { id, command }).await?;
+        match tokio::time::timeout(Duration::from_secs(10), rx).await {
+            Ok(Ok(result)) => result.map_err(ClientError::Server),
+            Ok(Err(_)) => Err(ClientError::Closed),
+            Err(_) => {
+                lock(&self.shared).pending.remove(&id);
+                Err(ClientError::Timeout("command acknowledgement"))
+            }
+        }
+    }
+
+    /// Whether the connection is up.
+    #[must_use]
+    pub fn is_connected(&self) -> bool {
+        lock(&self.shared).connected
+    }
+
+    /// Every avatar the client knows.
+    #[must_use]
+    pub fn avatars(&self) -> Vec<AvatarView> {
+        lock(&self.shared).avatars.values().cloned().collect()
+    }
+
+    /// One avatar.
+    #[must_use]
+    pub fn avatar(&self, id: &AvatarId) -> Option<AvatarView> {
+        lock(&self.shared).avatars.get(id).cloned()
+    }
+
+    /// The newest pose of an avatar.
+    #[must_use]
+    pub fn latest(&self, id: &AvatarId) -> Option<PoseSample> {
+        lock(&self.shared)
+            .avatars
+            .get(id)
+            .and_then(|a| a.latest.clone())
+    }
+
+    /// The pose to render now: interpolated through the jitter buffer at
+    /// `now + clock offset − adaptive delay`.
+    #[must_use]
+    pub fn pose_now(&self, id: &AvatarId) -> Option<Vec<Transform>> {
+        let s = lock(&self.shared);
+        let offset = s.clock.offset_us();
+        s.avatars
+            .get(id)
+            .and_then(|a| a.jitter.playout(unix_micros(), offset))
+    }
+
+    /// Totals so far.
+    #[must_use]
+    pub fn stats(&self) -> Stats {
+        lock(&self.shared).stats.clone()
+    }
+
+    /// Estimated server − client clock offset and round-trip time, µs.
+    #[must_use]
+    pub fn clock(&self) -> (f64, Option<f64>) {
+        let s = lock(&self.shared);
+        (s.clock.offset_us(), s.clock.rtt_us())
+    }
+
+    /// Tick rate announced by the server.
+    #[must_use]
+    pub fn tick_rate(&self) -> f32 {
+        lock(&self.shared).tick_rate
+    }
+}
+
+type Ready = Option<oneshot::Sender<Result<(), ClientError>>>;
+
+async fn run(
+    options: ClientOptions,
+    shared: Arc<Mutex<Shared>>,
+    mut outgoing: mpsc::Receiver<ClientMsg>,
+    events: broadcast::Sender<Event>,
+    mut ready: Ready,
+) {
+    let mut backoff = Duration::from_millis(100);
+    loop {
+        let result = session(&options, &shared, &mut outgoing, &events, &mut ready).await;
+        {
+            let mut s = lock(&shared);
+            s.connected = false;
+            // Commands in flight will not be answered on a new connection.
+            s.pending.clear();
+        }
+        events.send(Event::Disconnected).ok();
+        match result {
+            Err(e) => {
+                if let Some(r) = ready.take() {
+                    r.send(Err(e)).ok();
+                    return;
+                }
+                warn!(error = %e, "connection lost");
+            }
+            Ok(()) => debug!("connection closed"),
+        }
+        if !options.reconnect || outgoing.is_closed() {
+            return;
+        }
+        tokio::time::sleep(backoff).await;
+        backoff = (backoff * 2).min(Duration::from_secs(5));
+    }
+}
+
+async fn session(
+    options: &ClientOptions,
+    shared: &Arc<Mutex<Shared>>,
+    outgoing: &mut mpsc::Receiver<ClientMsg>,
+    events: &broadcast::Sender<Event>,
+    ready: &mut Ready,
+) -> Result<(), ClientError> {
+    let connect_err = |e: &dyn std::fmt::Display| ClientError::Connect {
+        url: options.url.clone(),
+        message: e.to_string(),
+    };
+    let (ws, _) = tokio_tungstenite::connect_async(options.url.as_str())
+        .await
+        .map_err(|e| connect_err(&e))?;
+    let (mut sink, mut stream) = ws.split();
+    let to_text =
+        |m: &ClientMsg| Message::Text(serde_json::to_string(m).unwrap_or_default().into());
+    let hello = ClientMsg::Hello {
+        version: PROTOCOL_VERSION,
+        encoding: options.encoding,
+        token: options.token.clone(),
+        client: Some(options.name.clone()),
+    };
+    sink.send(to_text(&hello))
+        .await
+        .map_err(|e| connect_err(&e))?;
+    for (scene, avatars) in &options.subscriptions {
+        let sub = ClientMsg::Subscribe {
+            scene: scene.clone(),
+            avatars: avatars.clone(),
+        };
+        sink.send(to_text(&sub))
+            .await
+            .map_err(|e| connect_err(&e))?;
+    }
+    let mut decoder = FrameDecoder::new();
+    let mut ping = tokio::time::interval(options.ping_interval);
+    let mut ping_id = 0u32;
+    loop {
+        tokio::select! {
+            msg = stream.next() => {
+                let Some(msg) = msg else { return Ok(()) };
+                let msg = msg.map_err(|e| connect_err(&e))?;
+                let received = unix_micros();
+                match msg {
+                    Message::Binary(bytes) => on_binary(shared, events, &mut decoder, &bytes, received),
+                    Message::Text(text) => {
+                        match serde_json::from_str::<ServerMsg>(text.as_str()) {
+                            Ok(m) => {
+                                on_server_msg(shared, events, m, text.len(), received, ready)?;
+                            }
+                            Err(e) => warn!(error = %e, "unparseable server message"),
+                        }
+                    }
+                    Message::Close(_) => return Ok(()),
+                    _ => {}
+                }
+            }
+            out = outgoing.recv() => {
+                let Some(out) = out else { return Ok(()) };
+                sink.send(to_text(&out)).await.map_err(|e| connect_err(&e))?;
+            }
+            _ = ping.tick() => {
+                ping_id = ping_id.wrapping_add(1);
+                let now = unix_micros();
+                {
+                    let mut s = lock(shared);
+                    if s.pings.len() > 64 { s.pings.clear(); }
+                    s.pings.insert(ping_id, now);
+                }
+                sink.send(to_text(&ClientMsg::Ping { id: ping_id, client_time_us: now })).await.map_err(|e| connect_err(&e))?;
+            }
+        }
+    }
+}
+
+fn on_server_msg(
+    shared: &Arc<Mutex<Shared>>,
+    events: &broadcast::Sender<Event>,
+    msg: ServerMsg,
+    len: usize,
+    received: u64,
+    ready: &mut Ready,
+) -> Result<(), ClientError> {
+    let mut s = lock(shared);
+    let event = match msg {
+        ServerMsg::Welcome { tick_rate, .. } => {
+            s.tick_rate = tick_rate;
+            s.connected = true;
+            s.stats.connects += 1;
+            if let Some(r) = ready.take() {
+                r.send(Ok(())).ok();
+            }
+            Some(Event::Connected)
+        }
+        ServerMsg::Subscribed { scene, scene_num } => {
+            s.scene_nums.insert(scene_num, scene);
+            None
+        }
+        ServerMsg::Unsubscribed { scene } => {
+            s.avatars.retain(|_, a| a.scene != scene);
+            None
+        }
+        ServerMsg::Description { scene, avatar } => match avatar.to_skeleton() {
+            Ok(skeleton) => {
+                let id = avatar.id.clone();
+                let tick_rate = s.tick_rate;
+                s.by_num.insert(avatar.num, id.clone());
+                s.avatars.insert(
+                    id.clone(),
+                    AvatarView {
+                        scene,
+                        description: Arc::new(*avatar),
+                        skeleton: Arc::new(skeleton),
+                        latest: None,
+                        jitter: JitterBuffer::new(tick_rate),
+                    },
+                );
+                Some(Event::Description(id))
+            }
+            Err(e) => {
+                warn!(error = %e, "invalid description");
+                None
+            }
+        },
+        ServerMsg::AvatarRemoved { avatar, .. } => {
+            s.avatars.remove(&avatar);
+            Some(Event::AvatarRemoved(avatar))
+        }
+        ServerMsg::Pong {
+            id, server_time_us, ..
+        } => {
+            if let Some(t0) = s.pings.remove(&id) {
+                s.clock.add(t0, server_time_us, received);
+            }
+            None
+        }
+        ServerMsg::Ack { id, result } => {
+            if let Some(tx) = s.pending.remove(&id) {
+                tx.send(Ok(result)).ok();
+            }
+            None
+        }
+        ServerMsg::Error(e) => {
+            if let Some(tx) = e.id.and_then(|id| s.pending.remove(&id)) {
+                tx.send(Err(e)).ok();
+                None
+            } else if s.connected {
+                Some(Event::Error(e))
+            } else {
+                // Refused before the welcome (bad version, bad token): the first connect fails.
+                drop(s);
+                if let Some(r) = ready.take() {
+                    r.send(Err(ClientError::Server(e.clone()))).ok();
+                }
+                events.send(Event::Error(e.clone())).ok();
+                return Err(ClientError::Server(e));
+            }
+        }
+        ServerMsg::Frame(frame) => on_json_frame(&mut s, frame, len, received),
+    };
+    drop(s);
+    if let Some(e) = event {
+        events.send(e).ok();
+    }
+    Ok(())
+}
+
+fn record(
+    s: &mut Shared,
+    id: &AvatarId,
+    seq: u64,
+    server_time_us: u64,
+    received: u64,
+    locals: Vec<Transform>,
+) {
+    let offset = s.clock.offset_us();
+    let latency = received as f64 + offset - server_time_us as f64;
+    s.stats.latency_sum_us += latency;
+    s.stats.latency_count += 1;
+    s.stats.latency_max_us = s.stats.latency_max_us.max(latency);
+    if let Some(a) = s.avatars.get_mut(id) {
+        a.jitter.push(server_time_us, received, locals.clone());
+        a.latest = Some(PoseSample {
+            seq,
+            server_time_us,
+            received_us: received,
+            locals,
+        });
+    }
+}
+
+/// Local transforms from a decoded pose: rest everywhere, then the streamed parts.
+fn locals_from(
+    view: &AvatarView,
+    rotations: &[glam::Quat],
+    translations: &[glam::Vec3],
+    scales: &[glam::Vec3],
+) -> Option<Vec<Transform>> {
+    let d = &view.description;
+    if rotations.len() != view.skeleton.len()
+        || translations.len() != d.translated_joints.len()
+        || scales.len() != d.scaled_joints.len()
+    {
+        return None;
+    }
+    let mut locals = view.skeleton.rest().to_vec();
+    for (l, q) in locals.iter_mut().zip(rotations) {
+        l.rotation = *q;
+    }
+    for (&j, t) in d.translated_joints.iter().zip(translations) {
+        locals[usize::from(j)].translation = *t;
+    }
+    for (&j, v) in d.scaled_joints.iter().zip(scales) {
+        locals[usize::from(j)].scale = *v;
+    }
+    Some(locals)
+}
+
+fn on_binary(
+    shared: &Arc<Mutex<Shared>>,
+    events: &broadcast::Sender<Event>,
+    decoder: &mut FrameDecoder,
+    bytes: &[u8],
+    received: u64,
+) {
+    let mut s = lock(shared);
+    let frame = match decoder.decode(bytes) {
+        Ok(f) => f,
+        Err(e) => {
+            debug!(error = %e, "undecodable frame");
+            s.stats.undecodable += 1;
+            return;
+        }
+    };
+    s.stats.frames += 1;
+    s.stats.frame_bytes += bytes.len() as u64;
+    let key = frame.header.kind == posecast_proto::frame::FrameKind::Key;
+    s.stats.keyframes += u64::from(key);
+    for AvatarPose {
+        avatar_num,
+        hash,
+        rotations,
+        translations,
+        scales,
+    } in &frame.avatars
+    {
+        let Some(id) = s.by_num.get(avatar_num).cloned() else {
+            continue;
+        };
+        let Some(view) = s.avatars.get(&id) else {
+            continue;
+        };
+        if view.description.hash_u64() != *hash {
+            s.stats.stale += 1;
+            continue;
+        }
+        if let Some(locals) = locals_from(view, rotations, translations, scales) {
+            record(
+                &mut s,
+                &id,
+                frame.header.seq,
+                frame.header.server_time_us,
+                received,
+                locals,
+            );
+        } else {
+            s.stats.undecodable += 1;
+        }
+    }
+    drop(s);
+    events
+        .send(Event::Frame {
+            scene_num: frame.header.scene_num,
+            seq: frame.header.seq,
+            key,
+            bytes: bytes.len(),
+        })
+        .ok();
+}
+
+fn on_json_frame(s: &mut Shared, frame: FrameJson, len: usize, received: u64) -> Option<Event> {
+    s.stats.frames += 1;
+    s.stats.keyframes += 1;
+    s.stats.frame_bytes += len as u64;
+    for pose in &frame.avatars {
+        let Some(view) = s.avatars.get(&pose.avatar) else {
+            continue;
+        };
+        if view.description.hash != pose.hash {
+            s.stats.stale += 1;
+            continue;
+        }
+        let q: Vec<glam::Quat> = pose
+            .rotations
+            .iter()
+            .map(|r| glam::Quat::from_array(*r).normalize())
+            .collect();
+        let t: Vec<glam::Vec3> = pose
+            .translations
+            .iter()
+            .map(|v| glam::Vec3::from_array(*v))
+            .collect();
+        let sc: Vec<glam::Vec3> = pose
+            .scales
+            .iter()
+            .map(|v| glam::Vec3::from_array(*v))
+            .collect();
+        if let Some(locals) = locals_from(view, &q, &t, &sc) {
+            record(
+                s,
+                &pose.avatar,
+                frame.seq,
+                frame.server_time_us,
+                received,
+                locals,
+            );
+        } else {
+            s.stats.undecodable += 1;
+        }
+    }
+    let scene_num = s
+        .scene_nums
+        .iter()
+        .find(|(_, id)| **id == frame.scene)
+        .map_or(0, |(n, _)| *n);
+    Some(Event::Frame {
+        scene_num,
+        seq: frame.seq,
+        key: true,
+        bytes: len,
+    })
+}

@@ -1,0 +1,310 @@
+//! Executes control commands (the same code behind REST and websocket). Every change happens
+//! under the scene's lock and is re-evaluated at once, so the next tick's frame shows it.
+
+use crate::scene::avatar::Avatar;
+use crate::scene::playback::{DEFAULT_FADE, Layer};
+use crate::state::AppState;
+use glam::Quat;
+use posecast_proto::command::Command;
+use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError};
+use serde_json::{Value, json};
+
+fn invalid(message: impl Into<String>) -> ProtocolError {
+    ProtocolError::new(ErrorCode::InvalidValue, message)
+}
+
+/// A finite, non-zero quaternion, normalised.
+fn quat(q: [f32; 4]) -> Result<Quat, ProtocolError> {
+    let q = Quat::from_array(q);
+    let len = q.length();
+    if !q.is_finite() || len < 1e-6 {
+        return Err(invalid(format!(
+            "rotation {:?} is not a finite non-zero quaternion",
+            q.to_array()
+        )));
+    }
+    Ok(q / len)
+}
+
+fn finite(name: &str, v: f32) -> Result<f32, ProtocolError> {
+    if v.is_finite() {
+        Ok(v)
+    } else {
+        Err(invalid(format!("{name} must be finite")))
+    }
+}
+
+fn joint_index(avatar: &Avatar, joint: &str) -> Result<usize, ProtocolError> {
+    avatar.rig.skeleton().find(joint).ok_or_else(|| {
+        ProtocolError::new(
+            ErrorCode::UnknownJoint,
+            format!("avatar {} has no joint {joint}", avatar.id),
+        )
+    })
+}
+
+/// Runs `f` on an avatar under its scene's lock.
+fn with_avatar<T>(
+    state: &AppState,
+    id: &AvatarId,
+    f: impl FnOnce(&mut Avatar) -> Result<T, ProtocolError>,
+) -> Result<T, ProtocolError> {
+    let scene = state.find_avatar(id)?;
+    let mut s = scene.lock();
+    let avatar = s
+        .avatar_mut(id)
+        .ok_or_else(|| ProtocolError::new(ErrorCode::UnknownAvatar, format!("no avatar {id}")))?;
+    f(avatar)
+}
+
+fn rotation_result(q: Quat) -> Value {
+    json!({ "rotation": q.to_array() })
+}
+
+/// The clip `clip` of rig `source`, retargeted onto `target`.
+fn retarget(
+    source: &crate::library::Rig,
+    target: &crate::library::Rig,
+    clip: &str,
+) -> Result<std::sync::Arc<crate::clip::Clip>, ProtocolError> {
+    Err(ProtocolError::new(
+        ErrorCode::InvalidValue,
+        format!(
+            "retargeting {clip} from {} onto {} needs rig normalisation (not in this build)",
+            source.name, target.name
+        ),
+    ))
+}
+
+/// Executes a command. Authorisation is checked by the caller.
+///
+/// # Errors
+/// A typed error; nothing is changed when a command fails.
+pub fn execute(state: &AppState, command: &Command) -> Result<Value, ProtocolError> {
+    let result = run(state, command);
+    state.metrics.command(result.is_ok());
+    result
+}
+
+fn run(state: &AppState, command: &Command) -> Result<Value, ProtocolError> {
+    match command {
+        Command::ListScenes => Ok(serde_json::to_value(
+            state.scenes().iter().map(|s| s.info()).collect::<Vec<_>>(),
+        )
+        .unwrap_or(Value::Null)),
+        Command::ListAssets => Ok(serde_json::to_value(
+            state
+                .library
+                .all()
+                .iter()
+                .map(|r| r.info())
+                .collect::<Vec<_>>(),
+        )
+        .unwrap_or(Value::Null)),
+        Command::GetAvatar { avatar } => {
+            let scene = state.find_avatar(avatar)?;
+            let s = scene.lock();
+            let a = s.avatars.iter().find(|a| &a.id == avatar).ok_or_else(|| {
+                ProtocolError::new(ErrorCode::UnknownAvatar, format!("no avatar {avatar}"))
+            })?;
+            Ok(serde_json::to_value(a.state(&scene.id)).unwrap_or(Value::Null))
+        }
+        Command::CreateScene { scene } => {
+            state.create_scene(scene.clone())?;
+            Ok(json!({ "scene": scene }))
+        }
+        Command::DeleteScene { scene } => {
+            state.delete_scene(scene)?;
+            Ok(Value::Null)
+        }
+        Command::AddAvatar {
+            scene,
+            asset,
+            avatar,
+            clip,
+        } => {
+            if let Some(clip) = clip {
+                let rig = state.library.get(asset).ok_or_else(|| {
+                    ProtocolError::new(
+                        ErrorCode::UnknownAvatar,
+                        format!("no rig (asset) named {asset}"),
+                    )
+                })?;
+                if rig.clip(clip).is_none() {
+                    return Err(ProtocolError::new(
+                        ErrorCode::UnknownClip,
+                        format!("rig {asset} has no clip {clip}"),
+                    ));
+                }
+            }
+            let (scene, id) = state.add_avatar(scene, asset, avatar.clone())?;
+            if let Some(clip) = clip {
+                let mut s = scene.lock();
+                if let Some(a) = s.avatar_mut(&id)
+                    && let Some(c) = a.rig.clip(clip).cloned()
+                {
+                    a.play(Layer::new(c, None, 0.0, 1.0, true), 0.0);
+                }
+            }
+            Ok(json!({ "avatar": id }))
+        }
+        Command::RemoveAvatar { avatar } => {
+            let scene = state.find_avatar(avatar)?;
+            scene.remove_avatar(avatar);
+            Ok(Value::Null)
+        }
+        Command::Play {
+            avatar,
+            clip,
+            from_asset,
+            speed,
+            looping,
+            start,
+            fade,
+        } => {
+            let speed = finite("speed", speed.unwrap_or(1.0))?;
+            let start = finite("start", start.unwrap_or(0.0))?;
+            let fade = finite("fade", fade.unwrap_or(DEFAULT_FADE))?.max(0.0);
+            let source = match from_asset {
+                Some(name) => Some(state.library.get(name).ok_or_else(|| {
+                    ProtocolError::new(
+                        ErrorCode::UnknownAvatar,
+                        format!("no rig (asset) named {name}"),
+                    )
+                })?),
+                None => None,
+            };
+            with_avatar(state, avatar, |a| {
+                let clip = match &source {
+                    Some(src) if src.name != a.rig.name => retarget(src, &a.rig, clip)?,
+                    _ => a.rig.clip(clip).cloned().ok_or_else(|| {
+                        ProtocolError::new(
+                            ErrorCode::UnknownClip,
+                            format!("rig {} has no clip {clip}", a.rig.name),
+                        )
+                    })?,
+                };
+                let source_asset = source
+                    .as_ref()
+                    .map(|s| s.name.clone())
+                    .filter(|n| n != &a.rig.name);
+                a.play(
+                    Layer::new(clip, source_asset, start, speed, looping.unwrap_or(true)),
+                    fade,
+                );
+                Ok(Value::Null)
+            })
+        }
+        Command::Pause { avatar } | Command::Resume { avatar } => {
+            let paused = matches!(command, Command::Pause { .. });
+            with_avatar(state, avatar, |a| {
+                let layer = a
+                    .player
+                    .current_mut()
+                    .ok_or_else(|| invalid("no clip is playing"))?;
+                layer.paused = paused;
+                Ok(Value::Null)
+            })
+        }
+        Command::Seek { avatar, time } => {
+            let time = finite("time", *time)?;
+            with_avatar(state, avatar, |a| {
+                let layer = a
+                    .player
+                    .current_mut()
+                    .ok_or_else(|| invalid("no clip is playing"))?;
+                layer.time = time;
+                a.evaluate();
+                Ok(Value::Null)
+            })
+        }
+        Command::SetSpeed { avatar, speed } => {
+            let speed = finite("speed", *speed)?;
+            with_avatar(state, avatar, |a| {
+                let layer = a
+                    .player
+                    .current_mut()
+                    .ok_or_else(|| invalid("no clip is playing"))?;
+                layer.speed = speed;
+                Ok(Value::Null)
+            })
+        }
+        Command::Stop { avatar } => with_avatar(state, avatar, |a| {
+            a.player.stop();
+            a.evaluate();
+            Ok(Value::Null)
+        }),
+        Command::SetJointRotation {
+            avatar,
+            joint,
+            rotation,
+        } => {
+            let q = quat(*rotation)?;
+            with_avatar(state, avatar, |a| {
+                let j = joint_index(a, joint)?;
+                Ok(rotation_result(a.set_rotation(j, q)))
+            })
+        }
+        Command::SetJointDofs {
+            avatar,
+            joint,
+            values,
+        } => with_avatar(state, avatar, |a| {
+            let j = joint_index(a, joint)?;
+            let limits = a.rig.limits.get(j).cloned().flatten().ok_or_else(|| {
+                invalid(format!("joint {joint} has no DOFs (its rig has no joint types); set its rotation instead"))
+            })?;
+            let mut dofs = limits.dofs.clone();
+            if values.len() != dofs.dofs().len() {
+                return Err(invalid(format!(
+                    "joint {joint} has {} DOFs, got {} values",
+                    dofs.dofs().len(),
+                    values.len()
+                )));
+            }
+            for (i, &v) in values.iter().enumerate() {
+                dofs.set(i, finite("DOF value", v)?)
+                    .map_err(|e| invalid(e.to_string()))?;
+            }
+            let q = (limits.pre * dofs.rotation() * limits.post).normalize();
+            a.overrides[j] = Some(q);
+            a.evaluate();
+            Ok(
+                json!({ "rotation": q.to_array(), "values": dofs.dofs().iter().map(|d| d.value).collect::<Vec<_>>() }),
+            )
+        }),
+        Command::RotateJointLocal {
+            avatar,
+            joint,
+            rotation,
+        } => {
+            let q = quat(*rotation)?;
+            with_avatar(state, avatar, |a| {
+                let j = joint_index(a, joint)?;
+                Ok(rotation_result(a.rotate_local(j, q)))
+            })
+        }
+        Command::RotateJointWorld {
+            avatar,
+            joint,
+            rotation,
+        } => {
+            let q = quat(*rotation)?;
+            with_avatar(state, avatar, |a| {
+                let j = joint_index(a, joint)?;
+                let r = a
+                    .rotate_world(j, q)
+                    .map_err(|e| invalid(format!("joint {joint}: {e}")))?;
+                Ok(rotation_result(r))
+            })
+        }
+        Command::Release { avatar, joint } => with_avatar(state, avatar, |a| {
+            let j = joint
+                .as_deref()
+                .map(|name| joint_index(a, name))
+                .transpose()?;
+            a.release(j);
+            Ok(Value::Null)
+        }),
+    }
+}

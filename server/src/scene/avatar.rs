@@ -1,0 +1,203 @@
+//! One avatar in a scene: its rig, what it plays, joint overrides layered on top, and the pose
+//! it had at the last tick.
+
+use super::playback::{Layer, Player};
+use crate::library::Rig;
+use glam::{Mat4, Quat};
+use posecast_proto::bind::{rotation_about, world_increment_local};
+use posecast_proto::command::AvatarState;
+use posecast_proto::description::AvatarDescription;
+use posecast_proto::fk::forward_kinematics;
+use posecast_proto::frame::{AvatarPose, ChunkEncoder};
+use posecast_proto::msg::{AvatarId, SceneId};
+use posecast_proto::{DecomposeError, Transform};
+use std::sync::Arc;
+
+/// An avatar.
+#[derive(Debug)]
+pub struct Avatar {
+    /// Its id.
+    pub id: AvatarId,
+    /// Its rig.
+    pub rig: Arc<Rig>,
+    /// Its description (sent to subscribers).
+    pub description: Arc<AvatarDescription>,
+    /// What it plays.
+    pub player: Player,
+    /// Local rotation overrides, per joint.
+    pub overrides: Vec<Option<Quat>>,
+    /// The pose at the last tick (local transforms, one per joint).
+    pub locals: Vec<Transform>,
+    world: Vec<Mat4>,
+    pub(crate) encoder: ChunkEncoder,
+    pub(crate) pose: AvatarPose,
+}
+
+impl Avatar {
+    /// An avatar of `rig`, holding its rest pose.
+    #[must_use]
+    pub fn new(id: AvatarId, num: u32, rig: Arc<Rig>) -> Self {
+        let skeleton = rig.skeleton();
+        let n = skeleton.len();
+        let mesh_url =
+            (!rig.asset.meshes.is_empty()).then(|| format!("/api/assets/{}/mesh.glb", rig.name));
+        let description = AvatarDescription::new(
+            id.clone(),
+            num,
+            rig.name.clone(),
+            skeleton,
+            &rig.translated,
+            &rig.scaled,
+            mesh_url,
+        );
+        let locals = skeleton.rest().to_vec();
+        let pose = AvatarPose {
+            avatar_num: num,
+            hash: description.hash_u64(),
+            ..AvatarPose::default()
+        };
+        Self {
+            id,
+            description: Arc::new(description),
+            player: Player::new(),
+            overrides: vec![None; n],
+            world: vec![Mat4::IDENTITY; n],
+            locals,
+            rig,
+            encoder: ChunkEncoder::new(),
+            pose,
+        }
+    }
+
+    /// The avatar's number in binary frames.
+    #[must_use]
+    pub fn num(&self) -> u32 {
+        self.description.num
+    }
+
+    /// Advances playback by `dt` seconds and evaluates the pose: clip (or rest), then overrides.
+    pub fn tick(&mut self, dt: f32) {
+        self.player.advance(dt);
+        self.evaluate();
+    }
+
+    /// Re-evaluates the pose at the current clock (after a command), without advancing.
+    pub fn evaluate(&mut self) {
+        self.player
+            .sample(self.rig.skeleton().rest(), &mut self.locals);
+        for (local, o) in self.locals.iter_mut().zip(&self.overrides) {
+            if let Some(q) = o {
+                local.rotation = *q;
+            }
+        }
+        let d = &self.description;
+        self.pose.rotations.clear();
+        self.pose
+            .rotations
+            .extend(self.locals.iter().map(|t| t.rotation));
+        self.pose.translations.clear();
+        self.pose.translations.extend(
+            d.translated_joints
+                .iter()
+                .map(|&j| self.locals[usize::from(j)].translation),
+        );
+        self.pose.scales.clear();
+        self.pose.scales.extend(
+            d.scaled_joints
+                .iter()
+                .map(|&j| self.locals[usize::from(j)].scale),
+        );
+    }
+
+    /// The pose to stream.
+    #[must_use]
+    pub fn pose(&self) -> &AvatarPose {
+        &self.pose
+    }
+
+    /// Starts a clip.
+    pub fn play(&mut self, layer: Layer, fade: f32) {
+        self.player.play(layer, fade);
+        self.evaluate();
+    }
+
+    /// The joint's rotation clamped to its DOF limits (if the rig has any).
+    fn limited(&self, joint: usize, q: Quat) -> Quat {
+        match self.rig.limits.get(joint) {
+            Some(Some(limits)) => limits.clamp(q),
+            _ => q.normalize(),
+        }
+    }
+
+    /// Overrides a joint's local rotation (clamped to its limits). Returns what was set.
+    pub fn set_rotation(&mut self, joint: usize, q: Quat) -> Quat {
+        let q = self.limited(joint, q);
+        self.overrides[joint] = Some(q);
+        self.evaluate();
+        q
+    }
+
+    /// Local increment `Ul' = incr · Ul` on the joint's current rotation.
+    pub fn rotate_local(&mut self, joint: usize, incr: Quat) -> Quat {
+        let current = self.locals[joint].rotation;
+        self.set_rotation(joint, incr * current)
+    }
+
+    /// World-space increment: the joint's world frame turns by `u` about the joint's own world
+    /// position, `W' = U W` with `U = T(p) R(u) T(−p)`; its local transform becomes
+    /// `D' = W_parent⁻¹ U W` (seed 001), whose rotation is kept (its translation equals the old
+    /// one because the pivot is the joint's origin).
+    ///
+    /// # Errors
+    /// When `D'` is not a rotation (a sheared or mirrored rig).
+    pub fn rotate_world(&mut self, joint: usize, u: Quat) -> Result<Quat, DecomposeError> {
+        let skeleton = self.rig.skeleton();
+        forward_kinematics(skeleton, &self.locals, &mut self.world);
+        let w = self.world[joint];
+        let parent = skeleton.parents()[joint].map_or(Mat4::IDENTITY, |p| self.world[p]);
+        let pivot = w.w_axis.truncate();
+        let d = world_increment_local(parent, rotation_about(pivot, u.normalize()), w);
+        let t = Transform::try_from_mat4(&d)?;
+        Ok(self.set_rotation(joint, t.rotation))
+    }
+
+    /// Releases one joint's override, or all.
+    pub fn release(&mut self, joint: Option<usize>) {
+        match joint {
+            Some(j) => self.overrides[j] = None,
+            None => self.overrides.iter_mut().for_each(|o| *o = None),
+        }
+        self.evaluate();
+    }
+
+    /// The world matrices of the current pose.
+    #[must_use]
+    pub fn world(&mut self) -> &[Mat4] {
+        forward_kinematics(self.rig.skeleton(), &self.locals, &mut self.world);
+        &self.world
+    }
+
+    /// The state shown to clients.
+    #[must_use]
+    pub fn state(&self, scene: &SceneId) -> AvatarState {
+        let layer = self.player.current();
+        AvatarState {
+            avatar: self.id.clone(),
+            scene: scene.clone(),
+            asset: self.rig.name.clone(),
+            clip: layer.map(|l| l.clip.name().to_string()),
+            clip_asset: layer.and_then(|l| l.source_asset.clone()),
+            time: layer.map_or(0.0, Layer::clip_time),
+            speed: layer.map_or(1.0, |l| l.speed),
+            looping: layer.is_none_or(|l| l.looping),
+            paused: layer.is_some_and(|l| l.paused),
+            overrides: self
+                .overrides
+                .iter()
+                .enumerate()
+                .filter(|(_, o)| o.is_some())
+                .map(|(j, _)| self.rig.skeleton().names()[j].clone())
+                .collect(),
+        }
+    }
+}

@@ -1,0 +1,403 @@
+//! Scenes: avatars played on one clock, and the subscribers their frames fan out to.
+//!
+//! - [`avatar`]: one avatar (rig, player, joint overrides, last pose).
+//! - [`playback`]: clip clocks and cross-fades.
+//! - [`ticker`]: the drift-free tick task of a scene.
+//!
+//! Every tick a scene samples all its avatars, encodes the frame once per encoding (binary and
+//! JSON) — per avatar chunks first, so subscribers limited to some avatars get the same chunks
+//! reassembled — and hands the same bytes to every subscriber's [`Outbox`].
+
+pub mod avatar;
+pub mod playback;
+pub mod ticker;
+
+use crate::metrics::Metrics;
+use crate::stream::outbox::{OutFrame, Outbox};
+use avatar::Avatar;
+use axum::extract::ws::{Message, Utf8Bytes};
+use bytes::Bytes;
+use posecast_proto::command::SceneInfo;
+use posecast_proto::frame::{FrameHeader, FrameKind, write_header};
+use posecast_proto::msg::{
+    AvatarId, AvatarPoseJson, Encoding, ErrorCode, ProtocolError, SceneId, ServerMsg,
+};
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use tokio::sync::Notify;
+
+/// A connection subscribed to a scene.
+#[derive(Debug)]
+pub struct Subscriber {
+    /// The connection's id (one subscription per connection and scene).
+    pub conn: u64,
+    /// Where its messages go.
+    pub outbox: Arc<Outbox>,
+    /// Binary or JSON frames.
+    pub encoding: Encoding,
+    /// Only these avatars, or all.
+    pub filter: Option<Vec<AvatarId>>,
+}
+
+impl Subscriber {
+    fn wants(&self, avatar: &AvatarId) -> bool {
+        self.filter.as_ref().is_none_or(|f| f.contains(avatar))
+    }
+}
+
+/// A frame as published: per-avatar pieces, so filtered subscribers can be served the same
+/// bytes reassembled.
+#[derive(Debug)]
+struct Published {
+    header: FrameHeader,
+    /// (avatar, binary chunk, JSON object) per avatar.
+    pieces: Vec<(AvatarId, Bytes, String)>,
+}
+
+impl Published {
+    fn message(&self, scene: &SceneId, encoding: Encoding, filter: Option<&[AvatarId]>) -> Message {
+        let keep = |id: &AvatarId| filter.is_none_or(|f| f.contains(id));
+        match encoding {
+            Encoding::Binary => {
+                let chunks: Vec<&Bytes> = self
+                    .pieces
+                    .iter()
+                    .filter(|p| keep(&p.0))
+                    .map(|p| &p.1)
+                    .collect();
+                let len = posecast_proto::frame::HEADER_BYTES
+                    + chunks.iter().map(|c| c.len()).sum::<usize>();
+                let mut out = Vec::with_capacity(len);
+                write_header(
+                    &self.header,
+                    chunks.len().min(usize::from(u16::MAX)) as u16,
+                    &mut out,
+                );
+                for c in chunks {
+                    out.extend_from_slice(c);
+                }
+                Message::Binary(Bytes::from(out))
+            }
+            Encoding::Json => {
+                // Written by hand around pre-serialised avatar objects: the same text as
+                // serde_json gives for `ServerMsg::Frame`.
+                let scene = serde_json::to_string(scene).unwrap_or_else(|_| "\"\"".into());
+                let mut out = format!(
+                    r#"{{"type":"frame","scene":{scene},"seq":{},"server_time_us":{},"avatars":["#,
+                    self.header.seq, self.header.server_time_us
+                );
+                let mut first = true;
+                for p in self.pieces.iter().filter(|p| keep(&p.0)) {
+                    if !first {
+                        out.push(',');
+                    }
+                    first = false;
+                    out.push_str(&p.2);
+                }
+                out.push_str("]}");
+                Message::Text(Utf8Bytes::from(out))
+            }
+        }
+    }
+}
+
+/// What a scene holds, behind its lock.
+#[derive(Debug)]
+pub struct SceneState {
+    /// The avatars, in the order they were added.
+    pub avatars: Vec<Avatar>,
+    subscribers: Vec<Subscriber>,
+    seq: u64,
+    last_key_seq: Option<u64>,
+    force_key: bool,
+    last_key: Option<Published>,
+    last_delta: Option<Published>,
+}
+
+impl SceneState {
+    /// The avatar with this id.
+    pub fn avatar_mut(&mut self, id: &AvatarId) -> Option<&mut Avatar> {
+        self.avatars.iter_mut().find(|a| &a.id == id)
+    }
+}
+
+/// A scene.
+#[derive(Debug)]
+pub struct Scene {
+    /// Its id.
+    pub id: SceneId,
+    /// Its number in binary frames.
+    pub num: u32,
+    state: Mutex<SceneState>,
+    stopped: AtomicBool,
+    stop: Notify,
+    metrics: Arc<Metrics>,
+}
+
+impl Scene {
+    /// An empty scene.
+    #[must_use]
+    pub fn new(id: SceneId, num: u32, metrics: Arc<Metrics>) -> Self {
+        Self {
+            id,
+            num,
+            state: Mutex::new(SceneState {
+                avatars: Vec::new(),
+                subscribers: Vec::new(),
+                seq: 0,
+                last_key_seq: None,
+                force_key: true,
+                last_key: None,
+                last_delta: None,
+            }),
+            stopped: AtomicBool::new(false),
+            stop: Notify::new(),
+            metrics,
+        }
+    }
+
+    /// Locks the scene. Critical sections are short (no awaits, no I/O), and every update
+    /// leaves the state consistent, so a poisoned lock is still usable.
+    pub fn lock(&self) -> MutexGuard<'_, SceneState> {
+        self.state
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// Stops the ticker and ends every subscription.
+    pub fn shut(&self) {
+        self.stopped.store(true, Ordering::SeqCst);
+        self.stop.notify_waiters();
+        let mut s = self.lock();
+        let msg = text(&ServerMsg::Unsubscribed {
+            scene: self.id.clone(),
+        });
+        for sub in s.subscribers.drain(..) {
+            sub.outbox.clear_scene(self.num);
+            sub.outbox.push_control(msg.clone());
+        }
+    }
+
+    /// Whether [`Scene::shut`] was called.
+    #[must_use]
+    pub fn is_stopped(&self) -> bool {
+        self.stopped.load(Ordering::SeqCst)
+    }
+
+    /// Adds an avatar; subscribers get its description and the next frame is a keyframe.
+    ///
+    /// # Errors
+    /// [`ErrorCode::Conflict`] when the scene already has an avatar with that id.
+    pub fn add_avatar(&self, avatar: Avatar) -> Result<(), ProtocolError> {
+        let mut s = self.lock();
+        if s.avatars.iter().any(|a| a.id == avatar.id) {
+            return Err(ProtocolError::new(
+                ErrorCode::Conflict,
+                format!("scene {} already has avatar {}", self.id, avatar.id),
+            ));
+        }
+        let msg = text(&ServerMsg::Description {
+            scene: self.id.clone(),
+            avatar: Box::new((*avatar.description).clone()),
+        });
+        for sub in s.subscribers.iter().filter(|sub| sub.wants(&avatar.id)) {
+            sub.outbox.push_control(msg.clone());
+        }
+        s.avatars.push(avatar);
+        s.force_key = true;
+        Ok(())
+    }
+
+    /// Removes an avatar; subscribers are told.
+    pub fn remove_avatar(&self, id: &AvatarId) -> Option<Avatar> {
+        let mut s = self.lock();
+        let index = s.avatars.iter().position(|a| &a.id == id)?;
+        let avatar = s.avatars.remove(index);
+        let msg = text(&ServerMsg::AvatarRemoved {
+            scene: self.id.clone(),
+            avatar: id.clone(),
+        });
+        for sub in s.subscribers.iter().filter(|sub| sub.wants(id)) {
+            sub.outbox.push_control(msg.clone());
+        }
+        s.force_key = true;
+        Some(avatar)
+    }
+
+    /// Subscribes a connection (replacing its previous subscription to this scene). It gets,
+    /// in order: `subscribed`, every covered avatar's description, then at once the scene's last
+    /// keyframe and the newest delta after it — the current pose, before the next tick.
+    ///
+    /// # Errors
+    /// [`ErrorCode::UnknownAvatar`] when the filter names an avatar not in the scene.
+    pub fn subscribe(&self, sub: Subscriber) -> Result<(), ProtocolError> {
+        let mut s = self.lock();
+        if let Some(filter) = &sub.filter
+            && let Some(missing) = filter
+                .iter()
+                .find(|id| !s.avatars.iter().any(|a| &a.id == *id))
+        {
+            return Err(ProtocolError::new(
+                ErrorCode::UnknownAvatar,
+                format!("scene {} has no avatar {missing}", self.id),
+            ));
+        }
+        s.subscribers.retain(|old| old.conn != sub.conn);
+        sub.outbox.clear_scene(self.num);
+        sub.outbox.push_control(text(&ServerMsg::Subscribed {
+            scene: self.id.clone(),
+            scene_num: self.num,
+        }));
+        for a in s.avatars.iter().filter(|a| sub.wants(&a.id)) {
+            sub.outbox.push_control(text(&ServerMsg::Description {
+                scene: self.id.clone(),
+                avatar: Box::new((*a.description).clone()),
+            }));
+        }
+        let filter = sub.filter.as_deref();
+        if let Some(key) = &s.last_key {
+            let message = key.message(&self.id, sub.encoding, filter);
+            sub.outbox
+                .push_frame(self.num, OutFrame { message, key: true });
+            if let Some(delta) = &s.last_delta {
+                let message = delta.message(&self.id, sub.encoding, filter);
+                sub.outbox.push_frame(
+                    self.num,
+                    OutFrame {
+                        message,
+                        key: false,
+                    },
+                );
+            }
+        }
+        s.subscribers.push(sub);
+        Ok(())
+    }
+
+    /// Ends a connection's subscription. Returns whether it had one.
+    pub fn unsubscribe(&self, conn: u64) -> bool {
+        let mut s = self.lock();
+        let before = s.subscribers.len();
+        s.subscribers.retain(|sub| {
+            if sub.conn == conn {
+                sub.outbox.clear_scene(self.num);
+            }
+            sub.conn != conn
+        });
+        before != s.subscribers.len()
+    }
+
+    /// Number of subscribers.
+    #[must_use]
+    pub fn subscriber_count(&self) -> usize {
+        self.lock().subscribers.len()
+    }
+
+    /// The listing shown to clients.
+    #[must_use]
+    pub fn info(&self) -> SceneInfo {
+        let s = self.lock();
+        SceneInfo {
+            scene: self.id.clone(),
+            avatars: s.avatars.iter().map(|a| a.state(&self.id)).collect(),
+            subscribers: s.subscribers.len(),
+        }
+    }
+
+    /// One tick: advance every avatar by `dt` seconds, encode the frame for tick `seq` once per
+    /// encoding, and offer it to every subscriber. A keyframe when forced (new avatar, new
+    /// subscriber state) or when `key_interval` ticks have passed since the last one.
+    pub fn tick(&self, seq: u64, dt: f32, server_time_us: u64, key_interval: u64) {
+        let mut guard = self.lock();
+        let s = &mut *guard;
+        s.seq = seq;
+        let key = s.force_key
+            || s.last_key_seq
+                .is_none_or(|k| seq.saturating_sub(k) >= key_interval)
+            || s.avatars
+                .iter()
+                .any(|a| !a.encoder.has_key(a.pose().rotations.len()));
+        let kind = if key {
+            FrameKind::Key
+        } else {
+            FrameKind::Delta
+        };
+        let header = FrameHeader {
+            kind,
+            scene_num: self.num,
+            seq,
+            server_time_us,
+            base_seq: if key {
+                seq
+            } else {
+                s.last_key_seq.unwrap_or(seq)
+            },
+        };
+        let mut pieces = Vec::with_capacity(s.avatars.len());
+        for a in &mut s.avatars {
+            a.tick(dt);
+            let mut chunk = Vec::with_capacity(32 + 6 * a.pose().rotations.len());
+            a.encoder.encode(&a.pose, kind, &mut chunk);
+            let json = serde_json::to_string(&AvatarPoseJson {
+                avatar: a.id.clone(),
+                hash: a.description.hash.clone(),
+                rotations: a.pose.rotations.iter().map(|q| q.to_array()).collect(),
+                translations: a.pose.translations.iter().map(|t| t.to_array()).collect(),
+                scales: a.pose.scales.iter().map(|t| t.to_array()).collect(),
+            })
+            .unwrap_or_default();
+            pieces.push((a.id.clone(), Bytes::from(chunk), json));
+        }
+        let published = Published { header, pieces };
+        // Encode once per (encoding, filter); with no filters that is once per encoding.
+        let mut cache: HashMap<(Encoding, Option<&[AvatarId]>), Message> = HashMap::new();
+        let mut bytes_out = 0u64;
+        for sub in &s.subscribers {
+            let filter = sub.filter.as_deref();
+            let message = cache
+                .entry((sub.encoding, filter))
+                .or_insert_with(|| published.message(&self.id, sub.encoding, filter))
+                .clone();
+            bytes_out += message_len(&message) as u64;
+            sub.outbox.push_frame(self.num, OutFrame { message, key });
+        }
+        self.metrics
+            .frames_offered(s.subscribers.len() as u64, bytes_out);
+        if key {
+            s.last_key = Some(published);
+            s.last_delta = None;
+            s.last_key_seq = Some(seq);
+            s.force_key = false;
+        } else {
+            s.last_delta = Some(published);
+        }
+    }
+
+    /// Waits until the scene is shut.
+    pub async fn stopped(&self) {
+        let notified = self.stop.notified();
+        if self.is_stopped() {
+            return;
+        }
+        notified.await;
+    }
+}
+
+fn message_len(m: &Message) -> usize {
+    match m {
+        Message::Binary(b) => b.len(),
+        Message::Text(t) => t.len(),
+        _ => 0,
+    }
+}
+
+/// A server message as a websocket text message.
+#[must_use]
+pub fn text(msg: &ServerMsg) -> Message {
+    // Serialising these types cannot fail (no maps with non-string keys, no failing Serialize
+    // impls); an empty object is sent rather than panicking if that ever changes.
+    Message::Text(Utf8Bytes::from(
+        serde_json::to_string(msg).unwrap_or_else(|_| "{}".into()),
+    ))
+}

@@ -1,0 +1,43 @@
+//! The HTTP and websocket service: `fn app(state) -> Router`, so tests start the server
+//! in-process on port 0.
+//!
+//! - `GET /ws`: the websocket protocol ([`ws`], `proto/PROTOCOL.md`).
+//! - `GET /healthz`, `GET /metrics`.
+
+pub mod ws;
+
+use crate::state::AppState;
+use axum::Router;
+use axum::extract::{State, WebSocketUpgrade};
+use axum::http::header;
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use posecast_proto::msg::MAX_CLIENT_MESSAGE_BYTES;
+use std::sync::Arc;
+
+/// The whole service.
+pub fn app(state: Arc<AppState>) -> Router {
+    Router::new()
+        .route("/ws", get(ws_upgrade))
+        .route("/healthz", get(|| async { "ok" }))
+        .route("/metrics", get(metrics))
+        .with_state(state)
+}
+
+async fn ws_upgrade(ws: WebSocketUpgrade, State(state): State<Arc<AppState>>) -> Response {
+    ws.max_message_size(MAX_CLIENT_MESSAGE_BYTES)
+        .max_frame_size(MAX_CLIENT_MESSAGE_BYTES)
+        .on_upgrade(move |socket| ws::serve(socket, state))
+}
+
+async fn metrics(State(state): State<Arc<AppState>>) -> impl IntoResponse {
+    let subscribers: Vec<(String, usize)> = state
+        .scenes()
+        .iter()
+        .map(|s| (s.id.0.clone(), s.subscriber_count()))
+        .collect();
+    (
+        [(header::CONTENT_TYPE, "text/plain; version=0.0.4")],
+        state.metrics.render(&subscribers),
+    )
+}

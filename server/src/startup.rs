@@ -1,0 +1,201 @@
+//! Starting and stopping a server: load rigs, create the default scene, bind, serve.
+
+use crate::asset::Asset;
+use crate::builtin::AVATAR_GLB;
+use crate::import::{self, ImportError};
+use crate::library::{JointLimits, Rig};
+use crate::scene::playback::Layer;
+use crate::service::app;
+use crate::state::{AppState, Config};
+use glam::Quat;
+use posecast_proto::msg::{AvatarId, SceneId};
+use std::net::SocketAddr;
+use std::sync::Arc;
+use tokio::sync::oneshot;
+use tokio::task::JoinHandle;
+use tracing::{info, warn};
+
+/// Name of the built-in rig.
+pub const BUILTIN_ASSET: &str = "avatar";
+/// The scene created at start.
+pub const DEFAULT_SCENE: &str = "default";
+/// The built-in avatar's id in the default scene.
+pub const DEFAULT_AVATAR: &str = "avatar";
+
+/// Makes a playable rig from an imported asset: DOF limits from the skeleton (in the frame
+/// they were authored in).
+#[must_use]
+pub fn rig_from_asset(asset: Asset, steps: Vec<String>) -> Rig {
+    let limits = asset
+        .skeleton
+        .dofs()
+        .iter()
+        .map(|d| {
+            d.is_limited().then(|| JointLimits {
+                dofs: d.clone(),
+                pre: Quat::IDENTITY,
+                post: Quat::IDENTITY,
+            })
+        })
+        .collect();
+    Rig::new(asset, steps, limits)
+}
+
+/// The built-in avatar's rig.
+///
+/// # Errors
+/// Only if the embedded file were broken (a test guards it).
+pub fn builtin_rig() -> Result<Rig, ImportError> {
+    let mut assets = import::gltf::from_slice("avatar.glb", AVATAR_GLB)?;
+    let mut asset = assets.remove(0);
+    asset.name = BUILTIN_ASSET.to_string();
+    Ok(rig_from_asset(asset, vec!["built-in avatar".into()]))
+}
+
+/// A running server.
+#[derive(Debug)]
+pub struct Server {
+    /// Where it listens.
+    pub addr: SocketAddr,
+    /// Its state.
+    pub state: Arc<AppState>,
+    shutdown: Option<oneshot::Sender<()>>,
+    task: JoinHandle<std::io::Result<()>>,
+}
+
+impl Server {
+    /// Loads the configured rigs (the built-in avatar into scene `default` playing `idle`,
+    /// then every asset folder), binds and starts serving. Port 0 picks a free port.
+    ///
+    /// # Errors
+    /// Binding fails.
+    pub async fn start(config: Config) -> std::io::Result<Self> {
+        let state = AppState::new(config.clone());
+        if config.builtin {
+            load_builtin(&state);
+        }
+        for dir in &config.asset_dirs {
+            load_dir(&state, dir);
+        }
+        let listener = tokio::net::TcpListener::bind(config.listen).await?;
+        let addr = listener.local_addr()?;
+        let (tx, rx) = oneshot::channel::<()>();
+        let router = app(state.clone());
+        let shutdown_state = state.clone();
+        let task = tokio::spawn(async move {
+            axum::serve(listener, router)
+                .with_graceful_shutdown(async move {
+                    rx.await.ok();
+                    // Close every websocket with a close frame, then let axum drain.
+                    shutdown_state.shutdown();
+                })
+                .await
+        });
+        Ok(Self {
+            addr,
+            state,
+            shutdown: Some(tx),
+            task,
+        })
+    }
+
+    /// The websocket URL.
+    #[must_use]
+    pub fn ws_url(&self) -> String {
+        format!("ws://{}/ws", self.addr)
+    }
+
+    /// The HTTP root URL.
+    #[must_use]
+    pub fn http_url(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+
+    /// Gracefully stops: scenes end, websockets get close frames, the listener closes.
+    pub async fn stop(mut self) {
+        if let Some(tx) = self.shutdown.take() {
+            tx.send(()).ok();
+        }
+        self.state.close_connections();
+        match tokio::time::timeout(std::time::Duration::from_secs(5), &mut self.task).await {
+            Ok(Ok(Err(e))) => warn!(error = %e, "server ended with an error"),
+            Ok(_) => {}
+            Err(_) => self.task.abort(),
+        }
+    }
+
+    /// Waits until the server task ends.
+    ///
+    /// # Errors
+    /// The server failed.
+    pub async fn wait(self) -> std::io::Result<()> {
+        match self.task.await {
+            Ok(r) => r,
+            Err(e) => Err(std::io::Error::other(e)),
+        }
+    }
+
+    /// A handle that triggers graceful shutdown.
+    pub fn take_shutdown(&mut self) -> Option<oneshot::Sender<()>> {
+        self.shutdown.take()
+    }
+}
+
+fn load_builtin(state: &AppState) {
+    match builtin_rig() {
+        Ok(rig) => {
+            state.library.insert(rig);
+            let scene = SceneId(DEFAULT_SCENE.into());
+            let added = state.create_scene(scene.clone()).and_then(|_| {
+                state.add_avatar(&scene, BUILTIN_ASSET, Some(AvatarId(DEFAULT_AVATAR.into())))
+            });
+            match added {
+                Ok((scene, id)) => {
+                    let mut s = scene.lock();
+                    if let Some(a) = s.avatar_mut(&id)
+                        && let Some(idle) = a.rig.clip("idle").cloned()
+                    {
+                        a.play(Layer::new(idle, None, 0.0, 1.0, true), 0.0);
+                    }
+                }
+                Err(e) => warn!(error = %e, "could not create the default scene"),
+            }
+        }
+        Err(e) => warn!(error = %e, "the built-in avatar failed to load"),
+    }
+}
+
+/// Loads every importable file of a folder (not recursive); failures are logged and skipped.
+fn load_dir(state: &AppState, dir: &std::path::Path) {
+    let entries = match std::fs::read_dir(dir) {
+        Ok(e) => e,
+        Err(e) => {
+            warn!(dir = %dir.display(), error = %e, "cannot read asset folder");
+            return;
+        }
+    };
+    let mut paths: Vec<_> = entries.filter_map(Result::ok).map(|e| e.path()).collect();
+    paths.sort();
+    for path in paths {
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .unwrap_or("")
+            .to_ascii_lowercase();
+        if !matches!(ext.as_str(), "glb" | "gltf" | "bvh" | "skel") {
+            continue;
+        }
+        match import::load_path(&path) {
+            Ok(assets) => {
+                for asset in assets {
+                    info!(asset = %asset.name, joints = asset.skeleton.len(), clips = asset.clips.len(), "loaded");
+                    state.library.insert(rig_from_asset(
+                        asset,
+                        vec![format!("imported from {}", path.display())],
+                    ));
+                }
+            }
+            Err(e) => warn!(error = %e, "skipped"),
+        }
+    }
+}

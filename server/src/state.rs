@@ -1,0 +1,235 @@
+//! The server's shared state: configuration, loaded rigs, scenes, counters.
+
+use crate::library::Library;
+use crate::metrics::Metrics;
+use crate::scene::avatar::Avatar;
+use crate::scene::{Scene, ticker};
+use crate::stream::outbox::Outbox;
+use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError, SceneId};
+use std::collections::BTreeMap;
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+use std::sync::{Arc, RwLock};
+use std::sync::{Mutex, Weak};
+
+/// How the server runs (built by `main` from flags and environment).
+#[derive(Debug, Clone)]
+pub struct Config {
+    /// Listen address.
+    pub listen: SocketAddr,
+    /// Pose frames per second of every scene.
+    pub tick_rate: f32,
+    /// Folders whose assets are loaded at start.
+    pub asset_dirs: Vec<PathBuf>,
+    /// Whether to load the built-in avatar into a `default` scene playing `idle`.
+    pub builtin: bool,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Self {
+            listen: SocketAddr::from(([127, 0, 0, 1], 8080)),
+            tick_rate: 60.0,
+            asset_dirs: Vec::new(),
+            builtin: true,
+        }
+    }
+}
+
+/// Shared by every task of the server.
+#[derive(Debug)]
+pub struct AppState {
+    /// How the server runs.
+    pub config: Config,
+    /// Loaded rigs.
+    pub library: Library,
+    /// Counters.
+    pub metrics: Arc<Metrics>,
+    scenes: RwLock<BTreeMap<SceneId, Arc<Scene>>>,
+    next_scene_num: AtomicU32,
+    next_avatar_num: AtomicU32,
+    next_conn: AtomicU64,
+    connections: Mutex<HashMap<u64, Weak<Outbox>>>,
+}
+
+/// Longest scene or avatar id.
+pub const MAX_ID_LEN: usize = 64;
+
+/// Checks an id: 1–64 characters from letters, digits, `-`, `_`, `.`.
+///
+/// # Errors
+/// [`ErrorCode::InvalidValue`] naming what is wrong.
+pub fn check_id(kind: &str, id: &str) -> Result<(), ProtocolError> {
+    let ok = !id.is_empty()
+        && id.len() <= MAX_ID_LEN
+        && id
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'));
+    if ok {
+        Ok(())
+    } else {
+        Err(ProtocolError::new(
+            ErrorCode::InvalidValue,
+            format!("{kind} id must be 1-{MAX_ID_LEN} letters, digits, '-', '_' or '.'"),
+        ))
+    }
+}
+
+impl AppState {
+    /// Empty state: no rigs, no scenes.
+    #[must_use]
+    pub fn new(config: Config) -> Arc<Self> {
+        Arc::new(Self {
+            config,
+            library: Library::new(),
+            metrics: Arc::new(Metrics::new()),
+            scenes: RwLock::new(BTreeMap::new()),
+            next_scene_num: AtomicU32::new(1),
+            next_avatar_num: AtomicU32::new(1),
+            next_conn: AtomicU64::new(1),
+            connections: Mutex::new(HashMap::new()),
+        })
+    }
+
+    /// Registers a connection's outbox; returns its id.
+    pub fn register_connection(&self, outbox: &Arc<Outbox>) -> u64 {
+        let id = self.next_conn.fetch_add(1, Ordering::Relaxed);
+        self.connections_lock().insert(id, Arc::downgrade(outbox));
+        id
+    }
+
+    /// Forgets a closed connection.
+    pub fn unregister_connection(&self, id: u64) {
+        self.connections_lock().remove(&id);
+    }
+
+    fn connections_lock(&self) -> std::sync::MutexGuard<'_, HashMap<u64, Weak<Outbox>>> {
+        self.connections
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// Closes every websocket with a close frame (graceful shutdown).
+    pub fn close_connections(&self) {
+        for outbox in self.connections_lock().values().filter_map(Weak::upgrade) {
+            outbox.close();
+        }
+    }
+
+    /// A scene by id.
+    ///
+    /// # Errors
+    /// [`ErrorCode::UnknownScene`].
+    pub fn scene(&self, id: &SceneId) -> Result<Arc<Scene>, ProtocolError> {
+        self.scenes
+            .read()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .get(id)
+            .cloned()
+            .ok_or_else(|| ProtocolError::new(ErrorCode::UnknownScene, format!("no scene {id}")))
+    }
+
+    /// Every scene.
+    #[must_use]
+    pub fn scenes(&self) -> Vec<Arc<Scene>> {
+        self.scenes
+            .read()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .values()
+            .cloned()
+            .collect()
+    }
+
+    /// Creates a scene and starts its tick task (must run inside a tokio runtime).
+    ///
+    /// # Errors
+    /// Invalid id, or [`ErrorCode::Conflict`] when it exists.
+    pub fn create_scene(&self, id: SceneId) -> Result<Arc<Scene>, ProtocolError> {
+        check_id("scene", &id.0)?;
+        let mut scenes = self
+            .scenes
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if scenes.contains_key(&id) {
+            return Err(ProtocolError::new(
+                ErrorCode::Conflict,
+                format!("scene {id} exists"),
+            ));
+        }
+        let num = self.next_scene_num.fetch_add(1, Ordering::Relaxed);
+        let scene = Arc::new(Scene::new(id.clone(), num, self.metrics.clone()));
+        scenes.insert(id, scene.clone());
+        tokio::spawn(ticker::run(
+            scene.clone(),
+            self.config.tick_rate,
+            self.metrics.clone(),
+        ));
+        Ok(scene)
+    }
+
+    /// Deletes a scene: its ticker stops and its subscribers are unsubscribed.
+    ///
+    /// # Errors
+    /// [`ErrorCode::UnknownScene`].
+    pub fn delete_scene(&self, id: &SceneId) -> Result<(), ProtocolError> {
+        let scene = self
+            .scenes
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .remove(id)
+            .ok_or_else(|| ProtocolError::new(ErrorCode::UnknownScene, format!("no scene {id}")))?;
+        scene.shut();
+        Ok(())
+    }
+
+    /// Adds an avatar of rig `asset` to a scene. Returns its id.
+    ///
+    /// # Errors
+    /// Unknown scene or rig, invalid or duplicate id.
+    pub fn add_avatar(
+        &self,
+        scene: &SceneId,
+        asset: &str,
+        id: Option<AvatarId>,
+    ) -> Result<(Arc<Scene>, AvatarId), ProtocolError> {
+        let scene = self.scene(scene)?;
+        let rig = self.library.get(asset).ok_or_else(|| {
+            ProtocolError::new(
+                ErrorCode::UnknownAvatar,
+                format!("no rig (asset) named {asset}"),
+            )
+        })?;
+        let num = self.next_avatar_num.fetch_add(1, Ordering::Relaxed);
+        let id = id.unwrap_or_else(|| AvatarId(format!("{}-{num}", rig.name)));
+        check_id("avatar", &id.0)?;
+        if self.find_avatar(&id).is_ok() {
+            return Err(ProtocolError::new(
+                ErrorCode::Conflict,
+                format!("avatar {id} exists"),
+            ));
+        }
+        scene.add_avatar(Avatar::new(id.clone(), num, rig))?;
+        Ok((scene, id))
+    }
+
+    /// The scene holding an avatar.
+    ///
+    /// # Errors
+    /// [`ErrorCode::UnknownAvatar`].
+    pub fn find_avatar(&self, id: &AvatarId) -> Result<Arc<Scene>, ProtocolError> {
+        self.scenes()
+            .into_iter()
+            .find(|s| s.lock().avatars.iter().any(|a| &a.id == id))
+            .ok_or_else(|| ProtocolError::new(ErrorCode::UnknownAvatar, format!("no avatar {id}")))
+    }
+
+    /// Stops every scene and closes every websocket (graceful shutdown).
+    pub fn shutdown(&self) {
+        for scene in self.scenes() {
+            scene.shut();
+        }
+        self.close_connections();
+    }
+}

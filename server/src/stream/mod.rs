@@ -1,0 +1,3 @@
+//! Fan-out to connections: [`outbox`], the bounded per-connection queue.
+
+pub mod outbox;
