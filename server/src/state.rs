@@ -111,6 +111,18 @@ impl AppState {
             .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 
+    /// The largest number of frames any connection has waiting, and the most replaced
+    /// (dropped) frames on any open connection: the fan-out's memory bound made visible.
+    #[must_use]
+    pub fn outbox_extremes(&self) -> (usize, u64) {
+        self.connections_lock()
+            .values()
+            .filter_map(Weak::upgrade)
+            .fold((0, 0), |(p, d), o| {
+                (p.max(o.pending_frames()), d.max(o.dropped_frames()))
+            })
+    }
+
     /// Closes every websocket with a close frame (graceful shutdown).
     pub fn close_connections(&self) {
         for outbox in self.connections_lock().values().filter_map(Weak::upgrade) {

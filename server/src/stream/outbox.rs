@@ -123,6 +123,16 @@ impl Outbox {
         self.lock().frames.remove(&scene_num);
     }
 
+    /// Frames waiting to be sent (at most two per subscribed scene, whatever the client does).
+    #[must_use]
+    pub fn pending_frames(&self) -> usize {
+        self.lock()
+            .frames
+            .values()
+            .map(|f| usize::from(f.key.is_some()) + usize::from(f.latest.is_some()))
+            .sum()
+    }
+
     /// Frames replaced before the writer could send them (the client read too slowly).
     #[must_use]
     pub fn dropped_frames(&self) -> u64 {
@@ -142,6 +152,11 @@ impl Outbox {
             {
                 let mut s = self.lock();
                 if s.closed {
+                    // A normal close still delivers what was queued before it (e.g. the error
+                    // that explains the close); an overflowed client gets only the close.
+                    if !s.overflowed && !s.control.is_empty() {
+                        return Next::Send(s.control.drain(..).collect());
+                    }
                     return Next::Close {
                         overflowed: s.overflowed,
                     };

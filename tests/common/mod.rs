@@ -1,0 +1,81 @@
+//! Shared set-up for the end-to-end tests: an in-process server on port 0 and clients.
+
+#![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]
+
+use futures_util::{SinkExt, StreamExt};
+use posecast_client::net::{Client, ClientOptions};
+use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, ServerMsg};
+use posecast_server::startup::Server;
+use posecast_server::state::Config;
+use std::time::Duration;
+use tokio_tungstenite::tungstenite::Message;
+
+pub type Ws =
+    tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
+
+/// A server with the built-in avatar at `tick_rate` Hz on an ephemeral port.
+pub async fn server(tick_rate: f32) -> Server {
+    let config = Config {
+        listen: "127.0.0.1:0".parse().unwrap(),
+        tick_rate,
+        ..Config::default()
+    };
+    Server::start(config).await.unwrap()
+}
+
+/// A library client subscribed to `default`.
+pub async fn client(server: &Server, encoding: Encoding) -> Client {
+    let mut options = ClientOptions::new(server.ws_url(), "default");
+    options.encoding = encoding;
+    options.reconnect = false;
+    Client::connect(options).await.unwrap()
+}
+
+/// A raw websocket that has said hello (and read the welcome).
+pub async fn raw(server: &Server, encoding: Encoding) -> Ws {
+    let (mut ws, _) = tokio_tungstenite::connect_async(server.ws_url())
+        .await
+        .unwrap();
+    let hello = ClientMsg::Hello {
+        version: PROTOCOL_VERSION,
+        encoding,
+        token: None,
+        client: None,
+    };
+    ws.send(Message::Text(serde_json::to_string(&hello).unwrap().into()))
+        .await
+        .unwrap();
+    match next_text(&mut ws).await {
+        Some(ServerMsg::Welcome { .. }) => ws,
+        other => panic!("expected welcome, got {other:?}"),
+    }
+}
+
+/// The next text message as a `ServerMsg` (skipping binary frames), or `None` on close or
+/// after 5 s.
+pub async fn next_text(ws: &mut Ws) -> Option<ServerMsg> {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
+    loop {
+        let msg = tokio::time::timeout_at(deadline, ws.next())
+            .await
+            .ok()??
+            .ok()?;
+        match msg {
+            Message::Text(t) => return Some(serde_json::from_str(t.as_str()).unwrap()),
+            Message::Close(_) => return None,
+            _ => {}
+        }
+    }
+}
+
+/// Waits until `f` holds, polling every 10 ms, for at most `secs`.
+pub async fn wait_for(secs: f32, mut f: impl FnMut() -> bool) -> bool {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs_f32(secs);
+    while tokio::time::Instant::now() < deadline {
+        if f() {
+            return true;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    f()
+}

@@ -1,0 +1,402 @@
+//! End-to-end streaming: server in-process on port 0, real websocket clients.
+
+#![allow(clippy::unwrap_used)]
+
+mod common;
+
+use common::{client, next_text, raw, server, wait_for};
+use futures_util::SinkExt;
+use glam::Quat;
+use posecast_client::net::Event;
+use posecast_proto::Transform;
+use posecast_proto::command::Command;
+use posecast_proto::msg::{
+    AvatarId, ClientMsg, Encoding, ErrorCode, MAX_CLIENT_MESSAGE_BYTES, SceneId, ServerMsg,
+};
+use posecast_proto::quant::{MAX_ERROR_DEGREES, angle_between_degrees};
+use posecast_server::import;
+use posecast_server::startup::{builtin_rig, rig_from_asset};
+use std::time::{Duration, Instant};
+use tokio_tungstenite::tungstenite::Message;
+
+fn avatar() -> AvatarId {
+    AvatarId("avatar".into())
+}
+
+/// The worst rotation error between two poses, degrees, and the worst translation error.
+fn pose_error(a: &[Transform], b: &[Transform]) -> (f64, f32) {
+    assert_eq!(a.len(), b.len());
+    a.iter().zip(b).fold((0.0, 0.0), |(r, t), (x, y)| {
+        (
+            r.max(angle_between_degrees(x.rotation, y.rotation)),
+            t.max(x.translation.distance(y.translation)),
+        )
+    })
+}
+
+/// Pauses `avatar` at clip time `time` and waits until the client holds a pose from a tick
+/// after the command.
+async fn pause_at(c: &posecast_client::net::Client, avatar: &AvatarId, time: f32) {
+    c.command(Command::Pause {
+        avatar: avatar.clone(),
+    })
+    .await
+    .unwrap();
+    c.command(Command::Seek {
+        avatar: avatar.clone(),
+        time,
+    })
+    .await
+    .unwrap();
+    let after = c.latest(avatar).map_or(0, |p| p.seq);
+    assert!(
+        wait_for(3.0, || c.latest(avatar).is_some_and(|p| p.seq > after + 1)).await,
+        "no frame after the seek"
+    );
+}
+
+#[tokio::test]
+async fn built_in_avatar_streams_the_clip_it_plays() {
+    let server = server(60.0).await;
+    let c = client(&server, Encoding::Binary).await;
+    assert!(
+        wait_for(3.0, || c.latest(&avatar()).is_some()).await,
+        "no pose received"
+    );
+    let view = c.avatar(&avatar()).unwrap();
+    // The description is the server's rig.
+    let rig = builtin_rig().unwrap();
+    assert_eq!(view.skeleton.names(), rig.skeleton().names());
+    assert_eq!(view.skeleton.parents(), rig.skeleton().parents());
+    assert_eq!(view.skeleton.inverse_bind(), rig.skeleton().inverse_bind());
+    assert_eq!(view.skeleton.rest(), rig.skeleton().rest());
+    // Decoded poses equal the clip sampled independently at the same time.
+    for (clip, time) in [("walk", 0.3f32), ("wave", 1.1), ("idle", 2.0)] {
+        c.command(Command::Play {
+            avatar: avatar(),
+            clip: clip.into(),
+            from_asset: None,
+            speed: None,
+            looping: None,
+            start: None,
+            fade: Some(0.0),
+        })
+        .await
+        .unwrap();
+        pause_at(&c, &avatar(), time).await;
+        let got = c.latest(&avatar()).unwrap().locals;
+        let clip = rig.clip(clip).unwrap();
+        let mut expected = rig.skeleton().rest().to_vec();
+        clip.sample(clip.start() + time, rig.skeleton().rest(), &mut expected);
+        let (rot, trans) = pose_error(&got, &expected);
+        assert!(rot <= MAX_ERROR_DEGREES, "{clip:?}: rotation error {rot}°");
+        assert!(trans <= 1e-6, "{clip:?}: translation error {trans}");
+    }
+    server.stop().await;
+}
+
+#[tokio::test]
+async fn a_testdata_rig_streams_its_clip() {
+    let path = posecast_proto::testing::testdata("gltf/CesiumMan/glTF-Binary/CesiumMan.glb");
+    if !path.exists() {
+        eprintln!("skipping: {} is absent", path.display());
+        return;
+    }
+    let server = server(60.0).await;
+    let mut asset = import::load_path(&path).unwrap().remove(0);
+    asset.name = "cesium".into();
+    server.state.library.insert(rig_from_asset(asset, vec![]));
+    let c = client(&server, Encoding::Binary).await;
+    let reply = c
+        .command(Command::AddAvatar {
+            scene: SceneId("default".into()),
+            asset: "cesium".into(),
+            avatar: Some(AvatarId("cesium-1".into())),
+            clip: None,
+        })
+        .await
+        .unwrap();
+    assert_eq!(reply["avatar"], "cesium-1");
+    let id = AvatarId("cesium-1".into());
+    let rig = server.state.library.get("cesium").unwrap();
+    let clip_name = rig.clips[0].name().to_string();
+    c.command(Command::Play {
+        avatar: id.clone(),
+        clip: clip_name,
+        from_asset: None,
+        speed: None,
+        looping: None,
+        start: None,
+        fade: Some(0.0),
+    })
+    .await
+    .unwrap();
+    assert!(wait_for(3.0, || c.latest(&id).is_some()).await);
+    pause_at(&c, &id, 0.5).await;
+    let got = c.latest(&id).unwrap().locals;
+    let clip = &rig.clips[0];
+    let mut expected = rig.skeleton().rest().to_vec();
+    clip.sample(clip.start() + 0.5, rig.skeleton().rest(), &mut expected);
+    let (rot, trans) = pose_error(&got, &expected);
+    assert!(rot <= MAX_ERROR_DEGREES, "rotation error {rot}°");
+    assert!(trans <= 1e-5, "translation error {trans}");
+    server.stop().await;
+}
+
+#[tokio::test]
+async fn a_late_joiner_gets_the_current_pose_before_the_next_tick() {
+    // One tick a second: the late joiner's first frame must be the cached one, long before
+    // the next tick is due.
+    let server = server(1.0).await;
+    let first = client(&server, Encoding::Binary).await;
+    assert!(wait_for(3.0, || first.latest(&avatar()).is_some()).await);
+    tokio::time::sleep(Duration::from_millis(1200)).await;
+    let seen = first.latest(&avatar()).unwrap().seq;
+    let started = Instant::now();
+    let late = client(&server, Encoding::Binary).await;
+    assert!(
+        wait_for(0.9, || late.latest(&avatar()).is_some()).await,
+        "late joiner got no pose"
+    );
+    let elapsed = started.elapsed();
+    let got = late.latest(&avatar()).unwrap();
+    let now_seen = first.latest(&avatar()).unwrap().seq;
+    assert!(
+        got.seq == seen || got.seq == now_seen,
+        "late joiner's first frame is tick {} (ticks seen: {seen}, {now_seen})",
+        got.seq
+    );
+    assert!(elapsed < Duration::from_millis(900), "took {elapsed:?}");
+    assert!(
+        late.avatar(&avatar()).is_some(),
+        "description arrived with the pose"
+    );
+    server.stop().await;
+}
+
+#[tokio::test]
+async fn a_stalled_subscriber_does_not_delay_the_others() {
+    let server = server(60.0).await;
+    // The stalled one subscribes and then never reads.
+    let mut stalled = raw(&server, Encoding::Json).await;
+    let sub = ClientMsg::Subscribe {
+        scene: SceneId("default".into()),
+        avatars: None,
+    };
+    stalled
+        .send(Message::Text(serde_json::to_string(&sub).unwrap().into()))
+        .await
+        .unwrap();
+    let c = client(&server, Encoding::Binary).await;
+    let mut events = c.events();
+    let mut arrivals = Vec::new();
+    let end = Instant::now() + Duration::from_secs(2);
+    let mut max_pending = 0;
+    while Instant::now() < end {
+        if let Ok(Ok(Event::Frame { .. })) =
+            tokio::time::timeout(Duration::from_millis(200), events.recv()).await
+        {
+            arrivals.push(Instant::now());
+        }
+        max_pending = max_pending.max(server.state.outbox_extremes().0);
+    }
+    let gaps: Vec<f64> = arrivals
+        .windows(2)
+        .map(|w| (w[1] - w[0]).as_secs_f64() * 1e3)
+        .collect();
+    let max_gap = gaps.iter().copied().fold(0.0, f64::max);
+    println!(
+        "regular subscriber: {} frames in 2 s, max gap {max_gap:.1} ms; stalled outbox held at most {max_pending} frames",
+        arrivals.len()
+    );
+    assert!(
+        arrivals.len() > 90,
+        "only {} frames in 2 s at 60 Hz",
+        arrivals.len()
+    );
+    // Generous for a loaded 2-core CI machine; a stalled peer blocking the tick would show
+    // gaps of the whole stall (2 s).
+    assert!(max_gap < 250.0, "max gap {max_gap} ms");
+    assert!(max_pending <= 2, "an outbox held {max_pending} frames");
+    drop(stalled);
+    server.stop().await;
+}
+
+#[tokio::test]
+async fn malformed_input_gets_typed_errors_and_harms_no_one() {
+    let server = server(60.0).await;
+    let watcher = client(&server, Encoding::Binary).await;
+    assert!(wait_for(3.0, || watcher.latest(&avatar()).is_some()).await);
+    let mut ws = raw(&server, Encoding::Json).await;
+    let send = |text: String| Message::Text(text.into());
+    let expect = async |ws: &mut common::Ws, msg: Message, code: ErrorCode| {
+        ws.send(msg).await.unwrap();
+        loop {
+            match next_text(ws).await {
+                Some(ServerMsg::Error(e)) => {
+                    assert_eq!(e.code, code, "{e:?}");
+                    return;
+                }
+                Some(_) => {}
+                None => panic!("connection closed instead of {code:?}"),
+            }
+        }
+    };
+    expect(
+        &mut ws,
+        Message::Binary(vec![0xde, 0xad, 0xbe, 0xef].into()),
+        ErrorCode::UnexpectedBinary,
+    )
+    .await;
+    expect(&mut ws, send("{not json".into()), ErrorCode::BadMessage).await;
+    expect(
+        &mut ws,
+        send(r#"{"type":"teleport"}"#.into()),
+        ErrorCode::BadMessage,
+    )
+    .await;
+    expect(
+        &mut ws,
+        send(r#"{"type":"subscribe","scene":"nowhere"}"#.into()),
+        ErrorCode::UnknownScene,
+    )
+    .await;
+    let nan = r#"{"type":"command","id":7,"command":{"op":"set_joint_rotation","avatar":"avatar","joint":"l_elbow","rotation":[0,0,0,0]}}"#;
+    expect(&mut ws, send(nan.into()), ErrorCode::InvalidValue).await;
+    let huge = r#"{"type":"command","id":8,"command":{"op":"set_joint_rotation","avatar":"avatar","joint":"l_elbow","rotation":[1e999,0,0,1]}}"#;
+    expect(&mut ws, send(huge.into()), ErrorCode::BadMessage).await;
+    expect(
+        &mut ws,
+        send(r#"{"type":"hello","version":1,"encoding":"json"}"#.into()),
+        ErrorCode::NotAllowedNow,
+    )
+    .await;
+    // Still alive after all that: a ping is answered.
+    ws.send(send(r#"{"type":"ping","id":1,"client_time_us":5}"#.into()))
+        .await
+        .unwrap();
+    assert!(matches!(
+        next_text(&mut ws).await,
+        Some(ServerMsg::Pong {
+            id: 1,
+            client_time_us: 5,
+            ..
+        })
+    ));
+
+    // Wrong protocol version: typed error, then a close.
+    let (mut v, _) = tokio_tungstenite::connect_async(server.ws_url())
+        .await
+        .unwrap();
+    v.send(send(
+        r#"{"type":"hello","version":99,"encoding":"binary"}"#.into(),
+    ))
+    .await
+    .unwrap();
+    match next_text(&mut v).await {
+        Some(ServerMsg::Error(e)) => assert_eq!(e.code, ErrorCode::UnsupportedVersion),
+        other => panic!("expected unsupported_version, got {other:?}"),
+    }
+    assert!(next_text(&mut v).await.is_none(), "connection should close");
+
+    // Oversized message: typed error or clean close, never a crash.
+    let mut big = raw(&server, Encoding::Json).await;
+    let padding = "x".repeat(MAX_CLIENT_MESSAGE_BYTES + 10);
+    big.send(send(format!(
+        r#"{{"type":"ping","id":1,"client_time_us":0,"pad":"{padding}"}}"#
+    )))
+    .await
+    .ok();
+    match next_text(&mut big).await {
+        Some(ServerMsg::Error(e)) => assert_eq!(e.code, ErrorCode::MessageTooLarge),
+        None => {}
+        other => panic!("unexpected {other:?}"),
+    }
+
+    // The other connection never noticed.
+    let before = watcher.latest(&avatar()).unwrap().seq;
+    assert!(
+        wait_for(2.0, || watcher
+            .latest(&avatar())
+            .is_some_and(|p| p.seq > before + 5))
+        .await
+    );
+    assert_eq!(watcher.stats().undecodable, 0);
+    server.stop().await;
+}
+
+#[tokio::test]
+async fn binary_and_json_subscribers_decode_the_same_poses() {
+    let server = server(60.0).await;
+    let b = client(&server, Encoding::Binary).await;
+    let j = client(&server, Encoding::Json).await;
+    assert!(
+        wait_for(3.0, || b.latest(&avatar()).is_some()
+            && j.latest(&avatar()).is_some())
+        .await
+    );
+    b.command(Command::SetJointRotation {
+        avatar: avatar(),
+        joint: "r_elbow".into(),
+        rotation: Quat::from_rotation_z(0.7).to_array(),
+    })
+    .await
+    .unwrap();
+    pause_at(&b, &avatar(), 1.0).await;
+    let target = b.latest(&avatar()).unwrap().seq;
+    assert!(wait_for(3.0, || j.latest(&avatar()).is_some_and(|p| p.seq >= target)).await);
+    let (rot, trans) = pose_error(
+        &b.latest(&avatar()).unwrap().locals,
+        &j.latest(&avatar()).unwrap().locals,
+    );
+    assert!(rot <= MAX_ERROR_DEGREES, "binary vs JSON: {rot}°");
+    assert!(trans <= 1e-6);
+    let elbow = b
+        .avatar(&avatar())
+        .unwrap()
+        .skeleton
+        .find("r_elbow")
+        .unwrap();
+    let got = b.latest(&avatar()).unwrap().locals[elbow].rotation;
+    assert!(angle_between_degrees(got, Quat::from_rotation_z(0.7)) <= MAX_ERROR_DEGREES);
+    server.stop().await;
+}
+
+#[tokio::test]
+async fn world_space_increment_moves_the_joint_by_exactly_u() {
+    let server = server(60.0).await;
+    let c = client(&server, Encoding::Binary).await;
+    assert!(wait_for(3.0, || c.latest(&avatar()).is_some()).await);
+    pause_at(&c, &avatar(), 0.5).await;
+    let view = c.avatar(&avatar()).unwrap();
+    let elbow = view.skeleton.find("l_elbow").unwrap();
+    let world = |locals: &[Transform]| {
+        let mut w = vec![glam::Mat4::IDENTITY; locals.len()];
+        posecast_proto::fk::forward_kinematics(&view.skeleton, locals, &mut w);
+        w
+    };
+    let before = world(&c.latest(&avatar()).unwrap().locals)[elbow];
+    let u = Quat::from_rotation_x(0.4);
+    c.command(Command::RotateJointWorld {
+        avatar: avatar(),
+        joint: "l_elbow".into(),
+        rotation: u.to_array(),
+    })
+    .await
+    .unwrap();
+    let seq = c.latest(&avatar()).unwrap().seq;
+    assert!(wait_for(2.0, || c.latest(&avatar()).is_some_and(|p| p.seq > seq + 1)).await);
+    let after = world(&c.latest(&avatar()).unwrap().locals)[elbow];
+    // W' = U W about the joint's own position: same position, rotation U·R.
+    let (_, r_before, p_before) = before.to_scale_rotation_translation();
+    let (_, r_after, p_after) = after.to_scale_rotation_translation();
+    assert!(
+        p_before.distance(p_after) < 1e-4,
+        "the elbow moved by {}",
+        p_before.distance(p_after)
+    );
+    let err = angle_between_degrees(r_after, u * r_before);
+    // Quantisation of the chain's rotations compounds a little.
+    assert!(err < 0.05, "world rotation off by {err}°");
+    server.stop().await;
+}
