@@ -2,8 +2,10 @@
 //! in-process on port 0.
 //!
 //! - `GET /ws`: the websocket protocol ([`ws`], `proto/PROTOCOL.md`).
+//! - `POST /api/commands`, `GET /api/scenes`, `GET /api/assets` ([`rest`]).
 //! - `GET /healthz`, `GET /metrics`.
 
+pub mod rest;
 pub mod ws;
 
 use crate::state::AppState;
@@ -11,7 +13,7 @@ use axum::Router;
 use axum::extract::{State, WebSocketUpgrade};
 use axum::http::header;
 use axum::response::{IntoResponse, Response};
-use axum::routing::get;
+use axum::routing::{get, post};
 use posecast_proto::msg::MAX_CLIENT_MESSAGE_BYTES;
 use std::sync::Arc;
 
@@ -19,6 +21,12 @@ use std::sync::Arc;
 pub fn app(state: Arc<AppState>) -> Router {
     Router::new()
         .route("/ws", get(ws_upgrade))
+        .route("/api/commands", post(rest::command))
+        .route("/api/scenes", get(rest::scenes))
+        .route("/api/assets", get(rest::assets))
+        .layer(axum::extract::DefaultBodyLimit::max(
+            MAX_CLIENT_MESSAGE_BYTES,
+        ))
         .route("/healthz", get(|| async { "ok" }))
         .route("/metrics", get(metrics))
         .with_state(state)
