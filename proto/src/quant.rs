@@ -90,7 +90,7 @@ pub fn write(q: Quat, out: &mut Vec<u8>) {
     out.extend_from_slice(&encode(q).to_le_bytes()[..BYTES]);
 }
 
-/// Reads 6 little-endian bytes written by [`write`].
+/// Reads 6 little-endian bytes written by [`write()`].
 #[must_use]
 pub fn read(bytes: [u8; BYTES]) -> Quat {
     let mut b = [0u8; 8];

@@ -1,4 +1,4 @@
-//! The built-in avatar's skinned mesh: the [`super::body`] segments tessellated as closed tubes
+//! The built-in avatar's skinned mesh: the `body` segments tessellated as closed tubes
 //! (overlapping at the joints), with skin weights that blend smoothly along each limb.
 
 use super::body::{Segment, segments};
