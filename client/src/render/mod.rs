@@ -12,6 +12,7 @@
 //! - [`offscreen`]: render to a texture and read back an [`RgbaImage`]; [`image`] writes PNGs
 //!   and compares images.
 //! - [`viewer`]: a window showing avatars from a [`PoseSource`].
+//! - [`glb_mesh`]: an avatar's skinned mesh from the server's `.glb` mesh format.
 //! - [`procedural`]: tube meshes along bones and a small figure, for demos and tests.
 
 mod avatar;
@@ -19,6 +20,7 @@ pub mod bounds;
 pub mod camera;
 pub mod compute;
 pub mod error;
+pub mod glb_mesh;
 pub mod gpu;
 pub mod gpu_types;
 pub mod image;

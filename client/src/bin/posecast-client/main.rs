@@ -1,0 +1,79 @@
+//! `posecast-client`: watch a stream's statistics, render a scene offscreen to PNG, or view it
+//! live in a window. Every flag can also be set by an environment variable.
+
+mod render;
+mod view;
+mod watch;
+
+use clap::{Args, Parser, Subcommand};
+use posecast_client::net::{Client, ClientOptions};
+use posecast_proto::msg::Encoding;
+
+#[derive(Debug, Parser)]
+#[command(name = "posecast-client", version, about)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Connect and print stream statistics once per second.
+    Watch(watch::WatchArgs),
+    /// Render a scene offscreen (no window; works on lavapipe) and write a PNG.
+    Render(render::RenderArgs),
+    /// Show a scene live in a window.
+    View(view::ViewArgs),
+}
+
+/// Where to connect; shared by every subcommand.
+#[derive(Debug, Args)]
+struct Connection {
+    /// The server's websocket URL.
+    #[arg(long, env = "POSECAST_URL", default_value = "ws://127.0.0.1:8080/ws")]
+    url: String,
+    /// The scene to subscribe to.
+    #[arg(long, env = "POSECAST_SCENE", default_value = "default")]
+    scene: String,
+    /// View or control token, when the server requires one.
+    #[arg(long, env = "POSECAST_TOKEN")]
+    token: Option<String>,
+    /// Receive JSON text frames instead of binary ones.
+    #[arg(long, env = "POSECAST_JSON_FRAMES")]
+    json_frames: bool,
+}
+
+impl Connection {
+    async fn connect(&self, reconnect: bool) -> anyhow::Result<Client> {
+        let mut options = ClientOptions::new(&self.url, &self.scene);
+        options.token = self.token.clone();
+        options.reconnect = reconnect;
+        if self.json_frames {
+            options.encoding = Encoding::Json;
+        }
+        Client::connect(options)
+            .await
+            .map_err(|e| anyhow::anyhow!("cannot connect to {}: {e}", self.url))
+    }
+}
+
+fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    match cli.command {
+        Command::Watch(args) => runtime.block_on(watch::run(args)),
+        Command::Render(args) => runtime.block_on(render::run(args)),
+        // winit wants the main thread; the client's tasks run on the runtime's workers.
+        Command::View(args) => view::run(args, &runtime),
+    }
+}
