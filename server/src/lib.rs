@@ -9,6 +9,7 @@
 //! - [`scene`]: scenes, avatars, playback and the tick task.
 //! - [`stream`]: per-connection outboxes (bounded fan-out).
 //! - [`control`]: control commands (shared by REST and websocket).
+//! - [`export`]: a rig's normalised mesh as .glb for render clients.
 //! - [`service`]: the axum router (`app`), websocket and HTTP endpoints.
 //! - [`state`]: configuration and shared state; [`metrics`]: counters.
 //! - [`startup`]: [`startup::Server`] — load rigs, create the default scene, serve.
@@ -17,6 +18,7 @@ pub mod asset;
 pub mod builtin;
 pub mod clip;
 pub mod control;
+pub mod export;
 pub mod import;
 pub mod library;
 pub mod metrics;

@@ -39,8 +39,8 @@ impl Avatar {
     pub fn new(id: AvatarId, num: u32, rig: Arc<Rig>) -> Self {
         let skeleton = rig.skeleton();
         let n = skeleton.len();
-        // No mesh endpoint yet: render clients load the mesh themselves (see README).
-        let mesh_url = None;
+        let mesh_url =
+            (!rig.asset.meshes.is_empty()).then(|| format!("/api/assets/{}/mesh.glb", rig.name));
         let description = AvatarDescription::new(
             id.clone(),
             num,

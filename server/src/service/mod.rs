@@ -2,7 +2,8 @@
 //! in-process on port 0.
 //!
 //! - `GET /ws`: the websocket protocol ([`ws`], `proto/PROTOCOL.md`).
-//! - `POST /api/commands`, `GET /api/scenes`, `GET /api/assets` ([`rest`]).
+//! - `POST /api/commands`, `GET /api/scenes`, `GET /api/assets`,
+//!   `GET /api/assets/{name}/mesh.glb` ([`rest`]).
 //! - `GET /healthz`, `GET /metrics`.
 
 pub mod rest;
@@ -24,6 +25,7 @@ pub fn app(state: Arc<AppState>) -> Router {
         .route("/api/commands", post(rest::command))
         .route("/api/scenes", get(rest::scenes))
         .route("/api/assets", get(rest::assets))
+        .route("/api/assets/{name}/mesh.glb", get(rest::mesh))
         .layer(axum::extract::DefaultBodyLimit::max(
             MAX_CLIENT_MESSAGE_BYTES,
         ))

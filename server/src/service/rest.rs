@@ -6,8 +6,8 @@
 use crate::control;
 use crate::state::AppState;
 use axum::Json;
-use axum::extract::State;
 use axum::extract::rejection::JsonRejection;
+use axum::extract::{Path, State};
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use posecast_proto::command::Command;
@@ -63,6 +63,33 @@ pub async fn command(
 /// `GET /api/scenes`.
 pub async fn scenes(State(state): State<Arc<AppState>>) -> Result<Json<Value>, AppError> {
     Ok(Json(control::execute(&state, &Command::ListScenes)?))
+}
+
+/// `GET /api/assets/{name}/mesh.glb`: the rig's normalised skinned mesh (the space of its
+/// description's inverse binds).
+pub async fn mesh(
+    State(state): State<Arc<AppState>>,
+    Path(name): Path<String>,
+) -> Result<Response, AppError> {
+    let rig = state.library.get(&name).ok_or_else(|| {
+        ProtocolError::new(
+            ErrorCode::UnknownAvatar,
+            format!("no rig (asset) named {name}"),
+        )
+    })?;
+    if rig.asset.meshes.is_empty() {
+        return Err(ProtocolError::new(
+            ErrorCode::UnknownAvatar,
+            format!("rig {name} has no mesh"),
+        )
+        .into());
+    }
+    let bytes = crate::export::mesh_glb(rig.skeleton(), &rig.asset.meshes);
+    Ok((
+        [(axum::http::header::CONTENT_TYPE, "model/gltf-binary")],
+        bytes,
+    )
+        .into_response())
 }
 
 /// `GET /api/assets`.
