@@ -10,3 +10,4 @@ pub mod asset;
 pub mod builtin;
 pub mod clip;
 pub mod import;
+pub mod rig;
