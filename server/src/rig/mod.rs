@@ -1,17 +1,17 @@
 //! Rig normalisation (seed 000, DESIGN.md "Rig normalisation") and cross-rig retargeting.
 //!
-//! Every step takes an [`Asset`](crate::asset::Asset) and gives one back whose skinned mesh is
+//! Every step takes an [`crate::asset::Asset`] and gives one back whose skinned mesh is
 //! the same for every frame of every clip (re-orient and units: the same up to `R·v`, `s·v`),
-//! plus the per-joint [`ChannelMap`](crate::clip::ChannelMap) it applied to clip channels:
+//! plus the per-joint [`crate::clip::ChannelMap`] it applied to clip channels:
 //!
-//! - [`adjust`]: the generic bind adjustment by per-joint rotations `V_i`.
-//! - [`simplify`]: `V_i = U_i`, so inverse binds become translations `T(−C_i)`.
-//! - [`reorient`]: a coordinate change by a rotation `R`, and units (a uniform scale).
-//! - [`neutral`]: a new neutral pose `H` (`V_i = V_parent(i) H_i`) and the H-Anim pose found by
+//! - [`adjust`](mod@adjust): the generic bind adjustment by per-joint rotations `V_i`.
+//! - [`simplify`](mod@simplify): `V_i = U_i`, so inverse binds become translations `T(−C_i)`.
+//! - [`reorient`](mod@reorient): a coordinate change by a rotation `R`, and units (a uniform scale).
+//! - [`neutral`](mod@neutral): a new neutral pose `H` (`V_i = V_parent(i) H_i`) and the H-Anim pose found by
 //!   aligning named segments with target directions.
-//! - [`names`]: joint names to H-Anim names.
-//! - [`retarget`]: a clip of one normalised rig replayed on another, matched in world space.
-//! - [`pipeline`]: the default sequence, configurable per asset, recording what it did.
+//! - [`names`](mod@names): joint names to H-Anim names.
+//! - [`retarget`](mod@retarget): a clip of one normalised rig replayed on another, matched in world space.
+//! - [`pipeline`](mod@pipeline): the default sequence, configurable per asset, recording what it did.
 
 pub mod adjust;
 pub mod names;

@@ -157,10 +157,8 @@ pub fn normalise(asset: Asset, options: &PipelineOptions) -> Result<Normalised, 
         asset = a;
         compose_maps(&mut maps, &m);
         world_change.1 = s;
-        steps.push(format!("units ({why}): x{s}"));
-    } else {
-        steps.push(format!("units ({why}): already metres"));
     }
+    steps.push(format!("units ({why}): x{s}"));
     let humanoid = REQUIRED
         .iter()
         .all(|r| super::names::find(&hanim, r).is_some());
