@@ -5,6 +5,7 @@
 //! - [`import`]: one importer per format (glTF, CSE169 `.skel/.skin/.anim`, BVH).
 //! - [`clip`]: the one in-memory clip representation and its samplers.
 //! - [`builtin`]: the generator of the built-in avatar shipped in `assets/`.
+//! - [`rig`]: rig normalisation (seed 000) and cross-rig retargeting.
 //! - [`library`]: the rigs the server can put in scenes.
 //! - [`scene`]: scenes, avatars, playback and the tick task.
 //! - [`stream`]: per-connection outboxes (bounded fan-out).
@@ -22,6 +23,7 @@ pub mod export;
 pub mod import;
 pub mod library;
 pub mod metrics;
+pub mod rig;
 pub mod scene;
 pub mod service;
 pub mod startup;

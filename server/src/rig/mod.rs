@@ -1,0 +1,104 @@
+//! Rig normalisation (seed 000, DESIGN.md "Rig normalisation") and cross-rig retargeting.
+//!
+//! Every step takes an [`crate::asset::Asset`] and gives one back whose skinned mesh is
+//! the same for every frame of every clip (re-orient and units: the same up to `R·v`, `s·v`),
+//! plus the per-joint [`crate::clip::ChannelMap`] it applied to clip channels:
+//!
+//! - [`adjust`](mod@adjust): the generic bind adjustment by per-joint rotations `V_i`.
+//! - [`simplify`](mod@simplify): `V_i = U_i`, so inverse binds become translations `T(−C_i)`.
+//! - [`reorient`](mod@reorient): a coordinate change by a rotation `R`, and units (a uniform scale).
+//! - [`neutral`](mod@neutral): a new neutral pose `H` (`V_i = V_parent(i) H_i`) and the H-Anim pose found by
+//!   aligning named segments with target directions.
+//! - [`names`](mod@names): joint names to H-Anim names.
+//! - [`retarget`](mod@retarget): a clip of one normalised rig replayed on another, matched in world space.
+//! - [`pipeline`](mod@pipeline): the default sequence, configurable per asset, recording what it did.
+
+pub mod adjust;
+pub mod names;
+pub mod neutral;
+pub mod pipeline;
+pub mod reorient;
+pub mod retarget;
+pub mod simplify;
+
+pub use adjust::adjust_bind;
+pub use names::{NameMapping, map_names};
+pub use neutral::{NeutralPose, apply_neutral_pose, hanim_pose};
+pub use pipeline::{Normalised, PipelineOptions, UpAxisOverride, normalise};
+pub use reorient::{SignedAxis, reorient, reorient_bind_frame, scale_units};
+pub use retarget::{RigView, retarget, retarget_at_rate};
+pub use simplify::simplify;
+
+use posecast_proto::{MeshError, SkeletonError};
+
+use crate::clip::ChannelMap;
+
+/// Why a rig could not be normalised or a clip retargeted.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum RigError {
+    /// The bind matrix mirrors (negative determinant): no rotation can express it, and folding
+    /// the mirror into the mesh would turn it inside out, so the asset is refused.
+    #[error("joint {joint} ({name:?}) has a mirrored bind matrix (determinant {determinant})")]
+    MirroredBind {
+        joint: usize,
+        name: String,
+        determinant: f32,
+    },
+    /// The bind matrix is singular or not finite.
+    #[error("joint {joint} ({name:?}) has a degenerate bind matrix (determinant {determinant})")]
+    DegenerateBind {
+        joint: usize,
+        name: String,
+        determinant: f32,
+    },
+    /// A non-uniform scale that the new joint frame would turn into a shear, which `T·R·S`
+    /// cannot hold.
+    #[error("joint {joint} ({name:?}) has non-uniform scale {scale} that {step} would shear")]
+    NonUniformScale {
+        joint: usize,
+        name: String,
+        scale: glam::Vec3,
+        step: &'static str,
+    },
+    /// A per-joint list does not have one entry per joint.
+    #[error("{what} has {actual} entries, expected one per joint ({expected})")]
+    Length {
+        what: &'static str,
+        expected: usize,
+        actual: usize,
+    },
+    /// A rotation, scale or direction given by the caller is not usable.
+    #[error("bad {what}: {message}")]
+    BadInput { what: &'static str, message: String },
+    /// The H-Anim neutral pose or retargeting needs joints the rig has not got.
+    #[error("{rig}: no H-Anim joint mapped for {missing:?}")]
+    NotHumanoid { rig: String, missing: Vec<String> },
+    /// A mapping file names a joint the skeleton does not have.
+    #[error("mapping names joint {joint:?}, which {rig} does not have")]
+    UnknownJoint { rig: String, joint: String },
+    /// Two joints map to the same H-Anim name.
+    #[error("{rig}: joints {first:?} and {second:?} both map to H-Anim {hanim:?}")]
+    DuplicateMapping {
+        rig: String,
+        hanim: String,
+        first: String,
+        second: String,
+    },
+    #[error("rebuilding the skeleton failed: {0}")]
+    Skeleton(#[from] SkeletonError),
+    #[error("rebuilding a mesh failed: {0}")]
+    Mesh(#[from] MeshError),
+    #[error("building a clip failed: {0}")]
+    Clip(#[from] crate::clip::ClipError),
+}
+
+/// Per joint, the [`ChannelMap`] a step applied to clip channels (the rotation part is the
+/// `(V_parent(i), V_i⁻¹)` pair DOF limits need).
+pub type JointMaps = Vec<ChannelMap>;
+
+/// Composes `next` after `acc`, joint by joint.
+pub(crate) fn compose_maps(acc: &mut [ChannelMap], next: &[ChannelMap]) {
+    for (a, n) in acc.iter_mut().zip(next) {
+        *a = a.then(n);
+    }
+}
