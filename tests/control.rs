@@ -103,3 +103,53 @@ async fn rest_commands_change_the_stream_and_errors_are_typed() {
     );
     server.stop().await;
 }
+
+#[tokio::test]
+async fn a_bvh_clip_plays_retargeted_on_the_built_in_avatar() {
+    let path = posecast_proto::testing::testdata("bvh/cmu/01_01.bvh");
+    if !path.exists() {
+        eprintln!("skipping: {} is absent", path.display());
+        return;
+    }
+    let server = server(60.0).await;
+    let mut asset = posecast_server::import::load_path(&path).unwrap().remove(0);
+    asset.name = "cmu".into();
+    let clip = asset.clips[0].name().to_string();
+    let rig = posecast_server::startup::rig_from_asset(asset, &Default::default()).unwrap();
+    server.state.library.insert(rig);
+    let c = client(&server, Encoding::Binary).await;
+    let id = AvatarId("avatar".into());
+    assert!(wait_for(3.0, || c.latest(&id).is_some()).await);
+    let before = c.latest(&id).unwrap().locals;
+    let play =
+        format!(r#"{{"op":"play","avatar":"avatar","clip":"{clip}","from_asset":"cmu","fade":0}}"#);
+    let (status, body) = http(&server, "POST", "/api/commands", Some(&play)).await;
+    assert_eq!(status, 200, "{body}");
+    let (_, state) = http(
+        &server,
+        "POST",
+        "/api/commands",
+        Some(r#"{"op":"get_avatar","avatar":"avatar"}"#),
+    )
+    .await;
+    let state: serde_json::Value = serde_json::from_str(&state).unwrap();
+    assert_eq!(state["result"]["clip_asset"], "cmu", "{state}");
+    let seq = c.latest(&id).unwrap().seq;
+    assert!(wait_for(2.0, || c.latest(&id).is_some_and(|p| p.seq > seq + 3)).await);
+    let after = c.latest(&id).unwrap().locals;
+    assert!(
+        after
+            .iter()
+            .all(|t| t.rotation.is_finite() && t.translation.is_finite())
+    );
+    let moved = before
+        .iter()
+        .zip(&after)
+        .filter(|(a, b)| a.rotation.dot(b.rotation).abs() < 0.999)
+        .count();
+    assert!(
+        moved >= 5,
+        "only {moved} joints changed under the retargeted clip"
+    );
+    server.stop().await;
+}

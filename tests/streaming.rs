@@ -105,7 +105,10 @@ async fn a_testdata_rig_streams_its_clip() {
     let server = server(60.0).await;
     let mut asset = import::load_path(&path).unwrap().remove(0);
     asset.name = "cesium".into();
-    server.state.library.insert(rig_from_asset(asset, vec![]));
+    server
+        .state
+        .library
+        .insert(rig_from_asset(asset, &Default::default()).unwrap());
     let c = client(&server, Encoding::Binary).await;
     let reply = c
         .command(Command::AddAvatar {

@@ -61,19 +61,38 @@ fn rotation_result(q: Quat) -> Value {
     json!({ "rotation": q.to_array() })
 }
 
-/// The clip `clip` of rig `source`, retargeted onto `target`.
+/// The clip `clip` of rig `source`, retargeted onto `target` (matching H-Anim joints in world
+/// space relative to both rigs' neutral pose, baked at 30 Hz).
 fn retarget(
     source: &crate::library::Rig,
     target: &crate::library::Rig,
     clip: &str,
 ) -> Result<std::sync::Arc<crate::clip::Clip>, ProtocolError> {
-    Err(ProtocolError::new(
-        ErrorCode::InvalidValue,
-        format!(
-            "retargeting {clip} from {} onto {} needs rig normalisation (not in this build)",
-            source.name, target.name
-        ),
-    ))
+    let c = source.clip(clip).ok_or_else(|| {
+        ProtocolError::new(
+            ErrorCode::UnknownClip,
+            format!("rig {} has no clip {clip}", source.name),
+        )
+    })?;
+    let s = crate::rig::RigView {
+        asset: &source.asset,
+        hanim: &source.hanim,
+    };
+    let t = crate::rig::RigView {
+        asset: &target.asset,
+        hanim: &target.hanim,
+    };
+    let mut out = crate::rig::retarget(s, c, t).map_err(|e| {
+        ProtocolError::new(
+            ErrorCode::InvalidValue,
+            format!(
+                "cannot retarget {clip} from {} onto {}: {e}",
+                source.name, target.name
+            ),
+        )
+    })?;
+    out.set_name(format!("{}:{clip}", source.name));
+    Ok(std::sync::Arc::new(out))
 }
 
 /// Executes a command. Authorisation is checked by the caller.

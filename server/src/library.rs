@@ -26,6 +26,8 @@ pub struct Rig {
     pub limits: Vec<Option<JointLimits>>,
     /// What the import pipeline did, in order, for people.
     pub pipeline: Vec<String>,
+    /// Per joint, its H-Anim name if mapped (what retargeting matches on).
+    pub hanim: Vec<Option<String>>,
 }
 
 /// A joint's DOF limits and the frame they are expressed in.
@@ -56,7 +58,12 @@ impl JointLimits {
 impl Rig {
     /// A rig from an asset that has already been normalised; `pipeline` records how.
     #[must_use]
-    pub fn new(asset: Asset, pipeline: Vec<String>, limits: Vec<Option<JointLimits>>) -> Self {
+    pub fn new(
+        asset: Asset,
+        pipeline: Vec<String>,
+        limits: Vec<Option<JointLimits>>,
+        hanim: Vec<Option<String>>,
+    ) -> Self {
         let n = asset.skeleton.len();
         let mut translated = vec![false; n];
         let mut scaled = vec![false; n];
@@ -69,6 +76,8 @@ impl Rig {
         let clips = asset.clips.iter().cloned().map(Arc::new).collect();
         let mut limits = limits;
         limits.resize(n, None);
+        let mut hanim = hanim;
+        hanim.resize(n, None);
         Self {
             name: asset.name.clone(),
             asset,
@@ -77,6 +86,7 @@ impl Rig {
             scaled,
             limits,
             pipeline,
+            hanim,
         }
     }
 

@@ -2,12 +2,12 @@
 
 use crate::asset::Asset;
 use crate::builtin::AVATAR_GLB;
-use crate::import::{self, ImportError};
+use crate::import;
 use crate::library::{JointLimits, Rig};
+use crate::rig::{PipelineOptions, RigError, normalise};
 use crate::scene::playback::Layer;
 use crate::service::app;
 use crate::state::{AppState, Config};
-use glam::Quat;
 use posecast_proto::msg::{AvatarId, SceneId};
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -22,34 +22,46 @@ pub const DEFAULT_SCENE: &str = "default";
 /// The built-in avatar's id in the default scene.
 pub const DEFAULT_AVATAR: &str = "avatar";
 
-/// Makes a playable rig from an imported asset: DOF limits from the skeleton (in the frame
-/// they were authored in).
-#[must_use]
-pub fn rig_from_asset(asset: Asset, steps: Vec<String>) -> Rig {
-    let limits = asset
-        .skeleton
-        .dofs()
+/// Makes a playable rig from an imported asset: runs the normalisation pipeline with
+/// `options` (simplify → re-orient → units → H-Anim neutral pose when humanoid) and keeps DOF
+/// limits in the frame they were authored in, with the rotation maps that carry them over.
+///
+/// # Errors
+/// The pipeline refused the rig (e.g. a mirrored bind).
+pub fn rig_from_asset(asset: Asset, options: &PipelineOptions) -> Result<Rig, RigError> {
+    let dofs = asset.skeleton.dofs().to_vec();
+    let n = normalise(asset, options)?;
+    let limits = dofs
         .iter()
-        .map(|d| {
+        .zip(&n.rotation_maps)
+        .map(|(d, &(pre, post))| {
             d.is_limited().then(|| JointLimits {
                 dofs: d.clone(),
-                pre: Quat::IDENTITY,
-                post: Quat::IDENTITY,
+                pre,
+                post,
             })
         })
         .collect();
-    Rig::new(asset, steps, limits)
+    let mut steps = n.steps;
+    if !n.unmapped.is_empty() {
+        steps.push(format!(
+            "joints without an H-Anim name: {}",
+            n.unmapped.join(", ")
+        ));
+    }
+    Ok(Rig::new(n.asset, steps, limits, n.hanim))
 }
 
 /// The built-in avatar's rig.
 ///
 /// # Errors
 /// Only if the embedded file were broken (a test guards it).
-pub fn builtin_rig() -> Result<Rig, ImportError> {
-    let mut assets = import::gltf::from_slice("avatar.glb", AVATAR_GLB)?;
+pub fn builtin_rig() -> Result<Rig, String> {
+    let mut assets =
+        import::gltf::from_slice("avatar.glb", AVATAR_GLB).map_err(|e| e.to_string())?;
     let mut asset = assets.remove(0);
     asset.name = BUILTIN_ASSET.to_string();
-    Ok(rig_from_asset(asset, vec!["built-in avatar".into()]))
+    rig_from_asset(asset, &PipelineOptions::default()).map_err(|e| e.to_string())
 }
 
 /// A running server.
@@ -188,11 +200,14 @@ fn load_dir(state: &AppState, dir: &std::path::Path) {
         match import::load_path(&path) {
             Ok(assets) => {
                 for asset in assets {
-                    info!(asset = %asset.name, joints = asset.skeleton.len(), clips = asset.clips.len(), "loaded");
-                    state.library.insert(rig_from_asset(
-                        asset,
-                        vec![format!("imported from {}", path.display())],
-                    ));
+                    let name = asset.name.clone();
+                    match rig_from_asset(asset, &PipelineOptions::default()) {
+                        Ok(rig) => {
+                            info!(asset = %name, joints = rig.skeleton().len(), steps = ?rig.pipeline, "loaded");
+                            state.library.insert(rig);
+                        }
+                        Err(e) => warn!(asset = %name, error = %e, "skipped: normalisation failed"),
+                    }
                 }
             }
             Err(e) => warn!(error = %e, "skipped"),
