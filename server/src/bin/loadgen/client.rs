@@ -1,0 +1,232 @@
+//! One lightweight load client: hello, subscribe, then read frames and keep only the header's
+//! `seq` and `server_time_us` (no pose decoding: the point is the server's fan-out, and a full
+//! decode per frame would make this process the bottleneck sooner).
+
+use anyhow::{Context, Result, bail};
+use futures_util::{SinkExt, StreamExt};
+use posecast_proto::frame::read_header;
+use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, SceneId, ServerMsg};
+use std::sync::atomic::{AtomicU8, AtomicUsize, Ordering};
+use tokio::sync::{Semaphore, watch};
+use tokio_tungstenite::tungstenite::Message;
+
+/// Where the run is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Phase {
+    /// Connecting and settling: frames are not counted.
+    Warmup = 0,
+    /// Counting.
+    Measure = 1,
+    /// Stop reading and close.
+    Done = 2,
+}
+
+/// State shared by every client.
+#[derive(Debug)]
+pub struct Shared {
+    phase: AtomicU8,
+    done: watch::Sender<bool>,
+    connecting: Semaphore,
+    /// Clients that received `subscribed`.
+    pub ready: AtomicUsize,
+    /// Clients that failed to connect or subscribe.
+    pub failed: AtomicUsize,
+}
+
+impl Shared {
+    /// `parallel` connections may be in their handshake at once.
+    pub fn new(parallel: usize) -> Self {
+        Self {
+            phase: AtomicU8::new(Phase::Warmup as u8),
+            done: watch::Sender::new(false),
+            connecting: Semaphore::new(parallel.max(1)),
+            ready: AtomicUsize::new(0),
+            failed: AtomicUsize::new(0),
+        }
+    }
+
+    /// Moves every client to `phase`.
+    pub fn set_phase(&self, phase: Phase) {
+        self.phase.store(phase as u8, Ordering::SeqCst);
+        if phase == Phase::Done {
+            self.done.send_replace(true);
+        }
+    }
+
+    fn measuring(&self) -> bool {
+        self.phase.load(Ordering::Relaxed) == Phase::Measure as u8
+    }
+}
+
+/// What one client saw during the measurement.
+#[derive(Debug, Default)]
+pub struct ClientStats {
+    /// Binary frames received.
+    pub frames: u64,
+    /// Their bytes.
+    pub bytes: u64,
+    /// Keyframes among them.
+    pub keys: u64,
+    /// Tick→receive latency of each frame, µs.
+    pub latencies_us: Vec<u32>,
+    /// Ticks missing between consecutive frames (`seq` gaps).
+    pub missed: u64,
+    /// Frames whose `seq` was not above the previous one.
+    pub out_of_order: u64,
+    /// Why the client failed, if it did.
+    pub failure: Option<String>,
+    /// The connection ended before the run did.
+    pub closed_early: bool,
+}
+
+impl ClientStats {
+    /// A client that failed for `why`.
+    pub fn failed(why: &str) -> Self {
+        Self {
+            failure: Some(why.to_owned()),
+            ..Self::default()
+        }
+    }
+}
+
+/// Connects, subscribes to `scene` and reads until the run is done.
+pub async fn run(index: usize, url: &str, scene: &str, shared: &Shared) -> ClientStats {
+    let mut done = shared.done.subscribe();
+    let connected = {
+        // The permit bounds handshakes in flight (the server's accept backlog is finite).
+        let _permit = shared.connecting.acquire().await;
+        connect(index, url, scene).await
+    };
+    let mut ws = match connected {
+        Ok(ws) => ws,
+        Err(e) => {
+            shared.failed.fetch_add(1, Ordering::Relaxed);
+            return ClientStats::failed(&format!("{e:#}"));
+        }
+    };
+    shared.ready.fetch_add(1, Ordering::Relaxed);
+    let mut stats = ClientStats::default();
+    let mut last_seq: Option<u64> = None;
+    loop {
+        let message = tokio::select! {
+            m = ws.next() => m,
+            _ = done.wait_for(|d| *d) => break,
+        };
+        match message {
+            Some(Ok(Message::Binary(bytes))) => {
+                let now = crate::unix_micros();
+                let Ok((header, _)) = read_header(&bytes) else {
+                    stats.failure = Some("a binary message is not a pose frame".into());
+                    break;
+                };
+                let measuring = shared.measuring();
+                match last_seq {
+                    Some(prev) if header.seq <= prev => {
+                        stats.out_of_order += u64::from(measuring);
+                    }
+                    Some(prev) if measuring => stats.missed += header.seq - prev - 1,
+                    _ => {}
+                }
+                last_seq = Some(last_seq.map_or(header.seq, |p| p.max(header.seq)));
+                if measuring {
+                    stats.frames += 1;
+                    stats.bytes += bytes.len() as u64;
+                    stats.keys += u64::from(header.base_seq == header.seq);
+                    let latency = now.saturating_sub(header.server_time_us);
+                    stats
+                        .latencies_us
+                        .push(u32::try_from(latency).unwrap_or(u32::MAX));
+                }
+            }
+            Some(Ok(Message::Text(text))) => {
+                if let Ok(ServerMsg::Error(e)) = serde_json::from_str::<ServerMsg>(&text) {
+                    stats.failure = Some(format!("server error: {e}"));
+                }
+            }
+            Some(Ok(Message::Close(_))) | None => {
+                stats.closed_early = true;
+                break;
+            }
+            Some(Ok(_)) => {}
+            Some(Err(e)) => {
+                stats.failure = Some(format!("read failed: {e}"));
+                stats.closed_early = true;
+                break;
+            }
+        }
+    }
+    // The run is over: a close that fails (the server went first) changes nothing measured.
+    ws.close(None).await.ok();
+    stats
+}
+
+/// A client websocket.
+pub type Ws =
+    tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
+
+/// Opens a websocket and says hello (binary encoding); returns once `welcome` arrived.
+async fn hello(url: &str, name: String) -> Result<Ws> {
+    let (mut ws, _) = tokio_tungstenite::connect_async(url)
+        .await
+        .with_context(|| format!("connect to {url}"))?;
+    let hello = ClientMsg::Hello {
+        version: PROTOCOL_VERSION,
+        encoding: Encoding::Binary,
+        token: None,
+        client: Some(name),
+    };
+    send(&mut ws, &hello).await?;
+    expect(&mut ws, |m| matches!(m, ServerMsg::Welcome { .. })).await?;
+    Ok(ws)
+}
+
+/// A connection for commands (hello, no subscription).
+pub async fn connect_control(url: &str) -> Result<Ws> {
+    hello(url, "loadgen-control".into()).await
+}
+
+/// Opens a websocket, says hello and subscribes; returns once `subscribed` arrived.
+pub async fn connect(index: usize, url: &str, scene: &str) -> Result<Ws> {
+    let mut ws = hello(url, format!("loadgen-{index}")).await?;
+    send(
+        &mut ws,
+        &ClientMsg::Subscribe {
+            scene: SceneId(scene.to_owned()),
+            avatars: None,
+        },
+    )
+    .await?;
+    expect(&mut ws, |m| matches!(m, ServerMsg::Subscribed { .. })).await?;
+    Ok(ws)
+}
+
+/// Sends a client message as JSON text.
+pub async fn send(ws: &mut Ws, msg: &ClientMsg) -> Result<()> {
+    let text = serde_json::to_string(msg)?;
+    ws.send(Message::text(text)).await.context("send")
+}
+
+/// Reads text messages until one satisfies `want`; a server error fails.
+pub async fn expect(ws: &mut Ws, want: impl Fn(&ServerMsg) -> bool) -> Result<ServerMsg> {
+    loop {
+        let message = tokio::time::timeout(std::time::Duration::from_secs(20), ws.next())
+            .await
+            .context("no answer within 20 s")?;
+        match message {
+            Some(Ok(Message::Text(text))) => {
+                let msg: ServerMsg = serde_json::from_str(&text)
+                    .with_context(|| format!("not a server message: {text}"))?;
+                if let ServerMsg::Error(e) = &msg {
+                    bail!("server error: {e}");
+                }
+                if want(&msg) {
+                    return Ok(msg);
+                }
+            }
+            Some(Ok(Message::Close(frame))) => bail!("server closed: {frame:?}"),
+            Some(Ok(_)) => {}
+            Some(Err(e)) => bail!("read failed: {e}"),
+            None => bail!("connection ended"),
+        }
+    }
+}

@@ -1,0 +1,212 @@
+//! `loadgen`: fan-out load test for a posecast server, in its own process, on loopback.
+//!
+//! Opens N websocket clients (binary encoding: `hello`, then `subscribe`), lets them settle,
+//! then measures for a bounded time: pose frames delivered per second (total and per client),
+//! tick→receive latency (receive time − the header's `server_time_us`; both clocks are this
+//! machine's), frames missed (gaps in `seq` per client), connection failures, and the server
+//! process's CPU from `/proc/<pid>/stat`.
+//!
+//! ```text
+//! loadgen --url ws://127.0.0.1:8080/ws --clients 100 --seconds 10 [--scene default] [--server-pid PID]
+//! loadgen --spawn-server --avatars 10 --clients 2000 --seconds 10
+//! ```
+//!
+//! `--spawn-server` runs the `posecast` binary built beside this one on a free loopback port,
+//! fills its `default` scene up to M built-in avatars (it starts with one playing `idle`; the
+//! others play `walk`, `wave`, `idle` in turn) with websocket commands, and stops the server at
+//! the end. Every client costs one file descriptor here and one in the server:
+//! raise the soft limit first (`ulimit -n 20000`, at most `ulimit -Hn`); the spawned server gets
+//! the same limit.
+
+mod client;
+mod report;
+mod server;
+
+use anyhow::{Context, Result, bail};
+use clap::Parser;
+use client::{ClientStats, Phase};
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+/// Fan-out load generator for posecast (loopback only, bounded run).
+#[derive(Debug, Parser)]
+#[command(version, about)]
+pub struct Args {
+    /// Websocket URL of a running server.
+    #[arg(
+        long,
+        required_unless_present = "spawn_server",
+        conflicts_with = "spawn_server"
+    )]
+    url: Option<String>,
+    /// Start `posecast` as a child process on a free loopback port and create the scene.
+    #[arg(long)]
+    spawn_server: bool,
+    /// The server binary for --spawn-server (default: `posecast` beside this executable).
+    #[arg(long)]
+    server_bin: Option<PathBuf>,
+    /// With --url: the server's process id, to measure its CPU.
+    #[arg(long)]
+    server_pid: Option<u32>,
+    /// With --spawn-server: avatars in the scene.
+    #[arg(long, default_value_t = 10)]
+    avatars: usize,
+    /// With --spawn-server: clips the avatars play, in turn.
+    #[arg(long, value_delimiter = ',', default_value = "walk,wave,idle")]
+    clips: Vec<String>,
+    /// The server's tick rate (passed to a spawned server; the expected frame rate).
+    #[arg(long, default_value_t = 60.0)]
+    tick_rate: f32,
+    /// Websocket clients.
+    #[arg(long, default_value_t = 100)]
+    clients: usize,
+    /// Length of the measurement, seconds.
+    #[arg(long, default_value_t = 10.0)]
+    seconds: f64,
+    /// Time after every client subscribed and before measuring, seconds.
+    #[arg(long, default_value_t = 2.0)]
+    warmup: f64,
+    /// The scene to subscribe to (with --spawn-server: created unless it is `default`).
+    #[arg(long)]
+    scene: Option<String>,
+    /// Connections being opened at once.
+    #[arg(long, default_value_t = 64)]
+    connect_parallel: usize,
+}
+
+/// Microseconds since the Unix epoch, the clock of the frames' `server_time_us`.
+fn unix_micros() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_micros() as u64)
+}
+
+/// `host:port` of a `ws://host:port/path` URL.
+fn authority(url: &str) -> Result<String> {
+    let rest = url
+        .strip_prefix("ws://")
+        .with_context(|| format!("{url}: only ws:// URLs are supported (loopback)"))?;
+    Ok(rest.split('/').next().unwrap_or(rest).to_owned())
+}
+
+fn main() -> Result<()> {
+    let args = Args::parse();
+    let positive = |v: f64| v.is_finite() && v > 0.0;
+    if args.clients == 0
+        || !positive(args.seconds)
+        || !(positive(args.warmup) || args.warmup == 0.0)
+    {
+        bail!("--clients must be positive, --seconds positive, --warmup non-negative");
+    }
+    let needed = args.clients as u64 + 64;
+    let limit = server::open_files_limit()?;
+    if limit < needed {
+        bail!(
+            "{} clients need about {needed} file descriptors but the limit is {limit}: \
+             run `ulimit -n {}` first (at most `ulimit -Hn`)",
+            args.clients,
+            needed.max(20_000)
+        );
+    }
+    // The clients' reads are the heavy part; the server is a separate process.
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?;
+    runtime.block_on(run(args, limit))
+}
+
+async fn run(args: Args, fd_limit: u64) -> Result<()> {
+    let mut spawned = None;
+    let (url, scene, pid) = if args.spawn_server {
+        let child =
+            server::Spawned::start(args.server_bin.as_deref(), args.tick_rate, fd_limit).await?;
+        let url = child.ws_url();
+        let scene = args.scene.clone().unwrap_or_else(|| "default".into());
+        server::create_scene(&url, &scene, args.avatars, &args.clips).await?;
+        let pid = child.pid();
+        spawned = Some(child);
+        (url, scene, Some(pid))
+    } else {
+        let url = args.url.clone().context("--url or --spawn-server")?;
+        let scene = args.scene.clone().unwrap_or_else(|| "default".into());
+        (url, scene, args.server_pid)
+    };
+    let result = measure(&args, &url, &scene, pid).await;
+    if let Some(child) = spawned {
+        child.stop().await;
+    }
+    result
+}
+
+async fn measure(args: &Args, url: &str, scene: &str, pid: Option<u32>) -> Result<()> {
+    let shared = Arc::new(client::Shared::new(args.connect_parallel));
+    let connect_began = Instant::now();
+    let tasks: Vec<_> = (0..args.clients)
+        .map(|i| {
+            let shared = shared.clone();
+            let url = url.to_owned();
+            let scene = scene.to_owned();
+            tokio::spawn(async move { client::run(i, &url, &scene, &shared).await })
+        })
+        .collect();
+    // Every client subscribed or failed, within a generous bound.
+    let deadline = Instant::now() + Duration::from_secs(30 + args.clients as u64 / 20);
+    loop {
+        let ready = shared.ready.load(Ordering::Relaxed) + shared.failed.load(Ordering::Relaxed);
+        if ready >= args.clients || Instant::now() > deadline {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let connect_time = connect_began.elapsed();
+    eprintln!(
+        "{} of {} clients subscribed in {:.1} s ({} failed); warming up {:.1} s",
+        shared.ready.load(Ordering::Relaxed),
+        args.clients,
+        connect_time.as_secs_f64(),
+        shared.failed.load(Ordering::Relaxed),
+        args.warmup
+    );
+    tokio::time::sleep(Duration::from_secs_f64(args.warmup)).await;
+
+    let http = authority(url)?;
+    let metrics_before = server::scrape_metrics(&http).await.ok();
+    let cpu_before = pid.map(server::cpu_ticks).transpose()?;
+    let self_before = server::cpu_ticks_self()?;
+    let began = Instant::now();
+    shared.set_phase(Phase::Measure);
+    tokio::time::sleep(Duration::from_secs_f64(args.seconds)).await;
+    shared.set_phase(Phase::Done);
+    let wall = began.elapsed().as_secs_f64();
+    let cpu_after = pid.map(server::cpu_ticks).transpose()?;
+    let self_after = server::cpu_ticks_self()?;
+    let metrics_after = server::scrape_metrics(&http).await.ok();
+
+    let mut stats: Vec<ClientStats> = Vec::with_capacity(tasks.len());
+    for t in tasks {
+        match tokio::time::timeout(Duration::from_secs(10), t).await {
+            Ok(Ok(s)) => stats.push(s),
+            Ok(Err(e)) => bail!("a client task panicked: {e}"),
+            Err(_) => stats.push(ClientStats::failed("did not stop within 10 s")),
+        }
+    }
+    let hz = server::clock_ticks_per_second();
+    let cpu = |a: Option<u64>, b: Option<u64>| match (a, b) {
+        (Some(a), Some(b)) => Some(100.0 * b.saturating_sub(a) as f64 / hz / wall),
+        _ => None,
+    };
+    let summary = report::Summary::new(
+        args,
+        scene,
+        wall,
+        connect_time.as_secs_f64(),
+        &stats,
+        cpu(cpu_before, cpu_after),
+        cpu(Some(self_before), Some(self_after)),
+        metrics_before.as_ref().zip(metrics_after.as_ref()),
+    );
+    summary.print();
+    Ok(())
+}
