@@ -254,7 +254,7 @@ fn main() -> Result<()> {
     if assets.is_empty() {
         bail!("the built-in avatar holds no rig");
     }
-    let builtin = rig_from_asset(assets.remove(0), Vec::new());
+    let builtin = rig_from_asset(assets.remove(0), &Default::default())?;
     for clip in &builtin.clips {
         rows.push(measure(
             &format!("built-in {}", clip.name()),
@@ -268,7 +268,7 @@ fn main() -> Result<()> {
         if assets.is_empty() {
             bail!("{} holds no rig", path.display());
         }
-        let cmu = rig_from_asset(assets.remove(0), Vec::new());
+        let cmu = rig_from_asset(assets.remove(0), &Default::default())?;
         let clip = cmu
             .clips
             .first()
