@@ -91,6 +91,13 @@ impl Server {
         }
         let listener = tokio::net::TcpListener::bind(config.listen).await?;
         let addr = listener.local_addr()?;
+        // Pose frames are small writes at 60 Hz: without TCP_NODELAY, Nagle holds each one until
+        // the previous one is acknowledged, and delayed ACKs make that up to 40 ms.
+        let listener = axum::serve::ListenerExt::tap_io(listener, |tcp| {
+            if let Err(e) = tcp.set_nodelay(true) {
+                warn!(error = %e, "cannot set TCP_NODELAY");
+            }
+        });
         let (tx, rx) = oneshot::channel::<()>();
         let router = app(state.clone());
         let shutdown_state = state.clone();
