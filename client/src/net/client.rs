@@ -545,11 +545,14 @@ fn record(
     received: u64,
     locals: Vec<Transform>,
 ) {
-    let offset = s.clock.offset_us();
-    let latency = received as f64 + offset - server_time_us as f64;
-    s.stats.latency_sum_us += latency;
-    s.stats.latency_count += 1;
-    s.stats.latency_max_us = s.stats.latency_max_us.max(latency);
+    // Latency needs the clock offset: frames that arrive before the first pong are not
+    // counted (they would mix two clocks).
+    if s.clock.rtt_us().is_some() {
+        let latency = received as f64 + s.clock.offset_us() - server_time_us as f64;
+        s.stats.latency_sum_us += latency;
+        s.stats.latency_count += 1;
+        s.stats.latency_max_us = s.stats.latency_max_us.max(latency);
+    }
     if let Some(a) = s.avatars.get_mut(id) {
         a.jitter.push(server_time_us, received, locals.clone());
         a.latest = Some(PoseSample {
