@@ -57,8 +57,20 @@ fn with_avatar<T>(
     f(avatar)
 }
 
-fn rotation_result(q: Quat) -> Value {
-    json!({ "rotation": q.to_array() })
+/// The three rotation commands share this: validate the quaternion, find the joint, apply
+/// `f` under the scene lock, answer with the rotation actually set (after limits).
+fn with_joint_rotation(
+    state: &AppState,
+    avatar: &AvatarId,
+    joint: &str,
+    rotation: [f32; 4],
+    f: impl FnOnce(&mut Avatar, usize, Quat) -> Result<Quat, ProtocolError>,
+) -> Result<Value, ProtocolError> {
+    let q = quat(rotation)?;
+    with_avatar(state, avatar, |a| {
+        let j = joint_index(a, joint)?;
+        Ok(json!({ "rotation": f(a, j, q)?.to_array() }))
+    })
 }
 
 /// The clip `clip` of rig `source`, retargeted onto `target` (matching H-Anim joints in world
@@ -257,13 +269,9 @@ fn run(state: &AppState, command: &Command) -> Result<Value, ProtocolError> {
             avatar,
             joint,
             rotation,
-        } => {
-            let q = quat(*rotation)?;
-            with_avatar(state, avatar, |a| {
-                let j = joint_index(a, joint)?;
-                Ok(rotation_result(a.set_rotation(j, q)))
-            })
-        }
+        } => with_joint_rotation(state, avatar, joint, *rotation, |a, j, q| {
+            Ok(a.set_rotation(j, q))
+        }),
         Command::SetJointDofs {
             avatar,
             joint,
@@ -296,27 +304,17 @@ fn run(state: &AppState, command: &Command) -> Result<Value, ProtocolError> {
             avatar,
             joint,
             rotation,
-        } => {
-            let q = quat(*rotation)?;
-            with_avatar(state, avatar, |a| {
-                let j = joint_index(a, joint)?;
-                Ok(rotation_result(a.rotate_local(j, q)))
-            })
-        }
+        } => with_joint_rotation(state, avatar, joint, *rotation, |a, j, q| {
+            Ok(a.rotate_local(j, q))
+        }),
         Command::RotateJointWorld {
             avatar,
             joint,
             rotation,
-        } => {
-            let q = quat(*rotation)?;
-            with_avatar(state, avatar, |a| {
-                let j = joint_index(a, joint)?;
-                let r = a
-                    .rotate_world(j, q)
-                    .map_err(|e| invalid(format!("joint {joint}: {e}")))?;
-                Ok(rotation_result(r))
-            })
-        }
+        } => with_joint_rotation(state, avatar, joint, *rotation, |a, j, q| {
+            a.rotate_world(j, q)
+                .map_err(|e| invalid(format!("joint {joint}: {e}")))
+        }),
         Command::Release { avatar, joint } => with_avatar(state, avatar, |a| {
             let j = joint
                 .as_deref()
