@@ -3,6 +3,7 @@
 //! variable.
 
 use clap::Parser;
+use posecast_server::auth::{AccessConfig, Role, Secret, TokenRule};
 use posecast_server::startup::{DEFAULT_SCENE, Server};
 use posecast_server::state::Config;
 use std::net::SocketAddr;
@@ -24,6 +25,68 @@ struct Args {
     /// Do not load the built-in avatar and the default scene.
     #[arg(long, env = "POSECAST_NO_BUILTIN")]
     no_builtin: bool,
+    /// TOML file of tokens and their limits (see README, "Access control").
+    #[arg(long, env = "POSECAST_ACCESS_FILE")]
+    access_file: Option<PathBuf>,
+    /// Unlimited control token(s). With none here or in the access file, one is generated
+    /// and printed at start.
+    #[arg(
+        long = "control-token",
+        env = "POSECAST_CONTROL_TOKEN",
+        value_delimiter = ',',
+        hide_env_values = true
+    )]
+    control_tokens: Vec<String>,
+    /// View token(s) (needed to watch only with --require-view-token).
+    #[arg(
+        long = "view-token",
+        env = "POSECAST_VIEW_TOKEN",
+        value_delimiter = ',',
+        hide_env_values = true
+    )]
+    view_tokens: Vec<String>,
+    /// Viewers need a view or control token (default: anyone may watch).
+    #[arg(long, env = "POSECAST_REQUIRE_VIEW_TOKEN")]
+    require_view_token: bool,
+}
+
+/// The access rules from the file and flags, and a generated control token when none is
+/// configured (to print once).
+fn access(args: &Args) -> anyhow::Result<(AccessConfig, Option<Secret>)> {
+    let mut access = match &args.access_file {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .map_err(|e| anyhow::anyhow!("cannot read {}: {e}", path.display()))?;
+            AccessConfig::from_toml(&text, |var| std::env::var(var).ok())
+                .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?
+        }
+        None => AccessConfig::default(),
+    };
+    if args.require_view_token {
+        access.open_view = false;
+    }
+    for (i, t) in args.control_tokens.iter().enumerate() {
+        access.add(TokenRule::new(
+            format!("control-{}", i + 1),
+            Secret::new(t.as_str()),
+            Role::Control,
+        ))?;
+    }
+    for (i, t) in args.view_tokens.iter().enumerate() {
+        access.add(TokenRule::new(
+            format!("view-{}", i + 1),
+            Secret::new(t.as_str()),
+            Role::View,
+        ))?;
+    }
+    let generated = if access.has_control_token() {
+        None
+    } else {
+        let secret = Secret::generate();
+        access.add(TokenRule::new("generated", secret.clone(), Role::Control))?;
+        Some(secret)
+    };
+    Ok((access, generated))
 }
 
 #[tokio::main]
@@ -39,11 +102,13 @@ async fn main() -> anyhow::Result<()> {
         args.tick_rate.is_finite() && args.tick_rate > 0.0 && args.tick_rate <= 1000.0,
         "--tick-rate must be in (0, 1000]"
     );
+    let (access, generated) = access(&args)?;
     let config = Config {
         listen: args.listen,
         tick_rate: args.tick_rate,
         asset_dirs: args.assets,
         builtin: !args.no_builtin,
+        access,
     };
     let mut server = Server::start(config).await?;
     let shutdown = server.take_shutdown();
@@ -57,6 +122,16 @@ async fn main() -> anyhow::Result<()> {
         server.http_url(),
         server.http_url()
     );
+    if let Some(token) = generated {
+        // Printed once for the operator (stdout, not the log); configure --control-token or
+        // an access file to choose it.
+        println!("  control token (generated): {}", token.expose());
+        println!(
+            "  dashboard: {}/#control={}",
+            server.http_url(),
+            token.expose()
+        );
+    }
     tokio::spawn(async move {
         shutdown_signal().await;
         if let Some(tx) = shutdown {

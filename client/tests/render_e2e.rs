@@ -17,9 +17,12 @@ use posecast_proto::command::Command;
 use posecast_proto::fk::PoseBuffers;
 use posecast_proto::msg::AvatarId;
 use posecast_proto::skinning::skin_cpu;
+use posecast_server::auth::{AccessConfig, Role, Secret, TokenRule};
 use posecast_server::builtin::AVATAR_GLB;
 use posecast_server::startup::{DEFAULT_AVATAR, DEFAULT_SCENE, Server, builtin_rig};
 use posecast_server::state::Config;
+
+const TOKEN: &str = "render-e2e-control";
 use render_support::gpu;
 use std::time::{Duration, Instant};
 
@@ -102,15 +105,20 @@ fn bbox(mask: &[bool], w: u32) -> Option<(u32, u32, u32, u32)> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn offscreen_render_of_the_live_stream_shows_the_seeked_avatar() {
     let Some(gpu) = gpu() else { return };
+    let mut access = AccessConfig::default();
+    access
+        .add(TokenRule::new("test", Secret::new(TOKEN), Role::Control))
+        .unwrap();
     let server = Server::start(Config {
         listen: "127.0.0.1:0".parse().unwrap(),
+        access,
         ..Config::default()
     })
     .await
     .unwrap();
-    let client = Client::connect(ClientOptions::new(server.ws_url(), DEFAULT_SCENE))
-        .await
-        .unwrap();
+    let mut options = ClientOptions::new(server.ws_url(), DEFAULT_SCENE);
+    options.token = Some(TOKEN.into());
+    let client = Client::connect(options).await.unwrap();
     let avatar = AvatarId(DEFAULT_AVATAR.into());
     wait_for_avatars(&client, Some(&avatar), WAIT)
         .await

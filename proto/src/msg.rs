@@ -114,6 +114,9 @@ pub enum ServerMsg {
         tick_rate: f32,
         /// The server clock when sending, microseconds since the Unix epoch.
         server_time_us: u64,
+        /// What the hello's token (or its absence) allows on this connection.
+        #[serde(default)]
+        access: Access,
     },
     /// Subscription confirmed. Descriptions of the scene's avatars follow, then a keyframe.
     Subscribed {
@@ -233,6 +236,28 @@ pub enum ErrorCode {
     TooLarge,
     /// The server failed; the request may be retried.
     Internal,
+}
+
+/// What a connection (or a REST request) may do, as decided from its token.
+///
+/// `scenes` / `avatars` are `None` when the token is not limited that way. A token limited
+/// to avatars commands only those avatars; one limited to scenes commands those scenes and
+/// every avatar in them; a token with both limits may do either.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Access {
+    /// May subscribe and read (list, get) — within `scenes` when that is set.
+    pub view: bool,
+    /// May run commands that change state, within the limits.
+    pub control: bool,
+    /// The token's name (never the token itself), when one was accepted.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub name: Option<String>,
+    /// Only these scenes.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scenes: Option<Vec<SceneId>>,
+    /// Only these avatars.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub avatars: Option<Vec<AvatarId>>,
 }
 
 /// A pose frame in the JSON encoding: the same content as a binary keyframe, with float

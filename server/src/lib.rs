@@ -9,13 +9,14 @@
 //! - [`library`]: the rigs the server can put in scenes.
 //! - [`scene`]: scenes, avatars, playback and the tick task.
 //! - [`stream`]: per-connection outboxes (bounded fan-out).
-//! - [`control`]: control commands (shared by REST and websocket).
+//! - [`control`]: control commands (shared by REST and websocket); [`auth`]: tokens.
 //! - [`export`]: a rig's normalised mesh as .glb for render clients.
 //! - [`service`]: the axum router (`app`), websocket and HTTP endpoints.
 //! - [`state`]: configuration and shared state; [`metrics`]: counters.
 //! - [`startup`]: [`startup::Server`] — load rigs, create the default scene, serve.
 
 pub mod asset;
+pub mod auth;
 pub mod builtin;
 pub mod clip;
 pub mod control;

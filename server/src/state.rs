@@ -1,5 +1,6 @@
 //! The server's shared state: configuration, loaded rigs, scenes, counters.
 
+use crate::auth::AccessConfig;
 use crate::library::Library;
 use crate::metrics::Metrics;
 use crate::scene::avatar::Avatar;
@@ -25,6 +26,8 @@ pub struct Config {
     pub asset_dirs: Vec<PathBuf>,
     /// Whether to load the built-in avatar into a `default` scene playing `idle`.
     pub builtin: bool,
+    /// Tokens and what they allow ([`crate::auth`]).
+    pub access: AccessConfig,
 }
 
 impl Default for Config {
@@ -34,6 +37,7 @@ impl Default for Config {
             tick_rate: 60.0,
             asset_dirs: Vec::new(),
             builtin: true,
+            access: AccessConfig::default(),
         }
     }
 }

@@ -2,13 +2,19 @@
 //!
 //! - `POST /api/commands` with a [`Command`] body → `200 {"result": …}` or a typed error.
 //! - `GET /api/scenes`, `GET /api/assets`: the `list_scenes` / `list_assets` results.
+//!
+//! Every request may carry `Authorization: Bearer <token>` ([`crate::auth`]); refusals are
+//! 401 (with `WWW-Authenticate: Bearer`) or 403 with the typed error as body.
 
+use crate::auth::Caller;
 use crate::control;
 use crate::state::AppState;
 use axum::Json;
+use axum::extract::FromRequestParts;
 use axum::extract::rejection::JsonRejection;
 use axum::extract::{Path, State};
-use axum::http::StatusCode;
+use axum::http::request::Parts;
+use axum::http::{StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use posecast_proto::command::Command;
 use posecast_proto::msg::{ErrorCode, ProtocolError};
@@ -41,13 +47,51 @@ impl IntoResponse for AppError {
             ErrorCode::Internal => StatusCode::INTERNAL_SERVER_ERROR,
             _ => StatusCode::BAD_REQUEST,
         };
-        (status, Json(self.0)).into_response()
+        let mut response = (status, Json(self.0)).into_response();
+        if status == StatusCode::UNAUTHORIZED {
+            response.headers_mut().insert(
+                header::WWW_AUTHENTICATE,
+                header::HeaderValue::from_static("Bearer realm=\"posecast\""),
+            );
+        }
+        response
+    }
+}
+
+/// The caller of a request, from its `Authorization: Bearer <token>` header (none:
+/// anonymous). A header that is not a bearer token, or an unknown token, is refused with 401.
+impl FromRequestParts<Arc<AppState>> for Caller {
+    type Rejection = AppError;
+
+    async fn from_request_parts(
+        parts: &mut Parts,
+        state: &Arc<AppState>,
+    ) -> Result<Self, Self::Rejection> {
+        let Some(value) = parts.headers.get(header::AUTHORIZATION) else {
+            return Ok(Self::Anonymous);
+        };
+        let token = value
+            .to_str()
+            .ok()
+            .and_then(|v| {
+                v.strip_prefix("Bearer ")
+                    .or_else(|| v.strip_prefix("bearer "))
+            })
+            .map(str::trim)
+            .ok_or_else(|| {
+                ProtocolError::new(
+                    ErrorCode::Unauthorized,
+                    "the Authorization header must be `Bearer <token>`",
+                )
+            })?;
+        Ok(state.config.access.identify(Some(token))?)
     }
 }
 
 /// `POST /api/commands`.
 pub async fn command(
     State(state): State<Arc<AppState>>,
+    caller: Caller,
     body: Result<Json<Command>, JsonRejection>,
 ) -> Result<Json<Value>, AppError> {
     let Json(command) = body.map_err(|e| {
@@ -56,12 +100,17 @@ pub async fn command(
             format!("not a valid command: {}", e.body_text()),
         )
     })?;
+    state.config.access.authorize(&caller, &state, &command)?;
     let result = control::execute(&state, &command)?;
     Ok(Json(json!({ "result": result })))
 }
 
 /// `GET /api/scenes`.
-pub async fn scenes(State(state): State<Arc<AppState>>) -> Result<Json<Value>, AppError> {
+pub async fn scenes(
+    State(state): State<Arc<AppState>>,
+    caller: Caller,
+) -> Result<Json<Value>, AppError> {
+    state.config.access.authorize_read(&caller)?;
     Ok(Json(control::execute(&state, &Command::ListScenes)?))
 }
 
@@ -69,8 +118,10 @@ pub async fn scenes(State(state): State<Arc<AppState>>) -> Result<Json<Value>, A
 /// description's inverse binds).
 pub async fn mesh(
     State(state): State<Arc<AppState>>,
+    caller: Caller,
     Path(name): Path<String>,
 ) -> Result<Response, AppError> {
+    state.config.access.authorize_read(&caller)?;
     let rig = state.library.get(&name).ok_or_else(|| {
         ProtocolError::new(
             ErrorCode::UnknownAvatar,
@@ -93,6 +144,10 @@ pub async fn mesh(
 }
 
 /// `GET /api/assets`.
-pub async fn assets(State(state): State<Arc<AppState>>) -> Result<Json<Value>, AppError> {
+pub async fn assets(
+    State(state): State<Arc<AppState>>,
+    caller: Caller,
+) -> Result<Json<Value>, AppError> {
+    state.config.access.authorize_read(&caller)?;
     Ok(Json(control::execute(&state, &Command::ListAssets)?))
 }

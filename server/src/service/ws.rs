@@ -3,6 +3,7 @@
 //! message before `hello`, an oversized message or a client that stops reading closes the
 //! connection, and nothing a client sends can affect another connection.
 
+use crate::auth::Caller;
 use crate::control;
 use crate::scene::ticker::unix_micros;
 use crate::scene::{Subscriber, text};
@@ -21,7 +22,7 @@ use tracing::{Instrument, debug, info_span};
 pub async fn serve(socket: WebSocket, state: Arc<AppState>) {
     let outbox = Arc::new(Outbox::new());
     let conn = state.register_connection(&outbox);
-    let span = info_span!("ws", conn);
+    let span = info_span!("ws", conn, caller = tracing::field::Empty);
     async move {
         state.metrics.connection_opened();
         let (mut sink, mut stream) = socket.split();
@@ -75,6 +76,7 @@ pub async fn serve(socket: WebSocket, state: Arc<AppState>) {
             outbox: outbox.clone(),
             encoding: None,
             scenes: Vec::new(),
+            caller: Caller::Anonymous,
         };
         while let Some(message) = stream.next().await {
             let keep_going = match message {
@@ -131,6 +133,7 @@ struct Session {
     outbox: Arc<Outbox>,
     encoding: Option<Encoding>,
     scenes: Vec<SceneId>,
+    caller: Caller,
 }
 
 impl Session {
@@ -161,7 +164,10 @@ impl Session {
             (
                 None,
                 ClientMsg::Hello {
-                    version, encoding, ..
+                    version,
+                    encoding,
+                    token,
+                    ..
                 },
             ) => {
                 if version != PROTOCOL_VERSION {
@@ -172,13 +178,28 @@ impl Session {
                     return false;
                 }
                 self.encoding = Some(encoding);
+                // An unknown token leaves the connection anonymous (it may still watch when
+                // views are open) and is reported right after the welcome.
+                let access = &self.state.config.access;
+                let refused = match access.identify(token.as_deref()) {
+                    Ok(caller) => {
+                        self.caller = caller;
+                        None
+                    }
+                    Err(e) => Some(e),
+                };
+                tracing::Span::current().record("caller", self.caller.name());
                 self.send(&ServerMsg::Welcome {
                     version: PROTOCOL_VERSION,
                     encoding,
                     server: format!("posecast {}", env!("CARGO_PKG_VERSION")),
                     tick_rate: self.state.config.tick_rate,
                     server_time_us: unix_micros(),
+                    access: access.access(&self.caller),
                 });
+                if let Some(e) = refused {
+                    self.error(e);
+                }
                 true
             }
             (None, _) => {
@@ -196,14 +217,20 @@ impl Session {
                 true
             }
             (Some(encoding), ClientMsg::Subscribe { scene, avatars }) => {
-                let result = self.state.scene(&scene).and_then(|s| {
-                    s.subscribe(Subscriber {
-                        conn: self.conn,
-                        outbox: self.outbox.clone(),
-                        encoding,
-                        filter: avatars,
-                    })
-                });
+                let result = self
+                    .state
+                    .config
+                    .access
+                    .authorize_view(&self.caller, &scene)
+                    .and_then(|()| self.state.scene(&scene))
+                    .and_then(|s| {
+                        s.subscribe(Subscriber {
+                            conn: self.conn,
+                            outbox: self.outbox.clone(),
+                            encoding,
+                            filter: avatars,
+                        })
+                    });
                 match result {
                     Ok(()) => {
                         if !self.scenes.contains(&scene) {
@@ -240,7 +267,12 @@ impl Session {
                 true
             }
             (Some(_), ClientMsg::Command { id, command }) => {
-                match control::execute(&self.state, &command) {
+                let authorized =
+                    self.state
+                        .config
+                        .access
+                        .authorize(&self.caller, &self.state, &command);
+                match authorized.and_then(|()| control::execute(&self.state, &command)) {
                     Ok(result) => self.send(&ServerMsg::Ack { id, result }),
                     Err(e) => self.error(e.for_command(id)),
                 }

@@ -165,14 +165,14 @@ pub type Ws =
     tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
 
 /// Opens a websocket and says hello (binary encoding); returns once `welcome` arrived.
-async fn hello(url: &str, name: String) -> Result<Ws> {
+async fn hello(url: &str, name: String, token: Option<&str>) -> Result<Ws> {
     let (mut ws, _) = tokio_tungstenite::connect_async(url)
         .await
         .with_context(|| format!("connect to {url}"))?;
     let hello = ClientMsg::Hello {
         version: PROTOCOL_VERSION,
         encoding: Encoding::Binary,
-        token: None,
+        token: token.map(str::to_owned),
         client: Some(name),
     };
     send(&mut ws, &hello).await?;
@@ -180,14 +180,14 @@ async fn hello(url: &str, name: String) -> Result<Ws> {
     Ok(ws)
 }
 
-/// A connection for commands (hello, no subscription).
-pub async fn connect_control(url: &str) -> Result<Ws> {
-    hello(url, "loadgen-control".into()).await
+/// A connection for commands (hello with the control token, no subscription).
+pub async fn connect_control(url: &str, token: &str) -> Result<Ws> {
+    hello(url, "loadgen-control".into(), Some(token)).await
 }
 
 /// Opens a websocket, says hello and subscribes; returns once `subscribed` arrived.
 pub async fn connect(index: usize, url: &str, scene: &str) -> Result<Ws> {
-    let mut ws = hello(url, format!("loadgen-{index}")).await?;
+    let mut ws = hello(url, format!("loadgen-{index}"), None).await?;
     send(
         &mut ws,
         &ClientMsg::Subscribe {

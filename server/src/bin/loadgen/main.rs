@@ -50,6 +50,9 @@ pub struct Args {
     /// With --url: the server's process id, to measure its CPU.
     #[arg(long)]
     server_pid: Option<u32>,
+    /// The control token for creating the scene (a spawned server is given a fresh one).
+    #[arg(long, env = "POSECAST_CONTROL_TOKEN", hide_env_values = true)]
+    control_token: Option<String>,
     /// With --spawn-server: avatars in the scene.
     #[arg(long, default_value_t = 10)]
     avatars: usize,
@@ -120,11 +123,16 @@ fn main() -> Result<()> {
 async fn run(args: Args, fd_limit: u64) -> Result<()> {
     let mut spawned = None;
     let (url, scene, pid) = if args.spawn_server {
+        let token = args
+            .control_token
+            .clone()
+            .unwrap_or_else(|| format!("loadgen-{:032x}", rand::random::<u128>()));
         let child =
-            server::Spawned::start(args.server_bin.as_deref(), args.tick_rate, fd_limit).await?;
+            server::Spawned::start(args.server_bin.as_deref(), args.tick_rate, fd_limit, &token)
+                .await?;
         let url = child.ws_url();
         let scene = args.scene.clone().unwrap_or_else(|| "default".into());
-        server::create_scene(&url, &scene, args.avatars, &args.clips).await?;
+        server::create_scene(&url, &token, &scene, args.avatars, &args.clips).await?;
         let pid = child.pid();
         spawned = Some(child);
         (url, scene, Some(pid))

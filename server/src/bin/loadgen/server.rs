@@ -71,7 +71,12 @@ pub struct Spawned {
 impl Spawned {
     /// Starts `bin` (default: `posecast` beside this executable) with the open-files limit
     /// raised to `fd_limit`, and waits until it accepts connections.
-    pub async fn start(bin: Option<&Path>, tick_rate: f32, fd_limit: u64) -> Result<Self> {
+    pub async fn start(
+        bin: Option<&Path>,
+        tick_rate: f32,
+        fd_limit: u64,
+        control_token: &str,
+    ) -> Result<Self> {
         let bin = match bin {
             Some(b) => b.to_owned(),
             None => sibling("posecast")?,
@@ -91,6 +96,8 @@ impl Spawned {
             .arg(format!("127.0.0.1:{port}"))
             .arg("--tick-rate")
             .arg(tick_rate.to_string())
+            .arg("--no-persist")
+            .env("POSECAST_CONTROL_TOKEN", control_token)
             .env("RUST_LOG", "warn")
             .stdin(Stdio::null())
             .stdout(Stdio::null())
@@ -199,8 +206,14 @@ async fn command(ws: &mut Ws, id: u64, command: Command) -> Result<()> {
 /// Makes `scene` hold `avatars` built-in avatars, the added ones playing `clips` in turn, over
 /// a websocket. The server's `default` scene already holds one (playing `idle`) and is used as
 /// it is, so only one scene ticks; any other scene is created.
-pub async fn create_scene(url: &str, scene: &str, avatars: usize, clips: &[String]) -> Result<()> {
-    let mut ws = client::connect_control(url).await?;
+pub async fn create_scene(
+    url: &str,
+    token: &str,
+    scene: &str,
+    avatars: usize,
+    clips: &[String],
+) -> Result<()> {
+    let mut ws = client::connect_control(url, token).await?;
     let scene_id = SceneId(scene.to_owned());
     let existing = if scene == posecast_server::startup::DEFAULT_SCENE {
         1
