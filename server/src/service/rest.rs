@@ -11,7 +11,7 @@ use crate::control;
 use crate::state::AppState;
 use axum::Json;
 use axum::extract::FromRequestParts;
-use axum::extract::rejection::JsonRejection;
+use bytes::Bytes;
 use axum::extract::{Path, State};
 use axum::http::request::Parts;
 use axum::http::{StatusCode, header};
@@ -92,13 +92,13 @@ impl FromRequestParts<Arc<AppState>> for Caller {
 pub async fn command(
     State(state): State<Arc<AppState>>,
     caller: Caller,
-    body: Result<Json<Command>, JsonRejection>,
+    body: Bytes,
 ) -> Result<Json<Value>, AppError> {
-    let Json(command) = body.map_err(|e| {
-        ProtocolError::new(
-            ErrorCode::BadMessage,
-            format!("not a valid command: {}", e.body_text()),
-        )
+    // The body is JSON whatever its Content-Type (so `curl -d '{…}'` works). That is safe
+    // from cross-site form posts because every command needs an `Authorization` header,
+    // which a form cannot set.
+    let command: Command = serde_json::from_slice(&body).map_err(|e| {
+        ProtocolError::new(ErrorCode::BadMessage, format!("not a valid command: {e}"))
     })?;
     state.config.access.authorize(&caller, &state, &command)?;
     let result = control::execute(&state, &command)?;
