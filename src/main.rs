@@ -4,7 +4,7 @@
 
 use clap::Parser;
 use posecast_server::startup::{DEFAULT_SCENE, Server};
-use posecast_server::state::Config;
+use posecast_server::state::{Config, DEFAULT_MAX_UPLOAD_BYTES};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
@@ -24,6 +24,15 @@ struct Args {
     /// Do not load the built-in avatar and the default scene.
     #[arg(long, env = "POSECAST_NO_BUILTIN")]
     no_builtin: bool,
+    /// Data folder: scenes and uploaded assets are stored here and restored at start.
+    #[arg(long = "data", env = "POSECAST_DATA", default_value = "posecast-data")]
+    data: PathBuf,
+    /// Keep everything in memory only (nothing is stored or restored).
+    #[arg(long, env = "POSECAST_NO_PERSIST")]
+    no_persist: bool,
+    /// Largest upload request body, bytes.
+    #[arg(long, env = "POSECAST_MAX_UPLOAD_BYTES", default_value_t = DEFAULT_MAX_UPLOAD_BYTES)]
+    max_upload_bytes: usize,
 }
 
 #[tokio::main]
@@ -44,6 +53,8 @@ async fn main() -> anyhow::Result<()> {
         tick_rate: args.tick_rate,
         asset_dirs: args.assets,
         builtin: !args.no_builtin,
+        data_dir: (!args.no_persist).then_some(args.data),
+        max_upload_bytes: args.max_upload_bytes,
     };
     let mut server = Server::start(config).await?;
     let shutdown = server.take_shutdown();

@@ -4,6 +4,7 @@ use crate::library::Library;
 use crate::metrics::Metrics;
 use crate::scene::avatar::Avatar;
 use crate::scene::{Scene, ticker};
+use crate::store::Store;
 use crate::stream::outbox::Outbox;
 use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError, SceneId};
 use std::collections::BTreeMap;
@@ -25,7 +26,15 @@ pub struct Config {
     pub asset_dirs: Vec<PathBuf>,
     /// Whether to load the built-in avatar into a `default` scene playing `idle`.
     pub builtin: bool,
+    /// The data folder scenes and uploads are stored in (see [`crate::store`]); `None` keeps
+    /// everything in memory only.
+    pub data_dir: Option<PathBuf>,
+    /// Largest upload request body, bytes.
+    pub max_upload_bytes: usize,
 }
+
+/// Default [`Config::max_upload_bytes`]: 32 MiB.
+pub const DEFAULT_MAX_UPLOAD_BYTES: usize = 32 << 20;
 
 impl Default for Config {
     fn default() -> Self {
@@ -34,6 +43,8 @@ impl Default for Config {
             tick_rate: 60.0,
             asset_dirs: Vec::new(),
             builtin: true,
+            data_dir: None,
+            max_upload_bytes: DEFAULT_MAX_UPLOAD_BYTES,
         }
     }
 }
@@ -52,6 +63,8 @@ pub struct AppState {
     next_avatar_num: AtomicU32,
     next_conn: AtomicU64,
     connections: Mutex<HashMap<u64, Weak<Outbox>>>,
+    /// The data folder (or none) and the lock ordering writes to it.
+    pub store: Store,
 }
 
 /// Longest scene or avatar id.
@@ -82,7 +95,6 @@ impl AppState {
     #[must_use]
     pub fn new(config: Config) -> Arc<Self> {
         Arc::new(Self {
-            config,
             library: Library::new(),
             metrics: Arc::new(Metrics::new()),
             scenes: RwLock::new(BTreeMap::new()),
@@ -90,6 +102,8 @@ impl AppState {
             next_avatar_num: AtomicU32::new(1),
             next_conn: AtomicU64::new(1),
             connections: Mutex::new(HashMap::new()),
+            store: Store::new(config.data_dir.clone()),
+            config,
         })
     }
 

@@ -56,7 +56,7 @@ pub async fn command(
             format!("not a valid command: {}", e.body_text()),
         )
     })?;
-    let result = control::execute(&state, &command)?;
+    let result = control::execute_durable(&state, &command).await?;
     Ok(Json(json!({ "result": result })))
 }
 

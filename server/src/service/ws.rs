@@ -78,7 +78,7 @@ pub async fn serve(socket: WebSocket, state: Arc<AppState>) {
         };
         while let Some(message) = stream.next().await {
             let keep_going = match message {
-                Ok(Message::Text(t)) => session.on_text(t.as_str()),
+                Ok(Message::Text(t)) => session.on_text(t.as_str()).await,
                 Ok(Message::Binary(_)) => {
                     session.error(ProtocolError::new(
                         ErrorCode::UnexpectedBinary,
@@ -146,7 +146,7 @@ impl Session {
     }
 
     /// Handles one text message; `false` ends the connection.
-    fn on_text(&mut self, text: &str) -> bool {
+    async fn on_text(&mut self, text: &str) -> bool {
         let msg: ClientMsg = match serde_json::from_str(text) {
             Ok(m) => m,
             Err(e) => {
@@ -240,7 +240,7 @@ impl Session {
                 true
             }
             (Some(_), ClientMsg::Command { id, command }) => {
-                match control::execute(&self.state, &command) {
+                match control::execute_durable(&self.state, &command).await {
                     Ok(result) => self.send(&ServerMsg::Ack { id, result }),
                     Err(e) => self.error(e.for_command(id)),
                 }
