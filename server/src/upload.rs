@@ -26,16 +26,16 @@ fn internal(what: &str, e: &dyn std::fmt::Display) -> ProtocolError {
 }
 
 /// Checks an upload's name: an id ([`check_id`]) that does not start with `.` (a hidden or
-/// parent folder) and does not end with `.corrupt` (how bad stored files are set aside).
+/// parent folder) and does not contain `.corrupt` (how bad stored files are set aside).
 ///
 /// # Errors
 /// [`ErrorCode::InvalidValue`].
 pub fn check_name(name: &str) -> Result<(), ProtocolError> {
     check_id("asset", name)?;
-    if name.starts_with('.') || name.ends_with(".corrupt") {
+    if name.starts_with('.') || name.contains(".corrupt") {
         return Err(ProtocolError::new(
             ErrorCode::InvalidValue,
-            "asset names must not start with '.' or end with '.corrupt'",
+            "asset names must not start with '.' or contain '.corrupt'",
         ));
     }
     Ok(())
@@ -247,6 +247,7 @@ mod tests {
         assert_eq!(rename("other", "model", "x"), "x");
         assert!(check_name("..").is_err());
         assert!(check_name("a.corrupt").is_err());
+        assert!(check_name("a.corrupt.1").is_err());
         assert!(check_name("a/b").is_err());
         assert!(check_name("wasp-2.v1").is_ok());
     }

@@ -269,3 +269,56 @@ pub(crate) fn set_aside(path: &Path, reason: &str) {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::control::execute_durable;
+    use crate::startup::builtin_rig;
+    use crate::state::Config;
+    use posecast_proto::command::Command;
+
+    /// Many connections changing one scene at once: after every ack, the stored file holds
+    /// every acknowledged change (no write overtaken by an older snapshot).
+    #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+    async fn concurrent_acks_are_all_in_the_stored_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let state = AppState::new(Config {
+            data_dir: Some(dir.path().to_owned()),
+            ..Config::default()
+        });
+        state.store.open().unwrap();
+        state.library.insert(builtin_rig().unwrap());
+        let run = |json: String| {
+            let state = state.clone();
+            async move {
+                let c: Command = serde_json::from_str(&json).unwrap();
+                execute_durable(&state, &c).await.unwrap();
+            }
+        };
+        run(r#"{"op":"create_scene","scene":"s"}"#.into()).await;
+        run(r#"{"op":"add_avatar","scene":"s","asset":"avatar","avatar":"a"}"#.into()).await;
+        let joints: Vec<String> = state
+            .library
+            .get("avatar")
+            .unwrap()
+            .skeleton()
+            .names()
+            .to_vec();
+        let tasks: Vec<_> = joints
+            .iter()
+            .map(|j| {
+                tokio::spawn(run(format!(
+                    r#"{{"op":"set_joint_rotation","avatar":"a","joint":"{j}","rotation":[0,0,0,1]}}"#
+                )))
+            })
+            .collect();
+        for t in tasks {
+            t.await.unwrap();
+        }
+        let text = std::fs::read(dir.path().join("scenes/s.json")).unwrap();
+        let file: snapshot::SceneFile = serde_json::from_slice(&text).unwrap();
+        let stored: Vec<&String> = file.avatars[0].overrides.keys().collect();
+        assert_eq!(stored.len(), joints.len(), "lost updates: {stored:?}");
+    }
+}
