@@ -158,6 +158,46 @@ async fn upload_wasp(addr: SocketAddr, name: &str) -> bool {
     true
 }
 
+/// A command over a websocket; waits for its ack.
+async fn ws_command(addr: SocketAddr, json: &str) {
+    use futures_util::{SinkExt, StreamExt};
+    use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, ServerMsg};
+    use tokio_tungstenite::tungstenite::Message;
+    let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/ws"))
+        .await
+        .unwrap();
+    for msg in [
+        ClientMsg::Hello {
+            version: PROTOCOL_VERSION,
+            encoding: Encoding::Json,
+            token: None,
+            client: None,
+        },
+        ClientMsg::Command {
+            id: 7,
+            command: serde_json::from_str(json).unwrap(),
+        },
+    ] {
+        let text = serde_json::to_string(&msg).unwrap();
+        ws.send(Message::Text(text.into())).await.unwrap();
+    }
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
+    loop {
+        let msg = tokio::time::timeout_at(deadline, ws.next())
+            .await
+            .expect("no ack")
+            .unwrap()
+            .unwrap();
+        if let Message::Text(t) = msg {
+            match serde_json::from_str::<ServerMsg>(t.as_str()).unwrap() {
+                ServerMsg::Ack { id: 7, .. } => return,
+                ServerMsg::Error(e) => panic!("{json}: {e:?}"),
+                _ => {}
+            }
+        }
+    }
+}
+
 #[tokio::test]
 async fn acknowledged_changes_survive_sigkill() {
     let data = tempfile::tempdir().unwrap();
@@ -177,9 +217,11 @@ async fn acknowledged_changes_survive_sigkill() {
     .await;
     ok(
         addr,
-        r#"{"op":"play","avatar":"w1","clip":"wasp_walk","speed":0.5,"looping":true}"#,
+        r#"{"op":"play","avatar":"w1","clip":"wasp_walk","looping":true}"#,
     )
     .await;
+    // The websocket's acknowledgements are durable too.
+    ws_command(addr, r#"{"op":"set_speed","avatar":"w1","speed":0.5}"#).await;
     let rot_w = quat(
         &ok(addr, r#"{"op":"set_joint_rotation","avatar":"w1","joint":"tail_01","rotation":[0.2588190,0,0,0.9659258]}"#)
             .await["rotation"],
@@ -202,8 +244,9 @@ async fn acknowledged_changes_survive_sigkill() {
     let b_before = avatar(addr, "b1").await;
     let w_before = avatar(addr, "w1").await;
     let t0 = Instant::now();
-    // The last change; SIGKILL right after its acknowledgement.
-    ok(addr, r#"{"op":"delete_scene","scene":"default"}"#).await;
+    // The last change, over the websocket (nothing else touches scene default's file after
+    // it); SIGKILL right after its acknowledgement.
+    ws_command(addr, r#"{"op":"delete_scene","scene":"default"}"#).await;
     server.kill();
 
     let server = Posecast::start(data.path());
