@@ -91,6 +91,8 @@ impl Spawned {
             .arg(format!("127.0.0.1:{port}"))
             .arg("--tick-rate")
             .arg(tick_rate.to_string())
+            // Measure the fan-out, not fsync; and start from the same state every run.
+            .arg("--no-persist")
             .env("RUST_LOG", "warn")
             .stdin(Stdio::null())
             .stdout(Stdio::null())
