@@ -5,7 +5,7 @@
 use clap::Parser;
 use posecast_server::auth::{AccessConfig, Role, Secret, TokenRule};
 use posecast_server::startup::{DEFAULT_SCENE, Server};
-use posecast_server::state::Config;
+use posecast_server::state::{Config, DEFAULT_MAX_UPLOAD_BYTES};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
@@ -48,6 +48,15 @@ struct Args {
     /// Viewers need a view or control token (default: anyone may watch).
     #[arg(long, env = "POSECAST_REQUIRE_VIEW_TOKEN")]
     require_view_token: bool,
+    /// Data folder: scenes and uploaded assets are stored here and restored at start.
+    #[arg(long = "data", env = "POSECAST_DATA", default_value = "posecast-data")]
+    data: PathBuf,
+    /// Keep everything in memory only (nothing is stored or restored).
+    #[arg(long, env = "POSECAST_NO_PERSIST")]
+    no_persist: bool,
+    /// Largest upload request body, bytes.
+    #[arg(long, env = "POSECAST_MAX_UPLOAD_BYTES", default_value_t = DEFAULT_MAX_UPLOAD_BYTES)]
+    max_upload_bytes: usize,
 }
 
 /// The access rules from the file and flags, and a generated control token when none is
@@ -109,6 +118,8 @@ async fn main() -> anyhow::Result<()> {
         asset_dirs: args.assets,
         builtin: !args.no_builtin,
         access,
+        data_dir: (!args.no_persist).then_some(args.data),
+        max_upload_bytes: args.max_upload_bytes,
     };
     let mut server = Server::start(config).await?;
     let shutdown = server.take_shutdown();

@@ -169,6 +169,24 @@ async fn a_token_limited_to_avatar_a_cannot_command_avatar_b() {
     let remove = r#"{"op":"remove_avatar","avatar":"bob"}"#;
     assert_eq!(command_as(&server, Some(ALICE), remove).await.0, 403);
 
+    // Uploads need an unlimited control token; nothing is read or stored otherwise.
+    let bvh = "HIERARCHY\nROOT hips\n{\n OFFSET 0 0 0\n CHANNELS 3 Xrotation Yrotation Zrotation\n End Site\n {\n  OFFSET 0 1 0\n }\n}\nMOTION\nFrames: 1\nFrame Time: 0.1\n0 0 0\n";
+    for (token, status) in [(Some(ALICE), 403), (Some(VIEWER), 403), (None, 401)] {
+        let (got, body) = http_as(
+            &server,
+            token,
+            "POST",
+            "/api/assets/stick?format=bvh",
+            Some(bvh),
+        )
+        .await;
+        assert_eq!(got, status, "{token:?}: {body}");
+    }
+    let (_, assets) = http(&server, "GET", "/api/assets", None).await;
+    assert!(!assets.contains("stick"), "{assets}");
+    let (got, body) = http(&server, "POST", "/api/assets/stick?format=bvh", Some(bvh)).await;
+    assert_eq!(got, 200, "the control token uploads: {body}");
+
     // Websocket with alice's token: the library client reports the typed error.
     let mut options = posecast_client::net::ClientOptions::new(server.ws_url(), "default");
     options.reconnect = false;

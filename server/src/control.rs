@@ -107,17 +107,45 @@ fn retarget(
     Ok(std::sync::Arc::new(out))
 }
 
-/// Executes a command. Authorisation is checked by the caller.
+/// Executes a command in memory. Authorisation is checked by the caller. Servers with a data
+/// folder answer clients through [`execute_durable`] instead.
 ///
 /// # Errors
 /// A typed error; nothing is changed when a command fails.
 pub fn execute(state: &AppState, command: &Command) -> Result<Value, ProtocolError> {
-    let result = run(state, command);
+    let result = apply(state, command);
     state.metrics.command(result.is_ok());
     result
 }
 
-fn run(state: &AppState, command: &Command) -> Result<Value, ProtocolError> {
+/// [`execute`], then — for a command that changed something — waits until the scene it
+/// changed is stored (see [`crate::store`]), so the answer is an acknowledgement that survives
+/// a crash. Read-only and failed commands write nothing.
+///
+/// # Errors
+/// As [`execute`]; or [`ErrorCode::Internal`] when storing failed, in which case the change
+/// *is* in effect in memory but not on disk.
+pub async fn execute_durable(state: &AppState, command: &Command) -> Result<Value, ProtocolError> {
+    if command.is_read_only() || state.store.root().is_none() {
+        return execute(state, command);
+    }
+    // The scene is looked up before executing: after `remove_avatar` the avatar is gone.
+    let scene = match command.scene() {
+        Some(s) => Some(s.clone()),
+        None => command
+            .avatar()
+            .and_then(|a| state.find_avatar(a).ok())
+            .map(|s| s.id.clone()),
+    };
+    let result = execute(state, command)?;
+    if let Some(scene) = scene {
+        state.store.persist_scene(state, &scene).await?;
+    }
+    Ok(result)
+}
+
+/// Executes without counting in the metrics (restoring stored state at start).
+pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, ProtocolError> {
     match command {
         Command::ListScenes => Ok(serde_json::to_value(
             state.scenes().iter().map(|s| s.info()).collect::<Vec<_>>(),

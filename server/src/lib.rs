@@ -29,4 +29,6 @@ pub mod scene;
 pub mod service;
 pub mod startup;
 pub mod state;
+pub mod store;
 pub mod stream;
+pub mod upload;

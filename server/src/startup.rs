@@ -76,18 +76,32 @@ pub struct Server {
 }
 
 impl Server {
-    /// Loads the configured rigs (the built-in avatar into scene `default` playing `idle`,
-    /// then every asset folder), binds and starts serving. Port 0 picks a free port.
+    /// Loads the configured rigs (the built-in avatar, then every asset folder, then the
+    /// uploads stored in the data folder), restores the stored scenes, binds and starts
+    /// serving. On a first start (no data folder, or a new one) the built-in avatar goes into
+    /// scene `default` playing `idle`, and that is stored. Port 0 picks a free port.
     ///
     /// # Errors
-    /// Binding fails.
+    /// Binding fails, or the data folder cannot be created or written.
     pub async fn start(config: Config) -> std::io::Result<Self> {
         let state = AppState::new(config.clone());
+        let first_start = state.store.open()?;
         if config.builtin {
             load_builtin(&state);
         }
         for dir in &config.asset_dirs {
             load_dir(&state, dir);
+        }
+        state.store.restore_assets(&state);
+        state.store.restore_scenes(&state);
+        if first_start {
+            if config.builtin {
+                create_default_scene(&state);
+            }
+            for scene in state.scenes() {
+                state.store.persist_scene_now(&state, &scene.id)?;
+            }
+            state.store.mark_initialised()?;
         }
         let listener = tokio::net::TcpListener::bind(config.listen).await?;
         let addr = listener.local_addr()?;
@@ -164,23 +178,31 @@ fn load_builtin(state: &AppState) {
     match builtin_rig() {
         Ok(rig) => {
             state.library.insert(rig);
-            let scene = SceneId(DEFAULT_SCENE.into());
-            let added = state.create_scene(scene.clone()).and_then(|_| {
-                state.add_avatar(&scene, BUILTIN_ASSET, Some(AvatarId(DEFAULT_AVATAR.into())))
-            });
-            match added {
-                Ok((scene, id)) => {
-                    let mut s = scene.lock();
-                    if let Some(a) = s.avatar_mut(&id)
-                        && let Some(idle) = a.rig.clip("idle").cloned()
-                    {
-                        a.play(Layer::new(idle, None, 0.0, 1.0, true), 0.0);
-                    }
-                }
-                Err(e) => warn!(error = %e, "could not create the default scene"),
-            }
         }
         Err(e) => warn!(error = %e, "the built-in avatar failed to load"),
+    }
+}
+
+/// Scene `default` with the built-in avatar playing `idle` (first start only: later, the data
+/// folder says which scenes exist). Kept when a stored scene of that name was restored.
+fn create_default_scene(state: &AppState) {
+    let scene = SceneId(DEFAULT_SCENE.into());
+    if state.library.get(BUILTIN_ASSET).is_none() || state.scene(&scene).is_ok() {
+        return;
+    }
+    let added = state.create_scene(scene.clone()).and_then(|_| {
+        state.add_avatar(&scene, BUILTIN_ASSET, Some(AvatarId(DEFAULT_AVATAR.into())))
+    });
+    match added {
+        Ok((scene, id)) => {
+            let mut s = scene.lock();
+            if let Some(a) = s.avatar_mut(&id)
+                && let Some(idle) = a.rig.clip("idle").cloned()
+            {
+                a.play(Layer::new(idle, None, 0.0, 1.0, true), 0.0);
+            }
+        }
+        Err(e) => warn!(error = %e, "could not create the default scene"),
     }
 }
 

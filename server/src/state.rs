@@ -5,6 +5,7 @@ use crate::library::Library;
 use crate::metrics::Metrics;
 use crate::scene::avatar::Avatar;
 use crate::scene::{Scene, ticker};
+use crate::store::Store;
 use crate::stream::outbox::Outbox;
 use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError, SceneId};
 use std::collections::BTreeMap;
@@ -28,7 +29,15 @@ pub struct Config {
     pub builtin: bool,
     /// Tokens and what they allow ([`crate::auth`]).
     pub access: AccessConfig,
+    /// The data folder scenes and uploads are stored in (see [`crate::store`]); `None` keeps
+    /// everything in memory only.
+    pub data_dir: Option<PathBuf>,
+    /// Largest upload request body, bytes.
+    pub max_upload_bytes: usize,
 }
+
+/// Default [`Config::max_upload_bytes`]: 32 MiB.
+pub const DEFAULT_MAX_UPLOAD_BYTES: usize = 32 << 20;
 
 impl Default for Config {
     fn default() -> Self {
@@ -38,6 +47,8 @@ impl Default for Config {
             asset_dirs: Vec::new(),
             builtin: true,
             access: AccessConfig::default(),
+            data_dir: None,
+            max_upload_bytes: DEFAULT_MAX_UPLOAD_BYTES,
         }
     }
 }
@@ -56,6 +67,8 @@ pub struct AppState {
     next_avatar_num: AtomicU32,
     next_conn: AtomicU64,
     connections: Mutex<HashMap<u64, Weak<Outbox>>>,
+    /// The data folder (or none) and the lock ordering writes to it.
+    pub store: Store,
 }
 
 /// Longest scene or avatar id.
@@ -86,7 +99,6 @@ impl AppState {
     #[must_use]
     pub fn new(config: Config) -> Arc<Self> {
         Arc::new(Self {
-            config,
             library: Library::new(),
             metrics: Arc::new(Metrics::new()),
             scenes: RwLock::new(BTreeMap::new()),
@@ -94,6 +106,8 @@ impl AppState {
             next_avatar_num: AtomicU32::new(1),
             next_conn: AtomicU64::new(1),
             connections: Mutex::new(HashMap::new()),
+            store: Store::new(config.data_dir.clone()),
+            config,
         })
     }
 

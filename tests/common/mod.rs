@@ -155,3 +155,135 @@ pub async fn http_as(
     };
     (status, body)
 }
+
+/// An HTTP/1.1 request with any body and the control token to `addr` (Connection: close);
+/// returns status and body.
+/// The body is written while the answer is read, so a server that answers early (413) and
+/// closes is still heard.
+pub async fn http_to(
+    addr: std::net::SocketAddr,
+    method: &str,
+    path: &str,
+    content_type: &str,
+    body: &[u8],
+) -> (u16, String) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let stream = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let (mut read, mut write) = stream.into_split();
+    let mut request = format!(
+        "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nAuthorization: Bearer {CONTROL}\r\nContent-Type: {content_type}\r\nContent-Length: {}\r\n\r\n",
+        body.len()
+    )
+    .into_bytes();
+    request.extend_from_slice(body);
+    let writer = tokio::spawn(async move {
+        // The server may close before reading everything (an early 413): that is fine.
+        write.write_all(&request).await.ok();
+        write
+    });
+    let mut response = Vec::new();
+    let mut buf = [0u8; 8192];
+    loop {
+        match read.read(&mut buf).await {
+            Ok(0) | Err(_) => break,
+            Ok(n) => response.extend_from_slice(&buf[..n]),
+        }
+    }
+    writer.abort();
+    let text = String::from_utf8_lossy(&response).to_string();
+    let status = text
+        .split(' ')
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(0);
+    let body = text
+        .split_once("\r\n\r\n")
+        .map(|(_, b)| b.to_string())
+        .unwrap_or_default();
+    let body = if text
+        .to_ascii_lowercase()
+        .contains("transfer-encoding: chunked")
+    {
+        body.lines()
+            .filter(|l| !l.chars().all(|c| c.is_ascii_hexdigit()) || l.is_empty())
+            .collect::<Vec<_>>()
+            .join("\n")
+    } else {
+        body
+    };
+    (status, body)
+}
+
+/// A `multipart/form-data` body with one file part per `(file name, bytes)`; returns the
+/// content type (with its boundary) and the body.
+pub fn multipart(files: &[(&str, &[u8])]) -> (String, Vec<u8>) {
+    let boundary = "posecast-test-boundary-7d1f0c";
+    let mut body = Vec::new();
+    for (name, bytes) in files {
+        body.extend_from_slice(
+            format!(
+                "--{boundary}\r\nContent-Disposition: form-data; name=\"file\"; filename=\"{name}\"\r\nContent-Type: application/octet-stream\r\n\r\n"
+            )
+            .as_bytes(),
+        );
+        body.extend_from_slice(bytes);
+        body.extend_from_slice(b"\r\n");
+    }
+    body.extend_from_slice(format!("--{boundary}--\r\n").as_bytes());
+    (format!("multipart/form-data; boundary={boundary}"), body)
+}
+
+/// Uploads files with a multipart POST to `path` on `addr`.
+pub async fn upload_files(
+    addr: std::net::SocketAddr,
+    path: &str,
+    files: &[(&str, &[u8])],
+) -> (u16, String) {
+    let (content_type, body) = multipart(files);
+    http_to(addr, "POST", path, &content_type, &body).await
+}
+
+/// A shared test file's bytes, or `None` (with a note) when `../shared/testdata` is absent.
+pub fn testdata_bytes(relative: &str) -> Option<Vec<u8>> {
+    let path = posecast_proto::testing::testdata(relative);
+    match std::fs::read(&path) {
+        Ok(b) => Some(b),
+        Err(e) => {
+            eprintln!("skipping: {} not readable ({e})", path.display());
+            None
+        }
+    }
+}
+
+/// A REST command to `addr`; returns status and the parsed body.
+pub async fn command_to(addr: std::net::SocketAddr, json: &str) -> (u16, serde_json::Value) {
+    let (status, body) = http_to(
+        addr,
+        "POST",
+        "/api/commands",
+        "application/json",
+        json.as_bytes(),
+    )
+    .await;
+    let value = serde_json::from_str(&body).unwrap_or(serde_json::Value::Null);
+    (status, value)
+}
+
+/// Every file under `dir`, relative, sorted (to check a folder did not change).
+pub fn list_tree(dir: &std::path::Path) -> Vec<String> {
+    fn walk(root: &std::path::Path, dir: &std::path::Path, out: &mut Vec<String>) {
+        if let Ok(entries) = std::fs::read_dir(dir) {
+            for e in entries.filter_map(Result::ok) {
+                let p = e.path();
+                out.push(p.strip_prefix(root).unwrap().display().to_string());
+                if p.is_dir() {
+                    walk(root, &p, out);
+                }
+            }
+        }
+    }
+    let mut out = Vec::new();
+    walk(dir, dir, &mut out);
+    out.sort();
+    out
+}

@@ -48,11 +48,15 @@ pub fn from_slice(name: &str, bytes: &[u8]) -> Result<Vec<Asset>, ImportError> {
     from_slice_with_base(name, bytes, None)
 }
 
-/// As [`from_slice`], resolving relative buffer URIs against `base` when given.
+/// Reads an external buffer named by a plain relative URI (already checked, `%20` decoded):
+/// from the file's folder ([`super::load_path`]) or from an uploaded file set.
+pub(crate) type External<'a> = &'a dyn Fn(&str) -> Result<Vec<u8>, ImportError>;
+
+/// As [`from_slice`], reading external buffers with `external` when given.
 pub(crate) fn from_slice_with_base(
     name: &str,
     bytes: &[u8],
-    base: Option<&Path>,
+    base: Option<External<'_>>,
 ) -> Result<Vec<Asset>, ImportError> {
     let gltf = gltf::Gltf::from_slice(bytes).map_err(|source| ImportError::Gltf {
         file: name.to_owned(),
@@ -98,7 +102,7 @@ fn import_document(
     name: &str,
     doc: &gltf::Document,
     blob: Option<Vec<u8>>,
-    base: Option<&Path>,
+    base: Option<External<'_>>,
 ) -> Result<Vec<Asset>, ImportError> {
     let buffers = Buffers {
         file: name,
@@ -150,7 +154,7 @@ fn load_buffers(
     file: &str,
     doc: &gltf::Document,
     mut blob: Option<Vec<u8>>,
-    base: Option<&Path>,
+    base: Option<External<'_>>,
 ) -> Result<Vec<Vec<u8>>, ImportError> {
     let err = |buffer: usize, message: String| ImportError::Buffer {
         file: file.to_owned(),
@@ -184,8 +188,7 @@ fn load_buffers(
                     if !safe {
                         return Err(err(i, format!("URI {uri:?} is not a plain relative path")));
                     }
-                    let path = base.join(uri.replace("%20", " "));
-                    super::read(&path)?
+                    base(&uri.replace("%20", " "))?
                 } else {
                     return Err(err(
                         i,

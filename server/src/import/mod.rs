@@ -14,6 +14,7 @@ pub mod anim;
 pub mod bvh;
 pub mod cse169;
 mod error;
+pub mod files;
 pub mod gltf;
 pub mod skel;
 pub mod skin;
@@ -52,28 +53,28 @@ pub fn load_path(path: &Path) -> Result<Vec<Asset>, ImportError> {
     match ext.as_str() {
         "gltf" | "glb" => {
             let bytes = read(path)?;
-            gltf::from_slice_with_base(&name, &bytes, path.parent())
+            let dir = path.parent().unwrap_or(Path::new("."));
+            let external = |uri: &str| read(&dir.join(uri));
+            gltf::from_slice_with_base(&name, &bytes, Some(&external))
         }
         "bvh" => Ok(vec![bvh::parse(&name, &read_text(path)?)?]),
         "skel" => {
-            let skel = skel::parse(&name, &read_text(path)?)?;
             let skin_path = path.with_extension("skin");
             let skin = if skin_path.is_file() {
-                let text = read_text(&skin_path)?;
-                Some(skin::parse(&file_name(&skin_path), &text, &skel.skeleton)?)
+                Some((file_name(&skin_path), read_text(&skin_path)?))
             } else {
                 None
             };
-            let mut clips = Vec::new();
-            for anim_path in sibling_anims(path, &stem) {
-                let text = read_text(&anim_path)?;
-                let mut clip = anim::parse(&file_name(&anim_path), &text, &skel.skeleton)?;
-                if let Some(s) = anim_path.file_stem().and_then(|s| s.to_str()) {
-                    clip.set_name(s);
-                }
-                clips.push(clip);
-            }
-            Ok(vec![cse169::assemble(&stem, skel, skin, clips)?])
+            let anims = sibling_anims(path, &stem)
+                .iter()
+                .map(|p| Ok((file_name(p), read_text(p)?)))
+                .collect::<Result<Vec<_>, ImportError>>()?;
+            Ok(vec![files::skel_with_companions(
+                &name,
+                &read_text(path)?,
+                skin,
+                anims,
+            )?])
         }
         "skin" | "anim" => Err(ImportError::Unsupported {
             file: name,

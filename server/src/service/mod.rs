@@ -4,9 +4,12 @@
 //! - `GET /ws`: the websocket protocol ([`ws`], `proto/PROTOCOL.md`).
 //! - `POST /api/commands`, `GET /api/scenes`, `GET /api/assets`,
 //!   `GET /api/assets/{name}/mesh.glb` ([`rest`]).
+//! - `POST /api/assets/{name}`, `POST /api/assets/{name}/clips`: uploads ([`upload`]), with
+//!   their own body limit (`Config::max_upload_bytes`); everything else keeps 64 KiB.
 //! - `GET /healthz`, `GET /metrics`.
 
 pub mod rest;
+pub mod upload;
 pub mod ws;
 
 use crate::state::AppState;
@@ -29,6 +32,18 @@ pub fn app(state: Arc<AppState>) -> Router {
         .layer(axum::extract::DefaultBodyLimit::max(
             MAX_CLIENT_MESSAGE_BYTES,
         ))
+        .route(
+            "/api/assets/{name}",
+            post(upload::upload).layer(axum::extract::DefaultBodyLimit::max(
+                state.config.max_upload_bytes,
+            )),
+        )
+        .route(
+            "/api/assets/{name}/clips",
+            post(upload::add_clips).layer(axum::extract::DefaultBodyLimit::max(
+                state.config.max_upload_bytes,
+            )),
+        )
         .route("/healthz", get(|| async { "ok" }))
         .route("/metrics", get(metrics))
         .with_state(state)

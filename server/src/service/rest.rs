@@ -11,11 +11,11 @@ use crate::control;
 use crate::state::AppState;
 use axum::Json;
 use axum::extract::FromRequestParts;
-use bytes::Bytes;
 use axum::extract::{Path, State};
 use axum::http::request::Parts;
 use axum::http::{StatusCode, header};
 use axum::response::{IntoResponse, Response};
+use bytes::Bytes;
 use posecast_proto::command::Command;
 use posecast_proto::msg::{ErrorCode, ProtocolError};
 use serde_json::{Value, json};
@@ -101,7 +101,7 @@ pub async fn command(
         ProtocolError::new(ErrorCode::BadMessage, format!("not a valid command: {e}"))
     })?;
     state.config.access.authorize(&caller, &state, &command)?;
-    let result = control::execute(&state, &command)?;
+    let result = control::execute_durable(&state, &command).await?;
     Ok(Json(json!({ "result": result })))
 }
 

@@ -80,7 +80,7 @@ pub async fn serve(socket: WebSocket, state: Arc<AppState>) {
         };
         while let Some(message) = stream.next().await {
             let keep_going = match message {
-                Ok(Message::Text(t)) => session.on_text(t.as_str()),
+                Ok(Message::Text(t)) => session.on_text(t.as_str()).await,
                 Ok(Message::Binary(_)) => {
                     session.error(ProtocolError::new(
                         ErrorCode::UnexpectedBinary,
@@ -149,7 +149,7 @@ impl Session {
     }
 
     /// Handles one text message; `false` ends the connection.
-    fn on_text(&mut self, text: &str) -> bool {
+    async fn on_text(&mut self, text: &str) -> bool {
         let msg: ClientMsg = match serde_json::from_str(text) {
             Ok(m) => m,
             Err(e) => {
@@ -272,7 +272,11 @@ impl Session {
                         .config
                         .access
                         .authorize(&self.caller, &self.state, &command);
-                match authorized.and_then(|()| control::execute(&self.state, &command)) {
+                let result = match authorized {
+                    Ok(()) => control::execute_durable(&self.state, &command).await,
+                    Err(e) => Err(e),
+                };
+                match result {
                     Ok(result) => self.send(&ServerMsg::Ack { id, result }),
                     Err(e) => self.error(e.for_command(id)),
                 }

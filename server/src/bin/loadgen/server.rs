@@ -96,6 +96,7 @@ impl Spawned {
             .arg(format!("127.0.0.1:{port}"))
             .arg("--tick-rate")
             .arg(tick_rate.to_string())
+            // Measure the fan-out, not fsync; and start from the same state every run.
             .arg("--no-persist")
             .env("POSECAST_CONTROL_TOKEN", control_token)
             .env("RUST_LOG", "warn")

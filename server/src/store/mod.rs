@@ -1,0 +1,324 @@
+//! Persistence: scenes and uploaded assets survive a restart, and a mutating command is
+//! acknowledged only once its change is on disk.
+//!
+//! # Layout of the data folder (`--data DIR`, default `./posecast-data`)
+//!
+//! ```text
+//! DIR/posecast.json          {"format": 1}: written once the folder is initialised
+//! DIR/scenes/<scene>.json    one file per scene (see snapshot::SceneFile)
+//! DIR/assets/<name>/         an uploaded asset: its original files as uploaded …
+//! DIR/assets/<name>/meta.json  … and which of them make the asset (see assets::AssetMeta)
+//! ```
+//!
+//! A scene file holds the scene id, the time it was written (µs since the Unix epoch) and per
+//! avatar: id, asset, the clip playing (name, `from_asset`, clip time, speed, looping,
+//! paused) and its joint overrides by joint name as quaternions. On restore a playing clock is
+//! moved on by the time the server was down, so it shows what it would show had it kept
+//! running. Every file carries a `format` version.
+//!
+//! # Durability
+//!
+//! Every file is written to `x.tmp`, `sync_all`ed, renamed over `x`, and the folder is fsynced
+//! ([`atomic`]). A mutating command goes through [`crate::control::execute_durable`]: the
+//! change is made in memory, then under the store's lock the scene is snapshotted and written,
+//! and only then acknowledged. Because the snapshot is taken after the change and under the
+//! lock, a later write always contains every earlier acknowledged change (no lost updates when
+//! two connections change one scene at once). The write runs on the blocking pool, never on a
+//! tokio worker. When the write fails the command answers `internal`, **but the in-memory
+//! change stays**: the server keeps running as commanded and the next successful write of that
+//! scene stores it.
+//!
+//! # Restore at start
+//!
+//! Built-in rig and `--assets` folders first, then uploaded assets, then scenes. On the first
+//! start with a new folder the built-in `default` scene is created and stored; later, what is
+//! stored wins (a deleted `default` stays deleted). A file that cannot be read (truncated,
+//! not JSON, unknown format version, an asset that no longer imports) is logged with
+//! `tracing::warn!`, moved aside to `<file>.corrupt` and skipped; the rest still loads. An
+//! avatar whose asset is gone, or a clip or joint its rig no longer has, is skipped alone.
+//! Scene and avatar *numbers* (in binary frames) are not stored; ids are.
+
+pub mod assets;
+pub mod atomic;
+pub mod snapshot;
+
+use crate::import::files::FileSet;
+use crate::scene::ticker::unix_micros;
+use crate::state::AppState;
+use posecast_proto::msg::{ErrorCode, ProtocolError, SceneId};
+use std::collections::BTreeMap;
+use std::io;
+use std::path::{Path, PathBuf};
+use tracing::{info, warn};
+
+/// Version of the data folder layout (in `posecast.json`).
+pub const DATA_FORMAT: u32 = 1;
+
+const MARKER: &str = "posecast.json";
+/// Temporary upload folders under `assets/` start with this (never a valid asset name).
+pub(crate) const UPLOAD_TMP_PREFIX: &str = ".upload-";
+
+/// The data folder, or nothing (in-memory only), and the lock that orders writes to it.
+#[derive(Debug)]
+pub struct Store {
+    root: Option<PathBuf>,
+    lock: tokio::sync::Mutex<()>,
+    /// The original files of every uploaded asset, by asset name (kept to add clips later).
+    uploads: std::sync::Mutex<BTreeMap<String, FileSet>>,
+}
+
+fn internal(what: &str, e: &io::Error) -> ProtocolError {
+    ProtocolError::new(
+        ErrorCode::Internal,
+        format!("{what}: {e} (the change is in effect but not stored)"),
+    )
+}
+
+impl Store {
+    /// A store over `root` (None: in-memory only, every write is a no-op).
+    #[must_use]
+    pub fn new(root: Option<PathBuf>) -> Self {
+        Self {
+            root,
+            lock: tokio::sync::Mutex::new(()),
+            uploads: std::sync::Mutex::new(BTreeMap::new()),
+        }
+    }
+
+    /// The data folder.
+    #[must_use]
+    pub fn root(&self) -> Option<&Path> {
+        self.root.as_deref()
+    }
+
+    /// `DIR/scenes`.
+    #[must_use]
+    pub fn scenes_dir(&self) -> Option<PathBuf> {
+        self.root.as_ref().map(|r| r.join("scenes"))
+    }
+
+    /// `DIR/assets`.
+    #[must_use]
+    pub fn assets_dir(&self) -> Option<PathBuf> {
+        self.root.as_ref().map(|r| r.join("assets"))
+    }
+
+    /// Serialises writes to the data folder (and upload name checks).
+    pub async fn lock(&self) -> tokio::sync::MutexGuard<'_, ()> {
+        self.lock.lock().await
+    }
+
+    pub(crate) fn uploads(&self) -> std::sync::MutexGuard<'_, BTreeMap<String, FileSet>> {
+        self.uploads
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// Creates the folders, removes temporary files a crash left behind (never acknowledged),
+    /// and tells whether this is the first start (no `posecast.json` yet). Without a data
+    /// folder every start is a first start.
+    ///
+    /// # Errors
+    /// The folders cannot be created or read.
+    pub fn open(&self) -> io::Result<bool> {
+        let Some(root) = &self.root else {
+            return Ok(true);
+        };
+        for dir in [root.join("scenes"), root.join("assets")] {
+            std::fs::create_dir_all(&dir)?;
+        }
+        for entry in std::fs::read_dir(root.join("scenes"))?.filter_map(Result::ok) {
+            let path = entry.path();
+            if path.extension().is_some_and(|e| e == "tmp") {
+                std::fs::remove_file(&path)?;
+            }
+        }
+        for entry in std::fs::read_dir(root.join("assets"))?.filter_map(Result::ok) {
+            if entry
+                .file_name()
+                .to_string_lossy()
+                .starts_with(UPLOAD_TMP_PREFIX)
+            {
+                std::fs::remove_dir_all(entry.path())?;
+            }
+        }
+        Ok(!root.join(MARKER).is_file())
+    }
+
+    /// Records that the folder is initialised (after the first start stored its scenes).
+    ///
+    /// # Errors
+    /// The write failed.
+    pub fn mark_initialised(&self) -> io::Result<()> {
+        match &self.root {
+            Some(root) => atomic::write_atomic(
+                &root.join(MARKER),
+                format!("{{\"format\": {DATA_FORMAT}}}\n").as_bytes(),
+            ),
+            None => Ok(()),
+        }
+    }
+
+    fn scene_path(&self, id: &SceneId) -> Option<PathBuf> {
+        self.scenes_dir().map(|d| d.join(format!("{}.json", id.0)))
+    }
+
+    /// What to do to make scene `id`'s file match memory: its snapshot, or `None` to delete.
+    fn scene_bytes(state: &AppState, id: &SceneId) -> io::Result<Option<Vec<u8>>> {
+        match state.scene(id) {
+            Ok(scene) => {
+                let file = snapshot::snapshot(&scene, unix_micros());
+                serde_json::to_vec_pretty(&file)
+                    .map(Some)
+                    .map_err(io::Error::other)
+            }
+            Err(_) => Ok(None),
+        }
+    }
+
+    fn write_scene(path: &Path, bytes: Option<&[u8]>) -> io::Result<()> {
+        match bytes {
+            Some(b) => atomic::write_atomic(path, b),
+            None => atomic::remove_durable(path),
+        }
+    }
+
+    /// Makes scene `id`'s file match memory (written, or removed when the scene is gone) and
+    /// returns once that is on disk. The snapshot is taken under the store lock, after the
+    /// caller's change.
+    ///
+    /// # Errors
+    /// [`ErrorCode::Internal`] when the write fails (the in-memory state is unchanged by this).
+    pub async fn persist_scene(&self, state: &AppState, id: &SceneId) -> Result<(), ProtocolError> {
+        let Some(path) = self.scene_path(id) else {
+            return Ok(());
+        };
+        let _guard = self.lock().await;
+        let bytes =
+            Self::scene_bytes(state, id).map_err(|e| internal("cannot store the scene", &e))?;
+        tokio::task::spawn_blocking(move || Self::write_scene(&path, bytes.as_deref()))
+            .await
+            .map_err(|e| internal("cannot store the scene", &io::Error::other(e)))?
+            .map_err(|e| internal("cannot store the scene", &e))
+    }
+
+    /// [`Store::persist_scene`] for start-up, before the server serves anyone.
+    ///
+    /// # Errors
+    /// The write failed.
+    pub fn persist_scene_now(&self, state: &AppState, id: &SceneId) -> io::Result<()> {
+        match self.scene_path(id) {
+            Some(path) => Self::write_scene(&path, Self::scene_bytes(state, id)?.as_deref()),
+            None => Ok(()),
+        }
+    }
+
+    /// Recreates every stored scene (see the module doc for what is skipped).
+    pub fn restore_scenes(&self, state: &AppState) {
+        let Some(dir) = self.scenes_dir() else { return };
+        let mut paths: Vec<PathBuf> = match std::fs::read_dir(&dir) {
+            Ok(entries) => entries.filter_map(Result::ok).map(|e| e.path()).collect(),
+            Err(e) => {
+                warn!(dir = %dir.display(), error = %e, "cannot read the scenes folder");
+                return;
+            }
+        };
+        paths.retain(|p| p.extension().is_some_and(|e| e == "json"));
+        paths.sort();
+        let now = unix_micros();
+        for path in paths {
+            match read_scene_file(&path).and_then(|file| {
+                snapshot::restore(state, &file, now).map_err(|e| e.message)?;
+                Ok(file)
+            }) {
+                Ok(file) => {
+                    info!(scene = %file.scene, avatars = file.avatars.len(), "scene restored")
+                }
+                Err(reason) => set_aside(&path, &reason),
+            }
+        }
+    }
+}
+
+fn read_scene_file(path: &Path) -> Result<snapshot::SceneFile, String> {
+    let bytes = std::fs::read(path).map_err(|e| e.to_string())?;
+    let value: serde_json::Value = serde_json::from_slice(&bytes).map_err(|e| e.to_string())?;
+    let format = value.get("format").and_then(serde_json::Value::as_u64);
+    if format != Some(u64::from(snapshot::SCENE_FORMAT)) {
+        return Err(format!(
+            "format {format:?} is not {} (written by another version?)",
+            snapshot::SCENE_FORMAT
+        ));
+    }
+    let file: snapshot::SceneFile = serde_json::from_value(value).map_err(|e| e.to_string())?;
+    let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("");
+    if file.scene.0 != stem {
+        return Err(format!("holds scene {:?}, not {stem:?}", file.scene.0));
+    }
+    Ok(file)
+}
+
+/// Logs why a stored file or folder is unusable and moves it aside to `<path>.corrupt`.
+pub(crate) fn set_aside(path: &Path, reason: &str) {
+    match atomic::move_aside(path) {
+        Ok(to) => {
+            warn!(file = %path.display(), reason, moved_to = %to.display(), "skipped a stored file that cannot be used")
+        }
+        Err(e) => {
+            warn!(file = %path.display(), reason, error = %e, "skipped a stored file that cannot be used (and could not move it aside)")
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::control::execute_durable;
+    use crate::startup::builtin_rig;
+    use crate::state::Config;
+    use posecast_proto::command::Command;
+
+    /// Many connections changing one scene at once: after every ack, the stored file holds
+    /// every acknowledged change (no write overtaken by an older snapshot).
+    #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+    async fn concurrent_acks_are_all_in_the_stored_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let state = AppState::new(Config {
+            data_dir: Some(dir.path().to_owned()),
+            ..Config::default()
+        });
+        state.store.open().unwrap();
+        state.library.insert(builtin_rig().unwrap());
+        let run = |json: String| {
+            let state = state.clone();
+            async move {
+                let c: Command = serde_json::from_str(&json).unwrap();
+                execute_durable(&state, &c).await.unwrap();
+            }
+        };
+        run(r#"{"op":"create_scene","scene":"s"}"#.into()).await;
+        run(r#"{"op":"add_avatar","scene":"s","asset":"avatar","avatar":"a"}"#.into()).await;
+        let joints: Vec<String> = state
+            .library
+            .get("avatar")
+            .unwrap()
+            .skeleton()
+            .names()
+            .to_vec();
+        let tasks: Vec<_> = joints
+            .iter()
+            .map(|j| {
+                tokio::spawn(run(format!(
+                    r#"{{"op":"set_joint_rotation","avatar":"a","joint":"{j}","rotation":[0,0,0,1]}}"#
+                )))
+            })
+            .collect();
+        for t in tasks {
+            t.await.unwrap();
+        }
+        let text = std::fs::read(dir.path().join("scenes/s.json")).unwrap();
+        let file: snapshot::SceneFile = serde_json::from_slice(&text).unwrap();
+        let stored: Vec<&String> = file.avatars[0].overrides.keys().collect();
+        assert_eq!(stored.len(), joints.len(), "lost updates: {stored:?}");
+    }
+}

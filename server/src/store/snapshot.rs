@@ -1,0 +1,326 @@
+//! A scene as stored in `scenes/<scene>.json`: its avatars, what each plays and its joint
+//! overrides, by joint *name* so a file stays meaningful if joint order ever changes.
+
+use crate::control;
+use crate::scene::Scene;
+use crate::scene::avatar::Avatar;
+use crate::state::AppState;
+use posecast_proto::command::Command;
+use posecast_proto::msg::{AvatarId, SceneId};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use tracing::warn;
+
+/// The version of the scene file format. A file with another version is refused (moved
+/// aside), never half-read.
+pub const SCENE_FORMAT: u32 = 1;
+
+/// One scene file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SceneFile {
+    /// [`SCENE_FORMAT`].
+    pub format: u32,
+    /// The scene's id (equals the file's stem).
+    pub scene: SceneId,
+    /// When the snapshot was taken, microseconds since the Unix epoch: the clocks of playing
+    /// clips are extrapolated from here on restore.
+    pub saved_us: u64,
+    /// Avatars in the order they were added.
+    pub avatars: Vec<AvatarRecord>,
+}
+
+/// One avatar.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AvatarRecord {
+    /// Its id.
+    pub id: AvatarId,
+    /// Its rig's asset name.
+    pub asset: String,
+    /// The clip it plays, if any.
+    pub playback: Option<PlaybackRecord>,
+    /// Joint overrides: joint name → local rotation `[x, y, z, w]` (normalised rig frame).
+    pub overrides: BTreeMap<String, [f32; 4]>,
+}
+
+/// The current clip of an avatar. A cross-fade in progress is not stored: it restores as the
+/// clip it was fading to.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlaybackRecord {
+    /// The clip's name in its rig.
+    pub clip: String,
+    /// The rig the clip was retargeted from (`play`'s `from_asset`), if not the avatar's own.
+    pub from_asset: Option<String>,
+    /// Clip time in seconds from the clip's start, at `saved_us` (not wrapped).
+    pub time: f32,
+    /// Playback speed.
+    pub speed: f32,
+    /// Whether it loops.
+    pub looping: bool,
+    /// Whether its clock is stopped.
+    pub paused: bool,
+}
+
+/// The scene as it is now. Takes the scene's lock briefly.
+#[must_use]
+pub fn snapshot(scene: &Scene, now_us: u64) -> SceneFile {
+    let s = scene.lock();
+    SceneFile {
+        format: SCENE_FORMAT,
+        scene: scene.id.clone(),
+        saved_us: now_us,
+        avatars: s.avatars.iter().map(record).collect(),
+    }
+}
+
+fn record(a: &Avatar) -> AvatarRecord {
+    let playback = a.player.current().map(|l| {
+        // A retargeted clip is named `<source>:<clip>` (control::retarget).
+        let name = l.clip.name();
+        let clip = l
+            .source_asset
+            .as_ref()
+            .and_then(|src| name.strip_prefix(src.as_str())?.strip_prefix(':'))
+            .unwrap_or(name)
+            .to_owned();
+        PlaybackRecord {
+            clip,
+            from_asset: l.source_asset.clone(),
+            time: l.time,
+            speed: l.speed,
+            looping: l.looping,
+            paused: l.paused,
+        }
+    });
+    let names = a.rig.skeleton().names();
+    AvatarRecord {
+        id: a.id.clone(),
+        asset: a.rig.name.clone(),
+        playback,
+        overrides: a
+            .overrides
+            .iter()
+            .zip(names)
+            .filter_map(|(o, n)| o.map(|q| (n.clone(), q.to_array())))
+            .collect(),
+    }
+}
+
+/// The clip time a clock shows `elapsed_s` seconds after it showed `p.time`: paused clocks
+/// stand still, looping ones wrap (done here in f64 so days of downtime keep precision),
+/// others hold at an end like a running clock does.
+#[must_use]
+pub fn extrapolate(p: &PlaybackRecord, duration: f32, elapsed_s: f64) -> f32 {
+    if p.paused {
+        return p.time;
+    }
+    let t = f64::from(p.time) + elapsed_s * f64::from(p.speed);
+    let d = f64::from(duration.max(0.0));
+    let t = if p.looping {
+        if d > 0.0 { t.rem_euclid(d) } else { 0.0 }
+    } else {
+        t.clamp(0.0, d)
+    };
+    t as f32
+}
+
+/// Recreates a stored scene: the scene, then each avatar with its id, clip (clock extrapolated
+/// to `now_us`) and overrides. An avatar whose asset is gone, or a clip or joint its rig lacks,
+/// is warned about and skipped alone.
+///
+/// # Errors
+/// The scene itself cannot be created (bad id, already exists).
+pub fn restore(
+    state: &AppState,
+    file: &SceneFile,
+    now_us: u64,
+) -> Result<(), posecast_proto::msg::ProtocolError> {
+    state.create_scene(file.scene.clone())?;
+    let elapsed_s = now_us.saturating_sub(file.saved_us) as f64 / 1e6;
+    for rec in &file.avatars {
+        let (scene, id) = match state.add_avatar(&file.scene, &rec.asset, Some(rec.id.clone())) {
+            Ok(added) => added,
+            Err(e) => {
+                warn!(scene = %file.scene, avatar = %rec.id, error = %e, "avatar not restored");
+                continue;
+            }
+        };
+        if let Some(p) = &rec.playback {
+            restore_playback(state, &id, p, elapsed_s);
+        }
+        let mut s = scene.lock();
+        let Some(a) = s.avatar_mut(&id) else { continue };
+        for (joint, q) in &rec.overrides {
+            let q = glam::Quat::from_array(*q);
+            match a.rig.skeleton().find(joint) {
+                Some(j) if q.is_finite() && q.length() > 1e-6 => {
+                    a.overrides[j] = Some(q.normalize())
+                }
+                _ => {
+                    warn!(scene = %file.scene, avatar = %id, joint, "override not restored: no such joint or not a rotation")
+                }
+            }
+        }
+        a.evaluate();
+    }
+    Ok(())
+}
+
+fn restore_playback(state: &AppState, avatar: &AvatarId, p: &PlaybackRecord, elapsed_s: f64) {
+    let source = p.from_asset.as_deref().map(|n| state.library.get(n));
+    let duration = match source {
+        Some(Some(rig)) => rig.clip(&p.clip).map(|c| c.duration()),
+        Some(None) => None,
+        None => state.find_avatar(avatar).ok().and_then(|s| {
+            let s = s.lock();
+            let a = s.avatars.iter().find(|a| &a.id == avatar)?;
+            a.rig.clip(&p.clip).map(|c| c.duration())
+        }),
+    };
+    let Some(duration) = duration else {
+        warn!(%avatar, clip = %p.clip, from_asset = ?p.from_asset, "clip not restored: it no longer exists");
+        return;
+    };
+    let play = Command::Play {
+        avatar: avatar.clone(),
+        clip: p.clip.clone(),
+        from_asset: p.from_asset.clone(),
+        speed: Some(p.speed),
+        looping: Some(p.looping),
+        start: Some(extrapolate(p, duration, elapsed_s)),
+        fade: Some(0.0),
+    };
+    let result = control::apply(state, &play).and_then(|_| {
+        if p.paused {
+            control::apply(
+                state,
+                &Command::Pause {
+                    avatar: avatar.clone(),
+                },
+            )
+        } else {
+            Ok(serde_json::Value::Null)
+        }
+    });
+    if let Err(e) = result {
+        warn!(%avatar, clip = %p.clip, error = %e, "clip not restored");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::startup::{BUILTIN_ASSET, builtin_rig};
+    use crate::state::Config;
+
+    fn cmd(state: &AppState, json: &str) -> serde_json::Value {
+        control::execute(state, &serde_json::from_str(json).unwrap()).unwrap()
+    }
+
+    #[tokio::test]
+    async fn snapshot_round_trips_through_json_and_restore() {
+        let state = AppState::new(Config::default());
+        state.library.insert(builtin_rig().unwrap());
+        cmd(&state, r#"{"op":"create_scene","scene":"s"}"#);
+        cmd(
+            &state,
+            &format!(r#"{{"op":"add_avatar","scene":"s","asset":"{BUILTIN_ASSET}","avatar":"a"}}"#),
+        );
+        cmd(
+            &state,
+            &format!(r#"{{"op":"add_avatar","scene":"s","asset":"{BUILTIN_ASSET}","avatar":"b"}}"#),
+        );
+        cmd(
+            &state,
+            r#"{"op":"play","avatar":"a","clip":"idle","speed":0.5,"looping":false,"start":0.2}"#,
+        );
+        cmd(
+            &state,
+            r#"{"op":"play","avatar":"b","clip":"idle","start":0.7}"#,
+        );
+        cmd(&state, r#"{"op":"pause","avatar":"b"}"#);
+        let set = cmd(
+            &state,
+            r#"{"op":"set_joint_rotation","avatar":"a","joint":"l_knee","rotation":[0.3826834,0,0,0.9238795]}"#,
+        );
+
+        let scene = state.scene(&SceneId("s".into())).unwrap();
+        let file = snapshot(&scene, 1_000_000);
+        let text = serde_json::to_string_pretty(&file).unwrap();
+        let back: SceneFile = serde_json::from_str(&text).unwrap();
+        assert_eq!(back, file);
+        assert_eq!(back.avatars.len(), 2);
+        let a = &back.avatars[0];
+        let p = a.playback.as_ref().unwrap();
+        assert_eq!(
+            (p.clip.as_str(), p.time, p.speed, p.looping, p.paused),
+            ("idle", 0.2, 0.5, false, false)
+        );
+        let knee: Vec<f32> = set["rotation"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap() as f32)
+            .collect();
+        assert_eq!(a.overrides["l_knee"].to_vec(), knee);
+
+        // Restore into a fresh state 2 s later: a's clock moved 1 s (speed 0.5), b's did not.
+        let fresh = AppState::new(Config::default());
+        fresh.library.insert(builtin_rig().unwrap());
+        restore(&fresh, &back, 3_000_000).unwrap();
+        let again = snapshot(&fresh.scene(&SceneId("s".into())).unwrap(), 3_000_000);
+        let (ra, rb) = (&again.avatars[0], &again.avatars[1]);
+        let pa = ra.playback.as_ref().unwrap();
+        let duration = fresh
+            .library
+            .get(BUILTIN_ASSET)
+            .unwrap()
+            .clip("idle")
+            .unwrap()
+            .duration();
+        assert!((pa.time - 1.2f32.min(duration)).abs() < 1e-4, "{pa:?}");
+        assert_eq!(ra.overrides, a.overrides);
+        let pb = rb.playback.as_ref().unwrap();
+        assert!(pb.paused && (pb.time - 0.7).abs() < 1e-6, "{pb:?}");
+        assert_eq!(rb.id, AvatarId("b".into()));
+    }
+
+    #[tokio::test]
+    async fn restore_skips_what_no_longer_exists() {
+        let state = AppState::new(Config::default());
+        state.library.insert(builtin_rig().unwrap());
+        let file: SceneFile = serde_json::from_value(serde_json::json!({
+            "format": 1, "scene": "s", "saved_us": 0,
+            "avatars": [
+                {"id": "gone", "asset": "no-such-rig", "playback": null, "overrides": {}},
+                {"id": "a", "asset": BUILTIN_ASSET,
+                 "playback": {"clip": "no-such-clip", "from_asset": null, "time": 0.0, "speed": 1.0, "looping": true, "paused": false},
+                 "overrides": {"tail": [0.0, 0.0, 0.0, 1.0], "l_knee": [0.0, 0.0, 0.0, 2.0]}}
+            ]
+        }))
+        .unwrap();
+        restore(&state, &file, 0).unwrap();
+        let info = state.scene(&SceneId("s".into())).unwrap().info();
+        assert_eq!(info.avatars.len(), 1);
+        assert_eq!(info.avatars[0].clip, None);
+        assert_eq!(info.avatars[0].overrides, vec!["l_knee".to_string()]);
+    }
+
+    #[test]
+    fn extrapolation_wraps_clamps_and_holds() {
+        let p = |looping, paused| PlaybackRecord {
+            clip: "c".into(),
+            from_asset: None,
+            time: 1.0,
+            speed: 2.0,
+            looping,
+            paused,
+        };
+        assert!((extrapolate(&p(true, false), 3.0, 2.5) - 0.0).abs() < 1e-6);
+        assert!((extrapolate(&p(true, false), 3.0, 86_400.25) - 1.5).abs() < 1e-4);
+        assert_eq!(extrapolate(&p(false, false), 3.0, 10.0), 3.0);
+        assert_eq!(extrapolate(&p(true, true), 3.0, 10.0), 1.0);
+    }
+}

@@ -1,0 +1,254 @@
+//! Uploading assets: an in-memory file set is imported ([`crate::import::files`]), normalised
+//! like the rigs loaded at start ([`rig_from_asset`]), stored durably, and only then added to
+//! the library and acknowledged. On any failure nothing changes: no library entry, no file
+//! left in the data folder.
+//!
+//! Uploads come over REST only (`service::upload`); the websocket keeps its 64 KiB message
+//! bound, which is what lets a connection's reader stay small and never buffer a model.
+
+use crate::import::ImportError;
+use crate::import::files::{self, FileSet};
+use crate::library::Rig;
+use crate::rig::PipelineOptions;
+use crate::startup::rig_from_asset;
+use crate::state::{AppState, check_id};
+use crate::store::assets::{self, AssetMeta};
+use posecast_proto::command::AssetInfo;
+use posecast_proto::msg::{ErrorCode, ProtocolError};
+use std::sync::Arc;
+
+fn import_failed(e: &ImportError) -> ProtocolError {
+    ProtocolError::new(ErrorCode::ImportFailed, e.to_string())
+}
+
+fn internal(what: &str, e: &dyn std::fmt::Display) -> ProtocolError {
+    ProtocolError::new(ErrorCode::Internal, format!("{what}: {e}"))
+}
+
+/// Checks an upload's name: an id ([`check_id`]) that does not start with `.` (a hidden or
+/// parent folder) and does not contain `.corrupt` (how bad stored files are set aside).
+///
+/// # Errors
+/// [`ErrorCode::InvalidValue`].
+pub fn check_name(name: &str) -> Result<(), ProtocolError> {
+    check_id("asset", name)?;
+    if name.starts_with('.') || name.contains(".corrupt") {
+        return Err(ProtocolError::new(
+            ErrorCode::InvalidValue,
+            "asset names must not start with '.' or contain '.corrupt'",
+        ));
+    }
+    Ok(())
+}
+
+/// The rig name an imported asset gets when uploaded as `name`: the main file's stem becomes
+/// `name`, so `model.glb` gives `name` and a multi-skin `model.glb` gives `name#<skin>`.
+fn rename(asset: &str, main_stem: &str, name: &str) -> String {
+    match asset.strip_prefix(main_stem) {
+        Some(rest) if rest.starts_with('#') => format!("{name}{rest}"),
+        _ => name.to_owned(),
+    }
+}
+
+/// Imports and normalises a file set as asset `name` (CPU-bound: call it off the async
+/// workers).
+///
+/// # Errors
+/// [`ErrorCode::ImportFailed`] with the importer's message (file and place) or the
+/// normalisation's.
+pub fn prepare(name: &str, set: &FileSet) -> Result<Vec<Rig>, ProtocolError> {
+    let main = set.main_file().map_err(|e| import_failed(&e))?;
+    let main_stem = files::stem(main).to_owned();
+    let imported = files::import_set(set).map_err(|e| import_failed(&e))?;
+    imported
+        .into_iter()
+        .map(|mut asset| {
+            asset.name = rename(&asset.name, &main_stem, name);
+            let rig_name = asset.name.clone();
+            rig_from_asset(asset, &PipelineOptions::default()).map_err(|e| {
+                ProtocolError::new(
+                    ErrorCode::ImportFailed,
+                    format!("{main}: rig {rig_name}: normalisation failed: {e}"),
+                )
+            })
+        })
+        .collect()
+}
+
+/// Whether `name` is taken: a loaded rig `name` or `name#…`, an upload, or a stored folder.
+fn taken(state: &AppState, name: &str) -> bool {
+    let prefix = format!("{name}#");
+    state.library.get(name).is_some()
+        || state
+            .library
+            .all()
+            .iter()
+            .any(|r| r.name.starts_with(&prefix))
+        || state.store.uploads().contains_key(name)
+        || state
+            .store
+            .assets_dir()
+            .is_some_and(|d| d.join(name).exists())
+}
+
+fn conflict(name: &str) -> ProtocolError {
+    ProtocolError::new(ErrorCode::Conflict, format!("an asset named {name} exists"))
+}
+
+/// Uploads a new asset: import, normalise, store, add to the library. Returns the new rigs.
+///
+/// # Errors
+/// A bad name, [`ErrorCode::Conflict`] when it is taken, [`ErrorCode::ImportFailed`],
+/// [`ErrorCode::Internal`] when storing fails. Nothing changes on error.
+pub async fn upload(
+    state: &Arc<AppState>,
+    name: &str,
+    set: FileSet,
+) -> Result<Vec<AssetInfo>, ProtocolError> {
+    check_name(name)?;
+    if taken(state, name) {
+        return Err(conflict(name));
+    }
+    let owned = name.to_owned();
+    let (set, rigs) = tokio::task::spawn_blocking(move || {
+        let rigs = prepare(&owned, &set);
+        (set, rigs)
+    })
+    .await
+    .map_err(|e| internal("import task failed", &e))?;
+    let rigs = rigs?;
+    let _guard = state.store.lock().await;
+    if taken(state, name) || rigs.iter().any(|r| state.library.get(&r.name).is_some()) {
+        return Err(conflict(name));
+    }
+    let set = match state.store.assets_dir() {
+        Some(dir) => {
+            let meta = AssetMeta::new(name, &set, rigs.iter().map(|r| r.name.clone()).collect());
+            tokio::task::spawn_blocking(move || assets::save_new(&dir, &set, &meta).map(|()| set))
+                .await
+                .map_err(|e| internal("store task failed", &e))?
+                .map_err(|e| internal("cannot store the upload", &e))?
+        }
+        None => set,
+    };
+    let infos = rigs
+        .into_iter()
+        .map(|rig| state.library.insert(rig).info())
+        .collect();
+    state.store.uploads().insert(name.to_owned(), set);
+    Ok(infos)
+}
+
+/// Adds `.anim` clips (named by file stem) to an uploaded `.skel` asset. The asset is
+/// re-imported with the new files, so the clips go through the same normalisation as the
+/// originals; the new rig replaces the old one for avatars added from now on (avatars already
+/// in scenes keep the rig, and the clips, they were created with).
+///
+/// # Errors
+/// Unknown asset, an asset that is not an uploaded `.skel`, a file that is not `.anim`
+/// (typed: `.bvh` clips have other joints, so they are uploaded as their own asset and played
+/// with `from_asset` retargeting), a clip name that exists ([`ErrorCode::Conflict`]), or an
+/// import failure. Nothing changes on error.
+pub async fn add_clips(
+    state: &Arc<AppState>,
+    name: &str,
+    clips: FileSet,
+) -> Result<AssetInfo, ProtocolError> {
+    if clips.is_empty() {
+        return Err(ProtocolError::new(
+            ErrorCode::InvalidValue,
+            "no clip files in the request",
+        ));
+    }
+    for (file, _) in clips.iter() {
+        match files::extension(file).as_str() {
+            "anim" => {}
+            "bvh" => {
+                return Err(ProtocolError::new(
+                    ErrorCode::InvalidValue,
+                    format!(
+                        "{file}: a .bvh has its own skeleton; upload it as an asset and play its clip with from_asset (retargeting)"
+                    ),
+                ));
+            }
+            _ => {
+                return Err(ProtocolError::new(
+                    ErrorCode::InvalidValue,
+                    format!("{file}: clips are added as .anim files"),
+                ));
+            }
+        }
+    }
+    let _guard = state.store.lock().await;
+    let rig = state.library.get(name).ok_or_else(|| {
+        ProtocolError::new(
+            ErrorCode::UnknownAvatar,
+            format!("no rig (asset) named {name}"),
+        )
+    })?;
+    let original = state.store.uploads().get(name).cloned().ok_or_else(|| {
+        ProtocolError::new(
+            ErrorCode::InvalidValue,
+            format!("{name} was not uploaded: clips can be added to uploaded assets only"),
+        )
+    })?;
+    let main = original.main_file().map_err(|e| import_failed(&e))?;
+    if files::extension(main) != "skel" {
+        return Err(ProtocolError::new(
+            ErrorCode::InvalidValue,
+            format!("{name} is not a .skel asset: .anim clips need a CSE169 skeleton"),
+        ));
+    }
+    let mut combined = original;
+    for (file, bytes) in clips.iter() {
+        let clip = files::stem(file);
+        if rig.clip(clip).is_some() {
+            return Err(ProtocolError::new(
+                ErrorCode::Conflict,
+                format!("rig {name} already has a clip {clip}"),
+            ));
+        }
+        combined
+            .insert(file, bytes.to_vec())
+            .map_err(|e| ProtocolError::new(ErrorCode::Conflict, e.to_string()))?;
+    }
+    let owned = name.to_owned();
+    let (combined, rigs) = tokio::task::spawn_blocking(move || {
+        let rigs = prepare(&owned, &combined);
+        (combined, rigs)
+    })
+    .await
+    .map_err(|e| internal("import task failed", &e))?;
+    let new_rig = rigs?
+        .into_iter()
+        .next()
+        .ok_or_else(|| internal("import gave no rig", &name))?;
+    if let Some(dir) = state.store.assets_dir() {
+        let meta = AssetMeta::new(name, &combined, vec![name.to_owned()]);
+        let dir = dir.join(name);
+        tokio::task::spawn_blocking(move || assets::add_files(&dir, &clips, &meta))
+            .await
+            .map_err(|e| internal("store task failed", &e))?
+            .map_err(|e| internal("cannot store the clips", &e))?;
+    }
+    let info = state.library.insert(new_rig).info();
+    state.store.uploads().insert(name.to_owned(), combined);
+    Ok(info)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names() {
+        assert_eq!(rename("model", "model", "x"), "x");
+        assert_eq!(rename("model#skin3", "model", "x"), "x#skin3");
+        assert_eq!(rename("other", "model", "x"), "x");
+        assert!(check_name("..").is_err());
+        assert!(check_name("a.corrupt").is_err());
+        assert!(check_name("a.corrupt.1").is_err());
+        assert!(check_name("a/b").is_err());
+        assert!(check_name("wasp-2.v1").is_ok());
+    }
+}

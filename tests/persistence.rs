@@ -1,0 +1,387 @@
+//! Persistence end to end with the real binary: acknowledged changes survive `SIGKILL` right
+//! after the last acknowledgement, and unreadable stored files are reported, set aside and
+//! skipped while everything else restores.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+mod common;
+
+use common::{command_to, http_to, testdata_bytes, upload_files};
+use serde_json::Value;
+use std::io::{BufRead, BufReader};
+use std::net::SocketAddr;
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+/// The `posecast` binary running as a child process on a free port.
+struct Posecast {
+    child: std::process::Child,
+    addr: SocketAddr,
+    output: Arc<Mutex<Vec<String>>>,
+}
+
+impl Posecast {
+    fn start(data: &Path) -> Self {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_posecast"))
+            .args(["--listen", "127.0.0.1:0", "--tick-rate", "30", "--data"])
+            .arg(data)
+            .env("POSECAST_CONTROL_TOKEN", common::CONTROL)
+            .env("NO_COLOR", "1")
+            .env("RUST_LOG", "info")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("cannot start the posecast binary");
+        let output = Arc::new(Mutex::new(Vec::new()));
+        let (tx, rx) = std::sync::mpsc::channel();
+        let out = child.stdout.take().unwrap();
+        let err = child.stderr.take().unwrap();
+        for (stream, tx) in [
+            (Box::new(out) as Box<dyn std::io::Read + Send>, Some(tx)),
+            (Box::new(err), None),
+        ] {
+            let output = output.clone();
+            std::thread::spawn(move || {
+                for line in BufReader::new(stream).lines().map_while(Result::ok) {
+                    if let (Some(tx), Some(url)) =
+                        (&tx, line.strip_prefix("posecast listening on http://"))
+                    {
+                        tx.send(url.trim().parse::<SocketAddr>().unwrap()).ok();
+                    }
+                    output.lock().unwrap().push(line);
+                }
+            });
+        }
+        let addr = rx
+            .recv_timeout(Duration::from_secs(60))
+            .unwrap_or_else(|_| panic!("no URL printed: {:?}", output.lock().unwrap()));
+        Self {
+            child,
+            addr,
+            output,
+        }
+    }
+
+    /// SIGKILL: no graceful shutdown, nothing flushed that was not already on disk.
+    fn kill(mut self) {
+        self.child.kill().unwrap();
+        self.child.wait().unwrap();
+    }
+
+    fn output(&self) -> Vec<String> {
+        self.output.lock().unwrap().clone()
+    }
+}
+
+impl Drop for Posecast {
+    fn drop(&mut self) {
+        self.child.kill().ok();
+        self.child.wait().ok();
+    }
+}
+
+/// A command that must succeed; its result.
+async fn ok(addr: SocketAddr, json: &str) -> Value {
+    let (status, body) = command_to(addr, json).await;
+    assert_eq!(status, 200, "{json} → {body}");
+    body["result"].clone()
+}
+
+async fn avatar(addr: SocketAddr, id: &str) -> Value {
+    ok(addr, &format!(r#"{{"op":"get_avatar","avatar":"{id}"}}"#)).await
+}
+
+fn quat(v: &Value) -> [f64; 4] {
+    let a = v.as_array().unwrap();
+    std::array::from_fn(|i| a[i].as_f64().unwrap())
+}
+
+/// Same rotation (q and −q alike) within `tol` per component.
+fn same_rotation(a: [f64; 4], b: [f64; 4], tol: f64) -> bool {
+    let dot: f64 = a.iter().zip(&b).map(|(x, y)| x * y).sum();
+    let s = if dot < 0.0 { -1.0 } else { 1.0 };
+    a.iter().zip(&b).all(|(x, y)| (x - s * y).abs() <= tol)
+}
+
+/// The rotation an override holds now: a local increment by the identity returns the current
+/// local rotation, which is the override.
+async fn override_of(addr: SocketAddr, avatar: &str, joint: &str) -> [f64; 4] {
+    let r = ok(
+        addr,
+        &format!(r#"{{"op":"rotate_joint_local","avatar":"{avatar}","joint":"{joint}","rotation":[0,0,0,1]}}"#),
+    )
+    .await;
+    quat(&r["rotation"])
+}
+
+async fn scene_ids(addr: SocketAddr) -> Vec<String> {
+    let scenes = ok(addr, r#"{"op":"list_scenes"}"#).await;
+    scenes
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["scene"].as_str().unwrap().to_owned())
+        .collect()
+}
+
+async fn asset_names(addr: SocketAddr) -> Vec<String> {
+    let (s, b) = http_to(addr, "GET", "/api/assets", "application/json", b"").await;
+    assert_eq!(s, 200, "{b}");
+    let v: Value = serde_json::from_str(&b).unwrap();
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|a| a["name"].as_str().unwrap().to_owned())
+        .collect()
+}
+
+async fn upload_wasp(addr: SocketAddr, name: &str) -> bool {
+    let (Some(skel), Some(skin), Some(walk)) = (
+        testdata_bytes("cse169/wasp.skel"),
+        testdata_bytes("cse169/wasp.skin"),
+        testdata_bytes("cse169/wasp_walk.anim"),
+    ) else {
+        return false;
+    };
+    let (s, b) = upload_files(
+        addr,
+        &format!("/api/assets/{name}"),
+        &[
+            ("wasp.skel", &skel),
+            ("wasp.skin", &skin),
+            ("wasp_walk.anim", &walk),
+        ],
+    )
+    .await;
+    assert_eq!(s, 200, "{b}");
+    true
+}
+
+/// A command over a websocket; waits for its ack.
+async fn ws_command(addr: SocketAddr, json: &str) {
+    use futures_util::{SinkExt, StreamExt};
+    use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, ServerMsg};
+    use tokio_tungstenite::tungstenite::Message;
+    let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/ws"))
+        .await
+        .unwrap();
+    for msg in [
+        ClientMsg::Hello {
+            version: PROTOCOL_VERSION,
+            encoding: Encoding::Json,
+            token: Some(common::CONTROL.into()),
+            client: None,
+        },
+        ClientMsg::Command {
+            id: 7,
+            command: serde_json::from_str(json).unwrap(),
+        },
+    ] {
+        let text = serde_json::to_string(&msg).unwrap();
+        ws.send(Message::Text(text.into())).await.unwrap();
+    }
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
+    loop {
+        let msg = tokio::time::timeout_at(deadline, ws.next())
+            .await
+            .expect("no ack")
+            .unwrap()
+            .unwrap();
+        if let Message::Text(t) = msg {
+            match serde_json::from_str::<ServerMsg>(t.as_str()).unwrap() {
+                ServerMsg::Ack { id: 7, .. } => return,
+                ServerMsg::Error(e) => panic!("{json}: {e:?}"),
+                _ => {}
+            }
+        }
+    }
+}
+
+#[tokio::test]
+async fn acknowledged_changes_survive_sigkill() {
+    let data = tempfile::tempdir().unwrap();
+    let server = Posecast::start(data.path());
+    let addr = server.addr;
+    // First start: the built-in default scene exists (and is stored).
+    assert_eq!(scene_ids(addr).await, vec!["default"]);
+
+    ok(addr, r#"{"op":"create_scene","scene":"stage"}"#).await;
+    if !upload_wasp(addr, "wasp").await {
+        return;
+    }
+    ok(
+        addr,
+        r#"{"op":"add_avatar","scene":"stage","asset":"wasp","avatar":"w1"}"#,
+    )
+    .await;
+    ok(
+        addr,
+        r#"{"op":"play","avatar":"w1","clip":"wasp_walk","looping":true}"#,
+    )
+    .await;
+    // The websocket's acknowledgements are durable too.
+    ws_command(addr, r#"{"op":"set_speed","avatar":"w1","speed":0.5}"#).await;
+    let rot_w = quat(
+        &ok(addr, r#"{"op":"set_joint_rotation","avatar":"w1","joint":"tail_01","rotation":[0.2588190,0,0,0.9659258]}"#)
+            .await["rotation"],
+    );
+    ok(
+        addr,
+        r#"{"op":"add_avatar","scene":"stage","asset":"avatar","avatar":"b1"}"#,
+    )
+    .await;
+    ok(
+        addr,
+        r#"{"op":"play","avatar":"b1","clip":"wave","speed":2.0,"looping":false,"start":0.3}"#,
+    )
+    .await;
+    ok(addr, r#"{"op":"pause","avatar":"b1"}"#).await;
+    let rot_b = quat(
+        &ok(addr, r#"{"op":"set_joint_rotation","avatar":"b1","joint":"l_knee","rotation":[0.3826834,0,0,0.9238795]}"#)
+            .await["rotation"],
+    );
+    let b_before = avatar(addr, "b1").await;
+    let w_before = avatar(addr, "w1").await;
+    let t0 = Instant::now();
+    // The last change, over the websocket (nothing else touches scene default's file after
+    // it); SIGKILL right after its acknowledgement.
+    ws_command(addr, r#"{"op":"delete_scene","scene":"default"}"#).await;
+    server.kill();
+
+    let server = Posecast::start(data.path());
+    let addr = server.addr;
+    assert_eq!(
+        scene_ids(addr).await,
+        vec!["stage"],
+        "deleting default persists"
+    );
+    assert!(asset_names(addr).await.contains(&"wasp".to_owned()));
+
+    let b = avatar(addr, "b1").await;
+    assert_eq!(b["clip"], "wave");
+    assert_eq!(b["paused"], true);
+    assert_eq!(b["looping"], false);
+    assert_eq!(b["speed"], 2.0);
+    assert_eq!(b["time"], b_before["time"], "a paused clock stands still");
+    assert_eq!(b["overrides"], serde_json::json!(["l_knee"]));
+
+    let w = avatar(addr, "w1").await;
+    let t1 = t0.elapsed().as_secs_f64();
+    assert_eq!(w["clip"], "wasp_walk");
+    assert_eq!(w["paused"], false);
+    assert_eq!(w["looping"], true);
+    assert_eq!(w["speed"], 0.5);
+    assert_eq!(w["overrides"], serde_json::json!(["tail_01"]));
+    // The clock went on while the server was down: where it would be had it kept running.
+    let expected = (w_before["time"].as_f64().unwrap() + 0.5 * t1).rem_euclid(4.0);
+    let got = w["time"].as_f64().unwrap();
+    let diff = (got - expected).rem_euclid(4.0);
+    assert!(
+        diff.min(4.0 - diff) < 0.15,
+        "clip time {got}, expected about {expected}"
+    );
+
+    assert!(same_rotation(
+        override_of(addr, "w1", "tail_01").await,
+        rot_w,
+        1e-4
+    ));
+    assert!(same_rotation(
+        override_of(addr, "b1", "l_knee").await,
+        rot_b,
+        1e-4
+    ));
+    server.kill();
+}
+
+#[tokio::test]
+async fn unreadable_files_are_reported_set_aside_and_skipped() {
+    let Some(sinus) = testdata_bytes("bvh/fairmotion/sinusoidal.bvh") else {
+        return;
+    };
+    let data = tempfile::tempdir().unwrap();
+    let server = Posecast::start(data.path());
+    let addr = server.addr;
+    for scene in ["a", "b"] {
+        ok(
+            addr,
+            &format!(r#"{{"op":"create_scene","scene":"{scene}"}}"#),
+        )
+        .await;
+    }
+    if !upload_wasp(addr, "wasp").await {
+        return;
+    }
+    let (s, b) = upload_files(addr, "/api/assets/sin", &[("sinusoidal.bvh", &sinus)]).await;
+    assert_eq!(s, 200, "{b}");
+    ok(
+        addr,
+        r#"{"op":"add_avatar","scene":"a","asset":"avatar","avatar":"a1"}"#,
+    )
+    .await;
+    ok(
+        addr,
+        r#"{"op":"add_avatar","scene":"b","asset":"sin","avatar":"s1","clip":"sinusoidal"}"#,
+    )
+    .await;
+    ok(
+        addr,
+        r#"{"op":"add_avatar","scene":"b","asset":"wasp","avatar":"w1","clip":"wasp_walk"}"#,
+    )
+    .await;
+    server.kill();
+
+    // A scene file cut short, an asset meta cut short, a scene file from a future version.
+    let truncate = |path: &Path| {
+        let bytes = std::fs::read(path).unwrap();
+        std::fs::write(path, &bytes[..bytes.len() / 2]).unwrap();
+    };
+    let scenes = data.path().join("scenes");
+    truncate(&scenes.join("a.json"));
+    truncate(&data.path().join("assets/sin/meta.json"));
+    std::fs::write(
+        scenes.join("c.json"),
+        r#"{"format": 99, "scene": "c", "saved_us": 0, "avatars": []}"#,
+    )
+    .unwrap();
+
+    let server = Posecast::start(data.path());
+    let addr = server.addr;
+    assert_eq!(scene_ids(addr).await, vec!["b", "default"]);
+    let assets = asset_names(addr).await;
+    assert!(
+        assets.contains(&"wasp".to_owned()) && !assets.contains(&"sin".to_owned()),
+        "{assets:?}"
+    );
+    // Scene b restores without the avatar whose asset is gone.
+    let b = ok(addr, r#"{"op":"list_scenes"}"#).await;
+    let b = b
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|s| s["scene"] == "b")
+        .unwrap();
+    let ids: Vec<&str> = b["avatars"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|a| a["avatar"].as_str().unwrap())
+        .collect();
+    assert_eq!(ids, vec!["w1"]);
+    assert_eq!(avatar(addr, "w1").await["clip"], "wasp_walk");
+
+    // Nothing lost: the bad files are beside their old names; the log names each.
+    assert!(scenes.join("a.json.corrupt").is_file() && !scenes.join("a.json").exists());
+    assert!(scenes.join("c.json.corrupt").is_file());
+    assert!(data.path().join("assets/sin.corrupt/meta.json").is_file());
+    let log = server.output();
+    for name in ["a.json", "c.json", "sin"] {
+        assert!(
+            log.iter().any(|l| l.contains("WARN") && l.contains(name)),
+            "no warning naming {name}: {log:#?}"
+        );
+    }
+    server.kill();
+}
