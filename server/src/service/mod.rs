@@ -5,7 +5,9 @@
 //! - `POST /api/commands`, `GET /api/scenes`, `GET /api/assets`,
 //!   `GET /api/assets/{name}/mesh.glb` ([`rest`]).
 //! - `GET /healthz`, `GET /metrics`.
+//! - `GET /`, `GET /dashboard/{file}`: the web dashboard ([`dashboard`]).
 
+pub mod dashboard;
 pub mod rest;
 pub mod ws;
 
@@ -31,6 +33,8 @@ pub fn app(state: Arc<AppState>) -> Router {
         ))
         .route("/healthz", get(|| async { "ok" }))
         .route("/metrics", get(metrics))
+        .route("/", get(dashboard::index))
+        .route("/dashboard/{file}", get(dashboard::file))
         .with_state(state)
 }
 
