@@ -18,6 +18,7 @@ use posecast_proto::msg::{AvatarId, Encoding};
 use posecast_server::startup::Server;
 use posecast_server::state::Config;
 use serde_json::{Value, json};
+use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -25,7 +26,8 @@ use std::time::{Duration, Instant};
 const CHROMIUM: &str = "/usr/bin/chromium";
 const CHROMEDRIVER: &str = "/usr/bin/chromedriver";
 
-/// A chromedriver child process, killed on drop, and a browser session on it.
+/// A chromedriver child process in a process group of its own, with the Chromium it starts:
+/// the whole group is killed on drop (also when a test panics before closing the session).
 struct Driver {
     child: Child,
     profile: PathBuf,
@@ -33,6 +35,11 @@ struct Driver {
 
 impl Drop for Driver {
     fn drop(&mut self) {
+        let group = format!("-{}", self.child.id());
+        let _ = Command::new("kill")
+            .args(["-KILL", "--", &group])
+            .stderr(Stdio::null())
+            .status();
         let _ = self.child.kill();
         let _ = self.child.wait();
         let _ = std::fs::remove_dir_all(&self.profile);
@@ -56,6 +63,7 @@ async fn browser() -> (Driver, Browser) {
     let port = free_port();
     let child = Command::new(CHROMEDRIVER)
         .arg(format!("--port={port}"))
+        .process_group(0)
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
@@ -254,7 +262,7 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
     let idle_knee = max_angle(&main, &avatar, knee, 0.5).await;
 
     let (_driver, b) = browser().await;
-    let t_browser = started.elapsed();
+    let mut phases = vec![("browser", started.elapsed())];
 
     // 1. The page loads, connects, lists the built-in avatar and draws frames; no errors.
     b.goto(&format!("{base}/?debug")).await.unwrap();
@@ -264,9 +272,15 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
     let renderer = wait_js(&b, 5, "window.posecast.renderer").await;
     wait_js(&b, 10, "window.posecast.meshLoaded").await;
     assert_eq!(errors(&b).await, json!([]), "errors while loading");
-    let fps = wait_js(&b, 5, "document.getElementById('fps').textContent.startsWith('0') ? null : document.getElementById('fps').textContent").await;
+    let fps = wait_js(
+        &b,
+        5,
+        "/^[1-9][0-9]* frames/.test(document.getElementById('fps').textContent) && document.getElementById('fps').textContent",
+    )
+    .await;
     let rtt = wait_js(&b, 5, "window.posecast.rtt").await;
 
+    phases.push(("load", started.elapsed()));
     // 2. Play "walk": the avatar's state and the pose stream change.
     let clip = find(&b, "#clip-select").await;
     clip.select_by_value(r#"[null,"walk"]"#).await.unwrap();
@@ -294,6 +308,7 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
     )
     .await;
 
+    phases.push(("play", started.elapsed()));
     // 3. A DOF slider of a limited joint: the stream follows, clamped to the joint's limits
     //    (test.skel: knee_r rotx in [-2, 0], roty and rotz fixed at 0).
     find(&b, r#"#scene-list button[data-avatar="skel"]"#)
@@ -356,6 +371,7 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
         "the slider did not move the joint"
     );
 
+    phases.push(("dof", started.elapsed()));
     // 4. Screenshot of the built-in avatar walking: the preview shows it.
     find(&b, r#"#scene-list button[data-avatar="avatar"]"#)
         .await
@@ -368,6 +384,7 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
         .as_u64()
         .unwrap();
     wait_js(&b, 5, &format!("window.posecast.rendered > {rendered} + 5")).await;
+    b.execute("window.scrollTo(0, 0);", vec![]).await.unwrap();
     let png_bytes = b.screenshot().await.unwrap();
     std::fs::write(artifacts().join("dashboard.png"), &png_bytes).unwrap();
     if std::env::var_os("POSECAST_UPDATE_SCREENSHOT").is_some() {
@@ -384,6 +401,7 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
         "the preview shows only {avatar_px} avatar pixels of {area}"
     );
 
+    phases.push(("screenshot", started.elapsed()));
     // 5. Narrow screens: no horizontal scrolling at 400 px.
     b.set_window_size(400, 800).await.unwrap();
     wait_js(&b, 5, "window.innerWidth <= 400").await;
@@ -400,16 +418,21 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
     );
     b.set_window_size(1280, 800).await.unwrap();
 
+    phases.push(("narrow", started.elapsed()));
     // 6. Server gone: the page says offline.
     assert_eq!(errors(&b).await, json!([]), "errors during the session");
     server.stop().await;
     wait_js(&b, 10, "document.getElementById('conn-state').textContent.startsWith('offline') && !document.getElementById('offline').hidden").await;
 
+    phases.push(("offline", started.elapsed()));
+    let phases: Vec<String> = phases
+        .iter()
+        .map(|(name, t)| format!("{name} {:.1} s", t.as_secs_f32()))
+        .collect();
     println!(
-        "dashboard: renderer {renderer}, {fps}, RTT {rtt} ms, knee idle {idle_knee:.1}° walk {walk_knee:.1}°, \
-         preview {avatar_px}/{area} px, browser start {:.2} s, total {:.2} s",
-        t_browser.as_secs_f32(),
-        started.elapsed().as_secs_f32()
+        "dashboard: renderer {renderer}, {fps}, RTT {rtt} ms, knee idle {idle_knee:.1}° walk \
+         {walk_knee:.1}°, preview {avatar_px}/{area} px; done at: {}",
+        phases.join(", ")
     );
     b.close().await.unwrap();
     let _ = std::fs::remove_dir_all(asset_dir);

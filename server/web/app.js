@@ -417,8 +417,14 @@ async function errorMessage(response) {
   return text || response.statusText;
 }
 
-$("show-mesh").addEventListener("change", (e) => (viewer.showMesh = e.target.checked));
-$("show-skeleton").addEventListener("change", (e) => (viewer.showSkeleton = e.target.checked));
+$("show-mesh").addEventListener("change", (e) => {
+  viewer.showMesh = e.target.checked;
+  viewer.dirty = true;
+});
+$("show-skeleton").addEventListener("change", (e) => {
+  viewer.showSkeleton = e.target.checked;
+  viewer.dirty = true;
+});
 
 // ---------------------------------------------------------------------------------------------
 // Joint tree and per-joint controls.

@@ -133,14 +133,20 @@ export class Viewer {
     this.installControls();
     new ResizeObserver(() => this.resize()).observe(canvas);
     this.resize();
+    // Draw only when something changed: a new pose, mesh, avatar, camera move or resize.
+    this.dirty = true;
     const loop = () => {
-      this.render();
+      if (this.dirty) {
+        this.dirty = false;
+        this.render();
+      }
       requestAnimationFrame(loop);
     };
     requestAnimationFrame(loop);
   }
 
   resetCamera() {
+    this.dirty = true;
     this.yaw = 0.5;
     this.pitch = 0.2;
     this.distance = 3;
@@ -183,6 +189,7 @@ export class Viewer {
       drag.y = e.clientY;
       if (drag.pan) {
         this.target[1] += dy * this.distance * 0.002;
+        this.dirty = true;
       } else {
         this.orbit(-dx * 0.01, dy * 0.01);
       }
@@ -219,11 +226,13 @@ export class Viewer {
   }
 
   orbit(dyaw, dpitch) {
+    this.dirty = true;
     this.yaw += dyaw;
     this.pitch = Math.max(-1.5, Math.min(1.5, this.pitch + dpitch));
   }
 
   zoom(factor) {
+    this.dirty = true;
     this.distance = Math.max(0.2, Math.min(100, this.distance * factor));
   }
 
@@ -234,6 +243,7 @@ export class Viewer {
     if (this.canvas.width !== w || this.canvas.height !== h) {
       this.canvas.width = w;
       this.canvas.height = h;
+      this.dirty = true;
     }
   }
 
@@ -246,15 +256,18 @@ export class Viewer {
     if (this.desc?.id !== desc?.id) this.resetCamera();
     this.desc = desc;
     this.pose = null;
+    this.dirty = true;
   }
 
   setPose(pose) {
     this.pose = pose;
+    this.dirty = true;
   }
 
   setMesh(mesh) {
     this.mesh = mesh;
     this.meshGpu = null;
+    this.dirty = true;
   }
 
   /** Frames the camera on the skeleton the first time a pose is shown. */
