@@ -418,7 +418,22 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
     );
     b.set_window_size(1280, 800).await.unwrap();
 
-    phases.push(("narrow", started.elapsed()));
+    // The 2D-canvas fallback (used when WebGL2 is unavailable) draws the skeleton.
+    b.goto(&format!("{base}/?debug&renderer=2d")).await.unwrap();
+    wait_js(
+        &b,
+        10,
+        "window.posecast.renderer === '2d' && window.posecast.rendered > 10",
+    )
+    .await;
+    let shot = b.screenshot().await.unwrap();
+    let rect = find(&b, "#preview").await.rectangle().await.unwrap();
+    let (skeleton_px, _) = count_avatar_pixels(&shot, rect);
+    assert!(
+        skeleton_px > 200,
+        "the 2D preview shows {skeleton_px} skeleton pixels"
+    );
+    phases.push(("narrow+2d", started.elapsed()));
     // 6. Server gone: the page says offline.
     assert_eq!(errors(&b).await, json!([]), "errors during the session");
     server.stop().await;
@@ -431,7 +446,7 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
         .collect();
     println!(
         "dashboard: renderer {renderer}, {fps}, RTT {rtt} ms, knee idle {idle_knee:.1}° walk \
-         {walk_knee:.1}°, preview {avatar_px}/{area} px; done at: {}",
+         {walk_knee:.1}°, preview {avatar_px}/{area} px (2D: {skeleton_px}); done at: {}",
         phases.join(", ")
     );
     b.close().await.unwrap();
