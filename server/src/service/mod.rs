@@ -7,7 +7,9 @@
 //! - `POST /api/assets/{name}`, `POST /api/assets/{name}/clips`: uploads ([`upload`]), with
 //!   their own body limit (`Config::max_upload_bytes`); everything else keeps 64 KiB.
 //! - `GET /healthz`, `GET /metrics`.
+//! - `GET /`, `GET /dashboard/{file}`: the web dashboard ([`dashboard`]).
 
+pub mod dashboard;
 pub mod rest;
 pub mod upload;
 pub mod ws;
@@ -46,6 +48,8 @@ pub fn app(state: Arc<AppState>) -> Router {
         )
         .route("/healthz", get(|| async { "ok" }))
         .route("/metrics", get(metrics))
+        .route("/", get(dashboard::index))
+        .route("/dashboard/{file}", get(dashboard::file))
         .with_state(state)
 }
 

@@ -1,0 +1,128 @@
+// Small column-major 4×4 matrix and quaternion helpers (p' = M p, quaternions [x, y, z, w]),
+// the same conventions as posecast-proto.
+
+export function identity() {
+  const m = new Float32Array(16);
+  m[0] = m[5] = m[10] = m[15] = 1;
+  return m;
+}
+
+/** out = a · b (column-major). `out` may not alias `a` or `b`. */
+export function multiply(out, a, b) {
+  for (let c = 0; c < 4; c++) {
+    for (let r = 0; r < 4; r++) {
+      out[c * 4 + r] =
+        a[r] * b[c * 4] + a[4 + r] * b[c * 4 + 1] + a[8 + r] * b[c * 4 + 2] + a[12 + r] * b[c * 4 + 3];
+    }
+  }
+  return out;
+}
+
+/** out = T(t) · R(q) · S(s). */
+export function fromTRS(out, t, q, s) {
+  let [x, y, z, w] = q;
+  const n = Math.hypot(x, y, z, w) || 1;
+  x /= n; y /= n; z /= n; w /= n;
+  const xx = x * x, yy = y * y, zz = z * z, xy = x * y, xz = x * z, yz = y * z;
+  const wx = w * x, wy = w * y, wz = w * z;
+  out[0] = (1 - 2 * (yy + zz)) * s[0];
+  out[1] = 2 * (xy + wz) * s[0];
+  out[2] = 2 * (xz - wy) * s[0];
+  out[3] = 0;
+  out[4] = 2 * (xy - wz) * s[1];
+  out[5] = (1 - 2 * (xx + zz)) * s[1];
+  out[6] = 2 * (yz + wx) * s[1];
+  out[7] = 0;
+  out[8] = 2 * (xz + wy) * s[2];
+  out[9] = 2 * (yz - wx) * s[2];
+  out[10] = (1 - 2 * (xx + yy)) * s[2];
+  out[11] = 0;
+  out[12] = t[0];
+  out[13] = t[1];
+  out[14] = t[2];
+  out[15] = 1;
+  return out;
+}
+
+export function perspective(fovy, aspect, near, far) {
+  const f = 1 / Math.tan(fovy / 2);
+  const m = new Float32Array(16);
+  m[0] = f / aspect;
+  m[5] = f;
+  m[10] = (far + near) / (near - far);
+  m[11] = -1;
+  m[14] = (2 * far * near) / (near - far);
+  return m;
+}
+
+export function lookAt(eye, target, up) {
+  let zx = eye[0] - target[0], zy = eye[1] - target[1], zz = eye[2] - target[2];
+  let n = Math.hypot(zx, zy, zz) || 1;
+  zx /= n; zy /= n; zz /= n;
+  let xx = up[1] * zz - up[2] * zy, xy = up[2] * zx - up[0] * zz, xz = up[0] * zy - up[1] * zx;
+  n = Math.hypot(xx, xy, xz) || 1;
+  xx /= n; xy /= n; xz /= n;
+  const yx = zy * xz - zz * xy, yy = zz * xx - zx * xz, yz = zx * xy - zy * xx;
+  const m = new Float32Array(16);
+  m[0] = xx; m[4] = xy; m[8] = xz;
+  m[1] = yx; m[5] = yy; m[9] = yz;
+  m[2] = zx; m[6] = zy; m[10] = zz;
+  m[12] = -(xx * eye[0] + xy * eye[1] + xz * eye[2]);
+  m[13] = -(yx * eye[0] + yy * eye[1] + yz * eye[2]);
+  m[14] = -(zx * eye[0] + zy * eye[1] + zz * eye[2]);
+  m[15] = 1;
+  return m;
+}
+
+/** Applies `m` to point `p`; returns [x, y, z, w] (homogeneous). */
+export function transformPoint(m, p) {
+  const [x, y, z] = p;
+  return [
+    m[0] * x + m[4] * y + m[8] * z + m[12],
+    m[1] * x + m[5] * y + m[9] * z + m[13],
+    m[2] * x + m[6] * y + m[10] * z + m[14],
+    m[3] * x + m[7] * y + m[11] * z + m[15],
+  ];
+}
+
+/** Rotation by `angle` radians about the unit `axis`. */
+export function quatAxisAngle(axis, angle) {
+  const s = Math.sin(angle / 2);
+  return [axis[0] * s, axis[1] * s, axis[2] * s, Math.cos(angle / 2)];
+}
+
+export function quatMul(a, b) {
+  const [ax, ay, az, aw] = a;
+  const [bx, by, bz, bw] = b;
+  return [
+    aw * bx + ax * bw + ay * bz - az * by,
+    aw * by - ax * bz + ay * bw + az * bx,
+    aw * bz + ax * by - ay * bx + az * bw,
+    aw * bw - ax * bx - ay * by - az * bz,
+  ];
+}
+
+/** R = R_z(z) · R_y(y) · R_x(x): Euler angles applied x, then y, then z (radians). */
+export function quatFromEulerXYZ(x, y, z) {
+  const qx = quatAxisAngle([1, 0, 0], x);
+  const qy = quatAxisAngle([0, 1, 0], y);
+  const qz = quatAxisAngle([0, 0, 1], z);
+  return quatMul(qz, quatMul(qy, qx));
+}
+
+/** The inverse of `quatFromEulerXYZ`: [x, y, z] radians. */
+export function eulerXYZFromQuat(q) {
+  const [x, y, z, w] = q;
+  // Rotation matrix entries of R = Rz Ry Rx.
+  const r20 = 2 * (x * z - w * y);
+  const r21 = 2 * (y * z + w * x);
+  const r22 = 1 - 2 * (x * x + y * y);
+  const r10 = 2 * (x * y + w * z);
+  const r00 = 1 - 2 * (y * y + z * z);
+  const ey = Math.asin(Math.max(-1, Math.min(1, -r20)));
+  const ex = Math.atan2(r21, r22);
+  const ez = Math.atan2(r10, r00);
+  return [ex, ey, ez];
+}
+
+export const DEG = Math.PI / 180;
