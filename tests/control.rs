@@ -153,3 +153,75 @@ async fn a_bvh_clip_plays_retargeted_on_the_built_in_avatar() {
     );
     server.stop().await;
 }
+
+#[tokio::test]
+async fn get_joint_reports_the_file_limits_and_the_clamped_values() {
+    let server = server(60.0).await;
+    let Some(skel) = common::testdata_bytes("cse169/test.skel") else {
+        return;
+    };
+    let (status, body) =
+        common::upload_files(server.addr, "/api/assets/testskel", &[("test.skel", &skel)]).await;
+    assert_eq!(status, 200, "{body}");
+    for command in [
+        r#"{"op":"create_scene","scene":"lab"}"#,
+        r#"{"op":"add_avatar","scene":"lab","asset":"testskel","avatar":"t1"}"#,
+    ] {
+        assert_eq!(common::command_to(server.addr, command).await.0, 200);
+    }
+    let get = r#"{"op":"get_joint","avatar":"t1","joint":"knee_r"}"#;
+    let joint = |v: &serde_json::Value| -> Vec<(f64, Option<f64>, Option<f64>)> {
+        v["result"]["dofs"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|d| {
+                (
+                    d["value"].as_f64().unwrap(),
+                    d["min"].as_f64(),
+                    d["max"].as_f64(),
+                )
+            })
+            .collect()
+    };
+    // test.skel: knee_r is a balljoint with rotxlimit -2 0, rotylimit 0 0, rotzlimit 0 0 and
+    // pose -3 1 2, which the limits clamp to (-2, 0, 0).
+    let (status, info) = common::command_to(server.addr, get).await;
+    assert_eq!(status, 200, "{info}");
+    assert_eq!(info["result"]["joint_type"], "ball_euler");
+    assert_eq!(info["result"]["parent"], "hip_r");
+    assert_eq!(info["result"]["overridden"], false);
+    let dofs = joint(&info);
+    let limits: Vec<_> = dofs.iter().map(|d| (d.1, d.2)).collect();
+    assert_eq!(
+        limits,
+        vec![
+            (Some(-2.0), Some(0.0)),
+            (Some(0.0), Some(0.0)),
+            (Some(0.0), Some(0.0))
+        ]
+    );
+    assert!((dofs[0].0 + 2.0).abs() < 1e-4, "{dofs:?}");
+    // A value past the limit is clamped; get_joint then reads it back from the pose.
+    for (sent, expected) in [(1.0, 0.0), (-1.25, -1.25), (-5.0, -2.0)] {
+        let set = format!(
+            r#"{{"op":"set_joint_dofs","avatar":"t1","joint":"knee_r","values":[{sent},0.4,0]}}"#
+        );
+        assert_eq!(common::command_to(server.addr, &set).await.0, 200);
+        let (_, info) = common::command_to(server.addr, get).await;
+        let dofs = joint(&info);
+        assert!((dofs[0].0 - expected).abs() < 1e-4, "{sent}: {dofs:?}");
+        assert!(dofs[1].0.abs() < 1e-4, "y is locked at 0: {dofs:?}");
+        assert_eq!(info["result"]["overridden"], true);
+    }
+    // A rig without joint types: no DOFs, set by rotation.
+    let (_, info) = common::command_to(
+        server.addr,
+        r#"{"op":"get_joint","avatar":"avatar","joint":"l_elbow"}"#,
+    )
+    .await;
+    assert_eq!(info["result"]["joint_type"], serde_json::Value::Null);
+    assert_eq!(info["result"]["dofs"], serde_json::json!([]));
+    assert_eq!(info["result"]["parent"], "l_shoulder");
+    server.stop().await;
+}

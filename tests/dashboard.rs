@@ -329,8 +329,9 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
     let slider = find(&b, "#dof-0").await;
     let knee_r = lab.avatar(&skel).unwrap().skeleton.find("knee_r").unwrap();
     let before = lab.latest(&skel).unwrap().locals[knee_r].rotation;
-    // test.skel poses knee_r at rotx −3 (clamped to −2): the slider's maximum, +180°, is
-    // clamped to 0.
+    // The sliders span the limits `get_joint` reports from test.skel: rotx [−2, 0] rad
+    // (−114.6°…0°), roty and rotz locked at 0; they start at the pose, rotx −2 (−114.6°).
+    wait_js(&b, 5, "document.getElementById('dof-0').min === '-115' && document.getElementById('dof-0').max === '0' && document.getElementById('dof-1').min === '0' && document.getElementById('dof-1').max === '0' && Math.abs(Number(document.getElementById('dof-0').value) + 114.6) < 0.6").await;
     slider.send_keys(&Key::End.to_string()).await.unwrap();
     let t0 = Instant::now();
     loop {
@@ -343,7 +344,7 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
         );
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
-    // The page learnt the clamp from the answer and shows it.
+    // The page shows the value the server applied.
     wait_js(&b, 5, "document.getElementById('dof-0-out').textContent === '0.0°' && document.getElementById('dof-0').max === '0'").await;
     // The same values again over REST (changes nothing): the rotation the server sets for them.
     let (s, r) = command(

@@ -18,6 +18,14 @@ pub enum Command {
         /// The avatar.
         avatar: AvatarId,
     },
+    /// One joint of an avatar: its DOFs with their limits and current values, and its local
+    /// rotation. Result: `JointInfo`.
+    GetJoint {
+        /// The avatar.
+        avatar: AvatarId,
+        /// The joint's name.
+        joint: String,
+    },
     /// Create an empty scene.
     CreateScene {
         /// Its id (letters, digits, `-`, `_`; at most 64).
@@ -161,6 +169,7 @@ impl Command {
     pub fn avatar(&self) -> Option<&AvatarId> {
         match self {
             Self::GetAvatar { avatar }
+            | Self::GetJoint { avatar, .. }
             | Self::RemoveAvatar { avatar }
             | Self::Play { avatar, .. }
             | Self::Pause { avatar }
@@ -183,7 +192,7 @@ impl Command {
     pub fn is_read_only(&self) -> bool {
         matches!(
             self,
-            Self::ListScenes | Self::ListAssets | Self::GetAvatar { .. }
+            Self::ListScenes | Self::ListAssets | Self::GetAvatar { .. } | Self::GetJoint { .. }
         )
     }
 }
@@ -219,6 +228,37 @@ pub struct ClipInfo {
     pub name: String,
     /// Duration in seconds.
     pub duration: f32,
+}
+
+/// One joint as `get_joint` reports it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct JointInfo {
+    /// The joint's name.
+    pub joint: String,
+    /// Its parent's name (none for a root).
+    pub parent: Option<String>,
+    /// Its joint type (`hinge`, `universal`, `ball_euler`, `ball_quaternion`, `prismatic`,
+    /// `translational`) when the rig defines joint types (e.g. `.skel`), else none: set it by
+    /// rotation.
+    pub joint_type: Option<String>,
+    /// Its DOFs, in `set_joint_dofs` order: the current value (radians; the current local
+    /// rotation projected onto the DOFs) and the limits (none: unlimited).
+    pub dofs: Vec<DofInfo>,
+    /// Its current local rotation `[x, y, z, w]` (clip plus override).
+    pub rotation: [f32; 4],
+    /// Whether an override holds it.
+    pub overridden: bool,
+}
+
+/// One DOF of a joint.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct DofInfo {
+    /// Current value (radians, or metres for translational DOFs).
+    pub value: f32,
+    /// Lower limit, if any.
+    pub min: Option<f32>,
+    /// Upper limit, if any.
+    pub max: Option<f32>,
 }
 
 /// An avatar's playback state.

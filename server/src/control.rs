@@ -5,7 +5,7 @@ use crate::scene::avatar::Avatar;
 use crate::scene::playback::{DEFAULT_FADE, Layer};
 use crate::state::AppState;
 use glam::Quat;
-use posecast_proto::command::Command;
+use posecast_proto::command::{Command, DofInfo, JointInfo};
 use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError};
 use serde_json::{Value, json};
 
@@ -107,6 +107,45 @@ fn retarget(
     Ok(std::sync::Arc::new(out))
 }
 
+/// `get_joint`'s answer: the joint's DOFs hold the current local rotation, mapped back to the
+/// authored frame (`pre⁻¹ · R · post⁻¹`) and projected onto them.
+fn joint_info(a: &Avatar, j: usize) -> JointInfo {
+    let skeleton = a.rig.skeleton();
+    let rotation = a.locals[j].rotation;
+    let (joint_type, dofs) = match a.rig.limits.get(j).cloned().flatten() {
+        Some(limits) => {
+            let mut dofs = limits.dofs.clone();
+            let authored = (limits.pre.inverse() * rotation * limits.post.inverse()).normalize();
+            // A rotation that the joint cannot take is projected and clamped; a failure (not
+            // finite) leaves the DOFs at their last values, which is still a valid answer.
+            dofs.set_rotation(authored).ok();
+            let name = serde_json::to_value(dofs.joint_type)
+                .ok()
+                .and_then(|v| v.get("type").and_then(Value::as_str).map(str::to_owned));
+            let limit = |v: f32| v.is_finite().then_some(v);
+            let infos = dofs
+                .dofs()
+                .iter()
+                .map(|d| DofInfo {
+                    value: d.value,
+                    min: limit(d.min),
+                    max: limit(d.max),
+                })
+                .collect();
+            (name, infos)
+        }
+        None => (None, Vec::new()),
+    };
+    JointInfo {
+        joint: skeleton.names()[j].clone(),
+        parent: skeleton.parents()[j].map(|p| skeleton.names()[p].clone()),
+        joint_type,
+        dofs,
+        rotation: rotation.to_array(),
+        overridden: a.overrides[j].is_some(),
+    }
+}
+
 /// Executes a command in memory. Authorisation is checked by the caller. Servers with a data
 /// folder answer clients through [`execute_durable`] instead.
 ///
@@ -168,6 +207,10 @@ pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, Protoc
             })?;
             Ok(serde_json::to_value(a.state(&scene.id)).unwrap_or(Value::Null))
         }
+        Command::GetJoint { avatar, joint } => with_avatar(state, avatar, |a| {
+            let j = joint_index(a, joint)?;
+            Ok(serde_json::to_value(joint_info(a, j)).unwrap_or(Value::Null))
+        }),
         Command::CreateScene { scene } => {
             state.create_scene(scene.clone())?;
             Ok(json!({ "scene": scene }))

@@ -508,28 +508,26 @@ function dofKey(joint) {
 }
 
 /**
- * How many DOFs the joint has: `set_joint_dofs` with no values fails (changing nothing) and
- * says so; a joint of a rig without joint types has none and is set by rotation instead.
- * Limits are learnt from the clamped values each `set_joint_dofs` answer carries.
+ * The joint's DOFs, their limits and current values (`get_joint`). A joint of a rig without
+ * joint types has none and is set by rotation instead (Euler X, Y, Z sliders).
  */
 async function probeDofs(joint) {
-  const key = dofKey(joint);
-  if (state.dofInfo.has(key)) return;
   const a = selectedAvatar();
   if (!a) return;
-  let count = null;
+  let info;
   try {
-    await conn.command({ op: "set_joint_dofs", avatar: a.avatar, joint, values: [] });
-  } catch (e) {
-    const m = /has (\d+) DOFs/.exec(e.message ?? "");
-    if (m) count = Number(m[1]);
-    else if (e.code !== "invalid_value") return; // offline or refused: ask again later
+    info = await conn.command({ op: "get_joint", avatar: a.avatar, joint });
+  } catch {
+    return; // offline or refused (already reported): ask again when selected again
   }
-  state.dofInfo.set(key, {
-    count,
-    limits: Array.from({ length: count ?? 3 }, () => ({ min: -180, max: 180 })),
-    values: Array.from({ length: count ?? 3 }, () => 0),
-    learnt: false,
+  const typed = info.joint_type != null && info.dofs.length > 0;
+  const deg = (v, fallback) => (v == null ? fallback : v / DEG);
+  state.dofInfo.set(dofKey(joint), {
+    count: typed ? info.dofs.length : null,
+    limits: typed
+      ? info.dofs.map((d) => ({ min: deg(d.min, -180), max: deg(d.max, 180) }))
+      : [0, 1, 2].map(() => ({ min: -180, max: 180 })),
+    values: typed ? info.dofs.map((d) => Math.round((d.value / DEG) * 10) / 10) : [0, 0, 0],
   });
 }
 
@@ -568,7 +566,7 @@ function renderJoint() {
     box.append(el("div", { className: "dof" }, el("label", { htmlFor: id }, label), input, out));
   });
   $("dof-note").textContent = byDofs
-    ? `${info.count} DOFs (set_joint_dofs, clamped by the server to the joint's limits${info.learnt ? "; learnt limits shown" : ""}).`
+    ? `${info.count} DOFs (set_joint_dofs); the sliders span the rig's limits, which the server enforces.`
     : "This rig has no joint types: the sliders set the local rotation (Euler X, Y, Z).";
   updateJointPose();
 }
@@ -616,7 +614,6 @@ function applyClamp(joint, info, sent, applied) {
     changed = true;
   });
   if (!changed || state.joint !== joint) return;
-  info.learnt = true;
   applied.forEach((v, i) => {
     const input = $(`dof-${i}`);
     if (!input) return;
@@ -626,7 +623,7 @@ function applyClamp(joint, info, sent, applied) {
     input.value = String(v);
     $(`dof-${i}-out`).textContent = `${v.toFixed(1)}°`;
   });
-  $("dof-note").textContent = `${info.count} DOFs; clamped by the server to ${applied.map((v) => `${v.toFixed(1)}°`).join(", ")} (learnt limits shown).`;
+  $("dof-note").textContent = `${info.count} DOFs; clamped by the server to ${applied.map((v) => `${v.toFixed(1)}°`).join(", ")}.`;
 }
 
 function updateJointPose() {
