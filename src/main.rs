@@ -133,15 +133,18 @@ async fn main() -> anyhow::Result<()> {
         server.http_url(),
         server.http_url()
     );
-    if let Some(token) = generated {
-        // Printed once for the operator (stdout, not the log); configure --control-token or
-        // an access file to choose it.
-        println!("  control token (generated): {}", token.expose());
-        println!(
-            "  dashboard: {}/#control={}",
-            server.http_url(),
-            token.expose()
-        );
+    match generated {
+        Some(token) => {
+            // Printed once for the operator (stdout, not the log); configure --control-token
+            // or an access file to choose it.
+            println!("  control token (generated): {}", token.expose());
+            println!(
+                "  dashboard: {}/#control={}",
+                server.http_url(),
+                token.expose()
+            );
+        }
+        None => println!("  dashboard: {}/", server.http_url()),
     }
     tokio::spawn(async move {
         shutdown_signal().await;

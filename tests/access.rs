@@ -247,6 +247,21 @@ async fn scene_tokens_view_tokens_and_private_views() {
         Value::Bool(false)
     );
 
+    // With private views, a scene token lists only its scenes.
+    let (_, listed) = command_as(&server, Some(LOBBY), r#"{"op":"list_scenes"}"#).await;
+    let names: Vec<_> = listed["result"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["scene"].as_str().unwrap().to_owned())
+        .collect();
+    assert_eq!(names, vec!["lobby"]);
+    let (_, all) = http_as(&server, Some(VIEWER), "GET", "/api/scenes", None).await;
+    assert!(
+        all.contains("\"default\"") && all.contains("\"lobby\""),
+        "{all}"
+    );
+
     // Views are private here: anonymous reads get 401 with a bearer challenge.
     let (status, _) = http_as(&server, None, "GET", "/api/scenes", None).await;
     assert_eq!(status, 401);
@@ -324,4 +339,58 @@ async fn a_server_without_control_tokens_refuses_every_command() {
     // The common helper's token is not configured on this server.
     assert_eq!(http(&server, "GET", "/api/scenes", None).await.0, 401);
     server.stop().await;
+}
+
+/// The binary with no token configured generates one, prints it once (with a dashboard link
+/// carrying it), and accepts only it.
+#[tokio::test]
+async fn the_binary_generates_and_prints_a_control_token_when_none_is_given() {
+    let server = common::child::Posecast::start(&["--no-persist"], &[]);
+    // The token lines follow the URL line the harness waited for.
+    wait_for(5.0, || {
+        server.output().iter().any(|l| l.contains("dashboard:"))
+    })
+    .await;
+    let output = server.output();
+    let token = output
+        .iter()
+        .find_map(|l| l.trim().strip_prefix("control token (generated): "))
+        .unwrap_or_else(|| panic!("no token printed: {output:?}"))
+        .to_owned();
+    assert_eq!(token.len(), 32, "128 bits in hex: {token}");
+    assert!(
+        output
+            .iter()
+            .any(|l| l.contains(&format!("/#control={token}"))),
+        "{output:?}"
+    );
+    let pause = br#"{"op":"pause","avatar":"avatar"}"#;
+    let post = |auth: Option<String>| async move {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let mut s = tokio::net::TcpStream::connect(server.addr).await.unwrap();
+        let auth = auth.map_or(String::new(), |t| format!("Authorization: Bearer {t}\r\n"));
+        let head = format!(
+            "POST /api/commands HTTP/1.1\r\nHost: x\r\nConnection: close\r\n{auth}Content-Length: {}\r\n\r\n",
+            pause.len()
+        );
+        s.write_all(head.as_bytes()).await.unwrap();
+        s.write_all(pause).await.unwrap();
+        let mut r = String::new();
+        s.read_to_string(&mut r).await.unwrap();
+        r
+    };
+    assert!(post(None).await.starts_with("HTTP/1.1 401"));
+    assert!(post(Some(CONTROL.into())).await.starts_with("HTTP/1.1 401"));
+    assert!(post(Some(token.clone())).await.starts_with("HTTP/1.1 200"));
+    // The token is printed for the operator, never logged.
+    let logged = server
+        .output()
+        .iter()
+        .filter(|l| l.contains(&token))
+        .count();
+    assert_eq!(
+        logged, 2,
+        "the token appears only in the two start-up lines"
+    );
+    server.kill();
 }

@@ -6,80 +6,20 @@
 
 mod common;
 
+use common::child::Posecast;
 use common::{command_to, http_to, testdata_bytes, upload_files};
 use serde_json::Value;
-use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
 use std::path::Path;
-use std::process::{Command, Stdio};
-use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-/// The `posecast` binary running as a child process on a free port.
-struct Posecast {
-    child: std::process::Child,
-    addr: SocketAddr,
-    output: Arc<Mutex<Vec<String>>>,
-}
-
-impl Posecast {
-    fn start(data: &Path) -> Self {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_posecast"))
-            .args(["--listen", "127.0.0.1:0", "--tick-rate", "30", "--data"])
-            .arg(data)
-            .env("POSECAST_CONTROL_TOKEN", common::CONTROL)
-            .env("NO_COLOR", "1")
-            .env("RUST_LOG", "info")
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("cannot start the posecast binary");
-        let output = Arc::new(Mutex::new(Vec::new()));
-        let (tx, rx) = std::sync::mpsc::channel();
-        let out = child.stdout.take().unwrap();
-        let err = child.stderr.take().unwrap();
-        for (stream, tx) in [
-            (Box::new(out) as Box<dyn std::io::Read + Send>, Some(tx)),
-            (Box::new(err), None),
-        ] {
-            let output = output.clone();
-            std::thread::spawn(move || {
-                for line in BufReader::new(stream).lines().map_while(Result::ok) {
-                    if let (Some(tx), Some(url)) =
-                        (&tx, line.strip_prefix("posecast listening on http://"))
-                    {
-                        tx.send(url.trim().parse::<SocketAddr>().unwrap()).ok();
-                    }
-                    output.lock().unwrap().push(line);
-                }
-            });
-        }
-        let addr = rx
-            .recv_timeout(Duration::from_secs(60))
-            .unwrap_or_else(|_| panic!("no URL printed: {:?}", output.lock().unwrap()));
-        Self {
-            child,
-            addr,
-            output,
-        }
-    }
-
-    /// SIGKILL: no graceful shutdown, nothing flushed that was not already on disk.
-    fn kill(mut self) {
-        self.child.kill().unwrap();
-        self.child.wait().unwrap();
-    }
-
-    fn output(&self) -> Vec<String> {
-        self.output.lock().unwrap().clone()
-    }
-}
-
-impl Drop for Posecast {
-    fn drop(&mut self) {
-        self.child.kill().ok();
-        self.child.wait().ok();
-    }
+/// The binary on `data`, with the tests' control token.
+fn start(data: &Path) -> Posecast {
+    let data = data.to_str().unwrap();
+    Posecast::start(
+        &["--tick-rate", "30", "--data", data],
+        &[("POSECAST_CONTROL_TOKEN", common::CONTROL)],
+    )
 }
 
 /// A command that must succeed; its result.
@@ -202,7 +142,7 @@ async fn ws_command(addr: SocketAddr, json: &str) {
 #[tokio::test]
 async fn acknowledged_changes_survive_sigkill() {
     let data = tempfile::tempdir().unwrap();
-    let server = Posecast::start(data.path());
+    let server = start(data.path());
     let addr = server.addr;
     // First start: the built-in default scene exists (and is stored).
     assert_eq!(scene_ids(addr).await, vec!["default"]);
@@ -250,7 +190,7 @@ async fn acknowledged_changes_survive_sigkill() {
     ws_command(addr, r#"{"op":"delete_scene","scene":"default"}"#).await;
     server.kill();
 
-    let server = Posecast::start(data.path());
+    let server = start(data.path());
     let addr = server.addr;
     assert_eq!(
         scene_ids(addr).await,
@@ -302,7 +242,7 @@ async fn unreadable_files_are_reported_set_aside_and_skipped() {
         return;
     };
     let data = tempfile::tempdir().unwrap();
-    let server = Posecast::start(data.path());
+    let server = start(data.path());
     let addr = server.addr;
     for scene in ["a", "b"] {
         ok(
@@ -347,7 +287,7 @@ async fn unreadable_files_are_reported_set_aside_and_skipped() {
     )
     .unwrap();
 
-    let server = Posecast::start(data.path());
+    let server = start(data.path());
     let addr = server.addr;
     assert_eq!(scene_ids(addr).await, vec!["b", "default"]);
     let assets = asset_names(addr).await;

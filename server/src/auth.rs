@@ -16,6 +16,7 @@ use crate::state::AppState;
 use posecast_proto::command::Command;
 use posecast_proto::msg::{Access, AvatarId, ErrorCode, ProtocolError, SceneId};
 use serde::Deserialize;
+use serde_json::Value;
 use std::fmt;
 use std::sync::Arc;
 
@@ -349,6 +350,26 @@ impl AccessConfig {
                 ))),
                 _ => Ok(()),
             },
+        }
+    }
+
+    /// `result` of `command` as `caller` may see it: a `list_scenes` result loses the scenes
+    /// the caller may not watch (only possible when views are private and the token is
+    /// limited to scenes); every other result is unchanged.
+    #[must_use]
+    pub fn visible(&self, caller: &Caller, command: &Command, result: Value) -> Value {
+        match (command, result) {
+            (Command::ListScenes, Value::Array(scenes)) => Value::Array(
+                scenes
+                    .into_iter()
+                    .filter(|s| {
+                        s.get("scene").and_then(Value::as_str).is_none_or(|id| {
+                            self.authorize_view(caller, &SceneId(id.to_owned())).is_ok()
+                        })
+                    })
+                    .collect(),
+            ),
+            (_, result) => result,
         }
     }
 

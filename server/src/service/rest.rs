@@ -102,6 +102,7 @@ pub async fn command(
     })?;
     state.config.access.authorize(&caller, &state, &command)?;
     let result = control::execute_durable(&state, &command).await?;
+    let result = state.config.access.visible(&caller, &command, result);
     Ok(Json(json!({ "result": result })))
 }
 
@@ -111,7 +112,12 @@ pub async fn scenes(
     caller: Caller,
 ) -> Result<Json<Value>, AppError> {
     state.config.access.authorize_read(&caller)?;
-    Ok(Json(control::execute(&state, &Command::ListScenes)?))
+    let scenes = control::execute(&state, &Command::ListScenes)?;
+    Ok(Json(state.config.access.visible(
+        &caller,
+        &Command::ListScenes,
+        scenes,
+    )))
 }
 
 /// `GET /api/assets/{name}/mesh.glb`: the rig's normalised skinned mesh (the space of its

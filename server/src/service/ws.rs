@@ -277,7 +277,14 @@ impl Session {
                     Err(e) => Err(e),
                 };
                 match result {
-                    Ok(result) => self.send(&ServerMsg::Ack { id, result }),
+                    Ok(result) => {
+                        let result =
+                            self.state
+                                .config
+                                .access
+                                .visible(&self.caller, &command, result);
+                        self.send(&ServerMsg::Ack { id, result });
+                    }
                     Err(e) => self.error(e.for_command(id)),
                 }
                 true

@@ -1,0 +1,78 @@
+//! The real `posecast` binary as a child process (for persistence and start-up tests).
+
+use std::io::{BufRead, BufReader};
+use std::net::SocketAddr;
+use std::process::{Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+/// The `posecast` binary running as a child process on a free port.
+pub struct Posecast {
+    child: std::process::Child,
+    /// Where it listens.
+    pub addr: SocketAddr,
+    output: Arc<Mutex<Vec<String>>>,
+}
+
+impl Posecast {
+    /// Starts the binary on `127.0.0.1:0` with `args` and `env`, and waits for the URL it
+    /// prints.
+    pub fn start(args: &[&str], env: &[(&str, &str)]) -> Self {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_posecast"))
+            .args(["--listen", "127.0.0.1:0"])
+            .args(args)
+            .envs(env.iter().copied())
+            .env("NO_COLOR", "1")
+            .env("RUST_LOG", "info")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("cannot start the posecast binary");
+        let output = Arc::new(Mutex::new(Vec::new()));
+        let (tx, rx) = std::sync::mpsc::channel();
+        let out = child.stdout.take().unwrap();
+        let err = child.stderr.take().unwrap();
+        for (stream, tx) in [
+            (Box::new(out) as Box<dyn std::io::Read + Send>, Some(tx)),
+            (Box::new(err), None),
+        ] {
+            let output = output.clone();
+            std::thread::spawn(move || {
+                for line in BufReader::new(stream).lines().map_while(Result::ok) {
+                    if let (Some(tx), Some(url)) =
+                        (&tx, line.strip_prefix("posecast listening on http://"))
+                    {
+                        tx.send(url.trim().parse::<SocketAddr>().unwrap()).ok();
+                    }
+                    output.lock().unwrap().push(line);
+                }
+            });
+        }
+        let addr = rx
+            .recv_timeout(Duration::from_secs(60))
+            .unwrap_or_else(|_| panic!("no URL printed: {:?}", output.lock().unwrap()));
+        Self {
+            child,
+            addr,
+            output,
+        }
+    }
+
+    /// SIGKILL: no graceful shutdown, nothing flushed that was not already on disk.
+    pub fn kill(mut self) {
+        self.child.kill().unwrap();
+        self.child.wait().unwrap();
+    }
+
+    /// Every line it printed so far (stdout and stderr).
+    pub fn output(&self) -> Vec<String> {
+        self.output.lock().unwrap().clone()
+    }
+}
+
+impl Drop for Posecast {
+    fn drop(&mut self) {
+        self.child.kill().ok();
+        self.child.wait().ok();
+    }
+}
