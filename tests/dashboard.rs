@@ -442,10 +442,39 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
     phases.push(("narrow+2d", started.elapsed()));
     // 6. Server gone: the page says offline.
     assert_eq!(errors(&b).await, json!([]), "errors during the session");
+    let addr = server.addr;
     server.stop().await;
     wait_js(&b, 10, "document.getElementById('conn-state').textContent.startsWith('offline') && !document.getElementById('offline').hidden").await;
-
     phases.push(("offline", started.elapsed()));
+
+    // 7. A server back on the same address: the page reconnects, resubscribes and streams.
+    let server = Server::start(Config {
+        listen: addr,
+        tick_rate: 60.0,
+        access: common::test_access(),
+        ..Config::default()
+    })
+    .await
+    .expect("restart on the same address");
+    wait_js(
+        &b,
+        15,
+        "window.posecast.state === 'online' && document.getElementById('offline').hidden",
+    )
+    .await;
+    let frames = b
+        .execute("return window.posecast.frames;", vec![])
+        .await
+        .unwrap();
+    let frames = frames.as_u64().unwrap_or(0);
+    wait_js(
+        &b,
+        10,
+        &format!("window.posecast.frames > {frames} + 10 && document.querySelector('#scene-list button[data-avatar=\"avatar\"]') !== null"),
+    )
+    .await;
+    server.stop().await;
+    phases.push(("reconnected", started.elapsed()));
     let phases: Vec<String> = phases
         .iter()
         .map(|(name, t)| format!("{name} {:.1} s", t.as_secs_f32()))
