@@ -117,6 +117,18 @@ async fn commands_need_a_control_token_and_refusals_change_nothing() {
     );
     assert_eq!(avatar_state(&server, "avatar").await, before_state);
 
+    // The refusals are counted: two over REST, one over the websocket.
+    let (_, metrics) = http(&server, "GET", "/metrics", None).await;
+    let refused = |code: &str| -> u64 {
+        let key = format!("posecast_refused_total{{code=\"{code}\"}} ");
+        metrics
+            .lines()
+            .find_map(|l| l.strip_prefix(key.as_str()))
+            .and_then(|v| v.trim().parse().ok())
+            .unwrap_or_else(|| panic!("{key} missing:\n{metrics}"))
+    };
+    assert_eq!((refused("unauthorized"), refused("forbidden")), (3, 0));
+
     // The control token works, on both surfaces.
     let (status, _) = command_as(&server, Some(CONTROL), rotate).await;
     assert_eq!(status, 200);

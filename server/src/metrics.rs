@@ -27,6 +27,8 @@ pub struct Metrics {
     commands: AtomicU64,
     command_errors: AtomicU64,
     protocol_errors: AtomicU64,
+    unauthorized: AtomicU64,
+    forbidden: AtomicU64,
 }
 
 impl Metrics {
@@ -83,6 +85,16 @@ impl Metrics {
         self.commands.fetch_add(1, Relaxed);
         if !ok {
             self.command_errors.fetch_add(1, Relaxed);
+        }
+    }
+
+    /// A request or message was refused for its token: `forbidden` (a valid token without
+    /// the right) or unauthorized (missing or unknown token).
+    pub fn refused(&self, forbidden: bool) {
+        if forbidden {
+            self.forbidden.fetch_add(1, Relaxed);
+        } else {
+            self.unauthorized.fetch_add(1, Relaxed);
         }
     }
 
@@ -184,6 +196,15 @@ impl Metrics {
             "Invalid client messages.",
             "counter",
             self.protocol_errors.load(Relaxed),
+        );
+        let _ = writeln!(
+            out,
+            "# HELP posecast_refused_total Requests and messages refused for their token.\n\
+             # TYPE posecast_refused_total counter\n\
+             posecast_refused_total{{code=\"unauthorized\"}} {}\n\
+             posecast_refused_total{{code=\"forbidden\"}} {}",
+            self.unauthorized.load(Relaxed),
+            self.forbidden.load(Relaxed)
         );
         let _ = writeln!(
             out,

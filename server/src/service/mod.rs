@@ -17,7 +17,7 @@ pub mod ws;
 use crate::state::AppState;
 use axum::Router;
 use axum::extract::{State, WebSocketUpgrade};
-use axum::http::header;
+use axum::http::{StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use posecast_proto::msg::MAX_CLIENT_MESSAGE_BYTES;
@@ -25,6 +25,7 @@ use std::sync::Arc;
 
 /// The whole service.
 pub fn app(state: Arc<AppState>) -> Router {
+    let counted = state.clone();
     Router::new()
         .route("/ws", get(ws_upgrade))
         .route("/api/commands", post(rest::command))
@@ -50,7 +51,21 @@ pub fn app(state: Arc<AppState>) -> Router {
         .route("/metrics", get(metrics))
         .route("/", get(dashboard::index))
         .route("/dashboard/{file}", get(dashboard::file))
+        .layer(axum::middleware::map_response_with_state(
+            counted,
+            count_refusals,
+        ))
         .with_state(state)
+}
+
+/// Counts HTTP refusals for a token (401, 403) in the metrics; the websocket counts its own.
+async fn count_refusals(State(state): State<Arc<AppState>>, response: Response) -> Response {
+    match response.status() {
+        StatusCode::UNAUTHORIZED => state.metrics.refused(false),
+        StatusCode::FORBIDDEN => state.metrics.refused(true),
+        _ => {}
+    }
+    response
 }
 
 async fn ws_upgrade(ws: WebSocketUpgrade, State(state): State<Arc<AppState>>) -> Response {

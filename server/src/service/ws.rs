@@ -144,6 +144,11 @@ impl Session {
     }
 
     fn error(&self, e: ProtocolError) {
+        match e.code {
+            ErrorCode::Unauthorized => self.state.metrics.refused(false),
+            ErrorCode::Forbidden => self.state.metrics.refused(true),
+            _ => {}
+        }
         self.state.metrics.protocol_error();
         self.send(&ServerMsg::Error(e));
     }
