@@ -23,24 +23,24 @@
 //! rotations) and `CUBICSPLINE`; a clip's range is its first to last key, so it may start
 //! after 0. Morph-target weights are skipped with a note.
 
+mod clips;
+mod mesh;
+
 use std::collections::HashMap;
 use std::path::Path;
 
 use base64::Engine as _;
 use glam::{Mat4, Quat, Vec3};
 use gltf::accessor::Dimensions;
-use gltf::animation::{Interpolation as GltfInterpolation, Property};
-use gltf::mesh::{Mode, Semantic};
+use gltf::animation::Property;
 use posecast_proto::skeleton::topological_order;
-use posecast_proto::{Skeleton, SkinnedMesh, Transform};
+use posecast_proto::{Skeleton, Transform};
 
 use super::ImportError;
 use super::accessor::Buffers;
 use super::skel::unique_names;
-use crate::asset::{Asset, AssetMesh, SourceFormat, SourceInfo, UpAxis};
-use crate::clip::{
-    ChannelMap, Clip, Interpolation, JointChannels, RotationChannel, Track, VectorChannel,
-};
+use crate::asset::{Asset, SourceFormat, SourceInfo, UpAxis};
+use crate::clip::ChannelMap;
 
 /// Imports a `.glb` or a `.gltf` whose buffers are embedded (GLB binary chunk or `data:`
 /// URIs). External buffer files are refused: use [`super::load_path`] for those.
@@ -492,220 +492,5 @@ impl Context<'_> {
             source,
             boxes: None,
         })
-    }
-
-    fn meshes(
-        &self,
-        skin: &gltf::Skin<'_>,
-        skin_to_skel: &[usize],
-        joint_count: usize,
-        notes: &mut Vec<String>,
-    ) -> Result<Vec<AssetMesh>, ImportError> {
-        let mut out = Vec::new();
-        for node in self.doc.nodes() {
-            let (Some(s), Some(mesh)) = (node.skin(), node.mesh()) else {
-                continue;
-            };
-            if s.index() != skin.index() {
-                continue;
-            }
-            let prims = mesh.primitives().len();
-            for prim in mesh.primitives() {
-                let mut label = match mesh.name() {
-                    Some(n) if !n.is_empty() => n.to_owned(),
-                    _ => format!("mesh{}", mesh.index()),
-                };
-                if prims > 1 {
-                    label = format!("{label}#{}", prim.index());
-                }
-                if prim.mode() != Mode::Triangles {
-                    notes.push(format!("{label}: {:?} primitive skipped", prim.mode()));
-                    continue;
-                }
-                let Some(pos) = prim.get(&Semantic::Positions) else {
-                    notes.push(format!("{label}: primitive without POSITION skipped"));
-                    continue;
-                };
-                let positions: Vec<Vec3> = self
-                    .buffers
-                    .read_as(&pos, Dimensions::Vec3, "POSITION")?
-                    .chunks_exact(3)
-                    .map(Vec3::from_slice)
-                    .collect();
-                let n = positions.len();
-                let normals = match prim.get(&Semantic::Normals) {
-                    Some(a) => self
-                        .buffers
-                        .read_as(&a, Dimensions::Vec3, "NORMAL")?
-                        .chunks_exact(3)
-                        .map(|c| Vec3::from_slice(c).normalize_or(Vec3::Y))
-                        .collect(),
-                    None => Vec::new(),
-                };
-                let indices = match prim.indices() {
-                    Some(a) => self.buffers.read_indices(&a)?,
-                    None => (0..u32::try_from(n).unwrap_or(u32::MAX)).collect(),
-                };
-                let mut sets = Vec::new();
-                for set in 0..2 {
-                    match (
-                        prim.get(&Semantic::Joints(set)),
-                        prim.get(&Semantic::Weights(set)),
-                    ) {
-                        (Some(j), Some(w)) => sets.push((j, w)),
-                        (None, None) => {}
-                        _ => {
-                            return Err(ImportError::Mesh {
-                                file: self.file.to_owned(),
-                                mesh: label,
-                                source: posecast_proto::MeshError::NoInfluences,
-                            });
-                        }
-                    }
-                }
-                if sets.is_empty() {
-                    notes.push(format!("{label}: primitive without JOINTS_0 skipped"));
-                    continue;
-                }
-                let influences = 4 * sets.len();
-                let mut js = vec![0u16; n * influences];
-                let mut ws = vec![0.0f32; n * influences];
-                for (s, (ja, wa)) in sets.iter().enumerate() {
-                    let jv = self.buffers.read_as(ja, Dimensions::Vec4, "JOINTS")?;
-                    let wv = self.buffers.read_as(wa, Dimensions::Vec4, "WEIGHTS")?;
-                    if jv.len() != n * 4 || wv.len() != n * 4 {
-                        return Err(ImportError::Accessor {
-                            file: self.file.to_owned(),
-                            accessor: ja.index(),
-                            message: format!("JOINTS/WEIGHTS counts differ from {n} vertices"),
-                        });
-                    }
-                    for v in 0..n {
-                        for c in 0..4 {
-                            let j = jv[v * 4 + c];
-                            let w = wv[v * 4 + c];
-                            let slot = v * influences + s * 4 + c;
-                            ws[slot] = w;
-                            if w == 0.0 {
-                                continue;
-                            }
-                            let skel = skin_to_skel
-                                .get(j as usize)
-                                .filter(|_| j >= 0.0 && j.fract() == 0.0)
-                                .ok_or_else(|| ImportError::Accessor {
-                                    file: self.file.to_owned(),
-                                    accessor: ja.index(),
-                                    message: format!(
-                                        "vertex {v} uses joint {j}, the skin has {}",
-                                        skin_to_skel.len()
-                                    ),
-                                })?;
-                            js[slot] = u16::try_from(*skel).unwrap_or(0);
-                        }
-                    }
-                }
-                let mesh =
-                    SkinnedMesh::new(positions, normals, indices, influences, js, ws, joint_count)
-                        .map_err(|source| ImportError::Mesh {
-                            file: self.file.to_owned(),
-                            mesh: label.clone(),
-                            source,
-                        })?;
-                out.push(AssetMesh { name: label, mesh });
-            }
-        }
-        Ok(out)
-    }
-
-    fn clips(
-        &self,
-        skel_of_node: &HashMap<usize, usize>,
-        maps: &[ChannelMap],
-        count: usize,
-        notes: &mut Vec<String>,
-    ) -> Result<Vec<Clip>, ImportError> {
-        let mut clips = Vec::new();
-        for anim in self.doc.animations() {
-            let a = anim.index();
-            let clip_name = match anim.name() {
-                Some(n) if !n.is_empty() => n.to_owned(),
-                _ => format!("animation{a}"),
-            };
-            let mut channels = vec![JointChannels::default(); count];
-            let mut any = false;
-            for (c, ch) in anim.channels().enumerate() {
-                let target = ch.target();
-                let Some(&joint) = skel_of_node.get(&target.node().index()) else {
-                    continue;
-                };
-                let sampler = ch.sampler();
-                let interpolation = match sampler.interpolation() {
-                    GltfInterpolation::Step => Interpolation::Step,
-                    GltfInterpolation::Linear => Interpolation::Linear,
-                    GltfInterpolation::CubicSpline => Interpolation::CubicSpline,
-                };
-                let times = self.buffers.read_as(
-                    &sampler.input(),
-                    Dimensions::Scalar,
-                    "animation input",
-                )?;
-                let place = || format!("animation {a} ({clip_name}) channel {c}");
-                let clip_err = |source| ImportError::Clip {
-                    file: self.file.to_owned(),
-                    place: place(),
-                    source,
-                };
-                let out = sampler.output();
-                let slot = &mut channels[joint];
-                match target.property() {
-                    Property::Translation | Property::Scale => {
-                        let v: Vec<Vec3> = self
-                            .buffers
-                            .read_as(&out, Dimensions::Vec3, "animation output")?
-                            .chunks_exact(3)
-                            .map(Vec3::from_slice)
-                            .collect();
-                        let track = Track::new(interpolation, times, v).map_err(clip_err)?;
-                        if target.property() == Property::Translation {
-                            slot.translation = Some(VectorChannel::Keys(track));
-                        } else {
-                            slot.scale = Some(VectorChannel::Keys(track));
-                        }
-                    }
-                    Property::Rotation => {
-                        let v: Vec<Quat> = self
-                            .buffers
-                            .read_as(&out, Dimensions::Vec4, "animation output")?
-                            .chunks_exact(4)
-                            .map(|q| Quat::from_xyzw(q[0], q[1], q[2], q[3]))
-                            .collect();
-                        let track = Track::new(interpolation, times, v).map_err(clip_err)?;
-                        slot.rotation = Some(RotationChannel::Keys(track));
-                    }
-                    Property::MorphTargetWeights => {
-                        notes.push(format!("{}: morph target weights skipped", place()));
-                        continue;
-                    }
-                }
-                any = true;
-            }
-            if !any {
-                continue;
-            }
-            let mut clip = Clip::new(clip_name.clone(), channels, None).map_err(|source| {
-                ImportError::Clip {
-                    file: self.file.to_owned(),
-                    place: format!("animation {a} ({clip_name})"),
-                    source,
-                }
-            })?;
-            for (j, map) in maps.iter().enumerate() {
-                if *map != ChannelMap::IDENTITY {
-                    clip.map_joint(j, *map);
-                }
-            }
-            clips.push(clip);
-        }
-        Ok(clips)
     }
 }
