@@ -408,6 +408,57 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
     );
 
     phases.push(("screenshot", started.elapsed()));
+
+    // 4b. Uploads through the form: the server's import error is shown verbatim and nothing
+    // is added; a real BVH, then .anim clips for an uploaded .skel, are imported and listed.
+    let upload = |files: Vec<PathBuf>, name: &'static str| {
+        let b = b.clone();
+        async move {
+            let name_box = find(&b, "#upload-name").await;
+            name_box.clear().await.unwrap();
+            name_box.send_keys(name).await.unwrap();
+            let input = find(&b, "#upload-files").await;
+            input.clear().await.ok();
+            let paths: Vec<String> = files.iter().map(|p| p.display().to_string()).collect();
+            input.send_keys(&paths.join("\n")).await.unwrap();
+            find(&b, "#upload-submit").await.click().await.unwrap();
+            let v = wait_js(&b, 20, "(() => { const t = document.getElementById('upload-result').textContent; return /^(Imported|Upload refused|Upload failed)/.test(t) ? t : null; })()").await;
+            v.as_str().unwrap_or_default().to_owned()
+        }
+    };
+    let garbage = artifacts().join("garbage.glb");
+    std::fs::write(&garbage, b"glTF this is not a binary glTF").unwrap();
+    let text = upload(vec![garbage], "junk").await;
+    assert!(text.starts_with("Upload refused (422): "), "{text}");
+    assert!(
+        text.contains("garbage.glb"),
+        "the importer's message names the file: {text}"
+    );
+    let (_, listed) = http(&server, "GET", "/api/assets", None).await;
+    assert!(!listed.contains("\"junk\""), "{listed}");
+    // Chromedriver wants canonical paths for file inputs.
+    let testdata =
+        std::fs::canonicalize(Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/testdata"))
+            .expect("../shared/testdata");
+    let text = upload(vec![testdata.join("bvh/fairmotion/sinusoidal.bvh")], "sine").await;
+    assert!(text.starts_with("Imported sine ("), "{text}");
+    let text = upload(
+        vec![
+            testdata.join("cse169/wasp.skel"),
+            testdata.join("cse169/wasp.skin"),
+        ],
+        "wasp",
+    )
+    .await;
+    assert!(text.starts_with("Imported wasp ("), "{text}");
+    let text = upload(vec![testdata.join("cse169/wasp_walk.anim")], "wasp").await;
+    assert!(text.contains("wasp_walk"), "{text}");
+    let (_, listed) = http(&server, "GET", "/api/assets", None).await;
+    assert!(
+        listed.contains("\"sine\"") && listed.contains("wasp_walk"),
+        "{listed}"
+    );
+    phases.push(("uploads", started.elapsed()));
     // 5. Narrow screens: no horizontal scrolling at 400 px.
     b.set_window_size(400, 800).await.unwrap();
     wait_js(&b, 5, "window.innerWidth <= 400").await;

@@ -696,20 +696,29 @@ $("upload-form").addEventListener("submit", async (e) => {
     out.textContent = "Choose the files first.";
     return;
   }
-  const name = $("upload-name").value.trim() || files[0].name.replace(/\.[^.]*$/, "").replace(/[^A-Za-z0-9_-]/g, "_");
+  // Only .anim files: clips for the existing (.skel) rig named in the form.
+  const clipsOnly = files.every((f) => /\.anim$/i.test(f.name));
+  const name = $("upload-name").value.trim() || (clipsOnly ? "" : files[0].name.replace(/\.[^.]*$/, "").replace(/[^A-Za-z0-9_-]/g, "_"));
+  if (!name) {
+    out.textContent = "Name the .skel rig the clips are for.";
+    return;
+  }
   const form = new FormData();
   for (const f of files) form.append("file", f, f.name);
   const token = tokens.forRest(true);
-  out.textContent = `Uploading ${files.map((f) => f.name).join(", ")} as ${name}…`;
+  out.textContent = clipsOnly
+    ? `Adding ${files.map((f) => f.name).join(", ")} to ${name}…`
+    : `Uploading ${files.map((f) => f.name).join(", ")} as ${name}…`;
   try {
-    const r = await fetch(`/api/assets/${encodeURIComponent(name)}`, {
+    const r = await fetch(`/api/assets/${encodeURIComponent(name)}${clipsOnly ? "/clips" : ""}`, {
       method: "POST",
       body: form,
       headers: token ? { Authorization: `Bearer ${token}` } : {},
     });
     if (r.ok) {
       const body = await r.json();
-      const list = (body.result ?? []).map((x) => `${x.name} (${x.joints} joints; clips: ${x.clips.map((c) => c.name).join(", ") || "none"})`);
+      const result = Array.isArray(body.result) ? body.result : [body.result];
+      const list = result.filter(Boolean).map((x) => `${x.name} (${x.joints} joints; clips: ${x.clips.map((c) => c.name).join(", ") || "none"})`);
       out.className = "small ok";
       out.textContent = `Imported ${list.join("; ")}`;
       refresh(true);
