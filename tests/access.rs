@@ -377,23 +377,21 @@ async fn the_binary_generates_and_prints_a_control_token_when_none_is_given() {
         "{output:?}"
     );
     let pause = br#"{"op":"pause","avatar":"avatar"}"#;
-    let post = |auth: Option<String>| async move {
-        use tokio::io::{AsyncReadExt, AsyncWriteExt};
-        let mut s = tokio::net::TcpStream::connect(server.addr).await.unwrap();
-        let auth = auth.map_or(String::new(), |t| format!("Authorization: Bearer {t}\r\n"));
-        let head = format!(
-            "POST /api/commands HTTP/1.1\r\nHost: x\r\nConnection: close\r\n{auth}Content-Length: {}\r\n\r\n",
-            pause.len()
-        );
-        s.write_all(head.as_bytes()).await.unwrap();
-        s.write_all(pause).await.unwrap();
-        let mut r = String::new();
-        s.read_to_string(&mut r).await.unwrap();
-        r
+    let post = |token: Option<String>| async move {
+        let (status, _) = common::http_raw(
+            server.addr,
+            token.as_deref(),
+            "POST",
+            "/api/commands",
+            "application/json",
+            pause,
+        )
+        .await;
+        status
     };
-    assert!(post(None).await.starts_with("HTTP/1.1 401"));
-    assert!(post(Some(CONTROL.into())).await.starts_with("HTTP/1.1 401"));
-    assert!(post(Some(token.clone())).await.starts_with("HTTP/1.1 200"));
+    assert_eq!(post(None).await, 401);
+    assert_eq!(post(Some(CONTROL.into())).await, 401);
+    assert_eq!(post(Some(token.clone())).await, 200);
     // The token is printed for the operator, never logged.
     let logged = server
         .output()
