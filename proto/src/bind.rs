@@ -49,6 +49,7 @@ pub fn rotation_about(pivot: Vec3, q: Quat) -> Mat4 {
 mod tests {
     use super::*;
     use crate::fk::forward_kinematics;
+    use crate::testing::f32s;
     use crate::testing::{
         arb_quat, arb_rigid_skeleton, arb_rigid_transforms, arb_skeleton, arb_transforms, mat_close,
     };
@@ -100,7 +101,7 @@ mod tests {
             (s, user) in arb_rigid_skeleton(1..100).prop_flat_map(|s| { let n = s.len(); (Just(s), arb_rigid_transforms(n)) }),
             pick in 0usize..1000,
             q in arb_quat(),
-            pivot in prop::array::uniform3(-1.0f32..1.0),
+            pivot in prop::array::uniform3(f32s(-1.0..1.0)),
         ) {
             let j = pick % s.len();
             let locals: Vec<Transform> = s.rest().iter().zip(&user)

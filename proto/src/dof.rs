@@ -225,6 +225,7 @@ fn wrap_angle(a: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::testing::f32s;
     use glam::{Mat3, Mat4};
     use proptest::prelude::*;
 
@@ -251,21 +252,21 @@ mod tests {
 
     proptest! {
         #[test]
-        fn ball_euler_matches_seed_matrix(x in -3.0f32..3.0, y in -3.0f32..3.0, z in -3.0f32..3.0) {
+        fn ball_euler_matches_seed_matrix(x in f32s(-3.0..3.0), y in f32s(-3.0..3.0), z in f32s(-3.0..3.0)) {
             let mut j = JointDofs::new(JointType::BallEuler);
             j.set(0, x).unwrap(); j.set(1, y).unwrap(); j.set(2, z).unwrap();
             prop_assert!(Mat3::from_quat(j.rotation()).abs_diff_eq(seed_rxyz(x, y, z), 1e-5));
         }
 
         #[test]
-        fn universal_matches_seed_matrix(x in -3.0f32..3.0, y in -3.0f32..3.0) {
+        fn universal_matches_seed_matrix(x in f32s(-3.0..3.0), y in f32s(-3.0..3.0)) {
             let mut j = JointDofs::new(JointType::Universal);
             j.set(0, x).unwrap(); j.set(1, y).unwrap();
             prop_assert!(Mat3::from_quat(j.rotation()).abs_diff_eq(seed_rxy(x, y), 1e-5));
         }
 
         #[test]
-        fn hinge_and_prismatic_match_seed(a in -3.0f32..3.0, axis in prop::array::uniform3(-1.0f32..1.0), r in prop::array::uniform3(-1.0f32..1.0)) {
+        fn hinge_and_prismatic_match_seed(a in f32s(-3.0..3.0), axis in prop::array::uniform3(f32s(-1.0..1.0)), r in prop::array::uniform3(f32s(-1.0..1.0))) {
             let axis = Vec3::from(axis);
             prop_assume!(axis.length() > 0.1);
             let n = axis.normalize();
@@ -288,7 +289,7 @@ mod tests {
         }
 
         #[test]
-        fn euler_projection_round_trips(x in -1.5f32..1.5, y in -1.5f32..1.5, z in -1.5f32..1.5) {
+        fn euler_projection_round_trips(x in f32s(-1.5..1.5), y in f32s(-1.5..1.5), z in f32s(-1.5..1.5)) {
             let mut j = JointDofs::new(JointType::BallEuler);
             let q = Quat::from_euler(EulerRot::ZYX, z, y, x);
             let applied = j.set_rotation(q).unwrap();
@@ -296,7 +297,7 @@ mod tests {
         }
 
         #[test]
-        fn hinge_projection_recovers_angle(a in -3.0f32..3.0) {
+        fn hinge_projection_recovers_angle(a in f32s(-3.0..3.0)) {
             let mut h = JointDofs::new(JointType::Hinge { axis: Vec3::new(0.0, 1.0, 1.0) });
             let q = Quat::from_axis_angle(Vec3::new(0.0, 1.0, 1.0).normalize(), a);
             h.set_rotation(q).unwrap();

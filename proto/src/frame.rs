@@ -448,6 +448,7 @@ impl FrameDecoder {
 mod tests {
     use super::*;
     use crate::testing::arb_quat;
+    use crate::testing::f32s;
     use proptest::prelude::*;
 
     fn frame(
@@ -484,7 +485,7 @@ mod tests {
         #[test]
         fn key_then_delta_decode_within_the_quantisation_bound(
             key in prop::collection::vec(arb_quat(), 1..70),
-            nudges in prop::collection::vec((arb_quat(), 0.0f32..1.0, 0u8..3), 70),
+            nudges in prop::collection::vec((arb_quat(), f32s(0.0..1.0), 0u8..3), 70),
         ) {
             // Each joint of the delta pose is unchanged, nudged slightly, or arbitrary.
             let delta: Vec<Quat> = key.iter().zip(&nudges).map(|(&k, &(r, t, kind))| match kind {

@@ -118,6 +118,7 @@ pub fn angle_between_degrees(a: Quat, b: Quat) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::testing::f32s;
     use proptest::prelude::*;
 
     /// Deterministic uniform random rotations (Shoemake's method) from a small PCG.
@@ -194,7 +195,7 @@ mod tests {
     proptest! {
         #[test]
         fn bound_holds_for_unnormalised_and_negated(
-            v in prop::array::uniform4(-10.0f32..10.0), negate: bool,
+            v in prop::array::uniform4(f32s(-10.0..10.0)), negate: bool,
         ) {
             let q = Quat::from_array(v);
             prop_assume!(q.length() > 1e-3);

@@ -301,6 +301,7 @@ pub fn skin_cpu(
 mod tests {
     use super::*;
     use crate::fk::PoseBuffers;
+    use crate::testing::f32s;
     use crate::testing::{arb_skeleton, arb_transforms};
     use proptest::prelude::*;
 
@@ -333,7 +334,7 @@ mod tests {
         #[test]
         fn bind_pose_is_identity(
             s in arb_skeleton(1..120),
-            seeds in prop::collection::vec((-2.0f32..2.0, -2.0f32..2.0, -2.0f32..2.0, 0u16..500, 0u16..500, 0.0f32..1.0), 1..200),
+            seeds in prop::collection::vec((f32s(-2.0..2.0), f32s(-2.0..2.0), f32s(-2.0..2.0), 0u16..500, 0u16..500, f32s(0.0..1.0)), 1..200),
         ) {
             let mesh = random_mesh(s.len(), &seeds);
             let mut buffers = PoseBuffers::new(&s);
@@ -352,7 +353,7 @@ mod tests {
         #[test]
         fn rigid_influence_matches_matrix(
             (s, pose) in arb_skeleton(1..40).prop_flat_map(|s| { let n = s.len(); (Just(s), arb_transforms(n)) }),
-            p in prop::array::uniform3(-1.0f32..1.0),
+            p in prop::array::uniform3(f32s(-1.0..1.0)),
             joint in 0usize..1000,
         ) {
             let j = (joint % s.len()) as u16;

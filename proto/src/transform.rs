@@ -157,10 +157,16 @@ impl Transform {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::testing::f32s;
     use proptest::prelude::*;
 
     fn quat_strategy() -> impl Strategy<Value = Quat> {
-        (-1.0f32..1.0, -1.0f32..1.0, -1.0f32..1.0, -1.0f32..1.0)
+        (
+            f32s(-1.0..1.0),
+            f32s(-1.0..1.0),
+            f32s(-1.0..1.0),
+            f32s(-1.0..1.0),
+        )
             .prop_filter("non-zero", |(x, y, z, w)| {
                 x * x + y * y + z * z + w * w > 0.01
             })
@@ -170,9 +176,9 @@ mod tests {
     proptest! {
         #[test]
         fn decomposition_round_trips(
-            t in prop::array::uniform3(-10.0f32..10.0),
+            t in prop::array::uniform3(f32s(-10.0..10.0)),
             r in quat_strategy(),
-            s in prop::array::uniform3(0.1f32..5.0),
+            s in prop::array::uniform3(f32s(0.1..5.0)),
         ) {
             let original = Transform {
                 translation: Vec3::from(t), rotation: r, scale: Vec3::from(s),
@@ -186,7 +192,7 @@ mod tests {
 
         #[test]
         fn polar_factor_is_a_rotation(
-            cols in prop::array::uniform9(-3.0f32..3.0),
+            cols in prop::array::uniform9(f32s(-3.0..3.0)),
         ) {
             let m = Mat3::from_cols_array(&cols);
             if let Ok(p) = polar_decompose(m) {

@@ -10,7 +10,7 @@
 mod rig_support;
 
 use glam::{Mat3, Mat4, Quat, Vec3};
-use posecast_proto::testing::arb_quat;
+use posecast_proto::testing::{arb_quat, f32s};
 use posecast_server::rig::neutral::hanim_pose;
 use posecast_server::rig::{
     RigError, SignedAxis, adjust_bind, apply_neutral_pose, map_names, reorient,
@@ -99,7 +99,7 @@ proptest! {
     }
 
     #[test]
-    fn units_give_s_times_the_mesh(asset in arb_asset(1..30, false), s in 0.001f32..100.0) {
+    fn units_give_s_times_the_mesh(asset in arb_asset(1..30, false), s in f32s(0.001..100.0)) {
         let (after, _) = scale_units(asset.clone(), s).unwrap();
         let (dv, dj) = deviation(&asset, &after, |p| p * s);
         prop_assert!(dv <= TOL && dj <= TOL, "vertices {dv}, joints {dj}");

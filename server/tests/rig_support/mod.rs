@@ -5,7 +5,7 @@
 use glam::{Mat4, Quat, Vec3};
 use posecast_proto::fk::{PoseBuffers, forward_kinematics};
 use posecast_proto::skinning::skin_cpu;
-use posecast_proto::testing::{arb_parents, arb_quat, testdata};
+use posecast_proto::testing::{arb_parents, arb_quat, f32s, testdata};
 use posecast_proto::{Skeleton, SkinnedMesh, Transform};
 use posecast_server::asset::{Asset, AssetMesh, SourceFormat, SourceInfo};
 use posecast_server::builtin::AVATAR_GLB;
@@ -164,24 +164,24 @@ pub fn arb_asset(
             Just(parents),
             prop::collection::vec(
                 (
-                    prop::array::uniform3(-1.0f32..1.0),
+                    prop::array::uniform3(f32s(-1.0..1.0)),
                     arb_quat(),
-                    0.8f32..1.25,
+                    f32s(0.8..1.25),
                     arb_quat(),
                 ),
                 n,
             ),
             prop::collection::vec(
                 (
-                    prop::array::uniform3(-2.0f32..2.0),
+                    prop::array::uniform3(f32s(-2.0..2.0)),
                     0u16..1000,
                     0u16..1000,
-                    0.0f32..1.0,
+                    f32s(0.0..1.0),
                 ),
                 1..40,
             ),
             prop::collection::vec((arb_quat(), arb_quat()), n),
-            prop::array::uniform3(-1.0f32..1.0),
+            prop::array::uniform3(f32s(-1.0..1.0)),
         )
             .prop_map(move |(parents, joints, verts, keys, root_move)| {
                 build_asset(
