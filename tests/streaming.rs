@@ -212,14 +212,14 @@ async fn a_stalled_subscriber_does_not_delay_the_others() {
         "regular subscriber: {} frames in 2 s, max gap {max_gap:.1} ms; stalled outbox held at most {max_pending} frames",
         arrivals.len()
     );
+    // Generous for a 2-core CI machine running the other tests (and Chromium) at once; a
+    // stalled peer blocking the tick would show gaps of the whole stall (2 s).
     assert!(
-        arrivals.len() > 90,
+        arrivals.len() > 60,
         "only {} frames in 2 s at 60 Hz",
         arrivals.len()
     );
-    // Generous for a loaded 2-core CI machine; a stalled peer blocking the tick would show
-    // gaps of the whole stall (2 s).
-    assert!(max_gap < 250.0, "max gap {max_gap} ms");
+    assert!(max_gap < 500.0, "max gap {max_gap} ms");
     assert!(max_pending <= 2, "an outbox held {max_pending} frames");
     drop(stalled);
     server.stop().await;
