@@ -106,11 +106,9 @@ async fn rest_commands_change_the_stream_and_errors_are_typed() {
 
 #[tokio::test]
 async fn a_bvh_clip_plays_retargeted_on_the_built_in_avatar() {
-    let path = posecast_proto::testing::testdata("bvh/cmu/01_01.bvh");
-    if !path.exists() {
-        eprintln!("skipping: {} is absent", path.display());
+    let Some(path) = posecast_proto::testing::require_testdata("bvh/cmu/01_01.bvh") else {
         return;
-    }
+    };
     let server = server(60.0).await;
     let mut asset = posecast_server::import::load_path(&path).unwrap().remove(0);
     asset.name = "cmu".into();

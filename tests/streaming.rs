@@ -97,11 +97,9 @@ async fn built_in_avatar_streams_the_clip_it_plays() {
 
 #[tokio::test]
 async fn a_testdata_rig_streams_its_clip() {
-    let path = posecast_proto::testing::testdata("gltf/CesiumMan/glTF-Binary/CesiumMan.glb");
-    if !path.exists() {
-        eprintln!("skipping: {} is absent", path.display());
+    let Some(path) = posecast_proto::testing::require_testdata("gltf/CesiumMan/glTF-Binary/CesiumMan.glb") else {
         return;
-    }
+    };
     let server = server(60.0).await;
     let mut asset = import::load_path(&path).unwrap().remove(0);
     asset.name = "cesium".into();

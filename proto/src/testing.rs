@@ -131,6 +131,37 @@ pub fn mat_close(a: &Mat4, b: &Mat4, tol: f32) -> bool {
     a.abs_diff_eq(*b, tol * scale)
 }
 
+/// Whether a missing input (test data, a tool, a GPU adapter) must fail the run instead of
+/// skipping: CI sets `CI=true`, and a test that passes by skipping there proves nothing.
+#[must_use]
+pub fn strict() -> bool {
+    std::env::var("CI").is_ok_and(|v| !v.is_empty() && v != "false" && v != "0")
+}
+
+/// Reports a test that cannot run here: a panic under [`strict`] (CI), a note otherwise.
+///
+/// # Panics
+/// Under `CI=true`, always.
+pub fn skip(reason: &str) {
+    assert!(!strict(), "CI=true and a test input is missing: {reason}");
+    eprintln!("SKIPPING: {reason}");
+}
+
+/// [`testdata`] when the file exists; otherwise [`skip`] (a failure under `CI=true`) and `None`.
+#[must_use]
+pub fn require_testdata(relative: &str) -> Option<std::path::PathBuf> {
+    let path = testdata(relative);
+    if path.exists() {
+        Some(path)
+    } else {
+        skip(&format!(
+            "{} is absent (../shared/testdata not beside the repository)",
+            path.display()
+        ));
+        None
+    }
+}
+
 /// The shared third-party test files (`../shared/testdata` beside the repository), read in
 /// place. `relative` is a path inside that folder, e.g. `"gltf/CesiumMan/glTF/CesiumMan.gltf"`.
 #[must_use]

@@ -9,7 +9,7 @@
 use std::panic::{AssertUnwindSafe, catch_unwind};
 
 use posecast_proto::Transform;
-use posecast_proto::testing::testdata;
+use posecast_proto::testing::require_testdata;
 use posecast_server::asset::Asset;
 use posecast_server::import::{anim, bvh, gltf, skel, skin};
 
@@ -157,14 +157,9 @@ fn exercise(assets: &[Asset]) {
 }
 
 fn fuzz(rel: &str, seed: u64, binary: bool, import: &dyn Fn(&[u8]) -> Option<Vec<Asset>>) {
-    let path = testdata(rel);
-    if !path.exists() {
-        eprintln!(
-            "skipping: {} is absent (../shared/testdata not checked out)",
-            path.display()
-        );
+    let Some(path) = require_testdata(rel) else {
         return;
-    }
+    };
     let original = std::fs::read(&path).unwrap();
     fuzz_bytes(rel, &original, seed, binary, import);
 }
@@ -202,7 +197,8 @@ fn text(bytes: &[u8]) -> Option<String> {
 }
 
 fn read_text(rel: &str) -> Option<String> {
-    std::fs::read_to_string(testdata(rel)).ok()
+    let path = require_testdata(rel)?;
+    Some(std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display())))
 }
 
 #[test]

@@ -7,19 +7,12 @@
 use glam::{Mat3, Mat4, Vec3};
 use posecast_proto::Transform;
 use posecast_proto::fk::forward_kinematics;
-use posecast_proto::testing::testdata;
+use posecast_proto::testing::require_testdata;
 use posecast_server::asset::Asset;
 use posecast_server::import;
 
 fn load(rel: &str) -> Option<(Asset, String)> {
-    let path = testdata(rel);
-    if !path.exists() {
-        eprintln!(
-            "skipping: {} is absent (../shared/testdata not checked out)",
-            path.display()
-        );
-        return None;
-    }
+    let path = require_testdata(rel)?;
     let mut assets = import::load_path(&path).unwrap();
     assert_eq!(assets.len(), 1);
     Some((assets.remove(0), std::fs::read_to_string(path).unwrap()))

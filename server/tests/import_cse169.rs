@@ -6,19 +6,12 @@ use glam::{Mat4, Quat, Vec3};
 use posecast_proto::Transform;
 use posecast_proto::fk::PoseBuffers;
 use posecast_proto::skinning::skin_cpu;
-use posecast_proto::testing::testdata;
+use posecast_proto::testing::require_testdata;
 use posecast_server::clip::RotationChannel;
 use posecast_server::import::{self, anim, cse169, skel, skin};
 
 fn text(rel: &str) -> Option<String> {
-    let path = testdata(rel);
-    if !path.exists() {
-        eprintln!(
-            "skipping: {} is absent (../shared/testdata not checked out)",
-            path.display()
-        );
-        return None;
-    }
+    let path = require_testdata(rel)?;
     Some(std::fs::read_to_string(path).unwrap())
 }
 
@@ -102,11 +95,9 @@ fn triangle_skin_with_one_joint() {
 
 #[test]
 fn wasp_loads_and_zero_pose_skins_to_bind() {
-    let path = testdata("cse169/wasp.skel");
-    if !path.exists() {
-        eprintln!("skipping: {} is absent", path.display());
+    let Some(path) = require_testdata("cse169/wasp.skel") else {
         return;
-    }
+    };
     let assets = import::load_path(&path).unwrap();
     assert_eq!(assets.len(), 1);
     let a = &assets[0];

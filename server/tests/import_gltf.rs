@@ -11,21 +11,12 @@ use glam::{Mat4, Quat, Vec3};
 use posecast_proto::Transform;
 use posecast_proto::fk::PoseBuffers;
 use posecast_proto::skinning::skin_cpu;
-use posecast_proto::testing::testdata;
+use posecast_proto::testing::{require_testdata, testdata};
 use posecast_server::asset::{Asset, UpAxis};
 use posecast_server::import::{self, ImportError, gltf as gltf_import};
 
 fn path(rel: &str) -> Option<PathBuf> {
-    let p = testdata(rel);
-    if p.exists() {
-        Some(p)
-    } else {
-        eprintln!(
-            "skipping: {} is absent (../shared/testdata not checked out)",
-            p.display()
-        );
-        None
-    }
+    require_testdata(rel)
 }
 
 fn load(rel: &str) -> Option<Vec<Asset>> {

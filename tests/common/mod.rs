@@ -232,16 +232,11 @@ pub async fn upload_files(
     http_to(addr, "POST", path, &content_type, &body).await
 }
 
-/// A shared test file's bytes, or `None` (with a note) when `../shared/testdata` is absent.
+/// A shared test file's bytes, or `None` (with a note; a failure under `CI=true`) when
+/// `../shared/testdata` is absent.
 pub fn testdata_bytes(relative: &str) -> Option<Vec<u8>> {
-    let path = posecast_proto::testing::testdata(relative);
-    match std::fs::read(&path) {
-        Ok(b) => Some(b),
-        Err(e) => {
-            eprintln!("skipping: {} not readable ({e})", path.display());
-            None
-        }
-    }
+    let path = posecast_proto::testing::require_testdata(relative)?;
+    Some(std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display())))
 }
 
 /// A REST command to `addr`; returns status and the parsed body.

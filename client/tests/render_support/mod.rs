@@ -24,7 +24,9 @@ pub fn gpu() -> Option<&'static Gpu> {
             Some(gpu)
         }
         Err(RenderError::NoAdapter { reason }) => {
-            eprintln!("SKIPPING GPU test: no GPU adapter exists on this machine ({reason})");
+            posecast_proto::testing::skip(&format!(
+                "GPU test: no GPU adapter exists on this machine ({reason})"
+            ));
             None
         }
         Err(other) => panic!("GPU adapter exists but is unusable: {other}"),

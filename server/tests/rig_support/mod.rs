@@ -5,7 +5,7 @@
 use glam::{Mat4, Quat, Vec3};
 use posecast_proto::fk::{PoseBuffers, forward_kinematics};
 use posecast_proto::skinning::skin_cpu;
-use posecast_proto::testing::{arb_parents, arb_quat, f32s, testdata};
+use posecast_proto::testing::{arb_parents, arb_quat, f32s, require_testdata};
 use posecast_proto::{Skeleton, SkinnedMesh, Transform};
 use posecast_server::asset::{Asset, AssetMesh, SourceFormat, SourceInfo};
 use posecast_server::builtin::AVATAR_GLB;
@@ -17,11 +17,7 @@ use proptest::prelude::*;
 
 /// Loads a shared test file (every asset in it); `None`, with a message, when it is missing.
 pub fn load(rel: &str) -> Option<Vec<Asset>> {
-    let path = testdata(rel);
-    if !path.exists() {
-        eprintln!("skipping {rel}: {} not found", path.display());
-        return None;
-    }
+    let path = require_testdata(rel)?;
     Some(load_path(&path).unwrap_or_else(|e| panic!("{rel}: {e}")))
 }
 
