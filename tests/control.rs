@@ -223,3 +223,92 @@ async fn get_joint_reports_the_file_limits_and_the_clamped_values() {
     assert_eq!(info["result"]["parent"], "l_shoulder");
     server.stop().await;
 }
+
+/// `play … from_asset` of a very long clip bakes off the scene locks and off the async
+/// workers: while two connections ask for it at once, another scene keeps ticking (no gap of
+/// 3 ticks or more in its frame numbers), and a second `play` of the same clip is a cache hit.
+#[tokio::test]
+async fn a_long_retarget_bake_does_not_stall_other_scenes() {
+    use futures_util::{SinkExt, StreamExt};
+    use posecast_server::clip::Clip;
+
+    let rate = 20.0;
+    let server = server(rate).await;
+    // A second humanoid rig whose clip lasts 27,510 s (the reported case): baked at 30 Hz up
+    // to the key cap, seconds of CPU in a debug build.
+    let mut long = posecast_server::startup::builtin_rig().unwrap();
+    let walk = long.clip("walk").unwrap();
+    let clip = Clip::new("marathon", walk.channels().to_vec(), Some((0.0, 27_510.0))).unwrap();
+    long.name = "long".into();
+    long.clips = vec![std::sync::Arc::new(clip)];
+    server.state.library.insert(long);
+    for c in [
+        r#"{"op":"create_scene","scene":"other"}"#,
+        r#"{"op":"add_avatar","scene":"other","asset":"avatar","avatar":"o"}"#,
+    ] {
+        assert_eq!(common::command_to(server.addr, c).await.0, 200);
+    }
+
+    let mut ws = common::raw(&server, Encoding::Binary).await;
+    ws.send(tokio_tungstenite::tungstenite::Message::Text(
+        r#"{"type":"subscribe","scene":"default"}"#.into(),
+    ))
+    .await
+    .unwrap();
+    let watcher = tokio::spawn(async move {
+        // (arrival, seq) of every frame for 60 s or until the test ends it.
+        let mut seqs = Vec::new();
+        let end = tokio::time::Instant::now() + std::time::Duration::from_secs(60);
+        while let Ok(Some(Ok(m))) = tokio::time::timeout_at(end, ws.next()).await {
+            if let tokio_tungstenite::tungstenite::Message::Binary(b) = m {
+                let (h, _) = posecast_proto::frame::read_header(&b).unwrap();
+                seqs.push((std::time::Instant::now(), h.seq));
+            }
+        }
+        seqs
+    });
+    tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+
+    let play = r#"{"op":"play","avatar":"o","clip":"marathon","from_asset":"long","fade":0}"#;
+    let began = std::time::Instant::now();
+    let (a, b) = tokio::join!(
+        common::command_to(server.addr, play),
+        common::command_to(server.addr, play)
+    );
+    let baked_in = began.elapsed();
+    assert_eq!(a.0, 200, "{}", a.1);
+    assert_eq!(b.0, 200, "{}", b.1);
+    let began_again = std::time::Instant::now();
+    assert_eq!(common::command_to(server.addr, play).await.0, 200);
+    let cached_in = began_again.elapsed();
+    tokio::time::sleep(std::time::Duration::from_millis(300)).await;
+    let ended = std::time::Instant::now();
+    server.stop().await;
+    let seqs = watcher.await.unwrap();
+
+    let during: Vec<u64> = seqs
+        .iter()
+        .filter(|(at, _)| *at >= began && *at <= ended)
+        .map(|&(_, s)| s)
+        .collect();
+    let worst = during.windows(2).map(|w| w[1] - w[0]).max().unwrap_or(0);
+    println!(
+        "bake {baked_in:?}, cached play {cached_in:?}, {} frames meanwhile, worst seq gap {worst}",
+        during.len()
+    );
+    // The bake must take several ticks, or this test could not see a stall.
+    assert!(
+        baked_in.as_secs_f64() > 3.0 / f64::from(rate),
+        "bake took only {baked_in:?}"
+    );
+    assert!(
+        during.len() as f64 >= 0.5 * baked_in.as_secs_f64() * f64::from(rate),
+        "{} frames in {baked_in:?}",
+        during.len()
+    );
+    assert!(worst < 3, "the other scene stalled: a gap of {worst} ticks");
+    assert!(
+        cached_in < baked_in / 4,
+        "the second play baked again ({cached_in:?} vs {baked_in:?})"
+    );
+}

@@ -32,4 +32,4 @@ pub mod transform;
 pub use dof::{Dof, JointDofs, JointType};
 pub use skeleton::{Skeleton, SkeletonError};
 pub use skinning::{MeshError, SkinnedMesh};
-pub use transform::{DecomposeError, Transform};
+pub use transform::{DecomposeError, Transform, unit_quat};

@@ -236,6 +236,8 @@ pub enum ErrorCode {
     TooLarge,
     /// The server failed; the request may be retried.
     Internal,
+    /// No such asset (rig).
+    UnknownAsset,
 }
 
 /// What a connection (or a REST request) may do, as decided from its token.

@@ -18,6 +18,14 @@ pub fn f32s(range: Range<f32>) -> impl Strategy<Value = f32> + Clone {
     (0..STEPS).prop_map(move |i| (lo + (hi - lo) * f64::from(i) / f64::from(STEPS)) as f32)
 }
 
+/// Any finite f32, drawn from random bit patterns: magnitudes spread evenly over every
+/// exponent (subnormals up to ±3.4e38), which is what finds overflow in `|q|²` or `t · speed`.
+pub fn finite_f32s() -> impl Strategy<Value = f32> + Clone {
+    any::<u32>()
+        .prop_map(f32::from_bits)
+        .prop_filter("finite", |v| v.is_finite())
+}
+
 /// A uniformly random unit quaternion (normalised 4-D Gaussian-ish box sample).
 pub fn arb_quat() -> impl Strategy<Value = Quat> {
     prop::array::uniform4(f32s(-1.0..1.0))

@@ -78,6 +78,31 @@ pub fn polar_decompose(m: Mat3) -> Result<Polar, DecomposeError> {
     Ok(Polar { rotation, stretch })
 }
 
+/// The unit quaternion in the direction of `xyzw`, or `None` when that is not a rotation:
+/// a non-finite component, or a norm below `1e-6`.
+///
+/// The norm is taken in f64: in f32, `|q|²` overflows for components beyond ~1.8e19 (e.g.
+/// `[2e19, 0, 0, 0]` or every component 3e38), and `q / |q|` then gives zeros or NaN. Every
+/// finite input either normalises exactly or is refused; the result is finite and unit.
+#[must_use]
+pub fn unit_quat(xyzw: [f32; 4]) -> Option<Quat> {
+    if !xyzw.iter().all(|c| c.is_finite()) {
+        return None;
+    }
+    let norm = xyzw
+        .iter()
+        .map(|&c| f64::from(c) * f64::from(c))
+        .sum::<f64>()
+        .sqrt();
+    if norm < 1e-6 {
+        return None;
+    }
+    let [x, y, z, w] = xyzw.map(|c| (f64::from(c) / norm) as f32);
+    // Each component is now in [-1, 1]; one f32 normalisation removes the rounding.
+    let q = Quat::from_xyzw(x, y, z, w).normalize();
+    q.is_finite().then_some(q)
+}
+
 impl Transform {
     /// The transform that changes nothing.
     pub const IDENTITY: Self = Self {
@@ -157,7 +182,50 @@ impl Transform {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::testing::f32s;
+    use crate::testing::{f32s, finite_f32s};
+
+    #[test]
+    fn unit_quat_normalises_extreme_finite_input_and_refuses_the_rest() {
+        for big in [
+            [2e19, 0.0, 0.0, 0.0],
+            [3e38; 4],
+            [-f32::MAX, f32::MAX, 0.0, 1.0],
+        ] {
+            let q = unit_quat(big).unwrap();
+            assert!(
+                q.is_finite() && (q.length() - 1.0).abs() < 1e-6,
+                "{big:?} → {q:?}"
+            );
+        }
+        let q = unit_quat([3e38; 4]).unwrap();
+        assert!(
+            q.abs_diff_eq(Quat::from_xyzw(0.5, 0.5, 0.5, 0.5), 1e-6),
+            "{q:?}"
+        );
+        assert!(unit_quat([f32::NAN, 0.0, 0.0, 1.0]).is_none());
+        assert!(unit_quat([f32::INFINITY, 0.0, 0.0, 1.0]).is_none());
+        assert!(unit_quat([0.0; 4]).is_none());
+        assert!(unit_quat([1e-30, 0.0, 0.0, 0.0]).is_none());
+    }
+
+    proptest! {
+        #[test]
+        fn unit_quat_is_unit_and_keeps_the_direction(
+            x in finite_f32s(), y in finite_f32s(),
+            z in finite_f32s(), w in finite_f32s(),
+        ) {
+            let norm = [x, y, z, w].iter().map(|&c| f64::from(c).powi(2)).sum::<f64>().sqrt();
+            match unit_quat([x, y, z, w]) {
+                Some(q) => {
+                    prop_assert!(q.is_finite() && (q.length() - 1.0).abs() < 1e-6);
+                    for (got, c) in q.to_array().iter().zip([x, y, z, w]) {
+                        prop_assert!((f64::from(*got) - f64::from(c) / norm).abs() < 1e-6);
+                    }
+                }
+                None => prop_assert!(norm < 1e-6),
+            }
+        }
+    }
     use proptest::prelude::*;
 
     fn quat_strategy() -> impl Strategy<Value = Quat> {

@@ -13,17 +13,14 @@ fn invalid(message: impl Into<String>) -> ProtocolError {
     ProtocolError::new(ErrorCode::InvalidValue, message)
 }
 
-/// A finite, non-zero quaternion, normalised.
+/// A finite, non-zero quaternion, normalised (in f64, so huge finite components cannot
+/// overflow into a zero or NaN rotation that would then be acknowledged and stored).
 fn quat(q: [f32; 4]) -> Result<Quat, ProtocolError> {
-    let q = Quat::from_array(q);
-    let len = q.length();
-    if !q.is_finite() || len < 1e-6 {
-        return Err(invalid(format!(
-            "rotation {:?} is not a finite non-zero quaternion",
-            q.to_array()
-        )));
-    }
-    Ok(q / len)
+    posecast_proto::unit_quat(q).ok_or_else(|| {
+        invalid(format!(
+            "rotation {q:?} is not a finite non-zero quaternion"
+        ))
+    })
 }
 
 fn finite(name: &str, v: f32) -> Result<f32, ProtocolError> {
@@ -69,42 +66,9 @@ fn with_joint_rotation(
     let q = quat(rotation)?;
     with_avatar(state, avatar, |a| {
         let j = joint_index(a, joint)?;
-        Ok(json!({ "rotation": f(a, j, q)?.to_array() }))
+        let set = f(a, j, q)?;
+        Ok(json!({ "rotation": set.to_array() }))
     })
-}
-
-/// The clip `clip` of rig `source`, retargeted onto `target` (matching H-Anim joints in world
-/// space relative to both rigs' neutral pose, baked at 30 Hz).
-fn retarget(
-    source: &crate::library::Rig,
-    target: &crate::library::Rig,
-    clip: &str,
-) -> Result<std::sync::Arc<crate::clip::Clip>, ProtocolError> {
-    let c = source.clip(clip).ok_or_else(|| {
-        ProtocolError::new(
-            ErrorCode::UnknownClip,
-            format!("rig {} has no clip {clip}", source.name),
-        )
-    })?;
-    let s = crate::rig::RigView {
-        asset: &source.asset,
-        hanim: &source.hanim,
-    };
-    let t = crate::rig::RigView {
-        asset: &target.asset,
-        hanim: &target.hanim,
-    };
-    let mut out = crate::rig::retarget(s, c, t).map_err(|e| {
-        ProtocolError::new(
-            ErrorCode::InvalidValue,
-            format!(
-                "cannot retarget {clip} from {} onto {}: {e}",
-                source.name, target.name
-            ),
-        )
-    })?;
-    out.set_name(format!("{}:{clip}", source.name));
-    Ok(std::sync::Arc::new(out))
 }
 
 /// `get_joint`'s answer: the joint's DOFs hold the current local rotation, mapped back to the
@@ -165,6 +129,10 @@ pub fn execute(state: &AppState, command: &Command) -> Result<Value, ProtocolErr
 /// As [`execute`]; or [`ErrorCode::Internal`] when storing failed, in which case the change
 /// *is* in effect in memory but not on disk.
 pub async fn execute_durable(state: &AppState, command: &Command) -> Result<Value, ProtocolError> {
+    if let Err(e) = prepare(state, command).await {
+        state.metrics.command(false);
+        return Err(e);
+    }
     if command.is_read_only() || state.store.root().is_none() {
         return execute(state, command);
     }
@@ -181,6 +149,42 @@ pub async fn execute_durable(state: &AppState, command: &Command) -> Result<Valu
         state.store.persist_scene(state, &scene).await?;
     }
     Ok(result)
+}
+
+/// The slow part of a command, done before it takes any scene lock and off the async
+/// workers: `play … from_asset` bakes the retargeted clip ([`crate::bake`]), so applying the
+/// command is a cache lookup and no other scene's tick waits for the bake.
+async fn prepare(state: &AppState, command: &Command) -> Result<(), ProtocolError> {
+    let Command::Play {
+        avatar,
+        clip,
+        from_asset: Some(source),
+        ..
+    } = command
+    else {
+        return Ok(());
+    };
+    let source = state.library.get(source).ok_or_else(|| {
+        ProtocolError::new(
+            ErrorCode::UnknownAsset,
+            format!("no rig (asset) named {source}"),
+        )
+    })?;
+    let target = {
+        let scene = state.find_avatar(avatar)?;
+        let s = scene.lock();
+        s.avatars
+            .iter()
+            .find(|a| &a.id == avatar)
+            .map(|a| a.rig.clone())
+            .ok_or_else(|| {
+                ProtocolError::new(ErrorCode::UnknownAvatar, format!("no avatar {avatar}"))
+            })?
+    };
+    if source.name != target.name {
+        state.retargets.bake(source, clip, target).await?;
+    }
+    Ok(())
 }
 
 /// Executes without counting in the metrics (restoring stored state at start).
@@ -228,7 +232,7 @@ pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, Protoc
             if let Some(clip) = clip {
                 let rig = state.library.get(asset).ok_or_else(|| {
                     ProtocolError::new(
-                        ErrorCode::UnknownAvatar,
+                        ErrorCode::UnknownAsset,
                         format!("no rig (asset) named {asset}"),
                     )
                 })?;
@@ -270,7 +274,7 @@ pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, Protoc
             let source = match from_asset {
                 Some(name) => Some(state.library.get(name).ok_or_else(|| {
                     ProtocolError::new(
-                        ErrorCode::UnknownAvatar,
+                        ErrorCode::UnknownAsset,
                         format!("no rig (asset) named {name}"),
                     )
                 })?),
@@ -278,7 +282,11 @@ pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, Protoc
             };
             with_avatar(state, avatar, |a| {
                 let clip = match &source {
-                    Some(src) if src.name != a.rig.name => retarget(src, &a.rig, clip)?,
+                    // Normally baked already (execute_durable bakes off the lock first);
+                    // only start-up restore and in-memory callers bake here.
+                    Some(src) if src.name != a.rig.name => {
+                        state.retargets.bake_blocking(src, clip, &a.rig)?
+                    }
                     _ => a.rig.clip(clip).cloned().ok_or_else(|| {
                         ProtocolError::new(
                             ErrorCode::UnknownClip,
@@ -304,7 +312,7 @@ pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, Protoc
                     .player
                     .current_mut()
                     .ok_or_else(|| invalid("no clip is playing"))?;
-                layer.paused = paused;
+                layer.set_paused(paused);
                 Ok(Value::Null)
             })
         }
@@ -315,7 +323,7 @@ pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, Protoc
                     .player
                     .current_mut()
                     .ok_or_else(|| invalid("no clip is playing"))?;
-                layer.time = time;
+                layer.seek(time);
                 a.evaluate();
                 Ok(Value::Null)
             })
@@ -327,7 +335,7 @@ pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, Protoc
                     .player
                     .current_mut()
                     .ok_or_else(|| invalid("no clip is playing"))?;
-                layer.speed = speed;
+                layer.set_speed(speed);
                 Ok(Value::Null)
             })
         }
@@ -341,7 +349,7 @@ pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, Protoc
             joint,
             rotation,
         } => with_joint_rotation(state, avatar, joint, *rotation, |a, j, q| {
-            Ok(a.set_rotation(j, q))
+            a.set_rotation(j, q).map_err(|e| invalid(e.to_string()))
         }),
         Command::SetJointDofs {
             avatar,
@@ -364,7 +372,11 @@ pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, Protoc
                 dofs.set(i, finite("DOF value", v)?)
                     .map_err(|e| invalid(e.to_string()))?;
             }
-            let q = (limits.pre * dofs.rotation() * limits.post).normalize();
+            let q =
+                posecast_proto::unit_quat((limits.pre * dofs.rotation() * limits.post).to_array())
+                    .ok_or_else(|| {
+                        invalid(format!("joint {joint}: the DOF values give no rotation"))
+                    })?;
             a.overrides[j] = Some(q);
             a.evaluate();
             Ok(
@@ -376,7 +388,8 @@ pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, Protoc
             joint,
             rotation,
         } => with_joint_rotation(state, avatar, joint, *rotation, |a, j, q| {
-            Ok(a.rotate_local(j, q))
+            a.rotate_local(j, q)
+                .map_err(|e| invalid(format!("joint {joint}: {e}")))
         }),
         Command::RotateJointWorld {
             avatar,

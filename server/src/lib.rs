@@ -6,7 +6,8 @@
 //! - [`clip`]: the one in-memory clip representation and its samplers.
 //! - [`builtin`]: the generator of the built-in avatar shipped in `assets/`.
 //! - [`rig`]: rig normalisation (seed 000) and cross-rig retargeting.
-//! - [`library`]: the rigs the server can put in scenes.
+//! - [`library`]: the rigs the server can put in scenes; [`bake`]: retargeted clips, baked
+//!   off the tick and cached.
 //! - [`scene`]: scenes, avatars, playback and the tick task.
 //! - [`stream`]: per-connection outboxes (bounded fan-out).
 //! - [`control`]: control commands (shared by REST and websocket); [`auth`]: tokens.
@@ -17,6 +18,7 @@
 
 pub mod asset;
 pub mod auth;
+pub mod bake;
 pub mod builtin;
 pub mod clip;
 pub mod control;

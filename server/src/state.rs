@@ -1,6 +1,7 @@
 //! The server's shared state: configuration, loaded rigs, scenes, counters.
 
 use crate::auth::AccessConfig;
+use crate::bake::RetargetCache;
 use crate::library::Library;
 use crate::metrics::Metrics;
 use crate::scene::avatar::Avatar;
@@ -69,6 +70,8 @@ pub struct AppState {
     connections: Mutex<HashMap<u64, Weak<Outbox>>>,
     /// The data folder (or none) and the lock ordering writes to it.
     pub store: Store,
+    /// Baked retargeted clips (`play … from_asset`), see [`crate::bake`].
+    pub retargets: RetargetCache,
 }
 
 /// Longest scene or avatar id.
@@ -107,6 +110,7 @@ impl AppState {
             next_conn: AtomicU64::new(1),
             connections: Mutex::new(HashMap::new()),
             store: Store::new(config.data_dir.clone()),
+            retargets: RetargetCache::default(),
             config,
         })
     }
@@ -227,7 +231,7 @@ impl AppState {
         let scene = self.scene(scene)?;
         let rig = self.library.get(asset).ok_or_else(|| {
             ProtocolError::new(
-                ErrorCode::UnknownAvatar,
+                ErrorCode::UnknownAsset,
                 format!("no rig (asset) named {asset}"),
             )
         })?;

@@ -117,7 +117,7 @@ pub async fn upload(
     .await
     .map_err(|e| internal("import task failed", &e))?;
     let rigs = rigs?;
-    let _guard = state.store.lock().await;
+    let _guard = state.store.assets_lock().await;
     if taken(state, name) || rigs.iter().any(|r| state.library.get(&r.name).is_some()) {
         return Err(conflict(name));
     }
@@ -179,10 +179,10 @@ pub async fn add_clips(
             }
         }
     }
-    let _guard = state.store.lock().await;
+    let _guard = state.store.assets_lock().await;
     let rig = state.library.get(name).ok_or_else(|| {
         ProtocolError::new(
-            ErrorCode::UnknownAvatar,
+            ErrorCode::UnknownAsset,
             format!("no rig (asset) named {name}"),
         )
     })?;

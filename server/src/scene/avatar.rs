@@ -13,6 +13,22 @@ use posecast_proto::msg::{AvatarId, SceneId};
 use posecast_proto::{DecomposeError, Transform};
 use std::sync::Arc;
 
+/// A value that is not a rotation (non-finite, zero, or overflowing when normalised).
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+#[error("rotation {0:?} is not a finite non-zero quaternion")]
+pub struct InvalidRotation(pub [f32; 4]);
+
+/// Why a world-space increment could not be applied.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RotateError {
+    /// The increment (or its result) is not a rotation.
+    #[error(transparent)]
+    Invalid(#[from] InvalidRotation),
+    /// The joint's new local transform is not a rotation (a sheared or mirrored rig).
+    #[error(transparent)]
+    Decompose(#[from] DecomposeError),
+}
+
 /// An avatar.
 #[derive(Debug)]
 pub struct Avatar {
@@ -75,19 +91,27 @@ impl Avatar {
         self.description.num
     }
 
-    /// Advances playback by `dt` seconds and evaluates the pose: clip (or rest), then overrides.
-    pub fn tick(&mut self, dt: f32) {
-        self.player.advance(dt);
+    /// Moves playback to scene clock `clock` (seconds) and evaluates the pose: clip (or rest),
+    /// then overrides, then DOF limits.
+    pub fn tick(&mut self, clock: f64) {
+        self.player.set_clock(clock);
         self.evaluate();
     }
 
-    /// Re-evaluates the pose at the current clock (after a command), without advancing.
+    /// Re-evaluates the pose at the current clock (after a command), without advancing: the
+    /// clip (or rest), the overrides on top, then every joint with DOF limits clamped to them
+    /// (seed 002: every value set on a DOF, by a clip or a command, is clamped).
     pub fn evaluate(&mut self) {
         self.player
             .sample(self.rig.skeleton().rest(), &mut self.locals);
         for (local, o) in self.locals.iter_mut().zip(&self.overrides) {
             if let Some(q) = o {
                 local.rotation = *q;
+            }
+        }
+        for (local, limits) in self.locals.iter_mut().zip(&self.rig.limits) {
+            if let Some(limits) = limits {
+                local.rotation = limits.clamp(local.rotation);
             }
         }
         let d = &self.description;
@@ -121,24 +145,36 @@ impl Avatar {
         self.evaluate();
     }
 
-    /// The joint's rotation clamped to its DOF limits (if the rig has any).
-    fn limited(&self, joint: usize, q: Quat) -> Quat {
-        match self.rig.limits.get(joint) {
+    /// The joint's rotation normalised and clamped to its DOF limits (if the rig has any), or
+    /// `None` when that is not a finite unit quaternion.
+    fn limited(&self, joint: usize, q: Quat) -> Option<Quat> {
+        let q = posecast_proto::unit_quat(q.to_array())?;
+        let q = match self.rig.limits.get(joint) {
             Some(Some(limits)) => limits.clamp(q),
-            _ => q.normalize(),
-        }
+            _ => q,
+        };
+        posecast_proto::unit_quat(q.to_array())
     }
 
     /// Overrides a joint's local rotation (clamped to its limits). Returns what was set.
-    pub fn set_rotation(&mut self, joint: usize, q: Quat) -> Quat {
-        let q = self.limited(joint, q);
+    ///
+    /// # Errors
+    /// [`InvalidRotation`] (nothing changed) when `q` is not a rotation: a non-finite
+    /// component, a zero quaternion, or one whose normalisation overflows.
+    pub fn set_rotation(&mut self, joint: usize, q: Quat) -> Result<Quat, InvalidRotation> {
+        let q = self
+            .limited(joint, q)
+            .ok_or(InvalidRotation(q.to_array()))?;
         self.overrides[joint] = Some(q);
         self.evaluate();
-        q
+        Ok(q)
     }
 
     /// Local increment `Ul' = incr · Ul` on the joint's current rotation.
-    pub fn rotate_local(&mut self, joint: usize, incr: Quat) -> Quat {
+    ///
+    /// # Errors
+    /// As [`Avatar::set_rotation`].
+    pub fn rotate_local(&mut self, joint: usize, incr: Quat) -> Result<Quat, InvalidRotation> {
         let current = self.locals[joint].rotation;
         self.set_rotation(joint, incr * current)
     }
@@ -149,16 +185,17 @@ impl Avatar {
     /// one because the pivot is the joint's origin).
     ///
     /// # Errors
-    /// When `D'` is not a rotation (a sheared or mirrored rig).
-    pub fn rotate_world(&mut self, joint: usize, u: Quat) -> Result<Quat, DecomposeError> {
+    /// When `D'` is not a rotation (a sheared or mirrored rig), or `u` is not one.
+    pub fn rotate_world(&mut self, joint: usize, u: Quat) -> Result<Quat, RotateError> {
         let skeleton = self.rig.skeleton();
         forward_kinematics(skeleton, &self.locals, &mut self.world);
         let w = self.world[joint];
         let parent = skeleton.parents()[joint].map_or(Mat4::IDENTITY, |p| self.world[p]);
         let pivot = w.w_axis.truncate();
-        let d = world_increment_local(parent, rotation_about(pivot, u.normalize()), w);
+        let u = posecast_proto::unit_quat(u.to_array()).ok_or(InvalidRotation(u.to_array()))?;
+        let d = world_increment_local(parent, rotation_about(pivot, u), w);
         let t = Transform::try_from_mat4(&d)?;
-        Ok(self.set_rotation(joint, t.rotation))
+        Ok(self.set_rotation(joint, t.rotation)?)
     }
 
     /// Releases one joint's override, or all.
@@ -188,9 +225,9 @@ impl Avatar {
             clip: layer.map(|l| l.clip.name().to_string()),
             clip_asset: layer.and_then(|l| l.source_asset.clone()),
             time: layer.map_or(0.0, Layer::clip_time),
-            speed: layer.map_or(1.0, |l| l.speed),
+            speed: layer.map_or(1.0, Layer::speed),
             looping: layer.is_none_or(|l| l.looping),
-            paused: layer.is_some_and(|l| l.paused),
+            paused: layer.is_some_and(Layer::paused),
             overrides: self
                 .overrides
                 .iter()

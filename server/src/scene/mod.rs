@@ -109,6 +109,8 @@ pub struct SceneState {
     pub avatars: Vec<Avatar>,
     subscribers: Vec<Subscriber>,
     seq: u64,
+    /// The scene clock (seconds) at the last tick; avatars added later start on it.
+    clock: f64,
     last_key_seq: Option<u64>,
     force_key: bool,
     last_key: Option<Published>,
@@ -146,6 +148,7 @@ impl Scene {
                 avatars: Vec::new(),
                 subscribers: Vec::new(),
                 seq: 0,
+                clock: 0.0,
                 last_key_seq: None,
                 force_key: true,
                 last_key: None,
@@ -189,8 +192,9 @@ impl Scene {
     ///
     /// # Errors
     /// [`ErrorCode::Conflict`] when the scene already has an avatar with that id.
-    pub fn add_avatar(&self, avatar: Avatar) -> Result<(), ProtocolError> {
+    pub fn add_avatar(&self, mut avatar: Avatar) -> Result<(), ProtocolError> {
         let mut s = self.lock();
+        avatar.player.set_clock(s.clock);
         if s.avatars.iter().any(|a| a.id == avatar.id) {
             return Err(ProtocolError::new(
                 ErrorCode::Conflict,
@@ -305,13 +309,15 @@ impl Scene {
         }
     }
 
-    /// One tick: advance every avatar by `dt` seconds, encode the frame for tick `seq` once per
-    /// encoding, and offer it to every subscriber. A keyframe when forced (new avatar, new
-    /// subscriber state) or when `key_interval` ticks have passed since the last one.
-    pub fn tick(&self, seq: u64, dt: f32, server_time_us: u64, key_interval: u64) {
+    /// One tick: move every avatar to scene clock `clock` (seconds, derived from `seq` by the
+    /// ticker, never accumulated), encode the frame for tick `seq` once per encoding, and offer
+    /// it to every subscriber. A keyframe when forced (new avatar, new subscriber state) or
+    /// when `key_interval` ticks have passed since the last one.
+    pub fn tick(&self, seq: u64, clock: f64, server_time_us: u64, key_interval: u64) {
         let mut guard = self.lock();
         let s = &mut *guard;
         s.seq = seq;
+        s.clock = clock;
         let key = s.force_key
             || s.last_key_seq
                 .is_none_or(|k| seq.saturating_sub(k) >= key_interval)
@@ -336,7 +342,7 @@ impl Scene {
         };
         let mut pieces = Vec::with_capacity(s.avatars.len());
         for a in &mut s.avatars {
-            a.tick(dt);
+            a.tick(clock);
             let mut chunk = Vec::with_capacity(32 + 6 * a.pose().rotations.len());
             a.encoder.encode(&a.pose, kind, &mut chunk);
             let json = serde_json::to_string(&AvatarPoseJson {

@@ -47,9 +47,10 @@ pub async fn run(scene: Arc<Scene>, rate: f32, metrics: Arc<Metrics>) {
         }
         last = Some(seq);
         let began = std::time::Instant::now();
+        // The scene clock comes from the tick number, so playback never accumulates rounding.
         scene.tick(
             seq,
-            elapsed_ticks as f32 / rate,
+            seq as f64 / f64::from(rate),
             unix_micros(),
             key_interval,
         );

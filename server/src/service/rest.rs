@@ -38,7 +38,8 @@ impl IntoResponse for AppError {
             ErrorCode::UnknownScene
             | ErrorCode::UnknownAvatar
             | ErrorCode::UnknownClip
-            | ErrorCode::UnknownJoint => StatusCode::NOT_FOUND,
+            | ErrorCode::UnknownJoint
+            | ErrorCode::UnknownAsset => StatusCode::NOT_FOUND,
             ErrorCode::Unauthorized => StatusCode::UNAUTHORIZED,
             ErrorCode::Forbidden => StatusCode::FORBIDDEN,
             ErrorCode::Conflict => StatusCode::CONFLICT,
@@ -130,7 +131,7 @@ pub async fn mesh(
     state.config.access.authorize_read(&caller)?;
     let rig = state.library.get(&name).ok_or_else(|| {
         ProtocolError::new(
-            ErrorCode::UnknownAvatar,
+            ErrorCode::UnknownAsset,
             format!("no rig (asset) named {name}"),
         )
     })?;

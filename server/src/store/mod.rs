@@ -63,6 +63,7 @@ pub(crate) const UPLOAD_TMP_PREFIX: &str = ".upload-";
 pub struct Store {
     root: Option<PathBuf>,
     lock: tokio::sync::Mutex<()>,
+    assets_lock: tokio::sync::Mutex<()>,
     /// The original files of every uploaded asset, by asset name (kept to add clips later).
     uploads: std::sync::Mutex<BTreeMap<String, FileSet>>,
 }
@@ -81,6 +82,7 @@ impl Store {
         Self {
             root,
             lock: tokio::sync::Mutex::new(()),
+            assets_lock: tokio::sync::Mutex::new(()),
             uploads: std::sync::Mutex::new(BTreeMap::new()),
         }
     }
@@ -103,9 +105,16 @@ impl Store {
         self.root.as_ref().map(|r| r.join("assets"))
     }
 
-    /// Serialises writes to the data folder (and upload name checks).
+    /// Serialises writes of scene files: every durable ack waits here, so nothing slow may
+    /// hold it (uploads use [`Store::assets_lock`]).
     pub async fn lock(&self) -> tokio::sync::MutexGuard<'_, ()> {
         self.lock.lock().await
+    }
+
+    /// Serialises changes to uploaded assets (name checks, re-imports, their files). Separate
+    /// from [`Store::lock`] so a CPU-heavy re-import never delays a durable ack.
+    pub async fn assets_lock(&self) -> tokio::sync::MutexGuard<'_, ()> {
+        self.assets_lock.lock().await
     }
 
     pub(crate) fn uploads(&self) -> std::sync::MutexGuard<'_, BTreeMap<String, FileSet>> {
@@ -250,10 +259,13 @@ fn read_scene_file(path: &Path) -> Result<snapshot::SceneFile, String> {
             snapshot::SCENE_FORMAT
         ));
     }
-    let file: snapshot::SceneFile = serde_json::from_value(value).map_err(|e| e.to_string())?;
+    let (file, dropped) = snapshot::parse_lenient(&value)?;
     let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("");
     if file.scene.0 != stem {
         return Err(format!("holds scene {:?}, not {stem:?}", file.scene.0));
+    }
+    for what in dropped {
+        warn!(file = %path.display(), scene = %file.scene, "not restored: {what}");
     }
     Ok(file)
 }
@@ -277,6 +289,82 @@ mod tests {
     use crate::startup::builtin_rig;
     use crate::state::Config;
     use posecast_proto::command::Command;
+
+    /// One bad value (the `null` quaternion an older server stored) costs that value alone,
+    /// never the scene: the file stays in place and everything valid in it is restored.
+    #[tokio::test]
+    async fn restore_keeps_a_scene_with_bad_values() {
+        let dir = tempfile::tempdir().unwrap();
+        let state = AppState::new(Config {
+            data_dir: Some(dir.path().to_owned()),
+            ..Config::default()
+        });
+        state.store.open().unwrap();
+        state.library.insert(builtin_rig().unwrap());
+        let file = serde_json::json!({
+            "format": 1, "scene": "s", "saved_us": 0,
+            "avatars": [
+                {"id": "a", "asset": "avatar",
+                 "playback": {"clip": "idle", "from_asset": null, "time": null, "speed": 1.0, "looping": true, "paused": false},
+                 "overrides": {"l_knee": [null, null, null, null], "r_knee": [0.0, 0.0, 0.0, 1.0],
+                               "l_elbow": [0.0, 0.0, 0.0, 0.0]}},
+                {"asset": "avatar"},
+                {"id": "b", "asset": "avatar", "playback": null, "overrides": {}}
+            ]
+        });
+        let path = dir.path().join("scenes/s.json");
+        std::fs::write(&path, serde_json::to_vec(&file).unwrap()).unwrap();
+        let (_, dropped) = snapshot::parse_lenient(&file).unwrap();
+        assert_eq!(dropped.len(), 4, "{dropped:?}");
+        for name in [
+            "joint l_knee",
+            "joint l_elbow",
+            "avatar a: playback",
+            "avatar #1",
+        ] {
+            assert!(
+                dropped.iter().any(|d| d.contains(name)),
+                "{name}: {dropped:?}"
+            );
+        }
+        state.store.restore_scenes(&state);
+        assert!(path.is_file(), "the scene file was set aside");
+        let info = state.scene(&SceneId("s".into())).unwrap().info();
+        let ids: Vec<&str> = info.avatars.iter().map(|a| a.avatar.0.as_str()).collect();
+        assert_eq!(ids, ["a", "b"]);
+        assert_eq!(info.avatars[0].overrides, vec!["r_knee".to_string()]);
+        assert_eq!(info.avatars[0].clip, None);
+    }
+
+    /// A long asset change (an upload's re-import holds the assets lock) never delays a
+    /// durable ack: scene writes take another lock.
+    #[tokio::test]
+    async fn acks_do_not_wait_for_asset_changes() {
+        let dir = tempfile::tempdir().unwrap();
+        let state = AppState::new(Config {
+            data_dir: Some(dir.path().to_owned()),
+            ..Config::default()
+        });
+        state.store.open().unwrap();
+        state.library.insert(builtin_rig().unwrap());
+        let run = |json: &str| {
+            let c: Command = serde_json::from_str(json).unwrap();
+            let state = state.clone();
+            async move { execute_durable(&state, &c).await }
+        };
+        run(r#"{"op":"create_scene","scene":"s"}"#).await.unwrap();
+        let _upload_in_progress = state.store.assets_lock().await;
+        let ack = tokio::time::timeout(
+            std::time::Duration::from_secs(5),
+            run(r#"{"op":"add_avatar","scene":"s","asset":"avatar","avatar":"a"}"#),
+        )
+        .await;
+        assert!(
+            matches!(ack, Ok(Ok(_))),
+            "the ack waited for the asset lock"
+        );
+        assert!(dir.path().join("scenes/s.json").is_file());
+    }
 
     /// Many connections changing one scene at once: after every ack, the stored file holds
     /// every acknowledged change (no write overtaken by an older snapshot).

@@ -53,7 +53,7 @@ pub struct PlaybackRecord {
     pub clip: String,
     /// The rig the clip was retargeted from (`play`'s `from_asset`), if not the avatar's own.
     pub from_asset: Option<String>,
-    /// Clip time in seconds from the clip's start, at `saved_us` (not wrapped).
+    /// Clip time in seconds from the clip's start, at `saved_us` (wrapped into the clip).
     pub time: f32,
     /// Playback speed.
     pub speed: f32,
@@ -88,10 +88,10 @@ fn record(a: &Avatar) -> AvatarRecord {
         PlaybackRecord {
             clip,
             from_asset: l.source_asset.clone(),
-            time: l.time,
-            speed: l.speed,
+            time: l.clip_time(),
+            speed: l.speed(),
             looping: l.looping,
-            paused: l.paused,
+            paused: l.paused(),
         }
     });
     let names = a.rig.skeleton().names();
@@ -106,6 +106,99 @@ fn record(a: &Avatar) -> AvatarRecord {
             .filter_map(|(o, n)| o.map(|q| (n.clone(), q.to_array())))
             .collect(),
     }
+}
+
+/// Reads a scene file's JSON leniently: one bad value never costs the whole scene. The
+/// scene's own fields (format, id, time) must be right; an avatar record without a usable id
+/// or asset is dropped alone, a playback record that does not parse (or holds a non-finite
+/// time or speed) is dropped from its avatar, and an override that is not a rotation (e.g.
+/// `null` components written by an older server) is dropped from its joint. Returns the file
+/// and what was dropped, each naming the avatar and joint.
+///
+/// # Errors
+/// The scene's own fields are missing or wrong.
+pub fn parse_lenient(value: &serde_json::Value) -> Result<(SceneFile, Vec<String>), String> {
+    use serde_json::Value;
+    let field = |name: &str| value.get(name).cloned().unwrap_or(Value::Null);
+    let format: u32 =
+        serde_json::from_value(field("format")).map_err(|e| format!("format: {e}"))?;
+    let scene: SceneId =
+        serde_json::from_value(field("scene")).map_err(|e| format!("scene: {e}"))?;
+    let saved_us: u64 =
+        serde_json::from_value(field("saved_us")).map_err(|e| format!("saved_us: {e}"))?;
+    let records = match field("avatars") {
+        Value::Array(a) => a,
+        other => return Err(format!("avatars is not a list: {other}")),
+    };
+    let mut dropped = Vec::new();
+    let mut avatars = Vec::with_capacity(records.len());
+    for (i, rec) in records.iter().enumerate() {
+        let get = |name: &str| rec.get(name).cloned().unwrap_or(Value::Null);
+        let (id, asset) = match (
+            serde_json::from_value::<AvatarId>(get("id")),
+            serde_json::from_value::<String>(get("asset")),
+        ) {
+            (Ok(id), Ok(asset)) => (id, asset),
+            (id, asset) => {
+                let name = id.map_or_else(|_| format!("#{i}"), |id| id.0);
+                dropped.push(format!(
+                    "avatar {name}: no usable id or asset ({})",
+                    asset
+                        .err()
+                        .map_or_else(|| "bad id".into(), |e| e.to_string())
+                ));
+                continue;
+            }
+        };
+        let playback = match get("playback") {
+            Value::Null => None,
+            p => match serde_json::from_value::<PlaybackRecord>(p) {
+                Ok(p) if p.time.is_finite() && p.speed.is_finite() => Some(p),
+                Ok(p) => {
+                    dropped.push(format!(
+                        "avatar {id}: playback of {} (time {}, speed {} not finite)",
+                        p.clip, p.time, p.speed
+                    ));
+                    None
+                }
+                Err(e) => {
+                    dropped.push(format!("avatar {id}: playback ({e})"));
+                    None
+                }
+            },
+        };
+        let mut overrides = BTreeMap::new();
+        if let Value::Object(map) = get("overrides") {
+            for (joint, q) in map {
+                match serde_json::from_value::<[f32; 4]>(q.clone())
+                    .ok()
+                    .filter(|q| posecast_proto::unit_quat(*q).is_some())
+                {
+                    Some(q) => {
+                        overrides.insert(joint, q);
+                    }
+                    None => dropped.push(format!(
+                        "avatar {id}: override of joint {joint} ({q} is not a rotation)"
+                    )),
+                }
+            }
+        }
+        avatars.push(AvatarRecord {
+            id,
+            asset,
+            playback,
+            overrides,
+        });
+    }
+    Ok((
+        SceneFile {
+            format,
+            scene,
+            saved_us,
+            avatars,
+        },
+        dropped,
+    ))
 }
 
 /// The clip time a clock shows `elapsed_s` seconds after it showed `p.time`: paused clocks

@@ -1,0 +1,247 @@
+//! Retargeted clips, baked away from the tick: off every scene lock and off the async
+//! workers (on tokio's blocking pool, one bake at a time), and cached per (source rig, clip,
+//! target rig) under a memory bound.
+//!
+//! `play … from_asset` on a long clip used to bake inside the scene lock on a runtime worker:
+//! a 27,510 s clip stalled every scene's stream for up to a second per command. Now
+//! [`crate::control::execute_durable`] bakes first ([`RetargetCache::bake`]) and the command
+//! only looks the result up. Rigs are keyed by identity (`Arc` pointer, checked through a
+//! `Weak`), so a rig replaced by an upload never serves a stale bake.
+
+use crate::clip::Clip;
+use crate::library::Rig;
+use posecast_proto::msg::{ErrorCode, ProtocolError};
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, Weak};
+use tokio::sync::Semaphore;
+
+/// Default bound on the bytes of cached baked clips: 256 MiB.
+pub const DEFAULT_CACHE_BYTES: usize = 256 << 20;
+
+/// The clip `clip` of rig `source`, retargeted onto `target` (matching H-Anim joints in world
+/// space relative to both rigs' neutral pose, baked at 30 Hz; see [`crate::rig::retarget`]).
+/// CPU-heavy for long clips: call it from the blocking pool, never under a scene lock.
+///
+/// # Errors
+/// [`ErrorCode::UnknownClip`] when `source` has no such clip; [`ErrorCode::InvalidValue`]
+/// when the rigs cannot be matched (e.g. one is not humanoid).
+pub fn retarget(source: &Rig, target: &Rig, clip: &str) -> Result<Clip, ProtocolError> {
+    let c = source.clip(clip).ok_or_else(|| {
+        ProtocolError::new(
+            ErrorCode::UnknownClip,
+            format!("rig {} has no clip {clip}", source.name),
+        )
+    })?;
+    let s = crate::rig::RigView {
+        asset: &source.asset,
+        hanim: &source.hanim,
+    };
+    let t = crate::rig::RigView {
+        asset: &target.asset,
+        hanim: &target.hanim,
+    };
+    let mut out = crate::rig::retarget(s, c, t).map_err(|e| {
+        ProtocolError::new(
+            ErrorCode::InvalidValue,
+            format!(
+                "cannot retarget {clip} from {} onto {}: {e}",
+                source.name, target.name
+            ),
+        )
+    })?;
+    out.set_name(format!("{}:{clip}", source.name));
+    Ok(out)
+}
+
+/// Approximate heap bytes of a baked clip: a quaternion and a time per key per joint (baked
+/// clips are linear quaternion tracks at a fixed rate, plus one root translation track).
+#[must_use]
+pub fn baked_bytes(clip: &Clip) -> usize {
+    let keys =
+        (f64::from(clip.duration()) * f64::from(crate::rig::retarget::DEFAULT_RATE_HZ)).ceil();
+    let keys = (keys as usize).clamp(1, crate::rig::retarget::MAX_KEYS) + 1;
+    keys * (clip.joint_count() + 1) * (16 + 4)
+}
+
+type Key = (usize, String, usize);
+
+#[derive(Debug)]
+struct Entry {
+    source: Weak<Rig>,
+    target: Weak<Rig>,
+    clip: Arc<Clip>,
+    bytes: usize,
+    last_used: u64,
+}
+
+#[derive(Debug, Default)]
+struct Inner {
+    entries: HashMap<Key, Entry>,
+    bytes: usize,
+    uses: u64,
+}
+
+/// Baked retargeted clips, least recently used evicted past the byte bound.
+#[derive(Debug)]
+pub struct RetargetCache {
+    inner: Mutex<Inner>,
+    limit: usize,
+    /// One bake at a time: a flood of `play … from_asset` uses one core, not all of them.
+    baking: Semaphore,
+}
+
+impl Default for RetargetCache {
+    fn default() -> Self {
+        Self::new(DEFAULT_CACHE_BYTES)
+    }
+}
+
+fn key(source: &Arc<Rig>, clip: &str, target: &Arc<Rig>) -> Key {
+    (
+        Arc::as_ptr(source) as usize,
+        clip.to_owned(),
+        Arc::as_ptr(target) as usize,
+    )
+}
+
+impl RetargetCache {
+    /// An empty cache holding at most `limit` bytes of baked clips (a single larger clip is
+    /// still served, just not kept).
+    #[must_use]
+    pub fn new(limit: usize) -> Self {
+        Self {
+            inner: Mutex::new(Inner::default()),
+            limit,
+            baking: Semaphore::new(1),
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
+        // Every update below is a whole insert or remove: a poisoned lock is still consistent.
+        self.inner
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// The cached bake of `clip` from `source` onto `target`, if any. Cheap: safe under a
+    /// scene lock.
+    #[must_use]
+    pub fn get(&self, source: &Arc<Rig>, clip: &str, target: &Arc<Rig>) -> Option<Arc<Clip>> {
+        let mut inner = self.lock();
+        inner.uses += 1;
+        let uses = inner.uses;
+        let entry = inner.entries.get_mut(&key(source, clip, target))?;
+        // The pointers match; the rigs must also still be the same allocations.
+        let alive = entry
+            .source
+            .upgrade()
+            .is_some_and(|s| Arc::ptr_eq(&s, source))
+            && entry
+                .target
+                .upgrade()
+                .is_some_and(|t| Arc::ptr_eq(&t, target));
+        if !alive {
+            return None;
+        }
+        entry.last_used = uses;
+        Some(entry.clip.clone())
+    }
+
+    fn insert(&self, source: &Arc<Rig>, target: &Arc<Rig>, name: &str, clip: Arc<Clip>) {
+        let bytes = baked_bytes(&clip);
+        if bytes > self.limit {
+            return;
+        }
+        let mut inner = self.lock();
+        inner.uses += 1;
+        let last_used = inner.uses;
+        // Entries whose rigs are gone can never be hit again.
+        inner
+            .entries
+            .retain(|_, e| e.source.strong_count() > 0 && e.target.strong_count() > 0);
+        if let Some(old) = inner.entries.insert(
+            key(source, name, target),
+            Entry {
+                source: Arc::downgrade(source),
+                target: Arc::downgrade(target),
+                clip,
+                bytes,
+                last_used,
+            },
+        ) {
+            inner.bytes -= old.bytes;
+        }
+        inner.bytes = inner.entries.values().map(|e| e.bytes).sum::<usize>();
+        while inner.bytes > self.limit {
+            let Some(oldest) = inner
+                .entries
+                .iter()
+                .min_by_key(|(_, e)| e.last_used)
+                .map(|(k, _)| k.clone())
+            else {
+                break;
+            };
+            if let Some(e) = inner.entries.remove(&oldest) {
+                inner.bytes -= e.bytes;
+            }
+        }
+    }
+
+    /// Bytes and entries held.
+    #[must_use]
+    pub fn usage(&self) -> (usize, usize) {
+        let inner = self.lock();
+        (inner.bytes, inner.entries.len())
+    }
+
+    /// Gets or bakes on the calling thread (start-up restore and in-memory callers that are
+    /// not on an async worker).
+    ///
+    /// # Errors
+    /// As [`retarget`].
+    pub fn bake_blocking(
+        &self,
+        source: &Arc<Rig>,
+        clip: &str,
+        target: &Arc<Rig>,
+    ) -> Result<Arc<Clip>, ProtocolError> {
+        if let Some(c) = self.get(source, clip, target) {
+            return Ok(c);
+        }
+        let baked = Arc::new(retarget(source, target, clip)?);
+        self.insert(source, target, clip, baked.clone());
+        Ok(baked)
+    }
+
+    /// Gets or bakes on tokio's blocking pool, one bake at a time; concurrent requests for
+    /// the same clip wait for the first and share its result.
+    ///
+    /// # Errors
+    /// As [`retarget`]; [`ErrorCode::Internal`] if the bake task panicked.
+    pub async fn bake(
+        &self,
+        source: Arc<Rig>,
+        clip: &str,
+        target: Arc<Rig>,
+    ) -> Result<Arc<Clip>, ProtocolError> {
+        if let Some(c) = self.get(&source, clip, &target) {
+            return Ok(c);
+        }
+        let _permit = self.baking.acquire().await.map_err(|_| {
+            ProtocolError::new(ErrorCode::Internal, "the retargeting pool is closed")
+        })?;
+        // Someone may have baked it while this waited.
+        if let Some(c) = self.get(&source, clip, &target) {
+            return Ok(c);
+        }
+        let (s, t, name) = (source.clone(), target.clone(), clip.to_owned());
+        let baked = tokio::task::spawn_blocking(move || retarget(&s, &t, &name))
+            .await
+            .map_err(|e| {
+                ProtocolError::new(ErrorCode::Internal, format!("retargeting failed: {e}"))
+            })??;
+        let baked = Arc::new(baked);
+        self.insert(&source, &target, clip, baked.clone());
+        Ok(baked)
+    }
+}
