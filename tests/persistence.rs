@@ -1,6 +1,10 @@
 //! Persistence end to end with the real binary: acknowledged changes survive `SIGKILL` right
 //! after the last acknowledgement, and unreadable stored files are reported, set aside and
 //! skipped while everything else restores.
+//!
+//! What SIGKILL proves is *write before ack* against a process crash: the kernel's page cache
+//! outlives the process, so these tests cannot tell whether `sync_all` ran (a power loss
+//! could); the fsync calls are covered by `store::atomic`'s tests of the write path.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 

@@ -374,6 +374,68 @@ mod tests {
         }
     }
 
+    /// World matrix of `joint` by walking up its parent chain in f64 — recursion instead of
+    /// the forward loop in `fk`, so it shares no code with the path under test.
+    fn world_f64(s: &crate::Skeleton, pose: &[crate::Transform], joint: usize) -> glam::DMat4 {
+        let t = &pose[joint];
+        let local = glam::DMat4::from_scale_rotation_translation(
+            t.scale.as_dvec3(),
+            t.rotation.as_dquat(),
+            t.translation.as_dvec3(),
+        );
+        match s.parents()[joint] {
+            Some(p) => world_f64(s, pose, p) * local,
+            None => local,
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(48))]
+        /// Four influences, away from the bind pose: each vertex is the weighted sum of its
+        /// positions under each influence, `Σ_k w_k (W_k B_k⁻¹ v)`, computed per influence in
+        /// f64 — not through a blended matrix; the normal is perpendicular to every tangent
+        /// mapped by the blended linear part (the inverse-transpose property).
+        #[test]
+        fn several_influences_match_the_per_influence_sum(
+            (s, pose) in arb_skeleton(2..30).prop_flat_map(|s| { let n = s.len(); (Just(s), arb_transforms(n)) }),
+            seeds in prop::collection::vec((f32s(-1.0..1.0), f32s(-1.0..1.0), f32s(-1.0..1.0), 0u16..500, 0u16..500, f32s(0.05..0.95)), 1..40),
+        ) {
+            let mesh = random_mesh(s.len(), &seeds);
+            let mut b = PoseBuffers::new(&s);
+            b.update(&s, &pose);
+            let n = mesh.vertex_count();
+            let (mut out_p, mut out_n) = (vec![Vec3::ZERO; n], vec![Vec3::ZERO; n]);
+            skin_cpu(&mesh, &b.skinning, &mut out_p, &mut out_n);
+            let k = mesh.influences();
+            for v in 0..n {
+                let p = mesh.positions()[v].as_dvec3();
+                let mut expected = glam::DVec3::ZERO;
+                let mut linear = glam::DMat3::ZERO;
+                let mut distinct = std::collections::BTreeSet::new();
+                for i in v * k..(v + 1) * k {
+                    let (j, w) = (usize::from(mesh.joints()[i]), f64::from(mesh.weights()[i]));
+                    if w == 0.0 { continue; }
+                    distinct.insert(j);
+                    let m = world_f64(&s, &pose, j) * s.inverse_bind()[j].as_dmat4();
+                    expected += w * m.transform_point3(p);
+                    linear += glam::DMat3::from_mat4(m) * w;
+                }
+                let got = out_p[v].as_dvec3();
+                prop_assert!((got - expected).length() <= 1e-3 * (1.0 + expected.length()),
+                    "vertex {v} ({} influences): {got} vs {expected}", distinct.len());
+                if linear.determinant().abs() > 1e-3 {
+                    let normal = mesh.normals()[v].as_dvec3();
+                    let t1 = normal.any_orthonormal_vector();
+                    let t2 = normal.cross(t1);
+                    for t in [t1, t2] {
+                        let mapped = (linear * t).normalize();
+                        prop_assert!(out_n[v].as_dvec3().dot(mapped).abs() < 2e-3, "vertex {v} normal");
+                    }
+                }
+            }
+        }
+    }
+
     #[test]
     fn rejects_bad_meshes() {
         let p = vec![Vec3::ZERO; 3];

@@ -1,6 +1,7 @@
 //! Retargeting CMU 01_01 (BVH) onto CesiumMan, RiggedFigure and the built-in avatar (glTF),
 //! and the wasp's walk onto another CSE169 skeleton: finite poses, feet near the ground, arm
-//! directions within 15° of the source's, frame by frame.
+//! directions within 0.05° of the source's (arms and legs), frame by frame: the figure the
+//! README advertises (0.04°, the resolution of an f32 `acos` near 1).
 //!
 //! `cargo test -p posecast-server --test rig_retarget -- --nocapture` prints the figures.
 
@@ -53,6 +54,9 @@ struct Figures {
     lowest_foot: f32,
     highest_low_foot: f32,
 }
+
+/// The largest segment-direction error allowed, degrees (measured: 0.040).
+const MAX_DEGREES: f32 = 0.05;
 
 fn check(source: &Normalised, target: &Normalised) -> Figures {
     let clip = &source.asset.clips[0];
@@ -161,10 +165,11 @@ fn cmu_01_01_onto_gltf_avatars() {
             f.highest_low_foot
         );
         assert!(
-            f.worst_arm <= 15.0,
-            "{}: arms {}",
+            f.worst_arm <= MAX_DEGREES && f.worst_leg <= MAX_DEGREES,
+            "{}: arms {}°, legs {}°",
             target.asset.name,
-            f.worst_arm
+            f.worst_arm,
+            f.worst_leg
         );
         // Feet near the ground: at their lowest over the clip, the feet are within 3% of the
         // target's height of its floor (the lowest joint at neutral), never far below it.
@@ -213,7 +218,7 @@ fn cse169_wasp_walk_onto_another_cse169_skeleton() {
         }
     }
     println!("wasp_walk -> test.skel: mapped world rotations differ by at most {worst:.4} deg");
-    assert!(worst < 0.5, "{worst}");
+    assert!(worst < 0.08, "{worst}");
 }
 
 #[test]
@@ -226,5 +231,5 @@ fn cmu_onto_itself_reproduces_the_source() {
         "01_01 -> itself: arm max {:.4} deg, leg max {:.4} deg",
         f.worst_arm, f.worst_leg
     );
-    assert!(f.worst_arm < 0.5 && f.worst_leg < 0.5);
+    assert!(f.worst_arm < MAX_DEGREES && f.worst_leg < MAX_DEGREES);
 }
