@@ -23,6 +23,34 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
     sync_parent(path)
 }
 
+/// Applies several changes to files of one folder durably with a single folder fsync (group
+/// commit): every new content is written to `x.tmp` and `sync_all`ed, then renamed over `x`
+/// (`None` removes `x`), then the folder is fsynced once. Each file is still old-or-new after
+/// a crash; `Ok` means all of them are on disk.
+///
+/// # Errors
+/// Any I/O error (files renamed before it hold their new content, the rest their old).
+pub fn write_many_atomic(dir: &Path, files: &[(PathBuf, Option<Vec<u8>>)]) -> io::Result<()> {
+    for (path, bytes) in files {
+        if let Some(bytes) = bytes {
+            let mut f = File::create(tmp_path(path))?;
+            f.write_all(bytes)?;
+            f.sync_all()?;
+        }
+    }
+    for (path, bytes) in files {
+        match bytes {
+            Some(_) => fs::rename(tmp_path(path), path)?,
+            None => match fs::remove_file(path) {
+                Ok(()) => {}
+                Err(e) if e.kind() == io::ErrorKind::NotFound => {}
+                Err(e) => return Err(e),
+            },
+        }
+    }
+    sync_dir(dir)
+}
+
 /// Removes a file (if present) and fsyncs its folder.
 ///
 /// # Errors

@@ -46,7 +46,7 @@ use crate::import::files::FileSet;
 use crate::scene::ticker::unix_micros;
 use crate::state::AppState;
 use posecast_proto::msg::{ErrorCode, ProtocolError, SceneId};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::io;
 use std::path::{Path, PathBuf};
 use tracing::{info, warn};
@@ -64,8 +64,27 @@ pub struct Store {
     root: Option<PathBuf>,
     lock: tokio::sync::Mutex<()>,
     assets_lock: tokio::sync::Mutex<()>,
+    /// Scenes whose acks wait for the next write (group commit, see [`Store::persist_scene`]).
+    open_batch: std::sync::Mutex<Batch>,
+    batches_written: std::sync::atomic::AtomicU64,
     /// The original files of every uploaded asset, by asset name (kept to add clips later).
     uploads: std::sync::Mutex<BTreeMap<String, FileSet>>,
+}
+
+/// Acks waiting for one scene write: the scenes to write and where the result goes.
+#[derive(Debug)]
+struct Batch {
+    scenes: BTreeSet<SceneId>,
+    done: tokio::sync::watch::Sender<Option<Result<(), ProtocolError>>>,
+}
+
+impl Default for Batch {
+    fn default() -> Self {
+        Self {
+            scenes: BTreeSet::new(),
+            done: tokio::sync::watch::Sender::new(None),
+        }
+    }
 }
 
 fn internal(what: &str, e: &io::Error) -> ProtocolError {
@@ -83,6 +102,8 @@ impl Store {
             root,
             lock: tokio::sync::Mutex::new(()),
             assets_lock: tokio::sync::Mutex::new(()),
+            open_batch: std::sync::Mutex::new(Batch::default()),
+            batches_written: std::sync::atomic::AtomicU64::new(0),
             uploads: std::sync::Mutex::new(BTreeMap::new()),
         }
     }
@@ -196,19 +217,67 @@ impl Store {
     /// returns once that is on disk. The snapshot is taken under the store lock, after the
     /// caller's change.
     ///
+    /// **Group commit**: the scene joins the open batch; whoever takes the store lock first
+    /// writes the whole batch (every scene in it, each once, one folder fsync) and every
+    /// member of the batch gets that write's result. Acks that arrive while a write is in
+    /// progress share the next write instead of queueing one fsync each.
+    ///
     /// # Errors
     /// [`ErrorCode::Internal`] when the write fails (the in-memory state is unchanged by this).
     pub async fn persist_scene(&self, state: &AppState, id: &SceneId) -> Result<(), ProtocolError> {
-        let Some(path) = self.scene_path(id) else {
+        let Some(dir) = self.scenes_dir() else {
             return Ok(());
         };
+        let mut done = {
+            let mut open = self.batch();
+            open.scenes.insert(id.clone());
+            open.done.subscribe()
+        };
         let _guard = self.lock().await;
-        let bytes =
-            Self::scene_bytes(state, id).map_err(|e| internal("cannot store the scene", &e))?;
-        tokio::task::spawn_blocking(move || Self::write_scene(&path, bytes.as_deref()))
+        // A writer that held the lock before us may have taken our batch already.
+        if let Some(result) = done.borrow_and_update().clone() {
+            return result;
+        }
+        let mut batch = std::mem::take(&mut *self.batch());
+        // Normally our scene is in the batch just taken; if the writer that took ours was
+        // cancelled before answering, it is not, so it is added here.
+        batch.scenes.insert(id.clone());
+        self.batches_written
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let result = Self::write_batch(state, dir, &batch.scenes).await;
+        // Receivers may all be gone (their commands were cancelled): nothing to tell then.
+        batch.done.send(Some(result.clone())).ok();
+        result
+    }
+
+    async fn write_batch(
+        state: &AppState,
+        dir: PathBuf,
+        scenes: &BTreeSet<SceneId>,
+    ) -> Result<(), ProtocolError> {
+        let mut files = Vec::with_capacity(scenes.len());
+        for id in scenes {
+            let bytes =
+                Self::scene_bytes(state, id).map_err(|e| internal("cannot store the scene", &e))?;
+            files.push((dir.join(format!("{}.json", id.0)), bytes));
+        }
+        tokio::task::spawn_blocking(move || atomic::write_many_atomic(&dir, &files))
             .await
             .map_err(|e| internal("cannot store the scene", &io::Error::other(e)))?
             .map_err(|e| internal("cannot store the scene", &e))
+    }
+
+    fn batch(&self) -> std::sync::MutexGuard<'_, Batch> {
+        self.open_batch
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// Scene writes so far (each a group commit of one or more acks).
+    #[must_use]
+    pub fn batches_written(&self) -> u64 {
+        self.batches_written
+            .load(std::sync::atomic::Ordering::Relaxed)
     }
 
     /// [`Store::persist_scene`] for start-up, before the server serves anyone.
@@ -408,5 +477,12 @@ mod tests {
         let file: snapshot::SceneFile = serde_json::from_slice(&text).unwrap();
         let stored: Vec<&String> = file.avatars[0].overrides.keys().collect();
         assert_eq!(stored.len(), joints.len(), "lost updates: {stored:?}");
+        // Group commit: acks that arrived together shared writes (2 writes set the scene up).
+        let writes = state.store.batches_written() - 2;
+        assert!(
+            writes < joints.len() as u64,
+            "{writes} writes for {} acks",
+            joints.len()
+        );
     }
 }
