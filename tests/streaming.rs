@@ -97,7 +97,9 @@ async fn built_in_avatar_streams_the_clip_it_plays() {
 
 #[tokio::test]
 async fn a_testdata_rig_streams_its_clip() {
-    let Some(path) = posecast_proto::testing::require_testdata("gltf/CesiumMan/glTF-Binary/CesiumMan.glb") else {
+    let Some(path) =
+        posecast_proto::testing::require_testdata("gltf/CesiumMan/glTF-Binary/CesiumMan.glb")
+    else {
         return;
     };
     let server = server(60.0).await;
