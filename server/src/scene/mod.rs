@@ -3,25 +3,26 @@
 //! - [`avatar`]: one avatar (rig, player, joint overrides, last pose).
 //! - [`playback`]: clip clocks and cross-fades.
 //! - [`ticker`]: the drift-free tick task of a scene.
+//! - `publish`: a frame as per-avatar pieces in both encodings.
 //!
-//! Every tick a scene samples all its avatars, encodes the frame once per encoding (binary and
-//! JSON) — per avatar chunks first, so subscribers limited to some avatars get the same chunks
-//! reassembled — and hands the same bytes to every subscriber's [`Outbox`].
+//! Every tick a scene samples all its avatars, encodes the frame once per encoding in use
+//! (binary always; JSON only while a subscriber wants it) — per avatar chunks first, so
+//! subscribers limited to some avatars get the same chunks reassembled — and hands the same
+//! bytes to every subscriber's [`Outbox`].
 
 pub mod avatar;
 pub mod playback;
+mod publish;
 pub mod ticker;
 
 use crate::metrics::Metrics;
 use crate::stream::outbox::{OutFrame, Outbox};
 use avatar::Avatar;
 use axum::extract::ws::{Message, Utf8Bytes};
-use bytes::Bytes;
 use posecast_proto::command::SceneInfo;
-use posecast_proto::frame::{FrameHeader, FrameKind, write_header};
-use posecast_proto::msg::{
-    AvatarId, AvatarPoseJson, Encoding, ErrorCode, ProtocolError, SceneId, ServerMsg,
-};
+use posecast_proto::frame::{FrameHeader, FrameKind};
+use posecast_proto::msg::{AvatarId, Encoding, ErrorCode, ProtocolError, SceneId, ServerMsg};
+use publish::{Piece, Published};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -43,62 +44,6 @@ pub struct Subscriber {
 impl Subscriber {
     fn wants(&self, avatar: &AvatarId) -> bool {
         self.filter.as_ref().is_none_or(|f| f.contains(avatar))
-    }
-}
-
-/// A frame as published: per-avatar pieces, so filtered subscribers can be served the same
-/// bytes reassembled.
-#[derive(Debug)]
-struct Published {
-    header: FrameHeader,
-    /// (avatar, binary chunk, JSON object) per avatar.
-    pieces: Vec<(AvatarId, Bytes, String)>,
-}
-
-impl Published {
-    fn message(&self, scene: &SceneId, encoding: Encoding, filter: Option<&[AvatarId]>) -> Message {
-        let keep = |id: &AvatarId| filter.is_none_or(|f| f.contains(id));
-        match encoding {
-            Encoding::Binary => {
-                let chunks: Vec<&Bytes> = self
-                    .pieces
-                    .iter()
-                    .filter(|p| keep(&p.0))
-                    .map(|p| &p.1)
-                    .collect();
-                let len = posecast_proto::frame::HEADER_BYTES
-                    + chunks.iter().map(|c| c.len()).sum::<usize>();
-                let mut out = Vec::with_capacity(len);
-                write_header(
-                    &self.header,
-                    chunks.len().min(usize::from(u16::MAX)) as u16,
-                    &mut out,
-                );
-                for c in chunks {
-                    out.extend_from_slice(c);
-                }
-                Message::Binary(Bytes::from(out))
-            }
-            Encoding::Json => {
-                // Written by hand around pre-serialised avatar objects: the same text as
-                // serde_json gives for `ServerMsg::Frame`.
-                let scene = serde_json::to_string(scene).unwrap_or_else(|_| "\"\"".into());
-                let mut out = format!(
-                    r#"{{"type":"frame","scene":{scene},"seq":{},"server_time_us":{},"avatars":["#,
-                    self.header.seq, self.header.server_time_us
-                );
-                let mut first = true;
-                for p in self.pieces.iter().filter(|p| keep(&p.0)) {
-                    if !first {
-                        out.push(',');
-                    }
-                    first = false;
-                    out.push_str(&p.2);
-                }
-                out.push_str("]}");
-                Message::Text(Utf8Bytes::from(out))
-            }
-        }
     }
 }
 
@@ -232,7 +177,8 @@ impl Scene {
     /// # Errors
     /// [`ErrorCode::UnknownAvatar`] when the filter names an avatar not in the scene.
     pub fn subscribe(&self, sub: Subscriber) -> Result<(), ProtocolError> {
-        let mut s = self.lock();
+        let mut guard = self.lock();
+        let s = &mut *guard;
         if let Some(filter) = &sub.filter
             && let Some(missing) = filter
                 .iter()
@@ -256,7 +202,13 @@ impl Scene {
             }));
         }
         let filter = sub.filter.as_deref();
-        if let Some(key) = &s.last_key {
+        if let Some(key) = &mut s.last_key {
+            if sub.encoding == Encoding::Json {
+                // The cached frames were made while nobody needed JSON: write it now.
+                let mut made = key.ensure_json();
+                made += s.last_delta.as_mut().map_or(0, Published::ensure_json);
+                self.metrics.json_encoded(made);
+            }
             let message = key.message(&self.id, sub.encoding, filter);
             sub.outbox
                 .push_frame(self.num, OutFrame { message, key: true });
@@ -334,20 +286,19 @@ impl Scene {
                 s.last_key_seq.unwrap_or(seq)
             },
         };
+        // JSON only while someone reads it; a JSON late joiner gets it made from the cached
+        // poses (`subscribe`).
+        let json = s
+            .subscribers
+            .iter()
+            .any(|sub| sub.encoding == Encoding::Json);
         let mut pieces = Vec::with_capacity(s.avatars.len());
         for a in &mut s.avatars {
             a.tick(dt);
-            let mut chunk = Vec::with_capacity(32 + 6 * a.pose().rotations.len());
-            a.encoder.encode(&a.pose, kind, &mut chunk);
-            let json = serde_json::to_string(&AvatarPoseJson {
-                avatar: a.id.clone(),
-                hash: a.description.hash.clone(),
-                rotations: a.pose.rotations.iter().map(|q| q.to_array()).collect(),
-                translations: a.pose.translations.iter().map(|t| t.to_array()).collect(),
-                scales: a.pose.scales.iter().map(|t| t.to_array()).collect(),
-            })
-            .unwrap_or_default();
-            pieces.push((a.id.clone(), Bytes::from(chunk), json));
+            pieces.push(Piece::encode(a, kind, json));
+        }
+        if json {
+            self.metrics.json_encoded(pieces.len() as u64);
         }
         let published = Published { header, pieces };
         // Encode once per (encoding, filter); with no filters that is once per encoding.

@@ -1,0 +1,220 @@
+//! Subscribing: JSON written only for JSON subscribers — read off a scene's outboxes, frames
+//! decoded by `posecast_proto::frame`.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use axum::extract::ws::Message as AxumMessage;
+use glam::Quat;
+use posecast_proto::frame::FrameDecoder;
+use posecast_proto::msg::{AvatarId, Encoding, FrameJson, SceneId, ServerMsg};
+use posecast_proto::quant::{MAX_ERROR_DEGREES, angle_between_degrees};
+use posecast_server::metrics::Metrics;
+use posecast_server::scene::avatar::Avatar;
+use posecast_server::scene::{Scene, Subscriber};
+use posecast_server::startup::builtin_rig;
+use posecast_server::stream::outbox::{Next, Outbox};
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::Duration;
+
+/// One avatar's pose in a frame.
+#[derive(Debug, Clone)]
+struct Pose {
+    avatar: AvatarId,
+    rotations: Vec<Quat>,
+}
+
+/// A frame as received, whatever the encoding.
+#[derive(Debug, Clone)]
+struct Frame {
+    seq: u64,
+    avatars: Vec<Pose>,
+}
+
+/// A server message as a subscriber sees it.
+#[derive(Debug)]
+enum Got {
+    Frame(Frame),
+    /// Anything else (`subscribed`, descriptions…).
+    Other,
+}
+
+/// Turns server messages into [`Got`]: JSON as is, binary through a frame decoder that knows
+/// avatar numbers from the descriptions seen.
+#[derive(Default)]
+struct Reader {
+    decoder: FrameDecoder,
+    ids: HashMap<u32, AvatarId>,
+}
+
+impl Reader {
+    fn text(&mut self, text: &str) -> Got {
+        match serde_json::from_str::<ServerMsg>(text).unwrap() {
+            ServerMsg::Description { avatar, .. } => {
+                self.ids.insert(avatar.num, avatar.id);
+                Got::Other
+            }
+            ServerMsg::Frame(FrameJson { seq, avatars, .. }) => Got::Frame(Frame {
+                seq,
+                avatars: avatars
+                    .into_iter()
+                    .map(|a| Pose {
+                        avatar: a.avatar,
+                        rotations: a.rotations.iter().map(|&r| Quat::from_array(r)).collect(),
+                    })
+                    .collect(),
+            }),
+            _ => Got::Other,
+        }
+    }
+
+    fn binary(&mut self, bytes: &[u8]) -> Got {
+        let frame = self.decoder.decode(bytes).expect("an undecodable frame");
+        Got::Frame(Frame {
+            seq: frame.header.seq,
+            avatars: frame
+                .avatars
+                .into_iter()
+                .map(|a| Pose {
+                    // An avatar nobody described shows up as such.
+                    avatar: self
+                        .ids
+                        .get(&a.avatar_num)
+                        .cloned()
+                        .unwrap_or_else(|| AvatarId(format!("undescribed #{}", a.avatar_num))),
+                    rotations: a.rotations,
+                })
+                .collect(),
+        })
+    }
+}
+
+fn sorted(mut ids: Vec<AvatarId>) -> Vec<AvatarId> {
+    ids.sort();
+    ids
+}
+
+fn ids(frame: &Frame) -> Vec<AvatarId> {
+    sorted(frame.avatars.iter().map(|a| a.avatar.clone()).collect())
+}
+
+/// Everything an outbox holds now, as [`Got`]s.
+async fn drain(outbox: &Outbox, reader: &mut Reader) -> Vec<Got> {
+    let next = tokio::time::timeout(Duration::from_secs(1), outbox.next())
+        .await
+        .expect("nothing queued");
+    let Next::Send(messages) = next else {
+        panic!("outbox closed")
+    };
+    messages
+        .into_iter()
+        .map(|m| match m {
+            AxumMessage::Text(t) => reader.text(t.as_str()),
+            AxumMessage::Binary(b) => reader.binary(&b),
+            other => panic!("unexpected {other:?}"),
+        })
+        .collect()
+}
+
+fn frames(got: Vec<Got>) -> Vec<Frame> {
+    got.into_iter()
+        .filter_map(|g| match g {
+            Got::Frame(f) => Some(f),
+            _ => None,
+        })
+        .collect()
+}
+
+fn subscriber(conn: u64, outbox: &Arc<Outbox>, encoding: Encoding) -> Subscriber {
+    Subscriber {
+        conn,
+        outbox: outbox.clone(),
+        encoding,
+        filter: None,
+    }
+}
+
+#[tokio::test]
+async fn json_is_written_only_for_json_subscribers_and_a_json_late_joiner_gets_the_cached_keyframe()
+{
+    let metrics = Arc::new(Metrics::new());
+    let scene = Scene::new(SceneId("s".into()), 1, metrics.clone());
+    let rig = Arc::new(builtin_rig().unwrap());
+    let (a, b) = (AvatarId("a".into()), AvatarId("b".into()));
+    scene
+        .add_avatar(Avatar::new(a.clone(), 1, rig.clone()))
+        .unwrap();
+    scene
+        .add_avatar(Avatar::new(b.clone(), 2, rig.clone()))
+        .unwrap();
+    // Poses known independently: the rest pose, one joint of `a` overridden.
+    let elbow = rig.skeleton().find("l_elbow").unwrap();
+    let (q1, q2) = (Quat::from_rotation_y(0.6), Quat::from_rotation_x(-0.4));
+    scene.lock().avatar_mut(&a).unwrap().set_rotation(elbow, q1);
+    let binary = Arc::new(Outbox::new());
+    scene
+        .subscribe(subscriber(1, &binary, Encoding::Binary))
+        .unwrap();
+    // Keyframes every 3 ticks: 1 and 4 are keyframes, 5 a delta.
+    for seq in 1..=5 {
+        scene.tick(seq, 1.0 / 60.0, seq * 1000, 3);
+    }
+    assert_eq!(
+        metrics.json_poses_encoded(),
+        0,
+        "poses were written as JSON with no JSON subscriber"
+    );
+    // After the cached frames were made, the pose changes: a joiner must still get the
+    // cached tick's pose, not the current one.
+    scene.lock().avatar_mut(&a).unwrap().set_rotation(elbow, q2);
+    let json = Arc::new(Outbox::new());
+    scene
+        .subscribe(subscriber(2, &json, Encoding::Json))
+        .unwrap();
+    let got = frames(drain(&json, &mut Reader::default()).await);
+    let seqs: Vec<u64> = got.iter().map(|f| f.seq).collect();
+    assert_eq!(
+        seqs,
+        [4, 5],
+        "the cached keyframe, then the newest delta, at once"
+    );
+    let rest = rig.skeleton().rest();
+    for f in &got {
+        assert_eq!(ids(f), [a.clone(), b.clone()]);
+        for pose in &f.avatars {
+            for (j, (got, r)) in pose.rotations.iter().zip(rest).enumerate() {
+                let want = if pose.avatar == a && j == elbow {
+                    q1
+                } else {
+                    r.rotation
+                };
+                let err = angle_between_degrees(*got, want);
+                assert!(
+                    err < 1e-4,
+                    "frame {} {} joint {j}: {err}°",
+                    f.seq,
+                    pose.avatar
+                );
+            }
+        }
+    }
+    // The same content the binary subscriber decoded for that keyframe.
+    let mut reader = Reader::default();
+    let decoded = frames(drain(&binary, &mut reader).await);
+    let key = decoded.iter().find(|f| f.seq == 4).unwrap();
+    for (j, q) in key.avatars[0].rotations.iter().enumerate() {
+        let err = angle_between_degrees(*q, got[0].avatars[0].rotations[j]);
+        assert!(
+            err <= MAX_ERROR_DEGREES,
+            "joint {j}: binary and JSON differ by {err}°"
+        );
+    }
+    // Written once for the joiner (two avatars in two cached frames), then once per tick
+    // while a JSON subscriber stays, and no more after it left.
+    assert_eq!(metrics.json_poses_encoded(), 4);
+    scene.tick(6, 1.0 / 60.0, 6000, 3);
+    assert_eq!(metrics.json_poses_encoded(), 6);
+    assert!(scene.unsubscribe(2));
+    scene.tick(7, 1.0 / 60.0, 7000, 3);
+    assert_eq!(metrics.json_poses_encoded(), 6);
+}
