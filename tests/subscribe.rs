@@ -1,12 +1,18 @@
-//! Subscribing: JSON written only for JSON subscribers — read off a scene's outboxes, frames
-//! decoded by `posecast_proto::frame`.
+//! Subscribing: what a subscriber's first frame holds, and JSON written only for JSON
+//! subscribers — read off the wire (raw websockets, frames decoded by `posecast_proto::frame`)
+//! or off a scene's outboxes.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+mod common;
+
 use axum::extract::ws::Message as AxumMessage;
+use common::{Ws, client, raw, server};
+use futures_util::{SinkExt, StreamExt};
 use glam::Quat;
+use posecast_proto::command::Command;
 use posecast_proto::frame::FrameDecoder;
-use posecast_proto::msg::{AvatarId, Encoding, FrameJson, SceneId, ServerMsg};
+use posecast_proto::msg::{AvatarId, ClientMsg, Encoding, FrameJson, SceneId, ServerMsg};
 use posecast_proto::quant::{MAX_ERROR_DEGREES, angle_between_degrees};
 use posecast_server::metrics::Metrics;
 use posecast_server::scene::avatar::Avatar;
@@ -16,6 +22,7 @@ use posecast_server::stream::outbox::{Next, Outbox};
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Duration;
+use tokio_tungstenite::tungstenite::Message;
 
 /// One avatar's pose in a frame.
 #[derive(Debug, Clone)]
@@ -34,9 +41,10 @@ struct Frame {
 /// A server message as a subscriber sees it.
 #[derive(Debug)]
 enum Got {
+    Description(AvatarId),
     Frame(Frame),
-    /// Anything else (`subscribed`, descriptions…).
-    Other,
+    Other(ServerMsg),
+    Closed(String),
 }
 
 /// Turns server messages into [`Got`]: JSON as is, binary through a frame decoder that knows
@@ -51,8 +59,8 @@ impl Reader {
     fn text(&mut self, text: &str) -> Got {
         match serde_json::from_str::<ServerMsg>(text).unwrap() {
             ServerMsg::Description { avatar, .. } => {
-                self.ids.insert(avatar.num, avatar.id);
-                Got::Other
+                self.ids.insert(avatar.num, avatar.id.clone());
+                Got::Description(avatar.id)
             }
             ServerMsg::Frame(FrameJson { seq, avatars, .. }) => Got::Frame(Frame {
                 seq,
@@ -64,7 +72,7 @@ impl Reader {
                     })
                     .collect(),
             }),
-            _ => Got::Other,
+            other => Got::Other(other),
         }
     }
 
@@ -89,6 +97,74 @@ impl Reader {
     }
 }
 
+/// A raw websocket subscriber.
+struct Watcher {
+    ws: Ws,
+    reader: Reader,
+}
+
+impl Watcher {
+    async fn subscribe(
+        server: &posecast_server::startup::Server,
+        encoding: Encoding,
+        scene: &str,
+        avatars: Option<Vec<AvatarId>>,
+    ) -> Self {
+        let mut ws = raw(server, encoding).await;
+        let sub = ClientMsg::Subscribe {
+            scene: SceneId(scene.into()),
+            avatars,
+        };
+        ws.send(Message::Text(serde_json::to_string(&sub).unwrap().into()))
+            .await
+            .unwrap();
+        Self {
+            ws,
+            reader: Reader::default(),
+        }
+    }
+
+    /// The next message, or `None` after `secs` seconds.
+    async fn next_within(&mut self, secs: f32) -> Option<Got> {
+        let msg = tokio::time::timeout(Duration::from_secs_f32(secs), self.ws.next())
+            .await
+            .ok()?;
+        Some(match msg {
+            None => Got::Closed("end of stream".into()),
+            Some(Err(e)) => Got::Closed(e.to_string()),
+            Some(Ok(Message::Text(t))) => self.reader.text(t.as_str()),
+            Some(Ok(Message::Binary(b))) => self.reader.binary(&b),
+            Some(Ok(Message::Close(c))) => Got::Closed(format!("{c:?}")),
+            Some(Ok(other)) => panic!("unexpected {other:?}"),
+        })
+    }
+
+    /// `subscribed`, then the descriptions, up to the first frame, which must come within
+    /// `secs` seconds. Returns the described avatars and that frame.
+    async fn first_frame(&mut self, secs: f32) -> (Vec<AvatarId>, Frame) {
+        let mut described = Vec::new();
+        let mut subscribed = false;
+        loop {
+            match self.next_within(secs).await {
+                Some(Got::Other(ServerMsg::Subscribed { .. })) => subscribed = true,
+                Some(Got::Description(id)) => described.push(id),
+                Some(Got::Frame(f)) => {
+                    assert!(subscribed, "a frame before `subscribed`");
+                    return (described, f);
+                }
+                Some(Got::Closed(why)) => {
+                    panic!("closed after {} descriptions: {why}", described.len())
+                }
+                Some(Got::Other(other)) => panic!("unexpected {other:?}"),
+                None => panic!(
+                    "no frame within {secs} s ({} descriptions)",
+                    described.len()
+                ),
+            }
+        }
+    }
+}
+
 fn sorted(mut ids: Vec<AvatarId>) -> Vec<AvatarId> {
     ids.sort();
     ids
@@ -96,6 +172,40 @@ fn sorted(mut ids: Vec<AvatarId>) -> Vec<AvatarId> {
 
 fn ids(frame: &Frame) -> Vec<AvatarId> {
     sorted(frame.avatars.iter().map(|a| a.avatar.clone()).collect())
+}
+
+#[tokio::test]
+async fn the_first_frame_after_subscribing_carries_every_described_avatar() {
+    // One tick every 5 s: no tick falls between adding an avatar and subscribing, so the scene's
+    // cached keyframe predates the avatar every time.
+    let server = server(0.2).await;
+    let control = client(&server, Encoding::Binary).await;
+    for i in 0..30 {
+        let added = AvatarId(format!("n{i}"));
+        control
+            .command(Command::AddAvatar {
+                scene: SceneId("default".into()),
+                asset: "avatar".into(),
+                avatar: Some(added.clone()),
+                clip: (i % 2 == 1).then(|| "walk".into()),
+            })
+            .await
+            .unwrap();
+        for encoding in [Encoding::Binary, Encoding::Json] {
+            let mut w = Watcher::subscribe(&server, encoding, "default", None).await;
+            // "At once": well before the next tick.
+            let (described, first) = w.first_frame(2.0).await;
+            assert_eq!(described.len(), i + 2, "{encoding:?} try {i}");
+            assert!(described.contains(&added));
+            assert_eq!(
+                ids(&first),
+                sorted(described),
+                "{encoding:?} try {i}: the first frame (tick {}) lacks a described avatar",
+                first.seq
+            );
+        }
+    }
+    server.stop().await;
 }
 
 /// Everything an outbox holds now, as [`Got`]s.
@@ -217,4 +327,58 @@ async fn json_is_written_only_for_json_subscribers_and_a_json_late_joiner_gets_t
     assert!(scene.unsubscribe(2));
     scene.tick(7, 1.0 / 60.0, 7000, 3);
     assert_eq!(metrics.json_poses_encoded(), 6);
+}
+
+#[tokio::test]
+async fn a_keyframe_made_for_a_joiner_leaves_every_stream_decodable() {
+    let metrics = Arc::new(Metrics::new());
+    let scene = Scene::new(SceneId("s".into()), 1, metrics);
+    let rig = Arc::new(builtin_rig().unwrap());
+    let (a, b) = (AvatarId("a".into()), AvatarId("b".into()));
+    scene
+        .add_avatar(Avatar::new(a.clone(), 1, rig.clone()))
+        .unwrap();
+    let early = Arc::new(Outbox::new());
+    scene
+        .subscribe(subscriber(1, &early, Encoding::Binary))
+        .unwrap();
+    let mut early_reader = Reader::default();
+    let mut early_frames = Vec::new();
+    for seq in 1..=3 {
+        scene.tick(seq, 1.0 / 60.0, seq * 1000, 60);
+        early_frames.extend(frames(drain(&early, &mut early_reader).await));
+    }
+    // `b` arrives between ticks; a subscriber joins before the next tick.
+    scene
+        .add_avatar(Avatar::new(b.clone(), 2, rig.clone()))
+        .unwrap();
+    let late = Arc::new(Outbox::new());
+    scene
+        .subscribe(subscriber(2, &late, Encoding::Binary))
+        .unwrap();
+    let mut late_reader = Reader::default();
+    let first = frames(drain(&late, &mut late_reader).await);
+    assert_eq!(first.len(), 1);
+    assert_eq!(ids(&first[0]), [a.clone(), b.clone()]);
+    assert_eq!(first[0].seq, 3, "labelled with the last tick");
+    // Every frame after it decodes for both (the readers panic on an undecodable frame).
+    let mut late_frames = first;
+    for seq in 4..=8 {
+        scene.tick(seq, 1.0 / 60.0, seq * 1000, 60);
+        early_frames.extend(frames(drain(&early, &mut early_reader).await));
+        late_frames.extend(frames(drain(&late, &mut late_reader).await));
+    }
+    let seqs = |f: &[Frame]| f.iter().map(|f| f.seq).collect::<Vec<_>>();
+    assert_eq!(seqs(&early_frames), (1..=8).collect::<Vec<_>>());
+    assert_eq!(seqs(&late_frames), (3..=8).collect::<Vec<_>>());
+    for f in &late_frames {
+        assert_eq!(ids(f), [a.clone(), b.clone()]);
+    }
+    // A third joiner, with nothing changed since: the cached keyframe and newest delta.
+    let third = Arc::new(Outbox::new());
+    scene
+        .subscribe(subscriber(3, &third, Encoding::Binary))
+        .unwrap();
+    let got = frames(drain(&third, &mut Reader::default()).await);
+    assert_eq!(seqs(&got), [4, 8]);
 }

@@ -54,6 +54,8 @@ pub struct SceneState {
     pub avatars: Vec<Avatar>,
     subscribers: Vec<Subscriber>,
     seq: u64,
+    /// Server time of the last tick, µs since the Unix epoch.
+    time_us: u64,
     last_key_seq: Option<u64>,
     force_key: bool,
     last_key: Option<Published>,
@@ -91,6 +93,7 @@ impl Scene {
                 avatars: Vec::new(),
                 subscribers: Vec::new(),
                 seq: 0,
+                time_us: 0,
                 last_key_seq: None,
                 force_key: true,
                 last_key: None,
@@ -171,8 +174,11 @@ impl Scene {
     }
 
     /// Subscribes a connection (replacing its previous subscription to this scene). It gets,
-    /// in order: `subscribed`, every covered avatar's description, then at once the scene's last
-    /// keyframe and the newest delta after it — the current pose, before the next tick.
+    /// in order: `subscribed`, every covered avatar's description, then at once a keyframe
+    /// holding every one of them — the current pose, before the next tick: the scene's cached
+    /// last keyframe and the newest delta after it, or, when avatars were added, removed or
+    /// changed since that keyframe, one made now from their current poses. (Before the scene's
+    /// first tick there is none; that tick is a keyframe of every avatar.)
     ///
     /// # Errors
     /// [`ErrorCode::UnknownAvatar`] when the filter names an avatar not in the scene.
@@ -201,10 +207,21 @@ impl Scene {
                 avatar: Box::new((*a.description).clone()),
             }));
         }
+        self.first_frames(s, &sub);
+        s.subscribers.push(sub);
+        Ok(())
+    }
+
+    /// Hands a new subscriber its first frames (see [`Scene::subscribe`]).
+    fn first_frames(&self, s: &mut SceneState, sub: &Subscriber) {
         let filter = sub.filter.as_deref();
-        if let Some(key) = &mut s.last_key {
-            if sub.encoding == Encoding::Json {
-                // The cached frames were made while nobody needed JSON: write it now.
+        let json = sub.encoding == Encoding::Json;
+        let Some(key) = &mut s.last_key else {
+            return;
+        };
+        let wanted = s.avatars.iter().filter(|a| sub.wants(&a.id));
+        if key.covers(wanted, |id| sub.wants(id)) {
+            if json {
                 let mut made = key.ensure_json();
                 made += s.last_delta.as_mut().map_or(0, Published::ensure_json);
                 self.metrics.json_encoded(made);
@@ -222,9 +239,37 @@ impl Scene {
                     },
                 );
             }
+            return;
         }
-        s.subscribers.push(sub);
-        Ok(())
+        // The cached keyframe predates a change of avatars: a keyframe of the current poses, for
+        // this subscriber only, labelled with the last tick.
+        let pieces: Vec<Piece> = s
+            .avatars
+            .iter_mut()
+            .filter(|a| sub.wants(&a.id))
+            .map(|a| Piece::fresh_key(a, json))
+            .collect();
+        if json {
+            self.metrics.json_encoded(pieces.len() as u64);
+        } else {
+            // The next tick's deltas would refer to the scene's keyframe, which this subscriber
+            // never got: make the next tick a keyframe. (A change of avatars already forces one;
+            // this keeps it so whatever the reason the cache was stale.)
+            s.force_key = true;
+        }
+        let fresh = Published {
+            header: FrameHeader {
+                kind: FrameKind::Key,
+                scene_num: self.num,
+                seq: s.seq,
+                server_time_us: s.time_us,
+                base_seq: s.seq,
+            },
+            pieces,
+        };
+        let message = fresh.message(&self.id, sub.encoding, filter);
+        sub.outbox
+            .push_frame(self.num, OutFrame { message, key: true });
     }
 
     /// Ends a connection's subscription. Returns whether it had one.
@@ -264,6 +309,7 @@ impl Scene {
         let mut guard = self.lock();
         let s = &mut *guard;
         s.seq = seq;
+        s.time_us = server_time_us;
         let key = s.force_key
             || s.last_key_seq
                 .is_none_or(|k| seq.saturating_sub(k) >= key_interval)
@@ -287,7 +333,7 @@ impl Scene {
             },
         };
         // JSON only while someone reads it; a JSON late joiner gets it made from the cached
-        // poses (`subscribe`).
+        // poses (`first_frames`).
         let json = s
             .subscribers
             .iter()

@@ -12,7 +12,7 @@ use axum::extract::ws::{Message, Utf8Bytes};
 use bytes::Bytes;
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::AvatarPose;
-use posecast_proto::frame::{FrameHeader, FrameKind, HEADER_BYTES, write_header};
+use posecast_proto::frame::{ChunkEncoder, FrameHeader, FrameKind, HEADER_BYTES, write_header};
 use posecast_proto::msg::{AvatarId, AvatarPoseJson, Encoding, SceneId};
 use std::borrow::Cow;
 use std::sync::Arc;
@@ -39,6 +39,18 @@ impl Piece {
     pub(super) fn encode(a: &mut Avatar, kind: FrameKind, json: bool) -> Self {
         let mut chunk = Vec::with_capacity(32 + 6 * a.pose.rotations.len());
         a.encoder.encode(&a.pose, kind, &mut chunk);
+        Self::new(a, chunk, json)
+    }
+
+    /// A keyframe chunk of the avatar's current pose for one joiner. A fresh encoder, so the
+    /// avatar's own — what every other subscriber's deltas refer to — is left alone.
+    pub(super) fn fresh_key(a: &mut Avatar, json: bool) -> Self {
+        if a.pose.rotations.len() != a.description.joint_names.len() {
+            // Added without a clip and not ticked yet: its pose was never evaluated.
+            a.evaluate();
+        }
+        let mut chunk = Vec::with_capacity(32 + 6 * a.pose.rotations.len());
+        ChunkEncoder::new().encode(&a.pose, FrameKind::Key, &mut chunk);
         Self::new(a, chunk, json)
     }
 
@@ -98,6 +110,24 @@ impl Published {
             }
         }
         n
+    }
+
+    /// Whether the frame holds a piece for exactly these avatars (in scene order, the order
+    /// pieces are made in) with their current descriptions — and so may be sent to a joiner
+    /// who has just received those descriptions. Pieces of avatars `wants` rejects are ignored.
+    pub(super) fn covers<'a>(
+        &self,
+        mut avatars: impl Iterator<Item = &'a Avatar>,
+        wants: impl Fn(&AvatarId) -> bool,
+    ) -> bool {
+        let mut pieces = self.pieces.iter().filter(|p| wants(p.id()));
+        loop {
+            match (avatars.next(), pieces.next()) {
+                (None, None) => return true,
+                (Some(a), Some(p)) if Arc::ptr_eq(&a.description, &p.description) => {}
+                _ => return false,
+            }
+        }
     }
 
     /// The frame as one websocket message, with only the avatars `filter` names (all when
