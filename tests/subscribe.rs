@@ -1,6 +1,6 @@
-//! Subscribing: what a subscriber's first frame holds, and JSON written only for JSON
-//! subscribers — read off the wire (raw websockets, frames decoded by `posecast_proto::frame`)
-//! or off a scene's outboxes.
+//! Subscribing: scenes of many avatars, what a subscriber's first frame holds, and JSON written
+//! only for JSON subscribers — read off the wire (raw websockets, frames decoded by
+//! `posecast_proto::frame`) or off a scene's outboxes.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -101,6 +101,8 @@ impl Reader {
 struct Watcher {
     ws: Ws,
     reader: Reader,
+    /// Bytes of text messages received.
+    text_bytes: usize,
 }
 
 impl Watcher {
@@ -121,6 +123,7 @@ impl Watcher {
         Self {
             ws,
             reader: Reader::default(),
+            text_bytes: 0,
         }
     }
 
@@ -132,7 +135,10 @@ impl Watcher {
         Some(match msg {
             None => Got::Closed("end of stream".into()),
             Some(Err(e)) => Got::Closed(e.to_string()),
-            Some(Ok(Message::Text(t))) => self.reader.text(t.as_str()),
+            Some(Ok(Message::Text(t))) => {
+                self.text_bytes += t.len();
+                self.reader.text(t.as_str())
+            }
             Some(Ok(Message::Binary(b))) => self.reader.binary(&b),
             Some(Ok(Message::Close(c))) => Got::Closed(format!("{c:?}")),
             Some(Ok(other)) => panic!("unexpected {other:?}"),
@@ -163,6 +169,18 @@ impl Watcher {
             }
         }
     }
+
+    /// The next frame (skipping other messages), within `secs` seconds.
+    async fn frame(&mut self, secs: f32) -> Frame {
+        loop {
+            match self.next_within(secs).await {
+                Some(Got::Frame(f)) => return f,
+                Some(Got::Closed(why)) => panic!("closed: {why}"),
+                Some(_) => {}
+                None => panic!("no frame within {secs} s"),
+            }
+        }
+    }
 }
 
 fn sorted(mut ids: Vec<AvatarId>) -> Vec<AvatarId> {
@@ -172,6 +190,55 @@ fn sorted(mut ids: Vec<AvatarId>) -> Vec<AvatarId> {
 
 fn ids(frame: &Frame) -> Vec<AvatarId> {
     sorted(frame.avatars.iter().map(|a| a.avatar.clone()).collect())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_scene_of_1000_avatars_streams_to_every_subscriber() {
+    let server = server(10.0).await;
+    let scene = SceneId("crowd".into());
+    server.state.create_scene(scene.clone()).unwrap();
+    let crowd: Vec<AvatarId> = (0..1000).map(|i| AvatarId(format!("c{i:04}"))).collect();
+    for id in &crowd {
+        server
+            .state
+            .add_avatar(&scene, "avatar", Some(id.clone()))
+            .unwrap();
+    }
+    let joints = builtin_rig().unwrap().skeleton().len();
+    let mut watchers = Vec::new();
+    for encoding in [Encoding::Binary, Encoding::Json, Encoding::Binary] {
+        watchers.push((
+            encoding,
+            Watcher::subscribe(&server, encoding, "crowd", None).await,
+        ));
+    }
+    for (encoding, w) in &mut watchers {
+        // Every description and then, at once, the current pose of all.
+        let (described, first) = w.first_frame(20.0).await;
+        assert_eq!(sorted(described), crowd, "{encoding:?}");
+        if *encoding == Encoding::Binary {
+            println!(
+                "1,000 descriptions and `subscribed`: {} bytes",
+                w.text_bytes
+            );
+        }
+        assert_eq!(ids(&first), crowd, "{encoding:?}: first frame");
+        // Then regular frames of all 1,000, and no close.
+        let mut last = first.seq;
+        for _ in 0..3 {
+            let f = w.frame(20.0).await;
+            assert!(f.seq > last, "{encoding:?}: seq {} after {last}", f.seq);
+            last = f.seq;
+            assert_eq!(ids(&f), crowd, "{encoding:?}: frame {}", f.seq);
+            assert!(f.avatars.iter().all(|a| a.rotations.len() == joints));
+        }
+    }
+    println!(
+        "1,000 avatars at 10 Hz: {} ticks, {} missed",
+        server.state.metrics.ticks(),
+        server.state.metrics.missed()
+    );
+    server.stop().await;
 }
 
 #[tokio::test]

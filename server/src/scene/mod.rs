@@ -16,10 +16,11 @@ mod publish;
 pub mod ticker;
 
 use crate::metrics::Metrics;
-use crate::stream::outbox::{OutFrame, Outbox};
+use crate::stream::outbox::{OutFrame, Outbox, message_len};
 use avatar::Avatar;
 use axum::extract::ws::{Message, Utf8Bytes};
 use posecast_proto::command::SceneInfo;
+use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::{FrameHeader, FrameKind};
 use posecast_proto::msg::{AvatarId, Encoding, ErrorCode, ProtocolError, SceneId, ServerMsg};
 use publish::{Piece, Published};
@@ -60,6 +61,8 @@ pub struct SceneState {
     force_key: bool,
     last_key: Option<Published>,
     last_delta: Option<Published>,
+    /// Each avatar's description message, serialised once and shared by every subscriber.
+    descriptions: HashMap<AvatarId, (Arc<AvatarDescription>, Message)>,
 }
 
 impl SceneState {
@@ -98,6 +101,7 @@ impl Scene {
                 force_key: true,
                 last_key: None,
                 last_delta: None,
+                descriptions: HashMap::new(),
             }),
             stopped: AtomicBool::new(false),
             stop: Notify::new(),
@@ -145,10 +149,7 @@ impl Scene {
                 format!("scene {} already has avatar {}", self.id, avatar.id),
             ));
         }
-        let msg = text(&ServerMsg::Description {
-            scene: self.id.clone(),
-            avatar: Box::new((*avatar.description).clone()),
-        });
+        let msg = description_message(&self.id, &mut s.descriptions, &avatar.description);
         for sub in s.subscribers.iter().filter(|sub| sub.wants(&avatar.id)) {
             sub.outbox.push_control(msg.clone());
         }
@@ -162,6 +163,7 @@ impl Scene {
         let mut s = self.lock();
         let index = s.avatars.iter().position(|a| &a.id == id)?;
         let avatar = s.avatars.remove(index);
+        s.descriptions.remove(id);
         let msg = text(&ServerMsg::AvatarRemoved {
             scene: self.id.clone(),
             avatar: id.clone(),
@@ -201,12 +203,14 @@ impl Scene {
             scene: self.id.clone(),
             scene_num: self.num,
         }));
-        for a in s.avatars.iter().filter(|a| sub.wants(&a.id)) {
-            sub.outbox.push_control(text(&ServerMsg::Description {
-                scene: self.id.clone(),
-                avatar: Box::new((*a.description).clone()),
-            }));
-        }
+        // Exempt from the outbox's stall bound: a scene of many avatars is not a slow client.
+        let descriptions: Vec<Message> = s
+            .avatars
+            .iter()
+            .filter(|a| sub.wants(&a.id))
+            .map(|a| description_message(&self.id, &mut s.descriptions, &a.description))
+            .collect();
+        sub.outbox.push_snapshot(self.num, descriptions);
         self.first_frames(s, &sub);
         s.subscribers.push(sub);
         Ok(())
@@ -381,12 +385,26 @@ impl Scene {
     }
 }
 
-fn message_len(m: &Message) -> usize {
-    match m {
-        Message::Binary(b) => b.len(),
-        Message::Text(t) => t.len(),
-        _ => 0,
+/// An avatar's description message, from the cache while the description is the same one.
+fn description_message(
+    scene: &SceneId,
+    cache: &mut HashMap<AvatarId, (Arc<AvatarDescription>, Message)>,
+    description: &Arc<AvatarDescription>,
+) -> Message {
+    if let Some((d, m)) = cache.get(&description.id)
+        && Arc::ptr_eq(d, description)
+    {
+        return m.clone();
     }
+    let message = text(&ServerMsg::Description {
+        scene: scene.clone(),
+        avatar: Box::new((**description).clone()),
+    });
+    cache.insert(
+        description.id.clone(),
+        (description.clone(), message.clone()),
+    );
+    message
 }
 
 /// A server message as a websocket text message.
