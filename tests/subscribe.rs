@@ -1,6 +1,6 @@
-//! Subscribing: scenes of many avatars, what a subscriber's first frame holds, and JSON written
-//! only for JSON subscribers — read off the wire (raw websockets, frames decoded by
-//! `posecast_proto::frame`) or off a scene's outboxes.
+//! Subscribing: scenes of many avatars, what a subscriber's first frame holds, avatar filters,
+//! and JSON written only for JSON subscribers — read off the wire (raw websockets, frames
+//! decoded by `posecast_proto::frame`) or off a scene's outboxes.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -272,6 +272,117 @@ async fn the_first_frame_after_subscribing_carries_every_described_avatar() {
             );
         }
     }
+    server.stop().await;
+}
+
+#[tokio::test]
+async fn a_filtered_subscription_gets_only_its_avatars_with_the_same_poses() {
+    let server = server(30.0).await;
+    let control = client(&server, Encoding::Binary).await;
+    let rig = builtin_rig().unwrap();
+    let scene = SceneId("trio".into());
+    control
+        .command(Command::CreateScene {
+            scene: scene.clone(),
+        })
+        .await
+        .unwrap();
+    // Three avatars frozen (speed 0) at known clip times: their poses are known exactly.
+    let setup = [
+        ("t0", "walk", 0.2f32),
+        ("t1", "wave", 0.7),
+        ("t2", "idle", 1.3),
+    ];
+    for (id, clip, time) in setup {
+        let avatar = AvatarId(id.into());
+        control
+            .command(Command::AddAvatar {
+                scene: scene.clone(),
+                asset: "avatar".into(),
+                avatar: Some(avatar.clone()),
+                clip: None,
+            })
+            .await
+            .unwrap();
+        control
+            .command(Command::Play {
+                avatar,
+                clip: clip.into(),
+                from_asset: None,
+                speed: Some(0.0),
+                looping: Some(true),
+                start: Some(time),
+                fade: Some(0.0),
+            })
+            .await
+            .unwrap();
+    }
+    let wanted = AvatarId("t1".into());
+    let expected = {
+        let clip = rig.clip("wave").unwrap();
+        let mut out = rig.skeleton().rest().to_vec();
+        clip.sample(clip.start() + 0.7, rig.skeleton().rest(), &mut out);
+        out
+    };
+    let mut all = Watcher::subscribe(&server, Encoding::Binary, "trio", None).await;
+    let (described, first) = all.first_frame(2.0).await;
+    assert_eq!(described.len(), 3);
+    // A tick after the set-up: from now on the scene's cached frames show the frozen poses.
+    let settled = all.frame(2.0).await;
+    assert!(settled.seq > first.seq);
+    let mut unfiltered: HashMap<u64, Pose> = HashMap::new();
+    let mut keep = |f: &Frame| {
+        let p = f.avatars.iter().find(|a| a.avatar == wanted).unwrap();
+        unfiltered.insert(f.seq, p.clone());
+    };
+    keep(&settled);
+    let mut only = Watcher::subscribe(
+        &server,
+        Encoding::Binary,
+        "trio",
+        Some(vec![wanted.clone()]),
+    )
+    .await;
+    let mut only_json =
+        Watcher::subscribe(&server, Encoding::Json, "trio", Some(vec![wanted.clone()])).await;
+    let mut filtered = Vec::new();
+    for (name, w) in [("binary", &mut only), ("json", &mut only_json)] {
+        let (described, first) = w.first_frame(2.0).await;
+        assert_eq!(
+            described,
+            std::slice::from_ref(&wanted),
+            "{name}: descriptions"
+        );
+        filtered.push((name, first));
+    }
+    for _ in 0..30 {
+        keep(&all.frame(2.0).await);
+        filtered.push(("binary", only.frame(2.0).await));
+        filtered.push(("json", only_json.frame(2.0).await));
+    }
+    let mut compared = 0;
+    for (name, f) in &filtered {
+        assert_eq!(
+            ids(f),
+            std::slice::from_ref(&wanted),
+            "{name} frame {}: other avatars",
+            f.seq
+        );
+        let got = &f.avatars[0].rotations;
+        // The pose is the clip's, sampled here.
+        for (q, e) in got.iter().zip(&expected) {
+            let err = angle_between_degrees(*q, e.rotation);
+            assert!(err <= MAX_ERROR_DEGREES, "{name} frame {}: {err}°", f.seq);
+        }
+        // Binary: the very same chunk as the unfiltered stream's, so the same decoded pose.
+        if *name == "binary"
+            && let Some(p) = unfiltered.get(&f.seq)
+        {
+            assert_eq!(got, &p.rotations, "frame {}", f.seq);
+            compared += 1;
+        }
+    }
+    assert!(compared >= 10, "only {compared} frames seen by both");
     server.stop().await;
 }
 
