@@ -16,6 +16,7 @@ pub struct Metrics {
     connections_total: AtomicU64,
     frames_offered: AtomicU64,
     frame_bytes_offered: AtomicU64,
+    json_poses: AtomicU64,
     messages_sent: AtomicU64,
     bytes_sent: AtomicU64,
     frames_dropped: AtomicU64,
@@ -54,6 +55,17 @@ impl Metrics {
     pub fn frames_offered(&self, frames: u64, bytes: u64) {
         self.frames_offered.fetch_add(frames, Relaxed);
         self.frame_bytes_offered.fetch_add(bytes, Relaxed);
+    }
+
+    /// A tick (or a JSON late joiner) serialised `poses` avatar poses to JSON.
+    pub fn json_encoded(&self, poses: u64) {
+        self.json_poses.fetch_add(poses, Relaxed);
+    }
+
+    /// Avatar poses serialised to JSON so far.
+    #[must_use]
+    pub fn json_poses_encoded(&self) -> u64 {
+        self.json_poses.load(Relaxed)
     }
 
     /// A writer sent `messages` websocket messages of `bytes` bytes.
@@ -148,6 +160,12 @@ impl Metrics {
             "Bytes of pose frames handed to outboxes.",
             "counter",
             self.frame_bytes_offered.load(Relaxed),
+        );
+        counter(
+            "json_poses_encoded_total",
+            "Avatar poses serialised to JSON (only while a JSON subscriber needs them).",
+            "counter",
+            self.json_poses.load(Relaxed),
         );
         counter(
             "messages_sent_total",

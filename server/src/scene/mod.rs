@@ -3,25 +3,27 @@
 //! - [`avatar`]: one avatar (rig, player, joint overrides, last pose).
 //! - [`playback`]: clip clocks and cross-fades.
 //! - [`ticker`]: the drift-free tick task of a scene.
+//! - `publish`: a frame as per-avatar pieces in both encodings.
 //!
-//! Every tick a scene samples all its avatars, encodes the frame once per encoding (binary and
-//! JSON) — per avatar chunks first, so subscribers limited to some avatars get the same chunks
-//! reassembled — and hands the same bytes to every subscriber's [`Outbox`].
+//! Every tick a scene samples all its avatars, encodes the frame once per encoding in use
+//! (binary always; JSON only while a subscriber wants it) — per avatar chunks first, so
+//! subscribers limited to some avatars get the same chunks reassembled — and hands the same
+//! bytes to every subscriber's [`Outbox`].
 
 pub mod avatar;
 pub mod playback;
+mod publish;
 pub mod ticker;
 
 use crate::metrics::Metrics;
-use crate::stream::outbox::{OutFrame, Outbox};
+use crate::stream::outbox::{OutFrame, Outbox, message_len};
 use avatar::Avatar;
 use axum::extract::ws::{Message, Utf8Bytes};
-use bytes::Bytes;
 use posecast_proto::command::SceneInfo;
-use posecast_proto::frame::{FrameHeader, FrameKind, write_header};
-use posecast_proto::msg::{
-    AvatarId, AvatarPoseJson, Encoding, ErrorCode, ProtocolError, SceneId, ServerMsg,
-};
+use posecast_proto::description::AvatarDescription;
+use posecast_proto::frame::{FrameHeader, FrameKind};
+use posecast_proto::msg::{AvatarId, Encoding, ErrorCode, ProtocolError, SceneId, ServerMsg};
+use publish::{Piece, Published};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -46,62 +48,6 @@ impl Subscriber {
     }
 }
 
-/// A frame as published: per-avatar pieces, so filtered subscribers can be served the same
-/// bytes reassembled.
-#[derive(Debug)]
-struct Published {
-    header: FrameHeader,
-    /// (avatar, binary chunk, JSON object) per avatar.
-    pieces: Vec<(AvatarId, Bytes, String)>,
-}
-
-impl Published {
-    fn message(&self, scene: &SceneId, encoding: Encoding, filter: Option<&[AvatarId]>) -> Message {
-        let keep = |id: &AvatarId| filter.is_none_or(|f| f.contains(id));
-        match encoding {
-            Encoding::Binary => {
-                let chunks: Vec<&Bytes> = self
-                    .pieces
-                    .iter()
-                    .filter(|p| keep(&p.0))
-                    .map(|p| &p.1)
-                    .collect();
-                let len = posecast_proto::frame::HEADER_BYTES
-                    + chunks.iter().map(|c| c.len()).sum::<usize>();
-                let mut out = Vec::with_capacity(len);
-                write_header(
-                    &self.header,
-                    chunks.len().min(usize::from(u16::MAX)) as u16,
-                    &mut out,
-                );
-                for c in chunks {
-                    out.extend_from_slice(c);
-                }
-                Message::Binary(Bytes::from(out))
-            }
-            Encoding::Json => {
-                // Written by hand around pre-serialised avatar objects: the same text as
-                // serde_json gives for `ServerMsg::Frame`.
-                let scene = serde_json::to_string(scene).unwrap_or_else(|_| "\"\"".into());
-                let mut out = format!(
-                    r#"{{"type":"frame","scene":{scene},"seq":{},"server_time_us":{},"avatars":["#,
-                    self.header.seq, self.header.server_time_us
-                );
-                let mut first = true;
-                for p in self.pieces.iter().filter(|p| keep(&p.0)) {
-                    if !first {
-                        out.push(',');
-                    }
-                    first = false;
-                    out.push_str(&p.2);
-                }
-                out.push_str("]}");
-                Message::Text(Utf8Bytes::from(out))
-            }
-        }
-    }
-}
-
 /// What a scene holds, behind its lock.
 #[derive(Debug)]
 pub struct SceneState {
@@ -111,10 +57,14 @@ pub struct SceneState {
     seq: u64,
     /// The scene clock (seconds) at the last tick; avatars added later start on it.
     clock: f64,
+    /// Server time of the last tick, µs since the Unix epoch.
+    time_us: u64,
     last_key_seq: Option<u64>,
     force_key: bool,
     last_key: Option<Published>,
     last_delta: Option<Published>,
+    /// Each avatar's description message, serialised once and shared by every subscriber.
+    descriptions: HashMap<AvatarId, (Arc<AvatarDescription>, Message)>,
 }
 
 impl SceneState {
@@ -149,10 +99,12 @@ impl Scene {
                 subscribers: Vec::new(),
                 seq: 0,
                 clock: 0.0,
+                time_us: 0,
                 last_key_seq: None,
                 force_key: true,
                 last_key: None,
                 last_delta: None,
+                descriptions: HashMap::new(),
             }),
             stopped: AtomicBool::new(false),
             stop: Notify::new(),
@@ -201,10 +153,7 @@ impl Scene {
                 format!("scene {} already has avatar {}", self.id, avatar.id),
             ));
         }
-        let msg = text(&ServerMsg::Description {
-            scene: self.id.clone(),
-            avatar: Box::new((*avatar.description).clone()),
-        });
+        let msg = description_message(&self.id, &mut s.descriptions, &avatar.description);
         for sub in s.subscribers.iter().filter(|sub| sub.wants(&avatar.id)) {
             sub.outbox.push_control(msg.clone());
         }
@@ -218,6 +167,7 @@ impl Scene {
         let mut s = self.lock();
         let index = s.avatars.iter().position(|a| &a.id == id)?;
         let avatar = s.avatars.remove(index);
+        s.descriptions.remove(id);
         let msg = text(&ServerMsg::AvatarRemoved {
             scene: self.id.clone(),
             avatar: id.clone(),
@@ -230,13 +180,17 @@ impl Scene {
     }
 
     /// Subscribes a connection (replacing its previous subscription to this scene). It gets,
-    /// in order: `subscribed`, every covered avatar's description, then at once the scene's last
-    /// keyframe and the newest delta after it — the current pose, before the next tick.
+    /// in order: `subscribed`, every covered avatar's description, then at once a keyframe
+    /// holding every one of them — the current pose, before the next tick: the scene's cached
+    /// last keyframe and the newest delta after it, or, when avatars were added, removed or
+    /// changed since that keyframe, one made now from their current poses. (Before the scene's
+    /// first tick there is none; that tick is a keyframe of every avatar.)
     ///
     /// # Errors
     /// [`ErrorCode::UnknownAvatar`] when the filter names an avatar not in the scene.
     pub fn subscribe(&self, sub: Subscriber) -> Result<(), ProtocolError> {
-        let mut s = self.lock();
+        let mut guard = self.lock();
+        let s = &mut *guard;
         if let Some(filter) = &sub.filter
             && let Some(missing) = filter
                 .iter()
@@ -253,14 +207,33 @@ impl Scene {
             scene: self.id.clone(),
             scene_num: self.num,
         }));
-        for a in s.avatars.iter().filter(|a| sub.wants(&a.id)) {
-            sub.outbox.push_control(text(&ServerMsg::Description {
-                scene: self.id.clone(),
-                avatar: Box::new((*a.description).clone()),
-            }));
-        }
+        // Exempt from the outbox's stall bound: a scene of many avatars is not a slow client.
+        let descriptions: Vec<Message> = s
+            .avatars
+            .iter()
+            .filter(|a| sub.wants(&a.id))
+            .map(|a| description_message(&self.id, &mut s.descriptions, &a.description))
+            .collect();
+        sub.outbox.push_snapshot(self.num, descriptions);
+        self.first_frames(s, &sub);
+        s.subscribers.push(sub);
+        Ok(())
+    }
+
+    /// Hands a new subscriber its first frames (see [`Scene::subscribe`]).
+    fn first_frames(&self, s: &mut SceneState, sub: &Subscriber) {
         let filter = sub.filter.as_deref();
-        if let Some(key) = &s.last_key {
+        let json = sub.encoding == Encoding::Json;
+        let Some(key) = &mut s.last_key else {
+            return;
+        };
+        let wanted = s.avatars.iter().filter(|a| sub.wants(&a.id));
+        if key.covers(wanted, |id| sub.wants(id)) {
+            if json {
+                let mut made = key.ensure_json();
+                made += s.last_delta.as_mut().map_or(0, Published::ensure_json);
+                self.metrics.json_encoded(made);
+            }
             let message = key.message(&self.id, sub.encoding, filter);
             sub.outbox
                 .push_frame(self.num, OutFrame { message, key: true });
@@ -274,9 +247,37 @@ impl Scene {
                     },
                 );
             }
+            return;
         }
-        s.subscribers.push(sub);
-        Ok(())
+        // The cached keyframe predates a change of avatars: a keyframe of the current poses, for
+        // this subscriber only, labelled with the last tick.
+        let pieces: Vec<Piece> = s
+            .avatars
+            .iter_mut()
+            .filter(|a| sub.wants(&a.id))
+            .map(|a| Piece::fresh_key(a, json))
+            .collect();
+        if json {
+            self.metrics.json_encoded(pieces.len() as u64);
+        } else {
+            // The next tick's deltas would refer to the scene's keyframe, which this subscriber
+            // never got: make the next tick a keyframe. (A change of avatars already forces one;
+            // this keeps it so whatever the reason the cache was stale.)
+            s.force_key = true;
+        }
+        let fresh = Published {
+            header: FrameHeader {
+                kind: FrameKind::Key,
+                scene_num: self.num,
+                seq: s.seq,
+                server_time_us: s.time_us,
+                base_seq: s.seq,
+            },
+            pieces,
+        };
+        let message = fresh.message(&self.id, sub.encoding, filter);
+        sub.outbox
+            .push_frame(self.num, OutFrame { message, key: true });
     }
 
     /// Ends a connection's subscription. Returns whether it had one.
@@ -318,6 +319,7 @@ impl Scene {
         let s = &mut *guard;
         s.seq = seq;
         s.clock = clock;
+        s.time_us = server_time_us;
         let key = s.force_key
             || s.last_key_seq
                 .is_none_or(|k| seq.saturating_sub(k) >= key_interval)
@@ -340,20 +342,19 @@ impl Scene {
                 s.last_key_seq.unwrap_or(seq)
             },
         };
+        // JSON only while someone reads it; a JSON late joiner gets it made from the cached
+        // poses (`first_frames`).
+        let json = s
+            .subscribers
+            .iter()
+            .any(|sub| sub.encoding == Encoding::Json);
         let mut pieces = Vec::with_capacity(s.avatars.len());
         for a in &mut s.avatars {
             a.tick(clock);
-            let mut chunk = Vec::with_capacity(32 + 6 * a.pose().rotations.len());
-            a.encoder.encode(&a.pose, kind, &mut chunk);
-            let json = serde_json::to_string(&AvatarPoseJson {
-                avatar: a.id.clone(),
-                hash: a.description.hash.clone(),
-                rotations: a.pose.rotations.iter().map(|q| q.to_array()).collect(),
-                translations: a.pose.translations.iter().map(|t| t.to_array()).collect(),
-                scales: a.pose.scales.iter().map(|t| t.to_array()).collect(),
-            })
-            .unwrap_or_default();
-            pieces.push((a.id.clone(), Bytes::from(chunk), json));
+            pieces.push(Piece::encode(a, kind, json));
+        }
+        if json {
+            self.metrics.json_encoded(pieces.len() as u64);
         }
         let published = Published { header, pieces };
         // Encode once per (encoding, filter); with no filters that is once per encoding.
@@ -390,12 +391,26 @@ impl Scene {
     }
 }
 
-fn message_len(m: &Message) -> usize {
-    match m {
-        Message::Binary(b) => b.len(),
-        Message::Text(t) => t.len(),
-        _ => 0,
+/// An avatar's description message, from the cache while the description is the same one.
+fn description_message(
+    scene: &SceneId,
+    cache: &mut HashMap<AvatarId, (Arc<AvatarDescription>, Message)>,
+    description: &Arc<AvatarDescription>,
+) -> Message {
+    if let Some((d, m)) = cache.get(&description.id)
+        && Arc::ptr_eq(d, description)
+    {
+        return m.clone();
     }
+    let message = text(&ServerMsg::Description {
+        scene: scene.clone(),
+        avatar: Box::new((**description).clone()),
+    });
+    cache.insert(
+        description.id.clone(),
+        (description.clone(), message.clone()),
+    );
+    message
 }
 
 /// A server message as a websocket text message.

@@ -8,9 +8,10 @@ use crate::control;
 use crate::scene::ticker::unix_micros;
 use crate::scene::{Subscriber, text};
 use crate::state::AppState;
-use crate::stream::outbox::{Next, Outbox};
-use axum::extract::ws::{CloseFrame, Message, WebSocket, close_code};
-use futures_util::{SinkExt, StreamExt};
+use crate::stream::outbox::Outbox;
+use crate::stream::writer::run_writer;
+use axum::extract::ws::{Message, WebSocket};
+use futures_util::StreamExt;
 use posecast_proto::msg::{
     ClientMsg, Encoding, ErrorCode, MAX_CLIENT_MESSAGE_BYTES, PROTOCOL_VERSION, ProtocolError,
     SceneId, ServerMsg,
@@ -25,50 +26,11 @@ pub async fn serve(socket: WebSocket, state: Arc<AppState>) {
     let span = info_span!("ws", conn, caller = tracing::field::Empty);
     async move {
         state.metrics.connection_opened();
-        let (mut sink, mut stream) = socket.split();
+        let (sink, mut stream) = socket.split();
         let writer = {
             let outbox = outbox.clone();
             let metrics = state.metrics.clone();
-            tokio::spawn(async move {
-                loop {
-                    match outbox.next().await {
-                        Next::Send(messages) => {
-                            let count = messages.len() as u64;
-                            let mut bytes = 0u64;
-                            for m in messages {
-                                bytes += match &m {
-                                    Message::Binary(b) => b.len() as u64,
-                                    Message::Text(t) => t.len() as u64,
-                                    _ => 0,
-                                };
-                                if sink.feed(m).await.is_err() {
-                                    return;
-                                }
-                            }
-                            if sink.flush().await.is_err() {
-                                return;
-                            }
-                            metrics.sent(count, bytes);
-                        }
-                        Next::Close { overflowed } => {
-                            let frame = if overflowed {
-                                CloseFrame {
-                                    code: close_code::POLICY,
-                                    reason: "client is not reading".into(),
-                                }
-                            } else {
-                                CloseFrame {
-                                    code: close_code::NORMAL,
-                                    reason: "bye".into(),
-                                }
-                            };
-                            // The peer may already be gone; there is nothing left to do then.
-                            sink.send(Message::Close(Some(frame))).await.ok();
-                            return;
-                        }
-                    }
-                }
-            })
+            tokio::spawn(async move { run_writer(&outbox, sink, &metrics).await })
         };
         let mut session = Session {
             conn,

@@ -1,7 +1,14 @@
 //! A connection's outbox: what the writer task sends next, bounded whatever the client does.
 //!
-//! Control messages (welcome, descriptions, acks, errors, pongs) queue in order up to
-//! [`MAX_CONTROL`]; a client that lets that many pile up is not reading and is disconnected.
+//! Control messages (welcome, descriptions, acks, errors, pongs) queue in order, bounded in
+//! **bytes** by [`MAX_CONTROL_BYTES`]: a client that lets that much pile up is not reading and
+//! is disconnected. A subscription's own descriptions (queued by [`Outbox::push_snapshot`]) do
+//! not count towards that bound: a scene of 1,000 avatars sends ~5 MB of them at once to a
+//! client that has done nothing wrong. They are bounded another way — one pending snapshot per
+//! subscribed scene (a new subscription to the scene, or leaving it, drops the unsent one), so
+//! they never exceed one description per avatar the client can watch, and the bytes are the
+//! scene's cached description messages, shared by every subscriber.
+//!
 //! Pose frames do not queue: each subscribed scene has one slot holding at most the newest
 //! keyframe not yet sent and the newest frame after it, so a slow reader gets the newest pose,
 //! never a growing backlog, and never a delta whose keyframe it lacks. Everything sits behind one
@@ -14,8 +21,15 @@ use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
 use tokio::sync::Notify;
 
-/// Control messages a connection may have waiting before it counts as stalled.
-pub const MAX_CONTROL: usize = 256;
+/// Bytes of control messages a connection may have waiting before it counts as stalled.
+///
+/// Why 4 MiB: it comes on top of the kernel's socket buffers (a few MiB more on Linux), so a
+/// client is only closed once it is ~8 MiB of acks, errors, pongs and live scene changes behind
+/// — far more than a reading client ever has waiting (the writer takes everything queued each
+/// time it wakes), yet small enough that a few thousand stalled connections cannot exhaust the
+/// server's memory. Frames are not counted (they replace each other), nor are a subscription's
+/// own descriptions (see the module docs).
+pub const MAX_CONTROL_BYTES: usize = 4 << 20;
 
 /// A frame handed to a subscriber.
 #[derive(Debug, Clone)]
@@ -32,12 +46,38 @@ struct Slot {
     latest: Option<OutFrame>,
 }
 
+#[derive(Debug)]
+struct Queued {
+    message: Message,
+    bytes: usize,
+    /// The scene whose subscription snapshot this belongs to (exempt from the byte bound).
+    snapshot: Option<u32>,
+}
+
 #[derive(Debug, Default)]
 struct State {
-    control: VecDeque<Message>,
+    control: VecDeque<Queued>,
+    /// Bytes of queued control messages that count towards [`MAX_CONTROL_BYTES`].
+    control_bytes: usize,
+    /// Bytes of queued subscription snapshots (not counted).
+    snapshot_bytes: usize,
     frames: BTreeMap<u32, Slot>,
     closed: bool,
     overflowed: bool,
+}
+
+impl State {
+    fn drop_snapshot(&mut self, scene_num: u32) {
+        let mut freed = 0;
+        self.control.retain(|q| {
+            let keep = q.snapshot != Some(scene_num);
+            if !keep {
+                freed += q.bytes;
+            }
+            keep
+        });
+        self.snapshot_bytes -= freed;
+    }
 }
 
 /// One connection's pending output.
@@ -60,6 +100,17 @@ pub enum Next {
     },
 }
 
+/// Payload bytes of a websocket message.
+#[must_use]
+pub fn message_len(m: &Message) -> usize {
+    match m {
+        Message::Binary(b) => b.len(),
+        Message::Text(t) => t.len(),
+        Message::Ping(b) | Message::Pong(b) => b.len(),
+        Message::Close(c) => c.as_ref().map_or(0, |c| 2 + c.reason.len()),
+    }
+}
+
 impl Outbox {
     /// An empty outbox.
     #[must_use]
@@ -76,20 +127,61 @@ impl Outbox {
     }
 
     /// Queues a control message. Returns `false` (and marks the outbox overflowed, which makes
-    /// the writer close the connection) when [`MAX_CONTROL`] are already waiting.
+    /// the writer close the connection) when it would take the counted control bytes past
+    /// [`MAX_CONTROL_BYTES`]. A single message larger than the bound is still queued when
+    /// nothing counted is waiting: the server made it, and a reading client gets it.
     pub fn push_control(&self, message: Message) -> bool {
+        let bytes = message_len(&message);
         let mut s = self.lock();
         if s.closed {
             return false;
         }
-        if s.control.len() >= MAX_CONTROL {
+        if s.control_bytes > 0 && s.control_bytes + bytes > MAX_CONTROL_BYTES {
             s.overflowed = true;
             s.closed = true;
+            // Nothing queued will be sent: free it now rather than when the connection ends.
+            s.control.clear();
+            s.frames.clear();
+            s.control_bytes = 0;
+            s.snapshot_bytes = 0;
             drop(s);
             self.notify.notify_one();
             return false;
         }
-        s.control.push_back(message);
+        s.control_bytes += bytes;
+        s.control.push_back(Queued {
+            message,
+            bytes,
+            snapshot: None,
+        });
+        drop(s);
+        self.notify.notify_one();
+        true
+    }
+
+    /// Queues the descriptions a new subscription to scene `scene_num` starts with. They do
+    /// not count towards [`MAX_CONTROL_BYTES`] (a big scene is not a stalled client); an unsent
+    /// earlier snapshot of the same scene is dropped first, so at most one per scene waits.
+    /// Returns `false` when the outbox is closed.
+    pub fn push_snapshot(
+        &self,
+        scene_num: u32,
+        messages: impl IntoIterator<Item = Message>,
+    ) -> bool {
+        let mut s = self.lock();
+        if s.closed {
+            return false;
+        }
+        s.drop_snapshot(scene_num);
+        for message in messages {
+            let bytes = message_len(&message);
+            s.snapshot_bytes += bytes;
+            s.control.push_back(Queued {
+                message,
+                bytes,
+                snapshot: Some(scene_num),
+            });
+        }
         drop(s);
         self.notify.notify_one();
         true
@@ -118,9 +210,12 @@ impl Outbox {
         self.notify.notify_one();
     }
 
-    /// Forgets pending frames of a scene (on unsubscribe).
+    /// Forgets what is pending for a scene: its frames and its unsent subscription snapshot
+    /// (on unsubscribe, or before a new subscription to it).
     pub fn clear_scene(&self, scene_num: u32) {
-        self.lock().frames.remove(&scene_num);
+        let mut s = self.lock();
+        s.frames.remove(&scene_num);
+        s.drop_snapshot(scene_num);
     }
 
     /// Frames waiting to be sent (at most two per subscribed scene, whatever the client does).
@@ -133,10 +228,28 @@ impl Outbox {
             .sum()
     }
 
+    /// Bytes of control messages waiting that count towards [`MAX_CONTROL_BYTES`] (never more).
+    #[must_use]
+    pub fn control_bytes(&self) -> usize {
+        self.lock().control_bytes
+    }
+
+    /// Bytes of subscription descriptions waiting (not counted towards the bound).
+    #[must_use]
+    pub fn snapshot_bytes(&self) -> usize {
+        self.lock().snapshot_bytes
+    }
+
     /// Frames replaced before the writer could send them (the client read too slowly).
     #[must_use]
     pub fn dropped_frames(&self) -> u64 {
         self.dropped.load(Ordering::Relaxed)
+    }
+
+    /// Whether the outbox closed because the client stopped reading.
+    #[must_use]
+    pub fn overflowed(&self) -> bool {
+        self.lock().overflowed
     }
 
     /// Marks the outbox closed: the writer sends a close frame and stops.
@@ -155,7 +268,7 @@ impl Outbox {
                     // A normal close still delivers what was queued before it (e.g. the error
                     // that explains the close); an overflowed client gets only the close.
                     if !s.overflowed && !s.control.is_empty() {
-                        return Next::Send(s.control.drain(..).collect());
+                        return Next::Send(take_control(&mut s));
                     }
                     return Next::Close {
                         overflowed: s.overflowed,
@@ -166,7 +279,7 @@ impl Outbox {
                         .values()
                         .any(|f| f.key.is_some() || f.latest.is_some())
                 {
-                    let mut out: Vec<Message> = s.control.drain(..).collect();
+                    let mut out = take_control(&mut s);
                     for slot in s.frames.values_mut() {
                         out.extend(slot.key.take().map(|f| f.message));
                         out.extend(slot.latest.take().map(|f| f.message));
@@ -179,6 +292,12 @@ impl Outbox {
     }
 }
 
+fn take_control(s: &mut State) -> Vec<Message> {
+    s.control_bytes = 0;
+    s.snapshot_bytes = 0;
+    s.control.drain(..).map(|q| q.message).collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -189,6 +308,10 @@ mod tests {
             message: Message::Binary(Bytes::from(vec![byte])),
             key,
         }
+    }
+
+    fn text(len: usize) -> Message {
+        Message::Text("x".repeat(len).into())
     }
 
     fn bytes(next: Next) -> Vec<u8> {
@@ -223,12 +346,89 @@ mod tests {
     }
 
     #[tokio::test]
-    async fn control_overflow_closes() {
+    async fn control_is_bounded_in_bytes_not_messages() {
         let o = Outbox::new();
-        for _ in 0..MAX_CONTROL {
-            assert!(o.push_control(Message::Text("x".into())));
+        // Many small messages are fine while their bytes stay under the bound (the old bound
+        // was 256 messages)...
+        for _ in 0..10_000 {
+            assert!(o.push_control(text(100)));
         }
-        assert!(!o.push_control(Message::Text("x".into())));
+        assert_eq!(o.control_bytes(), 1_000_000);
+        // ...and the writer taking them resets the count.
+        assert!(matches!(o.next().await, Next::Send(m) if m.len() == 10_000));
+        assert_eq!(o.control_bytes(), 0);
+        // Up to exactly the bound, then one byte more overflows.
+        let chunk = 64 << 10;
+        for _ in 0..MAX_CONTROL_BYTES / chunk {
+            assert!(o.push_control(text(chunk)));
+        }
+        assert_eq!(o.control_bytes(), MAX_CONTROL_BYTES);
+        assert!(!o.overflowed());
+        assert!(!o.push_control(text(1)));
+        assert!(o.overflowed());
+        // Overflow frees what was queued and tells the writer to close, nothing else.
+        assert_eq!(o.control_bytes(), 0);
         assert!(matches!(o.next().await, Next::Close { overflowed: true }));
+        assert!(!o.push_control(text(1)));
+    }
+
+    #[tokio::test]
+    async fn one_message_larger_than_the_bound_still_goes_to_a_reading_client() {
+        let o = Outbox::new();
+        assert!(o.push_control(text(MAX_CONTROL_BYTES + 1)));
+        assert!(matches!(o.next().await, Next::Send(m) if m.len() == 1));
+        assert!(o.push_control(text(MAX_CONTROL_BYTES + 1)));
+        assert!(
+            !o.push_control(text(1)),
+            "a second one while it waits overflows"
+        );
+    }
+
+    #[tokio::test]
+    async fn a_snapshot_is_exempt_but_one_per_scene_and_a_stalled_client_still_overflows() {
+        let o = Outbox::new();
+        let big = MAX_CONTROL_BYTES / 4;
+        // A subscription's descriptions far past the bound: not a stall.
+        assert!(o.push_snapshot(7, (0..10).map(|_| text(big))));
+        assert_eq!(o.snapshot_bytes(), 10 * big);
+        assert_eq!(o.control_bytes(), 0);
+        // Subscribing to the scene again replaces the unsent snapshot instead of adding to it.
+        assert!(o.push_snapshot(7, (0..10).map(|_| text(big))));
+        assert_eq!(o.snapshot_bytes(), 10 * big);
+        // Another scene has its own.
+        assert!(o.push_snapshot(8, [text(5)]));
+        assert_eq!(o.snapshot_bytes(), 10 * big + 5);
+        // Leaving a scene drops its unsent descriptions.
+        o.clear_scene(7);
+        assert_eq!(o.snapshot_bytes(), 5);
+        // Counted messages still overflow at the bound, snapshot or not.
+        assert!(o.push_snapshot(7, (0..10).map(|_| text(big))));
+        for _ in 0..4 {
+            assert!(o.push_control(text(big)));
+        }
+        assert!(!o.push_control(text(1)));
+        assert!(matches!(o.next().await, Next::Close { overflowed: true }));
+    }
+
+    #[tokio::test]
+    async fn snapshots_keep_their_place_in_the_control_order() {
+        let o = Outbox::new();
+        assert!(o.push_control(Message::Text("subscribed".into())));
+        assert!(o.push_snapshot(1, [Message::Text("d1".into()), Message::Text("d2".into())]));
+        assert!(o.push_control(Message::Text("ack".into())));
+        o.push_frame(1, frame(9, true));
+        let Next::Send(m) = o.next().await else {
+            panic!("expected messages")
+        };
+        let order: Vec<String> = m
+            .iter()
+            .map(|m| match m {
+                Message::Text(t) => t.to_string(),
+                Message::Binary(b) => format!("frame {}", b[0]),
+                _ => String::new(),
+            })
+            .collect();
+        assert_eq!(order, ["subscribed", "d1", "d2", "ack", "frame 9"]);
+        assert_eq!(o.snapshot_bytes(), 0);
     }
 }

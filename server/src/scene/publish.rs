@@ -1,0 +1,177 @@
+//! A frame as published: one piece per avatar, so subscribers limited to some avatars get the
+//! same bytes reassembled, in either encoding.
+//!
+//! The binary chunk of every avatar is encoded each tick (every binary subscriber, and the
+//! delta encoder's keyframe, need it). The JSON object is not: serialising floats as text costs
+//! about a third of a tick, so it is written only while some subscriber uses JSON. Otherwise the
+//! piece keeps the pose, and a JSON late joiner served from the cached frames gets its JSON
+//! made then ([`Published::ensure_json`]) — the same text the tick would have written.
+
+use super::avatar::Avatar;
+use axum::extract::ws::{Message, Utf8Bytes};
+use bytes::Bytes;
+use posecast_proto::description::AvatarDescription;
+use posecast_proto::frame::AvatarPose;
+use posecast_proto::frame::{ChunkEncoder, FrameHeader, FrameKind, HEADER_BYTES, write_header};
+use posecast_proto::msg::{AvatarId, AvatarPoseJson, Encoding, SceneId};
+use std::borrow::Cow;
+use std::sync::Arc;
+
+/// An avatar's pose as JSON, or the pose to write it from when somebody asks.
+#[derive(Debug)]
+enum Json {
+    Encoded(String),
+    Pending(AvatarPose),
+}
+
+/// One avatar's part of a frame.
+#[derive(Debug)]
+pub(super) struct Piece {
+    /// The description the pose belongs to (its id, number and hash).
+    description: Arc<AvatarDescription>,
+    chunk: Bytes,
+    json: Json,
+}
+
+impl Piece {
+    /// The avatar's chunk for the frame being ticked, through its own encoder (which keeps a
+    /// keyframe chunk as the reference for the deltas after it), and its JSON object if `json`.
+    pub(super) fn encode(a: &mut Avatar, kind: FrameKind, json: bool) -> Self {
+        let mut chunk = Vec::with_capacity(32 + 6 * a.pose.rotations.len());
+        a.encoder.encode(&a.pose, kind, &mut chunk);
+        Self::new(a, chunk, json)
+    }
+
+    /// A keyframe chunk of the avatar's current pose for one joiner. A fresh encoder, so the
+    /// avatar's own — what every other subscriber's deltas refer to — is left alone.
+    pub(super) fn fresh_key(a: &mut Avatar, json: bool) -> Self {
+        if a.pose.rotations.len() != a.description.joint_names.len() {
+            // Added without a clip and not ticked yet: its pose was never evaluated.
+            a.evaluate();
+        }
+        let mut chunk = Vec::with_capacity(32 + 6 * a.pose.rotations.len());
+        ChunkEncoder::new().encode(&a.pose, FrameKind::Key, &mut chunk);
+        Self::new(a, chunk, json)
+    }
+
+    fn new(a: &Avatar, chunk: Vec<u8>, json: bool) -> Self {
+        let json = if json {
+            Json::Encoded(pose_json(&a.description, &a.pose))
+        } else {
+            Json::Pending(a.pose.clone())
+        };
+        Self {
+            description: a.description.clone(),
+            chunk: Bytes::from(chunk),
+            json,
+        }
+    }
+
+    fn id(&self) -> &AvatarId {
+        &self.description.id
+    }
+
+    fn json(&self) -> Cow<'_, str> {
+        match &self.json {
+            Json::Encoded(s) => Cow::Borrowed(s),
+            Json::Pending(pose) => Cow::Owned(pose_json(&self.description, pose)),
+        }
+    }
+}
+
+fn pose_json(d: &AvatarDescription, pose: &AvatarPose) -> String {
+    // Serialising this type cannot fail (strings and float arrays; non-finite floats become
+    // null); an empty object keeps the frame valid JSON if that ever changes.
+    serde_json::to_string(&AvatarPoseJson {
+        avatar: d.id.clone(),
+        hash: d.hash.clone(),
+        rotations: pose.rotations.iter().map(|q| q.to_array()).collect(),
+        translations: pose.translations.iter().map(|t| t.to_array()).collect(),
+        scales: pose.scales.iter().map(|t| t.to_array()).collect(),
+    })
+    .unwrap_or_else(|_| "{}".into())
+}
+
+/// A frame as published.
+#[derive(Debug)]
+pub(super) struct Published {
+    pub(super) header: FrameHeader,
+    pub(super) pieces: Vec<Piece>,
+}
+
+impl Published {
+    /// Writes the JSON objects not written yet (kept for later joiners). Returns how many.
+    pub(super) fn ensure_json(&mut self) -> u64 {
+        let mut n = 0;
+        for p in &mut self.pieces {
+            if let Json::Pending(pose) = &p.json {
+                p.json = Json::Encoded(pose_json(&p.description, pose));
+                n += 1;
+            }
+        }
+        n
+    }
+
+    /// Whether the frame holds a piece for exactly these avatars (in scene order, the order
+    /// pieces are made in) with their current descriptions — and so may be sent to a joiner
+    /// who has just received those descriptions. Pieces of avatars `wants` rejects are ignored.
+    pub(super) fn covers<'a>(
+        &self,
+        mut avatars: impl Iterator<Item = &'a Avatar>,
+        wants: impl Fn(&AvatarId) -> bool,
+    ) -> bool {
+        let mut pieces = self.pieces.iter().filter(|p| wants(p.id()));
+        loop {
+            match (avatars.next(), pieces.next()) {
+                (None, None) => return true,
+                (Some(a), Some(p)) if Arc::ptr_eq(&a.description, &p.description) => {}
+                _ => return false,
+            }
+        }
+    }
+
+    /// The frame as one websocket message, with only the avatars `filter` names (all when
+    /// `None`).
+    pub(super) fn message(
+        &self,
+        scene: &SceneId,
+        encoding: Encoding,
+        filter: Option<&[AvatarId]>,
+    ) -> Message {
+        let keep = |p: &&Piece| filter.is_none_or(|f| f.contains(p.id()));
+        match encoding {
+            Encoding::Binary => {
+                let chunks: Vec<&Bytes> =
+                    self.pieces.iter().filter(keep).map(|p| &p.chunk).collect();
+                let len = HEADER_BYTES + chunks.iter().map(|c| c.len()).sum::<usize>();
+                let mut out = Vec::with_capacity(len);
+                write_header(
+                    &self.header,
+                    chunks.len().min(usize::from(u16::MAX)) as u16,
+                    &mut out,
+                );
+                for c in chunks {
+                    out.extend_from_slice(c);
+                }
+                Message::Binary(Bytes::from(out))
+            }
+            Encoding::Json => {
+                // Written by hand around pre-serialised avatar objects: the same text as
+                // serde_json gives for `ServerMsg::Frame`.
+                let scene = serde_json::to_string(scene).unwrap_or_else(|_| "\"\"".into());
+                let mut out = format!(
+                    r#"{{"type":"frame","scene":{scene},"seq":{},"server_time_us":{},"avatars":["#,
+                    self.header.seq, self.header.server_time_us
+                );
+                for (i, p) in self.pieces.iter().filter(keep).enumerate() {
+                    if i > 0 {
+                        out.push(',');
+                    }
+                    out.push_str(&p.json());
+                }
+                out.push_str("]}");
+                Message::Text(Utf8Bytes::from(out))
+            }
+        }
+    }
+}
