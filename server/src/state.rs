@@ -67,6 +67,9 @@ pub struct AppState {
     next_avatar_num: AtomicU32,
     next_conn: AtomicU64,
     connections: Mutex<HashMap<u64, Weak<Outbox>>>,
+    /// Held from the "is this avatar id free?" check to the insertion, so two scenes cannot
+    /// both take one id.
+    avatar_ids: Mutex<()>,
     /// The data folder (or none) and the lock ordering writes to it.
     pub store: Store,
 }
@@ -106,6 +109,7 @@ impl AppState {
             next_avatar_num: AtomicU32::new(1),
             next_conn: AtomicU64::new(1),
             connections: Mutex::new(HashMap::new()),
+            avatar_ids: Mutex::new(()),
             store: Store::new(config.data_dir.clone()),
             config,
         })
@@ -234,13 +238,20 @@ impl AppState {
         let num = self.next_avatar_num.fetch_add(1, Ordering::Relaxed);
         let id = id.unwrap_or_else(|| AvatarId(format!("{}-{num}", rig.name)));
         check_id("avatar", &id.0)?;
+        let avatar = Avatar::new(id.clone(), num, rig);
+        // Ids are unique across scenes, and each scene checks only its own: the check of every
+        // scene and the insertion must not interleave with another add.
+        let _adding = self
+            .avatar_ids
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
         if self.find_avatar(&id).is_ok() {
             return Err(ProtocolError::new(
                 ErrorCode::Conflict,
                 format!("avatar {id} exists"),
             ));
         }
-        scene.add_avatar(Avatar::new(id.clone(), num, rig))?;
+        scene.add_avatar(avatar)?;
         Ok((scene, id))
     }
 
@@ -261,5 +272,61 @@ impl AppState {
             scene.shut();
         }
         self.close_connections();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::startup::{BUILTIN_ASSET, builtin_rig};
+
+    /// Many adds of one id into different scenes at the same moment: exactly one wins, every
+    /// other one is a conflict, and the id ends up in one scene only.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn concurrent_adds_of_one_avatar_id_into_different_scenes_take_it_once() {
+        const SCENES: usize = 8;
+        let state = AppState::new(Config {
+            tick_rate: 1.0,
+            ..Config::default()
+        });
+        state.library.insert(builtin_rig().unwrap());
+        let scene = |i: usize| SceneId(format!("s{i}"));
+        for i in 0..SCENES {
+            state.create_scene(scene(i)).unwrap();
+        }
+        for round in 0..40 {
+            let id = AvatarId(format!("racer-{round}"));
+            let barrier = Arc::new(std::sync::Barrier::new(SCENES));
+            let threads: Vec<_> = (0..SCENES)
+                .map(|i| {
+                    let (state, id, barrier) = (state.clone(), id.clone(), barrier.clone());
+                    std::thread::spawn(move || {
+                        barrier.wait();
+                        state
+                            .add_avatar(&scene(i), BUILTIN_ASSET, Some(id))
+                            .map(|_| ())
+                    })
+                })
+                .collect();
+            let results: Vec<_> = threads.into_iter().map(|t| t.join().unwrap()).collect();
+            let won = results.iter().filter(|r| r.is_ok()).count();
+            assert_eq!(won, 1, "round {round}: {results:?}");
+            assert!(
+                results
+                    .iter()
+                    .filter_map(|r| r.as_ref().err())
+                    .all(|e| e.code == ErrorCode::Conflict),
+                "{results:?}"
+            );
+            let holders = state
+                .scenes()
+                .iter()
+                .filter(|s| s.lock().avatars.iter().any(|a| a.id == id))
+                .count();
+            assert_eq!(holders, 1, "round {round}");
+        }
+        for s in state.scenes() {
+            s.shut();
+        }
     }
 }
