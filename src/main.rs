@@ -8,6 +8,7 @@ use posecast_server::startup::{DEFAULT_SCENE, Server};
 use posecast_server::state::{Config, DEFAULT_MAX_UPLOAD_BYTES};
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::time::Duration;
 
 /// posecast: a network animation server for virtual humans.
 #[derive(Debug, Parser)]
@@ -57,6 +58,22 @@ struct Args {
     /// Largest upload request body, bytes.
     #[arg(long, env = "POSECAST_MAX_UPLOAD_BYTES", default_value_t = DEFAULT_MAX_UPLOAD_BYTES)]
     max_upload_bytes: usize,
+    /// On SIGINT/SIGTERM, seconds to wait at most for HTTP requests to finish and every
+    /// websocket's close frame (1001) to go out before exiting.
+    #[arg(long, env = "POSECAST_SHUTDOWN_DRAIN", default_value = "2", value_parser = seconds)]
+    shutdown_drain: Duration,
+}
+
+/// A duration in seconds, 0 to 3600 (fractions allowed).
+fn seconds(text: &str) -> Result<Duration, String> {
+    let s: f64 = text
+        .parse()
+        .map_err(|_| format!("{text:?} is not a number of seconds"))?;
+    if (0.0..=3600.0).contains(&s) {
+        Ok(Duration::from_secs_f64(s))
+    } else {
+        Err(format!("{text} s is not between 0 and 3600"))
+    }
 }
 
 /// The access rules from the file and flags, and a generated control token when none is
@@ -120,6 +137,7 @@ async fn main() -> anyhow::Result<()> {
         access,
         data_dir: (!args.no_persist).then_some(args.data),
         max_upload_bytes: args.max_upload_bytes,
+        shutdown_drain: args.shutdown_drain,
     };
     let mut server = Server::start(config).await?;
     let shutdown = server.take_shutdown();

@@ -15,6 +15,8 @@ use std::path::PathBuf;
 use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
 use std::sync::{Mutex, Weak};
+use std::time::Duration;
+use tokio::sync::Notify;
 
 /// How the server runs (built by `main` from flags and environment).
 #[derive(Debug, Clone)]
@@ -34,10 +36,20 @@ pub struct Config {
     pub data_dir: Option<PathBuf>,
     /// Largest upload request body, bytes.
     pub max_upload_bytes: usize,
+    /// How long a graceful shutdown waits, at most, for HTTP requests to finish and for every
+    /// websocket's close frame to be sent (and answered) before the server stops regardless.
+    pub shutdown_drain: Duration,
 }
 
 /// Default [`Config::max_upload_bytes`]: 32 MiB.
 pub const DEFAULT_MAX_UPLOAD_BYTES: usize = 32 << 20;
+
+/// Default [`Config::shutdown_drain`]: 2 s.
+pub const DEFAULT_SHUTDOWN_DRAIN: Duration = Duration::from_secs(2);
+
+/// Close code of every websocket at server shutdown (RFC 6455 1001, Going Away).
+pub const CLOSE_GOING_AWAY: u16 = 1001;
+const GOING_AWAY_REASON: &str = "server shutting down";
 
 impl Default for Config {
     fn default() -> Self {
@@ -49,6 +61,7 @@ impl Default for Config {
             access: AccessConfig::default(),
             data_dir: None,
             max_upload_bytes: DEFAULT_MAX_UPLOAD_BYTES,
+            shutdown_drain: DEFAULT_SHUTDOWN_DRAIN,
         }
     }
 }
@@ -66,12 +79,22 @@ pub struct AppState {
     next_scene_num: AtomicU32,
     next_avatar_num: AtomicU32,
     next_conn: AtomicU64,
-    connections: Mutex<HashMap<u64, Weak<Outbox>>>,
+    connections: Mutex<Connections>,
+    /// Notified whenever a connection is unregistered (a shutdown waits on it).
+    connection_closed: Notify,
     /// Held from the "is this avatar id free?" check to the insertion, so two scenes cannot
     /// both take one id.
     avatar_ids: Mutex<()>,
     /// The data folder (or none) and the lock ordering writes to it.
     pub store: Store,
+}
+
+/// The open websockets' outboxes, and whether the server is shutting down (in one lock, so a
+/// connection registered during a shutdown is closed too).
+#[derive(Debug, Default)]
+struct Connections {
+    open: HashMap<u64, Weak<Outbox>>,
+    closing: bool,
 }
 
 /// Longest scene or avatar id.
@@ -108,26 +131,52 @@ impl AppState {
             next_scene_num: AtomicU32::new(1),
             next_avatar_num: AtomicU32::new(1),
             next_conn: AtomicU64::new(1),
-            connections: Mutex::new(HashMap::new()),
+            connections: Mutex::new(Connections::default()),
+            connection_closed: Notify::new(),
             avatar_ids: Mutex::new(()),
             store: Store::new(config.data_dir.clone()),
             config,
         })
     }
 
-    /// Registers a connection's outbox; returns its id.
+    /// Registers a connection's outbox; returns its id. A connection whose upgrade completes
+    /// while the server shuts down is closed at once (1001).
     pub fn register_connection(&self, outbox: &Arc<Outbox>) -> u64 {
         let id = self.next_conn.fetch_add(1, Ordering::Relaxed);
-        self.connections_lock().insert(id, Arc::downgrade(outbox));
+        let mut connections = self.connections_lock();
+        connections.open.insert(id, Arc::downgrade(outbox));
+        if connections.closing {
+            outbox.close_with(CLOSE_GOING_AWAY, GOING_AWAY_REASON);
+        }
         id
     }
 
     /// Forgets a closed connection.
     pub fn unregister_connection(&self, id: u64) {
-        self.connections_lock().remove(&id);
+        self.connections_lock().open.remove(&id);
+        self.connection_closed.notify_waiters();
     }
 
-    fn connections_lock(&self) -> std::sync::MutexGuard<'_, HashMap<u64, Weak<Outbox>>> {
+    /// Websockets registered and not yet closed.
+    #[must_use]
+    pub fn open_connections(&self) -> usize {
+        self.connections_lock().open.len()
+    }
+
+    /// Waits until every websocket session has ended (its close frame sent, the client's
+    /// answer received or given up on), or until `deadline`. Returns how many are still open.
+    pub async fn wait_connections_closed(&self, deadline: tokio::time::Instant) -> usize {
+        loop {
+            // Registered before the count is read, so an unregister in between still wakes it.
+            let closed = self.connection_closed.notified();
+            let open = self.open_connections();
+            if open == 0 || tokio::time::timeout_at(deadline, closed).await.is_err() {
+                return open;
+            }
+        }
+    }
+
+    fn connections_lock(&self) -> std::sync::MutexGuard<'_, Connections> {
         self.connections
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
@@ -138,6 +187,7 @@ impl AppState {
     #[must_use]
     pub fn outbox_extremes(&self) -> (usize, u64) {
         self.connections_lock()
+            .open
             .values()
             .filter_map(Weak::upgrade)
             .fold((0, 0), |(p, d), o| {
@@ -145,10 +195,13 @@ impl AppState {
             })
     }
 
-    /// Closes every websocket with a close frame (graceful shutdown).
+    /// Closes every websocket with a close frame 1001 Going Away (graceful shutdown), and
+    /// every one that registers from now on.
     pub fn close_connections(&self) {
-        for outbox in self.connections_lock().values().filter_map(Weak::upgrade) {
-            outbox.close();
+        let mut connections = self.connections_lock();
+        connections.closing = true;
+        for outbox in connections.open.values().filter_map(Weak::upgrade) {
+            outbox.close_with(CLOSE_GOING_AWAY, GOING_AWAY_REASON);
         }
     }
 
