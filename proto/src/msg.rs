@@ -236,6 +236,10 @@ pub enum ErrorCode {
     TooLarge,
     /// The server failed; the request may be retried.
     Internal,
+    /// HTTP only: the path exists but not with this method (405; `Allow` lists the methods).
+    MethodNotAllowed,
+    /// HTTP only: no endpoint at this path (404).
+    NotFound,
 }
 
 /// What a connection (or a REST request) may do, as decided from its token.
