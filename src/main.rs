@@ -9,6 +9,10 @@ use posecast_server::state::{Config, DEFAULT_MAX_UPLOAD_BYTES};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
+use tracing_subscriber::filter::{FilterExt, LevelFilter, Targets};
+use tracing_subscriber::layer::SubscriberExt;
+use tracing_subscriber::util::SubscriberInitExt;
+use tracing_subscriber::{EnvFilter, Layer};
 
 /// posecast: a network animation server for virtual humans.
 #[derive(Debug, Parser)]
@@ -76,6 +80,26 @@ fn seconds(text: &str) -> Result<Duration, String> {
     }
 }
 
+/// Libraries whose logs are capped at `debug` whatever `RUST_LOG` asks: at `trace` they print
+/// every websocket frame and message they read, which carries the `hello`'s token (tungstenite's
+/// "Received message …", through the `log` bridge). Their `debug` lines name only close frames
+/// and handshake steps.
+const FRAME_LOGGING_TARGETS: [&str; 3] = ["tungstenite", "tokio_tungstenite", "axum::extract::ws"];
+
+/// `RUST_LOG` (default `info`), with [`FRAME_LOGGING_TARGETS`] capped at `debug`. The cap is a
+/// separate filter and-ed with `RUST_LOG`, so no directive in it (e.g. `tungstenite=trace`) can
+/// lift it.
+fn init_logging() {
+    let requested = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    let capped = FRAME_LOGGING_TARGETS.iter().fold(
+        Targets::new().with_default(LevelFilter::TRACE),
+        |t, target| t.with_target(*target, LevelFilter::DEBUG),
+    );
+    tracing_subscriber::registry()
+        .with(tracing_subscriber::fmt::layer().with_filter(requested.and(capped)))
+        .init();
+}
+
 /// The access rules from the file and flags, and a generated control token when none is
 /// configured (to print once).
 fn access(args: &Args) -> anyhow::Result<(AccessConfig, Option<Secret>)> {
@@ -117,12 +141,7 @@ fn access(args: &Args) -> anyhow::Result<(AccessConfig, Option<Secret>)> {
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .init();
+    init_logging();
     let args = Args::parse();
     anyhow::ensure!(
         args.tick_rate.is_finite() && args.tick_rate > 0.0 && args.tick_rate <= 1000.0,

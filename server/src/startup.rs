@@ -84,10 +84,10 @@ impl Server {
     /// scene `default` playing `idle`, and that is stored. Port 0 picks a free port.
     ///
     /// # Errors
-    /// Binding fails, or the data folder cannot be created or written.
+    /// Binding fails, or the data folder cannot be created or written (the error names it).
     pub async fn start(config: Config) -> std::io::Result<Self> {
         let state = AppState::new(config.clone());
-        let first_start = state.store.open()?;
+        let first_start = open_data_folder(&state)?;
         if config.builtin {
             load_builtin(&state);
         }
@@ -101,9 +101,15 @@ impl Server {
                 create_default_scene(&state);
             }
             for scene in state.scenes() {
-                state.store.persist_scene_now(&state, &scene.id)?;
+                state
+                    .store
+                    .persist_scene_now(&state, &scene.id)
+                    .map_err(|e| data_folder_error(&state, &e))?;
             }
-            state.store.mark_initialised()?;
+            state
+                .store
+                .mark_initialised()
+                .map_err(|e| data_folder_error(&state, &e))?;
         }
         let listener = tokio::net::TcpListener::bind(config.listen).await?;
         let addr = listener.local_addr()?;
@@ -209,6 +215,34 @@ async fn serve(
         );
     }
     Ok(())
+}
+
+/// Opens (creates) the data folder and checks that it can be written, so a server that could
+/// not store anything refuses to start instead of failing every later command.
+fn open_data_folder(state: &AppState) -> std::io::Result<bool> {
+    let first_start = state
+        .store
+        .open()
+        .map_err(|e| data_folder_error(state, &e))?;
+    if let Some(scenes) = state.store.scenes_dir() {
+        let probe = scenes.join(".posecast-write-test.tmp");
+        std::fs::write(&probe, b"")
+            .and_then(|()| std::fs::remove_file(&probe))
+            .map_err(|e| data_folder_error(state, &e))?;
+    }
+    Ok(first_start)
+}
+
+/// `e` with the data folder named: the bare OS error ("Not a directory") does not say which.
+fn data_folder_error(state: &AppState, e: &std::io::Error) -> std::io::Error {
+    let folder = state
+        .store
+        .root()
+        .map_or_else(|| "(none)".to_owned(), |p| p.display().to_string());
+    std::io::Error::new(
+        e.kind(),
+        format!("data folder {folder} (--data) is not usable: {e}"),
+    )
 }
 
 fn load_builtin(state: &AppState) {
