@@ -8,6 +8,11 @@ use posecast_server::startup::{DEFAULT_SCENE, Server};
 use posecast_server::state::{Config, DEFAULT_MAX_UPLOAD_BYTES};
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::time::Duration;
+use tracing_subscriber::filter::{FilterExt, LevelFilter, Targets};
+use tracing_subscriber::layer::SubscriberExt;
+use tracing_subscriber::util::SubscriberInitExt;
+use tracing_subscriber::{EnvFilter, Layer};
 
 /// posecast: a network animation server for virtual humans.
 #[derive(Debug, Parser)]
@@ -57,6 +62,42 @@ struct Args {
     /// Largest upload request body, bytes.
     #[arg(long, env = "POSECAST_MAX_UPLOAD_BYTES", default_value_t = DEFAULT_MAX_UPLOAD_BYTES)]
     max_upload_bytes: usize,
+    /// On SIGINT/SIGTERM, seconds to wait at most for HTTP requests to finish and every
+    /// websocket's close frame (1001) to go out before exiting.
+    #[arg(long, env = "POSECAST_SHUTDOWN_DRAIN", default_value = "2", value_parser = seconds)]
+    shutdown_drain: Duration,
+}
+
+/// A duration in seconds, 0 to 3600 (fractions allowed).
+fn seconds(text: &str) -> Result<Duration, String> {
+    let s: f64 = text
+        .parse()
+        .map_err(|_| format!("{text:?} is not a number of seconds"))?;
+    if (0.0..=3600.0).contains(&s) {
+        Ok(Duration::from_secs_f64(s))
+    } else {
+        Err(format!("{text} s is not between 0 and 3600"))
+    }
+}
+
+/// Libraries whose logs are capped at `debug` whatever `RUST_LOG` asks: at `trace` they print
+/// every websocket frame and message they read, which carries the `hello`'s token (tungstenite's
+/// "Received message …", through the `log` bridge). Their `debug` lines name only close frames
+/// and handshake steps.
+const FRAME_LOGGING_TARGETS: [&str; 3] = ["tungstenite", "tokio_tungstenite", "axum::extract::ws"];
+
+/// `RUST_LOG` (default `info`), with [`FRAME_LOGGING_TARGETS`] capped at `debug`. The cap is a
+/// separate filter and-ed with `RUST_LOG`, so no directive in it (e.g. `tungstenite=trace`) can
+/// lift it.
+fn init_logging() {
+    let requested = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    let capped = FRAME_LOGGING_TARGETS.iter().fold(
+        Targets::new().with_default(LevelFilter::TRACE),
+        |t, target| t.with_target(*target, LevelFilter::DEBUG),
+    );
+    tracing_subscriber::registry()
+        .with(tracing_subscriber::fmt::layer().with_filter(requested.and(capped)))
+        .init();
 }
 
 /// The access rules from the file and flags, and a generated control token when none is
@@ -100,12 +141,7 @@ fn access(args: &Args) -> anyhow::Result<(AccessConfig, Option<Secret>)> {
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .init();
+    init_logging();
     let args = Args::parse();
     anyhow::ensure!(
         args.tick_rate.is_finite() && args.tick_rate > 0.0 && args.tick_rate <= 1000.0,
@@ -120,6 +156,7 @@ async fn main() -> anyhow::Result<()> {
         access,
         data_dir: (!args.no_persist).then_some(args.data),
         max_upload_bytes: args.max_upload_bytes,
+        shutdown_drain: args.shutdown_drain,
     };
     let mut server = Server::start(config).await?;
     let shutdown = server.take_shutdown();

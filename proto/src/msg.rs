@@ -238,6 +238,10 @@ pub enum ErrorCode {
     Internal,
     /// No such asset (rig).
     UnknownAsset,
+    /// HTTP only: the path exists but not with this method (405; `Allow` lists the methods).
+    MethodNotAllowed,
+    /// HTTP only: no endpoint at this path (404).
+    NotFound,
 }
 
 /// What a connection (or a REST request) may do, as decided from its token.

@@ -9,10 +9,12 @@ use crate::scene::playback::Layer;
 use crate::service::app;
 use crate::state::{AppState, Config};
 use posecast_proto::msg::{AvatarId, SceneId};
+use std::future::IntoFuture;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
+use tokio::time::Instant;
 use tracing::{info, warn};
 
 /// Name of the built-in rig.
@@ -82,10 +84,10 @@ impl Server {
     /// scene `default` playing `idle`, and that is stored. Port 0 picks a free port.
     ///
     /// # Errors
-    /// Binding fails, or the data folder cannot be created or written.
+    /// Binding fails, or the data folder cannot be created or written (the error names it).
     pub async fn start(config: Config) -> std::io::Result<Self> {
         let state = AppState::new(config.clone());
-        let first_start = state.store.open()?;
+        let first_start = open_data_folder(&state)?;
         if config.builtin {
             load_builtin(&state);
         }
@@ -99,9 +101,15 @@ impl Server {
                 create_default_scene(&state);
             }
             for scene in state.scenes() {
-                state.store.persist_scene_now(&state, &scene.id)?;
+                state
+                    .store
+                    .persist_scene_now(&state, &scene.id)
+                    .map_err(|e| data_folder_error(&state, &e))?;
             }
-            state.store.mark_initialised()?;
+            state
+                .store
+                .mark_initialised()
+                .map_err(|e| data_folder_error(&state, &e))?;
         }
         let listener = tokio::net::TcpListener::bind(config.listen).await?;
         let addr = listener.local_addr()?;
@@ -114,16 +122,7 @@ impl Server {
         });
         let (tx, rx) = oneshot::channel::<()>();
         let router = app(state.clone());
-        let shutdown_state = state.clone();
-        let task = tokio::spawn(async move {
-            axum::serve(listener, router)
-                .with_graceful_shutdown(async move {
-                    rx.await.ok();
-                    // Close every websocket with a close frame, then let axum drain.
-                    shutdown_state.shutdown();
-                })
-                .await
-        });
+        let task = tokio::spawn(serve(listener, router, state.clone(), rx));
         Ok(Self {
             addr,
             state,
@@ -150,7 +149,9 @@ impl Server {
             tx.send(()).ok();
         }
         self.state.close_connections();
-        match tokio::time::timeout(std::time::Duration::from_secs(5), &mut self.task).await {
+        // The task itself gives up after the drain time; this only guards against a hang.
+        let bound = self.state.config.shutdown_drain + std::time::Duration::from_secs(3);
+        match tokio::time::timeout(bound, &mut self.task).await {
             Ok(Ok(Err(e))) => warn!(error = %e, "server ended with an error"),
             Ok(_) => {}
             Err(_) => self.task.abort(),
@@ -172,6 +173,76 @@ impl Server {
     pub fn take_shutdown(&mut self) -> Option<oneshot::Sender<()>> {
         self.shutdown.take()
     }
+}
+
+/// Serves until `shutdown` fires (or its sender is dropped), then shuts down within
+/// `Config::shutdown_drain`: every websocket is closed with 1001 Going Away, axum stops
+/// accepting and finishes the HTTP requests in flight, and the websocket sessions get the rest
+/// of the drain time to send their close frames and receive the answers. Upgraded websockets are
+/// not part of axum's graceful shutdown, so without that wait a process that returns from
+/// `main` would drop them with their close frames still unsent.
+async fn serve(
+    listener: impl axum::serve::Listener<Addr = SocketAddr>,
+    router: axum::Router,
+    state: Arc<AppState>,
+    shutdown: oneshot::Receiver<()>,
+) -> std::io::Result<()> {
+    let (began_tx, began) = oneshot::channel::<Instant>();
+    let closing = state.clone();
+    let serving = axum::serve(listener, router)
+        .with_graceful_shutdown(async move {
+            shutdown.await.ok();
+            began_tx.send(Instant::now()).ok();
+            closing.shutdown();
+        })
+        .into_future();
+    tokio::pin!(serving);
+    let began = tokio::select! {
+        biased;
+        at = began => at.unwrap_or_else(|_| Instant::now()),
+        result = &mut serving => return result,
+    };
+    let deadline = began + state.config.shutdown_drain;
+    match tokio::time::timeout_at(deadline, &mut serving).await {
+        Ok(result) => result?,
+        Err(_) => warn!("HTTP requests still running after the shutdown drain time; dropped"),
+    }
+    let open = state.wait_connections_closed(deadline).await;
+    if open > 0 {
+        warn!(
+            open,
+            "websockets still open after the shutdown drain time; dropped"
+        );
+    }
+    Ok(())
+}
+
+/// Opens (creates) the data folder and checks that it can be written, so a server that could
+/// not store anything refuses to start instead of failing every later command.
+fn open_data_folder(state: &AppState) -> std::io::Result<bool> {
+    let first_start = state
+        .store
+        .open()
+        .map_err(|e| data_folder_error(state, &e))?;
+    if let Some(scenes) = state.store.scenes_dir() {
+        let probe = scenes.join(".posecast-write-test.tmp");
+        std::fs::write(&probe, b"")
+            .and_then(|()| std::fs::remove_file(&probe))
+            .map_err(|e| data_folder_error(state, &e))?;
+    }
+    Ok(first_start)
+}
+
+/// `e` with the data folder named: the bare OS error ("Not a directory") does not say which.
+fn data_folder_error(state: &AppState, e: &std::io::Error) -> std::io::Error {
+    let folder = state
+        .store
+        .root()
+        .map_or_else(|| "(none)".to_owned(), |p| p.display().to_string());
+    std::io::Error::new(
+        e.kind(),
+        format!("data folder {folder} (--data) is not usable: {e}"),
+    )
 }
 
 fn load_builtin(state: &AppState) {

@@ -16,6 +16,8 @@ use std::path::PathBuf;
 use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
 use std::sync::{Mutex, Weak};
+use std::time::Duration;
+use tokio::sync::Notify;
 
 /// How the server runs (built by `main` from flags and environment).
 #[derive(Debug, Clone)]
@@ -35,10 +37,20 @@ pub struct Config {
     pub data_dir: Option<PathBuf>,
     /// Largest upload request body, bytes.
     pub max_upload_bytes: usize,
+    /// How long a graceful shutdown waits, at most, for HTTP requests to finish and for every
+    /// websocket's close frame to be sent (and answered) before the server stops regardless.
+    pub shutdown_drain: Duration,
 }
 
 /// Default [`Config::max_upload_bytes`]: 32 MiB.
 pub const DEFAULT_MAX_UPLOAD_BYTES: usize = 32 << 20;
+
+/// Default [`Config::shutdown_drain`]: 2 s.
+pub const DEFAULT_SHUTDOWN_DRAIN: Duration = Duration::from_secs(2);
+
+/// Close code of every websocket at server shutdown (RFC 6455 1001, Going Away).
+pub const CLOSE_GOING_AWAY: u16 = 1001;
+const GOING_AWAY_REASON: &str = "server shutting down";
 
 impl Default for Config {
     fn default() -> Self {
@@ -50,6 +62,7 @@ impl Default for Config {
             access: AccessConfig::default(),
             data_dir: None,
             max_upload_bytes: DEFAULT_MAX_UPLOAD_BYTES,
+            shutdown_drain: DEFAULT_SHUTDOWN_DRAIN,
         }
     }
 }
@@ -67,11 +80,24 @@ pub struct AppState {
     next_scene_num: AtomicU32,
     next_avatar_num: AtomicU32,
     next_conn: AtomicU64,
-    connections: Mutex<HashMap<u64, Weak<Outbox>>>,
+    connections: Mutex<Connections>,
+    /// Notified whenever a connection is unregistered (a shutdown waits on it).
+    connection_closed: Notify,
+    /// Held from the "is this avatar id free?" check to the insertion, so two scenes cannot
+    /// both take one id.
+    avatar_ids: Mutex<()>,
     /// The data folder (or none) and the lock ordering writes to it.
     pub store: Store,
     /// Baked retargeted clips (`play … from_asset`), see [`crate::bake`].
     pub retargets: RetargetCache,
+}
+
+/// The open websockets' outboxes, and whether the server is shutting down (in one lock, so a
+/// connection registered during a shutdown is closed too).
+#[derive(Debug, Default)]
+struct Connections {
+    open: HashMap<u64, Weak<Outbox>>,
+    closing: bool,
 }
 
 /// Longest scene or avatar id.
@@ -108,26 +134,53 @@ impl AppState {
             next_scene_num: AtomicU32::new(1),
             next_avatar_num: AtomicU32::new(1),
             next_conn: AtomicU64::new(1),
-            connections: Mutex::new(HashMap::new()),
+            connections: Mutex::new(Connections::default()),
+            connection_closed: Notify::new(),
+            avatar_ids: Mutex::new(()),
             store: Store::new(config.data_dir.clone()),
             retargets: RetargetCache::default(),
             config,
         })
     }
 
-    /// Registers a connection's outbox; returns its id.
+    /// Registers a connection's outbox; returns its id. A connection whose upgrade completes
+    /// while the server shuts down is closed at once (1001).
     pub fn register_connection(&self, outbox: &Arc<Outbox>) -> u64 {
         let id = self.next_conn.fetch_add(1, Ordering::Relaxed);
-        self.connections_lock().insert(id, Arc::downgrade(outbox));
+        let mut connections = self.connections_lock();
+        connections.open.insert(id, Arc::downgrade(outbox));
+        if connections.closing {
+            outbox.close_with(CLOSE_GOING_AWAY, GOING_AWAY_REASON);
+        }
         id
     }
 
     /// Forgets a closed connection.
     pub fn unregister_connection(&self, id: u64) {
-        self.connections_lock().remove(&id);
+        self.connections_lock().open.remove(&id);
+        self.connection_closed.notify_waiters();
     }
 
-    fn connections_lock(&self) -> std::sync::MutexGuard<'_, HashMap<u64, Weak<Outbox>>> {
+    /// Websockets registered and not yet closed.
+    #[must_use]
+    pub fn open_connections(&self) -> usize {
+        self.connections_lock().open.len()
+    }
+
+    /// Waits until every websocket session has ended (its close frame sent, the client's
+    /// answer received or given up on), or until `deadline`. Returns how many are still open.
+    pub async fn wait_connections_closed(&self, deadline: tokio::time::Instant) -> usize {
+        loop {
+            // Registered before the count is read, so an unregister in between still wakes it.
+            let closed = self.connection_closed.notified();
+            let open = self.open_connections();
+            if open == 0 || tokio::time::timeout_at(deadline, closed).await.is_err() {
+                return open;
+            }
+        }
+    }
+
+    fn connections_lock(&self) -> std::sync::MutexGuard<'_, Connections> {
         self.connections
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
@@ -138,6 +191,7 @@ impl AppState {
     #[must_use]
     pub fn outbox_extremes(&self) -> (usize, u64) {
         self.connections_lock()
+            .open
             .values()
             .filter_map(Weak::upgrade)
             .fold((0, 0), |(p, d), o| {
@@ -145,10 +199,13 @@ impl AppState {
             })
     }
 
-    /// Closes every websocket with a close frame (graceful shutdown).
+    /// Closes every websocket with a close frame 1001 Going Away (graceful shutdown), and
+    /// every one that registers from now on.
     pub fn close_connections(&self) {
-        for outbox in self.connections_lock().values().filter_map(Weak::upgrade) {
-            outbox.close();
+        let mut connections = self.connections_lock();
+        connections.closing = true;
+        for outbox in connections.open.values().filter_map(Weak::upgrade) {
+            outbox.close_with(CLOSE_GOING_AWAY, GOING_AWAY_REASON);
         }
     }
 
@@ -238,13 +295,20 @@ impl AppState {
         let num = self.next_avatar_num.fetch_add(1, Ordering::Relaxed);
         let id = id.unwrap_or_else(|| AvatarId(format!("{}-{num}", rig.name)));
         check_id("avatar", &id.0)?;
+        let avatar = Avatar::new(id.clone(), num, rig);
+        // Ids are unique across scenes, and each scene checks only its own: the check of every
+        // scene and the insertion must not interleave with another add.
+        let _adding = self
+            .avatar_ids
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
         if self.find_avatar(&id).is_ok() {
             return Err(ProtocolError::new(
                 ErrorCode::Conflict,
                 format!("avatar {id} exists"),
             ));
         }
-        scene.add_avatar(Avatar::new(id.clone(), num, rig))?;
+        scene.add_avatar(avatar)?;
         Ok((scene, id))
     }
 
@@ -265,5 +329,61 @@ impl AppState {
             scene.shut();
         }
         self.close_connections();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::startup::{BUILTIN_ASSET, builtin_rig};
+
+    /// Many adds of one id into different scenes at the same moment: exactly one wins, every
+    /// other one is a conflict, and the id ends up in one scene only.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn concurrent_adds_of_one_avatar_id_into_different_scenes_take_it_once() {
+        const SCENES: usize = 8;
+        let state = AppState::new(Config {
+            tick_rate: 1.0,
+            ..Config::default()
+        });
+        state.library.insert(builtin_rig().unwrap());
+        let scene = |i: usize| SceneId(format!("s{i}"));
+        for i in 0..SCENES {
+            state.create_scene(scene(i)).unwrap();
+        }
+        for round in 0..40 {
+            let id = AvatarId(format!("racer-{round}"));
+            let barrier = Arc::new(std::sync::Barrier::new(SCENES));
+            let threads: Vec<_> = (0..SCENES)
+                .map(|i| {
+                    let (state, id, barrier) = (state.clone(), id.clone(), barrier.clone());
+                    std::thread::spawn(move || {
+                        barrier.wait();
+                        state
+                            .add_avatar(&scene(i), BUILTIN_ASSET, Some(id))
+                            .map(|_| ())
+                    })
+                })
+                .collect();
+            let results: Vec<_> = threads.into_iter().map(|t| t.join().unwrap()).collect();
+            let won = results.iter().filter(|r| r.is_ok()).count();
+            assert_eq!(won, 1, "round {round}: {results:?}");
+            assert!(
+                results
+                    .iter()
+                    .filter_map(|r| r.as_ref().err())
+                    .all(|e| e.code == ErrorCode::Conflict),
+                "{results:?}"
+            );
+            let holders = state
+                .scenes()
+                .iter()
+                .filter(|s| s.lock().avatars.iter().any(|a| a.id == id))
+                .count();
+            assert_eq!(holders, 1, "round {round}");
+        }
+        for s in state.scenes() {
+            s.shut();
+        }
     }
 }

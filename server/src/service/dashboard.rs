@@ -2,17 +2,50 @@
 //! `GET /dashboard/{file}`. The page uses only the public protocol (the websocket at `/ws` with
 //! JSON frames, and the REST API), so it is also an example of a third-party client.
 //!
-//! Every response carries a strict Content-Security-Policy: scripts, styles and images from
-//! this origin only, no inline code, network access to this origin's HTTP and websocket only.
+//! Every response carries a strict Content-Security-Policy ([`content_security_policy`]):
+//! scripts, styles and images from this origin only, no inline code, network access to this
+//! origin's HTTP and websocket only.
 
 use axum::extract::Path;
-use axum::http::{HeaderValue, StatusCode, header};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 
-/// The policy sent with every dashboard file.
-pub const CONTENT_SECURITY_POLICY: &str = "default-src 'self'; script-src 'self'; \
-     style-src 'self'; img-src 'self' data: blob:; connect-src 'self' ws: wss:; \
-     object-src 'none'; base-uri 'none'; form-action 'self'; frame-ancestors 'none'";
+/// The policy of a dashboard file served to a request whose `Host` header is `host`.
+///
+/// `connect-src` is this origin only. CSP Level 3 lets `'self'` match `ws:`/`wss:` URLs of the
+/// page's own host and port (w3c/webappsec-csp#7), but Level 2 did not, and browsers that follow it would refuse the
+/// dashboard's websocket; so the policy also names `ws://HOST` and `wss://HOST` (wss for a page
+/// behind a TLS proxy) — that host only, never the bare `ws:`/`wss:` schemes, which would let an
+/// injected script talk to any server. `HOST` is the request's `Host` if it is a plain
+/// `name[:port]` (the CSP host-source grammar); anything else (an IPv6 literal, which that
+/// grammar lacks, or text that could smuggle in other directives) gets `'self'` alone.
+#[must_use]
+pub fn content_security_policy(host: Option<&str>) -> String {
+    let connect = match host.filter(|h| is_host_source(h)) {
+        Some(h) => format!("'self' ws://{h} wss://{h}"),
+        None => "'self'".to_owned(),
+    };
+    format!(
+        "default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data: blob:; \
+         connect-src {connect}; object-src 'none'; base-uri 'none'; form-action 'self'; \
+         frame-ancestors 'none'"
+    )
+}
+
+/// Whether `host` is `label(.label)*[:port]` with labels of letters, digits and `-`.
+fn is_host_source(host: &str) -> bool {
+    let (name, port) = match host.split_once(':') {
+        Some((name, port)) => (name, Some(port)),
+        None => (host, None),
+    };
+    let name_ok = !name.is_empty()
+        && name.split('.').all(|label| {
+            !label.is_empty() && label.chars().all(|c| c.is_ascii_alphanumeric() || c == '-')
+        });
+    let port_ok =
+        port.is_none_or(|p| !p.is_empty() && p.len() <= 5 && p.chars().all(|c| c.is_ascii_digit()));
+    host.len() <= 255 && name_ok && port_ok
+}
 
 /// `(name, content type, contents)` of every file under `server/web/`.
 const FILES: &[(&str, &str, &str)] = &[
@@ -53,16 +86,18 @@ const FILES: &[(&str, &str, &str)] = &[
     ),
 ];
 
-fn serve(name: &str) -> Response {
+fn serve(name: &str, request: &HeaderMap) -> Response {
     let Some(&(_, content_type, body)) = FILES.iter().find(|(n, _, _)| *n == name) else {
         return (StatusCode::NOT_FOUND, "no such dashboard file").into_response();
     };
+    let host = request.get(header::HOST).and_then(|h| h.to_str().ok());
     let mut response = body.into_response();
     let headers = response.headers_mut();
     headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
+    let policy = content_security_policy(host);
     headers.insert(
         header::CONTENT_SECURITY_POLICY,
-        HeaderValue::from_static(CONTENT_SECURITY_POLICY),
+        HeaderValue::from_str(&policy).unwrap_or(HeaderValue::from_static("default-src 'self'")),
     );
     headers.insert(
         header::X_CONTENT_TYPE_OPTIONS,
@@ -78,27 +113,78 @@ fn serve(name: &str) -> Response {
 }
 
 /// `GET /`: the dashboard page.
-pub async fn index() -> Response {
-    serve("index.html")
+pub async fn index(headers: HeaderMap) -> Response {
+    serve("index.html", &headers)
 }
 
 /// `GET /dashboard/{file}`: the page's scripts and styles.
-pub async fn file(Path(name): Path<String>) -> Response {
-    serve(&name)
+pub async fn file(Path(name): Path<String>, headers: HeaderMap) -> Response {
+    serve(&name, &headers)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    fn host(h: &str) -> HeaderMap {
+        let mut headers = HeaderMap::new();
+        headers.insert(header::HOST, HeaderValue::from_str(h).unwrap());
+        headers
+    }
+
     #[test]
     fn every_file_is_served_with_its_type_and_the_policy() {
         for (name, content_type, _) in FILES {
-            let r = serve(name);
+            let r = serve(name, &host("example.org:8080"));
             assert_eq!(r.status(), StatusCode::OK);
             assert_eq!(r.headers()[header::CONTENT_TYPE], *content_type);
             assert!(r.headers().contains_key(header::CONTENT_SECURITY_POLICY));
         }
-        assert_eq!(serve("../Cargo.toml").status(), StatusCode::NOT_FOUND);
+        assert_eq!(
+            serve("../Cargo.toml", &HeaderMap::new()).status(),
+            StatusCode::NOT_FOUND
+        );
+    }
+
+    /// The `connect-src` directive of a policy, split into its sources.
+    fn connect_src(policy: &str) -> Vec<String> {
+        policy
+            .split(';')
+            .map(str::trim)
+            .find_map(|d| d.strip_prefix("connect-src "))
+            .unwrap()
+            .split_whitespace()
+            .map(str::to_owned)
+            .collect()
+    }
+
+    #[test]
+    fn connect_src_names_only_the_requests_own_host() {
+        for h in ["127.0.0.1:8080", "localhost", "pose-cast.example.org:443"] {
+            assert_eq!(
+                connect_src(&content_security_policy(Some(h))),
+                [
+                    "'self'".to_owned(),
+                    format!("ws://{h}"),
+                    format!("wss://{h}")
+                ],
+            );
+        }
+        // Nothing that is not a plain host: 'self' alone, and no directive smuggled in.
+        for h in [
+            "evil.example; script-src *",
+            "a b",
+            "[::1]:8080",
+            "host:",
+            "host:80:80",
+            "a..b",
+            "*",
+            "",
+        ] {
+            let policy = content_security_policy(Some(h));
+            assert_eq!(connect_src(&policy), ["'self'"], "{h:?}");
+            assert_eq!(policy.matches("script-src").count(), 1, "{h:?}");
+        }
+        assert_eq!(connect_src(&content_security_policy(None)), ["'self'"]);
     }
 }

@@ -8,6 +8,9 @@
 //!   their own body limit (`Config::max_upload_bytes`); everything else keeps 64 KiB.
 //! - `GET /healthz`, `GET /metrics`.
 //! - `GET /`, `GET /dashboard/{file}`: the web dashboard ([`dashboard`]).
+//!
+//! Every error response has the typed body `{"code", "message"}`, including axum's own
+//! rejections (405, 413, extractor errors) and unknown paths (404): see [`typed_errors`].
 
 pub mod dashboard;
 pub mod rest;
@@ -17,10 +20,11 @@ pub mod ws;
 use crate::state::AppState;
 use axum::Router;
 use axum::extract::{State, WebSocketUpgrade};
-use axum::http::{StatusCode, header};
+use axum::http::{Method, StatusCode, Uri, header};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
-use posecast_proto::msg::MAX_CLIENT_MESSAGE_BYTES;
+use posecast_proto::msg::{ErrorCode, MAX_CLIENT_MESSAGE_BYTES, ProtocolError};
+use rest::AppError;
 use std::sync::Arc;
 
 /// The whole service.
@@ -51,6 +55,8 @@ pub fn app(state: Arc<AppState>) -> Router {
         .route("/metrics", get(metrics))
         .route("/", get(dashboard::index))
         .route("/dashboard/{file}", get(dashboard::file))
+        .fallback(not_found)
+        .layer(axum::middleware::map_response(typed_errors))
         .layer(axum::middleware::map_response_with_state(
             counted,
             count_refusals,
@@ -66,6 +72,81 @@ async fn count_refusals(State(state): State<Arc<AppState>>, response: Response) 
         _ => {}
     }
     response
+}
+
+async fn not_found(method: Method, uri: Uri) -> AppError {
+    AppError(ProtocolError::new(
+        ErrorCode::NotFound,
+        format!("no endpoint {method} {}", uri.path()),
+    ))
+}
+
+/// Largest untyped error body kept as the typed error's message.
+const MAX_ERROR_TEXT: usize = 1024;
+
+/// Gives an error response that is not already JSON the typed body `{"code", "message"}`, like
+/// every error of our own handlers: axum answers a wrong method (405, empty), a body over the
+/// limit (413) and extractor failures (400) in plain text. The status and headers stay (the
+/// `Allow` of a 405, the dashboard's policy headers); the message is the original text, or
+/// names the method and path.
+pub async fn typed_errors(method: Method, uri: Uri, response: Response) -> Response {
+    let status = response.status();
+    let is_json = response
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with("application/json"));
+    if !(status.is_client_error() || status.is_server_error()) || is_json {
+        return response;
+    }
+    let code = match status {
+        StatusCode::UNAUTHORIZED => ErrorCode::Unauthorized,
+        StatusCode::FORBIDDEN => ErrorCode::Forbidden,
+        StatusCode::NOT_FOUND => ErrorCode::NotFound,
+        StatusCode::METHOD_NOT_ALLOWED => ErrorCode::MethodNotAllowed,
+        StatusCode::CONFLICT => ErrorCode::Conflict,
+        StatusCode::PAYLOAD_TOO_LARGE => ErrorCode::TooLarge,
+        s if s.is_server_error() => ErrorCode::Internal,
+        _ => ErrorCode::BadMessage,
+    };
+    let (mut parts, body) = response.into_parts();
+    let text = axum::body::to_bytes(body, MAX_ERROR_TEXT)
+        .await
+        .ok()
+        .and_then(|b| String::from_utf8(b.to_vec()).ok())
+        .map(|t| t.trim().to_owned())
+        .unwrap_or_default();
+    let message = match code {
+        ErrorCode::MethodNotAllowed => {
+            let allowed = parts
+                .headers
+                .get(header::ALLOW)
+                .and_then(|v| v.to_str().ok())
+                .unwrap_or("none");
+            format!(
+                "{method} is not allowed on {}; allowed: {allowed}",
+                uri.path()
+            )
+        }
+        ErrorCode::TooLarge if text.is_empty() => "the request body is too large".to_owned(),
+        ErrorCode::TooLarge => format!("the request body is too large ({text})"),
+        _ if text.is_empty() => format!(
+            "{method} {}: {}",
+            uri.path(),
+            status.canonical_reason().unwrap_or("error")
+        ),
+        _ => text,
+    };
+    let (typed, body) = axum::Json(ProtocolError::new(code, message))
+        .into_response()
+        .into_parts();
+    parts.headers.remove(header::CONTENT_LENGTH);
+    if let Some(content_type) = typed.headers.get(header::CONTENT_TYPE) {
+        parts
+            .headers
+            .insert(header::CONTENT_TYPE, content_type.clone());
+    }
+    Response::from_parts(parts, body)
 }
 
 async fn ws_upgrade(ws: WebSocketUpgrade, State(state): State<Arc<AppState>>) -> Response {

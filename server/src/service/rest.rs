@@ -46,6 +46,8 @@ impl IntoResponse for AppError {
             ErrorCode::MessageTooLarge | ErrorCode::TooLarge => StatusCode::PAYLOAD_TOO_LARGE,
             ErrorCode::ImportFailed => StatusCode::UNPROCESSABLE_ENTITY,
             ErrorCode::Internal => StatusCode::INTERNAL_SERVER_ERROR,
+            ErrorCode::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
+            ErrorCode::NotFound => StatusCode::NOT_FOUND,
             _ => StatusCode::BAD_REQUEST,
         };
         let mut response = (status, Json(self.0)).into_response();
@@ -60,7 +62,8 @@ impl IntoResponse for AppError {
 }
 
 /// The caller of a request, from its `Authorization: Bearer <token>` header (none:
-/// anonymous). A header that is not a bearer token, or an unknown token, is refused with 401.
+/// anonymous; the scheme is case-insensitive, RFC 7235 §2.1). A header that is not a bearer
+/// token, or an unknown token, is refused with 401.
 impl FromRequestParts<Arc<AppState>> for Caller {
     type Rejection = AppError;
 
@@ -71,22 +74,21 @@ impl FromRequestParts<Arc<AppState>> for Caller {
         let Some(value) = parts.headers.get(header::AUTHORIZATION) else {
             return Ok(Self::Anonymous);
         };
-        let token = value
-            .to_str()
-            .ok()
-            .and_then(|v| {
-                v.strip_prefix("Bearer ")
-                    .or_else(|| v.strip_prefix("bearer "))
-            })
-            .map(str::trim)
-            .ok_or_else(|| {
-                ProtocolError::new(
-                    ErrorCode::Unauthorized,
-                    "the Authorization header must be `Bearer <token>`",
-                )
-            })?;
+        let token = value.to_str().ok().and_then(bearer_token).ok_or_else(|| {
+            ProtocolError::new(
+                ErrorCode::Unauthorized,
+                "the Authorization header must be `Bearer <token>`",
+            )
+        })?;
         Ok(state.config.access.identify(Some(token))?)
     }
+}
+
+/// The token of an `Authorization` value `Bearer <token>`, the scheme in any case.
+fn bearer_token(value: &str) -> Option<&str> {
+    let (scheme, token) = value.trim_start().split_once([' ', '\t'])?;
+    let token = token.trim();
+    (scheme.eq_ignore_ascii_case("bearer") && !token.is_empty()).then_some(token)
 }
 
 /// `POST /api/commands`.
@@ -157,4 +159,32 @@ pub async fn assets(
 ) -> Result<Json<Value>, AppError> {
     state.config.access.authorize_read(&caller)?;
     Ok(Json(control::execute(&state, &Command::ListAssets)?))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_bearer_scheme_is_case_insensitive_and_needs_a_token() {
+        for value in [
+            "Bearer abc",
+            "bearer abc",
+            "BEARER abc",
+            "bEaReR  abc ",
+            "Bearer\tabc",
+        ] {
+            assert_eq!(bearer_token(value), Some("abc"), "{value:?}");
+        }
+        for value in [
+            "Basic abc",
+            "Bearer",
+            "Bearer ",
+            "Bearerabc",
+            "Token abc",
+            "",
+        ] {
+            assert_eq!(bearer_token(value), None, "{value:?}");
+        }
+    }
 }

@@ -1,7 +1,9 @@
 //! One websocket connection: a reader that parses client messages and a writer that drains the
-//! connection's [`Outbox`]. Bad input gets a typed error; only a wrong protocol version, a
-//! message before `hello`, an oversized message or a client that stops reading closes the
-//! connection, and nothing a client sends can affect another connection.
+//! connection's [`Outbox`]. Bad input gets a typed error and the connection goes on; the
+//! connection closes, with the close code `proto/PROTOCOL.md` lists, only on a first message that
+//! is not a valid `hello` (1008), a wrong protocol version (1008), an oversized message (1009),
+//! invalid UTF-8 (1007), a websocket protocol violation (1002), a client that stops reading
+//! (1008) or server shutdown (1001). Nothing a client sends can affect another connection.
 
 use crate::auth::Caller;
 use crate::control;
@@ -10,14 +12,20 @@ use crate::scene::{Subscriber, text};
 use crate::state::AppState;
 use crate::stream::outbox::Outbox;
 use crate::stream::writer::run_writer;
-use axum::extract::ws::{Message, WebSocket};
+use axum::extract::ws::{Message, WebSocket, close_code};
 use futures_util::StreamExt;
 use posecast_proto::msg::{
     ClientMsg, Encoding, ErrorCode, MAX_CLIENT_MESSAGE_BYTES, PROTOCOL_VERSION, ProtocolError,
     SceneId, ServerMsg,
 };
 use std::sync::Arc;
+use std::time::Duration;
 use tracing::{Instrument, debug, info_span};
+
+/// How long the reader waits for the client's answering close frame once the writer has sent
+/// the server's. The closing handshake is polite, but a client that never answers must not
+/// keep its session (and a server shutdown) waiting.
+const CLOSE_LINGER: Duration = Duration::from_secs(1);
 
 /// Serves one upgraded websocket until either side closes.
 pub async fn serve(socket: WebSocket, state: Arc<AppState>) {
@@ -27,7 +35,7 @@ pub async fn serve(socket: WebSocket, state: Arc<AppState>) {
     async move {
         state.metrics.connection_opened();
         let (sink, mut stream) = socket.split();
-        let writer = {
+        let mut writer = {
             let outbox = outbox.clone();
             let metrics = state.metrics.clone();
             tokio::spawn(async move { run_writer(&outbox, sink, &metrics).await })
@@ -40,7 +48,15 @@ pub async fn serve(socket: WebSocket, state: Arc<AppState>) {
             scenes: Vec::new(),
             caller: Caller::Anonymous,
         };
-        while let Some(message) = stream.next().await {
+        let mut writer_done = false;
+        let mut client_closed = false;
+        while let Some(message) = tokio::select! {
+            m = stream.next() => m,
+            _ = &mut writer => {
+                writer_done = true;
+                None
+            }
+        } {
             let keep_going = match message {
                 Ok(Message::Text(t)) => session.on_text(t.as_str()).await,
                 Ok(Message::Binary(_)) => {
@@ -50,20 +66,15 @@ pub async fn serve(socket: WebSocket, state: Arc<AppState>) {
                     ));
                     true
                 }
-                Ok(Message::Close(_)) => false,
+                Ok(Message::Close(_)) => {
+                    client_closed = true;
+                    false
+                }
                 Ok(Message::Ping(_) | Message::Pong(_)) => true,
                 Err(e) => {
-                    let oversized = e
-                        .into_inner()
-                        .downcast_ref::<tokio_tungstenite::tungstenite::Error>()
-                        .is_some_and(|e| {
-                            matches!(e, tokio_tungstenite::tungstenite::Error::Capacity(_))
-                        });
-                    if oversized {
-                        session.error(ProtocolError::new(
-                            ErrorCode::MessageTooLarge,
-                            format!("messages are limited to {MAX_CLIENT_MESSAGE_BYTES} bytes"),
-                        ));
+                    if let Some((error, code, reason)) = read_failure(e) {
+                        session.error(error);
+                        outbox.close_with(code, reason);
                     }
                     false
                 }
@@ -74,19 +85,88 @@ pub async fn serve(socket: WebSocket, state: Arc<AppState>) {
         }
         session.leave_all();
         outbox.close();
-        // Give the writer a moment to deliver the last error and the close frame.
-        let abort = writer.abort_handle();
-        if tokio::time::timeout(std::time::Duration::from_secs(2), writer)
-            .await
-            .is_err()
-        {
-            abort.abort();
+        if !writer_done {
+            // Give the writer a moment to deliver the last error and the close frame.
+            let abort = writer.abort_handle();
+            if tokio::time::timeout(Duration::from_secs(2), writer)
+                .await
+                .is_err()
+            {
+                abort.abort();
+            }
+        }
+        if !client_closed {
+            // The server's close frame is out: what the client still sends is not acted on.
+            // Wait briefly for its answering close, which completes the closing handshake (a
+            // stream that failed or ended yields nothing, so this returns at once).
+            let linger = tokio::time::Instant::now() + CLOSE_LINGER;
+            while let Ok(Some(Ok(m))) = tokio::time::timeout_at(linger, stream.next()).await {
+                if matches!(m, Message::Close(_)) {
+                    break;
+                }
+            }
         }
         state.unregister_connection(conn);
         state.metrics.connection_closed(outbox.dropped_frames());
     }
     .instrument(span)
     .await;
+}
+
+/// The error to report and the close frame to send when reading failed, or `None` when the
+/// connection is simply gone (no answer can reach the client).
+///
+/// axum wraps the `tungstenite` error of the version it was built with, so this downcasts to
+/// that version's type (`axum-tungstenite` in `server/Cargo.toml`); a mismatched version would
+/// silently classify nothing (the end-to-end test of oversized messages guards it).
+fn read_failure(e: axum::Error) -> Option<(ProtocolError, u16, &'static str)> {
+    use axum_tungstenite::error::{Error, ProtocolError as WsProtocolError};
+    let inner = e.into_inner();
+    match inner.downcast_ref::<Error>()? {
+        Error::Capacity(_) => Some((
+            ProtocolError::new(
+                ErrorCode::MessageTooLarge,
+                format!("messages are limited to {MAX_CLIENT_MESSAGE_BYTES} bytes"),
+            ),
+            close_code::SIZE,
+            "message too big",
+        )),
+        Error::Utf8(_) => Some((
+            ProtocolError::new(ErrorCode::BadMessage, "a text message was not valid UTF-8"),
+            close_code::INVALID,
+            "invalid UTF-8",
+        )),
+        // A dropped TCP connection surfaces as a protocol error too; nobody is left to tell.
+        Error::Protocol(WsProtocolError::ResetWithoutClosingHandshake) => None,
+        Error::Protocol(p) => Some((
+            ProtocolError::new(
+                ErrorCode::BadMessage,
+                format!("websocket protocol violation: {p}"),
+            ),
+            close_code::PROTOCOL,
+            "protocol violation",
+        )),
+        _ => None,
+    }
+}
+
+/// A message that does not parse, as a `bad_message` error that carries the command's id when
+/// the text is a JSON object `{"type":"command","id":N,…}`: a client waiting for command N's
+/// answer gets one instead of waiting for ever.
+fn unparsable(text: &str, e: &serde_json::Error) -> ProtocolError {
+    let error = ProtocolError::new(ErrorCode::BadMessage, format!("not a valid message: {e}"));
+    match command_id(text) {
+        Some(id) => error.for_command(id),
+        None => error,
+    }
+}
+
+fn command_id(text: &str) -> Option<u64> {
+    let value: serde_json::Value = serde_json::from_str(text).ok()?;
+    if value.get("type")?.as_str()? != "command" {
+        return None;
+    }
+    value.get("id")?.as_u64()
 }
 
 struct Session {
@@ -115,75 +195,99 @@ impl Session {
         self.send(&ServerMsg::Error(e));
     }
 
+    /// Ends the connection after `e`: the error, then a close frame with `code`.
+    fn refuse(&self, e: ProtocolError, code: u16, reason: &'static str) -> bool {
+        self.error(e);
+        self.outbox.close_with(code, reason);
+        false
+    }
+
+    /// Handles the first message, which must be a `hello` of this protocol version; anything
+    /// else gets an error and a close (1008). `false` ends the connection.
+    fn on_first(&mut self, msg: Result<ClientMsg, serde_json::Error>) -> bool {
+        let (version, encoding, token) = match msg {
+            Ok(ClientMsg::Hello {
+                version,
+                encoding,
+                token,
+                ..
+            }) => (version, encoding, token),
+            Ok(_) => {
+                return self.refuse(
+                    ProtocolError::new(ErrorCode::NotAllowedNow, "the first message must be hello"),
+                    close_code::POLICY,
+                    "expected hello",
+                );
+            }
+            Err(e) => {
+                return self.refuse(
+                    ProtocolError::new(
+                        ErrorCode::BadMessage,
+                        format!("the first message must be hello: {e}"),
+                    ),
+                    close_code::POLICY,
+                    "expected hello",
+                );
+            }
+        };
+        if version != PROTOCOL_VERSION {
+            return self.refuse(
+                ProtocolError::new(
+                    ErrorCode::UnsupportedVersion,
+                    format!("protocol version {version} is not supported; this server speaks {PROTOCOL_VERSION}"),
+                ),
+                close_code::POLICY,
+                "unsupported protocol version",
+            );
+        }
+        self.encoding = Some(encoding);
+        // An unknown token leaves the connection anonymous (it may still watch when
+        // views are open) and is reported right after the welcome.
+        let access = &self.state.config.access;
+        let refused = match access.identify(token.as_deref()) {
+            Ok(caller) => {
+                self.caller = caller;
+                None
+            }
+            Err(e) => Some(e),
+        };
+        tracing::Span::current().record("caller", self.caller.name());
+        self.send(&ServerMsg::Welcome {
+            version: PROTOCOL_VERSION,
+            encoding,
+            server: format!("posecast {}", env!("CARGO_PKG_VERSION")),
+            tick_rate: self.state.config.tick_rate,
+            server_time_us: unix_micros(),
+            access: access.access(&self.caller),
+        });
+        if let Some(e) = refused {
+            self.error(e);
+        }
+        true
+    }
+
     /// Handles one text message; `false` ends the connection.
     async fn on_text(&mut self, text: &str) -> bool {
-        let msg: ClientMsg = match serde_json::from_str(text) {
+        let parsed = serde_json::from_str::<ClientMsg>(text);
+        let Some(encoding) = self.encoding else {
+            return self.on_first(parsed);
+        };
+        let msg = match parsed {
             Ok(m) => m,
             Err(e) => {
-                self.error(ProtocolError::new(
-                    ErrorCode::BadMessage,
-                    format!("not a valid message: {e}"),
-                ));
+                self.error(unparsable(text, &e));
                 return true;
             }
         };
-        match (self.encoding, msg) {
-            (
-                None,
-                ClientMsg::Hello {
-                    version,
-                    encoding,
-                    token,
-                    ..
-                },
-            ) => {
-                if version != PROTOCOL_VERSION {
-                    self.error(ProtocolError::new(
-                        ErrorCode::UnsupportedVersion,
-                        format!("protocol version {version} is not supported; this server speaks {PROTOCOL_VERSION}"),
-                    ));
-                    return false;
-                }
-                self.encoding = Some(encoding);
-                // An unknown token leaves the connection anonymous (it may still watch when
-                // views are open) and is reported right after the welcome.
-                let access = &self.state.config.access;
-                let refused = match access.identify(token.as_deref()) {
-                    Ok(caller) => {
-                        self.caller = caller;
-                        None
-                    }
-                    Err(e) => Some(e),
-                };
-                tracing::Span::current().record("caller", self.caller.name());
-                self.send(&ServerMsg::Welcome {
-                    version: PROTOCOL_VERSION,
-                    encoding,
-                    server: format!("posecast {}", env!("CARGO_PKG_VERSION")),
-                    tick_rate: self.state.config.tick_rate,
-                    server_time_us: unix_micros(),
-                    access: access.access(&self.caller),
-                });
-                if let Some(e) = refused {
-                    self.error(e);
-                }
-                true
-            }
-            (None, _) => {
-                self.error(ProtocolError::new(
-                    ErrorCode::NotAllowedNow,
-                    "the first message must be hello",
-                ));
-                false
-            }
-            (Some(_), ClientMsg::Hello { .. }) => {
+        match msg {
+            ClientMsg::Hello { .. } => {
                 self.error(ProtocolError::new(
                     ErrorCode::NotAllowedNow,
                     "hello was already received",
                 ));
                 true
             }
-            (Some(encoding), ClientMsg::Subscribe { scene, avatars }) => {
+            ClientMsg::Subscribe { scene, avatars } => {
                 let result = self
                     .state
                     .config
@@ -208,7 +312,7 @@ impl Session {
                 }
                 true
             }
-            (Some(_), ClientMsg::Unsubscribe { scene }) => {
+            ClientMsg::Unsubscribe { scene } => {
                 let had = self
                     .state
                     .scene(&scene)
@@ -225,7 +329,7 @@ impl Session {
                 }
                 true
             }
-            (Some(_), ClientMsg::Ping { id, client_time_us }) => {
+            ClientMsg::Ping { id, client_time_us } => {
                 self.send(&ServerMsg::Pong {
                     id,
                     client_time_us,
@@ -233,7 +337,7 @@ impl Session {
                 });
                 true
             }
-            (Some(_), ClientMsg::Command { id, command }) => {
+            ClientMsg::Command { id, command } => {
                 let authorized =
                     self.state
                         .config

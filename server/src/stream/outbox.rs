@@ -15,7 +15,7 @@
 //! lock so the writer takes control messages and frames together in publication order (a
 //! description always reaches the client before the first frame that needs it).
 
-use axum::extract::ws::Message;
+use axum::extract::ws::{CloseFrame, Message};
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -64,6 +64,8 @@ struct State {
     frames: BTreeMap<u32, Slot>,
     closed: bool,
     overflowed: bool,
+    /// The close frame asked for by [`Outbox::close_with`], if any.
+    close_frame: Option<CloseFrame>,
 }
 
 impl State {
@@ -258,6 +260,34 @@ impl Outbox {
         self.notify.notify_one();
     }
 
+    /// Closes like [`Outbox::close`], asking the writer to send this close code and reason
+    /// (e.g. 1009 after an oversized message, 1001 at shutdown). The first request wins, and
+    /// an overflow still closes with its own code: the client was not reading, so no explanation
+    /// can reach it anyway.
+    pub fn close_with(&self, code: u16, reason: &str) {
+        let mut s = self.lock();
+        if !s.closed {
+            s.closed = true;
+            s.close_frame = Some(CloseFrame {
+                code,
+                reason: reason.into(),
+            });
+        }
+        drop(s);
+        self.notify.notify_one();
+    }
+
+    /// The close frame [`Outbox::close_with`] asked for (`None`: a plain close or an overflow).
+    #[must_use]
+    pub fn close_frame(&self) -> Option<CloseFrame> {
+        let s = self.lock();
+        if s.overflowed {
+            None
+        } else {
+            s.close_frame.clone()
+        }
+    }
+
     /// Waits until there is something to send, then takes all of it.
     pub async fn next(&self) -> Next {
         loop {
@@ -408,6 +438,26 @@ mod tests {
         }
         assert!(!o.push_control(text(1)));
         assert!(matches!(o.next().await, Next::Close { overflowed: true }));
+        o.close_with(1001, "late");
+        assert_eq!(
+            o.close_frame(),
+            None,
+            "an overflow keeps its own close code"
+        );
+    }
+
+    #[tokio::test]
+    async fn close_with_delivers_what_was_queued_then_the_first_requested_frame() {
+        let o = Outbox::new();
+        assert!(o.push_control(Message::Text("e".into())));
+        o.close_with(1009, "too big");
+        o.close_with(1001, "shutdown");
+        o.close();
+        assert!(!o.push_control(Message::Text("late".into())));
+        assert_eq!(bytes(o.next().await), vec![b'T']);
+        assert!(matches!(o.next().await, Next::Close { overflowed: false }));
+        let frame = o.close_frame().unwrap();
+        assert_eq!((frame.code, frame.reason.as_str()), (1009, "too big"));
     }
 
     #[tokio::test]

@@ -9,8 +9,12 @@ use crate::metrics::Metrics;
 use axum::extract::ws::{CloseFrame, Message, close_code};
 use futures_util::{Sink, SinkExt};
 
+/// How long the close frame may take to go out before the writer gives up on the peer.
+const CLOSE_SEND_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(1);
+
 /// Sends what the outbox hands out, in order, until the outbox closes (then a close frame:
-/// 1008 when the client stopped reading, 1000 otherwise) or the sink fails (the peer is gone).
+/// 1008 when the client stopped reading, the reader's choice or 1000 otherwise) or the sink
+/// fails (the peer is gone).
 pub async fn run_writer<S>(outbox: &Outbox, mut sink: S, metrics: &Metrics)
 where
     S: Sink<Message> + Unpin,
@@ -38,13 +42,17 @@ where
                         reason: "client is not reading".into(),
                     }
                 } else {
-                    CloseFrame {
+                    // The reader may have chosen the code (1001, 1002, 1007, 1008, 1009).
+                    outbox.close_frame().unwrap_or(CloseFrame {
                         code: close_code::NORMAL,
                         reason: "bye".into(),
-                    }
+                    })
                 };
-                // The peer may already be gone; there is nothing left to do then.
-                sink.send(Message::Close(Some(frame))).await.ok();
+                // The peer may already be gone, or not reading at all: nothing is left to do
+                // then, and a peer that never reads must not hold this task forever.
+                tokio::time::timeout(CLOSE_SEND_TIMEOUT, sink.send(Message::Close(Some(frame))))
+                    .await
+                    .ok();
                 return;
             }
         }
