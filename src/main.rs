@@ -4,6 +4,7 @@
 
 use clap::Parser;
 use posecast_server::auth::{AccessConfig, Role, Secret, TokenRule};
+use posecast_server::quota::{CommandRate, Quotas};
 use posecast_server::startup::{DEFAULT_SCENE, Server};
 use posecast_server::state::{Config, DEFAULT_MAX_UPLOAD_BYTES};
 use std::net::SocketAddr;
@@ -66,6 +67,54 @@ struct Args {
     /// websocket's close frame (1001) to go out before exiting.
     #[arg(long, env = "POSECAST_SHUTDOWN_DRAIN", default_value = "2", value_parser = seconds)]
     shutdown_drain: Duration,
+    #[command(flatten)]
+    quotas: QuotaArgs,
+}
+
+/// Quotas and the command rate limit (`posecast_server::quota`); defaults in brackets.
+#[derive(Debug, clap::Args)]
+struct QuotaArgs {
+    /// Most scenes on the server [256].
+    #[arg(long, env = "POSECAST_MAX_SCENES", default_value_t = Quotas::default().max_scenes)]
+    max_scenes: usize,
+    /// Most avatars in one scene [1024].
+    #[arg(long, env = "POSECAST_MAX_AVATARS_PER_SCENE", default_value_t = Quotas::default().max_avatars_per_scene)]
+    max_avatars_per_scene: usize,
+    /// Most joints of an uploaded rig [1024].
+    #[arg(long, env = "POSECAST_MAX_JOINTS", default_value_t = Quotas::default().max_joints)]
+    max_joints: usize,
+    /// Most joints of a rig a limited token may place in a scene [256].
+    #[arg(long, env = "POSECAST_LIMITED_MAX_JOINTS", default_value_t = Quotas::default().limited_max_joints)]
+    limited_max_joints: usize,
+    /// Most clip duration × joints (joint-seconds) of an uploaded clip [1000000].
+    #[arg(long, env = "POSECAST_MAX_CLIP_JOINT_SECONDS", default_value_t = Quotas::default().max_clip_joint_seconds)]
+    max_clip_joint_seconds: f64,
+    /// Most bytes of one uploaded asset's files, added clips included [64 MiB].
+    #[arg(long, env = "POSECAST_MAX_ASSET_BYTES", default_value_t = Quotas::default().max_asset_bytes)]
+    max_asset_bytes: u64,
+    /// Most bytes of all uploaded assets together [1 GiB].
+    #[arg(long, env = "POSECAST_MAX_UPLOAD_TOTAL_BYTES", default_value_t = Quotas::default().max_upload_total_bytes)]
+    max_upload_total_bytes: u64,
+    /// Commands per second one connection (or one REST client address) may send, sustained [200].
+    #[arg(long, env = "POSECAST_COMMAND_RATE", default_value_t = CommandRate::default().per_second)]
+    command_rate: f64,
+    /// Commands one connection may send in a burst above the sustained rate [400].
+    #[arg(long, env = "POSECAST_COMMAND_BURST", default_value_t = CommandRate::default().burst)]
+    command_burst: f64,
+}
+
+impl QuotaArgs {
+    fn quotas(&self) -> Quotas {
+        Quotas {
+            max_scenes: self.max_scenes,
+            max_avatars_per_scene: self.max_avatars_per_scene,
+            max_joints: self.max_joints,
+            limited_max_joints: self.limited_max_joints,
+            max_clip_joint_seconds: self.max_clip_joint_seconds,
+            max_asset_bytes: self.max_asset_bytes,
+            max_upload_total_bytes: self.max_upload_total_bytes,
+        }
+    }
 }
 
 /// A duration in seconds, 0 to 3600 (fractions allowed).
@@ -157,6 +206,9 @@ async fn main() -> anyhow::Result<()> {
         data_dir: (!args.no_persist).then_some(args.data),
         max_upload_bytes: args.max_upload_bytes,
         shutdown_drain: args.shutdown_drain,
+        quotas: args.quotas.quotas(),
+        command_rate: CommandRate::new(args.quotas.command_rate, args.quotas.command_burst)
+            .map_err(anyhow::Error::msg)?,
     };
     let mut server = Server::start(config).await?;
     let shutdown = server.take_shutdown();

@@ -329,3 +329,114 @@ async fn unreadable_files_are_reported_set_aside_and_skipped() {
     }
     server.kill();
 }
+
+/// Twenty connections at once, each changing its own joint thirty times under a command rate
+/// limit: acks are group-committed and some commands are refused with `rate_limited` (then
+/// retried after the hint). SIGKILL right after the last ack: every joint holds the rotation
+/// of its last *acknowledged* command.
+#[tokio::test]
+async fn grouped_and_rate_limited_acks_survive_sigkill() {
+    use futures_util::{SinkExt, StreamExt};
+    use posecast_proto::msg::{ClientMsg, Encoding, ErrorCode, PROTOCOL_VERSION, ServerMsg};
+    use tokio_tungstenite::tungstenite::Message;
+
+    let data = tempfile::tempdir().unwrap();
+    let dir = data.path().to_str().unwrap().to_owned();
+    let server = Posecast::start(
+        &[
+            "--tick-rate",
+            "30",
+            "--data",
+            &dir,
+            "--command-rate",
+            "50",
+            "--command-burst",
+            "10",
+        ],
+        &[("POSECAST_CONTROL_TOKEN", common::CONTROL)],
+    );
+    let addr = server.addr;
+    let rig = posecast_server::startup::builtin_rig().unwrap();
+    let joints: Vec<String> = rig.skeleton().names()[..20].to_vec();
+    let tasks: Vec<_> = joints
+        .iter()
+        .enumerate()
+        .map(|(i, joint)| {
+            let joint = joint.clone();
+            tokio::spawn(async move {
+                let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/ws"))
+                    .await
+                    .unwrap();
+                let hello = ClientMsg::Hello {
+                    version: PROTOCOL_VERSION,
+                    encoding: Encoding::Json,
+                    token: Some(common::CONTROL.into()),
+                    client: None,
+                };
+                let text = serde_json::to_string(&hello).unwrap();
+                ws.send(Message::Text(text.into())).await.unwrap();
+                let (mut last, mut limited) = (None, 0);
+                for k in 0..30u64 {
+                    let angle = 0.01 * (k + 1) as f64 + 0.001 * i as f64;
+                    let q = [(angle / 2.0).sin(), 0.0, 0.0, (angle / 2.0).cos()];
+                    let json = format!(
+                        r#"{{"op":"set_joint_rotation","avatar":"avatar","joint":"{joint}","rotation":[{},{},{},{}]}}"#,
+                        q[0], q[1], q[2], q[3]
+                    );
+                    loop {
+                        let c = ClientMsg::Command {
+                            id: k,
+                            command: serde_json::from_str(&json).unwrap(),
+                        };
+                        let text = serde_json::to_string(&c).unwrap();
+                        ws.send(Message::Text(text.into())).await.unwrap();
+                        let answer = loop {
+                            let msg = tokio::time::timeout(Duration::from_secs(10), ws.next())
+                                .await
+                                .expect("an answer")
+                                .unwrap()
+                                .unwrap();
+                            if let Message::Text(t) = msg {
+                                match serde_json::from_str::<ServerMsg>(t.as_str()).unwrap() {
+                                    m @ (ServerMsg::Ack { .. } | ServerMsg::Error(_)) => break m,
+                                    _ => {}
+                                }
+                            }
+                        };
+                        match answer {
+                            ServerMsg::Ack { result, .. } => {
+                                last = Some(quat(&result["rotation"]));
+                                break;
+                            }
+                            ServerMsg::Error(e) if e.code == ErrorCode::RateLimited => {
+                                limited += 1;
+                                let wait = e.retry_after_ms.expect("a retry hint");
+                                tokio::time::sleep(Duration::from_millis(wait)).await;
+                            }
+                            other => panic!("{other:?}"),
+                        }
+                    }
+                }
+                (joint, last.unwrap(), limited)
+            })
+        })
+        .collect();
+    let mut acked = Vec::new();
+    for t in tasks {
+        acked.push(t.await.unwrap());
+    }
+    server.kill();
+    let limited: u32 = acked.iter().map(|a| a.2).sum();
+    assert!(limited > 0, "the rate limit never engaged");
+
+    let server = start(data.path());
+    let addr = server.addr;
+    for (joint, rotation, _) in &acked {
+        let stored = override_of(addr, "avatar", joint).await;
+        assert!(
+            same_rotation(stored, *rotation, 1e-4),
+            "{joint}: stored {stored:?}, acked {rotation:?}"
+        );
+    }
+    server.kill();
+}

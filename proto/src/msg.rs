@@ -178,6 +178,9 @@ pub struct ProtocolError {
     /// The id of the command that failed, if a command failed.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub id: Option<u64>,
+    /// With `rate_limited`: milliseconds until a command would be accepted again.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub retry_after_ms: Option<u64>,
 }
 
 impl ProtocolError {
@@ -188,6 +191,7 @@ impl ProtocolError {
             code,
             message: message.into(),
             id: None,
+            retry_after_ms: None,
         }
     }
 
@@ -238,6 +242,11 @@ pub enum ErrorCode {
     Internal,
     /// No such asset (rig).
     UnknownAsset,
+    /// A configured quota (scenes, avatars per scene, rig size, clip size, upload bytes) would be
+    /// exceeded; the message names it and its limit.
+    QuotaExceeded,
+    /// Too many commands too fast; `retry_after_ms` says when to try again.
+    RateLimited,
     /// HTTP only: the path exists but not with this method (405; `Allow` lists the methods).
     MethodNotAllowed,
     /// HTTP only: no endpoint at this path (404).

@@ -13,7 +13,7 @@
 //! - [`control`]: control commands (shared by REST and websocket); [`auth`]: tokens.
 //! - [`export`]: a rig's normalised mesh as .glb for render clients.
 //! - [`service`]: the axum router (`app`), websocket and HTTP endpoints.
-//! - [`state`]: configuration and shared state; [`metrics`]: counters.
+//! - [`state`]: configuration and shared state; [`metrics`]: counters; [`quota`]: limits.
 //! - [`startup`]: [`startup::Server`] — load rigs, create the default scene, serve.
 
 pub mod asset;
@@ -26,6 +26,7 @@ pub mod export;
 pub mod import;
 pub mod library;
 pub mod metrics;
+pub mod quota;
 pub mod rig;
 pub mod scene;
 pub mod service;

@@ -30,6 +30,8 @@ pub struct Metrics {
     protocol_errors: AtomicU64,
     unauthorized: AtomicU64,
     forbidden: AtomicU64,
+    quota_refused: [AtomicU64; crate::quota::Quota::ALL.len()],
+    rate_limited: AtomicU64,
 }
 
 impl Metrics {
@@ -110,6 +112,16 @@ impl Metrics {
         }
     }
 
+    /// A request was refused by a quota.
+    pub fn quota_refused(&self, quota: crate::quota::Quota) {
+        self.quota_refused[quota.index()].fetch_add(1, Relaxed);
+    }
+
+    /// A command was refused by a connection's rate limit.
+    pub fn rate_limited(&self) {
+        self.rate_limited.fetch_add(1, Relaxed);
+    }
+
     /// A client sent something invalid.
     pub fn protocol_error(&self) {
         self.protocol_errors.fetch_add(1, Relaxed);
@@ -127,9 +139,10 @@ impl Metrics {
         self.ticks_missed.load(Relaxed)
     }
 
-    /// The Prometheus text format (version 0.0.4). `subscribers` is per scene.
+    /// The Prometheus text format (version 0.0.4). `subscribers` is per scene (only the scenes
+    /// the caller may see by name), `total_subscribers` over every scene.
     #[must_use]
-    pub fn render(&self, subscribers: &[(String, usize)]) -> String {
+    pub fn render(&self, subscribers: &[(String, usize)], total_subscribers: usize) -> String {
         let mut out = String::new();
         let mut counter = |name: &str, help: &str, kind: &str, v: u64| {
             let _ = writeln!(
@@ -215,6 +228,12 @@ impl Metrics {
             "counter",
             self.protocol_errors.load(Relaxed),
         );
+        counter(
+            "rate_limited_total",
+            "Commands refused by a connection's rate limit.",
+            "counter",
+            self.rate_limited.load(Relaxed),
+        );
         let _ = writeln!(
             out,
             "# HELP posecast_refused_total Requests and messages refused for their token.\n\
@@ -223,6 +242,25 @@ impl Metrics {
              posecast_refused_total{{code=\"forbidden\"}} {}",
             self.unauthorized.load(Relaxed),
             self.forbidden.load(Relaxed)
+        );
+        let _ = writeln!(
+            out,
+            "# HELP posecast_quota_refused_total Requests refused by a quota.\n\
+             # TYPE posecast_quota_refused_total counter"
+        );
+        for q in crate::quota::Quota::ALL {
+            let _ = writeln!(
+                out,
+                "posecast_quota_refused_total{{quota=\"{}\"}} {}",
+                q.name(),
+                self.quota_refused[q.index()].load(Relaxed)
+            );
+        }
+        let _ = writeln!(
+            out,
+            "# HELP posecast_subscribers_total_open Subscriptions open, over every scene.\n\
+             # TYPE posecast_subscribers_total_open gauge\n\
+             posecast_subscribers_total_open {total_subscribers}"
         );
         let _ = writeln!(
             out,

@@ -4,6 +4,7 @@ use crate::auth::AccessConfig;
 use crate::bake::RetargetCache;
 use crate::library::Library;
 use crate::metrics::Metrics;
+use crate::quota::Quota;
 use crate::scene::avatar::Avatar;
 use crate::scene::{Scene, ticker};
 use crate::store::Store;
@@ -37,6 +38,10 @@ pub struct Config {
     pub data_dir: Option<PathBuf>,
     /// Largest upload request body, bytes.
     pub max_upload_bytes: usize,
+    /// Limits on scenes, avatars, rig and clip sizes, upload bytes ([`crate::quota`]).
+    pub quotas: crate::quota::Quotas,
+    /// Commands per second per connection ([`crate::quota::CommandRate`]).
+    pub command_rate: crate::quota::CommandRate,
     /// How long a graceful shutdown waits, at most, for HTTP requests to finish and for every
     /// websocket's close frame to be sent (and answered) before the server stops regardless.
     pub shutdown_drain: Duration,
@@ -62,6 +67,8 @@ impl Default for Config {
             access: AccessConfig::default(),
             data_dir: None,
             max_upload_bytes: DEFAULT_MAX_UPLOAD_BYTES,
+            quotas: crate::quota::Quotas::default(),
+            command_rate: crate::quota::CommandRate::default(),
             shutdown_drain: DEFAULT_SHUTDOWN_DRAIN,
         }
     }
@@ -236,8 +243,21 @@ impl AppState {
     /// Creates a scene and starts its tick task (must run inside a tokio runtime).
     ///
     /// # Errors
-    /// Invalid id, or [`ErrorCode::Conflict`] when it exists.
+    /// Invalid id, [`ErrorCode::Conflict`] when it exists, or `quota_exceeded` past
+    /// [`crate::quota::Quotas::max_scenes`].
     pub fn create_scene(&self, id: SceneId) -> Result<Arc<Scene>, ProtocolError> {
+        self.insert_scene(id, true)
+    }
+
+    /// [`AppState::create_scene`] without the scene quota: restoring what was stored.
+    ///
+    /// # Errors
+    /// Invalid id, or [`ErrorCode::Conflict`] when it exists.
+    pub fn restore_scene(&self, id: SceneId) -> Result<Arc<Scene>, ProtocolError> {
+        self.insert_scene(id, false)
+    }
+
+    fn insert_scene(&self, id: SceneId, quota: bool) -> Result<Arc<Scene>, ProtocolError> {
         check_id("scene", &id.0)?;
         let mut scenes = self
             .scenes
@@ -247,6 +267,14 @@ impl AppState {
             return Err(ProtocolError::new(
                 ErrorCode::Conflict,
                 format!("scene {id} exists"),
+            ));
+        }
+        let max = self.config.quotas.max_scenes;
+        if quota && scenes.len() >= max {
+            self.metrics.quota_refused(Quota::Scenes);
+            return Err(Quota::Scenes.exceeded(
+                format!("scene {id} would be scene {}", scenes.len() + 1),
+                max,
             ));
         }
         let num = self.next_scene_num.fetch_add(1, Ordering::Relaxed);
@@ -278,12 +306,36 @@ impl AppState {
     /// Adds an avatar of rig `asset` to a scene. Returns its id.
     ///
     /// # Errors
-    /// Unknown scene or rig, invalid or duplicate id.
+    /// Unknown scene or rig, invalid or duplicate id, or `quota_exceeded` past
+    /// [`crate::quota::Quotas::max_avatars_per_scene`].
     pub fn add_avatar(
         &self,
         scene: &SceneId,
         asset: &str,
         id: Option<AvatarId>,
+    ) -> Result<(Arc<Scene>, AvatarId), ProtocolError> {
+        self.insert_avatar(scene, asset, id, true)
+    }
+
+    /// [`AppState::add_avatar`] without the avatar quota: restoring what was stored.
+    ///
+    /// # Errors
+    /// Unknown scene or rig, invalid or duplicate id.
+    pub fn restore_avatar(
+        &self,
+        scene: &SceneId,
+        asset: &str,
+        id: Option<AvatarId>,
+    ) -> Result<(Arc<Scene>, AvatarId), ProtocolError> {
+        self.insert_avatar(scene, asset, id, false)
+    }
+
+    fn insert_avatar(
+        &self,
+        scene: &SceneId,
+        asset: &str,
+        id: Option<AvatarId>,
+        quota: bool,
     ) -> Result<(Arc<Scene>, AvatarId), ProtocolError> {
         let scene = self.scene(scene)?;
         let rig = self.library.get(asset).ok_or_else(|| {
@@ -307,6 +359,14 @@ impl AppState {
                 ErrorCode::Conflict,
                 format!("avatar {id} exists"),
             ));
+        }
+        // Checked under the same lock as the insertion: concurrent adds cannot overshoot.
+        let max = self.config.quotas.max_avatars_per_scene;
+        let count = scene.lock().avatars.len();
+        if quota && count >= max {
+            self.metrics.quota_refused(Quota::AvatarsPerScene);
+            return Err(Quota::AvatarsPerScene
+                .exceeded(format!("scene {} has {count} avatars", scene.id), max));
         }
         scene.add_avatar(avatar)?;
         Ok((scene, id))

@@ -95,6 +95,46 @@ fn conflict(name: &str) -> ProtocolError {
     ProtocolError::new(ErrorCode::Conflict, format!("an asset named {name} exists"))
 }
 
+/// The rig quotas ([`crate::quota::Quotas::check_rig`]), counted in the metrics when refused.
+fn check_rig(state: &AppState, rig: &Rig) -> Result<(), ProtocolError> {
+    state.config.quotas.check_rig(rig).inspect_err(|_| {
+        let quota = if rig.skeleton().len() > state.config.quotas.max_joints {
+            crate::quota::Quota::Joints
+        } else {
+            crate::quota::Quota::ClipJointSeconds
+        };
+        state.metrics.quota_refused(quota);
+    })
+}
+
+/// Refuses a file set larger than [`crate::quota::Quotas::max_asset_bytes`].
+fn check_asset_bytes(state: &AppState, name: &str, bytes: u64) -> Result<(), ProtocolError> {
+    let max = state.config.quotas.max_asset_bytes;
+    if bytes > max {
+        state.metrics.quota_refused(crate::quota::Quota::AssetBytes);
+        return Err(crate::quota::Quota::AssetBytes
+            .exceeded(format!("asset {name} would hold {bytes} bytes"), max));
+    }
+    Ok(())
+}
+
+/// Refuses `more` bytes past [`crate::quota::Quotas::max_upload_total_bytes`] (called under
+/// the assets lock, so concurrent uploads cannot overshoot together).
+fn check_total_bytes(state: &AppState, name: &str, more: u64) -> Result<(), ProtocolError> {
+    let max = state.config.quotas.max_upload_total_bytes;
+    let now = state.store.upload_bytes();
+    if now.saturating_add(more) > max {
+        state
+            .metrics
+            .quota_refused(crate::quota::Quota::UploadTotalBytes);
+        return Err(crate::quota::Quota::UploadTotalBytes.exceeded(
+            format!("uploads hold {now} bytes and {name} adds {more}"),
+            max,
+        ));
+    }
+    Ok(())
+}
+
 /// Uploads a new asset: import, normalise, store, add to the library. Returns the new rigs.
 ///
 /// # Errors
@@ -109,6 +149,7 @@ pub async fn upload(
     if taken(state, name) {
         return Err(conflict(name));
     }
+    check_asset_bytes(state, name, set.total_bytes() as u64)?;
     let owned = name.to_owned();
     let (set, rigs) = tokio::task::spawn_blocking(move || {
         let rigs = prepare(&owned, &set);
@@ -117,10 +158,15 @@ pub async fn upload(
     .await
     .map_err(|e| internal("import task failed", &e))?;
     let rigs = rigs?;
+    for rig in &rigs {
+        check_rig(state, rig)?;
+    }
     let _guard = state.store.assets_lock().await;
     if taken(state, name) || rigs.iter().any(|r| state.library.get(&r.name).is_some()) {
         return Err(conflict(name));
     }
+    let bytes = set.total_bytes() as u64;
+    check_total_bytes(state, name, bytes)?;
     let set = match state.store.assets_dir() {
         Some(dir) => {
             let meta = AssetMeta::new(name, &set, rigs.iter().map(|r| r.name.clone()).collect());
@@ -131,6 +177,7 @@ pub async fn upload(
         }
         None => set,
     };
+    state.store.add_upload_bytes(bytes);
     let infos = rigs
         .into_iter()
         .map(|rig| state.library.insert(rig).info())
@@ -199,6 +246,13 @@ pub async fn add_clips(
             format!("{name} is not a .skel asset: .anim clips need a CSE169 skeleton"),
         ));
     }
+    check_asset_bytes(
+        state,
+        name,
+        (original.total_bytes() + clips.total_bytes()) as u64,
+    )?;
+    let added = clips.total_bytes() as u64;
+    check_total_bytes(state, name, added)?;
     let mut combined = original;
     for (file, bytes) in clips.iter() {
         let clip = files::stem(file);
@@ -223,6 +277,7 @@ pub async fn add_clips(
         .into_iter()
         .next()
         .ok_or_else(|| internal("import gave no rig", &name))?;
+    check_rig(state, &new_rig)?;
     if let Some(dir) = state.store.assets_dir() {
         let meta = AssetMeta::new(name, &combined, vec![name.to_owned()]);
         let dir = dir.join(name);
@@ -231,6 +286,7 @@ pub async fn add_clips(
             .map_err(|e| internal("store task failed", &e))?
             .map_err(|e| internal("cannot store the clips", &e))?;
     }
+    state.store.add_upload_bytes(added);
     let info = state.library.insert(new_rig).info();
     state.store.uploads().insert(name.to_owned(), combined);
     Ok(info)

@@ -270,7 +270,7 @@ impl AccessConfig {
             _ => command.avatar().is_some_and(|a| t.allows_avatar(a)),
         };
         if scene_ok || avatar_ok {
-            Ok(())
+            limited_rig_size(state, command)
         } else {
             Err(forbidden(format!(
                 "token {} may not {}",
@@ -278,6 +278,31 @@ impl AccessConfig {
                 describe(command)
             )))
         }
+    }
+}
+
+/// A limited token places only rigs of at most [`crate::quota::Quotas::limited_max_joints`]
+/// joints: one user's avatar cannot make every viewer of the scene download a huge rig.
+fn limited_rig_size(state: &AppState, command: &Command) -> Result<(), ProtocolError> {
+    let Command::AddAvatar { asset, .. } = command else {
+        return Ok(());
+    };
+    let max = state.config.quotas.limited_max_joints;
+    match state.library.get(asset) {
+        Some(rig) if rig.skeleton().len() > max => {
+            state
+                .metrics
+                .quota_refused(crate::quota::Quota::LimitedJoints);
+            Err(crate::quota::Quota::LimitedJoints.exceeded(
+                format!(
+                    "rig {asset} has {} joints; a limited token may place rigs of up to",
+                    rig.skeleton().len()
+                ),
+                max,
+            ))
+        }
+        // An unknown asset is reported by the command itself.
+        _ => Ok(()),
     }
 }
 

@@ -155,14 +155,27 @@ async fn ws_upgrade(ws: WebSocketUpgrade, State(state): State<Arc<AppState>>) ->
         .on_upgrade(move |socket| ws::serve(socket, state))
 }
 
-async fn metrics(State(state): State<Arc<AppState>>) -> impl IntoResponse {
-    let subscribers: Vec<(String, usize)> = state
-        .scenes()
-        .iter()
-        .map(|s| (s.id.0.clone(), s.subscriber_count()))
-        .collect();
-    (
+/// `GET /metrics`: readable by whoever may read (anyone with open views; a view or control
+/// token with `--require-view-token`). Scene names are private to token holders: anonymous
+/// callers get the total subscriber count only, a scene-limited token its own scenes.
+async fn metrics(
+    State(state): State<Arc<AppState>>,
+    caller: crate::auth::Caller,
+) -> Result<impl IntoResponse, rest::AppError> {
+    let access = &state.config.access;
+    access.authorize_read(&caller)?;
+    let scenes = state.scenes();
+    let total = scenes.iter().map(|s| s.subscriber_count()).sum();
+    let subscribers: Vec<(String, usize)> = match caller {
+        crate::auth::Caller::Anonymous => Vec::new(),
+        _ => scenes
+            .iter()
+            .filter(|s| access.authorize_view(&caller, &s.id).is_ok())
+            .map(|s| (s.id.0.clone(), s.subscriber_count()))
+            .collect(),
+    };
+    Ok((
         [(header::CONTENT_TYPE, "text/plain; version=0.0.4")],
-        state.metrics.render(&subscribers),
-    )
+        state.metrics.render(&subscribers, total),
+    ))
 }

@@ -7,6 +7,7 @@
 
 use crate::auth::Caller;
 use crate::control;
+use crate::quota::{TokenBucket, rate_limited};
 use crate::scene::ticker::unix_micros;
 use crate::scene::{Subscriber, text};
 use crate::state::AppState;
@@ -47,6 +48,7 @@ pub async fn serve(socket: WebSocket, state: Arc<AppState>) {
             encoding: None,
             scenes: Vec::new(),
             caller: Caller::Anonymous,
+            commands: TokenBucket::new(state.config.command_rate),
         };
         let mut writer_done = false;
         let mut client_closed = false;
@@ -176,6 +178,8 @@ struct Session {
     encoding: Option<Encoding>,
     scenes: Vec<SceneId>,
     caller: Caller,
+    /// The connection's command rate limit.
+    commands: TokenBucket,
 }
 
 impl Session {
@@ -338,6 +342,11 @@ impl Session {
                 true
             }
             ClientMsg::Command { id, command } => {
+                if let Err(wait) = self.commands.take() {
+                    self.state.metrics.rate_limited();
+                    self.error(rate_limited(wait).for_command(id));
+                    return true;
+                }
                 let authorized =
                     self.state
                         .config

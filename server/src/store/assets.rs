@@ -175,6 +175,7 @@ impl Store {
                         info!(asset = %rig.name, joints = rig.skeleton().len(), "restored upload");
                         state.library.insert(rig);
                     }
+                    self.add_upload_bytes(set.total_bytes() as u64);
                     self.uploads().insert(meta.name, set);
                 }
                 Err(reason) => set_aside(&dir, &reason),

@@ -67,6 +67,8 @@ pub struct Store {
     /// Scenes whose acks wait for the next write (group commit, see [`Store::persist_scene`]).
     open_batch: std::sync::Mutex<Batch>,
     batches_written: std::sync::atomic::AtomicU64,
+    /// Bytes of every uploaded asset's files (the `upload_total_bytes` quota).
+    upload_bytes: std::sync::atomic::AtomicU64,
     /// The original files of every uploaded asset, by asset name (kept to add clips later).
     uploads: std::sync::Mutex<BTreeMap<String, FileSet>>,
 }
@@ -104,6 +106,7 @@ impl Store {
             assets_lock: tokio::sync::Mutex::new(()),
             open_batch: std::sync::Mutex::new(Batch::default()),
             batches_written: std::sync::atomic::AtomicU64::new(0),
+            upload_bytes: std::sync::atomic::AtomicU64::new(0),
             uploads: std::sync::Mutex::new(BTreeMap::new()),
         }
     }
@@ -271,6 +274,18 @@ impl Store {
         self.open_batch
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// Bytes of every uploaded asset's files.
+    #[must_use]
+    pub fn upload_bytes(&self) -> u64 {
+        self.upload_bytes.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// Counts `n` more bytes of uploaded files.
+    pub(crate) fn add_upload_bytes(&self, n: u64) {
+        self.upload_bytes
+            .fetch_add(n, std::sync::atomic::Ordering::Relaxed);
     }
 
     /// Scene writes so far (each a group commit of one or more acks).

@@ -230,10 +230,11 @@ pub fn restore(
     file: &SceneFile,
     now_us: u64,
 ) -> Result<(), posecast_proto::msg::ProtocolError> {
-    state.create_scene(file.scene.clone())?;
+    state.restore_scene(file.scene.clone())?;
     let elapsed_s = now_us.saturating_sub(file.saved_us) as f64 / 1e6;
     for rec in &file.avatars {
-        let (scene, id) = match state.add_avatar(&file.scene, &rec.asset, Some(rec.id.clone())) {
+        let (scene, id) = match state.restore_avatar(&file.scene, &rec.asset, Some(rec.id.clone()))
+        {
             Ok(added) => added,
             Err(e) => {
                 warn!(scene = %file.scene, avatar = %rec.id, error = %e, "avatar not restored");
