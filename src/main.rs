@@ -71,34 +71,34 @@ struct Args {
     quotas: QuotaArgs,
 }
 
-/// Quotas and the command rate limit (`posecast_server::quota`); defaults in brackets.
+/// Quotas and the command rate limit (`posecast_server::quota`).
 #[derive(Debug, clap::Args)]
 struct QuotaArgs {
-    /// Most scenes on the server [256].
+    /// Most scenes on the server.
     #[arg(long, env = "POSECAST_MAX_SCENES", default_value_t = Quotas::default().max_scenes)]
     max_scenes: usize,
-    /// Most avatars in one scene [1024].
+    /// Most avatars in one scene.
     #[arg(long, env = "POSECAST_MAX_AVATARS_PER_SCENE", default_value_t = Quotas::default().max_avatars_per_scene)]
     max_avatars_per_scene: usize,
-    /// Most joints of an uploaded rig [1024].
+    /// Most joints of an uploaded rig.
     #[arg(long, env = "POSECAST_MAX_JOINTS", default_value_t = Quotas::default().max_joints)]
     max_joints: usize,
-    /// Most joints of a rig a limited token may place in a scene [256].
+    /// Most joints of a rig a limited token may place in a scene.
     #[arg(long, env = "POSECAST_LIMITED_MAX_JOINTS", default_value_t = Quotas::default().limited_max_joints)]
     limited_max_joints: usize,
-    /// Most clip duration × joints (joint-seconds) of an uploaded clip [1000000].
+    /// Most clip duration × joints (joint-seconds) of an uploaded clip.
     #[arg(long, env = "POSECAST_MAX_CLIP_JOINT_SECONDS", default_value_t = Quotas::default().max_clip_joint_seconds)]
     max_clip_joint_seconds: f64,
-    /// Most bytes of one uploaded asset's files, added clips included [64 MiB].
+    /// Most bytes of one uploaded asset's files, added clips included.
     #[arg(long, env = "POSECAST_MAX_ASSET_BYTES", default_value_t = Quotas::default().max_asset_bytes)]
     max_asset_bytes: u64,
-    /// Most bytes of all uploaded assets together [1 GiB].
+    /// Most bytes of all uploaded assets together.
     #[arg(long, env = "POSECAST_MAX_UPLOAD_TOTAL_BYTES", default_value_t = Quotas::default().max_upload_total_bytes)]
     max_upload_total_bytes: u64,
-    /// Commands per second one connection (or one REST client address) may send, sustained [200].
+    /// Commands per second one websocket connection may send, sustained.
     #[arg(long, env = "POSECAST_COMMAND_RATE", default_value_t = CommandRate::default().per_second)]
     command_rate: f64,
-    /// Commands one connection may send in a burst above the sustained rate [400].
+    /// Commands one connection may send in a burst above the sustained rate.
     #[arg(long, env = "POSECAST_COMMAND_BURST", default_value_t = CommandRate::default().burst)]
     command_burst: f64,
 }

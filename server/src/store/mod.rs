@@ -374,17 +374,23 @@ mod tests {
     use crate::state::Config;
     use posecast_proto::command::Command;
 
+    /// A state storing into `dir`, with the built-in rig.
+    fn state_on(dir: &Path) -> std::sync::Arc<AppState> {
+        let state = AppState::new(Config {
+            data_dir: Some(dir.to_owned()),
+            ..Config::default()
+        });
+        state.store.open().unwrap();
+        state.library.insert(builtin_rig().unwrap());
+        state
+    }
+
     /// One bad value (the `null` quaternion an older server stored) costs that value alone,
     /// never the scene: the file stays in place and everything valid in it is restored.
     #[tokio::test]
     async fn restore_keeps_a_scene_with_bad_values() {
         let dir = tempfile::tempdir().unwrap();
-        let state = AppState::new(Config {
-            data_dir: Some(dir.path().to_owned()),
-            ..Config::default()
-        });
-        state.store.open().unwrap();
-        state.library.insert(builtin_rig().unwrap());
+        let state = state_on(dir.path());
         let file = serde_json::json!({
             "format": 1, "scene": "s", "saved_us": 0,
             "avatars": [
@@ -425,12 +431,7 @@ mod tests {
     #[tokio::test]
     async fn acks_do_not_wait_for_asset_changes() {
         let dir = tempfile::tempdir().unwrap();
-        let state = AppState::new(Config {
-            data_dir: Some(dir.path().to_owned()),
-            ..Config::default()
-        });
-        state.store.open().unwrap();
-        state.library.insert(builtin_rig().unwrap());
+        let state = state_on(dir.path());
         let run = |json: &str| {
             let c: Command = serde_json::from_str(json).unwrap();
             let state = state.clone();
@@ -455,12 +456,7 @@ mod tests {
     #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
     async fn concurrent_acks_are_all_in_the_stored_file() {
         let dir = tempfile::tempdir().unwrap();
-        let state = AppState::new(Config {
-            data_dir: Some(dir.path().to_owned()),
-            ..Config::default()
-        });
-        state.store.open().unwrap();
-        state.library.insert(builtin_rig().unwrap());
+        let state = state_on(dir.path());
         let run = |json: String| {
             let state = state.clone();
             async move {
