@@ -117,6 +117,7 @@ fn play(clip: &str, start: f32, speed: f32, fade: f32) -> Command {
         looping: Some(true),
         start: Some(start),
         fade: Some(fade),
+        root_motion: None,
     }
 }
 
