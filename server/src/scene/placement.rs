@@ -222,7 +222,72 @@ impl super::avatar::Avatar {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::clip::{Interpolation, JointChannels, Track, VectorChannel};
+    use crate::scene::avatar::Avatar;
     use glam::Quat;
+    use posecast_proto::msg::AvatarId;
+
+    /// The built-in avatar playing a 1 s looping clip whose root walks 1 m along +Z (its
+    /// height and the rest of the rig as at rest), in `mode`, standing at `placement`.
+    fn walker(mode: RootMotion, placement: Placement) -> Avatar {
+        let rig = Arc::new(crate::startup::builtin_rig().unwrap());
+        let root = rig.skeleton().rest()[0].translation;
+        let mut joints = vec![JointChannels::default(); rig.skeleton().len()];
+        joints[0].translation = Some(VectorChannel::Keys(
+            Track::new(
+                Interpolation::Linear,
+                vec![0.0, 1.0],
+                vec![root, root + Vec3::Z],
+            )
+            .unwrap(),
+        ));
+        let clip = Arc::new(Clip::new("stride", joints, None).unwrap());
+        let mut a = Avatar::new(AvatarId("w".into()), 0, rig);
+        a.place(placement, 0.0);
+        let mut layer = Layer::new(clip, None, 0.0, 1.0, true);
+        layer.root_motion = mode;
+        a.play(layer, 0.0);
+        a
+    }
+
+    /// Ticks at 60 Hz to `seconds`; the root's world position (`placement · root`).
+    fn run(a: &mut Avatar, seconds: f64) -> Vec3 {
+        for seq in 0..=(seconds * 60.0).round() as u64 {
+            a.tick(seq as f64 / 60.0);
+        }
+        let p = a.placing.current();
+        p.position + p.rotation * a.locals[0].translation
+    }
+
+    #[test]
+    fn accumulate_moves_the_placement_one_net_displacement_per_loop() {
+        let mut a = walker(RootMotion::Accumulate, Placement::IDENTITY);
+        let start = a.locals[0].translation;
+        let world = run(&mut a, 3.5);
+        // Three wraps: 3 m; and half a cycle into the fourth on top.
+        assert!((a.placing.current().position - Vec3::new(0.0, 0.0, 3.0)).length() < 1e-4);
+        assert!((world - (start + Vec3::new(0.0, 0.0, 3.5))).length() < 1e-3);
+        // Turned by the placement: a walker facing +X walks along +X.
+        let facing_x = Placement {
+            position: Vec3::new(10.0, 0.0, 0.0),
+            rotation: Quat::from_rotation_y(std::f32::consts::FRAC_PI_2),
+        };
+        let mut b = walker(RootMotion::Accumulate, facing_x);
+        run(&mut b, 2.5);
+        assert!((b.placing.current().position - Vec3::new(12.0, 0.0, 0.0)).length() < 1e-4);
+    }
+
+    #[test]
+    fn in_place_keeps_the_root_over_the_placement_and_its_height() {
+        let mut a = walker(RootMotion::InPlace, Placement::IDENTITY);
+        let start = a.locals[0].translation;
+        for t in [0.25, 1.5, 3.75] {
+            let world = run(&mut a, t);
+            assert!((world - start).length() < 1e-5, "{t}: {world}");
+        }
+        assert_eq!(a.placing.current(), Placement::IDENTITY);
+        assert_eq!(default_root_motion(true), RootMotion::InPlace);
+    }
 
     #[test]
     fn a_move_interpolates_on_the_clock_and_ends_at_its_target() {
