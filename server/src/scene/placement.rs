@@ -12,7 +12,7 @@ use crate::clip::Clip;
 use glam::Vec3;
 use posecast_proto::Transform;
 use posecast_proto::command::RootMotion;
-use posecast_proto::placement::Placement;
+use posecast_proto::placement::{MAX_PLACEMENT_METRES, Placement};
 use std::sync::Arc;
 
 /// A move from one placement to another over a span of scene clock.
@@ -88,12 +88,16 @@ impl Placing {
         }
     }
 
-    /// Shifts the placement (and a move in progress) by `offset` metres, world space.
+    /// Shifts the placement (and a move in progress) by `offset` metres, world space, kept
+    /// within ±[`MAX_PLACEMENT_METRES`] (an avatar walking for ever stops at the edge rather
+    /// than reach a position no command could set).
     pub fn shift(&mut self, offset: Vec3) {
-        self.current.position += offset;
+        let bound = Vec3::splat(MAX_PLACEMENT_METRES);
+        let shift = |p: &mut Vec3| *p = (*p + offset).clamp(-bound, bound);
+        shift(&mut self.current.position);
         if let Some(m) = &mut self.moving {
-            m.from.position += offset;
-            m.to.position += offset;
+            shift(&mut m.from.position);
+            shift(&mut m.to.position);
         }
     }
 }
