@@ -88,7 +88,8 @@ async fn built_in_avatar_streams_the_clip_it_plays() {
             looping: None,
             start: None,
             fade: Some(0.0),
-            root_motion: None,
+            // Authored root translation: compared with raw clip samples.
+            root_motion: Some(posecast_proto::command::RootMotion::Accumulate),
         })
         .await
         .unwrap();
@@ -142,7 +143,8 @@ async fn a_testdata_rig_streams_its_clip() {
         looping: None,
         start: None,
         fade: Some(0.0),
-        root_motion: None,
+        // Authored root translation: compared with raw clip samples.
+        root_motion: Some(posecast_proto::command::RootMotion::Accumulate),
     })
     .await
     .unwrap();
