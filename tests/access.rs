@@ -213,6 +213,7 @@ async fn a_token_limited_to_avatar_a_cannot_command_avatar_b() {
             looping: None,
             start: None,
             fade: None,
+            root_motion: None,
         })
         .await;
     match refused {

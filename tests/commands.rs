@@ -81,6 +81,7 @@ fn play(avatar: &AvatarId, clip: &str, start: f32, speed: f32) -> Command {
         looping: Some(true),
         start: Some(start),
         fade: Some(0.0),
+        root_motion: None,
     }
 }
 
@@ -112,6 +113,8 @@ async fn scenario(server: &Server, surface: &Surface<'_>, tag: &str) {
             asset: "avatar".into(),
             avatar: Some(id.clone()),
             clip: Some("walk".into()),
+            position: None,
+            rotation: None,
         })
         .await;
     assert_eq!(added["avatar"], id.0.as_str());

@@ -396,12 +396,11 @@ async fn grouped_and_rate_limited_acks_survive_sigkill() {
                                 .expect("an answer")
                                 .unwrap()
                                 .unwrap();
-                            if let Message::Text(t) = msg {
-                                if let m @ (ServerMsg::Ack { .. } | ServerMsg::Error(_)) =
+                            if let Message::Text(t) = msg
+                                && let m @ (ServerMsg::Ack { .. } | ServerMsg::Error(_)) =
                                     serde_json::from_str::<ServerMsg>(t.as_str()).unwrap()
-                                {
-                                    break m;
-                                }
+                            {
+                                break m;
                             }
                         };
                         match answer {

@@ -117,6 +117,9 @@ fn play(clip: &str, start: f32, speed: f32, fade: f32) -> Command {
         looping: Some(true),
         start: Some(start),
         fade: Some(fade),
+        // The authored root translation (these tests compare with raw clip samples; the
+        // clocks here never wrap, so nothing accumulates).
+        root_motion: Some(posecast_proto::command::RootMotion::Accumulate),
     }
 }
 

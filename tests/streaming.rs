@@ -88,6 +88,8 @@ async fn built_in_avatar_streams_the_clip_it_plays() {
             looping: None,
             start: None,
             fade: Some(0.0),
+            // Authored root translation: compared with raw clip samples.
+            root_motion: Some(posecast_proto::command::RootMotion::Accumulate),
         })
         .await
         .unwrap();
@@ -124,6 +126,8 @@ async fn a_testdata_rig_streams_its_clip() {
             asset: "cesium".into(),
             avatar: Some(AvatarId("cesium-1".into())),
             clip: None,
+            position: None,
+            rotation: None,
         })
         .await
         .unwrap();
@@ -139,6 +143,8 @@ async fn a_testdata_rig_streams_its_clip() {
         looping: None,
         start: None,
         fade: Some(0.0),
+        // Authored root translation: compared with raw clip samples.
+        root_motion: Some(posecast_proto::command::RootMotion::Accumulate),
     })
     .await
     .unwrap();

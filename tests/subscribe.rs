@@ -255,6 +255,8 @@ async fn the_first_frame_after_subscribing_carries_every_described_avatar() {
                 asset: "avatar".into(),
                 avatar: Some(added.clone()),
                 clip: (i % 2 == 1).then(|| "walk".into()),
+                position: None,
+                rotation: None,
             })
             .await
             .unwrap();
@@ -301,6 +303,8 @@ async fn a_filtered_subscription_gets_only_its_avatars_with_the_same_poses() {
                 asset: "avatar".into(),
                 avatar: Some(avatar.clone()),
                 clip: None,
+                position: None,
+                rotation: None,
             })
             .await
             .unwrap();
@@ -313,6 +317,7 @@ async fn a_filtered_subscription_gets_only_its_avatars_with_the_same_poses() {
                 looping: Some(true),
                 start: Some(time),
                 fade: Some(0.0),
+                root_motion: None,
             })
             .await
             .unwrap();

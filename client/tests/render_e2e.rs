@@ -132,6 +132,7 @@ async fn offscreen_render_of_the_live_stream_shows_the_seeked_avatar() {
             looping: None,
             start: None,
             fade: Some(0.0),
+            root_motion: None,
         })
         .await
         .unwrap();

@@ -48,6 +48,13 @@ pub enum Command {
         /// The clip to start playing, if any.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         clip: Option<String>,
+        // --- placement (issue 16) ---
+        /// World position `[x, y, z]` in metres; default the origin.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        position: Option<[f32; 3]>,
+        /// World rotation `[x, y, z, w]`; default none.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        rotation: Option<[f32; 4]>,
     },
     /// Remove an avatar from its scene.
     RemoveAvatar {
@@ -75,6 +82,10 @@ pub enum Command {
         /// Cross-fade duration in seconds. Default 0.25.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         fade: Option<f32>,
+        /// What the clip's root translation does; default in place for looping clips,
+        /// accumulate (as authored) otherwise.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        root_motion: Option<RootMotion>,
     },
     /// Freeze the clock of the avatar's clip.
     Pause {
@@ -150,6 +161,33 @@ pub enum Command {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         joint: Option<String>,
     },
+    // --- placement (issue 16) ---
+    /// Move an avatar in its scene: to `position` / `rotation`, over `duration` seconds
+    /// (position lerped, rotation slerped on the scene's clock; absent or 0: at once).
+    PlaceAvatar {
+        /// The avatar.
+        avatar: AvatarId,
+        /// World position `[x, y, z]`, metres (each within ±[`crate::placement::MAX_PLACEMENT_METRES`]).
+        position: [f32; 3],
+        /// World rotation `[x, y, z, w]` (normalised; must be finite and non-zero).
+        rotation: [f32; 4],
+        /// Seconds to get there (finite, ≥ 0).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        duration: Option<f32>,
+    },
+}
+
+/// What a clip's root translation does to the avatar (`play`'s `root_motion`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RootMotion {
+    /// The root's horizontal (X, Z) motion is removed, its height kept: the avatar walks on
+    /// the spot where its placement puts it.
+    InPlace,
+    /// The root moves as authored, and every loop continues from where the last one ended:
+    /// each wrap adds the clip's net horizontal root displacement, turned by the placement's
+    /// rotation, to the placement's position.
+    Accumulate,
 }
 
 impl Command {
@@ -181,7 +219,8 @@ impl Command {
             | Self::SetJointDofs { avatar, .. }
             | Self::RotateJointLocal { avatar, .. }
             | Self::RotateJointWorld { avatar, .. }
-            | Self::Release { avatar, .. } => Some(avatar),
+            | Self::Release { avatar, .. }
+            | Self::PlaceAvatar { avatar, .. } => Some(avatar),
             Self::AddAvatar { avatar, .. } => avatar.as_ref(),
             _ => None,
         }
@@ -284,6 +323,13 @@ pub struct AvatarState {
     pub paused: bool,
     /// Joints with an override.
     pub overrides: Vec<String>,
+    // --- placement (issue 16) ---
+    /// Where it stands now (mid-move: the interpolated placement).
+    #[serde(default)]
+    pub placement: crate::placement::Placement,
+    /// The current clip's root motion, if a clip plays.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub root_motion: Option<RootMotion>,
 }
 
 #[cfg(test)]

@@ -13,7 +13,8 @@
 //!         24  u64  base seq: the keyframe a delta refers to (== seq for a keyframe)
 //! chunk       u32  avatar number (from its description)
 //!             u64  description hash
-//!             u16  joint count J, u16 translation count T, u16 scale count S
+//!             u16  joint count J, u16 translation count T,
+//!             u16  scale count S in bits 0–14; bit 15 set: a placement follows the scales
 //!             rotations:
 //!               keyframe: J × 6 bytes, smallest-three (crate::quant)
 //!               delta:    ⌈J/4⌉ bytes of 2-bit tags (joint j at bits 2(j mod 4) of byte j/4),
@@ -21,7 +22,13 @@
 //!                         1 = same dropped component, three i8 level differences (3 bytes);
 //!                         2 = full 6-byte rotation; 3 is invalid.
 //!             T × 3 f32 translations, S × 3 f32 scales (joints listed in the description)
+//!             placement (when flagged): 3 f32 position, 4 f32 rotation [x, y, z, w]
 //! ```
+//!
+//! The placement ([`crate::placement`]) is in a keyframe chunk when it is not the identity,
+//! and in a delta chunk when it differs from its keyframe's; a chunk without one has its
+//! keyframe's (a keyframe without one: the identity). So every decoded pose carries the
+//! placement of its own tick.
 //!
 //! Why deltas against the *keyframe* rather than the previous frame: a slow subscriber only
 //! ever receives the newest frame (older ones are dropped), so a delta must be decodable from
@@ -30,6 +37,7 @@
 //! delta; the per-connection queue never drops a keyframe that a pending delta needs.
 //! Translations and scales are few (roots, mostly) and sent as f32 in every frame.
 
+use crate::placement::Placement;
 use crate::quant;
 use glam::{Quat, Vec3};
 use std::collections::HashMap;
@@ -38,6 +46,10 @@ use std::collections::HashMap;
 pub const MAGIC: u8 = 0x50;
 /// Header size in bytes.
 pub const HEADER_BYTES: usize = 32;
+/// Bit of a chunk's scale-count field that flags a placement after the scales.
+pub const PLACEMENT_FLAG: u16 = 0x8000;
+/// Most scaled joints a chunk can carry (the other bit of the field is [`PLACEMENT_FLAG`]).
+pub const MAX_SCALES: usize = 0x7fff;
 
 /// Keyframe or delta.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -76,6 +88,8 @@ pub struct AvatarPose {
     pub translations: Vec<Vec3>,
     /// Local scales of the description's `scaled_joints`, in order.
     pub scales: Vec<Vec3>,
+    /// The avatar's world placement at this tick (clients draw `placement · root`).
+    pub placement: Placement,
 }
 
 /// A decoded frame.
@@ -155,6 +169,7 @@ pub fn write_header(header: &FrameHeader, avatar_count: u16, out: &mut Vec<u8>) 
 #[derive(Debug, Default, Clone)]
 pub struct ChunkEncoder {
     key: Vec<u64>,
+    key_placement: Placement,
     scratch: Vec<u64>,
 }
 
@@ -179,9 +194,19 @@ impl ChunkEncoder {
         let joints = pose.rotations.len();
         out.extend_from_slice(&pose.avatar_num.to_le_bytes());
         out.extend_from_slice(&pose.hash.to_le_bytes());
-        for n in [joints, pose.translations.len(), pose.scales.len()] {
+        let with_placement = match kind {
+            FrameKind::Key => !pose.placement.is_identity(),
+            FrameKind::Delta => pose.placement != self.key_placement,
+        };
+        if kind == FrameKind::Key {
+            self.key_placement = pose.placement;
+        }
+        for n in [joints, pose.translations.len()] {
             out.extend_from_slice(&(n.min(usize::from(u16::MAX)) as u16).to_le_bytes());
         }
+        let scales = pose.scales.len().min(MAX_SCALES);
+        let flag = if with_placement { PLACEMENT_FLAG } else { 0 };
+        out.extend_from_slice(&(scales as u16 | flag).to_le_bytes());
         self.scratch.clear();
         self.scratch
             .extend(pose.rotations.iter().map(|&q| quant::encode(q)));
@@ -217,8 +242,19 @@ impl ChunkEncoder {
                 }
             }
         }
-        for v in pose.translations.iter().chain(&pose.scales) {
+        for v in pose.translations.iter().chain(&pose.scales[..scales]) {
             for c in v.to_array() {
+                out.extend_from_slice(&c.to_le_bytes());
+            }
+        }
+        if with_placement {
+            let p = &pose.placement;
+            for c in p
+                .position
+                .to_array()
+                .into_iter()
+                .chain(p.rotation.to_array())
+            {
                 out.extend_from_slice(&c.to_le_bytes());
             }
         }
@@ -259,7 +295,7 @@ fn apply_difference(key: u64, d: [i8; 3]) -> u64 {
 /// Decodes binary frames, keeping the last keyframe of every (scene, avatar) for deltas.
 #[derive(Debug, Default)]
 pub struct FrameDecoder {
-    keys: HashMap<(u32, u32), (u64, Vec<u64>)>,
+    keys: HashMap<(u32, u32), (u64, Vec<u64>, Placement)>,
 }
 
 struct Reader<'a> {
@@ -302,6 +338,9 @@ impl<'a> Reader<'a> {
         let mut b = [0u8; 8];
         b[..quant::BYTES].copy_from_slice(self.take(quant::BYTES)?);
         Ok(u64::from_le_bytes(b))
+    }
+    fn f32(&mut self) -> Result<f32, FrameError> {
+        Ok(f32::from_le_bytes(self.array()?))
     }
     fn vec3(&mut self) -> Result<Vec3, FrameError> {
         let b: [u8; 12] = self.array()?;
@@ -373,18 +412,23 @@ impl FrameDecoder {
             let hash = r.u64()?;
             let joints = usize::from(r.u16()?);
             let translations = usize::from(r.u16()?);
-            let scales = usize::from(r.u16()?);
+            let scales_field = r.u16()?;
+            let scales = usize::from(scales_field & !PLACEMENT_FLAG);
             let mut bits = Vec::with_capacity(joints.min(bytes.len()));
+            // A chunk without a placement has its keyframe's (a keyframe's default: identity).
+            let mut placement = Placement::IDENTITY;
             match header.kind {
                 FrameKind::Key => {
                     for _ in 0..joints {
                         bits.push(r.quat_bits()?);
                     }
-                    new_keys.push(((header.scene_num, avatar_num), bits.clone()));
                 }
                 FrameKind::Delta => {
                     let key = match self.keys.get(&(header.scene_num, avatar_num)) {
-                        Some((seq, key)) if *seq == header.base_seq => key,
+                        Some((seq, key, key_placement)) if *seq == header.base_seq => {
+                            placement = *key_placement;
+                            key
+                        }
                         _ => {
                             return Err(FrameError::MissingKeyframe {
                                 avatar: avatar_num,
@@ -425,6 +469,7 @@ impl FrameDecoder {
                 rotations: bits.iter().map(|&b| quant::decode(b)).collect(),
                 translations: Vec::with_capacity(translations.min(bytes.len() / 12)),
                 scales: Vec::with_capacity(scales.min(bytes.len() / 12)),
+                placement,
             };
             for _ in 0..translations {
                 pose.translations.push(r.vec3()?);
@@ -432,13 +477,24 @@ impl FrameDecoder {
             for _ in 0..scales {
                 pose.scales.push(r.vec3()?);
             }
+            if scales_field & PLACEMENT_FLAG != 0 {
+                let position = r.vec3()?;
+                let q = [r.f32()?, r.f32()?, r.f32()?, r.f32()?];
+                pose.placement = Placement {
+                    position,
+                    rotation: Quat::from_array(q),
+                };
+            }
+            if header.kind == FrameKind::Key {
+                new_keys.push(((header.scene_num, avatar_num), bits, pose.placement));
+            }
             avatars.push(pose);
         }
         if r.at != bytes.len() {
             return Err(FrameError::Trailing(bytes.len() - r.at));
         }
-        for (k, bits) in new_keys {
-            self.keys.insert(k, (header.seq, bits));
+        for (k, bits, placement) in new_keys {
+            self.keys.insert(k, (header.seq, bits, placement));
         }
         Ok(Frame { header, avatars })
     }
@@ -478,7 +534,44 @@ mod tests {
             rotations,
             translations: vec![Vec3::new(1.0, 2.0, 3.0)],
             scales: vec![],
+            placement: Placement::IDENTITY,
         }
+    }
+
+    #[test]
+    fn placement_rides_in_keyframes_and_in_deltas_that_change_it() {
+        let placed = Placement {
+            position: Vec3::new(1.0, 0.0, -2.0),
+            rotation: Quat::from_rotation_y(0.5),
+        };
+        let moved = Placement {
+            position: Vec3::new(1.5, 0.0, -2.0),
+            ..placed
+        };
+        let mut enc = ChunkEncoder::new();
+        let mut dec = FrameDecoder::new();
+        let rest = pose(vec![Quat::IDENTITY; 3]);
+        let plain = frame(FrameKind::Key, 1, 1, &mut enc, &rest);
+        assert_eq!(
+            dec.decode(&plain).unwrap().avatars[0].placement,
+            Placement::IDENTITY
+        );
+        let at = |p: Placement| AvatarPose {
+            placement: p,
+            ..rest.clone()
+        };
+        let key = frame(FrameKind::Key, 2, 2, &mut enc, &at(placed));
+        assert_eq!(key.len(), plain.len() + 28);
+        assert_eq!(dec.decode(&key).unwrap().avatars[0].placement, placed);
+        // Unchanged since the keyframe: not sent, yet decoded as the keyframe's.
+        let same = frame(FrameKind::Delta, 3, 2, &mut enc, &at(placed));
+        assert_eq!(dec.decode(&same).unwrap().avatars[0].placement, placed);
+        let changed = frame(FrameKind::Delta, 4, 2, &mut enc, &at(moved));
+        assert_eq!(changed.len(), same.len() + 28);
+        assert_eq!(dec.decode(&changed).unwrap().avatars[0].placement, moved);
+        // Back to the keyframe's placement: the next delta says so by omitting it.
+        let back = frame(FrameKind::Delta, 5, 2, &mut enc, &at(placed));
+        assert_eq!(dec.decode(&back).unwrap().avatars[0].placement, placed);
     }
 
     proptest! {

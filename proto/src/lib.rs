@@ -11,6 +11,7 @@
 //! - [`description`]: an avatar's rig as sent to clients, with its hash.
 //! - [`frame`]: binary pose frames (keyframes and deltas).
 //! - [`command`]: control commands shared by REST and websocket.
+//! - [`placement`]: an avatar's world placement (position, rotation).
 //!
 //! Conventions: column vectors, right-handed, Y up, metres, seconds (see DESIGN.md).
 
@@ -21,6 +22,7 @@ pub mod dof;
 pub mod fk;
 pub mod frame;
 pub mod msg;
+pub mod placement;
 pub mod quant;
 pub mod skeleton;
 pub mod skinning;
@@ -30,6 +32,7 @@ pub mod testing;
 pub mod transform;
 
 pub use dof::{Dof, JointDofs, JointType};
+pub use placement::Placement;
 pub use skeleton::{Skeleton, SkeletonError};
 pub use skinning::{MeshError, SkinnedMesh};
 pub use transform::{DecomposeError, Transform, unit_quat};

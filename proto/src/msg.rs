@@ -302,6 +302,10 @@ pub struct AvatarPoseJson {
     pub translations: Vec<[f32; 3]>,
     /// Local scale of every joint in the description's `scaled_joints`, in order.
     pub scales: Vec<[f32; 3]>,
+    /// The avatar's world placement at this tick (every JSON frame carries it; absent from a
+    /// server that predates placement: the identity).
+    #[serde(default)]
+    pub placement: crate::placement::Placement,
 }
 
 #[cfg(test)]

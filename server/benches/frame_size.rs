@@ -117,6 +117,7 @@ fn measure(name: &str, rig: &Rig, clip: &Clip) -> Result<Row> {
             rotations: locals.iter().map(|l| l.rotation).collect(),
             translations: pick(&description.translated_joints, |l| l.translation),
             scales: pick(&description.scaled_joints, |l| l.scale),
+            placement: Default::default(),
         };
         let seq = i as u64 + 1;
         let age = i % KEY_INTERVAL;
@@ -178,6 +179,7 @@ fn measure(name: &str, rig: &Rig, clip: &Clip) -> Result<Row> {
             rotations: pose.rotations.iter().map(quat).collect(),
             translations: pose.translations.iter().map(|v| v.to_array()).collect(),
             scales: pose.scales.iter().map(|v| v.to_array()).collect(),
+            placement: pose.placement,
         };
         row.json_object.push(serde_json::to_string(&object)?.len());
         let message = ServerMsg::Frame(FrameJson {

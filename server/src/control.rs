@@ -7,6 +7,7 @@ use crate::state::AppState;
 use glam::Quat;
 use posecast_proto::command::{Command, DofInfo, JointInfo};
 use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError};
+use posecast_proto::placement::Placement;
 use serde_json::{Value, json};
 
 fn invalid(message: impl Into<String>) -> ProtocolError {
@@ -228,7 +229,13 @@ pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, Protoc
             asset,
             avatar,
             clip,
+            position,
+            rotation,
         } => {
+            let placement = placement(
+                position.unwrap_or([0.0; 3]),
+                rotation.unwrap_or([0.0, 0.0, 0.0, 1.0]),
+            )?;
             if let Some(clip) = clip {
                 let rig = state.library.get(asset).ok_or_else(|| {
                     ProtocolError::new(
@@ -243,7 +250,7 @@ pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, Protoc
                     ));
                 }
             }
-            let (scene, id) = state.add_avatar(scene, asset, avatar.clone())?;
+            let (scene, id) = state.add_avatar_at(scene, asset, avatar.clone(), placement, true)?;
             if let Some(clip) = clip {
                 let mut s = scene.lock();
                 if let Some(a) = s.avatar_mut(&id)
@@ -267,6 +274,7 @@ pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, Protoc
             looping,
             start,
             fade,
+            root_motion,
         } => {
             let speed = finite("speed", speed.unwrap_or(1.0))?;
             let start = finite("start", start.unwrap_or(0.0))?;
@@ -298,10 +306,12 @@ pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, Protoc
                     .as_ref()
                     .map(|s| s.name.clone())
                     .filter(|n| n != &a.rig.name);
-                a.play(
-                    Layer::new(clip, source_asset, start, speed, looping.unwrap_or(true)),
-                    fade,
-                );
+                let mut layer =
+                    Layer::new(clip, source_asset, start, speed, looping.unwrap_or(true));
+                if let Some(mode) = root_motion {
+                    layer.root_motion = *mode;
+                }
+                a.play(layer, fade);
                 Ok(Value::Null)
             })
         }
@@ -407,5 +417,32 @@ pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, Protoc
             a.release(j);
             Ok(Value::Null)
         }),
+        // --- placement (issue 16) ---
+        Command::PlaceAvatar {
+            avatar,
+            position,
+            rotation,
+            duration,
+        } => {
+            let to = placement(*position, *rotation)?;
+            let duration = duration.unwrap_or(0.0);
+            if !(duration.is_finite() && duration >= 0.0) {
+                return Err(invalid("duration must be finite and ≥ 0"));
+            }
+            let scene = state.find_avatar(avatar)?;
+            let mut s = scene.lock();
+            let a = s.avatar_mut(avatar).ok_or_else(|| {
+                ProtocolError::new(ErrorCode::UnknownAvatar, format!("no avatar {avatar}"))
+            })?;
+            a.place(to, f64::from(duration));
+            // The scene's cached frames show the old placement: a joiner gets a fresh keyframe.
+            s.placed();
+            Ok(Value::Null)
+        }
     }
+}
+
+/// A validated placement, or `invalid_value` naming what is wrong.
+fn placement(position: [f32; 3], rotation: [f32; 4]) -> Result<Placement, ProtocolError> {
+    Placement::try_new(position, rotation).map_err(|e| invalid(e.to_string()))
 }

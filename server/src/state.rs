@@ -10,6 +10,7 @@ use crate::scene::{Scene, ticker};
 use crate::store::Store;
 use crate::stream::outbox::Outbox;
 use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError, SceneId};
+use posecast_proto::placement::Placement;
 use std::collections::BTreeMap;
 use std::collections::HashMap;
 use std::net::SocketAddr;
@@ -314,7 +315,23 @@ impl AppState {
         asset: &str,
         id: Option<AvatarId>,
     ) -> Result<(Arc<Scene>, AvatarId), ProtocolError> {
-        self.insert_avatar(scene, asset, id, true)
+        self.insert_avatar(scene, asset, id, true, Placement::IDENTITY)
+    }
+
+    /// [`AppState::add_avatar`] (with its quota when `quota`, as restoring has none) standing
+    /// at `placement` from its first frame on.
+    ///
+    /// # Errors
+    /// As [`AppState::add_avatar`].
+    pub fn add_avatar_at(
+        &self,
+        scene: &SceneId,
+        asset: &str,
+        id: Option<AvatarId>,
+        placement: Placement,
+        quota: bool,
+    ) -> Result<(Arc<Scene>, AvatarId), ProtocolError> {
+        self.insert_avatar(scene, asset, id, quota, placement)
     }
 
     /// [`AppState::add_avatar`] without the avatar quota: restoring what was stored.
@@ -327,7 +344,7 @@ impl AppState {
         asset: &str,
         id: Option<AvatarId>,
     ) -> Result<(Arc<Scene>, AvatarId), ProtocolError> {
-        self.insert_avatar(scene, asset, id, false)
+        self.insert_avatar(scene, asset, id, false, Placement::IDENTITY)
     }
 
     fn insert_avatar(
@@ -336,6 +353,7 @@ impl AppState {
         asset: &str,
         id: Option<AvatarId>,
         quota: bool,
+        placement: Placement,
     ) -> Result<(Arc<Scene>, AvatarId), ProtocolError> {
         let scene = self.scene(scene)?;
         let rig = self.library.get(asset).ok_or_else(|| {
@@ -347,7 +365,8 @@ impl AppState {
         let num = self.next_avatar_num.fetch_add(1, Ordering::Relaxed);
         let id = id.unwrap_or_else(|| AvatarId(format!("{}-{num}", rig.name)));
         check_id("avatar", &id.0)?;
-        let avatar = Avatar::new(id.clone(), num, rig);
+        let mut avatar = Avatar::new(id.clone(), num, rig);
+        avatar.place(placement, 0.0);
         // Ids are unique across scenes, and each scene checks only its own: the check of every
         // scene and the insertion must not interleave with another add.
         let _adding = self

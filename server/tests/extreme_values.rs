@@ -1,4 +1,5 @@
 //! Extreme finite inputs to every command that takes a rotation, an angle (DOF values), a
+//! placement (`place_avatar`, `add_avatar`'s position and rotation), a root-motion mode, a
 //! time, a speed or a fade, interleaved with ticks at extreme clocks: every command either
 //! answers `invalid_value` and changes nothing, or its effect is a finite pose. The scene
 //! file written afterwards holds no non-finite value and restores in full.
@@ -58,7 +59,9 @@ enum Op {
     RotateLocal(bool, usize, [f32; 4]),
     RotateWorld(bool, usize, [f32; 4]),
     Dofs(Vec<f32>),
-    Play(f32, f32, f32),
+    Play(f32, f32, f32, bool),
+    Place([f32; 3], [f32; 4], f32),
+    AddPlaced([f32; 3], [f32; 4]),
     Seek(f32),
     SetSpeed(f32),
     Tick(f32),
@@ -75,6 +78,15 @@ fn quat() -> impl Strategy<Value = [f32; 4]> + Clone {
     ]
 }
 
+/// Positions: any finite, and ones near the ±1e6 m bound.
+fn position() -> impl Strategy<Value = [f32; 3]> {
+    prop_oneof![
+        prop::array::uniform3(finite_f32s()),
+        prop::array::uniform3(-1.1e6f32..1.1e6),
+        Just([1e6, -1e6, 1e6]),
+    ]
+}
+
 fn op() -> impl Strategy<Value = Op> {
     let joint = (any::<bool>(), 0usize..3, quat());
     prop_oneof![
@@ -82,7 +94,10 @@ fn op() -> impl Strategy<Value = Op> {
         joint.clone().prop_map(|(b, j, q)| Op::RotateLocal(b, j, q)),
         joint.prop_map(|(b, j, q)| Op::RotateWorld(b, j, q)),
         prop::collection::vec(finite_f32s(), 3).prop_map(Op::Dofs),
-        (finite_f32s(), finite_f32s(), finite_f32s()).prop_map(|(a, b, c)| Op::Play(a, b, c)),
+        (finite_f32s(), finite_f32s(), finite_f32s(), any::<bool>())
+            .prop_map(|(a, b, c, d)| Op::Play(a, b, c, d)),
+        (position(), quat(), finite_f32s()).prop_map(|(p, q, d)| Op::Place(p, q, d)),
+        (position(), quat()).prop_map(|(p, q)| Op::AddPlaced(p, q)),
         finite_f32s().prop_map(Op::Seek),
         finite_f32s().prop_map(Op::SetSpeed),
         finite_f32s().prop_map(|d| Op::Tick(d.abs())),
@@ -110,8 +125,17 @@ fn command(op: &Op) -> Option<Command> {
         Op::Dofs(v) => {
             serde_json::json!({"op": "set_joint_dofs", "avatar": "k", "joint": "knee", "values": v})
         }
-        Op::Play(speed, start, fade) => serde_json::json!({
-            "op": "play", "avatar": "a", "clip": "walk", "speed": speed, "start": start, "fade": fade
+        Op::Play(speed, start, fade, accumulate) => serde_json::json!({
+            "op": "play", "avatar": "a", "clip": "walk", "speed": speed, "start": start, "fade": fade,
+            "root_motion": if *accumulate { "accumulate" } else { "in_place" }
+        }),
+        Op::Place(position, rotation, duration) => serde_json::json!({
+            "op": "place_avatar", "avatar": "a", "position": position, "rotation": rotation,
+            "duration": duration
+        }),
+        Op::AddPlaced(position, rotation) => serde_json::json!({
+            "op": "add_avatar", "scene": "s", "asset": "avatar", "avatar": "n",
+            "position": position, "rotation": rotation
         }),
         Op::Seek(t) => serde_json::json!({"op": "seek", "avatar": "a", "time": t}),
         Op::SetSpeed(s) => serde_json::json!({"op": "set_speed", "avatar": "a", "speed": s}),
@@ -142,6 +166,13 @@ fn assert_finite(state: &AppState, after: &Op) {
             );
         }
         assert!(a.world().iter().all(|m| m.is_finite()));
+        let p = a.placing.current();
+        assert!(
+            posecast_proto::Placement::try_new(p.position.to_array(), p.rotation.to_array())
+                .is_ok_and(|v| (v.rotation.dot(p.rotation).abs() - 1.0).abs() < 1e-3),
+            "{} placement {p:?} after {after:?}",
+            a.id
+        );
     }
 }
 
@@ -176,6 +207,10 @@ proptest! {
                 }
             }
             assert_finite(&state, op);
+            if matches!(op, Op::AddPlaced(..)) {
+                // Keep the scene's two avatars for the restore check below.
+                control::execute(&state, &serde_json::from_str(r#"{"op":"remove_avatar","avatar":"n"}"#).unwrap()).ok();
+            }
         }
         // The stored file holds only finite values and restores in full.
         let file = snapshot::snapshot(&scene, 1_000_000);

@@ -9,6 +9,7 @@ use posecast_proto::frame::{AvatarPose, FrameDecoder};
 use posecast_proto::msg::{
     AvatarId, ClientMsg, Encoding, FrameJson, PROTOCOL_VERSION, ProtocolError, SceneId, ServerMsg,
 };
+use posecast_proto::placement::Placement;
 use posecast_proto::{Skeleton, Transform};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -92,8 +93,22 @@ pub struct PoseSample {
     pub server_time_us: u64,
     /// When it arrived, µs since the Unix epoch on this machine.
     pub received_us: u64,
-    /// Local transform of every joint (rest translation / scale where not streamed).
+    /// Local transform of every joint (rest translation / scale where not streamed), in the
+    /// avatar's own frame (placement not applied).
     pub locals: Vec<Transform>,
+    /// The avatar's world placement at this tick.
+    pub placement: Placement,
+}
+
+impl PoseSample {
+    /// The locals with the placement composed into the roots (`placement · D_root`): forward
+    /// kinematics of these gives the placed avatar's world matrices.
+    #[must_use]
+    pub fn placed_locals(&self, skeleton: &Skeleton) -> Vec<Transform> {
+        let mut locals = self.locals.clone();
+        self.placement.place_roots(skeleton.parents(), &mut locals);
+        locals
+    }
 }
 
 /// What the client knows about one avatar.
@@ -302,7 +317,8 @@ impl Client {
     }
 
     /// The pose to render now: interpolated through the jitter buffer at
-    /// `now + clock offset − adaptive delay`.
+    /// `now + clock offset − adaptive delay`, with the avatar's placement composed into its
+    /// roots (see [`PoseSample::placed_locals`]), so it is drawn where it stands.
     #[must_use]
     pub fn pose_now(&self, id: &AvatarId) -> Option<Vec<Transform>> {
         let s = lock(&self.shared);
@@ -544,6 +560,7 @@ fn record(
     server_time_us: u64,
     received: u64,
     locals: Vec<Transform>,
+    placement: Placement,
 ) {
     // Latency needs the clock offset: frames that arrive before the first pong are not
     // counted (they would mix two clocks).
@@ -554,13 +571,17 @@ fn record(
         s.stats.latency_max_us = s.stats.latency_max_us.max(latency);
     }
     if let Some(a) = s.avatars.get_mut(id) {
-        a.jitter.push(server_time_us, received, locals.clone());
-        a.latest = Some(PoseSample {
+        let sample = PoseSample {
             seq,
             server_time_us,
             received_us: received,
             locals,
-        });
+            placement,
+        };
+        // The jitter buffer interpolates placed poses: placement and pose of the same tick.
+        a.jitter
+            .push(server_time_us, received, sample.placed_locals(&a.skeleton));
+        a.latest = Some(sample);
     }
 }
 
@@ -617,6 +638,7 @@ fn on_binary(
         rotations,
         translations,
         scales,
+        placement,
     } in &frame.avatars
     {
         let Some(id) = s.by_num.get(avatar_num).cloned() else {
@@ -637,6 +659,7 @@ fn on_binary(
                 frame.header.server_time_us,
                 received,
                 locals,
+                *placement,
             );
         } else {
             s.stats.undecodable += 1;
@@ -688,6 +711,7 @@ fn on_json_frame(s: &mut Shared, frame: FrameJson, len: usize, received: u64) ->
                 frame.server_time_us,
                 received,
                 locals,
+                pose.placement,
             );
         } else {
             s.stats.undecodable += 1;

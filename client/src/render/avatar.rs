@@ -39,6 +39,11 @@ pub(crate) struct GpuAvatar {
 }
 
 impl GpuAvatar {
+    /// Each joint's parent (none for a root), as in its skeleton.
+    pub(crate) fn parents(&self) -> &[Option<usize>] {
+        self.skeleton.parents()
+    }
+
     pub(crate) fn new(
         device: &wgpu::Device,
         queue: &wgpu::Queue,

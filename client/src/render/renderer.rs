@@ -12,6 +12,7 @@ use super::gpu::Gpu;
 use super::gpu_types::{CameraUniform, LineVertex, rgba};
 use super::pipelines::{DEPTH_FORMAT, Pipelines};
 use glam::Vec3;
+use posecast_proto::placement::Placement;
 use posecast_proto::{Skeleton, SkinnedMesh, Transform};
 use std::collections::BTreeMap;
 
@@ -220,6 +221,23 @@ impl Renderer {
             .get_mut(&handle.0)
             .ok_or(RenderError::UnknownAvatar { handle: handle.0 })?
             .set_pose(queue, locals)
+    }
+
+    /// Poses an avatar standing at `placement`: `placement · D_root` for its roots, then as
+    /// [`Renderer::set_pose`] (forward kinematics, skinning matrices).
+    pub fn set_placed_pose(
+        &mut self,
+        handle: AvatarHandle,
+        placement: &Placement,
+        locals: &[Transform],
+    ) -> Result<(), RenderError> {
+        let avatar = self
+            .avatars
+            .get_mut(&handle.0)
+            .ok_or(RenderError::UnknownAvatar { handle: handle.0 })?;
+        let mut placed = locals.to_vec();
+        placement.place_roots(avatar.parents(), &mut placed);
+        avatar.set_pose(&self.queue, &placed)
     }
 
     /// Changes an avatar's base colour (linear RGB).

@@ -1,6 +1,7 @@
 //! One avatar in a scene: its rig, what it plays, joint overrides layered on top, and the pose
 //! it had at the last tick.
 
+use super::placement::{Placing, RootTrack};
 use super::playback::{Layer, Player};
 use crate::library::Rig;
 use glam::{Mat4, Quat};
@@ -47,6 +48,9 @@ pub struct Avatar {
     world: Vec<Mat4>,
     pub(crate) encoder: ChunkEncoder,
     pub(crate) pose: AvatarPose,
+    /// Where it stands in the scene ([`super::placement`]).
+    pub placing: Placing,
+    pub(super) root_track: RootTrack,
 }
 
 impl Avatar {
@@ -82,6 +86,8 @@ impl Avatar {
             rig,
             encoder: ChunkEncoder::new(),
             pose,
+            placing: Placing::default(),
+            root_track: RootTrack::default(),
         }
     }
 
@@ -94,7 +100,9 @@ impl Avatar {
     /// Moves playback to scene clock `clock` (seconds) and evaluates the pose: clip (or rest),
     /// then overrides, then DOF limits.
     pub fn tick(&mut self, clock: f64) {
+        let before = self.player.current().map(Layer::time);
         self.player.set_clock(clock);
+        self.advance_placement(clock, before);
         self.evaluate();
     }
 
@@ -104,6 +112,7 @@ impl Avatar {
     pub fn evaluate(&mut self) {
         self.player
             .sample(self.rig.skeleton().rest(), &mut self.locals);
+        self.apply_root_motion();
         for (local, o) in self.locals.iter_mut().zip(&self.overrides) {
             if let Some(q) = o {
                 local.rotation = *q;
@@ -235,6 +244,8 @@ impl Avatar {
                 .filter(|(_, o)| o.is_some())
                 .map(|(j, _)| self.rig.skeleton().names()[j].clone())
                 .collect(),
+            placement: self.placing.current(),
+            root_motion: layer.map(|l| l.root_motion),
         }
     }
 }

@@ -2,6 +2,7 @@
 //!
 //! - [`avatar`]: one avatar (rig, player, joint overrides, last pose).
 //! - [`playback`]: clip clocks and cross-fades.
+//! - [`placement`]: an avatar's world placement, moves, and clip root motion.
 //! - [`ticker`]: the drift-free tick task of a scene.
 //! - `publish`: a frame as per-avatar pieces in both encodings.
 //!
@@ -11,6 +12,7 @@
 //! bytes to every subscriber's [`Outbox`].
 
 pub mod avatar;
+pub mod placement;
 pub mod playback;
 mod publish;
 pub mod ticker;
@@ -65,12 +67,20 @@ pub struct SceneState {
     last_delta: Option<Published>,
     /// Each avatar's description message, serialised once and shared by every subscriber.
     descriptions: HashMap<AvatarId, (Arc<AvatarDescription>, Message)>,
+    /// An avatar was placed since the last tick: the cached frames show the old placement.
+    placed: bool,
 }
 
 impl SceneState {
     /// The avatar with this id.
     pub fn avatar_mut(&mut self, id: &AvatarId) -> Option<&mut Avatar> {
         self.avatars.iter_mut().find(|a| &a.id == id)
+    }
+
+    /// Notes that an avatar was placed: until the next tick, joiners get a keyframe made from
+    /// the current poses rather than the cached one.
+    pub fn placed(&mut self) {
+        self.placed = true;
     }
 }
 
@@ -105,6 +115,7 @@ impl Scene {
                 last_key: None,
                 last_delta: None,
                 descriptions: HashMap::new(),
+                placed: false,
             }),
             stopped: AtomicBool::new(false),
             stop: Notify::new(),
@@ -228,7 +239,7 @@ impl Scene {
             return;
         };
         let wanted = s.avatars.iter().filter(|a| sub.wants(&a.id));
-        if key.covers(wanted, |id| sub.wants(id)) {
+        if !s.placed && key.covers(wanted, |id| sub.wants(id)) {
             if json {
                 let mut made = key.ensure_json();
                 made += s.last_delta.as_mut().map_or(0, Published::ensure_json);
@@ -320,6 +331,7 @@ impl Scene {
         s.seq = seq;
         s.clock = clock;
         s.time_us = server_time_us;
+        s.placed = false;
         let key = s.force_key
             || s.last_key_seq
                 .is_none_or(|k| seq.saturating_sub(k) >= key_interval)

@@ -3,6 +3,7 @@
 
 use crate::clip::{Clip, Sampler};
 use posecast_proto::Transform;
+use posecast_proto::command::RootMotion;
 use std::sync::Arc;
 
 /// Default cross-fade duration, seconds.
@@ -26,6 +27,8 @@ pub struct Layer {
     pub looping: bool,
     /// A paused clock does not advance.
     paused: bool,
+    /// What the clip's root translation does (see [`super::placement`]).
+    pub root_motion: RootMotion,
     /// Clip time (seconds from the clip's start, unwrapped) at `anchor_clock`.
     anchor_time: f64,
     /// Scene clock (seconds) the anchor refers to.
@@ -53,6 +56,7 @@ impl Layer {
             speed,
             looping,
             paused: false,
+            root_motion: super::placement::default_root_motion(looping),
             anchor_time: f64::from(start),
             anchor_clock: 0.0,
             clock: 0.0,

@@ -88,6 +88,7 @@ fn pose_json(d: &AvatarDescription, pose: &AvatarPose) -> String {
         rotations: pose.rotations.iter().map(|q| q.to_array()).collect(),
         translations: pose.translations.iter().map(|t| t.to_array()).collect(),
         scales: pose.scales.iter().map(|t| t.to_array()).collect(),
+        placement: pose.placement,
     })
     .unwrap_or_else(|_| "{}".into())
 }

@@ -5,8 +5,9 @@ use crate::control;
 use crate::scene::Scene;
 use crate::scene::avatar::Avatar;
 use crate::state::AppState;
-use posecast_proto::command::Command;
+use posecast_proto::command::{Command, RootMotion};
 use posecast_proto::msg::{AvatarId, SceneId};
+use posecast_proto::placement::Placement;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use tracing::warn;
@@ -42,6 +43,9 @@ pub struct AvatarRecord {
     pub playback: Option<PlaybackRecord>,
     /// Joint overrides: joint name → local rotation `[x, y, z, w]` (normalised rig frame).
     pub overrides: BTreeMap<String, [f32; 4]>,
+    /// Where it stands (the end of a move in progress); files without one: the origin.
+    #[serde(default)]
+    pub placement: Placement,
 }
 
 /// The current clip of an avatar. A cross-fade in progress is not stored: it restores as the
@@ -61,6 +65,9 @@ pub struct PlaybackRecord {
     pub looping: bool,
     /// Whether its clock is stopped.
     pub paused: bool,
+    /// `play`'s root motion; files without one: the default for `looping`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub root_motion: Option<RootMotion>,
 }
 
 /// The scene as it is now. Takes the scene's lock briefly.
@@ -92,6 +99,7 @@ fn record(a: &Avatar) -> AvatarRecord {
             speed: l.speed(),
             looping: l.looping,
             paused: l.paused(),
+            root_motion: Some(l.root_motion),
         }
     });
     let names = a.rig.skeleton().names();
@@ -105,6 +113,7 @@ fn record(a: &Avatar) -> AvatarRecord {
             .zip(names)
             .filter_map(|(o, n)| o.map(|q| (n.clone(), q.to_array())))
             .collect(),
+        placement: a.placing.target(),
     }
 }
 
@@ -183,11 +192,25 @@ pub fn parse_lenient(value: &serde_json::Value) -> Result<(SceneFile, Vec<String
                 }
             }
         }
+        let placement = match get("placement") {
+            Value::Null => Placement::IDENTITY,
+            p => match serde_json::from_value::<Placement>(p.clone())
+                .ok()
+                .and_then(|v| Placement::try_new(v.position.to_array(), v.rotation.to_array()).ok())
+            {
+                Some(v) => v,
+                None => {
+                    dropped.push(format!("avatar {id}: placement ({p} is not a placement)"));
+                    Placement::IDENTITY
+                }
+            },
+        };
         avatars.push(AvatarRecord {
             id,
             asset,
             playback,
             overrides,
+            placement,
         });
     }
     Ok((
@@ -233,8 +256,18 @@ pub fn restore(
     state.restore_scene(file.scene.clone())?;
     let elapsed_s = now_us.saturating_sub(file.saved_us) as f64 / 1e6;
     for rec in &file.avatars {
-        let (scene, id) = match state.restore_avatar(&file.scene, &rec.asset, Some(rec.id.clone()))
-        {
+        let placement = Placement::try_new(
+            rec.placement.position.to_array(),
+            rec.placement.rotation.to_array(),
+        )
+        .unwrap_or_default();
+        let (scene, id) = match state.add_avatar_at(
+            &file.scene,
+            &rec.asset,
+            Some(rec.id.clone()),
+            placement,
+            false,
+        ) {
             Ok(added) => added,
             Err(e) => {
                 warn!(scene = %file.scene, avatar = %rec.id, error = %e, "avatar not restored");
@@ -285,6 +318,7 @@ fn restore_playback(state: &AppState, avatar: &AvatarId, p: &PlaybackRecord, ela
         looping: Some(p.looping),
         start: Some(extrapolate(p, duration, elapsed_s)),
         fade: Some(0.0),
+        root_motion: p.root_motion,
     };
     let result = control::apply(state, &play).and_then(|_| {
         if p.paused {
@@ -411,6 +445,7 @@ mod tests {
             speed: 2.0,
             looping,
             paused,
+            root_motion: None,
         };
         assert!((extrapolate(&p(true, false), 3.0, 2.5) - 0.0).abs() < 1e-6);
         assert!((extrapolate(&p(true, false), 3.0, 86_400.25) - 1.5).abs() < 1e-4);

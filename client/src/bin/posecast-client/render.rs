@@ -76,6 +76,7 @@ pub async fn run(args: RenderArgs) -> anyhow::Result<()> {
                 looping: None,
                 start: None,
                 fade: Some(0.0),
+                root_motion: None,
             };
             client
                 .command(play)
@@ -127,7 +128,7 @@ pub async fn run(args: RenderArgs) -> anyhow::Result<()> {
             pose.seq
         );
         let handle = renderer.add_avatar(&view.skeleton, &mesh)?;
-        renderer.set_pose(handle, &pose.locals)?;
+        renderer.set_placed_pose(handle, &pose.placement, &pose.locals)?;
     }
     let (image, first, steady) = timed_render(&gpu, &target, &mut renderer, args.timed_frames)?;
     image

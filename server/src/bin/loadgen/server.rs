@@ -240,6 +240,8 @@ pub async fn create_scene(
                 asset: posecast_server::startup::BUILTIN_ASSET.into(),
                 avatar: Some(AvatarId(format!("load-{i}"))),
                 clip,
+                position: None,
+                rotation: None,
             },
         )
         .await
