@@ -11,6 +11,7 @@
 //! - [`description`]: an avatar's rig as sent to clients, with its hash.
 //! - [`frame`]: binary pose frames (keyframes and deltas).
 //! - [`command`]: control commands shared by REST and websocket.
+//! - [`live`]: the pose messages of a live driver (binary encoding).
 //!
 //! Conventions: column vectors, right-handed, Y up, metres, seconds (see DESIGN.md).
 
@@ -20,6 +21,7 @@ pub mod description;
 pub mod dof;
 pub mod fk;
 pub mod frame;
+pub mod live;
 pub mod msg;
 pub mod quant;
 pub mod skeleton;

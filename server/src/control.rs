@@ -407,5 +407,15 @@ pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, Protoc
             a.release(j);
             Ok(Value::Null)
         }),
+
+        // --- Live driving (issue 16); `drive` itself runs in the websocket session. ---
+        Command::Drive { .. } => Err(ProtocolError::new(
+            ErrorCode::NotAllowedNow,
+            "drive needs a websocket connection (poses stream over it)",
+        )),
+        Command::ReleaseDrive { avatar } => with_avatar(state, avatar, |a| {
+            crate::live::release(a);
+            Ok(Value::Null)
+        }),
     }
 }
