@@ -397,9 +397,10 @@ async fn grouped_and_rate_limited_acks_survive_sigkill() {
                                 .unwrap()
                                 .unwrap();
                             if let Message::Text(t) = msg {
-                                match serde_json::from_str::<ServerMsg>(t.as_str()).unwrap() {
-                                    m @ (ServerMsg::Ack { .. } | ServerMsg::Error(_)) => break m,
-                                    _ => {}
+                                if let m @ (ServerMsg::Ack { .. } | ServerMsg::Error(_)) =
+                                    serde_json::from_str::<ServerMsg>(t.as_str()).unwrap()
+                                {
+                                    break m;
                                 }
                             }
                         };
