@@ -76,6 +76,8 @@ struct Args {
 }
 
 /// Quotas and the command rate limit (`posecast_server::quota`); defaults in brackets.
+// The defaults in brackets are clap help text, not intra-doc links.
+#[allow(rustdoc::broken_intra_doc_links)]
 #[derive(Debug, clap::Args)]
 struct QuotaArgs {
     /// Most scenes on the server [256].

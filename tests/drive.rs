@@ -274,7 +274,8 @@ async fn bad_poses_get_typed_errors_and_change_nothing() {
             .is_some()
     );
     let other = Quat::from_rotation_z(-0.5).to_array();
-    let bad: [(Vec<(String, [f32; 4])>, Option<[f32; 3]>, ErrorCode); 4] = [
+    type BadPose = (Vec<(String, [f32; 4])>, Option<[f32; 3]>, ErrorCode);
+    let bad: [BadPose; 4] = [
         (
             vec![("l_elbow".into(), other), ("no_such_joint".into(), other)],
             None,
