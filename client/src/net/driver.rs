@@ -12,7 +12,7 @@
 //! ```
 //!
 //! Poses are not acknowledged; the server's errors (bad pose, rate limited, …) arrive on
-//! [`Driver::errors`].
+//! [`Driver::next_error`].
 
 use super::client::ClientError;
 use futures_util::stream::SplitSink;
