@@ -69,6 +69,10 @@ struct Args {
     shutdown_drain: Duration,
     #[command(flatten)]
     quotas: QuotaArgs,
+    /// Seconds a live driver may stay silent before its avatar returns to its clip (or holds
+    /// its last pose, as its `drive` asked).
+    #[arg(long, env = "POSECAST_DRIVE_TIMEOUT", default_value = "2", value_parser = seconds)]
+    drive_timeout: Duration,
 }
 
 /// Quotas and the command rate limit (`posecast_server::quota`).
@@ -209,6 +213,7 @@ async fn main() -> anyhow::Result<()> {
         quotas: args.quotas.quotas(),
         command_rate: CommandRate::new(args.quotas.command_rate, args.quotas.command_burst)
             .map_err(anyhow::Error::msg)?,
+        drive_timeout: args.drive_timeout,
     };
     let mut server = Server::start(config).await?;
     let shutdown = server.take_shutdown();

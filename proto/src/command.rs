@@ -175,6 +175,27 @@ pub enum Command {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         duration: Option<f32>,
     },
+
+    // --- Live driving (issue 16): a websocket connection streams poses to an avatar. ---
+    /// Become the avatar's live driver (websocket only): `pose` messages from this connection
+    /// then set its pose, retargeted from `source` when given. Result: [`DriveInfo`].
+    Drive {
+        /// The avatar.
+        avatar: AvatarId,
+        /// The rig (asset) whose joints the poses name; absent: the avatar's own rig.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        source: Option<String>,
+        /// What the avatar does when the driver leaves, goes silent or releases: return to
+        /// its clip (default) or hold the last pose.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        on_release: Option<OnRelease>,
+    },
+    /// End live driving of the avatar (also clears a held pose); it returns to its clip.
+    #[serde(alias = "undrive")]
+    ReleaseDrive {
+        /// The avatar.
+        avatar: AvatarId,
+    },
 }
 
 /// What a clip's root translation does to the avatar (`play`'s `root_motion`).
@@ -188,6 +209,36 @@ pub enum RootMotion {
     /// each wrap adds the clip's net horizontal root displacement, turned by the placement's
     /// rotation, to the placement's position.
     Accumulate,
+}
+
+/// What a live-driven avatar does when its driver goes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OnRelease {
+    /// Play its clip again (overrides stay).
+    #[default]
+    Clip,
+    /// Keep the last pose until `release_drive` or another `drive`.
+    Hold,
+}
+
+/// The answer to `drive`: how to address poses.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DriveInfo {
+    /// The avatar.
+    pub avatar: AvatarId,
+    /// Its number (what binary pose messages carry).
+    pub avatar_num: u32,
+    /// The source rig's name.
+    pub source: String,
+    /// The source rig's joints, in order: binary pose messages index this list.
+    pub joints: Vec<String>,
+    /// The source rig's root joint (what `root_position` moves).
+    pub root: String,
+    /// Seconds of silence after which the driver is released.
+    pub timeout: f32,
+    /// Most poses per second accepted from the driver.
+    pub max_rate_hz: f32,
 }
 
 impl Command {
@@ -221,6 +272,7 @@ impl Command {
             | Self::RotateJointWorld { avatar, .. }
             | Self::Release { avatar, .. }
             | Self::PlaceAvatar { avatar, .. } => Some(avatar),
+            Self::Drive { avatar, .. } | Self::ReleaseDrive { avatar } => Some(avatar),
             Self::AddAvatar { avatar, .. } => avatar.as_ref(),
             _ => None,
         }

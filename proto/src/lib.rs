@@ -12,6 +12,7 @@
 //! - [`frame`]: binary pose frames (keyframes and deltas).
 //! - [`command`]: control commands shared by REST and websocket.
 //! - [`placement`]: an avatar's world placement (position, rotation).
+//! - [`live`]: the pose messages of a live driver (binary encoding).
 //!
 //! Conventions: column vectors, right-handed, Y up, metres, seconds (see DESIGN.md).
 
@@ -21,6 +22,7 @@ pub mod description;
 pub mod dof;
 pub mod fk;
 pub mod frame;
+pub mod live;
 pub mod msg;
 pub mod placement;
 pub mod quant;

@@ -96,6 +96,21 @@ pub enum ClientMsg {
         /// What to do.
         command: crate::command::Command,
     },
+    /// Live driving: one pose of the avatar this connection drives (after `drive`). Not
+    /// acknowledged; a bad pose gets a typed error and changes nothing.
+    Pose {
+        /// The driven avatar.
+        avatar: AvatarId,
+        /// Local rotations `[x, y, z, w]` of the source rig's joints, by joint name; joints not
+        /// listed keep their last value.
+        rotations: std::collections::BTreeMap<String, [f32; 4]>,
+        /// The source root joint's local translation, metres.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        root_position: Option<[f32; 3]>,
+        /// The driver's clock when the pose was captured, µs (any epoch).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        time_us: Option<u64>,
+    },
 }
 
 /// Everything the server may send as a text message.
@@ -210,7 +225,8 @@ impl ProtocolError {
 pub enum ErrorCode {
     /// Not valid JSON, or not a known message shape.
     BadMessage,
-    /// A binary message from the client (clients send text only).
+    /// A binary message from the client that is not a pose (clients send JSON text, and binary
+    /// only for live poses).
     UnexpectedBinary,
     /// Larger than [`MAX_CLIENT_MESSAGE_BYTES`].
     MessageTooLarge,

@@ -439,6 +439,16 @@ pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, Protoc
             s.placed();
             Ok(Value::Null)
         }
+
+        // --- Live driving (issue 16); `drive` itself runs in the websocket session. ---
+        Command::Drive { .. } => Err(ProtocolError::new(
+            ErrorCode::NotAllowedNow,
+            "drive needs a websocket connection (poses stream over it)",
+        )),
+        Command::ReleaseDrive { avatar } => with_avatar(state, avatar, |a| {
+            crate::live::release(a);
+            Ok(Value::Null)
+        }),
     }
 }
 

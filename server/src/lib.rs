@@ -8,7 +8,7 @@
 //! - [`rig`]: rig normalisation (seed 000) and cross-rig retargeting.
 //! - [`library`]: the rigs the server can put in scenes; [`bake`]: retargeted clips, baked
 //!   off the tick and cached.
-//! - [`scene`]: scenes, avatars, playback and the tick task.
+//! - [`scene`]: scenes, avatars, playback and the tick task; [`live`]: avatars driven live.
 //! - [`stream`]: per-connection outboxes (bounded fan-out).
 //! - [`control`]: control commands (shared by REST and websocket); [`auth`]: tokens.
 //! - [`export`]: a rig's normalised mesh as .glb for render clients.
@@ -25,6 +25,7 @@ pub mod control;
 pub mod export;
 pub mod import;
 pub mod library;
+pub mod live;
 pub mod metrics;
 pub mod quota;
 pub mod rig;

@@ -46,6 +46,11 @@ pub struct Config {
     /// How long a graceful shutdown waits, at most, for HTTP requests to finish and for every
     /// websocket's close frame to be sent (and answered) before the server stops regardless.
     pub shutdown_drain: Duration,
+
+    // --- Live driving (issue 16) ---
+    /// How long a live driver may stay silent before its avatar returns to its clip (or holds
+    /// its last pose, as the `drive` asked).
+    pub drive_timeout: Duration,
 }
 
 /// Default [`Config::max_upload_bytes`]: 32 MiB.
@@ -53,6 +58,9 @@ pub const DEFAULT_MAX_UPLOAD_BYTES: usize = 32 << 20;
 
 /// Default [`Config::shutdown_drain`]: 2 s.
 pub const DEFAULT_SHUTDOWN_DRAIN: Duration = Duration::from_secs(2);
+
+/// Default [`Config::drive_timeout`]: 2 s.
+pub const DEFAULT_DRIVE_TIMEOUT: Duration = Duration::from_secs(2);
 
 /// Close code of every websocket at server shutdown (RFC 6455 1001, Going Away).
 pub const CLOSE_GOING_AWAY: u16 = 1001;
@@ -71,6 +79,7 @@ impl Default for Config {
             quotas: crate::quota::Quotas::default(),
             command_rate: crate::quota::CommandRate::default(),
             shutdown_drain: DEFAULT_SHUTDOWN_DRAIN,
+            drive_timeout: DEFAULT_DRIVE_TIMEOUT,
         }
     }
 }

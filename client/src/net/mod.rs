@@ -5,9 +5,12 @@
 //! - [`client`]: the [`Client`] handle and its background connection task.
 //! - [`jitter`]: the adaptive jitter buffer.
 //! - [`clock`]: clock offset and round-trip estimation from ping/pong.
+//! - [`driver`]: [`Driver`], which drives avatars live with a stream of poses.
 
 pub mod client;
 pub mod clock;
+pub mod driver;
 pub mod jitter;
 
 pub use client::{AvatarView, Client, ClientError, ClientOptions, Event, PoseSample, Stats};
+pub use driver::Driver;

@@ -71,62 +71,9 @@ pub fn retarget_at_rate(
             message: format!("{rate_hz} keys per second"),
         });
     }
+    let map = PoseRetargeter::new(source, target)?;
     let (ss, ts) = (&source.asset.skeleton, &target.asset.skeleton);
-    for (view, what) in [(&source, "source hanim"), (&target, "target hanim")] {
-        if view.hanim.len() != view.asset.skeleton.len() {
-            return Err(RigError::Length {
-                what,
-                expected: view.asset.skeleton.len(),
-                actual: view.hanim.len(),
-            });
-        }
-    }
-    let root_of = |v: &RigView<'_>| {
-        find(v.hanim, "humanoid_root").ok_or_else(|| RigError::NotHumanoid {
-            rig: v.asset.name.clone(),
-            missing: vec!["humanoid_root".into()],
-        })
-    };
-    let (src_root, tgt_root) = (root_of(&source)?, root_of(&target)?);
-    let by_name: HashMap<&str, usize> = source
-        .hanim
-        .iter()
-        .enumerate()
-        .filter_map(|(j, h)| h.as_deref().map(|h| (h, j)))
-        .collect();
-    let pairs: Vec<Option<usize>> = target
-        .hanim
-        .iter()
-        .map(|h| h.as_deref().and_then(|h| by_name.get(h).copied()))
-        .collect();
-
-    // Neutral poses: all rotations identity over the rest translations.
-    let neutral = |a: &Asset| -> Vec<Transform> {
-        a.skeleton
-            .rest()
-            .iter()
-            .map(|t| Transform {
-                rotation: Quat::IDENTITY,
-                ..*t
-            })
-            .collect()
-    };
-    let (src_neutral, tgt_neutral) = (neutral(source.asset), neutral(target.asset));
     let mut src_world = vec![Mat4::IDENTITY; ss.len()];
-    let mut tgt_world = vec![Mat4::IDENTITY; ts.len()];
-    forward_kinematics(ss, &src_neutral, &mut src_world);
-    let src_hip = src_world[src_root].w_axis.y - lowest(&src_world);
-    forward_kinematics(ts, &tgt_neutral, &mut tgt_world);
-    let tgt_floor = lowest(&tgt_world);
-    let tgt_hip = tgt_world[tgt_root].w_axis.y - tgt_floor;
-    let tgt_start = tgt_world[tgt_root].w_axis.truncate();
-    if !(src_hip > 0.0 && tgt_hip > 0.0) {
-        return Err(RigError::BadInput {
-            what: "hip height",
-            message: format!("source {src_hip}, target {tgt_hip}: the root must be above the feet"),
-        });
-    }
-    let k = tgt_hip / src_hip;
 
     // Times.
     let duration = clip.duration();
@@ -141,24 +88,19 @@ pub fn retarget_at_rate(
         })
         .collect();
 
-    // Sample the source once per key: world rotations and the root's world position.
+    // Sample the source once per key: local rotations and the root's world position.
     let mut sampler = clip.sampler();
     let mut locals = ss.rest().to_vec();
-    let mut src_rot = vec![Quat::IDENTITY; ss.len()];
     let mut frames: Vec<(Vec<Quat>, Vec3)> = Vec::with_capacity(keys);
     let mut src_floor = f32::MAX;
     for &t in &times {
         sampler.sample(clip, t, ss.rest(), &mut locals);
         forward_kinematics(ss, &locals, &mut src_world);
-        for j in 0..ss.len() {
-            let r = locals[j].rotation;
-            src_rot[j] = match ss.parents()[j] {
-                Some(p) => (src_rot[p] * r).normalize(),
-                None => r,
-            };
-        }
         src_floor = src_floor.min(lowest(&src_world));
-        frames.push((src_rot.clone(), src_world[src_root].w_axis.truncate()));
+        frames.push((
+            locals.iter().map(|l| l.rotation).collect(),
+            src_world[map.src_root].w_axis.truncate(),
+        ));
     }
     let src_start = frames.first().map_or(Vec3::ZERO, |f| f.1);
 
@@ -166,16 +108,14 @@ pub fn retarget_at_rate(
     let n = ts.len();
     let mut rot_keys: Vec<Vec<Quat>> = vec![Vec::with_capacity(keys); n];
     let mut root_keys = Vec::with_capacity(keys);
-    let mut tgt_rot = vec![Quat::IDENTITY; n];
-    let mut pose = tgt_neutral.clone();
-    for (src_rot, src_pos) in &frames {
-        for j in 0..n {
-            let parent = ts.parents()[j].map_or(Quat::IDENTITY, |p| tgt_rot[p]);
-            let local = match pairs[j] {
-                Some(s) => (parent.inverse() * src_rot[s]).normalize(),
-                None => Quat::IDENTITY,
-            };
-            tgt_rot[j] = (parent * local).normalize();
+    let mut scratch = PoseScratch::new(source, target);
+    let mut solved = vec![Quat::IDENTITY; n];
+    let mut pose = map.tgt_neutral.clone();
+    let mut tgt_world = vec![Mat4::IDENTITY; n];
+    let tgt_root = map.tgt_root;
+    for (src_locals, src_pos) in &frames {
+        map.solve(src_locals, &mut scratch, &mut solved);
+        for (j, &local) in solved.iter().enumerate() {
             let keys = &mut rot_keys[j];
             // Keep consecutive keys in one hemisphere so linear keys interpolate the short way.
             let local = match keys.last() {
@@ -186,9 +126,9 @@ pub fn retarget_at_rate(
             pose[j].rotation = local;
         }
         let desired = Vec3::new(
-            tgt_start.x + k * (src_pos.x - src_start.x),
-            tgt_floor + k * (src_pos.y - src_floor),
-            tgt_start.z + k * (src_pos.z - src_start.z),
+            map.tgt_start.x + map.k * (src_pos.x - src_start.x),
+            map.tgt_floor + map.k * (src_pos.y - src_floor),
+            map.tgt_start.z + map.k * (src_pos.z - src_start.z),
         );
         forward_kinematics(ts, &pose, &mut tgt_world);
         let local = match ts.parents()[tgt_root] {
@@ -226,6 +166,162 @@ pub fn retarget_at_rate(
         joints,
         Some((clip.start(), clip.end())),
     )?)
+}
+
+/// One source pose to target local rotations, the per-pose step of world-space retargeting.
+///
+/// Built once per (source rig, target rig); [`PoseRetargeter::solve`] then maps a source pose
+/// without allocating. Both rigs are normalised to the same neutral pose, so a mapped target
+/// joint takes the world rotation of the source joint with its H-Anim name,
+/// `G_j = G_src(j)`, and `L_j = G_parent(j)⁻¹ G_j`; unmapped joints stay neutral (`L_j = I`).
+/// The baker ([`retarget_at_rate`]) and live driving both use it, so they are one piece of
+/// maths.
+#[derive(Clone, Debug)]
+pub struct PoseRetargeter {
+    /// Per target joint, the source joint it takes its world rotation from.
+    pairs: Vec<Option<usize>>,
+    src_parents: Vec<Option<usize>>,
+    tgt_parents: Vec<Option<usize>>,
+    /// The source's `humanoid_root`.
+    pub src_root: usize,
+    /// The target's `humanoid_root`.
+    pub tgt_root: usize,
+    /// Root translation scale: hip height(target) / hip height(source).
+    pub k: f32,
+    /// The target's neutral pose (identity rotations over its rest translations).
+    pub tgt_neutral: Vec<Transform>,
+    /// The target's lowest joint at neutral (its floor), metres.
+    pub tgt_floor: f32,
+    /// The target's `humanoid_root` world position at neutral.
+    pub tgt_start: Vec3,
+    /// The source's `humanoid_root` world position at neutral.
+    pub src_start: Vec3,
+    /// The source's lowest joint at neutral (its floor), metres.
+    pub src_floor: f32,
+}
+
+/// Working memory of [`PoseRetargeter::solve`] (world rotations of both rigs).
+#[derive(Clone, Debug)]
+pub struct PoseScratch {
+    src_world: Vec<Quat>,
+    tgt_world: Vec<Quat>,
+}
+
+impl PoseScratch {
+    /// Room for one pose of each rig.
+    #[must_use]
+    pub fn new(source: RigView<'_>, target: RigView<'_>) -> Self {
+        Self {
+            src_world: vec![Quat::IDENTITY; source.asset.skeleton.len()],
+            tgt_world: vec![Quat::IDENTITY; target.asset.skeleton.len()],
+        }
+    }
+}
+
+impl PoseRetargeter {
+    /// Matches `target`'s joints to `source`'s by H-Anim name and measures both rigs at
+    /// neutral.
+    ///
+    /// # Errors
+    /// An H-Anim list of the wrong length, a rig without `humanoid_root`, or a root that is
+    /// not above the feet.
+    pub fn new(source: RigView<'_>, target: RigView<'_>) -> Result<Self, RigError> {
+        let (ss, ts) = (&source.asset.skeleton, &target.asset.skeleton);
+        for (view, what) in [(&source, "source hanim"), (&target, "target hanim")] {
+            if view.hanim.len() != view.asset.skeleton.len() {
+                return Err(RigError::Length {
+                    what,
+                    expected: view.asset.skeleton.len(),
+                    actual: view.hanim.len(),
+                });
+            }
+        }
+        let root_of = |v: &RigView<'_>| {
+            find(v.hanim, "humanoid_root").ok_or_else(|| RigError::NotHumanoid {
+                rig: v.asset.name.clone(),
+                missing: vec!["humanoid_root".into()],
+            })
+        };
+        let (src_root, tgt_root) = (root_of(&source)?, root_of(&target)?);
+        let by_name: HashMap<&str, usize> = source
+            .hanim
+            .iter()
+            .enumerate()
+            .filter_map(|(j, h)| h.as_deref().map(|h| (h, j)))
+            .collect();
+        let pairs: Vec<Option<usize>> = target
+            .hanim
+            .iter()
+            .map(|h| h.as_deref().and_then(|h| by_name.get(h).copied()))
+            .collect();
+        let (src_neutral, tgt_neutral) = (neutral(source.asset), neutral(target.asset));
+        let mut src_world = vec![Mat4::IDENTITY; ss.len()];
+        let mut tgt_world = vec![Mat4::IDENTITY; ts.len()];
+        forward_kinematics(ss, &src_neutral, &mut src_world);
+        let src_floor = lowest(&src_world);
+        let src_hip = src_world[src_root].w_axis.y - src_floor;
+        forward_kinematics(ts, &tgt_neutral, &mut tgt_world);
+        let tgt_floor = lowest(&tgt_world);
+        let tgt_hip = tgt_world[tgt_root].w_axis.y - tgt_floor;
+        if !(src_hip > 0.0 && tgt_hip > 0.0) {
+            return Err(RigError::BadInput {
+                what: "hip height",
+                message: format!(
+                    "source {src_hip}, target {tgt_hip}: the root must be above the feet"
+                ),
+            });
+        }
+        Ok(Self {
+            pairs,
+            src_parents: ss.parents().to_vec(),
+            tgt_parents: ts.parents().to_vec(),
+            src_root,
+            tgt_root,
+            k: tgt_hip / src_hip,
+            tgt_neutral,
+            tgt_floor,
+            tgt_start: tgt_world[tgt_root].w_axis.truncate(),
+            src_start: src_world[src_root].w_axis.truncate(),
+            src_floor,
+        })
+    }
+
+    /// Maps one source pose (`src_locals`: local rotations, one per source joint) to target
+    /// local rotations (`out`, one per target joint): `G_src = G_src,parent · R` down the
+    /// source tree, then `L_j = G_parent(j)⁻¹ G_src(pair(j))` down the target tree.
+    /// Missing source entries count as identity.
+    pub fn solve(&self, src_locals: &[Quat], scratch: &mut PoseScratch, out: &mut [Quat]) {
+        for (j, parent) in self.src_parents.iter().enumerate() {
+            let r = src_locals.get(j).copied().unwrap_or(Quat::IDENTITY);
+            scratch.src_world[j] = match parent {
+                Some(p) => (scratch.src_world[*p] * r).normalize(),
+                None => r,
+            };
+        }
+        for (j, parent) in self.tgt_parents.iter().enumerate() {
+            let parent = parent.map_or(Quat::IDENTITY, |p| scratch.tgt_world[p]);
+            let local = match self.pairs[j] {
+                Some(s) => (parent.inverse() * scratch.src_world[s]).normalize(),
+                None => Quat::IDENTITY,
+            };
+            scratch.tgt_world[j] = (parent * local).normalize();
+            if let Some(o) = out.get_mut(j) {
+                *o = local;
+            }
+        }
+    }
+}
+
+/// A rig's neutral pose: all rotations identity over the rest translations.
+fn neutral(a: &Asset) -> Vec<Transform> {
+    a.skeleton
+        .rest()
+        .iter()
+        .map(|t| Transform {
+            rotation: Quat::IDENTITY,
+            ..*t
+        })
+        .collect()
 }
 
 fn lowest(world: &[Mat4]) -> f32 {

@@ -4,6 +4,7 @@
 use super::placement::{Placing, RootTrack};
 use super::playback::{Layer, Player};
 use crate::library::Rig;
+use crate::live::pose::LivePose;
 use glam::{Mat4, Quat};
 use posecast_proto::bind::{rotation_about, world_increment_local};
 use posecast_proto::command::AvatarState;
@@ -13,6 +14,7 @@ use posecast_proto::frame::{AvatarPose, ChunkEncoder};
 use posecast_proto::msg::{AvatarId, SceneId};
 use posecast_proto::{DecomposeError, Transform};
 use std::sync::Arc;
+use std::time::Instant;
 
 /// A value that is not a rotation (non-finite, zero, or overflowing when normalised).
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
@@ -51,6 +53,8 @@ pub struct Avatar {
     /// Where it stands in the scene ([`super::placement`]).
     pub placing: Placing,
     pub(super) root_track: RootTrack,
+    /// A live driver's pose, applied between the clip and the overrides ([`crate::live`]).
+    pub live: Option<LivePose>,
 }
 
 impl Avatar {
@@ -88,6 +92,7 @@ impl Avatar {
             pose,
             placing: Placing::default(),
             root_track: RootTrack::default(),
+            live: None,
         }
     }
 
@@ -103,16 +108,26 @@ impl Avatar {
         let before = self.player.current().map(Layer::time);
         self.player.set_clock(clock);
         self.advance_placement(clock, before);
+        if self
+            .live
+            .as_ref()
+            .is_some_and(|l| l.expired(Instant::now()))
+        {
+            crate::live::driver_gone(self);
+        }
         self.evaluate();
     }
 
     /// Re-evaluates the pose at the current clock (after a command), without advancing: the
-    /// clip (or rest), the overrides on top, then every joint with DOF limits clamped to them
+    /// clip (or rest), a live driver's pose over it, the overrides on top, then every joint with DOF limits clamped to them
     /// (seed 002: every value set on a DOF, by a clip or a command, is clamped).
     pub fn evaluate(&mut self) {
         self.player
             .sample(self.rig.skeleton().rest(), &mut self.locals);
         self.apply_root_motion();
+        if let Some(live) = &mut self.live {
+            live.apply(&self.rig, &mut self.locals);
+        }
         for (local, o) in self.locals.iter_mut().zip(&self.overrides) {
             if let Some(q) = o {
                 local.rotation = *q;

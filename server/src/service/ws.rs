@@ -7,6 +7,7 @@
 
 use crate::auth::Caller;
 use crate::control;
+use crate::live::Drives;
 use crate::quota::{TokenBucket, rate_limited};
 use crate::scene::ticker::unix_micros;
 use crate::scene::{Subscriber, text};
@@ -49,6 +50,7 @@ pub async fn serve(socket: WebSocket, state: Arc<AppState>) {
             scenes: Vec::new(),
             caller: Caller::Anonymous,
             commands: TokenBucket::new(state.config.command_rate),
+            drives: Drives::new(conn),
         };
         let mut writer_done = false;
         let mut client_closed = false;
@@ -61,11 +63,11 @@ pub async fn serve(socket: WebSocket, state: Arc<AppState>) {
         } {
             let keep_going = match message {
                 Ok(Message::Text(t)) => session.on_text(t.as_str()).await,
-                Ok(Message::Binary(_)) => {
-                    session.error(ProtocolError::new(
-                        ErrorCode::UnexpectedBinary,
-                        "clients send JSON text messages only",
-                    ));
+                Ok(Message::Binary(b)) => {
+                    // Binary client messages are live poses only (`proto/src/live.rs`).
+                    if let Err(e) = session.drives.binary_pose(&b) {
+                        session.error(e);
+                    }
                     true
                 }
                 Ok(Message::Close(_)) => {
@@ -180,6 +182,8 @@ struct Session {
     caller: Caller,
     /// The connection's command rate limit.
     commands: TokenBucket,
+    /// The avatars this connection drives live.
+    drives: Drives,
 }
 
 impl Session {
@@ -333,6 +337,21 @@ impl Session {
                 }
                 true
             }
+            ClientMsg::Pose {
+                avatar,
+                rotations,
+                root_position,
+                time_us,
+            } => {
+                // Not acknowledged (up to 120 a second): errors only.
+                if let Err(e) = self
+                    .drives
+                    .json_pose(&avatar, &rotations, root_position, time_us)
+                {
+                    self.error(e);
+                }
+                true
+            }
             ClientMsg::Ping { id, client_time_us } => {
                 self.send(&ServerMsg::Pong {
                     id,
@@ -353,7 +372,10 @@ impl Session {
                         .access
                         .authorize(&self.caller, &self.state, &command);
                 let result = match authorized {
-                    Ok(()) => control::execute_durable(&self.state, &command).await,
+                    Ok(()) => match self.drives.command(&self.state, &command) {
+                        Some(result) => result,
+                        None => control::execute_durable(&self.state, &command).await,
+                    },
                     Err(e) => Err(e),
                 };
                 match result {
@@ -373,6 +395,7 @@ impl Session {
     }
 
     fn leave_all(&mut self) {
+        self.drives.leave();
         for scene in self.scenes.drain(..) {
             if let Ok(s) = self.state.scene(&scene) {
                 s.unsubscribe(self.conn);

@@ -1,0 +1,257 @@
+//! [`Driver`]: drives avatars live over its own websocket (no subscription).
+//!
+//! ```no_run
+//! # async fn demo() -> Result<(), posecast_client::net::ClientError> {
+//! use posecast_client::net::Driver;
+//! use posecast_proto::msg::AvatarId;
+//! let driver = Driver::connect("ws://127.0.0.1:8080/ws", Some("token".into())).await?;
+//! let avatar = AvatarId("avatar".into());
+//! let info = driver.drive(&avatar, None, None).await?;
+//! driver.send_pose(&avatar, [("l_elbow".to_string(), [0.0, 0.0, 0.38, 0.92])], None, None).await?;
+//! # let _ = info; Ok(()) }
+//! ```
+//!
+//! Poses are not acknowledged; the server's errors (bad pose, rate limited, …) arrive on
+//! [`Driver::next_error`].
+
+use super::client::ClientError;
+use futures_util::stream::SplitSink;
+use futures_util::{SinkExt, StreamExt};
+use posecast_proto::command::{Command, DriveInfo, OnRelease};
+use posecast_proto::live::BinaryPose;
+use posecast_proto::msg::{
+    AvatarId, ClientMsg, Encoding, PROTOCOL_VERSION, ProtocolError, ServerMsg,
+};
+use std::collections::{BTreeMap, HashMap};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio::sync::{mpsc, oneshot};
+use tokio_tungstenite::tungstenite::Message;
+
+type Ws =
+    tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
+type Pending = Arc<Mutex<HashMap<u64, oneshot::Sender<Result<serde_json::Value, ProtocolError>>>>>;
+
+/// How many server errors wait unread before the oldest are dropped.
+const ERROR_BACKLOG: usize = 1024;
+
+/// A live driver's connection.
+#[derive(Debug)]
+pub struct Driver {
+    sink: tokio::sync::Mutex<SplitSink<Ws, Message>>,
+    pending: Pending,
+    errors: tokio::sync::Mutex<mpsc::Receiver<ProtocolError>>,
+    next_id: AtomicU64,
+    reader: tokio::task::JoinHandle<()>,
+}
+
+impl Drop for Driver {
+    fn drop(&mut self) {
+        self.reader.abort();
+    }
+}
+
+fn send_failed(e: impl std::fmt::Display) -> ClientError {
+    ClientError::Connect {
+        url: String::new(),
+        message: e.to_string(),
+    }
+}
+
+impl Driver {
+    /// Connects and says hello with `token` (a control token that may command the avatars to
+    /// drive); waits up to 10 s for the welcome.
+    ///
+    /// # Errors
+    /// The connection fails or the server refuses the hello.
+    pub async fn connect(url: &str, token: Option<String>) -> Result<Self, ClientError> {
+        let connect_err = |e: &dyn std::fmt::Display| ClientError::Connect {
+            url: url.to_owned(),
+            message: e.to_string(),
+        };
+        let (ws, _) = tokio_tungstenite::connect_async(url)
+            .await
+            .map_err(|e| connect_err(&e))?;
+        let (mut sink, mut stream) = ws.split();
+        let hello = ClientMsg::Hello {
+            version: PROTOCOL_VERSION,
+            encoding: Encoding::Json,
+            token,
+            client: Some("posecast-driver".into()),
+        };
+        let text = serde_json::to_string(&hello).map_err(|e| connect_err(&e))?;
+        sink.send(Message::Text(text.into()))
+            .await
+            .map_err(|e| connect_err(&e))?;
+        let welcome = tokio::time::timeout(Duration::from_secs(10), async {
+            while let Some(Ok(m)) = stream.next().await {
+                if let Message::Text(t) = m {
+                    return serde_json::from_str::<ServerMsg>(t.as_str()).ok();
+                }
+            }
+            None
+        })
+        .await
+        .map_err(|_| ClientError::Timeout("welcome"))?;
+        match welcome {
+            Some(ServerMsg::Welcome { .. }) => {}
+            Some(ServerMsg::Error(e)) => return Err(ClientError::Server(e)),
+            _ => return Err(ClientError::Closed),
+        }
+        let pending: Pending = Arc::default();
+        let (errors_tx, errors) = mpsc::channel(ERROR_BACKLOG);
+        let reader = tokio::spawn(read(stream, pending.clone(), errors_tx));
+        Ok(Self {
+            sink: tokio::sync::Mutex::new(sink),
+            pending,
+            errors: tokio::sync::Mutex::new(errors),
+            next_id: AtomicU64::new(1),
+            reader,
+        })
+    }
+
+    async fn send_text(&self, msg: &ClientMsg) -> Result<(), ClientError> {
+        let text = serde_json::to_string(msg).map_err(send_failed)?;
+        self.sink
+            .lock()
+            .await
+            .send(Message::Text(text.into()))
+            .await
+            .map_err(send_failed)
+    }
+
+    /// Sends a command and waits (up to 10 s) for its answer.
+    ///
+    /// # Errors
+    /// The server's typed error, a timeout, or a closed connection.
+    pub async fn command(&self, command: Command) -> Result<serde_json::Value, ClientError> {
+        let id = self.next_id.fetch_add(1, Ordering::Relaxed);
+        let (tx, rx) = oneshot::channel();
+        lock(&self.pending).insert(id, tx);
+        self.send_text(&ClientMsg::Command { id, command }).await?;
+        match tokio::time::timeout(Duration::from_secs(10), rx).await {
+            Ok(Ok(result)) => result.map_err(ClientError::Server),
+            Ok(Err(_)) => Err(ClientError::Closed),
+            Err(_) => {
+                lock(&self.pending).remove(&id);
+                Err(ClientError::Timeout("command acknowledgement"))
+            }
+        }
+    }
+
+    /// Becomes `avatar`'s driver; poses name `source`'s joints (absent: the avatar's rig).
+    ///
+    /// # Errors
+    /// `conflict` (another driver), `forbidden`, unknown avatar or asset, …
+    pub async fn drive(
+        &self,
+        avatar: &AvatarId,
+        source: Option<&str>,
+        on_release: Option<OnRelease>,
+    ) -> Result<DriveInfo, ClientError> {
+        let value = self
+            .command(Command::Drive {
+                avatar: avatar.clone(),
+                source: source.map(str::to_owned),
+                on_release,
+            })
+            .await?;
+        serde_json::from_value(value).map_err(send_failed)
+    }
+
+    /// Ends driving `avatar`; it returns to its clip.
+    ///
+    /// # Errors
+    /// As [`Driver::command`].
+    pub async fn release(&self, avatar: &AvatarId) -> Result<(), ClientError> {
+        self.command(Command::ReleaseDrive {
+            avatar: avatar.clone(),
+        })
+        .await
+        .map(drop)
+    }
+
+    /// Sends one pose as JSON: local rotations by source joint name (not acknowledged).
+    ///
+    /// # Errors
+    /// The connection failed.
+    pub async fn send_pose(
+        &self,
+        avatar: &AvatarId,
+        rotations: impl IntoIterator<Item = (String, [f32; 4])>,
+        root_position: Option<[f32; 3]>,
+        time_us: Option<u64>,
+    ) -> Result<(), ClientError> {
+        self.send_text(&ClientMsg::Pose {
+            avatar: avatar.clone(),
+            rotations: rotations.into_iter().collect::<BTreeMap<_, _>>(),
+            root_position,
+            time_us,
+        })
+        .await
+    }
+
+    /// Sends one pose in the binary form (joints by index into [`DriveInfo::joints`]).
+    ///
+    /// # Errors
+    /// The connection failed.
+    pub async fn send_binary_pose(&self, pose: &BinaryPose) -> Result<(), ClientError> {
+        self.sink
+            .lock()
+            .await
+            .send(Message::Binary(pose.encode().into()))
+            .await
+            .map_err(send_failed)
+    }
+
+    /// The next server error (a refused pose or command), waiting at most `wait`.
+    pub async fn next_error(&self, wait: Duration) -> Option<ProtocolError> {
+        let mut errors = self.errors.lock().await;
+        tokio::time::timeout(wait, errors.recv())
+            .await
+            .ok()
+            .flatten()
+    }
+
+    /// Closes the connection (the server releases what it drives).
+    pub async fn close(self) {
+        // A failed close leaves the socket to be dropped, which the server sees the same way.
+        self.sink.lock().await.close().await.ok();
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+async fn read(
+    mut stream: futures_util::stream::SplitStream<Ws>,
+    pending: Pending,
+    errors: mpsc::Sender<ProtocolError>,
+) {
+    while let Some(Ok(m)) = stream.next().await {
+        let Message::Text(t) = m else { continue };
+        match serde_json::from_str::<ServerMsg>(t.as_str()) {
+            Ok(ServerMsg::Ack { id, result }) => {
+                if let Some(tx) = lock(&pending).remove(&id) {
+                    // The caller gave up waiting; nothing to deliver to.
+                    tx.send(Ok(result)).ok();
+                }
+            }
+            Ok(ServerMsg::Error(e)) => match e.id.and_then(|id| lock(&pending).remove(&id)) {
+                Some(tx) => {
+                    tx.send(Err(e)).ok();
+                }
+                None => {
+                    if errors.try_send(e).is_err() {
+                        tracing::debug!("driver error backlog full; an error was dropped");
+                    }
+                }
+            },
+            Ok(_) => {}
+            Err(e) => tracing::debug!("unparsable server message: {e}"),
+        }
+    }
+    lock(&pending).clear();
+}

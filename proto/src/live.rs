@@ -1,0 +1,208 @@
+//! Live driving: the pose messages a driver sends (see `proto/PROTOCOL.md`, "Live driving").
+//!
+//! A driver sends poses as JSON text ([`crate::msg::ClientMsg::Pose`], joints by name) or as
+//! compact binary websocket messages ([`BinaryPose`], joints by index into the `joints` list
+//! of the `drive` answer, rotations smallest-three quantised as in pose frames). Both carry
+//! local rotations of the source rig (normalised, as the server streams that rig), an optional
+//! root position and an optional driver timestamp.
+//!
+//! Binary layout, little-endian:
+//!
+//! ```text
+//!  0  u8   magic 0x44 ('D')
+//!  1  u8   flags: bit 0 root position present, bit 1 time present (other bits zero)
+//!  2  u16  rotation count N
+//!  4  u32  avatar number (the description's `num`)
+//!  8  u64  driver time, µs (any epoch; 0 when bit 1 is clear)
+//! 16  3×f32 root position (only when bit 0 is set)
+//!     N × (u16 joint index, 6 bytes smallest-three rotation)
+//! ```
+
+use crate::quant;
+use glam::{Quat, Vec3};
+
+/// First byte of a binary pose message.
+pub const MAGIC: u8 = 0x44;
+/// Flag: a root position follows the header.
+pub const FLAG_ROOT: u8 = 1;
+/// Flag: the time field is set.
+pub const FLAG_TIME: u8 = 2;
+/// Bytes before the optional root position.
+pub const HEADER_BYTES: usize = 16;
+/// Bytes per rotation entry (joint index + smallest-three).
+pub const ENTRY_BYTES: usize = 2 + quant::BYTES;
+
+/// The most poses per second the server accepts from one driver.
+pub const MAX_RATE_HZ: f32 = 120.0;
+
+/// A binary pose message, decoded.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BinaryPose {
+    /// The avatar's number.
+    pub avatar_num: u32,
+    /// Driver time, µs, when sent.
+    pub time_us: Option<u64>,
+    /// The source root's local translation, metres.
+    pub root_position: Option<Vec3>,
+    /// `(joint index, local rotation)`.
+    pub rotations: Vec<(u16, Quat)>,
+}
+
+/// Why bytes are not a binary pose message.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum PoseDecodeError {
+    /// The first byte is not [`MAGIC`].
+    #[error("binary message starts with {0:#04x}, not 0x44 (a pose)")]
+    Magic(u8),
+    /// Unknown flag bits.
+    #[error("unknown flag bits {0:#04x}")]
+    Flags(u8),
+    /// The length does not match the header.
+    #[error("binary pose of {actual} bytes; its header needs {expected}")]
+    Length {
+        /// Bytes the header implies.
+        expected: usize,
+        /// Bytes received.
+        actual: usize,
+    },
+}
+
+impl BinaryPose {
+    /// Encodes the message.
+    #[must_use]
+    pub fn encode(&self) -> Vec<u8> {
+        let mut flags = 0;
+        if self.root_position.is_some() {
+            flags |= FLAG_ROOT;
+        }
+        if self.time_us.is_some() {
+            flags |= FLAG_TIME;
+        }
+        let count = u16::try_from(self.rotations.len()).unwrap_or(u16::MAX);
+        let mut out = Vec::with_capacity(HEADER_BYTES + 12 + usize::from(count) * ENTRY_BYTES);
+        out.push(MAGIC);
+        out.push(flags);
+        out.extend_from_slice(&count.to_le_bytes());
+        out.extend_from_slice(&self.avatar_num.to_le_bytes());
+        out.extend_from_slice(&self.time_us.unwrap_or(0).to_le_bytes());
+        if let Some(p) = self.root_position {
+            for c in p.to_array() {
+                out.extend_from_slice(&c.to_le_bytes());
+            }
+        }
+        for &(j, q) in self.rotations.iter().take(usize::from(count)) {
+            out.extend_from_slice(&j.to_le_bytes());
+            quant::write(q, &mut out);
+        }
+        out
+    }
+
+    /// Decodes a message.
+    ///
+    /// # Errors
+    /// A wrong magic byte, unknown flags, or a length that does not match the header.
+    pub fn decode(bytes: &[u8]) -> Result<Self, PoseDecodeError> {
+        let short = |expected| PoseDecodeError::Length {
+            expected,
+            actual: bytes.len(),
+        };
+        let header = bytes.get(..HEADER_BYTES).ok_or(short(HEADER_BYTES))?;
+        if header[0] != MAGIC {
+            return Err(PoseDecodeError::Magic(header[0]));
+        }
+        let flags = header[1];
+        if flags & !(FLAG_ROOT | FLAG_TIME) != 0 {
+            return Err(PoseDecodeError::Flags(flags));
+        }
+        let count = usize::from(u16::from_le_bytes([header[2], header[3]]));
+        let avatar_num = u32::from_le_bytes([header[4], header[5], header[6], header[7]]);
+        let mut time = [0u8; 8];
+        time.copy_from_slice(&header[8..16]);
+        let root_bytes = if flags & FLAG_ROOT != 0 { 12 } else { 0 };
+        let expected = HEADER_BYTES + root_bytes + count * ENTRY_BYTES;
+        if bytes.len() != expected {
+            return Err(short(expected));
+        }
+        let f32_at =
+            |i: usize| f32::from_le_bytes([bytes[i], bytes[i + 1], bytes[i + 2], bytes[i + 3]]);
+        let root_position = (root_bytes > 0).then(|| {
+            Vec3::new(
+                f32_at(HEADER_BYTES),
+                f32_at(HEADER_BYTES + 4),
+                f32_at(HEADER_BYTES + 8),
+            )
+        });
+        let rotations = bytes[HEADER_BYTES + root_bytes..]
+            .chunks_exact(ENTRY_BYTES)
+            .map(|e| {
+                let mut q = [0u8; quant::BYTES];
+                q.copy_from_slice(&e[2..]);
+                (u16::from_le_bytes([e[0], e[1]]), quant::read(q))
+            })
+            .collect();
+        Ok(Self {
+            avatar_num,
+            time_us: (flags & FLAG_TIME != 0).then(|| u64::from_le_bytes(time)),
+            root_position,
+            rotations,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn binary_poses_round_trip_within_the_quantisation_bound() {
+        let pose = BinaryPose {
+            avatar_num: 7,
+            time_us: Some(1_234_567),
+            root_position: Some(Vec3::new(0.1, 0.9, -2.0)),
+            rotations: vec![
+                (0, Quat::IDENTITY),
+                (3, Quat::from_rotation_x(0.7)),
+                (513, Quat::from_euler(glam::EulerRot::XYZ, 0.3, -1.2, 2.0)),
+            ],
+        };
+        let bytes = pose.encode();
+        assert_eq!(bytes.len(), HEADER_BYTES + 12 + 3 * ENTRY_BYTES);
+        let back = BinaryPose::decode(&bytes).unwrap();
+        assert_eq!(back.avatar_num, 7);
+        assert_eq!(back.time_us, Some(1_234_567));
+        assert_eq!(back.root_position, pose.root_position);
+        for ((j, q), (k, r)) in pose.rotations.iter().zip(&back.rotations) {
+            assert_eq!(j, k);
+            assert!(quant::angle_between_degrees(*q, *r) <= quant::MAX_ERROR_DEGREES);
+        }
+    }
+
+    #[test]
+    fn malformed_binary_poses_are_refused() {
+        let bytes = BinaryPose {
+            avatar_num: 1,
+            time_us: None,
+            root_position: None,
+            rotations: vec![(0, Quat::IDENTITY)],
+        }
+        .encode();
+        assert!(BinaryPose::decode(&bytes).unwrap().time_us.is_none());
+        assert!(matches!(
+            BinaryPose::decode(&bytes[..bytes.len() - 1]),
+            Err(PoseDecodeError::Length { .. })
+        ));
+        let mut wrong = bytes.clone();
+        wrong[0] = 0x50;
+        assert_eq!(
+            BinaryPose::decode(&wrong),
+            Err(PoseDecodeError::Magic(0x50))
+        );
+        let mut flags = bytes;
+        flags[1] = 0x80;
+        assert_eq!(
+            BinaryPose::decode(&flags),
+            Err(PoseDecodeError::Flags(0x80))
+        );
+        assert!(BinaryPose::decode(&[]).is_err());
+    }
+}

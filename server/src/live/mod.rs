@@ -1,0 +1,296 @@
+//! Live avatars (issue 16): a websocket connection drives an avatar with a stream of poses.
+//!
+//! - [`pose`]: the per-avatar driver state ([`LivePose`]) the avatar evaluates between its clip
+//!   and its joint overrides.
+//! - this module: the connection's side — `drive` / `release_drive`, validating pose messages
+//!   (JSON and binary), and releasing what it drives when it leaves.
+//!
+//! A pose passes, in order: the sender drives the avatar (`not_allowed_now`), the driver's rate
+//! budget ([`posecast_proto::live::MAX_RATE_HZ`], `rate_limited`), every joint known
+//! (`unknown_joint`), every rotation a finite non-zero quaternion and the root position finite
+//! and within [`MAX_ROOT_METRES`] (`invalid_value`). A pose failing any check changes nothing.
+
+pub mod pose;
+
+use crate::quota::rate_limited;
+use crate::scene::Scene;
+use crate::scene::avatar::Avatar;
+use crate::state::AppState;
+use glam::{Quat, Vec3};
+use pose::{LivePose, ValidPose};
+use posecast_proto::command::{Command, DriveInfo, OnRelease};
+use posecast_proto::live::{BinaryPose, MAX_RATE_HZ};
+use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError};
+use std::collections::BTreeMap;
+use std::sync::Arc;
+use std::time::Instant;
+
+pub use pose::RATE_BURST;
+
+/// Largest root position accepted, metres from the origin (a typo, not a performer).
+pub const MAX_ROOT_METRES: f32 = 10_000.0;
+
+/// The avatars one connection drives.
+#[derive(Debug)]
+pub struct Drives {
+    conn: u64,
+    driven: Vec<(AvatarId, u32, Arc<Scene>)>,
+}
+
+fn not_driving(avatar: impl std::fmt::Display) -> ProtocolError {
+    ProtocolError::new(
+        ErrorCode::NotAllowedNow,
+        format!("this connection does not drive avatar {avatar}; send drive first"),
+    )
+}
+
+fn invalid(message: String) -> ProtocolError {
+    ProtocolError::new(ErrorCode::InvalidValue, message)
+}
+
+impl Drives {
+    /// Nothing driven yet by connection `conn`.
+    #[must_use]
+    pub fn new(conn: u64) -> Self {
+        Self {
+            conn,
+            driven: Vec::new(),
+        }
+    }
+
+    /// Runs `drive` (this connection becomes the driver) — the one command that needs the
+    /// connection — and returns `None` for every other command. Authorisation is the caller's.
+    pub fn command(
+        &mut self,
+        state: &AppState,
+        command: &Command,
+    ) -> Option<Result<serde_json::Value, ProtocolError>> {
+        let Command::Drive {
+            avatar,
+            source,
+            on_release,
+        } = command
+        else {
+            return None;
+        };
+        let result = self
+            .drive(
+                state,
+                avatar,
+                source.as_deref(),
+                on_release.unwrap_or_default(),
+            )
+            .map(|info| serde_json::to_value(info).unwrap_or(serde_json::Value::Null));
+        state.metrics.command(result.is_ok());
+        Some(result)
+    }
+
+    fn drive(
+        &mut self,
+        state: &AppState,
+        avatar: &AvatarId,
+        source: Option<&str>,
+        on_release: OnRelease,
+    ) -> Result<DriveInfo, ProtocolError> {
+        let source_rig = source
+            .map(|name| {
+                state.library.get(name).ok_or_else(|| {
+                    ProtocolError::new(
+                        ErrorCode::UnknownAsset,
+                        format!("no rig (asset) named {name}"),
+                    )
+                })
+            })
+            .transpose()?;
+        let scene = state.find_avatar(avatar)?;
+        let mut s = scene.lock();
+        let a = s.avatar_mut(avatar).ok_or_else(|| {
+            ProtocolError::new(ErrorCode::UnknownAvatar, format!("no avatar {avatar}"))
+        })?;
+        if let Some(driver) = a.live.as_ref().and_then(|l| l.driver)
+            && driver != self.conn
+        {
+            return Err(ProtocolError::new(
+                ErrorCode::Conflict,
+                format!("avatar {avatar} already has a live driver"),
+            ));
+        }
+        let source = source_rig.unwrap_or_else(|| a.rig.clone());
+        let live = LivePose::new(
+            self.conn,
+            on_release,
+            source.clone(),
+            &a.rig,
+            &a.locals,
+            state.config.drive_timeout,
+        )
+        .map_err(|e| {
+            invalid(format!(
+                "cannot retarget {} onto {}: {e}",
+                source.name, a.rig.name
+            ))
+        })?;
+        a.live = Some(live);
+        a.evaluate();
+        let num = a.num();
+        drop(s);
+        self.driven.retain(|(id, _, _)| id != avatar);
+        self.driven.push((avatar.clone(), num, scene.clone()));
+        let skeleton = source.skeleton();
+        Ok(DriveInfo {
+            avatar: avatar.clone(),
+            avatar_num: num,
+            source: source.name.clone(),
+            joints: skeleton.names().to_vec(),
+            root: skeleton
+                .roots()
+                .next()
+                .map(|r| skeleton.names()[r].clone())
+                .unwrap_or_default(),
+            timeout: state.config.drive_timeout.as_secs_f32(),
+            max_rate_hz: MAX_RATE_HZ,
+        })
+    }
+
+    /// A JSON pose message.
+    ///
+    /// # Errors
+    /// See the module documentation; nothing changes on error.
+    pub fn json_pose(
+        &self,
+        avatar: &AvatarId,
+        rotations: &BTreeMap<String, [f32; 4]>,
+        root_position: Option<[f32; 3]>,
+        time_us: Option<u64>,
+    ) -> Result<(), ProtocolError> {
+        let (_, _, scene) = self
+            .driven
+            .iter()
+            .find(|(id, _, _)| id == avatar)
+            .ok_or_else(|| not_driving(avatar))?;
+        self.with_live(scene, avatar, |live| {
+            let skeleton = live.source.skeleton();
+            let mut pose = ValidPose {
+                rotations: Vec::with_capacity(rotations.len()),
+                root_position: root(root_position.map(Vec3::from_array))?,
+                time_us,
+            };
+            for (name, q) in rotations {
+                let j = skeleton.find(name).ok_or_else(|| {
+                    ProtocolError::new(
+                        ErrorCode::UnknownJoint,
+                        format!("rig {} has no joint {name}", live.source.name),
+                    )
+                })?;
+                pose.rotations.push((j, rotation(name, *q)?));
+            }
+            Ok(pose)
+        })
+    }
+
+    /// A binary pose message ([`BinaryPose`]).
+    ///
+    /// # Errors
+    /// `unexpected_binary` when the bytes are not a pose; otherwise as [`Drives::json_pose`].
+    pub fn binary_pose(&self, bytes: &[u8]) -> Result<(), ProtocolError> {
+        let msg = BinaryPose::decode(bytes)
+            .map_err(|e| ProtocolError::new(ErrorCode::UnexpectedBinary, e.to_string()))?;
+        let (avatar, _, scene) = self
+            .driven
+            .iter()
+            .find(|(_, num, _)| *num == msg.avatar_num)
+            .ok_or_else(|| not_driving(format!("number {}", msg.avatar_num)))?;
+        self.with_live(scene, avatar, |live| {
+            let n = live.source.skeleton().len();
+            let mut pose = ValidPose {
+                rotations: Vec::with_capacity(msg.rotations.len()),
+                root_position: root(msg.root_position)?,
+                time_us: msg.time_us,
+            };
+            for &(j, q) in &msg.rotations {
+                let j = usize::from(j);
+                if j >= n {
+                    return Err(ProtocolError::new(
+                        ErrorCode::UnknownJoint,
+                        format!("rig {} has {n} joints; got index {j}", live.source.name),
+                    ));
+                }
+                pose.rotations.push((j, q));
+            }
+            Ok(pose)
+        })
+    }
+
+    /// Checks the driver and its rate, validates with `validate`, stores the pose.
+    fn with_live(
+        &self,
+        scene: &Scene,
+        avatar: &AvatarId,
+        validate: impl FnOnce(&LivePose) -> Result<ValidPose, ProtocolError>,
+    ) -> Result<(), ProtocolError> {
+        let now = Instant::now();
+        let mut s = scene.lock();
+        let live = s
+            .avatar_mut(avatar)
+            .and_then(|a| a.live.as_mut())
+            .filter(|l| l.driver == Some(self.conn))
+            .ok_or_else(|| not_driving(avatar))?;
+        live.take_rate(now).map_err(|wait| {
+            let mut e = rate_limited(wait);
+            e.message = format!(
+                "poses are limited to {MAX_RATE_HZ} per second per driver: try again in {} ms",
+                e.retry_after_ms.unwrap_or(1)
+            );
+            e
+        })?;
+        let pose = validate(live)?;
+        live.store(pose, now);
+        Ok(())
+    }
+
+    /// The connection left: each avatar it still drives returns to its clip or holds its last
+    /// pose, as its `drive` asked.
+    pub fn leave(&mut self) {
+        for (avatar, _, scene) in self.driven.drain(..) {
+            let mut s = scene.lock();
+            if let Some(a) = s.avatar_mut(&avatar)
+                && a.live.as_ref().is_some_and(|l| l.driver == Some(self.conn))
+            {
+                driver_gone(a);
+            }
+        }
+    }
+}
+
+/// The driver is gone (left or silent): return to the clip, or hold the pose.
+pub fn driver_gone(a: &mut Avatar) {
+    match a.live.as_mut() {
+        Some(live) if live.on_release == OnRelease::Hold => live.driver = None,
+        _ => a.live = None,
+    }
+    a.evaluate();
+}
+
+/// `release_drive`: ends live driving (and a held pose); the avatar plays its clip again.
+pub fn release(a: &mut Avatar) {
+    a.live = None;
+    a.evaluate();
+}
+
+fn rotation(joint: &str, q: [f32; 4]) -> Result<Quat, ProtocolError> {
+    posecast_proto::unit_quat(q).ok_or_else(|| {
+        invalid(format!(
+            "joint {joint}: rotation {q:?} is not a finite non-zero quaternion"
+        ))
+    })
+}
+
+fn root(p: Option<Vec3>) -> Result<Option<Vec3>, ProtocolError> {
+    match p {
+        Some(p) if !(p.is_finite() && p.length() <= MAX_ROOT_METRES) => Err(invalid(format!(
+            "root_position {:?} must be finite and within {MAX_ROOT_METRES} m",
+            p.to_array()
+        ))),
+        _ => Ok(p),
+    }
+}
