@@ -15,7 +15,7 @@ use std::net::SocketAddr;
 type Body = (String, Vec<u8>);
 
 async fn server(data: &std::path::Path, max_upload_bytes: usize) -> Server {
-    Server::start(Config {
+    let server = Server::start(Config {
         listen: "127.0.0.1:0".parse().unwrap(),
         data_dir: Some(data.to_owned()),
         max_upload_bytes,
@@ -23,7 +23,9 @@ async fn server(data: &std::path::Path, max_upload_bytes: usize) -> Server {
         ..Config::default()
     })
     .await
-    .unwrap()
+    .unwrap();
+    server.ready().await.unwrap();
+    server
 }
 
 async fn assets(addr: SocketAddr) -> Value {
