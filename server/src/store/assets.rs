@@ -167,7 +167,8 @@ impl Store {
     }
 
     /// Loads one stored upload (a folder from [`Store::stored_uploads`]) into the library (see
-    /// the module doc of [`super`] for what is skipped and moved aside).
+    /// the module doc of [`super`] for what is skipped and moved aside). Its files are read,
+    /// imported and dropped: the store remembers the upload, not its bytes.
     pub fn restore_upload(&self, state: &AppState, dir: &Path) {
         let loaded = read_asset(dir).and_then(|(meta, set)| {
             let rigs = crate::upload::prepare(&meta.name, &set).map_err(|e| e.message)?;
@@ -183,10 +184,22 @@ impl Store {
                     info!(asset = %rig.name, joints = rig.skeleton().len(), "restored upload");
                     state.library.insert(rig);
                 }
-                self.uploads().insert(meta.name, set);
+                self.remember_upload(&meta.name, set);
             }
             Err(reason) => set_aside(dir, &reason),
         }
+    }
+
+    /// The files of stored upload `name`, read again from `assets/<name>/` (what its
+    /// `meta.json` lists). Blocking: call it off the async workers.
+    ///
+    /// # Errors
+    /// No data folder, or the folder cannot be read (the reason, naming the file).
+    pub fn read_upload(&self, name: &str) -> Result<FileSet, String> {
+        let dir = self
+            .assets_dir()
+            .ok_or_else(|| "no data folder to read it from".to_owned())?;
+        read_asset(&dir.join(name)).map(|(_, set)| set)
     }
 }
 
