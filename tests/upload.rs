@@ -291,7 +291,7 @@ async fn clips_are_added_to_an_uploaded_skel() {
             "/api/assets/nobody/clips",
             vec![("x.anim", &walk)],
             404,
-            "unknown_avatar",
+            "unknown_asset",
         ),
         (
             "/api/assets/w/clips",
