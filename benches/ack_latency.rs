@@ -78,6 +78,7 @@ async fn measure(
         ..Config::default()
     })
     .await?;
+    server.ready().await?;
     let began = Instant::now();
     let tasks: Vec<_> = (0..connections)
         .map(|_| tokio::spawn(connection(server.ws_url(), commands)))

@@ -5,6 +5,7 @@
 use clap::Parser;
 use posecast_server::auth::{AccessConfig, Role, Secret, TokenRule};
 use posecast_server::quota::{CommandRate, Quotas};
+use posecast_server::readiness::Phase;
 use posecast_server::startup::{DEFAULT_SCENE, Server};
 use posecast_server::state::{Config, DEFAULT_MAX_UPLOAD_BYTES};
 use std::net::SocketAddr;
@@ -194,6 +195,7 @@ fn access(args: &Args) -> anyhow::Result<(AccessConfig, Option<Secret>)> {
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
+    let started = std::time::Instant::now();
     init_logging();
     let args = Args::parse();
     anyhow::ensure!(
@@ -246,7 +248,25 @@ async fn main() -> anyhow::Result<()> {
             tx.send(()).ok();
         }
     });
-    server.wait().await?;
+    // Listening already; rigs and scenes load in the background. A failed start ends the
+    // process with its error, as a data folder that cannot be opened does before listening.
+    let state = server.state.clone();
+    let finished = server.wait();
+    tokio::pin!(finished);
+    tokio::select! {
+        phase = state.readiness.settled() => match phase {
+            Phase::Failed(reason) => anyhow::bail!("start-up failed: {reason}"),
+            Phase::Ready => println!(
+                "posecast ready ({} rigs, {} scenes) {:.2} s after start",
+                state.library.all().len(),
+                state.scenes().len(),
+                started.elapsed().as_secs_f64()
+            ),
+            Phase::Starting | Phase::Stopped => {}
+        },
+        result = &mut finished => return Ok(result?),
+    }
+    finished.await?;
     Ok(())
 }
 

@@ -209,7 +209,9 @@ async fn server_with_limited_rig() -> (Server, PathBuf) {
         access: common::test_access(),
         ..Config::default()
     };
-    (Server::start(config).await.unwrap(), dir)
+    let server = Server::start(config).await.unwrap();
+    server.ready().await.unwrap();
+    (server, dir)
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -15,7 +15,7 @@ use std::net::SocketAddr;
 type Body = (String, Vec<u8>);
 
 async fn server(data: &std::path::Path, max_upload_bytes: usize) -> Server {
-    Server::start(Config {
+    let server = Server::start(Config {
         listen: "127.0.0.1:0".parse().unwrap(),
         data_dir: Some(data.to_owned()),
         max_upload_bytes,
@@ -23,7 +23,9 @@ async fn server(data: &std::path::Path, max_upload_bytes: usize) -> Server {
         ..Config::default()
     })
     .await
-    .unwrap()
+    .unwrap();
+    server.ready().await.unwrap();
+    server
 }
 
 async fn assets(addr: SocketAddr) -> Value {
@@ -306,6 +308,50 @@ async fn clips_are_added_to_an_uploaded_skel() {
     }
     assert_eq!((assets(addr).await, list_tree(data.path())), before);
     server.stop().await;
+}
+
+/// Clips are added to a `.skel` uploaded before a restart: the server keeps no upload bytes in
+/// memory, so it reads the stored files again from `assets/<name>/`; the clip, stored beside
+/// them, is there after the next restart too.
+#[tokio::test]
+async fn clips_are_added_to_a_skel_uploaded_before_a_restart() {
+    let (Some(skel), Some(skin), Some(walk)) = (
+        testdata_bytes("cse169/wasp.skel"),
+        testdata_bytes("cse169/wasp.skin"),
+        testdata_bytes("cse169/wasp_walk.anim"),
+    ) else {
+        return;
+    };
+    let data = tempfile::tempdir().unwrap();
+    let first = server(data.path(), 32 << 20).await;
+    let (s, b) = upload_files(
+        first.addr,
+        "/api/assets/w",
+        &[("wasp.skel", &skel), ("wasp.skin", &skin)],
+    )
+    .await;
+    assert_eq!(s, 200, "{b}");
+    first.stop().await;
+
+    let second = server(data.path(), 32 << 20).await;
+    let addr = second.addr;
+    assert_eq!(figures(&assets(addr).await, "w").1, vec![]);
+    let (s, b) = upload_files(addr, "/api/assets/w/clips", &[("walk.anim", &walk)]).await;
+    assert_eq!(s, 200, "{b}");
+    // wasp_walk.anim's own range: 0 to 4 s.
+    assert_eq!(
+        figures(&assets(addr).await, "w").1,
+        vec![("walk".to_owned(), 4.0)]
+    );
+    plays(addr, "w", "walk").await;
+    second.stop().await;
+
+    let third = server(data.path(), 32 << 20).await;
+    assert_eq!(
+        figures(&assets(third.addr).await, "w").1,
+        vec![("walk".to_owned(), 4.0)]
+    );
+    third.stop().await;
 }
 
 #[tokio::test]

@@ -116,6 +116,7 @@ async fn offscreen_render_of_the_live_stream_shows_the_seeked_avatar() {
     })
     .await
     .unwrap();
+    server.ready().await.unwrap();
     let mut options = ClientOptions::new(server.ws_url(), DEFAULT_SCENE);
     options.token = Some(TOKEN.into());
     let client = Client::connect(options).await.unwrap();

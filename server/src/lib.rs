@@ -14,7 +14,8 @@
 //! - [`export`]: a rig's normalised mesh as .glb for render clients.
 //! - [`service`]: the axum router (`app`), websocket and HTTP endpoints.
 //! - [`state`]: configuration and shared state; [`metrics`]: counters; [`quota`]: limits.
-//! - [`startup`]: [`startup::Server`] — load rigs, create the default scene, serve.
+//! - [`startup`]: [`startup::Server`] — listen and serve at once; [`restore`]: rigs and
+//!   stored scenes loaded in the background meanwhile; [`readiness`]: how far that has got.
 
 pub mod asset;
 pub mod auth;
@@ -28,6 +29,8 @@ pub mod library;
 pub mod live;
 pub mod metrics;
 pub mod quota;
+pub mod readiness;
+pub mod restore;
 pub mod rig;
 pub mod scene;
 pub mod service;

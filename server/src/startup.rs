@@ -1,21 +1,21 @@
-//! Starting and stopping a server: load rigs, create the default scene, bind, serve.
+//! Starting and stopping a server: bind and serve at once, load rigs and restore scenes in
+//! the background ([`crate::restore`]).
 
 use crate::asset::Asset;
 use crate::builtin::AVATAR_GLB;
 use crate::import;
 use crate::library::{JointLimits, Rig};
+use crate::restore;
 use crate::rig::{PipelineOptions, RigError, normalise};
-use crate::scene::playback::Layer;
 use crate::service::app;
 use crate::state::{AppState, Config};
-use posecast_proto::msg::{AvatarId, SceneId};
 use std::future::IntoFuture;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 use tokio::time::Instant;
-use tracing::{info, warn};
+use tracing::warn;
 
 /// Name of the built-in rig.
 pub const BUILTIN_ASSET: &str = "avatar";
@@ -78,39 +78,21 @@ pub struct Server {
 }
 
 impl Server {
-    /// Loads the configured rigs (the built-in avatar, then every asset folder, then the
-    /// uploads stored in the data folder), restores the stored scenes, binds and starts
-    /// serving. On a first start (no data folder, or a new one) the built-in avatar goes into
-    /// scene `default` playing `idle`, and that is stored. Port 0 picks a free port.
+    /// Opens the data folder, binds and starts serving at once; the configured rigs (the
+    /// built-in avatar, then every asset folder, then the uploads stored in the data folder)
+    /// and the stored scenes are loaded in the background ([`crate::restore`]). Returning means
+    /// *listening*: until [`Server::ready`], `/healthz` answers 503 with the progress and
+    /// requests that need scenes or assets wait (see [`crate::readiness`]). On a first start
+    /// (no data folder, or a new one) the built-in avatar goes into scene `default` playing
+    /// `idle` once the rest is loaded, and that is stored. Port 0 picks a free port.
     ///
     /// # Errors
     /// Binding fails, or the data folder cannot be created or written (the error names it).
     pub async fn start(config: Config) -> std::io::Result<Self> {
         let state = AppState::new(config.clone());
         let first_start = open_data_folder(&state)?;
-        if config.builtin {
-            load_builtin(&state);
-        }
-        for dir in &config.asset_dirs {
-            load_dir(&state, dir);
-        }
-        state.store.restore_assets(&state);
-        state.store.restore_scenes(&state);
-        if first_start {
-            if config.builtin {
-                create_default_scene(&state);
-            }
-            for scene in state.scenes() {
-                state
-                    .store
-                    .persist_scene_now(&state, &scene.id)
-                    .map_err(|e| data_folder_error(&state, &e))?;
-            }
-            state
-                .store
-                .mark_initialised()
-                .map_err(|e| data_folder_error(&state, &e))?;
-        }
+        let plan = restore::Plan::new(&state, first_start);
+        state.readiness.begin(plan.len());
         let listener = tokio::net::TcpListener::bind(config.listen).await?;
         let addr = listener.local_addr()?;
         // Pose frames are small writes at 60 Hz: without TCP_NODELAY, Nagle holds each one until
@@ -123,12 +105,29 @@ impl Server {
         let (tx, rx) = oneshot::channel::<()>();
         let router = app(state.clone());
         let task = tokio::spawn(serve(listener, router, state.clone(), rx));
+        if let Err(e) = restore::spawn(state.clone(), plan) {
+            task.abort();
+            return Err(e);
+        }
         Ok(Self {
             addr,
             state,
             shutdown: Some(tx),
             task,
         })
+    }
+
+    /// Waits until everything loaded at start is loaded and every stored scene restored.
+    ///
+    /// # Errors
+    /// Start-up failed (e.g. a first start could not store the default scene: the error
+    /// names the data folder), or the server was shut down first.
+    pub async fn ready(&self) -> std::io::Result<()> {
+        self.state
+            .readiness
+            .wait()
+            .await
+            .map_err(|e| std::io::Error::other(e.message))
     }
 
     /// The websocket URL.
@@ -234,7 +233,7 @@ fn open_data_folder(state: &AppState) -> std::io::Result<bool> {
 }
 
 /// `e` with the data folder named: the bare OS error ("Not a directory") does not say which.
-fn data_folder_error(state: &AppState, e: &std::io::Error) -> std::io::Error {
+pub(crate) fn data_folder_error(state: &AppState, e: &std::io::Error) -> std::io::Error {
     let folder = state
         .store
         .root()
@@ -243,74 +242,4 @@ fn data_folder_error(state: &AppState, e: &std::io::Error) -> std::io::Error {
         e.kind(),
         format!("data folder {folder} (--data) is not usable: {e}"),
     )
-}
-
-fn load_builtin(state: &AppState) {
-    match builtin_rig() {
-        Ok(rig) => {
-            state.library.insert(rig);
-        }
-        Err(e) => warn!(error = %e, "the built-in avatar failed to load"),
-    }
-}
-
-/// Scene `default` with the built-in avatar playing `idle` (first start only: later, the data
-/// folder says which scenes exist). Kept when a stored scene of that name was restored.
-fn create_default_scene(state: &AppState) {
-    let scene = SceneId(DEFAULT_SCENE.into());
-    if state.library.get(BUILTIN_ASSET).is_none() || state.scene(&scene).is_ok() {
-        return;
-    }
-    let added = state.create_scene(scene.clone()).and_then(|_| {
-        state.add_avatar(&scene, BUILTIN_ASSET, Some(AvatarId(DEFAULT_AVATAR.into())))
-    });
-    match added {
-        Ok((scene, id)) => {
-            let mut s = scene.lock();
-            if let Some(a) = s.avatar_mut(&id)
-                && let Some(idle) = a.rig.clip("idle").cloned()
-            {
-                a.play(Layer::new(idle, None, 0.0, 1.0, true), 0.0);
-            }
-        }
-        Err(e) => warn!(error = %e, "could not create the default scene"),
-    }
-}
-
-/// Loads every importable file of a folder (not recursive); failures are logged and skipped.
-fn load_dir(state: &AppState, dir: &std::path::Path) {
-    let entries = match std::fs::read_dir(dir) {
-        Ok(e) => e,
-        Err(e) => {
-            warn!(dir = %dir.display(), error = %e, "cannot read asset folder");
-            return;
-        }
-    };
-    let mut paths: Vec<_> = entries.filter_map(Result::ok).map(|e| e.path()).collect();
-    paths.sort();
-    for path in paths {
-        let ext = path
-            .extension()
-            .and_then(|e| e.to_str())
-            .unwrap_or("")
-            .to_ascii_lowercase();
-        if !matches!(ext.as_str(), "glb" | "gltf" | "bvh" | "skel") {
-            continue;
-        }
-        match import::load_path(&path) {
-            Ok(assets) => {
-                for asset in assets {
-                    let name = asset.name.clone();
-                    match rig_from_asset(asset, &PipelineOptions::default()) {
-                        Ok(rig) => {
-                            info!(asset = %name, joints = rig.skeleton().len(), steps = ?rig.pipeline, "loaded");
-                            state.library.insert(rig);
-                        }
-                        Err(e) => warn!(asset = %name, error = %e, "skipped: normalisation failed"),
-                    }
-                }
-            }
-            Err(e) => warn!(error = %e, "skipped"),
-        }
-    }
 }

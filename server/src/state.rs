@@ -5,6 +5,7 @@ use crate::bake::RetargetCache;
 use crate::library::Library;
 use crate::metrics::Metrics;
 use crate::quota::Quota;
+use crate::readiness::Readiness;
 use crate::scene::avatar::Avatar;
 use crate::scene::{Scene, ticker};
 use crate::store::Store;
@@ -107,6 +108,8 @@ pub struct AppState {
     pub store: Store,
     /// Baked retargeted clips (`play … from_asset`), see [`crate::bake`].
     pub retargets: RetargetCache,
+    /// Whether what is loaded at start is loaded yet ([`crate::readiness`]).
+    pub readiness: Readiness,
 }
 
 /// The open websockets' outboxes, and whether the server is shutting down (in one lock, so a
@@ -156,6 +159,7 @@ impl AppState {
             avatar_ids: Mutex::new(()),
             store: Store::new(config.data_dir.clone()),
             retargets: RetargetCache::default(),
+            readiness: Readiness::default(),
             config,
         })
     }
@@ -411,8 +415,10 @@ impl AppState {
             .ok_or_else(|| ProtocolError::new(ErrorCode::UnknownAvatar, format!("no avatar {id}")))
     }
 
-    /// Stops every scene and closes every websocket (graceful shutdown).
+    /// Stops every scene and closes every websocket (graceful shutdown); a start-up still
+    /// loading gives up.
     pub fn shutdown(&self) {
+        self.readiness.stop();
         for scene in self.scenes() {
             scene.shut();
         }

@@ -182,7 +182,7 @@ pub async fn upload(
         .into_iter()
         .map(|rig| state.library.insert(rig).info())
         .collect();
-    state.store.uploads().insert(name.to_owned(), set);
+    state.store.remember_upload(name, set);
     Ok(infos)
 }
 
@@ -233,19 +233,31 @@ pub async fn add_clips(
             format!("no rig (asset) named {name}"),
         )
     })?;
-    let original = state.store.uploads().get(name).cloned().ok_or_else(|| {
+    let upload = state.store.uploads().get(name).cloned().ok_or_else(|| {
         ProtocolError::new(
             ErrorCode::InvalidValue,
             format!("{name} was not uploaded: clips can be added to uploaded assets only"),
         )
     })?;
-    let main = original.main_file().map_err(|e| import_failed(&e))?;
-    if files::extension(main) != "skel" {
+    if files::extension(&upload.main) != "skel" {
         return Err(ProtocolError::new(
             ErrorCode::InvalidValue,
             format!("{name} is not a .skel asset: .anim clips need a CSE169 skeleton"),
         ));
     }
+    // The original files are on disk (the store keeps no bytes when there is a data folder):
+    // read them again, under the assets lock so they are the ones the rig was made from.
+    let original = match upload.files {
+        Some(files) => files,
+        None => {
+            let reading = state.clone();
+            let owned = name.to_owned();
+            tokio::task::spawn_blocking(move || reading.store.read_upload(&owned))
+                .await
+                .map_err(|e| internal("read task failed", &e))?
+                .map_err(|e| internal(&format!("cannot read the stored files of {name}"), &e))?
+        }
+    };
     check_asset_bytes(
         state,
         name,
@@ -288,13 +300,74 @@ pub async fn add_clips(
     }
     state.store.add_upload_bytes(added);
     let info = state.library.insert(new_rig).info();
-    state.store.uploads().insert(name.to_owned(), combined);
+    state.store.remember_upload(name, combined);
     Ok(info)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::state::Config;
+
+    const SKEL: &str = "balljoint root {\n offset 0 0 0\n balljoint tip {\n offset 0 1 0\n }\n}\n";
+
+    fn set(files: &[(&str, String)]) -> FileSet {
+        let mut set = FileSet::new();
+        for (name, text) in files {
+            set.insert(name, text.clone().into_bytes()).unwrap();
+        }
+        set
+    }
+
+    /// An `.anim` of constant zero channels for the two-joint [`SKEL`] (3 + 2·3 channels).
+    fn anim() -> String {
+        let channel =
+            "channel {\n extrapolate constant constant\n keys 1 {\n 0 0 smooth smooth\n }\n}\n";
+        format!(
+            "animation {{\n range 0 1\n numchannels 9\n{}}}\n",
+            channel.repeat(9)
+        )
+    }
+
+    /// With a data folder the store remembers an upload without its files, and adding clips
+    /// reads them back from `assets/<name>/`. Without one, memory is the files' only copy: a
+    /// `.skel` upload (the kind clips are added to) keeps them, a `.bvh` keeps none.
+    #[tokio::test]
+    async fn upload_bytes_stay_in_memory_only_without_a_data_folder() {
+        let dir = tempfile::tempdir().unwrap();
+        let on_disk = AppState::new(Config {
+            data_dir: Some(dir.path().to_owned()),
+            ..Config::default()
+        });
+        on_disk.store.open().unwrap();
+        upload(&on_disk, "r", set(&[("r.skel", SKEL.into())]))
+            .await
+            .unwrap();
+        assert!(on_disk.store.uploads()["r"].files.is_none());
+        let info = add_clips(&on_disk, "r", set(&[("wave.anim", anim())]))
+            .await
+            .unwrap();
+        assert_eq!(info.clips[0].name, "wave");
+        assert!(on_disk.store.uploads()["r"].files.is_none());
+        assert!(dir.path().join("assets/r/wave.anim").is_file());
+
+        let in_memory = AppState::new(Config::default());
+        upload(&in_memory, "r", set(&[("r.skel", SKEL.into())]))
+            .await
+            .unwrap();
+        let kept = in_memory.store.uploads()["r"].files.clone().unwrap();
+        assert_eq!(kept.get("r.skel"), Some(SKEL.as_bytes()));
+        let info = add_clips(&in_memory, "r", set(&[("wave.anim", anim())]))
+            .await
+            .unwrap();
+        assert_eq!(info.clips[0].name, "wave");
+        let bvh = "HIERARCHY\nROOT hip\n{\n OFFSET 0 0 0\n CHANNELS 3 Zrotation Xrotation Yrotation\n \
+                   End Site\n {\n  OFFSET 0 1 0\n }\n}\nMOTION\nFrames: 1\nFrame Time: 0.1\n0 0 0\n";
+        upload(&in_memory, "b", set(&[("b.bvh", bvh.into())]))
+            .await
+            .unwrap();
+        assert!(in_memory.store.uploads()["b"].files.is_none());
+    }
 
     #[test]
     fn names() {

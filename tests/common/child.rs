@@ -16,8 +16,16 @@ pub struct Posecast {
 
 impl Posecast {
     /// Starts the binary on `127.0.0.1:0` with `args` and `env` (which may override the
-    /// defaults `RUST_LOG=info`, `NO_COLOR=1`), and waits for the URL it prints.
+    /// defaults `RUST_LOG=info`, `NO_COLOR=1`), and waits until it is ready: every stored
+    /// scene restored (`/healthz` answers 200).
     pub fn start(args: &[&str], env: &[(&str, &str)]) -> Self {
+        let server = Self::launch(args, env);
+        server.wait_ready(Duration::from_secs(60));
+        server
+    }
+
+    /// [`Posecast::start`] up to the URL it prints: listening, maybe still loading.
+    pub fn launch(args: &[&str], env: &[(&str, &str)]) -> Self {
         let mut child = Command::new(env!("CARGO_BIN_EXE_posecast"))
             .args(["--listen", "127.0.0.1:0"])
             .args(args)
@@ -56,6 +64,31 @@ impl Posecast {
             addr,
             output,
         }
+    }
+
+    /// `GET /healthz`: status and body, or `None` when nothing answered.
+    pub fn health(&self) -> Option<(u16, String)> {
+        health(self.addr)
+    }
+
+    /// Polls `/healthz` until it answers 200 `ok`; panics after `timeout`.
+    pub fn wait_ready(&self, timeout: Duration) {
+        let deadline = std::time::Instant::now() + timeout;
+        loop {
+            match self.health() {
+                Some((200, body)) if body == "ok" => return,
+                last if std::time::Instant::now() >= deadline => panic!(
+                    "not ready within {timeout:?}: /healthz gave {last:?}; output {:?}",
+                    self.output()
+                ),
+                _ => std::thread::sleep(Duration::from_millis(20)),
+            }
+        }
+    }
+
+    /// The process id (to read its `/proc` entries).
+    pub fn pid(&self) -> u32 {
+        self.child.id()
     }
 
     /// SIGKILL: no graceful shutdown, nothing flushed that was not already on disk.
@@ -128,4 +161,23 @@ pub fn run_to_exit(args: &[&str], env: &[(&str, &str)]) -> (ExitStatus, String) 
         String::from_utf8_lossy(&output.stderr)
     );
     (output.status, text)
+}
+
+/// `GET /healthz` on `addr` (HTTP/1.1, `Connection: close`, blocking, 5 s bound): status and
+/// body, or `None` when nothing answered.
+pub fn health(addr: SocketAddr) -> Option<(u16, String)> {
+    use std::io::{Read, Write};
+    let bound = Duration::from_secs(5);
+    let mut stream = std::net::TcpStream::connect_timeout(&addr, bound).ok()?;
+    stream.set_read_timeout(Some(bound)).ok()?;
+    write!(
+        stream,
+        "GET /healthz HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+    )
+    .ok()?;
+    let mut response = String::new();
+    stream.read_to_string(&mut response).ok()?;
+    let status = response.split(' ').nth(1)?.parse().ok()?;
+    let body = response.split_once("\r\n\r\n")?.1.to_owned();
+    Some((status, body))
 }

@@ -41,7 +41,9 @@ pub async fn server_with(tick_rate: f32, access: AccessConfig) -> Server {
         access,
         ..Config::default()
     };
-    Server::start(config).await.unwrap()
+    let server = Server::start(config).await.unwrap();
+    server.ready().await.unwrap();
+    server
 }
 
 /// A library client subscribed to `default`, holding the control token.

@@ -6,13 +6,15 @@
 //!   `GET /api/assets/{name}/mesh.glb` ([`rest`]).
 //! - `POST /api/assets/{name}`, `POST /api/assets/{name}/clips`: uploads ([`upload`]), with
 //!   their own body limit (`Config::max_upload_bytes`); everything else keeps 64 KiB.
-//! - `GET /healthz`, `GET /metrics`.
+//! - `GET /healthz` ([`health`]: 503 with the progress while starting, then `ok`),
+//!   `GET /metrics`.
 //! - `GET /`, `GET /dashboard/{file}`: the web dashboard ([`dashboard`]).
 //!
 //! Every error response has the typed body `{"code", "message"}`, including axum's own
 //! rejections (405, 413, extractor errors) and unknown paths (404): see [`typed_errors`].
 
 pub mod dashboard;
+pub mod health;
 pub mod rest;
 pub mod upload;
 pub mod ws;
@@ -51,11 +53,15 @@ pub fn app(state: Arc<AppState>) -> Router {
                 state.config.max_upload_bytes,
             )),
         )
-        .route("/healthz", get(|| async { "ok" }))
+        .route("/healthz", get(health::healthz))
         .route("/metrics", get(metrics))
         .route("/", get(dashboard::index))
         .route("/dashboard/{file}", get(dashboard::file))
         .fallback(not_found)
+        .layer(axum::middleware::from_fn_with_state(
+            state.clone(),
+            health::wait_until_ready,
+        ))
         .layer(axum::middleware::map_response(typed_errors))
         .layer(axum::middleware::map_response_with_state(
             counted,

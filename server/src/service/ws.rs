@@ -287,6 +287,18 @@ impl Session {
                 return true;
             }
         };
+        // While the server is starting, a subscribe or command waits until the stored scenes
+        // are restored (this connection's later messages wait behind it, in order): a client
+        // reconnecting after a restart then gets its scene, not `unknown_scene`.
+        if !matches!(msg, ClientMsg::Ping { .. } | ClientMsg::Hello { .. })
+            && let Err(e) = self.state.readiness.wait().await
+        {
+            self.error(match msg {
+                ClientMsg::Command { id, .. } => e.for_command(id),
+                _ => e,
+            });
+            return true;
+        }
         match msg {
             ClientMsg::Hello { .. } => {
                 self.error(ProtocolError::new(

@@ -10,7 +10,7 @@ use crate::scene::ticker::unix_micros;
 use crate::state::AppState;
 use serde::{Deserialize, Serialize};
 use std::io::{self, Write};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use tracing::{info, warn};
 
@@ -137,10 +137,13 @@ fn read_asset(dir: &Path) -> Result<(AssetMeta, FileSet), String> {
 }
 
 impl Store {
-    /// Loads every stored upload into the library (see the module doc of [`super`] for what
-    /// is skipped and moved aside).
-    pub fn restore_assets(&self, state: &AppState) {
-        let Some(dir) = self.assets_dir() else { return };
+    /// The stored uploads' folders, in name order (temporary and set-aside ones left out).
+    /// Only lists: nothing is read, so start-up can count them before it listens.
+    #[must_use]
+    pub fn stored_uploads(&self) -> Vec<PathBuf> {
+        let Some(dir) = self.assets_dir() else {
+            return Vec::new();
+        };
         let mut dirs: Vec<_> = match std::fs::read_dir(&dir) {
             Ok(entries) => entries
                 .filter_map(Result::ok)
@@ -149,7 +152,7 @@ impl Store {
                 .collect(),
             Err(e) => {
                 warn!(dir = %dir.display(), error = %e, "cannot read the assets folder");
-                return;
+                return Vec::new();
             }
         };
         dirs.retain(|d| {
@@ -160,27 +163,44 @@ impl Store {
             !n.starts_with('.') && !n.contains(".corrupt")
         });
         dirs.sort();
-        for dir in dirs {
-            let loaded = read_asset(&dir).and_then(|(meta, set)| {
-                let rigs = crate::upload::prepare(&meta.name, &set).map_err(|e| e.message)?;
-                Ok((meta, set, rigs))
-            });
-            match loaded {
-                Ok((meta, set, rigs)) => {
-                    if let Some(r) = rigs.iter().find(|r| state.library.get(&r.name).is_some()) {
-                        warn!(asset = %meta.name, rig = %r.name, "stored upload not loaded: a rig of that name is already loaded (from --assets?)");
-                        continue;
-                    }
-                    for rig in rigs {
-                        info!(asset = %rig.name, joints = rig.skeleton().len(), "restored upload");
-                        state.library.insert(rig);
-                    }
-                    self.add_upload_bytes(set.total_bytes() as u64);
-                    self.uploads().insert(meta.name, set);
+        dirs
+    }
+
+    /// Loads one stored upload (a folder from [`Store::stored_uploads`]) into the library (see
+    /// the module doc of [`super`] for what is skipped and moved aside). Its files are read,
+    /// imported and dropped: the store remembers the upload, not its bytes.
+    pub fn restore_upload(&self, state: &AppState, dir: &Path) {
+        let loaded = read_asset(dir).and_then(|(meta, set)| {
+            let rigs = crate::upload::prepare(&meta.name, &set).map_err(|e| e.message)?;
+            Ok((meta, set, rigs))
+        });
+        match loaded {
+            Ok((meta, set, rigs)) => {
+                if let Some(r) = rigs.iter().find(|r| state.library.get(&r.name).is_some()) {
+                    warn!(asset = %meta.name, rig = %r.name, "stored upload not loaded: a rig of that name is already loaded (from --assets?)");
+                    return;
                 }
-                Err(reason) => set_aside(&dir, &reason),
+                for rig in rigs {
+                    info!(asset = %rig.name, joints = rig.skeleton().len(), "restored upload");
+                    state.library.insert(rig);
+                }
+                self.add_upload_bytes(set.total_bytes() as u64);
+                self.remember_upload(&meta.name, set);
             }
+            Err(reason) => set_aside(dir, &reason),
         }
+    }
+
+    /// The files of stored upload `name`, read again from `assets/<name>/` (what its
+    /// `meta.json` lists). Blocking: call it off the async workers.
+    ///
+    /// # Errors
+    /// No data folder, or the folder cannot be read (the reason, naming the file).
+    pub fn read_upload(&self, name: &str) -> Result<FileSet, String> {
+        let dir = self
+            .assets_dir()
+            .ok_or_else(|| "no data folder to read it from".to_owned())?;
+        read_asset(&dir.join(name)).map(|(_, set)| set)
     }
 }
 

@@ -30,13 +30,17 @@
 //!
 //! # Restore at start
 //!
-//! Built-in rig and `--assets` folders first, then uploaded assets, then scenes. On the first
+//! In the background once the server listens ([`crate::restore`]): built-in rig and
+//! `--assets` folders first, then uploaded assets, then scenes. On the first
 //! start with a new folder the built-in `default` scene is created and stored; later, what is
 //! stored wins (a deleted `default` stays deleted). A file that cannot be read (truncated,
 //! not JSON, unknown format version, an asset that no longer imports) is logged with
 //! `tracing::warn!`, moved aside to `<file>.corrupt` and skipped; the rest still loads. An
 //! avatar whose asset is gone, or a clip or joint its rig no longer has, is skipped alone.
 //! Scene and avatar *numbers* (in binary frames) are not stored; ids are.
+//!
+//! Uploads are read, imported and dropped: memory holds their rigs, not their files
+//! (`store::Upload`); adding clips reads the files again from `assets/<name>/`.
 
 pub mod assets;
 pub mod atomic;
@@ -69,8 +73,22 @@ pub struct Store {
     batches_written: std::sync::atomic::AtomicU64,
     /// Bytes of every uploaded asset's files (the `upload_total_bytes` quota).
     upload_bytes: std::sync::atomic::AtomicU64,
-    /// The original files of every uploaded asset, by asset name (kept to add clips later).
-    uploads: std::sync::Mutex<BTreeMap<String, FileSet>>,
+    /// Every uploaded asset by name: what is needed to add clips to it later, never its
+    /// files when they are on disk.
+    uploads: std::sync::Mutex<BTreeMap<String, Upload>>,
+}
+
+/// What the store keeps in memory of an uploaded asset. With a data folder that is no bytes:
+/// adding clips re-reads the files from `assets/<name>/` ([`Store::read_upload`]), so a
+/// server with gigabytes of uploads holds only their rigs. Without one (`--no-persist`)
+/// memory is the only copy, so a `.skel` upload — the one kind clips are added to — keeps its
+/// files; other uploads keep none.
+#[derive(Debug, Clone)]
+pub(crate) struct Upload {
+    /// The file that gives the upload's format (`""` if the set had none).
+    pub main: String,
+    /// The files, only without a data folder and only for a `.skel`.
+    pub files: Option<FileSet>,
 }
 
 /// Acks waiting for one scene write: the scenes to write and where the result goes.
@@ -141,10 +159,21 @@ impl Store {
         self.assets_lock.lock().await
     }
 
-    pub(crate) fn uploads(&self) -> std::sync::MutexGuard<'_, BTreeMap<String, FileSet>> {
+    pub(crate) fn uploads(&self) -> std::sync::MutexGuard<'_, BTreeMap<String, Upload>> {
         self.uploads
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// Records upload `name` made of `set` (see [`Upload`] for what is kept of it).
+    pub(crate) fn remember_upload(&self, name: &str, set: FileSet) {
+        let main = set.main_file().map(str::to_owned).unwrap_or_default();
+        let keep = self.root.is_none() && crate::import::files::extension(&main) == "skel";
+        let upload = Upload {
+            main,
+            files: keep.then_some(set),
+        };
+        self.uploads().insert(name.to_owned(), upload);
     }
 
     /// Creates the folders, removes temporary files a crash left behind (never acknowledged),

@@ -1,0 +1,218 @@
+//! What a server loads at start, in the background once it listens: the built-in rig, every
+//! `--assets` folder, the stored uploads, then the stored scenes, then — on a first start —
+//! the `default` scene and the data folder's marker. The order is the one the store's module
+//! doc promises ([`crate::store`]); [`crate::readiness`] counts the progress.
+//!
+//! Loading runs on a thread of its own rather than tokio's blocking pool: importing is
+//! CPU-bound (seconds for gigabytes of uploads) and must not hold an async worker, and a
+//! process asked to stop during a long start must be able to exit — the runtime waits for
+//! its blocking-pool tasks when it shuts down, never for this thread.
+
+use crate::import;
+use crate::rig::PipelineOptions;
+use crate::scene::playback::Layer;
+use crate::startup::{
+    BUILTIN_ASSET, DEFAULT_AVATAR, DEFAULT_SCENE, builtin_rig, data_folder_error, rig_from_asset,
+};
+use crate::state::AppState;
+use posecast_proto::msg::{AvatarId, SceneId};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use tracing::{info, warn};
+
+/// One thing to load.
+#[derive(Debug)]
+enum Source {
+    /// The built-in avatar.
+    Builtin,
+    /// An importable file of an `--assets` folder.
+    File(PathBuf),
+    /// A stored upload's folder.
+    Upload(PathBuf),
+}
+
+/// Everything a start loads, listed (not read) before the server listens so `/healthz` can
+/// tell the total from its first answer.
+#[derive(Debug)]
+pub struct Plan {
+    sources: Vec<Source>,
+    first_start: bool,
+}
+
+impl Plan {
+    /// Lists what `state`'s configuration and data folder hold. `first_start`: the data folder
+    /// is new (or there is none), so the default scene is created once the rest is loaded.
+    #[must_use]
+    pub fn new(state: &AppState, first_start: bool) -> Self {
+        let mut sources = Vec::new();
+        if state.config.builtin {
+            sources.push(Source::Builtin);
+        }
+        for dir in &state.config.asset_dirs {
+            sources.extend(importable_files(dir).into_iter().map(Source::File));
+        }
+        sources.extend(state.store.stored_uploads().into_iter().map(Source::Upload));
+        Self {
+            sources,
+            first_start,
+        }
+    }
+
+    /// How many asset sources it holds.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        self.sources.len()
+    }
+
+    /// Whether it holds no asset source.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.sources.is_empty()
+    }
+}
+
+/// Loads `plan` on a thread of its own and marks `state` ready (or failed) when done. Scenes
+/// restored there start their tick tasks on the current tokio runtime.
+///
+/// # Errors
+/// The thread cannot be started.
+pub fn spawn(state: Arc<AppState>, plan: Plan) -> std::io::Result<()> {
+    let runtime = tokio::runtime::Handle::current();
+    std::thread::Builder::new()
+        .name("posecast-restore".into())
+        .spawn(move || {
+            let _runtime = runtime.enter();
+            let began = std::time::Instant::now();
+            // A panic while loading must not leave requests waiting for ever.
+            let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                run(&state, plan).map_err(|e| e.to_string())
+            }))
+            .unwrap_or_else(|_| Err("loading panicked (see the log)".to_owned()));
+            match &result {
+                Ok(()) if state.readiness.stopped() => {
+                    info!("start-up loading stopped: the server is shutting down");
+                }
+                Ok(()) => info!(
+                    rigs = state.library.all().len(),
+                    scenes = state.scenes().len(),
+                    seconds = began.elapsed().as_secs_f64(),
+                    "ready"
+                ),
+                Err(e) => warn!(error = %e, "start-up failed"),
+            }
+            state.readiness.finish(result);
+        })
+        .map(|_| ())
+}
+
+/// Loads the plan in order; gives up between steps when the server shuts down.
+fn run(state: &AppState, plan: Plan) -> std::io::Result<()> {
+    for source in plan.sources {
+        if state.readiness.stopped() {
+            return Ok(());
+        }
+        match source {
+            Source::Builtin => load_builtin(state),
+            Source::File(path) => load_file(state, &path),
+            Source::Upload(dir) => state.store.restore_upload(state, &dir),
+        }
+        state.readiness.source_done();
+    }
+    if state.readiness.stopped() {
+        return Ok(());
+    }
+    state.store.restore_scenes(state);
+    if plan.first_start && !state.readiness.stopped() {
+        if state.config.builtin {
+            create_default_scene(state);
+        }
+        for scene in state.scenes() {
+            state
+                .store
+                .persist_scene_now(state, &scene.id)
+                .map_err(|e| data_folder_error(state, &e))?;
+        }
+        state
+            .store
+            .mark_initialised()
+            .map_err(|e| data_folder_error(state, &e))?;
+    }
+    Ok(())
+}
+
+fn load_builtin(state: &AppState) {
+    match builtin_rig() {
+        Ok(rig) => {
+            state.library.insert(rig);
+        }
+        Err(e) => warn!(error = %e, "the built-in avatar failed to load"),
+    }
+}
+
+/// Scene `default` with the built-in avatar playing `idle` (first start only: later, the data
+/// folder says which scenes exist). Kept when a stored scene of that name was restored.
+fn create_default_scene(state: &AppState) {
+    let scene = SceneId(DEFAULT_SCENE.into());
+    if state.library.get(BUILTIN_ASSET).is_none() || state.scene(&scene).is_ok() {
+        return;
+    }
+    let added = state.create_scene(scene.clone()).and_then(|_| {
+        state.add_avatar(&scene, BUILTIN_ASSET, Some(AvatarId(DEFAULT_AVATAR.into())))
+    });
+    match added {
+        Ok((scene, id)) => {
+            let mut s = scene.lock();
+            if let Some(a) = s.avatar_mut(&id)
+                && let Some(idle) = a.rig.clip("idle").cloned()
+            {
+                a.play(Layer::new(idle, None, 0.0, 1.0, true), 0.0);
+            }
+        }
+        Err(e) => warn!(error = %e, "could not create the default scene"),
+    }
+}
+
+/// The importable files of a folder (not recursive), in name order; an unreadable folder is
+/// logged and gives none.
+fn importable_files(dir: &Path) -> Vec<PathBuf> {
+    let entries = match std::fs::read_dir(dir) {
+        Ok(e) => e,
+        Err(e) => {
+            warn!(dir = %dir.display(), error = %e, "cannot read asset folder");
+            return Vec::new();
+        }
+    };
+    let mut paths: Vec<_> = entries
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .filter(|path| {
+            let ext = path
+                .extension()
+                .and_then(|e| e.to_str())
+                .unwrap_or("")
+                .to_ascii_lowercase();
+            matches!(ext.as_str(), "glb" | "gltf" | "bvh" | "skel")
+        })
+        .collect();
+    paths.sort();
+    paths
+}
+
+/// Loads one file of an `--assets` folder; failures are logged and skipped.
+fn load_file(state: &AppState, path: &Path) {
+    match import::load_path(path) {
+        Ok(assets) => {
+            for asset in assets {
+                let name = asset.name.clone();
+                match rig_from_asset(asset, &PipelineOptions::default()) {
+                    Ok(rig) => {
+                        info!(asset = %name, joints = rig.skeleton().len(), steps = ?rig.pipeline, "loaded");
+                        state.library.insert(rig);
+                    }
+                    Err(e) => warn!(asset = %name, error = %e, "skipped: normalisation failed"),
+                }
+            }
+        }
+        Err(e) => warn!(error = %e, "skipped"),
+    }
+}

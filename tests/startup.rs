@@ -1,0 +1,289 @@
+//! Start-up with the real binary: it listens at once and loads in the background, and stored
+//! uploads are not kept in memory as bytes.
+//!
+//! The data folders are written here the way the store writes them (`assets/<name>/` with the
+//! files and a `meta.json`, `scenes/<scene>.json`, `posecast.json`), from generated CSE169
+//! files, so the tests need nothing from `../shared/testdata`.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+mod common;
+
+use common::child::Posecast;
+use common::{Ws, http_to, next_text};
+use futures_util::SinkExt;
+use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, SceneId, ServerMsg};
+use serde_json::{Value, json};
+use std::fmt::Write as _;
+use std::path::Path;
+use std::time::{Duration, Instant};
+use tokio_tungstenite::tungstenite::Message;
+
+/// A chain of `joints` ball joints, 0.1 apart along Y.
+fn skel(joints: usize) -> String {
+    let mut s = String::from("balljoint root {\n offset 0 1 0\n");
+    for i in 1..joints {
+        writeln!(s, "balljoint j{i} {{\n offset 0 0.1 0").unwrap();
+    }
+    s.push_str(&"}\n".repeat(joints));
+    s
+}
+
+/// A `.skin` of `vertices` vertices over a `joints`-joint chain, each bound half to two joints:
+/// enough per-vertex work (import, normalisation) that loading 200 of them takes a while.
+fn skin(joints: usize, vertices: usize) -> String {
+    let mut s = format!("positions {vertices} {{\n");
+    for i in 0..vertices {
+        let (x, y, z) = ((i % 7) as f32 * 0.01, 1.0 + (i % joints) as f32 * 0.1, 0.0);
+        writeln!(s, "{x} {y} {z}").unwrap();
+    }
+    writeln!(s, "}}\nnormals {vertices} {{").unwrap();
+    s.push_str(&"0 0 1\n".repeat(vertices));
+    writeln!(s, "}}\nskinweights {vertices} {{").unwrap();
+    for i in 0..vertices {
+        writeln!(s, "2 {} 0.5 {} 0.5", i % joints, (i + 1) % joints).unwrap();
+    }
+    let triangles = vertices / 3;
+    writeln!(s, "}}\ntriangles {triangles} {{").unwrap();
+    for t in 0..triangles {
+        writeln!(s, "{} {} {}", 3 * t, 3 * t + 1, 3 * t + 2).unwrap();
+    }
+    writeln!(s, "}}\nbindings {joints} {{").unwrap();
+    for j in 0..joints {
+        let y = 1.0 + j as f32 * 0.1;
+        writeln!(s, "matrix {{\n1 0 0\n0 1 0\n0 0 1\n0 {y} 0\n}}").unwrap();
+    }
+    s.push_str("}\n");
+    s
+}
+
+/// Writes `count` stored uploads `a000`, `a001`, … into the data folder `data` as the store
+/// does, each made of `files` (name, content). Equal contents are hard-linked to the first
+/// asset's copy, so a large set costs little disk. Marks the folder initialised (a restart).
+fn write_uploads(data: &Path, count: usize, files: &[(&str, &str)]) -> Vec<String> {
+    std::fs::create_dir_all(data.join("scenes")).unwrap();
+    std::fs::write(data.join("posecast.json"), "{\"format\": 1}\n").unwrap();
+    let names: Vec<String> = (0..count).map(|k| format!("a{k:03}")).collect();
+    for (k, name) in names.iter().enumerate() {
+        let dir = data.join("assets").join(name);
+        std::fs::create_dir_all(&dir).unwrap();
+        for (file, content) in files {
+            if k == 0 {
+                std::fs::write(dir.join(file), content).unwrap();
+            } else {
+                std::fs::hard_link(
+                    data.join("assets").join(&names[0]).join(file),
+                    dir.join(file),
+                )
+                .unwrap();
+            }
+        }
+        let meta = json!({
+            "format": 1, "name": name, "rigs": [name], "saved_us": 0,
+            "files": files.iter().map(|(f, _)| *f).collect::<Vec<_>>(),
+        });
+        std::fs::write(dir.join("meta.json"), meta.to_string()).unwrap();
+    }
+    names
+}
+
+async fn hello(addr: std::net::SocketAddr) -> Ws {
+    let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/ws"))
+        .await
+        .unwrap();
+    let hello = ClientMsg::Hello {
+        version: PROTOCOL_VERSION,
+        encoding: Encoding::Json,
+        token: None,
+        client: None,
+    };
+    ws.send(Message::Text(serde_json::to_string(&hello).unwrap().into()))
+        .await
+        .unwrap();
+    match next_text(&mut ws).await {
+        Some(ServerMsg::Welcome { .. }) => ws,
+        other => panic!("expected welcome, got {other:?}"),
+    }
+}
+
+/// 200 stored uploads of a 20-joint `.skel` with a 3,000-vertex `.skin` (a few seconds of
+/// loading in a debug build); returns their names.
+fn write_200_uploads(data: &Path) -> Vec<String> {
+    const JOINTS: usize = 20;
+    write_uploads(
+        data,
+        200,
+        &[
+            ("rig.skel", &skel(JOINTS)),
+            ("rig.skin", &skin(JOINTS, 3000)),
+        ],
+    )
+}
+
+/// A restart on 200 stored uploads listens within 1 s of the process starting (`/healthz`
+/// answers 503 `starting` with the progress), welcomes a websocket and holds its subscribe
+/// to a stored scene until that scene is restored (instead of `unknown_scene`), then becomes
+/// ready with every upload listed. Before background loading, nothing listened until all 200
+/// were imported, and `/healthz` never said `starting`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_restart_with_200_stored_assets_listens_at_once_then_restores_them_all() {
+    const ASSETS: usize = 200;
+    let data = tempfile::tempdir().unwrap();
+    let names = write_200_uploads(data.path());
+    // A stored scene with an avatar of the last upload: scenes restore after every asset.
+    let last = names.last().unwrap();
+    let scene = json!({
+        "format": 1, "scene": "stage", "saved_us": 0,
+        "avatars": [{"id": "z", "asset": last, "playback": null, "overrides": {}}],
+    });
+    std::fs::write(data.path().join("scenes/stage.json"), scene.to_string()).unwrap();
+
+    let began = Instant::now();
+    let server = Posecast::launch(
+        &["--data", data.path().to_str().unwrap()],
+        &[("POSECAST_CONTROL_TOKEN", common::CONTROL)],
+    );
+    let first = server.health();
+    let listening = began.elapsed();
+    let (status, body) = first.expect("/healthz did not answer");
+    assert!(
+        listening < Duration::from_secs(1),
+        "first /healthz answer {listening:?} after the process started ({status} {body})"
+    );
+    assert_eq!(status, 503, "{body}");
+    let progress: Value = serde_json::from_str(&body).unwrap();
+    assert_eq!(progress["status"], "starting", "{body}");
+    // The built-in avatar and the 200 uploads.
+    assert_eq!(progress["assets_total"], ASSETS + 1, "{body}");
+    assert!(progress["assets_loaded"].as_u64().unwrap() <= ASSETS as u64 + 1);
+
+    // A websocket is welcomed at once; its subscribe waits for the scene's restore.
+    let mut ws = hello(server.addr).await;
+    let still_starting = server.health().is_some_and(|(s, _)| s == 503);
+    let subscribe = ClientMsg::Subscribe {
+        scene: SceneId("stage".into()),
+        avatars: None,
+    };
+    ws.send(Message::Text(
+        serde_json::to_string(&subscribe).unwrap().into(),
+    ))
+    .await
+    .unwrap();
+    // The REST API waits too: this list is complete although it was asked for while starting.
+    let addr = server.addr;
+    let listing = tokio::spawn(async move { http_to(addr, "GET", "/api/assets", "", b"").await });
+
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let answer = loop {
+        match tokio::time::timeout(Duration::from_secs(5), next_text(&mut ws)).await {
+            Ok(Some(msg)) => break msg,
+            _ if Instant::now() < deadline => {}
+            _ => panic!("no answer to subscribe; /healthz {:?}", server.health()),
+        }
+    };
+    assert!(
+        matches!(&answer, ServerMsg::Subscribed { scene, .. } if scene.0 == "stage"),
+        "subscribe during start-up: {answer:?}"
+    );
+    server.wait_ready(Duration::from_secs(120));
+    let ready = began.elapsed();
+    assert!(
+        still_starting,
+        "ready before the subscribe was sent: the load was too quick to show the wait"
+    );
+
+    let (status, body) = listing.await.unwrap();
+    assert_eq!(status, 200, "{body}");
+    let all: Value = serde_json::from_str(&body).unwrap();
+    let mut listed: Vec<String> = all
+        .as_array()
+        .unwrap_or_else(|| panic!("not a list: {body}"))
+        .iter()
+        .map(|a| a["name"].as_str().unwrap().to_owned())
+        .collect();
+    listed.sort();
+    let mut expected = names.clone();
+    expected.push("avatar".into());
+    expected.sort();
+    assert_eq!(listed, expected);
+    eprintln!(
+        "{ASSETS} stored assets: listening after {:.0} ms, ready after {:.2} s",
+        listening.as_secs_f64() * 1000.0,
+        ready.as_secs_f64()
+    );
+}
+
+/// SIGTERM while loading: the loader gives up at its next step and the process exits
+/// gracefully within the drain time, without finishing the load first.
+#[test]
+fn a_sigterm_during_start_up_exits_without_finishing_the_load() {
+    let data = tempfile::tempdir().unwrap();
+    write_200_uploads(data.path());
+    let data = data.path().to_str().unwrap();
+    let mut server = Posecast::launch(&["--data", data, "--shutdown-drain", "0.5"], &[]);
+    let (status, body) = server.health().expect("/healthz did not answer");
+    assert_eq!(status, 503, "the load was too quick to interrupt: {body}");
+    let asked = Instant::now();
+    server.terminate();
+    let exit = server
+        .wait_exit(Duration::from_secs(5))
+        .unwrap_or_else(|| panic!("still running 5 s after SIGTERM: {:?}", server.output()));
+    let took = asked.elapsed();
+    assert!(exit.success(), "{exit:?}: {:?}", server.output());
+    let output = server.output();
+    assert!(
+        !output.iter().any(|l| l.contains(": ready rigs=")),
+        "finished loading before exiting ({took:?}): {output:?}"
+    );
+}
+
+/// The resident memory of process `pid`, bytes (`VmRSS` of `/proc/<pid>/status`).
+#[cfg(target_os = "linux")]
+fn resident_bytes(pid: u32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    let kib: u64 = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.trim().strip_suffix("kB"))
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no VmRSS in {status}"));
+    kib * 1024
+}
+
+/// Stored uploads are read, imported and dropped: the server keeps their rigs, not their
+/// files. 24 uploads of a `.skel` padded with 4 MiB of blanks (96 MiB of files, a 5-joint rig
+/// each) against the same 24 unpadded: once ready, the padded server is resident by far less
+/// than 96 MiB more (allocator slack of a few reads at most). When the store kept every
+/// upload's files to add clips later, it was resident by all 96 MiB more.
+#[cfg(target_os = "linux")]
+#[test]
+fn resident_memory_does_not_hold_stored_upload_bytes() {
+    const UPLOADS: usize = 24;
+    const PAD: usize = 4 << 20;
+    let resident = |pad: usize| {
+        let data = tempfile::tempdir().unwrap();
+        let text = format!("{}{}", skel(5), " ".repeat(pad));
+        write_uploads(data.path(), UPLOADS, &[("rig.skel", &text)]);
+        let data = data.path().to_str().unwrap();
+        let server = Posecast::start(&["--data", data, "--no-builtin"], &[]);
+        let bytes = resident_bytes(server.pid());
+        server.kill();
+        bytes
+    };
+    let plain = resident(0);
+    let padded = resident(PAD);
+    let grown = padded.saturating_sub(plain);
+    let files = (UPLOADS * PAD) as u64;
+    eprintln!(
+        "resident: {} MiB plain, {} MiB with {} MiB of stored upload files",
+        plain >> 20,
+        padded >> 20,
+        files >> 20
+    );
+    assert!(
+        grown < files / 4,
+        "resident memory grew by {} MiB with {} MiB of stored uploads",
+        grown >> 20,
+        files >> 20
+    );
+}
