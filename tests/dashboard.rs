@@ -1,7 +1,8 @@
 //! The web dashboard in a real headless Chromium, driven over WebDriver (chromedriver +
 //! fantoccini) against an in-process server: the page loads without errors and lists the
 //! avatars; its buttons and sliders change the avatars' state and the pose stream (checked by a
-//! separate Rust websocket client); the preview draws the avatar (screenshot pixel count).
+//! separate Rust websocket client); the preview draws the avatar (screenshot pixel count), and
+//! every avatar of a scene where it stands (drawn roots, screenshot columns).
 //!
 //! Needs `/usr/bin/chromium` and `/usr/bin/chromedriver` (`scripts/test` installs them).
 //! Set `POSECAST_UPDATE_SCREENSHOT=1` to also write `docs/dashboard.png` for the README.

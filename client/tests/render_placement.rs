@@ -38,7 +38,9 @@ fn render(placements: &[Placement]) -> RgbaImage {
         .unwrap()
         .for_joints(skeleton.names())
         .unwrap();
-    let idle = rig.clip("idle").expect("the built-in avatar has an idle clip");
+    let idle = rig
+        .clip("idle")
+        .expect("the built-in avatar has an idle clip");
     let mut pose = skeleton.rest().to_vec();
     idle.sample(idle.start(), skeleton.rest(), &mut pose);
     let options = RendererOptions {
@@ -50,9 +52,7 @@ fn render(placements: &[Placement]) -> RgbaImage {
     let mut renderer = Renderer::new(gpu, Offscreen::FORMAT, SIZE.0, SIZE.1, options).unwrap();
     for placement in placements {
         let handle = renderer.add_avatar(skeleton, &mesh).unwrap();
-        renderer
-            .set_placed_pose(handle, placement, &pose)
-            .unwrap();
+        renderer.set_placed_pose(handle, placement, &pose).unwrap();
     }
     renderer.set_camera(camera());
     target.render(&mut renderer).unwrap()
