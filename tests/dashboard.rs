@@ -1,7 +1,8 @@
 //! The web dashboard in a real headless Chromium, driven over WebDriver (chromedriver +
 //! fantoccini) against an in-process server: the page loads without errors and lists the
 //! avatars; its buttons and sliders change the avatars' state and the pose stream (checked by a
-//! separate Rust websocket client); the preview draws the avatar (screenshot pixel count).
+//! separate Rust websocket client); the preview draws the avatar (screenshot pixel count), and
+//! every avatar of a scene where it stands (drawn roots, screenshot columns).
 //!
 //! Needs `/usr/bin/chromium` and `/usr/bin/chromedriver` (`scripts/test` installs them).
 //! Set `POSECAST_UPDATE_SCREENSHOT=1` to also write `docs/dashboard.png` for the README.
@@ -166,27 +167,60 @@ async fn max_angle(c: &Client, avatar: &AvatarId, joint: usize, secs: f32) -> f3
 
 /// Non-background pixels of a screenshot inside the CSS-pixel rectangle `(x, y, w, h)`.
 fn count_avatar_pixels(png_bytes: &[u8], rect: (f64, f64, f64, f64)) -> (usize, usize) {
+    let (pixels, area) = avatar_pixels(png_bytes, rect, GRID_DIFFERENCE);
+    (pixels.len(), area)
+}
+
+/// Connected runs `(first, last)` of screenshot columns (CSS px) holding an avatar pixel inside
+/// `rect`: one per figure drawn apart from the others. Stricter than [`count_avatar_pixels`]:
+/// the grid's nearest lines (80 from the background) span the whole preview and would join
+/// the figures; the lit mesh and the skeleton overlay are far brighter.
+fn column_runs(png_bytes: &[u8], rect: (f64, f64, f64, f64)) -> Vec<(usize, usize)> {
+    let (pixels, _) = avatar_pixels(png_bytes, rect, 150);
+    let mut columns: Vec<usize> = pixels.iter().map(|&(x, _)| x).collect();
+    columns.sort_unstable();
+    columns.dedup();
+    let mut runs: Vec<(usize, usize)> = Vec::new();
+    for x in columns {
+        match runs.last_mut() {
+            Some(run) if run.1 + 1 == x => run.1 = x,
+            _ => runs.push((x, x)),
+        }
+    }
+    runs
+}
+
+/// Summed RGB difference from the preview's background above which a pixel is no grid.
+const GRID_DIFFERENCE: i32 = 60;
+
+/// `(x, y)` of the pixels of a screenshot inside the CSS-pixel rectangle `(x, y, w, h)` whose
+/// summed RGB difference from the background exceeds `threshold`, and the rectangle's area.
+fn avatar_pixels(
+    png_bytes: &[u8],
+    rect: (f64, f64, f64, f64),
+    threshold: i32,
+) -> (Vec<(usize, usize)>, usize) {
     let decoder = png::Decoder::new(png_bytes);
     let mut reader = decoder.read_info().unwrap();
     let mut buf = vec![0; reader.output_buffer_size()];
     let info = reader.next_frame(&mut buf).unwrap();
     let channels = info.color_type.samples();
-    // The preview's clear colour (viewer.js BACKGROUND); the grid is within 60 of it.
+    // The preview's clear colour (viewer.js BACKGROUND); most of the grid is within 60 of it (its nearest lines reach 80).
     let bg = [27i32, 30, 36];
     let (x0, y0) = (rect.0.max(0.0) as usize, rect.1.max(0.0) as usize);
     let x1 = ((rect.0 + rect.2) as usize).min(info.width as usize);
     let y1 = ((rect.1 + rect.3) as usize).min(info.height as usize);
-    let mut count = 0;
+    let mut pixels = Vec::new();
     for y in y0..y1 {
         for x in x0..x1 {
             let i = (y * info.width as usize + x) * channels;
             let d: i32 = (0..3).map(|c| (i32::from(buf[i + c]) - bg[c]).abs()).sum();
-            if d > 60 {
-                count += 1;
+            if d > threshold {
+                pixels.push((x, y));
             }
         }
     }
-    (count, (x1 - x0) * (y1 - y0))
+    (pixels, (x1 - x0) * (y1 - y0))
 }
 
 fn artifacts() -> PathBuf {
@@ -603,5 +637,114 @@ async fn a_wrong_control_token_is_refused_and_changes_nothing() {
         .await
         .unwrap();
     assert_eq!(state["clip"], "idle", "{state}");
+    b.close().await.unwrap();
+}
+
+/// Two built-in avatars placed 2 m apart in one scene are both drawn, each where it stands, by
+/// the WebGL2 preview and by the 2D fallback: the root joint the page draws is at the avatar's
+/// placement, and the screenshot shows two separate figures (runs of non-background columns),
+/// each holding its root's projection. With placement ignored both stand at the origin.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_preview_draws_every_avatar_where_it_stands() {
+    let server = common::server(60.0).await;
+    let base = server.http_url();
+    let placed = [("left", -1.0), ("right", 1.0)];
+    let (s, b) = command(&server, json!({"op": "create_scene", "scene": "row"})).await;
+    assert_eq!(s, 200, "{b}");
+    for (name, x) in placed {
+        let (s, b) = command(
+            &server,
+            json!({"op": "add_avatar", "scene": "row", "asset": "avatar", "avatar": name,
+                   "position": [x, 0.0, 0.0]}),
+        )
+        .await;
+        assert_eq!(s, 200, "{b}");
+    }
+    let (_driver, b) = browser().await;
+    let mut report = Vec::new();
+    for (renderer, query) in [("webgl2", ""), ("2d", "&renderer=2d")] {
+        b.goto(&format!("{base}/?debug{query}")).await.unwrap();
+        find(&b, r#"#scene-list button[data-avatar="left"]"#)
+            .await
+            .click()
+            .await
+            .unwrap();
+        let ready = if renderer == "webgl2" {
+            "window.posecast.meshLoaded"
+        } else {
+            "true"
+        };
+        wait_js(
+            &b,
+            15,
+            &format!(
+                "window.posecast.renderer === '{renderer}' && window.posecast.drawn.length === 2 \
+                 && {ready}"
+            ),
+        )
+        .await;
+        // A few more renders, so the mesh that just arrived is on screen.
+        let rendered = wait_js(&b, 5, "window.posecast.rendered")
+            .await
+            .as_u64()
+            .unwrap();
+        wait_js(&b, 5, &format!("window.posecast.rendered > {rendered} + 2")).await;
+        b.execute("window.scrollTo(0, 0);", vec![]).await.unwrap();
+        let drawn = b
+            .execute("return window.posecast.drawn;", vec![])
+            .await
+            .unwrap();
+        let shot = b.screenshot().await.unwrap();
+        let rect = find(&b, "#preview").await.rectangle().await.unwrap();
+        let runs = column_runs(&shot, rect);
+        let failed = || {
+            let path = artifacts().join(format!("dashboard-placement-{renderer}.png"));
+            std::fs::write(&path, &shot).unwrap();
+            format!(
+                "drawn {drawn}, column runs {runs:?}; screenshot {}",
+                path.display()
+            )
+        };
+        let mut holding = Vec::new();
+        for (name, x) in placed {
+            let d = drawn
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|d| d["avatar"] == name)
+                .unwrap_or_else(|| panic!("{renderer}: {name} not drawn; {}", failed()));
+            let root: Vec<f64> = serde_json::from_value(d["root"].clone()).unwrap();
+            // The root stands over its placement (the rig's rest root is on the Y axis).
+            assert!(
+                (root[0] - x).abs() < 0.25 && root[2].abs() < 0.25,
+                "{renderer}: {name}'s root drawn at {root:?}, placed at x = {x}; {}",
+                failed()
+            );
+            let column = rect.0 + d["screen"][0].as_f64().unwrap();
+            let run = runs
+                .iter()
+                .position(|&(a, b)| (a as f64 - 2.0..=b as f64 + 3.0).contains(&column))
+                .unwrap_or_else(|| {
+                    panic!(
+                        "{renderer}: nothing drawn at {name}'s root column {column:.0}; {}",
+                        failed()
+                    )
+                });
+            holding.push(run);
+        }
+        assert_ne!(
+            holding[0],
+            holding[1],
+            "{renderer}: both avatars in one figure; {}",
+            failed()
+        );
+        assert_eq!(
+            errors(&b).await,
+            json!([]),
+            "{renderer}: errors while drawing"
+        );
+        report.push(format!("{renderer}: {} runs {runs:?}", runs.len()));
+    }
+    println!("placed avatars: {}", report.join("; "));
     b.close().await.unwrap();
 }

@@ -2,7 +2,8 @@
 // frames, commands with ack/error) and the REST API (mesh download, uploads), so anything it
 // does a third-party dashboard can do too.
 //
-// `?debug` exposes `window.posecast` (errors seen, frame and render counters) for the tests.
+// `?debug` exposes `window.posecast` (errors seen, frame and render counters, where each avatar
+// was drawn) for the tests.
 
 import { Connection, ServerError } from "./connection.js";
 import { Viewer } from "./viewer.js";
@@ -93,6 +94,8 @@ if (params.has("debug")) {
     get rendered() { return viewer.renderedFrames; },
     get renderer() { return viewer.mode; },
     get meshLoaded() { return !!viewer.mesh; },
+    /** Per avatar drawn: `{avatar, root, screen}`, its root joint in world space and on the canvas. */
+    get drawn() { return viewer.drawn; },
     get rtt() { return conn.rtt; },
   };
 }
@@ -271,9 +274,10 @@ function select(avatar) {
   state.joint = null;
   const a = selectedAvatar();
   conn.subscribeOnly(a ? a.scene : null);
+  showScene(a ? a.scene : null);
+  viewer.select(avatar);
   $("preview-avatar").textContent = a ? `— ${a.avatar}` : "";
   const desc = avatar ? state.descriptions.get(avatar) : null;
-  viewer.setAvatar(desc ?? null);
   if (desc) onDescription(desc);
   else $("joint-tree").replaceChildren();
   renderJoint();
@@ -373,27 +377,44 @@ $("seek").addEventListener("change", () => {
 // ---------------------------------------------------------------------------------------------
 // Descriptions, frames, mesh.
 
+/** The preview shows every avatar of the watched scene, each where it stands. */
+function showScene(scene) {
+  if (viewer.scene === scene) return;
+  viewer.setScene(scene);
+  const s = state.scenes.find((x) => x.scene === scene);
+  for (const a of s?.avatars ?? []) {
+    const desc = state.descriptions.get(a.avatar);
+    if (desc) showAvatar(desc);
+  }
+}
+
+function showAvatar(desc) {
+  viewer.setAvatar(desc);
+  loadMesh(desc);
+}
+
 conn.addEventListener("description", (e) => {
   const desc = e.detail.avatar;
   state.descriptions.set(desc.id, desc);
+  if (e.detail.scene === viewer.scene) showAvatar(desc);
   if (desc.id === state.selected) onDescription(desc);
 });
 
 function onDescription(desc) {
-  viewer.setAvatar(desc);
   buildJointTree(desc);
-  loadMesh(desc);
 }
 
 conn.addEventListener("frame", (e) => {
+  const shown = e.detail.scene === viewer.scene;
   for (const pose of e.detail.avatars) {
     state.poses.set(pose.avatar, pose);
-    if (pose.avatar === state.selected && pose.hash === viewer.desc?.hash) viewer.setPose(pose);
+    if (shown) viewer.setPose(pose.avatar, pose);
   }
 });
 
 conn.addEventListener("avatar_removed", (e) => {
   state.descriptions.delete(e.detail.avatar);
+  viewer.removeAvatar(e.detail.avatar);
   refreshSoon();
 });
 
@@ -408,7 +429,7 @@ function loadMesh(desc) {
   }
   mesh.then(
     (m) => {
-      if (viewer.desc?.hash === desc.hash) viewer.setMesh(m);
+      viewer.setMesh(desc.hash, m);
     },
     (e) => notice(`Mesh of ${desc.id} not shown (skeleton only): ${e.message}`, "error"),
   );

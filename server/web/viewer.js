@@ -1,8 +1,9 @@
-// The live 3D preview: forward kinematics from the avatar description's rest transforms and
-// the streamed local rotations, then either WebGL2 (skinned mesh in the vertex shader with
-// joint matrices M_j = W_j · B_j⁻¹ from a float texture, skeleton on top) or, when WebGL2 is
-// unavailable, a 2D-canvas skeleton. Orbit with the mouse (drag, wheel) or the keyboard
-// (arrows, +/-, Home) while the canvas has focus.
+// The live 3D preview of every avatar of the watched scene, each where it stands: forward
+// kinematics from the avatar description's rest transforms, the streamed local rotations and
+// the frame's placement (W_root = P · D_root), then either WebGL2 (skinned mesh in the vertex
+// shader with joint matrices M_j = W_j · B_j⁻¹ from a float texture, skeleton on top) or, when
+// WebGL2 is unavailable, a 2D-canvas skeleton. Orbit with the mouse (drag, wheel) or the
+// keyboard (arrows, +/-, Home) while the canvas has focus.
 
 import { multiply, fromTRS, perspective, lookAt, transformPoint } from "./math.js";
 
@@ -11,12 +12,20 @@ const GRID_COLOR = [0.2, 0.22, 0.26];
 const BONE_COLOR = [1.0, 0.62, 0.11];
 const JOINT_COLOR = [1.0, 0.85, 0.4];
 
-/** World matrices of every joint: W_j = W_parent(j) · T(t_j) R_j S_j. */
+/**
+ * World matrices of every joint: W_j = W_parent(j) · T(t_j) R_j S_j, and for roots
+ * W_root = P · D_root with P = T(position) · R(rotation) the pose's `placement` (the frame's;
+ * identity when absent), so the avatar is drawn where it stands in the scene.
+ */
 export function forwardKinematics(desc, pose) {
   const n = desc.joint_names.length;
   const worlds = new Float32Array(16 * n);
   const local = new Float32Array(16);
   const tmp = new Float32Array(16);
+  const placement = pose?.placement;
+  const place = placement
+    ? fromTRS(new Float32Array(16), placement.position, placement.rotation, [1, 1, 1])
+    : null;
   const translated = new Map(desc.translated_joints.map((j, i) => [j, i]));
   const scaled = new Map(desc.scaled_joints.map((j, i) => [j, i]));
   for (let j = 0; j < n; j++) {
@@ -29,6 +38,9 @@ export function forwardKinematics(desc, pose) {
     const p = desc.parents[j];
     if (p >= 0) {
       multiply(tmp, worlds.subarray(16 * p, 16 * p + 16), local);
+      worlds.set(tmp, 16 * j);
+    } else if (place) {
+      multiply(tmp, place, local);
       worlds.set(tmp, 16 * j);
     } else {
       worlds.set(local, 16 * j);
@@ -108,9 +120,11 @@ function compile(gl, vs, fs) {
 export class Viewer {
   constructor(canvas, { prefer2d = false } = {}) {
     this.canvas = canvas;
-    this.desc = null;
-    this.pose = null;
-    this.mesh = null;
+    this.scene = null; // the scene whose avatars are shown
+    this.selected = null; // the avatar the page edits
+    this.avatars = new Map(); // avatar id → { desc, pose, mesh }
+    this.meshGpu = new Map(); // description hash → { mesh, primitives } uploaded once per rig
+    this.drawn = []; // per avatar drawn last: { avatar, root (world), screen (canvas px) }
     this.showSkeleton = true;
     this.showMesh = true;
     this.framed = false;
@@ -247,30 +261,55 @@ export class Viewer {
     }
   }
 
-  /** A new avatar (or a new rig for it): drops the mesh until `setMesh`. */
+  /** Shows the avatars of `scene` (the watched one) from now on; forgets every other's. */
+  setScene(scene) {
+    if (this.scene === scene) return;
+    this.scene = scene;
+    this.avatars.clear();
+    this.resetCamera();
+  }
+
+  /** The avatar the page edits (its description and mesh are `desc` and `mesh`). */
+  select(id) {
+    this.selected = id;
+    this.dirty = true;
+  }
+
+  get desc() {
+    return this.avatars.get(this.selected)?.desc ?? null;
+  }
+
+  get mesh() {
+    return this.avatars.get(this.selected)?.mesh ?? null;
+  }
+
+  /** An avatar of the scene (or a new rig for it): a new rig drops pose and mesh. */
   setAvatar(desc) {
-    if (this.desc?.hash !== desc?.hash) {
-      this.mesh = null;
-      this.meshGpu = null;
-    }
-    if (this.desc?.id !== desc?.id) this.resetCamera();
-    this.desc = desc;
-    this.pose = null;
+    const old = this.avatars.get(desc.id);
+    const same = old?.desc.hash === desc.hash;
+    this.avatars.set(desc.id, { desc, pose: same ? old.pose : null, mesh: same ? old.mesh : null });
     this.dirty = true;
   }
 
-  setPose(pose) {
-    this.pose = pose;
+  removeAvatar(id) {
+    if (this.avatars.delete(id)) this.dirty = true;
+  }
+
+  /** A streamed pose (with its placement); ignored when it is of another rig than described. */
+  setPose(id, pose) {
+    const a = this.avatars.get(id);
+    if (!a || pose.hash !== a.desc.hash) return;
+    a.pose = pose;
     this.dirty = true;
   }
 
-  setMesh(mesh) {
-    this.mesh = mesh;
-    this.meshGpu = null;
+  /** The mesh of every avatar of the rig whose description hash is `hash`. */
+  setMesh(hash, mesh) {
+    for (const a of this.avatars.values()) if (a.desc.hash === hash) a.mesh = mesh;
     this.dirty = true;
   }
 
-  /** Frames the camera on the skeleton the first time a pose is shown. */
+  /** Frames the camera on the scene's skeletons the first time poses are shown. */
   frame(points) {
     const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
     for (const p of points) for (let i = 0; i < 3; i++) {
@@ -297,17 +336,34 @@ export class Viewer {
   }
 
   render() {
-    if (!this.desc) {
+    // Only posed avatars: before its first frame an avatar's placement is unknown.
+    const shown = [];
+    for (const [id, a] of this.avatars) {
+      if (!a.pose) continue;
+      const worlds = forwardKinematics(a.desc, a.pose);
+      shown.push({ id, a, worlds, points: jointPositions(worlds) });
+    }
+    if (!shown.length) {
       this.clear();
+      this.drawn = [];
       return;
     }
-    const worlds = forwardKinematics(this.desc, this.pose);
-    const points = jointPositions(worlds);
-    if (!this.framed && this.pose) this.frame(points);
+    if (!this.framed) this.frame(shown.flatMap((s) => s.points));
     const vp = this.viewProj();
-    if (this.gl) this.renderGl(vp, worlds, points);
-    else this.render2d(vp, points);
+    if (this.gl) this.renderGl(vp, shown);
+    else this.render2d(vp, shown);
+    this.drawn = shown.map(({ id, a, points }) => {
+      const root = points[Math.max(0, a.desc.parents.findIndex((p) => p < 0))];
+      return { avatar: id, root, screen: this.project(vp, root) };
+    });
     this.renderedFrames++;
+  }
+
+  /** Canvas pixel of world point `p`, or null behind the camera. */
+  project(vp, p) {
+    const [x, y, , w] = transformPoint(vp, p);
+    if (w <= 1e-6) return null;
+    return [(x / w * 0.5 + 0.5) * this.canvas.width, (1 - (y / w * 0.5 + 0.5)) * this.canvas.height];
   }
 
   clear() {
@@ -333,26 +389,33 @@ export class Viewer {
     return lines;
   }
 
-  boneLines(points) {
+  boneLines(desc, points) {
     const lines = [];
-    this.desc.parents.forEach((p, j) => {
+    desc.parents.forEach((p, j) => {
       if (p >= 0) lines.push([points[p], points[j], BONE_COLOR]);
     });
     return lines;
   }
 
-  renderGl(vp, worlds, points) {
+  renderGl(vp, shown) {
     const gl = this.gl;
     gl.viewport(0, 0, this.canvas.width, this.canvas.height);
     gl.clearColor(...BACKGROUND, 1);
     gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
     gl.enable(gl.DEPTH_TEST);
     this.drawLines(vp, this.gridLines(), gl.LINES);
-    if (this.showMesh && this.mesh) this.drawMesh(vp, worlds);
-    if (this.showSkeleton || !this.mesh) {
+    for (const { a, worlds } of shown) if (this.showMesh && a.mesh) this.drawMesh(vp, a, worlds);
+    // Skeletons over every mesh (no depth test), one draw per kind.
+    const bones = [], joints = [];
+    for (const { a, points } of shown) {
+      if (!this.showSkeleton && a.mesh) continue;
+      bones.push(...this.boneLines(a.desc, points));
+      for (const p of points) joints.push([p, p, JOINT_COLOR]);
+    }
+    if (bones.length || joints.length) {
       gl.disable(gl.DEPTH_TEST);
-      this.drawLines(vp, this.boneLines(points), gl.LINES);
-      this.drawLines(vp, points.map((p) => [p, p, JOINT_COLOR]), gl.POINTS);
+      this.drawLines(vp, bones, gl.LINES);
+      this.drawLines(vp, joints, gl.POINTS);
       gl.enable(gl.DEPTH_TEST);
     }
   }
@@ -371,9 +434,18 @@ export class Viewer {
     gl.bindVertexArray(null);
   }
 
-  uploadMesh() {
+  /** The rig's mesh on the GPU, uploaded once and shared by every avatar of the rig. */
+  meshPrimitives(hash, mesh) {
+    const held = this.meshGpu.get(hash);
+    if (held?.mesh === mesh) return held.primitives;
+    const primitives = this.uploadMesh(mesh);
+    this.meshGpu.set(hash, { mesh, primitives });
+    return primitives;
+  }
+
+  uploadMesh(mesh) {
     const gl = this.gl;
-    this.meshGpu = this.mesh.primitives.map((p) => {
+    return mesh.primitives.map((p) => {
       const vao = gl.createVertexArray();
       gl.bindVertexArray(vao);
       const attrib = (loc, data, size, integer) => {
@@ -401,15 +473,16 @@ export class Viewer {
     });
   }
 
-  drawMesh(vp, worlds) {
+  drawMesh(vp, avatar, worlds) {
     const gl = this.gl;
-    const n = this.desc.joint_names.length;
-    if (this.mesh.jointCount && this.mesh.jointCount !== n) return; // stale mesh for another rig
-    if (!this.meshGpu) this.uploadMesh();
+    const { desc, mesh } = avatar;
+    const n = desc.joint_names.length;
+    if (mesh.jointCount && mesh.jointCount !== n) return; // stale mesh for another rig
+    const primitives = this.meshPrimitives(desc.hash, mesh);
     const skin = new Float32Array(16 * n);
     const m = new Float32Array(16);
     for (let j = 0; j < n; j++) {
-      multiply(m, worlds.subarray(16 * j, 16 * j + 16), this.desc.inverse_binds[j]);
+      multiply(m, worlds.subarray(16 * j, 16 * j + 16), desc.inverse_binds[j]);
       skin.set(m, 16 * j);
     }
     gl.activeTexture(gl.TEXTURE0);
@@ -418,7 +491,7 @@ export class Viewer {
     gl.useProgram(this.skinProgram);
     gl.uniformMatrix4fv(gl.getUniformLocation(this.skinProgram, "uViewProj"), false, vp);
     gl.uniform1i(gl.getUniformLocation(this.skinProgram, "uJoints"), 0);
-    for (const p of this.meshGpu) {
+    for (const p of primitives) {
       gl.bindVertexArray(p.vao);
       if (p.indexed) gl.drawElements(gl.TRIANGLES, p.count, gl.UNSIGNED_INT, 0);
       else gl.drawArrays(gl.TRIANGLES, 0, p.count);
@@ -426,16 +499,12 @@ export class Viewer {
     gl.bindVertexArray(null);
   }
 
-  render2d(vp, points) {
+  render2d(vp, shown) {
     const ctx = this.ctx;
     const w = this.canvas.width, h = this.canvas.height;
     ctx.fillStyle = rgb(BACKGROUND);
     ctx.fillRect(0, 0, w, h);
-    const project = (p) => {
-      const [x, y, , cw] = transformPoint(vp, p);
-      if (cw <= 1e-6) return null;
-      return [(x / cw * 0.5 + 0.5) * w, (1 - (y / cw * 0.5 + 0.5)) * h];
-    };
+    const project = (p) => this.project(vp, p);
     const stroke = (lines, width) => {
       ctx.lineWidth = width;
       for (const [a, b, c] of lines) {
@@ -449,14 +518,16 @@ export class Viewer {
       }
     };
     stroke(this.gridLines(), 1);
-    stroke(this.boneLines(points), 3);
+    for (const { a, points } of shown) stroke(this.boneLines(a.desc, points), 3);
     ctx.fillStyle = rgb(JOINT_COLOR);
-    for (const p of points) {
-      const q = project(p);
-      if (!q) continue;
-      ctx.beginPath();
-      ctx.arc(q[0], q[1], 3.5, 0, Math.PI * 2);
-      ctx.fill();
+    for (const { points } of shown) {
+      for (const p of points) {
+        const q = project(p);
+        if (!q) continue;
+        ctx.beginPath();
+        ctx.arc(q[0], q[1], 3.5, 0, Math.PI * 2);
+        ctx.fill();
+      }
     }
   }
 }
