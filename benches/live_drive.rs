@@ -39,6 +39,7 @@ async fn latency() -> anyhow::Result<()> {
         ..Config::default()
     })
     .await?;
+    server.ready().await?;
     let avatar = AvatarId("avatar".into());
     let elbow = server
         .state

@@ -32,7 +32,7 @@ async fn server(timeout: Duration) -> Server {
     let mut alice = TokenRule::new("alice", Secret::new(ALICE), Role::Control);
     alice.avatars = Some(vec![avatar()]);
     access.add(alice).unwrap();
-    Server::start(Config {
+    let server = Server::start(Config {
         listen: "127.0.0.1:0".parse().unwrap(),
         tick_rate: TICK_HZ,
         access,
@@ -40,7 +40,9 @@ async fn server(timeout: Duration) -> Server {
         ..Config::default()
     })
     .await
-    .unwrap()
+    .unwrap();
+    server.ready().await.unwrap();
+    server
 }
 
 async fn driver(server: &Server, token: &str) -> Driver {

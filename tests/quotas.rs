@@ -27,7 +27,7 @@ async fn start(quotas: Quotas, command_rate: CommandRate, private: bool) -> Serv
     if private {
         access.open_view = false;
     }
-    Server::start(Config {
+    let server = Server::start(Config {
         listen: "127.0.0.1:0".parse().unwrap(),
         access,
         quotas,
@@ -35,7 +35,9 @@ async fn start(quotas: Quotas, command_rate: CommandRate, private: bool) -> Serv
         ..Config::default()
     })
     .await
-    .unwrap()
+    .unwrap();
+    server.ready().await.unwrap();
+    server
 }
 
 async fn command(server: &Server, token: &str, json: &str) -> (u16, Value) {

@@ -133,7 +133,8 @@ async fn offscreen_render_of_the_live_stream_shows_the_seeked_avatar() {
             looping: None,
             start: None,
             fade: Some(0.0),
-            root_motion: None,
+            // The reference below samples the clip as authored, root motion included.
+            root_motion: Some(posecast_proto::command::RootMotion::Accumulate),
         })
         .await
         .unwrap();
