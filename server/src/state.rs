@@ -6,6 +6,7 @@ use crate::library::Library;
 use crate::metrics::Metrics;
 use crate::scene::avatar::Avatar;
 use crate::scene::{Scene, ticker};
+use crate::service::limits::NetLimits;
 use crate::store::Store;
 use crate::stream::outbox::Outbox;
 use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError, SceneId};
@@ -40,6 +41,8 @@ pub struct Config {
     /// How long a graceful shutdown waits, at most, for HTTP requests to finish and for every
     /// websocket's close frame to be sent (and answered) before the server stops regardless.
     pub shutdown_drain: Duration,
+    /// Network timeouts and connection caps ([`crate::service::limits`]).
+    pub net: NetLimits,
 }
 
 /// Default [`Config::max_upload_bytes`]: 32 MiB.
@@ -63,6 +66,7 @@ impl Default for Config {
             data_dir: None,
             max_upload_bytes: DEFAULT_MAX_UPLOAD_BYTES,
             shutdown_drain: DEFAULT_SHUTDOWN_DRAIN,
+            net: NetLimits::default(),
         }
     }
 }
