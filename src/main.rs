@@ -17,6 +17,17 @@ use tracing_subscriber::layer::SubscriberExt;
 use tracing_subscriber::util::SubscriberInitExt;
 use tracing_subscriber::{EnvFilter, Layer};
 
+// jemalloc, built without thread caches and with 1 s decay (.cargo/config.toml), gives the
+// memory of closed connections back to the OS within ~2 s; glibc's malloc and mimalloc kept
+// all of it resident (README "Hardening").
+#[cfg(feature = "jemalloc")]
+#[global_allocator]
+static GLOBAL: tikv_jemallocator::Jemalloc = tikv_jemallocator::Jemalloc;
+
+#[cfg(all(feature = "mimalloc", not(feature = "jemalloc")))]
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 /// posecast: a network animation server for virtual humans.
 #[derive(Debug, Parser)]
 #[command(version, about)]

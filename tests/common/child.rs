@@ -58,6 +58,11 @@ impl Posecast {
         }
     }
 
+    /// The process id (to read its `/proc` figures).
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
     /// SIGKILL: no graceful shutdown, nothing flushed that was not already on disk.
     pub fn kill(mut self) {
         self.child.kill().unwrap();
