@@ -133,7 +133,8 @@ pub async fn serve(
             Err(why) => match refusing.clone().try_acquire_owned() {
                 Ok(slot) => {
                     trace!(%peer, cap = why.label(), "refusing connection");
-                    tokio::spawn(refuse(Admitted::new(stream, slot), why));
+                    let wait = limits.header_read_timeout.min(REFUSAL_TIMEOUT);
+                    tokio::spawn(refuse(Admitted::new(stream, slot), why, wait));
                 }
                 Err(_) => {
                     // Answering costs a descriptor for up to REFUSAL_TIMEOUT; under a flood
@@ -202,22 +203,24 @@ impl Connection {
     }
 }
 
-/// Answers a refused connection's one request, within [`REFUSAL_TIMEOUT`]: 503 `unavailable`
+/// Answers a refused connection's one request, within `wait` (the header timeout, at most
+/// [`REFUSAL_TIMEOUT`]): 503 `unavailable`
 /// with `Retry-After`, or for a websocket upgrade the upgrade and then close 1013 — a browser's
 /// WebSocket reports only close codes, never an HTTP status, so a dashboard could not tell
 /// "busy" from "down" otherwise. The request is read first so the answer is not lost to a
 /// reset (closing a socket with unread input sends RST, which can discard the response).
-async fn refuse<G: Unpin + Send + 'static>(io: Admitted<TcpStream, G>, why: Refusal) {
+async fn refuse<G: Unpin + Send + 'static>(
+    io: Admitted<TcpStream, G>,
+    why: Refusal,
+    wait: Duration,
+) {
     let mut builder = http1::Builder::new();
-    builder
-        .timer(TokioTimer::new())
-        .header_read_timeout(REFUSAL_TIMEOUT)
-        .keep_alive(false);
+    builder.timer(TokioTimer::new()).header_read_timeout(wait);
     let router = Router::new().fallback(refusal).with_state(why);
     let conn = builder
         .serve_connection(TokioIo::new(io), TowerToHyperService::new(router))
         .with_upgrades();
-    if tokio::time::timeout(REFUSAL_TIMEOUT, conn).await.is_err() {
+    if tokio::time::timeout(wait, conn).await.is_err() {
         trace!("refused connection did not finish in time; dropped");
     }
 }
@@ -247,9 +250,11 @@ async fn refusal(
         Err(_) => {
             let mut response =
                 AppError(ProtocolError::new(ErrorCode::Unavailable, message)).into_response();
-            response
-                .headers_mut()
-                .insert(header::RETRY_AFTER, HeaderValue::from_static("1"));
+            let headers = response.headers_mut();
+            headers.insert(header::RETRY_AFTER, HeaderValue::from_static("1"));
+            // One answer per refused connection: hyper closes after a response that says so.
+            // (Not `keep_alive(false)` on the builder: that also forbids the upgrade above.)
+            headers.insert(header::CONNECTION, HeaderValue::from_static("close"));
             response
         }
     }
