@@ -27,10 +27,10 @@ use posecast_proto::msg::{ErrorCode, ProtocolError};
 use std::future::Future;
 use std::io;
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{Semaphore, watch};
-use tracing::{debug, info, trace, warn};
+use tracing::{debug, trace, warn};
 
 /// WebSocket close code 1013, Try Again Later (RFC 6455 §7.4.1 via the IANA registry).
 pub const CLOSE_TRY_AGAIN_LATER: u16 = 1013;
@@ -39,6 +39,8 @@ pub const CLOSE_TRY_AGAIN_LATER: u16 = 1013;
 const ACCEPT_BACKOFF_MIN: Duration = Duration::from_millis(10);
 /// Longest pause between two `accept`s while they keep failing.
 const ACCEPT_BACKOFF_MAX: Duration = Duration::from_secs(1);
+/// At most one warning about failing accepts this often.
+const ACCEPT_WARN_EVERY: Duration = Duration::from_secs(60);
 
 /// Serves `router` on `listener` until `signal` resolves; then stops accepting, lets every
 /// HTTP connection finish its request in flight (idle ones close at once) and returns when
@@ -76,6 +78,10 @@ pub async fn serve(
     let (done_tx, done_rx) = watch::channel(());
     let mut backoff = ACCEPT_BACKOFF_MIN;
     let mut failing = false;
+    // Out of descriptors, accepts fail and succeed in turns as connections come and go: one
+    // warning per ACCEPT_WARN_EVERY with the count, not one per failure.
+    let mut last_warning: Option<Instant> = None;
+    let mut failures: u64 = 0;
     tokio::pin!(signal);
     loop {
         let accepted = tokio::select! {
@@ -86,7 +92,7 @@ pub async fn serve(
         let (stream, peer) = match accepted {
             Ok(accepted) => {
                 if failing {
-                    info!("accepting connections again");
+                    debug!("accepting connections again");
                     failing = false;
                 }
                 backoff = ACCEPT_BACKOFF_MIN;
@@ -99,11 +105,18 @@ pub async fn serve(
                 // at once would spin on the same error, so wait (longer each time) while the
                 // existing connections go on and close. One warning per episode, not per try.
                 metrics.net.accept_error();
-                if failing {
-                    debug!(error = %e, ?backoff, "accept still failing");
+                failing = true;
+                failures += 1;
+                if last_warning.is_none_or(|at| at.elapsed() >= ACCEPT_WARN_EVERY) {
+                    warn!(
+                        error = %e,
+                        failures,
+                        "accept failed; backing off (up to 1 s) while existing connections go on"
+                    );
+                    last_warning = Some(Instant::now());
+                    failures = 0;
                 } else {
-                    warn!(error = %e, "accept failed; backing off until it works again");
-                    failing = true;
+                    debug!(error = %e, ?backoff, "accept still failing");
                 }
                 tokio::select! {
                     biased;
