@@ -19,7 +19,7 @@ use tokio::sync::Semaphore;
 pub const DEFAULT_CACHE_BYTES: usize = 256 << 20;
 
 /// The clip `clip` of rig `source`, retargeted onto `target` (matching H-Anim joints in world
-/// space relative to both rigs' neutral pose, baked at 30 Hz; see [`crate::rig::retarget`]).
+/// space relative to both rigs' neutral pose, baked at 30 Hz; see [`crate::rig::retarget()`]).
 /// CPU-heavy for long clips: call it from the blocking pool, never under a scene lock.
 ///
 /// # Errors
