@@ -302,7 +302,8 @@ async fn over_the_caps_http_gets_503_and_websockets_close_1013() {
     let _a = connect_from("127.0.0.1", addr).await.unwrap();
     let _b = connect_from("127.0.0.1", addr).await.unwrap();
     // Admission happens in the accept loop: wait until both are counted.
-    tokio::time::sleep(Duration::from_millis(100)).await;
+    let net = &server.state.metrics.net;
+    assert!(common::wait_for(3.0, || net.open() == 2).await);
     let (status, head, body) = get_from("127.0.0.1", addr, "/healthz").await;
     assert_eq!(status, 503, "{head}\n{body}");
     assert_eq!(
@@ -328,7 +329,7 @@ async fn over_the_caps_http_gets_503_and_websockets_close_1013() {
 
     // Another address has its own share, until the global cap.
     let _c = connect_from("127.0.0.2", addr).await.unwrap();
-    tokio::time::sleep(Duration::from_millis(100)).await;
+    assert!(common::wait_for(3.0, || net.open() == 3).await);
     let (status, _, body) = get_from("127.0.0.4", addr, "/healthz").await;
     assert_eq!(status, 503, "{body}");
     assert!(
@@ -338,8 +339,8 @@ async fn over_the_caps_http_gets_503_and_websockets_close_1013() {
 
     // Closing frees the slots.
     drop((_a, _b, _c));
-    let freed = common::wait_for(3.0, || server.state.metrics.net.open() == 0).await;
-    assert!(freed, "{} still open", server.state.metrics.net.open());
+    let freed = common::wait_for(3.0, || net.open() == 0).await;
+    assert!(freed, "{} still open", net.open());
     let (status, _, _) = get_from("127.0.0.1", addr, "/healthz").await;
     assert_eq!(status, 200);
     let (_, _, metrics) = get_from("127.0.0.1", addr, "/metrics").await;
@@ -379,7 +380,7 @@ async fn a_websocket_without_hello_gets_timeout_and_close_1008() {
         other => panic!("expected a timeout error, got {other:?}"),
     }
     assert!(
-        took >= hello_timeout && took < hello_timeout + Duration::from_millis(500),
+        took >= hello_timeout && took < hello_timeout + Duration::from_secs(1),
         "{took:?}"
     );
     let close = close_frame(&mut ws, Duration::from_secs(2)).await;
@@ -461,7 +462,7 @@ async fn half_sent_headers_and_slow_bodies_are_cut_off_at_their_deadlines() {
     let closed = closed_after(&mut slowloris, since, Duration::from_secs(3)).await;
     let closed = closed.expect("a half-sent head was held for 3 s");
     assert!(
-        closed >= header_timeout && closed < header_timeout + Duration::from_millis(500),
+        closed >= header_timeout && closed < header_timeout + Duration::from_secs(1),
         "{closed:?}"
     );
 
@@ -484,7 +485,7 @@ async fn half_sent_headers_and_slow_bodies_are_cut_off_at_their_deadlines() {
     assert!(text.starts_with("HTTP/1.1 408"), "{text}");
     assert!(text.contains("\"code\":\"timeout\""), "{text}");
     assert!(
-        took >= body_timeout && took < body_timeout + Duration::from_millis(500),
+        took >= body_timeout && took < body_timeout + Duration::from_secs(1),
         "{took:?}"
     );
     // A body sent in time is unaffected.

@@ -8,8 +8,8 @@ use std::time::Duration;
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct NetLimits {
     /// A websocket must send its `hello` this soon after the upgrade, or it gets a `timeout`
-    /// error and close 1008. A viewer says hello at once; a socket that says nothing only
-    /// holds a descriptor and ~10 KB.
+    /// error and close 1008. A viewer says hello at once; a socket that says nothing is
+    /// anonymous and must not hold a connection slot for long.
     pub hello_timeout: Duration,
     /// An HTTP request head (request line and headers) must arrive within this, counted from
     /// the connection's accept or from the previous response on a kept-alive connection; so

@@ -9,6 +9,10 @@
 //! - `GET /healthz`, `GET /metrics`.
 //! - `GET /`, `GET /dashboard/{file}`: the web dashboard ([`dashboard`]).
 //!
+//! Connections reach the router through [`listener`], the accept loop: connection caps
+//! ([`admission`]), request-head and body deadlines ([`body_deadline`]) and the websocket
+//! liveness rules, all configured by [`limits::NetLimits`]; counted in [`net_metrics`].
+//!
 //! Every error response has the typed body `{"code", "message"}`, including axum's own
 //! rejections (405, 413, extractor errors) and unknown paths (404): see [`typed_errors`].
 

@@ -4,7 +4,8 @@
 //! is not a valid `hello` (1008), a wrong protocol version (1008), an oversized message (1009),
 //! invalid UTF-8 (1007), a websocket protocol violation (1002), a client that stops reading
 //! (1008), no hello in time or nothing heard for the idle timeout (1008, see
-//! [`super::limits::NetLimits`]) or server shutdown (1001). Nothing a client sends can affect another connection.
+//! [`super::limits::NetLimits`]) or server shutdown (1001). Nothing a client sends can affect
+//! another connection.
 
 use crate::auth::Caller;
 use crate::control;
