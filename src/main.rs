@@ -6,6 +6,9 @@ use clap::Parser;
 use posecast_server::auth::{AccessConfig, Role, Secret, TokenRule};
 use posecast_server::quota::{CommandRate, Quotas};
 use posecast_server::readiness::Phase;
+use posecast_server::service::limits::{
+    DEFAULT_MAX_CONNECTIONS, DEFAULT_MAX_CONNECTIONS_PER_ADDRESS, NetLimits, raise_nofile_limit,
+};
 use posecast_server::startup::{DEFAULT_SCENE, Server};
 use posecast_server::state::{Config, DEFAULT_MAX_UPLOAD_BYTES};
 use std::net::SocketAddr;
@@ -15,6 +18,17 @@ use tracing_subscriber::filter::{FilterExt, LevelFilter, Targets};
 use tracing_subscriber::layer::SubscriberExt;
 use tracing_subscriber::util::SubscriberInitExt;
 use tracing_subscriber::{EnvFilter, Layer};
+
+// jemalloc, built without thread caches and with 1 s decay (.cargo/config.toml), gives the
+// memory of closed connections back to the OS within ~2 s; glibc's malloc and mimalloc kept
+// all of it resident (README "Hardening").
+#[cfg(feature = "jemalloc")]
+#[global_allocator]
+static GLOBAL: tikv_jemallocator::Jemalloc = tikv_jemallocator::Jemalloc;
+
+#[cfg(all(feature = "mimalloc", not(feature = "jemalloc")))]
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 /// posecast: a network animation server for virtual humans.
 #[derive(Debug, Parser)]
@@ -74,6 +88,8 @@ struct Args {
     /// its last pose, as its `drive` asked).
     #[arg(long, env = "POSECAST_DRIVE_TIMEOUT", default_value = "2", value_parser = seconds)]
     drive_timeout: Duration,
+    #[command(flatten)]
+    net: NetArgs,
 }
 
 /// Quotas and the command rate limit (`posecast_server::quota`).
@@ -119,6 +135,78 @@ impl QuotaArgs {
             max_asset_bytes: self.max_asset_bytes,
             max_upload_total_bytes: self.max_upload_total_bytes,
         }
+    }
+}
+
+/// Network timeouts and connection caps (`NetLimits`; README "Hardening").
+#[derive(Debug, clap::Args)]
+struct NetArgs {
+    /// Seconds a websocket has to send its hello after the upgrade (then `timeout`, close 1008).
+    #[arg(long, env = "POSECAST_HELLO_TIMEOUT", default_value = "5", value_parser = timeout)]
+    hello_timeout: Duration,
+    /// Seconds to receive an HTTP request head (and the idle time of a kept-alive connection).
+    #[arg(long, env = "POSECAST_HEADER_READ_TIMEOUT", default_value = "10", value_parser = timeout)]
+    header_read_timeout: Duration,
+    /// Seconds to receive an HTTP request body (then 408 `timeout`).
+    #[arg(long, env = "POSECAST_BODY_READ_TIMEOUT", default_value = "120", value_parser = timeout)]
+    body_read_timeout: Duration,
+    /// Seconds between the server's pings on a websocket.
+    #[arg(long, env = "POSECAST_WS_PING_INTERVAL", default_value = "15", value_parser = timeout)]
+    ws_ping_interval: Duration,
+    /// Seconds without anything from a websocket client (not even a pong) before it is closed.
+    #[arg(long, env = "POSECAST_WS_IDLE_TIMEOUT", default_value = "45", value_parser = timeout)]
+    ws_idle_timeout: Duration,
+    /// Open connections at most (HTTP and websocket); more get 503 / close 1013. Lowered to
+    /// fit the open-files limit.
+    #[arg(long, env = "POSECAST_MAX_CONNECTIONS", default_value_t = DEFAULT_MAX_CONNECTIONS,
+          value_parser = at_least_one)]
+    max_connections: usize,
+    /// Open connections from one client address at most (IPv6: one /64).
+    #[arg(long, env = "POSECAST_MAX_CONNECTIONS_PER_ADDRESS",
+          default_value_t = DEFAULT_MAX_CONNECTIONS_PER_ADDRESS, value_parser = at_least_one)]
+    max_connections_per_address: usize,
+}
+
+impl NetArgs {
+    fn limits(&self) -> NetLimits {
+        NetLimits {
+            hello_timeout: self.hello_timeout,
+            header_read_timeout: self.header_read_timeout,
+            body_read_timeout: self.body_read_timeout,
+            ws_ping_interval: self.ws_ping_interval,
+            ws_idle_timeout: self.ws_idle_timeout,
+            max_connections: self.max_connections,
+            max_connections_per_address: self.max_connections_per_address,
+        }
+    }
+}
+
+/// A timeout in seconds: [`seconds`], but not 0 (which would close every connection at once).
+fn timeout(text: &str) -> Result<Duration, String> {
+    let d = seconds(text)?;
+    if d.is_zero() {
+        Err("a timeout must be more than 0 s".to_owned())
+    } else {
+        Ok(d)
+    }
+}
+
+/// A count of at least 1 (a cap of 0 would refuse everyone).
+fn at_least_one(text: &str) -> Result<usize, String> {
+    match text.parse::<usize>() {
+        Ok(n) if n >= 1 => Ok(n),
+        _ => Err(format!("{text:?} is not a whole number of at least 1")),
+    }
+}
+
+/// Raises the soft open-files limit to the hard one: each connection is a descriptor, and the
+/// usual soft limit of 1,024 would cap the server near a thousand clients.
+fn raise_open_files_limit() {
+    match raise_nofile_limit() {
+        Ok((before, soft, hard)) => {
+            tracing::info!(before, soft, hard, "open-files limit (RLIMIT_NOFILE)");
+        }
+        Err(e) => tracing::warn!(error = %e, "cannot raise the open-files limit"),
     }
 }
 
@@ -216,7 +304,9 @@ async fn main() -> anyhow::Result<()> {
         command_rate: CommandRate::new(args.quotas.command_rate, args.quotas.command_burst)
             .map_err(anyhow::Error::msg)?,
         drive_timeout: args.drive_timeout,
+        net: args.net.limits(),
     };
+    raise_open_files_limit();
     let mut server = Server::start(config).await?;
     let shutdown = server.take_shutdown();
     println!("posecast listening on {}", server.http_url());

@@ -267,6 +267,12 @@ pub enum ErrorCode {
     MethodNotAllowed,
     /// HTTP only: no endpoint at this path (404).
     NotFound,
+    /// The peer was too slow: no `hello` within the server's hello timeout (then close 1008),
+    /// or an HTTP request body not received in time (408).
+    Timeout,
+    /// The server holds as many connections as it allows (in all, or from this address): try
+    /// again later (HTTP 503 with `Retry-After`; websocket upgrades: close 1013).
+    Unavailable,
 }
 
 /// What a connection (or a REST request) may do, as decided from its token.

@@ -4,6 +4,8 @@ use std::fmt::Write as _;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::Duration;
 
+use crate::service::net_metrics::NetCounters;
+
 /// Upper bounds (seconds) of the tick duration histogram buckets.
 const TICK_BUCKETS: [f64; 10] = [
     0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1,
@@ -32,6 +34,9 @@ pub struct Metrics {
     forbidden: AtomicU64,
     quota_refused: [AtomicU64; crate::quota::Quota::ALL.len()],
     rate_limited: AtomicU64,
+    // --- network bounds (issue 13): connections held and refused, timeouts ---
+    /// Connections held and refused, accept failures, timeouts ([`NetCounters`]).
+    pub net: NetCounters,
 }
 
 impl Metrics {
@@ -293,6 +298,7 @@ impl Metrics {
             self.tick_seconds_micros.load(Relaxed) as f64 / 1e6
         );
         let _ = writeln!(out, "posecast_tick_seconds_count {count}");
+        self.net.render(&mut out);
         out
     }
 }

@@ -7,9 +7,8 @@ use crate::import;
 use crate::library::{JointLimits, Rig};
 use crate::restore;
 use crate::rig::{PipelineOptions, RigError, normalise};
-use crate::service::app;
+use crate::service::{app, listener};
 use crate::state::{AppState, Config};
-use std::future::IntoFuture;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use tokio::sync::oneshot;
@@ -95,13 +94,6 @@ impl Server {
         state.readiness.begin(plan.len());
         let listener = tokio::net::TcpListener::bind(config.listen).await?;
         let addr = listener.local_addr()?;
-        // Pose frames are small writes at 60 Hz: without TCP_NODELAY, Nagle holds each one until
-        // the previous one is acknowledged, and delayed ACKs make that up to 40 ms.
-        let listener = axum::serve::ListenerExt::tap_io(listener, |tcp| {
-            if let Err(e) = tcp.set_nodelay(true) {
-                warn!(error = %e, "cannot set TCP_NODELAY");
-            }
-        });
         let (tx, rx) = oneshot::channel::<()>();
         let router = app(state.clone());
         let task = tokio::spawn(serve(listener, router, state.clone(), rx));
@@ -175,36 +167,51 @@ impl Server {
 }
 
 /// Serves until `shutdown` fires (or its sender is dropped), then shuts down within
-/// `Config::shutdown_drain`: every websocket is closed with 1001 Going Away, axum stops
-/// accepting and finishes the HTTP requests in flight, and the websocket sessions get the rest
+/// `Config::shutdown_drain`: every websocket is closed with 1001 Going Away, the accept loop
+/// stops and finishes the HTTP requests in flight, and the websocket sessions get the rest
 /// of the drain time to send their close frames and receive the answers. Upgraded websockets are
-/// not part of axum's graceful shutdown, so without that wait a process that returns from
+/// not part of the HTTP graceful shutdown, so without that wait a process that returns from
 /// `main` would drop them with their close frames still unsent.
 async fn serve(
-    listener: impl axum::serve::Listener<Addr = SocketAddr>,
+    listener: tokio::net::TcpListener,
     router: axum::Router,
     state: Arc<AppState>,
     shutdown: oneshot::Receiver<()>,
 ) -> std::io::Result<()> {
     let (began_tx, began) = oneshot::channel::<Instant>();
     let closing = state.clone();
-    let serving = axum::serve(listener, router)
-        .with_graceful_shutdown(async move {
+    let serving = listener::serve(
+        listener,
+        router,
+        state.config.net.clone(),
+        state.metrics.clone(),
+        async move {
             shutdown.await.ok();
             began_tx.send(Instant::now()).ok();
             closing.shutdown();
-        })
-        .into_future();
+        },
+    );
     tokio::pin!(serving);
-    let began = tokio::select! {
+    let mut began = began;
+    let (began, served) = tokio::select! {
         biased;
-        at = began => at.unwrap_or_else(|_| Instant::now()),
-        result = &mut serving => return result,
+        at = &mut began => (at.unwrap_or_else(|_| Instant::now()), false),
+        result = &mut serving => match began.try_recv() {
+            // With no HTTP request in flight the accept loop ends in the same poll that saw
+            // the signal; the websockets still get their drain time below.
+            Ok(at) => {
+                result?;
+                (at, true)
+            }
+            Err(_) => return result,
+        },
     };
     let deadline = began + state.config.shutdown_drain;
-    match tokio::time::timeout_at(deadline, &mut serving).await {
-        Ok(result) => result?,
-        Err(_) => warn!("HTTP requests still running after the shutdown drain time; dropped"),
+    if !served {
+        match tokio::time::timeout_at(deadline, &mut serving).await {
+            Ok(result) => result?,
+            Err(_) => warn!("HTTP requests still running after the shutdown drain time; dropped"),
+        }
     }
     let open = state.wait_connections_closed(deadline).await;
     if open > 0 {

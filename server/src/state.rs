@@ -8,6 +8,7 @@ use crate::quota::Quota;
 use crate::readiness::Readiness;
 use crate::scene::avatar::Avatar;
 use crate::scene::{Scene, ticker};
+use crate::service::limits::NetLimits;
 use crate::store::Store;
 use crate::stream::outbox::Outbox;
 use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError, SceneId};
@@ -52,6 +53,8 @@ pub struct Config {
     /// How long a live driver may stay silent before its avatar returns to its clip (or holds
     /// its last pose, as the `drive` asked).
     pub drive_timeout: Duration,
+    /// Network timeouts and connection caps ([`crate::service::limits`]).
+    pub net: NetLimits,
 }
 
 /// Default [`Config::max_upload_bytes`]: 32 MiB.
@@ -81,6 +84,7 @@ impl Default for Config {
             command_rate: crate::quota::CommandRate::default(),
             shutdown_drain: DEFAULT_SHUTDOWN_DRAIN,
             drive_timeout: DEFAULT_DRIVE_TIMEOUT,
+            net: NetLimits::default(),
         }
     }
 }

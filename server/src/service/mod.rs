@@ -10,14 +10,24 @@
 //!   `GET /metrics`.
 //! - `GET /`, `GET /dashboard/{file}`: the web dashboard ([`dashboard`]).
 //!
+//! Connections reach the router through [`listener`], the accept loop: connection caps
+//! ([`admission`]), request-head and body deadlines ([`body_deadline`]) and the websocket
+//! liveness rules, all configured by [`limits::NetLimits`]; counted in [`net_metrics`].
+//!
 //! Every error response has the typed body `{"code", "message"}`, including axum's own
 //! rejections (405, 413, extractor errors) and unknown paths (404): see [`typed_errors`].
 
+pub mod admission;
+pub mod body_deadline;
 pub mod dashboard;
 pub mod health;
+pub mod limits;
+pub mod listener;
+pub mod net_metrics;
 pub mod rest;
 pub mod upload;
 pub mod ws;
+mod ws_liveness;
 
 use crate::state::AppState;
 use axum::Router;
@@ -61,6 +71,10 @@ pub fn app(state: Arc<AppState>) -> Router {
         .layer(axum::middleware::from_fn_with_state(
             state.clone(),
             health::wait_until_ready,
+        ))
+        .layer(axum::middleware::from_fn_with_state(
+            state.clone(),
+            body_deadline::limit,
         ))
         .layer(axum::middleware::map_response(typed_errors))
         .layer(axum::middleware::map_response_with_state(
@@ -112,6 +126,8 @@ pub async fn typed_errors(method: Method, uri: Uri, response: Response) -> Respo
         StatusCode::METHOD_NOT_ALLOWED => ErrorCode::MethodNotAllowed,
         StatusCode::CONFLICT => ErrorCode::Conflict,
         StatusCode::PAYLOAD_TOO_LARGE => ErrorCode::TooLarge,
+        StatusCode::REQUEST_TIMEOUT => ErrorCode::Timeout,
+        StatusCode::SERVICE_UNAVAILABLE => ErrorCode::Unavailable,
         s if s.is_server_error() => ErrorCode::Internal,
         _ => ErrorCode::BadMessage,
     };
@@ -158,6 +174,8 @@ pub async fn typed_errors(method: Method, uri: Uri, response: Response) -> Respo
 async fn ws_upgrade(ws: WebSocketUpgrade, State(state): State<Arc<AppState>>) -> Response {
     ws.max_message_size(MAX_CLIENT_MESSAGE_BYTES)
         .max_frame_size(MAX_CLIENT_MESSAGE_BYTES)
+        .read_buffer_size(ws::READ_BUFFER_BYTES)
+        .write_buffer_size(ws::WRITE_BUFFER_BYTES)
         .on_upgrade(move |socket| ws::serve(socket, state))
 }
 

@@ -3,7 +3,9 @@
 //! connection closes, with the close code `proto/PROTOCOL.md` lists, only on a first message that
 //! is not a valid `hello` (1008), a wrong protocol version (1008), an oversized message (1009),
 //! invalid UTF-8 (1007), a websocket protocol violation (1002), a client that stops reading
-//! (1008) or server shutdown (1001). Nothing a client sends can affect another connection.
+//! (1008), no hello in time or nothing heard for the idle timeout (1008, see
+//! [`super::limits::NetLimits`]) or server shutdown (1001). Nothing a client sends can affect
+//! another connection.
 
 use crate::auth::Caller;
 use crate::control;
@@ -11,6 +13,8 @@ use crate::live::Drives;
 use crate::quota::{TokenBucket, rate_limited};
 use crate::scene::ticker::unix_micros;
 use crate::scene::{Subscriber, text};
+use crate::service::net_metrics::Timeout;
+use crate::service::ws_liveness::{Due, Liveness};
 use crate::state::AppState;
 use crate::stream::outbox::Outbox;
 use crate::stream::writer::run_writer;
@@ -28,6 +32,16 @@ use tracing::{Instrument, debug, info_span};
 /// the server's. The closing handshake is polite, but a client that never answers must not
 /// keep its session (and a server shutdown) waiting.
 const CLOSE_LINGER: Duration = Duration::from_secs(1);
+
+/// tungstenite's read buffer per connection. Its default, 128 KiB, is zero-filled up front,
+/// so every idle websocket held 128 KiB of resident memory for messages of a few hundred
+/// bytes. A larger message grows the buffer as it arrives (up to the 64 KiB message bound).
+pub const READ_BUFFER_BYTES: usize = 4 << 10;
+
+/// Bytes tungstenite gathers before writing to the socket (default 128 KiB). The writer
+/// flushes after each batch anyway, so this only merges the messages of one batch into
+/// fewer writes; the buffer grows to hold one message when a message is larger.
+pub const WRITE_BUFFER_BYTES: usize = 8 << 10;
 
 /// Serves one upgraded websocket until either side closes.
 pub async fn serve(socket: WebSocket, state: Arc<AppState>) {
@@ -54,13 +68,25 @@ pub async fn serve(socket: WebSocket, state: Arc<AppState>) {
         };
         let mut writer_done = false;
         let mut client_closed = false;
-        while let Some(message) = tokio::select! {
-            m = stream.next() => m,
-            _ = &mut writer => {
-                writer_done = true;
-                None
-            }
-        } {
+        let mut liveness = Liveness::new(&state.config.net);
+        loop {
+            let message = tokio::select! {
+                m = stream.next() => m,
+                _ = &mut writer => {
+                    writer_done = true;
+                    None
+                }
+                due = liveness.due(session.encoding.is_some()) => {
+                    if session.on_due(due) {
+                        continue;
+                    }
+                    break;
+                }
+            };
+            let Some(message) = message else {
+                break;
+            };
+            liveness.heard();
             let keep_going = match message {
                 Ok(Message::Text(t)) => session.on_text(t.as_str()).await,
                 Ok(Message::Binary(b)) => {
@@ -208,6 +234,45 @@ impl Session {
         self.error(e);
         self.outbox.close_with(code, reason);
         false
+    }
+
+    /// Acts on a liveness deadline ([`Liveness`]); `false` ends the connection: no hello in
+    /// time (`timeout` error, close 1008, like any other bad first message), or nothing heard
+    /// for the idle timeout (close 1008 without an error: a peer that answers nothing would
+    /// not read it).
+    fn on_due(&self, due: Due) -> bool {
+        let net = &self.state.config.net;
+        match due {
+            Due::Ping => {
+                // The payload (the server's time) gives the ping bytes, so pings a client
+                // never reads count towards its outbox bound like any other message.
+                let payload = unix_micros().to_le_bytes().to_vec();
+                self.outbox.push_control(Message::Ping(payload.into()))
+            }
+            Due::HelloTimeout => {
+                self.state.metrics.net.timed_out(Timeout::Hello);
+                self.refuse(
+                    ProtocolError::new(
+                        ErrorCode::Timeout,
+                        format!(
+                            "no hello within {} s of connecting",
+                            net.hello_timeout.as_secs_f64()
+                        ),
+                    ),
+                    close_code::POLICY,
+                    "hello timeout",
+                )
+            }
+            Due::Idle => {
+                self.state.metrics.net.timed_out(Timeout::Idle);
+                debug!(
+                    idle_s = net.ws_idle_timeout.as_secs_f64(),
+                    "nothing heard, not even a pong; closing"
+                );
+                self.outbox.close_with(close_code::POLICY, "idle timeout");
+                false
+            }
+        }
     }
 
     /// Handles the first message, which must be a `hello` of this protocol version; anything
