@@ -63,6 +63,15 @@ pub fn baked_bytes(clip: &Clip) -> usize {
     keys * (clip.joint_count() + 1) * (16 + 4)
 }
 
+/// [`baked_bytes`] of the clip `clip` of `source` once baked onto `target`, before baking it:
+/// keys from the source clip's duration, tracks from the target's joints.
+fn estimated_bytes(source: &Rig, clip: &str, target: &Rig) -> usize {
+    let duration = source.clip(clip).map_or(0.0, |c| c.duration());
+    let keys = (f64::from(duration) * f64::from(crate::rig::retarget::DEFAULT_RATE_HZ)).ceil();
+    let keys = (keys as usize).clamp(1, crate::rig::retarget::MAX_KEYS) + 1;
+    keys * (target.skeleton().len() + 1) * (16 + 4)
+}
+
 type Key = (usize, String, usize);
 
 #[derive(Debug)]
@@ -87,7 +96,7 @@ pub struct RetargetCache {
     inner: Mutex<Inner>,
     limit: usize,
     /// One bake at a time: a flood of `play … from_asset` uses one core, not all of them.
-    baking: Semaphore,
+    baking: Arc<Semaphore>,
 }
 
 impl Default for RetargetCache {
@@ -112,7 +121,7 @@ impl RetargetCache {
         Self {
             inner: Mutex::new(Inner::default()),
             limit,
-            baking: Semaphore::new(1),
+            baking: Arc::new(Semaphore::new(1)),
         }
     }
 
@@ -145,6 +154,24 @@ impl RetargetCache {
         }
         entry.last_used = uses;
         Some(entry.clip.clone())
+    }
+
+    /// Refuses a bake larger than the whole cache: it could not be kept, so every `play` of it
+    /// would bake again (a long clip onto a rig of many joints reaches gigabytes).
+    fn check_size(&self, source: &Rig, clip: &str, target: &Rig) -> Result<(), ProtocolError> {
+        let bytes = estimated_bytes(source, clip, target);
+        if bytes > self.limit {
+            return Err(crate::quota::Quota::RetargetBytes.exceeded(
+                format!(
+                    "{clip} of {} baked onto {} ({} joints) would take {bytes} bytes",
+                    source.name,
+                    target.name,
+                    target.skeleton().len()
+                ),
+                self.limit,
+            ));
+        }
+        Ok(())
     }
 
     fn insert(&self, source: &Arc<Rig>, target: &Arc<Rig>, name: &str, clip: Arc<Clip>) {
@@ -208,6 +235,7 @@ impl RetargetCache {
         if let Some(c) = self.get(source, clip, target) {
             return Ok(c);
         }
+        self.check_size(source, clip, target)?;
         let baked = Arc::new(retarget(source, target, clip)?);
         self.insert(source, target, clip, baked.clone());
         Ok(baked)
@@ -227,7 +255,10 @@ impl RetargetCache {
         if let Some(c) = self.get(&source, clip, &target) {
             return Ok(c);
         }
-        let _permit = self.baking.acquire().await.map_err(|_| {
+        self.check_size(&source, clip, &target)?;
+        // Owned, and moved into the blocking task below: a caller that gives up (a client that
+        // disconnects) must not free the slot while its bake still runs.
+        let permit = self.baking.clone().acquire_owned().await.map_err(|_| {
             ProtocolError::new(ErrorCode::Internal, "the retargeting pool is closed")
         })?;
         // Someone may have baked it while this waited.
@@ -235,13 +266,61 @@ impl RetargetCache {
             return Ok(c);
         }
         let (s, t, name) = (source.clone(), target.clone(), clip.to_owned());
-        let baked = tokio::task::spawn_blocking(move || retarget(&s, &t, &name))
-            .await
-            .map_err(|e| {
-                ProtocolError::new(ErrorCode::Internal, format!("retargeting failed: {e}"))
-            })??;
+        let baked = tokio::task::spawn_blocking(move || {
+            let _permit = permit;
+            retarget(&s, &t, &name)
+        })
+        .await
+        .map_err(|e| {
+            ProtocolError::new(ErrorCode::Internal, format!("retargeting failed: {e}"))
+        })??;
         let baked = Arc::new(baked);
         self.insert(&source, &target, clip, baked.clone());
         Ok(baked)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::startup::builtin_rig;
+
+    /// A rig named `name` whose only clip is the built-in walk stretched to `seconds`.
+    fn rig(name: &str, seconds: f32) -> Arc<Rig> {
+        let mut rig = builtin_rig().unwrap();
+        let walk = rig.clip("walk").unwrap();
+        let clip = Clip::new("long", walk.channels().to_vec(), Some((0.0, seconds))).unwrap();
+        rig.name = name.into();
+        rig.clips = vec![Arc::new(clip)];
+        Arc::new(rig)
+    }
+
+    #[test]
+    fn a_bake_larger_than_the_cache_is_refused_before_baking() {
+        let (source, target) = (rig("src", 3600.0), rig("tgt", 1.0));
+        let cache = RetargetCache::new(1 << 20);
+        let e = cache.bake_blocking(&source, "long", &target).unwrap_err();
+        assert_eq!(e.code, ErrorCode::QuotaExceeded, "{e:?}");
+        assert!(e.message.contains("retarget_bytes"), "{}", e.message);
+        assert_eq!(cache.usage(), (0, 0));
+    }
+
+    #[test]
+    fn bakes_are_cached_per_rig_identity_and_evicted_past_the_bound() {
+        let (a, b, target) = (rig("a", 2.0), rig("b", 2.0), rig("t", 1.0));
+        let one = baked_bytes(&retarget(&a, &target, "long").unwrap());
+        // Room for one bake: the second evicts the first.
+        let cache = RetargetCache::new(one + one / 2);
+        let first = cache.bake_blocking(&a, "long", &target).unwrap();
+        assert!(Arc::ptr_eq(
+            &first,
+            &cache.get(&a, "long", &target).unwrap()
+        ));
+        cache.bake_blocking(&b, "long", &target).unwrap();
+        assert!(cache.get(&a, "long", &target).is_none());
+        assert_eq!(cache.usage().1, 1);
+        // A rig replaced under the same name is another rig: no stale hit.
+        let a2 = rig("a", 2.0);
+        assert!(cache.get(&a2, "long", &target).is_none());
     }
 }

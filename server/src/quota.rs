@@ -61,11 +61,13 @@ pub enum Quota {
     AssetBytes,
     /// [`Quotas::max_upload_total_bytes`].
     UploadTotalBytes,
+    /// A retargeted clip larger than the bake cache ([`crate::bake::DEFAULT_CACHE_BYTES`]).
+    RetargetBytes,
 }
 
 impl Quota {
     /// Every quota, in metric order.
-    pub const ALL: [Quota; 7] = [
+    pub const ALL: [Quota; 8] = [
         Quota::Scenes,
         Quota::AvatarsPerScene,
         Quota::Joints,
@@ -73,6 +75,7 @@ impl Quota {
         Quota::ClipJointSeconds,
         Quota::AssetBytes,
         Quota::UploadTotalBytes,
+        Quota::RetargetBytes,
     ];
 
     /// Its name in errors and metrics.
@@ -86,6 +89,7 @@ impl Quota {
             Quota::ClipJointSeconds => "clip_joint_seconds",
             Quota::AssetBytes => "asset_bytes",
             Quota::UploadTotalBytes => "upload_total_bytes",
+            Quota::RetargetBytes => "retarget_bytes",
         }
     }
 

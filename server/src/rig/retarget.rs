@@ -271,13 +271,24 @@ impl PoseRetargeter {
                 ),
             });
         }
+        // A root a hair above the feet (1e-30) would scale root motion to infinity; even rigs
+        // in different units (cm against m) stay well within a factor of 1,000.
+        let k = tgt_hip / src_hip;
+        if !(k.is_finite() && (1e-3..=1e3).contains(&k)) {
+            return Err(RigError::BadInput {
+                what: "hip height",
+                message: format!(
+                    "source {src_hip}, target {tgt_hip}: the rigs' hip heights differ by more than 1,000×"
+                ),
+            });
+        }
         Ok(Self {
             pairs,
             src_parents: ss.parents().to_vec(),
             tgt_parents: ts.parents().to_vec(),
             src_root,
             tgt_root,
-            k: tgt_hip / src_hip,
+            k,
             tgt_neutral,
             tgt_floor,
             tgt_start: tgt_world[tgt_root].w_axis.truncate(),

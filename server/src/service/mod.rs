@@ -68,13 +68,14 @@ pub fn app(state: Arc<AppState>) -> Router {
         .route("/", get(dashboard::index))
         .route("/dashboard/{file}", get(dashboard::file))
         .fallback(not_found)
-        .layer(axum::middleware::from_fn_with_state(
-            state.clone(),
-            health::wait_until_ready,
-        ))
+        // The body deadline starts once the request may run, not while start-up holds it.
         .layer(axum::middleware::from_fn_with_state(
             state.clone(),
             body_deadline::limit,
+        ))
+        .layer(axum::middleware::from_fn_with_state(
+            state.clone(),
+            health::wait_until_ready,
         ))
         .layer(axum::middleware::map_response(typed_errors))
         .layer(axum::middleware::map_response_with_state(

@@ -109,6 +109,9 @@ pub async fn serve(socket: WebSocket, state: Arc<AppState>) {
                     false
                 }
             };
+            // Handling may have waited (start-up restore, a bake queue) longer than the idle
+            // timeout: the client was not silent, the server was busy.
+            liveness.heard();
             if !keep_going {
                 break;
             }
@@ -373,6 +376,19 @@ impl Session {
                 true
             }
             ClientMsg::Subscribe { scene, avatars } => {
+                // A subscription costs the scene work under its lock (descriptions, a
+                // keyframe): it is charged to the same rate limit as commands.
+                if let Err(wait) = self.commands.take() {
+                    self.state.metrics.rate_limited();
+                    self.error(rate_limited(wait));
+                    return true;
+                }
+                // Each filter entry is checked against the scene every tick: no repeats.
+                let avatars = avatars.map(|mut ids| {
+                    ids.sort();
+                    ids.dedup();
+                    ids
+                });
                 let result = self
                     .state
                     .config

@@ -66,7 +66,7 @@ pub(crate) const UPLOAD_TMP_PREFIX: &str = ".upload-";
 #[derive(Debug)]
 pub struct Store {
     root: Option<PathBuf>,
-    lock: tokio::sync::Mutex<()>,
+    lock: std::sync::Arc<tokio::sync::Mutex<()>>,
     assets_lock: tokio::sync::Mutex<()>,
     /// Scenes whose acks wait for the next write (group commit, see [`Store::persist_scene`]).
     open_batch: std::sync::Mutex<Batch>,
@@ -120,7 +120,7 @@ impl Store {
     pub fn new(root: Option<PathBuf>) -> Self {
         Self {
             root,
-            lock: tokio::sync::Mutex::new(()),
+            lock: std::sync::Arc::new(tokio::sync::Mutex::new(())),
             assets_lock: tokio::sync::Mutex::new(()),
             open_batch: std::sync::Mutex::new(Batch::default()),
             batches_written: std::sync::atomic::AtomicU64::new(0),
@@ -265,38 +265,43 @@ impl Store {
             open.scenes.insert(id.clone());
             open.done.subscribe()
         };
-        let _guard = self.lock().await;
+        // Owned: it moves into the write below, so the lock is held until the files are
+        // written even if this caller is cancelled (a REST client that disconnects).
+        let guard = self.lock.clone().lock_owned().await;
         // A writer that held the lock before us may have taken our batch already.
         if let Some(result) = done.borrow_and_update().clone() {
             return result;
         }
         let mut batch = std::mem::take(&mut *self.batch());
-        // Normally our scene is in the batch just taken; if the writer that took ours was
-        // cancelled before answering, it is not, so it is added here.
         batch.scenes.insert(id.clone());
         self.batches_written
             .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        let result = Self::write_batch(state, dir, &batch.scenes).await;
-        // Receivers may all be gone (their commands were cancelled): nothing to tell then.
-        batch.done.send(Some(result.clone())).ok();
-        result
-    }
-
-    async fn write_batch(
-        state: &AppState,
-        dir: PathBuf,
-        scenes: &BTreeSet<SceneId>,
-    ) -> Result<(), ProtocolError> {
-        let mut files = Vec::with_capacity(scenes.len());
-        for id in scenes {
-            let bytes =
-                Self::scene_bytes(state, id).map_err(|e| internal("cannot store the scene", &e))?;
-            files.push((dir.join(format!("{}.json", id.0)), bytes));
+        // Snapshots now, under the lock and after every change of the batch.
+        let mut files = Vec::with_capacity(batch.scenes.len());
+        for scene in &batch.scenes {
+            match Self::scene_bytes(state, scene) {
+                Ok(bytes) => files.push((dir.join(format!("{}.json", scene.0)), bytes)),
+                Err(e) => {
+                    let e = internal("cannot store the scene", &e);
+                    batch.done.send(Some(Err(e.clone()))).ok();
+                    return Err(e);
+                }
+            }
         }
-        tokio::task::spawn_blocking(move || atomic::write_many_atomic(&dir, &files))
-            .await
-            .map_err(|e| internal("cannot store the scene", &io::Error::other(e)))?
-            .map_err(|e| internal("cannot store the scene", &e))
+        // The write, its answer to the whole batch and the lock's release happen together on
+        // the blocking pool: nothing in between can be cancelled, so no second writer ever
+        // writes the same files at once and every member of the batch hears the result.
+        let done = batch.done;
+        tokio::task::spawn_blocking(move || {
+            let _guard = guard;
+            let result = atomic::write_many_atomic(&dir, &files)
+                .map_err(|e| internal("cannot store the scene", &e));
+            // Receivers may all be gone (their commands were cancelled): nothing to tell then.
+            done.send(Some(result.clone())).ok();
+            result
+        })
+        .await
+        .map_err(|e| internal("cannot store the scene", &io::Error::other(e)))?
     }
 
     fn batch(&self) -> std::sync::MutexGuard<'_, Batch> {
