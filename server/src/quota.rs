@@ -172,9 +172,9 @@ impl CommandRate {
     /// # Errors
     /// A rate or burst that is not finite and positive (a burst must allow one command).
     pub fn new(per_second: f64, burst: f64) -> Result<Self, String> {
-        if !(per_second.is_finite() && per_second > 0.0 && burst.is_finite() && burst >= 1.0) {
+        if !(per_second.is_finite() && per_second >= 1e-3 && burst.is_finite() && burst >= 1.0) {
             return Err(format!(
-                "command rate {per_second}/s with burst {burst}: both must be finite, the rate > 0 and the burst >= 1"
+                "command rate {per_second}/s with burst {burst}: both must be finite, the rate >= 0.001 and the burst >= 1"
             ));
         }
         Ok(Self { per_second, burst })
@@ -218,8 +218,9 @@ impl TokenBucket {
             self.tokens -= 1.0;
             Ok(())
         } else {
+            // At most a day: a tiny configured rate must not overflow the Duration.
             Err(std::time::Duration::from_secs_f64(
-                (1.0 - self.tokens) / self.rate.per_second,
+                ((1.0 - self.tokens) / self.rate.per_second).min(86_400.0),
             ))
         }
     }
@@ -288,6 +289,7 @@ mod tests {
         }
         assert!(b.take_at(t2).is_err());
         assert!(CommandRate::new(0.0, 1.0).is_err() && CommandRate::new(1.0, 0.5).is_err());
+        assert!(CommandRate::new(1e-300, 1.0).is_err());
         assert_eq!(rate_limited(wait).retry_after_ms, Some(50));
     }
 }
