@@ -286,3 +286,41 @@ async fn metrics_hide_scene_names_from_anonymous_callers_and_need_a_token_when_p
     assert_eq!(s, 200);
     server.stop().await;
 }
+
+/// Subscribing costs the scene work under its lock: a subscribe flood is rate-limited like a
+/// command flood (no id: subscribes have none).
+#[tokio::test]
+async fn a_subscribe_flood_is_rate_limited() {
+    let rate = CommandRate::new(10.0, 3.0).unwrap();
+    let server = start(Quotas::default(), rate, false).await;
+    let mut ws = common::raw(&server, posecast_proto::msg::Encoding::Json).await;
+    let began = std::time::Instant::now();
+    for _ in 0..20 {
+        ws.send(Message::Text(
+            r#"{"type":"subscribe","scene":"default"}"#.into(),
+        ))
+        .await
+        .unwrap();
+    }
+    let (mut subscribed, mut limited) = (0, 0);
+    while subscribed + limited < 20 {
+        match common::next_text(&mut ws)
+            .await
+            .expect("an answer per subscribe")
+        {
+            ServerMsg::Subscribed { .. } => subscribed += 1,
+            ServerMsg::Error(e) => {
+                assert_eq!(e.code, ErrorCode::RateLimited, "{e:?}");
+                assert!(e.retry_after_ms.is_some(), "{e:?}");
+                limited += 1;
+            }
+            _ => {}
+        }
+    }
+    let refilled = (10.0 * began.elapsed().as_secs_f64()).ceil() as u32;
+    assert!(
+        subscribed >= 3 && subscribed <= 3 + refilled && limited > 0,
+        "{subscribed} subscribed, {limited} limited, {refilled} refilled"
+    );
+    server.stop().await;
+}
