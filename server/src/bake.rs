@@ -32,15 +32,7 @@ pub fn retarget(source: &Rig, target: &Rig, clip: &str) -> Result<Clip, Protocol
             format!("rig {} has no clip {clip}", source.name),
         )
     })?;
-    let s = crate::rig::RigView {
-        asset: &source.asset,
-        hanim: &source.hanim,
-    };
-    let t = crate::rig::RigView {
-        asset: &target.asset,
-        hanim: &target.hanim,
-    };
-    let mut out = crate::rig::retarget(s, c, t).map_err(|e| {
+    let mut out = crate::rig::retarget(source.view(), c, target.view()).map_err(|e| {
         ProtocolError::new(
             ErrorCode::InvalidValue,
             format!(

@@ -10,7 +10,7 @@ use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError};
 use posecast_proto::placement::Placement;
 use serde_json::{Value, json};
 
-fn invalid(message: impl Into<String>) -> ProtocolError {
+pub(crate) fn invalid(message: impl Into<String>) -> ProtocolError {
     ProtocolError::new(ErrorCode::InvalidValue, message)
 }
 
@@ -165,12 +165,7 @@ async fn prepare(state: &AppState, command: &Command) -> Result<(), ProtocolErro
     else {
         return Ok(());
     };
-    let source = state.library.get(source).ok_or_else(|| {
-        ProtocolError::new(
-            ErrorCode::UnknownAsset,
-            format!("no rig (asset) named {source}"),
-        )
-    })?;
+    let source = state.library.require(source)?;
     let target = {
         let scene = state.find_avatar(avatar)?;
         let s = scene.lock();
@@ -237,12 +232,7 @@ pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, Protoc
                 rotation.unwrap_or([0.0, 0.0, 0.0, 1.0]),
             )?;
             if let Some(clip) = clip {
-                let rig = state.library.get(asset).ok_or_else(|| {
-                    ProtocolError::new(
-                        ErrorCode::UnknownAsset,
-                        format!("no rig (asset) named {asset}"),
-                    )
-                })?;
+                let rig = state.library.require(asset)?;
                 if rig.clip(clip).is_none() {
                     return Err(ProtocolError::new(
                         ErrorCode::UnknownClip,
@@ -280,12 +270,7 @@ pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, Protoc
             let start = finite("start", start.unwrap_or(0.0))?;
             let fade = finite("fade", fade.unwrap_or(DEFAULT_FADE))?.max(0.0);
             let source = match from_asset {
-                Some(name) => Some(state.library.get(name).ok_or_else(|| {
-                    ProtocolError::new(
-                        ErrorCode::UnknownAsset,
-                        format!("no rig (asset) named {name}"),
-                    )
-                })?),
+                Some(name) => Some(state.library.require(name)?),
                 None => None,
             };
             with_avatar(state, avatar, |a| {

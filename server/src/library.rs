@@ -4,6 +4,7 @@ use crate::asset::Asset;
 use crate::clip::Clip;
 use glam::Quat;
 use posecast_proto::command::{AssetInfo, ClipInfo};
+use posecast_proto::msg::{ErrorCode, ProtocolError};
 use posecast_proto::{JointDofs, Skeleton};
 use std::collections::BTreeMap;
 use std::sync::{Arc, RwLock};
@@ -90,6 +91,15 @@ impl Rig {
         }
     }
 
+    /// The rig as retargeting sees it (asset and H-Anim names).
+    #[must_use]
+    pub fn view(&self) -> crate::rig::RigView<'_> {
+        crate::rig::RigView {
+            asset: &self.asset,
+            hanim: &self.hanim,
+        }
+    }
+
     /// The skeleton.
     #[must_use]
     pub fn skeleton(&self) -> &Skeleton {
@@ -142,6 +152,19 @@ impl Library {
             .unwrap_or_else(std::sync::PoisonError::into_inner)
             .insert(rig.name.clone(), rig.clone());
         rig
+    }
+
+    /// The rig named `name`, or the typed error every caller reports.
+    ///
+    /// # Errors
+    /// [`ErrorCode::UnknownAsset`].
+    pub fn require(&self, name: &str) -> Result<Arc<Rig>, ProtocolError> {
+        self.get(name).ok_or_else(|| {
+            ProtocolError::new(
+                ErrorCode::UnknownAsset,
+                format!("no rig (asset) named {name}"),
+            )
+        })
     }
 
     /// A rig by name.

@@ -122,6 +122,18 @@ impl Metrics {
         self.quota_refused[quota.index()].fetch_add(1, Relaxed);
     }
 
+    /// Counts a refusal by `quota` and returns its typed error ([`crate::quota::Quota::exceeded`]).
+    #[must_use]
+    pub fn refuse_quota(
+        &self,
+        quota: crate::quota::Quota,
+        what: impl std::fmt::Display,
+        limit: impl std::fmt::Display,
+    ) -> posecast_proto::msg::ProtocolError {
+        self.quota_refused(quota);
+        quota.exceeded(what, limit)
+    }
+
     /// A command was refused by a connection's rate limit.
     pub fn rate_limited(&self) {
         self.rate_limited.fetch_add(1, Relaxed);

@@ -117,19 +117,24 @@ impl Quotas {
     /// Checks a rig's size and every clip's duration × joints against the limits for any rig.
     ///
     /// # Errors
-    /// [`Quota::Joints`] or [`Quota::ClipJointSeconds`].
-    pub fn check_rig(&self, rig: &crate::library::Rig) -> Result<(), ProtocolError> {
+    /// [`Quota::Joints`] or [`Quota::ClipJointSeconds`], with its typed error.
+    pub fn check_rig(&self, rig: &crate::library::Rig) -> Result<(), (Quota, ProtocolError)> {
         let joints = rig.skeleton().len();
         if joints > self.max_joints {
-            return Err(Quota::Joints.exceeded(
-                format!("rig {} has {joints} joints", rig.name),
-                self.max_joints,
+            return Err((
+                Quota::Joints,
+                Quota::Joints.exceeded(
+                    format!("rig {} has {joints} joints", rig.name),
+                    self.max_joints,
+                ),
             ));
         }
         for clip in &rig.clips {
             let cost = f64::from(clip.duration()) * joints as f64;
             if cost > self.max_clip_joint_seconds {
-                return Err(Quota::ClipJointSeconds.exceeded(
+                return Err((
+                    Quota::ClipJointSeconds,
+                    Quota::ClipJointSeconds.exceeded(
                     format!(
                         "clip {} of rig {} lasts {} s × {joints} joints = {cost:.0} joint-seconds",
                         clip.name(),
@@ -137,6 +142,7 @@ impl Quotas {
                         clip.duration()
                     ),
                     self.max_clip_joint_seconds,
+                ),
                 ));
             }
         }

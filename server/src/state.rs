@@ -289,8 +289,8 @@ impl AppState {
         }
         let max = self.config.quotas.max_scenes;
         if quota && scenes.len() >= max {
-            self.metrics.quota_refused(Quota::Scenes);
-            return Err(Quota::Scenes.exceeded(
+            return Err(self.metrics.refuse_quota(
+                Quota::Scenes,
                 format!("scene {id} would be scene {}", scenes.len() + 1),
                 max,
             ));
@@ -373,12 +373,7 @@ impl AppState {
         placement: Placement,
     ) -> Result<(Arc<Scene>, AvatarId), ProtocolError> {
         let scene = self.scene(scene)?;
-        let rig = self.library.get(asset).ok_or_else(|| {
-            ProtocolError::new(
-                ErrorCode::UnknownAsset,
-                format!("no rig (asset) named {asset}"),
-            )
-        })?;
+        let rig = self.library.require(asset)?;
         let num = self.next_avatar_num.fetch_add(1, Ordering::Relaxed);
         let id = id.unwrap_or_else(|| AvatarId(format!("{}-{num}", rig.name)));
         check_id("avatar", &id.0)?;
@@ -400,9 +395,11 @@ impl AppState {
         let max = self.config.quotas.max_avatars_per_scene;
         let count = scene.lock().avatars.len();
         if quota && count >= max {
-            self.metrics.quota_refused(Quota::AvatarsPerScene);
-            return Err(Quota::AvatarsPerScene
-                .exceeded(format!("scene {} has {count} avatars", scene.id), max));
+            return Err(self.metrics.refuse_quota(
+                Quota::AvatarsPerScene,
+                format!("scene {} has {count} avatars", scene.id),
+                max,
+            ));
         }
         scene.add_avatar(avatar)?;
         Ok((scene, id))

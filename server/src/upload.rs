@@ -97,13 +97,9 @@ fn conflict(name: &str) -> ProtocolError {
 
 /// The rig quotas ([`crate::quota::Quotas::check_rig`]), counted in the metrics when refused.
 fn check_rig(state: &AppState, rig: &Rig) -> Result<(), ProtocolError> {
-    state.config.quotas.check_rig(rig).inspect_err(|_| {
-        let quota = if rig.skeleton().len() > state.config.quotas.max_joints {
-            crate::quota::Quota::Joints
-        } else {
-            crate::quota::Quota::ClipJointSeconds
-        };
+    state.config.quotas.check_rig(rig).map_err(|(quota, e)| {
         state.metrics.quota_refused(quota);
+        e
     })
 }
 
@@ -111,9 +107,11 @@ fn check_rig(state: &AppState, rig: &Rig) -> Result<(), ProtocolError> {
 fn check_asset_bytes(state: &AppState, name: &str, bytes: u64) -> Result<(), ProtocolError> {
     let max = state.config.quotas.max_asset_bytes;
     if bytes > max {
-        state.metrics.quota_refused(crate::quota::Quota::AssetBytes);
-        return Err(crate::quota::Quota::AssetBytes
-            .exceeded(format!("asset {name} would hold {bytes} bytes"), max));
+        return Err(state.metrics.refuse_quota(
+            crate::quota::Quota::AssetBytes,
+            format!("asset {name} would hold {bytes} bytes"),
+            max,
+        ));
     }
     Ok(())
 }
@@ -124,10 +122,8 @@ fn check_total_bytes(state: &AppState, name: &str, more: u64) -> Result<(), Prot
     let max = state.config.quotas.max_upload_total_bytes;
     let now = state.store.upload_bytes();
     if now.saturating_add(more) > max {
-        state
-            .metrics
-            .quota_refused(crate::quota::Quota::UploadTotalBytes);
-        return Err(crate::quota::Quota::UploadTotalBytes.exceeded(
+        return Err(state.metrics.refuse_quota(
+            crate::quota::Quota::UploadTotalBytes,
             format!("uploads hold {now} bytes and {name} adds {more}"),
             max,
         ));
@@ -227,12 +223,7 @@ pub async fn add_clips(
         }
     }
     let _guard = state.store.assets_lock().await;
-    let rig = state.library.get(name).ok_or_else(|| {
-        ProtocolError::new(
-            ErrorCode::UnknownAsset,
-            format!("no rig (asset) named {name}"),
-        )
-    })?;
+    let rig = state.library.require(name)?;
     let upload = state.store.uploads().get(name).cloned().ok_or_else(|| {
         ProtocolError::new(
             ErrorCode::InvalidValue,

@@ -289,18 +289,14 @@ fn limited_rig_size(state: &AppState, command: &Command) -> Result<(), ProtocolE
     };
     let max = state.config.quotas.limited_max_joints;
     match state.library.get(asset) {
-        Some(rig) if rig.skeleton().len() > max => {
-            state
-                .metrics
-                .quota_refused(crate::quota::Quota::LimitedJoints);
-            Err(crate::quota::Quota::LimitedJoints.exceeded(
-                format!(
-                    "rig {asset} has {} joints; a limited token may place rigs of up to",
-                    rig.skeleton().len()
-                ),
-                max,
-            ))
-        }
+        Some(rig) if rig.skeleton().len() > max => Err(state.metrics.refuse_quota(
+            crate::quota::Quota::LimitedJoints,
+            format!(
+                "rig {asset} has {} joints; a limited token may place rigs of up to",
+                rig.skeleton().len()
+            ),
+            max,
+        )),
         // An unknown asset is reported by the command itself.
         _ => Ok(()),
     }

@@ -44,9 +44,7 @@ fn not_driving(avatar: impl std::fmt::Display) -> ProtocolError {
     )
 }
 
-fn invalid(message: String) -> ProtocolError {
-    ProtocolError::new(ErrorCode::InvalidValue, message)
-}
+use crate::control::invalid;
 
 impl Drives {
     /// Nothing driven yet by connection `conn`.
@@ -92,16 +90,7 @@ impl Drives {
         source: Option<&str>,
         on_release: OnRelease,
     ) -> Result<DriveInfo, ProtocolError> {
-        let source_rig = source
-            .map(|name| {
-                state.library.get(name).ok_or_else(|| {
-                    ProtocolError::new(
-                        ErrorCode::UnknownAsset,
-                        format!("no rig (asset) named {name}"),
-                    )
-                })
-            })
-            .transpose()?;
+        let source_rig = source.map(|name| state.library.require(name)).transpose()?;
         let scene = state.find_avatar(avatar)?;
         let mut s = scene.lock();
         let a = s.avatar_mut(avatar).ok_or_else(|| {

@@ -3,7 +3,6 @@
 
 use crate::library::Rig;
 use crate::quota::{CommandRate, TokenBucket};
-use crate::rig::RigView;
 use crate::rig::retarget::{PoseRetargeter, PoseScratch};
 use glam::{Mat4, Quat, Vec3};
 use posecast_proto::Transform;
@@ -80,14 +79,7 @@ impl LivePose {
         let map = if same {
             None
         } else {
-            let s = RigView {
-                asset: &source.asset,
-                hanim: &source.hanim,
-            };
-            let t = RigView {
-                asset: &target.asset,
-                hanim: &target.hanim,
-            };
+            let (s, t) = (source.view(), target.view());
             Some((PoseRetargeter::new(s, t)?, PoseScratch::new(s, t)))
         };
         // The own rig starts from the avatar's pose, so a partial pose changes only the joints

@@ -134,12 +134,7 @@ pub async fn mesh(
     Path(name): Path<String>,
 ) -> Result<Response, AppError> {
     state.config.access.authorize_read(&caller)?;
-    let rig = state.library.get(&name).ok_or_else(|| {
-        ProtocolError::new(
-            ErrorCode::UnknownAsset,
-            format!("no rig (asset) named {name}"),
-        )
-    })?;
+    let rig = state.library.require(&name)?;
     if rig.asset.meshes.is_empty() {
         return Err(ProtocolError::new(
             ErrorCode::UnknownAvatar,
