@@ -12,7 +12,7 @@ mod common;
 use common::child::Posecast;
 use common::{Ws, http_to, next_text};
 use futures_util::SinkExt;
-use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, SceneId, ServerMsg};
+use posecast_proto::msg::{ClientMsg, Encoding, SceneId, ServerMsg};
 use serde_json::{Value, json};
 use std::fmt::Write as _;
 use std::path::Path;
@@ -88,22 +88,7 @@ fn write_uploads(data: &Path, count: usize, files: &[(&str, &str)]) -> Vec<Strin
 }
 
 async fn hello(addr: std::net::SocketAddr) -> Ws {
-    let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/ws"))
-        .await
-        .unwrap();
-    let hello = ClientMsg::Hello {
-        version: PROTOCOL_VERSION,
-        encoding: Encoding::Json,
-        token: None,
-        client: None,
-    };
-    ws.send(Message::Text(serde_json::to_string(&hello).unwrap().into()))
-        .await
-        .unwrap();
-    match next_text(&mut ws).await {
-        Some(ServerMsg::Welcome { .. }) => ws,
-        other => panic!("expected welcome, got {other:?}"),
-    }
+    common::raw_at(addr, Encoding::Json, None).await
 }
 
 /// 200 stored uploads of a 20-joint `.skel` with a 3,000-vertex `.skin` (a few seconds of

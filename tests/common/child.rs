@@ -26,14 +26,7 @@ impl Posecast {
 
     /// [`Posecast::start`] up to the URL it prints: listening, maybe still loading.
     pub fn launch(args: &[&str], env: &[(&str, &str)]) -> Self {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_posecast"))
-            .args(["--listen", "127.0.0.1:0"])
-            .args(args)
-            .env("NO_COLOR", "1")
-            .env("RUST_LOG", "info")
-            .envs(env.iter().copied())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
+        let mut child = binary(args, env)
             .spawn()
             .expect("cannot start the posecast binary");
         let output = Arc::new(Mutex::new(Vec::new()));
@@ -136,14 +129,7 @@ impl Drop for Posecast {
 /// Runs the binary with `args` (on `127.0.0.1:0`) and `env` until it exits, for at most 60 s;
 /// returns its exit status and everything it printed (stdout, then stderr).
 pub fn run_to_exit(args: &[&str], env: &[(&str, &str)]) -> (ExitStatus, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_posecast"))
-        .args(["--listen", "127.0.0.1:0"])
-        .args(args)
-        .env("NO_COLOR", "1")
-        .env("RUST_LOG", "info")
-        .envs(env.iter().copied())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
+    let mut child = binary(args, env)
         .spawn()
         .expect("cannot start the posecast binary");
     let deadline = std::time::Instant::now() + Duration::from_secs(60);
@@ -180,4 +166,18 @@ pub fn health(addr: SocketAddr) -> Option<(u16, String)> {
     let status = response.split(' ').nth(1)?.parse().ok()?;
     let body = response.split_once("\r\n\r\n")?.1.to_owned();
     Some((status, body))
+}
+
+/// The `posecast` binary on `127.0.0.1:0` with `args` and `env`, output captured.
+fn binary(args: &[&str], env: &[(&str, &str)]) -> Command {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_posecast"));
+    command
+        .args(["--listen", "127.0.0.1:0"])
+        .args(args)
+        .env("NO_COLOR", "1")
+        .env("RUST_LOG", "info")
+        .envs(env.iter().copied())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    command
 }

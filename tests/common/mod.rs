@@ -62,7 +62,12 @@ pub async fn raw(server: &Server, encoding: Encoding) -> Ws {
 
 /// A raw websocket that has said hello with `token` (and read the welcome).
 pub async fn raw_as(server: &Server, encoding: Encoding, token: Option<&str>) -> Ws {
-    let (mut ws, _) = tokio_tungstenite::connect_async(server.ws_url())
+    raw_at(server.addr, encoding, token).await
+}
+
+/// [`raw_as`] to any address (e.g. a child process's).
+pub async fn raw_at(addr: std::net::SocketAddr, encoding: Encoding, token: Option<&str>) -> Ws {
+    let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/ws"))
         .await
         .unwrap();
     let hello = ClientMsg::Hello {
