@@ -307,6 +307,9 @@ async fn main() -> anyhow::Result<()> {
         net: args.net.limits(),
     };
     raise_open_files_limit();
+    // Registered before the server listens: a SIGTERM that arrives during start-up (as soon as
+    // the address is printed) must begin a graceful shutdown, not kill the process.
+    let signals = shutdown_signal();
     let mut server = Server::start(config).await?;
     let shutdown = server.take_shutdown();
     println!("posecast listening on {}", server.http_url());
@@ -333,7 +336,7 @@ async fn main() -> anyhow::Result<()> {
         None => println!("  dashboard: {}/", server.http_url()),
     }
     tokio::spawn(async move {
-        shutdown_signal().await;
+        signals.await;
         if let Some(tx) = shutdown {
             tx.send(()).ok();
         }
@@ -360,29 +363,46 @@ async fn main() -> anyhow::Result<()> {
     Ok(())
 }
 
-async fn shutdown_signal() {
-    let ctrl_c = async {
+/// SIGINT or SIGTERM. The handlers are installed when this is called, not when the returned
+/// future is first polled.
+#[cfg(unix)]
+fn shutdown_signal() -> impl std::future::Future<Output = ()> {
+    use tokio::signal::unix::{SignalKind, signal};
+    let install = |kind: SignalKind, name: &str| {
+        signal(kind)
+            .inspect_err(|e| tracing::warn!(error = %e, "cannot listen for {name}"))
+            .ok()
+    };
+    let (mut int, mut term) = (
+        install(SignalKind::interrupt(), "SIGINT"),
+        install(SignalKind::terminate(), "SIGTERM"),
+    );
+    async move {
+        tokio::select! {
+            () = wait_for(int.as_mut()) => {}
+            () = wait_for(term.as_mut()) => {}
+        }
+    }
+}
+
+/// The next signal of `s`, or never when it could not be installed.
+#[cfg(unix)]
+async fn wait_for(s: Option<&mut tokio::signal::unix::Signal>) {
+    match s {
+        Some(s) => {
+            s.recv().await;
+        }
+        None => std::future::pending::<()>().await,
+    }
+}
+
+/// Ctrl-C.
+#[cfg(not(unix))]
+fn shutdown_signal() -> impl std::future::Future<Output = ()> {
+    async {
         if let Err(e) = tokio::signal::ctrl_c().await {
             tracing::warn!(error = %e, "cannot listen for Ctrl-C");
             std::future::pending::<()>().await;
         }
-    };
-    #[cfg(unix)]
-    let term = async {
-        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(mut s) => {
-                s.recv().await;
-            }
-            Err(e) => {
-                tracing::warn!(error = %e, "cannot listen for SIGTERM");
-                std::future::pending::<()>().await;
-            }
-        }
-    };
-    #[cfg(not(unix))]
-    let term = std::future::pending::<()>();
-    tokio::select! {
-        () = ctrl_c => {}
-        () = term => {}
     }
 }
