@@ -117,11 +117,11 @@ fn cpu_per_tick() -> anyhow::Result<()> {
         return Ok(());
     };
     let asset = posecast_server::import::bvh::parse("01_01", &text)?;
-    let source = Arc::new(posecast_server::startup::rig_from_asset(
+    let source = Arc::new(posecast_server::rig::Rig::from_asset(
         asset,
         &PipelineOptions::default(),
     )?);
-    let target = Arc::new(posecast_server::startup::builtin_rig().map_err(anyhow::Error::msg)?);
+    let target = Arc::new(posecast_server::builtin::rig().map_err(anyhow::Error::msg)?);
     let clip = source.clips[0].clone();
     let sk = source.skeleton();
     let frames: Vec<Vec<(usize, Quat)>> = (0..200)

@@ -13,7 +13,7 @@ use posecast_proto::Transform;
 use posecast_proto::command::Command;
 use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError, SceneId};
 use posecast_proto::quant::{MAX_ERROR_DEGREES, angle_between_degrees};
-use posecast_server::startup::{Server, builtin_rig};
+use posecast_server::startup::Server;
 use serde_json::Value;
 
 /// Where commands go.
@@ -86,7 +86,7 @@ fn play(avatar: &AvatarId, clip: &str, start: f32, speed: f32) -> Command {
 }
 
 async fn scenario(server: &Server, surface: &Surface<'_>, tag: &str) {
-    let rig = builtin_rig().unwrap();
+    let rig = posecast_server::builtin::rig().unwrap();
     let rest = rig.skeleton().rest().to_vec();
     let sampled = |clip: &str, t: f32| {
         let c = rig.clip(clip).unwrap();

@@ -113,7 +113,7 @@ async fn a_bvh_clip_plays_retargeted_on_the_built_in_avatar() {
     let mut asset = posecast_server::import::load_path(&path).unwrap().remove(0);
     asset.name = "cmu".into();
     let clip = asset.clips[0].name().to_string();
-    let rig = posecast_server::startup::rig_from_asset(asset, &Default::default()).unwrap();
+    let rig = posecast_server::rig::Rig::from_asset(asset, &Default::default()).unwrap();
     server.state.library.insert(rig);
     let c = client(&server, Encoding::Binary).await;
     let id = AvatarId("avatar".into());
@@ -236,7 +236,7 @@ async fn a_long_retarget_bake_does_not_stall_other_scenes() {
     let server = server(rate).await;
     // A second humanoid rig whose clip lasts 27,510 s (the reported case): baked at 30 Hz up
     // to the key cap, seconds of CPU in a debug build.
-    let mut long = posecast_server::startup::builtin_rig().unwrap();
+    let mut long = posecast_server::builtin::rig().unwrap();
     let walk = long.clip("walk").unwrap();
     let clip = Clip::new("marathon", walk.channels().to_vec(), Some((0.0, 27_510.0))).unwrap();
     long.name = "long".into();

@@ -138,7 +138,7 @@ async fn a_driven_pose_reaches_every_subscriber_in_the_next_tick() {
 }
 
 /// World position of each joint of `rig` with local rotations `rot` (rest translations).
-fn world_positions(rig: &posecast_server::library::Rig, rot: &[Quat]) -> Vec<Vec3> {
+fn world_positions(rig: &posecast_server::rig::Rig, rot: &[Quat]) -> Vec<Vec3> {
     let sk = rig.skeleton();
     let locals: Vec<Transform> = sk
         .rest()
@@ -166,7 +166,7 @@ async fn a_source_rig_is_retargeted_in_world_space() {
     let d = driver(&server, ALICE).await;
     let info = d.drive(&avatar(), Some("01_01"), None).await.unwrap();
     assert_eq!(info.joints, source.skeleton().names());
-    let hanim = |rig: &posecast_server::library::Rig, name: &str| {
+    let hanim = |rig: &posecast_server::rig::Rig, name: &str| {
         rig.hanim
             .iter()
             .position(|h| h.as_deref() == Some(name))

@@ -356,7 +356,7 @@ async fn grouped_and_rate_limited_acks_survive_sigkill() {
         &[("POSECAST_CONTROL_TOKEN", common::CONTROL)],
     );
     let addr = server.addr;
-    let rig = posecast_server::startup::builtin_rig().unwrap();
+    let rig = posecast_server::builtin::rig().unwrap();
     let joints: Vec<String> = rig.skeleton().names()[..20].to_vec();
     let tasks: Vec<_> = joints
         .iter()

@@ -17,8 +17,7 @@ use posecast_proto::Transform;
 use posecast_proto::command::Command;
 use posecast_proto::msg::{AvatarId, Encoding};
 use posecast_proto::quant::angle_between_degrees;
-use posecast_server::library::Rig;
-use posecast_server::startup::builtin_rig;
+use posecast_server::rig::Rig;
 use std::time::{Duration, Instant};
 
 fn avatar() -> AvatarId {
@@ -133,7 +132,7 @@ fn slerp(a: Quat, b: Quat, w: f32) -> Quat {
 async fn a_cross_fade_streams_the_slerp_of_both_clips() {
     let rate = 30.0f32;
     let fade = 1.0f32;
-    let rig = builtin_rig().unwrap();
+    let rig = posecast_server::builtin::rig().unwrap();
     let server = server(rate).await;
     let c = client(&server, Encoding::Binary).await;
     assert!(wait_for(3.0, || c.latest(&avatar()).is_some()).await);
@@ -218,7 +217,7 @@ async fn a_cross_fade_streams_the_slerp_of_both_clips() {
 async fn negative_speed_runs_the_clip_backwards() {
     let rate = 60.0f32;
     let speed = -1.5f32;
-    let rig = builtin_rig().unwrap();
+    let rig = posecast_server::builtin::rig().unwrap();
     let period = rig.clip("walk").unwrap().duration();
     let server = server(rate).await;
     let c = client(&server, Encoding::Binary).await;
@@ -265,7 +264,7 @@ async fn metric(server: &posecast_server::startup::Server, name: &str) -> u64 {
 #[tokio::test]
 async fn ticks_missed_while_blocked_are_counted_and_covered() {
     let rate = 60.0f32;
-    let rig = builtin_rig().unwrap();
+    let rig = posecast_server::builtin::rig().unwrap();
     let period = rig.clip("walk").unwrap().duration();
     let server = server(rate).await;
     let c = client(&server, Encoding::Binary).await;

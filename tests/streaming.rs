@@ -18,7 +18,6 @@ use posecast_server::import;
 use posecast_server::metrics::Metrics;
 use posecast_server::scene::avatar::Avatar;
 use posecast_server::scene::{Scene, Subscriber};
-use posecast_server::startup::{builtin_rig, rig_from_asset};
 use posecast_server::stream::outbox::{MAX_CONTROL_BYTES, Outbox};
 use posecast_server::stream::writer::run_writer;
 use std::pin::Pin;
@@ -73,7 +72,7 @@ async fn built_in_avatar_streams_the_clip_it_plays() {
     );
     let view = c.avatar(&avatar()).unwrap();
     // The description is the server's rig.
-    let rig = builtin_rig().unwrap();
+    let rig = posecast_server::builtin::rig().unwrap();
     assert_eq!(view.skeleton.names(), rig.skeleton().names());
     assert_eq!(view.skeleton.parents(), rig.skeleton().parents());
     assert_eq!(view.skeleton.inverse_bind(), rig.skeleton().inverse_bind());
@@ -118,7 +117,7 @@ async fn a_testdata_rig_streams_its_clip() {
     server
         .state
         .library
-        .insert(rig_from_asset(asset, &Default::default()).unwrap());
+        .insert(posecast_server::rig::Rig::from_asset(asset, &Default::default()).unwrap());
     let c = client(&server, Encoding::Binary).await;
     let reply = c
         .command(Command::AddAvatar {
@@ -258,7 +257,7 @@ async fn a_stalled_subscriber_loses_frames_not_memory_and_delays_no_one() {
     // client that stops reading looks like once the socket buffers are full.
     let metrics = Arc::new(Metrics::new());
     let scene = Scene::new(SceneId("s".into()), 1, metrics.clone());
-    let rig = Arc::new(builtin_rig().unwrap());
+    let rig = Arc::new(posecast_server::builtin::rig().unwrap());
     scene
         .add_avatar(Avatar::new(avatar(), 1, rig.clone()))
         .unwrap();

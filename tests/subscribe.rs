@@ -17,7 +17,6 @@ use posecast_proto::quant::{MAX_ERROR_DEGREES, angle_between_degrees};
 use posecast_server::metrics::Metrics;
 use posecast_server::scene::avatar::Avatar;
 use posecast_server::scene::{Scene, Subscriber};
-use posecast_server::startup::builtin_rig;
 use posecast_server::stream::outbox::{Next, Outbox};
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -204,7 +203,7 @@ async fn a_scene_of_1000_avatars_streams_to_every_subscriber() {
             .add_avatar(&scene, "avatar", Some(id.clone()))
             .unwrap();
     }
-    let joints = builtin_rig().unwrap().skeleton().len();
+    let joints = posecast_server::builtin::rig().unwrap().skeleton().len();
     let mut watchers = Vec::new();
     for encoding in [Encoding::Binary, Encoding::Json, Encoding::Binary] {
         watchers.push((
@@ -281,7 +280,7 @@ async fn the_first_frame_after_subscribing_carries_every_described_avatar() {
 async fn a_filtered_subscription_gets_only_its_avatars_with_the_same_poses() {
     let server = server(30.0).await;
     let control = client(&server, Encoding::Binary).await;
-    let rig = builtin_rig().unwrap();
+    let rig = posecast_server::builtin::rig().unwrap();
     let scene = SceneId("trio".into());
     control
         .command(Command::CreateScene {
@@ -432,7 +431,7 @@ async fn json_is_written_only_for_json_subscribers_and_a_json_late_joiner_gets_t
 {
     let metrics = Arc::new(Metrics::new());
     let scene = Scene::new(SceneId("s".into()), 1, metrics.clone());
-    let rig = Arc::new(builtin_rig().unwrap());
+    let rig = Arc::new(posecast_server::builtin::rig().unwrap());
     let (a, b) = (AvatarId("a".into()), AvatarId("b".into()));
     scene
         .add_avatar(Avatar::new(a.clone(), 1, rig.clone()))
@@ -526,7 +525,7 @@ async fn json_is_written_only_for_json_subscribers_and_a_json_late_joiner_gets_t
 async fn a_keyframe_made_for_a_joiner_leaves_every_stream_decodable() {
     let metrics = Arc::new(Metrics::new());
     let scene = Scene::new(SceneId("s".into()), 1, metrics);
-    let rig = Arc::new(builtin_rig().unwrap());
+    let rig = Arc::new(posecast_server::builtin::rig().unwrap());
     let (a, b) = (AvatarId("a".into()), AvatarId("b".into()));
     scene
         .add_avatar(Avatar::new(a.clone(), 1, rig.clone()))

@@ -19,7 +19,7 @@ use posecast_proto::msg::AvatarId;
 use posecast_proto::skinning::skin_cpu;
 use posecast_server::auth::{AccessConfig, Role, Secret, TokenRule};
 use posecast_server::builtin::AVATAR_GLB;
-use posecast_server::startup::{DEFAULT_AVATAR, DEFAULT_SCENE, Server, builtin_rig};
+use posecast_server::startup::{DEFAULT_AVATAR, DEFAULT_SCENE, Server};
 use posecast_server::state::Config;
 
 const TOKEN: &str = "render-e2e-control";
@@ -185,7 +185,7 @@ async fn offscreen_render_of_the_live_stream_shows_the_seeked_avatar() {
     let view_proj = renderer.camera().view_proj(width as f32 / height as f32);
 
     // The reference: the importer's rig and clip, sampled here, skinned on the CPU.
-    let rig = builtin_rig().unwrap();
+    let rig = posecast_server::builtin::rig().unwrap();
     let skeleton = rig.skeleton();
     assert_eq!(skeleton.names(), &view.description.joint_names[..]);
     let walk = rig.clip("walk").unwrap();

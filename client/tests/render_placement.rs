@@ -11,7 +11,6 @@ use posecast_client::render::glb_mesh::GlbMesh;
 use posecast_client::render::{Camera, Offscreen, Renderer, RendererOptions, RgbaImage};
 use posecast_proto::placement::Placement;
 use posecast_server::builtin::AVATAR_GLB;
-use posecast_server::startup::builtin_rig;
 use render_support::{golden, gpu};
 
 const SIZE: (u32, u32) = (384, 192);
@@ -32,7 +31,7 @@ fn camera() -> Camera {
 /// more than the 1 m between placements), once per placement.
 fn render(placements: &[Placement]) -> RgbaImage {
     let gpu = gpu().expect("checked by the caller");
-    let rig = builtin_rig().unwrap();
+    let rig = posecast_server::builtin::rig().unwrap();
     let skeleton = rig.skeleton();
     let mesh = GlbMesh::from_slice(AVATAR_GLB)
         .unwrap()

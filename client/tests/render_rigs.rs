@@ -16,7 +16,6 @@ use posecast_server::asset::Asset;
 use posecast_server::builtin::AVATAR_GLB;
 use posecast_server::clip::Clip;
 use posecast_server::import::{self, cse169, skel, skin};
-use posecast_server::startup::builtin_rig;
 use render_support::{check_compute_matches_cpu, golden, gpu};
 use std::path::{Path, PathBuf};
 
@@ -139,7 +138,7 @@ fn tube() {
 
 #[test]
 fn builtin_avatar() {
-    let rig = builtin_rig().unwrap();
+    let rig = posecast_server::builtin::rig().unwrap();
     let clips: Vec<&Clip> = rig.clips.iter().map(|c| &**c).collect();
     assert!(clips.len() >= 3);
     let Some(gpu) = gpu() else { return };
@@ -237,7 +236,7 @@ const ACROSS_GPUS: Tolerance = Tolerance {
 #[test]
 fn builtin_avatar_walk_matches_golden() {
     let Some(gpu) = gpu() else { return };
-    let rig = builtin_rig().unwrap();
+    let rig = posecast_server::builtin::rig().unwrap();
     let skeleton = rig.skeleton();
     let mesh = GlbMesh::from_slice(AVATAR_GLB)
         .unwrap()

@@ -182,6 +182,29 @@ pub enum ServerMsg {
     Error(ProtocolError),
 }
 
+/// Longest scene or avatar id.
+pub const MAX_ID_LEN: usize = 64;
+
+/// Checks an id: 1–64 characters from letters, digits, `-`, `_`, `.`.
+///
+/// # Errors
+/// [`ErrorCode::InvalidValue`] naming what is wrong.
+pub fn check_id(kind: &str, id: &str) -> Result<(), ProtocolError> {
+    let ok = !id.is_empty()
+        && id.len() <= MAX_ID_LEN
+        && id
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'));
+    if ok {
+        Ok(())
+    } else {
+        Err(ProtocolError::new(
+            ErrorCode::InvalidValue,
+            format!("{kind} id must be 1-{MAX_ID_LEN} letters, digits, '-', '_' or '.'"),
+        ))
+    }
+}
+
 /// A typed error: a stable machine-readable code and a human message.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, thiserror::Error)]
 #[error("{code:?}: {message}")]

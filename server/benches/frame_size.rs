@@ -23,8 +23,7 @@ use posecast_proto::testing::testdata;
 use posecast_server::builtin::AVATAR_GLB;
 use posecast_server::clip::Clip;
 use posecast_server::import;
-use posecast_server::library::Rig;
-use posecast_server::startup::rig_from_asset;
+use posecast_server::rig::Rig;
 
 /// Server tick rate the figures are for.
 const RATE: f32 = 60.0;
@@ -256,7 +255,7 @@ fn main() -> Result<()> {
     if assets.is_empty() {
         bail!("the built-in avatar holds no rig");
     }
-    let builtin = rig_from_asset(assets.remove(0), &Default::default())?;
+    let builtin = posecast_server::rig::Rig::from_asset(assets.remove(0), &Default::default())?;
     for clip in &builtin.clips {
         rows.push(measure(
             &format!("built-in {}", clip.name()),
@@ -270,7 +269,7 @@ fn main() -> Result<()> {
         if assets.is_empty() {
             bail!("{} holds no rig", path.display());
         }
-        let cmu = rig_from_asset(assets.remove(0), &Default::default())?;
+        let cmu = posecast_server::rig::Rig::from_asset(assets.remove(0), &Default::default())?;
         let clip = cmu
             .clips
             .first()

@@ -9,7 +9,7 @@
 //! `Weak`), so a rig replaced by an upload never serves a stale bake.
 
 use crate::clip::Clip;
-use crate::library::Rig;
+use crate::rig::Rig;
 use posecast_proto::msg::{ErrorCode, ProtocolError};
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, Weak};
@@ -275,11 +275,10 @@ impl RetargetCache {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::startup::builtin_rig;
 
     /// A rig named `name` whose only clip is the built-in walk stretched to `seconds`.
     fn rig(name: &str, seconds: f32) -> Arc<Rig> {
-        let mut rig = builtin_rig().unwrap();
+        let mut rig = crate::builtin::rig().unwrap();
         let walk = rig.clip("walk").unwrap();
         let clip = Clip::new("long", walk.channels().to_vec(), Some((0.0, seconds))).unwrap();
         rig.name = name.into();

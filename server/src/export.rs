@@ -177,11 +177,10 @@ pub fn mesh_glb(skeleton: &Skeleton, meshes: &[AssetMesh]) -> Vec<u8> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::startup::builtin_rig;
 
     #[test]
     fn the_exported_mesh_imports_back_identically() {
-        let rig = builtin_rig().unwrap();
+        let rig = crate::builtin::rig().unwrap();
         let bytes = mesh_glb(rig.skeleton(), &rig.asset.meshes);
         let back = crate::import::gltf::from_slice("export.glb", &bytes)
             .unwrap()

@@ -38,4 +38,3 @@ pub mod startup;
 pub mod state;
 pub mod store;
 pub mod stream;
-pub mod upload;

@@ -1,135 +1,14 @@
-//! The rigs the server can put in scenes: imported, normalised assets with their clips.
+//! The rigs the server can put in scenes ([`Rig`]s: imported, normalised assets with their
+//! clips), by name.
 
-use crate::asset::Asset;
-use crate::clip::Clip;
-use glam::Quat;
-use posecast_proto::command::{AssetInfo, ClipInfo};
-use posecast_proto::msg::{ErrorCode, ProtocolError};
-use posecast_proto::{JointDofs, Skeleton};
+pub use crate::rig::{JointLimits, Rig};
+
+use crate::import::ImportError;
+use crate::import::files::{self, FileSet};
+use crate::rig::PipelineOptions;
+use posecast_proto::msg::{ErrorCode, ProtocolError, check_id};
 use std::collections::BTreeMap;
 use std::sync::{Arc, RwLock};
-
-/// A rig ready to play: the normalised asset, its clips shared with every avatar using them.
-#[derive(Debug)]
-pub struct Rig {
-    /// The asset's (unique) name.
-    pub name: String,
-    /// The normalised asset.
-    pub asset: Asset,
-    /// Its clips, shared by the avatars playing them.
-    pub clips: Vec<Arc<Clip>>,
-    /// Per joint: whether any clip animates its translation (streamed in every frame).
-    pub translated: Vec<bool>,
-    /// Per joint: whether any clip animates its scale.
-    pub scaled: Vec<bool>,
-    /// Per joint: the DOFs and limits in the joint's authored frame, with the rotations that
-    /// map an authored rotation `R` to the normalised one `R' = pre · R · post`.
-    pub limits: Vec<Option<JointLimits>>,
-    /// What the import pipeline did, in order, for people.
-    pub pipeline: Vec<String>,
-    /// Per joint, its H-Anim name if mapped (what retargeting matches on).
-    pub hanim: Vec<Option<String>>,
-}
-
-/// A joint's DOF limits and the frame they are expressed in.
-#[derive(Debug, Clone)]
-pub struct JointLimits {
-    /// DOFs and limits as authored.
-    pub dofs: JointDofs,
-    /// `R' = pre · R · post` maps an authored rotation to the normalised rig.
-    pub pre: Quat,
-    /// See `pre`.
-    pub post: Quat,
-}
-
-impl JointLimits {
-    /// The rotation nearest `q` (normalised frame) that the limits allow, in the normalised
-    /// frame: map back to the authored frame, project and clamp there, map forward.
-    #[must_use]
-    pub fn clamp(&self, q: Quat) -> Quat {
-        let authored = self.pre.inverse() * q * self.post.inverse();
-        let mut dofs = self.dofs.clone();
-        match dofs.set_rotation(authored) {
-            Ok(clamped) => (self.pre * clamped * self.post).normalize(),
-            Err(_) => q,
-        }
-    }
-}
-
-impl Rig {
-    /// A rig from an asset that has already been normalised; `pipeline` records how.
-    #[must_use]
-    pub fn new(
-        asset: Asset,
-        pipeline: Vec<String>,
-        limits: Vec<Option<JointLimits>>,
-        hanim: Vec<Option<String>>,
-    ) -> Self {
-        let n = asset.skeleton.len();
-        let mut translated = vec![false; n];
-        let mut scaled = vec![false; n];
-        for clip in &asset.clips {
-            for j in 0..n.min(clip.joint_count()) {
-                translated[j] |= clip.animates_translation(j);
-                scaled[j] |= clip.animates_scale(j);
-            }
-        }
-        let clips = asset.clips.iter().cloned().map(Arc::new).collect();
-        let mut limits = limits;
-        limits.resize(n, None);
-        let mut hanim = hanim;
-        hanim.resize(n, None);
-        Self {
-            name: asset.name.clone(),
-            asset,
-            clips,
-            translated,
-            scaled,
-            limits,
-            pipeline,
-            hanim,
-        }
-    }
-
-    /// The rig as retargeting sees it (asset and H-Anim names).
-    #[must_use]
-    pub fn view(&self) -> crate::rig::RigView<'_> {
-        crate::rig::RigView {
-            asset: &self.asset,
-            hanim: &self.hanim,
-        }
-    }
-
-    /// The skeleton.
-    #[must_use]
-    pub fn skeleton(&self) -> &Skeleton {
-        &self.asset.skeleton
-    }
-
-    /// A clip by name.
-    #[must_use]
-    pub fn clip(&self, name: &str) -> Option<&Arc<Clip>> {
-        self.clips.iter().find(|c| c.name() == name)
-    }
-
-    /// The listing shown to clients.
-    #[must_use]
-    pub fn info(&self) -> AssetInfo {
-        AssetInfo {
-            name: self.name.clone(),
-            joints: self.skeleton().len(),
-            clips: self
-                .clips
-                .iter()
-                .map(|c| ClipInfo {
-                    name: c.name().to_string(),
-                    duration: c.duration(),
-                })
-                .collect(),
-            pipeline: self.pipeline.clone(),
-        }
-    }
-}
 
 /// Every loaded rig, by name.
 #[derive(Debug, Default)]
@@ -186,5 +65,76 @@ impl Library {
             .values()
             .cloned()
             .collect()
+    }
+}
+
+fn import_failed(e: &ImportError) -> ProtocolError {
+    ProtocolError::new(ErrorCode::ImportFailed, e.to_string())
+}
+
+/// Checks an upload's name: an id ([`check_id`]) that does not start with `.` (a hidden or
+/// parent folder) and does not contain `.corrupt` (how bad stored files are set aside).
+///
+/// # Errors
+/// [`ErrorCode::InvalidValue`].
+pub fn check_name(name: &str) -> Result<(), ProtocolError> {
+    check_id("asset", name)?;
+    if name.starts_with('.') || name.contains(".corrupt") {
+        return Err(ProtocolError::new(
+            ErrorCode::InvalidValue,
+            "asset names must not start with '.' or contain '.corrupt'",
+        ));
+    }
+    Ok(())
+}
+
+/// The rig name an imported asset gets when uploaded as `name`: the main file's stem becomes
+/// `name`, so `model.glb` gives `name` and a multi-skin `model.glb` gives `name#<skin>`.
+fn rename(asset: &str, main_stem: &str, name: &str) -> String {
+    match asset.strip_prefix(main_stem) {
+        Some(rest) if rest.starts_with('#') => format!("{name}{rest}"),
+        _ => name.to_owned(),
+    }
+}
+
+/// Imports and normalises a file set as asset `name` (CPU-bound: call it off the async
+/// workers).
+///
+/// # Errors
+/// [`ErrorCode::ImportFailed`] with the importer's message (file and place) or the
+/// normalisation's.
+pub fn prepare(name: &str, set: &FileSet) -> Result<Vec<Rig>, ProtocolError> {
+    let main = set.main_file().map_err(|e| import_failed(&e))?;
+    let main_stem = files::stem(main).to_owned();
+    let imported = files::import_set(set).map_err(|e| import_failed(&e))?;
+    imported
+        .into_iter()
+        .map(|mut asset| {
+            asset.name = rename(&asset.name, &main_stem, name);
+            let rig_name = asset.name.clone();
+            Rig::from_asset(asset, &PipelineOptions::default()).map_err(|e| {
+                ProtocolError::new(
+                    ErrorCode::ImportFailed,
+                    format!("{main}: rig {rig_name}: normalisation failed: {e}"),
+                )
+            })
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names() {
+        assert_eq!(rename("model", "model", "x"), "x");
+        assert_eq!(rename("model#skin3", "model", "x"), "x#skin3");
+        assert_eq!(rename("other", "model", "x"), "x");
+        assert!(check_name("..").is_err());
+        assert!(check_name("a.corrupt").is_err());
+        assert!(check_name("a.corrupt.1").is_err());
+        assert!(check_name("a/b").is_err());
+        assert!(check_name("wasp-2.v1").is_ok());
     }
 }

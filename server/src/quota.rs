@@ -118,7 +118,7 @@ impl Quotas {
     ///
     /// # Errors
     /// [`Quota::Joints`] or [`Quota::ClipJointSeconds`], with its typed error.
-    pub fn check_rig(&self, rig: &crate::library::Rig) -> Result<(), (Quota, ProtocolError)> {
+    pub fn check_rig(&self, rig: &crate::rig::Rig) -> Result<(), (Quota, ProtocolError)> {
         let joints = rig.skeleton().len();
         if joints > self.max_joints {
             return Err((

@@ -8,17 +8,20 @@
 //! process asked to stop during a long start must be able to exit — the runtime waits for
 //! its blocking-pool tasks when it shuts down, never for this thread.
 
+use crate::builtin::BUILTIN_ASSET;
 use crate::import;
 use crate::rig::PipelineOptions;
 use crate::scene::playback::Layer;
-use crate::startup::{
-    BUILTIN_ASSET, DEFAULT_AVATAR, DEFAULT_SCENE, builtin_rig, data_folder_error, rig_from_asset,
-};
 use crate::state::AppState;
 use posecast_proto::msg::{AvatarId, SceneId};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use tracing::{info, warn};
+
+/// The scene created at start.
+pub const DEFAULT_SCENE: &str = "default";
+/// The built-in avatar's id in the default scene.
+pub const DEFAULT_AVATAR: &str = "avatar";
 
 /// One thing to load.
 #[derive(Debug)]
@@ -141,7 +144,7 @@ fn run(state: &AppState, plan: Plan) -> std::io::Result<()> {
 }
 
 fn load_builtin(state: &AppState) {
-    match builtin_rig() {
+    match crate::builtin::rig() {
         Ok(rig) => {
             state.library.insert(rig);
         }
@@ -204,7 +207,7 @@ fn load_file(state: &AppState, path: &Path) {
         Ok(assets) => {
             for asset in assets {
                 let name = asset.name.clone();
-                match rig_from_asset(asset, &PipelineOptions::default()) {
+                match crate::rig::Rig::from_asset(asset, &PipelineOptions::default()) {
                     Ok(rig) => {
                         info!(asset = %name, joints = rig.skeleton().len(), steps = ?rig.pipeline, "loaded");
                         state.library.insert(rig);
@@ -215,4 +218,16 @@ fn load_file(state: &AppState, path: &Path) {
         }
         Err(e) => warn!(error = %e, "skipped"),
     }
+}
+
+/// `e` with the data folder named: the bare OS error ("Not a directory") does not say which.
+pub(crate) fn data_folder_error(state: &AppState, e: &std::io::Error) -> std::io::Error {
+    let folder = state
+        .store
+        .root()
+        .map_or_else(|| "(none)".to_owned(), |p| p.display().to_string());
+    std::io::Error::new(
+        e.kind(),
+        format!("data folder {folder} (--data) is not usable: {e}"),
+    )
 }

@@ -1,12 +1,7 @@
 //! Starting and stopping a server: bind and serve at once, load rigs and restore scenes in
 //! the background ([`crate::restore`]).
 
-use crate::asset::Asset;
-use crate::builtin::AVATAR_GLB;
-use crate::import;
-use crate::library::{JointLimits, Rig};
-use crate::restore;
-use crate::rig::{PipelineOptions, RigError, normalise};
+use crate::restore::{self, data_folder_error};
 use crate::service::{app, listener};
 use crate::state::{AppState, Config};
 use std::net::SocketAddr;
@@ -16,54 +11,7 @@ use tokio::task::JoinHandle;
 use tokio::time::Instant;
 use tracing::warn;
 
-/// Name of the built-in rig.
-pub const BUILTIN_ASSET: &str = "avatar";
-/// The scene created at start.
-pub const DEFAULT_SCENE: &str = "default";
-/// The built-in avatar's id in the default scene.
-pub const DEFAULT_AVATAR: &str = "avatar";
-
-/// Makes a playable rig from an imported asset: runs the normalisation pipeline with
-/// `options` (simplify → re-orient → units → H-Anim neutral pose when humanoid) and keeps DOF
-/// limits in the frame they were authored in, with the rotation maps that carry them over.
-///
-/// # Errors
-/// The pipeline refused the rig (e.g. a mirrored bind).
-pub fn rig_from_asset(asset: Asset, options: &PipelineOptions) -> Result<Rig, RigError> {
-    let dofs = asset.skeleton.dofs().to_vec();
-    let n = normalise(asset, options)?;
-    let limits = dofs
-        .iter()
-        .zip(&n.rotation_maps)
-        .map(|(d, &(pre, post))| {
-            d.is_limited().then(|| JointLimits {
-                dofs: d.clone(),
-                pre,
-                post,
-            })
-        })
-        .collect();
-    let mut steps = n.steps;
-    if !n.unmapped.is_empty() {
-        steps.push(format!(
-            "joints without an H-Anim name: {}",
-            n.unmapped.join(", ")
-        ));
-    }
-    Ok(Rig::new(n.asset, steps, limits, n.hanim))
-}
-
-/// The built-in avatar's rig.
-///
-/// # Errors
-/// Only if the embedded file were broken (a test guards it).
-pub fn builtin_rig() -> Result<Rig, String> {
-    let mut assets =
-        import::gltf::from_slice("avatar.glb", AVATAR_GLB).map_err(|e| e.to_string())?;
-    let mut asset = assets.remove(0);
-    asset.name = BUILTIN_ASSET.to_string();
-    rig_from_asset(asset, &PipelineOptions::default()).map_err(|e| e.to_string())
-}
+pub use crate::restore::{DEFAULT_AVATAR, DEFAULT_SCENE};
 
 /// A running server.
 #[derive(Debug)]
@@ -237,16 +185,4 @@ fn open_data_folder(state: &AppState) -> std::io::Result<bool> {
             .map_err(|e| data_folder_error(state, &e))?;
     }
     Ok(first_start)
-}
-
-/// `e` with the data folder named: the bare OS error ("Not a directory") does not say which.
-pub(crate) fn data_folder_error(state: &AppState, e: &std::io::Error) -> std::io::Error {
-    let folder = state
-        .store
-        .root()
-        .map_or_else(|| "(none)".to_owned(), |p| p.display().to_string());
-    std::io::Error::new(
-        e.kind(),
-        format!("data folder {folder} (--data) is not usable: {e}"),
-    )
 }

@@ -11,7 +11,7 @@ use crate::scene::{Scene, ticker};
 use crate::service::limits::NetLimits;
 use crate::store::Store;
 use crate::stream::outbox::Outbox;
-use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError, SceneId};
+use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError, SceneId, check_id};
 use posecast_proto::placement::Placement;
 use std::collections::BTreeMap;
 use std::collections::HashMap;
@@ -122,29 +122,6 @@ pub struct AppState {
 struct Connections {
     open: HashMap<u64, Weak<Outbox>>,
     closing: bool,
-}
-
-/// Longest scene or avatar id.
-pub const MAX_ID_LEN: usize = 64;
-
-/// Checks an id: 1–64 characters from letters, digits, `-`, `_`, `.`.
-///
-/// # Errors
-/// [`ErrorCode::InvalidValue`] naming what is wrong.
-pub fn check_id(kind: &str, id: &str) -> Result<(), ProtocolError> {
-    let ok = !id.is_empty()
-        && id.len() <= MAX_ID_LEN
-        && id
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'));
-    if ok {
-        Ok(())
-    } else {
-        Err(ProtocolError::new(
-            ErrorCode::InvalidValue,
-            format!("{kind} id must be 1-{MAX_ID_LEN} letters, digits, '-', '_' or '.'"),
-        ))
-    }
 }
 
 impl AppState {
@@ -430,7 +407,7 @@ impl AppState {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::startup::{BUILTIN_ASSET, builtin_rig};
+    use crate::builtin::BUILTIN_ASSET;
 
     /// Many adds of one id into different scenes at the same moment: exactly one wins, every
     /// other one is a conflict, and the id ends up in one scene only.
@@ -441,7 +418,7 @@ mod tests {
             tick_rate: 1.0,
             ..Config::default()
         });
-        state.library.insert(builtin_rig().unwrap());
+        state.library.insert(crate::builtin::rig().unwrap());
         let scene = |i: usize| SceneId(format!("s{i}"));
         for i in 0..SCENES {
             state.create_scene(scene(i)).unwrap();

@@ -34,7 +34,7 @@ async fn clip_values_are_clamped_to_dof_limits() {
     let mut set = FileSet::new();
     set.insert("arm.skel", SKEL.as_bytes().to_vec()).unwrap();
     set.insert("bend.anim", anim().into_bytes()).unwrap();
-    for rig in posecast_server::upload::prepare("arm", &set).unwrap() {
+    for rig in posecast_server::library::prepare("arm", &set).unwrap() {
         state.library.insert(rig);
     }
     let rig = state.library.get("arm").unwrap();

@@ -15,7 +15,6 @@ use posecast_proto::msg::{ErrorCode, SceneId};
 use posecast_proto::testing::finite_f32s;
 use posecast_server::control;
 use posecast_server::import::files::FileSet;
-use posecast_server::startup::builtin_rig;
 use posecast_server::state::{AppState, Config};
 use posecast_server::store::snapshot;
 use proptest::prelude::*;
@@ -34,11 +33,13 @@ fn world() -> (tokio::runtime::Runtime, Arc<AppState>) {
     let state = {
         let _enter = rt.enter();
         let state = AppState::new(Config::default());
-        state.library.insert(builtin_rig().unwrap());
+        state
+            .library
+            .insert(posecast_server::builtin::rig().unwrap());
         let mut set = FileSet::new();
         set.insert("jointed.skel", SKEL.as_bytes().to_vec())
             .unwrap();
-        for rig in posecast_server::upload::prepare("jointed", &set).unwrap() {
+        for rig in posecast_server::library::prepare("jointed", &set).unwrap() {
             state.library.insert(rig);
         }
         for json in [

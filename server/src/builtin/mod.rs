@@ -20,6 +20,12 @@ pub mod skeleton;
 
 pub use skeleton::{JOINT_COUNT, JOINTS, joint_names};
 
+use crate::import::{self, ImportError};
+use crate::rig::{PipelineOptions, Rig, RigError};
+
+/// Name of the built-in rig.
+pub const BUILTIN_ASSET: &str = "avatar";
+
 /// The committed `assets/avatar.glb`, embedded so the server needs nothing on disk.
 pub const AVATAR_GLB: &[u8] = include_bytes!("../../../assets/avatar.glb");
 
@@ -38,4 +44,31 @@ pub fn try_generate() -> Result<Vec<u8>, glb::WriteError> {
     let mesh = mesh::build();
     let clips = clips::sample_all(&rig);
     glb::write(&rig, &mesh, &clips)
+}
+
+/// Why the embedded avatar could not be loaded (never expected: a test guards the file).
+#[derive(Debug, thiserror::Error)]
+pub enum BuiltinError {
+    /// The embedded `.glb` did not import.
+    #[error("importing the built-in avatar: {0}")]
+    Import(#[from] ImportError),
+    /// The file held no asset.
+    #[error("the built-in avatar file holds no asset")]
+    Empty,
+    /// Normalisation refused it.
+    #[error("normalising the built-in avatar: {0}")]
+    Rig(#[from] RigError),
+}
+
+/// The built-in avatar's rig, normalised, named [`BUILTIN_ASSET`].
+///
+/// # Errors
+/// Only if the embedded file were broken (a test guards it).
+pub fn rig() -> Result<Rig, BuiltinError> {
+    let mut asset = import::gltf::from_slice("avatar.glb", AVATAR_GLB)?
+        .into_iter()
+        .next()
+        .ok_or(BuiltinError::Empty)?;
+    asset.name = BUILTIN_ASSET.to_string();
+    Ok(Rig::from_asset(asset, &PipelineOptions::default())?)
 }

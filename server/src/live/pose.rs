@@ -1,8 +1,8 @@
 //! One live-driven avatar's driver state: the latest source pose, its retargeting onto the
 //! avatar's rig, and when the driver counts as gone.
 
-use crate::library::Rig;
 use crate::quota::{CommandRate, TokenBucket};
+use crate::rig::Rig;
 use crate::rig::retarget::{PoseRetargeter, PoseScratch};
 use glam::{Mat4, Quat, Vec3};
 use posecast_proto::Transform;

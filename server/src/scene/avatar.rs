@@ -3,8 +3,8 @@
 
 use super::placement::{Placing, RootTrack};
 use super::playback::{Layer, Player};
-use crate::library::Rig;
 use crate::live::pose::LivePose;
+use crate::rig::Rig;
 use glam::{Mat4, Quat};
 use posecast_proto::bind::{rotation_about, world_increment_local};
 use posecast_proto::command::AvatarState;

@@ -234,7 +234,7 @@ mod tests {
     /// The built-in avatar playing a 1 s looping clip whose root walks 1 m along +Z (its
     /// height and the rest of the rig as at rest), in `mode`, standing at `placement`.
     fn walker(mode: RootMotion, placement: Placement) -> Avatar {
-        let rig = Arc::new(crate::startup::builtin_rig().unwrap());
+        let rig = Arc::new(crate::builtin::rig().unwrap());
         let root = rig.skeleton().rest()[0].translation;
         let mut joints = vec![JointChannels::default(); rig.skeleton().len()];
         joints[0].translation = Some(VectorChannel::Keys(

@@ -171,7 +171,7 @@ impl Store {
     /// imported and dropped: the store remembers the upload, not its bytes.
     pub fn restore_upload(&self, state: &AppState, dir: &Path) {
         let loaded = read_asset(dir).and_then(|(meta, set)| {
-            let rigs = crate::upload::prepare(&meta.name, &set).map_err(|e| e.message)?;
+            let rigs = crate::library::prepare(&meta.name, &set).map_err(|e| e.message)?;
             Ok((meta, set, rigs))
         });
         match loaded {

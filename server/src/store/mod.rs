@@ -404,7 +404,6 @@ pub(crate) fn set_aside(path: &Path, reason: &str) {
 mod tests {
     use super::*;
     use crate::control::execute_durable;
-    use crate::startup::builtin_rig;
     use crate::state::Config;
     use posecast_proto::command::Command;
 
@@ -415,7 +414,7 @@ mod tests {
             ..Config::default()
         });
         state.store.open().unwrap();
-        state.library.insert(builtin_rig().unwrap());
+        state.library.insert(crate::builtin::rig().unwrap());
         state
     }
 

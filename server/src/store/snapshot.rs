@@ -340,7 +340,7 @@ fn restore_playback(state: &AppState, avatar: &AvatarId, p: &PlaybackRecord, ela
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::startup::{BUILTIN_ASSET, builtin_rig};
+    use crate::builtin::BUILTIN_ASSET;
     use crate::state::Config;
 
     fn cmd(state: &AppState, json: &str) -> serde_json::Value {
@@ -350,7 +350,7 @@ mod tests {
     #[tokio::test]
     async fn snapshot_round_trips_through_json_and_restore() {
         let state = AppState::new(Config::default());
-        state.library.insert(builtin_rig().unwrap());
+        state.library.insert(crate::builtin::rig().unwrap());
         cmd(&state, r#"{"op":"create_scene","scene":"s"}"#);
         cmd(
             &state,
@@ -396,7 +396,7 @@ mod tests {
 
         // Restore into a fresh state 2 s later: a's clock moved 1 s (speed 0.5), b's did not.
         let fresh = AppState::new(Config::default());
-        fresh.library.insert(builtin_rig().unwrap());
+        fresh.library.insert(crate::builtin::rig().unwrap());
         restore(&fresh, &back, 3_000_000).unwrap();
         let again = snapshot(&fresh.scene(&SceneId("s".into())).unwrap(), 3_000_000);
         let (ra, rb) = (&again.avatars[0], &again.avatars[1]);
@@ -418,7 +418,7 @@ mod tests {
     #[tokio::test]
     async fn restore_skips_what_no_longer_exists() {
         let state = AppState::new(Config::default());
-        state.library.insert(builtin_rig().unwrap());
+        state.library.insert(crate::builtin::rig().unwrap());
         let file: SceneFile = serde_json::from_value(serde_json::json!({
             "format": 1, "scene": "s", "saved_us": 0,
             "avatars": [

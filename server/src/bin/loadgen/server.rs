@@ -241,7 +241,7 @@ pub async fn create_scene(
             i as u64 + 1,
             Command::AddAvatar {
                 scene: scene_id.clone(),
-                asset: posecast_server::startup::BUILTIN_ASSET.into(),
+                asset: posecast_server::builtin::BUILTIN_ASSET.into(),
                 avatar: Some(AvatarId(format!("load-{i}"))),
                 clip,
                 position: None,

@@ -1,78 +1,22 @@
 //! Uploading assets: an in-memory file set is imported ([`crate::import::files`]), normalised
-//! like the rigs loaded at start ([`rig_from_asset`]), stored durably, and only then added to
+//! like the rigs loaded at start ([`crate::library::prepare`]), stored durably, and only then added to
 //! the library and acknowledged. On any failure nothing changes: no library entry, no file
 //! left in the data folder.
 //!
 //! Uploads come over REST only (`service::upload`); the websocket keeps its 64 KiB message
 //! bound, which is what lets a connection's reader stay small and never buffer a model.
 
-use crate::import::ImportError;
 use crate::import::files::{self, FileSet};
-use crate::library::Rig;
-use crate::rig::PipelineOptions;
-use crate::startup::rig_from_asset;
-use crate::state::{AppState, check_id};
+use crate::library::{check_name, prepare};
+use crate::rig::Rig;
+use crate::state::AppState;
 use crate::store::assets::{self, AssetMeta};
 use posecast_proto::command::AssetInfo;
 use posecast_proto::msg::{ErrorCode, ProtocolError};
 use std::sync::Arc;
 
-fn import_failed(e: &ImportError) -> ProtocolError {
-    ProtocolError::new(ErrorCode::ImportFailed, e.to_string())
-}
-
 fn internal(what: &str, e: &dyn std::fmt::Display) -> ProtocolError {
     ProtocolError::new(ErrorCode::Internal, format!("{what}: {e}"))
-}
-
-/// Checks an upload's name: an id ([`check_id`]) that does not start with `.` (a hidden or
-/// parent folder) and does not contain `.corrupt` (how bad stored files are set aside).
-///
-/// # Errors
-/// [`ErrorCode::InvalidValue`].
-pub fn check_name(name: &str) -> Result<(), ProtocolError> {
-    check_id("asset", name)?;
-    if name.starts_with('.') || name.contains(".corrupt") {
-        return Err(ProtocolError::new(
-            ErrorCode::InvalidValue,
-            "asset names must not start with '.' or contain '.corrupt'",
-        ));
-    }
-    Ok(())
-}
-
-/// The rig name an imported asset gets when uploaded as `name`: the main file's stem becomes
-/// `name`, so `model.glb` gives `name` and a multi-skin `model.glb` gives `name#<skin>`.
-fn rename(asset: &str, main_stem: &str, name: &str) -> String {
-    match asset.strip_prefix(main_stem) {
-        Some(rest) if rest.starts_with('#') => format!("{name}{rest}"),
-        _ => name.to_owned(),
-    }
-}
-
-/// Imports and normalises a file set as asset `name` (CPU-bound: call it off the async
-/// workers).
-///
-/// # Errors
-/// [`ErrorCode::ImportFailed`] with the importer's message (file and place) or the
-/// normalisation's.
-pub fn prepare(name: &str, set: &FileSet) -> Result<Vec<Rig>, ProtocolError> {
-    let main = set.main_file().map_err(|e| import_failed(&e))?;
-    let main_stem = files::stem(main).to_owned();
-    let imported = files::import_set(set).map_err(|e| import_failed(&e))?;
-    imported
-        .into_iter()
-        .map(|mut asset| {
-            asset.name = rename(&asset.name, &main_stem, name);
-            let rig_name = asset.name.clone();
-            rig_from_asset(asset, &PipelineOptions::default()).map_err(|e| {
-                ProtocolError::new(
-                    ErrorCode::ImportFailed,
-                    format!("{main}: rig {rig_name}: normalisation failed: {e}"),
-                )
-            })
-        })
-        .collect()
 }
 
 /// Whether `name` is taken: a loaded rig `name` or `name#…`, an upload, or a stored folder.
@@ -358,17 +302,5 @@ mod tests {
             .await
             .unwrap();
         assert!(in_memory.store.uploads()["b"].files.is_none());
-    }
-
-    #[test]
-    fn names() {
-        assert_eq!(rename("model", "model", "x"), "x");
-        assert_eq!(rename("model#skin3", "model", "x"), "x#skin3");
-        assert_eq!(rename("other", "model", "x"), "x");
-        assert!(check_name("..").is_err());
-        assert!(check_name("a.corrupt").is_err());
-        assert!(check_name("a.corrupt.1").is_err());
-        assert!(check_name("a/b").is_err());
-        assert!(check_name("wasp-2.v1").is_ok());
     }
 }

@@ -1,4 +1,4 @@
-//! Asset uploads over HTTP (see [`crate::upload`] for what happens to the files).
+//! Asset uploads over HTTP (see [`ingest`] for what happens to the files).
 //!
 //! - `POST /api/assets/{name}`: a new asset from a `multipart/form-data` body whose file
 //!   parts' names give the format (one `.glb`; one `.gltf` with its `.bin`/image files; one
@@ -14,6 +14,8 @@
 
 use super::rest::AppError;
 use crate::auth::Caller;
+mod ingest;
+
 use crate::import::files::FileSet;
 use crate::state::AppState;
 use axum::Json;
@@ -132,9 +134,9 @@ pub async fn upload(
     request: Request,
 ) -> Result<Json<Value>, AppError> {
     state.config.access.authorize_upload(&caller)?;
-    crate::upload::check_name(&name)?;
+    crate::library::check_name(&name)?;
     let set = file_set(&state, &name, request).await?;
-    let infos = crate::upload::upload(&state, &name, set).await?;
+    let infos = ingest::upload(&state, &name, set).await?;
     Ok(Json(json!({ "result": infos })))
 }
 
@@ -147,6 +149,6 @@ pub async fn add_clips(
 ) -> Result<Json<Value>, AppError> {
     state.config.access.authorize_upload(&caller)?;
     let set = file_set(&state, &name, request).await?;
-    let info = crate::upload::add_clips(&state, &name, set).await?;
+    let info = ingest::add_clips(&state, &name, set).await?;
     Ok(Json(json!({ "result": info })))
 }

@@ -1,0 +1,163 @@
+//! A rig ready to play: a normalised asset with its clips, the DOF limits in the frame they
+//! were authored in, and the H-Anim names retargeting matches on ([`Rig::from_asset`] runs the
+//! normalisation pipeline).
+
+use super::{PipelineOptions, RigError, RigView, normalise};
+use crate::asset::Asset;
+use crate::clip::Clip;
+use glam::Quat;
+use posecast_proto::command::{AssetInfo, ClipInfo};
+use posecast_proto::{JointDofs, Skeleton};
+use std::sync::Arc;
+
+/// A rig ready to play: the normalised asset, its clips shared with every avatar using them.
+#[derive(Debug)]
+pub struct Rig {
+    /// The asset's (unique) name.
+    pub name: String,
+    /// The normalised asset.
+    pub asset: Asset,
+    /// Its clips, shared by the avatars playing them.
+    pub clips: Vec<Arc<Clip>>,
+    /// Per joint: whether any clip animates its translation (streamed in every frame).
+    pub translated: Vec<bool>,
+    /// Per joint: whether any clip animates its scale.
+    pub scaled: Vec<bool>,
+    /// Per joint: the DOFs and limits in the joint's authored frame, with the rotations that
+    /// map an authored rotation `R` to the normalised one `R' = pre · R · post`.
+    pub limits: Vec<Option<JointLimits>>,
+    /// What the import pipeline did, in order, for people.
+    pub pipeline: Vec<String>,
+    /// Per joint, its H-Anim name if mapped (what retargeting matches on).
+    pub hanim: Vec<Option<String>>,
+}
+
+/// A joint's DOF limits and the frame they are expressed in.
+#[derive(Debug, Clone)]
+pub struct JointLimits {
+    /// DOFs and limits as authored.
+    pub dofs: JointDofs,
+    /// `R' = pre · R · post` maps an authored rotation to the normalised rig.
+    pub pre: Quat,
+    /// See `pre`.
+    pub post: Quat,
+}
+
+impl JointLimits {
+    /// The rotation nearest `q` (normalised frame) that the limits allow, in the normalised
+    /// frame: map back to the authored frame, project and clamp there, map forward.
+    #[must_use]
+    pub fn clamp(&self, q: Quat) -> Quat {
+        let authored = self.pre.inverse() * q * self.post.inverse();
+        let mut dofs = self.dofs.clone();
+        match dofs.set_rotation(authored) {
+            Ok(clamped) => (self.pre * clamped * self.post).normalize(),
+            Err(_) => q,
+        }
+    }
+}
+
+impl Rig {
+    /// Makes a playable rig from an imported asset: runs the normalisation pipeline with
+    /// `options` (simplify → re-orient → units → H-Anim neutral pose when humanoid) and keeps DOF
+    /// limits in the frame they were authored in, with the rotation maps that carry them over.
+    ///
+    /// # Errors
+    /// The pipeline refused the rig (e.g. a mirrored bind).
+    pub fn from_asset(asset: Asset, options: &PipelineOptions) -> Result<Self, RigError> {
+        let dofs = asset.skeleton.dofs().to_vec();
+        let n = normalise(asset, options)?;
+        let limits = dofs
+            .iter()
+            .zip(&n.rotation_maps)
+            .map(|(d, &(pre, post))| {
+                d.is_limited().then(|| JointLimits {
+                    dofs: d.clone(),
+                    pre,
+                    post,
+                })
+            })
+            .collect();
+        let mut steps = n.steps;
+        if !n.unmapped.is_empty() {
+            steps.push(format!(
+                "joints without an H-Anim name: {}",
+                n.unmapped.join(", ")
+            ));
+        }
+        Ok(Self::new(n.asset, steps, limits, n.hanim))
+    }
+
+    /// A rig from an asset that has already been normalised; `pipeline` records how.
+    #[must_use]
+    pub fn new(
+        asset: Asset,
+        pipeline: Vec<String>,
+        limits: Vec<Option<JointLimits>>,
+        hanim: Vec<Option<String>>,
+    ) -> Self {
+        let n = asset.skeleton.len();
+        let mut translated = vec![false; n];
+        let mut scaled = vec![false; n];
+        for clip in &asset.clips {
+            for j in 0..n.min(clip.joint_count()) {
+                translated[j] |= clip.animates_translation(j);
+                scaled[j] |= clip.animates_scale(j);
+            }
+        }
+        let clips = asset.clips.iter().cloned().map(Arc::new).collect();
+        let mut limits = limits;
+        limits.resize(n, None);
+        let mut hanim = hanim;
+        hanim.resize(n, None);
+        Self {
+            name: asset.name.clone(),
+            asset,
+            clips,
+            translated,
+            scaled,
+            limits,
+            pipeline,
+            hanim,
+        }
+    }
+
+    /// The rig as retargeting sees it (asset and H-Anim names).
+    #[must_use]
+    pub fn view(&self) -> RigView<'_> {
+        RigView {
+            asset: &self.asset,
+            hanim: &self.hanim,
+        }
+    }
+
+    /// The skeleton.
+    #[must_use]
+    pub fn skeleton(&self) -> &Skeleton {
+        &self.asset.skeleton
+    }
+
+    /// A clip by name.
+    #[must_use]
+    pub fn clip(&self, name: &str) -> Option<&Arc<Clip>> {
+        self.clips.iter().find(|c| c.name() == name)
+    }
+
+    /// The listing shown to clients.
+    #[must_use]
+    pub fn info(&self) -> AssetInfo {
+        AssetInfo {
+            name: self.name.clone(),
+            joints: self.skeleton().len(),
+            clips: self
+                .clips
+                .iter()
+                .map(|c| ClipInfo {
+                    name: c.name().to_string(),
+                    duration: c.duration(),
+                })
+                .collect(),
+            pipeline: self.pipeline.clone(),
+        }
+    }
+}
