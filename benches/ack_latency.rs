@@ -11,8 +11,8 @@ use futures_util::{SinkExt, StreamExt};
 use posecast_proto::command::Command;
 use posecast_proto::msg::{AvatarId, ClientMsg, Encoding, PROTOCOL_VERSION, ServerMsg};
 use posecast_server::auth::{AccessConfig, Role, Secret, TokenRule};
+use posecast_server::config::Config;
 use posecast_server::startup::Server;
-use posecast_server::state::Config;
 use std::time::{Duration, Instant};
 use tokio_tungstenite::tungstenite::Message;
 

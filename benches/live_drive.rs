@@ -11,8 +11,8 @@ use glam::Quat;
 use posecast_client::net::{Client, ClientOptions, Driver, Event};
 use posecast_proto::msg::{AvatarId, Encoding};
 use posecast_server::auth::{AccessConfig, Role, Secret, TokenRule};
+use posecast_server::config::Config;
 use posecast_server::startup::Server;
-use posecast_server::state::Config;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -43,6 +43,7 @@ async fn latency() -> anyhow::Result<()> {
     let avatar = AvatarId("avatar".into());
     let elbow = server
         .state
+        .world
         .library
         .get("avatar")
         .and_then(|r| r.skeleton().find("l_elbow"))
@@ -108,9 +109,9 @@ async fn latency() -> anyhow::Result<()> {
 }
 
 fn cpu_per_tick() -> anyhow::Result<()> {
-    use posecast_server::live::pose::{LivePose, ValidPose};
+    use posecast_server::avatar::Avatar;
+    use posecast_server::avatar::live::{LivePose, ValidPose};
     use posecast_server::rig::PipelineOptions;
-    use posecast_server::scene::avatar::Avatar;
     let path = posecast_proto::testing::testdata("bvh/cmu/01_01.bvh");
     let Ok(text) = std::fs::read_to_string(&path) else {
         println!("{} absent: no retargeting figure", path.display());

@@ -4,13 +4,14 @@
 
 use clap::Parser;
 use posecast_server::auth::{AccessConfig, Role, Secret, TokenRule};
+use posecast_server::config::{
+    Config, DEFAULT_MAX_CONNECTIONS, DEFAULT_MAX_CONNECTIONS_PER_ADDRESS, DEFAULT_MAX_UPLOAD_BYTES,
+    NetLimits,
+};
 use posecast_server::quota::{CommandRate, Quotas};
 use posecast_server::readiness::Phase;
-use posecast_server::service::limits::{
-    DEFAULT_MAX_CONNECTIONS, DEFAULT_MAX_CONNECTIONS_PER_ADDRESS, NetLimits, raise_nofile_limit,
-};
+use posecast_server::service::limits::raise_nofile_limit;
 use posecast_server::startup::{DEFAULT_SCENE, Server};
-use posecast_server::state::{Config, DEFAULT_MAX_UPLOAD_BYTES};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -351,8 +352,8 @@ async fn main() -> anyhow::Result<()> {
             Phase::Failed(reason) => anyhow::bail!("start-up failed: {reason}"),
             Phase::Ready => println!(
                 "posecast ready ({} rigs, {} scenes) {:.2} s after start",
-                state.library.all().len(),
-                state.scenes().len(),
+                state.world.library.all().len(),
+                state.world.scenes().len(),
                 started.elapsed().as_secs_f64()
             ),
             Phase::Starting | Phase::Stopped => {}

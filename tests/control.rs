@@ -114,7 +114,7 @@ async fn a_bvh_clip_plays_retargeted_on_the_built_in_avatar() {
     asset.name = "cmu".into();
     let clip = asset.clips[0].name().to_string();
     let rig = posecast_server::rig::Rig::from_asset(asset, &Default::default()).unwrap();
-    server.state.library.insert(rig);
+    server.state.world.library.insert(rig);
     let c = client(&server, Encoding::Binary).await;
     let id = AvatarId("avatar".into());
     assert!(wait_for(3.0, || c.latest(&id).is_some()).await);
@@ -241,7 +241,7 @@ async fn a_long_retarget_bake_does_not_stall_other_scenes() {
     let clip = Clip::new("marathon", walk.channels().to_vec(), Some((0.0, 27_510.0))).unwrap();
     long.name = "long".into();
     long.clips = vec![std::sync::Arc::new(clip)];
-    server.state.library.insert(long);
+    server.state.world.library.insert(long);
     for c in [
         r#"{"op":"create_scene","scene":"other"}"#,
         r#"{"op":"add_avatar","scene":"other","asset":"avatar","avatar":"o"}"#,

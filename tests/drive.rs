@@ -15,8 +15,8 @@ use posecast_proto::live::BinaryPose;
 use posecast_proto::msg::{AvatarId, Encoding, ErrorCode};
 use posecast_proto::quant::{MAX_ERROR_DEGREES, angle_between_degrees};
 use posecast_server::auth::{Role, Secret, TokenRule};
+use posecast_server::config::Config;
 use posecast_server::startup::Server;
-use posecast_server::state::Config;
 use std::time::Duration;
 
 const ALICE: &str = "alice-drives-avatar";
@@ -52,7 +52,7 @@ async fn driver(server: &Server, token: &str) -> Driver {
 }
 
 fn joint(server: &Server, name: &str) -> usize {
-    let rig = server.state.library.get("avatar").unwrap();
+    let rig = server.state.world.library.get("avatar").unwrap();
     rig.skeleton().find(name).unwrap()
 }
 
@@ -160,8 +160,8 @@ async fn a_source_rig_is_retargeted_in_world_space() {
     let (status, body) =
         common::upload_files(server.addr, "/api/assets/01_01", &[("01_01.bvh", &bvh)]).await;
     assert_eq!(status, 200, "{body}");
-    let source = server.state.library.get("01_01").unwrap();
-    let target = server.state.library.get("avatar").unwrap();
+    let source = server.state.world.library.get("01_01").unwrap();
+    let target = server.state.world.library.get("avatar").unwrap();
     let sub = common::client(&server, Encoding::Binary).await;
     let d = driver(&server, ALICE).await;
     let info = d.drive(&avatar(), Some("01_01"), None).await.unwrap();

@@ -12,9 +12,9 @@ mod common;
 
 use futures_util::{SinkExt, StreamExt};
 use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION};
-use posecast_server::service::limits::NetLimits;
+use posecast_server::config::Config;
+use posecast_server::config::NetLimits;
 use posecast_server::startup::Server;
-use posecast_server::state::Config;
 use std::net::{IpAddr, SocketAddr};
 use std::time::{Duration, Instant};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};

@@ -14,9 +14,9 @@ use posecast_proto::frame::FrameDecoder;
 use posecast_proto::msg::SceneId;
 use posecast_proto::msg::{AvatarId, Encoding, ErrorCode, MAX_CLIENT_MESSAGE_BYTES, ServerMsg};
 use posecast_proto::quant::{MAX_ERROR_DEGREES, angle_between_degrees};
+use posecast_server::avatar::Avatar;
 use posecast_server::import;
 use posecast_server::metrics::Metrics;
-use posecast_server::scene::avatar::Avatar;
 use posecast_server::scene::{Scene, Subscriber};
 use posecast_server::stream::outbox::{MAX_CONTROL_BYTES, Outbox};
 use posecast_server::stream::writer::run_writer;
@@ -116,6 +116,7 @@ async fn a_testdata_rig_streams_its_clip() {
     asset.name = "cesium".into();
     server
         .state
+        .world
         .library
         .insert(posecast_server::rig::Rig::from_asset(asset, &Default::default()).unwrap());
     let c = client(&server, Encoding::Binary).await;
@@ -132,7 +133,7 @@ async fn a_testdata_rig_streams_its_clip() {
         .unwrap();
     assert_eq!(reply["avatar"], "cesium-1");
     let id = AvatarId("cesium-1".into());
-    let rig = server.state.library.get("cesium").unwrap();
+    let rig = server.state.world.library.get("cesium").unwrap();
     let clip_name = rig.clips[0].name().to_string();
     c.command(Command::Play {
         avatar: id.clone(),

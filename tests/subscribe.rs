@@ -14,8 +14,8 @@ use posecast_proto::command::Command;
 use posecast_proto::frame::FrameDecoder;
 use posecast_proto::msg::{AvatarId, ClientMsg, Encoding, FrameJson, SceneId, ServerMsg};
 use posecast_proto::quant::{MAX_ERROR_DEGREES, angle_between_degrees};
+use posecast_server::avatar::Avatar;
 use posecast_server::metrics::Metrics;
-use posecast_server::scene::avatar::Avatar;
 use posecast_server::scene::{Scene, Subscriber};
 use posecast_server::stream::outbox::{Next, Outbox};
 use std::collections::HashMap;
@@ -195,11 +195,12 @@ fn ids(frame: &Frame) -> Vec<AvatarId> {
 async fn a_scene_of_1000_avatars_streams_to_every_subscriber() {
     let server = server(10.0).await;
     let scene = SceneId("crowd".into());
-    server.state.create_scene(scene.clone()).unwrap();
+    server.state.world.create_scene(scene.clone()).unwrap();
     let crowd: Vec<AvatarId> = (0..1000).map(|i| AvatarId(format!("c{i:04}"))).collect();
     for id in &crowd {
         server
             .state
+            .world
             .add_avatar(&scene, "avatar", Some(id.clone()))
             .unwrap();
     }

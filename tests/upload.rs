@@ -6,8 +6,8 @@
 mod common;
 
 use common::{command_to, http_to, list_tree, testdata_bytes, upload_files};
+use posecast_server::config::Config;
 use posecast_server::startup::Server;
-use posecast_server::state::Config;
 use serde_json::Value;
 use std::net::SocketAddr;
 

@@ -19,8 +19,8 @@ use posecast_proto::msg::AvatarId;
 use posecast_proto::skinning::skin_cpu;
 use posecast_server::auth::{AccessConfig, Role, Secret, TokenRule};
 use posecast_server::builtin::AVATAR_GLB;
+use posecast_server::config::Config;
 use posecast_server::startup::{DEFAULT_AVATAR, DEFAULT_SCENE, Server};
-use posecast_server::state::Config;
 
 const TOKEN: &str = "render-e2e-control";
 use render_support::gpu;

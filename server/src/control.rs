@@ -1,115 +1,12 @@
-//! Executes control commands (the same code behind REST and websocket). Every change happens
-//! under the scene's lock and is re-evaluated at once, so the next tick's frame shows it.
+//! Executes control commands for clients (REST and websocket): the [`World`]'s
+//! [`command::apply`] with the slow part done first off the lock, counted in the metrics, and —
+//! with a data folder — acknowledged only once stored.
 
-use crate::scene::avatar::Avatar;
-use crate::scene::playback::{DEFAULT_FADE, Layer};
 use crate::state::AppState;
-use glam::Quat;
-use posecast_proto::command::{Command, DofInfo, JointInfo};
-use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError};
-use posecast_proto::placement::Placement;
-use serde_json::{Value, json};
-
-pub(crate) fn invalid(message: impl Into<String>) -> ProtocolError {
-    ProtocolError::new(ErrorCode::InvalidValue, message)
-}
-
-/// A finite, non-zero quaternion, normalised (in f64, so huge finite components cannot
-/// overflow into a zero or NaN rotation that would then be acknowledged and stored).
-fn quat(q: [f32; 4]) -> Result<Quat, ProtocolError> {
-    posecast_proto::unit_quat(q).ok_or_else(|| {
-        invalid(format!(
-            "rotation {q:?} is not a finite non-zero quaternion"
-        ))
-    })
-}
-
-fn finite(name: &str, v: f32) -> Result<f32, ProtocolError> {
-    if v.is_finite() {
-        Ok(v)
-    } else {
-        Err(invalid(format!("{name} must be finite")))
-    }
-}
-
-fn joint_index(avatar: &Avatar, joint: &str) -> Result<usize, ProtocolError> {
-    avatar.rig.skeleton().find(joint).ok_or_else(|| {
-        ProtocolError::new(
-            ErrorCode::UnknownJoint,
-            format!("avatar {} has no joint {joint}", avatar.id),
-        )
-    })
-}
-
-/// Runs `f` on an avatar under its scene's lock.
-fn with_avatar<T>(
-    state: &AppState,
-    id: &AvatarId,
-    f: impl FnOnce(&mut Avatar) -> Result<T, ProtocolError>,
-) -> Result<T, ProtocolError> {
-    let scene = state.find_avatar(id)?;
-    let mut s = scene.lock();
-    let avatar = s
-        .avatar_mut(id)
-        .ok_or_else(|| ProtocolError::new(ErrorCode::UnknownAvatar, format!("no avatar {id}")))?;
-    f(avatar)
-}
-
-/// The three rotation commands share this: validate the quaternion, find the joint, apply
-/// `f` under the scene lock, answer with the rotation actually set (after limits).
-fn with_joint_rotation(
-    state: &AppState,
-    avatar: &AvatarId,
-    joint: &str,
-    rotation: [f32; 4],
-    f: impl FnOnce(&mut Avatar, usize, Quat) -> Result<Quat, ProtocolError>,
-) -> Result<Value, ProtocolError> {
-    let q = quat(rotation)?;
-    with_avatar(state, avatar, |a| {
-        let j = joint_index(a, joint)?;
-        let set = f(a, j, q)?;
-        Ok(json!({ "rotation": set.to_array() }))
-    })
-}
-
-/// `get_joint`'s answer: the joint's DOFs hold the current local rotation, mapped back to the
-/// authored frame (`pre⁻¹ · R · post⁻¹`) and projected onto them.
-fn joint_info(a: &Avatar, j: usize) -> JointInfo {
-    let skeleton = a.rig.skeleton();
-    let rotation = a.locals[j].rotation;
-    let (joint_type, dofs) = match a.rig.limits.get(j).cloned().flatten() {
-        Some(limits) => {
-            let mut dofs = limits.dofs.clone();
-            let authored = (limits.pre.inverse() * rotation * limits.post.inverse()).normalize();
-            // A rotation that the joint cannot take is projected and clamped; a failure (not
-            // finite) leaves the DOFs at their last values, which is still a valid answer.
-            dofs.set_rotation(authored).ok();
-            let name = serde_json::to_value(dofs.joint_type)
-                .ok()
-                .and_then(|v| v.get("type").and_then(Value::as_str).map(str::to_owned));
-            let limit = |v: f32| v.is_finite().then_some(v);
-            let infos = dofs
-                .dofs()
-                .iter()
-                .map(|d| DofInfo {
-                    value: d.value,
-                    min: limit(d.min),
-                    max: limit(d.max),
-                })
-                .collect();
-            (name, infos)
-        }
-        None => (None, Vec::new()),
-    };
-    JointInfo {
-        joint: skeleton.names()[j].clone(),
-        parent: skeleton.parents()[j].map(|p| skeleton.names()[p].clone()),
-        joint_type,
-        dofs,
-        rotation: rotation.to_array(),
-        overridden: a.overrides[j].is_some(),
-    }
-}
+use crate::world::command;
+use posecast_proto::command::Command;
+use posecast_proto::msg::{ErrorCode, ProtocolError};
+use serde_json::Value;
 
 /// Executes a command in memory. Authorisation is checked by the caller. Servers with a data
 /// folder answer clients through [`execute_durable`] instead.
@@ -117,7 +14,7 @@ fn joint_info(a: &Avatar, j: usize) -> JointInfo {
 /// # Errors
 /// A typed error; nothing is changed when a command fails.
 pub fn execute(state: &AppState, command: &Command) -> Result<Value, ProtocolError> {
-    let result = apply(state, command);
+    let result = command::apply(&state.world, command);
     state.metrics.command(result.is_ok());
     result
 }
@@ -142,12 +39,12 @@ pub async fn execute_durable(state: &AppState, command: &Command) -> Result<Valu
         Some(s) => Some(s.clone()),
         None => command
             .avatar()
-            .and_then(|a| state.find_avatar(a).ok())
+            .and_then(|a| state.world.find_avatar(a).ok())
             .map(|s| s.id.clone()),
     };
     let result = execute(state, command)?;
     if let Some(scene) = scene {
-        state.store.persist_scene(state, &scene).await?;
+        state.store.persist_scene(&state.world, &scene).await?;
     }
     Ok(result)
 }
@@ -165,9 +62,9 @@ async fn prepare(state: &AppState, command: &Command) -> Result<(), ProtocolErro
     else {
         return Ok(());
     };
-    let source = state.library.require(source)?;
+    let source = state.world.library.require(source)?;
     let target = {
-        let scene = state.find_avatar(avatar)?;
+        let scene = state.world.find_avatar(avatar)?;
         let s = scene.lock();
         s.avatars
             .iter()
@@ -178,266 +75,7 @@ async fn prepare(state: &AppState, command: &Command) -> Result<(), ProtocolErro
             })?
     };
     if source.name != target.name {
-        state.retargets.bake(source, clip, target).await?;
+        state.world.retargets.bake(source, clip, target).await?;
     }
     Ok(())
-}
-
-/// Executes without counting in the metrics (restoring stored state at start).
-pub(crate) fn apply(state: &AppState, command: &Command) -> Result<Value, ProtocolError> {
-    match command {
-        Command::ListScenes => Ok(serde_json::to_value(
-            state.scenes().iter().map(|s| s.info()).collect::<Vec<_>>(),
-        )
-        .unwrap_or(Value::Null)),
-        Command::ListAssets => Ok(serde_json::to_value(
-            state
-                .library
-                .all()
-                .iter()
-                .map(|r| r.info())
-                .collect::<Vec<_>>(),
-        )
-        .unwrap_or(Value::Null)),
-        Command::GetAvatar { avatar } => {
-            let scene = state.find_avatar(avatar)?;
-            let s = scene.lock();
-            let a = s.avatars.iter().find(|a| &a.id == avatar).ok_or_else(|| {
-                ProtocolError::new(ErrorCode::UnknownAvatar, format!("no avatar {avatar}"))
-            })?;
-            Ok(serde_json::to_value(a.state(&scene.id)).unwrap_or(Value::Null))
-        }
-        Command::GetJoint { avatar, joint } => with_avatar(state, avatar, |a| {
-            let j = joint_index(a, joint)?;
-            Ok(serde_json::to_value(joint_info(a, j)).unwrap_or(Value::Null))
-        }),
-        Command::CreateScene { scene } => {
-            state.create_scene(scene.clone())?;
-            Ok(json!({ "scene": scene }))
-        }
-        Command::DeleteScene { scene } => {
-            state.delete_scene(scene)?;
-            Ok(Value::Null)
-        }
-        Command::AddAvatar {
-            scene,
-            asset,
-            avatar,
-            clip,
-            position,
-            rotation,
-        } => {
-            let placement = placement(
-                position.unwrap_or([0.0; 3]),
-                rotation.unwrap_or([0.0, 0.0, 0.0, 1.0]),
-            )?;
-            if let Some(clip) = clip {
-                let rig = state.library.require(asset)?;
-                if rig.clip(clip).is_none() {
-                    return Err(ProtocolError::new(
-                        ErrorCode::UnknownClip,
-                        format!("rig {asset} has no clip {clip}"),
-                    ));
-                }
-            }
-            let (scene, id) = state.add_avatar_at(scene, asset, avatar.clone(), placement, true)?;
-            if let Some(clip) = clip {
-                let mut s = scene.lock();
-                if let Some(a) = s.avatar_mut(&id)
-                    && let Some(c) = a.rig.clip(clip).cloned()
-                {
-                    a.play(Layer::new(c, None, 0.0, 1.0, true), 0.0);
-                }
-            }
-            Ok(json!({ "avatar": id }))
-        }
-        Command::RemoveAvatar { avatar } => {
-            let scene = state.find_avatar(avatar)?;
-            scene.remove_avatar(avatar);
-            Ok(Value::Null)
-        }
-        Command::Play {
-            avatar,
-            clip,
-            from_asset,
-            speed,
-            looping,
-            start,
-            fade,
-            root_motion,
-        } => {
-            let speed = finite("speed", speed.unwrap_or(1.0))?;
-            let start = finite("start", start.unwrap_or(0.0))?;
-            let fade = finite("fade", fade.unwrap_or(DEFAULT_FADE))?.max(0.0);
-            let source = match from_asset {
-                Some(name) => Some(state.library.require(name)?),
-                None => None,
-            };
-            with_avatar(state, avatar, |a| {
-                let clip = match &source {
-                    // Normally baked already (execute_durable bakes off the lock first);
-                    // only start-up restore and in-memory callers bake here.
-                    Some(src) if src.name != a.rig.name => {
-                        state.retargets.bake_blocking(src, clip, &a.rig)?
-                    }
-                    _ => a.rig.clip(clip).cloned().ok_or_else(|| {
-                        ProtocolError::new(
-                            ErrorCode::UnknownClip,
-                            format!("rig {} has no clip {clip}", a.rig.name),
-                        )
-                    })?,
-                };
-                let source_asset = source
-                    .as_ref()
-                    .map(|s| s.name.clone())
-                    .filter(|n| n != &a.rig.name);
-                let mut layer =
-                    Layer::new(clip, source_asset, start, speed, looping.unwrap_or(true));
-                if let Some(mode) = root_motion {
-                    layer.root_motion = *mode;
-                }
-                a.play(layer, fade);
-                Ok(Value::Null)
-            })
-        }
-        Command::Pause { avatar } | Command::Resume { avatar } => {
-            let paused = matches!(command, Command::Pause { .. });
-            with_avatar(state, avatar, |a| {
-                let layer = a
-                    .player
-                    .current_mut()
-                    .ok_or_else(|| invalid("no clip is playing"))?;
-                layer.set_paused(paused);
-                Ok(Value::Null)
-            })
-        }
-        Command::Seek { avatar, time } => {
-            let time = finite("time", *time)?;
-            with_avatar(state, avatar, |a| {
-                let layer = a
-                    .player
-                    .current_mut()
-                    .ok_or_else(|| invalid("no clip is playing"))?;
-                layer.seek(time);
-                a.evaluate();
-                Ok(Value::Null)
-            })
-        }
-        Command::SetSpeed { avatar, speed } => {
-            let speed = finite("speed", *speed)?;
-            with_avatar(state, avatar, |a| {
-                let layer = a
-                    .player
-                    .current_mut()
-                    .ok_or_else(|| invalid("no clip is playing"))?;
-                layer.set_speed(speed);
-                Ok(Value::Null)
-            })
-        }
-        Command::Stop { avatar } => with_avatar(state, avatar, |a| {
-            a.player.stop();
-            a.evaluate();
-            Ok(Value::Null)
-        }),
-        Command::SetJointRotation {
-            avatar,
-            joint,
-            rotation,
-        } => with_joint_rotation(state, avatar, joint, *rotation, |a, j, q| {
-            a.set_rotation(j, q).map_err(|e| invalid(e.to_string()))
-        }),
-        Command::SetJointDofs {
-            avatar,
-            joint,
-            values,
-        } => with_avatar(state, avatar, |a| {
-            let j = joint_index(a, joint)?;
-            let limits = a.rig.limits.get(j).cloned().flatten().ok_or_else(|| {
-                invalid(format!("joint {joint} has no DOFs (its rig has no joint types); set its rotation instead"))
-            })?;
-            let mut dofs = limits.dofs.clone();
-            if values.len() != dofs.dofs().len() {
-                return Err(invalid(format!(
-                    "joint {joint} has {} DOFs, got {} values",
-                    dofs.dofs().len(),
-                    values.len()
-                )));
-            }
-            for (i, &v) in values.iter().enumerate() {
-                dofs.set(i, finite("DOF value", v)?)
-                    .map_err(|e| invalid(e.to_string()))?;
-            }
-            let q =
-                posecast_proto::unit_quat((limits.pre * dofs.rotation() * limits.post).to_array())
-                    .ok_or_else(|| {
-                        invalid(format!("joint {joint}: the DOF values give no rotation"))
-                    })?;
-            a.overrides[j] = Some(q);
-            a.evaluate();
-            Ok(
-                json!({ "rotation": q.to_array(), "values": dofs.dofs().iter().map(|d| d.value).collect::<Vec<_>>() }),
-            )
-        }),
-        Command::RotateJointLocal {
-            avatar,
-            joint,
-            rotation,
-        } => with_joint_rotation(state, avatar, joint, *rotation, |a, j, q| {
-            a.rotate_local(j, q)
-                .map_err(|e| invalid(format!("joint {joint}: {e}")))
-        }),
-        Command::RotateJointWorld {
-            avatar,
-            joint,
-            rotation,
-        } => with_joint_rotation(state, avatar, joint, *rotation, |a, j, q| {
-            a.rotate_world(j, q)
-                .map_err(|e| invalid(format!("joint {joint}: {e}")))
-        }),
-        Command::Release { avatar, joint } => with_avatar(state, avatar, |a| {
-            let j = joint
-                .as_deref()
-                .map(|name| joint_index(a, name))
-                .transpose()?;
-            a.release(j);
-            Ok(Value::Null)
-        }),
-        // --- placement (issue 16) ---
-        Command::PlaceAvatar {
-            avatar,
-            position,
-            rotation,
-            duration,
-        } => {
-            let to = placement(*position, *rotation)?;
-            let duration = duration.unwrap_or(0.0);
-            if !(duration.is_finite() && duration >= 0.0) {
-                return Err(invalid("duration must be finite and ≥ 0"));
-            }
-            let scene = state.find_avatar(avatar)?;
-            let mut s = scene.lock();
-            let a = s.avatar_mut(avatar).ok_or_else(|| {
-                ProtocolError::new(ErrorCode::UnknownAvatar, format!("no avatar {avatar}"))
-            })?;
-            a.place(to, f64::from(duration));
-            // The scene's cached frames show the old placement: a joiner gets a fresh keyframe.
-            s.placed();
-            Ok(Value::Null)
-        }
-
-        // --- Live driving (issue 16); `drive` itself runs in the websocket session. ---
-        Command::Drive { .. } => Err(ProtocolError::new(
-            ErrorCode::NotAllowedNow,
-            "drive needs a websocket connection (poses stream over it)",
-        )),
-        Command::ReleaseDrive { avatar } => with_avatar(state, avatar, |a| {
-            crate::live::release(a);
-            Ok(Value::Null)
-        }),
-    }
-}
-
-/// A validated placement, or `invalid_value` naming what is wrong.
-fn placement(position: [f32; 3], rotation: [f32; 4]) -> Result<Placement, ProtocolError> {
-    Placement::try_new(position, rotation).map_err(|e| invalid(e.to_string()))
 }

@@ -19,9 +19,11 @@
 
 pub mod asset;
 pub mod auth;
+pub mod avatar;
 pub mod bake;
 pub mod builtin;
 pub mod clip;
+pub mod config;
 pub mod control;
 pub mod export;
 pub mod import;
@@ -38,3 +40,4 @@ pub mod startup;
 pub mod state;
 pub mod store;
 pub mod stream;
+pub mod world;

@@ -8,10 +8,10 @@
 //! process asked to stop during a long start must be able to exit — the runtime waits for
 //! its blocking-pool tasks when it shuts down, never for this thread.
 
+use crate::avatar::playback::Layer;
 use crate::builtin::BUILTIN_ASSET;
 use crate::import;
 use crate::rig::PipelineOptions;
-use crate::scene::playback::Layer;
 use crate::state::AppState;
 use posecast_proto::msg::{AvatarId, SceneId};
 use std::path::{Path, PathBuf};
@@ -96,8 +96,8 @@ pub fn spawn(state: Arc<AppState>, plan: Plan) -> std::io::Result<()> {
                     info!("start-up loading stopped: the server is shutting down");
                 }
                 Ok(()) => info!(
-                    rigs = state.library.all().len(),
-                    scenes = state.scenes().len(),
+                    rigs = state.world.library.all().len(),
+                    scenes = state.world.scenes().len(),
                     seconds = began.elapsed().as_secs_f64(),
                     "ready"
                 ),
@@ -117,22 +117,22 @@ fn run(state: &AppState, plan: Plan) -> std::io::Result<()> {
         match source {
             Source::Builtin => load_builtin(state),
             Source::File(path) => load_file(state, &path),
-            Source::Upload(dir) => state.store.restore_upload(state, &dir),
+            Source::Upload(dir) => state.store.restore_upload(&state.world, &dir),
         }
         state.readiness.source_done();
     }
     if state.readiness.stopped() {
         return Ok(());
     }
-    state.store.restore_scenes(state);
+    state.store.restore_scenes(&state.world);
     if plan.first_start && !state.readiness.stopped() {
         if state.config.builtin {
             create_default_scene(state);
         }
-        for scene in state.scenes() {
+        for scene in state.world.scenes() {
             state
                 .store
-                .persist_scene_now(state, &scene.id)
+                .persist_scene_now(&state.world, &scene.id)
                 .map_err(|e| data_folder_error(state, &e))?;
         }
         state
@@ -146,7 +146,7 @@ fn run(state: &AppState, plan: Plan) -> std::io::Result<()> {
 fn load_builtin(state: &AppState) {
     match crate::builtin::rig() {
         Ok(rig) => {
-            state.library.insert(rig);
+            state.world.library.insert(rig);
         }
         Err(e) => warn!(error = %e, "the built-in avatar failed to load"),
     }
@@ -156,11 +156,13 @@ fn load_builtin(state: &AppState) {
 /// folder says which scenes exist). Kept when a stored scene of that name was restored.
 fn create_default_scene(state: &AppState) {
     let scene = SceneId(DEFAULT_SCENE.into());
-    if state.library.get(BUILTIN_ASSET).is_none() || state.scene(&scene).is_ok() {
+    if state.world.library.get(BUILTIN_ASSET).is_none() || state.world.scene(&scene).is_ok() {
         return;
     }
-    let added = state.create_scene(scene.clone()).and_then(|_| {
-        state.add_avatar(&scene, BUILTIN_ASSET, Some(AvatarId(DEFAULT_AVATAR.into())))
+    let added = state.world.create_scene(scene.clone()).and_then(|_| {
+        state
+            .world
+            .add_avatar(&scene, BUILTIN_ASSET, Some(AvatarId(DEFAULT_AVATAR.into())))
     });
     match added {
         Ok((scene, id)) => {
@@ -210,7 +212,7 @@ fn load_file(state: &AppState, path: &Path) {
                 match crate::rig::Rig::from_asset(asset, &PipelineOptions::default()) {
                     Ok(rig) => {
                         info!(asset = %name, joints = rig.skeleton().len(), steps = ?rig.pipeline, "loaded");
-                        state.library.insert(rig);
+                        state.world.library.insert(rig);
                     }
                     Err(e) => warn!(asset = %name, error = %e, "skipped: normalisation failed"),
                 }

@@ -8,9 +8,10 @@
 
 use glam::{EulerRot, Quat};
 use posecast_proto::msg::SceneId;
+use posecast_server::config::Config;
 use posecast_server::control;
 use posecast_server::import::files::FileSet;
-use posecast_server::state::{AppState, Config};
+use posecast_server::state::AppState;
 
 const SKEL: &str = "balljoint root { offset 0 1 0 \
     balljoint elbow { offset 0.3 0 0 rotxlimit -1 1 rotylimit -0.66 -0.66 rotzlimit 0 0.2 } }";
@@ -35,9 +36,9 @@ async fn clip_values_are_clamped_to_dof_limits() {
     set.insert("arm.skel", SKEL.as_bytes().to_vec()).unwrap();
     set.insert("bend.anim", anim().into_bytes()).unwrap();
     for rig in posecast_server::library::prepare("arm", &set).unwrap() {
-        state.library.insert(rig);
+        state.world.library.insert(rig);
     }
-    let rig = state.library.get("arm").unwrap();
+    let rig = state.world.library.get("arm").unwrap();
     let clip = rig.clips[0].name().to_string();
     for json in [
         r#"{"op":"create_scene","scene":"s"}"#.to_string(),
@@ -46,7 +47,7 @@ async fn clip_values_are_clamped_to_dof_limits() {
     ] {
         control::execute(&state, &serde_json::from_str(&json).unwrap()).unwrap();
     }
-    let scene = state.scene(&SceneId("s".into())).unwrap();
+    let scene = state.world.scene(&SceneId("s".into())).unwrap();
     scene.tick(1, 0.5, 0, 60);
     let elbow = rig.skeleton().find("elbow").unwrap();
     let limits = rig.limits[elbow].clone().unwrap();

@@ -13,9 +13,10 @@
 use posecast_proto::command::Command;
 use posecast_proto::msg::{ErrorCode, SceneId};
 use posecast_proto::testing::finite_f32s;
+use posecast_server::config::Config;
 use posecast_server::control;
 use posecast_server::import::files::FileSet;
-use posecast_server::state::{AppState, Config};
+use posecast_server::state::AppState;
 use posecast_server::store::snapshot;
 use proptest::prelude::*;
 use std::sync::Arc;
@@ -34,13 +35,14 @@ fn world() -> (tokio::runtime::Runtime, Arc<AppState>) {
         let _enter = rt.enter();
         let state = AppState::new(Config::default());
         state
+            .world
             .library
             .insert(posecast_server::builtin::rig().unwrap());
         let mut set = FileSet::new();
         set.insert("jointed.skel", SKEL.as_bytes().to_vec())
             .unwrap();
         for rig in posecast_server::library::prepare("jointed", &set).unwrap() {
-            state.library.insert(rig);
+            state.world.library.insert(rig);
         }
         for json in [
             r#"{"op":"create_scene","scene":"s"}"#,
@@ -147,7 +149,7 @@ fn command(op: &Op) -> Option<Command> {
 
 /// Every avatar's pose and state is finite and every rotation a unit quaternion.
 fn assert_finite(state: &AppState, after: &Op) {
-    let scene = state.scene(&SceneId("s".into())).unwrap();
+    let scene = state.world.scene(&SceneId("s".into())).unwrap();
     let info = scene.info();
     for a in &info.avatars {
         assert!(
@@ -184,7 +186,7 @@ proptest! {
     fn extreme_finite_inputs_are_refused_or_give_finite_poses(ops in prop::collection::vec(op(), 1..24)) {
         let (rt, state) = world();
         let _enter = rt.enter();
-        let scene = state.scene(&SceneId("s".into())).unwrap();
+        let scene = state.world.scene(&SceneId("s".into())).unwrap();
         let mut clock = 0.0f64;
         let mut seq = 0u64;
         for op in &ops {
@@ -229,8 +231,8 @@ proptest! {
         let (rt2, fresh) = world();
         let _enter2 = rt2.enter();
         control::execute(&fresh, &Command::DeleteScene { scene: SceneId("s".into()) }).unwrap();
-        snapshot::restore(&fresh, &parsed, 1_000_000).unwrap();
-        let again = snapshot::snapshot(&fresh.scene(&SceneId("s".into())).unwrap(), 1_000_000);
+        snapshot::restore(&fresh.world, &parsed, 1_000_000).unwrap();
+        let again = snapshot::snapshot(&fresh.world.scene(&SceneId("s".into())).unwrap(), 1_000_000);
         prop_assert_eq!(again.avatars.len(), 2);
         for (x, y) in again.avatars.iter().zip(&file.avatars) {
             prop_assert_eq!(x.overrides.keys().collect::<Vec<_>>(), y.overrides.keys().collect::<Vec<_>>());

@@ -8,8 +8,8 @@ use futures_util::{SinkExt, StreamExt};
 use posecast_client::net::{Client, ClientOptions};
 use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, ServerMsg};
 use posecast_server::auth::{AccessConfig, Role, Secret, TokenRule};
+use posecast_server::config::Config;
 use posecast_server::startup::Server;
-use posecast_server::state::Config;
 use std::time::Duration;
 use tokio_tungstenite::tungstenite::Message;
 

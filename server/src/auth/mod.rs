@@ -12,7 +12,7 @@
 //! Missing or unknown token: [`ErrorCode::Unauthorized`] (HTTP 401). A valid token without the
 //! right: [`ErrorCode::Forbidden`] (HTTP 403).
 
-use crate::state::AppState;
+use crate::world::World;
 use posecast_proto::command::Command;
 use posecast_proto::msg::{Access, AvatarId, ErrorCode, ProtocolError, SceneId};
 use serde::Deserialize;
@@ -231,7 +231,7 @@ impl AccessConfig {
         }
     }
 
-    /// May `caller` run `command`? The avatar's scene is looked up in `state` for tokens
+    /// May `caller` run `command`? The avatar's scene is looked up in `world` for tokens
     /// limited to scenes.
     ///
     /// # Errors
@@ -239,12 +239,12 @@ impl AccessConfig {
     pub fn authorize(
         &self,
         caller: &Caller,
-        state: &AppState,
+        world: &World,
         command: &Command,
     ) -> Result<(), ProtocolError> {
         if command.is_read_only() {
             return match command.avatar() {
-                Some(a) => match state.find_avatar(a) {
+                Some(a) => match world.find_avatar(a) {
                     Ok(scene) => self.authorize_view(caller, &scene.id),
                     // Unknown avatars are reported by the command itself.
                     Err(_) => self.authorize_read(caller),
@@ -258,7 +258,7 @@ impl AccessConfig {
         }
         let scene_ok = match (command.scene(), command.avatar()) {
             (Some(scene), _) => t.allows_scene(scene),
-            (None, Some(avatar)) => state
+            (None, Some(avatar)) => world
                 .find_avatar(avatar)
                 .is_ok_and(|scene| t.allows_scene(&scene.id)),
             (None, None) => false,
@@ -270,7 +270,7 @@ impl AccessConfig {
             _ => command.avatar().is_some_and(|a| t.allows_avatar(a)),
         };
         if scene_ok || avatar_ok {
-            limited_rig_size(state, command)
+            limited_rig_size(world, command)
         } else {
             Err(forbidden(format!(
                 "token {} may not {}",
@@ -283,13 +283,13 @@ impl AccessConfig {
 
 /// A limited token places only rigs of at most [`crate::quota::Quotas::limited_max_joints`]
 /// joints: one user's avatar cannot make every viewer of the scene download a huge rig.
-fn limited_rig_size(state: &AppState, command: &Command) -> Result<(), ProtocolError> {
+fn limited_rig_size(world: &World, command: &Command) -> Result<(), ProtocolError> {
     let Command::AddAvatar { asset, .. } = command else {
         return Ok(());
     };
-    let max = state.config.quotas.limited_max_joints;
-    match state.library.get(asset) {
-        Some(rig) if rig.skeleton().len() > max => Err(state.metrics.refuse_quota(
+    let max = world.quotas().limited_max_joints;
+    match world.library.get(asset) {
+        Some(rig) if rig.skeleton().len() > max => Err(world.metrics.refuse_quota(
             crate::quota::Quota::LimitedJoints,
             format!(
                 "rig {asset} has {} joints; a limited token may place rigs of up to",

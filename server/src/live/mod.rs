@@ -10,14 +10,12 @@
 //! (`unknown_joint`), every rotation a finite non-zero quaternion and the root position finite
 //! and within [`MAX_ROOT_METRES`] (`invalid_value`). A pose failing any check changes nothing.
 
-pub mod pose;
-
 use crate::quota::rate_limited;
 use crate::scene::Scene;
-use crate::scene::avatar::Avatar;
+
+use crate::avatar::live::{LivePose, ValidPose};
 use crate::state::AppState;
 use glam::{Quat, Vec3};
-use pose::{LivePose, ValidPose};
 use posecast_proto::command::{Command, DriveInfo, OnRelease};
 use posecast_proto::live::{BinaryPose, MAX_RATE_HZ};
 use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError};
@@ -25,7 +23,7 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Instant;
 
-pub use pose::RATE_BURST;
+pub use crate::avatar::live::RATE_BURST;
 
 /// Largest root position accepted, metres from the origin (a typo, not a performer).
 pub const MAX_ROOT_METRES: f32 = 10_000.0;
@@ -44,7 +42,7 @@ fn not_driving(avatar: impl std::fmt::Display) -> ProtocolError {
     )
 }
 
-use crate::control::invalid;
+use crate::world::command::invalid;
 
 impl Drives {
     /// Nothing driven yet by connection `conn`.
@@ -90,8 +88,10 @@ impl Drives {
         source: Option<&str>,
         on_release: OnRelease,
     ) -> Result<DriveInfo, ProtocolError> {
-        let source_rig = source.map(|name| state.library.require(name)).transpose()?;
-        let scene = state.find_avatar(avatar)?;
+        let source_rig = source
+            .map(|name| state.world.library.require(name))
+            .transpose()?;
+        let scene = state.world.find_avatar(avatar)?;
         let mut s = scene.lock();
         let a = s.avatar_mut(avatar).ok_or_else(|| {
             ProtocolError::new(ErrorCode::UnknownAvatar, format!("no avatar {avatar}"))
@@ -245,25 +245,10 @@ impl Drives {
             if let Some(a) = s.avatar_mut(&avatar)
                 && a.live.as_ref().is_some_and(|l| l.driver == Some(self.conn))
             {
-                driver_gone(a);
+                a.driver_gone();
             }
         }
     }
-}
-
-/// The driver is gone (left or silent): return to the clip, or hold the pose.
-pub fn driver_gone(a: &mut Avatar) {
-    match a.live.as_mut() {
-        Some(live) if live.on_release == OnRelease::Hold => live.driver = None,
-        _ => a.live = None,
-    }
-    a.evaluate();
-}
-
-/// `release_drive`: ends live driving (and a held pose); the avatar plays its clip again.
-pub fn release(a: &mut Avatar) {
-    a.live = None;
-    a.evaluate();
 }
 
 fn rotation(joint: &str, q: [f32; 4]) -> Result<Quat, ProtocolError> {

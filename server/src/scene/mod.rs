@@ -1,8 +1,5 @@
 //! Scenes: avatars played on one clock, and the subscribers their frames fan out to.
 //!
-//! - [`avatar`]: one avatar (rig, player, joint overrides, last pose).
-//! - [`playback`]: clip clocks and cross-fades.
-//! - [`placement`]: an avatar's world placement, moves, and clip root motion.
 //! - [`ticker`]: the drift-free tick task of a scene.
 //! - `publish`: a frame as per-avatar pieces in both encodings.
 //!
@@ -11,15 +8,12 @@
 //! subscribers limited to some avatars get the same chunks reassembled — and hands the same
 //! bytes to every subscriber's [`Outbox`].
 
-pub mod avatar;
-pub mod placement;
-pub mod playback;
 mod publish;
 pub mod ticker;
 
+use crate::avatar::Avatar;
 use crate::metrics::Metrics;
 use crate::stream::outbox::{OutFrame, Outbox, message_len};
-use avatar::Avatar;
 use axum::extract::ws::{Message, Utf8Bytes};
 use posecast_proto::command::SceneInfo;
 use posecast_proto::description::AvatarDescription;

@@ -7,7 +7,7 @@
 //! piece keeps the pose, and a JSON late joiner served from the cached frames gets its JSON
 //! made then ([`Published::ensure_json`]) — the same text the tick would have written.
 
-use super::avatar::Avatar;
+use crate::avatar::Avatar;
 use axum::extract::ws::{Message, Utf8Bytes};
 use bytes::Bytes;
 use posecast_proto::description::AvatarDescription;

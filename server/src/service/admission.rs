@@ -6,32 +6,13 @@
 //! websocket session ends, or a shutdown drops everything — and no code path can forget it.
 
 use crate::metrics::Metrics;
+pub use crate::metrics::net::Refusal;
 use std::collections::HashMap;
 use std::net::{IpAddr, Ipv6Addr};
 use std::pin::Pin;
 use std::sync::{Arc, Mutex};
 use std::task::{Context, Poll};
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
-
-/// Why a connection was not admitted.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Refusal {
-    /// The server holds its maximum number of connections.
-    Global,
-    /// This client address holds its maximum.
-    PerAddress,
-}
-
-impl Refusal {
-    /// The label used in `/metrics` and logs.
-    #[must_use]
-    pub fn label(self) -> &'static str {
-        match self {
-            Self::Global => "global",
-            Self::PerAddress => "per_address",
-        }
-    }
-}
 
 /// The connection counts (shared by the accept loop and every permit).
 #[derive(Debug)]

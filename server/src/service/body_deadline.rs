@@ -7,8 +7,8 @@
 //! made of the error (a multipart or JSON rejection would otherwise read as a bad request).
 //! The connection closes after that answer: the rest of the body was never read.
 
-use super::net_metrics::Timeout;
 use super::rest::AppError;
+use crate::metrics::net::Timeout;
 use crate::state::AppState;
 use axum::body::{Body, Bytes};
 use axum::extract::{Request, State};

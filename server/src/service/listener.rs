@@ -7,12 +7,11 @@
 //! error with a log line each time.
 
 use super::admission::{Admission, Admitted, Refusal};
-use super::limits::{
-    NetLimits, REFUSAL_TIMEOUT, REFUSING_MAX, effective_max_connections, nofile_soft_limit,
-};
-use super::net_metrics::Timeout;
+use super::limits::{REFUSAL_TIMEOUT, REFUSING_MAX, effective_max_connections, nofile_soft_limit};
 use super::rest::AppError;
+use crate::config::NetLimits;
 use crate::metrics::Metrics;
+use crate::metrics::net::Timeout;
 use axum::Router;
 use axum::extract::State;
 use axum::extract::ws::{

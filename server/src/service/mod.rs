@@ -12,7 +12,7 @@
 //!
 //! Connections reach the router through [`listener`], the accept loop: connection caps
 //! ([`admission`]), request-head and body deadlines ([`body_deadline`]) and the websocket
-//! liveness rules, all configured by [`limits::NetLimits`]; counted in [`net_metrics`].
+//! liveness rules, all configured by [`limits::NetLimits`]; counted in [`crate::metrics::net`].
 //!
 //! Every error response has the typed body `{"code", "message"}`, including axum's own
 //! rejections (405, 413, extractor errors) and unknown paths (404): see [`typed_errors`].
@@ -23,7 +23,7 @@ pub mod dashboard;
 pub mod health;
 pub mod limits;
 pub mod listener;
-pub mod net_metrics;
+
 pub mod rest;
 pub mod upload;
 pub mod ws;
@@ -189,7 +189,7 @@ async fn metrics(
 ) -> Result<impl IntoResponse, rest::AppError> {
     let access = &state.config.access;
     access.authorize_read(&caller)?;
-    let scenes = state.scenes();
+    let scenes = state.world.scenes();
     let total = scenes.iter().map(|s| s.subscriber_count()).sum();
     let subscribers: Vec<(String, usize)> = match caller {
         crate::auth::Caller::Anonymous => Vec::new(),

@@ -106,7 +106,10 @@ pub async fn command(
     let command: Command = serde_json::from_slice(&body).map_err(|e| {
         ProtocolError::new(ErrorCode::BadMessage, format!("not a valid command: {e}"))
     })?;
-    state.config.access.authorize(&caller, &state, &command)?;
+    state
+        .config
+        .access
+        .authorize(&caller, &state.world, &command)?;
     let result = control::execute_durable(&state, &command).await?;
     let result = state.config.access.visible(&caller, &command, result);
     Ok(Json(json!({ "result": result })))
@@ -134,7 +137,7 @@ pub async fn mesh(
     Path(name): Path<String>,
 ) -> Result<Response, AppError> {
     state.config.access.authorize_read(&caller)?;
-    let rig = state.library.require(&name)?;
+    let rig = state.world.library.require(&name)?;
     if rig.asset.meshes.is_empty() {
         return Err(ProtocolError::new(
             ErrorCode::UnknownAvatar,

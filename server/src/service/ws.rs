@@ -10,10 +10,10 @@
 use crate::auth::Caller;
 use crate::control;
 use crate::live::Drives;
+use crate::metrics::net::Timeout;
 use crate::quota::{TokenBucket, rate_limited};
 use crate::scene::ticker::unix_micros;
 use crate::scene::{Subscriber, text};
-use crate::service::net_metrics::Timeout;
 use crate::service::ws_liveness::{Due, Liveness};
 use crate::state::AppState;
 use crate::stream::outbox::Outbox;
@@ -394,7 +394,7 @@ impl Session {
                     .config
                     .access
                     .authorize_view(&self.caller, &scene)
-                    .and_then(|()| self.state.scene(&scene))
+                    .and_then(|()| self.state.world.scene(&scene))
                     .and_then(|s| {
                         s.subscribe(Subscriber {
                             conn: self.conn,
@@ -416,6 +416,7 @@ impl Session {
             ClientMsg::Unsubscribe { scene } => {
                 let had = self
                     .state
+                    .world
                     .scene(&scene)
                     .map(|s| s.unsubscribe(self.conn))
                     .unwrap_or(false);
@@ -463,7 +464,7 @@ impl Session {
                     self.state
                         .config
                         .access
-                        .authorize(&self.caller, &self.state, &command);
+                        .authorize(&self.caller, &self.state.world, &command);
                 let result = match authorized {
                     Ok(()) => match self.drives.command(&self.state, &command) {
                         Some(result) => result,
@@ -490,7 +491,7 @@ impl Session {
     fn leave_all(&mut self) {
         self.drives.leave();
         for scene in self.scenes.drain(..) {
-            if let Ok(s) = self.state.scene(&scene) {
+            if let Ok(s) = self.state.world.scene(&scene) {
                 s.unsubscribe(self.conn);
             }
         }

@@ -3,7 +3,7 @@
 //! from the server every `ws_ping_interval` so a live but quiet client (a viewer only reads)
 //! always has something to answer. Browsers and websocket libraries answer pings on their own.
 
-use super::limits::NetLimits;
+use crate::config::NetLimits;
 use std::time::Duration;
 use tokio::time::{Instant, sleep_until};
 

@@ -7,7 +7,7 @@ use super::atomic::{self, sync_dir};
 use super::{Store, UPLOAD_TMP_PREFIX, set_aside};
 use crate::import::files::FileSet;
 use crate::scene::ticker::unix_micros;
-use crate::state::AppState;
+use crate::world::World;
 use serde::{Deserialize, Serialize};
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
@@ -169,20 +169,20 @@ impl Store {
     /// Loads one stored upload (a folder from [`Store::stored_uploads`]) into the library (see
     /// the module doc of [`super`] for what is skipped and moved aside). Its files are read,
     /// imported and dropped: the store remembers the upload, not its bytes.
-    pub fn restore_upload(&self, state: &AppState, dir: &Path) {
+    pub fn restore_upload(&self, world: &World, dir: &Path) {
         let loaded = read_asset(dir).and_then(|(meta, set)| {
             let rigs = crate::library::prepare(&meta.name, &set).map_err(|e| e.message)?;
             Ok((meta, set, rigs))
         });
         match loaded {
             Ok((meta, set, rigs)) => {
-                if let Some(r) = rigs.iter().find(|r| state.library.get(&r.name).is_some()) {
+                if let Some(r) = rigs.iter().find(|r| world.library.get(&r.name).is_some()) {
                     warn!(asset = %meta.name, rig = %r.name, "stored upload not loaded: a rig of that name is already loaded (from --assets?)");
                     return;
                 }
                 for rig in rigs {
                     info!(asset = %rig.name, joints = rig.skeleton().len(), "restored upload");
-                    state.library.insert(rig);
+                    world.library.insert(rig);
                 }
                 self.add_upload_bytes(set.total_bytes() as u64);
                 self.remember_upload(&meta.name, set);

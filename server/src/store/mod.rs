@@ -48,7 +48,7 @@ pub mod snapshot;
 
 use crate::import::files::FileSet;
 use crate::scene::ticker::unix_micros;
-use crate::state::AppState;
+use crate::world::World;
 use posecast_proto::msg::{ErrorCode, ProtocolError, SceneId};
 use std::collections::{BTreeMap, BTreeSet};
 use std::io;
@@ -226,8 +226,8 @@ impl Store {
     }
 
     /// What to do to make scene `id`'s file match memory: its snapshot, or `None` to delete.
-    fn scene_bytes(state: &AppState, id: &SceneId) -> io::Result<Option<Vec<u8>>> {
-        match state.scene(id) {
+    fn scene_bytes(world: &World, id: &SceneId) -> io::Result<Option<Vec<u8>>> {
+        match world.scene(id) {
             Ok(scene) => {
                 let file = snapshot::snapshot(&scene, unix_micros());
                 serde_json::to_vec_pretty(&file)
@@ -256,7 +256,7 @@ impl Store {
     ///
     /// # Errors
     /// [`ErrorCode::Internal`] when the write fails (the in-memory state is unchanged by this).
-    pub async fn persist_scene(&self, state: &AppState, id: &SceneId) -> Result<(), ProtocolError> {
+    pub async fn persist_scene(&self, world: &World, id: &SceneId) -> Result<(), ProtocolError> {
         let Some(dir) = self.scenes_dir() else {
             return Ok(());
         };
@@ -279,7 +279,7 @@ impl Store {
         // Snapshots now, under the lock and after every change of the batch.
         let mut files = Vec::with_capacity(batch.scenes.len());
         for scene in &batch.scenes {
-            match Self::scene_bytes(state, scene) {
+            match Self::scene_bytes(world, scene) {
                 Ok(bytes) => files.push((dir.join(format!("{}.json", scene.0)), bytes)),
                 Err(e) => {
                     let e = internal("cannot store the scene", &e);
@@ -333,15 +333,15 @@ impl Store {
     ///
     /// # Errors
     /// The write failed.
-    pub fn persist_scene_now(&self, state: &AppState, id: &SceneId) -> io::Result<()> {
+    pub fn persist_scene_now(&self, world: &World, id: &SceneId) -> io::Result<()> {
         match self.scene_path(id) {
-            Some(path) => Self::write_scene(&path, Self::scene_bytes(state, id)?.as_deref()),
+            Some(path) => Self::write_scene(&path, Self::scene_bytes(world, id)?.as_deref()),
             None => Ok(()),
         }
     }
 
     /// Recreates every stored scene (see the module doc for what is skipped).
-    pub fn restore_scenes(&self, state: &AppState) {
+    pub fn restore_scenes(&self, world: &World) {
         let Some(dir) = self.scenes_dir() else { return };
         let mut paths: Vec<PathBuf> = match std::fs::read_dir(&dir) {
             Ok(entries) => entries.filter_map(Result::ok).map(|e| e.path()).collect(),
@@ -355,7 +355,7 @@ impl Store {
         let now = unix_micros();
         for path in paths {
             match read_scene_file(&path).and_then(|file| {
-                snapshot::restore(state, &file, now).map_err(|e| e.message)?;
+                snapshot::restore(world, &file, now).map_err(|e| e.message)?;
                 Ok(file)
             }) {
                 Ok(file) => {
@@ -403,8 +403,9 @@ pub(crate) fn set_aside(path: &Path, reason: &str) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::Config;
     use crate::control::execute_durable;
-    use crate::state::Config;
+    use crate::state::AppState;
     use posecast_proto::command::Command;
 
     /// A state storing into `dir`, with the built-in rig.
@@ -414,7 +415,7 @@ mod tests {
             ..Config::default()
         });
         state.store.open().unwrap();
-        state.library.insert(crate::builtin::rig().unwrap());
+        state.world.library.insert(crate::builtin::rig().unwrap());
         state
     }
 
@@ -450,9 +451,9 @@ mod tests {
                 "{name}: {dropped:?}"
             );
         }
-        state.store.restore_scenes(&state);
+        state.store.restore_scenes(&state.world);
         assert!(path.is_file(), "the scene file was set aside");
-        let info = state.scene(&SceneId("s".into())).unwrap().info();
+        let info = state.world.scene(&SceneId("s".into())).unwrap().info();
         let ids: Vec<&str> = info.avatars.iter().map(|a| a.avatar.0.as_str()).collect();
         assert_eq!(ids, ["a", "b"]);
         assert_eq!(info.avatars[0].overrides, vec!["r_knee".to_string()]);
@@ -500,6 +501,7 @@ mod tests {
         run(r#"{"op":"create_scene","scene":"s"}"#.into()).await;
         run(r#"{"op":"add_avatar","scene":"s","asset":"avatar","avatar":"a"}"#.into()).await;
         let joints: Vec<String> = state
+            .world
             .library
             .get("avatar")
             .unwrap()

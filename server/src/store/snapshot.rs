@@ -1,10 +1,10 @@
 //! A scene as stored in `scenes/<scene>.json`: its avatars, what each plays and its joint
 //! overrides, by joint *name* so a file stays meaningful if joint order ever changes.
 
-use crate::control;
+use crate::avatar::Avatar;
 use crate::scene::Scene;
-use crate::scene::avatar::Avatar;
-use crate::state::AppState;
+use crate::world::World;
+use crate::world::command;
 use posecast_proto::command::{Command, RootMotion};
 use posecast_proto::msg::{AvatarId, SceneId};
 use posecast_proto::placement::Placement;
@@ -249,11 +249,11 @@ pub fn extrapolate(p: &PlaybackRecord, duration: f32, elapsed_s: f64) -> f32 {
 /// # Errors
 /// The scene itself cannot be created (bad id, already exists).
 pub fn restore(
-    state: &AppState,
+    world: &World,
     file: &SceneFile,
     now_us: u64,
 ) -> Result<(), posecast_proto::msg::ProtocolError> {
-    state.restore_scene(file.scene.clone())?;
+    world.restore_scene(file.scene.clone())?;
     let elapsed_s = now_us.saturating_sub(file.saved_us) as f64 / 1e6;
     for rec in &file.avatars {
         let placement = Placement::try_new(
@@ -261,7 +261,7 @@ pub fn restore(
             rec.placement.rotation.to_array(),
         )
         .unwrap_or_default();
-        let (scene, id) = match state.add_avatar_at(
+        let (scene, id) = match world.add_avatar_at(
             &file.scene,
             &rec.asset,
             Some(rec.id.clone()),
@@ -275,7 +275,7 @@ pub fn restore(
             }
         };
         if let Some(p) = &rec.playback {
-            restore_playback(state, &id, p, elapsed_s);
+            restore_playback(world, &id, p, elapsed_s);
         }
         let mut s = scene.lock();
         let Some(a) = s.avatar_mut(&id) else { continue };
@@ -295,12 +295,12 @@ pub fn restore(
     Ok(())
 }
 
-fn restore_playback(state: &AppState, avatar: &AvatarId, p: &PlaybackRecord, elapsed_s: f64) {
-    let source = p.from_asset.as_deref().map(|n| state.library.get(n));
+fn restore_playback(world: &World, avatar: &AvatarId, p: &PlaybackRecord, elapsed_s: f64) {
+    let source = p.from_asset.as_deref().map(|n| world.library.get(n));
     let duration = match source {
         Some(Some(rig)) => rig.clip(&p.clip).map(|c| c.duration()),
         Some(None) => None,
-        None => state.find_avatar(avatar).ok().and_then(|s| {
+        None => world.find_avatar(avatar).ok().and_then(|s| {
             let s = s.lock();
             let a = s.avatars.iter().find(|a| &a.id == avatar)?;
             a.rig.clip(&p.clip).map(|c| c.duration())
@@ -320,10 +320,10 @@ fn restore_playback(state: &AppState, avatar: &AvatarId, p: &PlaybackRecord, ela
         fade: Some(0.0),
         root_motion: p.root_motion,
     };
-    let result = control::apply(state, &play).and_then(|_| {
+    let result = command::apply(world, &play).and_then(|_| {
         if p.paused {
-            control::apply(
-                state,
+            command::apply(
+                world,
                 &Command::Pause {
                     avatar: avatar.clone(),
                 },
@@ -341,16 +341,17 @@ fn restore_playback(state: &AppState, avatar: &AvatarId, p: &PlaybackRecord, ela
 mod tests {
     use super::*;
     use crate::builtin::BUILTIN_ASSET;
-    use crate::state::Config;
+    use crate::config::Config;
+    use crate::state::AppState;
 
     fn cmd(state: &AppState, json: &str) -> serde_json::Value {
-        control::execute(state, &serde_json::from_str(json).unwrap()).unwrap()
+        crate::control::execute(state, &serde_json::from_str(json).unwrap()).unwrap()
     }
 
     #[tokio::test]
     async fn snapshot_round_trips_through_json_and_restore() {
         let state = AppState::new(Config::default());
-        state.library.insert(crate::builtin::rig().unwrap());
+        state.world.library.insert(crate::builtin::rig().unwrap());
         cmd(&state, r#"{"op":"create_scene","scene":"s"}"#);
         cmd(
             &state,
@@ -374,7 +375,7 @@ mod tests {
             r#"{"op":"set_joint_rotation","avatar":"a","joint":"l_knee","rotation":[0.3826834,0,0,0.9238795]}"#,
         );
 
-        let scene = state.scene(&SceneId("s".into())).unwrap();
+        let scene = state.world.scene(&SceneId("s".into())).unwrap();
         let file = snapshot(&scene, 1_000_000);
         let text = serde_json::to_string_pretty(&file).unwrap();
         let back: SceneFile = serde_json::from_str(&text).unwrap();
@@ -396,12 +397,13 @@ mod tests {
 
         // Restore into a fresh state 2 s later: a's clock moved 1 s (speed 0.5), b's did not.
         let fresh = AppState::new(Config::default());
-        fresh.library.insert(crate::builtin::rig().unwrap());
-        restore(&fresh, &back, 3_000_000).unwrap();
-        let again = snapshot(&fresh.scene(&SceneId("s".into())).unwrap(), 3_000_000);
+        fresh.world.library.insert(crate::builtin::rig().unwrap());
+        restore(&fresh.world, &back, 3_000_000).unwrap();
+        let again = snapshot(&fresh.world.scene(&SceneId("s".into())).unwrap(), 3_000_000);
         let (ra, rb) = (&again.avatars[0], &again.avatars[1]);
         let pa = ra.playback.as_ref().unwrap();
         let duration = fresh
+            .world
             .library
             .get(BUILTIN_ASSET)
             .unwrap()
@@ -418,7 +420,7 @@ mod tests {
     #[tokio::test]
     async fn restore_skips_what_no_longer_exists() {
         let state = AppState::new(Config::default());
-        state.library.insert(crate::builtin::rig().unwrap());
+        state.world.library.insert(crate::builtin::rig().unwrap());
         let file: SceneFile = serde_json::from_value(serde_json::json!({
             "format": 1, "scene": "s", "saved_us": 0,
             "avatars": [
@@ -429,8 +431,8 @@ mod tests {
             ]
         }))
         .unwrap();
-        restore(&state, &file, 0).unwrap();
-        let info = state.scene(&SceneId("s".into())).unwrap().info();
+        restore(&state.world, &file, 0).unwrap();
+        let info = state.world.scene(&SceneId("s".into())).unwrap().info();
         assert_eq!(info.avatars.len(), 1);
         assert_eq!(info.avatars[0].clip, None);
         assert_eq!(info.avatars[0].overrides, vec!["l_knee".to_string()]);

@@ -101,7 +101,7 @@ impl Spawned {
             // Every load client comes from 127.0.0.1: lift the per-address cap (default 256)
             // to the global one.
             .arg("--max-connections-per-address")
-            .arg(posecast_server::service::limits::DEFAULT_MAX_CONNECTIONS.to_string())
+            .arg(posecast_server::config::DEFAULT_MAX_CONNECTIONS.to_string())
             .env("POSECAST_CONTROL_TOKEN", control_token)
             .env("RUST_LOG", "warn")
             .stdin(Stdio::null())

@@ -22,8 +22,9 @@ fn internal(what: &str, e: &dyn std::fmt::Display) -> ProtocolError {
 /// Whether `name` is taken: a loaded rig `name` or `name#…`, an upload, or a stored folder.
 fn taken(state: &AppState, name: &str) -> bool {
     let prefix = format!("{name}#");
-    state.library.get(name).is_some()
+    state.world.library.get(name).is_some()
         || state
+            .world
             .library
             .all()
             .iter()
@@ -102,7 +103,11 @@ pub async fn upload(
         check_rig(state, rig)?;
     }
     let _guard = state.store.assets_lock().await;
-    if taken(state, name) || rigs.iter().any(|r| state.library.get(&r.name).is_some()) {
+    if taken(state, name)
+        || rigs
+            .iter()
+            .any(|r| state.world.library.get(&r.name).is_some())
+    {
         return Err(conflict(name));
     }
     let bytes = set.total_bytes() as u64;
@@ -120,7 +125,7 @@ pub async fn upload(
     state.store.add_upload_bytes(bytes);
     let infos = rigs
         .into_iter()
-        .map(|rig| state.library.insert(rig).info())
+        .map(|rig| state.world.library.insert(rig).info())
         .collect();
     state.store.remember_upload(name, set);
     Ok(infos)
@@ -167,7 +172,7 @@ pub async fn add_clips(
         }
     }
     let _guard = state.store.assets_lock().await;
-    let rig = state.library.require(name)?;
+    let rig = state.world.library.require(name)?;
     let upload = state.store.uploads().get(name).cloned().ok_or_else(|| {
         ProtocolError::new(
             ErrorCode::InvalidValue,
@@ -234,7 +239,7 @@ pub async fn add_clips(
             .map_err(|e| internal("cannot store the clips", &e))?;
     }
     state.store.add_upload_bytes(added);
-    let info = state.library.insert(new_rig).info();
+    let info = state.world.library.insert(new_rig).info();
     state.store.remember_upload(name, combined);
     Ok(info)
 }
@@ -242,7 +247,7 @@ pub async fn add_clips(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::state::Config;
+    use crate::config::Config;
 
     const SKEL: &str = "balljoint root {\n offset 0 0 0\n balljoint tip {\n offset 0 1 0\n }\n}\n";
 

@@ -2,7 +2,6 @@
 //! failures, timeouts. Kept apart from the other counters (`Metrics::net`) and rendered after
 //! them in `/metrics`.
 
-use super::admission::Refusal;
 use std::fmt::Write as _;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 
@@ -134,6 +133,26 @@ impl NetCounters {
                 t.label(),
                 n.load(Relaxed)
             );
+        }
+    }
+}
+
+/// Why a connection was not admitted.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Refusal {
+    /// The server holds its maximum number of connections.
+    Global,
+    /// This client address holds its maximum.
+    PerAddress,
+}
+
+impl Refusal {
+    /// The label used in `/metrics` and logs.
+    #[must_use]
+    pub fn label(self) -> &'static str {
+        match self {
+            Self::Global => "global",
+            Self::PerAddress => "per_address",
         }
     }
 }

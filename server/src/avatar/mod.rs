@@ -1,13 +1,21 @@
-//! One avatar in a scene: its rig, what it plays, joint overrides layered on top, and the pose
-//! it had at the last tick.
+//! One avatar in a scene — the simulation, with no networking: its rig, what it plays, a live
+//! driver's pose, joint overrides layered on top, and the pose it had at the last tick.
+//!
+//! - [`playback`]: clip clocks and cross-fades.
+//! - [`placement`]: the avatar's world placement, moves, and clip root motion.
+//! - [`live`]: a live driver's pose, retargeted from its source rig.
 
-use super::placement::{Placing, RootTrack};
-use super::playback::{Layer, Player};
-use crate::live::pose::LivePose;
+pub mod live;
+pub mod placement;
+pub mod playback;
+
+use crate::avatar::live::LivePose;
 use crate::rig::Rig;
 use glam::{Mat4, Quat};
+use placement::{Placing, RootTrack};
+use playback::{Layer, Player};
 use posecast_proto::bind::{rotation_about, world_increment_local};
-use posecast_proto::command::AvatarState;
+use posecast_proto::command::{AvatarState, OnRelease};
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::fk::forward_kinematics;
 use posecast_proto::frame::{AvatarPose, ChunkEncoder};
@@ -50,7 +58,7 @@ pub struct Avatar {
     world: Vec<Mat4>,
     pub(crate) encoder: ChunkEncoder,
     pub(crate) pose: AvatarPose,
-    /// Where it stands in the scene ([`super::placement`]).
+    /// Where it stands in the scene ([`placement`]).
     pub placing: Placing,
     pub(super) root_track: RootTrack,
     /// A live driver's pose, applied between the clip and the overrides ([`crate::live`]).
@@ -58,6 +66,21 @@ pub struct Avatar {
 }
 
 impl Avatar {
+    /// The driver is gone (left or silent): return to the clip, or hold the pose.
+    pub fn driver_gone(&mut self) {
+        match self.live.as_mut() {
+            Some(live) if live.on_release == OnRelease::Hold => live.driver = None,
+            _ => self.live = None,
+        }
+        self.evaluate();
+    }
+
+    /// `release_drive`: ends live driving (and a held pose); the avatar plays its clip again.
+    pub fn release_drive(&mut self) {
+        self.live = None;
+        self.evaluate();
+    }
+
     /// An avatar of `rig`, holding its rest pose.
     #[must_use]
     pub fn new(id: AvatarId, num: u32, rig: Arc<Rig>) -> Self {
@@ -113,7 +136,7 @@ impl Avatar {
             .as_ref()
             .is_some_and(|l| l.expired(Instant::now()))
         {
-            crate::live::driver_gone(self);
+            self.driver_gone();
         }
         self.evaluate();
     }

@@ -4,7 +4,9 @@ use std::fmt::Write as _;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::Duration;
 
-use crate::service::net_metrics::NetCounters;
+pub mod net;
+
+use net::NetCounters;
 
 /// Upper bounds (seconds) of the tick duration histogram buckets.
 const TICK_BUCKETS: [f64; 10] = [

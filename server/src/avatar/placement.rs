@@ -177,7 +177,7 @@ pub fn wraps(layer: &Layer, t0: f64, t1: f64) -> f64 {
     (t1 / d).floor() - (t0 / d).floor()
 }
 
-impl super::avatar::Avatar {
+impl super::Avatar {
     /// Moves the placement to scene clock `clock`; with accumulated root motion, adds the
     /// loop wraps since `before` (the current layer's unwrapped clip time before the clock
     /// moved) times the clip's net displacement, turned by the placement's rotation.
@@ -226,8 +226,8 @@ impl super::avatar::Avatar {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::avatar::Avatar;
     use crate::clip::{Interpolation, JointChannels, Track, VectorChannel};
-    use crate::scene::avatar::Avatar;
     use glam::Quat;
     use posecast_proto::msg::AvatarId;
 

@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 /// of a steady 120 Hz stream is not refused, while a sustained flood is.
 pub const RATE_BURST: f64 = 12.0;
 
-/// A live driver's pose of an avatar (consulted by [`crate::scene::avatar::Avatar::evaluate`]
+/// A live driver's pose of an avatar (consulted by [`crate::avatar::Avatar::evaluate`]
 /// between the clip and the joint overrides).
 ///
 /// Sampling at the tick takes the **latest** pose received (see README, "Live driving"): the

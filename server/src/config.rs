@@ -1,0 +1,130 @@
+//! How a server runs: [`Config`], built by the `posecast` binary from flags and environment
+//! (or by a test), with the network bounds it carries ([`NetLimits`]).
+
+use crate::auth::AccessConfig;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::Duration;
+
+/// How the server runs (built by `main` from flags and environment).
+#[derive(Debug, Clone)]
+pub struct Config {
+    /// Listen address.
+    pub listen: SocketAddr,
+    /// Pose frames per second of every scene.
+    pub tick_rate: f32,
+    /// Folders whose assets are loaded at start.
+    pub asset_dirs: Vec<PathBuf>,
+    /// Whether to load the built-in avatar into a `default` scene playing `idle`.
+    pub builtin: bool,
+    /// Tokens and what they allow ([`crate::auth`]).
+    pub access: AccessConfig,
+    /// The data folder scenes and uploads are stored in (see [`crate::store`]); `None` keeps
+    /// everything in memory only.
+    pub data_dir: Option<PathBuf>,
+    /// Largest upload request body, bytes.
+    pub max_upload_bytes: usize,
+    /// Limits on scenes, avatars, rig and clip sizes, upload bytes ([`crate::quota`]).
+    pub quotas: crate::quota::Quotas,
+    /// Commands per second per connection ([`crate::quota::CommandRate`]).
+    pub command_rate: crate::quota::CommandRate,
+    /// How long a graceful shutdown waits, at most, for HTTP requests to finish and for every
+    /// websocket's close frame to be sent (and answered) before the server stops regardless.
+    pub shutdown_drain: Duration,
+
+    // --- Live driving (issue 16) ---
+    /// How long a live driver may stay silent before its avatar returns to its clip (or holds
+    /// its last pose, as the `drive` asked).
+    pub drive_timeout: Duration,
+    /// Network timeouts and connection caps ([`crate::service::limits`]).
+    pub net: NetLimits,
+}
+
+/// Default [`Config::max_upload_bytes`]: 32 MiB.
+pub const DEFAULT_MAX_UPLOAD_BYTES: usize = 32 << 20;
+
+/// Default [`Config::shutdown_drain`]: 2 s.
+pub const DEFAULT_SHUTDOWN_DRAIN: Duration = Duration::from_secs(2);
+
+/// Default [`Config::drive_timeout`]: 2 s.
+pub const DEFAULT_DRIVE_TIMEOUT: Duration = Duration::from_secs(2);
+
+impl Default for Config {
+    fn default() -> Self {
+        Self {
+            listen: SocketAddr::from(([127, 0, 0, 1], 8080)),
+            tick_rate: 60.0,
+            asset_dirs: Vec::new(),
+            builtin: true,
+            access: AccessConfig::default(),
+            data_dir: None,
+            max_upload_bytes: DEFAULT_MAX_UPLOAD_BYTES,
+            quotas: crate::quota::Quotas::default(),
+            command_rate: crate::quota::CommandRate::default(),
+            shutdown_drain: DEFAULT_SHUTDOWN_DRAIN,
+            drive_timeout: DEFAULT_DRIVE_TIMEOUT,
+            net: NetLimits::default(),
+        }
+    }
+}
+
+/// Network timeouts and connection caps (`Config::net`; flags in `posecast --help`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct NetLimits {
+    /// A websocket must send its `hello` this soon after the upgrade, or it gets a `timeout`
+    /// error and close 1008. A viewer says hello at once; a socket that says nothing is
+    /// anonymous and must not hold a connection slot for long.
+    pub hello_timeout: Duration,
+    /// An HTTP request head (request line and headers) must arrive within this, counted from
+    /// the connection's accept or from the previous response on a kept-alive connection; so
+    /// this is also the keep-alive idle time. Silent TCP connections and half-sent headers
+    /// (slowloris) are closed after it.
+    pub header_read_timeout: Duration,
+    /// A request body must be read completely within this, counted from its head (`408
+    /// timeout`). Long enough for a [`crate::state::Config::max_upload_bytes`] upload over a
+    /// slow link, short enough that a client trickling a byte a second cannot keep a
+    /// request open for hours.
+    pub body_read_timeout: Duration,
+    /// How often the server pings a websocket that said hello.
+    pub ws_ping_interval: Duration,
+    /// A websocket from which nothing (not even a pong) arrived for this long is closed
+    /// (1008 `idle timeout`). Should span a few ping intervals so one lost pong is not fatal.
+    pub ws_idle_timeout: Duration,
+    /// Open TCP connections (HTTP and websocket) the server holds at most; more are refused
+    /// with 503 (websocket upgrades: close 1013). Lowered at start to what the descriptor
+    /// limit allows ([`effective_max_connections`]).
+    pub max_connections: usize,
+    /// Open connections from one client address at most (IPv6: one /64, which one host
+    /// usually holds whole); more are refused like over [`Self::max_connections`]. Keeps one
+    /// client from taking every slot.
+    pub max_connections_per_address: usize,
+}
+
+/// Default [`NetLimits::hello_timeout`]: 5 s.
+pub const DEFAULT_HELLO_TIMEOUT: Duration = Duration::from_secs(5);
+/// Default [`NetLimits::header_read_timeout`]: 10 s.
+pub const DEFAULT_HEADER_READ_TIMEOUT: Duration = Duration::from_secs(10);
+/// Default [`NetLimits::body_read_timeout`]: 120 s (32 MiB at ~280 KB/s).
+pub const DEFAULT_BODY_READ_TIMEOUT: Duration = Duration::from_secs(120);
+/// Default [`NetLimits::ws_ping_interval`]: 15 s.
+pub const DEFAULT_WS_PING_INTERVAL: Duration = Duration::from_secs(15);
+/// Default [`NetLimits::ws_idle_timeout`]: 45 s (three pings).
+pub const DEFAULT_WS_IDLE_TIMEOUT: Duration = Duration::from_secs(45);
+/// Default [`NetLimits::max_connections`]: 10,000.
+pub const DEFAULT_MAX_CONNECTIONS: usize = 10_000;
+/// Default [`NetLimits::max_connections_per_address`]: 256.
+pub const DEFAULT_MAX_CONNECTIONS_PER_ADDRESS: usize = 256;
+
+impl Default for NetLimits {
+    fn default() -> Self {
+        Self {
+            hello_timeout: DEFAULT_HELLO_TIMEOUT,
+            header_read_timeout: DEFAULT_HEADER_READ_TIMEOUT,
+            body_read_timeout: DEFAULT_BODY_READ_TIMEOUT,
+            ws_ping_interval: DEFAULT_WS_PING_INTERVAL,
+            ws_idle_timeout: DEFAULT_WS_IDLE_TIMEOUT,
+            max_connections: DEFAULT_MAX_CONNECTIONS,
+            max_connections_per_address: DEFAULT_MAX_CONNECTIONS_PER_ADDRESS,
+        }
+    }
+}

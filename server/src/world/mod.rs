@@ -1,0 +1,308 @@
+//! The world: every scene and the rigs avatars are made of — what commands act on.
+//!
+//! - this module: [`World`] — scenes by id, the rig [`Library`], the retargeting cache, unique
+//!   scene numbers and avatar ids, and the scene and avatar quotas.
+//! - [`command`]: a control command applied to the world (the same code behind REST, the
+//!   websocket and restoring stored scenes).
+//!
+//! The world knows nothing of connections, tokens or the data folder: those are services
+//! built on it ([`crate::auth`], [`crate::store`], [`crate::state`]).
+
+pub mod command;
+
+use crate::avatar::Avatar;
+use crate::bake::RetargetCache;
+use crate::library::Library;
+use crate::metrics::Metrics;
+use crate::quota::{Quota, Quotas};
+use crate::scene::{Scene, ticker};
+use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError, SceneId, check_id};
+use posecast_proto::placement::Placement;
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::{Arc, Mutex, RwLock};
+
+/// Every scene, and the rigs their avatars are made of.
+#[derive(Debug)]
+pub struct World {
+    /// Loaded rigs.
+    pub library: Library,
+    /// Baked retargeted clips (`play … from_asset`), see [`crate::bake`].
+    pub retargets: RetargetCache,
+    /// Counters (ticks, quota refusals).
+    pub metrics: Arc<Metrics>,
+    quotas: Quotas,
+    tick_rate: f32,
+    scenes: RwLock<BTreeMap<SceneId, Arc<Scene>>>,
+    next_scene_num: AtomicU32,
+    next_avatar_num: AtomicU32,
+    /// Held from the "is this avatar id free?" check to the insertion, so two scenes cannot
+    /// both take one id.
+    avatar_ids: Mutex<()>,
+}
+
+impl World {
+    /// An empty world whose scenes tick at `tick_rate` Hz, within `quotas`.
+    #[must_use]
+    pub fn new(tick_rate: f32, quotas: Quotas, metrics: Arc<Metrics>) -> Self {
+        Self {
+            library: Library::new(),
+            retargets: RetargetCache::default(),
+            metrics,
+            quotas,
+            tick_rate,
+            scenes: RwLock::new(BTreeMap::new()),
+            next_scene_num: AtomicU32::new(1),
+            next_avatar_num: AtomicU32::new(1),
+            avatar_ids: Mutex::new(()),
+        }
+    }
+
+    /// The limits the world enforces (and the services on it: uploads, retargeting).
+    #[must_use]
+    pub fn quotas(&self) -> &Quotas {
+        &self.quotas
+    }
+
+    /// A scene by id.
+    ///
+    /// # Errors
+    /// [`ErrorCode::UnknownScene`].
+    pub fn scene(&self, id: &SceneId) -> Result<Arc<Scene>, ProtocolError> {
+        self.scenes
+            .read()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .get(id)
+            .cloned()
+            .ok_or_else(|| ProtocolError::new(ErrorCode::UnknownScene, format!("no scene {id}")))
+    }
+
+    /// Every scene.
+    #[must_use]
+    pub fn scenes(&self) -> Vec<Arc<Scene>> {
+        self.scenes
+            .read()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .values()
+            .cloned()
+            .collect()
+    }
+
+    /// Creates a scene and starts its tick task (must run inside a tokio runtime).
+    ///
+    /// # Errors
+    /// Invalid id, [`ErrorCode::Conflict`] when it exists, or `quota_exceeded` past
+    /// [`crate::quota::Quotas::max_scenes`].
+    pub fn create_scene(&self, id: SceneId) -> Result<Arc<Scene>, ProtocolError> {
+        self.insert_scene(id, true)
+    }
+
+    /// [`World::create_scene`] without the scene quota: restoring what was stored.
+    ///
+    /// # Errors
+    /// Invalid id, or [`ErrorCode::Conflict`] when it exists.
+    pub fn restore_scene(&self, id: SceneId) -> Result<Arc<Scene>, ProtocolError> {
+        self.insert_scene(id, false)
+    }
+
+    fn insert_scene(&self, id: SceneId, quota: bool) -> Result<Arc<Scene>, ProtocolError> {
+        check_id("scene", &id.0)?;
+        let mut scenes = self
+            .scenes
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if scenes.contains_key(&id) {
+            return Err(ProtocolError::new(
+                ErrorCode::Conflict,
+                format!("scene {id} exists"),
+            ));
+        }
+        let max = self.quotas.max_scenes;
+        if quota && scenes.len() >= max {
+            return Err(self.metrics.refuse_quota(
+                Quota::Scenes,
+                format!("scene {id} would be scene {}", scenes.len() + 1),
+                max,
+            ));
+        }
+        let num = self.next_scene_num.fetch_add(1, Ordering::Relaxed);
+        let scene = Arc::new(Scene::new(id.clone(), num, self.metrics.clone()));
+        scenes.insert(id, scene.clone());
+        tokio::spawn(ticker::run(
+            scene.clone(),
+            self.tick_rate,
+            self.metrics.clone(),
+        ));
+        Ok(scene)
+    }
+
+    /// Deletes a scene: its ticker stops and its subscribers are unsubscribed.
+    ///
+    /// # Errors
+    /// [`ErrorCode::UnknownScene`].
+    pub fn delete_scene(&self, id: &SceneId) -> Result<(), ProtocolError> {
+        let scene = self
+            .scenes
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .remove(id)
+            .ok_or_else(|| ProtocolError::new(ErrorCode::UnknownScene, format!("no scene {id}")))?;
+        scene.shut();
+        Ok(())
+    }
+
+    /// Adds an avatar of rig `asset` to a scene. Returns its id.
+    ///
+    /// # Errors
+    /// Unknown scene or rig, invalid or duplicate id, or `quota_exceeded` past
+    /// [`crate::quota::Quotas::max_avatars_per_scene`].
+    pub fn add_avatar(
+        &self,
+        scene: &SceneId,
+        asset: &str,
+        id: Option<AvatarId>,
+    ) -> Result<(Arc<Scene>, AvatarId), ProtocolError> {
+        self.insert_avatar(scene, asset, id, true, Placement::IDENTITY)
+    }
+
+    /// [`World::add_avatar`] (with its quota when `quota`, as restoring has none) standing
+    /// at `placement` from its first frame on.
+    ///
+    /// # Errors
+    /// As [`World::add_avatar`].
+    pub fn add_avatar_at(
+        &self,
+        scene: &SceneId,
+        asset: &str,
+        id: Option<AvatarId>,
+        placement: Placement,
+        quota: bool,
+    ) -> Result<(Arc<Scene>, AvatarId), ProtocolError> {
+        self.insert_avatar(scene, asset, id, quota, placement)
+    }
+
+    /// [`World::add_avatar`] without the avatar quota: restoring what was stored.
+    ///
+    /// # Errors
+    /// Unknown scene or rig, invalid or duplicate id.
+    pub fn restore_avatar(
+        &self,
+        scene: &SceneId,
+        asset: &str,
+        id: Option<AvatarId>,
+    ) -> Result<(Arc<Scene>, AvatarId), ProtocolError> {
+        self.insert_avatar(scene, asset, id, false, Placement::IDENTITY)
+    }
+
+    fn insert_avatar(
+        &self,
+        scene: &SceneId,
+        asset: &str,
+        id: Option<AvatarId>,
+        quota: bool,
+        placement: Placement,
+    ) -> Result<(Arc<Scene>, AvatarId), ProtocolError> {
+        let scene = self.scene(scene)?;
+        let rig = self.library.require(asset)?;
+        let num = self.next_avatar_num.fetch_add(1, Ordering::Relaxed);
+        let id = id.unwrap_or_else(|| AvatarId(format!("{}-{num}", rig.name)));
+        check_id("avatar", &id.0)?;
+        let mut avatar = Avatar::new(id.clone(), num, rig);
+        avatar.place(placement, 0.0);
+        // Ids are unique across scenes, and each scene checks only its own: the check of every
+        // scene and the insertion must not interleave with another add.
+        let _adding = self
+            .avatar_ids
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if self.find_avatar(&id).is_ok() {
+            return Err(ProtocolError::new(
+                ErrorCode::Conflict,
+                format!("avatar {id} exists"),
+            ));
+        }
+        // Checked under the same lock as the insertion: concurrent adds cannot overshoot.
+        let max = self.quotas.max_avatars_per_scene;
+        let count = scene.lock().avatars.len();
+        if quota && count >= max {
+            return Err(self.metrics.refuse_quota(
+                Quota::AvatarsPerScene,
+                format!("scene {} has {count} avatars", scene.id),
+                max,
+            ));
+        }
+        scene.add_avatar(avatar)?;
+        Ok((scene, id))
+    }
+
+    /// The scene holding an avatar.
+    ///
+    /// # Errors
+    /// [`ErrorCode::UnknownAvatar`].
+    pub fn find_avatar(&self, id: &AvatarId) -> Result<Arc<Scene>, ProtocolError> {
+        self.scenes()
+            .into_iter()
+            .find(|s| s.lock().avatars.iter().any(|a| &a.id == id))
+            .ok_or_else(|| ProtocolError::new(ErrorCode::UnknownAvatar, format!("no avatar {id}")))
+    }
+
+    /// Stops every scene's ticker and ends its subscriptions.
+    pub fn shut(&self) {
+        for scene in self.scenes() {
+            scene.shut();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::builtin::BUILTIN_ASSET;
+
+    /// Many adds of one id into different scenes at the same moment: exactly one wins, every
+    /// other one is a conflict, and the id ends up in one scene only.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn concurrent_adds_of_one_avatar_id_into_different_scenes_take_it_once() {
+        const SCENES: usize = 8;
+        let state = Arc::new(World::new(1.0, Quotas::default(), Arc::new(Metrics::new())));
+        state.library.insert(crate::builtin::rig().unwrap());
+        let scene = |i: usize| SceneId(format!("s{i}"));
+        for i in 0..SCENES {
+            state.create_scene(scene(i)).unwrap();
+        }
+        for round in 0..40 {
+            let id = AvatarId(format!("racer-{round}"));
+            let barrier = Arc::new(std::sync::Barrier::new(SCENES));
+            let threads: Vec<_> = (0..SCENES)
+                .map(|i| {
+                    let (state, id, barrier) = (state.clone(), id.clone(), barrier.clone());
+                    std::thread::spawn(move || {
+                        barrier.wait();
+                        state
+                            .add_avatar(&scene(i), BUILTIN_ASSET, Some(id))
+                            .map(|_| ())
+                    })
+                })
+                .collect();
+            let results: Vec<_> = threads.into_iter().map(|t| t.join().unwrap()).collect();
+            let won = results.iter().filter(|r| r.is_ok()).count();
+            assert_eq!(won, 1, "round {round}: {results:?}");
+            assert!(
+                results
+                    .iter()
+                    .filter_map(|r| r.as_ref().err())
+                    .all(|e| e.code == ErrorCode::Conflict),
+                "{results:?}"
+            );
+            let holders = state
+                .scenes()
+                .iter()
+                .filter(|s| s.lock().avatars.iter().any(|a| a.id == id))
+                .count();
+            assert_eq!(holders, 1, "round {round}");
+        }
+        for s in state.scenes() {
+            s.shut();
+        }
+    }
+}
