@@ -16,7 +16,8 @@ use posecast_proto::msg::{AvatarId, ClientMsg, Encoding, FrameJson, SceneId, Ser
 use posecast_proto::quant::{MAX_ERROR_DEGREES, angle_between_degrees};
 use posecast_server::avatar::Avatar;
 use posecast_server::metrics::Metrics;
-use posecast_server::scene::{Scene, Subscriber};
+use posecast_server::scene::Scene;
+use posecast_server::stream::feed::Subscriber;
 use posecast_server::stream::outbox::{Next, Outbox};
 use std::collections::HashMap;
 use std::sync::Arc;

@@ -18,7 +18,7 @@ use posecast_proto::bind::{rotation_about, world_increment_local};
 use posecast_proto::command::{AvatarState, OnRelease};
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::fk::forward_kinematics;
-use posecast_proto::frame::{AvatarPose, ChunkEncoder};
+use posecast_proto::frame::AvatarPose;
 use posecast_proto::msg::{AvatarId, SceneId};
 use posecast_proto::{DecomposeError, Transform};
 use std::sync::Arc;
@@ -56,7 +56,6 @@ pub struct Avatar {
     /// The pose at the last tick (local transforms, one per joint).
     pub locals: Vec<Transform>,
     world: Vec<Mat4>,
-    pub(crate) encoder: ChunkEncoder,
     pub(crate) pose: AvatarPose,
     /// Where it stands in the scene ([`placement`]).
     pub placing: Placing,
@@ -111,7 +110,6 @@ impl Avatar {
             world: vec![Mat4::IDENTITY; n],
             locals,
             rig,
-            encoder: ChunkEncoder::new(),
             pose,
             placing: Placing::default(),
             root_track: RootTrack::default(),

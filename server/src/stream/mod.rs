@@ -1,5 +1,12 @@
-//! Fan-out to connections: [`outbox`], the bounded per-connection queue, and [`writer`], the
-//! task that drains it into the websocket.
+//! Publication: what leaves the server for its subscribers.
+//!
+//! - [`feed`]: a scene's subscribers, and each tick's frame encoded once per encoding and
+//!   fanned out to them (with what a late joiner starts from).
+//! - `publish`: a frame as per-avatar pieces in both encodings.
+//! - [`outbox`]: the bounded per-connection queue (newest frame wins).
+//! - [`writer`]: the task that drains an outbox into its websocket.
 
+pub mod feed;
 pub mod outbox;
+mod publish;
 pub mod writer;

@@ -354,7 +354,7 @@ pub fn apply(world: &World, command: &Command) -> Result<Value, ProtocolError> {
             })?;
             a.place(to, f64::from(duration));
             // The scene's cached frames show the old placement: a joiner gets a fresh keyframe.
-            s.placed();
+            s.feed.placed();
             Ok(Value::Null)
         }
 

@@ -34,11 +34,16 @@ pub(super) struct Piece {
 }
 
 impl Piece {
-    /// The avatar's chunk for the frame being ticked, through its own encoder (which keeps a
+    /// The avatar's chunk for the frame being ticked, through its own `encoder` (which keeps a
     /// keyframe chunk as the reference for the deltas after it), and its JSON object if `json`.
-    pub(super) fn encode(a: &mut Avatar, kind: FrameKind, json: bool) -> Self {
+    pub(super) fn encode(
+        a: &Avatar,
+        encoder: &mut ChunkEncoder,
+        kind: FrameKind,
+        json: bool,
+    ) -> Self {
         let mut chunk = Vec::with_capacity(32 + 6 * a.pose.rotations.len());
-        a.encoder.encode(&a.pose, kind, &mut chunk);
+        encoder.encode(&a.pose, kind, &mut chunk);
         Self::new(a, chunk, json)
     }
 

@@ -1,0 +1,363 @@
+//! A scene's publication: who is subscribed, the frames a late joiner starts from, and the
+//! encoding and fan-out of each tick's poses.
+//!
+//! Every tick the [`Feed`] encodes the frame once per encoding in use (binary always; JSON
+//! only while a subscriber wants it) — per avatar pieces first, so subscribers limited to some
+//! avatars get the same pieces reassembled — and hands the same bytes to every subscriber's
+//! [`Outbox`]. It keeps each avatar's delta encoder (the keyframe its deltas refer to) and the
+//! scene's last keyframe and delta for joiners. The poses themselves are the scene's
+//! ([`crate::scene`]): the feed reads them and never changes what an avatar does.
+
+use super::outbox::{OutFrame, Outbox, message_len};
+use super::publish::{Piece, Published};
+use crate::avatar::Avatar;
+use crate::metrics::Metrics;
+use axum::extract::ws::{Message, Utf8Bytes};
+use posecast_proto::description::AvatarDescription;
+use posecast_proto::frame::{ChunkEncoder, FrameHeader, FrameKind};
+use posecast_proto::msg::{AvatarId, Encoding, ErrorCode, ProtocolError, SceneId, ServerMsg};
+use std::collections::HashMap;
+use std::sync::Arc;
+
+/// A connection subscribed to a scene.
+#[derive(Debug)]
+pub struct Subscriber {
+    /// The connection's id (one subscription per connection and scene).
+    pub conn: u64,
+    /// Where its messages go.
+    pub outbox: Arc<Outbox>,
+    /// Binary or JSON frames.
+    pub encoding: Encoding,
+    /// Only these avatars, or all.
+    pub filter: Option<Vec<AvatarId>>,
+}
+
+impl Subscriber {
+    fn wants(&self, avatar: &AvatarId) -> bool {
+        self.filter.as_ref().is_none_or(|f| f.contains(avatar))
+    }
+}
+
+/// The tick a frame belongs to.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct TickStamp {
+    /// The tick number.
+    pub seq: u64,
+    /// Server time of the tick, µs since the Unix epoch.
+    pub server_time_us: u64,
+}
+
+/// One scene's subscribers and the frame state they share (kept under the scene's lock, next
+/// to the avatars, so a joiner's first frames and the next tick are in order).
+#[derive(Debug)]
+pub struct Feed {
+    scene: SceneId,
+    num: u32,
+    metrics: Arc<Metrics>,
+    subscribers: Vec<Subscriber>,
+    /// Each avatar's delta encoder, by avatar number.
+    encoders: HashMap<u32, ChunkEncoder>,
+    last_key_seq: Option<u64>,
+    force_key: bool,
+    last_key: Option<Published>,
+    last_delta: Option<Published>,
+    /// Each avatar's description message, serialised once and shared by every subscriber.
+    descriptions: HashMap<AvatarId, (Arc<AvatarDescription>, Message)>,
+    /// An avatar was placed since the last tick: the cached frames show the old placement.
+    placed: bool,
+}
+
+impl Feed {
+    /// The feed of scene `scene` (number `num` in binary frames), with no subscribers.
+    #[must_use]
+    pub fn new(scene: SceneId, num: u32, metrics: Arc<Metrics>) -> Self {
+        Self {
+            scene,
+            num,
+            metrics,
+            subscribers: Vec::new(),
+            encoders: HashMap::new(),
+            last_key_seq: None,
+            force_key: true,
+            last_key: None,
+            last_delta: None,
+            descriptions: HashMap::new(),
+            placed: false,
+        }
+    }
+
+    /// Number of subscribers.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        self.subscribers.len()
+    }
+
+    /// Whether nobody is subscribed.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.subscribers.is_empty()
+    }
+
+    /// An avatar joined the scene: subscribers covering it get its description, and the next
+    /// frame is a keyframe.
+    pub fn avatar_added(&mut self, avatar: &Avatar) {
+        let msg = description_message(&self.scene, &mut self.descriptions, &avatar.description);
+        for sub in self.subscribers.iter().filter(|sub| sub.wants(&avatar.id)) {
+            sub.outbox.push_control(msg.clone());
+        }
+        self.encoders.insert(avatar.num(), ChunkEncoder::new());
+        self.force_key = true;
+    }
+
+    /// An avatar left the scene: subscribers covering it are told, and the next frame is a
+    /// keyframe.
+    pub fn avatar_removed(&mut self, avatar: &Avatar) {
+        self.descriptions.remove(&avatar.id);
+        self.encoders.remove(&avatar.num());
+        let msg = text(&ServerMsg::AvatarRemoved {
+            scene: self.scene.clone(),
+            avatar: avatar.id.clone(),
+        });
+        for sub in self.subscribers.iter().filter(|sub| sub.wants(&avatar.id)) {
+            sub.outbox.push_control(msg.clone());
+        }
+        self.force_key = true;
+    }
+
+    /// Notes that an avatar was placed: until the next tick, joiners get a keyframe made from
+    /// the current poses rather than the cached one.
+    pub fn placed(&mut self) {
+        self.placed = true;
+    }
+
+    /// Subscribes a connection (replacing its previous subscription to this scene). It gets,
+    /// in order: `subscribed`, every covered avatar's description, then at once a keyframe
+    /// holding every one of them — the current pose, before the next tick: the cached last
+    /// keyframe and the newest delta after it, or, when avatars were added, removed or
+    /// changed since that keyframe, one made now from their current poses, labelled `last`.
+    /// (Before the scene's first tick there is none; that tick is a keyframe of every avatar.)
+    ///
+    /// # Errors
+    /// [`ErrorCode::UnknownAvatar`] when the filter names an avatar not in `avatars`.
+    pub fn subscribe(
+        &mut self,
+        avatars: &mut [Avatar],
+        last: TickStamp,
+        sub: Subscriber,
+    ) -> Result<(), ProtocolError> {
+        if let Some(filter) = &sub.filter
+            && let Some(missing) = filter
+                .iter()
+                .find(|id| !avatars.iter().any(|a| &a.id == *id))
+        {
+            return Err(ProtocolError::new(
+                ErrorCode::UnknownAvatar,
+                format!("scene {} has no avatar {missing}", self.scene),
+            ));
+        }
+        self.subscribers.retain(|old| old.conn != sub.conn);
+        sub.outbox.clear_scene(self.num);
+        sub.outbox.push_control(text(&ServerMsg::Subscribed {
+            scene: self.scene.clone(),
+            scene_num: self.num,
+        }));
+        // Exempt from the outbox's stall bound: a scene of many avatars is not a slow client.
+        let descriptions: Vec<Message> = avatars
+            .iter()
+            .filter(|a| sub.wants(&a.id))
+            .map(|a| description_message(&self.scene, &mut self.descriptions, &a.description))
+            .collect();
+        sub.outbox.push_snapshot(self.num, descriptions);
+        self.first_frames(avatars, last, &sub);
+        self.subscribers.push(sub);
+        Ok(())
+    }
+
+    /// Hands a new subscriber its first frames (see [`Feed::subscribe`]).
+    fn first_frames(&mut self, avatars: &mut [Avatar], last: TickStamp, sub: &Subscriber) {
+        let filter = sub.filter.as_deref();
+        let json = sub.encoding == Encoding::Json;
+        let Some(key) = &mut self.last_key else {
+            return;
+        };
+        let wanted = avatars.iter().filter(|a| sub.wants(&a.id));
+        if !self.placed && key.covers(wanted, |id| sub.wants(id)) {
+            if json {
+                let mut made = key.ensure_json();
+                made += self.last_delta.as_mut().map_or(0, Published::ensure_json);
+                self.metrics.json_encoded(made);
+            }
+            let message = key.message(&self.scene, sub.encoding, filter);
+            sub.outbox
+                .push_frame(self.num, OutFrame { message, key: true });
+            if let Some(delta) = &self.last_delta {
+                let message = delta.message(&self.scene, sub.encoding, filter);
+                sub.outbox.push_frame(
+                    self.num,
+                    OutFrame {
+                        message,
+                        key: false,
+                    },
+                );
+            }
+            return;
+        }
+        // The cached keyframe predates a change of avatars: a keyframe of the current poses, for
+        // this subscriber only, labelled with the last tick.
+        let pieces: Vec<Piece> = avatars
+            .iter_mut()
+            .filter(|a| sub.wants(&a.id))
+            .map(|a| Piece::fresh_key(a, json))
+            .collect();
+        if json {
+            self.metrics.json_encoded(pieces.len() as u64);
+        } else {
+            // The next tick's deltas would refer to the scene's keyframe, which this subscriber
+            // never got: make the next tick a keyframe. (A change of avatars already forces one;
+            // this keeps it so whatever the reason the cache was stale.)
+            self.force_key = true;
+        }
+        let fresh = Published {
+            header: FrameHeader {
+                kind: FrameKind::Key,
+                scene_num: self.num,
+                seq: last.seq,
+                server_time_us: last.server_time_us,
+                base_seq: last.seq,
+            },
+            pieces,
+        };
+        let message = fresh.message(&self.scene, sub.encoding, filter);
+        sub.outbox
+            .push_frame(self.num, OutFrame { message, key: true });
+    }
+
+    /// Ends a connection's subscription. Returns whether it had one.
+    pub fn unsubscribe(&mut self, conn: u64) -> bool {
+        let before = self.subscribers.len();
+        let num = self.num;
+        self.subscribers.retain(|sub| {
+            if sub.conn == conn {
+                sub.outbox.clear_scene(num);
+            }
+            sub.conn != conn
+        });
+        before != self.subscribers.len()
+    }
+
+    /// Ends every subscription (the scene is deleted or the server stops).
+    pub fn close(&mut self) {
+        let msg = text(&ServerMsg::Unsubscribed {
+            scene: self.scene.clone(),
+        });
+        for sub in self.subscribers.drain(..) {
+            sub.outbox.clear_scene(self.num);
+            sub.outbox.push_control(msg.clone());
+        }
+    }
+
+    /// Publishes tick `at` of `avatars` (already moved to it): encodes the frame once per
+    /// encoding and offers it to every subscriber. A keyframe when forced (an avatar added or
+    /// removed, a joiner who missed the keyframe) or when `key_interval` ticks have passed
+    /// since the last one.
+    pub fn publish(&mut self, avatars: &[Avatar], at: TickStamp, key_interval: u64) {
+        self.placed = false;
+        let key = self.force_key
+            || self
+                .last_key_seq
+                .is_none_or(|k| at.seq.saturating_sub(k) >= key_interval)
+            || avatars.iter().any(|a| {
+                !self
+                    .encoders
+                    .get(&a.num())
+                    .is_some_and(|e| e.has_key(a.pose().rotations.len()))
+            });
+        let kind = if key {
+            FrameKind::Key
+        } else {
+            FrameKind::Delta
+        };
+        let header = FrameHeader {
+            kind,
+            scene_num: self.num,
+            seq: at.seq,
+            server_time_us: at.server_time_us,
+            base_seq: if key {
+                at.seq
+            } else {
+                self.last_key_seq.unwrap_or(at.seq)
+            },
+        };
+        // JSON only while someone reads it; a JSON late joiner gets it made from the cached
+        // poses (`first_frames`).
+        let json = self
+            .subscribers
+            .iter()
+            .any(|sub| sub.encoding == Encoding::Json);
+        let pieces: Vec<Piece> = avatars
+            .iter()
+            .map(|a| {
+                let encoder = self.encoders.entry(a.num()).or_default();
+                Piece::encode(a, encoder, kind, json)
+            })
+            .collect();
+        if json {
+            self.metrics.json_encoded(pieces.len() as u64);
+        }
+        let published = Published { header, pieces };
+        // Encode once per (encoding, filter); with no filters that is once per encoding.
+        let mut cache: HashMap<(Encoding, Option<&[AvatarId]>), Message> = HashMap::new();
+        let mut bytes_out = 0u64;
+        for sub in &self.subscribers {
+            let filter = sub.filter.as_deref();
+            let message = cache
+                .entry((sub.encoding, filter))
+                .or_insert_with(|| published.message(&self.scene, sub.encoding, filter))
+                .clone();
+            bytes_out += message_len(&message) as u64;
+            sub.outbox.push_frame(self.num, OutFrame { message, key });
+        }
+        self.metrics
+            .frames_offered(self.subscribers.len() as u64, bytes_out);
+        if key {
+            self.last_key = Some(published);
+            self.last_delta = None;
+            self.last_key_seq = Some(at.seq);
+            self.force_key = false;
+        } else {
+            self.last_delta = Some(published);
+        }
+    }
+}
+
+/// An avatar's description message, from the cache while the description is the same one.
+fn description_message(
+    scene: &SceneId,
+    cache: &mut HashMap<AvatarId, (Arc<AvatarDescription>, Message)>,
+    description: &Arc<AvatarDescription>,
+) -> Message {
+    if let Some((d, m)) = cache.get(&description.id)
+        && Arc::ptr_eq(d, description)
+    {
+        return m.clone();
+    }
+    let message = text(&ServerMsg::Description {
+        scene: scene.clone(),
+        avatar: Box::new((**description).clone()),
+    });
+    cache.insert(
+        description.id.clone(),
+        (description.clone(), message.clone()),
+    );
+    message
+}
+
+/// A server message as a websocket text message.
+#[must_use]
+pub fn text(msg: &ServerMsg) -> Message {
+    // Serialising these types cannot fail (no maps with non-string keys, no failing Serialize
+    // impls); an empty object is sent rather than panicking if that ever changes.
+    Message::Text(Utf8Bytes::from(
+        serde_json::to_string(msg).unwrap_or_else(|_| "{}".into()),
+    ))
+}
