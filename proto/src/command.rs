@@ -405,3 +405,92 @@ mod tests {
         assert!(c.avatar().is_some() && !c.is_read_only());
     }
 }
+
+/// What a successful command returns (`ack.result`; REST `{"result": …}`), one variant per
+/// shape. Serialised as the bare value — an array, an object, or `null` (omitted from the
+/// `ack`) — so the JSON is the same as before this type existed.
+///
+/// Deserialising a result is untagged and so ambiguous for an empty list; a client that knows
+/// which command it sent can deserialise the value into that variant's type directly.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum CommandResult {
+    /// `list_scenes`.
+    Scenes(Vec<SceneInfo>),
+    /// `list_assets`.
+    Assets(Vec<AssetInfo>),
+    /// `get_avatar`.
+    Avatar(Box<AvatarState>),
+    /// `get_joint`.
+    Joint(Box<JointInfo>),
+    /// `drive`.
+    Drive(Box<DriveInfo>),
+    /// `create_scene`.
+    SceneCreated {
+        /// The new scene.
+        scene: SceneId,
+    },
+    /// `add_avatar`.
+    AvatarAdded {
+        /// The new avatar's id (chosen by the server when the command named none).
+        avatar: AvatarId,
+    },
+    /// `set_joint_dofs`: the rotation set and the DOF values after clamping.
+    Dofs {
+        /// The joint's new local rotation.
+        rotation: [f32; 4],
+        /// Its DOF values, in the joint's order, after limits.
+        values: Vec<f32>,
+    },
+    /// `set_joint_rotation`, `rotate_joint_local`, `rotate_joint_world`: the local rotation
+    /// actually set (after limits).
+    Rotation {
+        /// The joint's new local rotation.
+        rotation: [f32; 4],
+    },
+    /// Every other command: nothing to say beyond the ack.
+    Done,
+}
+
+impl CommandResult {
+    /// The result as a JSON value (`null` for [`CommandResult::Done`]).
+    #[must_use]
+    pub fn to_value(&self) -> serde_json::Value {
+        // Serialising these types cannot fail (no maps with non-string keys).
+        serde_json::to_value(self).unwrap_or(serde_json::Value::Null)
+    }
+}
+
+#[cfg(test)]
+mod result_tests {
+    use super::*;
+
+    /// The shapes clients parsed before the type existed.
+    #[test]
+    fn results_serialise_as_bare_values() {
+        assert_eq!(CommandResult::Done.to_value(), serde_json::Value::Null);
+        assert_eq!(
+            CommandResult::AvatarAdded {
+                avatar: AvatarId("a".into())
+            }
+            .to_value(),
+            serde_json::json!({ "avatar": "a" })
+        );
+        assert_eq!(
+            CommandResult::Rotation {
+                rotation: [0.0, 0.0, 0.0, 1.0]
+            }
+            .to_value(),
+            serde_json::json!({ "rotation": [0.0, 0.0, 0.0, 1.0] })
+        );
+        assert_eq!(
+            CommandResult::Scenes(Vec::new()).to_value(),
+            serde_json::json!([])
+        );
+        let dofs: CommandResult = serde_json::from_value(
+            serde_json::json!({ "rotation": [0.0, 0.0, 0.0, 1.0], "values": [0.5] }),
+        )
+        .unwrap();
+        assert!(matches!(dofs, CommandResult::Dofs { .. }), "{dofs:?}");
+    }
+}

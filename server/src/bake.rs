@@ -9,8 +9,8 @@
 //! `Weak`), so a rig replaced by an upload never serves a stale bake.
 
 use crate::clip::Clip;
+use crate::error::Error;
 use crate::rig::Rig;
-use posecast_proto::msg::{ErrorCode, ProtocolError};
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, Weak};
 use tokio::sync::Semaphore;
@@ -23,23 +23,18 @@ pub const DEFAULT_CACHE_BYTES: usize = 256 << 20;
 /// CPU-heavy for long clips: call it from the blocking pool, never under a scene lock.
 ///
 /// # Errors
-/// [`ErrorCode::UnknownClip`] when `source` has no such clip; [`ErrorCode::InvalidValue`]
+/// `unknown_clip` when `source` has no such clip; `invalid_value`
 /// when the rigs cannot be matched (e.g. one is not humanoid).
-pub fn retarget(source: &Rig, target: &Rig, clip: &str) -> Result<Clip, ProtocolError> {
-    let c = source.clip(clip).ok_or_else(|| {
-        ProtocolError::new(
-            ErrorCode::UnknownClip,
-            format!("rig {} has no clip {clip}", source.name),
-        )
+pub fn retarget(source: &Rig, target: &Rig, clip: &str) -> Result<Clip, Error> {
+    let c = source.clip(clip).ok_or_else(|| Error::UnknownClip {
+        rig: source.name.clone(),
+        clip: clip.to_owned(),
     })?;
     let mut out = crate::rig::retarget(source.view(), c, target.view()).map_err(|e| {
-        ProtocolError::new(
-            ErrorCode::InvalidValue,
-            format!(
-                "cannot retarget {clip} from {} onto {}: {e}",
-                source.name, target.name
-            ),
-        )
+        Error::Invalid(format!(
+            "cannot retarget {clip} from {} onto {}: {e}",
+            source.name, target.name
+        ))
     })?;
     out.set_name(format!("{}:{clip}", source.name));
     Ok(out)
@@ -150,7 +145,7 @@ impl RetargetCache {
 
     /// Refuses a bake larger than the whole cache: it could not be kept, so every `play` of it
     /// would bake again (a long clip onto a rig of many joints reaches gigabytes).
-    fn check_size(&self, source: &Rig, clip: &str, target: &Rig) -> Result<(), ProtocolError> {
+    fn check_size(&self, source: &Rig, clip: &str, target: &Rig) -> Result<(), Error> {
         let bytes = estimated_bytes(source, clip, target);
         if bytes > self.limit {
             return Err(crate::quota::Quota::RetargetBytes.exceeded(
@@ -223,7 +218,7 @@ impl RetargetCache {
         source: &Arc<Rig>,
         clip: &str,
         target: &Arc<Rig>,
-    ) -> Result<Arc<Clip>, ProtocolError> {
+    ) -> Result<Arc<Clip>, Error> {
         if let Some(c) = self.get(source, clip, target) {
             return Ok(c);
         }
@@ -237,22 +232,25 @@ impl RetargetCache {
     /// the same clip wait for the first and share its result.
     ///
     /// # Errors
-    /// As [`retarget`]; [`ErrorCode::Internal`] if the bake task panicked.
+    /// As [`retarget`]; `internal` if the bake task panicked.
     pub async fn bake(
         &self,
         source: Arc<Rig>,
         clip: &str,
         target: Arc<Rig>,
-    ) -> Result<Arc<Clip>, ProtocolError> {
+    ) -> Result<Arc<Clip>, Error> {
         if let Some(c) = self.get(&source, clip, &target) {
             return Ok(c);
         }
         self.check_size(&source, clip, &target)?;
         // Owned, and moved into the blocking task below: a caller that gives up (a client that
         // disconnects) must not free the slot while its bake still runs.
-        let permit = self.baking.clone().acquire_owned().await.map_err(|_| {
-            ProtocolError::new(ErrorCode::Internal, "the retargeting pool is closed")
-        })?;
+        let permit = self
+            .baking
+            .clone()
+            .acquire_owned()
+            .await
+            .map_err(|_| Error::Internal("the retargeting pool is closed".into()))?;
         // Someone may have baked it while this waited.
         if let Some(c) = self.get(&source, clip, &target) {
             return Ok(c);
@@ -263,9 +261,7 @@ impl RetargetCache {
             retarget(&s, &t, &name)
         })
         .await
-        .map_err(|e| {
-            ProtocolError::new(ErrorCode::Internal, format!("retargeting failed: {e}"))
-        })??;
+        .map_err(|e| Error::Internal(format!("retargeting failed: {e}")))??;
         let baked = Arc::new(baked);
         self.insert(&source, &target, clip, baked.clone());
         Ok(baked)
@@ -275,6 +271,7 @@ impl RetargetCache {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use posecast_proto::msg::ErrorCode;
 
     /// A rig named `name` whose only clip is the built-in walk stretched to `seconds`.
     fn rig(name: &str, seconds: f32) -> Arc<Rig> {
@@ -291,8 +288,12 @@ mod tests {
         let (source, target) = (rig("src", 3600.0), rig("tgt", 1.0));
         let cache = RetargetCache::new(1 << 20);
         let e = cache.bake_blocking(&source, "long", &target).unwrap_err();
-        assert_eq!(e.code, ErrorCode::QuotaExceeded, "{e:?}");
-        assert!(e.message.contains("retarget_bytes"), "{}", e.message);
+        assert_eq!(e.code(), ErrorCode::QuotaExceeded, "{e:?}");
+        assert!(
+            e.to_string().contains("retarget_bytes"),
+            "{}",
+            e.to_string()
+        );
         assert_eq!(cache.usage(), (0, 0));
     }
 

@@ -2,18 +2,17 @@
 //! [`command::apply`] with the slow part done first off the lock, counted in the metrics, and —
 //! with a data folder — acknowledged only once stored.
 
+use crate::error::Error;
 use crate::state::AppState;
 use crate::world::command;
-use posecast_proto::command::Command;
-use posecast_proto::msg::{ErrorCode, ProtocolError};
-use serde_json::Value;
+use posecast_proto::command::{Command, CommandResult};
 
 /// Executes a command in memory. Authorisation is checked by the caller. Servers with a data
 /// folder answer clients through [`execute_durable`] instead.
 ///
 /// # Errors
 /// A typed error; nothing is changed when a command fails.
-pub fn execute(state: &AppState, command: &Command) -> Result<Value, ProtocolError> {
+pub fn execute(state: &AppState, command: &Command) -> Result<CommandResult, Error> {
     let result = command::apply(&state.world, command);
     state.metrics.command(result.is_ok());
     result
@@ -24,9 +23,9 @@ pub fn execute(state: &AppState, command: &Command) -> Result<Value, ProtocolErr
 /// a crash. Read-only and failed commands write nothing.
 ///
 /// # Errors
-/// As [`execute`]; or [`ErrorCode::Internal`] when storing failed, in which case the change
+/// As [`execute`]; or `internal` when storing failed, in which case the change
 /// *is* in effect in memory but not on disk.
-pub async fn execute_durable(state: &AppState, command: &Command) -> Result<Value, ProtocolError> {
+pub async fn execute_durable(state: &AppState, command: &Command) -> Result<CommandResult, Error> {
     if let Err(e) = prepare(state, command).await {
         state.metrics.command(false);
         return Err(e);
@@ -52,7 +51,7 @@ pub async fn execute_durable(state: &AppState, command: &Command) -> Result<Valu
 /// The slow part of a command, done before it takes any scene lock and off the async
 /// workers: `play … from_asset` bakes the retargeted clip ([`crate::bake`]), so applying the
 /// command is a cache lookup and no other scene's tick waits for the bake.
-async fn prepare(state: &AppState, command: &Command) -> Result<(), ProtocolError> {
+async fn prepare(state: &AppState, command: &Command) -> Result<(), Error> {
     let Command::Play {
         avatar,
         clip,
@@ -70,9 +69,7 @@ async fn prepare(state: &AppState, command: &Command) -> Result<(), ProtocolErro
             .iter()
             .find(|a| &a.id == avatar)
             .map(|a| a.rig.clone())
-            .ok_or_else(|| {
-                ProtocolError::new(ErrorCode::UnknownAvatar, format!("no avatar {avatar}"))
-            })?
+            .ok_or_else(|| Error::UnknownAvatar(avatar.clone()))?
     };
     if source.name != target.name {
         state.world.retargets.bake(source, clip, target).await?;

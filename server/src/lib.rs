@@ -25,6 +25,7 @@ pub mod builtin;
 pub mod clip;
 pub mod config;
 pub mod control;
+pub mod error;
 pub mod export;
 pub mod import;
 pub mod library;

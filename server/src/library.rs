@@ -3,10 +3,11 @@
 
 pub use crate::rig::{JointLimits, Rig};
 
+use crate::error::Error;
 use crate::import::ImportError;
 use crate::import::files::{self, FileSet};
 use crate::rig::PipelineOptions;
-use posecast_proto::msg::{ErrorCode, ProtocolError, check_id};
+use posecast_proto::msg::check_id;
 use std::collections::BTreeMap;
 use std::sync::{Arc, RwLock};
 
@@ -36,14 +37,10 @@ impl Library {
     /// The rig named `name`, or the typed error every caller reports.
     ///
     /// # Errors
-    /// [`ErrorCode::UnknownAsset`].
-    pub fn require(&self, name: &str) -> Result<Arc<Rig>, ProtocolError> {
-        self.get(name).ok_or_else(|| {
-            ProtocolError::new(
-                ErrorCode::UnknownAsset,
-                format!("no rig (asset) named {name}"),
-            )
-        })
+    /// `unknown_asset`.
+    pub fn require(&self, name: &str) -> Result<Arc<Rig>, Error> {
+        self.get(name)
+            .ok_or_else(|| Error::UnknownAsset(name.to_owned()))
     }
 
     /// A rig by name.
@@ -68,21 +65,20 @@ impl Library {
     }
 }
 
-fn import_failed(e: &ImportError) -> ProtocolError {
-    ProtocolError::new(ErrorCode::ImportFailed, e.to_string())
+fn import_failed(e: &ImportError) -> Error {
+    Error::ImportFailed(e.to_string())
 }
 
 /// Checks an upload's name: an id ([`check_id`]) that does not start with `.` (a hidden or
 /// parent folder) and does not contain `.corrupt` (how bad stored files are set aside).
 ///
 /// # Errors
-/// [`ErrorCode::InvalidValue`].
-pub fn check_name(name: &str) -> Result<(), ProtocolError> {
-    check_id("asset", name)?;
+/// `invalid_value`.
+pub fn check_name(name: &str) -> Result<(), Error> {
+    check_id("asset", name).map_err(|e| Error::Invalid(e.message))?;
     if name.starts_with('.') || name.contains(".corrupt") {
-        return Err(ProtocolError::new(
-            ErrorCode::InvalidValue,
-            "asset names must not start with '.' or contain '.corrupt'",
+        return Err(Error::Invalid(
+            "asset names must not start with '.' or contain '.corrupt'".into(),
         ));
     }
     Ok(())
@@ -101,9 +97,9 @@ fn rename(asset: &str, main_stem: &str, name: &str) -> String {
 /// workers).
 ///
 /// # Errors
-/// [`ErrorCode::ImportFailed`] with the importer's message (file and place) or the
+/// `import_failed` with the importer's message (file and place) or the
 /// normalisation's.
-pub fn prepare(name: &str, set: &FileSet) -> Result<Vec<Rig>, ProtocolError> {
+pub fn prepare(name: &str, set: &FileSet) -> Result<Vec<Rig>, Error> {
     let main = set.main_file().map_err(|e| import_failed(&e))?;
     let main_stem = files::stem(main).to_owned();
     let imported = files::import_set(set).map_err(|e| import_failed(&e))?;
@@ -113,10 +109,7 @@ pub fn prepare(name: &str, set: &FileSet) -> Result<Vec<Rig>, ProtocolError> {
             asset.name = rename(&asset.name, &main_stem, name);
             let rig_name = asset.name.clone();
             Rig::from_asset(asset, &PipelineOptions::default()).map_err(|e| {
-                ProtocolError::new(
-                    ErrorCode::ImportFailed,
-                    format!("{main}: rig {rig_name}: normalisation failed: {e}"),
-                )
+                Error::ImportFailed(format!("{main}: rig {rig_name}: normalisation failed: {e}"))
             })
         })
         .collect()

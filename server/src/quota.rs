@@ -6,7 +6,7 @@
 //! Restoring stored state at start is not refused: lowering a quota keeps what exists and
 //! only stops growth.
 
-use posecast_proto::msg::{ErrorCode, ProtocolError};
+use crate::error::Error;
 
 /// The limits (see each field's default).
 #[derive(Debug, Clone, PartialEq)]
@@ -101,15 +101,12 @@ impl Quota {
 
     /// The typed refusal: `quota_exceeded`, naming the quota, what was asked and the limit.
     #[must_use]
-    pub fn exceeded(
-        self,
-        what: impl std::fmt::Display,
-        limit: impl std::fmt::Display,
-    ) -> ProtocolError {
-        ProtocolError::new(
-            ErrorCode::QuotaExceeded,
-            format!("quota {}: {what} (the limit is {limit})", self.name()),
-        )
+    pub fn exceeded(self, what: impl std::fmt::Display, limit: impl std::fmt::Display) -> Error {
+        Error::Quota {
+            quota: self,
+            detail: what.to_string(),
+            limit: limit.to_string(),
+        }
     }
 }
 
@@ -118,7 +115,7 @@ impl Quotas {
     ///
     /// # Errors
     /// [`Quota::Joints`] or [`Quota::ClipJointSeconds`], with its typed error.
-    pub fn check_rig(&self, rig: &crate::rig::Rig) -> Result<(), (Quota, ProtocolError)> {
+    pub fn check_rig(&self, rig: &crate::rig::Rig) -> Result<(), (Quota, Error)> {
         let joints = rig.skeleton().len();
         if joints > self.max_joints {
             return Err((
@@ -242,19 +239,18 @@ impl TokenBucket {
 
 /// The typed refusal of a rate-limited command, with the retry hint.
 #[must_use]
-pub fn rate_limited(wait: std::time::Duration) -> ProtocolError {
-    let ms = wait.as_millis().max(1) as u64;
-    let mut e = ProtocolError::new(
-        ErrorCode::RateLimited,
-        format!("too many commands: try again in {ms} ms"),
-    );
-    e.retry_after_ms = Some(ms);
-    e
+pub fn rate_limited(wait: std::time::Duration) -> Error {
+    let ms = u64::try_from(wait.as_millis().max(1)).unwrap_or(u64::MAX);
+    Error::RateLimited {
+        message: format!("too many commands: try again in {ms} ms"),
+        retry_after_ms: ms,
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use posecast_proto::msg::{ErrorCode, ProtocolError};
 
     #[test]
     fn names_and_indices_are_distinct() {
@@ -264,12 +260,12 @@ mod tests {
             assert_eq!(q.index(), i);
         }
         let e = Quota::Scenes.exceeded("scene 257", 256);
-        assert_eq!(e.retry_after_ms, None);
-        assert_eq!(e.code, ErrorCode::QuotaExceeded);
+        assert_eq!(ProtocolError::from(e.clone()).retry_after_ms, None);
+        assert_eq!(e.code(), ErrorCode::QuotaExceeded);
         assert!(
-            e.message.contains("scenes") && e.message.contains("256"),
+            e.to_string().contains("scenes") && e.to_string().contains("256"),
             "{}",
-            e.message
+            e.to_string()
         );
     }
 
@@ -296,6 +292,9 @@ mod tests {
         assert!(b.take_at(t2).is_err());
         assert!(CommandRate::new(0.0, 1.0).is_err() && CommandRate::new(1.0, 0.5).is_err());
         assert!(CommandRate::new(1e-300, 1.0).is_err());
-        assert_eq!(rate_limited(wait).retry_after_ms, Some(50));
+        assert_eq!(
+            ProtocolError::from(rate_limited(wait)).retry_after_ms,
+            Some(50)
+        );
     }
 }

@@ -5,7 +5,7 @@
 //! /healthz` answers 503 with the progress, and every request that reads or changes scenes or
 //! assets waits here (see the README, "Persistence").
 
-use posecast_proto::msg::{ErrorCode, ProtocolError};
+use crate::error::Error;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use tokio::sync::watch;
 
@@ -122,18 +122,16 @@ impl Readiness {
     /// Waits until the server is ready.
     ///
     /// # Errors
-    /// [`ErrorCode::Internal`] when start-up failed or the server shut down first.
-    pub async fn wait(&self) -> Result<(), ProtocolError> {
+    /// `internal` when start-up failed or the server shut down first.
+    pub async fn wait(&self) -> Result<(), Error> {
         match self.settled().await {
             // `settled` returns only once start-up has ended, so never `Starting`.
             Phase::Ready | Phase::Starting => Ok(()),
-            Phase::Failed(reason) => Err(ProtocolError::new(
-                ErrorCode::Internal,
-                format!("the server failed to start: {reason}"),
-            )),
-            Phase::Stopped => Err(ProtocolError::new(
-                ErrorCode::Internal,
-                "the server shut down before it finished starting",
+            Phase::Failed(reason) => Err(Error::Internal(format!(
+                "the server failed to start: {reason}"
+            ))),
+            Phase::Stopped => Err(Error::Internal(
+                "the server shut down before it finished starting".into(),
             )),
         }
     }
@@ -142,6 +140,7 @@ impl Readiness {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use posecast_proto::msg::ErrorCode;
     use std::time::Duration;
 
     #[tokio::test]
@@ -175,7 +174,7 @@ mod tests {
         r.stop();
         assert!(r.stopped());
         let e = waiter.await.unwrap().unwrap_err();
-        assert_eq!(e.code, ErrorCode::Internal);
+        assert_eq!(e.code(), ErrorCode::Internal);
         // The loader finishing late does not turn a stopped server into a ready one.
         r.finish(Ok(()));
         assert_eq!(r.phase(), Phase::Stopped);
@@ -187,6 +186,6 @@ mod tests {
         r.begin(0);
         r.finish(Err("data folder x is not usable".into()));
         let e = r.wait().await.unwrap_err();
-        assert!(e.message.contains("data folder x"), "{}", e.message);
+        assert!(e.to_string().contains("data folder x"), "{}", e.to_string());
     }
 }

@@ -68,7 +68,7 @@ impl Server {
             .readiness
             .wait()
             .await
-            .map_err(|e| std::io::Error::other(e.message))
+            .map_err(|e| std::io::Error::other(e.to_string()))
     }
 
     /// The websocket URL.

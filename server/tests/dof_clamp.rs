@@ -67,12 +67,10 @@ async fn clip_values_are_clamped_to_dof_limits() {
         &serde_json::from_str(r#"{"op":"get_joint","avatar":"a","joint":"elbow"}"#).unwrap(),
     )
     .unwrap();
-    let values: Vec<f64> = info["dofs"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|d| d["value"].as_f64().unwrap())
-        .collect();
+    let posecast_proto::command::CommandResult::Joint(info) = info else {
+        panic!("get_joint answered {info:?}");
+    };
+    let values: Vec<f64> = info.dofs.iter().map(|d| f64::from(d.value)).collect();
     for (got, want) in values.iter().zip([0.4, -0.66, 0.2]) {
         assert!((got - want).abs() < 1e-4, "{values:?}");
     }

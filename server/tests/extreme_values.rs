@@ -191,7 +191,7 @@ proptest! {
         let mut seq = 0u64;
         for op in &ops {
             match command(op) {
-                Some(c) => match control::execute(&state, &c) {
+                Some(c) => match control::execute(&state, &c).map(|r| r.to_value()) {
                     Ok(result) => {
                         // A rotation in the ack is four numbers (it used to be four nulls).
                         if let Some(q) = result.get("rotation") {
@@ -199,7 +199,7 @@ proptest! {
                             prop_assert!(q.len() == 4, "{:?} acked {}", op, result);
                         }
                     }
-                    Err(e) => prop_assert_eq!(e.code, ErrorCode::InvalidValue, "{:?}: {}", op, e.message),
+                    Err(e) => prop_assert_eq!(e.code(), ErrorCode::InvalidValue, "{:?}: {}", op, e.to_string()),
                 },
                 None => {
                     if let Op::Tick(d) = op {
@@ -252,7 +252,7 @@ fn huge_quaternion_is_normalised_not_zeroed() {
             "rotation": [2e19, 0, 0, 0]
         }))
         .unwrap();
-        let result = control::execute(&state, &c).unwrap();
+        let result = control::execute(&state, &c).unwrap().to_value();
         let q: Vec<f64> = result["rotation"]
             .as_array()
             .unwrap()

@@ -173,7 +173,7 @@ mod tests {
         assert!(access.control && access.view);
         assert_eq!(access.avatars, Some(vec![AvatarId("alice".into())]));
         assert_eq!(
-            c.identify(Some("alice-token2")).unwrap_err().code,
+            c.identify(Some("alice-token2")).unwrap_err().code(),
             ErrorCode::Unauthorized
         );
         assert!(matches!(c.identify(None).unwrap(), Caller::Anonymous));

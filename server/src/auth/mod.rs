@@ -9,14 +9,14 @@
 //!   compared in constant time and never logged: [`Secret`]'s `Debug` prints `***`, and logs
 //!   name a token by its `name`.
 //!
-//! Missing or unknown token: [`ErrorCode::Unauthorized`] (HTTP 401). A valid token without the
-//! right: [`ErrorCode::Forbidden`] (HTTP 403).
+//! Missing or unknown token: `unauthorized` (HTTP 401). A valid token without the
+//! right: `forbidden` (HTTP 403).
 
+use crate::error::Error;
 use crate::world::World;
-use posecast_proto::command::Command;
-use posecast_proto::msg::{Access, AvatarId, ErrorCode, ProtocolError, SceneId};
+use posecast_proto::command::{Command, CommandResult};
+use posecast_proto::msg::{Access, AvatarId, SceneId};
 use serde::Deserialize;
-use serde_json::Value;
 use std::sync::Arc;
 
 mod file;
@@ -128,8 +128,8 @@ impl AccessConfig {
     /// time taken does not tell which one matched.
     ///
     /// # Errors
-    /// [`ErrorCode::Unauthorized`] for a token that is not configured.
-    pub fn identify(&self, token: Option<&str>) -> Result<Caller, ProtocolError> {
+    /// `unauthorized` for a token that is not configured.
+    pub fn identify(&self, token: Option<&str>) -> Result<Caller, Error> {
         let Some(token) = token else {
             return Ok(Caller::Anonymous);
         };
@@ -139,12 +139,9 @@ impl AccessConfig {
                 found = Some(t.clone());
             }
         }
-        found.map(Caller::Token).ok_or_else(|| {
-            ProtocolError::new(
-                ErrorCode::Unauthorized,
-                "the token is not valid on this server",
-            )
-        })
+        found
+            .map(Caller::Token)
+            .ok_or_else(|| Error::Unauthorized("the token is not valid on this server".into()))
     }
 
     /// What `caller` may do, as told to clients.
@@ -170,7 +167,7 @@ impl AccessConfig {
     /// # Errors
     /// Unauthorized without a token when views are not open; Forbidden outside the token's
     /// scenes.
-    pub fn authorize_view(&self, caller: &Caller, scene: &SceneId) -> Result<(), ProtocolError> {
+    pub fn authorize_view(&self, caller: &Caller, scene: &SceneId) -> Result<(), Error> {
         match caller {
             Caller::Anonymous if self.open_view => Ok(()),
             Caller::Anonymous => Err(unauthorized("watching needs a view token")),
@@ -188,19 +185,15 @@ impl AccessConfig {
     /// the caller may not watch (only possible when views are private and the token is
     /// limited to scenes); every other result is unchanged.
     #[must_use]
-    pub fn visible(&self, caller: &Caller, command: &Command, result: Value) -> Value {
-        match (command, result) {
-            (Command::ListScenes, Value::Array(scenes)) => Value::Array(
+    pub fn visible(&self, caller: &Caller, result: CommandResult) -> CommandResult {
+        match result {
+            CommandResult::Scenes(scenes) => CommandResult::Scenes(
                 scenes
                     .into_iter()
-                    .filter(|s| {
-                        s.get("scene").and_then(Value::as_str).is_none_or(|id| {
-                            self.authorize_view(caller, &SceneId(id.to_owned())).is_ok()
-                        })
-                    })
+                    .filter(|s| self.authorize_view(caller, &s.scene).is_ok())
                     .collect(),
             ),
-            (_, result) => result,
+            result => result,
         }
     }
 
@@ -208,7 +201,7 @@ impl AccessConfig {
     ///
     /// # Errors
     /// Unauthorized without a token when views are not open.
-    pub fn authorize_read(&self, caller: &Caller) -> Result<(), ProtocolError> {
+    pub fn authorize_read(&self, caller: &Caller) -> Result<(), Error> {
         match caller {
             Caller::Anonymous if !self.open_view => Err(unauthorized("reading needs a view token")),
             _ => Ok(()),
@@ -219,7 +212,7 @@ impl AccessConfig {
     ///
     /// # Errors
     /// Unauthorized without a token, Forbidden with a view or limited token.
-    pub fn authorize_upload(&self, caller: &Caller) -> Result<(), ProtocolError> {
+    pub fn authorize_upload(&self, caller: &Caller) -> Result<(), Error> {
         let t = control_token(caller)?;
         if t.unlimited() {
             Ok(())
@@ -241,7 +234,7 @@ impl AccessConfig {
         caller: &Caller,
         world: &World,
         command: &Command,
-    ) -> Result<(), ProtocolError> {
+    ) -> Result<(), Error> {
         if command.is_read_only() {
             return match command.avatar() {
                 Some(a) => match world.find_avatar(a) {
@@ -283,7 +276,7 @@ impl AccessConfig {
 
 /// A limited token places only rigs of at most [`crate::quota::Quotas::limited_max_joints`]
 /// joints: one user's avatar cannot make every viewer of the scene download a huge rig.
-fn limited_rig_size(world: &World, command: &Command) -> Result<(), ProtocolError> {
+fn limited_rig_size(world: &World, command: &Command) -> Result<(), Error> {
     let Command::AddAvatar { asset, .. } = command else {
         return Ok(());
     };
@@ -302,7 +295,7 @@ fn limited_rig_size(world: &World, command: &Command) -> Result<(), ProtocolErro
     }
 }
 
-fn control_token(caller: &Caller) -> Result<&TokenRule, ProtocolError> {
+fn control_token(caller: &Caller) -> Result<&TokenRule, Error> {
     match caller {
         Caller::Anonymous => Err(unauthorized("commands need a control token")),
         Caller::Token(t) if t.role == Role::Control => Ok(t),
@@ -321,18 +314,19 @@ fn describe(command: &Command) -> String {
     }
 }
 
-fn unauthorized(message: &str) -> ProtocolError {
-    ProtocolError::new(ErrorCode::Unauthorized, message)
+fn unauthorized(message: &str) -> Error {
+    Error::Unauthorized(message.into())
 }
 
-fn forbidden(message: String) -> ProtocolError {
-    ProtocolError::new(ErrorCode::Forbidden, message)
+fn forbidden(message: String) -> Error {
+    Error::Forbidden(message)
 }
 
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+    use posecast_proto::msg::ErrorCode;
 
     #[test]
     fn view_rules() {
@@ -348,17 +342,17 @@ mod tests {
         let screen = c.identify(Some("view-token-1")).unwrap();
         assert!(c.authorize_view(&screen, &lobby).is_ok());
         assert_eq!(
-            c.authorize_view(&screen, &other).unwrap_err().code,
+            c.authorize_view(&screen, &other).unwrap_err().code(),
             ErrorCode::Forbidden
         );
         assert_eq!(
             c.authorize_view(&Caller::Anonymous, &lobby)
                 .unwrap_err()
-                .code,
+                .code(),
             ErrorCode::Unauthorized
         );
         assert_eq!(
-            c.authorize_upload(&screen).unwrap_err().code,
+            c.authorize_upload(&screen).unwrap_err().code(),
             ErrorCode::Forbidden
         );
         c.open_view = true;

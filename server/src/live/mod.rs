@@ -10,15 +10,15 @@
 //! (`unknown_joint`), every rotation a finite non-zero quaternion and the root position finite
 //! and within [`MAX_ROOT_METRES`] (`invalid_value`). A pose failing any check changes nothing.
 
-use crate::quota::rate_limited;
+use crate::error::Error;
 use crate::scene::Scene;
 
 use crate::avatar::live::{LivePose, ValidPose};
 use crate::state::AppState;
 use glam::{Quat, Vec3};
-use posecast_proto::command::{Command, DriveInfo, OnRelease};
+use posecast_proto::command::{Command, CommandResult, DriveInfo, OnRelease};
 use posecast_proto::live::{BinaryPose, MAX_RATE_HZ};
-use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError};
+use posecast_proto::msg::AvatarId;
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Instant;
@@ -35,14 +35,11 @@ pub struct Drives {
     driven: Vec<(AvatarId, u32, Arc<Scene>)>,
 }
 
-fn not_driving(avatar: impl std::fmt::Display) -> ProtocolError {
-    ProtocolError::new(
-        ErrorCode::NotAllowedNow,
-        format!("this connection does not drive avatar {avatar}; send drive first"),
-    )
+fn not_driving(avatar: impl std::fmt::Display) -> Error {
+    Error::NotAllowedNow(format!(
+        "this connection does not drive avatar {avatar}; send drive first"
+    ))
 }
-
-use crate::world::command::invalid;
 
 impl Drives {
     /// Nothing driven yet by connection `conn`.
@@ -60,7 +57,7 @@ impl Drives {
         &mut self,
         state: &AppState,
         command: &Command,
-    ) -> Option<Result<serde_json::Value, ProtocolError>> {
+    ) -> Option<Result<CommandResult, Error>> {
         let Command::Drive {
             avatar,
             source,
@@ -76,7 +73,7 @@ impl Drives {
                 source.as_deref(),
                 on_release.unwrap_or_default(),
             )
-            .map(|info| serde_json::to_value(info).unwrap_or(serde_json::Value::Null));
+            .map(|info| CommandResult::Drive(Box::new(info)));
         state.metrics.command(result.is_ok());
         Some(result)
     }
@@ -87,22 +84,21 @@ impl Drives {
         avatar: &AvatarId,
         source: Option<&str>,
         on_release: OnRelease,
-    ) -> Result<DriveInfo, ProtocolError> {
+    ) -> Result<DriveInfo, Error> {
         let source_rig = source
             .map(|name| state.world.library.require(name))
             .transpose()?;
         let scene = state.world.find_avatar(avatar)?;
         let mut s = scene.lock();
-        let a = s.avatar_mut(avatar).ok_or_else(|| {
-            ProtocolError::new(ErrorCode::UnknownAvatar, format!("no avatar {avatar}"))
-        })?;
+        let a = s
+            .avatar_mut(avatar)
+            .ok_or_else(|| Error::UnknownAvatar(avatar.clone()))?;
         if let Some(driver) = a.live.as_ref().and_then(|l| l.driver)
             && driver != self.conn
         {
-            return Err(ProtocolError::new(
-                ErrorCode::Conflict,
-                format!("avatar {avatar} already has a live driver"),
-            ));
+            return Err(Error::Conflict(format!(
+                "avatar {avatar} already has a live driver"
+            )));
         }
         let source = source_rig.unwrap_or_else(|| a.rig.clone());
         let live = LivePose::new(
@@ -114,7 +110,7 @@ impl Drives {
             state.config.drive_timeout,
         )
         .map_err(|e| {
-            invalid(format!(
+            Error::invalid(format!(
                 "cannot retarget {} onto {}: {e}",
                 source.name, a.rig.name
             ))
@@ -151,7 +147,7 @@ impl Drives {
         rotations: &BTreeMap<String, [f32; 4]>,
         root_position: Option<[f32; 3]>,
         time_us: Option<u64>,
-    ) -> Result<(), ProtocolError> {
+    ) -> Result<(), Error> {
         let (_, _, scene) = self
             .driven
             .iter()
@@ -165,11 +161,9 @@ impl Drives {
                 time_us,
             };
             for (name, q) in rotations {
-                let j = skeleton.find(name).ok_or_else(|| {
-                    ProtocolError::new(
-                        ErrorCode::UnknownJoint,
-                        format!("rig {} has no joint {name}", live.source.name),
-                    )
+                let j = skeleton.find(name).ok_or_else(|| Error::UnknownJoint {
+                    owner: format!("rig {}", live.source.name),
+                    joint: name.clone(),
                 })?;
                 pose.rotations.push((j, rotation(name, *q)?));
             }
@@ -181,9 +175,8 @@ impl Drives {
     ///
     /// # Errors
     /// `unexpected_binary` when the bytes are not a pose; otherwise as [`Drives::json_pose`].
-    pub fn binary_pose(&self, bytes: &[u8]) -> Result<(), ProtocolError> {
-        let msg = BinaryPose::decode(bytes)
-            .map_err(|e| ProtocolError::new(ErrorCode::UnexpectedBinary, e.to_string()))?;
+    pub fn binary_pose(&self, bytes: &[u8]) -> Result<(), Error> {
+        let msg = BinaryPose::decode(bytes).map_err(|e| Error::UnexpectedBinary(e.to_string()))?;
         let (avatar, _, scene) = self
             .driven
             .iter()
@@ -199,10 +192,10 @@ impl Drives {
             for &(j, q) in &msg.rotations {
                 let j = usize::from(j);
                 if j >= n {
-                    return Err(ProtocolError::new(
-                        ErrorCode::UnknownJoint,
-                        format!("rig {} has {n} joints; got index {j}", live.source.name),
-                    ));
+                    return Err(Error::UnknownJoint {
+                        owner: format!("rig {} (of {n} joints)", live.source.name),
+                        joint: format!("index {j}"),
+                    });
                 }
                 pose.rotations.push((j, q));
             }
@@ -215,8 +208,8 @@ impl Drives {
         &self,
         scene: &Scene,
         avatar: &AvatarId,
-        validate: impl FnOnce(&LivePose) -> Result<ValidPose, ProtocolError>,
-    ) -> Result<(), ProtocolError> {
+        validate: impl FnOnce(&LivePose) -> Result<ValidPose, Error>,
+    ) -> Result<(), Error> {
         let now = Instant::now();
         let mut s = scene.lock();
         let live = s
@@ -225,12 +218,13 @@ impl Drives {
             .filter(|l| l.driver == Some(self.conn))
             .ok_or_else(|| not_driving(avatar))?;
         live.take_rate(now).map_err(|wait| {
-            let mut e = rate_limited(wait);
-            e.message = format!(
-                "poses are limited to {MAX_RATE_HZ} per second per driver: try again in {} ms",
-                e.retry_after_ms.unwrap_or(1)
-            );
-            e
+            let ms = u64::try_from(wait.as_millis().max(1)).unwrap_or(u64::MAX);
+            Error::RateLimited {
+                message: format!(
+                    "poses are limited to {MAX_RATE_HZ} per second per driver: try again in {ms} ms"
+                ),
+                retry_after_ms: ms,
+            }
         })?;
         let pose = validate(live)?;
         live.store(pose, now);
@@ -251,20 +245,22 @@ impl Drives {
     }
 }
 
-fn rotation(joint: &str, q: [f32; 4]) -> Result<Quat, ProtocolError> {
+fn rotation(joint: &str, q: [f32; 4]) -> Result<Quat, Error> {
     posecast_proto::unit_quat(q).ok_or_else(|| {
-        invalid(format!(
+        Error::invalid(format!(
             "joint {joint}: rotation {q:?} is not a finite non-zero quaternion"
         ))
     })
 }
 
-fn root(p: Option<Vec3>) -> Result<Option<Vec3>, ProtocolError> {
+fn root(p: Option<Vec3>) -> Result<Option<Vec3>, Error> {
     match p {
-        Some(p) if !(p.is_finite() && p.length() <= MAX_ROOT_METRES) => Err(invalid(format!(
-            "root_position {:?} must be finite and within {MAX_ROOT_METRES} m",
-            p.to_array()
-        ))),
+        Some(p) if !(p.is_finite() && p.length() <= MAX_ROOT_METRES) => {
+            Err(Error::invalid(format!(
+                "root_position {:?} must be finite and within {MAX_ROOT_METRES} m",
+                p.to_array()
+            )))
+        }
         _ => Ok(p),
     }
 }

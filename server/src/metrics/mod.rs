@@ -131,7 +131,7 @@ impl Metrics {
         quota: crate::quota::Quota,
         what: impl std::fmt::Display,
         limit: impl std::fmt::Display,
-    ) -> posecast_proto::msg::ProtocolError {
+    ) -> crate::error::Error {
         self.quota_refused(quota);
         quota.exceeded(what, limit)
     }

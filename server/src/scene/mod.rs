@@ -9,10 +9,11 @@
 pub mod ticker;
 
 use crate::avatar::Avatar;
+use crate::error::Error;
 use crate::metrics::Metrics;
 use crate::stream::feed::{Feed, Subscriber, TickStamp};
 use posecast_proto::command::SceneInfo;
-use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError, SceneId};
+use posecast_proto::msg::{AvatarId, SceneId};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Mutex, MutexGuard};
 use tokio::sync::Notify;
@@ -91,15 +92,15 @@ impl Scene {
     /// Adds an avatar; subscribers get its description and the next frame is a keyframe.
     ///
     /// # Errors
-    /// [`ErrorCode::Conflict`] when the scene already has an avatar with that id.
-    pub fn add_avatar(&self, mut avatar: Avatar) -> Result<(), ProtocolError> {
+    /// `conflict` when the scene already has an avatar with that id.
+    pub fn add_avatar(&self, mut avatar: Avatar) -> Result<(), Error> {
         let mut s = self.lock();
         avatar.player.set_clock(s.clock);
         if s.avatars.iter().any(|a| a.id == avatar.id) {
-            return Err(ProtocolError::new(
-                ErrorCode::Conflict,
-                format!("scene {} already has avatar {}", self.id, avatar.id),
-            ));
+            return Err(Error::Conflict(format!(
+                "scene {} already has avatar {}",
+                self.id, avatar.id
+            )));
         }
         s.feed.avatar_added(&avatar);
         s.avatars.push(avatar);
@@ -118,8 +119,8 @@ impl Scene {
     /// Subscribes a connection ([`Feed::subscribe`]: its first frames come at once).
     ///
     /// # Errors
-    /// [`ErrorCode::UnknownAvatar`] when the filter names an avatar not in the scene.
-    pub fn subscribe(&self, sub: Subscriber) -> Result<(), ProtocolError> {
+    /// `unknown_avatar` when the filter names an avatar not in the scene.
+    pub fn subscribe(&self, sub: Subscriber) -> Result<(), Error> {
         let mut guard = self.lock();
         let s = &mut *guard;
         s.feed.subscribe(&mut s.avatars, s.last, sub)

@@ -63,7 +63,7 @@ pub async fn wait_until_ready(
     if request.uri().path().starts_with("/api/")
         && let Err(e) = state.readiness.wait().await
     {
-        return AppError(e).into_response();
+        return AppError(e.into()).into_response();
     }
     next.run(request).await
 }

@@ -26,6 +26,12 @@ use std::sync::Arc;
 #[derive(Debug)]
 pub struct AppError(pub ProtocolError);
 
+impl From<crate::error::Error> for AppError {
+    fn from(e: crate::error::Error) -> Self {
+        Self(e.into())
+    }
+}
+
 impl From<ProtocolError> for AppError {
     fn from(e: ProtocolError) -> Self {
         Self(e)
@@ -111,7 +117,7 @@ pub async fn command(
         .access
         .authorize(&caller, &state.world, &command)?;
     let result = control::execute_durable(&state, &command).await?;
-    let result = state.config.access.visible(&caller, &command, result);
+    let result = state.config.access.visible(&caller, result);
     Ok(Json(json!({ "result": result })))
 }
 
@@ -122,11 +128,9 @@ pub async fn scenes(
 ) -> Result<Json<Value>, AppError> {
     state.config.access.authorize_read(&caller)?;
     let scenes = control::execute(&state, &Command::ListScenes)?;
-    Ok(Json(state.config.access.visible(
-        &caller,
-        &Command::ListScenes,
-        scenes,
-    )))
+    Ok(Json(
+        state.config.access.visible(&caller, scenes).to_value(),
+    ))
 }
 
 /// `GET /api/assets/{name}/mesh.glb`: the rig's normalised skinned mesh (the space of its
@@ -159,7 +163,9 @@ pub async fn assets(
     caller: Caller,
 ) -> Result<Json<Value>, AppError> {
     state.config.access.authorize_read(&caller)?;
-    Ok(Json(control::execute(&state, &Command::ListAssets)?))
+    Ok(Json(
+        control::execute(&state, &Command::ListAssets)?.to_value(),
+    ))
 }
 
 #[cfg(test)]

@@ -222,7 +222,8 @@ impl Session {
         }
     }
 
-    fn error(&self, e: ProtocolError) {
+    fn error(&self, e: impl Into<ProtocolError>) {
+        let e = e.into();
         match e.code {
             ErrorCode::Unauthorized => self.state.metrics.refused(false),
             ErrorCode::Forbidden => self.state.metrics.refused(true),
@@ -233,7 +234,7 @@ impl Session {
     }
 
     /// Ends the connection after `e`: the error, then a close frame with `code`.
-    fn refuse(&self, e: ProtocolError, code: u16, reason: &'static str) -> bool {
+    fn refuse(&self, e: impl Into<ProtocolError>, code: u16, reason: &'static str) -> bool {
         self.error(e);
         self.outbox.close_with(code, reason);
         false
@@ -363,7 +364,7 @@ impl Session {
         {
             self.error(match msg {
                 ClientMsg::Command { id, .. } => e.for_command(id),
-                _ => e,
+                _ => e.into(),
             });
             return true;
         }
@@ -474,12 +475,11 @@ impl Session {
                 };
                 match result {
                     Ok(result) => {
-                        let result =
-                            self.state
-                                .config
-                                .access
-                                .visible(&self.caller, &command, result);
-                        self.send(&ServerMsg::Ack { id, result });
+                        let result = self.state.config.access.visible(&self.caller, result);
+                        self.send(&ServerMsg::Ack {
+                            id,
+                            result: result.to_value(),
+                        });
                     }
                     Err(e) => self.error(e.for_command(id)),
                 }

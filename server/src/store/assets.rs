@@ -4,7 +4,7 @@
 //! files added later count only once the rewritten `meta.json` lists them.
 
 use super::atomic::{self, sync_dir};
-use super::{Store, UPLOAD_TMP_PREFIX, set_aside};
+use super::{Store, UPLOAD_TMP_PREFIX, Unusable, set_aside};
 use crate::import::files::FileSet;
 use crate::scene::ticker::unix_micros;
 use crate::world::World;
@@ -111,27 +111,43 @@ pub fn add_files(dir: &Path, new: &FileSet, meta: &AssetMeta) -> io::Result<()> 
     atomic::write_atomic(&dir.join(META), &meta.bytes()?)
 }
 
-fn read_asset(dir: &Path) -> Result<(AssetMeta, FileSet), String> {
+fn read_asset(dir: &Path) -> Result<(AssetMeta, FileSet), Unusable> {
     let name = dir
         .file_name()
         .and_then(|n| n.to_str())
         .unwrap_or_default()
         .to_owned();
-    let bytes = std::fs::read(dir.join(META)).map_err(|e| format!("{META}: {e}"))?;
-    let value: serde_json::Value =
-        serde_json::from_slice(&bytes).map_err(|e| format!("{META}: {e}"))?;
+    let read = |file: &str| {
+        std::fs::read(dir.join(file)).map_err(|source| Unusable::Read {
+            file: file.to_owned(),
+            source,
+        })
+    };
+    let json = |source| Unusable::Json {
+        file: META.to_owned(),
+        source,
+    };
+    let value: serde_json::Value = serde_json::from_slice(&read(META)?).map_err(json)?;
     let format = value.get("format").and_then(serde_json::Value::as_u64);
     if format != Some(u64::from(ASSET_FORMAT)) {
-        return Err(format!("{META}: format {format:?} is not {ASSET_FORMAT}"));
+        return Err(Unusable::Format {
+            file: META.to_owned(),
+            found: format,
+            expected: ASSET_FORMAT,
+        });
     }
-    let meta: AssetMeta = serde_json::from_value(value).map_err(|e| format!("{META}: {e}"))?;
+    let meta: AssetMeta = serde_json::from_value(value).map_err(json)?;
     if meta.name != name {
-        return Err(format!("{META} names {:?}, not {name:?}", meta.name));
+        return Err(Unusable::Misnamed {
+            file: META.to_owned(),
+            found: meta.name,
+            expected: name,
+        });
     }
     let mut set = FileSet::new();
     for file in &meta.files {
-        let bytes = std::fs::read(dir.join(file)).map_err(|e| format!("{file}: {e}"))?;
-        set.insert(file, bytes).map_err(|e| e.to_string())?;
+        set.insert(file, read(file)?)
+            .map_err(|e| Unusable::Content(e.to_string()))?;
     }
     Ok((meta, set))
 }
@@ -171,7 +187,8 @@ impl Store {
     /// imported and dropped: the store remembers the upload, not its bytes.
     pub fn restore_upload(&self, world: &World, dir: &Path) {
         let loaded = read_asset(dir).and_then(|(meta, set)| {
-            let rigs = crate::library::prepare(&meta.name, &set).map_err(|e| e.message)?;
+            let rigs = crate::library::prepare(&meta.name, &set)
+                .map_err(|e| Unusable::Content(e.to_string()))?;
             Ok((meta, set, rigs))
         });
         match loaded {
@@ -187,7 +204,7 @@ impl Store {
                 self.add_upload_bytes(set.total_bytes() as u64);
                 self.remember_upload(&meta.name, set);
             }
-            Err(reason) => set_aside(dir, &reason),
+            Err(reason) => set_aside(dir, &reason.to_string()),
         }
     }
 
@@ -196,10 +213,8 @@ impl Store {
     ///
     /// # Errors
     /// No data folder, or the folder cannot be read (the reason, naming the file).
-    pub fn read_upload(&self, name: &str) -> Result<FileSet, String> {
-        let dir = self
-            .assets_dir()
-            .ok_or_else(|| "no data folder to read it from".to_owned())?;
+    pub fn read_upload(&self, name: &str) -> Result<FileSet, Unusable> {
+        let dir = self.assets_dir().ok_or(Unusable::NoDataFolder)?;
         read_asset(&dir.join(name)).map(|(_, set)| set)
     }
 }

@@ -46,10 +46,11 @@ pub mod assets;
 pub mod atomic;
 pub mod snapshot;
 
+use crate::error::Error;
 use crate::import::files::FileSet;
 use crate::scene::ticker::unix_micros;
 use crate::world::World;
-use posecast_proto::msg::{ErrorCode, ProtocolError, SceneId};
+use posecast_proto::msg::SceneId;
 use std::collections::{BTreeMap, BTreeSet};
 use std::io;
 use std::path::{Path, PathBuf};
@@ -95,7 +96,7 @@ pub(crate) struct Upload {
 #[derive(Debug)]
 struct Batch {
     scenes: BTreeSet<SceneId>,
-    done: tokio::sync::watch::Sender<Option<Result<(), ProtocolError>>>,
+    done: tokio::sync::watch::Sender<Option<Result<(), Error>>>,
 }
 
 impl Default for Batch {
@@ -107,11 +108,58 @@ impl Default for Batch {
     }
 }
 
-fn internal(what: &str, e: &io::Error) -> ProtocolError {
-    ProtocolError::new(
-        ErrorCode::Internal,
-        format!("{what}: {e} (the change is in effect but not stored)"),
-    )
+/// Why a stored file or folder cannot be used: it is then moved aside ([`set_aside`]) and the
+/// rest of the data folder still loads.
+#[derive(Debug, thiserror::Error)]
+pub enum Unusable {
+    /// A file could not be read.
+    #[error("{file}: {source}")]
+    Read {
+        /// The file, relative to what is being read.
+        file: String,
+        /// Why.
+        source: io::Error,
+    },
+    /// A file is not the JSON it should be.
+    #[error("{file}: {source}")]
+    Json {
+        /// The file.
+        file: String,
+        /// Why.
+        source: serde_json::Error,
+    },
+    /// Written by another version of posecast.
+    #[error("{file}: format {found:?} is not {expected} (written by another version?)")]
+    Format {
+        /// The file.
+        file: String,
+        /// Its `format` field.
+        found: Option<u64>,
+        /// The format this version reads.
+        expected: u32,
+    },
+    /// The file names another scene or asset than its own file or folder name.
+    #[error("{file} names {found:?}, not {expected:?}")]
+    Misnamed {
+        /// The file.
+        file: String,
+        /// The name inside.
+        found: String,
+        /// The name of the file or folder.
+        expected: String,
+    },
+    /// The content is wrong (a field, an import, a restore): the reason.
+    #[error("{0}")]
+    Content(String),
+    /// There is no data folder to read from.
+    #[error("no data folder to read it from")]
+    NoDataFolder,
+}
+
+fn internal(what: &str, e: &io::Error) -> Error {
+    Error::Internal(format!(
+        "{what}: {e} (the change is in effect but not stored)"
+    ))
 }
 
 impl Store {
@@ -255,8 +303,8 @@ impl Store {
     /// progress share the next write instead of queueing one fsync each.
     ///
     /// # Errors
-    /// [`ErrorCode::Internal`] when the write fails (the in-memory state is unchanged by this).
-    pub async fn persist_scene(&self, world: &World, id: &SceneId) -> Result<(), ProtocolError> {
+    /// `internal` when the write fails (the in-memory state is unchanged by this).
+    pub async fn persist_scene(&self, world: &World, id: &SceneId) -> Result<(), Error> {
         let Some(dir) = self.scenes_dir() else {
             return Ok(());
         };
@@ -355,32 +403,50 @@ impl Store {
         let now = unix_micros();
         for path in paths {
             match read_scene_file(&path).and_then(|file| {
-                snapshot::restore(world, &file, now).map_err(|e| e.message)?;
+                snapshot::restore(world, &file, now)
+                    .map_err(|e| Unusable::Content(e.to_string()))?;
                 Ok(file)
             }) {
                 Ok(file) => {
                     info!(scene = %file.scene, avatars = file.avatars.len(), "scene restored")
                 }
-                Err(reason) => set_aside(&path, &reason),
+                Err(reason) => set_aside(&path, &reason.to_string()),
             }
         }
     }
 }
 
-fn read_scene_file(path: &Path) -> Result<snapshot::SceneFile, String> {
-    let bytes = std::fs::read(path).map_err(|e| e.to_string())?;
-    let value: serde_json::Value = serde_json::from_slice(&bytes).map_err(|e| e.to_string())?;
+fn read_scene_file(path: &Path) -> Result<snapshot::SceneFile, Unusable> {
+    let name = path
+        .file_name()
+        .and_then(|n| n.to_str())
+        .unwrap_or_default()
+        .to_owned();
+    let bytes = std::fs::read(path).map_err(|source| Unusable::Read {
+        file: name.clone(),
+        source,
+    })?;
+    let value: serde_json::Value =
+        serde_json::from_slice(&bytes).map_err(|source| Unusable::Json {
+            file: name.clone(),
+            source,
+        })?;
     let format = value.get("format").and_then(serde_json::Value::as_u64);
     if format != Some(u64::from(snapshot::SCENE_FORMAT)) {
-        return Err(format!(
-            "format {format:?} is not {} (written by another version?)",
-            snapshot::SCENE_FORMAT
-        ));
+        return Err(Unusable::Format {
+            file: name,
+            found: format,
+            expected: snapshot::SCENE_FORMAT,
+        });
     }
-    let (file, dropped) = snapshot::parse_lenient(&value)?;
+    let (file, dropped) = snapshot::parse_lenient(&value).map_err(Unusable::Content)?;
     let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("");
     if file.scene.0 != stem {
-        return Err(format!("holds scene {:?}, not {stem:?}", file.scene.0));
+        return Err(Unusable::Misnamed {
+            file: name,
+            found: file.scene.0,
+            expected: stem.to_owned(),
+        });
     }
     for what in dropped {
         warn!(file = %path.display(), scene = %file.scene, "not restored: {what}");

@@ -248,11 +248,7 @@ pub fn extrapolate(p: &PlaybackRecord, duration: f32, elapsed_s: f64) -> f32 {
 ///
 /// # Errors
 /// The scene itself cannot be created (bad id, already exists).
-pub fn restore(
-    world: &World,
-    file: &SceneFile,
-    now_us: u64,
-) -> Result<(), posecast_proto::msg::ProtocolError> {
+pub fn restore(world: &World, file: &SceneFile, now_us: u64) -> Result<(), crate::error::Error> {
     world.restore_scene(file.scene.clone())?;
     let elapsed_s = now_us.saturating_sub(file.saved_us) as f64 / 1e6;
     for rec in &file.avatars {
@@ -329,7 +325,7 @@ fn restore_playback(world: &World, avatar: &AvatarId, p: &PlaybackRecord, elapse
                 },
             )
         } else {
-            Ok(serde_json::Value::Null)
+            Ok(posecast_proto::command::CommandResult::Done)
         }
     });
     if let Err(e) = result {
@@ -345,7 +341,9 @@ mod tests {
     use crate::state::AppState;
 
     fn cmd(state: &AppState, json: &str) -> serde_json::Value {
-        crate::control::execute(state, &serde_json::from_str(json).unwrap()).unwrap()
+        crate::control::execute(state, &serde_json::from_str(json).unwrap())
+            .unwrap()
+            .to_value()
     }
 
     #[tokio::test]

@@ -11,11 +11,12 @@
 use super::outbox::{OutFrame, Outbox, message_len};
 use super::publish::{Piece, Published};
 use crate::avatar::Avatar;
+use crate::error::Error;
 use crate::metrics::Metrics;
 use axum::extract::ws::{Message, Utf8Bytes};
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::{ChunkEncoder, FrameHeader, FrameKind};
-use posecast_proto::msg::{AvatarId, Encoding, ErrorCode, ProtocolError, SceneId, ServerMsg};
+use posecast_proto::msg::{AvatarId, Encoding, SceneId, ServerMsg};
 use std::collections::HashMap;
 use std::sync::Arc;
 
@@ -138,22 +139,22 @@ impl Feed {
     /// (Before the scene's first tick there is none; that tick is a keyframe of every avatar.)
     ///
     /// # Errors
-    /// [`ErrorCode::UnknownAvatar`] when the filter names an avatar not in `avatars`.
+    /// `unknown_avatar` when the filter names an avatar not in `avatars`.
     pub fn subscribe(
         &mut self,
         avatars: &mut [Avatar],
         last: TickStamp,
         sub: Subscriber,
-    ) -> Result<(), ProtocolError> {
+    ) -> Result<(), Error> {
         if let Some(filter) = &sub.filter
             && let Some(missing) = filter
                 .iter()
                 .find(|id| !avatars.iter().any(|a| &a.id == *id))
         {
-            return Err(ProtocolError::new(
-                ErrorCode::UnknownAvatar,
-                format!("scene {} has no avatar {missing}", self.scene),
-            ));
+            return Err(Error::NotInScene {
+                scene: self.scene.clone(),
+                avatar: (*missing).clone(),
+            });
         }
         self.subscribers.retain(|old| old.conn != sub.conn);
         sub.outbox.clear_scene(self.num);

@@ -6,54 +6,53 @@
 use super::World;
 use crate::avatar::Avatar;
 use crate::avatar::playback::{DEFAULT_FADE, Layer};
+use crate::error::Error;
 use glam::Quat;
-use posecast_proto::command::{Command, DofInfo, JointInfo};
-use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError};
+use posecast_proto::command::{Command, CommandResult, DofInfo, JointInfo};
+use posecast_proto::msg::AvatarId;
 use posecast_proto::placement::Placement;
-use serde_json::{Value, json};
-
-pub(crate) fn invalid(message: impl Into<String>) -> ProtocolError {
-    ProtocolError::new(ErrorCode::InvalidValue, message)
-}
+use serde_json::Value;
 
 /// A finite, non-zero quaternion, normalised (in f64, so huge finite components cannot
 /// overflow into a zero or NaN rotation that would then be acknowledged and stored).
-fn quat(q: [f32; 4]) -> Result<Quat, ProtocolError> {
+fn quat(q: [f32; 4]) -> Result<Quat, Error> {
     posecast_proto::unit_quat(q).ok_or_else(|| {
-        invalid(format!(
+        Error::invalid(format!(
             "rotation {q:?} is not a finite non-zero quaternion"
         ))
     })
 }
 
-fn finite(name: &str, v: f32) -> Result<f32, ProtocolError> {
+fn finite(name: &str, v: f32) -> Result<f32, Error> {
     if v.is_finite() {
         Ok(v)
     } else {
-        Err(invalid(format!("{name} must be finite")))
+        Err(Error::invalid(format!("{name} must be finite")))
     }
 }
 
-fn joint_index(avatar: &Avatar, joint: &str) -> Result<usize, ProtocolError> {
-    avatar.rig.skeleton().find(joint).ok_or_else(|| {
-        ProtocolError::new(
-            ErrorCode::UnknownJoint,
-            format!("avatar {} has no joint {joint}", avatar.id),
-        )
-    })
+fn joint_index(avatar: &Avatar, joint: &str) -> Result<usize, Error> {
+    avatar
+        .rig
+        .skeleton()
+        .find(joint)
+        .ok_or_else(|| Error::UnknownJoint {
+            owner: format!("avatar {}", avatar.id),
+            joint: joint.to_owned(),
+        })
 }
 
 /// Runs `f` on an avatar under its scene's lock.
 fn with_avatar<T>(
     world: &World,
     id: &AvatarId,
-    f: impl FnOnce(&mut Avatar) -> Result<T, ProtocolError>,
-) -> Result<T, ProtocolError> {
+    f: impl FnOnce(&mut Avatar) -> Result<T, Error>,
+) -> Result<T, Error> {
     let scene = world.find_avatar(id)?;
     let mut s = scene.lock();
     let avatar = s
         .avatar_mut(id)
-        .ok_or_else(|| ProtocolError::new(ErrorCode::UnknownAvatar, format!("no avatar {id}")))?;
+        .ok_or_else(|| Error::UnknownAvatar(id.clone()))?;
     f(avatar)
 }
 
@@ -64,13 +63,15 @@ fn with_joint_rotation(
     avatar: &AvatarId,
     joint: &str,
     rotation: [f32; 4],
-    f: impl FnOnce(&mut Avatar, usize, Quat) -> Result<Quat, ProtocolError>,
-) -> Result<Value, ProtocolError> {
+    f: impl FnOnce(&mut Avatar, usize, Quat) -> Result<Quat, Error>,
+) -> Result<CommandResult, Error> {
     let q = quat(rotation)?;
     with_avatar(world, avatar, |a| {
         let j = joint_index(a, joint)?;
         let set = f(a, j, q)?;
-        Ok(json!({ "rotation": set.to_array() }))
+        Ok(CommandResult::Rotation {
+            rotation: set.to_array(),
+        })
     })
 }
 
@@ -117,40 +118,37 @@ fn joint_info(a: &Avatar, j: usize) -> JointInfo {
 ///
 /// # Errors
 /// A typed error naming what is wrong.
-pub fn apply(world: &World, command: &Command) -> Result<Value, ProtocolError> {
+pub fn apply(world: &World, command: &Command) -> Result<CommandResult, Error> {
     match command {
-        Command::ListScenes => Ok(serde_json::to_value(
-            world.scenes().iter().map(|s| s.info()).collect::<Vec<_>>(),
-        )
-        .unwrap_or(Value::Null)),
-        Command::ListAssets => Ok(serde_json::to_value(
-            world
-                .library
-                .all()
-                .iter()
-                .map(|r| r.info())
-                .collect::<Vec<_>>(),
-        )
-        .unwrap_or(Value::Null)),
+        Command::ListScenes => Ok(CommandResult::Scenes(
+            world.scenes().iter().map(|s| s.info()).collect(),
+        )),
+        Command::ListAssets => Ok(CommandResult::Assets(
+            world.library.all().iter().map(|r| r.info()).collect(),
+        )),
         Command::GetAvatar { avatar } => {
             let scene = world.find_avatar(avatar)?;
             let s = scene.lock();
-            let a = s.avatars.iter().find(|a| &a.id == avatar).ok_or_else(|| {
-                ProtocolError::new(ErrorCode::UnknownAvatar, format!("no avatar {avatar}"))
-            })?;
-            Ok(serde_json::to_value(a.state(&scene.id)).unwrap_or(Value::Null))
+            let a = s
+                .avatars
+                .iter()
+                .find(|a| &a.id == avatar)
+                .ok_or_else(|| Error::UnknownAvatar(avatar.clone()))?;
+            Ok(CommandResult::Avatar(Box::new(a.state(&scene.id))))
         }
         Command::GetJoint { avatar, joint } => with_avatar(world, avatar, |a| {
             let j = joint_index(a, joint)?;
-            Ok(serde_json::to_value(joint_info(a, j)).unwrap_or(Value::Null))
+            Ok(CommandResult::Joint(Box::new(joint_info(a, j))))
         }),
         Command::CreateScene { scene } => {
             world.create_scene(scene.clone())?;
-            Ok(json!({ "scene": scene }))
+            Ok(CommandResult::SceneCreated {
+                scene: scene.clone(),
+            })
         }
         Command::DeleteScene { scene } => {
             world.delete_scene(scene)?;
-            Ok(Value::Null)
+            Ok(CommandResult::Done)
         }
         Command::AddAvatar {
             scene,
@@ -167,10 +165,10 @@ pub fn apply(world: &World, command: &Command) -> Result<Value, ProtocolError> {
             if let Some(clip) = clip {
                 let rig = world.library.require(asset)?;
                 if rig.clip(clip).is_none() {
-                    return Err(ProtocolError::new(
-                        ErrorCode::UnknownClip,
-                        format!("rig {asset} has no clip {clip}"),
-                    ));
+                    return Err(Error::UnknownClip {
+                        rig: asset.clone(),
+                        clip: clip.clone(),
+                    });
                 }
             }
             let (scene, id) = world.add_avatar_at(scene, asset, avatar.clone(), placement, true)?;
@@ -182,12 +180,12 @@ pub fn apply(world: &World, command: &Command) -> Result<Value, ProtocolError> {
                     a.play(Layer::new(c, None, 0.0, 1.0, true), 0.0);
                 }
             }
-            Ok(json!({ "avatar": id }))
+            Ok(CommandResult::AvatarAdded { avatar: id })
         }
         Command::RemoveAvatar { avatar } => {
             let scene = world.find_avatar(avatar)?;
             scene.remove_avatar(avatar);
-            Ok(Value::Null)
+            Ok(CommandResult::Done)
         }
         Command::Play {
             avatar,
@@ -213,12 +211,14 @@ pub fn apply(world: &World, command: &Command) -> Result<Value, ProtocolError> {
                     Some(src) if src.name != a.rig.name => {
                         world.retargets.bake_blocking(src, clip, &a.rig)?
                     }
-                    _ => a.rig.clip(clip).cloned().ok_or_else(|| {
-                        ProtocolError::new(
-                            ErrorCode::UnknownClip,
-                            format!("rig {} has no clip {clip}", a.rig.name),
-                        )
-                    })?,
+                    _ => a
+                        .rig
+                        .clip(clip)
+                        .cloned()
+                        .ok_or_else(|| Error::UnknownClip {
+                            rig: a.rig.name.clone(),
+                            clip: clip.clone(),
+                        })?,
                 };
                 let source_asset = source
                     .as_ref()
@@ -230,7 +230,7 @@ pub fn apply(world: &World, command: &Command) -> Result<Value, ProtocolError> {
                     layer.root_motion = *mode;
                 }
                 a.play(layer, fade);
-                Ok(Value::Null)
+                Ok(CommandResult::Done)
             })
         }
         Command::Pause { avatar } | Command::Resume { avatar } => {
@@ -239,9 +239,9 @@ pub fn apply(world: &World, command: &Command) -> Result<Value, ProtocolError> {
                 let layer = a
                     .player
                     .current_mut()
-                    .ok_or_else(|| invalid("no clip is playing"))?;
+                    .ok_or_else(|| Error::invalid("no clip is playing"))?;
                 layer.set_paused(paused);
-                Ok(Value::Null)
+                Ok(CommandResult::Done)
             })
         }
         Command::Seek { avatar, time } => {
@@ -250,10 +250,10 @@ pub fn apply(world: &World, command: &Command) -> Result<Value, ProtocolError> {
                 let layer = a
                     .player
                     .current_mut()
-                    .ok_or_else(|| invalid("no clip is playing"))?;
+                    .ok_or_else(|| Error::invalid("no clip is playing"))?;
                 layer.seek(time);
                 a.evaluate();
-                Ok(Value::Null)
+                Ok(CommandResult::Done)
             })
         }
         Command::SetSpeed { avatar, speed } => {
@@ -262,22 +262,23 @@ pub fn apply(world: &World, command: &Command) -> Result<Value, ProtocolError> {
                 let layer = a
                     .player
                     .current_mut()
-                    .ok_or_else(|| invalid("no clip is playing"))?;
+                    .ok_or_else(|| Error::invalid("no clip is playing"))?;
                 layer.set_speed(speed);
-                Ok(Value::Null)
+                Ok(CommandResult::Done)
             })
         }
         Command::Stop { avatar } => with_avatar(world, avatar, |a| {
             a.player.stop();
             a.evaluate();
-            Ok(Value::Null)
+            Ok(CommandResult::Done)
         }),
         Command::SetJointRotation {
             avatar,
             joint,
             rotation,
         } => with_joint_rotation(world, avatar, joint, *rotation, |a, j, q| {
-            a.set_rotation(j, q).map_err(|e| invalid(e.to_string()))
+            a.set_rotation(j, q)
+                .map_err(|e| Error::invalid(e.to_string()))
         }),
         Command::SetJointDofs {
             avatar,
@@ -286,11 +287,11 @@ pub fn apply(world: &World, command: &Command) -> Result<Value, ProtocolError> {
         } => with_avatar(world, avatar, |a| {
             let j = joint_index(a, joint)?;
             let limits = a.rig.limits.get(j).cloned().flatten().ok_or_else(|| {
-                invalid(format!("joint {joint} has no DOFs (its rig has no joint types); set its rotation instead"))
+                Error::invalid(format!("joint {joint} has no DOFs (its rig has no joint types); set its rotation instead"))
             })?;
             let mut dofs = limits.dofs.clone();
             if values.len() != dofs.dofs().len() {
-                return Err(invalid(format!(
+                return Err(Error::invalid(format!(
                     "joint {joint} has {} DOFs, got {} values",
                     dofs.dofs().len(),
                     values.len()
@@ -298,18 +299,19 @@ pub fn apply(world: &World, command: &Command) -> Result<Value, ProtocolError> {
             }
             for (i, &v) in values.iter().enumerate() {
                 dofs.set(i, finite("DOF value", v)?)
-                    .map_err(|e| invalid(e.to_string()))?;
+                    .map_err(|e| Error::invalid(e.to_string()))?;
             }
             let q =
                 posecast_proto::unit_quat((limits.pre * dofs.rotation() * limits.post).to_array())
                     .ok_or_else(|| {
-                        invalid(format!("joint {joint}: the DOF values give no rotation"))
+                        Error::invalid(format!("joint {joint}: the DOF values give no rotation"))
                     })?;
             a.overrides[j] = Some(q);
             a.evaluate();
-            Ok(
-                json!({ "rotation": q.to_array(), "values": dofs.dofs().iter().map(|d| d.value).collect::<Vec<_>>() }),
-            )
+            Ok(CommandResult::Dofs {
+                rotation: q.to_array(),
+                values: dofs.dofs().iter().map(|d| d.value).collect(),
+            })
         }),
         Command::RotateJointLocal {
             avatar,
@@ -317,7 +319,7 @@ pub fn apply(world: &World, command: &Command) -> Result<Value, ProtocolError> {
             rotation,
         } => with_joint_rotation(world, avatar, joint, *rotation, |a, j, q| {
             a.rotate_local(j, q)
-                .map_err(|e| invalid(format!("joint {joint}: {e}")))
+                .map_err(|e| Error::invalid(format!("joint {joint}: {e}")))
         }),
         Command::RotateJointWorld {
             avatar,
@@ -325,7 +327,7 @@ pub fn apply(world: &World, command: &Command) -> Result<Value, ProtocolError> {
             rotation,
         } => with_joint_rotation(world, avatar, joint, *rotation, |a, j, q| {
             a.rotate_world(j, q)
-                .map_err(|e| invalid(format!("joint {joint}: {e}")))
+                .map_err(|e| Error::invalid(format!("joint {joint}: {e}")))
         }),
         Command::Release { avatar, joint } => with_avatar(world, avatar, |a| {
             let j = joint
@@ -333,7 +335,7 @@ pub fn apply(world: &World, command: &Command) -> Result<Value, ProtocolError> {
                 .map(|name| joint_index(a, name))
                 .transpose()?;
             a.release(j);
-            Ok(Value::Null)
+            Ok(CommandResult::Done)
         }),
         // --- placement (issue 16) ---
         Command::PlaceAvatar {
@@ -345,32 +347,31 @@ pub fn apply(world: &World, command: &Command) -> Result<Value, ProtocolError> {
             let to = placement(*position, *rotation)?;
             let duration = duration.unwrap_or(0.0);
             if !(duration.is_finite() && duration >= 0.0) {
-                return Err(invalid("duration must be finite and ≥ 0"));
+                return Err(Error::invalid("duration must be finite and ≥ 0"));
             }
             let scene = world.find_avatar(avatar)?;
             let mut s = scene.lock();
-            let a = s.avatar_mut(avatar).ok_or_else(|| {
-                ProtocolError::new(ErrorCode::UnknownAvatar, format!("no avatar {avatar}"))
-            })?;
+            let a = s
+                .avatar_mut(avatar)
+                .ok_or_else(|| Error::UnknownAvatar(avatar.clone()))?;
             a.place(to, f64::from(duration));
             // The scene's cached frames show the old placement: a joiner gets a fresh keyframe.
             s.feed.placed();
-            Ok(Value::Null)
+            Ok(CommandResult::Done)
         }
 
         // --- Live driving (issue 16); `drive` itself runs in the websocket session. ---
-        Command::Drive { .. } => Err(ProtocolError::new(
-            ErrorCode::NotAllowedNow,
-            "drive needs a websocket connection (poses stream over it)",
+        Command::Drive { .. } => Err(Error::NotAllowedNow(
+            "drive needs a websocket connection (poses stream over it)".into(),
         )),
         Command::ReleaseDrive { avatar } => with_avatar(world, avatar, |a| {
             a.release_drive();
-            Ok(Value::Null)
+            Ok(CommandResult::Done)
         }),
     }
 }
 
 /// A validated placement, or `invalid_value` naming what is wrong.
-fn placement(position: [f32; 3], rotation: [f32; 4]) -> Result<Placement, ProtocolError> {
-    Placement::try_new(position, rotation).map_err(|e| invalid(e.to_string()))
+fn placement(position: [f32; 3], rotation: [f32; 4]) -> Result<Placement, Error> {
+    Placement::try_new(position, rotation).map_err(|e| Error::invalid(e.to_string()))
 }

@@ -12,11 +12,12 @@ pub mod command;
 
 use crate::avatar::Avatar;
 use crate::bake::RetargetCache;
+use crate::error::Error;
 use crate::library::Library;
 use crate::metrics::Metrics;
 use crate::quota::{Quota, Quotas};
 use crate::scene::{Scene, ticker};
-use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError, SceneId, check_id};
+use posecast_proto::msg::{AvatarId, SceneId, check_id};
 use posecast_proto::placement::Placement;
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU32, Ordering};
@@ -67,14 +68,14 @@ impl World {
     /// A scene by id.
     ///
     /// # Errors
-    /// [`ErrorCode::UnknownScene`].
-    pub fn scene(&self, id: &SceneId) -> Result<Arc<Scene>, ProtocolError> {
+    /// `unknown_scene`.
+    pub fn scene(&self, id: &SceneId) -> Result<Arc<Scene>, Error> {
         self.scenes
             .read()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
             .get(id)
             .cloned()
-            .ok_or_else(|| ProtocolError::new(ErrorCode::UnknownScene, format!("no scene {id}")))
+            .ok_or_else(|| Error::UnknownScene(id.clone()))
     }
 
     /// Every scene.
@@ -91,31 +92,28 @@ impl World {
     /// Creates a scene and starts its tick task (must run inside a tokio runtime).
     ///
     /// # Errors
-    /// Invalid id, [`ErrorCode::Conflict`] when it exists, or `quota_exceeded` past
+    /// Invalid id, `conflict` when it exists, or `quota_exceeded` past
     /// [`crate::quota::Quotas::max_scenes`].
-    pub fn create_scene(&self, id: SceneId) -> Result<Arc<Scene>, ProtocolError> {
+    pub fn create_scene(&self, id: SceneId) -> Result<Arc<Scene>, Error> {
         self.insert_scene(id, true)
     }
 
     /// [`World::create_scene`] without the scene quota: restoring what was stored.
     ///
     /// # Errors
-    /// Invalid id, or [`ErrorCode::Conflict`] when it exists.
-    pub fn restore_scene(&self, id: SceneId) -> Result<Arc<Scene>, ProtocolError> {
+    /// Invalid id, or `conflict` when it exists.
+    pub fn restore_scene(&self, id: SceneId) -> Result<Arc<Scene>, Error> {
         self.insert_scene(id, false)
     }
 
-    fn insert_scene(&self, id: SceneId, quota: bool) -> Result<Arc<Scene>, ProtocolError> {
-        check_id("scene", &id.0)?;
+    fn insert_scene(&self, id: SceneId, quota: bool) -> Result<Arc<Scene>, Error> {
+        check_id("scene", &id.0).map_err(|e| Error::Invalid(e.message))?;
         let mut scenes = self
             .scenes
             .write()
             .unwrap_or_else(std::sync::PoisonError::into_inner);
         if scenes.contains_key(&id) {
-            return Err(ProtocolError::new(
-                ErrorCode::Conflict,
-                format!("scene {id} exists"),
-            ));
+            return Err(Error::Conflict(format!("scene {id} exists")));
         }
         let max = self.quotas.max_scenes;
         if quota && scenes.len() >= max {
@@ -139,14 +137,14 @@ impl World {
     /// Deletes a scene: its ticker stops and its subscribers are unsubscribed.
     ///
     /// # Errors
-    /// [`ErrorCode::UnknownScene`].
-    pub fn delete_scene(&self, id: &SceneId) -> Result<(), ProtocolError> {
+    /// `unknown_scene`.
+    pub fn delete_scene(&self, id: &SceneId) -> Result<(), Error> {
         let scene = self
             .scenes
             .write()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
             .remove(id)
-            .ok_or_else(|| ProtocolError::new(ErrorCode::UnknownScene, format!("no scene {id}")))?;
+            .ok_or_else(|| Error::UnknownScene(id.clone()))?;
         scene.shut();
         Ok(())
     }
@@ -161,7 +159,7 @@ impl World {
         scene: &SceneId,
         asset: &str,
         id: Option<AvatarId>,
-    ) -> Result<(Arc<Scene>, AvatarId), ProtocolError> {
+    ) -> Result<(Arc<Scene>, AvatarId), Error> {
         self.insert_avatar(scene, asset, id, true, Placement::IDENTITY)
     }
 
@@ -177,7 +175,7 @@ impl World {
         id: Option<AvatarId>,
         placement: Placement,
         quota: bool,
-    ) -> Result<(Arc<Scene>, AvatarId), ProtocolError> {
+    ) -> Result<(Arc<Scene>, AvatarId), Error> {
         self.insert_avatar(scene, asset, id, quota, placement)
     }
 
@@ -190,7 +188,7 @@ impl World {
         scene: &SceneId,
         asset: &str,
         id: Option<AvatarId>,
-    ) -> Result<(Arc<Scene>, AvatarId), ProtocolError> {
+    ) -> Result<(Arc<Scene>, AvatarId), Error> {
         self.insert_avatar(scene, asset, id, false, Placement::IDENTITY)
     }
 
@@ -201,12 +199,12 @@ impl World {
         id: Option<AvatarId>,
         quota: bool,
         placement: Placement,
-    ) -> Result<(Arc<Scene>, AvatarId), ProtocolError> {
+    ) -> Result<(Arc<Scene>, AvatarId), Error> {
         let scene = self.scene(scene)?;
         let rig = self.library.require(asset)?;
         let num = self.next_avatar_num.fetch_add(1, Ordering::Relaxed);
         let id = id.unwrap_or_else(|| AvatarId(format!("{}-{num}", rig.name)));
-        check_id("avatar", &id.0)?;
+        check_id("avatar", &id.0).map_err(|e| Error::Invalid(e.message))?;
         let mut avatar = Avatar::new(id.clone(), num, rig);
         avatar.place(placement, 0.0);
         // Ids are unique across scenes, and each scene checks only its own: the check of every
@@ -216,10 +214,7 @@ impl World {
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner);
         if self.find_avatar(&id).is_ok() {
-            return Err(ProtocolError::new(
-                ErrorCode::Conflict,
-                format!("avatar {id} exists"),
-            ));
+            return Err(Error::Conflict(format!("avatar {id} exists")));
         }
         // Checked under the same lock as the insertion: concurrent adds cannot overshoot.
         let max = self.quotas.max_avatars_per_scene;
@@ -238,12 +233,12 @@ impl World {
     /// The scene holding an avatar.
     ///
     /// # Errors
-    /// [`ErrorCode::UnknownAvatar`].
-    pub fn find_avatar(&self, id: &AvatarId) -> Result<Arc<Scene>, ProtocolError> {
+    /// `unknown_avatar`.
+    pub fn find_avatar(&self, id: &AvatarId) -> Result<Arc<Scene>, Error> {
         self.scenes()
             .into_iter()
             .find(|s| s.lock().avatars.iter().any(|a| &a.id == id))
-            .ok_or_else(|| ProtocolError::new(ErrorCode::UnknownAvatar, format!("no avatar {id}")))
+            .ok_or_else(|| Error::UnknownAvatar(id.clone()))
     }
 
     /// Stops every scene's ticker and ends its subscriptions.
@@ -258,6 +253,7 @@ impl World {
 mod tests {
     use super::*;
     use crate::builtin::BUILTIN_ASSET;
+    use posecast_proto::msg::ErrorCode;
 
     /// Many adds of one id into different scenes at the same moment: exactly one wins, every
     /// other one is a conflict, and the id ends up in one scene only.
@@ -291,7 +287,7 @@ mod tests {
                 results
                     .iter()
                     .filter_map(|r| r.as_ref().err())
-                    .all(|e| e.code == ErrorCode::Conflict),
+                    .all(|e| e.code() == ErrorCode::Conflict),
                 "{results:?}"
             );
             let holders = state

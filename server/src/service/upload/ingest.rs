@@ -6,18 +6,14 @@
 //! Uploads come over REST only (`service::upload`); the websocket keeps its 64 KiB message
 //! bound, which is what lets a connection's reader stay small and never buffer a model.
 
+use crate::error::Error;
 use crate::import::files::{self, FileSet};
 use crate::library::{check_name, prepare};
 use crate::rig::Rig;
 use crate::state::AppState;
 use crate::store::assets::{self, AssetMeta};
 use posecast_proto::command::AssetInfo;
-use posecast_proto::msg::{ErrorCode, ProtocolError};
 use std::sync::Arc;
-
-fn internal(what: &str, e: &dyn std::fmt::Display) -> ProtocolError {
-    ProtocolError::new(ErrorCode::Internal, format!("{what}: {e}"))
-}
 
 /// Whether `name` is taken: a loaded rig `name` or `name#…`, an upload, or a stored folder.
 fn taken(state: &AppState, name: &str) -> bool {
@@ -36,12 +32,12 @@ fn taken(state: &AppState, name: &str) -> bool {
             .is_some_and(|d| d.join(name).exists())
 }
 
-fn conflict(name: &str) -> ProtocolError {
-    ProtocolError::new(ErrorCode::Conflict, format!("an asset named {name} exists"))
+fn conflict(name: &str) -> Error {
+    Error::Conflict(format!("an asset named {name} exists"))
 }
 
 /// The rig quotas ([`crate::quota::Quotas::check_rig`]), counted in the metrics when refused.
-fn check_rig(state: &AppState, rig: &Rig) -> Result<(), ProtocolError> {
+fn check_rig(state: &AppState, rig: &Rig) -> Result<(), Error> {
     state.config.quotas.check_rig(rig).map_err(|(quota, e)| {
         state.metrics.quota_refused(quota);
         e
@@ -49,7 +45,7 @@ fn check_rig(state: &AppState, rig: &Rig) -> Result<(), ProtocolError> {
 }
 
 /// Refuses a file set larger than [`crate::quota::Quotas::max_asset_bytes`].
-fn check_asset_bytes(state: &AppState, name: &str, bytes: u64) -> Result<(), ProtocolError> {
+fn check_asset_bytes(state: &AppState, name: &str, bytes: u64) -> Result<(), Error> {
     let max = state.config.quotas.max_asset_bytes;
     if bytes > max {
         return Err(state.metrics.refuse_quota(
@@ -63,7 +59,7 @@ fn check_asset_bytes(state: &AppState, name: &str, bytes: u64) -> Result<(), Pro
 
 /// Refuses `more` bytes past [`crate::quota::Quotas::max_upload_total_bytes`] (called under
 /// the assets lock, so concurrent uploads cannot overshoot together).
-fn check_total_bytes(state: &AppState, name: &str, more: u64) -> Result<(), ProtocolError> {
+fn check_total_bytes(state: &AppState, name: &str, more: u64) -> Result<(), Error> {
     let max = state.config.quotas.max_upload_total_bytes;
     let now = state.store.upload_bytes();
     if now.saturating_add(more) > max {
@@ -79,13 +75,13 @@ fn check_total_bytes(state: &AppState, name: &str, more: u64) -> Result<(), Prot
 /// Uploads a new asset: import, normalise, store, add to the library. Returns the new rigs.
 ///
 /// # Errors
-/// A bad name, [`ErrorCode::Conflict`] when it is taken, [`ErrorCode::ImportFailed`],
-/// [`ErrorCode::Internal`] when storing fails. Nothing changes on error.
+/// A bad name, `conflict` when it is taken, `import_failed`,
+/// `internal` when storing fails. Nothing changes on error.
 pub async fn upload(
     state: &Arc<AppState>,
     name: &str,
     set: FileSet,
-) -> Result<Vec<AssetInfo>, ProtocolError> {
+) -> Result<Vec<AssetInfo>, Error> {
     check_name(name)?;
     if taken(state, name) {
         return Err(conflict(name));
@@ -97,7 +93,7 @@ pub async fn upload(
         (set, rigs)
     })
     .await
-    .map_err(|e| internal("import task failed", &e))?;
+    .map_err(|e| Error::internal("import task failed", &e))?;
     let rigs = rigs?;
     for rig in &rigs {
         check_rig(state, rig)?;
@@ -117,8 +113,8 @@ pub async fn upload(
             let meta = AssetMeta::new(name, &set, rigs.iter().map(|r| r.name.clone()).collect());
             tokio::task::spawn_blocking(move || assets::save_new(&dir, &set, &meta).map(|()| set))
                 .await
-                .map_err(|e| internal("store task failed", &e))?
-                .map_err(|e| internal("cannot store the upload", &e))?
+                .map_err(|e| Error::internal("store task failed", &e))?
+                .map_err(|e| Error::internal("cannot store the upload", &e))?
         }
         None => set,
     };
@@ -139,51 +135,42 @@ pub async fn upload(
 /// # Errors
 /// Unknown asset, an asset that is not an uploaded `.skel`, a file that is not `.anim`
 /// (typed: `.bvh` clips have other joints, so they are uploaded as their own asset and played
-/// with `from_asset` retargeting), a clip name that exists ([`ErrorCode::Conflict`]), or an
+/// with `from_asset` retargeting), a clip name that exists (`conflict`), or an
 /// import failure. Nothing changes on error.
 pub async fn add_clips(
     state: &Arc<AppState>,
     name: &str,
     clips: FileSet,
-) -> Result<AssetInfo, ProtocolError> {
+) -> Result<AssetInfo, Error> {
     if clips.is_empty() {
-        return Err(ProtocolError::new(
-            ErrorCode::InvalidValue,
-            "no clip files in the request",
-        ));
+        return Err(Error::Invalid("no clip files in the request".into()));
     }
     for (file, _) in clips.iter() {
         match files::extension(file).as_str() {
             "anim" => {}
             "bvh" => {
-                return Err(ProtocolError::new(
-                    ErrorCode::InvalidValue,
-                    format!(
-                        "{file}: a .bvh has its own skeleton; upload it as an asset and play its clip with from_asset (retargeting)"
-                    ),
-                ));
+                return Err(Error::Invalid(format!(
+                    "{file}: a .bvh has its own skeleton; upload it as an asset and play its clip with from_asset (retargeting)"
+                )));
             }
             _ => {
-                return Err(ProtocolError::new(
-                    ErrorCode::InvalidValue,
-                    format!("{file}: clips are added as .anim files"),
-                ));
+                return Err(Error::Invalid(format!(
+                    "{file}: clips are added as .anim files"
+                )));
             }
         }
     }
     let _guard = state.store.assets_lock().await;
     let rig = state.world.library.require(name)?;
     let upload = state.store.uploads().get(name).cloned().ok_or_else(|| {
-        ProtocolError::new(
-            ErrorCode::InvalidValue,
-            format!("{name} was not uploaded: clips can be added to uploaded assets only"),
-        )
+        Error::Invalid(format!(
+            "{name} was not uploaded: clips can be added to uploaded assets only"
+        ))
     })?;
     if files::extension(&upload.main) != "skel" {
-        return Err(ProtocolError::new(
-            ErrorCode::InvalidValue,
-            format!("{name} is not a .skel asset: .anim clips need a CSE169 skeleton"),
-        ));
+        return Err(Error::Invalid(format!(
+            "{name} is not a .skel asset: .anim clips need a CSE169 skeleton"
+        )));
     }
     // The original files are on disk (the store keeps no bytes when there is a data folder):
     // read them again, under the assets lock so they are the ones the rig was made from.
@@ -194,8 +181,10 @@ pub async fn add_clips(
             let owned = name.to_owned();
             tokio::task::spawn_blocking(move || reading.store.read_upload(&owned))
                 .await
-                .map_err(|e| internal("read task failed", &e))?
-                .map_err(|e| internal(&format!("cannot read the stored files of {name}"), &e))?
+                .map_err(|e| Error::internal("read task failed", &e))?
+                .map_err(|e| {
+                    Error::internal(&format!("cannot read the stored files of {name}"), &e)
+                })?
         }
     };
     check_asset_bytes(
@@ -209,14 +198,13 @@ pub async fn add_clips(
     for (file, bytes) in clips.iter() {
         let clip = files::stem(file);
         if rig.clip(clip).is_some() {
-            return Err(ProtocolError::new(
-                ErrorCode::Conflict,
-                format!("rig {name} already has a clip {clip}"),
-            ));
+            return Err(Error::Conflict(format!(
+                "rig {name} already has a clip {clip}"
+            )));
         }
         combined
             .insert(file, bytes.to_vec())
-            .map_err(|e| ProtocolError::new(ErrorCode::Conflict, e.to_string()))?;
+            .map_err(|e| Error::Conflict(e.to_string()))?;
     }
     let owned = name.to_owned();
     let (combined, rigs) = tokio::task::spawn_blocking(move || {
@@ -224,19 +212,19 @@ pub async fn add_clips(
         (combined, rigs)
     })
     .await
-    .map_err(|e| internal("import task failed", &e))?;
+    .map_err(|e| Error::internal("import task failed", &e))?;
     let new_rig = rigs?
         .into_iter()
         .next()
-        .ok_or_else(|| internal("import gave no rig", &name))?;
+        .ok_or_else(|| Error::internal("import gave no rig", &name))?;
     check_rig(state, &new_rig)?;
     if let Some(dir) = state.store.assets_dir() {
         let meta = AssetMeta::new(name, &combined, vec![name.to_owned()]);
         let dir = dir.join(name);
         tokio::task::spawn_blocking(move || assets::add_files(&dir, &clips, &meta))
             .await
-            .map_err(|e| internal("store task failed", &e))?
-            .map_err(|e| internal("cannot store the clips", &e))?;
+            .map_err(|e| Error::internal("store task failed", &e))?
+            .map_err(|e| Error::internal("cannot store the clips", &e))?;
     }
     state.store.add_upload_bytes(added);
     let info = state.world.library.insert(new_rig).info();

@@ -1,0 +1,194 @@
+//! The server's error: what went wrong, typed, in every layer below the transport; turned into
+//! the wire's [`ProtocolError`] (a stable code and a message) in one place, [`From`].
+//!
+//! The transport (`service`) also builds a few wire errors of its own — a message that is not
+//! JSON, a missing hello — that have no meaning below it.
+
+use crate::quota::Quota;
+use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError, SceneId};
+
+/// A failed request, command or import step. Nothing was changed by whatever returned it.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum Error {
+    /// No such scene.
+    #[error("no scene {0}")]
+    UnknownScene(SceneId),
+    /// No such avatar.
+    #[error("no avatar {0}")]
+    UnknownAvatar(AvatarId),
+    /// A subscription's filter names an avatar the scene does not have.
+    #[error("scene {scene} has no avatar {avatar}")]
+    NotInScene {
+        /// The scene.
+        scene: SceneId,
+        /// The avatar named.
+        avatar: AvatarId,
+    },
+    /// A rig (an avatar's, or a live driver's source) has no such joint.
+    #[error("{owner} has no joint {joint}")]
+    UnknownJoint {
+        /// Whose joint: "avatar a", "rig r".
+        owner: String,
+        /// The joint asked for (a name, or an index).
+        joint: String,
+    },
+    /// A rig has no such clip.
+    #[error("rig {rig} has no clip {clip}")]
+    UnknownClip {
+        /// The rig.
+        rig: String,
+        /// The clip asked for.
+        clip: String,
+    },
+    /// No rig (asset) of that name is loaded.
+    #[error("no rig (asset) named {0}")]
+    UnknownAsset(String),
+    /// A value out of range, not finite, or not allowed here.
+    #[error("{0}")]
+    Invalid(String),
+    /// The thing exists already, or another client holds it.
+    #[error("{0}")]
+    Conflict(String),
+    /// Not in this state (e.g. a pose from a connection that does not drive the avatar).
+    #[error("{0}")]
+    NotAllowedNow(String),
+    /// An uploaded asset could not be imported or normalised.
+    #[error("{0}")]
+    ImportFailed(String),
+    /// A server-side failure (storage, a task that died); the request may be retried.
+    #[error("{0}")]
+    Internal(String),
+    /// A deployment limit ([`crate::quota::Quotas`]).
+    #[error("quota {}: {detail} (the limit is {limit})", quota.name())]
+    Quota {
+        /// Which limit.
+        quota: Quota,
+        /// What was asked.
+        detail: String,
+        /// The limit, as people read it.
+        limit: String,
+    },
+    /// Too many commands or poses: try again after the hint.
+    #[error("{message}")]
+    RateLimited {
+        /// What is limited, and when to try again.
+        message: String,
+        /// Milliseconds until one would be accepted.
+        retry_after_ms: u64,
+    },
+    /// No token, or an unknown one.
+    #[error("{0}")]
+    Unauthorized(String),
+    /// The token does not allow this.
+    #[error("{0}")]
+    Forbidden(String),
+    /// A binary message that is not a pose.
+    #[error("{0}")]
+    UnexpectedBinary(String),
+    /// The request is too large.
+    #[error("{0}")]
+    TooLarge(String),
+    /// The server is not ready (starting) or is stopping.
+    #[error("{0}")]
+    Unavailable(String),
+}
+
+impl Error {
+    /// The stable wire code.
+    #[must_use]
+    pub fn code(&self) -> ErrorCode {
+        match self {
+            Self::UnknownScene(_) => ErrorCode::UnknownScene,
+            Self::UnknownAvatar(_) | Self::NotInScene { .. } => ErrorCode::UnknownAvatar,
+            Self::UnknownJoint { .. } => ErrorCode::UnknownJoint,
+            Self::UnknownClip { .. } => ErrorCode::UnknownClip,
+            Self::UnknownAsset(_) => ErrorCode::UnknownAsset,
+            Self::Invalid(_) => ErrorCode::InvalidValue,
+            Self::Conflict(_) => ErrorCode::Conflict,
+            Self::NotAllowedNow(_) => ErrorCode::NotAllowedNow,
+            Self::ImportFailed(_) => ErrorCode::ImportFailed,
+            Self::Internal(_) => ErrorCode::Internal,
+            Self::Quota { .. } => ErrorCode::QuotaExceeded,
+            Self::RateLimited { .. } => ErrorCode::RateLimited,
+            Self::Unauthorized(_) => ErrorCode::Unauthorized,
+            Self::Forbidden(_) => ErrorCode::Forbidden,
+            Self::UnexpectedBinary(_) => ErrorCode::UnexpectedBinary,
+            Self::TooLarge(_) => ErrorCode::TooLarge,
+            Self::Unavailable(_) => ErrorCode::Unavailable,
+        }
+    }
+
+    /// An [`Error::Invalid`].
+    pub fn invalid(message: impl Into<String>) -> Self {
+        Self::Invalid(message.into())
+    }
+
+    /// The wire error answering command `id`.
+    #[must_use]
+    pub fn for_command(self, id: u64) -> ProtocolError {
+        ProtocolError::from(self).for_command(id)
+    }
+
+    /// An [`Error::Internal`]: `what` failed because of `e`.
+    pub fn internal(what: &str, e: &dyn std::fmt::Display) -> Self {
+        Self::Internal(format!("{what}: {e}"))
+    }
+}
+
+impl From<Error> for ProtocolError {
+    fn from(e: Error) -> Self {
+        let mut wire = Self::new(e.code(), e.to_string());
+        if let Error::RateLimited { retry_after_ms, .. } = e {
+            wire.retry_after_ms = Some(retry_after_ms);
+        }
+        wire
+    }
+}
+
+/// A result of this crate.
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every variant keeps the code and message clients had before the enum existed.
+    #[test]
+    fn the_wire_error_has_the_code_and_message() {
+        let cases = [
+            (
+                Error::UnknownAvatar(AvatarId("a".into())),
+                ErrorCode::UnknownAvatar,
+                "no avatar a",
+            ),
+            (
+                Error::UnknownJoint {
+                    owner: "avatar a".into(),
+                    joint: "knee".into(),
+                },
+                ErrorCode::UnknownJoint,
+                "avatar a has no joint knee",
+            ),
+            (
+                Error::Quota {
+                    quota: Quota::Scenes,
+                    detail: "scene s would be scene 3".into(),
+                    limit: "2".into(),
+                },
+                ErrorCode::QuotaExceeded,
+                "quota scenes: scene s would be scene 3 (the limit is 2)",
+            ),
+        ];
+        for (e, code, message) in cases {
+            let wire = ProtocolError::from(e);
+            assert_eq!((wire.code, wire.message.as_str()), (code, message));
+            assert_eq!(wire.retry_after_ms, None);
+        }
+        let wire = ProtocolError::from(crate::quota::rate_limited(
+            std::time::Duration::from_millis(250),
+        ));
+        assert_eq!(wire.code, ErrorCode::RateLimited);
+        assert_eq!(wire.retry_after_ms, Some(250));
+        assert_eq!(wire.message, "too many commands: try again in 250 ms");
+    }
+}
