@@ -371,8 +371,10 @@ async fn a_websocket_without_hello_gets_timeout_and_close_1008() {
         ..NetLimits::default()
     })
     .await;
-    let mut ws = ws_from("127.0.0.1", server.addr).await.unwrap();
+    // Timed from before the connect: the server's clock starts at the upgrade, which the
+    // client only learns of a moment later.
     let since = Instant::now();
+    let mut ws = ws_from("127.0.0.1", server.addr).await.unwrap();
     let error = next_message(&mut ws).await;
     let took = since.elapsed();
     match error {
