@@ -81,7 +81,7 @@ pub struct NetLimits {
     /// (slowloris) are closed after it.
     pub header_read_timeout: Duration,
     /// A request body must be read completely within this, counted from its head (`408
-    /// timeout`). Long enough for a [`crate::state::Config::max_upload_bytes`] upload over a
+    /// timeout`). Long enough for a [`crate::config::Config::max_upload_bytes`] upload over a
     /// slow link, short enough that a client trickling a byte a second cannot keep a
     /// request open for hours.
     pub body_read_timeout: Duration,
@@ -92,7 +92,7 @@ pub struct NetLimits {
     pub ws_idle_timeout: Duration,
     /// Open TCP connections (HTTP and websocket) the server holds at most; more are refused
     /// with 503 (websocket upgrades: close 1013). Lowered at start to what the descriptor
-    /// limit allows ([`effective_max_connections`]).
+    /// limit allows (`effective_max_connections`).
     pub max_connections: usize,
     /// Open connections from one client address at most (IPv6: one /64, which one host
     /// usually holds whole); more are refused like over [`Self::max_connections`]. Keeps one

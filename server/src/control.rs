@@ -1,4 +1,4 @@
-//! Executes control commands for clients (REST and websocket): the [`World`]'s
+//! Executes control commands for clients (REST and websocket): the `World`'s
 //! [`command::apply`] with the slow part done first off the lock, counted in the metrics, and —
 //! with a data folder — acknowledged only once stored.
 

@@ -1,21 +1,31 @@
 //! The posecast server: it imports rigs and clips, normalises them, plays them in scenes and
 //! streams each avatar's local joint rotations to websocket clients.
 //!
-//! - [`asset`]: what an import produces (skeleton, skinned meshes, clips, source conventions).
-//! - [`import`]: one importer per format (glTF, CSE169 `.skel/.skin/.anim`, BVH).
-//! - [`clip`]: the one in-memory clip representation and its samplers.
-//! - [`builtin`]: the generator of the built-in avatar shipped in `assets/`.
-//! - [`rig`]: rig normalisation (seed 000) and cross-rig retargeting.
-//! - [`library`]: the rigs the server can put in scenes; [`bake`]: retargeted clips, baked
-//!   off the tick and cached.
-//! - [`scene`]: scenes, avatars, playback and the tick task; [`live`]: avatars driven live.
-//! - [`stream`]: per-connection outboxes (bounded fan-out).
-//! - [`control`]: control commands (shared by REST and websocket); [`auth`]: tokens.
-//! - [`export`]: a rig's normalised mesh as .glb for render clients.
-//! - [`service`]: the axum router (`app`), websocket and HTTP endpoints.
-//! - [`state`]: configuration and shared state; [`metrics`]: counters; [`quota`]: limits.
-//! - [`startup`]: [`startup::Server`] — listen and serve at once; [`restore`]: rigs and
-//!   stored scenes loaded in the background meanwhile; [`readiness`]: how far that has got.
+//! Modules are layered; each uses only the layers above it:
+//!
+//! 1. **Assets** — [`asset`] (what an import produces), [`import`] (glTF, CSE169
+//!    `.skel/.skin/.anim`, BVH), [`clip`] (the one clip representation and its samplers),
+//!    [`rig`] (normalisation per seed 000, retargeting per seed 001, the playable
+//!    [`rig::Rig`]), [`builtin`] (the built-in avatar), [`library`] (rigs by name, uploads
+//!    prepared into rigs), [`export`] (rigs and clips written back out).
+//! 2. **Simulation** — [`avatar`] (one avatar: playback, placement and root motion, a live
+//!    driver's pose, joint overrides), [`bake`] (retargeted clips, baked off the tick and
+//!    cached).
+//! 3. **Publication** — [`stream`] (a scene's feed: each tick encoded once per encoding and
+//!    fanned out into per-connection outboxes, drained by writers).
+//! 4. **World** — [`scene`] (avatars and their feed under one lock, the tick task),
+//!    [`world`] (every scene, ids, quotas; [`world::command`]: a command applied to it).
+//! 5. **Services** — [`auth`] (tokens), [`store`] (the data folder), [`config`], [`state`]
+//!    (the world plus connections, store and start-up progress), [`control`] (commands for
+//!    clients: counted, and acknowledged once stored), live drivers of a connection,
+//!    start-up loading ([`readiness`]).
+//! 6. **Transport** — [`service`]: the axum router, accept loop and limits, websocket
+//!    sessions, REST, uploads, dashboard, health.
+//! 7. **Entry** — [`startup`]: [`startup::Server`] listens at once, restores in the
+//!    background, shuts down gracefully.
+//!
+//! Used by all: [`error`] (the typed [`error::Error`], turned into the wire's error in one
+//! place), [`metrics`] (counters), [`quota`] (limits and rate buckets).
 
 pub mod asset;
 pub mod auth;
@@ -29,11 +39,11 @@ pub mod error;
 pub mod export;
 pub mod import;
 pub mod library;
-pub mod live;
+mod live;
 pub mod metrics;
 pub mod quota;
 pub mod readiness;
-pub mod restore;
+mod restore;
 pub mod rig;
 pub mod scene;
 pub mod service;

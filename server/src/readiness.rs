@@ -1,7 +1,7 @@
 //! Whether the server has finished what it loads at start, and how far it has got.
 //!
 //! A server listens before it loads anything ([`crate::startup::Server::start`]); rigs and
-//! stored scenes are restored in the background ([`crate::restore`]). Until then `GET
+//! stored scenes are restored in the background (`restore`). Until then `GET
 //! /healthz` answers 503 with the progress, and every request that reads or changes scenes or
 //! assets waits here (see the README, "Persistence").
 

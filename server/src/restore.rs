@@ -66,12 +66,6 @@ impl Plan {
     pub fn len(&self) -> usize {
         self.sources.len()
     }
-
-    /// Whether it holds no asset source.
-    #[must_use]
-    pub fn is_empty(&self) -> bool {
-        self.sources.is_empty()
-    }
 }
 
 /// Loads `plan` on a thread of its own and marks `state` ready (or failed) when done. Scenes

@@ -1,5 +1,5 @@
 //! Starting and stopping a server: bind and serve at once, load rigs and restore scenes in
-//! the background ([`crate::restore`]).
+//! the background (`restore`).
 
 use crate::config::Config;
 use crate::restore::{self, data_folder_error};
@@ -28,7 +28,7 @@ pub struct Server {
 impl Server {
     /// Opens the data folder, binds and starts serving at once; the configured rigs (the
     /// built-in avatar, then every asset folder, then the uploads stored in the data folder)
-    /// and the stored scenes are loaded in the background ([`crate::restore`]). Returning means
+    /// and the stored scenes are loaded in the background (`restore`). Returning means
     /// *listening*: until [`Server::ready`], `/healthz` answers 503 with the progress and
     /// requests that need scenes or assets wait (see [`crate::readiness`]). On a first start
     /// (no data folder, or a new one) the built-in avatar goes into scene `default` playing

@@ -60,7 +60,7 @@ pub struct Avatar {
     /// Where it stands in the scene ([`placement`]).
     pub placing: Placing,
     pub(super) root_track: RootTrack,
-    /// A live driver's pose, applied between the clip and the overrides ([`crate::live`]).
+    /// A live driver's pose, applied between the clip and the overrides (the `live` module).
     pub live: Option<LivePose>,
 }
 

@@ -23,8 +23,6 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Instant;
 
-pub use crate::avatar::live::RATE_BURST;
-
 /// Largest root position accepted, metres from the origin (a typo, not a performer).
 pub const MAX_ROOT_METRES: f32 = 10_000.0;
 

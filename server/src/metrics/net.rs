@@ -1,4 +1,4 @@
-//! Counters of the network bounds ([`super::limits`]): connections held and refused, accept
+//! Counters of the network bounds (`limits`): connections held and refused, accept
 //! failures, timeouts. Kept apart from the other counters (`Metrics::net`) and rendered after
 //! them in `/metrics`.
 

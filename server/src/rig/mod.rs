@@ -4,23 +4,23 @@
 //! the same for every frame of every clip (re-orient and units: the same up to `R·v`, `s·v`),
 //! plus the per-joint [`crate::clip::ChannelMap`] it applied to clip channels:
 //!
-//! - [`adjust`](mod@adjust): the generic bind adjustment by per-joint rotations `V_i`.
-//! - [`simplify`](mod@simplify): `V_i = U_i`, so inverse binds become translations `T(−C_i)`.
-//! - [`reorient`](mod@reorient): a coordinate change by a rotation `R`, and units (a uniform scale).
+//! - `adjust`: the generic bind adjustment by per-joint rotations `V_i`.
+//! - `simplify`: `V_i = U_i`, so inverse binds become translations `T(−C_i)`.
+//! - `reorient`: a coordinate change by a rotation `R`, and units (a uniform scale).
 //! - [`neutral`](mod@neutral): a new neutral pose `H` (`V_i = V_parent(i) H_i`) and the H-Anim pose found by
 //!   aligning named segments with target directions.
 //! - [`names`](mod@names): joint names to H-Anim names.
 //! - [`retarget`](mod@retarget): a clip of one normalised rig replayed on another, matched in world space.
 //! - [`pipeline`](mod@pipeline): the default sequence, configurable per asset, recording what it did.
 
-pub mod adjust;
+mod adjust;
 pub mod names;
 pub mod neutral;
 pub mod pipeline;
 mod playable;
-pub mod reorient;
+mod reorient;
 pub mod retarget;
-pub mod simplify;
+mod simplify;
 
 pub use adjust::adjust_bind;
 pub use names::{NameMapping, map_names};

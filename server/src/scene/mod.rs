@@ -4,9 +4,9 @@
 //!
 //! - this module: [`Scene`] — a tick moves every avatar to the scene clock, then the feed
 //!   encodes and fans out the frame.
-//! - [`ticker`]: the drift-free tick task of a scene.
+//! - `ticker`: the drift-free tick task of a scene.
 
-pub mod ticker;
+pub(crate) mod ticker;
 
 use crate::avatar::Avatar;
 use crate::error::Error;

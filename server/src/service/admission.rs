@@ -98,15 +98,9 @@ impl Admission {
     }
 
     /// Connections holding a slot.
-    #[must_use]
-    pub fn open(&self) -> usize {
+    #[cfg(test)]
+    fn open(&self) -> usize {
         self.lock().total
-    }
-
-    /// The global cap in force.
-    #[must_use]
-    pub fn max_total(&self) -> usize {
-        self.max_total
     }
 
     fn release(&self, key: IpAddr) {

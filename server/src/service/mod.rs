@@ -1,32 +1,32 @@
 //! The HTTP and websocket service: `fn app(state) -> Router`, so tests start the server
 //! in-process on port 0.
 //!
-//! - `GET /ws`: the websocket protocol ([`ws`], `proto/PROTOCOL.md`).
+//! - `GET /ws`: the websocket protocol (`ws`, `proto/PROTOCOL.md`).
 //! - `POST /api/commands`, `GET /api/scenes`, `GET /api/assets`,
-//!   `GET /api/assets/{name}/mesh.glb` ([`rest`]).
-//! - `POST /api/assets/{name}`, `POST /api/assets/{name}/clips`: uploads ([`upload`]), with
+//!   `GET /api/assets/{name}/mesh.glb` (`rest`).
+//! - `POST /api/assets/{name}`, `POST /api/assets/{name}/clips`: uploads (`upload`), with
 //!   their own body limit (`Config::max_upload_bytes`); everything else keeps 64 KiB.
-//! - `GET /healthz` ([`health`]: 503 with the progress while starting, then `ok`),
+//! - `GET /healthz` (`health`: 503 with the progress while starting, then `ok`),
 //!   `GET /metrics`.
-//! - `GET /`, `GET /dashboard/{file}`: the web dashboard ([`dashboard`]).
+//! - `GET /`, `GET /dashboard/{file}`: the web dashboard (`dashboard`).
 //!
-//! Connections reach the router through [`listener`], the accept loop: connection caps
-//! ([`admission`]), request-head and body deadlines ([`body_deadline`]) and the websocket
-//! liveness rules, all configured by [`limits::NetLimits`]; counted in [`crate::metrics::net`].
+//! Connections reach the router through `listener`, the accept loop: connection caps
+//! (`admission`), request-head and body deadlines (`body_deadline`) and the websocket
+//! liveness rules, all configured by `NetLimits`; counted in [`crate::metrics::net`].
 //!
 //! Every error response has the typed body `{"code", "message"}`, including axum's own
 //! rejections (405, 413, extractor errors) and unknown paths (404): see [`typed_errors`].
 
-pub mod admission;
-pub mod body_deadline;
-pub mod dashboard;
-pub mod health;
+mod admission;
+mod body_deadline;
+mod dashboard;
+mod health;
 pub mod limits;
-pub mod listener;
+pub(crate) mod listener;
 
-pub mod rest;
-pub mod upload;
-pub mod ws;
+mod rest;
+mod upload;
+mod ws;
 mod ws_liveness;
 
 use crate::state::AppState;

@@ -19,7 +19,7 @@
 //! # Durability
 //!
 //! Every file is written to `x.tmp`, `sync_all`ed, renamed over `x`, and the folder is fsynced
-//! ([`atomic`]). A mutating command goes through [`crate::control::execute_durable`]: the
+//! (`atomic`). A mutating command goes through [`crate::control::execute_durable`]: the
 //! change is made in memory, then under the store's lock the scene is snapshotted and written,
 //! and only then acknowledged. Because the snapshot is taken after the change and under the
 //! lock, a later write always contains every earlier acknowledged change (no lost updates when
@@ -30,7 +30,7 @@
 //!
 //! # Restore at start
 //!
-//! In the background once the server listens ([`crate::restore`]): built-in rig and
+//! In the background once the server listens (`restore`): built-in rig and
 //! `--assets` folders first, then uploaded assets, then scenes. On the first
 //! start with a new folder the built-in `default` scene is created and stored; later, what is
 //! stored wins (a deleted `default` stays deleted). A file that cannot be read (truncated,
@@ -42,8 +42,8 @@
 //! Uploads are read, imported and dropped: memory holds their rigs, not their files
 //! (`store::Upload`); adding clips reads the files again from `assets/<name>/`.
 
-pub mod assets;
-pub mod atomic;
+pub(crate) mod assets;
+mod atomic;
 pub mod snapshot;
 
 use crate::error::Error;
@@ -108,7 +108,7 @@ impl Default for Batch {
     }
 }
 
-/// Why a stored file or folder cannot be used: it is then moved aside ([`set_aside`]) and the
+/// Why a stored file or folder cannot be used: it is then moved aside (`set_aside`) and the
 /// rest of the data folder still loads.
 #[derive(Debug, thiserror::Error)]
 pub enum Unusable {
