@@ -3,17 +3,31 @@
 //!
 //! - [`glb`]: the one `.glb` writer — skeleton nodes, skinned mesh, skin, animations. It
 //!   writes the built-in avatar (`make-avatar`), the mesh endpoint's file and clip exports.
+//! - [`animation`]: a [`Clip`] as glTF animation channels.
 //!
-//! [`mesh_glb`] is what `GET /api/assets/{name}/mesh.glb` calls.
+//! The functions below are what the HTTP routes call: [`mesh_glb`] for
+//! `GET /api/assets/{name}/mesh.glb`, [`clip_glb`] for a clip's export.
 
+pub mod animation;
 pub mod glb;
 
 use crate::asset::AssetMesh;
+use crate::clip::Clip;
+use crate::library::Rig;
 use posecast_proto::{Skeleton, SkeletonError};
 
-/// Why an export failed: inconsistent input, named, or a file too large for its format.
+/// Why an export failed. Exports of a rig's own clips are not expected to fail; these name
+/// the inconsistency when one does.
 #[derive(Debug, thiserror::Error)]
 pub enum ExportError {
+    #[error("clip {clip} has {clip_joints} joint slots; the rig has {rig_joints} joints")]
+    JointCount {
+        clip: String,
+        clip_joints: usize,
+        rig_joints: usize,
+    },
+    #[error("clip {clip} animates nothing: there is no channel to write")]
+    NothingAnimated { clip: String },
     #[error("animation {animation}, channel {channel}: {message}")]
     Channel {
         animation: String,
@@ -48,6 +62,39 @@ const GENERATOR: &str = "posecast";
 /// Only on inconsistent input ([`ExportError::Primitive`]) or a file over 4 GiB.
 pub fn mesh_glb(skeleton: &Skeleton, meshes: &[AssetMesh]) -> Result<Vec<u8>, ExportError> {
     write_glb(None, skeleton, meshes, &[])
+}
+
+/// A clip of `rig` as `.glb` (for `GET /api/assets/{name}/clips/{clip}.glb`): the rig's mesh
+/// and skin as [`mesh_glb`] writes them, plus the clip as one animation named after it, its
+/// time shifted so it starts at 0 (see [`animation::animation`] for how channels are keyed).
+///
+/// # Errors
+/// The clip has more joint slots than the rig has joints, or animates nothing
+/// ([`ExportError::JointCount`], [`ExportError::NothingAnimated`]).
+pub fn clip_glb(rig: &Rig, clip: &Clip) -> Result<Vec<u8>, ExportError> {
+    rig_glb(
+        Some(&rig.name),
+        rig.skeleton(),
+        &rig.asset.meshes,
+        std::slice::from_ref(clip),
+    )
+}
+
+/// A skeleton, its meshes and any clips of it as `.glb`; `name` names the skin and the scene.
+///
+/// # Errors
+/// As [`clip_glb`], for each clip.
+pub fn rig_glb(
+    name: Option<&str>,
+    skeleton: &Skeleton,
+    meshes: &[AssetMesh],
+    clips: &[Clip],
+) -> Result<Vec<u8>, ExportError> {
+    let animations = clips
+        .iter()
+        .map(|clip| animation::animation(clip, skeleton.len()))
+        .collect::<Result<Vec<_>, _>>()?;
+    write_glb(name, skeleton, meshes, &animations)
 }
 
 fn write_glb(
