@@ -4,11 +4,13 @@
 //! - [`glb`]: the one `.glb` writer — skeleton nodes, skinned mesh, skin, animations. It
 //!   writes the built-in avatar (`make-avatar`), the mesh endpoint's file and clip exports.
 //! - [`animation`]: a [`Clip`] as glTF animation channels.
+//! - [`bvh`]: a clip on its rig as BVH text.
 //!
 //! The functions below are what the HTTP routes call: [`mesh_glb`] for
-//! `GET /api/assets/{name}/mesh.glb`, [`clip_glb`] for a clip's export.
+//! `GET /api/assets/{name}/mesh.glb`, [`clip_glb`] and [`clip_bvh`] for a clip's exports.
 
 pub mod animation;
+pub mod bvh;
 pub mod glb;
 
 use crate::asset::AssetMesh;
@@ -39,6 +41,14 @@ pub enum ExportError {
         mesh: String,
         primitive: usize,
         message: String,
+    },
+    #[error("frame time {frame_time} s is not a positive number")]
+    FrameTime { frame_time: f64 },
+    #[error("{frames} frames of {channels} channels: more than {max_values} values")]
+    TooManyFrames {
+        frames: usize,
+        channels: usize,
+        max_values: usize,
     },
     #[error("the .glb would be {bytes} bytes; the format's lengths stop at 4 GiB")]
     TooLarge { bytes: usize },
@@ -78,6 +88,18 @@ pub fn clip_glb(rig: &Rig, clip: &Clip) -> Result<Vec<u8>, ExportError> {
         &rig.asset.meshes,
         std::slice::from_ref(clip),
     )
+}
+
+/// A clip of `rig` as BVH text (for `GET /api/assets/{name}/clips/{clip}.bvh`): the rig's
+/// rest translations as offsets in centimetres, local rotations as `Zrotation Yrotation
+/// Xrotation` degrees, one frame per clip key when the clip is uniformly keyed, else at
+/// [`bvh::RESAMPLE_RATE`] or a little faster. See [`bvh`] for the conventions.
+///
+/// # Errors
+/// The clip has more joint slots than the rig has joints ([`ExportError::JointCount`]), or
+/// is too long for [`bvh::MAX_VALUES`] ([`ExportError::TooManyFrames`]).
+pub fn clip_bvh(rig: &Rig, clip: &Clip) -> Result<String, ExportError> {
+    bvh::write(rig.skeleton(), clip, None)
 }
 
 /// A skeleton, its meshes and any clips of it as `.glb`; `name` names the skin and the scene.
