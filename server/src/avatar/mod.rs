@@ -4,10 +4,12 @@
 //! - [`playback`]: clip clocks and cross-fades.
 //! - [`placement`]: the avatar's world placement, moves, and clip root motion.
 //! - [`live`]: a live driver's pose, retargeted from its source rig.
+//! - [`recording`]: what the avatar streams, tick by tick, into a clip on its rig.
 
 pub mod live;
 pub mod placement;
 pub mod playback;
+pub mod recording;
 
 use crate::avatar::live::LivePose;
 use crate::rig::Rig;

@@ -5,7 +5,7 @@
 //! - `body`: the body's segments as data (rounded, tapered tubes and the joints that skin them).
 //! - [`mesh`]: those tubes tessellated and smoothly weighted along each limb.
 //! - [`clips`]: looping `idle`, `walk` and `wave`, sampled at 30 Hz.
-//! - [`glb`]: the binary glTF writer.
+//! - [`glb`]: the avatar as input to the one `.glb` writer ([`crate::export::glb`]).
 //!
 //! The bind pose is deliberately *not* the neutral pose: arms are horizontal and every bind
 //! frame is rotated, so rig normalisation has real work to do on it. Rest equals bind.
@@ -39,7 +39,7 @@ pub fn generate() -> Vec<u8> {
 }
 
 /// [`generate`], reporting a serialisation failure instead of panicking.
-pub fn try_generate() -> Result<Vec<u8>, glb::WriteError> {
+pub fn try_generate() -> Result<Vec<u8>, crate::export::ExportError> {
     let rig = skeleton::Rig::new();
     let mesh = mesh::build();
     let clips = clips::sample_all(&rig);

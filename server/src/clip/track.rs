@@ -228,6 +228,13 @@ impl<T: TrackValue> Track<T> {
         &self.values
     }
 
+    /// Cubic-spline only: `(in, out)` tangent per key, value units per second; empty for step
+    /// and linear tracks.
+    #[must_use]
+    pub fn tangents(&self) -> &[(T, T)] {
+        &self.tangents
+    }
+
     /// First and last key times.
     #[must_use]
     pub fn time_range(&self) -> (f32, f32) {

@@ -2,6 +2,8 @@
 //!
 //! - [`pose`]: the per-avatar driver state ([`LivePose`]) the avatar evaluates between its clip
 //!   and its joint overrides.
+//! - [`recording`]: a [`recording::Recorder`] turns the poses an avatar streams, tick by tick,
+//!   into a clip on its rig.
 //! - this module: the connection's side — `drive` / `release_drive`, validating pose messages
 //!   (JSON and binary), and releasing what it drives when it leaves.
 //!

@@ -149,7 +149,8 @@ pub async fn mesh(
         )
         .into());
     }
-    let bytes = crate::export::mesh_glb(rig.skeleton(), &rig.asset.meshes);
+    let bytes = crate::export::mesh_glb(rig.skeleton(), &rig.asset.meshes)
+        .map_err(|e| ProtocolError::new(ErrorCode::Internal, format!("rig {name}: {e}")))?;
     Ok((
         [(axum::http::header::CONTENT_TYPE, "model/gltf-binary")],
         bytes,

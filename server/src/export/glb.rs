@@ -1,0 +1,607 @@
+//! The one binary glTF 2.0 writer (typed `gltf::json`): a skeleton as nodes, optionally a
+//! skinned mesh, one skin, and animations. It writes the built-in avatar
+//! (`make-avatar`), a rig's mesh for render clients (`mesh.glb`) and clip exports.
+//!
+//! Layout, the same for every caller:
+//! - nodes `0..n` are the joints in skeleton order (a skin joint index is its node index),
+//!   named, at their rest TRS (scale only when not 1); then the skinned mesh node, if any;
+//!   then, for a skeleton with several roots, a plain `skeleton` node parenting them (a skin's
+//!   joints must share one root);
+//! - accessors in file order: per primitive POSITION (with bounds), NORMAL, JOINTS_0 (u16),
+//!   WEIGHTS_0, indices (u16 when every index fits below the primitive-restart value 65535,
+//!   else u32); the inverse bind matrices; then per animation, per channel, its key times
+//!   (shared by channels with equal times, with bounds) and its output;
+//! - one buffer view per accessor, 4-byte aligned; vertex and index views carry their
+//!   buffer target, inverse binds and animation data none.
+
+use super::ExportError;
+use crate::clip::Interpolation;
+use glam::{Quat, Vec3};
+use gltf::binary::{Glb, Header};
+use gltf::json::{self, Index, validation::Checked::Valid, validation::USize64};
+use posecast_proto::{Skeleton, SkinnedMesh};
+use serde_json::json;
+use std::borrow::Cow;
+use std::collections::BTreeMap;
+
+/// What one `.glb` holds: a skeleton, optionally a skinned mesh, and animations of its joints.
+#[derive(Clone, Copy, Debug)]
+pub struct Model<'a> {
+    /// `asset.generator`.
+    pub generator: &'a str,
+    /// The skin's and the scene's name (unnamed when `None`).
+    pub name: Option<&'a str>,
+    /// Joint names, parents, rest transforms (local, parent space) and inverse binds.
+    pub skeleton: &'a Skeleton,
+    /// The skinned mesh, in bind space.
+    pub mesh: Option<&'a Mesh>,
+    /// Animations of the skeleton's joints.
+    pub animations: &'a [Animation],
+}
+
+/// A skinned mesh: one glTF mesh, one primitive per part (readers such as the dashboard take
+/// every primitive of mesh 0).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Mesh {
+    /// The mesh's and its node's name.
+    pub name: String,
+    pub primitives: Vec<Primitive>,
+}
+
+/// One triangle list with four joint influences per vertex.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Primitive {
+    /// Bind-space positions.
+    pub positions: Vec<Vec3>,
+    /// Unit normals, one per position.
+    pub normals: Vec<Vec3>,
+    /// Skin joint (= skeleton joint) indices; unused slots name joint 0 with weight 0.
+    pub joints: Vec<[u16; 4]>,
+    /// Weights summing to one.
+    pub weights: Vec<[f32; 4]>,
+    /// Counter-clockwise triangles.
+    pub indices: Vec<u32>,
+    pub material: Option<Material>,
+}
+
+impl Primitive {
+    /// A [`SkinnedMesh`] as a primitive: more than four influences keep the four heaviest,
+    /// renormalised; fewer are padded with zero weights on joint 0.
+    #[must_use]
+    pub fn from_skinned(mesh: &SkinnedMesh) -> Self {
+        let mesh = if mesh.influences() == 4 {
+            Cow::Borrowed(mesh)
+        } else {
+            Cow::Owned(mesh.with_influences(4))
+        };
+        let mut joints = Vec::with_capacity(mesh.vertex_count());
+        let mut weights = Vec::with_capacity(mesh.vertex_count());
+        for (j, w) in mesh
+            .joints()
+            .chunks_exact(4)
+            .zip(mesh.weights().chunks_exact(4))
+        {
+            joints.push([j[0], j[1], j[2], j[3]]);
+            weights.push([w[0], w[1], w[2], w[3]]);
+        }
+        Self {
+            positions: mesh.positions().to_vec(),
+            normals: mesh.normals().to_vec(),
+            joints,
+            weights,
+            indices: mesh.indices().to_vec(),
+            material: None,
+        }
+    }
+}
+
+/// A metallic-roughness material with a constant colour.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Material {
+    pub name: String,
+    /// Linear RGBA.
+    pub base_color: [f32; 4],
+    pub metallic: f32,
+    pub roughness: f32,
+}
+
+/// One glTF animation.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Animation {
+    pub name: String,
+    pub channels: Vec<Channel>,
+}
+
+/// One animated property of one joint.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Channel {
+    /// The skeleton joint (= node) it moves.
+    pub joint: usize,
+    /// glTF `STEP`, `LINEAR` (slerp for rotations) or `CUBICSPLINE`.
+    pub interpolation: Interpolation,
+    /// Key times in seconds, strictly increasing, the first ≥ 0.
+    pub times: Vec<f32>,
+    /// One value per key, or for [`Interpolation::CubicSpline`] three (in-tangent, value,
+    /// out-tangent; tangents per second), as glTF stores them.
+    pub output: Output,
+}
+
+/// A channel's values: local translation (parent space, metres), rotation (unit
+/// quaternions) or scale.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Output {
+    Translation(Vec<Vec3>),
+    Rotation(Vec<Quat>),
+    Scale(Vec<Vec3>),
+}
+
+impl Output {
+    fn len(&self) -> usize {
+        match self {
+            Self::Translation(v) | Self::Scale(v) => v.len(),
+            Self::Rotation(q) => q.len(),
+        }
+    }
+
+    fn is_finite(&self) -> bool {
+        match self {
+            Self::Translation(v) | Self::Scale(v) => v.iter().all(|v| v.is_finite()),
+            Self::Rotation(q) => q.iter().all(|q| q.is_finite()),
+        }
+    }
+}
+
+/// Writes `model` as `.glb` bytes.
+///
+/// # Errors
+/// A channel names a joint the skeleton does not have, has no keys, times that are negative,
+/// not finite or not increasing, or a value count that does not fit its times
+/// ([`ExportError::Channel`]); a primitive's attribute lengths differ or an index is out of
+/// range ([`ExportError::Primitive`]); the file would pass GLB's 4 GiB
+/// ([`ExportError::TooLarge`]).
+pub fn write(model: &Model<'_>) -> Result<Vec<u8>, ExportError> {
+    let mut b = Builder {
+        root: json::Root {
+            asset: json::Asset {
+                copyright: None,
+                extensions: None,
+                extras: Default::default(),
+                generator: Some(model.generator.into()),
+                min_version: None,
+                version: "2.0".into(),
+            },
+            ..Default::default()
+        },
+        bin: Vec::new(),
+    };
+    let skeleton = model.skeleton;
+    let n = skeleton.len();
+    let mesh = match model.mesh {
+        Some(mesh) => Some(write_mesh(&mut b, mesh, n)?),
+        None => None,
+    };
+    let inverse_binds: Vec<[f32; 16]> = skeleton
+        .inverse_bind()
+        .iter()
+        .map(|m| m.to_cols_array())
+        .collect();
+    let inverse_binds = b.f32s(&inverse_binds, None, false);
+
+    for (j, (name, rest)) in skeleton.names().iter().zip(skeleton.rest()).enumerate() {
+        let children: Vec<Index<json::Node>> = skeleton.children(j).map(node_index).collect();
+        b.root.push(json::Node {
+            name: Some(name.clone()),
+            translation: Some(rest.translation.to_array()),
+            rotation: Some(json::scene::UnitQuaternion(unit(rest.rotation).to_array())),
+            scale: (rest.scale != Vec3::ONE).then(|| rest.scale.to_array()),
+            children: (!children.is_empty()).then_some(children),
+            ..Default::default()
+        });
+    }
+    let roots: Vec<Index<json::Node>> = skeleton.roots().map(node_index).collect();
+    let mesh_node = mesh.map(|(mesh, name)| {
+        b.root.push(json::Node {
+            name: Some(name),
+            mesh: Some(mesh),
+            skin: Some(Index::new(0)),
+            ..Default::default()
+        })
+    });
+    let top = match roots.as_slice() {
+        [root] => *root,
+        _ => b.root.push(json::Node {
+            name: Some("skeleton".into()),
+            children: Some(roots),
+            ..Default::default()
+        }),
+    };
+    b.root.push(json::Skin {
+        extensions: None,
+        extras: Default::default(),
+        inverse_bind_matrices: Some(inverse_binds),
+        joints: (0..n).map(node_index).collect(),
+        name: model.name.map(Into::into),
+        skeleton: Some(top),
+    });
+    let scene = b.root.push(json::Scene {
+        extensions: None,
+        extras: Default::default(),
+        name: model.name.map(Into::into),
+        nodes: std::iter::once(top).chain(mesh_node).collect(),
+    });
+    b.root.scene = Some(scene);
+
+    for animation in model.animations {
+        write_animation(&mut b, animation, n)?;
+    }
+    b.finish()
+}
+
+/// The mesh and its node's name.
+fn write_mesh(
+    b: &mut Builder,
+    mesh: &Mesh,
+    joints: usize,
+) -> Result<(Index<json::Mesh>, String), ExportError> {
+    let array = Some(json::buffer::Target::ArrayBuffer);
+    let mut primitives = Vec::with_capacity(mesh.primitives.len());
+    for (p, prim) in mesh.primitives.iter().enumerate() {
+        check_primitive(mesh, p, prim, joints)?;
+        let positions: Vec<[f32; 3]> = prim.positions.iter().map(|v| v.to_array()).collect();
+        let normals: Vec<[f32; 3]> = prim.normals.iter().map(|v| v.to_array()).collect();
+        let position = b.f32s(&positions, array, true);
+        let normal = b.f32s(&normals, array, false);
+        let joint_bytes: Vec<u8> = prim
+            .joints
+            .iter()
+            .flatten()
+            .flat_map(|j| j.to_le_bytes())
+            .collect();
+        let joint_ids = b.accessor(
+            &joint_bytes,
+            prim.joints.len(),
+            json::accessor::ComponentType::U16,
+            json::accessor::Type::Vec4,
+            array,
+            None,
+        );
+        let weights = b.f32s(&prim.weights, array, false);
+        // glTF forbids the primitive-restart value (all ones) in indices.
+        let (index_bytes, component): (Vec<u8>, _) =
+            if prim.indices.iter().all(|&i| i < u32::from(u16::MAX)) {
+                let bytes = prim
+                    .indices
+                    .iter()
+                    .flat_map(|&i| (i as u16).to_le_bytes())
+                    .collect();
+                (bytes, json::accessor::ComponentType::U16)
+            } else {
+                let bytes = prim.indices.iter().flat_map(|i| i.to_le_bytes()).collect();
+                (bytes, json::accessor::ComponentType::U32)
+            };
+        let indices = b.accessor(
+            &index_bytes,
+            prim.indices.len(),
+            component,
+            json::accessor::Type::Scalar,
+            Some(json::buffer::Target::ElementArrayBuffer),
+            None,
+        );
+        let material = prim.material.as_ref().map(|m| {
+            b.root.push(json::Material {
+                name: Some(m.name.clone()),
+                pbr_metallic_roughness: json::material::PbrMetallicRoughness {
+                    base_color_factor: json::material::PbrBaseColorFactor(m.base_color),
+                    metallic_factor: json::material::StrengthFactor(m.metallic),
+                    roughness_factor: json::material::StrengthFactor(m.roughness),
+                    ..Default::default()
+                },
+                ..Default::default()
+            })
+        });
+        let attributes = BTreeMap::from([
+            (Valid(json::mesh::Semantic::Positions), position),
+            (Valid(json::mesh::Semantic::Normals), normal),
+            (Valid(json::mesh::Semantic::Joints(0)), joint_ids),
+            (Valid(json::mesh::Semantic::Weights(0)), weights),
+        ]);
+        primitives.push(json::mesh::Primitive {
+            attributes,
+            extensions: None,
+            extras: Default::default(),
+            indices: Some(indices),
+            material,
+            mode: Valid(json::mesh::Mode::Triangles),
+            targets: None,
+        });
+    }
+    let index = b.root.push(json::Mesh {
+        extensions: None,
+        extras: Default::default(),
+        name: Some(mesh.name.clone()),
+        primitives,
+        weights: None,
+    });
+    Ok((index, mesh.name.clone()))
+}
+
+fn check_primitive(
+    mesh: &Mesh,
+    p: usize,
+    prim: &Primitive,
+    joints: usize,
+) -> Result<(), ExportError> {
+    let fail = |message: String| ExportError::Primitive {
+        mesh: mesh.name.clone(),
+        primitive: p,
+        message,
+    };
+    let n = prim.positions.len();
+    for (what, len) in [
+        ("normals", prim.normals.len()),
+        ("joint indices", prim.joints.len()),
+        ("weights", prim.weights.len()),
+    ] {
+        if len != n {
+            return Err(fail(format!("{len} {what} for {n} positions")));
+        }
+    }
+    if prim.indices.len() % 3 != 0 {
+        return Err(fail(format!(
+            "{} indices do not make triangles",
+            prim.indices.len()
+        )));
+    }
+    if let Some(i) = prim.indices.iter().find(|&&i| i as usize >= n) {
+        return Err(fail(format!("index {i} with {n} vertices")));
+    }
+    if let Some(j) = prim
+        .joints
+        .iter()
+        .flatten()
+        .find(|&&j| usize::from(j) >= joints)
+    {
+        return Err(fail(format!("joint {j} with {joints} joints")));
+    }
+    Ok(())
+}
+
+fn write_animation(b: &mut Builder, a: &Animation, joints: usize) -> Result<(), ExportError> {
+    let mut channels = Vec::with_capacity(a.channels.len());
+    let mut samplers = Vec::with_capacity(a.channels.len());
+    // Key times already written in this animation, and their accessor.
+    let mut inputs: Vec<(&[f32], Index<json::Accessor>)> = Vec::new();
+    for (c, ch) in a.channels.iter().enumerate() {
+        check_channel(a, c, ch, joints)?;
+        let input = match inputs.iter().find(|(t, _)| *t == ch.times.as_slice()) {
+            Some(&(_, input)) => input,
+            None => {
+                let times: Vec<[f32; 1]> = ch.times.iter().map(|&t| [t]).collect();
+                let input = b.f32s(&times, None, true);
+                inputs.push((&ch.times, input));
+                input
+            }
+        };
+        let (output, property) = match &ch.output {
+            Output::Translation(v) => (b.vec3s(v), json::animation::Property::Translation),
+            Output::Scale(v) => (b.vec3s(v), json::animation::Property::Scale),
+            Output::Rotation(q) => {
+                let values: Vec<[f32; 4]> = q.iter().map(|q| q.to_array()).collect();
+                (
+                    b.f32s(&values, None, false),
+                    json::animation::Property::Rotation,
+                )
+            }
+        };
+        samplers.push(json::animation::Sampler {
+            extensions: None,
+            extras: Default::default(),
+            input,
+            interpolation: Valid(match ch.interpolation {
+                Interpolation::Step => json::animation::Interpolation::Step,
+                Interpolation::Linear => json::animation::Interpolation::Linear,
+                Interpolation::CubicSpline => json::animation::Interpolation::CubicSpline,
+            }),
+            output,
+        });
+        channels.push(json::animation::Channel {
+            sampler: Index::new(c as u32),
+            target: json::animation::Target {
+                extensions: None,
+                extras: Default::default(),
+                node: node_index(ch.joint),
+                path: Valid(property),
+            },
+            extensions: None,
+            extras: Default::default(),
+        });
+    }
+    b.root.push(json::Animation {
+        extensions: None,
+        extras: Default::default(),
+        channels,
+        name: Some(a.name.clone()),
+        samplers,
+    });
+    Ok(())
+}
+
+fn check_channel(a: &Animation, c: usize, ch: &Channel, joints: usize) -> Result<(), ExportError> {
+    let fail = |message: String| ExportError::Channel {
+        animation: a.name.clone(),
+        channel: c,
+        message,
+    };
+    if ch.joint >= joints {
+        return Err(fail(format!("targets joint {} of {joints}", ch.joint)));
+    }
+    if ch.times.is_empty() {
+        return Err(fail("has no keys".into()));
+    }
+    if !(ch.times.iter().all(|t| t.is_finite()) && ch.times[0] >= 0.0) {
+        return Err(fail("has a negative or non-finite key time".into()));
+    }
+    if ch.times.windows(2).any(|w| w[1] <= w[0]) {
+        return Err(fail("key times do not increase".into()));
+    }
+    let per_key = if ch.interpolation == Interpolation::CubicSpline {
+        3
+    } else {
+        1
+    };
+    if ch.output.len() != ch.times.len() * per_key {
+        return Err(fail(format!(
+            "{} values for {} keys ({per_key} per key)",
+            ch.output.len(),
+            ch.times.len()
+        )));
+    }
+    if !ch.output.is_finite() {
+        return Err(fail("has a non-finite value".into()));
+    }
+    Ok(())
+}
+
+fn node_index(j: usize) -> Index<json::Node> {
+    Index::new(j as u32)
+}
+
+/// A rotation that is unit to f32 rounding is written as stored (bit for bit what the caller
+/// computed); anything further off is normalised, as glTF requires unit rotations.
+fn unit(q: Quat) -> Quat {
+    if (q.length_squared() - 1.0).abs() <= 1e-6 {
+        q
+    } else {
+        q.normalize()
+    }
+}
+
+/// The binary chunk and the JSON root filled side by side.
+struct Builder {
+    root: json::Root,
+    bin: Vec<u8>,
+}
+
+impl Builder {
+    /// Appends `bytes` as a new buffer view, 4-byte aligned.
+    fn view(
+        &mut self,
+        bytes: &[u8],
+        target: Option<json::buffer::Target>,
+    ) -> Index<json::buffer::View> {
+        self.align();
+        let offset = self.bin.len();
+        self.bin.extend_from_slice(bytes);
+        self.root.push(json::buffer::View {
+            buffer: Index::new(0),
+            byte_length: USize64::from(bytes.len()),
+            byte_offset: Some(USize64::from(offset)),
+            byte_stride: None,
+            name: None,
+            target: target.map(Valid),
+            extensions: None,
+            extras: Default::default(),
+        })
+    }
+
+    fn align(&mut self) {
+        while self.bin.len() % 4 != 0 {
+            self.bin.push(0);
+        }
+    }
+
+    fn accessor(
+        &mut self,
+        bytes: &[u8],
+        count: usize,
+        component: json::accessor::ComponentType,
+        kind: json::accessor::Type,
+        target: Option<json::buffer::Target>,
+        bounds: Option<(serde_json::Value, serde_json::Value)>,
+    ) -> Index<json::Accessor> {
+        let view = self.view(bytes, target);
+        let (min, max) = bounds.unzip();
+        self.root.push(json::Accessor {
+            buffer_view: Some(view),
+            byte_offset: None,
+            count: USize64::from(count),
+            component_type: Valid(json::accessor::GenericComponentType(component)),
+            extensions: None,
+            extras: Default::default(),
+            type_: Valid(kind),
+            min,
+            max,
+            name: None,
+            normalized: false,
+            sparse: None,
+        })
+    }
+
+    fn vec3s(&mut self, values: &[Vec3]) -> Index<json::Accessor> {
+        let values: Vec<[f32; 3]> = values.iter().map(|v| v.to_array()).collect();
+        self.f32s(&values, None, false)
+    }
+
+    /// An accessor of `N`-component floats (1 scalar, 3 vec3, 4 vec4, 16 mat4), with
+    /// per-component `min`/`max` when `bounds`.
+    fn f32s<const N: usize>(
+        &mut self,
+        values: &[[f32; N]],
+        target: Option<json::buffer::Target>,
+        bounds: bool,
+    ) -> Index<json::Accessor> {
+        let kind = match N {
+            1 => json::accessor::Type::Scalar,
+            3 => json::accessor::Type::Vec3,
+            4 => json::accessor::Type::Vec4,
+            _ => json::accessor::Type::Mat4,
+        };
+        let bytes: Vec<u8> = values
+            .iter()
+            .flatten()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        let bounds = bounds.then(|| {
+            let mut lo = [f32::INFINITY; N];
+            let mut hi = [f32::NEG_INFINITY; N];
+            for v in values {
+                for c in 0..N {
+                    lo[c] = lo[c].min(v[c]);
+                    hi[c] = hi[c].max(v[c]);
+                }
+            }
+            (json!(lo.to_vec()), json!(hi.to_vec()))
+        });
+        let component = json::accessor::ComponentType::F32;
+        self.accessor(&bytes, values.len(), component, kind, target, bounds)
+    }
+
+    /// The buffer, the JSON and the GLB container.
+    fn finish(mut self) -> Result<Vec<u8>, ExportError> {
+        self.align();
+        self.root.push(json::Buffer {
+            byte_length: USize64::from(self.bin.len()),
+            name: None,
+            uri: None,
+            extensions: None,
+            extras: Default::default(),
+        });
+        let json = self.root.to_vec()?;
+        // GLB lengths are u32 (and the gltf crate's writer truncates rather than refuses).
+        let bytes = 12 + 8 + json.len().next_multiple_of(4) + 8 + self.bin.len();
+        if u32::try_from(bytes).is_err() {
+            return Err(ExportError::TooLarge { bytes });
+        }
+        let glb = Glb {
+            header: Header {
+                magic: *b"glTF",
+                version: 2,
+                // Recomputed by the writer.
+                length: 0,
+            },
+            json: Cow::Owned(json),
+            bin: Some(Cow::Owned(self.bin)),
+        };
+        Ok(glb.to_vec()?)
+    }
+}

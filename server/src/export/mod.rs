@@ -1,0 +1,170 @@
+//! Writing rigs and clips out: binary glTF for render clients and tools, BVH for motion
+//! capture tools.
+//!
+//! - [`glb`]: the one `.glb` writer — skeleton nodes, skinned mesh, skin, animations. It
+//!   writes the built-in avatar (`make-avatar`), the mesh endpoint's file and clip exports.
+//! - [`animation`]: a [`Clip`] as glTF animation channels.
+//! - [`bvh`]: a clip on its rig as BVH text.
+//!
+//! The functions below are what the HTTP routes call: [`mesh_glb`] for
+//! `GET /api/assets/{name}/mesh.glb`, [`clip_glb`] and [`clip_bvh`] for a clip's exports.
+
+pub mod animation;
+pub mod bvh;
+pub mod glb;
+
+use crate::asset::AssetMesh;
+use crate::clip::Clip;
+use crate::rig::Rig;
+use posecast_proto::{Skeleton, SkeletonError};
+
+/// Why an export failed. Exports of a rig's own clips are not expected to fail; these name
+/// the inconsistency when one does.
+#[derive(Debug, thiserror::Error)]
+pub enum ExportError {
+    #[error("clip {clip} has {clip_joints} joint slots; the rig has {rig_joints} joints")]
+    JointCount {
+        clip: String,
+        clip_joints: usize,
+        rig_joints: usize,
+    },
+    #[error("clip {clip} animates nothing: there is no channel to write")]
+    NothingAnimated { clip: String },
+    #[error("animation {animation}, channel {channel}: {message}")]
+    Channel {
+        animation: String,
+        channel: usize,
+        message: String,
+    },
+    #[error("mesh {mesh}, primitive {primitive}: {message}")]
+    Primitive {
+        mesh: String,
+        primitive: usize,
+        message: String,
+    },
+    #[error("frame time {frame_time} s is not a positive number")]
+    FrameTime { frame_time: f64 },
+    #[error("{frames} frames of {channels} channels: more than {max_values} values")]
+    TooManyFrames {
+        frames: usize,
+        channels: usize,
+        max_values: usize,
+    },
+    #[error("the .glb would be {bytes} bytes; the format's lengths stop at 4 GiB")]
+    TooLarge { bytes: usize },
+    #[error("the skeleton: {0}")]
+    Skeleton(#[from] SkeletonError),
+    #[error("serialising the glTF JSON: {0}")]
+    Json(#[from] serde_json::Error),
+    #[error("writing the GLB container: {0}")]
+    Glb(#[from] gltf::Error),
+}
+
+/// The generator name written into exported glTF files.
+const GENERATOR: &str = "posecast";
+
+/// `GET /api/assets/{name}/mesh.glb`: a rig's normalised skinned mesh, without animation —
+/// joints as nodes `0..n` at their rest transforms in the description's order and with its
+/// names, one skin with the inverse bind matrices, every mesh as a primitive of mesh 0
+/// (four influences per vertex: the heaviest, renormalised). See [`glb`] for the layout.
+///
+/// # Errors
+/// Only on inconsistent input ([`ExportError::Primitive`]) or a file over 4 GiB.
+pub fn mesh_glb(skeleton: &Skeleton, meshes: &[AssetMesh]) -> Result<Vec<u8>, ExportError> {
+    write_glb(None, skeleton, meshes, &[])
+}
+
+/// A clip of `rig` as `.glb` (for `GET /api/assets/{name}/clips/{clip}.glb`): the rig's mesh
+/// and skin as [`mesh_glb`] writes them, plus the clip as one animation named after it, its
+/// time shifted so it starts at 0 (see [`animation::animation`] for how channels are keyed).
+///
+/// # Errors
+/// The clip has more joint slots than the rig has joints, or animates nothing
+/// ([`ExportError::JointCount`], [`ExportError::NothingAnimated`]).
+pub fn clip_glb(rig: &Rig, clip: &Clip) -> Result<Vec<u8>, ExportError> {
+    rig_glb(
+        Some(&rig.name),
+        rig.skeleton(),
+        &rig.asset.meshes,
+        std::slice::from_ref(clip),
+    )
+}
+
+/// A clip of `rig` as BVH text (for `GET /api/assets/{name}/clips/{clip}.bvh`): the rig's
+/// rest translations as offsets in centimetres, local rotations as `Zrotation Yrotation
+/// Xrotation` degrees, one frame per clip key when the clip is uniformly keyed, else at
+/// [`bvh::RESAMPLE_RATE`] or a little faster. See [`bvh`] for the conventions.
+///
+/// # Errors
+/// The clip has more joint slots than the rig has joints ([`ExportError::JointCount`]), or
+/// is too long for [`bvh::MAX_VALUES`] ([`ExportError::TooManyFrames`]).
+pub fn clip_bvh(rig: &Rig, clip: &Clip) -> Result<String, ExportError> {
+    bvh::write(rig.skeleton(), clip, None)
+}
+
+/// A skeleton, its meshes and any clips of it as `.glb`; `name` names the skin and the scene.
+///
+/// # Errors
+/// As [`clip_glb`], for each clip.
+pub fn rig_glb(
+    name: Option<&str>,
+    skeleton: &Skeleton,
+    meshes: &[AssetMesh],
+    clips: &[Clip],
+) -> Result<Vec<u8>, ExportError> {
+    let animations = clips
+        .iter()
+        .map(|clip| animation::animation(clip, skeleton.len()))
+        .collect::<Result<Vec<_>, _>>()?;
+    write_glb(name, skeleton, meshes, &animations)
+}
+
+fn write_glb(
+    name: Option<&str>,
+    skeleton: &Skeleton,
+    meshes: &[AssetMesh],
+    animations: &[glb::Animation],
+) -> Result<Vec<u8>, ExportError> {
+    let mesh = (!meshes.is_empty()).then(|| glb::Mesh {
+        name: "mesh".into(),
+        primitives: meshes
+            .iter()
+            .map(|m| glb::Primitive::from_skinned(&m.mesh))
+            .collect(),
+    });
+    glb::write(&glb::Model {
+        generator: GENERATOR,
+        name,
+        skeleton,
+        mesh: mesh.as_ref(),
+        animations,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_exported_mesh_imports_back_identically() {
+        let rig = crate::builtin::rig().unwrap();
+        let bytes = mesh_glb(rig.skeleton(), &rig.asset.meshes).unwrap();
+        let back = crate::import::gltf::from_slice("export.glb", &bytes)
+            .unwrap()
+            .remove(0);
+        assert_eq!(back.skeleton.names(), rig.skeleton().names());
+        assert_eq!(back.skeleton.parents(), rig.skeleton().parents());
+        for (a, b) in back
+            .skeleton
+            .inverse_bind()
+            .iter()
+            .zip(rig.skeleton().inverse_bind())
+        {
+            assert!(a.abs_diff_eq(*b, 1e-6));
+        }
+        let (m0, m1) = (&back.meshes[0].mesh, &rig.asset.meshes[0].mesh);
+        assert_eq!(m0.positions(), m1.positions());
+        assert_eq!(m0.indices(), m1.indices());
+        assert_eq!(m0.vertex_count(), m1.vertex_count());
+    }
+}
