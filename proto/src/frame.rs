@@ -392,11 +392,6 @@ impl FrameDecoder {
         Self::default()
     }
 
-    /// Forgets the keyframes of a scene (on unsubscribe).
-    pub fn forget_scene(&mut self, scene_num: u32) {
-        self.keys.retain(|&(s, _), _| s != scene_num);
-    }
-
     /// Decodes one binary frame. A keyframe's rotations become the reference for later deltas
     /// of the same scene and avatar. On error nothing is changed.
     ///

@@ -4,7 +4,7 @@
 //! - [`skeleton`]: a validated joint tree with rest transforms and inverse bind matrices.
 //! - [`fk`]: forward kinematics `W_j = W_parent(j) · D_j` and skinning matrices `M_j = W_j · B_j⁻¹`.
 //! - [`skinning`]: the CPU linear-blend-skinning reference every GPU path is tested against.
-//! - [`bind`]: seed 001's identities between local, world, bind and user transforms.
+//! - [`bind`]: seed 001's world-space increment of a joint, `D'_j = W_parent(j)⁻¹ · U · W_j`.
 //! - [`dof`]: joint types, degrees of freedom and their limits (seed 002).
 //! - [`quant`]: smallest-three quaternion quantisation for the wire.
 //! - [`msg`]: the websocket protocol's messages (versioned hello, subscribe, errors, …).

@@ -1,7 +1,7 @@
 //! Translation · rotation · scale transforms and the polar decomposition that splits an affine
 //! matrix into them (seed 000: "If `U_i` carries scale, split it by polar decomposition").
 
-use glam::{Affine3A, Mat3, Mat4, Quat, Vec3};
+use glam::{Mat3, Mat4, Quat, Vec3};
 use serde::{Deserialize, Serialize};
 
 /// A local transform `D = T(t) · R · S`, applied to column vectors (scale first).
@@ -136,12 +136,6 @@ impl Transform {
         Mat4::from_scale_rotation_translation(self.scale, self.rotation, self.translation)
     }
 
-    /// The same as [`Transform::to_mat4`], as an affine matrix.
-    #[must_use]
-    pub fn to_affine(&self) -> Affine3A {
-        Affine3A::from_scale_rotation_translation(self.scale, self.rotation, self.translation)
-    }
-
     /// Splits an affine matrix into `T(t) · R · S` by polar decomposition of its linear part.
     ///
     /// Errors when the matrix mirrors, is singular, or shears (a stretch that is not diagonal
@@ -166,10 +160,23 @@ impl Transform {
         })
     }
 
-    /// `self · other` as transforms, exact when neither carries non-uniform scale that
-    /// meets a rotation; otherwise goes through matrices and may fail like `try_from_mat4`.
-    pub fn try_mul(&self, other: &Transform) -> Result<Self, DecomposeError> {
-        Self::try_from_mat4(&(self.to_mat4() * other.to_mat4()))
+    /// `self` at `w = 0`, `other` at `w = 1`: translations and scales interpolated linearly,
+    /// rotations by slerp along the shortest arc (`q ≡ −q`: `other`'s rotation is negated when
+    /// `r_self · r_other < 0`), so the result turns by `w · θ` where `θ ≤ π` is the angle
+    /// between the two rotations. Cross-fades on the server and jitter-buffer playout on the
+    /// client both blend this way.
+    #[must_use]
+    pub fn blend(&self, other: &Transform, w: f32) -> Transform {
+        let target = if self.rotation.dot(other.rotation) < 0.0 {
+            -other.rotation
+        } else {
+            other.rotation
+        };
+        Transform {
+            translation: self.translation.lerp(other.translation, w),
+            rotation: self.rotation.slerp(target, w).normalize(),
+            scale: self.scale.lerp(other.scale, w),
+        }
     }
 
     /// Whether every component is finite.
@@ -274,6 +281,52 @@ mod tests {
             } else {
                 prop_assert!(m.determinant() <= 1e-9 || m.determinant() < 0.0);
             }
+        }
+    }
+
+    /// The angle (radians, in `[0, π]`) of the rotation taking `a` to `b`.
+    fn angle_between(a: Quat, b: Quat) -> f32 {
+        2.0 * a.dot(b).abs().min(1.0).acos()
+    }
+
+    #[test]
+    fn blend_takes_the_shortest_arc() {
+        // +270° about Y is −90° the short way: halfway is −45°, not +135°.
+        let a = Transform::IDENTITY;
+        let b = Transform {
+            translation: Vec3::new(2.0, 0.0, -4.0),
+            rotation: Quat::from_rotation_y(270f32.to_radians()),
+            scale: Vec3::new(1.0, 3.0, 1.0),
+        };
+        let half = a.blend(&b, 0.5);
+        let expected = Quat::from_rotation_y(-45f32.to_radians());
+        assert!(
+            angle_between(half.rotation, expected) < 1e-5,
+            "{:?}",
+            half.rotation
+        );
+        assert!(
+            half.translation
+                .abs_diff_eq(Vec3::new(1.0, 0.0, -2.0), 1e-6)
+        );
+        assert!(half.scale.abs_diff_eq(Vec3::new(1.0, 2.0, 1.0), 1e-6));
+        assert_eq!(a.blend(&b, 0.0), a);
+        assert!(angle_between(a.blend(&b, 1.0).rotation, b.rotation) < 1e-5);
+    }
+
+    proptest! {
+        /// `blend(a, b, w)` lies on the shortest arc: `w · θ` from `a` and `(1 − w) · θ` from `b`.
+        #[test]
+        fn blend_divides_the_shortest_arc(
+            a in quat_strategy(), b in quat_strategy(), w in f32s(0.0..1.0),
+        ) {
+            let theta = angle_between(a, b);
+            let r = Transform::from_translation_rotation(Vec3::ZERO, a)
+                .blend(&Transform::from_translation_rotation(Vec3::ZERO, b), w)
+                .rotation;
+            prop_assert!((r.length() - 1.0).abs() < 1e-5);
+            prop_assert!((angle_between(a, r) - w * theta).abs() < 2e-3, "θ {theta}, w {w}");
+            prop_assert!((angle_between(r, b) - (1.0 - w) * theta).abs() < 2e-3, "θ {theta}, w {w}");
         }
     }
 

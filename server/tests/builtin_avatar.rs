@@ -285,7 +285,7 @@ fn generator_is_deterministic_and_matches_the_committed_file() {
     assert!(first == generate(), "two runs of the generator differ");
     assert!(
         first == AVATAR_GLB,
-        "assets/avatar.glb is stale: run `cargo run -p posecast-server --bin make-avatar` \
+        "assets/avatar.glb is stale: run `cargo run -p posecast-tools --bin make-avatar` \
          and commit the result"
     );
 }

@@ -5,7 +5,6 @@
 //! `J += (|D| − J) / 16` where `D` is the change in transit time between consecutive frames):
 //! `delay = one tick + 3 J`, clamped to `[one tick, 500 ms]`.
 
-use glam::Quat;
 use posecast_proto::Transform;
 use std::collections::VecDeque;
 
@@ -77,9 +76,9 @@ impl JitterBuffer {
         self.frames.back().map(|(t, p)| (*t, p.as_slice()))
     }
 
-    /// The pose at server time `time_us`: interpolated between the two frames around it
-    /// (slerp of rotations, lerp of translations and scales), the oldest frame before the
-    /// buffer, the newest after it (no extrapolation).
+    /// The pose at server time `time_us`: the two frames around it blended
+    /// ([`Transform::blend`]: shortest-arc slerp of rotations, lerp of translations and
+    /// scales), the oldest frame before the buffer, the newest after it (no extrapolation).
     #[must_use]
     pub fn sample(&self, time_us: f64) -> Option<Vec<Transform>> {
         let first = self.frames.front()?;
@@ -93,12 +92,7 @@ impl JitterBuffer {
         let (t1, p1) = &self.frames[i];
         let (t0, p0) = &self.frames[i - 1];
         let w = ((time_us - *t0 as f64) / (*t1 as f64 - *t0 as f64)) as f32;
-        Some(
-            p0.iter()
-                .zip(p1)
-                .map(|(a, b)| interpolate(a, b, w))
-                .collect(),
-        )
+        Some(p0.iter().zip(p1).map(|(a, b)| a.blend(b, w)).collect())
     }
 
     /// The pose to show at client time `now_us`, given the estimated server clock offset
@@ -109,23 +103,10 @@ impl JitterBuffer {
     }
 }
 
-fn interpolate(a: &Transform, b: &Transform, w: f32) -> Transform {
-    let rb: Quat = if a.rotation.dot(b.rotation) < 0.0 {
-        -b.rotation
-    } else {
-        b.rotation
-    };
-    Transform {
-        translation: a.translation.lerp(b.translation, w),
-        rotation: a.rotation.slerp(rb, w).normalize(),
-        scale: a.scale.lerp(b.scale, w),
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use glam::Vec3;
+    use glam::{Quat, Vec3};
 
     fn pose(angle: f32, x: f32) -> Vec<Transform> {
         vec![Transform {

@@ -45,10 +45,10 @@ impl SkinningKernel {
             bind_group_layouts: &[Some(&layout)],
             immediate_size: 0,
         });
-        let module = shader::with_skinning(
+        let module = shader::module(
             device,
             "compute skinning shader",
-            include_str!("compute.wgsl"),
+            &[shader::SKINNING_WGSL, include_str!("compute.wgsl")],
         );
         let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some("compute skinning pipeline"),

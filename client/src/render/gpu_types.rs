@@ -59,7 +59,8 @@ pub struct SkinnedVertex {
 /// One skinning matrix `M_j = W_j · B_j⁻¹`, column-major like glam and WGSL's `mat4x4<f32>`.
 pub type JointMatrix = [[f32; 4]; 4];
 
-/// Per-frame camera and lighting, bound at group 0 of every render pipeline.
+/// Per-frame camera and lighting, bound at group 0 of every render pipeline (`Camera` in
+/// `camera.wgsl`).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 pub struct CameraUniform {

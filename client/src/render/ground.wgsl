@@ -1,17 +1,7 @@
 // The ground: one quad at y = 0 around the scene, with grid lines drawn per pixel (anti-aliased
 // by the screen-space derivative of the grid coordinate) rather than as line primitives, whose
 // rasterisation differs between GPUs far more than triangles' does. Fades into the background
-// towards its edge.
-
-struct Camera {
-    view_proj: mat4x4<f32>,
-    eye: vec4<f32>,
-    light: vec4<f32>,
-    grid: vec4<f32>,
-    background: vec4<f32>,
-}
-
-@group(0) @binding(0) var<uniform> camera: Camera;
+// towards its edge. Built after camera.wgsl (`camera`, group 0).
 
 struct VertexOut {
     @builtin(position) clip: vec4<f32>,

@@ -1,14 +1,5 @@
-// Overlay lines (skeleton bones), drawn over everything.
-
-struct Camera {
-    view_proj: mat4x4<f32>,
-    eye: vec4<f32>,
-    light: vec4<f32>,
-    grid: vec4<f32>,
-    background: vec4<f32>,
-}
-
-@group(0) @binding(0) var<uniform> camera: Camera;
+// Overlay lines (skeleton bones), drawn over everything. Built after camera.wgsl (`camera`,
+// group 0).
 
 struct VertexOut {
     @builtin(position) clip: vec4<f32>,

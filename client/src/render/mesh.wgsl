@@ -1,20 +1,12 @@
 // Avatar meshes: vertex-shader skinning (vs_skinned, appended to skinning.wgsl so it runs the
 // same skin() as the compute kernel), already-skinned vertices (vs_preskinned, for the compute
-// path), and one lit fragment shader. Bindings match `Pipelines` in renderer.rs.
-
-struct Camera {
-    view_proj: mat4x4<f32>,
-    eye: vec4<f32>,
-    light: vec4<f32>,
-    grid: vec4<f32>,
-    background: vec4<f32>,
-}
+// path), and one lit fragment shader. Built after camera.wgsl (`camera`, group 0) and
+// skinning.wgsl. Bindings match `Pipelines` in renderer.rs.
 
 struct Avatar {
     color: vec4<f32>,
 }
 
-@group(0) @binding(0) var<uniform> camera: Camera;
 @group(1) @binding(0) var<storage, read> joint_matrices: array<mat4x4<f32>>;
 @group(1) @binding(1) var<uniform> avatar: Avatar;
 

@@ -6,6 +6,7 @@
 //! - [`gpu_types`]: every struct the GPU reads, the influence count and the per-avatar joint
 //!   limit.
 //! - `skinning.wgsl`: the one skinning function, shared by [`compute`] and the vertex shader.
+//! - `camera.wgsl`: the camera uniform, the prelude of every render pipeline's shader.
 //! - [`compute`]: compute skinning ([`ComputeSkinner`]), the path tested against the CPU
 //!   reference `posecast_proto::skinning::skin_cpu`.
 //! - [`renderer`]: the scene ([`Renderer`]): avatars, ground grid, skeleton overlay, camera.

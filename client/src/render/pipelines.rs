@@ -64,9 +64,22 @@ impl Pipelines {
             bind_group_layouts: &[Some(&camera_layout)],
             immediate_size: 0,
         });
-        let mesh_module = shader::with_skinning(device, "mesh shader", include_str!("mesh.wgsl"));
-        let ground_module = shader::plain(device, "ground shader", include_str!("ground.wgsl"));
-        let lines_module = shader::plain(device, "lines shader", include_str!("lines.wgsl"));
+        let (camera, skinning) = (shader::CAMERA_WGSL, shader::SKINNING_WGSL);
+        let mesh_module = shader::module(
+            device,
+            "mesh shader",
+            &[camera, skinning, include_str!("mesh.wgsl")],
+        );
+        let ground_module = shader::module(
+            device,
+            "ground shader",
+            &[camera, include_str!("ground.wgsl")],
+        );
+        let lines_module = shader::module(
+            device,
+            "lines shader",
+            &[camera, include_str!("lines.wgsl")],
+        );
 
         let target = [Some(wgpu::ColorTargetState {
             format: color_format,

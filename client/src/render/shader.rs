@@ -1,24 +1,19 @@
-//! WGSL sources. Every module that skins is built as `skinning.wgsl` followed by its own
-//! source, so the compute kernel and the vertex shader run the same skinning function.
+//! WGSL sources. A shader module is built from shared preludes followed by its own source:
+//! every render pipeline's module starts with `camera.wgsl` (the camera uniform at group 0), and
+//! every module that skins includes `skinning.wgsl`, so the compute kernel and the vertex shader
+//! run the same skinning function.
+
+/// The camera uniform, `camera` at group 0, binding 0 (`CameraUniform`).
+pub const CAMERA_WGSL: &str = include_str!("camera.wgsl");
 
 /// The shared skinning function, `skin()`.
 pub const SKINNING_WGSL: &str = include_str!("skinning.wgsl");
 
-/// Builds a shader module from the shared skinning source followed by `source`.
+/// Builds a shader module from `parts` (preludes, then the module's own source) in order.
 #[must_use]
-pub fn with_skinning(device: &wgpu::Device, label: &str, source: &str) -> wgpu::ShaderModule {
-    let combined = format!("{SKINNING_WGSL}\n{source}");
+pub fn module(device: &wgpu::Device, label: &str, parts: &[&str]) -> wgpu::ShaderModule {
     device.create_shader_module(wgpu::ShaderModuleDescriptor {
         label: Some(label),
-        source: wgpu::ShaderSource::Wgsl(combined.into()),
-    })
-}
-
-/// Builds a shader module from `source` alone.
-#[must_use]
-pub fn plain(device: &wgpu::Device, label: &str, source: &'static str) -> wgpu::ShaderModule {
-    device.create_shader_module(wgpu::ShaderModuleDescriptor {
-        label: Some(label),
-        source: wgpu::ShaderSource::Wgsl(source.into()),
+        source: wgpu::ShaderSource::Wgsl(parts.join("\n").into()),
     })
 }

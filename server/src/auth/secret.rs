@@ -1,9 +1,10 @@
-//! Token secrets: hidden from `Debug`, compared in constant time.
+//! Token secrets: hidden from `Debug`, compared in constant time (`subtle`).
 
 use std::fmt;
+use subtle::ConstantTimeEq;
 
-/// A token's secret text. `Debug` never shows it.
-#[derive(Clone, PartialEq, Eq)]
+/// A token's secret text. `Debug` never shows it; `==` is [`Secret::matches`].
+#[derive(Clone)]
 pub struct Secret(String);
 
 impl Secret {
@@ -30,24 +31,23 @@ impl Secret {
     /// texts differ.
     #[must_use]
     pub fn matches(&self, presented: &str) -> bool {
-        ct_eq(self.0.as_bytes(), presented.as_bytes())
+        self.0.as_bytes().ct_eq(presented.as_bytes()).into()
     }
 }
+
+/// Through [`Secret::matches`], so that no comparison of secrets can leak where they differ.
+impl PartialEq for Secret {
+    fn eq(&self, other: &Self) -> bool {
+        self.matches(&other.0)
+    }
+}
+
+impl Eq for Secret {}
 
 impl fmt::Debug for Secret {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str("***")
     }
-}
-
-fn ct_eq(a: &[u8], b: &[u8]) -> bool {
-    let mut diff = u8::from(a.len() != b.len());
-    for i in 0..a.len().max(b.len()) {
-        let x = a.get(i).copied().unwrap_or(0);
-        let y = b.get(i).copied().unwrap_or(0);
-        diff |= x ^ y;
-    }
-    std::hint::black_box(diff) == 0
 }
 
 #[cfg(test)]
@@ -67,7 +67,8 @@ mod tests {
             ("", "a"),
             ("a\0", "a"),
         ] {
-            assert_eq!(ct_eq(a.as_bytes(), b.as_bytes()), a == b, "{a:?} vs {b:?}");
+            assert_eq!(Secret::new(a).matches(b), a == b, "{a:?} vs {b:?}");
+            assert_eq!(Secret::new(a) == Secret::new(b), a == b, "{a:?} vs {b:?}");
         }
     }
 

@@ -249,24 +249,9 @@ impl Player {
             fade.from.sample(rest, &mut self.scratch);
             let w = fade.weight(self.clock);
             for (o, f) in out.iter_mut().zip(&self.scratch) {
-                *o = blend(f, o, w);
+                *o = f.blend(o, w);
             }
         }
-    }
-}
-
-/// `a` at `w = 0`, `b` at `w = 1`; rotations along the shortest arc.
-#[must_use]
-pub fn blend(a: &Transform, b: &Transform, w: f32) -> Transform {
-    let rb = if a.rotation.dot(b.rotation) < 0.0 {
-        -b.rotation
-    } else {
-        b.rotation
-    };
-    Transform {
-        translation: a.translation.lerp(b.translation, w),
-        rotation: a.rotation.slerp(rb, w).normalize(),
-        scale: a.scale.lerp(b.scale, w),
     }
 }
 

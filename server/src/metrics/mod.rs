@@ -1,111 +1,223 @@
-//! Server counters and their Prometheus text exposition (`GET /metrics`).
+//! Server counters and their Prometheus text exposition (`GET /metrics`, format 0.0.4), kept
+//! and encoded by `prometheus-client`. Every metric is registered once, in [`Metrics::new`];
+//! only the per-scene subscriber gauges, which depend on who asks, are built per request.
 
-use std::fmt::Write as _;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::Duration;
 
+use prometheus_client::encoding::prometheus_text;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::Histogram;
+use prometheus_client::registry::Registry;
+
+use crate::quota::Quota;
 pub mod net;
 
 use net::NetCounters;
+
+/// The `Content-Type` of [`Metrics::render`]'s text.
+pub const CONTENT_TYPE: &str = prometheus_text::CONTENT_TYPE;
+
+/// Every exposed name is `posecast_` and the registered name (counters also get `_total`).
+const PREFIX: &str = "posecast";
 
 /// Upper bounds (seconds) of the tick duration histogram buckets.
 const TICK_BUCKETS: [f64; 10] = [
     0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1,
 ];
 
-/// Every counter the server keeps. All updates are relaxed atomics: exact totals, no ordering.
-#[derive(Debug, Default)]
+/// A gauge of unsigned values (prometheus-client's default gauge is `i64`).
+pub(crate) type GaugeU64 = Gauge<u64, AtomicU64>;
+
+/// Every counter the server keeps. Counters and gauges are relaxed atomics: exact totals, no
+/// ordering.
+#[derive(Debug)]
 pub struct Metrics {
-    connections_open: AtomicU64,
-    connections_total: AtomicU64,
-    frames_offered: AtomicU64,
-    frame_bytes_offered: AtomicU64,
-    json_poses: AtomicU64,
-    messages_sent: AtomicU64,
-    bytes_sent: AtomicU64,
-    frames_dropped: AtomicU64,
+    /// Every metric but the per-request subscriber gauges; the fields below are handles to the
+    /// same values.
+    registry: Registry,
+    connections_open: GaugeU64,
+    connections_total: Counter,
+    frames_offered: Counter,
+    frame_bytes_offered: Counter,
+    json_poses: Counter,
+    messages_sent: Counter,
+    bytes_sent: Counter,
+    frames_dropped: Counter,
+    ticks_missed: Counter,
+    tick_seconds: Histogram,
+    /// The histogram's count, for [`Self::ticks`] (prometheus-client reads it only in tests).
     ticks: AtomicU64,
-    ticks_missed: AtomicU64,
-    tick_buckets: [AtomicU64; TICK_BUCKETS.len()],
-    tick_seconds_micros: AtomicU64,
-    tick_late_micros_max: AtomicU64,
-    commands: AtomicU64,
-    command_errors: AtomicU64,
-    protocol_errors: AtomicU64,
-    unauthorized: AtomicU64,
-    forbidden: AtomicU64,
-    quota_refused: [AtomicU64; crate::quota::Quota::ALL.len()],
-    rate_limited: AtomicU64,
+    tick_late_micros_max: GaugeU64,
+    commands: Counter,
+    command_errors: Counter,
+    protocol_errors: Counter,
+    unauthorized: Counter,
+    forbidden: Counter,
+    /// By [`Quota::index`].
+    quota_refused: [Counter; Quota::ALL.len()],
+    rate_limited: Counter,
     // --- network bounds (issue 13): connections held and refused, timeouts ---
     /// Connections held and refused, accept failures, timeouts ([`NetCounters`]).
     pub net: NetCounters,
 }
 
+impl Default for Metrics {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
 impl Metrics {
-    /// All zero.
+    /// All zero. (prometheus-client ends every help text with a full stop.)
     #[must_use]
     pub fn new() -> Self {
-        Self::default()
+        let mut registry = Registry::with_prefix(PREFIX);
+        let r = &mut registry;
+        let connections_open = gauge(r, "connections_open", "Open websocket connections");
+        let connections_total = counter(r, "connections", "Websocket connections accepted");
+        let frames_offered = counter(
+            r,
+            "frames_offered",
+            "Pose frames handed to subscriber outboxes",
+        );
+        let frame_bytes_offered = counter(
+            r,
+            "frame_bytes_offered",
+            "Bytes of pose frames handed to outboxes",
+        );
+        let json_poses = counter(
+            r,
+            "json_poses_encoded",
+            "Avatar poses serialised to JSON (only while a JSON subscriber needs them)",
+        );
+        let messages_sent = counter(r, "messages_sent", "Websocket messages written");
+        let bytes_sent = counter(r, "bytes_sent", "Websocket payload bytes written");
+        let frames_dropped = counter(
+            r,
+            "frames_dropped",
+            "Frames replaced by newer ones before a slow client read them (closed connections)",
+        );
+        let ticks_missed = counter(
+            r,
+            "ticks_missed",
+            "Ticks skipped because the tick task ran late",
+        );
+        let tick_late_micros_max = gauge(
+            r,
+            "tick_late_seconds_max_micros",
+            "Largest delay of a tick after its deadline, microseconds",
+        );
+        let commands = counter(r, "commands", "Commands handled");
+        let command_errors = counter(r, "command_errors", "Commands that failed");
+        let protocol_errors = counter(r, "protocol_errors", "Invalid client messages");
+        let rate_limited = counter(
+            r,
+            "rate_limited",
+            "Commands refused by a connection's rate limit",
+        );
+        let [unauthorized, forbidden] = labelled_counters(
+            r,
+            "refused",
+            "Requests and messages refused for their token",
+            "code",
+            ["unauthorized", "forbidden"],
+        );
+        let quota_refused = labelled_counters(
+            r,
+            "quota_refused",
+            "Requests refused by a quota",
+            "quota",
+            Quota::ALL.map(Quota::name),
+        );
+        let tick_seconds = Histogram::new(TICK_BUCKETS);
+        r.register(
+            "tick_seconds",
+            "Time to run one scene tick",
+            tick_seconds.clone(),
+        );
+        let net = NetCounters::new(r);
+        Self {
+            registry,
+            connections_open,
+            connections_total,
+            frames_offered,
+            frame_bytes_offered,
+            json_poses,
+            messages_sent,
+            bytes_sent,
+            frames_dropped,
+            ticks_missed,
+            tick_seconds,
+            ticks: AtomicU64::new(0),
+            tick_late_micros_max,
+            commands,
+            command_errors,
+            protocol_errors,
+            unauthorized,
+            forbidden,
+            quota_refused,
+            rate_limited,
+            net,
+        }
     }
 
     /// A websocket connection opened.
     pub fn connection_opened(&self) {
-        self.connections_open.fetch_add(1, Relaxed);
-        self.connections_total.fetch_add(1, Relaxed);
+        self.connections_open.inc();
+        self.connections_total.inc();
     }
 
     /// A websocket connection closed; `dropped` frames were replaced before it read them.
     pub fn connection_closed(&self, dropped: u64) {
-        self.connections_open.fetch_sub(1, Relaxed);
-        self.frames_dropped.fetch_add(dropped, Relaxed);
+        self.connections_open.dec();
+        self.frames_dropped.inc_by(dropped);
     }
 
     /// A tick offered `frames` frames of `bytes` bytes in all to subscribers.
     pub fn frames_offered(&self, frames: u64, bytes: u64) {
-        self.frames_offered.fetch_add(frames, Relaxed);
-        self.frame_bytes_offered.fetch_add(bytes, Relaxed);
+        self.frames_offered.inc_by(frames);
+        self.frame_bytes_offered.inc_by(bytes);
     }
 
     /// A tick (or a JSON late joiner) serialised `poses` avatar poses to JSON.
     pub fn json_encoded(&self, poses: u64) {
-        self.json_poses.fetch_add(poses, Relaxed);
+        self.json_poses.inc_by(poses);
     }
 
     /// Avatar poses serialised to JSON so far.
     #[must_use]
     pub fn json_poses_encoded(&self) -> u64 {
-        self.json_poses.load(Relaxed)
+        self.json_poses.get()
     }
 
     /// A writer sent `messages` websocket messages of `bytes` bytes.
     pub fn sent(&self, messages: u64, bytes: u64) {
-        self.messages_sent.fetch_add(messages, Relaxed);
-        self.bytes_sent.fetch_add(bytes, Relaxed);
+        self.messages_sent.inc_by(messages);
+        self.bytes_sent.inc_by(bytes);
     }
 
     /// `n` ticks were skipped because the tick task ran late.
     pub fn ticks_missed(&self, n: u64) {
-        self.ticks_missed.fetch_add(n, Relaxed);
+        self.ticks_missed.inc_by(n);
     }
 
     /// A tick took `took` and started `late` after its deadline.
     pub fn tick_done(&self, took: Duration, late: Duration) {
         self.ticks.fetch_add(1, Relaxed);
-        let secs = took.as_secs_f64();
-        if let Some(i) = TICK_BUCKETS.iter().position(|&b| secs <= b) {
-            self.tick_buckets[i].fetch_add(1, Relaxed);
-        }
-        self.tick_seconds_micros
-            .fetch_add(took.as_micros() as u64, Relaxed);
+        self.tick_seconds.observe(took.as_secs_f64());
         self.tick_late_micros_max
+            .inner()
             .fetch_max(late.as_micros() as u64, Relaxed);
     }
 
     /// A command was handled; `ok` says whether it succeeded.
     pub fn command(&self, ok: bool) {
-        self.commands.fetch_add(1, Relaxed);
+        self.commands.inc();
         if !ok {
-            self.command_errors.fetch_add(1, Relaxed);
+            self.command_errors.inc();
         }
     }
 
@@ -113,22 +225,24 @@ impl Metrics {
     /// the right) or unauthorized (missing or unknown token).
     pub fn refused(&self, forbidden: bool) {
         if forbidden {
-            self.forbidden.fetch_add(1, Relaxed);
+            self.forbidden.inc();
         } else {
-            self.unauthorized.fetch_add(1, Relaxed);
+            self.unauthorized.inc();
         }
     }
 
     /// A request was refused by a quota.
-    pub fn quota_refused(&self, quota: crate::quota::Quota) {
-        self.quota_refused[quota.index()].fetch_add(1, Relaxed);
+    pub fn quota_refused(&self, quota: Quota) {
+        if let Some(counter) = self.quota_refused.get(quota.index()) {
+            counter.inc();
+        }
     }
 
-    /// Counts a refusal by `quota` and returns its typed error ([`crate::quota::Quota::exceeded`]).
+    /// Counts a refusal by `quota` and returns its typed error ([`Quota::exceeded`]).
     #[must_use]
     pub fn refuse_quota(
         &self,
-        quota: crate::quota::Quota,
+        quota: Quota,
         what: impl std::fmt::Display,
         limit: impl std::fmt::Display,
     ) -> crate::error::Error {
@@ -138,12 +252,12 @@ impl Metrics {
 
     /// A command was refused by a connection's rate limit.
     pub fn rate_limited(&self) {
-        self.rate_limited.fetch_add(1, Relaxed);
+        self.rate_limited.inc();
     }
 
     /// A client sent something invalid.
     pub fn protocol_error(&self) {
-        self.protocol_errors.fetch_add(1, Relaxed);
+        self.protocol_errors.inc();
     }
 
     /// Ticks run so far.
@@ -155,170 +269,198 @@ impl Metrics {
     /// Ticks skipped so far.
     #[must_use]
     pub fn missed(&self) -> u64 {
-        self.ticks_missed.load(Relaxed)
+        self.ticks_missed.get()
     }
 
-    /// The Prometheus text format (version 0.0.4). `subscribers` is per scene (only the scenes
-    /// the caller may see by name), `total_subscribers` over every scene.
-    #[must_use]
-    pub fn render(&self, subscribers: &[(String, usize)], total_subscribers: usize) -> String {
-        let mut out = String::new();
-        let mut counter = |name: &str, help: &str, kind: &str, v: u64| {
-            let _ = writeln!(
-                out,
-                "# HELP posecast_{name} {help}\n# TYPE posecast_{name} {kind}\nposecast_{name} {v}"
-            );
-        };
-        counter(
-            "connections_open",
-            "Open websocket connections.",
-            "gauge",
-            self.connections_open.load(Relaxed),
-        );
-        counter(
-            "connections_total",
-            "Websocket connections accepted.",
-            "counter",
-            self.connections_total.load(Relaxed),
-        );
-        counter(
-            "frames_offered_total",
-            "Pose frames handed to subscriber outboxes.",
-            "counter",
-            self.frames_offered.load(Relaxed),
-        );
-        counter(
-            "frame_bytes_offered_total",
-            "Bytes of pose frames handed to outboxes.",
-            "counter",
-            self.frame_bytes_offered.load(Relaxed),
-        );
-        counter(
-            "json_poses_encoded_total",
-            "Avatar poses serialised to JSON (only while a JSON subscriber needs them).",
-            "counter",
-            self.json_poses.load(Relaxed),
-        );
-        counter(
-            "messages_sent_total",
-            "Websocket messages written.",
-            "counter",
-            self.messages_sent.load(Relaxed),
-        );
-        counter(
-            "bytes_sent_total",
-            "Websocket payload bytes written.",
-            "counter",
-            self.bytes_sent.load(Relaxed),
-        );
-        counter(
-            "frames_dropped_total",
-            "Frames replaced by newer ones before a slow client read them (closed connections).",
-            "counter",
-            self.frames_dropped.load(Relaxed),
-        );
-        counter(
-            "ticks_missed_total",
-            "Ticks skipped because the tick task ran late.",
-            "counter",
-            self.ticks_missed.load(Relaxed),
-        );
-        counter(
-            "tick_late_seconds_max_micros",
-            "Largest delay of a tick after its deadline, microseconds.",
-            "gauge",
-            self.tick_late_micros_max.load(Relaxed),
-        );
-        counter(
-            "commands_total",
-            "Commands handled.",
-            "counter",
-            self.commands.load(Relaxed),
-        );
-        counter(
-            "command_errors_total",
-            "Commands that failed.",
-            "counter",
-            self.command_errors.load(Relaxed),
-        );
-        counter(
-            "protocol_errors_total",
-            "Invalid client messages.",
-            "counter",
-            self.protocol_errors.load(Relaxed),
-        );
-        counter(
-            "rate_limited_total",
-            "Commands refused by a connection's rate limit.",
-            "counter",
-            self.rate_limited.load(Relaxed),
-        );
-        let _ = writeln!(
-            out,
-            "# HELP posecast_refused_total Requests and messages refused for their token.\n\
-             # TYPE posecast_refused_total counter\n\
-             posecast_refused_total{{code=\"unauthorized\"}} {}\n\
-             posecast_refused_total{{code=\"forbidden\"}} {}",
-            self.unauthorized.load(Relaxed),
-            self.forbidden.load(Relaxed)
-        );
-        let _ = writeln!(
-            out,
-            "# HELP posecast_quota_refused_total Requests refused by a quota.\n\
-             # TYPE posecast_quota_refused_total counter"
-        );
-        for q in crate::quota::Quota::ALL {
-            let _ = writeln!(
-                out,
-                "posecast_quota_refused_total{{quota=\"{}\"}} {}",
-                q.name(),
-                self.quota_refused[q.index()].load(Relaxed)
-            );
-        }
-        let _ = writeln!(
-            out,
-            "# HELP posecast_subscribers_total_open Subscriptions open, over every scene.\n\
-             # TYPE posecast_subscribers_total_open gauge\n\
-             posecast_subscribers_total_open {total_subscribers}"
-        );
-        let _ = writeln!(
-            out,
-            "# HELP posecast_subscribers Subscribers per scene.\n# TYPE posecast_subscribers gauge"
-        );
+    /// The Prometheus text format (version 0.0.4, [`CONTENT_TYPE`]). `subscribers` is per scene
+    /// (only the scenes the caller may see by name), `total_subscribers` over every scene.
+    ///
+    /// # Errors
+    /// Only if a metric fails to encode, which writing to a `String` does not.
+    pub fn render(
+        &self,
+        subscribers: &[(String, usize)],
+        total_subscribers: usize,
+    ) -> Result<String, std::fmt::Error> {
+        let mut per_request = Registry::with_prefix(PREFIX);
+        gauge(
+            &mut per_request,
+            "subscribers_total_open",
+            "Subscriptions open, over every scene",
+        )
+        .set(total_subscribers as u64);
+        let per_scene = Family::<[(&'static str, String); 1], GaugeU64>::default();
         for (scene, n) in subscribers {
-            let _ = writeln!(
-                out,
-                "posecast_subscribers{{scene=\"{}\"}} {n}",
-                escape_label(scene)
-            );
+            per_scene
+                .get_or_create(&[("scene", scene.clone())])
+                .set(*n as u64);
         }
-        let _ = writeln!(
-            out,
-            "# HELP posecast_tick_seconds Time to run one scene tick.\n# TYPE posecast_tick_seconds histogram"
-        );
-        let mut cumulative = 0;
-        for (b, c) in TICK_BUCKETS.iter().zip(&self.tick_buckets) {
-            cumulative += c.load(Relaxed);
-            let _ = writeln!(
-                out,
-                "posecast_tick_seconds_bucket{{le=\"{b}\"}} {cumulative}"
-            );
-        }
-        let count = self.ticks.load(Relaxed);
-        let _ = writeln!(out, "posecast_tick_seconds_bucket{{le=\"+Inf\"}} {count}");
-        let _ = writeln!(
-            out,
-            "posecast_tick_seconds_sum {}",
-            self.tick_seconds_micros.load(Relaxed) as f64 / 1e6
-        );
-        let _ = writeln!(out, "posecast_tick_seconds_count {count}");
-        self.net.render(&mut out);
-        out
+        per_request.register("subscribers", "Subscribers per scene", per_scene);
+        let mut out = String::new();
+        prometheus_text::encode(&mut out, &self.registry)?;
+        prometheus_text::encode(&mut out, &per_request)?;
+        Ok(out)
     }
 }
 
-fn escape_label(s: &str) -> String {
-    s.replace('\\', "\\\\")
-        .replace('"', "\\\"")
-        .replace('\n', "\\n")
+/// Registers and returns a counter, exposed as `posecast_{name}_total`.
+pub(crate) fn counter(registry: &mut Registry, name: &str, help: &str) -> Counter {
+    let counter = Counter::default();
+    registry.register(name, help, counter.clone());
+    counter
+}
+
+/// Registers and returns a gauge, exposed as `posecast_{name}`.
+pub(crate) fn gauge(registry: &mut Registry, name: &str, help: &str) -> GaugeU64 {
+    let gauge = GaugeU64::default();
+    registry.register(name, help, gauge.clone());
+    gauge
+}
+
+/// Registers `name` as a family with one counter per value of label `key`, each created here
+/// so that every value is exposed from zero, and returns the counters in the order of `values`.
+pub(crate) fn labelled_counters<const N: usize>(
+    registry: &mut Registry,
+    name: &str,
+    help: &str,
+    key: &'static str,
+    values: [&'static str; N],
+) -> [Counter; N] {
+    let family = Family::<[(&'static str, &'static str); 1], Counter>::default();
+    let counters = values.map(|value| family.get_or_create(&[(key, value)]).clone());
+    registry.register(name, help, family);
+    counters
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::BTreeSet;
+
+    /// The sample lines of a fresh server, as the hand-written exposition this encoder replaced
+    /// printed them (names, labels and zero values; the histogram's sum was printed as `0`).
+    const BEFORE: &str = r#"posecast_connections_open 0
+posecast_connections_total 0
+posecast_frames_offered_total 0
+posecast_frame_bytes_offered_total 0
+posecast_json_poses_encoded_total 0
+posecast_messages_sent_total 0
+posecast_bytes_sent_total 0
+posecast_frames_dropped_total 0
+posecast_ticks_missed_total 0
+posecast_tick_late_seconds_max_micros 0
+posecast_commands_total 0
+posecast_command_errors_total 0
+posecast_protocol_errors_total 0
+posecast_rate_limited_total 0
+posecast_refused_total{code="unauthorized"} 0
+posecast_refused_total{code="forbidden"} 0
+posecast_quota_refused_total{quota="scenes"} 0
+posecast_quota_refused_total{quota="avatars_per_scene"} 0
+posecast_quota_refused_total{quota="joints"} 0
+posecast_quota_refused_total{quota="limited_joints"} 0
+posecast_quota_refused_total{quota="clip_joint_seconds"} 0
+posecast_quota_refused_total{quota="asset_bytes"} 0
+posecast_quota_refused_total{quota="upload_total_bytes"} 0
+posecast_quota_refused_total{quota="retarget_bytes"} 0
+posecast_subscribers_total_open 0
+posecast_subscribers{scene="default"} 0
+posecast_tick_seconds_bucket{le="0.0001"} 0
+posecast_tick_seconds_bucket{le="0.00025"} 0
+posecast_tick_seconds_bucket{le="0.0005"} 0
+posecast_tick_seconds_bucket{le="0.001"} 0
+posecast_tick_seconds_bucket{le="0.0025"} 0
+posecast_tick_seconds_bucket{le="0.005"} 0
+posecast_tick_seconds_bucket{le="0.01"} 0
+posecast_tick_seconds_bucket{le="0.025"} 0
+posecast_tick_seconds_bucket{le="0.05"} 0
+posecast_tick_seconds_bucket{le="0.1"} 0
+posecast_tick_seconds_bucket{le="+Inf"} 0
+posecast_tick_seconds_sum 0
+posecast_tick_seconds_count 0
+posecast_tcp_connections_open 0
+posecast_tcp_connections_accepted_total 0
+posecast_connections_refused_total{cap="global"} 0
+posecast_connections_refused_total{cap="per_address"} 0
+posecast_connections_unanswered_total 0
+posecast_accept_errors_total 0
+posecast_timeouts_total{kind="hello"} 0
+posecast_timeouts_total{kind="header"} 0
+posecast_timeouts_total{kind="body"} 0
+posecast_timeouts_total{kind="idle"} 0"#;
+
+    /// Sample lines with their values parsed, so `0` and `0.0` compare equal.
+    fn samples(text: &str) -> BTreeSet<(String, u64)> {
+        text.lines()
+            .filter(|l| !l.starts_with('#') && !l.is_empty())
+            .map(|l| {
+                let (name, value) = l.rsplit_once(' ').unwrap();
+                let value: f64 = value.parse().unwrap();
+                (name.to_owned(), value.to_bits())
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_fresh_server_exposes_the_same_samples_as_before() {
+        let text = Metrics::new().render(&[("default".into(), 0)], 0).unwrap();
+        assert_eq!(samples(&text), samples(BEFORE), "{text}");
+    }
+
+    #[test]
+    fn every_family_has_help_and_type_under_its_sample_name() {
+        let text = Metrics::new().render(&[("default".into(), 0)], 0).unwrap();
+        for (name, kind) in [
+            ("posecast_connections_total", "counter"),
+            ("posecast_connections_open", "gauge"),
+            ("posecast_refused_total", "counter"),
+            ("posecast_tick_seconds", "histogram"),
+            ("posecast_timeouts_total", "counter"),
+            ("posecast_subscribers", "gauge"),
+        ] {
+            assert!(
+                text.contains(&format!("# TYPE {name} {kind}\n")),
+                "{name}: {text}"
+            );
+            assert!(text.contains(&format!("# HELP {name} ")), "{name}: {text}");
+        }
+        assert!(text.contains("# HELP posecast_commands_total Commands handled.\n"));
+    }
+
+    #[test]
+    fn counts_land_in_their_samples() {
+        let m = Metrics::new();
+        m.connection_opened();
+        m.connection_opened();
+        m.connection_closed(3);
+        m.refused(true);
+        m.quota_refused(Quota::Joints);
+        m.net.timed_out(net::Timeout::Idle);
+        // 0.3 ms: above the 0.25 ms bucket, inside the 0.5 ms one; 0.2 s: only in +Inf.
+        m.tick_done(Duration::from_micros(300), Duration::from_micros(40));
+        m.tick_done(Duration::from_millis(200), Duration::from_micros(7));
+        let text = m.render(&[("a\"b\\c\nd".into(), 2)], 5).unwrap();
+        for line in [
+            "posecast_connections_open 1",
+            "posecast_connections_total 2",
+            "posecast_frames_dropped_total 3",
+            "posecast_refused_total{code=\"forbidden\"} 1",
+            "posecast_refused_total{code=\"unauthorized\"} 0",
+            "posecast_quota_refused_total{quota=\"joints\"} 1",
+            "posecast_timeouts_total{kind=\"idle\"} 1",
+            "posecast_tick_seconds_bucket{le=\"0.00025\"} 0",
+            "posecast_tick_seconds_bucket{le=\"0.0005\"} 1",
+            "posecast_tick_seconds_bucket{le=\"0.1\"} 1",
+            "posecast_tick_seconds_bucket{le=\"+Inf\"} 2",
+            "posecast_tick_seconds_sum 0.2003",
+            "posecast_tick_seconds_count 2",
+            "posecast_tick_late_seconds_max_micros 40",
+            "posecast_subscribers_total_open 5",
+            // The label value escaped as the text format requires: \" \\ \n.
+            "posecast_subscribers{scene=\"a\\\"b\\\\c\\nd\"} 2",
+        ] {
+            assert!(text.lines().any(|l| l == line), "no {line:?} in\n{text}");
+        }
+        assert_eq!(m.ticks(), 2);
+    }
 }

@@ -1,9 +1,10 @@
 //! Counters of the network bounds (`limits`): connections held and refused, accept
-//! failures, timeouts. Kept apart from the other counters (`Metrics::net`) and rendered after
-//! them in `/metrics`.
+//! failures, timeouts. Kept apart from the other counters (`Metrics::net`) and registered after
+//! them for `/metrics`.
 
-use std::fmt::Write as _;
-use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use crate::metrics::{GaugeU64, counter, gauge, labelled_counters};
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::registry::Registry;
 
 /// Which bound closed a connection.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -32,107 +33,113 @@ impl Timeout {
 }
 
 /// The network counters. Relaxed atomics: exact totals, no ordering.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub struct NetCounters {
-    open: AtomicU64,
-    accepted: AtomicU64,
-    refused_global: AtomicU64,
-    refused_per_address: AtomicU64,
-    unanswered: AtomicU64,
-    accept_errors: AtomicU64,
-    timeouts: [AtomicU64; Timeout::ALL.len()],
+    open: GaugeU64,
+    accepted: Counter,
+    refused_global: Counter,
+    refused_per_address: Counter,
+    unanswered: Counter,
+    accept_errors: Counter,
+    /// In the order of [`Timeout::ALL`].
+    timeouts: [Counter; Timeout::ALL.len()],
 }
 
 impl NetCounters {
+    /// All zero, registered in `registry`.
+    pub(crate) fn new(registry: &mut Registry) -> Self {
+        let r = registry;
+        let open = gauge(
+            r,
+            "tcp_connections_open",
+            "TCP connections held (HTTP and websocket)",
+        );
+        let accepted = counter(r, "tcp_connections_accepted", "TCP connections admitted");
+        let [refused_global, refused_per_address] = labelled_counters(
+            r,
+            "connections_refused",
+            "Connections refused for a full cap (503 or close 1013)",
+            "cap",
+            [Refusal::Global.label(), Refusal::PerAddress.label()],
+        );
+        let unanswered = counter(
+            r,
+            "connections_unanswered",
+            "Refused connections closed without an answer (too many refusals at once)",
+        );
+        let accept_errors = counter(
+            r,
+            "accept_errors",
+            "Failed accepts (e.g. out of descriptors)",
+        );
+        let timeouts = labelled_counters(
+            r,
+            "timeouts",
+            "Connections closed (bodies refused) by a network timeout",
+            "kind",
+            Timeout::ALL.map(Timeout::label),
+        );
+        Self {
+            open,
+            accepted,
+            refused_global,
+            refused_per_address,
+            unanswered,
+            accept_errors,
+            timeouts,
+        }
+    }
+
     /// A connection was admitted (it holds a slot until [`Self::released`]).
     pub fn admitted(&self) {
-        self.open.fetch_add(1, Relaxed);
-        self.accepted.fetch_add(1, Relaxed);
+        self.open.inc();
+        self.accepted.inc();
     }
 
     /// An admitted connection closed.
     pub fn released(&self) {
-        self.open.fetch_sub(1, Relaxed);
+        self.open.dec();
     }
 
     /// A connection was refused for a full cap.
     pub fn refused(&self, why: Refusal) {
-        match why {
-            Refusal::Global => &self.refused_global,
-            Refusal::PerAddress => &self.refused_per_address,
-        }
-        .fetch_add(1, Relaxed);
+        self.refusals(why).inc();
     }
 
     /// A refused connection was closed without an answer (too many refusals under way).
     pub fn unanswered(&self) {
-        self.unanswered.fetch_add(1, Relaxed);
+        self.unanswered.inc();
     }
 
     /// `accept` failed (e.g. out of descriptors).
     pub fn accept_error(&self) {
-        self.accept_errors.fetch_add(1, Relaxed);
+        self.accept_errors.inc();
     }
 
     /// A bound closed a connection (or refused a body).
     pub fn timed_out(&self, which: Timeout) {
-        if let Some(i) = Timeout::ALL.iter().position(|&t| t == which) {
-            self.timeouts[i].fetch_add(1, Relaxed);
+        let i = Timeout::ALL.iter().position(|&t| t == which);
+        if let Some(counter) = i.and_then(|i| self.timeouts.get(i)) {
+            counter.inc();
         }
     }
 
     /// Connections held now.
     #[must_use]
     pub fn open(&self) -> u64 {
-        self.open.load(Relaxed)
+        self.open.get()
     }
 
     /// Connections refused so far, for `why`.
     #[must_use]
     pub fn refused_total(&self, why: Refusal) -> u64 {
+        self.refusals(why).get()
+    }
+
+    fn refusals(&self, why: Refusal) -> &Counter {
         match why {
             Refusal::Global => &self.refused_global,
             Refusal::PerAddress => &self.refused_per_address,
-        }
-        .load(Relaxed)
-    }
-
-    /// Appends the Prometheus text of these counters.
-    pub fn render(&self, out: &mut String) {
-        let _ = writeln!(
-            out,
-            "# HELP posecast_tcp_connections_open TCP connections held (HTTP and websocket).\n\
-             # TYPE posecast_tcp_connections_open gauge\n\
-             posecast_tcp_connections_open {}\n\
-             # HELP posecast_tcp_connections_accepted_total TCP connections admitted.\n\
-             # TYPE posecast_tcp_connections_accepted_total counter\n\
-             posecast_tcp_connections_accepted_total {}\n\
-             # HELP posecast_connections_refused_total Connections refused for a full cap (503 or close 1013).\n\
-             # TYPE posecast_connections_refused_total counter\n\
-             posecast_connections_refused_total{{cap=\"global\"}} {}\n\
-             posecast_connections_refused_total{{cap=\"per_address\"}} {}\n\
-             # HELP posecast_connections_unanswered_total Refused connections closed without an answer (too many refusals at once).\n\
-             # TYPE posecast_connections_unanswered_total counter\n\
-             posecast_connections_unanswered_total {}\n\
-             # HELP posecast_accept_errors_total Failed accepts (e.g. out of descriptors).\n\
-             # TYPE posecast_accept_errors_total counter\n\
-             posecast_accept_errors_total {}\n\
-             # HELP posecast_timeouts_total Connections closed (bodies refused) by a network timeout.\n\
-             # TYPE posecast_timeouts_total counter",
-            self.open.load(Relaxed),
-            self.accepted.load(Relaxed),
-            self.refused_global.load(Relaxed),
-            self.refused_per_address.load(Relaxed),
-            self.unanswered.load(Relaxed),
-            self.accept_errors.load(Relaxed),
-        );
-        for (t, n) in Timeout::ALL.iter().zip(&self.timeouts) {
-            let _ = writeln!(
-                out,
-                "posecast_timeouts_total{{kind=\"{}\"}} {}",
-                t.label(),
-                n.load(Relaxed)
-            );
         }
     }
 }

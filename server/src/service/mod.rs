@@ -199,8 +199,11 @@ async fn metrics(
             .map(|s| (s.id.0.clone(), s.subscriber_count()))
             .collect(),
     };
-    Ok((
-        [(header::CONTENT_TYPE, "text/plain; version=0.0.4")],
-        state.metrics.render(&subscribers, total),
-    ))
+    let text = state.metrics.render(&subscribers, total).map_err(|e| {
+        AppError(ProtocolError::new(
+            ErrorCode::Internal,
+            format!("encoding metrics: {e}"),
+        ))
+    })?;
+    Ok(([(header::CONTENT_TYPE, crate::metrics::CONTENT_TYPE)], text))
 }

@@ -1,4 +1,4 @@
-//! Writes the built-in avatar: `cargo run -p posecast-server --bin make-avatar [PATH]`
+//! Writes the built-in avatar: `cargo run -p posecast-tools --bin make-avatar [PATH]`
 //! (default `assets/avatar.glb` at the repository root).
 
 use anyhow::Context;
@@ -7,8 +7,8 @@ use std::path::{Path, PathBuf};
 fn main() -> anyhow::Result<()> {
     let path = std::env::args_os().nth(1).map_or_else(
         || {
-            let server = Path::new(env!("CARGO_MANIFEST_DIR"));
-            server.parent().unwrap_or(server).join("assets/avatar.glb")
+            let tools = Path::new(env!("CARGO_MANIFEST_DIR"));
+            tools.parent().unwrap_or(tools).join("assets/avatar.glb")
         },
         PathBuf::from,
     );

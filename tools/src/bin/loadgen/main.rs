@@ -32,7 +32,7 @@ use std::time::{Duration, Instant};
 
 /// Fan-out load generator for posecast (loopback only, bounded run).
 #[derive(Debug, Parser)]
-#[command(version, about)]
+#[command(version)]
 pub struct Args {
     /// Websocket URL of a running server.
     #[arg(
