@@ -196,6 +196,43 @@ pub enum Command {
         /// The avatar.
         avatar: AvatarId,
     },
+
+    // --- Recording (issue 16) ---
+    /// Start recording what the avatar streams — whatever drives it: clips, overrides, a live
+    /// driver — into a new clip `clip` on its rig, taken at every tick until `stop_recording`
+    /// (or `max_seconds`, at most the server's limit, after which ticks are dropped).
+    Record {
+        /// The avatar.
+        avatar: AvatarId,
+        /// The new clip's name (an id: 1–64 letters, digits, `-`, `_`, `.`), not yet a clip of
+        /// the avatar's rig.
+        clip: String,
+        /// Longest recording, seconds of scene time (default and most: the server's limit).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        max_seconds: Option<f32>,
+    },
+    /// Stop the avatar's recording: the clip joins its rig at once (playable by every avatar of
+    /// that rig) and, with a data folder, is stored before the answer. Result:
+    /// [`RecordingInfo`].
+    StopRecording {
+        /// The avatar.
+        avatar: AvatarId,
+    },
+}
+
+/// The answer to `stop_recording`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RecordingInfo {
+    /// The rig the clip was added to.
+    pub asset: String,
+    /// The clip's name.
+    pub clip: String,
+    /// Its length, seconds.
+    pub duration: f32,
+    /// Ticks recorded.
+    pub frames: usize,
+    /// Ticks past the recording's limit, not kept.
+    pub dropped: u64,
 }
 
 /// What a clip's root translation does to the avatar (`play`'s `root_motion`).
@@ -273,6 +310,7 @@ impl Command {
             | Self::Release { avatar, .. }
             | Self::PlaceAvatar { avatar, .. } => Some(avatar),
             Self::Drive { avatar, .. } | Self::ReleaseDrive { avatar } => Some(avatar),
+            Self::Record { avatar, .. } | Self::StopRecording { avatar } => Some(avatar),
             Self::AddAvatar { avatar, .. } => avatar.as_ref(),
             _ => None,
         }
@@ -382,6 +420,13 @@ pub struct AvatarState {
     /// The current clip's root motion, if a clip plays.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub root_motion: Option<RootMotion>,
+    // --- live driving and recording (issue 16) ---
+    /// Whether a live driver sets its pose (a held pose counts: `drive … on_release hold`).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub driven: bool,
+    /// The clip being recorded, if any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub recording: Option<String>,
 }
 
 #[cfg(test)]
@@ -425,6 +470,8 @@ pub enum CommandResult {
     Joint(Box<JointInfo>),
     /// `drive`.
     Drive(Box<DriveInfo>),
+    /// `stop_recording`.
+    Recorded(Box<RecordingInfo>),
     /// `create_scene`.
     SceneCreated {
         /// The new scene.

@@ -178,3 +178,114 @@ pub fn testdata(relative: &str) -> std::path::PathBuf {
         .join("../../shared/testdata")
         .join(relative)
 }
+
+/// One file's report from the Khronos glTF validator ([`validate_gltf`]).
+#[derive(Debug)]
+pub struct GltfReport {
+    /// Errors: a file with any is not valid glTF.
+    pub errors: u64,
+    /// Warnings.
+    pub warnings: u64,
+    /// Informational messages.
+    pub infos: u64,
+    /// Hints.
+    pub hints: u64,
+    /// The messages (`code`, `severity`, `pointer`, `message`).
+    pub messages: Vec<serde_json::Value>,
+}
+
+/// Runs the Khronos glTF validator (npm `gltf-validator` through the repository's
+/// `scripts/validate-gltf.mjs`; `scripts/test` installs it under `target/npm`) on `files`.
+/// `None`, after [`skip`] (a failure under `CI=true`), when node or the validator is missing.
+///
+/// # Panics
+/// When the script's output is not one JSON report per file.
+#[must_use]
+pub fn validate_gltf(files: &[std::path::PathBuf]) -> Option<Vec<GltfReport>> {
+    let script =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/validate-gltf.mjs");
+    let output = match std::process::Command::new("node")
+        .arg(&script)
+        .args(files)
+        .output()
+    {
+        Ok(o) => o,
+        Err(e) => {
+            skip(&format!("node is not installed ({e}): no glTF validation"));
+            return None;
+        }
+    };
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    if output.status.code() == Some(2) {
+        skip(&format!(
+            "the glTF validator did not run (scripts/test installs it): {stderr}"
+        ));
+        return None;
+    }
+    let count = |v: &serde_json::Value, k: &str| {
+        v[k].as_u64()
+            .unwrap_or_else(|| panic!("validator report without {k}: {v}"))
+    };
+    let reports: Vec<GltfReport> = String::from_utf8_lossy(&output.stdout)
+        .lines()
+        .map(|line| {
+            let v: serde_json::Value = serde_json::from_str(line)
+                .unwrap_or_else(|e| panic!("validator output {line:?}: {e}; stderr {stderr}"));
+            GltfReport {
+                errors: count(&v, "errors"),
+                warnings: count(&v, "warnings"),
+                infos: count(&v, "infos"),
+                hints: count(&v, "hints"),
+                messages: v["messages"].as_array().cloned().unwrap_or_default(),
+            }
+        })
+        .collect();
+    assert_eq!(reports.len(), files.len(), "stderr: {stderr}");
+    Some(reports)
+}
+
+/// Writes each `(label, bytes)` to a temporary `.glb`, validates them all in one run
+/// ([`validate_gltf`]), prints every report and asserts that none has an error.
+///
+/// # Panics
+/// When a file has a validator error, or the files cannot be written.
+pub fn assert_valid_gltf(files: &[(&str, Vec<u8>)]) {
+    static RUN: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let dir = std::env::temp_dir().join(format!(
+        "posecast-gltf-{}-{}",
+        std::process::id(),
+        RUN.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+    ));
+    std::fs::create_dir_all(&dir).expect("a temporary folder");
+    let paths: Vec<std::path::PathBuf> = files
+        .iter()
+        .map(|(label, bytes)| {
+            let path = dir.join(format!("{label}.glb"));
+            std::fs::write(&path, bytes).expect("a temporary file");
+            path
+        })
+        .collect();
+    let reports = validate_gltf(&paths);
+    std::fs::remove_dir_all(&dir).ok();
+    let Some(reports) = reports else {
+        return;
+    };
+    for ((label, _), r) in files.iter().zip(&reports) {
+        eprintln!(
+            "{label}: {} errors, {} warnings, {} infos, {} hints",
+            r.errors, r.warnings, r.infos, r.hints
+        );
+        for m in r.messages.iter().take(20) {
+            eprintln!("  {m}");
+        }
+        if r.messages.len() > 20 {
+            eprintln!("  … {} more", r.messages.len() - 20);
+        }
+    }
+    for ((label, _), r) in files.iter().zip(&reports) {
+        assert_eq!(
+            r.errors, 0,
+            "{label}: the validator found errors (listed above)"
+        );
+    }
+}

@@ -3,9 +3,11 @@
 //! with a data folder — acknowledged only once stored.
 
 use crate::error::Error;
+use crate::quota::Quota;
 use crate::state::AppState;
+use crate::store::recordings::{self, Saved};
 use crate::world::command;
-use posecast_proto::command::{Command, CommandResult};
+use posecast_proto::command::{Command, CommandResult, RecordingInfo};
 
 /// Executes a command in memory. Authorisation is checked by the caller. Servers with a data
 /// folder answer clients through [`execute_durable`] instead.
@@ -45,7 +47,53 @@ pub async fn execute_durable(state: &AppState, command: &Command) -> Result<Comm
     if let Some(scene) = scene {
         state.store.persist_scene(&state.world, &scene).await?;
     }
+    if let CommandResult::Recorded(info) = &result {
+        store_recording(state, info).await?;
+    }
     Ok(result)
+}
+
+/// Stores a clip `stop_recording` just added (`DIR/recordings/<rig>/<clip>.glb`), counted
+/// against the uploads' byte quota ([`crate::quota::Quotas::max_upload_total_bytes`]).
+///
+/// # Errors
+/// `quota_exceeded` or `internal`: the clip is then playable until the server stops, not
+/// stored.
+async fn store_recording(state: &AppState, info: &RecordingInfo) -> Result<(), Error> {
+    let Some(dir) = state.store.recordings_dir() else {
+        return Ok(());
+    };
+    let rig = state.world.library.require(&info.asset)?;
+    let clip = rig
+        .clip(&info.clip)
+        .cloned()
+        .ok_or_else(|| Error::UnknownClip {
+            rig: info.asset.clone(),
+            clip: info.clip.clone(),
+        })?;
+    // Uploads and recordings share one byte budget, checked and spent under one lock.
+    let _guard = state.store.assets_lock().await;
+    let max = state.world.quotas().max_upload_total_bytes;
+    let now = state.store.upload_bytes();
+    let room = max.saturating_sub(now);
+    let saved = tokio::task::spawn_blocking(move || recordings::save(&dir, &rig, &clip, room))
+        .await
+        .map_err(|e| Error::internal("store task failed", &e))?
+        .map_err(|e| Error::internal("cannot store the recording", &e))?;
+    match saved {
+        Saved::Stored(bytes) => {
+            state.store.add_upload_bytes(bytes);
+            Ok(())
+        }
+        Saved::NoRoom(bytes) => Err(state.metrics.refuse_quota(
+            Quota::UploadTotalBytes,
+            format!(
+                "uploads and recordings hold {now} bytes and recording {} adds {bytes} (it plays until the server stops, but is not stored)",
+                info.clip
+            ),
+            max,
+        )),
+    }
 }
 
 /// The slow part of a command, done before it takes any scene lock and off the async

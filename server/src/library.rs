@@ -3,6 +3,7 @@
 
 pub use crate::rig::{JointLimits, Rig};
 
+use crate::clip::Clip;
 use crate::error::Error;
 use crate::import::ImportError;
 use crate::import::files::{self, FileSet};
@@ -32,6 +33,30 @@ impl Library {
             .unwrap_or_else(std::sync::PoisonError::into_inner)
             .insert(rig.name.clone(), rig.clone());
         rig
+    }
+
+    /// Adds `clip` to rig `name`: the rig is replaced by one with the clip (avatars made
+    /// from now on get it; the caller moves existing ones over). Returns the new rig.
+    ///
+    /// # Errors
+    /// `unknown_asset`, or `conflict` when the rig has a clip of that name.
+    pub fn add_clip(&self, name: &str, clip: Clip) -> Result<Arc<Rig>, Error> {
+        let mut rigs = self
+            .rigs
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let rig = rigs
+            .get(name)
+            .ok_or_else(|| Error::UnknownAsset(name.to_owned()))?;
+        if rig.clip(clip.name()).is_some() {
+            return Err(Error::Conflict(format!(
+                "rig {name} already has a clip {}",
+                clip.name()
+            )));
+        }
+        let rig = Arc::new(rig.with_clip(clip));
+        rigs.insert(name.to_owned(), rig.clone());
+        Ok(rig)
     }
 
     /// The rig named `name`, or the typed error every caller reports.

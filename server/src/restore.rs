@@ -118,6 +118,7 @@ fn run(state: &AppState, plan: Plan) -> std::io::Result<()> {
     if state.readiness.stopped() {
         return Ok(());
     }
+    state.store.restore_recordings(&state.world);
     state.store.restore_scenes(&state.world);
     if plan.first_start && !state.readiness.stopped() {
         if state.config.builtin {

@@ -14,7 +14,7 @@ use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::AvatarPose;
 use posecast_proto::msg::AvatarId;
 use posecast_proto::placement::Placement;
-use posecast_proto::testing::{require_testdata, skip};
+use posecast_proto::testing::{assert_valid_gltf, require_testdata};
 use posecast_server::asset::Asset;
 use posecast_server::avatar::recording::{RecordLimits, Recorder};
 use posecast_server::builtin::AVATAR_GLB;
@@ -23,20 +23,11 @@ use posecast_server::export;
 use posecast_server::import;
 use posecast_server::rig::Rig;
 use posecast_server::rig::{PipelineOptions, normalise};
-use std::path::{Path, PathBuf};
-use std::process::Command;
 
 /// Largest difference allowed between a clip and its export read back: the export stores
 /// f32 as computed, so this is rounding, far below the stream's quantisation.
 const MAX_RADIANS: f32 = 1e-5;
 const MAX_METRES: f32 = 1e-5;
-
-fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .unwrap()
-        .to_owned()
-}
 
 /// A normalised rig, as the server makes it from an import.
 fn rig(asset: Asset) -> Rig {
@@ -55,88 +46,6 @@ fn builtin() -> Rig {
 fn testdata_rig(rel: &str) -> Option<Rig> {
     let path = require_testdata(rel)?;
     Some(rig(import::load_path(&path).unwrap().remove(0)))
-}
-
-/// One file's validator report.
-#[derive(Debug)]
-struct Report {
-    errors: u64,
-    warnings: u64,
-    infos: u64,
-    hints: u64,
-    messages: Vec<serde_json::Value>,
-}
-
-/// Runs the Khronos validator on `files`; `None` (after [`skip`]) when it is not installed.
-fn validate(files: &[PathBuf]) -> Option<Vec<Report>> {
-    let script = repo().join("scripts/validate-gltf.mjs");
-    let run = Command::new("node").arg(&script).args(files).output();
-    let output = match run {
-        Ok(o) => o,
-        Err(e) => {
-            skip(&format!("node is not installed ({e}): no glTF validation"));
-            return None;
-        }
-    };
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    if output.status.code() == Some(2) {
-        skip(&format!(
-            "the glTF validator did not run (scripts/test installs it): {stderr}"
-        ));
-        return None;
-    }
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    let reports: Vec<Report> = stdout
-        .lines()
-        .map(|line| {
-            let v: serde_json::Value = serde_json::from_str(line)
-                .unwrap_or_else(|e| panic!("validator output {line:?}: {e}; stderr {stderr}"));
-            Report {
-                errors: v["errors"].as_u64().unwrap(),
-                warnings: v["warnings"].as_u64().unwrap(),
-                infos: v["infos"].as_u64().unwrap(),
-                hints: v["hints"].as_u64().unwrap(),
-                messages: v["messages"].as_array().unwrap().clone(),
-            }
-        })
-        .collect();
-    assert_eq!(reports.len(), files.len(), "stderr: {stderr}");
-    Some(reports)
-}
-
-/// Writes each `(label, bytes)` to a file, validates them all in one node run, prints every
-/// report and asserts there is no error.
-fn assert_valid(files: &[(&str, Vec<u8>)]) {
-    let dir = tempfile::tempdir().unwrap();
-    let paths: Vec<PathBuf> = files
-        .iter()
-        .map(|(label, bytes)| {
-            let path = dir.path().join(format!("{label}.glb"));
-            std::fs::write(&path, bytes).unwrap();
-            path
-        })
-        .collect();
-    let Some(reports) = validate(&paths) else {
-        return;
-    };
-    for ((label, _), r) in files.iter().zip(&reports) {
-        eprintln!(
-            "{label}: {} errors, {} warnings, {} infos, {} hints",
-            r.errors, r.warnings, r.infos, r.hints
-        );
-        for m in r.messages.iter().take(20) {
-            eprintln!("  {m}");
-        }
-        if r.messages.len() > 20 {
-            eprintln!("  … {} more", r.messages.len() - 20);
-        }
-    }
-    for ((label, _), r) in files.iter().zip(&reports) {
-        assert_eq!(
-            r.errors, 0,
-            "{label}: the validator found errors (listed above)"
-        );
-    }
 }
 
 /// Radians between two rotations, precise near zero.
@@ -228,7 +137,7 @@ fn exports_pass_the_khronos_validator_and_reimport_to_the_same_poses() {
         assert_reimports_as("wasp_walk", &wasp, &clip, &bytes, false);
         files.push(("wasp_walk", bytes));
     }
-    assert_valid(&files);
+    assert_valid_gltf(&files);
 }
 
 /// What `Avatar::evaluate` streams when the avatar shows `locals`.
@@ -308,5 +217,5 @@ fn a_recording_exports_valid_gltf_and_bvh_that_reimport_as_the_stream() {
         "{}",
         &text[text.find("MOTION").unwrap()..][..60]
     );
-    assert_valid(&[("recording", bytes)]);
+    assert_valid_gltf(&[("recording", bytes)]);
 }

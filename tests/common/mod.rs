@@ -323,3 +323,33 @@ pub fn header_value(head: &str, name: &str) -> Option<String> {
             .then(|| v.trim().to_owned())
     })
 }
+
+/// `GET path` from `addr` with the control token; returns status and the body's bytes (for
+/// binary answers such as `.glb`; the server sends them with a `Content-Length`).
+pub async fn get_bytes(addr: std::net::SocketAddr, path: &str) -> (u16, Vec<u8>) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut stream = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let request = format!(
+        "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nAuthorization: Bearer {CONTROL}\r\n\r\n"
+    );
+    stream.write_all(request.as_bytes()).await.unwrap();
+    let mut response = Vec::new();
+    stream.read_to_end(&mut response).await.unwrap();
+    let end = response
+        .windows(4)
+        .position(|w| w == b"\r\n\r\n")
+        .expect("an HTTP response head");
+    let head = String::from_utf8_lossy(&response[..end]).to_string();
+    let status = head
+        .split(' ')
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(0);
+    assert!(
+        !head
+            .to_ascii_lowercase()
+            .contains("transfer-encoding: chunked"),
+        "get_bytes reads Content-Length bodies only: {head}"
+    );
+    (status, response[end + 4..].to_vec())
+}

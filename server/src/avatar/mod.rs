@@ -23,6 +23,7 @@ use posecast_proto::fk::forward_kinematics;
 use posecast_proto::frame::AvatarPose;
 use posecast_proto::msg::{AvatarId, SceneId};
 use posecast_proto::{DecomposeError, Transform};
+use recording::Recorder;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -64,6 +65,8 @@ pub struct Avatar {
     pub(super) root_track: RootTrack,
     /// A live driver's pose, applied between the clip and the overrides (the `live` module).
     pub live: Option<LivePose>,
+    /// What it streams, being recorded into a clip ([`recording`]).
+    pub recording: Option<Recorder>,
 }
 
 impl Avatar {
@@ -116,6 +119,7 @@ impl Avatar {
             placing: Placing::default(),
             root_track: RootTrack::default(),
             live: None,
+            recording: None,
         }
     }
 
@@ -139,6 +143,11 @@ impl Avatar {
             self.driver_gone();
         }
         self.evaluate();
+        if let Some(recorder) = &mut self.recording {
+            // Only a changed rig or a clock going back can refuse a tick; neither happens to
+            // an avatar in a ticking scene, and a refused tick is simply not in the clip.
+            recorder.push(clock, &self.pose).ok();
+        }
     }
 
     /// Re-evaluates the pose at the current clock (after a command), without advancing: the
@@ -284,6 +293,8 @@ impl Avatar {
                 .collect(),
             placement: self.placing.current(),
             root_motion: layer.map(|l| l.root_motion),
+            driven: self.live.is_some(),
+            recording: self.recording.as_ref().map(|r| r.name().to_owned()),
         }
     }
 }

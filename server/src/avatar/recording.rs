@@ -163,6 +163,12 @@ impl Recorder {
         }
     }
 
+    /// The clip's name.
+    #[must_use]
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
     /// Records the pose streamed at scene time `time` (seconds).
     ///
     /// # Errors

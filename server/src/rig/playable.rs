@@ -122,6 +122,19 @@ impl Rig {
         }
     }
 
+    /// The same rig with one more clip (recorded on it, so in its normalised frames).
+    #[must_use]
+    pub fn with_clip(&self, clip: Clip) -> Self {
+        let mut asset = self.asset.clone();
+        asset.clips.push(clip);
+        Self::new(
+            asset,
+            self.pipeline.clone(),
+            self.limits.clone(),
+            self.hanim.clone(),
+        )
+    }
+
     /// The rig as retargeting sees it (asset and H-Anim names).
     #[must_use]
     pub fn view(&self) -> RigView<'_> {

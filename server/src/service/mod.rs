@@ -48,6 +48,7 @@ pub fn app(state: Arc<AppState>) -> Router {
         .route("/api/scenes", get(rest::scenes))
         .route("/api/assets", get(rest::assets))
         .route("/api/assets/{name}/mesh.glb", get(rest::mesh))
+        .route("/api/assets/{name}/clips/{file}", get(rest::clip_file))
         .layer(axum::extract::DefaultBodyLimit::max(
             MAX_CLIENT_MESSAGE_BYTES,
         ))

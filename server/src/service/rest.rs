@@ -158,6 +158,62 @@ pub async fn mesh(
         .into_response())
 }
 
+/// `GET /api/assets/{name}/clips/{clip}.glb` (the rig's mesh and skin with the clip as its
+/// one animation) and `…/{clip}.bvh` (the skeleton and the clip as BVH motion): any clip of a
+/// rig, recorded ones included. Written on the blocking pool (a long clip takes a while).
+pub async fn clip_file(
+    State(state): State<Arc<AppState>>,
+    caller: Caller,
+    Path((name, file)): Path<(String, String)>,
+) -> Result<Response, AppError> {
+    state.config.access.authorize_read(&caller)?;
+    let (clip, format) = file.rsplit_once('.').ok_or_else(|| {
+        ProtocolError::new(
+            ErrorCode::NotFound,
+            format!("{file}: ask for <clip>.glb or <clip>.bvh"),
+        )
+    })?;
+    let rig = state.world.library.require(&name)?;
+    let clip = rig
+        .clip(clip)
+        .cloned()
+        .ok_or_else(|| crate::error::Error::UnknownClip {
+            rig: name.clone(),
+            clip: clip.to_owned(),
+        })?;
+    let (content_type, export): (&str, fn(&crate::rig::Rig, &crate::clip::Clip) -> _) = match format
+    {
+        "glb" => ("model/gltf-binary", |rig, clip| {
+            crate::export::clip_glb(rig, clip)
+        }),
+        "bvh" => ("text/plain; charset=utf-8", |rig, clip| {
+            crate::export::clip_bvh(rig, clip).map(String::into_bytes)
+        }),
+        other => {
+            return Err(ProtocolError::new(
+                ErrorCode::NotFound,
+                format!("clips are exported as .glb or .bvh, not .{other}"),
+            )
+            .into());
+        }
+    };
+    let bytes = tokio::task::spawn_blocking(move || export(&rig, &clip))
+        .await
+        .map_err(|e| crate::error::Error::internal("export task failed", &e))?
+        .map_err(|e| crate::error::Error::internal(&format!("exporting {file}"), &e))?;
+    Ok((
+        [
+            (axum::http::header::CONTENT_TYPE, content_type.to_owned()),
+            (
+                axum::http::header::CONTENT_DISPOSITION,
+                format!("attachment; filename=\"{name}.{file}\""),
+            ),
+        ],
+        bytes,
+    )
+        .into_response())
+}
+
 /// `GET /api/assets`.
 pub async fn assets(
     State(state): State<Arc<AppState>>,

@@ -8,6 +8,7 @@
 //! DIR/scenes/<scene>.json    one file per scene (see snapshot::SceneFile)
 //! DIR/assets/<name>/         an uploaded asset: its original files as uploaded …
 //! DIR/assets/<name>/meta.json  … and which of them make the asset (see assets::AssetMeta)
+//! DIR/recordings/<rig>/<clip>.glb  a recorded clip: the rig's skin and the clip (`recordings`)
 //! ```
 //!
 //! A scene file holds the scene id, the time it was written (µs since the Unix epoch) and per
@@ -31,7 +32,7 @@
 //! # Restore at start
 //!
 //! In the background once the server listens (`restore`): built-in rig and
-//! `--assets` folders first, then uploaded assets, then scenes. On the first
+//! `--assets` folders first, then uploaded assets, then recorded clips, then scenes. On the first
 //! start with a new folder the built-in `default` scene is created and stored; later, what is
 //! stored wins (a deleted `default` stays deleted). A file that cannot be read (truncated,
 //! not JSON, unknown format version, an asset that no longer imports) is logged with
@@ -44,6 +45,7 @@
 
 pub(crate) mod assets;
 mod atomic;
+pub mod recordings;
 pub mod snapshot;
 
 use crate::error::Error;

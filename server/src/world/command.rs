@@ -6,10 +6,11 @@
 use super::World;
 use crate::avatar::Avatar;
 use crate::avatar::playback::{DEFAULT_FADE, Layer};
+use crate::avatar::recording::{RecordLimits, Recorder};
 use crate::error::Error;
 use glam::Quat;
-use posecast_proto::command::{Command, CommandResult, DofInfo, JointInfo};
-use posecast_proto::msg::AvatarId;
+use posecast_proto::command::{Command, CommandResult, DofInfo, JointInfo, RecordingInfo};
+use posecast_proto::msg::{AvatarId, check_id};
 use posecast_proto::placement::Placement;
 use serde_json::Value;
 
@@ -364,6 +365,60 @@ pub fn apply(world: &World, command: &Command) -> Result<CommandResult, Error> {
         Command::Drive { .. } => Err(Error::NotAllowedNow(
             "drive needs a websocket connection (poses stream over it)".into(),
         )),
+        // --- Recording (issue 16) ---
+        Command::Record {
+            avatar,
+            clip,
+            max_seconds,
+        } => {
+            check_id("clip", clip).map_err(|e| Error::Invalid(e.message))?;
+            let mut limits = RecordLimits::DEFAULT;
+            if let Some(s) = max_seconds {
+                if !(s.is_finite() && *s > 0.0) {
+                    return Err(Error::invalid("max_seconds must be finite and > 0"));
+                }
+                limits.max_seconds = limits.max_seconds.min(f64::from(*s));
+            }
+            with_avatar(world, avatar, |a| {
+                if let Some(r) = &a.recording {
+                    return Err(Error::Conflict(format!(
+                        "avatar {} is already recording {}",
+                        a.id,
+                        r.name()
+                    )));
+                }
+                if a.rig.clip(clip).is_some() {
+                    return Err(Error::Conflict(format!(
+                        "rig {} already has a clip {clip}",
+                        a.rig.name
+                    )));
+                }
+                a.recording = Some(Recorder::new(clip.clone(), &a.description, limits));
+                Ok(CommandResult::Done)
+            })
+        }
+        Command::StopRecording { avatar } => {
+            let (rig, recorder) = with_avatar(world, avatar, |a| {
+                let recorder = a.recording.take().ok_or_else(|| {
+                    Error::NotAllowedNow(format!("avatar {} is not recording", a.id))
+                })?;
+                Ok((a.rig.name.clone(), recorder))
+            })?;
+            let (frames, dropped) = (recorder.frames(), recorder.dropped());
+            let clip = recorder
+                .finish()
+                .map_err(|e| Error::invalid(format!("nothing to keep: {e}")))?;
+            let info = RecordingInfo {
+                asset: rig.clone(),
+                clip: clip.name().to_owned(),
+                duration: clip.duration(),
+                frames,
+                dropped,
+            };
+            world.add_clip(&rig, clip)?;
+            Ok(CommandResult::Recorded(Box::new(info)))
+        }
+
         Command::ReleaseDrive { avatar } => with_avatar(world, avatar, |a| {
             a.release_drive();
             Ok(CommandResult::Done)

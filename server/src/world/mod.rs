@@ -12,6 +12,7 @@ pub mod command;
 
 use crate::avatar::Avatar;
 use crate::bake::RetargetCache;
+use crate::clip::Clip;
 use crate::error::Error;
 use crate::library::Library;
 use crate::metrics::Metrics;
@@ -239,6 +240,23 @@ impl World {
             .into_iter()
             .find(|s| s.lock().avatars.iter().any(|a| &a.id == id))
             .ok_or_else(|| Error::UnknownAvatar(id.clone()))
+    }
+
+    /// Adds `clip` to rig `rig` ([`Library::add_clip`]) and moves every avatar of that rig
+    /// onto the new one, so each of them can play it at once. Returns the new rig.
+    ///
+    /// # Errors
+    /// As [`Library::add_clip`].
+    pub fn add_clip(&self, rig: &str, clip: Clip) -> Result<Arc<crate::rig::Rig>, Error> {
+        let new = self.library.add_clip(rig, clip)?;
+        for scene in self.scenes() {
+            for a in scene.lock().avatars.iter_mut() {
+                if a.rig.name == new.name {
+                    a.rig = new.clone();
+                }
+            }
+        }
+        Ok(new)
     }
 
     /// Stops every scene's ticker and ends its subscriptions.

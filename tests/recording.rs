@@ -1,0 +1,265 @@
+//! Recording (issue 16): `record` … `stop_recording` over REST against a server with a data
+//! folder. What the avatar streamed to a subscriber is what the recorded clip holds; the clip
+//! plays at once, exports as glTF the Khronos validator accepts and as BVH, and is back on its
+//! rig after a restart.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+mod common;
+
+use common::{command_to, get_bytes, next_text, test_access};
+use futures_util::SinkExt;
+use posecast_proto::Transform;
+use posecast_proto::msg::{ClientMsg, Encoding, ErrorCode, SceneId, ServerMsg};
+use posecast_proto::testing::assert_valid_gltf;
+use posecast_server::clip::Clip;
+use posecast_server::config::Config;
+use posecast_server::startup::Server;
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::time::Duration;
+use tokio_tungstenite::tungstenite::Message;
+
+const RATE: f32 = 30.0;
+
+async fn start(data: &Path) -> Server {
+    let server = Server::start(Config {
+        listen: "127.0.0.1:0".parse().unwrap(),
+        tick_rate: RATE,
+        access: test_access(),
+        data_dir: Some(data.to_owned()),
+        ..Config::default()
+    })
+    .await
+    .unwrap();
+    server.ready().await.unwrap();
+    server
+}
+
+async fn ok(server: &Server, json: &str) -> serde_json::Value {
+    let (status, body) = command_to(server.addr, json).await;
+    assert_eq!(status, 200, "{json} → {body}");
+    body["result"].clone()
+}
+
+async fn refused(server: &Server, json: &str) -> String {
+    let (status, body) = command_to(server.addr, json).await;
+    assert_ne!(status, 200, "{json} was accepted: {body}");
+    body["code"].as_str().unwrap_or_default().to_owned()
+}
+
+/// The recorded clip read back from an export, sampled at each of its keys (one per tick).
+fn clip_from_glb(bytes: &[u8], name: &str) -> (Clip, Vec<Transform>) {
+    let asset = posecast_server::import::gltf::from_slice("take.glb", bytes)
+        .unwrap()
+        .remove(0);
+    let clip = asset
+        .clips
+        .iter()
+        .find(|c| c.name() == name)
+        .unwrap_or_else(|| panic!("no clip {name} in the export"))
+        .clone();
+    (clip, asset.skeleton.rest().to_vec())
+}
+
+fn angle(a: [f32; 4], b: glam::Quat) -> f32 {
+    let d = glam::Quat::from_array(a).dot(b).abs().min(1.0);
+    2.0 * d.acos()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_recording_holds_what_was_streamed_exports_and_survives_a_restart() {
+    let data = tempfile::tempdir().unwrap();
+    let server = start(data.path()).await;
+    ok(
+        &server,
+        r#"{"op":"play","avatar":"avatar","clip":"walk","root_motion":"accumulate"}"#,
+    )
+    .await;
+
+    // A JSON subscriber keeps every streamed pose of the avatar, by tick.
+    let mut ws = common::raw(&server, Encoding::Json).await;
+    let subscribe = ClientMsg::Subscribe {
+        scene: SceneId("default".into()),
+        avatars: None,
+    };
+    ws.send(Message::Text(
+        serde_json::to_string(&subscribe).unwrap().into(),
+    ))
+    .await
+    .unwrap();
+    let streamed = std::sync::Arc::new(std::sync::Mutex::new(BTreeMap::new()));
+    let reader = {
+        let streamed = streamed.clone();
+        tokio::spawn(async move {
+            while let Some(msg) = next_text(&mut ws).await {
+                if let ServerMsg::Frame(f) = msg {
+                    let pose = f.avatars.into_iter().find(|a| a.avatar.0 == "avatar");
+                    if let Some(p) = pose {
+                        streamed.lock().unwrap().insert(f.seq, p.rotations);
+                    }
+                }
+            }
+        })
+    };
+
+    // Bad requests first: none of them starts anything.
+    assert_eq!(
+        refused(
+            &server,
+            r#"{"op":"record","avatar":"avatar","clip":"walk"}"#
+        )
+        .await,
+        "conflict"
+    );
+    assert_eq!(
+        refused(&server, r#"{"op":"record","avatar":"avatar","clip":"a/b"}"#).await,
+        "invalid_value"
+    );
+    assert_eq!(
+        refused(&server, r#"{"op":"stop_recording","avatar":"avatar"}"#).await,
+        "not_allowed_now"
+    );
+    ok(
+        &server,
+        r#"{"op":"record","avatar":"avatar","clip":"take"}"#,
+    )
+    .await;
+    assert_eq!(
+        refused(
+            &server,
+            r#"{"op":"record","avatar":"avatar","clip":"again"}"#
+        )
+        .await,
+        "conflict"
+    );
+    let state = ok(&server, r#"{"op":"get_avatar","avatar":"avatar"}"#).await;
+    assert_eq!(state["recording"], "take", "{state}");
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let info = ok(&server, r#"{"op":"stop_recording","avatar":"avatar"}"#).await;
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    reader.abort();
+    let frames = info["frames"].as_u64().unwrap() as usize;
+    assert!(frames >= 30, "{info}");
+    assert_eq!(
+        (info["asset"].as_str(), info["clip"].as_str()),
+        (Some("avatar"), Some("take"))
+    );
+
+    // Exported as glTF: valid, and holding one key per recorded tick.
+    let (status, glb) = get_bytes(server.addr, "/api/assets/avatar/clips/take.glb").await;
+    assert_eq!(status, 200, "{}", String::from_utf8_lossy(&glb));
+    assert_valid_gltf(&[("recorded-take", glb.clone())]);
+    let (clip, rest) = clip_from_glb(&glb, "take");
+    let joints = rest.len();
+
+    // The recording is the stream: some run of consecutive streamed ticks equals the clip's
+    // poses at 0, 1/rate, 2/rate, … (the JSON stream is not quantised: f32 rounding only).
+    let streamed = streamed.lock().unwrap().clone();
+    let mut pose = vec![Transform::IDENTITY; joints];
+    let recorded: Vec<Vec<glam::Quat>> = (0..frames)
+        .map(|k| {
+            clip.sample(k as f32 / RATE, &rest, &mut pose);
+            pose.iter().map(|t| t.rotation).collect()
+        })
+        .collect();
+    let worst_at = |first: u64| -> Option<f32> {
+        let mut worst = 0.0f32;
+        for (k, want) in recorded.iter().enumerate() {
+            let got = streamed.get(&(first + k as u64))?;
+            for (g, w) in got.iter().zip(want) {
+                worst = worst.max(angle(*g, *w));
+            }
+        }
+        Some(worst)
+    };
+    let (first, worst) = streamed
+        .keys()
+        .filter_map(|&s| worst_at(s).map(|w| (s, w)))
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .expect("the subscriber saw every recorded tick");
+    eprintln!("recording starts at tick {first}; worst joint difference {worst:.2e} rad");
+    assert!(
+        worst < 1e-4,
+        "the recording differs from the stream by {worst} rad"
+    );
+
+    // BVH: the same number of frames.
+    let (status, bvh) = get_bytes(server.addr, "/api/assets/avatar/clips/take.bvh").await;
+    assert_eq!(status, 200);
+    let bvh = String::from_utf8(bvh).unwrap();
+    let frames_line = bvh.lines().find(|l| l.starts_with("Frames:")).unwrap();
+    assert_eq!(
+        frames_line.trim(),
+        format!("Frames: {frames}"),
+        "{frames_line}"
+    );
+    let (status, _) = get_bytes(server.addr, "/api/assets/avatar/clips/nope.glb").await;
+    assert_eq!(status, 404);
+
+    // Playable at once, by name, on the avatar that recorded it.
+    ok(&server, r#"{"op":"play","avatar":"avatar","clip":"take"}"#).await;
+    let state = ok(&server, r#"{"op":"get_avatar","avatar":"avatar"}"#).await;
+    assert_eq!(state["clip"], "take");
+    assert!(state.get("recording").is_none(), "{state}");
+    server.stop().await;
+    assert!(data.path().join("recordings/avatar/take.glb").is_file());
+
+    // After a restart the clip is back on the rig, the scene still plays it, and it
+    // exports to the same poses.
+    let server = start(data.path()).await;
+    let assets = ok(&server, r#"{"op":"list_assets"}"#).await;
+    let clips: Vec<&str> = assets
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|a| a["name"] == "avatar")
+        .unwrap()["clips"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|c| c["name"].as_str())
+        .collect();
+    assert!(clips.contains(&"take"), "{clips:?}");
+    let state = ok(&server, r#"{"op":"get_avatar","avatar":"avatar"}"#).await;
+    assert_eq!(state["clip"], "take", "{state}");
+    let (_, again) = get_bytes(server.addr, "/api/assets/avatar/clips/take.glb").await;
+    let (back, _) = clip_from_glb(&again, "take");
+    let mut other = vec![Transform::IDENTITY; joints];
+    for k in 0..frames {
+        let t = k as f32 / RATE;
+        clip.sample(t, &rest, &mut pose);
+        back.sample(t, &rest, &mut other);
+        for (a, b) in pose.iter().zip(&other) {
+            assert!(a.rotation.angle_between(b.rotation) < 1e-5, "tick {k}");
+        }
+    }
+    server.stop().await;
+}
+
+/// Recording changes the world: it needs a control token. Exports are reads.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn recording_needs_control_and_exports_are_reads() {
+    let server = common::server(30.0).await;
+    let (status, body) = common::http_as(
+        &server,
+        None,
+        "POST",
+        "/api/commands",
+        Some(r#"{"op":"record","avatar":"avatar","clip":"x"}"#),
+    )
+    .await;
+    assert_eq!(status, 401, "{body}");
+    let code: serde_json::Value = serde_json::from_str(&body).unwrap();
+    assert_eq!(code["code"], serde_json::json!(ErrorCode::Unauthorized));
+    let (status, _) = common::http_as(
+        &server,
+        None,
+        "GET",
+        "/api/assets/avatar/clips/walk.bvh",
+        None,
+    )
+    .await;
+    assert_eq!(status, 200, "views are open on this server");
+    server.stop().await;
+}
