@@ -9,8 +9,9 @@
 //! they never exceed one description per avatar the client can watch, and the bytes are the
 //! scene's cached description messages, shared by every subscriber.
 //!
-//! Pose frames do not queue: each subscribed scene has one slot holding at most the newest
-//! keyframe not yet sent and the newest frame after it, so a slow reader gets the newest pose,
+//! Pose frames barely queue: each subscribed scene has one slot holding at most the newest
+//! keyframe not yet sent and the newest [`MAX_PENDING_DELTAS`] frames after it, so a writer
+//! woken a tick late loses nothing while a slow reader gets the newest pose,
 //! never a growing backlog, and never a delta whose keyframe it lacks. Everything sits behind one
 //! lock so the writer takes control messages and frames together in publication order (a
 //! description always reaches the client before the first frame that needs it).
@@ -40,10 +41,15 @@ pub struct OutFrame {
     pub key: bool,
 }
 
+/// Deltas a scene's slot holds behind its keyframe before the oldest is dropped: two, so a
+/// writer that wakes a tick late (a busy machine) still delivers every frame, while a client
+/// that does not keep up gets at most two ticks of backlog, never more.
+pub const MAX_PENDING_DELTAS: usize = 2;
+
 #[derive(Debug, Default)]
 struct Slot {
     key: Option<OutFrame>,
-    latest: Option<OutFrame>,
+    deltas: VecDeque<OutFrame>,
 }
 
 #[derive(Debug)]
@@ -200,10 +206,15 @@ impl Outbox {
         let mut replaced = 0;
         if frame.key {
             replaced += u64::from(slot.key.take().is_some());
-            replaced += u64::from(slot.latest.take().is_some());
+            replaced += slot.deltas.len() as u64;
+            slot.deltas.clear();
             slot.key = Some(frame);
         } else {
-            replaced += u64::from(slot.latest.replace(frame).is_some());
+            if slot.deltas.len() >= MAX_PENDING_DELTAS {
+                slot.deltas.pop_front();
+                replaced += 1;
+            }
+            slot.deltas.push_back(frame);
         }
         drop(s);
         if replaced > 0 {
@@ -220,13 +231,14 @@ impl Outbox {
         s.drop_snapshot(scene_num);
     }
 
-    /// Frames waiting to be sent (at most two per subscribed scene, whatever the client does).
+    /// Frames waiting to be sent (at most `1 + MAX_PENDING_DELTAS` per subscribed scene,
+    /// whatever the client does).
     #[must_use]
     pub fn pending_frames(&self) -> usize {
         self.lock()
             .frames
             .values()
-            .map(|f| usize::from(f.key.is_some()) + usize::from(f.latest.is_some()))
+            .map(|f| usize::from(f.key.is_some()) + f.deltas.len())
             .sum()
     }
 
@@ -307,12 +319,12 @@ impl Outbox {
                 if !s.control.is_empty()
                     || s.frames
                         .values()
-                        .any(|f| f.key.is_some() || f.latest.is_some())
+                        .any(|f| f.key.is_some() || !f.deltas.is_empty())
                 {
                     let mut out = take_control(&mut s);
                     for slot in s.frames.values_mut() {
                         out.extend(slot.key.take().map(|f| f.message));
-                        out.extend(slot.latest.take().map(|f| f.message));
+                        out.extend(slot.deltas.drain(..).map(|f| f.message));
                     }
                     return Next::Send(out);
                 }
@@ -365,13 +377,21 @@ mod tests {
         o.push_frame(1, frame(2, false));
         o.push_frame(1, frame(3, false));
         assert!(o.push_control(Message::Text("d".into())));
-        // Control first, then the keyframe, then only the newest delta.
-        assert_eq!(bytes(o.next().await), vec![b'T', 1, 3]);
-        assert_eq!(o.dropped_frames(), 1);
+        // Control first, then the keyframe, then the deltas: two fit behind it.
+        assert_eq!(bytes(o.next().await), vec![b'T', 1, 2, 3]);
+        assert_eq!(o.dropped_frames(), 0);
+        // A keyframe replaces whatever is pending.
         o.push_frame(1, frame(4, false));
         o.push_frame(1, frame(5, true));
         o.push_frame(1, frame(6, false));
         assert_eq!(bytes(o.next().await), vec![5, 6]);
+        assert_eq!(o.dropped_frames(), 1);
+        // A third delta pushes out the oldest: the newest two are kept, with their keyframe.
+        o.push_frame(1, frame(7, true));
+        for d in 8..=10 {
+            o.push_frame(1, frame(d, false));
+        }
+        assert_eq!(bytes(o.next().await), vec![7, 9, 10]);
         assert_eq!(o.dropped_frames(), 2);
     }
 

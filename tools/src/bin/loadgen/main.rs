@@ -19,6 +19,7 @@
 //! the same limit.
 
 mod client;
+mod reference;
 mod report;
 mod server;
 
@@ -37,7 +38,7 @@ pub struct Args {
     /// Websocket URL of a running server.
     #[arg(
         long,
-        required_unless_present = "spawn_server",
+        required_unless_present_any = ["spawn_server", "serve_reference"],
         conflicts_with = "spawn_server"
     )]
     url: Option<String>,
@@ -77,6 +78,21 @@ pub struct Args {
     /// Connections being opened at once.
     #[arg(long, default_value_t = 64)]
     connect_parallel: usize,
+    /// With --spawn-server: which server to measure — posecast, the plain broadcast reference
+    /// server (`reference`), or both one after the other with the ratios (`both`).
+    #[arg(long, value_enum, default_value_t = Which::Posecast)]
+    server: Which,
+    /// Run as the reference server on this address (what `--server reference` spawns).
+    #[arg(long, hide = true)]
+    serve_reference: Option<std::net::SocketAddr>,
+}
+
+/// The server(s) a `--spawn-server` run measures.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum Which {
+    Posecast,
+    Reference,
+    Both,
 }
 
 /// Microseconds since the Unix epoch, the clock of the frames' `server_time_us`.
@@ -96,6 +112,9 @@ fn authority(url: &str) -> Result<String> {
 
 fn main() -> Result<()> {
     let args = Args::parse();
+    if let Some(listen) = args.serve_reference {
+        return reference::serve(listen, args.avatars, &args.clips, args.tick_rate);
+    }
     let positive = |v: f64| v.is_finite() && v > 0.0;
     if args.clients == 0
         || !positive(args.seconds)
@@ -121,34 +140,62 @@ fn main() -> Result<()> {
 }
 
 async fn run(args: Args, fd_limit: u64) -> Result<()> {
-    let mut spawned = None;
-    let (url, scene, pid) = if args.spawn_server {
-        let token = args
-            .control_token
-            .clone()
-            .unwrap_or_else(|| format!("loadgen-{:032x}", rand::random::<u128>()));
-        let child =
-            server::Spawned::start(args.server_bin.as_deref(), args.tick_rate, fd_limit, &token)
-                .await?;
-        let url = child.ws_url();
-        let scene = args.scene.clone().unwrap_or_else(|| "default".into());
-        server::create_scene(&url, &token, &scene, args.avatars, &args.clips).await?;
-        let pid = child.pid();
-        spawned = Some(child);
-        (url, scene, Some(pid))
-    } else {
+    if !args.spawn_server {
         let url = args.url.clone().context("--url or --spawn-server")?;
         let scene = args.scene.clone().unwrap_or_else(|| "default".into());
-        (url, scene, args.server_pid)
-    };
-    let result = measure(&args, &url, &scene, pid).await;
-    if let Some(child) = spawned {
-        child.stop().await;
+        measure(&args, &url, &scene, args.server_pid).await?.print();
+        return Ok(());
     }
+    let reference = match args.server {
+        Which::Posecast => None,
+        Which::Reference | Which::Both => {
+            eprintln!("— the reference server (plain broadcast) —");
+            let child = server::Spawned::start_reference(
+                fd_limit,
+                args.avatars,
+                &args.clips,
+                args.tick_rate,
+            )
+            .await?;
+            let summary = measure(&args, &child.ws_url(), "default", Some(child.pid())).await;
+            child.stop().await;
+            let summary = summary?;
+            summary.print();
+            Some(summary)
+        }
+    };
+    if args.server == Which::Reference {
+        return Ok(());
+    }
+    eprintln!("— posecast —");
+    let posecast = spawn_and_measure(&args, fd_limit).await?;
+    posecast.print();
+    if let Some(reference) = reference {
+        report::compare(&posecast, &reference);
+    }
+    Ok(())
+}
+
+/// Starts posecast, fills its scene, measures, stops it.
+async fn spawn_and_measure(args: &Args, fd_limit: u64) -> Result<report::Summary> {
+    let token = args
+        .control_token
+        .clone()
+        .unwrap_or_else(|| format!("loadgen-{:032x}", rand::random::<u128>()));
+    let child =
+        server::Spawned::start(args.server_bin.as_deref(), args.tick_rate, fd_limit, &token)
+            .await?;
+    let url = child.ws_url();
+    let scene = args.scene.clone().unwrap_or_else(|| "default".into());
+    let result = match server::create_scene(&url, &token, &scene, args.avatars, &args.clips).await {
+        Ok(()) => measure(args, &url, &scene, Some(child.pid())).await,
+        Err(e) => Err(e),
+    };
+    child.stop().await;
     result
 }
 
-async fn measure(args: &Args, url: &str, scene: &str, pid: Option<u32>) -> Result<()> {
+async fn measure(args: &Args, url: &str, scene: &str, pid: Option<u32>) -> Result<report::Summary> {
     let shared = Arc::new(client::Shared::new(args.connect_parallel));
     let connect_began = Instant::now();
     let tasks: Vec<_> = (0..args.clients)
@@ -215,6 +262,5 @@ async fn measure(args: &Args, url: &str, scene: &str, pid: Option<u32>) -> Resul
         cpu(Some(self_before), Some(self_after)),
         metrics_before.as_ref().zip(metrics_after.as_ref()),
     );
-    summary.print();
-    Ok(())
+    Ok(summary)
 }

@@ -211,3 +211,27 @@ impl Summary {
         );
     }
 }
+
+/// Prints posecast's figures as ratios of the reference server's from the same run:
+/// delivered frames (higher is better) and server CPU per delivered frame (lower is better).
+pub fn compare(posecast: &Summary, reference: &Summary) {
+    let fps = |s: &Summary| s.frames as f64 / s.wall;
+    let cpu_per_frame_us =
+        |s: &Summary| s.server_cpu.map(|cpu| cpu / 100.0 * 1e6 / fps(s).max(1.0));
+    println!(
+        "\nposecast / reference: delivered {:.2}× ({:.0} vs {:.0} frames/s)",
+        fps(posecast) / fps(reference).max(1.0),
+        fps(posecast),
+        fps(reference)
+    );
+    if let (Some(p), Some(r)) = (cpu_per_frame_us(posecast), cpu_per_frame_us(reference)) {
+        println!(
+            "                      server CPU per frame {:.2}× ({p:.2} vs {r:.2} µs)",
+            p / r.max(1e-9)
+        );
+    }
+    println!(
+        "                      p99 tick→receive {:.2} vs {:.2} ms",
+        posecast.latency_ms[2], reference.latency_ms[2]
+    );
+}

@@ -81,6 +81,59 @@ impl Spawned {
             Some(b) => b.to_owned(),
             None => sibling("posecast")?,
         };
+        Self::launch(
+            &bin,
+            fd_limit,
+            &[("POSECAST_CONTROL_TOKEN", control_token)],
+            |port| {
+                vec![
+                    "--listen".into(),
+                    format!("127.0.0.1:{port}"),
+                    "--tick-rate".into(),
+                    tick_rate.to_string(),
+                    // Measure the fan-out, not fsync; and start from the same state every run.
+                    "--no-persist".into(),
+                    // Every load client comes from 127.0.0.1: lift the per-address cap (default
+                    // 256) to the global one.
+                    "--max-connections-per-address".into(),
+                    posecast_server::config::DEFAULT_MAX_CONNECTIONS.to_string(),
+                ]
+            },
+        )
+        .await
+    }
+
+    /// Starts this executable as the reference server ([`crate::reference`]) with `avatars`
+    /// avatars playing `clips` at `tick_rate`.
+    pub async fn start_reference(
+        fd_limit: u64,
+        avatars: usize,
+        clips: &[String],
+        tick_rate: f32,
+    ) -> Result<Self> {
+        let bin = std::env::current_exe()?;
+        Self::launch(&bin, fd_limit, &[], |port| {
+            vec![
+                "--serve-reference".into(),
+                format!("127.0.0.1:{port}"),
+                "--avatars".into(),
+                avatars.to_string(),
+                "--clips".into(),
+                clips.join(","),
+                "--tick-rate".into(),
+                tick_rate.to_string(),
+            ]
+        })
+        .await
+    }
+
+    /// Runs `bin` with the arguments `args(port)` gives for a free loopback port.
+    async fn launch(
+        bin: &Path,
+        fd_limit: u64,
+        env: &[(&str, &str)],
+        args: impl FnOnce(u16) -> Vec<String>,
+    ) -> Result<Self> {
         // A port that was free a moment ago; the server binds it right after.
         let port = std::net::TcpListener::bind("127.0.0.1:0")?
             .local_addr()?
@@ -91,18 +144,9 @@ impl Spawned {
             .arg(r#"ulimit -n "$1" 2>/dev/null; shift; exec "$@""#)
             .arg("sh")
             .arg(fd_limit.to_string())
-            .arg(&bin)
-            .arg("--listen")
-            .arg(format!("127.0.0.1:{port}"))
-            .arg("--tick-rate")
-            .arg(tick_rate.to_string())
-            // Measure the fan-out, not fsync; and start from the same state every run.
-            .arg("--no-persist")
-            // Every load client comes from 127.0.0.1: lift the per-address cap (default 256)
-            // to the global one.
-            .arg("--max-connections-per-address")
-            .arg(posecast_server::config::DEFAULT_MAX_CONNECTIONS.to_string())
-            .env("POSECAST_CONTROL_TOKEN", control_token)
+            .arg(bin)
+            .args(args(port))
+            .envs(env.iter().copied())
             .env("RUST_LOG", "warn")
             .stdin(Stdio::null())
             .stdout(Stdio::null())
