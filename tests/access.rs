@@ -292,6 +292,7 @@ async fn scene_tokens_view_tokens_and_private_views() {
     let subscribe = ClientMsg::Subscribe {
         scene: SceneId("default".into()),
         avatars: None,
+        rate: None,
     };
     let text = serde_json::to_string(&subscribe).unwrap();
     ws.send(Message::Text(text.clone().into())).await.unwrap();
@@ -332,6 +333,7 @@ async fn scene_tokens_view_tokens_and_private_views() {
     let own = ClientMsg::Subscribe {
         scene: SceneId("lobby".into()),
         avatars: None,
+        rate: None,
     };
     lobby
         .send(Message::Text(serde_json::to_string(&own).unwrap().into()))

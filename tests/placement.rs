@@ -52,6 +52,7 @@ async fn first_frame(
         ClientMsg::Subscribe {
             scene: SceneId(scene.into()),
             avatars: None,
+            rate: None,
         },
     ] {
         let text = serde_json::to_string(&msg).unwrap();

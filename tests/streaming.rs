@@ -258,7 +258,7 @@ async fn a_stalled_subscriber_loses_frames_not_memory_and_delays_no_one() {
     // The outbox and the real writer loop, against a peer whose sink is never ready — what a
     // client that stops reading looks like once the socket buffers are full.
     let metrics = Arc::new(Metrics::new());
-    let scene = Scene::new(SceneId("s".into()), 1, metrics.clone());
+    let scene = Scene::new(SceneId("s".into()), 1, metrics.clone(), 60.0);
     let rig = Arc::new(posecast_server::builtin::rig().unwrap());
     scene
         .add_avatar(Avatar::new(avatar(), 1, rig.clone()))
@@ -270,12 +270,7 @@ async fn a_stalled_subscriber_loses_frames_not_memory_and_delays_no_one() {
         (2, &reading, Encoding::Binary),
     ] {
         scene
-            .subscribe(Subscriber {
-                conn,
-                outbox: outbox.clone(),
-                encoding,
-                filter: None,
-            })
+            .subscribe(Subscriber::new(conn, outbox.clone(), encoding, None, 1))
             .unwrap();
     }
     let stalled_writer = tokio::spawn({

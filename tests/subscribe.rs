@@ -116,6 +116,7 @@ impl Watcher {
         let sub = ClientMsg::Subscribe {
             scene: SceneId(scene.into()),
             avatars,
+            rate: None,
         };
         ws.send(Message::Text(serde_json::to_string(&sub).unwrap().into()))
             .await
@@ -420,19 +421,14 @@ fn frames(got: Vec<Got>) -> Vec<Frame> {
 }
 
 fn subscriber(conn: u64, outbox: &Arc<Outbox>, encoding: Encoding) -> Subscriber {
-    Subscriber {
-        conn,
-        outbox: outbox.clone(),
-        encoding,
-        filter: None,
-    }
+    Subscriber::new(conn, outbox.clone(), encoding, None, 1)
 }
 
 #[tokio::test]
 async fn json_is_written_only_for_json_subscribers_and_a_json_late_joiner_gets_the_cached_keyframe()
 {
     let metrics = Arc::new(Metrics::new());
-    let scene = Scene::new(SceneId("s".into()), 1, metrics.clone());
+    let scene = Scene::new(SceneId("s".into()), 1, metrics.clone(), 60.0);
     let rig = Arc::new(posecast_server::builtin::rig().unwrap());
     let (a, b) = (AvatarId("a".into()), AvatarId("b".into()));
     scene
@@ -526,7 +522,7 @@ async fn json_is_written_only_for_json_subscribers_and_a_json_late_joiner_gets_t
 #[tokio::test]
 async fn a_keyframe_made_for_a_joiner_leaves_every_stream_decodable() {
     let metrics = Arc::new(Metrics::new());
-    let scene = Scene::new(SceneId("s".into()), 1, metrics);
+    let scene = Scene::new(SceneId("s".into()), 1, metrics, 60.0);
     let rig = Arc::new(posecast_server::builtin::rig().unwrap());
     let (a, b) = (AvatarId("a".into()), AvatarId("b".into()));
     scene
@@ -575,4 +571,101 @@ async fn a_keyframe_made_for_a_joiner_leaves_every_stream_decodable() {
         .unwrap();
     let got = frames(drain(&third, &mut Reader::default()).await);
     assert_eq!(seqs(&got), [4, 8]);
+}
+
+/// Subscribers at a third and a quarter of the tick rate get every third and fourth tick,
+/// each decodable on its own (a keyframe they skipped comes before their next delta), with
+/// the poses the full-rate subscriber got for those ticks, for fewer bytes.
+#[tokio::test]
+async fn lower_rate_subscribers_get_every_nth_tick_decodable_and_equal() {
+    let metrics = Arc::new(Metrics::new());
+    let scene = Scene::new(SceneId("s".into()), 1, metrics, 60.0);
+    let rig = Arc::new(posecast_server::builtin::rig().unwrap());
+    let mut avatar = Avatar::new(AvatarId("a".into()), 1, rig.clone());
+    let walk = rig.clip("walk").unwrap().clone();
+    avatar.play(
+        posecast_server::avatar::playback::Layer::new(walk, None, 0.0, 1.0, true),
+        0.0,
+    );
+    scene.add_avatar(avatar).unwrap();
+    let outboxes: Vec<(u32, Arc<Outbox>)> = [1, 3, 4]
+        .into_iter()
+        .map(|every| (every, Arc::new(Outbox::new())))
+        .collect();
+    for (i, (every, outbox)) in outboxes.iter().enumerate() {
+        scene
+            .subscribe(Subscriber::new(
+                i as u64,
+                outbox.clone(),
+                Encoding::Binary,
+                None,
+                *every,
+            ))
+            .unwrap();
+    }
+    let mut readers: Vec<Reader> = outboxes.iter().map(|_| Reader::default()).collect();
+    let mut got: Vec<Vec<Frame>> = vec![Vec::new(); outboxes.len()];
+    let mut bytes = vec![0usize; outboxes.len()];
+    // Keyframes every 10 ticks, which the slower subscribers mostly skip.
+    for seq in 1..=120u64 {
+        scene.tick(seq, seq as f64 / 60.0, seq * 16_667, 10);
+        for (i, (_, outbox)) in outboxes.iter().enumerate() {
+            if outbox.pending_frames() == 0 {
+                continue;
+            }
+            let Ok(Next::Send(messages)) =
+                tokio::time::timeout(Duration::from_secs(1), outbox.next()).await
+            else {
+                panic!("outbox closed")
+            };
+            for m in messages {
+                match m {
+                    AxumMessage::Text(t) => {
+                        readers[i].text(t.as_str());
+                    }
+                    AxumMessage::Binary(b) => {
+                        bytes[i] += b.len();
+                        if let Got::Frame(f) = readers[i].binary(&b) {
+                            got[i].push(f);
+                        }
+                    }
+                    other => panic!("unexpected {other:?}"),
+                }
+            }
+        }
+    }
+    let full: HashMap<u64, &Frame> = got[0].iter().map(|f| (f.seq, f)).collect();
+    assert_eq!(full.len(), 120);
+    for (i, (every, _)) in outboxes.iter().enumerate().skip(1) {
+        let seqs: Vec<u64> = got[i].iter().map(|f| f.seq).collect();
+        // Every n-th tick (plus the skipped keyframes, which arrive just before).
+        let sent: Vec<u64> = seqs
+            .iter()
+            .copied()
+            .filter(|s| s % u64::from(*every) == 0)
+            .collect();
+        assert_eq!(sent.len(), 120 / *every as usize, "every {every}: {seqs:?}");
+        for f in &got[i] {
+            let want = full[&f.seq];
+            for (g, w) in f.avatars[0]
+                .rotations
+                .iter()
+                .zip(&want.avatars[0].rotations)
+            {
+                assert!(angle_between_degrees(*g, *w) < 1e-6, "tick {}", f.seq);
+            }
+        }
+        assert!(
+            bytes[i] * 2 < bytes[0],
+            "every {every} tick costs {} bytes against {} for all",
+            bytes[i],
+            bytes[0]
+        );
+        eprintln!(
+            "every {every}th tick: {} frames, {} bytes ({:.0} % of full rate)",
+            got[i].len(),
+            bytes[i],
+            100.0 * bytes[i] as f64 / bytes[0] as f64
+        );
+    }
 }

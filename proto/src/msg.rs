@@ -75,6 +75,11 @@ pub enum ClientMsg {
         /// Only these avatars, or all.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         avatars: Option<Vec<AvatarId>>,
+        /// Frames per second wanted (e.g. 30, 20, 15 or 10 for a distant or small view);
+        /// absent: every tick. The server sends every `round(tick_rate / rate)`-th tick (at
+        /// least every tick) and says the rate it chose in `subscribed`.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        rate: Option<f32>,
     },
     /// Stop receiving a scene.
     Unsubscribe {
@@ -139,6 +144,9 @@ pub enum ServerMsg {
         scene: SceneId,
         /// The scene's number in binary frames.
         scene_num: u32,
+        /// Frames per second this subscription gets (the tick rate divided by a whole number).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        rate: Option<f32>,
     },
     /// Subscription ended (on request or because the scene was deleted).
     Unsubscribed {

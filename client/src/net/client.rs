@@ -44,6 +44,9 @@ pub struct ClientOptions {
     pub ping_interval: Duration,
     /// Name sent in hello.
     pub name: String,
+    /// Frames per second wanted from every subscription (`None`: every tick); the server
+    /// sends every `round(tick_rate / rate)`-th tick.
+    pub rate: Option<f32>,
 }
 
 impl ClientOptions {
@@ -58,6 +61,7 @@ impl ClientOptions {
             reconnect: true,
             ping_interval: Duration::from_secs(1),
             name: "posecast-client".into(),
+            rate: None,
         }
     }
 }
@@ -415,6 +419,7 @@ async fn session(
         let sub = ClientMsg::Subscribe {
             scene: scene.clone(),
             avatars: avatars.clone(),
+            rate: options.rate,
         };
         sink.send(to_text(&sub))
             .await
@@ -480,7 +485,9 @@ fn on_server_msg(
             }
             Some(Event::Connected)
         }
-        ServerMsg::Subscribed { scene, scene_num } => {
+        ServerMsg::Subscribed {
+            scene, scene_num, ..
+        } => {
             s.scene_nums.insert(scene_num, scene);
             None
         }

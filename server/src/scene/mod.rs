@@ -51,13 +51,13 @@ pub struct Scene {
 }
 
 impl Scene {
-    /// An empty scene.
+    /// An empty scene ticking at `tick_rate` (the rate subscriptions divide).
     #[must_use]
-    pub fn new(id: SceneId, num: u32, metrics: std::sync::Arc<Metrics>) -> Self {
+    pub fn new(id: SceneId, num: u32, metrics: std::sync::Arc<Metrics>, tick_rate: f32) -> Self {
         Self {
             state: Mutex::new(SceneState {
                 avatars: Vec::new(),
-                feed: Feed::new(id.clone(), num, metrics),
+                feed: Feed::new(id.clone(), num, metrics, tick_rate),
                 last: TickStamp::default(),
                 clock: 0.0,
             }),

@@ -31,9 +31,33 @@ pub struct Subscriber {
     pub encoding: Encoding,
     /// Only these avatars, or all.
     pub filter: Option<Vec<AvatarId>>,
+    /// It gets every `every`-th tick (1: all of them).
+    pub every: u32,
+    /// The tick of the last keyframe it was sent: a subscriber that skips ticks may skip a
+    /// keyframe, and then gets it before its next delta.
+    key_sent: Option<u64>,
 }
 
 impl Subscriber {
+    /// A subscription of connection `conn` getting every `every`-th tick (at least 1).
+    #[must_use]
+    pub fn new(
+        conn: u64,
+        outbox: Arc<Outbox>,
+        encoding: Encoding,
+        filter: Option<Vec<AvatarId>>,
+        every: u32,
+    ) -> Self {
+        Self {
+            conn,
+            outbox,
+            encoding,
+            filter,
+            every: every.max(1),
+            key_sent: None,
+        }
+    }
+
     fn wants(&self, avatar: &AvatarId) -> bool {
         self.filter.as_ref().is_none_or(|f| f.contains(avatar))
     }
@@ -55,6 +79,8 @@ pub struct Feed {
     scene: SceneId,
     num: u32,
     metrics: Arc<Metrics>,
+    /// Ticks per second (what a subscription's rate divides).
+    tick_rate: f32,
     subscribers: Vec<Subscriber>,
     /// Each avatar's delta encoder, by avatar number.
     encoders: HashMap<u32, ChunkEncoder>,
@@ -69,13 +95,15 @@ pub struct Feed {
 }
 
 impl Feed {
-    /// The feed of scene `scene` (number `num` in binary frames), with no subscribers.
+    /// The feed of scene `scene` (number `num` in binary frames) ticking at `tick_rate`, with
+    /// no subscribers.
     #[must_use]
-    pub fn new(scene: SceneId, num: u32, metrics: Arc<Metrics>) -> Self {
+    pub fn new(scene: SceneId, num: u32, metrics: Arc<Metrics>, tick_rate: f32) -> Self {
         Self {
             scene,
             num,
             metrics,
+            tick_rate,
             subscribers: Vec::new(),
             encoders: HashMap::new(),
             last_key_seq: None,
@@ -144,7 +172,7 @@ impl Feed {
         &mut self,
         avatars: &mut [Avatar],
         last: TickStamp,
-        sub: Subscriber,
+        mut sub: Subscriber,
     ) -> Result<(), Error> {
         if let Some(filter) = &sub.filter
             && let Some(missing) = filter
@@ -161,6 +189,7 @@ impl Feed {
         sub.outbox.push_control(text(&ServerMsg::Subscribed {
             scene: self.scene.clone(),
             scene_num: self.num,
+            rate: Some(self.tick_rate / sub.every as f32),
         }));
         // Exempt from the outbox's stall bound: a scene of many avatars is not a slow client.
         let descriptions: Vec<Message> = avatars
@@ -169,18 +198,22 @@ impl Feed {
             .map(|a| description_message(&self.scene, &mut self.descriptions, &a.description))
             .collect();
         sub.outbox.push_snapshot(self.num, descriptions);
-        self.first_frames(avatars, last, &sub);
+        sub.key_sent = self.first_frames(avatars, last, &sub);
         self.subscribers.push(sub);
         Ok(())
     }
 
-    /// Hands a new subscriber its first frames (see [`Feed::subscribe`]).
-    fn first_frames(&mut self, avatars: &mut [Avatar], last: TickStamp, sub: &Subscriber) {
+    /// Hands a new subscriber its first frames (see [`Feed::subscribe`]). Returns the tick of
+    /// the scene's keyframe when the subscriber got it (its later deltas can refer to it).
+    fn first_frames(
+        &mut self,
+        avatars: &mut [Avatar],
+        last: TickStamp,
+        sub: &Subscriber,
+    ) -> Option<u64> {
         let filter = sub.filter.as_deref();
         let json = sub.encoding == Encoding::Json;
-        let Some(key) = &mut self.last_key else {
-            return;
-        };
+        let key = self.last_key.as_mut()?;
         let wanted = avatars.iter().filter(|a| sub.wants(&a.id));
         if !self.placed && key.covers(wanted, |id| sub.wants(id)) {
             if json {
@@ -201,7 +234,7 @@ impl Feed {
                     },
                 );
             }
-            return;
+            return self.last_key_seq;
         }
         // The cached keyframe predates a change of avatars: a keyframe of the current poses, for
         // this subscriber only, labelled with the last tick.
@@ -231,6 +264,9 @@ impl Feed {
         let message = fresh.message(&self.scene, sub.encoding, filter);
         sub.outbox
             .push_frame(self.num, OutFrame { message, key: true });
+        // A keyframe of its own: the scene's next deltas do not refer to it (and a full-rate
+        // binary subscriber's next tick is a keyframe, forced above).
+        None
     }
 
     /// Ends a connection's subscription. Returns whether it had one.
@@ -308,18 +344,43 @@ impl Feed {
         let published = Published { header, pieces };
         // Encode once per (encoding, filter); with no filters that is once per encoding.
         let mut cache: HashMap<(Encoding, Option<&[AvatarId]>), Message> = HashMap::new();
+        // The scene's keyframe, for subscribers at a lower rate that skipped its tick.
+        let mut key_cache: HashMap<(Encoding, Option<&[AvatarId]>), Message> = HashMap::new();
         let mut bytes_out = 0u64;
-        for sub in &self.subscribers {
+        let mut offered = 0u64;
+        for sub in &mut self.subscribers {
+            if at.seq % u64::from(sub.every) != 0 {
+                continue;
+            }
             let filter = sub.filter.as_deref();
+            if !key && sub.key_sent != self.last_key_seq {
+                let Some(last_key) = &mut self.last_key else {
+                    continue;
+                };
+                if sub.encoding == Encoding::Json {
+                    self.metrics.json_encoded(last_key.ensure_json());
+                }
+                let message = key_cache
+                    .entry((sub.encoding, filter))
+                    .or_insert_with(|| last_key.message(&self.scene, sub.encoding, filter))
+                    .clone();
+                bytes_out += message_len(&message) as u64;
+                sub.outbox
+                    .push_frame(self.num, OutFrame { message, key: true });
+                sub.key_sent = self.last_key_seq;
+            }
             let message = cache
                 .entry((sub.encoding, filter))
                 .or_insert_with(|| published.message(&self.scene, sub.encoding, filter))
                 .clone();
             bytes_out += message_len(&message) as u64;
             sub.outbox.push_frame(self.num, OutFrame { message, key });
+            if key {
+                sub.key_sent = Some(at.seq);
+            }
+            offered += 1;
         }
-        self.metrics
-            .frames_offered(self.subscribers.len() as u64, bytes_out);
+        self.metrics.frames_offered(offered, bytes_out);
         if key {
             self.last_key = Some(published);
             self.last_delta = None;

@@ -125,7 +125,12 @@ impl World {
             ));
         }
         let num = self.next_scene_num.fetch_add(1, Ordering::Relaxed);
-        let scene = Arc::new(Scene::new(id.clone(), num, self.metrics.clone()));
+        let scene = Arc::new(Scene::new(
+            id.clone(),
+            num,
+            self.metrics.clone(),
+            self.tick_rate,
+        ));
         scenes.insert(id, scene.clone());
         tokio::spawn(ticker::run(
             scene.clone(),

@@ -192,6 +192,20 @@ fn read_failure(e: axum::Error) -> Option<(ProtocolError, u16, &'static str)> {
     }
 }
 
+/// Which ticks a subscription asking for `rate` frames per second gets: every
+/// `round(tick_rate / rate)`-th, at least every one (a rate that is not finite and positive, or
+/// above the tick rate, gets every tick).
+fn every_nth_tick(tick_rate: f32, rate: Option<f32>) -> u32 {
+    match rate {
+        Some(r) if r.is_finite() && r > 0.0 && tick_rate.is_finite() && tick_rate > 0.0 => {
+            (f64::from(tick_rate) / f64::from(r))
+                .round()
+                .clamp(1.0, 1_000.0) as u32
+        }
+        _ => 1,
+    }
+}
+
 /// A message that does not parse, as a `bad_message` error that carries the command's id when
 /// the text is a JSON object `{"type":"command","id":N,…}`: a client waiting for command N's
 /// answer gets one instead of waiting for ever.
@@ -385,7 +399,11 @@ impl Session {
                 ));
                 true
             }
-            ClientMsg::Subscribe { scene, avatars } => {
+            ClientMsg::Subscribe {
+                scene,
+                avatars,
+                rate,
+            } => {
                 // A subscription costs the scene work under its lock (descriptions, a
                 // keyframe): it is charged to the same rate limit as commands.
                 if let Err(wait) = self.commands.take() {
@@ -406,12 +424,13 @@ impl Session {
                     .authorize_view(&self.caller, &scene)
                     .and_then(|()| self.state.world.scene(&scene))
                     .and_then(|s| {
-                        s.subscribe(Subscriber {
-                            conn: self.conn,
-                            outbox: self.outbox.clone(),
+                        s.subscribe(Subscriber::new(
+                            self.conn,
+                            self.outbox.clone(),
                             encoding,
-                            filter: avatars,
-                        })
+                            avatars,
+                            every_nth_tick(self.state.config.tick_rate, rate),
+                        ))
                     });
                 match result {
                     Ok(()) => {

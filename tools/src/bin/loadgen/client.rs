@@ -90,12 +90,18 @@ impl ClientStats {
 }
 
 /// Connects, subscribes to `scene` and reads until the run is done.
-pub async fn run(index: usize, url: &str, scene: &str, shared: &Shared) -> ClientStats {
+pub async fn run(
+    index: usize,
+    url: &str,
+    scene: &str,
+    rate: Option<f32>,
+    shared: &Shared,
+) -> ClientStats {
     let mut done = shared.done.subscribe();
     let connected = {
         // The permit bounds handshakes in flight (the server's accept backlog is finite).
         let _permit = shared.connecting.acquire().await;
-        connect(index, url, scene).await
+        connect(index, url, scene, rate).await
     };
     let mut ws = match connected {
         Ok(ws) => ws,
@@ -185,14 +191,16 @@ pub async fn connect_control(url: &str, token: &str) -> Result<Ws> {
     hello(url, "loadgen-control".into(), Some(token)).await
 }
 
-/// Opens a websocket, says hello and subscribes; returns once `subscribed` arrived.
-pub async fn connect(index: usize, url: &str, scene: &str) -> Result<Ws> {
+/// Opens a websocket, says hello and subscribes (at `rate` frames per second, or every tick);
+/// returns once `subscribed` arrived.
+pub async fn connect(index: usize, url: &str, scene: &str, rate: Option<f32>) -> Result<Ws> {
     let mut ws = hello(url, format!("loadgen-{index}"), None).await?;
     send(
         &mut ws,
         &ClientMsg::Subscribe {
             scene: SceneId(scene.to_owned()),
             avatars: None,
+            rate,
         },
     )
     .await?;

@@ -78,6 +78,10 @@ pub struct Args {
     /// Connections being opened at once.
     #[arg(long, default_value_t = 64)]
     connect_parallel: usize,
+    /// Frames per second each client subscribes at (posecast sends every
+    /// `round(tick_rate / rate)`-th tick); absent: every tick. The reference server ignores it.
+    #[arg(long)]
+    rate: Option<f32>,
     /// With --spawn-server: which server to measure — posecast, the plain broadcast reference
     /// server (`reference`), or both one after the other with the ratios (`both`).
     #[arg(long, value_enum, default_value_t = Which::Posecast)]
@@ -203,7 +207,8 @@ async fn measure(args: &Args, url: &str, scene: &str, pid: Option<u32>) -> Resul
             let shared = shared.clone();
             let url = url.to_owned();
             let scene = scene.to_owned();
-            tokio::spawn(async move { client::run(i, &url, &scene, &shared).await })
+            let rate = args.rate;
+            tokio::spawn(async move { client::run(i, &url, &scene, rate, &shared).await })
         })
         .collect();
     // Every client subscribed or failed, within a generous bound.

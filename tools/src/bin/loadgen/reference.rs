@@ -81,12 +81,13 @@ fn frame_source(
         }
     }
     let outbox = Arc::new(Outbox::new());
-    handle.subscribe(Subscriber {
-        conn: 0,
-        outbox: outbox.clone(),
-        encoding: Encoding::Binary,
-        filter: None,
-    })?;
+    handle.subscribe(Subscriber::new(
+        0,
+        outbox.clone(),
+        Encoding::Binary,
+        None,
+        1,
+    ))?;
     let (frames, _) = broadcast::channel(LAG_FRAMES);
     let sender = frames.clone();
     tokio::spawn(async move {
@@ -134,6 +135,7 @@ async fn client(
                 ws.send(reply(&ServerMsg::Subscribed {
                     scene,
                     scene_num: 1,
+                    rate: Some(tick_rate),
                 })?)
                 .await?;
                 break;

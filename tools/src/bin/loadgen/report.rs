@@ -110,7 +110,14 @@ impl Summary {
             clients: args.clients,
             avatars: args.spawn_server.then_some(args.avatars),
             scene: scene.to_owned(),
-            tick_rate: f64::from(args.tick_rate),
+            // The frames each client should get: every tick, or every n-th at a lower rate.
+            tick_rate: match args.rate {
+                Some(rate) if rate > 0.0 && rate < args.tick_rate => {
+                    f64::from(args.tick_rate)
+                        / (f64::from(args.tick_rate) / f64::from(rate)).round()
+                }
+                _ => f64::from(args.tick_rate),
+            },
             wall,
             connect_s,
             frames: stats.iter().map(|s| s.frames).sum(),
