@@ -1,6 +1,8 @@
-//! `posecast-client`: watch a stream's statistics, render a scene offscreen to PNG, or view it
-//! live in a window. Every flag can also be set by an environment variable.
+//! `posecast-client`: watch a stream's statistics, render a scene offscreen to PNG, view it
+//! live in a window, or drive an avatar live from a BVH clip. Every flag can also be set by an
+//! environment variable.
 
+mod drive;
 mod render;
 mod view;
 mod watch;
@@ -24,6 +26,9 @@ enum Command {
     Render(render::RenderArgs),
     /// Show a scene live in a window.
     View(view::ViewArgs),
+    /// Drive an avatar live from a BVH clip (uploaded as the source rig, retargeted by the
+    /// server).
+    Drive(drive::DriveArgs),
 }
 
 /// Where to connect; shared by every subcommand.
@@ -73,6 +78,7 @@ fn main() -> anyhow::Result<()> {
     match cli.command {
         Command::Watch(args) => runtime.block_on(watch::run(args)),
         Command::Render(args) => runtime.block_on(render::run(args)),
+        Command::Drive(args) => runtime.block_on(drive::run(args)),
         // winit wants the main thread; the client's tasks run on the runtime's workers.
         Command::View(args) => view::run(args, &runtime),
     }

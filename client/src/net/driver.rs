@@ -70,7 +70,9 @@ impl Driver {
             url: url.to_owned(),
             message: e.to_string(),
         };
-        let (ws, _) = tokio_tungstenite::connect_async(url)
+        // TCP_NODELAY: a pose is a small write every 8–17 ms, and Nagle's algorithm would hold
+        // one back until the server acknowledges the previous (up to a delayed-ACK time).
+        let (ws, _) = tokio_tungstenite::connect_async_with_config(url, None, true)
             .await
             .map_err(|e| connect_err(&e))?;
         let (mut sink, mut stream) = ws.split();

@@ -1,6 +1,7 @@
-//! A minimal HTTP/1.1 GET over `tokio::net::TcpStream`, enough to fetch an avatar's mesh from
-//! the server that streams it (plain `http`, `Content-Length` or chunked bodies). A full HTTP
-//! client would pull in TLS and a connection pool for one request per avatar.
+//! A minimal HTTP/1.1 client over `tokio::net::TcpStream`, enough to fetch an avatar's mesh from
+//! the server that streams it and to upload a file to it (plain `http`, `Content-Length` or
+//! chunked bodies, one request per connection). A full HTTP client would pull in TLS and a
+//! connection pool for a handful of requests.
 
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -28,6 +29,8 @@ pub enum FetchError {
     },
     #[error("{url}: HTTP status {status}")]
     Status { url: String, status: u16 },
+    #[error("{url}: header {name} holds a line break")]
+    Header { url: String, name: String },
     #[error("{url}: malformed response: {message}")]
     Response { url: String, message: String },
     #[error("{url}: response larger than {limit} bytes")]
@@ -57,10 +60,37 @@ pub fn resolve(ws_url: &str, path: &str) -> Result<Url, FetchError> {
     })
 }
 
+/// An HTTP response: its status and (de-chunked) body.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Response {
+    /// The HTTP status code.
+    pub status: u16,
+    /// The body, whatever the status (the server's errors are `{"code","message"}`).
+    pub body: Vec<u8>,
+}
+
 /// GETs `url` and returns the body of a 200 response.
 pub async fn get(url: &Url) -> Result<Vec<u8>, FetchError> {
+    let response = request("GET", url, &[("Accept", "model/gltf-binary, */*")], &[]).await?;
+    if response.status != 200 {
+        return Err(FetchError::Status {
+            url: url.to_string(),
+            status: response.status,
+        });
+    }
+    Ok(response.body)
+}
+
+/// Sends one request (`method`, extra `headers`, `body` with its `Content-Length`) and returns
+/// the response whatever its status, so callers can read a server's typed error body.
+pub async fn request(
+    method: &str,
+    url: &Url,
+    headers: &[(&str, &str)],
+    body: &[u8],
+) -> Result<Response, FetchError> {
     let name = url.to_string();
-    match tokio::time::timeout(TIMEOUT, get_inner(url, &name)).await {
+    match tokio::time::timeout(TIMEOUT, request_inner(method, url, headers, body, &name)).await {
         Ok(result) => result,
         Err(_) => Err(FetchError::Timeout {
             url: name,
@@ -69,7 +99,13 @@ pub async fn get(url: &Url) -> Result<Vec<u8>, FetchError> {
     }
 }
 
-async fn get_inner(url: &Url, name: &str) -> Result<Vec<u8>, FetchError> {
+async fn request_inner(
+    method: &str,
+    url: &Url,
+    headers: &[(&str, &str)],
+    body: &[u8],
+    name: &str,
+) -> Result<Response, FetchError> {
     if url.scheme() != "http" {
         return Err(FetchError::Scheme {
             url: name.to_owned(),
@@ -81,6 +117,29 @@ async fn get_inner(url: &Url, name: &str) -> Result<Vec<u8>, FetchError> {
         message: "no host".into(),
     })?;
     let port = url.port_or_known_default().unwrap_or(80);
+    let mut target = url.path().to_owned();
+    if let Some(q) = url.query() {
+        target.push('?');
+        target.push_str(q);
+    }
+    let mut head = format!(
+        "{method} {target} HTTP/1.1\r\nHost: {host}:{port}\r\nUser-Agent: posecast-client\r\n\
+         Connection: close\r\n"
+    );
+    for (key, value) in headers {
+        // A line break would end the header early and smuggle in another.
+        if [key, value].iter().any(|s| s.contains(['\r', '\n'])) {
+            return Err(FetchError::Header {
+                url: name.to_owned(),
+                name: (*key).to_owned(),
+            });
+        }
+        head.push_str(&format!("{key}: {value}\r\n"));
+    }
+    if !body.is_empty() || !matches!(method, "GET" | "HEAD") {
+        head.push_str(&format!("Content-Length: {}\r\n", body.len()));
+    }
+    head.push_str("\r\n");
     let io = |source| FetchError::Io {
         url: name.to_owned(),
         source,
@@ -88,51 +147,38 @@ async fn get_inner(url: &Url, name: &str) -> Result<Vec<u8>, FetchError> {
     let mut stream = tokio::net::TcpStream::connect((host, port))
         .await
         .map_err(io)?;
-    let mut target = url.path().to_owned();
-    if let Some(q) = url.query() {
-        target.push('?');
-        target.push_str(q);
-    }
-    let request = format!(
-        "GET {target} HTTP/1.1\r\nHost: {host}:{port}\r\nUser-Agent: posecast-client\r\n\
-         Accept: model/gltf-binary, */*\r\nConnection: close\r\n\r\n"
-    );
-    stream.write_all(request.as_bytes()).await.map_err(io)?;
+    // A server may answer before reading the whole body (413) and close: the answer read below
+    // is worth more than the write's broken pipe, which is only reported without one.
+    let written = match stream.write_all(head.as_bytes()).await {
+        Ok(()) => stream.write_all(body).await,
+        Err(e) => Err(e),
+    };
     let mut raw = Vec::new();
     // One byte past the limit tells "exactly at the limit" from "over it".
     let cap = (MAX_RESPONSE_BYTES + 64 * 1024 + 1) as u64;
-    (&mut stream)
-        .take(cap)
-        .read_to_end(&mut raw)
-        .await
-        .map_err(io)?;
+    let read = (&mut stream).take(cap).read_to_end(&mut raw).await;
     if raw.len() as u64 >= cap {
         return Err(FetchError::TooLarge {
             url: name.to_owned(),
             limit: MAX_RESPONSE_BYTES,
         });
     }
-    parse_response(&raw).map_err(|e| match e {
-        Parsed::Status(status) => FetchError::Status {
-            url: name.to_owned(),
-            status,
-        },
-        Parsed::Malformed(message) => FetchError::Response {
-            url: name.to_owned(),
-            message,
-        },
-    })
+    match parse_response(&raw) {
+        Ok((status, body)) => Ok(Response { status, body }),
+        Err(message) => {
+            written.map_err(io)?;
+            read.map_err(io)?;
+            Err(FetchError::Response {
+                url: name.to_owned(),
+                message,
+            })
+        }
+    }
 }
 
-#[derive(Debug, PartialEq)]
-enum Parsed {
-    Status(u16),
-    Malformed(String),
-}
-
-/// The body of a complete `Connection: close` response with status 200.
-fn parse_response(raw: &[u8]) -> Result<Vec<u8>, Parsed> {
-    let malformed = |m: &str| Parsed::Malformed(m.to_owned());
+/// The status and body of a complete `Connection: close` response.
+fn parse_response(raw: &[u8]) -> Result<(u16, Vec<u8>), String> {
+    let malformed = |m: &str| m.to_owned();
     let end = raw
         .windows(4)
         .position(|w| w == b"\r\n\r\n")
@@ -146,9 +192,6 @@ fn parse_response(raw: &[u8]) -> Result<Vec<u8>, Parsed> {
         .nth(1)
         .and_then(|s| s.parse().ok())
         .ok_or_else(|| malformed("no status code"))?;
-    if status != 200 {
-        return Err(Parsed::Status(status));
-    }
     let mut length = None;
     let mut chunked = false;
     for line in lines {
@@ -166,16 +209,18 @@ fn parse_response(raw: &[u8]) -> Result<Vec<u8>, Parsed> {
             chunked = value.to_ascii_lowercase().contains("chunked");
         }
     }
-    if chunked {
-        return dechunk(body).ok_or_else(|| malformed("bad chunked body"));
-    }
-    match length {
-        Some(n) => body
-            .get(..n)
-            .map(<[u8]>::to_vec)
-            .ok_or_else(|| malformed("body shorter than Content-Length")),
-        None => Ok(body.to_vec()),
-    }
+    let body = if chunked {
+        dechunk(body).ok_or_else(|| malformed("bad chunked body"))?
+    } else {
+        match length {
+            Some(n) => body
+                .get(..n)
+                .map(<[u8]>::to_vec)
+                .ok_or_else(|| malformed("body shorter than Content-Length"))?,
+            None => body.to_vec(),
+        }
+    };
+    Ok((status, body))
 }
 
 fn dechunk(mut body: &[u8]) -> Option<Vec<u8>> {
@@ -213,19 +258,25 @@ mod tests {
     #[test]
     fn responses_parse() {
         let ok = b"HTTP/1.1 200 OK\r\ncontent-length: 5\r\n\r\nhello";
-        assert_eq!(parse_response(ok).unwrap(), b"hello");
+        assert_eq!(parse_response(ok).unwrap(), (200, b"hello".to_vec()));
         let chunked =
             b"HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\n3\r\nhel\r\n2\r\nlo\r\n0\r\n\r\n";
-        assert_eq!(parse_response(chunked).unwrap(), b"hello");
-        let missing = b"HTTP/1.1 404 Not Found\r\ncontent-length: 0\r\n\r\n";
-        assert_eq!(parse_response(missing), Err(Parsed::Status(404)));
+        assert_eq!(parse_response(chunked).unwrap(), (200, b"hello".to_vec()));
+        let conflict = b"HTTP/1.1 409 Conflict\r\ncontent-length: 4\r\n\r\n{..}";
+        assert_eq!(parse_response(conflict).unwrap(), (409, b"{..}".to_vec()));
         let short = b"HTTP/1.1 200 OK\r\ncontent-length: 9\r\n\r\nhello";
-        assert!(matches!(parse_response(short), Err(Parsed::Malformed(_))));
+        assert!(parse_response(short).is_err());
         let bad_chunk = b"HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\nzz\r\n";
-        assert!(matches!(
-            parse_response(bad_chunk),
-            Err(Parsed::Malformed(_))
-        ));
+        assert!(parse_response(bad_chunk).is_err());
         assert!(parse_response(b"garbage").is_err());
+    }
+
+    #[tokio::test]
+    async fn a_header_with_a_line_break_is_refused_before_connecting() {
+        // Port 9 (discard) is never contacted: the check comes first.
+        let url = Url::parse("http://127.0.0.1:9/api/assets/x").unwrap();
+        let smuggled = [("Authorization", "Bearer t\r\nX-Evil: 1")];
+        let err = request("POST", &url, &smuggled, b"body").await.unwrap_err();
+        assert!(matches!(err, FetchError::Header { .. }), "{err}");
     }
 }

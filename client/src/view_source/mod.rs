@@ -2,7 +2,8 @@
 //! ([`resolve_mesh`]), waiting for a pose that reflects a command ([`fresh_pose`]), and
 //! [`ClientSource`], the viewer's [`PoseSource`] over a [`Client`].
 //!
-//! - [`fetch`]: the HTTP GET used for the server's mesh endpoint.
+//! - [`fetch`]: the minimal HTTP client: the GET of the server's mesh endpoint, and the
+//!   `posecast-client drive` upload of its source rig.
 
 pub mod fetch;
 
