@@ -391,6 +391,11 @@ async fn the_drivers_disconnect_returns_the_avatar_to_its_clip() {
     let d = driver(&server, ALICE).await;
     let clip = paused_clip_elbow(&server, &sub, &d).await;
     drive_away(&server, &sub, &d, None).await;
+    let driven = |server: &Server| {
+        let scene = server.state.world.find_avatar(&avatar()).unwrap();
+        scene.info().avatars[0].driven
+    };
+    assert!(driven(&server), "get_avatar reports the driver");
     d.close().await;
     let elbow = joint(&server, "l_elbow");
     assert!(
@@ -399,6 +404,7 @@ async fn the_drivers_disconnect_returns_the_avatar_to_its_clip() {
             .is_some(),
         "back to the clip's pose after the driver left"
     );
+    assert!(!driven(&server), "and no more once it left");
 }
 
 #[tokio::test]
