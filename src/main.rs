@@ -233,7 +233,14 @@ const FRAME_LOGGING_TARGETS: [&str; 3] = ["tungstenite", "tokio_tungstenite", "a
 /// separate filter and-ed with `RUST_LOG`, so no directive in it (e.g. `tungstenite=trace`) can
 /// lift it.
 fn init_logging() {
-    let requested = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    // A `RUST_LOG` that does not parse is said, not silently replaced.
+    let (requested, bad) = match std::env::var("RUST_LOG") {
+        Ok(v) if !v.trim().is_empty() => match EnvFilter::try_new(&v) {
+            Ok(f) => (f, None),
+            Err(e) => (EnvFilter::new("info"), Some(format!("{v:?}: {e}"))),
+        },
+        _ => (EnvFilter::new("info"), None),
+    };
     let capped = FRAME_LOGGING_TARGETS.iter().fold(
         Targets::new().with_default(LevelFilter::TRACE),
         |t, target| t.with_target(*target, LevelFilter::DEBUG),
@@ -241,6 +248,9 @@ fn init_logging() {
     tracing_subscriber::registry()
         .with(tracing_subscriber::fmt::layer().with_filter(requested.and(capped)))
         .init();
+    if let Some(bad) = bad {
+        tracing::warn!("RUST_LOG {bad}; logging at info instead");
+    }
 }
 
 /// The access rules from the file and flags, and a generated control token when none is
@@ -291,6 +301,15 @@ async fn main() -> anyhow::Result<()> {
         args.tick_rate.is_finite() && args.tick_rate > 0.0 && args.tick_rate <= 1000.0,
         "--tick-rate must be in (0, 1000]"
     );
+    // A folder named on the command line that is not there is a typo to report, not a
+    // start without its assets.
+    for dir in &args.assets {
+        anyhow::ensure!(
+            dir.is_dir(),
+            "--assets {}: not a folder (missing or not a directory)",
+            dir.display()
+        );
+    }
     let (access, generated) = access(&args)?;
     let config = Config {
         listen: args.listen,

@@ -440,3 +440,56 @@ async fn grouped_and_rate_limited_acks_survive_sigkill() {
     }
     server.kill();
 }
+
+/// One data folder, one server: a second server on it refuses to start and names the folder
+/// and the holder, and the folder is free again once the first has stopped.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_second_server_on_the_same_data_folder_refuses_to_start() {
+    let data = tempfile::tempdir().unwrap();
+    let config = || posecast_server::config::Config {
+        listen: "127.0.0.1:0".parse().unwrap(),
+        data_dir: Some(data.path().to_owned()),
+        ..posecast_server::config::Config::default()
+    };
+    let first = posecast_server::startup::Server::start(config())
+        .await
+        .unwrap();
+    first.ready().await.unwrap();
+    let refused = posecast_server::startup::Server::start(config())
+        .await
+        .expect_err("a second server started on a folder in use");
+    let message = refused.to_string();
+    assert!(
+        message.contains(&data.path().display().to_string())
+            && message.contains("another posecast server")
+            && message.contains(&std::process::id().to_string()),
+        "{message}"
+    );
+    first.stop().await;
+    let again = posecast_server::startup::Server::start(config())
+        .await
+        .unwrap();
+    again.ready().await.unwrap();
+    again.stop().await;
+}
+
+/// A busy port is reported with its address, before the data folder is touched.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_busy_port_is_named_and_the_data_folder_left_alone() {
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = taken.local_addr().unwrap();
+    let parent = tempfile::tempdir().unwrap();
+    let data = parent.path().join("data");
+    let refused = posecast_server::startup::Server::start(posecast_server::config::Config {
+        listen: addr,
+        data_dir: Some(data.clone()),
+        ..posecast_server::config::Config::default()
+    })
+    .await
+    .expect_err("started on a busy port");
+    assert!(refused.to_string().contains(&addr.to_string()), "{refused}");
+    assert!(
+        !data.exists(),
+        "the data folder was created before listening"
+    );
+}

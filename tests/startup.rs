@@ -273,3 +273,18 @@ fn resident_memory_does_not_hold_stored_upload_bytes() {
         files >> 20
     );
 }
+
+/// A missing `--assets` folder stops the start with its name; a `RUST_LOG` that does not
+/// parse is reported (and the server runs at `info`).
+#[test]
+fn a_missing_assets_folder_is_an_error_and_a_bad_rust_log_is_reported() {
+    let (status, output) =
+        common::child::run_to_exit(&["--assets", "/no/such/folder", "--no-persist"], &[]);
+    assert!(!status.success(), "{output}");
+    assert!(output.contains("/no/such/folder"), "{output}");
+    let server = Posecast::launch(&["--no-persist"], &[("RUST_LOG", "posecast=bogus_level")]);
+    std::thread::sleep(Duration::from_millis(300));
+    let printed = server.output().join("\n");
+    assert!(printed.contains("RUST_LOG"), "{printed}");
+    server.kill();
+}

@@ -38,11 +38,17 @@ impl Server {
     /// Binding fails, or the data folder cannot be created or written (the error names it).
     pub async fn start(config: Config) -> std::io::Result<Self> {
         let state = AppState::new(config.clone());
+        // The address first: a busy port is reported as such, and the data folder (maybe
+        // another server's) is not touched.
+        let listener = tokio::net::TcpListener::bind(config.listen)
+            .await
+            .map_err(|e| {
+                std::io::Error::new(e.kind(), format!("cannot listen on {}: {e}", config.listen))
+            })?;
+        let addr = listener.local_addr()?;
         let first_start = open_data_folder(&state)?;
         let plan = restore::Plan::new(&state, first_start);
         state.readiness.begin(plan.len());
-        let listener = tokio::net::TcpListener::bind(config.listen).await?;
-        let addr = listener.local_addr()?;
         let (tx, rx) = oneshot::channel::<()>();
         let router = app(state.clone());
         let task = tokio::spawn(serve(listener, router, state.clone(), rx));
@@ -96,6 +102,8 @@ impl Server {
             Ok(_) => {}
             Err(_) => self.task.abort(),
         }
+        // Every acknowledged change is on disk: another server may have the folder now.
+        self.state.store.release();
     }
 
     /// Waits until the server task ends.

@@ -5,6 +5,7 @@
 //!
 //! ```text
 //! DIR/posecast.json          {"format": 1}: written once the folder is initialised
+//! DIR/posecast.lock          held (flock) by the server using the folder: a second one refuses
 //! DIR/scenes/<scene>.json    one file per scene (see snapshot::SceneFile)
 //! DIR/assets/<name>/         an uploaded asset: its original files as uploaded …
 //! DIR/assets/<name>/meta.json  … and which of them make the asset (see assets::AssetMeta)
@@ -54,12 +55,15 @@ use crate::scene::ticker::unix_micros;
 use crate::world::World;
 use posecast_proto::msg::SceneId;
 use std::collections::{BTreeMap, BTreeSet};
-use std::io;
+use std::io::{self, Write as _};
 use std::path::{Path, PathBuf};
 use tracing::{info, warn};
 
 /// Version of the data folder layout (in `posecast.json`).
 pub const DATA_FORMAT: u32 = 1;
+
+/// The lock file a running server holds in its data folder (see [`Store::open`]).
+pub const LOCK_FILE: &str = "posecast.lock";
 
 const MARKER: &str = "posecast.json";
 /// Temporary upload folders under `assets/` start with this (never a valid asset name).
@@ -69,6 +73,9 @@ pub(crate) const UPLOAD_TMP_PREFIX: &str = ".upload-";
 #[derive(Debug)]
 pub struct Store {
     root: Option<PathBuf>,
+    /// The data folder's lock file, held (an advisory exclusive lock) while this server runs:
+    /// a second server on the same folder refuses to start ([`Store::open`]).
+    held: std::sync::Mutex<Option<std::fs::File>>,
     lock: std::sync::Arc<tokio::sync::Mutex<()>>,
     assets_lock: tokio::sync::Mutex<()>,
     /// Scenes whose acks wait for the next write (group commit, see [`Store::persist_scene`]).
@@ -170,6 +177,7 @@ impl Store {
     pub fn new(root: Option<PathBuf>) -> Self {
         Self {
             root,
+            held: std::sync::Mutex::new(None),
             lock: std::sync::Arc::new(tokio::sync::Mutex::new(())),
             assets_lock: tokio::sync::Mutex::new(()),
             open_batch: std::sync::Mutex::new(Batch::default()),
@@ -236,6 +244,8 @@ impl Store {
         let Some(root) = &self.root else {
             return Ok(true);
         };
+        std::fs::create_dir_all(root)?;
+        self.take_lock(root)?;
         for dir in [root.join("scenes"), root.join("assets")] {
             std::fs::create_dir_all(&dir)?;
         }
@@ -255,6 +265,56 @@ impl Store {
             }
         }
         Ok(!root.join(MARKER).is_file())
+    }
+
+    /// Takes the folder's lock file (`DIR/posecast.lock`) before anything in the folder is
+    /// touched: two servers writing one folder would overwrite each other's scenes. The lock
+    /// is the kernel's (`flock`), so it goes with the process however it ends — no stale
+    /// lock after a crash. The file holds the holder's process id, for people.
+    fn take_lock(&self, root: &Path) -> io::Result<()> {
+        let path = root.join(LOCK_FILE);
+        let file = std::fs::OpenOptions::new()
+            .create(true)
+            .truncate(false)
+            .read(true)
+            .write(true)
+            .open(&path)?;
+        match file.try_lock() {
+            Ok(()) => {}
+            Err(std::fs::TryLockError::WouldBlock) => {
+                let holder = std::fs::read_to_string(&path).unwrap_or_default();
+                let holder = holder.trim();
+                return Err(io::Error::new(
+                    io::ErrorKind::ResourceBusy,
+                    format!(
+                        "another posecast server{} uses this data folder (it holds {})",
+                        if holder.is_empty() {
+                            String::new()
+                        } else {
+                            format!(" (process {holder})")
+                        },
+                        path.display()
+                    ),
+                ));
+            }
+            Err(std::fs::TryLockError::Error(e)) => return Err(e),
+        }
+        file.set_len(0)?;
+        (&file).write_all(format!("{}\n", std::process::id()).as_bytes())?;
+        *self
+            .held
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = Some(file);
+        Ok(())
+    }
+
+    /// Gives the data folder's lock back (the server stopped; a process that exits gives it
+    /// back anyway).
+    pub fn release(&self) {
+        self.held
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .take();
     }
 
     /// Records that the folder is initialised (after the first start stored its scenes).
