@@ -69,7 +69,7 @@ impl SkinnedMesh {
         }
         check_len("joint indices", n * influences, joints.len())?;
         check_len("weights", n * influences, weights.len())?;
-        if indices.len() % 3 != 0 {
+        if !indices.len().is_multiple_of(3) {
             return Err(MeshError::NotTriangles {
                 count: indices.len(),
             });

@@ -327,7 +327,7 @@ fn mesh_is_big_enough_and_smoothly_weighted() {
         "{} vertices",
         a.mesh.vertex_count()
     );
-    assert!(!a.mesh.indices().is_empty() && a.mesh.indices().len() % 3 == 0);
+    assert!(!a.mesh.indices().is_empty() && a.mesh.indices().len().is_multiple_of(3));
     let mut blended = 0;
     let mut three_or_more = 0;
     for (v, (joints, weights)) in a.raw_joints.iter().zip(&a.raw_weights).enumerate() {

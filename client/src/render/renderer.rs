@@ -198,10 +198,10 @@ impl Renderer {
             mesh,
             Vec3::from(color),
         )?;
-        if let Some(kernel) = &self.kernel {
-            if self.options.skinning == SkinningPath::Compute {
-                avatar.ensure_compute(&self.device, kernel);
-            }
+        if let Some(kernel) = &self.kernel
+            && self.options.skinning == SkinningPath::Compute
+        {
+            avatar.ensure_compute(&self.device, kernel);
         }
         self.next_handle += 1;
         self.avatars.insert(handle, avatar);

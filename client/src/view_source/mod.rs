@@ -136,10 +136,10 @@ pub async fn fresh_pose(
 ) -> Result<PoseSample, ClientError> {
     let deadline = tokio::time::Instant::now() + timeout;
     loop {
-        if let Some(sample) = client.latest(avatar) {
-            if sample.seq >= after_seq + 2 {
-                return Ok(sample);
-            }
+        if let Some(sample) = client.latest(avatar)
+            && sample.seq >= after_seq + 2
+        {
+            return Ok(sample);
         }
         if tokio::time::Instant::now() >= deadline {
             return Err(ClientError::Timeout("a pose after the command"));

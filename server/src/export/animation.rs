@@ -287,10 +287,10 @@ fn resample_times(clip: &Clip, keys: &[f32]) -> Vec<f32> {
         match kept.last() {
             Some(&last) if t - last < MIN_KEY_GAP => {
                 // Keep the range's end exactly.
-                if t == clip.end() {
-                    if let Some(l) = kept.last_mut() {
-                        *l = t;
-                    }
+                if t == clip.end()
+                    && let Some(l) = kept.last_mut()
+                {
+                    *l = t;
                 }
             }
             _ => kept.push(t),

@@ -76,10 +76,10 @@ pub fn write(
             rig_joints: skeleton.len(),
         });
     }
-    if let Some(dt) = frame_time {
-        if !(dt.is_finite() && dt > 0.0) {
-            return Err(ExportError::FrameTime { frame_time: dt });
-        }
+    if let Some(dt) = frame_time
+        && !(dt.is_finite() && dt > 0.0)
+    {
+        return Err(ExportError::FrameTime { frame_time: dt });
     }
     let duration = f64::from(clip.duration());
     let grid = if frame_time.is_some() {
@@ -365,10 +365,11 @@ fn frame_times(clip: &Clip, dt: f64, frames: usize, grid: Option<&KeyGrid<'_>>) 
         .flat_map(|k| k.iter())
     {
         let k = ((f64::from(t) - start) / dt).round();
-        if k >= 0.0 && t <= clip.end() {
-            if let Some(slot) = times.get_mut(k as usize) {
-                *slot = t;
-            }
+        if k >= 0.0
+            && t <= clip.end()
+            && let Some(slot) = times.get_mut(k as usize)
+        {
+            *slot = t;
         }
     }
     times

@@ -346,7 +346,7 @@ fn check_primitive(
             return Err(fail(format!("{len} {what} for {n} positions")));
         }
     }
-    if prim.indices.len() % 3 != 0 {
+    if !prim.indices.len().is_multiple_of(3) {
         return Err(fail(format!(
             "{} indices do not make triangles",
             prim.indices.len()
@@ -505,7 +505,7 @@ impl Builder {
     }
 
     fn align(&mut self) {
-        while self.bin.len() % 4 != 0 {
+        while !self.bin.len().is_multiple_of(4) {
             self.bin.push(0);
         }
     }

@@ -54,13 +54,13 @@ pub fn parse(name: &str, text: &str, skeleton: &Skeleton) -> Result<Clip, Import
             _ => return Err(tokens.syntax(t, "`range`, `numchannels`, `channel` or `}`")),
         }
     }
-    if let Some((n, line)) = declared {
-        if n != curves.len() {
-            return Err(tokens.invalid(
-                line,
-                format!("numchannels says {n}, the file has {}", curves.len()),
-            ));
-        }
+    if let Some((n, line)) = declared
+        && n != curves.len()
+    {
+        return Err(tokens.invalid(
+            line,
+            format!("numchannels says {n}, the file has {}", curves.len()),
+        ));
     }
     let mut curves = curves.into_iter();
     let mut joints = vec![JointChannels::default(); skeleton.len()];

@@ -183,12 +183,12 @@ pub fn map_names(
                 .iter()
                 .position(|g| matches!(g, Some(Guess::Name(_, s)) if s == &format!("{side}_hip")))
         };
-        if let (Some(l), Some(r)) = (hip("l"), hip("r")) {
-            if let Some(a) = common_ancestor(skeleton, l, r) {
-                guess[a] = Some(Guess::Name(1, "humanoid_root".into()));
-                spine.retain(|&j| j != a);
-                neck.retain(|&j| j != a);
-            }
+        if let (Some(l), Some(r)) = (hip("l"), hip("r"))
+            && let Some(a) = common_ancestor(skeleton, l, r)
+        {
+            guess[a] = Some(Guess::Name(1, "humanoid_root".into()));
+            spine.retain(|&j| j != a);
+            neck.retain(|&j| j != a);
         }
     }
     for (list, names) in [
@@ -211,11 +211,11 @@ pub fn map_names(
         (std::cmp::Reverse(p), depth[j], j)
     });
     for j in order {
-        if let Some(Guess::Name(_, name)) = &guess[j] {
-            if !owner.contains_key(name) {
-                owner.insert(name.clone(), j);
-                hanim[j] = Some(name.clone());
-            }
+        if let Some(Guess::Name(_, name)) = &guess[j]
+            && !owner.contains_key(name)
+        {
+            owner.insert(name.clone(), j);
+            hanim[j] = Some(name.clone());
         }
     }
     if let Some(map) = overrides {

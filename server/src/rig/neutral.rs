@@ -115,16 +115,16 @@ pub fn hanim_pose(asset: &Asset, hanim: &[Option<String>]) -> Result<Vec<Quat>, 
                 pose.align(a, b, Vec3::NEG_Y, Vec3::Z);
             }
         }
-        if let Some(ankle) = j("ankle") {
-            if let Some(toe) = j("midtarsal").or_else(|| pose.first_child(ankle, &[])) {
-                let a = pose.position(toe) - pose.position(ankle);
-                let flat = Vec3::new(a.x, 0.0, a.z);
-                if flat.length() > pose.eps {
-                    pose.rotate_world(
-                        ankle,
-                        half_vector_rotation(flat.normalize(), Vec3::Z, Vec3::Y),
-                    );
-                }
+        if let Some(ankle) = j("ankle")
+            && let Some(toe) = j("midtarsal").or_else(|| pose.first_child(ankle, &[]))
+        {
+            let a = pose.position(toe) - pose.position(ankle);
+            let flat = Vec3::new(a.x, 0.0, a.z);
+            if flat.length() > pose.eps {
+                pose.rotate_world(
+                    ankle,
+                    half_vector_rotation(flat.normalize(), Vec3::Z, Vec3::Y),
+                );
             }
         }
         for (a, b) in [("shoulder", "elbow"), ("elbow", "wrist")] {

@@ -50,10 +50,10 @@ pub fn simplify(asset: Asset) -> Result<(Asset, JointMaps, Vec<String>), RigErro
     let mut weighted = vec![false; sk.len()];
     for m in &asset.meshes {
         for (&j, &w) in m.mesh.joints().iter().zip(m.mesh.weights()) {
-            if w > 0.0 {
-                if let Some(x) = weighted.get_mut(usize::from(j)) {
-                    *x = true;
-                }
+            if w > 0.0
+                && let Some(x) = weighted.get_mut(usize::from(j))
+            {
+                *x = true;
             }
         }
     }

@@ -349,7 +349,7 @@ impl Feed {
         let mut bytes_out = 0u64;
         let mut offered = 0u64;
         for sub in &mut self.subscribers {
-            if at.seq % u64::from(sub.every) != 0 {
+            if !at.seq.is_multiple_of(u64::from(sub.every)) {
                 continue;
             }
             let filter = sub.filter.as_deref();

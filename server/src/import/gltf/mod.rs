@@ -120,10 +120,10 @@ fn import_document(
     let mut animated = vec![false; nodes.local.len()];
     for a in doc.animations() {
         for c in a.channels() {
-            if c.target().property() != Property::MorphTargetWeights {
-                if let Some(x) = animated.get_mut(c.target().node().index()) {
-                    *x = true;
-                }
+            if c.target().property() != Property::MorphTargetWeights
+                && let Some(x) = animated.get_mut(c.target().node().index())
+            {
+                *x = true;
             }
         }
     }
