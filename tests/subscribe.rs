@@ -128,11 +128,16 @@ impl Watcher {
         }
     }
 
-    /// The next message, or `None` after `secs` seconds.
+    /// The next message, or `None` after `secs` seconds. The server's keep-alive pings (every
+    /// 15 s; a slow machine can take that long here) are answered by tungstenite and skipped.
     async fn next_within(&mut self, secs: f32) -> Option<Got> {
-        let msg = tokio::time::timeout(Duration::from_secs_f32(secs), self.ws.next())
-            .await
-            .ok()?;
+        let deadline = tokio::time::Instant::now() + Duration::from_secs_f32(secs);
+        let msg = loop {
+            let msg = tokio::time::timeout_at(deadline, self.ws.next()).await.ok()?;
+            if !matches!(msg, Some(Ok(Message::Ping(_) | Message::Pong(_)))) {
+                break msg;
+            }
+        };
         Some(match msg {
             None => Got::Closed("end of stream".into()),
             Some(Err(e)) => Got::Closed(e.to_string()),
