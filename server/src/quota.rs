@@ -110,43 +110,6 @@ impl Quota {
     }
 }
 
-impl Quotas {
-    /// Checks a rig's size and every clip's duration × joints against the limits for any rig.
-    ///
-    /// # Errors
-    /// [`Quota::Joints`] or [`Quota::ClipJointSeconds`], with its typed error.
-    pub fn check_rig(&self, rig: &crate::rig::Rig) -> Result<(), (Quota, Error)> {
-        let joints = rig.skeleton().len();
-        if joints > self.max_joints {
-            return Err((
-                Quota::Joints,
-                Quota::Joints.exceeded(
-                    format!("rig {} has {joints} joints", rig.name),
-                    self.max_joints,
-                ),
-            ));
-        }
-        for clip in &rig.clips {
-            let cost = f64::from(clip.duration()) * joints as f64;
-            if cost > self.max_clip_joint_seconds {
-                return Err((
-                    Quota::ClipJointSeconds,
-                    Quota::ClipJointSeconds.exceeded(
-                    format!(
-                        "clip {} of rig {} lasts {} s × {joints} joints = {cost:.0} joint-seconds",
-                        clip.name(),
-                        rig.name,
-                        clip.duration()
-                    ),
-                    self.max_clip_joint_seconds,
-                ),
-                ));
-            }
-        }
-        Ok(())
-    }
-}
-
 /// A per-connection command rate limit: a token bucket of `burst` commands refilled at
 /// `per_second`. A command past it is refused with `rate_limited` and `retry_after_ms`, the
 /// time until one token is back; nothing else about the connection changes.

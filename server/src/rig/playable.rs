@@ -5,6 +5,8 @@
 use super::{PipelineOptions, RigError, RigView, normalise};
 use crate::asset::Asset;
 use crate::clip::Clip;
+use crate::error::Error;
+use crate::quota::{Quota, Quotas};
 use glam::Quat;
 use posecast_proto::command::{AssetInfo, ClipInfo};
 use posecast_proto::{JointDofs, Skeleton};
@@ -133,6 +135,41 @@ impl Rig {
             self.limits.clone(),
             self.hanim.clone(),
         )
+    }
+
+    /// Checks the rig's size and every clip's duration × joints against the limits for any rig.
+    ///
+    /// # Errors
+    /// [`Quota::Joints`] or [`Quota::ClipJointSeconds`], with its typed error.
+    pub fn check_quotas(&self, quotas: &Quotas) -> Result<(), (Quota, Error)> {
+        let joints = self.skeleton().len();
+        if joints > quotas.max_joints {
+            return Err((
+                Quota::Joints,
+                Quota::Joints.exceeded(
+                    format!("rig {} has {joints} joints", self.name),
+                    quotas.max_joints,
+                ),
+            ));
+        }
+        for clip in &self.clips {
+            let cost = f64::from(clip.duration()) * joints as f64;
+            if cost > quotas.max_clip_joint_seconds {
+                return Err((
+                    Quota::ClipJointSeconds,
+                    Quota::ClipJointSeconds.exceeded(
+                    format!(
+                        "clip {} of rig {} lasts {} s × {joints} joints = {cost:.0} joint-seconds",
+                        clip.name(),
+                        self.name,
+                        clip.duration()
+                    ),
+                    quotas.max_clip_joint_seconds,
+                ),
+                ));
+            }
+        }
+        Ok(())
     }
 
     /// The rig as retargeting sees it (asset and H-Anim names).

@@ -36,9 +36,9 @@ fn conflict(name: &str) -> Error {
     Error::Conflict(format!("an asset named {name} exists"))
 }
 
-/// The rig quotas ([`crate::quota::Quotas::check_rig`]), counted in the metrics when refused.
+/// The rig quotas ([`crate::rig::Rig::check_quotas`]), counted in the metrics when refused.
 fn check_rig(state: &AppState, rig: &Rig) -> Result<(), Error> {
-    state.config.quotas.check_rig(rig).map_err(|(quota, e)| {
+    rig.check_quotas(&state.config.quotas).map_err(|(quota, e)| {
         state.metrics.quota_refused(quota);
         e
     })
