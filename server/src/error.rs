@@ -4,7 +4,6 @@
 //! The transport (`service`) also builds a few wire errors of its own — a message that is not
 //! JSON, a missing hello — that have no meaning below it.
 
-use crate::quota::Quota;
 use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError, SceneId};
 
 /// A failed request, command or import step. Nothing was changed by whatever returned it.
@@ -59,10 +58,10 @@ pub enum Error {
     #[error("{0}")]
     Internal(String),
     /// A deployment limit ([`crate::quota::Quotas`]).
-    #[error("quota {}: {detail} (the limit is {limit})", quota.name())]
+    #[error("quota {quota}: {detail} (the limit is {limit})")]
     Quota {
-        /// Which limit.
-        quota: Quota,
+        /// Which limit (its name in `/metrics` and the message).
+        quota: &'static str,
         /// What was asked.
         detail: String,
         /// The limit, as people read it.
@@ -171,7 +170,7 @@ mod tests {
             ),
             (
                 Error::Quota {
-                    quota: Quota::Scenes,
+                    quota: "scenes",
                     detail: "scene s would be scene 3".into(),
                     limit: "2".into(),
                 },

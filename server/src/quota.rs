@@ -103,7 +103,7 @@ impl Quota {
     #[must_use]
     pub fn exceeded(self, what: impl std::fmt::Display, limit: impl std::fmt::Display) -> Error {
         Error::Quota {
-            quota: self,
+            quota: self.name(),
             detail: what.to_string(),
             limit: limit.to_string(),
         }
