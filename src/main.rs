@@ -6,7 +6,7 @@ use clap::Parser;
 use posecast_server::auth::{AccessConfig, Role, Secret, TokenRule};
 use posecast_server::config::{
     Config, DEFAULT_MAX_CONNECTIONS, DEFAULT_MAX_CONNECTIONS_PER_ADDRESS, DEFAULT_MAX_UPLOAD_BYTES,
-    NetLimits,
+    DEFAULT_TCP_NOTSENT_LOWAT, NetLimits,
 };
 use posecast_server::quota::{CommandRate, Quotas};
 use posecast_server::readiness::Phase;
@@ -166,6 +166,10 @@ struct NetArgs {
     #[arg(long, env = "POSECAST_MAX_CONNECTIONS_PER_ADDRESS",
           default_value_t = DEFAULT_MAX_CONNECTIONS_PER_ADDRESS, value_parser = at_least_one)]
     max_connections_per_address: usize,
+    /// Unsent bytes the kernel may hold per connection (TCP_NOTSENT_LOWAT; 0: the kernel's
+    /// default): past them the server keeps only the newest frames itself.
+    #[arg(long, env = "POSECAST_TCP_NOTSENT_LOWAT", default_value_t = DEFAULT_TCP_NOTSENT_LOWAT)]
+    tcp_notsent_lowat: u32,
 }
 
 impl NetArgs {
@@ -178,6 +182,7 @@ impl NetArgs {
             ws_idle_timeout: self.ws_idle_timeout,
             max_connections: self.max_connections,
             max_connections_per_address: self.max_connections_per_address,
+            tcp_notsent_lowat: self.tcp_notsent_lowat,
         }
     }
 }

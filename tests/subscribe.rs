@@ -133,7 +133,9 @@ impl Watcher {
     async fn next_within(&mut self, secs: f32) -> Option<Got> {
         let deadline = tokio::time::Instant::now() + Duration::from_secs_f32(secs);
         let msg = loop {
-            let msg = tokio::time::timeout_at(deadline, self.ws.next()).await.ok()?;
+            let msg = tokio::time::timeout_at(deadline, self.ws.next())
+                .await
+                .ok()?;
             if !matches!(msg, Some(Ok(Message::Ping(_) | Message::Pong(_)))) {
                 break msg;
             }

@@ -98,7 +98,16 @@ pub struct NetLimits {
     /// usually holds whole); more are refused like over [`Self::max_connections`]. Keeps one
     /// client from taking every slot.
     pub max_connections_per_address: usize,
+    /// Unsent bytes the kernel may hold for one connection (`TCP_NOTSENT_LOWAT`, Linux); past
+    /// them a write waits, so on a thin link the backlog stays in the connection's outbox —
+    /// where a newer frame replaces an older one — not in the kernel, where it would only go
+    /// stale. `0` leaves the kernel's default (no bound).
+    pub tcp_notsent_lowat: u32,
 }
+
+/// Default [`NetLimits::tcp_notsent_lowat`]: 16 KiB, about one JSON frame of 10 avatars (a
+/// binary one is ~1 KB).
+pub const DEFAULT_TCP_NOTSENT_LOWAT: u32 = 16 << 10;
 
 /// Default [`NetLimits::hello_timeout`]: 5 s.
 pub const DEFAULT_HELLO_TIMEOUT: Duration = Duration::from_secs(5);
@@ -125,6 +134,7 @@ impl Default for NetLimits {
             ws_idle_timeout: DEFAULT_WS_IDLE_TIMEOUT,
             max_connections: DEFAULT_MAX_CONNECTIONS,
             max_connections_per_address: DEFAULT_MAX_CONNECTIONS_PER_ADDRESS,
+            tcp_notsent_lowat: DEFAULT_TCP_NOTSENT_LOWAT,
         }
     }
 }

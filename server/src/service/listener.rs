@@ -131,6 +131,13 @@ pub async fn serve(
         if let Err(e) = stream.set_nodelay(true) {
             debug!(error = %e, "cannot set TCP_NODELAY");
         }
+        // Bounded kernel queue: see `NetLimits::tcp_notsent_lowat`.
+        if limits.tcp_notsent_lowat > 0
+            && let Err(e) =
+                socket2::SockRef::from(&stream).set_tcp_notsent_lowat(limits.tcp_notsent_lowat)
+        {
+            debug!(error = %e, "cannot set TCP_NOTSENT_LOWAT");
+        }
         match admission.try_admit(peer.ip()) {
             Ok(permit) => {
                 trace!(%peer, "connection accepted");

@@ -38,10 +38,11 @@ fn conflict(name: &str) -> Error {
 
 /// The rig quotas ([`crate::rig::Rig::check_quotas`]), counted in the metrics when refused.
 fn check_rig(state: &AppState, rig: &Rig) -> Result<(), Error> {
-    rig.check_quotas(&state.config.quotas).map_err(|(quota, e)| {
-        state.metrics.quota_refused(quota);
-        e
-    })
+    rig.check_quotas(&state.config.quotas)
+        .map_err(|(quota, e)| {
+            state.metrics.quota_refused(quota);
+            e
+        })
 }
 
 /// Refuses a file set larger than [`crate::quota::Quotas::max_asset_bytes`].
