@@ -54,8 +54,10 @@ struct Line {
     bytes_per_s: f64,
     /// Mean tick→receive latency over the interval, ms (offset-corrected).
     latency_mean_ms: Option<f64>,
-    /// Largest tick→receive latency since connecting, ms.
+    /// Largest tick→receive latency since connecting, ms (join keyframes left out).
     latency_max_ms: f64,
+    /// Age of the newest join keyframe when it arrived, ms.
+    join_age_ms: Option<f64>,
     rtt_ms: Option<f64>,
     offset_ms: f64,
     avatars: usize,
@@ -74,6 +76,7 @@ impl Line {
             latency_mean_ms: (count > 0)
                 .then(|| (now.latency_sum_us - before.latency_sum_us) / count as f64 / 1000.0),
             latency_max_ms: now.latency_max_us / 1000.0,
+            join_age_ms: now.join_age_us.map(|a| a / 1000.0),
             rtt_ms: rtt.map(|r| r / 1000.0),
             offset_ms: offset / 1000.0,
             avatars: client.avatars().len(),
@@ -84,13 +87,14 @@ impl Line {
     fn text(&self) -> String {
         let ms = |v: Option<f64>| v.map_or("-".to_owned(), |v| format!("{v:.2} ms"));
         format!(
-            "{:5.1} frames/s  {} keyframes  {:8.0} B/s  latency mean {} max {:.2} ms  rtt {}  \
-             offset {:+.2} ms  {} avatars{}",
+            "{:5.1} frames/s  {} keyframes  {:8.0} B/s  latency mean {} max {:.2} ms  join age {}  \
+             rtt {}  offset {:+.2} ms  {} avatars{}",
             self.frames_per_s,
             self.keyframes,
             self.bytes_per_s,
             ms(self.latency_mean_ms),
             self.latency_max_ms,
+            ms(self.join_age_ms),
             ms(self.rtt_ms),
             self.offset_ms,
             self.avatars,
@@ -110,6 +114,7 @@ impl Line {
             "bytes_per_s": self.bytes_per_s,
             "latency_mean_ms": self.latency_mean_ms,
             "latency_max_ms": self.latency_max_ms,
+            "join_age_ms": self.join_age_ms,
             "rtt_ms": self.rtt_ms,
             "clock_offset_ms": self.offset_ms,
             "avatars": self.avatars,

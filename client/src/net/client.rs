@@ -177,6 +177,9 @@ pub struct Stats {
     pub latency_count: u64,
     /// Largest tick→receive latency seen, µs.
     pub latency_max_us: f64,
+    /// Age of the newest join pose (an avatar's first pose after its description: the
+    /// scene's cached keyframe, up to a second old), µs — kept out of the latencies.
+    pub join_age_us: Option<f64>,
 }
 
 #[derive(Default)]
@@ -320,16 +323,16 @@ impl Client {
             .and_then(|a| a.latest.clone())
     }
 
-    /// The pose to render now: interpolated through the jitter buffer at
-    /// `now + clock offset − adaptive delay`, with the avatar's placement composed into its
-    /// roots (see [`PoseSample::placed_locals`]), so it is drawn where it stands.
+    /// The pose to render now: interpolated through the jitter buffer a little in the past —
+    /// far enough that the frames around it have arrived (see [`JitterBuffer::delay_us`]) —
+    /// with the avatar's placement composed into its roots (see
+    /// [`PoseSample::placed_locals`]), so it is drawn where it stands.
     #[must_use]
     pub fn pose_now(&self, id: &AvatarId) -> Option<Vec<Transform>> {
         let s = lock(&self.shared);
-        let offset = s.clock.offset_us();
         s.avatars
             .get(id)
-            .and_then(|a| a.jitter.playout(unix_micros(), offset))
+            .and_then(|a| a.jitter.playout(unix_micros()))
     }
 
     /// Totals so far.
@@ -570,12 +573,18 @@ fn record(
     placement: Placement,
 ) {
     // Latency needs the clock offset: frames that arrive before the first pong are not
-    // counted (they would mix two clocks).
+    // counted (they would mix two clocks). An avatar's first pose is the join keyframe, which
+    // the server may have made up to a second ago: its age is reported on its own.
+    let joined = s.avatars.get(id).is_some_and(|a| a.latest.is_none());
     if s.clock.rtt_us().is_some() {
         let latency = received as f64 + s.clock.offset_us() - server_time_us as f64;
-        s.stats.latency_sum_us += latency;
-        s.stats.latency_count += 1;
-        s.stats.latency_max_us = s.stats.latency_max_us.max(latency);
+        if joined {
+            s.stats.join_age_us = Some(latency);
+        } else {
+            s.stats.latency_sum_us += latency;
+            s.stats.latency_count += 1;
+            s.stats.latency_max_us = s.stats.latency_max_us.max(latency);
+        }
     }
     if let Some(a) = s.avatars.get_mut(id) {
         let sample = PoseSample {
