@@ -38,6 +38,14 @@ pub struct Config {
     pub drive_timeout: Duration,
     /// Network timeouts and connection caps ([`crate::service::limits`]).
     pub net: NetLimits,
+
+    // --- VMC gateway (issue 17) ---
+    /// UDP sockets whose VMC performer drives an avatar (`--vmc-in ADDR=AVATAR`).
+    pub vmc_in: Vec<crate::vmc::VmcIn>,
+    /// Avatars whose pose is sent every tick as VMC to an address (`--vmc-out AVATAR=ADDR`).
+    /// Only here, from the command line or environment: no command can add one, so nobody
+    /// with a token can make the server send UDP to an address of their choosing.
+    pub vmc_out: Vec<crate::vmc::VmcOut>,
 }
 
 /// Default [`Config::max_upload_bytes`]: 32 MiB.
@@ -64,6 +72,8 @@ impl Default for Config {
             shutdown_drain: DEFAULT_SHUTDOWN_DRAIN,
             drive_timeout: DEFAULT_DRIVE_TIMEOUT,
             net: NetLimits::default(),
+            vmc_in: Vec::new(),
+            vmc_out: Vec::new(),
         }
     }
 }

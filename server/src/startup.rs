@@ -23,6 +23,8 @@ pub struct Server {
     pub state: Arc<AppState>,
     shutdown: Option<oneshot::Sender<()>>,
     task: JoinHandle<std::io::Result<()>>,
+    /// The VMC inputs and outputs ([`crate::vmc`]).
+    pub vmc: crate::vmc::Running,
 }
 
 impl Server {
@@ -43,11 +45,15 @@ impl Server {
         state.readiness.begin(plan.len());
         let listener = tokio::net::TcpListener::bind(config.listen).await?;
         let addr = listener.local_addr()?;
+        // Bound before serving, so a busy UDP port fails the start like a busy TCP one; a
+        // packet that arrives before its avatar is restored waits (`vmc::input`).
+        let vmc = crate::vmc::start(&state).await?;
         let (tx, rx) = oneshot::channel::<()>();
         let router = app(state.clone());
         let task = tokio::spawn(serve(listener, router, state.clone(), rx));
         if let Err(e) = restore::spawn(state.clone(), plan) {
             task.abort();
+            vmc.abort();
             return Err(e);
         }
         Ok(Self {
@@ -55,6 +61,7 @@ impl Server {
             state,
             shutdown: Some(tx),
             task,
+            vmc,
         })
     }
 
@@ -85,6 +92,7 @@ impl Server {
 
     /// Gracefully stops: scenes end, websockets get close frames, the listener closes.
     pub async fn stop(mut self) {
+        self.vmc.abort();
         if let Some(tx) = self.shutdown.take() {
             tx.send(()).ok();
         }
