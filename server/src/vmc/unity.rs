@@ -224,7 +224,7 @@ pub const BONES: [Bone; 52] = {
         bone(
             "LeftMiddleProximal",
             Some(L_HAND),
-            [0.095, 0.0, 0.005],
+            [0.095, 0.0, 0.0],
             "l_middle1",
         ),
         bone(
@@ -314,7 +314,7 @@ pub const BONES: [Bone; 52] = {
         bone(
             "RightMiddleProximal",
             Some(R_HAND),
-            [-0.095, 0.0, 0.005],
+            [-0.095, 0.0, 0.0],
             "r_middle1",
         ),
         bone(
