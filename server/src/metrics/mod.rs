@@ -267,6 +267,18 @@ impl Metrics {
         self.protocol_errors.inc();
     }
 
+    /// Pose frames handed to subscriber outboxes so far.
+    #[must_use]
+    pub fn frames_offered_total(&self) -> u64 {
+        self.frames_offered.get()
+    }
+
+    /// Bytes of those frames.
+    #[must_use]
+    pub fn frame_bytes_offered_total(&self) -> u64 {
+        self.frame_bytes_offered.get()
+    }
+
     /// Ticks run so far.
     #[must_use]
     pub fn ticks(&self) -> u64 {

@@ -91,6 +91,24 @@ impl Running {
     }
 }
 
+/// Receive buffer asked for a VMC input's socket: ~800 full performer frames (5 KB), several
+/// seconds at 120 Hz, so a task that is not scheduled for a moment loses nothing (Linux caps it
+/// at `net.core.rmem_max`; the default 212 KB holds ~40 frames).
+pub const INPUT_RECEIVE_BUFFER: usize = 4 << 20;
+
+/// A UDP socket bound to `addr` with [`INPUT_RECEIVE_BUFFER`] (as much of it as the system
+/// grants).
+fn bind_input(addr: SocketAddr) -> std::io::Result<UdpSocket> {
+    use socket2::{Domain, Protocol, Socket, Type};
+    let socket = Socket::new(Domain::for_address(addr), Type::DGRAM, Some(Protocol::UDP))?;
+    if let Err(e) = socket.set_recv_buffer_size(INPUT_RECEIVE_BUFFER) {
+        tracing::debug!(%addr, error = %e, "VMC input: receive buffer left at the default");
+    }
+    socket.set_nonblocking(true)?;
+    socket.bind(&addr.into())?;
+    UdpSocket::from_std(socket.into())
+}
+
 /// Binds every configured VMC input and output socket and starts their tasks.
 ///
 /// # Errors
@@ -104,8 +122,7 @@ pub async fn start(state: &Arc<AppState>) -> std::io::Result<Running> {
     }
     let vmc = Arc::new(VmcRig::new().map_err(std::io::Error::other)?);
     for input in inputs {
-        let socket = UdpSocket::bind(input.addr)
-            .await
+        let socket = bind_input(input.addr)
             .map_err(|e| std::io::Error::new(e.kind(), format!("--vmc-in {}: {e}", input.addr)))?;
         running.inputs.push(socket.local_addr()?);
         let driver = state.new_driver_id();
