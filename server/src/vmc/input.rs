@@ -112,8 +112,7 @@ impl Performer {
         metrics: &crate::metrics::vmc::VmcCounters,
     ) -> Result<(), PacketDrop> {
         let mut reject = |why| metrics.rejected(why);
-        // Blend names past the limit are refused as they come; the closure cannot borrow
-        // `self`, so the limit check happens in `message`.
+        // Decoded first, applied after: `decode`'s callbacks cannot borrow `self` mutably.
         let mut messages = Vec::new();
         packet::decode(bytes, |m| messages.push(m), &mut reject)?;
         for m in messages {
