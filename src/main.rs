@@ -12,6 +12,7 @@ use posecast_server::quota::{CommandRate, Quotas};
 use posecast_server::readiness::Phase;
 use posecast_server::service::limits::raise_nofile_limit;
 use posecast_server::startup::{DEFAULT_SCENE, Server};
+use posecast_server::vmc::{VmcIn, VmcOut};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -91,6 +92,14 @@ struct Args {
     drive_timeout: Duration,
     #[command(flatten)]
     net: NetArgs,
+    /// VMC input: a UDP address whose VMC performer (VSeeFace, Warudo, XR Animator, …) drives
+    /// an avatar, ADDR=AVATAR, e.g. 0.0.0.0:39539=avatar (repeatable; README "VMC").
+    #[arg(long = "vmc-in", env = "POSECAST_VMC_IN", value_delimiter = ',')]
+    vmc_in: Vec<VmcIn>,
+    /// VMC output: send an avatar's pose every tick to a VMC receiver, AVATAR=ADDR, e.g.
+    /// avatar=127.0.0.1:39540 (repeatable). Only from here: no command can add one.
+    #[arg(long = "vmc-out", env = "POSECAST_VMC_OUT", value_delimiter = ',')]
+    vmc_out: Vec<VmcOut>,
 }
 
 /// Quotas and the command rate limit (`posecast_server::quota`).
@@ -330,11 +339,14 @@ async fn main() -> anyhow::Result<()> {
             .map_err(anyhow::Error::msg)?,
         drive_timeout: args.drive_timeout,
         net: args.net.limits(),
+        vmc_in: args.vmc_in,
+        vmc_out: args.vmc_out,
     };
     raise_open_files_limit();
     // Registered before the server listens: a SIGTERM that arrives during start-up (as soon as
     // the address is printed) must begin a graceful shutdown, not kill the process.
     let signals = shutdown_signal();
+    let (config_vmc_in, config_vmc_out) = (config.vmc_in.clone(), config.vmc_out.clone());
     let mut server = Server::start(config).await?;
     let shutdown = server.take_shutdown();
     println!("posecast listening on {}", server.http_url());
@@ -347,6 +359,12 @@ async fn main() -> anyhow::Result<()> {
         server.http_url(),
         server.http_url()
     );
+    for (input, addr) in config_vmc_in.iter().zip(&server.vmc.inputs) {
+        println!("  VMC in:    udp://{addr} drives avatar {}", input.avatar);
+    }
+    for out in &config_vmc_out {
+        println!("  VMC out:   avatar {} to udp://{}", out.avatar, out.addr);
+    }
     match generated {
         Some(token) => {
             // Printed once for the operator (stdout, not the log); configure --control-token

@@ -427,6 +427,11 @@ pub struct AvatarState {
     /// The clip being recorded, if any.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub recording: Option<String>,
+    // --- VMC (issue 17) ---
+    /// Blend shape (expression) values its live driver applied, by name (VMC
+    /// `/VMC/Ext/Blend/Val` + `Apply`); rigs have no morph targets yet, so they only show here.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub blend_shapes: std::collections::BTreeMap<String, f32>,
 }
 
 #[cfg(test)]

@@ -2,6 +2,7 @@
 //! (or by a test), with the network bounds it carries ([`NetLimits`]).
 
 use crate::auth::AccessConfig;
+use posecast_proto::msg::AvatarId;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -38,6 +39,14 @@ pub struct Config {
     pub drive_timeout: Duration,
     /// Network timeouts and connection caps ([`crate::service::limits`]).
     pub net: NetLimits,
+
+    // --- VMC gateway (issue 17) ---
+    /// UDP sockets whose VMC performer drives an avatar (`--vmc-in ADDR=AVATAR`).
+    pub vmc_in: Vec<VmcIn>,
+    /// Avatars whose pose is sent every tick as VMC to an address (`--vmc-out AVATAR=ADDR`).
+    /// Only here, from the command line or environment: no command can add one, so nobody
+    /// with a token can make the server send UDP to an address of their choosing.
+    pub vmc_out: Vec<VmcOut>,
 }
 
 /// Default [`Config::max_upload_bytes`]: 32 MiB.
@@ -64,6 +73,8 @@ impl Default for Config {
             shutdown_drain: DEFAULT_SHUTDOWN_DRAIN,
             drive_timeout: DEFAULT_DRIVE_TIMEOUT,
             net: NetLimits::default(),
+            vmc_in: Vec::new(),
+            vmc_out: Vec::new(),
         }
     }
 }
@@ -137,4 +148,60 @@ impl Default for NetLimits {
             tcp_notsent_lowat: DEFAULT_TCP_NOTSENT_LOWAT,
         }
     }
+}
+
+/// The configuration of one VMC input: `ADDR=AVATAR`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct VmcIn {
+    /// The UDP address to listen on (VMC's default port is 39539).
+    pub addr: SocketAddr,
+    /// The avatar it drives.
+    pub avatar: AvatarId,
+}
+
+impl std::str::FromStr for VmcIn {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let (addr, avatar) = s
+            .split_once('=')
+            .ok_or_else(|| format!("{s:?} is not ADDR=AVATAR (e.g. 0.0.0.0:39539=avatar)"))?;
+        Ok(Self {
+            addr: addr
+                .parse()
+                .map_err(|e| format!("{addr:?} is not a socket address: {e}"))?,
+            avatar: avatar_id(avatar)?,
+        })
+    }
+}
+
+/// The configuration of one VMC output: `AVATAR=ADDR`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct VmcOut {
+    /// The avatar whose pose is sent.
+    pub avatar: AvatarId,
+    /// Where to (VMC's default marionette port is 39539).
+    pub addr: SocketAddr,
+}
+
+impl std::str::FromStr for VmcOut {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let (avatar, addr) = s
+            .split_once('=')
+            .ok_or_else(|| format!("{s:?} is not AVATAR=ADDR (e.g. avatar=127.0.0.1:39539)"))?;
+        Ok(Self {
+            avatar: avatar_id(avatar)?,
+            addr: addr
+                .parse()
+                .map_err(|e| format!("{addr:?} is not a socket address: {e}"))?,
+        })
+    }
+}
+
+/// An avatar id given on the command line.
+fn avatar_id(s: &str) -> Result<AvatarId, String> {
+    posecast_proto::msg::check_id("avatar", s).map_err(|e| e.message)?;
+    Ok(AvatarId(s.to_owned()))
 }

@@ -17,7 +17,8 @@
 //!    [`world`] (every scene, ids, quotas; [`world::command`]: a command applied to it).
 //! 5. **Services** — [`auth`] (tokens), [`store`] (the data folder), [`config`], [`state`]
 //!    (the world plus connections, store and start-up progress), [`control`] (commands for
-//!    clients: counted, and acknowledged once stored), live drivers of a connection,
+//!    clients: counted, and acknowledged once stored), live drivers of a connection, the VMC
+//!    gateway ([`vmc`]: UDP performers as live drivers, avatars sent to VMC receivers),
 //!    start-up loading ([`readiness`]).
 //! 6. **Transport** — [`service`]: the axum router, accept loop and limits, websocket
 //!    sessions, REST, uploads, dashboard, health.
@@ -51,4 +52,5 @@ pub mod startup;
 pub mod state;
 pub mod store;
 pub mod stream;
+pub mod vmc;
 pub mod world;

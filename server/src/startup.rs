@@ -23,6 +23,8 @@ pub struct Server {
     pub state: Arc<AppState>,
     shutdown: Option<oneshot::Sender<()>>,
     task: JoinHandle<std::io::Result<()>>,
+    /// The VMC inputs and outputs ([`crate::vmc`]).
+    pub vmc: crate::vmc::Running,
 }
 
 impl Server {
@@ -46,7 +48,17 @@ impl Server {
                 std::io::Error::new(e.kind(), format!("cannot listen on {}: {e}", config.listen))
             })?;
         let addr = listener.local_addr()?;
-        let first_start = open_data_folder(&state)?;
+        // Bound before serving (and before the data folder), so a busy UDP port fails the
+        // start like a busy TCP one; a packet that arrives before its avatar is restored waits
+        // (`vmc::input`).
+        let vmc = crate::vmc::start(&state).await?;
+        let first_start = match open_data_folder(&state) {
+            Ok(first) => first,
+            Err(e) => {
+                vmc.abort();
+                return Err(e);
+            }
+        };
         let plan = restore::Plan::new(&state, first_start);
         state.readiness.begin(plan.len());
         let (tx, rx) = oneshot::channel::<()>();
@@ -54,6 +66,7 @@ impl Server {
         let task = tokio::spawn(serve(listener, router, state.clone(), rx));
         if let Err(e) = restore::spawn(state.clone(), plan) {
             task.abort();
+            vmc.abort();
             return Err(e);
         }
         Ok(Self {
@@ -61,6 +74,7 @@ impl Server {
             state,
             shutdown: Some(tx),
             task,
+            vmc,
         })
     }
 
@@ -91,6 +105,7 @@ impl Server {
 
     /// Gracefully stops: scenes end, websockets get close frames, the listener closes.
     pub async fn stop(mut self) {
+        self.vmc.abort();
         if let Some(tx) = self.shutdown.take() {
             tx.send(()).ok();
         }

@@ -74,6 +74,11 @@ impl AppState {
         id
     }
 
+    /// A new live-driver id that no connection has (VMC inputs drive avatars with one).
+    pub fn new_driver_id(&self) -> u64 {
+        self.next_conn.fetch_add(1, Ordering::Relaxed)
+    }
+
     /// Forgets a closed connection.
     pub fn unregister_connection(&self, id: u64) {
         self.connections_lock().open.remove(&id);

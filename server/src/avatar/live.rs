@@ -9,6 +9,7 @@ use posecast_proto::Transform;
 use posecast_proto::command::OnRelease;
 use posecast_proto::fk::forward_kinematics;
 use posecast_proto::live::MAX_RATE_HZ;
+use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -48,6 +49,9 @@ pub struct LivePose {
     /// Scratch for root positions: source and target world matrices.
     src_world: Vec<Mat4>,
     tgt_world: Vec<Mat4>,
+    /// Blend shape (expression) values the driver applied, by name: kept and reported
+    /// (`get_avatar`) although rigs have no morph targets yet. VMC input sets them.
+    pub blend_shapes: BTreeMap<String, f32>,
 }
 
 /// A source pose, validated: every joint index is in range, every rotation a unit quaternion.
@@ -109,6 +113,7 @@ impl LivePose {
             timeout,
             src_world: vec![Mat4::IDENTITY; n_src],
             tgt_world: vec![Mat4::IDENTITY; n_tgt],
+            blend_shapes: BTreeMap::new(),
             source,
         })
     }

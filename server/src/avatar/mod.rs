@@ -295,6 +295,11 @@ impl Avatar {
             root_motion: layer.map(|l| l.root_motion),
             driven: self.live.is_some(),
             recording: self.recording.as_ref().map(|r| r.name().to_owned()),
+            blend_shapes: self
+                .live
+                .as_ref()
+                .map(|l| l.blend_shapes.clone())
+                .unwrap_or_default(),
         }
     }
 }

@@ -14,8 +14,10 @@ use prometheus_client::registry::Registry;
 
 use crate::quota::Quota;
 pub mod net;
+pub mod vmc;
 
 use net::NetCounters;
+use vmc::VmcCounters;
 
 /// The `Content-Type` of [`Metrics::render`]'s text.
 pub const CONTENT_TYPE: &str = prometheus_text::CONTENT_TYPE;
@@ -62,6 +64,9 @@ pub struct Metrics {
     // --- network bounds (issue 13): connections held and refused, timeouts ---
     /// Connections held and refused, accept failures, timeouts ([`NetCounters`]).
     pub net: NetCounters,
+    // --- the VMC gateway (issue 17) ---
+    /// VMC datagrams in, refusals, poses applied, bundles out ([`VmcCounters`]).
+    pub vmc: VmcCounters,
 }
 
 impl Default for Metrics {
@@ -139,6 +144,7 @@ impl Metrics {
             tick_seconds.clone(),
         );
         let net = NetCounters::new(r);
+        let vmc = VmcCounters::new(r);
         Self {
             registry,
             connections_open,
@@ -161,6 +167,7 @@ impl Metrics {
             quota_refused,
             rate_limited,
             net,
+            vmc,
         }
     }
 
@@ -258,6 +265,18 @@ impl Metrics {
     /// A client sent something invalid.
     pub fn protocol_error(&self) {
         self.protocol_errors.inc();
+    }
+
+    /// Pose frames handed to subscriber outboxes so far.
+    #[must_use]
+    pub fn frames_offered_total(&self) -> u64 {
+        self.frames_offered.get()
+    }
+
+    /// Bytes of those frames.
+    #[must_use]
+    pub fn frame_bytes_offered_total(&self) -> u64 {
+        self.frame_bytes_offered.get()
     }
 
     /// Ticks run so far.
@@ -387,7 +406,24 @@ posecast_accept_errors_total 0
 posecast_timeouts_total{kind="hello"} 0
 posecast_timeouts_total{kind="header"} 0
 posecast_timeouts_total{kind="body"} 0
-posecast_timeouts_total{kind="idle"} 0"#;
+posecast_timeouts_total{kind="idle"} 0
+posecast_vmc_packets_total 0
+posecast_vmc_packet_bytes_total 0
+posecast_vmc_packets_dropped_total{reason="malformed"} 0
+posecast_vmc_packets_dropped_total{reason="too_deep"} 0
+posecast_vmc_packets_dropped_total{reason="flood"} 0
+posecast_vmc_messages_rejected_total{reason="unknown_address"} 0
+posecast_vmc_messages_rejected_total{reason="bad_arguments"} 0
+posecast_vmc_messages_rejected_total{reason="invalid_value"} 0
+posecast_vmc_messages_rejected_total{reason="unknown_bone"} 0
+posecast_vmc_messages_rejected_total{reason="blend_shape_limit"} 0
+posecast_vmc_poses_total 0
+posecast_vmc_poses_refused_total{reason="busy"} 0
+posecast_vmc_poses_refused_total{reason="no_avatar"} 0
+posecast_vmc_poses_refused_total{reason="not_humanoid"} 0
+posecast_vmc_bundles_sent_total 0
+posecast_vmc_bytes_sent_total 0
+posecast_vmc_send_errors_total 0"#;
 
     /// Sample lines with their values parsed, so `0` and `0.0` compare equal.
     fn samples(text: &str) -> BTreeSet<(String, u64)> {

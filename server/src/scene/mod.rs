@@ -48,6 +48,8 @@ pub struct Scene {
     state: Mutex<SceneState>,
     stopped: AtomicBool,
     stop: Notify,
+    /// The number of the last tick run, for services that act once per tick (VMC out).
+    ticks: tokio::sync::watch::Sender<u64>,
 }
 
 impl Scene {
@@ -65,6 +67,7 @@ impl Scene {
             num,
             stopped: AtomicBool::new(false),
             stop: Notify::new(),
+            ticks: tokio::sync::watch::Sender::new(0),
         }
     }
 
@@ -163,6 +166,14 @@ impl Scene {
             a.tick(clock);
         }
         s.feed.publish(&s.avatars, s.last, key_interval);
+        drop(guard);
+        self.ticks.send_replace(seq);
+    }
+
+    /// Tick numbers as ticks run (each change: a tick has run and its poses are set).
+    #[must_use]
+    pub fn ticks(&self) -> tokio::sync::watch::Receiver<u64> {
+        self.ticks.subscribe()
     }
 
     /// Waits until the scene is shut.
