@@ -36,6 +36,12 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 #[derive(Debug, Parser)]
 #[command(version, about)]
 struct Args {
+    /// Log lines as text for people, or one JSON object per line (`json`). Connections,
+    /// every state-changing command and upload (target `posecast::audit`: op, target, token
+    /// name, outcome, refusals included), start and stop are logged at `info`; reads at
+    /// `debug`. `RUST_LOG` sets the level.
+    #[arg(long, env = "POSECAST_LOG_FORMAT", value_enum, default_value_t = LogFormat::Text)]
+    log_format: LogFormat,
     /// Address to listen on.
     #[arg(long, env = "POSECAST_LISTEN", default_value = "127.0.0.1:8080")]
     listen: SocketAddr,
@@ -237,6 +243,15 @@ fn seconds(text: &str) -> Result<Duration, String> {
     }
 }
 
+/// How log lines are written (`--log-format`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum LogFormat {
+    /// For people.
+    Text,
+    /// One JSON object per line.
+    Json,
+}
+
 /// Libraries whose logs are capped at `debug` whatever `RUST_LOG` asks: at `trace` they print
 /// every websocket frame and message they read, which carries the `hello`'s token (tungstenite's
 /// "Received message …", through the `log` bridge). Their `debug` lines name only close frames
@@ -246,7 +261,7 @@ const FRAME_LOGGING_TARGETS: [&str; 3] = ["tungstenite", "tokio_tungstenite", "a
 /// `RUST_LOG` (default `info`), with [`FRAME_LOGGING_TARGETS`] capped at `debug`. The cap is a
 /// separate filter and-ed with `RUST_LOG`, so no directive in it (e.g. `tungstenite=trace`) can
 /// lift it.
-fn init_logging() {
+fn init_logging(format: LogFormat) {
     // A `RUST_LOG` that does not parse is said, not silently replaced.
     let (requested, bad) = match std::env::var("RUST_LOG") {
         Ok(v) if !v.trim().is_empty() => match EnvFilter::try_new(&v) {
@@ -259,9 +274,22 @@ fn init_logging() {
         Targets::new().with_default(LevelFilter::TRACE),
         |t, target| t.with_target(*target, LevelFilter::DEBUG),
     );
-    tracing_subscriber::registry()
-        .with(tracing_subscriber::fmt::layer().with_filter(requested.and(capped)))
-        .init();
+    let filter = requested.and(capped);
+    match format {
+        LogFormat::Text => tracing_subscriber::registry()
+            .with(tracing_subscriber::fmt::layer().with_filter(filter))
+            .init(),
+        // One JSON object per line (fields, span fields, target, level, time), for log
+        // pipelines.
+        LogFormat::Json => tracing_subscriber::registry()
+            .with(
+                tracing_subscriber::fmt::layer()
+                    .json()
+                    .with_current_span(true)
+                    .with_filter(filter),
+            )
+            .init(),
+    }
     if let Some(bad) = bad {
         tracing::warn!("RUST_LOG {bad}; logging at info instead");
     }
@@ -309,8 +337,8 @@ fn access(args: &Args) -> anyhow::Result<(AccessConfig, Option<Secret>)> {
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     let started = std::time::Instant::now();
-    init_logging();
     let args = Args::parse();
+    init_logging(args.log_format);
     anyhow::ensure!(
         args.tick_rate.is_finite() && args.tick_rate > 0.0 && args.tick_rate <= 1000.0,
         "--tick-rate must be in (0, 1000]"
@@ -349,6 +377,7 @@ async fn main() -> anyhow::Result<()> {
     let (config_vmc_in, config_vmc_out) = (config.vmc_in.clone(), config.vmc_out.clone());
     let mut server = Server::start(config).await?;
     let shutdown = server.take_shutdown();
+    tracing::info!(addr = %server.addr, "started");
     println!("posecast listening on {}", server.http_url());
     println!(
         "  websocket: {}  (scene \"{DEFAULT_SCENE}\")",
@@ -400,9 +429,13 @@ async fn main() -> anyhow::Result<()> {
             ),
             Phase::Starting | Phase::Stopped => {}
         },
-        result = &mut finished => return Ok(result?),
+        result = &mut finished => {
+            tracing::info!("stopped");
+            return Ok(result?);
+        }
     }
     finished.await?;
+    tracing::info!("stopped");
     Ok(())
 }
 

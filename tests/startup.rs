@@ -288,3 +288,62 @@ fn a_missing_assets_folder_is_an_error_and_a_bad_rust_log_is_reported() {
     assert!(printed.contains("RUST_LOG"), "{printed}");
     server.kill();
 }
+
+/// With `--log-format json` every line is a JSON object; connections, commands (refusals
+/// included) and start/stop are logged with the token's name, never the token.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn operational_logs_name_connections_commands_and_refusals_as_json() {
+    let mut server = Posecast::start(
+        &["--no-persist", "--log-format", "json"],
+        &[("POSECAST_CONTROL_TOKEN", common::CONTROL)],
+    );
+    let (status, _) = http_to(
+        server.addr,
+        "POST",
+        "/api/commands",
+        "application/json",
+        br#"{"op":"create_scene","scene":"audited"}"#,
+    )
+    .await;
+    assert_eq!(status, 200);
+    let (status, _) = common::http_raw(
+        server.addr,
+        Some("wrong-token"),
+        "POST",
+        "/api/commands",
+        "application/json",
+        br#"{"op":"delete_scene","scene":"audited"}"#,
+    )
+    .await;
+    assert_eq!(status, 401);
+    let ws = hello(server.addr).await;
+    drop(ws);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    server.terminate();
+    server.wait_exit(Duration::from_secs(10));
+    let lines = server.output();
+    let logs: Vec<Value> = lines
+        .iter()
+        .filter(|l| l.starts_with('{'))
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{l}: {e}")))
+        .collect();
+    let find = |f: &dyn Fn(&Value) -> bool| logs.iter().find(|l| f(l)).cloned();
+    let field = |l: &Value, k: &str| l["fields"][k].as_str().unwrap_or_default().to_owned();
+    let created = find(&|l| field(l, "op") == "create_scene").expect("an audit line");
+    assert_eq!(created["target"], "posecast::audit");
+    assert_eq!(field(&created, "outcome"), "ok");
+    assert_eq!(field(&created, "target"), "scene audited");
+    assert_ne!(field(&created, "caller"), "");
+    let refused = find(&|l| field(l, "message") == "refused").expect("a refusal line");
+    assert_eq!(field(&refused, "target"), "/api/commands");
+    assert!(
+        field(&refused, "outcome").contains("Unauthorized"),
+        "{refused}"
+    );
+    assert!(find(&|l| field(l, "message") == "websocket opened").is_some());
+    assert!(find(&|l| field(l, "message") == "websocket closed").is_some());
+    assert!(find(&|l| field(l, "message") == "started").is_some());
+    assert!(find(&|l| field(l, "message") == "stopped").is_some());
+    let text = lines.join("\n");
+    assert!(!text.contains(common::CONTROL), "a token was logged");
+}

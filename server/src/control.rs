@@ -53,6 +53,30 @@ pub async fn execute_durable(state: &AppState, command: &Command) -> Result<Comm
     Ok(result)
 }
 
+/// Writes the audit line of a client's command: at `info` for one that changes something
+/// (refusals included), at `debug` for a read — op, target, the caller's token name (never the
+/// token), and the outcome.
+pub fn audit(caller: &str, command: &Command, result: &Result<CommandResult, Error>) {
+    let op = serde_json::to_value(command)
+        .ok()
+        .and_then(|v| v.get("op").and_then(|o| o.as_str()).map(str::to_owned))
+        .unwrap_or_default();
+    let target = match (command.scene(), command.avatar()) {
+        (_, Some(a)) => format!("avatar {a}"),
+        (Some(s), None) => format!("scene {s}"),
+        (None, None) => String::new(),
+    };
+    let outcome = match result {
+        Ok(_) => "ok".to_owned(),
+        Err(e) => format!("{:?}: {e}", e.code()),
+    };
+    if command.is_read_only() {
+        tracing::debug!(target: "posecast::audit", op, target, caller, outcome, "command");
+    } else {
+        tracing::info!(target: "posecast::audit", op, target, caller, outcome, "command");
+    }
+}
+
 /// Stores a clip `stop_recording` just added (`DIR/recordings/<rig>/<clip>.glb`), counted
 /// against the uploads' byte quota ([`crate::quota::Quotas::max_upload_total_bytes`]).
 ///

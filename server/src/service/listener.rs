@@ -143,7 +143,10 @@ pub async fn serve(
                 trace!(%peer, "connection accepted");
                 let conn = Connection {
                     io: Admitted::new(stream, permit),
-                    router: router.clone(),
+                    // The client's address, for handlers that log it (`ConnectInfo`).
+                    router: router
+                        .clone()
+                        .layer(axum::Extension(axum::extract::ConnectInfo(peer))),
                     header_read_timeout: limits.header_read_timeout,
                     metrics: metrics.clone(),
                 };

@@ -173,12 +173,17 @@ pub async fn typed_errors(method: Method, uri: Uri, response: Response) -> Respo
     Response::from_parts(parts, body)
 }
 
-async fn ws_upgrade(ws: WebSocketUpgrade, State(state): State<Arc<AppState>>) -> Response {
+async fn ws_upgrade(
+    ws: WebSocketUpgrade,
+    State(state): State<Arc<AppState>>,
+    peer: Option<axum::Extension<axum::extract::ConnectInfo<std::net::SocketAddr>>>,
+) -> Response {
+    let peer = peer.map(|axum::Extension(axum::extract::ConnectInfo(addr))| addr);
     ws.max_message_size(MAX_CLIENT_MESSAGE_BYTES)
         .max_frame_size(MAX_CLIENT_MESSAGE_BYTES)
         .read_buffer_size(ws::READ_BUFFER_BYTES)
         .write_buffer_size(ws::WRITE_BUFFER_BYTES)
-        .on_upgrade(move |socket| ws::serve(socket, state))
+        .on_upgrade(move |socket| ws::serve(socket, state, peer))
 }
 
 /// `GET /metrics`: readable by whoever may read (anyone with open views; a view or control

@@ -83,13 +83,30 @@ impl FromRequestParts<Arc<AppState>> for Caller {
         let Some(value) = parts.headers.get(header::AUTHORIZATION) else {
             return Ok(Self::Anonymous);
         };
-        let token = value.to_str().ok().and_then(bearer_token).ok_or_else(|| {
-            ProtocolError::new(
-                ErrorCode::Unauthorized,
-                "the Authorization header must be `Bearer <token>`",
-            )
-        })?;
-        Ok(state.config.access.identify(Some(token))?)
+        let identified = value
+            .to_str()
+            .ok()
+            .and_then(bearer_token)
+            .ok_or_else(|| {
+                ProtocolError::new(
+                    ErrorCode::Unauthorized,
+                    "the Authorization header must be `Bearer <token>`",
+                )
+            })
+            .and_then(|token| Ok(state.config.access.identify(Some(token))?));
+        if let Err(e) = &identified {
+            // The request never reaches its handler: its refusal is audited here (the
+            // token itself is never logged).
+            tracing::info!(
+                target: "posecast::audit",
+                op = %parts.method,
+                target = %parts.uri.path(),
+                caller = "-",
+                outcome = %format!("{:?}: {}", e.code, e.message),
+                "refused"
+            );
+        }
+        Ok(identified?)
     }
 }
 
@@ -112,12 +129,16 @@ pub async fn command(
     let command: Command = serde_json::from_slice(&body).map_err(|e| {
         ProtocolError::new(ErrorCode::BadMessage, format!("not a valid command: {e}"))
     })?;
-    state
+    let result = match state
         .config
         .access
-        .authorize(&caller, &state.world, &command)?;
-    let result = control::execute_durable(&state, &command).await?;
-    let result = state.config.access.visible(&caller, result);
+        .authorize(&caller, &state.world, &command)
+    {
+        Ok(()) => control::execute_durable(&state, &command).await,
+        Err(e) => Err(e),
+    };
+    control::audit(caller.name(), &command, &result);
+    let result = state.config.access.visible(&caller, result?);
     Ok(Json(json!({ "result": result })))
 }
 

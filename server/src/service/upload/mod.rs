@@ -133,11 +133,24 @@ pub async fn upload(
     Path(name): Path<String>,
     request: Request,
 ) -> Result<Json<Value>, AppError> {
-    state.config.access.authorize_upload(&caller)?;
-    crate::library::check_name(&name)?;
-    let set = file_set(&state, &name, request).await?;
-    let infos = ingest::upload(&state, &name, set).await?;
-    Ok(Json(json!({ "result": infos })))
+    let result = async {
+        state.config.access.authorize_upload(&caller)?;
+        crate::library::check_name(&name)?;
+        let set = file_set(&state, &name, request).await?;
+        Ok::<_, AppError>(ingest::upload(&state, &name, set).await?)
+    }
+    .await;
+    audit_upload("upload", &name, &caller, result.as_ref().map(|_| ()));
+    Ok(Json(json!({ "result": result? })))
+}
+
+/// The audit line of an upload (`posecast::audit`, at `info`), refusals included.
+fn audit_upload(op: &str, name: &str, caller: &Caller, result: Result<(), &AppError>) {
+    let outcome = match result {
+        Ok(()) => "ok".to_owned(),
+        Err(e) => format!("{:?}: {}", e.0.code, e.0.message),
+    };
+    tracing::info!(target: "posecast::audit", op, target = %format!("asset {name}"), caller = caller.name(), outcome, "upload");
 }
 
 /// `POST /api/assets/{name}/clips`.
@@ -147,8 +160,12 @@ pub async fn add_clips(
     Path(name): Path<String>,
     request: Request,
 ) -> Result<Json<Value>, AppError> {
-    state.config.access.authorize_upload(&caller)?;
-    let set = file_set(&state, &name, request).await?;
-    let info = ingest::add_clips(&state, &name, set).await?;
-    Ok(Json(json!({ "result": info })))
+    let result = async {
+        state.config.access.authorize_upload(&caller)?;
+        let set = file_set(&state, &name, request).await?;
+        Ok::<_, AppError>(ingest::add_clips(&state, &name, set).await?)
+    }
+    .await;
+    audit_upload("add_clips", &name, &caller, result.as_ref().map(|_| ()));
+    Ok(Json(json!({ "result": result? })))
 }

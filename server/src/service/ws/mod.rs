@@ -24,9 +24,10 @@ use posecast_proto::msg::{
     ClientMsg, Encoding, ErrorCode, MAX_CLIENT_MESSAGE_BYTES, PROTOCOL_VERSION, ProtocolError,
     SceneId, ServerMsg,
 };
+use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
-use tracing::{Instrument, debug, info_span};
+use tracing::{Instrument, debug, info, info_span};
 
 /// How long the reader waits for the client's answering close frame once the writer has sent
 /// the server's. The closing handshake is polite, but a client that never answers must not
@@ -43,22 +44,24 @@ pub const READ_BUFFER_BYTES: usize = 4 << 10;
 /// fewer writes; the buffer grows to hold one message when a message is larger.
 pub const WRITE_BUFFER_BYTES: usize = 8 << 10;
 
-/// Serves one upgraded websocket until either side closes.
-pub async fn serve(socket: WebSocket, state: Arc<AppState>) {
-    serve_on(socket, state).await;
+/// Serves one upgraded websocket from `peer` until either side closes.
+pub async fn serve(socket: WebSocket, state: Arc<AppState>, peer: Option<SocketAddr>) {
+    serve_on(socket, state, peer).await;
 }
 
 /// [`serve`] over any websocket-shaped transport: a stream of received messages and a sink for
 /// sent ones (axum's [`WebSocket`] in the server; channels in the unit tests below).
-pub async fn serve_on<S>(socket: S, state: Arc<AppState>)
+pub async fn serve_on<S>(socket: S, state: Arc<AppState>, peer: Option<SocketAddr>)
 where
     S: Stream<Item = Result<Message, axum::Error>> + Sink<Message> + Send + 'static,
 {
     let outbox = Arc::new(Outbox::new());
     let conn = state.register_connection(&outbox);
-    let span = info_span!("ws", conn, caller = tracing::field::Empty);
+    let peer = peer.map_or_else(|| "-".to_owned(), |p| p.to_string());
+    let span = info_span!("ws", conn, peer = %peer, caller = tracing::field::Empty);
     async move {
         state.metrics.connection_opened();
+        info!("websocket opened");
         let (sink, mut stream) = socket.split();
         let mut writer = {
             let outbox = outbox.clone();
@@ -150,6 +153,10 @@ where
         }
         state.unregister_connection(conn);
         state.metrics.connection_closed(outbox.dropped_frames());
+        info!(
+            frames_dropped = outbox.dropped_frames(),
+            client_closed, "websocket closed"
+        );
     }
     .instrument(span)
     .await;
@@ -352,6 +359,7 @@ impl Session {
             Err(e) => Some(e),
         };
         tracing::Span::current().record("caller", self.caller.name());
+        info!(?encoding, token = self.caller.name(), "hello");
         self.send(&ServerMsg::Welcome {
             version: PROTOCOL_VERSION,
             encoding,
