@@ -128,7 +128,7 @@ fn connect(state: &Arc<AppState>) -> Peer {
         outgoing,
         gate: gate.clone(),
     };
-    let session = tokio::spawn(serve_on(socket, state.clone()));
+    let session = tokio::spawn(serve_on(socket, state.clone(), None));
     Peer {
         send,
         recv,
