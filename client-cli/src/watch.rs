@@ -3,6 +3,7 @@
 use super::Connection;
 use clap::Args;
 use posecast_client::net::{Client, Stats};
+use posecast_proto::msg::ErrorCode;
 use std::time::{Duration, Instant};
 
 #[derive(Debug, Args)]
@@ -19,6 +20,7 @@ pub struct WatchArgs {
 
 pub async fn run(args: WatchArgs) -> anyhow::Result<()> {
     let client = args.connection.connect(true).await?;
+    let mut events = client.events();
     let start = Instant::now();
     let mut ticker = tokio::time::interval(Duration::from_secs(1));
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
@@ -28,9 +30,28 @@ pub async fn run(args: WatchArgs) -> anyhow::Result<()> {
         tokio::select! {
             _ = ticker.tick() => {}
             _ = tokio::signal::ctrl_c() => return Ok(()),
+            event = events.recv() => {
+                // A subscription the server refused (no such scene, not allowed) would
+                // otherwise show 0 frames/s for ever: say so and stop.
+                if let Ok(posecast_client::net::Event::Error(e)) = event
+                    && matches!(e.code, ErrorCode::UnknownScene | ErrorCode::Unauthorized | ErrorCode::Forbidden)
+                {
+                    anyhow::bail!("the server refused the subscription: {e}");
+                }
+                continue;
+            }
         }
         let now = Instant::now();
         let stats = client.stats();
+        // An error that came before the events were listened to.
+        if let Some(e) = &stats.last_error
+            && matches!(
+                e.code,
+                ErrorCode::UnknownScene | ErrorCode::Unauthorized | ErrorCode::Forbidden
+            )
+        {
+            anyhow::bail!("the server refused the subscription: {e}");
+        }
         let line = Line::new(&client, &before.1, &stats, now.duration_since(before.0));
         if args.json {
             println!("{}", line.json(start.elapsed()));

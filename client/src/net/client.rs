@@ -177,6 +177,10 @@ pub struct Stats {
     pub latency_count: u64,
     /// Largest tick→receive latency seen, µs.
     pub latency_max_us: f64,
+    /// The newest error the server sent that answered no command (e.g. a subscription to an
+    /// unknown scene), also sent as [`Event::Error`]: kept here for callers that look after
+    /// it arrived.
+    pub last_error: Option<ProtocolError>,
     /// Age of the newest join pose (an avatar's first pose after its description: the
     /// scene's cached keyframe, up to a second old), µs — kept out of the latencies.
     pub join_age_us: Option<f64>,
@@ -543,6 +547,7 @@ fn on_server_msg(
                 tx.send(Err(e)).ok();
                 None
             } else if s.connected {
+                s.stats.last_error = Some(e.clone());
                 Some(Event::Error(e))
             } else {
                 // Refused before the welcome (bad version, bad token): the first connect fails.
