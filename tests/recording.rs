@@ -164,21 +164,26 @@ async fn a_recording_holds_what_was_streamed_exports_and_survives_a_restart() {
             pose.iter().map(|t| t.rotation).collect()
         })
         .collect();
+    // A subscriber on a busy machine may miss a tick (the newest frame wins in its outbox):
+    // compare on the ticks it saw, which must be most of them.
     let worst_at = |first: u64| -> Option<f32> {
-        let mut worst = 0.0f32;
+        let (mut worst, mut seen) = (0.0f32, 0usize);
         for (k, want) in recorded.iter().enumerate() {
-            let got = streamed.get(&(first + k as u64))?;
+            let Some(got) = streamed.get(&(first + k as u64)) else {
+                continue;
+            };
+            seen += 1;
             for (g, w) in got.iter().zip(want) {
                 worst = worst.max(angle(*g, *w));
             }
         }
-        Some(worst)
+        (seen * 10 >= recorded.len() * 8).then_some(worst)
     };
     let (first, worst) = streamed
         .keys()
         .filter_map(|&s| worst_at(s).map(|w| (s, w)))
         .min_by(|a, b| a.1.total_cmp(&b.1))
-        .expect("the subscriber saw every recorded tick");
+        .expect("the subscriber saw at least 80 % of the recorded ticks");
     eprintln!("recording starts at tick {first}; worst joint difference {worst:.2e} rad");
     assert!(
         worst < 1e-4,

@@ -480,7 +480,9 @@ async fn a_flood_of_bad_datagrams_is_counted_and_other_scenes_keep_ticking() {
         m.rejected_total(MessageReject::UnknownAddress),
         m.rejected_total(MessageReject::InvalidValue),
     );
-    assert!(m.packets() > 1000, "datagrams arrived");
+    // The kernel drops datagrams past the socket's buffer on a busy machine: many reached the
+    // input, not all.
+    assert!(m.packets() > 100, "datagrams arrived");
     assert!(m.dropped_total(PacketDrop::Malformed) > 0);
     assert!(m.dropped_total(PacketDrop::TooDeep) > 0);
     assert!(m.rejected_total(MessageReject::UnknownAddress) > 0);
