@@ -1,6 +1,7 @@
 //! The server's shared state: configuration, the [`World`], the data folder, the open
-//! connections, counters.
+//! connections and those watching the scene list, counters.
 
+use crate::changes::Watchers;
 use crate::config::Config;
 use crate::metrics::Metrics;
 use crate::readiness::Readiness;
@@ -35,6 +36,8 @@ pub struct AppState {
     pub store: Store,
     /// Whether what is loaded at start is loaded yet ([`crate::readiness`]).
     pub readiness: Readiness,
+    /// The connections watching the scene list ([`crate::changes`]).
+    pub watchers: Watchers,
 }
 
 /// The open websockets' outboxes, and whether the server is shutting down (in one lock, so a
@@ -58,6 +61,7 @@ impl AppState {
             connection_closed: Notify::new(),
             store: Store::new(config.data_dir.clone()),
             readiness: Readiness::default(),
+            watchers: Watchers::default(),
             config,
         })
     }

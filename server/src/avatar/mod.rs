@@ -295,6 +295,7 @@ impl Avatar {
             root_motion: layer.map(|l| l.root_motion),
             driven: self.live.is_some(),
             recording: self.recording.as_ref().map(|r| r.name().to_owned()),
+            fade: self.player.fade(),
         }
     }
 }
