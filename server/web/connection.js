@@ -90,6 +90,8 @@ export class Connection {
     this.ws = null;
     /** Set between a welcome that ignored our token and the `unauthorized` error naming it. */
     this.awaitingTokenError = false;
+    /** Why the current token does not let this page watch (it moves on to the next). */
+    this.blockedWhy = "";
     /** @type {(msg: ServerMsg) => void} Every message after the welcome. */
     this.onMessage = () => {};
     /** @type {() => void} The state, access or refusals changed. */
@@ -168,7 +170,11 @@ export class Connection {
       }
       if (this.welcome) this.handle(msg);
       else if (msg.type === "welcome") this.onWelcome(msg);
-      else if (msg.type === "error") this.refuseHello(msg.code, msg.message);
+      else if (msg.type === "error" && this.awaitingTokenError && msg.code === "unauthorized") {
+        // Why the token that did not let this page watch was refused: now the next one.
+        this.tokenRefused(msg.message);
+        this.nextToken(this.blockedWhy);
+      } else if (msg.type === "error") this.refuseHello(msg.code, msg.message);
     };
     ws.onclose = () => {
       if (this.ws !== ws) return;
@@ -186,10 +192,13 @@ export class Connection {
       // The server did not know the token; its `unauthorized` error (with the reason) follows.
       this.refusals.push({ kind: this.token.kind, code: "unauthorized", message: "the server does not know this token" });
       this.awaitingTokenError = true;
-      if (!access.view) {
-        this.nextToken("no token lets this page watch");
-        return;
-      }
+    }
+    if (!access.view) {
+      this.blockedWhy = this.token ? "no token lets this page watch" : "watching this server needs a view token";
+      // With a refused token, its reason follows at once; move on then (or after a second).
+      if (this.awaitingTokenError) this.timer = setTimeout(() => this.nextToken(this.blockedWhy), 1000);
+      else this.nextToken(this.blockedWhy);
+      return;
     }
     this.welcome = msg;
     this.access = access;
@@ -197,6 +206,16 @@ export class Connection {
     this.setState("online");
     for (const scene of this.scenes) this.send({ type: "subscribe", scene });
     this.ping();
+  }
+
+  /**
+   * The server's reason for refusing the hello's token (the error after the welcome).
+   * @param {string} message
+   */
+  tokenRefused(message) {
+    this.awaitingTokenError = false;
+    const last = this.refusals[this.refusals.length - 1];
+    if (last) last.message = message;
   }
 
   /**
@@ -279,9 +298,7 @@ export class Connection {
         }
         if (msg.type === "error" && this.awaitingTokenError && msg.code === "unauthorized") {
           // The reason the hello's token was refused: keep it, it is not a failure now.
-          this.awaitingTokenError = false;
-          const last = this.refusals[this.refusals.length - 1];
-          if (last) last.message = msg.message;
+          this.tokenRefused(msg.message);
           this.onState();
           return;
         }

@@ -79,6 +79,12 @@ export class Sync {
           all.set(s.scene, new Map(s.avatars.map((a) => [a.avatar, { state: a, seq: null }])));
         }
         store.set({ scenes: all });
+        const watched = store.get().watched;
+        if (watched && !all.has(watched)) {
+          // Gone while the page was away (a restart without it).
+          this.conn.forget(watched);
+          this.watch(null);
+        }
         this.keepSelection();
         break;
       }
@@ -134,7 +140,7 @@ export class Sync {
         break;
       }
       case "unsubscribed":
-        this.conn.forget(msg.scene);
+        // Deleted (`scene_deleted` follows) or the server shutting down: a reconnect renews it.
         break;
       case "error":
         notice(`${msg.code}: ${msg.message}`, "error");
