@@ -69,6 +69,18 @@ function confirmButton(label, confirm, dataset, act) {
   return b;
 }
 
+/**
+ * Puts `node` at position `index` of `parent`, moving nothing already in place (a moved node
+ * loses the keyboard focus).
+ * @param {Element} parent
+ * @param {Element} node
+ * @param {number} index
+ */
+function place(parent, node, index) {
+  const at = parent.children[index] ?? null;
+  if (at !== node) parent.insertBefore(node, at);
+}
+
 /** @param {Ctx} ctx */
 export function mount(ctx) {
   const { store, run } = ctx;
@@ -118,13 +130,14 @@ export function mount(ctx) {
         shown.delete(scene);
       }
     }
+    let sceneIndex = 0;
     for (const [scene, avatars] of s.scenes) {
       let box = shown.get(scene);
       if (!box) {
         box = sceneBox(scene);
         shown.set(scene, box);
       }
-      root.append(box.box); // in the server's order (appending moves an existing node)
+      place(root, box.box, sceneIndex++);
       box.name.setAttribute("aria-pressed", String(scene === s.watched));
       box.box.classList.toggle("watched", scene === s.watched);
       for (const [id, item] of box.avatars) {
@@ -133,13 +146,14 @@ export function mount(ctx) {
           box.avatars.delete(id);
         }
       }
+      let avatarIndex = 0;
       for (const [id, entry] of avatars) {
         let item = box.avatars.get(id);
         if (!item) {
           item = avatarItem(id);
           box.avatars.set(id, item);
         }
-        box.list.append(item.li);
+        place(box.list, item.li, avatarIndex++);
         const a = entry.state;
         item.text.textContent = summary(a);
         item.pick.replaceChildren(el("strong", {}, id), ` (${a.asset})`, item.text);

@@ -236,6 +236,9 @@ async fn the_page_manages_scenes_and_avatars() {
         &format!("window.posecast.rendered > {rendered} + 10"),
     )
     .await;
+    b.execute("document.querySelector('.col.left').scrollTop = 0;", vec![])
+        .await
+        .unwrap();
     let png_bytes = b.screenshot().await.unwrap();
     std::fs::write(artifacts().join("dashboard-world.png"), &png_bytes).unwrap();
     if std::env::var_os("POSECAST_UPDATE_SCREENSHOT").is_some() {
