@@ -68,9 +68,13 @@ const ctx = {
 for (const panel of [status, access, scenes, playback, timeline, place, joints, upload]) panel.mount(ctx);
 
 // The preview's header, camera focus and display toggles.
+/** @type {string | null} */
+let focused = null;
 store.on(["selected", "watched", "focus"], (s) => {
   $("preview-avatar").textContent = s.watched ? `— scene ${s.watched}${s.selected ? ` · ${s.selected}` : ""}` : "";
-  viewer.focusOn(s.focus);
+  // Only a new focus moves the camera: picking another avatar keeps the user's view.
+  if (s.focus !== focused) viewer.focusOn(s.focus);
+  focused = s.focus;
   $("frame-all").setAttribute("aria-pressed", String(s.focus === null));
 });
 $("frame-all").addEventListener("click", () => {
