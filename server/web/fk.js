@@ -1,6 +1,6 @@
 // @ts-check
 // Forward kinematics of a streamed pose, as posecast-proto's `fk::forward_kinematics` does it
-// (tests/web.rs checks the two agree on shared vectors, through check/fk.mjs).
+// (tests/web/ checks the two agree on shared vectors, through check/fk.mjs).
 
 import { multiply, fromTRS } from "./math.js";
 

@@ -3,7 +3,7 @@
 // `command.rs`, `description.rs`), as JSDoc types for the dashboard's type check. Types only:
 // nothing imports this file at run time, so the server does not serve it.
 //
-// Kept honest by check/samples.js: `tests/web.rs` writes there what the Rust types serialise,
+// Kept honest by check/samples.js: `tests/web/` writes there what the Rust types serialise,
 // each sample `@satisfies` its type here, so tsc fails when a field is missing, extra or of
 // another type on either side.
 

@@ -68,6 +68,8 @@ const FILES: &[(&str, &str, &str)] = &[
     ("ui.js", JS, include_str!("../../web/ui.js")),
     ("rest.js", JS, include_str!("../../web/rest.js")),
     ("viewer.js", JS, include_str!("../../web/viewer.js")),
+    ("draw.js", JS, include_str!("../../web/draw.js")),
+    ("draw-gl.js", JS, include_str!("../../web/draw-gl.js")),
     ("fk.js", JS, include_str!("../../web/fk.js")),
     ("glb.js", JS, include_str!("../../web/glb.js")),
     ("math.js", JS, include_str!("../../web/math.js")),

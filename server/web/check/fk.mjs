@@ -1,5 +1,5 @@
 // Checks the dashboard's forward kinematics (../fk.js) against vectors from posecast_proto::fk,
-// written by tests/web.rs: `node fk.mjs FILE` with FILE a JSON list of
+// written by tests/web/: `node fk.mjs FILE` with FILE a JSON list of
 // {description, pose, worlds}. Prints {"cases", "max_error"} and exits 1 on a mismatch.
 
 import { readFileSync } from "node:fs";

@@ -1,5 +1,5 @@
 // @ts-check
-// Written by tests/web.rs from the Rust protocol types (POSECAST_UPDATE_WEB_SAMPLES=1
+// Written by tests/web/samples.rs from the Rust protocol types (POSECAST_UPDATE_WEB_SAMPLES=1
 // rewrites it; the test fails when it is out of date). Each sample satisfies its JSDoc
 // type in ../protocol.js: tsc (scripts/check-web) fails on a field missing, extra or of
 // another type. Not served; nothing imports it.

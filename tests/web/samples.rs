@@ -1,40 +1,18 @@
-//! The dashboard's JavaScript against the Rust side, without a browser:
-//! - `server/web/check/samples.js` holds what the Rust protocol types serialise (this test
-//!   writes it with `POSECAST_UPDATE_WEB_SAMPLES=1` and fails when it is out of date); each
-//!   sample `@satisfies` its JSDoc type in `server/web/protocol.js`, so the type check (tsc,
-//!   run here and by `scripts/check-web` in `.ci/run`) fails when a field is missing, extra or
-//!   of another type on either side;
-//! - the page's forward kinematics (`server/web/fk.js`, run by node through
-//!   `server/web/check/fk.mjs`) gives the world matrices `posecast_proto::fk` gives, on random
-//!   skeletons and the built-in rig with random poses and placements.
-//!
-//! node and the TypeScript compiler (`scripts/test` installs it under `target/npm`) missing:
-//! the test is skipped, or fails under `CI=true`.
+//! The protocol samples the type check reads, from the Rust types.
 
-#![allow(clippy::unwrap_used, clippy::expect_used)]
-
-use glam::{Mat4, Quat, Vec3};
-use posecast_proto::Transform;
+use crate::root;
+use glam::Mat4;
 use posecast_proto::command::{
     AssetInfo, AvatarState, ClipInfo, Command, DofInfo, FadeState, JointInfo, RootMotion, SceneInfo,
 };
 use posecast_proto::description::AvatarDescription;
-use posecast_proto::fk::forward_kinematics;
 use posecast_proto::msg::{
     Access, AvatarId, AvatarPoseJson, ClientMsg, Encoding, ErrorCode, FrameJson, ProtocolError,
     SceneId, ServerMsg,
 };
 use posecast_proto::placement::Placement;
-use posecast_proto::testing::{skeleton_bound_at_rest, skip};
 use serde_json::{Value, json};
 use std::fmt::Write as _;
-use std::path::{Path, PathBuf};
-use std::process::Command as Process;
-
-fn root() -> &'static Path {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-}
-
 fn scene(s: &str) -> SceneId {
     SceneId(s.into())
 }
@@ -362,7 +340,7 @@ fn samples() -> Vec<(&'static str, &'static str, Value)> {
 fn samples_js() -> String {
     let mut out = String::from(
         "// @ts-check\n\
-         // Written by tests/web.rs from the Rust protocol types (POSECAST_UPDATE_WEB_SAMPLES=1\n\
+         // Written by tests/web/samples.rs from the Rust protocol types (POSECAST_UPDATE_WEB_SAMPLES=1\n\
          // rewrites it; the test fails when it is out of date). Each sample satisfies its JSDoc\n\
          // type in ../protocol.js: tsc (scripts/check-web) fails on a field missing, extra or of\n\
          // another type. Not served; nothing imports it.\n",
@@ -393,182 +371,4 @@ fn the_protocol_samples_are_what_the_rust_types_serialise() {
          then make server/web/protocol.js match (scripts/check-web)",
         path.display()
     );
-}
-
-/// The dashboard's JavaScript type-checks (`// @ts-check`, JSDoc types, the samples above).
-#[test]
-fn the_dashboards_javascript_type_checks() {
-    let tsc = root().join("target/npm/node_modules/.bin/tsc");
-    if !tsc.exists() {
-        skip(
-            "the TypeScript compiler is not installed (scripts/test installs it under target/npm)",
-        );
-        return;
-    }
-    let out = Process::new(&tsc)
-        .args(["-p", "server/web/tsconfig.json"])
-        .current_dir(root())
-        .output()
-        .expect("run tsc");
-    assert!(
-        out.status.success(),
-        "tsc found errors:\n{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
-
-/// A small deterministic generator (the vectors must not change from run to run).
-struct Lcg(u64);
-
-impl Lcg {
-    fn next(&mut self) -> f32 {
-        self.0 = self
-            .0
-            .wrapping_mul(6_364_136_223_846_793_005)
-            .wrapping_add(1_442_695_040_888_963_407);
-        ((self.0 >> 40) as f32) / ((1u64 << 24) as f32)
-    }
-
-    fn range(&mut self, lo: f32, hi: f32) -> f32 {
-        lo + (hi - lo) * self.next()
-    }
-
-    fn vec3(&mut self, lo: f32, hi: f32) -> Vec3 {
-        Vec3::new(self.range(lo, hi), self.range(lo, hi), self.range(lo, hi))
-    }
-
-    fn quat(&mut self) -> Quat {
-        loop {
-            let q = Quat::from_xyzw(
-                self.range(-1.0, 1.0),
-                self.range(-1.0, 1.0),
-                self.range(-1.0, 1.0),
-                self.range(-1.0, 1.0),
-            );
-            if q.length() > 0.1 {
-                return q.normalize();
-            }
-        }
-    }
-}
-
-/// One vector: a description and a pose as the page receives them, and the world matrices
-/// `posecast_proto` computes for them (`P · W_j`, column-major).
-fn fk_case(desc: &AvatarDescription, rng: &mut Lcg) -> Value {
-    let skeleton = desc.to_skeleton().unwrap();
-    let n = skeleton.len();
-    let placement =
-        Placement::try_new(rng.vec3(-5.0, 5.0).to_array(), rng.quat().to_array()).unwrap();
-    let rotations: Vec<Quat> = (0..n).map(|_| rng.quat()).collect();
-    let translations: Vec<Vec3> = desc
-        .translated_joints
-        .iter()
-        .map(|_| rng.vec3(-1.0, 1.0))
-        .collect();
-    let scales: Vec<Vec3> = desc
-        .scaled_joints
-        .iter()
-        .map(|_| rng.vec3(0.8, 1.25))
-        .collect();
-    // The frame's values where it carries them, the rest pose's elsewhere.
-    let locals: Vec<Transform> = (0..n)
-        .map(|j| {
-            let rest = skeleton.rest()[j];
-            let t = desc
-                .translated_joints
-                .iter()
-                .position(|&k| usize::from(k) == j)
-                .map_or(rest.translation, |i| translations[i]);
-            let s = desc
-                .scaled_joints
-                .iter()
-                .position(|&k| usize::from(k) == j)
-                .map_or(rest.scale, |i| scales[i]);
-            Transform {
-                translation: t,
-                rotation: rotations[j],
-                scale: s,
-            }
-        })
-        .collect();
-    let mut world = vec![Mat4::IDENTITY; n];
-    forward_kinematics(&skeleton, &locals, &mut world);
-    let placed: Vec<[f32; 16]> = world
-        .iter()
-        .map(|w| (placement.to_mat4() * *w).to_cols_array())
-        .collect();
-    json!({
-        "description": desc,
-        "pose": {
-            "rotations": rotations.iter().map(|q| q.to_array()).collect::<Vec<_>>(),
-            "translations": translations.iter().map(|t| t.to_array()).collect::<Vec<_>>(),
-            "scales": scales.iter().map(|s| s.to_array()).collect::<Vec<_>>(),
-            "placement": placement,
-        },
-        "worlds": placed,
-    })
-}
-
-/// The page's forward kinematics agrees with `posecast_proto::fk` (within f32 rounding).
-#[test]
-fn the_dashboards_forward_kinematics_matches_proto() {
-    let mut rng = Lcg(0x5eed);
-    let mut cases = Vec::new();
-    for i in 0..40 {
-        let n = 1 + (i % 12);
-        let parents: Vec<Option<usize>> = (0..n)
-            .map(|j| (j > 0 && (j % 5 != 0)).then(|| (rng.next() * j as f32) as usize))
-            .collect();
-        let rest: Vec<Transform> = (0..n)
-            .map(|_| Transform {
-                translation: rng.vec3(-1.0, 1.0),
-                rotation: rng.quat(),
-                scale: rng.vec3(0.8, 1.25),
-            })
-            .collect();
-        let skeleton = skeleton_bound_at_rest(parents, rest);
-        let translated: Vec<bool> = (0..n).map(|_| rng.next() < 0.3).collect();
-        let scaled: Vec<bool> = (0..n).map(|_| rng.next() < 0.3).collect();
-        let desc = AvatarDescription::new(
-            avatar(&format!("random-{i}")),
-            i as u32,
-            "random".into(),
-            &skeleton,
-            &translated,
-            &scaled,
-            None,
-        );
-        cases.push(fk_case(&desc, &mut rng));
-    }
-    let rig = posecast_server::builtin::rig().unwrap();
-    let builtin =
-        posecast_server::avatar::Avatar::new(avatar("avatar"), 1, std::sync::Arc::new(rig));
-    for _ in 0..5 {
-        cases.push(fk_case(&builtin.description, &mut rng));
-    }
-
-    let file: PathBuf =
-        std::env::temp_dir().join(format!("posecast-fk-{}.json", std::process::id()));
-    std::fs::write(&file, serde_json::to_vec(&cases).unwrap()).unwrap();
-    let script = root().join("server/web/check/fk.mjs");
-    let out = match Process::new("node").arg(&script).arg(&file).output() {
-        Ok(out) => out,
-        Err(e) => {
-            skip(&format!(
-                "node is not installed ({e}): the page's FK is not checked"
-            ));
-            return;
-        }
-    };
-    std::fs::remove_file(&file).ok();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "fk.mjs: {stdout}{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let report: Value = serde_json::from_str(stdout.trim()).unwrap();
-    assert_eq!(report["cases"], cases.len(), "{report}");
-    println!("dashboard FK vs posecast_proto: {report}");
 }
