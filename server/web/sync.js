@@ -31,6 +31,8 @@ export class Sync {
     this.listing = null;
     /** @type {import("./protocol.js").WelcomeMsg | null} */
     this.welcomed = null;
+    /** @type {ServerMsg[] | null} Changes that came before the answer to `watch_scenes`. */
+    this.early = null;
     conn.onState = () => this.onState();
     conn.onMessage = (msg) => this.onMessage(msg);
     viewer.onPick = (avatar) => this.select(avatar);
@@ -48,6 +50,7 @@ export class Sync {
     if (c.state === "online" && c.welcome && c.welcome !== this.welcomed) {
       // A new connection (first, or after a reconnect): the list once, then changes.
       this.welcomed = c.welcome;
+      this.early = [];
       c.send({ type: "watch_scenes" });
       this.refreshAssets();
     }
@@ -68,6 +71,12 @@ export class Sync {
 
   /** @param {ServerMsg} msg */
   onMessage(msg) {
+    const change = ["scene_created", "scene_deleted", "avatar_changed", "avatar_removed"].includes(msg.type);
+    if (change && this.early) {
+      // Made while the list was being made: applied after it (each carries whole states).
+      this.early.push(msg);
+      return;
+    }
     const store = this.store;
     const scenes = store.get().scenes ?? new Map();
     switch (msg.type) {
@@ -85,6 +94,10 @@ export class Sync {
           this.conn.forget(watched);
           this.watch(null);
         }
+        /** @type {ServerMsg[]} */
+        const early = this.early ?? [];
+        this.early = null;
+        for (const m of early) this.onMessage(m);
         this.keepSelection();
         break;
       }

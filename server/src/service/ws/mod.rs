@@ -472,8 +472,9 @@ impl Session {
                     self.error(e);
                     return true;
                 }
-                // Watching first, listing second: a change in between comes before the list
-                // that already holds it, never after a list that lacks it.
+                // Watching first, listing second: no change is missed. One made while the list
+                // is being made may come before it (and the list may or may not hold it):
+                // clients apply such changes after the list (PROTOCOL.md).
                 self.state
                     .watchers
                     .watch(self.conn, &self.outbox, self.caller.clone());
