@@ -432,6 +432,24 @@ pub struct AvatarState {
     /// `/VMC/Ext/Blend/Val` + `Apply`); rigs have no morph targets yet, so they only show here.
     #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
     pub blend_shapes: std::collections::BTreeMap<String, f32>,
+    /// The cross-fade in progress (after `play … fade`), if any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fade: Option<FadeState>,
+}
+
+/// A cross-fade in progress: the clip fading out and how far the fade is.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FadeState {
+    /// The clip fading out.
+    pub from: String,
+    /// The rig that clip came from when it was retargeted.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub from_asset: Option<String>,
+    /// Seconds of the fade done at the state's tick (scene time; the new clip's weight is
+    /// `elapsed / duration`).
+    pub elapsed: f32,
+    /// The fade's length, seconds.
+    pub duration: f32,
 }
 
 #[cfg(test)]

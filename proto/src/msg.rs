@@ -6,6 +6,7 @@
 //! always speaks first with [`ClientMsg::Hello`]; the server answers [`ServerMsg::Welcome`] or an
 //! error and a close. See `proto/PROTOCOL.md` for the whole exchange with examples.
 
+use crate::command::{AvatarState, SceneInfo};
 use crate::description::AvatarDescription;
 use serde::{Deserialize, Serialize};
 use std::fmt;
@@ -101,6 +102,14 @@ pub enum ClientMsg {
         /// What to do.
         command: crate::command::Command,
     },
+    /// Ask for changes of the scene list: the server answers [`ServerMsg::Scenes`] (every
+    /// scene this connection may watch, as `list_scenes` lists them), then pushes
+    /// [`ServerMsg::SceneCreated`], [`ServerMsg::SceneDeleted`], [`ServerMsg::AvatarChanged`] and
+    /// [`ServerMsg::AvatarRemoved`] for those scenes as commands change them.
+    WatchScenes,
+    /// Stop the pushes [`ClientMsg::WatchScenes`] asked for (subscriptions keep theirs). No
+    /// answer.
+    UnwatchScenes,
     /// Live driving: one pose of the avatar this connection drives (after `drive`). Not
     /// acknowledged; a bad pose gets a typed error and changes nothing.
     Pose {
@@ -160,12 +169,43 @@ pub enum ServerMsg {
         /// The rig.
         avatar: Box<AvatarDescription>,
     },
-    /// The avatar left the scene; frames no longer carry it.
+    /// The avatar left the scene; frames no longer carry it. Sent to the scene's subscribers
+    /// covering the avatar and to connections watching the scene list.
     AvatarRemoved {
         /// The scene.
         scene: SceneId,
         /// The avatar.
         avatar: AvatarId,
+    },
+    /// The scene list, answering [`ClientMsg::WatchScenes`]: every scene the connection may
+    /// watch, with its avatars' states. Changes follow as the messages below.
+    Scenes {
+        /// The scenes.
+        scenes: Vec<SceneInfo>,
+    },
+    /// A scene was created (to connections watching the scene list).
+    SceneCreated {
+        /// The scene.
+        scene: SceneId,
+    },
+    /// A scene was deleted (to connections watching the scene list; its subscribers get
+    /// [`ServerMsg::Unsubscribed`]).
+    SceneDeleted {
+        /// The scene.
+        scene: SceneId,
+    },
+    /// An avatar was added, or a command changed its state (clip, speed, pause, seek, joint
+    /// overrides, placement, live driving, recording): its state now. Sent to the scene's
+    /// subscribers covering the avatar and to connections watching the scene list, once each.
+    AvatarChanged {
+        /// The scene.
+        scene: SceneId,
+        /// The scene's tick at which `avatar.time` (and a fade's `elapsed`) hold: at tick
+        /// `s` the clip time is `time + (s − seq) / tick_rate · speed` (wrapped or clamped
+        /// to the clip) while playing.
+        seq: u64,
+        /// The avatar's state, as `get_avatar` answers.
+        avatar: Box<AvatarState>,
     },
     /// Answer to a ping.
     Pong {
@@ -381,6 +421,39 @@ mod tests {
         assert_eq!(serde_json::from_str::<ClientMsg>(&text).unwrap(), hello);
         assert!(serde_json::from_str::<ClientMsg>(r#"{"type":"hello","version":1}"#).is_err());
         assert!(serde_json::from_str::<ClientMsg>(r#"{"type":"launch"}"#).is_err());
+    }
+
+    #[test]
+    fn change_messages_serialise_as_documented() {
+        assert_eq!(
+            serde_json::to_string(&ClientMsg::WatchScenes).unwrap(),
+            r#"{"type":"watch_scenes"}"#
+        );
+        assert_eq!(
+            serde_json::from_str::<ClientMsg>(r#"{"type":"unwatch_scenes"}"#).unwrap(),
+            ClientMsg::UnwatchScenes
+        );
+        assert_eq!(
+            serde_json::to_string(&ServerMsg::SceneCreated {
+                scene: SceneId("lobby".into())
+            })
+            .unwrap(),
+            r#"{"type":"scene_created","scene":"lobby"}"#
+        );
+        assert_eq!(
+            serde_json::to_string(&ServerMsg::Scenes { scenes: Vec::new() }).unwrap(),
+            r#"{"type":"scenes","scenes":[]}"#
+        );
+        let changed: ServerMsg = serde_json::from_str(
+            r#"{"type":"avatar_changed","scene":"lobby","seq":42,"avatar":{"avatar":"guest",
+                "scene":"lobby","asset":"avatar","clip":"walk","clip_asset":null,"time":0.5,
+                "speed":1.0,"looping":true,"paused":false,"overrides":[]}}"#,
+        )
+        .unwrap();
+        assert!(
+            matches!(&changed, ServerMsg::AvatarChanged { seq: 42, avatar, .. } if avatar.fade.is_none()),
+            "{changed:?}"
+        );
     }
 
     #[test]

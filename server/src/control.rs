@@ -1,7 +1,9 @@
 //! Executes control commands for clients (REST and websocket): the `World`'s
-//! [`command::apply`] with the slow part done first off the lock, counted in the metrics, and —
-//! with a data folder — acknowledged only once stored.
+//! [`command::apply`] with the slow part done first off the lock, counted in the metrics,
+//! announced to the connections that follow the world ([`changes`]), and — with a data
+//! folder — acknowledged only once stored.
 
+use crate::changes;
 use crate::error::Error;
 use crate::quota::Quota;
 use crate::state::AppState;
@@ -9,14 +11,19 @@ use crate::store::recordings::{self, Saved};
 use crate::world::command;
 use posecast_proto::command::{Command, CommandResult, RecordingInfo};
 
-/// Executes a command in memory. Authorisation is checked by the caller. Servers with a data
-/// folder answer clients through [`execute_durable`] instead.
+/// Executes a command in memory and tells the connections that follow what it changed
+/// ([`changes`]). Authorisation is checked by the caller. Servers with a data folder answer
+/// clients through [`execute_durable`] instead.
 ///
 /// # Errors
-/// A typed error; nothing is changed when a command fails.
+/// A typed error; nothing is changed (and nothing announced) when a command fails.
 pub fn execute(state: &AppState, command: &Command) -> Result<CommandResult, Error> {
+    let before = changes::before(state, command);
     let result = command::apply(&state.world, command);
     state.metrics.command(result.is_ok());
+    if let Ok(r) = &result {
+        changes::after(state, command, before, r);
+    }
     result
 }
 

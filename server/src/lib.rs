@@ -17,7 +17,8 @@
 //!    [`world`] (every scene, ids, quotas; [`world::command`]: a command applied to it).
 //! 5. **Services** — [`auth`] (tokens), [`store`] (the data folder), [`config`], [`state`]
 //!    (the world plus connections, store and start-up progress), [`control`] (commands for
-//!    clients: counted, and acknowledged once stored), live drivers of a connection, the VMC
+//!    clients: counted, and acknowledged once stored), [`changes`] (what commands changed,
+//!    pushed to subscribers and scene-list watchers), live drivers of a connection, the VMC
 //!    gateway ([`vmc`]: UDP performers as live drivers, avatars sent to VMC receivers),
 //!    start-up loading ([`readiness`]).
 //! 6. **Transport** — [`service`]: the axum router, accept loop and limits, websocket
@@ -33,6 +34,7 @@ pub mod auth;
 pub mod avatar;
 pub mod bake;
 pub mod builtin;
+pub mod changes;
 pub mod clip;
 pub mod config;
 pub mod control;

@@ -1,12 +1,15 @@
 //! The server's shared state: configuration, the [`World`], the data folder, the open
-//! connections, counters.
+//! connections and those watching the scene list, counters.
 
+use crate::auth::{AccessConfig, Caller};
 use crate::config::Config;
 use crate::metrics::Metrics;
 use crate::readiness::Readiness;
 use crate::store::Store;
 use crate::stream::outbox::Outbox;
 use crate::world::World;
+use axum::extract::ws::Message;
+use posecast_proto::msg::SceneId;
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -35,6 +38,8 @@ pub struct AppState {
     pub store: Store,
     /// Whether what is loaded at start is loaded yet ([`crate::readiness`]).
     pub readiness: Readiness,
+    /// The connections watching the scene list ([`crate::changes`]).
+    pub watchers: Watchers,
 }
 
 /// The open websockets' outboxes, and whether the server is shutting down (in one lock, so a
@@ -58,6 +63,7 @@ impl AppState {
             connection_closed: Notify::new(),
             store: Store::new(config.data_dir.clone()),
             readiness: Readiness::default(),
+            watchers: Watchers::default(),
             config,
         })
     }
@@ -139,5 +145,74 @@ impl AppState {
         self.readiness.stop();
         self.world.shut();
         self.close_connections();
+    }
+}
+
+/// The connections that asked for scene-list changes (`watch_scenes`), with who they are (a
+/// token limited to some scenes hears only of those, when views are private).
+#[derive(Debug, Default)]
+pub struct Watchers {
+    watching: Mutex<HashMap<u64, Watcher>>,
+}
+
+#[derive(Debug)]
+struct Watcher {
+    outbox: Weak<Outbox>,
+    caller: Caller,
+}
+
+impl Watchers {
+    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<u64, Watcher>> {
+        // Every update is one insert or remove: a poisoned lock is still consistent.
+        self.watching
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// Connection `conn` watches the scene list from now on (again: no change).
+    pub fn watch(&self, conn: u64, outbox: &Arc<Outbox>, caller: Caller) {
+        self.lock().insert(
+            conn,
+            Watcher {
+                outbox: Arc::downgrade(outbox),
+                caller,
+            },
+        );
+    }
+
+    /// Connection `conn` stops watching (it asked, or it closed).
+    pub fn unwatch(&self, conn: u64) {
+        self.lock().remove(&conn);
+    }
+
+    /// How many connections watch.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        self.lock().len()
+    }
+
+    /// Whether nobody watches.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.lock().is_empty()
+    }
+
+    /// Hands `message` about `scene` to every watcher that may watch it, except the
+    /// connections in `told`.
+    pub(crate) fn push(
+        &self,
+        access: &AccessConfig,
+        scene: &SceneId,
+        message: &Message,
+        told: &[u64],
+    ) {
+        for (conn, w) in self.lock().iter() {
+            if told.contains(conn) || access.authorize_view(&w.caller, scene).is_err() {
+                continue;
+            }
+            if let Some(outbox) = w.outbox.upgrade() {
+                outbox.push_control(message.clone());
+            }
+        }
     }
 }

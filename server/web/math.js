@@ -1,13 +1,26 @@
+// @ts-check
 // Small column-major 4×4 matrix and quaternion helpers (p' = M p, quaternions [x, y, z, w]),
 // the same conventions as posecast-proto.
 
+/** @typedef {Float32Array} Mat4 16 floats, column-major. */
+/** @typedef {ArrayLike<number>} Mat4Like */
+/** @typedef {[number, number, number]} Vec3 */
+/** @typedef {[number, number, number, number]} Quat */
+
+/** @returns {Mat4} */
 export function identity() {
   const m = new Float32Array(16);
   m[0] = m[5] = m[10] = m[15] = 1;
   return m;
 }
 
-/** out = a · b (column-major). `out` may not alias `a` or `b`. */
+/**
+ * out = a · b (column-major). `out` may not alias `a` or `b`.
+ * @param {Mat4} out
+ * @param {Mat4Like} a
+ * @param {Mat4Like} b
+ * @returns {Mat4}
+ */
 export function multiply(out, a, b) {
   for (let c = 0; c < 4; c++) {
     for (let r = 0; r < 4; r++) {
@@ -18,9 +31,16 @@ export function multiply(out, a, b) {
   return out;
 }
 
-/** out = T(t) · R(q) · S(s). */
+/**
+ * out = T(t) · R(q) · S(s); `q` is normalised first.
+ * @param {Mat4} out
+ * @param {ArrayLike<number>} t
+ * @param {ArrayLike<number>} q
+ * @param {ArrayLike<number>} s
+ * @returns {Mat4}
+ */
 export function fromTRS(out, t, q, s) {
-  let [x, y, z, w] = q;
+  let x = q[0], y = q[1], z = q[2], w = q[3];
   const n = Math.hypot(x, y, z, w) || 1;
   x /= n; y /= n; z /= n; w /= n;
   const xx = x * x, yy = y * y, zz = z * z, xy = x * y, xz = x * z, yz = y * z;
@@ -44,6 +64,14 @@ export function fromTRS(out, t, q, s) {
   return out;
 }
 
+/**
+ * OpenGL-style perspective projection.
+ * @param {number} fovy Vertical field of view, radians.
+ * @param {number} aspect Width / height.
+ * @param {number} near
+ * @param {number} far
+ * @returns {Mat4}
+ */
 export function perspective(fovy, aspect, near, far) {
   const f = 1 / Math.tan(fovy / 2);
   const m = new Float32Array(16);
@@ -55,6 +83,13 @@ export function perspective(fovy, aspect, near, far) {
   return m;
 }
 
+/**
+ * The view matrix of a camera at `eye` looking at `target`.
+ * @param {ArrayLike<number>} eye
+ * @param {ArrayLike<number>} target
+ * @param {ArrayLike<number>} up
+ * @returns {Mat4}
+ */
 export function lookAt(eye, target, up) {
   let zx = eye[0] - target[0], zy = eye[1] - target[1], zz = eye[2] - target[2];
   let n = Math.hypot(zx, zy, zz) || 1;
@@ -74,9 +109,14 @@ export function lookAt(eye, target, up) {
   return m;
 }
 
-/** Applies `m` to point `p`; returns [x, y, z, w] (homogeneous). */
+/**
+ * Applies `m` to point `p`; returns [x, y, z, w] (homogeneous).
+ * @param {Mat4Like} m
+ * @param {ArrayLike<number>} p
+ * @returns {Quat}
+ */
 export function transformPoint(m, p) {
-  const [x, y, z] = p;
+  const x = p[0], y = p[1], z = p[2];
   return [
     m[0] * x + m[4] * y + m[8] * z + m[12],
     m[1] * x + m[5] * y + m[9] * z + m[13],
@@ -85,12 +125,23 @@ export function transformPoint(m, p) {
   ];
 }
 
-/** Rotation by `angle` radians about the unit `axis`. */
+/**
+ * Rotation by `angle` radians about the unit `axis`.
+ * @param {ArrayLike<number>} axis
+ * @param {number} angle
+ * @returns {Quat}
+ */
 export function quatAxisAngle(axis, angle) {
   const s = Math.sin(angle / 2);
   return [axis[0] * s, axis[1] * s, axis[2] * s, Math.cos(angle / 2)];
 }
 
+/**
+ * The rotation `a · b` (b first, then a).
+ * @param {Quat} a
+ * @param {Quat} b
+ * @returns {Quat}
+ */
 export function quatMul(a, b) {
   const [ax, ay, az, aw] = a;
   const [bx, by, bz, bw] = b;
@@ -102,7 +153,13 @@ export function quatMul(a, b) {
   ];
 }
 
-/** R = R_z(z) · R_y(y) · R_x(x): Euler angles applied x, then y, then z (radians). */
+/**
+ * R = R_z(z) · R_y(y) · R_x(x): Euler angles applied x, then y, then z (radians).
+ * @param {number} x
+ * @param {number} y
+ * @param {number} z
+ * @returns {Quat}
+ */
 export function quatFromEulerXYZ(x, y, z) {
   const qx = quatAxisAngle([1, 0, 0], x);
   const qy = quatAxisAngle([0, 1, 0], y);
@@ -110,7 +167,11 @@ export function quatFromEulerXYZ(x, y, z) {
   return quatMul(qz, quatMul(qy, qx));
 }
 
-/** The inverse of `quatFromEulerXYZ`: [x, y, z] radians. */
+/**
+ * The inverse of `quatFromEulerXYZ`: [x, y, z] radians.
+ * @param {Quat} q
+ * @returns {Vec3}
+ */
 export function eulerXYZFromQuat(q) {
   const [x, y, z, w] = q;
   // Rotation matrix entries of R = Rz Ry Rx.

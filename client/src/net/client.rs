@@ -560,6 +560,11 @@ fn on_server_msg(
             }
         }
         ServerMsg::Frame(frame) => on_json_frame(&mut s, frame, len, received),
+        // Scene and avatar changes (for dashboards); this client follows poses only.
+        ServerMsg::Scenes { .. }
+        | ServerMsg::SceneCreated { .. }
+        | ServerMsg::SceneDeleted { .. }
+        | ServerMsg::AvatarChanged { .. } => None,
     };
     drop(s);
     if let Some(e) = event {

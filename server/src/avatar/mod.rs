@@ -300,6 +300,7 @@ impl Avatar {
                 .as_ref()
                 .map(|l| l.blend_shapes.clone())
                 .unwrap_or_default(),
+            fade: self.player.fade(),
         }
     }
 }

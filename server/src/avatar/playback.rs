@@ -3,7 +3,7 @@
 
 use crate::clip::{Clip, Sampler};
 use posecast_proto::Transform;
-use posecast_proto::command::RootMotion;
+use posecast_proto::command::{FadeState, RootMotion};
 use std::sync::Arc;
 
 /// Default cross-fade duration, seconds.
@@ -195,6 +195,17 @@ impl Player {
     #[must_use]
     pub fn clock(&self) -> f64 {
         self.clock
+    }
+
+    /// The cross-fade in progress, as clients see it (`AvatarState::fade`).
+    #[must_use]
+    pub fn fade(&self) -> Option<FadeState> {
+        self.fading.as_ref().map(|f| FadeState {
+            from: f.from.clip.name().to_string(),
+            from_asset: f.from.source_asset.clone(),
+            elapsed: (self.clock - f.started).max(0.0) as f32,
+            duration: f.duration,
+        })
     }
 
     /// Starts `layer` at the current clock, cross-fading from the current one over `fade`

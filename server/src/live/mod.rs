@@ -12,6 +12,7 @@
 //! (`unknown_joint`), every rotation a finite non-zero quaternion and the root position finite
 //! and within [`MAX_ROOT_METRES`] (`invalid_value`). A pose failing any check changes nothing.
 
+use crate::changes;
 use crate::error::Error;
 use crate::scene::Scene;
 
@@ -52,7 +53,8 @@ impl Drives {
     }
 
     /// Runs `drive` (this connection becomes the driver) — the one command that needs the
-    /// connection — and returns `None` for every other command. Authorisation is the caller's.
+    /// connection — counted and announced like the others ([`crate::control::execute`]), and
+    /// returns `None` for every other command. Authorisation is the caller's.
     pub fn command(
         &mut self,
         state: &AppState,
@@ -66,6 +68,7 @@ impl Drives {
         else {
             return None;
         };
+        let before = changes::before(state, command);
         let result = self
             .drive(
                 state,
@@ -75,6 +78,9 @@ impl Drives {
             )
             .map(|info| CommandResult::Drive(Box::new(info)));
         state.metrics.command(result.is_ok());
+        if let Ok(r) = &result {
+            changes::after(state, command, before, r);
+        }
         Some(result)
     }
 
@@ -233,13 +239,15 @@ impl Drives {
 
     /// The connection left: each avatar it still drives returns to its clip or holds its last
     /// pose, as its `drive` asked.
-    pub fn leave(&mut self) {
+    pub fn leave(&mut self, state: &AppState) {
         for (avatar, _, scene) in self.driven.drain(..) {
             let mut s = scene.lock();
             if let Some(a) = s.avatar_mut(&avatar)
                 && a.live.as_ref().is_some_and(|l| l.driver == Some(self.conn))
             {
                 a.driver_gone();
+                drop(s);
+                changes::avatar_changed(state, &scene, &avatar);
             }
         }
     }

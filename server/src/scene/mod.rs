@@ -36,6 +36,12 @@ impl SceneState {
     pub fn avatar_mut(&mut self, id: &AvatarId) -> Option<&mut Avatar> {
         self.avatars.iter_mut().find(|a| &a.id == id)
     }
+
+    /// The number of the last tick (0 before the first): avatars' clip times are at it.
+    #[must_use]
+    pub fn last_seq(&self) -> u64 {
+        self.last.seq
+    }
 }
 
 /// A scene.

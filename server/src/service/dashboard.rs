@@ -47,7 +47,8 @@ fn is_host_source(host: &str) -> bool {
     host.len() <= 255 && name_ok && port_ok
 }
 
-/// `(name, content type, contents)` of every file under `server/web/`.
+/// `(name, content type, contents)` of every file the page loads from `server/web/` (not
+/// `protocol.js`, JSDoc types only, nor the type check's `tsconfig.json` and `check/`).
 const FILES: &[(&str, &str, &str)] = &[
     (
         "index.html",
@@ -59,32 +60,62 @@ const FILES: &[(&str, &str, &str)] = &[
         "text/css; charset=utf-8",
         include_str!("../../web/style.css"),
     ),
+    ("app.js", JS, include_str!("../../web/app.js")),
+    ("connection.js", JS, include_str!("../../web/connection.js")),
+    ("tokens.js", JS, include_str!("../../web/tokens.js")),
+    ("store.js", JS, include_str!("../../web/store.js")),
+    ("sync.js", JS, include_str!("../../web/sync.js")),
+    ("ui.js", JS, include_str!("../../web/ui.js")),
+    ("rest.js", JS, include_str!("../../web/rest.js")),
+    ("viewer.js", JS, include_str!("../../web/viewer.js")),
+    ("draw.js", JS, include_str!("../../web/draw.js")),
+    ("draw-gl.js", JS, include_str!("../../web/draw-gl.js")),
+    ("fk.js", JS, include_str!("../../web/fk.js")),
+    ("glb.js", JS, include_str!("../../web/glb.js")),
+    ("math.js", JS, include_str!("../../web/math.js")),
     (
-        "app.js",
-        "text/javascript; charset=utf-8",
-        include_str!("../../web/app.js"),
+        "panel-status.js",
+        JS,
+        include_str!("../../web/panel-status.js"),
     ),
     (
-        "connection.js",
-        "text/javascript; charset=utf-8",
-        include_str!("../../web/connection.js"),
+        "panel-access.js",
+        JS,
+        include_str!("../../web/panel-access.js"),
     ),
     (
-        "viewer.js",
-        "text/javascript; charset=utf-8",
-        include_str!("../../web/viewer.js"),
+        "panel-scenes.js",
+        JS,
+        include_str!("../../web/panel-scenes.js"),
     ),
     (
-        "glb.js",
-        "text/javascript; charset=utf-8",
-        include_str!("../../web/glb.js"),
+        "panel-playback.js",
+        JS,
+        include_str!("../../web/panel-playback.js"),
     ),
     (
-        "math.js",
-        "text/javascript; charset=utf-8",
-        include_str!("../../web/math.js"),
+        "panel-timeline.js",
+        JS,
+        include_str!("../../web/panel-timeline.js"),
+    ),
+    (
+        "panel-place.js",
+        JS,
+        include_str!("../../web/panel-place.js"),
+    ),
+    (
+        "panel-joints.js",
+        JS,
+        include_str!("../../web/panel-joints.js"),
+    ),
+    (
+        "panel-upload.js",
+        JS,
+        include_str!("../../web/panel-upload.js"),
     ),
 ];
+
+const JS: &str = "text/javascript; charset=utf-8";
 
 fn serve(name: &str, request: &HeaderMap) -> Response {
     let Some(&(_, content_type, body)) = FILES.iter().find(|(n, _, _)| *n == name) else {
@@ -144,6 +175,26 @@ mod tests {
             serve("../Cargo.toml", &HeaderMap::new()).status(),
             StatusCode::NOT_FOUND
         );
+    }
+
+    /// Every module the page imports is served: each `.js` beside `index.html` (but the
+    /// type-only `protocol.js`) is in [`FILES`], and each file in [`FILES`] is there.
+    #[test]
+    fn every_module_of_the_page_is_served() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("web");
+        let mut on_disk: Vec<String> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.ends_with(".js") && n != "protocol.js")
+            .collect();
+        on_disk.sort();
+        let mut served: Vec<String> = FILES
+            .iter()
+            .map(|(n, _, _)| (*n).to_owned())
+            .filter(|n| n.ends_with(".js"))
+            .collect();
+        served.sort();
+        assert_eq!(on_disk, served);
     }
 
     /// The `connect-src` directive of a policy, split into its sources.

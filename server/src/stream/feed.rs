@@ -153,6 +153,30 @@ impl Feed {
         self.force_key = true;
     }
 
+    /// Hands `message` — news of avatar `avatar` (`avatar_changed`) — to every subscriber
+    /// covering it. Returns their connections (each told once, whoever else tells others).
+    pub fn push_change(&self, avatar: &AvatarId, message: &Message) -> Vec<u64> {
+        self.subscribers
+            .iter()
+            .filter(|sub| sub.wants(avatar))
+            .map(|sub| {
+                sub.outbox.push_control(message.clone());
+                sub.conn
+            })
+            .collect()
+    }
+
+    /// The connections whose subscription covers `avatar` (the ones [`Feed::avatar_removed`]
+    /// and [`Feed::push_change`] reach).
+    #[must_use]
+    pub fn covering(&self, avatar: &AvatarId) -> Vec<u64> {
+        self.subscribers
+            .iter()
+            .filter(|sub| sub.wants(avatar))
+            .map(|sub| sub.conn)
+            .collect()
+    }
+
     /// Notes that an avatar was placed: until the next tick, joiners get a keyframe made from
     /// the current poses rather than the cached one.
     pub fn placed(&mut self) {

@@ -468,6 +468,39 @@ impl Session {
                 }
                 true
             }
+            ClientMsg::WatchScenes => {
+                // The listing walks every scene under its lock: charged like a subscribe.
+                if let Err(wait) = self.commands.take() {
+                    self.state.metrics.rate_limited();
+                    self.error(rate_limited(wait));
+                    return true;
+                }
+                let access = &self.state.config.access;
+                if let Err(e) = access.authorize_read(&self.caller) {
+                    self.error(e);
+                    return true;
+                }
+                // Watching first, listing second: no change is missed. One made while the list
+                // is being made may come before it (and the list may or may not hold it):
+                // clients apply such changes after the list (PROTOCOL.md).
+                self.state
+                    .watchers
+                    .watch(self.conn, &self.outbox, self.caller.clone());
+                let scenes = self
+                    .state
+                    .world
+                    .scenes()
+                    .iter()
+                    .map(|s| s.info())
+                    .filter(|s| access.authorize_view(&self.caller, &s.scene).is_ok())
+                    .collect();
+                self.send(&ServerMsg::Scenes { scenes });
+                true
+            }
+            ClientMsg::UnwatchScenes => {
+                self.state.watchers.unwatch(self.conn);
+                true
+            }
             ClientMsg::Pose {
                 avatar,
                 rotations,
@@ -525,7 +558,8 @@ impl Session {
     }
 
     fn leave_all(&mut self) {
-        self.drives.leave();
+        self.state.watchers.unwatch(self.conn);
+        self.drives.leave(&self.state);
         for scene in self.scenes.drain(..) {
             if let Ok(s) = self.state.world.scene(&scene) {
                 s.unsubscribe(self.conn);

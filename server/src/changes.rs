@@ -1,0 +1,145 @@
+//! Scene and avatar changes pushed to clients, so a dashboard never polls `list_scenes`.
+//!
+//! After a command changed the world ([`crate::control::execute`], and `drive` for a
+//! websocket connection; also when a live driver leaves), [`after`] tells, once each:
+//! - the scene's subscribers covering the avatar (through its [`crate::stream::feed::Feed`]):
+//!   `avatar_changed` — `avatar_removed` they already get from the feed;
+//! - the connections watching the scene list ([`crate::state::Watchers`], `watch_scenes`) that may watch the
+//!   scene: `scene_created`, `scene_deleted`, `avatar_changed`, `avatar_removed`.
+//!
+//! Why here and not per tick: clip time moves every tick, but it follows from the state at one
+//! tick (`avatar_changed.seq`), the speed and the clip, so a client computes it for each frame
+//! itself; the server sends one message per change a command makes, never per tick. Joint
+//! overrides (a slider dragged sends dozens of commands a second) are announced only when the
+//! set of overridden joints changes. Each message is bounded like every control message (a
+//! connection that does not read is closed, [`crate::stream::outbox::MAX_CONTROL_BYTES`]).
+//!
+//! Pushes to one scene's watchers and subscribers happen under the scene's lock, so two
+//! changes of one avatar reach every connection in the order they were made.
+
+use crate::scene::Scene;
+use crate::state::AppState;
+use crate::stream::feed::text;
+use posecast_proto::command::{AvatarState, Command, CommandResult};
+use posecast_proto::msg::{AvatarId, ServerMsg};
+use std::sync::Arc;
+
+/// What a command may change, noted before it runs.
+#[derive(Debug)]
+pub struct Before {
+    /// The avatar's scene and its overridden joints, for a command about an existing avatar.
+    avatar: Option<(Arc<Scene>, Vec<String>)>,
+}
+
+/// Notes what [`after`] compares with. Read-only commands note nothing.
+#[must_use]
+pub fn before(state: &AppState, command: &Command) -> Before {
+    let avatar = match command.avatar() {
+        Some(id) if !command.is_read_only() && !matches!(command, Command::AddAvatar { .. }) => {
+            state.world.find_avatar(id).ok().and_then(|scene| {
+                let overrides = scene
+                    .lock()
+                    .avatars
+                    .iter()
+                    .find(|a| &a.id == id)
+                    .map(|a| a.state(&scene.id).overrides)?;
+                Some((scene, overrides))
+            })
+        }
+        _ => None,
+    };
+    Before { avatar }
+}
+
+/// Tells subscribers and watchers what `command` (which succeeded with `result`) changed.
+pub fn after(state: &AppState, command: &Command, before: Before, result: &CommandResult) {
+    let access = &state.config.access;
+    match (command, result) {
+        (Command::CreateScene { scene }, _) => {
+            let msg = text(&ServerMsg::SceneCreated {
+                scene: scene.clone(),
+            });
+            state.watchers.push(access, scene, &msg, &[]);
+        }
+        (Command::DeleteScene { scene }, _) => {
+            let msg = text(&ServerMsg::SceneDeleted {
+                scene: scene.clone(),
+            });
+            state.watchers.push(access, scene, &msg, &[]);
+        }
+        (Command::AddAvatar { scene, .. }, CommandResult::AvatarAdded { avatar }) => {
+            if let Ok(scene) = state.world.scene(scene) {
+                announce(state, &scene, avatar, |_| true);
+            }
+        }
+        (Command::RemoveAvatar { avatar }, _) => {
+            let Some((scene, _)) = before.avatar else {
+                return;
+            };
+            // The feed told the subscribers covering it; the watchers among them are told.
+            let s = scene.lock();
+            let told = s.feed.covering(avatar);
+            let msg = text(&ServerMsg::AvatarRemoved {
+                scene: scene.id.clone(),
+                avatar: avatar.clone(),
+            });
+            state.watchers.push(access, &scene.id, &msg, &told);
+        }
+        _ => {
+            let (Some(id), Some((scene, overrides))) = (command.avatar(), before.avatar) else {
+                return;
+            };
+            if overrides_only(command) {
+                announce(state, &scene, id, |now| now.overrides != overrides);
+            } else {
+                announce(state, &scene, id, |_| true);
+            }
+        }
+    }
+}
+
+/// Commands that change only joint overrides: announced when the set of overridden joints
+/// changes, not for every new angle.
+fn overrides_only(command: &Command) -> bool {
+    matches!(
+        command,
+        Command::SetJointRotation { .. }
+            | Command::SetJointDofs { .. }
+            | Command::RotateJointLocal { .. }
+            | Command::RotateJointWorld { .. }
+            | Command::Release { .. }
+    )
+}
+
+/// Tells subscribers and watchers the state of avatar `id` of `scene` now: for changes not made
+/// by a command (a live driver that left).
+pub fn avatar_changed(state: &AppState, scene: &Scene, id: &AvatarId) {
+    announce(state, scene, id, |_| true);
+}
+
+/// Sends `avatar_changed` with the avatar's state now, if `changed` says so, to the scene's
+/// subscribers covering it and to its watchers — under the scene's lock (see the module docs).
+fn announce(
+    state: &AppState,
+    scene: &Scene,
+    id: &AvatarId,
+    changed: impl FnOnce(&AvatarState) -> bool,
+) {
+    let s = scene.lock();
+    let Some(avatar) = s.avatars.iter().find(|a| &a.id == id) else {
+        return;
+    };
+    let now = avatar.state(&scene.id);
+    if !changed(&now) {
+        return;
+    }
+    let msg = text(&ServerMsg::AvatarChanged {
+        scene: scene.id.clone(),
+        seq: s.last_seq(),
+        avatar: Box::new(now),
+    });
+    let told = s.feed.push_change(id, &msg);
+    state
+        .watchers
+        .push(&state.config.access, &scene.id, &msg, &told);
+}

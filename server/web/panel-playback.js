@@ -1,0 +1,97 @@
+// @ts-check
+// The selected avatar's state and its clip: play (own clips, or another rig's retargeted),
+// pause, resume, stop, speed, cross-fade length, loop.
+
+import { $, el, num, notice } from "./ui.js";
+import { yawDegrees } from "./panel-scenes.js";
+
+/** @typedef {import("./ui.js").Ctx} Ctx */
+/** @typedef {import("./store.js").State} State */
+/** @typedef {import("./protocol.js").AssetInfo} AssetInfo */
+
+/** @param {Ctx} ctx */
+export function mount(ctx) {
+  const { store, run } = ctx;
+  const select = $("clip-select", HTMLSelectElement);
+  /** @type {{assets: AssetInfo[], asset: string | null} | null} */
+  let filled = null;
+
+  store.on(["scenes", "selected", "assets"], (s) => {
+    const entry = store.selectedAvatar();
+    const dl = $("avatar-state");
+    dl.replaceChildren();
+    if (!entry) {
+      dl.append(el("dt", {}, "Avatar"), el("dd", {}, "none selected"));
+      return;
+    }
+    const a = entry.state;
+    const [x, y, z] = a.placement.position;
+    /** @type {[string, string][]} */
+    const rows = [
+      ["Avatar", `${a.avatar} (rig ${a.asset}, scene ${a.scene})`],
+      ["Clip", a.clip ? (a.clip_asset ? `${a.clip} (retargeted from ${a.clip_asset})` : a.clip) : "none"],
+      ["Speed", String(a.speed)],
+      ["State", `${a.paused ? "paused" : "playing"}, ${a.looping ? "looping" : "not looping"}${a.root_motion ? `, root motion ${a.root_motion.replace("_", " ")}` : ""}`],
+      ["Overrides", a.overrides.length ? a.overrides.join(", ") : "none"],
+      ["Placement", `(${x.toFixed(2)}, ${y.toFixed(2)}, ${z.toFixed(2)}) m, facing ${yawDegrees(a.placement.rotation).toFixed(0)}°`],
+    ];
+    if (a.driven) rows.push(["Live", "driven by a live source"]);
+    if (a.recording) rows.push(["Recording", a.recording]);
+    for (const [k, v] of rows) dl.append(el("dt", {}, k), el("dd", { dataset: { field: k.toLowerCase() } }, v));
+
+    // The clip list changes with the rig or the assets, not with every state change.
+    if (filled?.assets !== s.assets || filled.asset !== a.asset) {
+      filled = { assets: s.assets, asset: a.asset };
+      const keep = select.value;
+      select.replaceChildren();
+      const own = s.assets.find((x) => x.name === a.asset);
+      const others = s.assets.filter((x) => x.name !== a.asset && x.clips.length);
+      /**
+       * @param {string} label
+       * @param {AssetInfo} asset
+       * @param {string | null} from
+       */
+      const group = (label, asset, from) => {
+        const g = el("optgroup", { label });
+        for (const c of asset.clips) {
+          g.append(el("option", { value: JSON.stringify([from, c.name]) }, `${c.name} (${c.duration.toFixed(2)} s)`));
+        }
+        return g;
+      };
+      if (own) select.append(group(`${own.name} (own clips)`, own, null));
+      for (const x of others) select.append(group(`Retargeted from ${x.name}`, x, x.name));
+      const current = JSON.stringify([a.clip_asset ?? null, a.clip]);
+      const offered = [...select.options].map((o) => o.value);
+      if (offered.includes(keep)) select.value = keep;
+      else if (offered.includes(current)) select.value = current;
+    }
+  });
+
+  $("play").addEventListener("click", () => {
+    const entry = store.selectedAvatar();
+    if (!entry || !select.value) return;
+    const [from, clip] = /** @type {[string | null, string]} */ (JSON.parse(select.value));
+    const avatar = entry.state.avatar;
+    /** @type {import("./protocol.js").Command} */
+    const command = {
+      op: "play",
+      avatar,
+      clip,
+      speed: num("speed", 1),
+      looping: $("looping", HTMLInputElement).checked,
+      fade: num("fade", 0.25),
+    };
+    if (from) command.from_asset = from;
+    run(command).then(() => notice(`Playing ${from ? `${from}:` : ""}${clip} on ${avatar}`), () => {});
+  });
+  for (const op of /** @type {const} */ (["pause", "resume", "stop"])) {
+    $(op).addEventListener("click", () => {
+      const entry = store.selectedAvatar();
+      if (entry) run({ op, avatar: entry.state.avatar }).catch(() => {});
+    });
+  }
+  $("set-speed").addEventListener("click", () => {
+    const entry = store.selectedAvatar();
+    if (entry) run({ op: "set_speed", avatar: entry.state.avatar, speed: num("speed", 1) }).catch(() => {});
+  });
+}

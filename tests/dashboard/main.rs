@@ -1,0 +1,34 @@
+//! The web dashboard in a real headless Chromium, driven over WebDriver (chromedriver +
+//! fantoccini) against an in-process server, one browser at a time (`browser::browser`):
+//! - `controls`: the page loads without errors and lists the avatars; its buttons and sliders
+//!   change the avatars' state and the pose stream (checked by a separate Rust websocket
+//!   client); the preview draws the avatar (screenshot pixel count); uploads; offline and back;
+//! - `placement`: every avatar of a scene drawn where it stands (drawn roots, screenshot
+//!   columns);
+//! - `tokens`: a wrong token, and a server restarted with a new token, leave the page watching
+//!   and saying why control is refused; a `#control=…` link opened in the tab restores control;
+//! - `world`: scenes and avatars created, placed, focused, picked and removed from the page
+//!   (and the multi-avatar screenshot, `docs/dashboard.png`);
+//! - `timeline`: the time display and scrubber move with the stream, range markers,
+//!   cross-fades shown;
+//! - `layout`: at 1280×800 the controls sit beside the preview, which stays in view; at 400 px
+//!   one column without sideways scrolling;
+//! - `push`: changes made by others show within a second without the page asking (it never
+//!   sends `list_scenes`, and sends no command while idle).
+//!
+//! Needs `/usr/bin/chromium` and `/usr/bin/chromedriver` (`scripts/test` installs them).
+//! Set `POSECAST_UPDATE_SCREENSHOT=1` to also write `docs/dashboard.png` for the README.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+#[path = "../common/mod.rs"]
+mod common;
+
+mod browser;
+mod controls;
+mod layout;
+mod placement;
+mod push;
+mod timeline;
+mod tokens;
+mod world;

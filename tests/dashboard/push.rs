@@ -1,0 +1,96 @@
+//! The server pushes changes; the page never polls. Changes made by someone else (REST) show on
+//! the page within a second, while the page sends no command at all: it never sends
+//! `list_scenes`, and nothing while idle.
+
+use crate::browser::*;
+use crate::common::{self, CONTROL};
+use serde_json::{Value, json};
+use std::time::{Duration, Instant};
+
+/// Runs `body` on the server, then measures how long the page takes to satisfy `expr`.
+async fn shows_within(
+    b: &fantoccini::Client,
+    server: &posecast_server::startup::Server,
+    body: Value,
+    expr: &str,
+) -> Duration {
+    let (status, answer) = command(server, body.clone()).await;
+    assert_eq!(status, 200, "{body}: {answer}");
+    let t0 = Instant::now();
+    wait_js(b, 1, expr).await;
+    t0.elapsed()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_server_pushes_changes_and_the_page_never_polls() {
+    let server = common::server(60.0).await;
+    let (_driver, b) = browser().await;
+    b.goto(&format!("{}/?debug#control={CONTROL}", server.http_url()))
+        .await
+        .unwrap();
+    wait_js(&b, 10, "window.posecast.state === 'online' && window.posecast.selected === 'avatar' && window.posecast.frames > 10").await;
+    // Settled: what the page sent to start (the rig list, nothing else).
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let sent_at_start = wait_js(&b, 2, "window.posecast.sent").await;
+    assert_eq!(
+        sent_at_start,
+        json!({"list_assets": 1}),
+        "commands the page sent to start"
+    );
+
+    let mut delays = Vec::new();
+    delays.push(shows_within(&b, &server,
+        json!({"op": "add_avatar", "scene": "default", "asset": "avatar", "avatar": "newcomer", "position": [1.5, 0, 0]}),
+        "document.querySelector('#scene-list button[data-avatar=\"newcomer\"]') !== null && window.posecast.drawn.length === 2").await);
+    delays.push(
+        shows_within(
+            &b,
+            &server,
+            json!({"op": "pause", "avatar": "avatar"}),
+            "document.querySelector('[data-field=state]')?.textContent.startsWith('paused')",
+        )
+        .await,
+    );
+    delays.push(shows_within(&b, &server,
+        json!({"op": "play", "avatar": "newcomer", "clip": "wave"}),
+        "document.querySelector('#scene-list button[data-avatar=\"newcomer\"] .avatar-summary')?.textContent.startsWith('wave')").await);
+    delays.push(
+        shows_within(
+            &b,
+            &server,
+            json!({"op": "create_scene", "scene": "annex"}),
+            "document.querySelector('#scene-list [data-scene=\"annex\"]') !== null",
+        )
+        .await,
+    );
+    delays.push(
+        shows_within(
+            &b,
+            &server,
+            json!({"op": "add_avatar", "scene": "annex", "asset": "avatar", "avatar": "visitor"}),
+            "document.querySelector('#scene-list button[data-avatar=\"visitor\"]') !== null",
+        )
+        .await,
+    );
+    delays.push(shows_within(&b, &server,
+        json!({"op": "remove_avatar", "avatar": "newcomer"}),
+        "document.querySelector('#scene-list [data-avatar=\"newcomer\"]') === null && window.posecast.drawn.length === 1").await);
+    delays.push(
+        shows_within(
+            &b,
+            &server,
+            json!({"op": "delete_scene", "scene": "annex"}),
+            "document.querySelector('#scene-list [data-scene=\"annex\"]') === null",
+        )
+        .await,
+    );
+
+    // Idle for 2.5 s: not one command.
+    tokio::time::sleep(Duration::from_millis(2500)).await;
+    let sent = wait_js(&b, 2, "window.posecast.sent").await;
+    assert_eq!(sent, sent_at_start, "the page sent commands of its own");
+    assert_eq!(errors(&b).await, json!([]));
+    println!("push: shown after {delays:?}; commands sent {sent}");
+    b.close().await.unwrap();
+    server.stop().await;
+}
