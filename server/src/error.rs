@@ -91,6 +91,12 @@ pub enum Error {
     /// The server is not ready (starting) or is stopping.
     #[error("{0}")]
     Unavailable(String),
+    /// Retargeting between a humanoid and a rig that is not one.
+    #[error("{0}")]
+    NotHumanoid(String),
+    /// A rig without a mesh asked for its mesh.
+    #[error("rig {0} has no mesh")]
+    NoMesh(String),
 }
 
 impl Error {
@@ -115,6 +121,8 @@ impl Error {
             Self::UnexpectedBinary(_) => ErrorCode::UnexpectedBinary,
             Self::TooLarge(_) => ErrorCode::TooLarge,
             Self::Unavailable(_) => ErrorCode::Unavailable,
+            Self::NotHumanoid(_) => ErrorCode::NotHumanoid,
+            Self::NoMesh(_) => ErrorCode::NoMesh,
         }
     }
 
@@ -127,6 +135,17 @@ impl Error {
     #[must_use]
     pub fn for_command(self, id: u64) -> ProtocolError {
         ProtocolError::from(self).for_command(id)
+    }
+
+    /// A retargeting failure, `context` first: `not_humanoid` when a humanoid meets a rig
+    /// that is not one, else `invalid_value`.
+    #[must_use]
+    pub fn retarget(context: &str, e: &crate::rig::RigError) -> Self {
+        let message = format!("{context}: {e}");
+        match e {
+            crate::rig::RigError::HumanoidMismatch { .. } => Self::NotHumanoid(message),
+            _ => Self::Invalid(message),
+        }
     }
 
     /// An [`Error::Internal`]: `what` failed because of `e`.

@@ -110,10 +110,10 @@ impl Drives {
             state.config.drive_timeout,
         )
         .map_err(|e| {
-            Error::invalid(format!(
-                "cannot retarget {} onto {}: {e}",
-                source.name, a.rig.name
-            ))
+            Error::retarget(
+                &format!("cannot retarget {} onto {}", source.name, a.rig.name),
+                &e,
+            )
         })?;
         a.live = Some(live);
         a.evaluate();

@@ -5,39 +5,16 @@
 use std::f32::consts::PI;
 
 use glam::{Quat, Vec3};
-use serde::{Deserialize, Serialize};
+pub use posecast_proto::rig_options::NeutralPose;
 
 use super::adjust::adjust_bind;
 use super::names::{HANIM_SPINE, find};
 use super::{JointMaps, RigError};
 use crate::asset::Asset;
 
-/// Which neutral pose the pipeline gives a rig.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum NeutralPose {
-    /// H-Anim when the rig is humanoid (its hips, knees, shoulders and elbows are mapped),
-    /// otherwise keep.
-    #[default]
-    Auto,
-    /// H-Anim; an error when the rig is not humanoid.
-    HAnim,
-    /// Keep the current one (the bind pose, after simplification).
-    Keep,
-}
-
-/// H-Anim joints a rig needs for the H-Anim neutral pose and for retargeting.
-pub const REQUIRED: &[&str] = &[
-    "humanoid_root",
-    "l_hip",
-    "l_knee",
-    "r_hip",
-    "r_knee",
-    "l_shoulder",
-    "l_elbow",
-    "r_shoulder",
-    "r_elbow",
-];
+/// H-Anim joints a rig needs for the H-Anim neutral pose and for retargeting (the core chain
+/// of [`super::humanoid`]).
+pub const REQUIRED: &[&str] = super::humanoid::CORE;
 
 /// Makes the pose with local rotations `H_i` the neutral one: `V_i = V_parent(i) H_i`, then
 /// [`adjust_bind`]. Afterwards all-identity rotations reproduce the pose `H` (translations and
