@@ -15,7 +15,9 @@
 //! joints (listed in [`SourceInfo::helper_joints`], bound at rest, weighted by nothing).
 //!
 //! **Meshes.** Vertices stay in mesh space; the skinned mesh node's own transform is ignored,
-//! as the glTF spec requires. Triangle primitives only; `JOINTS_0`/`WEIGHTS_0` (u8 or u16,
+//! as the glTF spec requires. Meshes on nodes without a skin that hang from a joint (robots,
+//! props: a mesh node parented to a bone) are imported rigidly skinned to that joint, weight 1,
+//! in its bind space, so they move with it as the node hierarchy says. Triangle primitives only; `JOINTS_0`/`WEIGHTS_0` (u8 or u16,
 //! float or normalised weights) and `JOINTS_1`/`WEIGHTS_1` when present (8 influences).
 //! Normals are computed when absent.
 //!
@@ -463,7 +465,15 @@ impl Context<'_> {
                 }
             })?;
 
-        let meshes = self.meshes(skin, &skin_to_skel, count, &mut notes)?;
+        let mut meshes = self.meshes(skin, &skin_to_skel, count, &mut notes)?;
+        let rigid = self.rigid_meshes(skin, &skel_of_node, skeleton.inverse_bind(), &mut notes)?;
+        if !rigid.is_empty() {
+            notes.push(format!(
+                "{} mesh primitive(s) parented to joints imported rigidly skinned (weight 1)",
+                rigid.len()
+            ));
+        }
+        meshes.extend(rigid);
         let clips = self.clips(&skel_of_node, &maps, count, &mut notes)?;
 
         let mut source = SourceInfo::new(SourceFormat::Gltf);
