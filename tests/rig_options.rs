@@ -258,3 +258,46 @@ async fn options_as_query_parameters_and_a_quadruped() {
     assert_eq!(s, 400, "{b}");
     server.stop().await;
 }
+
+/// What the importers skip or approximate reaches the uploader (issue 18, item 5).
+#[tokio::test]
+async fn upload_answers_carry_the_importers_notes() {
+    let data = tempfile::tempdir().unwrap();
+    let server = server(data.path()).await;
+    let addr = server.addr;
+    let skel = "balljoint root {\n offset 0 0 0\n balljoint tip {\n offset 0 1 0\n }\n}\n";
+    let channel = "channel {\n extrapolate constant constant\n keys 1 {\n 0 0 flat flat\n }\n}\n";
+    let anim = format!(
+        "animation {{\n range 0 1\n numchannels 6\n{}}}\n",
+        channel.repeat(6)
+    );
+    let (s, b) = upload(
+        addr,
+        "/api/assets/short",
+        &[
+            ("arm.skel", skel.as_bytes()),
+            ("wave.anim", anim.as_bytes()),
+        ],
+        &[],
+    )
+    .await;
+    assert_eq!(s, 200, "{b}");
+    let notes = b["result"][0]["notes"].to_string();
+    assert!(notes.contains("6 of the skeleton's 9 channels"), "{b}");
+    if let Some(cesium) = common::testdata_bytes("gltf/CesiumMan/glTF-Binary/CesiumMan.glb") {
+        let (s, b) = upload(
+            addr,
+            "/api/assets/cesium",
+            &[("CesiumMan.glb", &cesium)],
+            &[],
+        )
+        .await;
+        assert_eq!(s, 200, "{b}");
+        let notes = b["result"][0]["notes"].to_string();
+        assert!(notes.contains("materials not imported"), "{b}");
+        // And the listing says so too.
+        let d = detail(addr, "cesium").await;
+        assert_eq!(d["notes"].to_string(), notes);
+    }
+    server.stop().await;
+}

@@ -739,9 +739,14 @@ $("upload-form").addEventListener("submit", async (e) => {
     if (r.ok) {
       const body = await r.json();
       const result = Array.isArray(body.result) ? body.result : [body.result];
-      const list = result.filter(Boolean).map((x) => `${x.name} (${x.joints} joints; clips: ${x.clips.map((c) => c.name).join(", ") || "none"})`);
+      const list = result.filter(Boolean).map((x) => {
+        const kind = x.humanoid === undefined ? "" : x.humanoid ? `; humanoid, ${x.mapped} mapped` : `; not humanoid, ${x.mapped} mapped`;
+        return `${x.name} (${x.joints} joints${kind}; clips: ${x.clips.map((c) => c.name).join(", ") || "none"})`;
+      });
+      // What the importer skipped or approximated (materials, renamed joints, short clips, …).
+      const notes = result.filter(Boolean).flatMap((x) => (x.notes ?? []).map((n) => `${x.name}: ${n}`));
       out.className = "small ok";
-      out.textContent = `Imported ${list.join("; ")}`;
+      out.textContent = `Imported ${list.join("; ")}${notes.length ? `. Notes: ${notes.join("; ")}` : ""}`;
       refresh(true);
     } else {
       const message = r.status === 404 && !(r.headers.get("content-type") ?? "").includes("json")

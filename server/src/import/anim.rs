@@ -18,6 +18,16 @@ use crate::clip::{
 /// Parses `.anim` text into a clip over `skeleton`'s joints, named `name`'s file stem by the
 /// caller (here: `name` as given).
 pub fn parse(name: &str, text: &str, skeleton: &Skeleton) -> Result<Clip, ImportError> {
+    parse_noted(name, text, skeleton).map(|(clip, _)| clip)
+}
+
+/// [`parse`], with notes for people: a file with fewer channels than the skeleton has DOFs
+/// (the joints past its last channel keep their pose).
+pub fn parse_noted(
+    name: &str,
+    text: &str,
+    skeleton: &Skeleton,
+) -> Result<(Clip, Vec<String>), ImportError> {
     let mut tokens = Tokens::new(name, text);
     tokens.expect("animation")?;
     tokens.expect("{")?;
@@ -62,6 +72,25 @@ pub fn parse(name: &str, text: &str, skeleton: &Skeleton) -> Result<Clip, Import
             ));
         }
     }
+    let mut notes = Vec::new();
+    if curves.len() < max_channels {
+        let covered = curves.len().saturating_sub(3) / 3;
+        let missing: Vec<&str> = skeleton
+            .names()
+            .iter()
+            .skip(covered + usize::from((curves.len().saturating_sub(3)) % 3 != 0))
+            .map(String::as_str)
+            .collect();
+        let shown = missing.len().min(8);
+        notes.push(format!(
+            "{name}: {} of the skeleton's {max_channels} channels; {} joint(s) past the last \
+             channel keep their pose ({}{})",
+            curves.len(),
+            missing.len(),
+            missing[..shown].join(", "),
+            if missing.len() > shown { ", …" } else { "" }
+        ));
+    }
     let mut curves = curves.into_iter();
     let mut joints = vec![JointChannels::default(); skeleton.len()];
     let take3 = |curves: &mut std::vec::IntoIter<Curve>| -> Option<Box<[Curve; 3]>> {
@@ -83,11 +112,12 @@ pub fn parse(name: &str, text: &str, skeleton: &Skeleton) -> Result<Clip, Import
             None => break,
         }
     }
-    Clip::new(name, joints, range).map_err(|source| ImportError::Clip {
+    let clip = Clip::new(name, joints, range).map_err(|source| ImportError::Clip {
         file: name.to_owned(),
         place: "range".to_owned(),
         source,
-    })
+    })?;
+    Ok((clip, notes))
 }
 
 fn extrapolation(tokens: &mut Tokens<'_>) -> Result<Extrapolation, ImportError> {

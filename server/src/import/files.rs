@@ -221,12 +221,16 @@ pub fn skel_with_companions(
         .map(|(name, text)| skin::parse(&name, &text, &skel.skeleton))
         .transpose()?;
     let mut clips = Vec::with_capacity(anims.len());
+    let mut notes = Vec::new();
     for (name, text) in anims {
-        let mut clip = anim::parse(&name, &text, &skel.skeleton)?;
+        let (mut clip, n) = anim::parse_noted(&name, &text, &skel.skeleton)?;
         clip.set_name(stem(&name));
         clips.push(clip);
+        notes.extend(n);
     }
-    cse169::assemble(stem(skel_name), skel, skin, clips)
+    let mut asset = cse169::assemble(stem(skel_name), skel, skin, clips)?;
+    asset.source.notes.extend(notes);
+    Ok(asset)
 }
 
 fn text<'a>(name: &str, bytes: &'a [u8]) -> Result<&'a str, ImportError> {

@@ -30,6 +30,16 @@ impl Context<'_> {
             };
             let mut channels = vec![JointChannels::default(); count];
             let mut any = false;
+            // Morph weights target mesh nodes, never joints: said once per animation.
+            let morphs = anim
+                .channels()
+                .filter(|ch| ch.target().property() == Property::MorphTargetWeights)
+                .count();
+            if morphs > 0 {
+                notes.push(format!(
+                    "animation {a} ({clip_name}): {morphs} morph target weight channel(s) skipped"
+                ));
+            }
             for (c, ch) in anim.channels().enumerate() {
                 let target = ch.target();
                 let Some(&joint) = skel_of_node.get(&target.node().index()) else {
@@ -79,10 +89,8 @@ impl Context<'_> {
                         let track = Track::new(interpolation, times, v).map_err(clip_err)?;
                         slot.rotation = Some(RotationChannel::Keys(track));
                     }
-                    Property::MorphTargetWeights => {
-                        notes.push(format!("{}: morph target weights skipped", place()));
-                        continue;
-                    }
+                    // Noted above.
+                    Property::MorphTargetWeights => continue,
                 }
                 any = true;
             }

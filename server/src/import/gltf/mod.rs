@@ -40,7 +40,7 @@ use posecast_proto::{Skeleton, Transform};
 
 use super::ImportError;
 use super::accessor::Buffers;
-use super::skel::unique_names;
+use super::skel::{renamed_note, unique_names};
 use crate::asset::{Asset, SourceFormat, SourceInfo, UpAxis};
 use crate::clip::ChannelMap;
 
@@ -322,6 +322,64 @@ impl Context<'_> {
         }
     }
 
+    /// What a skin's asset leaves out: the materials of its meshes (posecast serves geometry),
+    /// and meshes on nodes that hang from no joint of any skin (scenery: not part of a rig).
+    fn unimported_notes(&self, skin: &gltf::Skin<'_>) -> Vec<String> {
+        let joints: Vec<usize> = skin.joints().map(|n| n.index()).collect();
+        let all_joints: Vec<usize> = self
+            .doc
+            .skins()
+            .flat_map(|s| s.joints().map(|n| n.index()).collect::<Vec<_>>())
+            .collect();
+        let hangs_from = |node: usize, set: &[usize]| {
+            let mut cur = Some(node);
+            let mut steps = 0;
+            while let Some(n) = cur {
+                if set.contains(&n) || steps > self.nodes.parent.len() {
+                    return set.contains(&n);
+                }
+                cur = self.nodes.parent[n];
+                steps += 1;
+            }
+            false
+        };
+        let mut materials = std::collections::BTreeSet::new();
+        let mut loose = Vec::new();
+        for node in self.doc.nodes() {
+            let Some(mesh) = node.mesh() else { continue };
+            let ours = match node.skin() {
+                Some(s) => s.index() == skin.index(),
+                None => hangs_from(node.index(), &joints),
+            };
+            if node.skin().is_none() && !hangs_from(node.index(), &all_joints) {
+                loose.push(self.nodes.names[node.index()].clone());
+            }
+            if ours {
+                for prim in mesh.primitives() {
+                    let m = prim.material();
+                    if let Some(i) = m.index() {
+                        materials.insert(m.name().map_or(format!("material{i}"), str::to_owned));
+                    }
+                }
+            }
+        }
+        let mut notes = Vec::new();
+        if !materials.is_empty() {
+            let list: Vec<String> = materials.into_iter().collect();
+            notes.push(format!(
+                "materials not imported (posecast serves geometry only): {}",
+                list.join(", ")
+            ));
+        }
+        if !loose.is_empty() {
+            notes.push(format!(
+                "meshes on nodes that hang from no joint not imported: {}",
+                loose.join(", ")
+            ));
+        }
+        notes
+    }
+
     fn skin(&self, skin: &gltf::Skin<'_>, name: String) -> Result<Asset, ImportError> {
         let nodes = self.nodes;
         let node_count = nodes.local.len();
@@ -457,6 +515,10 @@ impl Context<'_> {
             }
         }
         let names = unique_names(skel_nodes.iter().map(|&n| nodes.names[n].clone()));
+        notes.extend(renamed_note(
+            skel_nodes.iter().map(|&n| nodes.names[n].as_str()),
+            &names,
+        ));
         let skeleton =
             Skeleton::new(names, skel_parents, rest, inverse_bind).map_err(|source| {
                 ImportError::Skeleton {
@@ -475,6 +537,7 @@ impl Context<'_> {
         }
         meshes.extend(rigid);
         let clips = self.clips(&skel_of_node, &maps, count, &mut notes)?;
+        notes.extend(self.unimported_notes(skin));
 
         let mut source = SourceInfo::new(SourceFormat::Gltf);
         source.helper_joints = helpers;
