@@ -3,7 +3,8 @@
 //! up in the set and never on the file system.
 //!
 //! A set holds exactly one main file, which gives the format:
-//! - one `.glb`, or one `.gltf` plus the `.bin` (and image) files its buffer URIs name;
+//! - one `.glb` (or `.vrm`, which is a GLB), or one `.gltf` plus the `.bin` (and image) files
+//!   its buffer URIs name;
 //! - one `.bvh`;
 //! - one `.skel`, at most one `.skin` (its mesh) and any number of `.anim` files (its clips,
 //!   named by file stem, in name order). Unlike a folder, an upload belongs together, so the
@@ -114,7 +115,12 @@ impl FileSet {
             .files
             .keys()
             .map(String::as_str)
-            .filter(|n| matches!(extension(n).as_str(), "glb" | "gltf" | "bvh" | "skel"))
+            .filter(|n| {
+                matches!(
+                    extension(n).as_str(),
+                    "glb" | "gltf" | "vrm" | "bvh" | "skel"
+                )
+            })
             .collect();
         let main = match mains.as_slice() {
             [one] => *one,
@@ -124,7 +130,7 @@ impl FileSet {
                 let message = if matches!(ext.as_str(), "skin" | "anim") {
                     format!("a .{ext} file needs its .skel: upload the .skel with it")
                 } else {
-                    "no .glb, .gltf, .bvh or .skel file".to_owned()
+                    "no .glb, .gltf, .vrm, .bvh or .skel file".to_owned()
                 };
                 return Err(ImportError::Unsupported {
                     file: first,
@@ -166,7 +172,7 @@ pub fn import_set(set: &FileSet) -> Result<Vec<Asset>, ImportError> {
     let main = set.main_file()?;
     let bytes = set.get(main).unwrap_or_default();
     match extension(main).as_str() {
-        "glb" | "gltf" => {
+        "glb" | "gltf" | "vrm" => {
             let external = |uri: &str| {
                 set.get(uri)
                     .map(<[u8]>::to_vec)

@@ -55,10 +55,23 @@ pub fn normalise(asset: Asset, options: &PipelineOptions) -> Result<Normalised, 
             .extend(user.iter().map(|(k, v)| (k.clone(), v.clone())));
     }
     let NameMapping {
-        hanim,
-        unmapped,
-        corrections,
+        mut hanim,
+        mut unmapped,
+        mut corrections,
     } = map_names(&asset.skeleton, overrides.as_ref(), &asset.name)?;
+    if let Some(file) = &asset.source.bone_map {
+        // The file's map is authoritative: joints it leaves out (hair, skirt, accessories
+        // bones) are not guessed from their names, unless the user maps them.
+        let user = options.name_map.as_ref();
+        for (j, name) in asset.skeleton.names().iter().enumerate() {
+            let kept = file.contains_key(name) || user.is_some_and(|m| m.contains_key(name));
+            if !kept && hanim[j].take().is_some() {
+                unmapped.push(name.clone());
+            }
+        }
+        corrections.clear();
+        unmapped.sort_by_key(|n| asset.skeleton.find(n));
+    }
     let by = match (asset.source.bone_map.is_some(), options.name_map.is_some()) {
         (true, true) => " (the file's humanoid bone map, then the configured mapping)",
         (true, false) => " (the file's humanoid bone map)",

@@ -21,12 +21,16 @@
 //! float or normalised weights) and `JOINTS_1`/`WEIGHTS_1` when present (8 influences).
 //! Normals are computed when absent.
 //!
+//! **VRM.** A `.vrm` is a GLB; its humanoid bone map (VRM 0.x `VRM`, 1.0 `VRMC_vrm`) becomes
+//! [`SourceInfo::bone_map`], the mapping normalisation takes as it is ([`vrm`]).
+//!
 //! **Animations.** Translation, rotation and scale channels with `STEP`, `LINEAR` (slerp for
 //! rotations) and `CUBICSPLINE`; a clip's range is its first to last key, so it may start
 //! after 0. Morph-target weights are skipped with a note.
 
 mod clips;
 mod mesh;
+pub mod vrm;
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -69,8 +73,9 @@ pub(crate) fn from_slice_with_base(
     // The gltf crate's accessors index the document with `unwrap` after its validation; a
     // gap in that validation must not take the server down, so a panic in it becomes an
     // error here (the explicit checks above and in `accessor` cover every case we know of).
+    let vrm = vrm::humanoid(bytes);
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        import_document(name, doc, gltf.blob.clone(), base)
+        import_document(name, doc, gltf.blob.clone(), base, vrm.as_ref())
     }))
     .unwrap_or_else(|_| {
         Err(ImportError::Unsupported {
@@ -105,6 +110,7 @@ fn import_document(
     doc: &gltf::Document,
     blob: Option<Vec<u8>>,
     base: Option<External<'_>>,
+    vrm: Option<&vrm::Humanoid>,
 ) -> Result<Vec<Asset>, ImportError> {
     let buffers = Buffers {
         file: name,
@@ -135,6 +141,7 @@ fn import_document(
         buffers: &buffers,
         nodes: &nodes,
         animated: &animated,
+        vrm,
     };
     skins
         .iter()
@@ -311,6 +318,7 @@ struct Context<'a> {
     buffers: &'a Buffers<'a>,
     nodes: &'a Nodes,
     animated: &'a [bool],
+    vrm: Option<&'a vrm::Humanoid>,
 }
 
 impl Context<'_> {
@@ -540,6 +548,29 @@ impl Context<'_> {
         notes.extend(self.unimported_notes(skin));
 
         let mut source = SourceInfo::new(SourceFormat::Gltf);
+        if let Some(h) = self.vrm {
+            let names = skeleton.names();
+            let map: std::collections::BTreeMap<String, String> = h
+                .bones
+                .iter()
+                .filter_map(|(node, _, hanim)| {
+                    skel_of_node
+                        .get(node)
+                        .map(|&s| (names[s].clone(), hanim.clone()))
+                })
+                .collect();
+            if !map.is_empty() {
+                notes.push(format!(
+                    "VRM {} humanoid: {} bones named by the file",
+                    match h.version {
+                        vrm::Version::V0 => "0.x",
+                        vrm::Version::V1 => "1.0",
+                    },
+                    map.len()
+                ));
+                source.bone_map = Some(map);
+            }
+        }
         source.helper_joints = helpers;
         source.notes = notes;
         // The frame the joints hang in: a Z-up authoring frame maps +Z to +Y.
