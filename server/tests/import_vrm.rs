@@ -8,8 +8,7 @@
 mod gltf_support;
 mod rig_support;
 
-use glam::{Mat4, Vec3};
-use gltf_support::{Bin, glb, triangle};
+use gltf_support::{builtin_skeleton_glb, glb};
 use posecast_server::builtin::skeleton::JOINTS;
 use posecast_server::import::files::{FileSet, import_set};
 use posecast_server::rig::{PipelineOptions, RigView, normalise, retarget};
@@ -48,39 +47,8 @@ fn vrm_bone(hanim: &str) -> Option<&'static str> {
 /// whose name a guesser would take for an arm), one skinned triangle, and the VRM extension
 /// of `version` (0 or 1).
 fn vrm(version: u8) -> Vec<u8> {
-    let mut bin = Bin::default();
-    let (pos, idx) = triangle(&mut bin);
-    let joints = bin.u16s(&[0; 12], "VEC4");
-    let weights = bin.floats(&[1.0, 0.0, 0.0, 0.0].repeat(3), "VEC4");
-    let n = JOINTS.len();
-    let head = |j: usize| Vec3::from(JOINTS[j].head.map(|x| x as f32));
-    let mut nodes: Vec<Value> = (0..n)
-        .map(|j| {
-            let t = match JOINTS[j].parent {
-                Some(p) => head(j) - head(p),
-                None => head(j),
-            };
-            let children: Vec<usize> = (0..n).filter(|&c| JOINTS[c].parent == Some(j)).collect();
-            let mut node = json!({"name": format!("n{j}"), "translation": t.to_array()});
-            if !children.is_empty() {
-                node["children"] = json!(children);
-            }
-            node
-        })
-        .collect();
-    // A hair bone on the head whose name reads like an arm: the VRM map does not list it.
-    let hair = n;
-    nodes.push(json!({"name": "LeftArm", "translation": [0.05, 0.1, 0.0]}));
     let skull = JOINTS.iter().position(|j| j.name == "skullbase").unwrap();
-    nodes[skull]["children"] = json!([hair]);
-    nodes.push(json!({"name": "body", "mesh": 0, "skin": 0}));
-    let mut ibm = Vec::new();
-    for j in 0..n {
-        ibm.extend(Mat4::from_translation(-head(j)).to_cols_array());
-    }
-    ibm.extend(Mat4::from_translation(-(head(skull) + Vec3::new(0.05, 0.1, 0.0))).to_cols_array());
-    let ibm = bin.floats(&ibm, "MAT4");
-    let bones: Vec<(usize, &str)> = (0..n)
+    let bones: Vec<(usize, &str)> = (0..JOINTS.len())
         .filter_map(|j| vrm_bone(JOINTS[j].name).map(|b| (j, b)))
         .collect();
     let extension = if version == 0 {
@@ -93,17 +61,12 @@ fn vrm(version: u8) -> Vec<u8> {
         }
         json!({"VRMC_vrm": {"specVersion": "1.0", "humanoid": {"humanBones": map}}})
     };
-    let mut doc = json!({
-        "asset": {"version": "2.0"},
-        "extensionsUsed": [if version == 0 { "VRM" } else { "VRMC_vrm" }],
-        "extensions": extension,
-        "scenes": [{"nodes": [0, n + 1]}],
-        "nodes": nodes,
-        "skins": [{"joints": (0..=n).collect::<Vec<_>>(), "inverseBindMatrices": ibm}],
-        "meshes": [{"primitives": [{"attributes": {"POSITION": pos, "JOINTS_0": joints, "WEIGHTS_0": weights}, "indices": idx}]}]
-    });
-    bin.finish(&mut doc);
-    glb(&doc, &bin.bytes)
+    builtin_skeleton_glb(
+        1.0,
+        |j| format!("n{j}"),
+        &[("LeftArm", skull, [0.05, 0.1, 0.0])],
+        Some(extension),
+    )
 }
 
 #[test]

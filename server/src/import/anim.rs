@@ -1,6 +1,7 @@
 //! CSE169 `.anim` clips: `animation { range t0 t1 numchannels N channel { extrapolate in out
 //! keys K { time value tanIn tanOut … } } … }`.
 //!
+//! A channel may carry its index (`channel 0 {`), which must then be its place.
 //! Channels follow the skeleton's DOF order: root translation x, y, z, then rotation x, y, z
 //! of every joint in depth-first (`.skel`) order. Root translation is added to the root's
 //! offset (`L = T(r + φ) · R`, seed 002), stored as the channel map's `trans_offset`.
@@ -59,6 +60,17 @@ pub fn parse_noted(
                     ));
                 }
                 let index = curves.len();
+                // Some exporters number their channels: `channel 0 {`. The number must be the
+                // channel's place (channels are read in DOF order, whatever they say).
+                if let Some(t) = tokens.peek().filter(|t| t.text != "{") {
+                    let n: usize = tokens.count("channel index")?.0;
+                    if n != index {
+                        return Err(tokens.invalid(
+                            t.line,
+                            format!("channel {n} where channel {index} was expected"),
+                        ));
+                    }
+                }
                 curves.push(channel(&mut tokens, index)?);
             }
             _ => return Err(tokens.syntax(t, "`range`, `numchannels`, `channel` or `}`")),

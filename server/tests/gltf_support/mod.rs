@@ -105,3 +105,74 @@ pub fn triangle(bin: &mut Bin) -> (usize, usize) {
     let i = bin.u16s(&[0, 1, 2], "SCALAR");
     (p, i)
 }
+
+/// The built-in avatar's skeleton in T-pose as a glTF skin of nodes named by `name(j)` (joint
+/// `j` of `builtin::skeleton::JOINTS`), every length times `scale`, plus `extra` nodes
+/// `(name, parent joint, translation)`, one skinned triangle, and `extensions` on the root
+/// when given. Returns the GLB and each extra node's index.
+pub fn builtin_skeleton_glb(
+    scale: f32,
+    name: impl Fn(usize) -> String,
+    extra: &[(&str, usize, [f32; 3])],
+    extensions: Option<Value>,
+) -> Vec<u8> {
+    use glam::{Mat4, Vec3};
+    use posecast_server::builtin::skeleton::JOINTS;
+    let mut bin = Bin::default();
+    let (pos, idx) = triangle(&mut bin);
+    let joints = bin.u16s(&[0; 12], "VEC4");
+    let weights = bin.floats(&[1.0, 0.0, 0.0, 0.0].repeat(3), "VEC4");
+    let n = JOINTS.len();
+    let head = |j: usize| Vec3::from(JOINTS[j].head.map(|x| x as f32)) * scale;
+    let mut nodes: Vec<Value> = (0..n)
+        .map(|j| {
+            let t = match JOINTS[j].parent {
+                Some(p) => head(j) - head(p),
+                None => head(j),
+            };
+            json!({"name": name(j), "translation": t.to_array()})
+        })
+        .collect();
+    let mut world: Vec<Vec3> = (0..n).map(head).collect();
+    for (extra_name, parent, t) in extra {
+        nodes.push(json!({"name": extra_name, "translation": t}));
+        world.push(world[*parent] + Vec3::from(*t));
+    }
+    let parent_of = |i: usize| -> Option<usize> {
+        if i < n {
+            JOINTS[i].parent
+        } else {
+            Some(extra[i - n].1)
+        }
+    };
+    let total = nodes.len();
+    for (i, node) in nodes.iter_mut().enumerate() {
+        let children: Vec<usize> = (0..total).filter(|&c| parent_of(c) == Some(i)).collect();
+        if !children.is_empty() {
+            node["children"] = json!(children);
+        }
+    }
+    nodes.push(json!({"name": "body", "mesh": 0, "skin": 0}));
+    let mut ibm = Vec::new();
+    for w in &world {
+        ibm.extend(Mat4::from_translation(-*w).to_cols_array());
+    }
+    let ibm = bin.floats(&ibm, "MAT4");
+    let mut doc = json!({
+        "asset": {"version": "2.0"},
+        "scenes": [{"nodes": [0, total]}],
+        "nodes": nodes,
+        "skins": [{"joints": (0..total).collect::<Vec<_>>(), "inverseBindMatrices": ibm}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": pos, "JOINTS_0": joints, "WEIGHTS_0": weights}, "indices": idx}]}]
+    });
+    if let Some(e) = extensions {
+        let used: Vec<String> = e
+            .as_object()
+            .map(|o| o.keys().cloned().collect())
+            .unwrap_or_default();
+        doc["extensionsUsed"] = json!(used);
+        doc["extensions"] = e;
+    }
+    bin.finish(&mut doc);
+    glb(&doc, &bin.bytes)
+}

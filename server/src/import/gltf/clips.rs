@@ -30,6 +30,9 @@ impl Context<'_> {
             };
             let mut channels = vec![JointChannels::default(); count];
             let mut any = false;
+            // The file's time range: tracks that hold one value collapse to one key, so a clip
+            // of constant tracks would otherwise last 0 s.
+            let mut range = (f32::INFINITY, f32::NEG_INFINITY);
             // Morph weights target mesh nodes, never joints: said once per animation.
             let morphs = anim
                 .channels()
@@ -56,6 +59,11 @@ impl Context<'_> {
                     Dimensions::Scalar,
                     "animation input",
                 )?;
+                for &t in &times {
+                    if t.is_finite() {
+                        range = (range.0.min(t), range.1.max(t));
+                    }
+                }
                 let place = || format!("animation {a} ({clip_name}) channel {c}");
                 let clip_err = |source| ImportError::Clip {
                     file: self.file.to_owned(),
@@ -97,7 +105,8 @@ impl Context<'_> {
             if !any {
                 continue;
             }
-            let mut clip = Clip::new(clip_name.clone(), channels, None).map_err(|source| {
+            let range = range.0.is_finite().then_some(range);
+            let mut clip = Clip::new(clip_name.clone(), channels, range).map_err(|source| {
                 ImportError::Clip {
                     file: self.file.to_owned(),
                     place: format!("animation {a} ({clip_name})"),
