@@ -116,8 +116,8 @@ impl Drives {
             state.config.drive_timeout,
         )
         .map_err(|e| {
-            e.to_error(&format!(
-                "cannot retarget {} onto {}",
+            Error::invalid(format!(
+                "cannot retarget {} onto {}: {e}",
                 source.name, a.rig.name
             ))
         })?;

@@ -30,13 +30,11 @@ pub const DEFAULT_RATE_HZ: f32 = 30.0;
 /// The most keys a baked clip gets (an hour at 30 Hz); longer clips are sampled more sparsely.
 pub const MAX_KEYS: usize = 108_000;
 
-/// A normalised rig as retargeting sees it: the asset, each joint's H-Anim name and whether it
-/// is a humanoid.
+/// A normalised rig as retargeting sees it: the asset and each joint's H-Anim name.
 #[derive(Clone, Copy, Debug)]
 pub struct RigView<'a> {
     pub asset: &'a Asset,
     pub hanim: &'a [Option<String>],
-    pub humanoid: bool,
 }
 
 impl<'a> From<&'a Normalised> for RigView<'a> {
@@ -44,7 +42,6 @@ impl<'a> From<&'a Normalised> for RigView<'a> {
         Self {
             asset: &n.asset,
             hanim: &n.hanim,
-            humanoid: n.humanoid,
         }
     }
 }
@@ -226,17 +223,9 @@ impl PoseRetargeter {
     /// neutral.
     ///
     /// # Errors
-    /// A humanoid and a rig that is not one, an H-Anim list of the wrong length, a rig without
-    /// `humanoid_root`, or a root that is not above the feet.
+    /// An H-Anim list of the wrong length, a rig without `humanoid_root`, or a root that is
+    /// not above the feet.
     pub fn new(source: RigView<'_>, target: RigView<'_>) -> Result<Self, RigError> {
-        if source.humanoid != target.humanoid {
-            return Err(RigError::HumanoidMismatch {
-                from: source.asset.name.clone(),
-                from_humanoid: source.humanoid,
-                onto: target.asset.name.clone(),
-                onto_humanoid: target.humanoid,
-            });
-        }
         let (ss, ts) = (&source.asset.skeleton, &target.asset.skeleton);
         for (view, what) in [(&source, "source hanim"), (&target, "target hanim")] {
             if view.hanim.len() != view.asset.skeleton.len() {

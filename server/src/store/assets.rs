@@ -6,7 +6,6 @@
 use super::atomic::{self, sync_dir};
 use super::{Store, UPLOAD_TMP_PREFIX, Unusable, set_aside};
 use crate::import::files::FileSet;
-use crate::rig::PipelineOptions;
 use crate::scene::ticker::unix_micros;
 use crate::world::World;
 use serde::{Deserialize, Serialize};
@@ -34,10 +33,6 @@ pub struct AssetMeta {
     pub rigs: Vec<String>,
     /// When it was last written, µs since the Unix epoch.
     pub saved_us: u64,
-    /// The pipeline options it is normalised with (given with the upload or by
-    /// `configure_asset`); absent: the defaults.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub options: Option<PipelineOptions>,
 }
 
 impl AssetMeta {
@@ -50,15 +45,7 @@ impl AssetMeta {
             files: set.iter().map(|(n, _)| n.to_owned()).collect(),
             rigs,
             saved_us: unix_micros(),
-            options: None,
         }
-    }
-
-    /// The same meta with `options` (none when they are the defaults).
-    #[must_use]
-    pub fn with_options(mut self, options: &PipelineOptions) -> Self {
-        self.options = (*options != PipelineOptions::default()).then(|| options.clone());
-        self
     }
 
     fn bytes(&self) -> io::Result<Vec<u8>> {
@@ -124,8 +111,7 @@ pub fn add_files(dir: &Path, new: &FileSet, meta: &AssetMeta) -> io::Result<()> 
     atomic::write_atomic(&dir.join(META), &meta.bytes()?)
 }
 
-/// Reads a stored asset folder: its meta and the files it lists.
-pub(crate) fn read_asset(dir: &Path) -> Result<(AssetMeta, FileSet), Unusable> {
+fn read_asset(dir: &Path) -> Result<(AssetMeta, FileSet), Unusable> {
     let name = dir
         .file_name()
         .and_then(|n| n.to_str())
@@ -201,8 +187,7 @@ impl Store {
     /// imported and dropped: the store remembers the upload, not its bytes.
     pub fn restore_upload(&self, world: &World, dir: &Path) {
         let loaded = read_asset(dir).and_then(|(meta, set)| {
-            let options = meta.options.clone().unwrap_or_default();
-            let rigs = crate::library::prepare_with(&meta.name, &set, &options)
+            let rigs = crate::library::prepare(&meta.name, &set)
                 .map_err(|e| Unusable::Content(e.to_string()))?;
             Ok((meta, set, rigs))
         });
@@ -217,8 +202,7 @@ impl Store {
                     world.library.insert(rig);
                 }
                 self.add_upload_bytes(set.total_bytes() as u64);
-                let options = meta.options.clone().unwrap_or_default();
-                self.remember_upload(&meta.name, set, options);
+                self.remember_upload(&meta.name, set);
             }
             Err(reason) => set_aside(dir, &reason.to_string()),
         }
