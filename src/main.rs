@@ -45,7 +45,7 @@ struct Args {
     /// Address to listen on.
     #[arg(long, env = "POSECAST_LISTEN", default_value = "127.0.0.1:8080")]
     listen: SocketAddr,
-    /// Folders whose assets (.glb, .gltf, .bvh, .skel) are loaded at start (repeatable).
+    /// Folders whose assets (.glb, .vrm, .gltf, .bvh, .skel) are loaded at start (repeatable).
     #[arg(long = "assets", env = "POSECAST_ASSETS", value_delimiter = ',')]
     assets: Vec<PathBuf>,
     /// Pose frames per second of every scene.

@@ -3,6 +3,7 @@
 //! typed error.
 
 use crate::msg::{AvatarId, SceneId};
+use crate::rig_options::PipelineOptions;
 use serde::{Deserialize, Serialize};
 
 /// Something a dashboard or application asks the server to do.
@@ -13,6 +14,23 @@ pub enum Command {
     ListScenes,
     /// Loaded rigs (assets) and their clips. Result: `[AssetInfo]`.
     ListAssets,
+    /// One rig in full: its joints and their H-Anim names (the effective mapping), whether it
+    /// is a humanoid, and the pipeline options it was normalised with. Result: `AssetDetail`.
+    GetAsset {
+        /// The rig's asset name.
+        asset: String,
+    },
+    /// Normalise an uploaded asset again with new pipeline options (name map, units, up axis,
+    /// humanoid or not, …), replacing the ones it had; stored with the upload, so a restart
+    /// keeps them. Avatars added from then on use the new rig; avatars already in scenes keep
+    /// theirs. Needs an unlimited control token (like uploads). Result: `[AssetInfo]` (several
+    /// for a multi-skin glTF).
+    ConfigureAsset {
+        /// The upload's name (a multi-skin glTF's `name`, not `name#skin`).
+        asset: String,
+        /// The options, replacing the asset's (absent fields take their defaults).
+        options: PipelineOptions,
+    },
     /// One avatar's state. Result: `AvatarState`.
     GetAvatar {
         /// The avatar.
@@ -321,7 +339,11 @@ impl Command {
     pub fn is_read_only(&self) -> bool {
         matches!(
             self,
-            Self::ListScenes | Self::ListAssets | Self::GetAvatar { .. } | Self::GetJoint { .. }
+            Self::ListScenes
+                | Self::ListAssets
+                | Self::GetAsset { .. }
+                | Self::GetAvatar { .. }
+                | Self::GetJoint { .. }
         )
     }
 }
@@ -348,6 +370,55 @@ pub struct AssetInfo {
     pub clips: Vec<ClipInfo>,
     /// What the import pipeline did to the rig, in order.
     pub pipeline: Vec<String>,
+    /// Whether the rig is a humanoid: it has the H-Anim neutral pose and takes (and gives)
+    /// humanoid clips; rigs that are not keep their own neutral pose.
+    #[serde(default)]
+    pub humanoid: bool,
+    /// Joints with an H-Anim name (of `joints`).
+    #[serde(default)]
+    pub mapped: usize,
+    /// What the importer skipped, defaulted or approximated (a material not imported, a
+    /// repeated name suffixed, a channel skipped, a clip with fewer channels than the rig).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub notes: Vec<String>,
+}
+
+/// One rig in full, as `get_asset` reports it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AssetDetail {
+    /// What `list_assets` says about it.
+    #[serde(flatten)]
+    pub info: AssetInfo,
+    /// Every joint, in order, with its parent and H-Anim name: the effective mapping.
+    pub mapping: Vec<JointMapping>,
+    /// The pipeline options it was normalised with (change them with `configure_asset`).
+    pub options: PipelineOptions,
+    /// Metres per file unit the normalisation used, and how it was decided.
+    pub units: Units,
+    /// Whether `configure_asset` can normalise it again (uploaded assets can).
+    pub configurable: bool,
+}
+
+/// A joint and its H-Anim name.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct JointMapping {
+    /// The joint's name in the rig.
+    pub joint: String,
+    /// Its parent's name (none for a root).
+    pub parent: Option<String>,
+    /// Its H-Anim name, if mapped.
+    pub hanim: Option<String>,
+}
+
+/// The unit conversion a rig went through.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Units {
+    /// Metres per file unit (applied to translations and the mesh).
+    pub metres_per_unit: f32,
+    /// `configured`, `file` (the format or file says) or `guessed` (from the rig's height).
+    pub source: String,
+    /// The rig's height at rest in file units (joints and mesh, along its up axis).
+    pub height: f32,
 }
 
 /// A clip as listed.
@@ -495,6 +566,8 @@ pub enum CommandResult {
     Drive(Box<DriveInfo>),
     /// `stop_recording`.
     Recorded(Box<RecordingInfo>),
+    /// `get_asset`.
+    Asset(Box<AssetDetail>),
     /// `create_scene`.
     SceneCreated {
         /// The new scene.

@@ -13,6 +13,7 @@
 //! - [`command`]: control commands shared by REST and websocket.
 //! - [`placement`]: an avatar's world placement (position, rotation).
 //! - [`live`]: the pose messages of a live driver (binary encoding).
+//! - [`rig_options`]: how the server normalises an imported rig (per-asset pipeline options).
 //!
 //! Conventions: column vectors, right-handed, Y up, metres, seconds (see DESIGN.md).
 
@@ -26,6 +27,7 @@ pub mod live;
 pub mod msg;
 pub mod placement;
 pub mod quant;
+pub mod rig_options;
 pub mod skeleton;
 pub mod skinning;
 #[cfg(any(test, feature = "testing"))]

@@ -344,6 +344,11 @@ pub enum ErrorCode {
     /// The server holds as many connections as it allows (in all, or from this address): try
     /// again later (HTTP 503 with `Retry-After`; websocket upgrades: close 1013).
     Unavailable,
+    /// A humanoid clip or driver for a rig that is not a humanoid, or the other way round
+    /// (HTTP 422): their neutral poses do not correspond.
+    NotHumanoid,
+    /// The rig has no mesh (HTTP 404 for `GET /api/assets/{name}/mesh.glb`).
+    NoMesh,
 }
 
 /// What a connection (or a REST request) may do, as decided from its token.

@@ -65,6 +65,9 @@ pub struct SourceInfo {
     pub end_sites: Vec<(usize, Vec3)>,
     /// Anything skipped, defaulted or approximated on import.
     pub notes: Vec<String>,
+    /// Joint name → H-Anim name when the file says (a VRM humanoid's bone map): the
+    /// normalisation takes it as the mapping, over guesses from names.
+    pub bone_map: Option<std::collections::BTreeMap<String, String>>,
 }
 
 impl SourceInfo {
@@ -81,6 +84,7 @@ impl SourceInfo {
             helper_joints: Vec::new(),
             end_sites: Vec::new(),
             notes: Vec::new(),
+            bone_map: None,
         }
     }
 }

@@ -23,16 +23,16 @@ pub const DEFAULT_CACHE_BYTES: usize = 256 << 20;
 /// CPU-heavy for long clips: call it from the blocking pool, never under a scene lock.
 ///
 /// # Errors
-/// `unknown_clip` when `source` has no such clip; `invalid_value`
-/// when the rigs cannot be matched (e.g. one is not humanoid).
+/// `unknown_clip` when `source` has no such clip; `not_humanoid` when one rig is a humanoid
+/// and the other is not; `invalid_value` when the rigs cannot be matched otherwise.
 pub fn retarget(source: &Rig, target: &Rig, clip: &str) -> Result<Clip, Error> {
     let c = source.clip(clip).ok_or_else(|| Error::UnknownClip {
         rig: source.name.clone(),
         clip: clip.to_owned(),
     })?;
     let mut out = crate::rig::retarget(source.view(), c, target.view()).map_err(|e| {
-        Error::Invalid(format!(
-            "cannot retarget {clip} from {} onto {}: {e}",
+        e.to_error(&format!(
+            "cannot retarget {clip} from {} onto {}",
             source.name, target.name
         ))
     })?;

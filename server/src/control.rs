@@ -35,6 +35,14 @@ pub fn execute(state: &AppState, command: &Command) -> Result<CommandResult, Err
 /// As [`execute`]; or `internal` when storing failed, in which case the change
 /// *is* in effect in memory but not on disk.
 pub async fn execute_durable(state: &AppState, command: &Command) -> Result<CommandResult, Error> {
+    if let Command::ConfigureAsset { asset, options } = command {
+        // Stored (meta.json) before the answer, like an upload.
+        let result = crate::ingest::configure(state, asset, options.clone())
+            .await
+            .map(CommandResult::Assets);
+        state.metrics.command(result.is_ok());
+        return result;
+    }
     if let Err(e) = prepare(state, command).await {
         state.metrics.command(false);
         return Err(e);

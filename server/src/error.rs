@@ -90,6 +90,12 @@ pub enum Error {
     /// The server is not ready (starting) or is stopping.
     #[error("{0}")]
     Unavailable(String),
+    /// Retargeting between a humanoid and a rig that is not one.
+    #[error("{0}")]
+    NotHumanoid(String),
+    /// A rig without a mesh asked for its mesh.
+    #[error("rig {0} has no mesh")]
+    NoMesh(String),
 }
 
 impl Error {
@@ -114,6 +120,8 @@ impl Error {
             Self::UnexpectedBinary(_) => ErrorCode::UnexpectedBinary,
             Self::TooLarge(_) => ErrorCode::TooLarge,
             Self::Unavailable(_) => ErrorCode::Unavailable,
+            Self::NotHumanoid(_) => ErrorCode::NotHumanoid,
+            Self::NoMesh(_) => ErrorCode::NoMesh,
         }
     }
 

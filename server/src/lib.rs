@@ -17,10 +17,11 @@
 //!    [`world`] (every scene, ids, quotas; [`world::command`]: a command applied to it).
 //! 5. **Services** — [`auth`] (tokens), [`store`] (the data folder), [`config`], [`state`]
 //!    (the world plus connections, store and start-up progress), [`control`] (commands for
-//!    clients: counted, and acknowledged once stored), [`changes`] (what commands changed,
-//!    pushed to subscribers and scene-list watchers), live drivers of a connection, the VMC
-//!    gateway ([`vmc`]: UDP performers as live drivers, avatars sent to VMC receivers),
-//!    start-up loading ([`readiness`]).
+//!    clients: counted, and acknowledged once stored), [`ingest`] (uploads imported,
+//!    normalised and stored; an upload normalised again with new options), [`changes`] (what
+//!    commands changed, pushed to subscribers and scene-list watchers), live drivers of a
+//!    connection, the VMC gateway ([`vmc`]: UDP performers as live drivers, avatars sent to
+//!    VMC receivers), start-up loading ([`readiness`]).
 //! 6. **Transport** — [`service`]: the axum router, accept loop and limits, websocket
 //!    sessions, REST, uploads, dashboard, health.
 //! 7. **Entry** — [`startup`]: [`startup::Server`] listens at once, restores in the
@@ -41,6 +42,7 @@ pub mod control;
 pub mod error;
 pub mod export;
 pub mod import;
+pub mod ingest;
 pub mod library;
 mod live;
 pub mod metrics;

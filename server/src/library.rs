@@ -118,13 +118,26 @@ fn rename(asset: &str, main_stem: &str, name: &str) -> String {
     }
 }
 
-/// Imports and normalises a file set as asset `name` (CPU-bound: call it off the async
-/// workers).
+/// Imports and normalises a file set as asset `name` with the default pipeline (CPU-bound:
+/// call it off the async workers).
+///
+/// # Errors
+/// As [`prepare_with`].
+pub fn prepare(name: &str, set: &FileSet) -> Result<Vec<Rig>, Error> {
+    prepare_with(name, set, &PipelineOptions::default())
+}
+
+/// Imports and normalises a file set as asset `name` with `options` (CPU-bound: call it off
+/// the async workers). The rigs remember the upload they came from.
 ///
 /// # Errors
 /// `import_failed` with the importer's message (file and place) or the
 /// normalisation's.
-pub fn prepare(name: &str, set: &FileSet) -> Result<Vec<Rig>, Error> {
+pub fn prepare_with(
+    name: &str,
+    set: &FileSet,
+    options: &PipelineOptions,
+) -> Result<Vec<Rig>, Error> {
     let main = set.main_file().map_err(|e| import_failed(&e))?;
     let main_stem = files::stem(main).to_owned();
     let imported = files::import_set(set).map_err(|e| import_failed(&e))?;
@@ -133,9 +146,11 @@ pub fn prepare(name: &str, set: &FileSet) -> Result<Vec<Rig>, Error> {
         .map(|mut asset| {
             asset.name = rename(&asset.name, &main_stem, name);
             let rig_name = asset.name.clone();
-            Rig::from_asset(asset, &PipelineOptions::default()).map_err(|e| {
+            let mut rig = Rig::from_asset(asset, options).map_err(|e| {
                 Error::ImportFailed(format!("{main}: rig {rig_name}: normalisation failed: {e}"))
-            })
+            })?;
+            rig.upload = Some(name.to_owned());
+            Ok(rig)
         })
         .collect()
 }

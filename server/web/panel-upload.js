@@ -30,11 +30,14 @@ export function mount(ctx) {
     try {
       const r = await upload(name, files, clipsOnly);
       if (r.ok) {
-        const list = r.assets.map(
-          (x) => `${x.name} (${x.joints} joints; clips: ${x.clips.map((c) => c.name).join(", ") || "none"})`,
-        );
+        const list = r.assets.map((x) => {
+          const kind = x.humanoid ? `humanoid, ${x.mapped} mapped` : `not humanoid, ${x.mapped} mapped`;
+          return `${x.name} (${x.joints} joints; ${kind}; clips: ${x.clips.map((c) => c.name).join(", ") || "none"})`;
+        });
+        // What the importer skipped or approximated (materials, renamed joints, short clips, …).
+        const notes = r.assets.flatMap((x) => (x.notes ?? []).map((n) => `${x.name}: ${n}`));
         out.className = "small ok";
-        out.textContent = `Imported ${list.join("; ")}`;
+        out.textContent = `Imported ${list.join("; ")}${notes.length ? `. Notes: ${notes.join("; ")}` : ""}`;
         ctx.refreshAssets();
       } else {
         out.className = "small error";

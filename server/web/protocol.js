@@ -77,6 +77,9 @@ export {};
  * @property {number} joints
  * @property {ClipInfo[]} clips
  * @property {string[]} pipeline
+ * @property {boolean} humanoid Whether it has the H-Anim neutral pose and takes humanoid clips.
+ * @property {number} mapped Joints with an H-Anim name.
+ * @property {string[]} [notes] What the importer skipped or approximated.
  */
 
 /**

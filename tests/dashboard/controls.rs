@@ -234,6 +234,8 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
             .expect("../shared/testdata");
     let text = upload(vec![testdata.join("bvh/fairmotion/sinusoidal.bvh")], "sine").await;
     assert!(text.starts_with("Imported sine ("), "{text}");
+    // The classification reaches the page (four generic joints are not a humanoid).
+    assert!(text.contains("not humanoid"), "{text}");
     let text = upload(
         vec![
             testdata.join("cse169/wasp.skel"),

@@ -224,6 +224,9 @@ fn samples() -> Vec<(&'static str, &'static str, Value)> {
                     duration: 1.0,
                 }],
                 pipeline: vec!["normalised".into()],
+                humanoid: true,
+                mapped: 23,
+                notes: vec!["material skin not imported".into()],
             }]),
         ),
         (

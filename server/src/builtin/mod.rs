@@ -6,6 +6,8 @@
 //! - [`mesh`]: those tubes tessellated and smoothly weighted along each limb.
 //! - [`clips`]: looping `idle`, `walk` and `wave`, sampled at 30 Hz.
 //! - [`glb`]: the avatar as input to the one `.glb` writer ([`crate::export::glb`]).
+//! - [`variants`]: the avatar as BVH under other exporters' names and joint frames, and a
+//!   quadruped, for tests and figures.
 //!
 //! The bind pose is deliberately *not* the neutral pose: arms are horizontal and every bind
 //! frame is rotated, so rig normalisation has real work to do on it. Rest equals bind.
@@ -17,6 +19,7 @@ pub mod clips;
 pub mod glb;
 pub mod mesh;
 pub mod skeleton;
+pub mod variants;
 
 pub use skeleton::{JOINT_COUNT, JOINTS, joint_names};
 

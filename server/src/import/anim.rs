@@ -1,6 +1,7 @@
 //! CSE169 `.anim` clips: `animation { range t0 t1 numchannels N channel { extrapolate in out
 //! keys K { time value tanIn tanOut … } } … }`.
 //!
+//! A channel may carry its index (`channel 0 {`), which must then be its place.
 //! Channels follow the skeleton's DOF order: root translation x, y, z, then rotation x, y, z
 //! of every joint in depth-first (`.skel`) order. Root translation is added to the root's
 //! offset (`L = T(r + φ) · R`, seed 002), stored as the channel map's `trans_offset`.
@@ -18,6 +19,16 @@ use crate::clip::{
 /// Parses `.anim` text into a clip over `skeleton`'s joints, named `name`'s file stem by the
 /// caller (here: `name` as given).
 pub fn parse(name: &str, text: &str, skeleton: &Skeleton) -> Result<Clip, ImportError> {
+    parse_noted(name, text, skeleton).map(|(clip, _)| clip)
+}
+
+/// [`parse`], with notes for people: a file with fewer channels than the skeleton has DOFs
+/// (the joints past its last channel keep their pose).
+pub fn parse_noted(
+    name: &str,
+    text: &str,
+    skeleton: &Skeleton,
+) -> Result<(Clip, Vec<String>), ImportError> {
     let mut tokens = Tokens::new(name, text);
     tokens.expect("animation")?;
     tokens.expect("{")?;
@@ -49,6 +60,17 @@ pub fn parse(name: &str, text: &str, skeleton: &Skeleton) -> Result<Clip, Import
                     ));
                 }
                 let index = curves.len();
+                // Some exporters number their channels: `channel 0 {`. The number must be the
+                // channel's place (channels are read in DOF order, whatever they say).
+                if let Some(t) = tokens.peek().filter(|t| t.text != "{") {
+                    let n: usize = tokens.count("channel index")?.0;
+                    if n != index {
+                        return Err(tokens.invalid(
+                            t.line,
+                            format!("channel {n} where channel {index} was expected"),
+                        ));
+                    }
+                }
                 curves.push(channel(&mut tokens, index)?);
             }
             _ => return Err(tokens.syntax(t, "`range`, `numchannels`, `channel` or `}`")),
@@ -60,6 +82,25 @@ pub fn parse(name: &str, text: &str, skeleton: &Skeleton) -> Result<Clip, Import
         return Err(tokens.invalid(
             line,
             format!("numchannels says {n}, the file has {}", curves.len()),
+        ));
+    }
+    let mut notes = Vec::new();
+    if curves.len() < max_channels {
+        let covered = curves.len().saturating_sub(3) / 3;
+        let missing: Vec<&str> = skeleton
+            .names()
+            .iter()
+            .skip(covered + usize::from(!(curves.len().saturating_sub(3)).is_multiple_of(3)))
+            .map(String::as_str)
+            .collect();
+        let shown = missing.len().min(8);
+        notes.push(format!(
+            "{name}: {} of the skeleton's {max_channels} channels; {} joint(s) past the last \
+             channel keep their pose ({}{})",
+            curves.len(),
+            missing.len(),
+            missing[..shown].join(", "),
+            if missing.len() > shown { ", …" } else { "" }
         ));
     }
     let mut curves = curves.into_iter();
@@ -83,11 +124,12 @@ pub fn parse(name: &str, text: &str, skeleton: &Skeleton) -> Result<Clip, Import
             None => break,
         }
     }
-    Clip::new(name, joints, range).map_err(|source| ImportError::Clip {
+    let clip = Clip::new(name, joints, range).map_err(|source| ImportError::Clip {
         file: name.to_owned(),
         place: "range".to_owned(),
         source,
-    })
+    })?;
+    Ok((clip, notes))
 }
 
 fn extrapolation(tokens: &mut Tokens<'_>) -> Result<Extrapolation, ImportError> {

@@ -18,7 +18,7 @@ use glam::{Mat4, Quat, Vec3};
 use posecast_proto::{Skeleton, Transform};
 
 use super::ImportError;
-use super::skel::unique_names;
+use super::skel::{renamed_note, unique_names};
 use super::text::Tokens;
 use crate::asset::{Asset, SourceFormat, SourceInfo};
 use crate::clip::{Clip, Interpolation, JointChannels, RotationChannel, Track, VectorChannel};
@@ -221,11 +221,9 @@ pub fn parse(name: &str, text: &str) -> Result<Asset, ImportError> {
         });
     }
     let names = unique_names(joints.iter().map(|j| j.name.clone()));
-    if names.iter().zip(&joints).any(|(a, b)| *a != b.name) {
-        source
-            .notes
-            .push("repeated joint names were suffixed with #2, #3, …".to_owned());
-    }
+    source
+        .notes
+        .extend(renamed_note(joints.iter().map(|j| j.name.as_str()), &names));
     let skeleton = Skeleton::new(
         names,
         joints.iter().map(|j| j.parent).collect(),

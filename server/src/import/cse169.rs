@@ -20,6 +20,7 @@ pub fn assemble(
     clips: Vec<Clip>,
 ) -> Result<Asset, ImportError> {
     let mut source = SourceInfo::new(SourceFormat::Cse169);
+    source.notes.extend(skel.notes.iter().cloned());
     let s = &skel.skeleton;
     if let Some(c) = clips.iter().find(|c| c.joint_count() != s.len()) {
         return Err(ImportError::Unsupported {

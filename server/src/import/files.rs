@@ -3,7 +3,8 @@
 //! up in the set and never on the file system.
 //!
 //! A set holds exactly one main file, which gives the format:
-//! - one `.glb`, or one `.gltf` plus the `.bin` (and image) files its buffer URIs name;
+//! - one `.glb` (or `.vrm`, which is a GLB), or one `.gltf` plus the `.bin` (and image) files
+//!   its buffer URIs name;
 //! - one `.bvh`;
 //! - one `.skel`, at most one `.skin` (its mesh) and any number of `.anim` files (its clips,
 //!   named by file stem, in name order). Unlike a folder, an upload belongs together, so the
@@ -114,7 +115,12 @@ impl FileSet {
             .files
             .keys()
             .map(String::as_str)
-            .filter(|n| matches!(extension(n).as_str(), "glb" | "gltf" | "bvh" | "skel"))
+            .filter(|n| {
+                matches!(
+                    extension(n).as_str(),
+                    "glb" | "gltf" | "vrm" | "bvh" | "skel"
+                )
+            })
             .collect();
         let main = match mains.as_slice() {
             [one] => *one,
@@ -124,7 +130,7 @@ impl FileSet {
                 let message = if matches!(ext.as_str(), "skin" | "anim") {
                     format!("a .{ext} file needs its .skel: upload the .skel with it")
                 } else {
-                    "no .glb, .gltf, .bvh or .skel file".to_owned()
+                    "no .glb, .gltf, .vrm, .bvh or .skel file".to_owned()
                 };
                 return Err(ImportError::Unsupported {
                     file: first,
@@ -166,7 +172,7 @@ pub fn import_set(set: &FileSet) -> Result<Vec<Asset>, ImportError> {
     let main = set.main_file()?;
     let bytes = set.get(main).unwrap_or_default();
     match extension(main).as_str() {
-        "glb" | "gltf" => {
+        "glb" | "gltf" | "vrm" => {
             let external = |uri: &str| {
                 set.get(uri)
                     .map(<[u8]>::to_vec)
@@ -221,12 +227,16 @@ pub fn skel_with_companions(
         .map(|(name, text)| skin::parse(&name, &text, &skel.skeleton))
         .transpose()?;
     let mut clips = Vec::with_capacity(anims.len());
+    let mut notes = Vec::new();
     for (name, text) in anims {
-        let mut clip = anim::parse(&name, &text, &skel.skeleton)?;
+        let (mut clip, n) = anim::parse_noted(&name, &text, &skel.skeleton)?;
         clip.set_name(stem(&name));
         clips.push(clip);
+        notes.extend(n);
     }
-    cse169::assemble(stem(skel_name), skel, skin, clips)
+    let mut asset = cse169::assemble(stem(skel_name), skel, skin, clips)?;
+    asset.source.notes.extend(notes);
+    Ok(asset)
 }
 
 fn text<'a>(name: &str, bytes: &'a [u8]) -> Result<&'a str, ImportError> {

@@ -51,7 +51,7 @@ pub fn load_path(path: &Path) -> Result<Vec<Asset>, ImportError> {
         .unwrap_or("asset")
         .to_owned();
     match ext.as_str() {
-        "gltf" | "glb" => {
+        "gltf" | "glb" | "vrm" => {
             let bytes = read(path)?;
             let dir = path.parent().unwrap_or(Path::new("."));
             let external = |uri: &str| read(&dir.join(uri));

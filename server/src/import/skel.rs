@@ -30,6 +30,8 @@ pub struct Skel {
     pub boxes: Vec<(Vec3, Vec3)>,
     /// Joint offsets `r` (rest translations).
     pub offsets: Vec<Vec3>,
+    /// What was changed on import (repeated names suffixed), for people.
+    pub notes: Vec<String>,
 }
 
 struct Joint {
@@ -144,6 +146,9 @@ fn build(file: &str, joints: Vec<Joint>) -> Result<Skel, ImportError> {
         .map(|j| j.dofs.local_transform(j.offset))
         .collect();
     let names = unique_names(joints.iter().map(|j| j.name.clone()));
+    let notes = renamed_note(joints.iter().map(|j| j.name.as_str()), &names)
+        .into_iter()
+        .collect();
     let skeleton = Skeleton::new(
         names,
         joints.iter().map(|j| j.parent).collect(),
@@ -159,6 +164,27 @@ fn build(file: &str, joints: Vec<Joint>) -> Result<Skel, ImportError> {
         skeleton,
         boxes: joints.iter().map(|j| j.boxes).collect(),
         offsets: joints.iter().map(|j| j.offset).collect(),
+        notes,
+    })
+}
+
+/// A note listing the joints [`unique_names`] renamed (none when it renamed nothing).
+pub(crate) fn renamed_note<'a>(
+    original: impl Iterator<Item = &'a str>,
+    unique: &[String],
+) -> Option<String> {
+    let renamed: Vec<String> = original
+        .zip(unique)
+        .filter(|(a, b)| a != b)
+        .map(|(a, b)| format!("{a:?} → {b:?}"))
+        .collect();
+    let shown = renamed.len().min(8);
+    (!renamed.is_empty()).then(|| {
+        format!(
+            "repeated joint names suffixed: {}{}",
+            renamed[..shown].join(", "),
+            if renamed.len() > shown { ", …" } else { "" }
+        )
     })
 }
 

@@ -116,8 +116,8 @@ impl Drives {
             state.config.drive_timeout,
         )
         .map_err(|e| {
-            Error::invalid(format!(
-                "cannot retarget {} onto {}: {e}",
+            e.to_error(&format!(
+                "cannot retarget {} onto {}",
                 source.name, a.rig.name
             ))
         })?;

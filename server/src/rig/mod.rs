@@ -9,11 +9,13 @@
 //! - `reorient`: a coordinate change by a rotation `R`, and units (a uniform scale).
 //! - [`neutral`](mod@neutral): a new neutral pose `H` (`V_i = V_parent(i) H_i`) and the H-Anim pose found by
 //!   aligning named segments with target directions.
-//! - [`names`](mod@names): joint names to H-Anim names.
+//! - [`names`](mod@names): joint names to H-Anim names, by names and limb chains.
+//! - [`humanoid`](mod@humanoid): whether a rig is a humanoid.
 //! - [`retarget`](mod@retarget): a clip of one normalised rig replayed on another, matched in world space.
 //! - [`pipeline`](mod@pipeline): the default sequence, configurable per asset, recording what it did.
 
 mod adjust;
+pub mod humanoid;
 pub mod names;
 pub mod neutral;
 pub mod pipeline;
@@ -75,6 +77,19 @@ pub enum RigError {
     /// The H-Anim neutral pose or retargeting needs joints the rig has not got.
     #[error("{rig}: no H-Anim joint mapped for {missing:?}")]
     NotHumanoid { rig: String, missing: Vec<String> },
+    /// Retargeting between a humanoid and a rig that is not one: their neutral poses do not
+    /// correspond, so matching world rotations would, say, make a fox walk upright.
+    #[error(
+        "cannot retarget from {from} ({}) onto {onto} ({}): both must be humanoids, or neither",
+        humanoid_word(*from_humanoid),
+        humanoid_word(*onto_humanoid)
+    )]
+    HumanoidMismatch {
+        from: String,
+        from_humanoid: bool,
+        onto: String,
+        onto_humanoid: bool,
+    },
     /// A mapping file names a joint the skeleton does not have.
     #[error("mapping names joint {joint:?}, which {rig} does not have")]
     UnknownJoint { rig: String, joint: String },
@@ -94,6 +109,19 @@ pub enum RigError {
     Clip(#[from] crate::clip::ClipError),
 }
 
+impl From<posecast_proto::rig_options::AxisError> for RigError {
+    fn from(e: posecast_proto::rig_options::AxisError) -> Self {
+        Self::BadInput {
+            what: "orientation",
+            message: e.to_string(),
+        }
+    }
+}
+
+fn humanoid_word(h: bool) -> &'static str {
+    if h { "a humanoid" } else { "not a humanoid" }
+}
+
 /// Per joint, the [`ChannelMap`] a step applied to clip channels (the rotation part is the
 /// `(V_parent(i), V_i⁻¹)` pair DOF limits need).
 pub type JointMaps = Vec<ChannelMap>;
@@ -102,5 +130,18 @@ pub type JointMaps = Vec<ChannelMap>;
 pub(crate) fn compose_maps(acc: &mut [ChannelMap], next: &[ChannelMap]) {
     for (a, n) in acc.iter_mut().zip(next) {
         *a = a.then(n);
+    }
+}
+
+impl RigError {
+    /// A retargeting failure as the server's error, `context` first: `not_humanoid` when a
+    /// humanoid meets a rig that is not one, else `invalid_value`.
+    #[must_use]
+    pub fn to_error(&self, context: &str) -> crate::error::Error {
+        let message = format!("{context}: {self}");
+        match self {
+            Self::HumanoidMismatch { .. } => crate::error::Error::NotHumanoid(message),
+            _ => crate::error::Error::Invalid(message),
+        }
     }
 }

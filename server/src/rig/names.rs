@@ -14,6 +14,17 @@
 //!
 //! `humanoid_root` is the `Hips`/`Pelvis` joint or, failing that, the nearest common ancestor
 //! of both hips. CMU's zero-length `LHipJoint`/`RHipJoint` connectors are left unmapped.
+//!
+//! Then the limbs are checked against the skeleton's **topology**: each arm is walked from the
+//! hand up (its parent is the elbow, then the shoulder, then the clavicle, stopping at the joint
+//! both arms hang from or at a spine joint), each leg from the foot up (knee, hip), skipping
+//! twist and roll helpers. Where names and chain disagree the chain wins: in mocapbank-style
+//! rigs `LeftShoulder` is the upper arm (its child is `LeftElbow`) and `LeftCollar` the
+//! clavicle. The spine is then named from the chest down: the joint both arms hang from is
+//! `vt1` (as in H-Anim, where the clavicles hang from `vt1`), and the generic spine joints
+//! between it and the root are spread over `vl5` … `vt10` — so rigs with different numbers of
+//! spine joints pair their chests when retargeted. A mapping given by the caller (a VRM
+//! humanoid, a user's `name_map`) wins over all of these.
 
 use std::collections::{BTreeMap, HashMap};
 
@@ -104,6 +115,8 @@ pub struct NameMapping {
     pub hanim: Vec<Option<String>>,
     /// Names of the joints left unmapped, in joint order.
     pub unmapped: Vec<String>,
+    /// Joints whose name-based guess the limb chains corrected, for people.
+    pub corrections: Vec<String>,
 }
 
 impl NameMapping {
@@ -218,6 +231,8 @@ pub fn map_names(
             hanim[j] = Some(name.clone());
         }
     }
+    let mut corrections = limb_chains(skeleton, &mut hanim);
+    corrections.extend(spine_by_chest(skeleton, &mut hanim, &spine));
     if let Some(map) = overrides {
         let mut by_override: HashMap<&str, &str> = HashMap::new();
         for (joint, target) in map {
@@ -252,7 +267,176 @@ pub fn map_names(
         .filter(|(h, _)| h.is_none())
         .map(|(_, n)| n.clone())
         .collect();
-    Ok(NameMapping { hanim, unmapped })
+    Ok(NameMapping {
+        hanim,
+        unmapped,
+        corrections,
+    })
+}
+
+/// Renames the generic spine joints (`spine`: guessed from words like `Spine`, `Chest`) from
+/// the chest down: the chest — the nearest joint both clavicles (or shoulders) hang from,
+/// when it is a generic spine joint or unmapped — becomes `vt1`, and the generic spine joints
+/// between the root and it, in depth order, are spread over `vl5` … `vt10` (the first `vl5`,
+/// the last `vt10`). Returns what changed, for people.
+fn spine_by_chest(
+    skeleton: &Skeleton,
+    hanim: &mut [Option<String>],
+    spine: &[usize],
+) -> Vec<String> {
+    let parents = skeleton.parents();
+    let pair = |part: &str| match (
+        find(hanim, &format!("l_{part}")),
+        find(hanim, &format!("r_{part}")),
+    ) {
+        (Some(l), Some(r)) => Some((l, r)),
+        _ => None,
+    };
+    let (Some((l, r)), Some(root)) = (
+        pair("sternoclavicular").or_else(|| pair("shoulder")),
+        find(hanim, "humanoid_root"),
+    ) else {
+        return Vec::new();
+    };
+    let ancestors = |mut j: usize| {
+        let mut v = vec![j];
+        while let Some(p) = parents[j] {
+            v.push(p);
+            j = p;
+        }
+        v
+    };
+    let (al, ar) = (ancestors(l), ancestors(r));
+    let Some(chest) = al.iter().copied().find(|j| ar.contains(j)) else {
+        return Vec::new();
+    };
+    let path = ancestors(chest);
+    let Some(root_at) = path.iter().position(|&j| j == root) else {
+        return Vec::new();
+    };
+    if chest == root || !(hanim[chest].is_none() || spine.contains(&chest)) {
+        return Vec::new();
+    }
+    // Root (exclusive) to chest (exclusive), root side first.
+    let mut lower: Vec<usize> = path[1..root_at]
+        .iter()
+        .copied()
+        .filter(|j| spine.contains(j))
+        .collect();
+    lower.reverse();
+    let range = &HANIM_SPINE[2..=9]; // vl5 … vt10
+    let wide = &HANIM_SPINE[2..=17]; // vl5 … vt2
+    let list = if lower.len() <= range.len() {
+        range
+    } else {
+        wide
+    };
+    let k = lower.len();
+    let mut wanted: Vec<(usize, &str)> = lower
+        .iter()
+        .enumerate()
+        .filter_map(|(i, &j)| {
+            let at = if k <= 1 {
+                list.len() - 1
+            } else {
+                (i * (list.len() - 1) + (k - 1) / 2) / (k - 1)
+            };
+            list.get(at).map(|name| (j, *name))
+        })
+        .collect();
+    wanted.push((chest, "vt1"));
+    let mut corrections = Vec::new();
+    let names = skeleton.names();
+    for (j, name) in wanted {
+        if hanim[j].as_deref() == Some(name) {
+            continue;
+        }
+        corrections.push(format!(
+            "{} is {name} ({}), counting the spine from the joint both arms hang from",
+            names[j],
+            hanim[j]
+                .as_deref()
+                .map_or("unmapped by name".to_owned(), |h| format!("not {h}"))
+        ));
+        for h in hanim.iter_mut() {
+            if h.as_deref() == Some(name) {
+                *h = None;
+            }
+        }
+        hanim[j] = Some(name.to_owned());
+    }
+    corrections
+}
+
+/// Twist and roll helpers sit inside limb chains without being one of their H-Anim joints.
+fn is_helper(name: &str) -> bool {
+    let lower = name.to_ascii_lowercase();
+    lower.contains("twist") || lower.contains("roll")
+}
+
+/// Corrects each side's arm (from the wrist up: elbow, shoulder, sternoclavicular) and leg
+/// (from the ankle up: knee, hip) by the skeleton's topology, stopping at a joint the other
+/// side's limb also hangs from or at a spine joint. Returns what changed, for people.
+fn limb_chains(skeleton: &Skeleton, hanim: &mut [Option<String>]) -> Vec<String> {
+    let names = skeleton.names();
+    let parents = skeleton.parents();
+    let up = |j: usize| -> Option<usize> {
+        let mut p = parents[j]?;
+        while is_helper(&names[p]) {
+            p = parents[p]?;
+        }
+        Some(p)
+    };
+    let is_self_or_ancestor = |a: usize, mut b: usize| loop {
+        if a == b {
+            return true;
+        }
+        match parents[b] {
+            Some(p) => b = p,
+            None => return false,
+        }
+    };
+    let mut corrections = Vec::new();
+    for (side, other) in [('l', 'r'), ('r', 'l')] {
+        for (end, parts) in [
+            ("wrist", &["elbow", "shoulder", "sternoclavicular"][..]),
+            ("ankle", &["knee", "hip"][..]),
+        ] {
+            let Some(mut j) = find(hanim, &format!("{side}_{end}")) else {
+                continue;
+            };
+            let other_end = find(hanim, &format!("{other}_{end}"));
+            for part in parts {
+                let Some(p) = up(j) else { break };
+                let spine = hanim[p]
+                    .as_deref()
+                    .is_some_and(|h| HANIM_SPINE.contains(&h));
+                if spine || other_end.is_some_and(|o| is_self_or_ancestor(p, o)) {
+                    break;
+                }
+                let name = format!("{side}_{part}");
+                if hanim[p].as_deref() != Some(name.as_str()) {
+                    corrections.push(format!(
+                        "{} is {name} ({}), its place in the chain from {side}_{end}",
+                        names[p],
+                        hanim[p]
+                            .as_deref()
+                            .map_or("unmapped by name".to_owned(), |h| {
+                                format!("not {h} as its name suggests")
+                            })
+                    ));
+                    for h in hanim.iter_mut() {
+                        if h.as_deref() == Some(name.as_str()) {
+                            *h = None;
+                        }
+                    }
+                    hanim[p] = Some(name);
+                }
+                j = p;
+            }
+        }
+    }
+    corrections
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
@@ -436,10 +620,68 @@ mod tests {
             assert_eq!(guess(name).as_deref(), Some(expected), "{name}");
         }
         assert_eq!(guess("LHipJoint"), None);
+        assert_eq!(guess("LeftCollar").as_deref(), Some("l_sternoclavicular"));
         assert_eq!(guess("HeadTop_End"), None);
         assert_eq!(
             tokens("Skeleton_arm_joint_L__4_"),
             ["Skeleton", "arm", "joint", "L", "4"]
         );
+    }
+}
+
+#[cfg(test)]
+mod chain_tests {
+    use super::*;
+    use glam::Mat4;
+    use posecast_proto::Transform;
+
+    fn skeleton(joints: &[(&str, Option<usize>)]) -> Skeleton {
+        let n = joints.len();
+        Skeleton::new(
+            joints.iter().map(|(n, _)| (*n).to_owned()).collect(),
+            joints.iter().map(|(_, p)| *p).collect(),
+            vec![Transform::IDENTITY; n],
+            vec![Mat4::IDENTITY; n],
+        )
+        .unwrap()
+    }
+
+    /// Mocapbank-style arms: `LeftShoulder` is the upper arm (its child is `LeftElbow`) and
+    /// `LeftCollar` the clavicle; by names alone both claim the clavicle.
+    #[test]
+    fn arms_are_found_from_the_hands_up() {
+        let sk = skeleton(&[
+            ("Hips", None),
+            ("Chest", Some(0)),
+            ("LeftCollar", Some(1)),
+            ("LeftShoulder", Some(2)),
+            ("LeftElbow", Some(3)),
+            ("LeftWrist", Some(4)),
+            ("RightCollar", Some(1)),
+            ("RightShoulder", Some(6)),
+            ("RightForeArmRoll", Some(7)),
+            ("RightElbow", Some(8)),
+            ("RightWrist", Some(9)),
+            ("LeftHip", Some(0)),
+            ("LeftKnee", Some(11)),
+            ("LeftAnkle", Some(12)),
+        ]);
+        let m = map_names(&sk, None, "mocapbank").unwrap();
+        let h = |j: usize| m.hanim[j].as_deref();
+        assert_eq!(h(2), Some("l_sternoclavicular"));
+        assert_eq!(h(3), Some("l_shoulder"));
+        assert_eq!(h(4), Some("l_elbow"));
+        assert_eq!(h(7), Some("r_shoulder"), "the roll helper is skipped");
+        assert_eq!(h(8), None);
+        assert_eq!(h(9), Some("r_elbow"));
+        assert_eq!(h(11), Some("l_hip"));
+        assert!(m.unmapped.contains(&"RightForeArmRoll".to_owned()));
+        assert_eq!(m.corrections.len(), 3, "{:?}", m.corrections);
+        assert_eq!(h(1), Some("vt1"), "the chest both arms hang from");
+        // The user's mapping still wins.
+        let mut over = BTreeMap::new();
+        over.insert("LeftShoulder".to_owned(), String::new());
+        let m = map_names(&sk, Some(&over), "mocapbank").unwrap();
+        assert_eq!(m.hanim[3], None);
     }
 }

@@ -2,91 +2,19 @@
 //! neutral pose (H-Anim when the rig is humanoid), configurable per asset, recording what it
 //! did.
 
-use std::collections::BTreeMap;
-
 use glam::Quat;
 use posecast_proto::fk::forward_kinematics;
-use serde::{Deserialize, Serialize};
+pub use posecast_proto::rig_options::{PipelineOptions, ReorientFrame, UpAxisOverride};
 
+use super::humanoid::classify;
 use super::names::{NameMapping, map_names};
-use super::neutral::{NeutralPose, REQUIRED, apply_neutral_pose, hanim_pose};
+use super::neutral::{NeutralPose, apply_neutral_pose, hanim_pose};
 use super::reorient::{SignedAxis, reorient, reorient_bind_frame, scale_units};
 use super::simplify::simplify;
 use super::{JointMaps, RigError, compose_maps};
 use crate::asset::{Asset, SourceFormat, UpAxis};
 use crate::clip::ChannelMap;
-
-/// Per-asset pipeline configuration; `Default` is the default pipeline. Deserialises from JSON
-/// with every field optional, e.g.
-/// `{"up_axis": {"up": "+z", "forward": "-y"}, "metres_per_unit": 0.01, "neutral": "keep",
-///   "name_map": {"Bip01_L_Thigh": "l_hip"}}`.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct PipelineOptions {
-    /// Simplify bind matrices to translations (default true).
-    pub simplify: bool,
-    /// The source's orientation; `None` detects it (glTF `Z_UP` exports; BVH and CSE169 are
-    /// Y-up by convention).
-    pub up_axis: Option<UpAxisOverride>,
-    /// Metres per file unit; `None` takes the file's (glTF: 1) or, where the format does not
-    /// say (BVH, CSE169), guesses from the rig's height: 1 when it is 0.3–3 units tall,
-    /// centimetres when 30–300, millimetres when 300–3000, else 1.
-    pub metres_per_unit: Option<f32>,
-    /// Which neutral pose (default: H-Anim when humanoid).
-    pub neutral: NeutralPose,
-    /// Joint name → H-Anim name, replacing the guesses for the joints it names (`""` unmaps).
-    pub name_map: Option<BTreeMap<String, String>>,
-}
-
-impl Default for PipelineOptions {
-    fn default() -> Self {
-        Self {
-            simplify: true,
-            up_axis: None,
-            metres_per_unit: None,
-            neutral: NeutralPose::Auto,
-            name_map: None,
-        }
-    }
-}
-
-/// The source's orientation, as axes or as a rotation.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct UpAxisOverride {
-    /// The source's up axis (default `+y`).
-    pub up: SignedAxis,
-    /// The source's forward axis (the way the avatar faces); `None` picks the first of `+z`,
-    /// `-y`, `+x` perpendicular to `up`.
-    pub forward: Option<SignedAxis>,
-    /// A rotation `R` (x, y, z, w) to apply instead of the axes.
-    pub rotation: Option<[f32; 4]>,
-    /// What to rotate; `None`: [`ReorientFrame::Bind`] for glTF (whose scene is Y-up by
-    /// specification), [`ReorientFrame::World`] otherwise.
-    pub frame: Option<ReorientFrame>,
-}
-
-impl Default for UpAxisOverride {
-    fn default() -> Self {
-        Self {
-            up: SignedAxis::PosY,
-            forward: None,
-            rotation: None,
-            frame: None,
-        }
-    }
-}
-
-/// What a re-orientation rotates.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum ReorientFrame {
-    /// Everything, posed world included ([`reorient`]): for sources whose world is not Y-up.
-    World,
-    /// Bind-space data only ([`reorient_bind_frame`]): for sources whose posed world is
-    /// already Y-up but whose mesh and binds are not (glTF `Z_UP` exports).
-    Bind,
-}
+use posecast_proto::command::Units;
 
 /// A normalised asset and what the pipeline did to it.
 #[derive(Clone, Debug)]
@@ -103,6 +31,10 @@ pub struct Normalised {
     pub hanim: Vec<Option<String>>,
     /// Joints without an H-Anim name.
     pub unmapped: Vec<String>,
+    /// Whether the rig is a humanoid (classified, or as configured).
+    pub humanoid: bool,
+    /// The unit conversion applied, and why.
+    pub units: Units,
     /// The neutral pose `H` applied (local rotations in the frame before that step), if any.
     pub neutral_pose: Option<Vec<Quat>>,
     /// How posed world points changed: `p' = scale · (rotation · p)` for every frame of every
@@ -115,17 +47,42 @@ pub fn normalise(asset: Asset, options: &PipelineOptions) -> Result<Normalised, 
     let n = asset.skeleton.len();
     let mut steps = Vec::new();
     let mut maps: JointMaps = vec![ChannelMap::IDENTITY; n];
-    let NameMapping { hanim, unmapped } =
-        map_names(&asset.skeleton, options.name_map.as_ref(), &asset.name)?;
-    steps.push(format!(
-        "names: {} of {n} joints mapped to H-Anim{}",
-        n - unmapped.len(),
-        if options.name_map.is_some() {
-            " (with a mapping)"
-        } else {
-            ""
+    // A mapping the file gives (a VRM humanoid) is authoritative; the user's wins over it.
+    let mut overrides = asset.source.bone_map.clone();
+    if let Some(user) = &options.name_map {
+        overrides
+            .get_or_insert_with(Default::default)
+            .extend(user.iter().map(|(k, v)| (k.clone(), v.clone())));
+    }
+    let NameMapping {
+        mut hanim,
+        mut unmapped,
+        mut corrections,
+    } = map_names(&asset.skeleton, overrides.as_ref(), &asset.name)?;
+    if let Some(file) = &asset.source.bone_map {
+        // The file's map is authoritative: joints it leaves out (hair, skirt, accessories
+        // bones) are not guessed from their names, unless the user maps them.
+        let user = options.name_map.as_ref();
+        for (j, name) in asset.skeleton.names().iter().enumerate() {
+            let kept = file.contains_key(name) || user.is_some_and(|m| m.contains_key(name));
+            if !kept && hanim[j].take().is_some() {
+                unmapped.push(name.clone());
+            }
         }
+        corrections.clear();
+        unmapped.sort_by_key(|n| asset.skeleton.find(n));
+    }
+    let by = match (asset.source.bone_map.is_some(), options.name_map.is_some()) {
+        (true, true) => " (the file's humanoid bone map, then the configured mapping)",
+        (true, false) => " (the file's humanoid bone map)",
+        (false, true) => " (by names and limb chains, then the configured mapping)",
+        (false, false) => " (by names and limb chains)",
+    };
+    steps.push(format!(
+        "names: {} of {n} joints mapped to H-Anim{by}",
+        n - unmapped.len()
     ));
+    steps.extend(corrections.into_iter().map(|c| format!("names: {c}")));
     let mut asset = asset;
     let mut world_change = (Quat::IDENTITY, 1.0f32);
     if options.simplify {
@@ -151,7 +108,14 @@ pub fn normalise(asset: Asset, options: &PipelineOptions) -> Result<Normalised, 
             angle.to_degrees()
         ));
     }
-    let (s, why) = units(&asset, options.metres_per_unit);
+    let (units, why) = units(&asset, options.metres_per_unit);
+    let s = units.metres_per_unit;
+    if !(s.is_finite() && s > 0.0) {
+        return Err(RigError::BadInput {
+            what: "metres_per_unit",
+            message: format!("{s} is not a positive number"),
+        });
+    }
     if (s - 1.0).abs() > f32::EPSILON {
         let (a, m) = scale_units(asset, s)?;
         asset = a;
@@ -159,17 +123,36 @@ pub fn normalise(asset: Asset, options: &PipelineOptions) -> Result<Normalised, 
         world_change.1 = s;
     }
     steps.push(format!("units ({why}): x{s}"));
-    let humanoid = REQUIRED
-        .iter()
-        .all(|r| super::names::find(&hanim, r).is_some());
+    let class = classify(&asset, &hanim);
+    let humanoid = options.humanoid.unwrap_or(class.humanoid);
+    steps.push(match options.humanoid {
+        Some(h) => format!(
+            "classification: {} (configured; classified {}: {})",
+            if h { "humanoid" } else { "not humanoid" },
+            if class.humanoid {
+                "humanoid"
+            } else {
+                "not humanoid"
+            },
+            class.reason
+        ),
+        None => format!(
+            "classification: {} ({})",
+            if humanoid { "humanoid" } else { "not humanoid" },
+            class.reason
+        ),
+    });
     let mut neutral_pose = None;
     match options.neutral {
         NeutralPose::Keep => steps.push("neutral pose: kept".into()),
         NeutralPose::Auto if !humanoid => {
-            steps.push(
-                "neutral pose: kept (not humanoid: hips, knees, shoulders, elbows not all mapped)"
-                    .into(),
-            );
+            steps.push("neutral pose: kept (not humanoid)".into());
+        }
+        NeutralPose::HAnim if !humanoid && options.humanoid == Some(false) => {
+            return Err(RigError::BadInput {
+                what: "pipeline options",
+                message: "neutral h_anim with humanoid false".into(),
+            });
         }
         NeutralPose::Auto | NeutralPose::HAnim => {
             let h = hanim_pose(&asset, &hanim)?;
@@ -188,6 +171,8 @@ pub fn normalise(asset: Asset, options: &PipelineOptions) -> Result<Normalised, 
         channel_maps: maps,
         hanim,
         unmapped,
+        humanoid,
+        units,
         neutral_pose,
         world_change,
     })
@@ -224,21 +209,50 @@ fn orientation(
     }
 }
 
-fn units(asset: &Asset, configured: Option<f32>) -> (f32, &'static str) {
-    if let Some(s) = configured {
-        return (s, "configured");
-    }
-    if let Some(s) = asset.source.metres_per_unit {
-        return (s, "from the file");
-    }
-    let h = rig_height(asset);
-    let s = match h {
-        h if (0.3..=3.0).contains(&h) => 1.0,
-        h if (30.0..=300.0).contains(&h) => 0.01,
-        h if (300.0..=3000.0).contains(&h) => 0.001,
-        _ => return (1.0, "unknown, kept: set metres_per_unit"),
+/// Metres per file unit: as configured; else what the file says, unless the rig is then
+/// implausibly tall or small (outside 0.3–3 m) and its height in file units names a unit
+/// (0.3–3: metres, 30–300: centimetres, 300–3000: millimetres) — glTF says metres by
+/// specification, yet centimetre exports are common; else, where the format does not say
+/// (BVH, CSE169), that guess; else 1. Returns the scale and what decided it, with the height.
+fn units(asset: &Asset, configured: Option<f32>) -> (Units, String) {
+    let height = rig_height(asset);
+    let units = |metres_per_unit: f32, source: &str| Units {
+        metres_per_unit,
+        source: source.to_owned(),
+        height,
     };
-    (s, "guessed from the rig's height")
+    if let Some(s) = configured {
+        return (units(s, "configured"), "configured".to_owned());
+    }
+    let guess = match height {
+        h if (0.3..=3.0).contains(&h) => Some((1.0, "metres")),
+        h if (30.0..=300.0).contains(&h) => Some((0.01, "centimetres")),
+        h if (300.0..=3000.0).contains(&h) => Some((0.001, "millimetres")),
+        _ => None,
+    };
+    let plausible = |s: f32| (0.3..=3.0).contains(&(height * s));
+    match (asset.source.metres_per_unit, guess) {
+        (Some(s), _) if plausible(s) => (units(s, "file"), "from the file".to_owned()),
+        (Some(s), Some((g, name))) if (g - s).abs() > f32::EPSILON => (
+            units(g, "guessed"),
+            format!(
+                "guessed from the rig's height, {height:.3} units: {name}, not the file's \
+                 {s} m per unit; set metres_per_unit to override"
+            ),
+        ),
+        (Some(s), _) => (units(s, "file"), "from the file".to_owned()),
+        (None, Some((g, name))) => (
+            units(g, "guessed"),
+            format!(
+                "guessed from the rig's height, {height:.3} units: {name}; set \
+                 metres_per_unit to override"
+            ),
+        ),
+        (None, None) => (
+            units(1.0, "guessed"),
+            format!("unknown from the rig's height, {height:.3} units, kept: set metres_per_unit"),
+        ),
+    }
 }
 
 /// The rig's extent along Y at rest (joints and meshes), in its units.

@@ -2,13 +2,15 @@
 //! were authored in, and the H-Anim names retargeting matches on ([`Rig::from_asset`] runs the
 //! normalisation pipeline).
 
+use super::humanoid::classify;
+use super::pipeline::rig_height;
 use super::{PipelineOptions, RigError, RigView, normalise};
 use crate::asset::Asset;
 use crate::clip::Clip;
 use crate::error::Error;
 use crate::quota::{Quota, Quotas};
 use glam::Quat;
-use posecast_proto::command::{AssetInfo, ClipInfo};
+use posecast_proto::command::{AssetDetail, AssetInfo, ClipInfo, JointMapping, Units};
 use posecast_proto::{JointDofs, Skeleton};
 use std::sync::Arc;
 
@@ -32,6 +34,16 @@ pub struct Rig {
     pub pipeline: Vec<String>,
     /// Per joint, its H-Anim name if mapped (what retargeting matches on).
     pub hanim: Vec<Option<String>>,
+    /// Whether it is a humanoid (retargeting matches humanoids with humanoids only).
+    pub humanoid: bool,
+    /// The pipeline options it was normalised with.
+    pub options: PipelineOptions,
+    /// What the importer skipped, defaulted or approximated, for people.
+    pub notes: Vec<String>,
+    /// The unit conversion the pipeline applied.
+    pub units: Units,
+    /// The upload it came from (`configure_asset` normalises that again), if uploaded.
+    pub upload: Option<String>,
 }
 
 /// A joint's DOF limits and the frame they are expressed in.
@@ -87,7 +99,11 @@ impl Rig {
                 n.unmapped.join(", ")
             ));
         }
-        Ok(Self::new(n.asset, steps, limits, n.hanim))
+        let mut rig = Self::new(n.asset, steps, limits, n.hanim);
+        rig.humanoid = n.humanoid;
+        rig.units = n.units;
+        rig.options = options.clone();
+        Ok(rig)
     }
 
     /// A rig from an asset that has already been normalised; `pipeline` records how.
@@ -112,8 +128,15 @@ impl Rig {
         limits.resize(n, None);
         let mut hanim = hanim;
         hanim.resize(n, None);
+        let humanoid = classify(&asset, &hanim).humanoid;
         Self {
             name: asset.name.clone(),
+            notes: asset.source.notes.clone(),
+            units: Units {
+                metres_per_unit: 1.0,
+                source: "file".into(),
+                height: rig_height(&asset),
+            },
             asset,
             clips,
             translated,
@@ -121,6 +144,9 @@ impl Rig {
             limits,
             pipeline,
             hanim,
+            humanoid,
+            options: PipelineOptions::default(),
+            upload: None,
         }
     }
 
@@ -129,12 +155,18 @@ impl Rig {
     pub fn with_clip(&self, clip: Clip) -> Self {
         let mut asset = self.asset.clone();
         asset.clips.push(clip);
-        Self::new(
+        let mut rig = Self::new(
             asset,
             self.pipeline.clone(),
             self.limits.clone(),
             self.hanim.clone(),
-        )
+        );
+        rig.humanoid = self.humanoid;
+        rig.units = self.units.clone();
+        rig.options = self.options.clone();
+        rig.notes = self.notes.clone();
+        rig.upload = self.upload.clone();
+        rig
     }
 
     /// Checks the rig's size and every clip's duration × joints against the limits for any rig.
@@ -178,6 +210,7 @@ impl Rig {
         RigView {
             asset: &self.asset,
             hanim: &self.hanim,
+            humanoid: self.humanoid,
         }
     }
 
@@ -208,6 +241,32 @@ impl Rig {
                 })
                 .collect(),
             pipeline: self.pipeline.clone(),
+            humanoid: self.humanoid,
+            mapped: self.hanim.iter().filter(|h| h.is_some()).count(),
+            notes: self.notes.clone(),
+        }
+    }
+
+    /// The full description `get_asset` answers.
+    #[must_use]
+    pub fn detail(&self) -> AssetDetail {
+        let sk = self.skeleton();
+        AssetDetail {
+            info: self.info(),
+            mapping: sk
+                .names()
+                .iter()
+                .zip(sk.parents())
+                .zip(&self.hanim)
+                .map(|((joint, parent), hanim)| JointMapping {
+                    joint: joint.clone(),
+                    parent: parent.map(|p| sk.names()[p].clone()),
+                    hanim: hanim.clone(),
+                })
+                .collect(),
+            options: self.options.clone(),
+            units: self.units.clone(),
+            configurable: self.upload.is_some(),
         }
     }
 }

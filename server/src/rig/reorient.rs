@@ -1,70 +1,15 @@
 //! Re-orienting an avatar (seed 000, "Reorienting your avatar", with DESIGN.md's erratum
 //! `U' = R U R⁻¹`) and changing its units.
 
-use glam::{Mat3, Mat4, Quat, Vec3};
+use glam::{Mat4, Quat, Vec3};
 use posecast_proto::Transform;
-use serde::{Deserialize, Serialize};
+pub use posecast_proto::rig_options::SignedAxis;
 
 use super::adjust::{conjugate_scale, rebuild, rotate_box};
 use super::{JointMaps, RigError};
 use crate::asset::Asset;
 use crate::asset::AssetMesh;
 use crate::clip::ChannelMap;
-
-/// A coordinate axis with a sign, as written in a pipeline config: `"+x"` (or `"x"`), `"-z"`, …
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum SignedAxis {
-    #[serde(rename = "+x", alias = "x")]
-    PosX,
-    #[serde(rename = "-x")]
-    NegX,
-    #[serde(rename = "+y", alias = "y")]
-    PosY,
-    #[serde(rename = "-y")]
-    NegY,
-    #[serde(rename = "+z", alias = "z")]
-    PosZ,
-    #[serde(rename = "-z")]
-    NegZ,
-}
-
-impl SignedAxis {
-    /// The unit vector.
-    #[must_use]
-    pub fn vector(self) -> Vec3 {
-        match self {
-            Self::PosX => Vec3::X,
-            Self::NegX => Vec3::NEG_X,
-            Self::PosY => Vec3::Y,
-            Self::NegY => Vec3::NEG_Y,
-            Self::PosZ => Vec3::Z,
-            Self::NegZ => Vec3::NEG_Z,
-        }
-    }
-
-    /// The rotation `R` with `R·up = +Y` and `R·forward = +Z` (posecast's convention). Without
-    /// `forward`, the first of `+Z`, `−Y`, `+X` perpendicular to `up` is taken (Z-up tools face
-    /// `−Y`, so Z-up gives `R` = −90° about X).
-    pub fn rotation_to_y_up(up: SignedAxis, forward: Option<SignedAxis>) -> Result<Quat, RigError> {
-        let u = up.vector();
-        let f = match forward {
-            Some(f) => f.vector(),
-            None => [Vec3::Z, Vec3::NEG_Y, Vec3::X]
-                .into_iter()
-                .find(|f| f.dot(u) == 0.0)
-                .unwrap_or(Vec3::Z),
-        };
-        if f.dot(u) != 0.0 {
-            return Err(RigError::BadInput {
-                what: "orientation",
-                message: format!("forward {f} is not perpendicular to up {u}"),
-            });
-        }
-        // The source basis (right, up, forward) must land on (X, Y, Z): R = [u×f, u, f]ᵀ.
-        let m = Mat3::from_cols(u.cross(f), u, f).transpose();
-        Ok(Quat::from_mat3(&m).normalize())
-    }
-}
 
 /// Re-orients the whole asset by the rotation `R` (a change of coordinates):
 /// `t' = R t`, `L' = R L R⁻¹` (rest and every clip), `B'⁻¹ = R B⁻¹ R⁻¹` (so `C' = R C`,

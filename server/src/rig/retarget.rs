@@ -30,11 +30,13 @@ pub const DEFAULT_RATE_HZ: f32 = 30.0;
 /// The most keys a baked clip gets (an hour at 30 Hz); longer clips are sampled more sparsely.
 pub const MAX_KEYS: usize = 108_000;
 
-/// A normalised rig as retargeting sees it: the asset and each joint's H-Anim name.
+/// A normalised rig as retargeting sees it: the asset, each joint's H-Anim name and whether it
+/// is a humanoid.
 #[derive(Clone, Copy, Debug)]
 pub struct RigView<'a> {
     pub asset: &'a Asset,
     pub hanim: &'a [Option<String>],
+    pub humanoid: bool,
 }
 
 impl<'a> From<&'a Normalised> for RigView<'a> {
@@ -42,6 +44,7 @@ impl<'a> From<&'a Normalised> for RigView<'a> {
         Self {
             asset: &n.asset,
             hanim: &n.hanim,
+            humanoid: n.humanoid,
         }
     }
 }
@@ -223,9 +226,17 @@ impl PoseRetargeter {
     /// neutral.
     ///
     /// # Errors
-    /// An H-Anim list of the wrong length, a rig without `humanoid_root`, or a root that is
-    /// not above the feet.
+    /// A humanoid and a rig that is not one, an H-Anim list of the wrong length, a rig without
+    /// `humanoid_root`, or a root that is not above the feet.
     pub fn new(source: RigView<'_>, target: RigView<'_>) -> Result<Self, RigError> {
+        if source.humanoid != target.humanoid {
+            return Err(RigError::HumanoidMismatch {
+                from: source.asset.name.clone(),
+                from_humanoid: source.humanoid,
+                onto: target.asset.name.clone(),
+                onto_humanoid: target.humanoid,
+            });
+        }
         let (ss, ts) = (&source.asset.skeleton, &target.asset.skeleton);
         for (view, what) in [(&source, "source hanim"), (&target, "target hanim")] {
             if view.hanim.len() != view.asset.skeleton.len() {

@@ -45,12 +45,13 @@ impl IntoResponse for AppError {
             | ErrorCode::UnknownAvatar
             | ErrorCode::UnknownClip
             | ErrorCode::UnknownJoint
-            | ErrorCode::UnknownAsset => StatusCode::NOT_FOUND,
+            | ErrorCode::UnknownAsset
+            | ErrorCode::NoMesh => StatusCode::NOT_FOUND,
             ErrorCode::Unauthorized => StatusCode::UNAUTHORIZED,
             ErrorCode::Forbidden => StatusCode::FORBIDDEN,
             ErrorCode::Conflict => StatusCode::CONFLICT,
             ErrorCode::MessageTooLarge | ErrorCode::TooLarge => StatusCode::PAYLOAD_TOO_LARGE,
-            ErrorCode::ImportFailed => StatusCode::UNPROCESSABLE_ENTITY,
+            ErrorCode::ImportFailed | ErrorCode::NotHumanoid => StatusCode::UNPROCESSABLE_ENTITY,
             ErrorCode::Internal => StatusCode::INTERNAL_SERVER_ERROR,
             ErrorCode::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
             ErrorCode::QuotaExceeded | ErrorCode::RateLimited => StatusCode::TOO_MANY_REQUESTS,
@@ -164,11 +165,7 @@ pub async fn mesh(
     state.config.access.authorize_read(&caller)?;
     let rig = state.world.library.require(&name)?;
     if rig.asset.meshes.is_empty() {
-        return Err(ProtocolError::new(
-            ErrorCode::UnknownAvatar,
-            format!("rig {name} has no mesh"),
-        )
-        .into());
+        return Err(crate::error::Error::NoMesh(name).into());
     }
     let bytes = crate::export::mesh_glb(rig.skeleton(), &rig.asset.meshes)
         .map_err(|e| ProtocolError::new(ErrorCode::Internal, format!("rig {name}: {e}")))?;

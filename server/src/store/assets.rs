@@ -6,6 +6,7 @@
 use super::atomic::{self, sync_dir};
 use super::{Store, UPLOAD_TMP_PREFIX, Unusable, set_aside};
 use crate::import::files::FileSet;
+use crate::rig::PipelineOptions;
 use crate::scene::ticker::unix_micros;
 use crate::world::World;
 use serde::{Deserialize, Serialize};
@@ -33,6 +34,10 @@ pub struct AssetMeta {
     pub rigs: Vec<String>,
     /// When it was last written, µs since the Unix epoch.
     pub saved_us: u64,
+    /// The pipeline options it is normalised with (given with the upload or by
+    /// `configure_asset`); absent: the defaults.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub options: Option<PipelineOptions>,
 }
 
 impl AssetMeta {
@@ -45,7 +50,15 @@ impl AssetMeta {
             files: set.iter().map(|(n, _)| n.to_owned()).collect(),
             rigs,
             saved_us: unix_micros(),
+            options: None,
         }
+    }
+
+    /// The same meta with `options` (none when they are the defaults).
+    #[must_use]
+    pub fn with_options(mut self, options: &PipelineOptions) -> Self {
+        self.options = (*options != PipelineOptions::default()).then(|| options.clone());
+        self
     }
 
     fn bytes(&self) -> io::Result<Vec<u8>> {
@@ -111,7 +124,8 @@ pub fn add_files(dir: &Path, new: &FileSet, meta: &AssetMeta) -> io::Result<()> 
     atomic::write_atomic(&dir.join(META), &meta.bytes()?)
 }
 
-fn read_asset(dir: &Path) -> Result<(AssetMeta, FileSet), Unusable> {
+/// Reads a stored asset folder: its meta and the files it lists.
+pub(crate) fn read_asset(dir: &Path) -> Result<(AssetMeta, FileSet), Unusable> {
     let name = dir
         .file_name()
         .and_then(|n| n.to_str())
@@ -187,7 +201,8 @@ impl Store {
     /// imported and dropped: the store remembers the upload, not its bytes.
     pub fn restore_upload(&self, world: &World, dir: &Path) {
         let loaded = read_asset(dir).and_then(|(meta, set)| {
-            let rigs = crate::library::prepare(&meta.name, &set)
+            let options = meta.options.clone().unwrap_or_default();
+            let rigs = crate::library::prepare_with(&meta.name, &set, &options)
                 .map_err(|e| Unusable::Content(e.to_string()))?;
             Ok((meta, set, rigs))
         });
@@ -202,7 +217,8 @@ impl Store {
                     world.library.insert(rig);
                 }
                 self.add_upload_bytes(set.total_bytes() as u64);
-                self.remember_upload(&meta.name, set);
+                let options = meta.options.clone().unwrap_or_default();
+                self.remember_upload(&meta.name, set, options);
             }
             Err(reason) => set_aside(dir, &reason.to_string()),
         }

@@ -99,6 +99,8 @@ pub(crate) struct Upload {
     pub main: String,
     /// The files, only without a data folder and only for a `.skel`.
     pub files: Option<FileSet>,
+    /// The pipeline options its rigs were normalised with.
+    pub options: crate::rig::PipelineOptions,
 }
 
 /// Acks waiting for one scene write: the scenes to write and where the result goes.
@@ -224,12 +226,18 @@ impl Store {
     }
 
     /// Records upload `name` made of `set` (see [`Upload`] for what is kept of it).
-    pub(crate) fn remember_upload(&self, name: &str, set: FileSet) {
+    pub(crate) fn remember_upload(
+        &self,
+        name: &str,
+        set: FileSet,
+        options: crate::rig::PipelineOptions,
+    ) {
         let main = set.main_file().map(str::to_owned).unwrap_or_default();
         let keep = self.root.is_none() && crate::import::files::extension(&main) == "skel";
         let upload = Upload {
             main,
             files: keep.then_some(set),
+            options,
         };
         self.uploads().insert(name.to_owned(), upload);
     }

@@ -127,6 +127,13 @@ pub fn apply(world: &World, command: &Command) -> Result<CommandResult, Error> {
         Command::ListAssets => Ok(CommandResult::Assets(
             world.library.all().iter().map(|r| r.info()).collect(),
         )),
+        Command::GetAsset { asset } => Ok(CommandResult::Asset(Box::new(
+            world.library.require(asset)?.detail(),
+        ))),
+        // It re-imports the upload's files, which the world does not hold.
+        Command::ConfigureAsset { .. } => Err(Error::NotAllowedNow(
+            "configure_asset is run by the service layer (REST or websocket)".into(),
+        )),
         Command::GetAvatar { avatar } => {
             let scene = world.find_avatar(avatar)?;
             let s = scene.lock();

@@ -329,8 +329,13 @@ export const assets = /** @satisfies {import("../protocol.js").AssetInfo[]} */ (
         "name": "walk"
       }
     ],
+    "humanoid": true,
     "joints": 23,
+    "mapped": 23,
     "name": "avatar",
+    "notes": [
+      "material skin not imported"
+    ],
     "pipeline": [
       "normalised"
     ]

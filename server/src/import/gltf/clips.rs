@@ -30,6 +30,19 @@ impl Context<'_> {
             };
             let mut channels = vec![JointChannels::default(); count];
             let mut any = false;
+            // The file's time range: tracks that hold one value collapse to one key, so a clip
+            // of constant tracks would otherwise last 0 s.
+            let mut range = (f32::INFINITY, f32::NEG_INFINITY);
+            // Morph weights target mesh nodes, never joints: said once per animation.
+            let morphs = anim
+                .channels()
+                .filter(|ch| ch.target().property() == Property::MorphTargetWeights)
+                .count();
+            if morphs > 0 {
+                notes.push(format!(
+                    "animation {a} ({clip_name}): {morphs} morph target weight channel(s) skipped"
+                ));
+            }
             for (c, ch) in anim.channels().enumerate() {
                 let target = ch.target();
                 let Some(&joint) = skel_of_node.get(&target.node().index()) else {
@@ -46,6 +59,11 @@ impl Context<'_> {
                     Dimensions::Scalar,
                     "animation input",
                 )?;
+                for &t in &times {
+                    if t.is_finite() {
+                        range = (range.0.min(t), range.1.max(t));
+                    }
+                }
                 let place = || format!("animation {a} ({clip_name}) channel {c}");
                 let clip_err = |source| ImportError::Clip {
                     file: self.file.to_owned(),
@@ -79,17 +97,16 @@ impl Context<'_> {
                         let track = Track::new(interpolation, times, v).map_err(clip_err)?;
                         slot.rotation = Some(RotationChannel::Keys(track));
                     }
-                    Property::MorphTargetWeights => {
-                        notes.push(format!("{}: morph target weights skipped", place()));
-                        continue;
-                    }
+                    // Noted above.
+                    Property::MorphTargetWeights => continue,
                 }
                 any = true;
             }
             if !any {
                 continue;
             }
-            let mut clip = Clip::new(clip_name.clone(), channels, None).map_err(|source| {
+            let range = range.0.is_finite().then_some(range);
+            let mut clip = Clip::new(clip_name.clone(), channels, range).map_err(|source| {
                 ImportError::Clip {
                     file: self.file.to_owned(),
                     place: format!("animation {a} ({clip_name})"),

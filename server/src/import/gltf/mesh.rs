@@ -1,7 +1,9 @@
 //! glTF meshes of one skin: triangle primitives with their joints and weights, remapped to
 //! the skeleton's joint order.
 
-use glam::Vec3;
+use std::collections::HashMap;
+
+use glam::{Mat4, Vec3};
 use gltf::accessor::Dimensions;
 use gltf::mesh::{Mode, Semantic};
 use posecast_proto::SkinnedMesh;
@@ -35,34 +37,11 @@ impl Context<'_> {
                 if prims > 1 {
                     label = format!("{label}#{}", prim.index());
                 }
-                if prim.mode() != Mode::Triangles {
-                    notes.push(format!("{label}: {:?} primitive skipped", prim.mode()));
-                    continue;
-                }
-                let Some(pos) = prim.get(&Semantic::Positions) else {
-                    notes.push(format!("{label}: primitive without POSITION skipped"));
+                let Some((positions, normals, indices)) = self.geometry(&prim, &label, notes)?
+                else {
                     continue;
                 };
-                let positions: Vec<Vec3> = self
-                    .buffers
-                    .read_as(&pos, Dimensions::Vec3, "POSITION")?
-                    .chunks_exact(3)
-                    .map(Vec3::from_slice)
-                    .collect();
                 let n = positions.len();
-                let normals = match prim.get(&Semantic::Normals) {
-                    Some(a) => self
-                        .buffers
-                        .read_as(&a, Dimensions::Vec3, "NORMAL")?
-                        .chunks_exact(3)
-                        .map(|c| Vec3::from_slice(c).normalize_or(Vec3::Y))
-                        .collect(),
-                    None => Vec::new(),
-                };
-                let indices = match prim.indices() {
-                    Some(a) => self.buffers.read_indices(&a)?,
-                    None => (0..u32::try_from(n).unwrap_or(u32::MAX)).collect(),
-                };
                 let mut sets = Vec::new();
                 for set in 0..2 {
                     match (
@@ -133,4 +112,149 @@ impl Context<'_> {
         }
         Ok(out)
     }
+
+    /// A triangle primitive's positions, normals (empty when absent) and indices; `None`, with
+    /// a note, for a primitive that is not triangles or has no positions.
+    fn geometry(
+        &self,
+        prim: &gltf::Primitive<'_>,
+        label: &str,
+        notes: &mut Vec<String>,
+    ) -> Result<Option<Geometry>, ImportError> {
+        if prim.mode() != Mode::Triangles {
+            notes.push(format!("{label}: {:?} primitive skipped", prim.mode()));
+            return Ok(None);
+        }
+        let Some(pos) = prim.get(&Semantic::Positions) else {
+            notes.push(format!("{label}: primitive without POSITION skipped"));
+            return Ok(None);
+        };
+        let positions: Vec<Vec3> = self
+            .buffers
+            .read_as(&pos, Dimensions::Vec3, "POSITION")?
+            .chunks_exact(3)
+            .map(Vec3::from_slice)
+            .collect();
+        let n = positions.len();
+        let normals = match prim.get(&Semantic::Normals) {
+            Some(a) => self
+                .buffers
+                .read_as(&a, Dimensions::Vec3, "NORMAL")?
+                .chunks_exact(3)
+                .map(|c| Vec3::from_slice(c).normalize_or(Vec3::Y))
+                .collect(),
+            None => Vec::new(),
+        };
+        let indices = match prim.indices() {
+            Some(a) => self.buffers.read_indices(&a)?,
+            None => (0..u32::try_from(n).unwrap_or(u32::MAX)).collect(),
+        };
+        Ok(Some((positions, normals, indices)))
+    }
+
+    /// Meshes on nodes without a skin that hang from a joint of `skin` (the node itself or its
+    /// nearest ancestor that is one): imported rigidly skinned to that joint, weight 1, their
+    /// vertices moved into the joint's bind space, `v_bind = B_j · L · v` with `L` the rest
+    /// transforms from the joint down to the mesh node, so that at any pose
+    /// `W_j · B_j⁻¹ · v_bind = W_j · L · v`, where the node hierarchy puts them.
+    pub(super) fn rigid_meshes(
+        &self,
+        skin: &gltf::Skin<'_>,
+        skel_of_node: &HashMap<usize, usize>,
+        inverse_bind: &[Mat4],
+        notes: &mut Vec<String>,
+    ) -> Result<Vec<AssetMesh>, ImportError> {
+        let joints: Vec<usize> = skin.joints().map(|n| n.index()).collect();
+        let mut out = Vec::new();
+        for node in self.doc.nodes() {
+            let (None, Some(mesh)) = (node.skin(), node.mesh()) else {
+                continue;
+            };
+            // From the mesh node up to the nearest joint of this skin: L = L_child … L_node.
+            let mut local = Mat4::IDENTITY;
+            let mut cur = node.index();
+            let mut animated = Vec::new();
+            let mut steps = 0;
+            let joint = loop {
+                if joints.contains(&cur) {
+                    break Some(cur);
+                }
+                if self.animated.get(cur).copied().unwrap_or(false) {
+                    animated.push(self.nodes.names[cur].clone());
+                }
+                local = self.nodes.local[cur].to_mat4() * local;
+                match self.nodes.parent[cur] {
+                    Some(p) if steps <= self.nodes.parent.len() => cur = p,
+                    _ => break None,
+                }
+                steps += 1;
+            };
+            let Some(s) = joint.and_then(|j| skel_of_node.get(&j).copied()) else {
+                continue;
+            };
+            let Some(bind) = inverse_bind
+                .get(s)
+                .filter(|m| m.determinant().abs() > f32::MIN_POSITIVE)
+                .map(Mat4::inverse)
+            else {
+                continue;
+            };
+            let to_bind = bind * local;
+            let normal_matrix = glam::Mat3::from_mat4(to_bind).inverse().transpose();
+            let joint_name = &self.nodes.names[joint.unwrap_or_default()];
+            if !animated.is_empty() {
+                notes.push(format!(
+                    "mesh {} hangs from joint {joint_name} through animated nodes {animated:?}: \
+                     it follows their rest transforms",
+                    mesh.name().unwrap_or("(unnamed)")
+                ));
+            }
+            let prims = mesh.primitives().len();
+            for prim in mesh.primitives() {
+                let mut label = match mesh.name() {
+                    Some(n) if !n.is_empty() => n.to_owned(),
+                    _ => format!("mesh{}", mesh.index()),
+                };
+                if prims > 1 {
+                    label = format!("{label}#{}", prim.index());
+                }
+                let Some((positions, normals, indices)) = self.geometry(&prim, &label, notes)?
+                else {
+                    continue;
+                };
+                let n = positions.len();
+                let positions = positions
+                    .iter()
+                    .map(|p| to_bind.transform_point3(*p))
+                    .collect();
+                let normals = normals
+                    .iter()
+                    .map(|v| (normal_matrix * *v).normalize_or(Vec3::Y))
+                    .collect();
+                let joint_index = u16::try_from(s).unwrap_or(0);
+                let mesh = SkinnedMesh::new(
+                    positions,
+                    normals,
+                    indices,
+                    1,
+                    vec![joint_index; n],
+                    vec![1.0; n],
+                    inverse_bind.len(),
+                )
+                .map_err(|source| ImportError::Mesh {
+                    file: self.file.to_owned(),
+                    mesh: label.clone(),
+                    source,
+                })?;
+                out.push(AssetMesh {
+                    name: format!("{label} (rigid on {joint_name})"),
+                    mesh,
+                });
+            }
+        }
+        Ok(out)
+    }
 }
+
+/// A primitive's positions, normals and triangle indices.
+type Geometry = (Vec<Vec3>, Vec<Vec3>, Vec<u32>);

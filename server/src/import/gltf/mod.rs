@@ -15,9 +15,14 @@
 //! joints (listed in [`SourceInfo::helper_joints`], bound at rest, weighted by nothing).
 //!
 //! **Meshes.** Vertices stay in mesh space; the skinned mesh node's own transform is ignored,
-//! as the glTF spec requires. Triangle primitives only; `JOINTS_0`/`WEIGHTS_0` (u8 or u16,
+//! as the glTF spec requires. Meshes on nodes without a skin that hang from a joint (robots,
+//! props: a mesh node parented to a bone) are imported rigidly skinned to that joint, weight 1,
+//! in its bind space, so they move with it as the node hierarchy says. Triangle primitives only; `JOINTS_0`/`WEIGHTS_0` (u8 or u16,
 //! float or normalised weights) and `JOINTS_1`/`WEIGHTS_1` when present (8 influences).
 //! Normals are computed when absent.
+//!
+//! **VRM.** A `.vrm` is a GLB; its humanoid bone map (VRM 0.x `VRM`, 1.0 `VRMC_vrm`) becomes
+//! [`SourceInfo::bone_map`], the mapping normalisation takes as it is ([`vrm`]).
 //!
 //! **Animations.** Translation, rotation and scale channels with `STEP`, `LINEAR` (slerp for
 //! rotations) and `CUBICSPLINE`; a clip's range is its first to last key, so it may start
@@ -25,6 +30,7 @@
 
 mod clips;
 mod mesh;
+pub mod vrm;
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -38,7 +44,7 @@ use posecast_proto::{Skeleton, Transform};
 
 use super::ImportError;
 use super::accessor::Buffers;
-use super::skel::unique_names;
+use super::skel::{renamed_note, unique_names};
 use crate::asset::{Asset, SourceFormat, SourceInfo, UpAxis};
 use crate::clip::ChannelMap;
 
@@ -67,8 +73,9 @@ pub(crate) fn from_slice_with_base(
     // The gltf crate's accessors index the document with `unwrap` after its validation; a
     // gap in that validation must not take the server down, so a panic in it becomes an
     // error here (the explicit checks above and in `accessor` cover every case we know of).
+    let vrm = vrm::humanoid(bytes);
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        import_document(name, doc, gltf.blob.clone(), base)
+        import_document(name, doc, gltf.blob.clone(), base, vrm.as_ref())
     }))
     .unwrap_or_else(|_| {
         Err(ImportError::Unsupported {
@@ -103,6 +110,7 @@ fn import_document(
     doc: &gltf::Document,
     blob: Option<Vec<u8>>,
     base: Option<External<'_>>,
+    vrm: Option<&vrm::Humanoid>,
 ) -> Result<Vec<Asset>, ImportError> {
     let buffers = Buffers {
         file: name,
@@ -133,6 +141,7 @@ fn import_document(
         buffers: &buffers,
         nodes: &nodes,
         animated: &animated,
+        vrm,
     };
     skins
         .iter()
@@ -309,6 +318,7 @@ struct Context<'a> {
     buffers: &'a Buffers<'a>,
     nodes: &'a Nodes,
     animated: &'a [bool],
+    vrm: Option<&'a vrm::Humanoid>,
 }
 
 impl Context<'_> {
@@ -318,6 +328,64 @@ impl Context<'_> {
             node,
             message: message.into(),
         }
+    }
+
+    /// What a skin's asset leaves out: the materials of its meshes (posecast serves geometry),
+    /// and meshes on nodes that hang from no joint of any skin (scenery: not part of a rig).
+    fn unimported_notes(&self, skin: &gltf::Skin<'_>) -> Vec<String> {
+        let joints: Vec<usize> = skin.joints().map(|n| n.index()).collect();
+        let all_joints: Vec<usize> = self
+            .doc
+            .skins()
+            .flat_map(|s| s.joints().map(|n| n.index()).collect::<Vec<_>>())
+            .collect();
+        let hangs_from = |node: usize, set: &[usize]| {
+            let mut cur = Some(node);
+            let mut steps = 0;
+            while let Some(n) = cur {
+                if set.contains(&n) || steps > self.nodes.parent.len() {
+                    return set.contains(&n);
+                }
+                cur = self.nodes.parent[n];
+                steps += 1;
+            }
+            false
+        };
+        let mut materials = std::collections::BTreeSet::new();
+        let mut loose = Vec::new();
+        for node in self.doc.nodes() {
+            let Some(mesh) = node.mesh() else { continue };
+            let ours = match node.skin() {
+                Some(s) => s.index() == skin.index(),
+                None => hangs_from(node.index(), &joints),
+            };
+            if node.skin().is_none() && !hangs_from(node.index(), &all_joints) {
+                loose.push(self.nodes.names[node.index()].clone());
+            }
+            if ours {
+                for prim in mesh.primitives() {
+                    let m = prim.material();
+                    if let Some(i) = m.index() {
+                        materials.insert(m.name().map_or(format!("material{i}"), str::to_owned));
+                    }
+                }
+            }
+        }
+        let mut notes = Vec::new();
+        if !materials.is_empty() {
+            let list: Vec<String> = materials.into_iter().collect();
+            notes.push(format!(
+                "materials not imported (posecast serves geometry only): {}",
+                list.join(", ")
+            ));
+        }
+        if !loose.is_empty() {
+            notes.push(format!(
+                "meshes on nodes that hang from no joint not imported: {}",
+                loose.join(", ")
+            ));
+        }
+        notes
     }
 
     fn skin(&self, skin: &gltf::Skin<'_>, name: String) -> Result<Asset, ImportError> {
@@ -455,6 +523,10 @@ impl Context<'_> {
             }
         }
         let names = unique_names(skel_nodes.iter().map(|&n| nodes.names[n].clone()));
+        notes.extend(renamed_note(
+            skel_nodes.iter().map(|&n| nodes.names[n].as_str()),
+            &names,
+        ));
         let skeleton =
             Skeleton::new(names, skel_parents, rest, inverse_bind).map_err(|source| {
                 ImportError::Skeleton {
@@ -463,10 +535,42 @@ impl Context<'_> {
                 }
             })?;
 
-        let meshes = self.meshes(skin, &skin_to_skel, count, &mut notes)?;
+        let mut meshes = self.meshes(skin, &skin_to_skel, count, &mut notes)?;
+        let rigid = self.rigid_meshes(skin, &skel_of_node, skeleton.inverse_bind(), &mut notes)?;
+        if !rigid.is_empty() {
+            notes.push(format!(
+                "{} mesh primitive(s) parented to joints imported rigidly skinned (weight 1)",
+                rigid.len()
+            ));
+        }
+        meshes.extend(rigid);
         let clips = self.clips(&skel_of_node, &maps, count, &mut notes)?;
+        notes.extend(self.unimported_notes(skin));
 
         let mut source = SourceInfo::new(SourceFormat::Gltf);
+        if let Some(h) = self.vrm {
+            let names = skeleton.names();
+            let map: std::collections::BTreeMap<String, String> = h
+                .bones
+                .iter()
+                .filter_map(|(node, _, hanim)| {
+                    skel_of_node
+                        .get(node)
+                        .map(|&s| (names[s].clone(), hanim.clone()))
+                })
+                .collect();
+            if !map.is_empty() {
+                notes.push(format!(
+                    "VRM {} humanoid: {} bones named by the file",
+                    match h.version {
+                        vrm::Version::V0 => "0.x",
+                        vrm::Version::V1 => "1.0",
+                    },
+                    map.len()
+                ));
+                source.bone_map = Some(map);
+            }
+        }
         source.helper_joints = helpers;
         source.notes = notes;
         // The frame the joints hang in: a Z-up authoring frame maps +Z to +Y.

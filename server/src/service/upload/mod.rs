@@ -1,12 +1,17 @@
-//! Asset uploads over HTTP (see [`ingest`] for what happens to the files).
+//! Asset uploads over HTTP (see [`crate::ingest`] for what happens to the files).
 //!
 //! - `POST /api/assets/{name}`: a new asset from a `multipart/form-data` body whose file
-//!   parts' names give the format (one `.glb`; one `.gltf` with its `.bin`/image files; one
+//!   parts' names give the format (one `.glb` or `.vrm`; one `.gltf` with its `.bin`/image files; one
 //!   `.bvh`; one `.skel` with an optional `.skin` and `.anim` clips), or from a raw body of one
-//!   file: `Content-Type: model/gltf-binary`, or any type with `?format=glb|gltf|bvh|skel`.
+//!   file: `Content-Type: model/gltf-binary`, or any type with `?format=glb|gltf|vrm|bvh|skel`.
 //!   → `200 {"result": [AssetInfo, …]}` (several for a multi-skin glTF).
 //! - `POST /api/assets/{name}/clips`: `.anim` clips (multipart) added to an uploaded `.skel`
 //!   asset. → `200 {"result": AssetInfo}`.
+//!
+//! An upload's pipeline options ([`PipelineOptions`]) come as multipart text fields (parts
+//! without a file name) or query parameters: `options` (the whole JSON object), or any of
+//! `name_map` (a JSON object), `metres_per_unit`, `up_axis` (`+z`, or a JSON object),
+//! `humanoid`, `neutral`, `simplify`, each replacing that field of `options`.
 //!
 //! Bodies are limited to `Config::max_upload_bytes` (413 `too_large`). Errors are typed:
 //! `import_failed` (422) with the importer's message, `invalid_value` (400) for a bad name or
@@ -14,9 +19,10 @@
 
 use super::rest::AppError;
 use crate::auth::Caller;
-mod ingest;
 
 use crate::import::files::FileSet;
+use crate::ingest;
+use crate::rig::PipelineOptions;
 use crate::state::AppState;
 use axum::Json;
 use axum::body::Bytes;
@@ -54,12 +60,65 @@ fn format_param(request: &Request) -> Option<String> {
     })
 }
 
-/// The file set of a request: multipart file parts, or a raw body of one file.
+/// Pipeline options given as fields: `options` first (the whole object), then each single
+/// field over it. Unknown field names are refused (a typo must not pass silently).
+fn options_from_fields(fields: &[(String, String)]) -> Result<PipelineOptions, ProtocolError> {
+    let parse = |name: &str, text: &str| -> Result<Value, ProtocolError> {
+        serde_json::from_str(text)
+            .or_else(|_| match name {
+                // Bare words are strings: up_axis=+z, neutral=keep.
+                "up_axis" | "neutral" => Ok(Value::String(text.to_owned())),
+                _ => Err(()),
+            })
+            .map_err(|()| bad(format!("option {name}: {text:?} is not JSON")))
+    };
+    let mut object = serde_json::Map::new();
+    if let Some((_, text)) = fields.iter().find(|(k, _)| k == "options") {
+        match parse("options", text)? {
+            Value::Object(o) => object = o,
+            other => return Err(bad(format!("options must be a JSON object, not {other}"))),
+        }
+    }
+    for (name, text) in fields {
+        match name.as_str() {
+            "options" | "format" => {}
+            "up_axis" => {
+                let v = match parse(name, text)? {
+                    Value::String(up) => serde_json::json!({ "up": up }),
+                    v => v,
+                };
+                object.insert(name.clone(), v);
+            }
+            "name_map" | "metres_per_unit" | "humanoid" | "neutral" | "simplify" => {
+                object.insert(name.clone(), parse(name, text)?);
+            }
+            other => {
+                return Err(bad(format!(
+                    "unknown field {other:?}: send files (with a filename), options, name_map, \
+                     metres_per_unit, up_axis, humanoid, neutral or simplify"
+                )));
+            }
+        }
+    }
+    serde_json::from_value(Value::Object(object))
+        .map_err(|e| bad(format!("bad pipeline options: {e}")))
+}
+
+/// The query's `name=value` pairs, percent-decoded.
+fn query_fields(request: &Request) -> Result<Vec<(String, String)>, ProtocolError> {
+    axum::extract::Query::<Vec<(String, String)>>::try_from_uri(request.uri())
+        .map(|q| q.0)
+        .map_err(|e| bad(format!("bad query: {}", e.body_text())))
+}
+
+/// The file set of a request (multipart file parts, or a raw body of one file) and the
+/// pipeline options given with it (multipart text fields and query parameters).
 async fn file_set(
     state: &Arc<AppState>,
     name: &str,
     request: Request,
-) -> Result<FileSet, ProtocolError> {
+) -> Result<(FileSet, PipelineOptions), ProtocolError> {
+    let mut fields = query_fields(&request)?;
     let content_type = request
         .headers()
         .get(header::CONTENT_TYPE)
@@ -81,10 +140,19 @@ async fn file_set(
                 Err(e) => return Err(bad(format!("bad multipart body: {}", e.body_text()))),
             };
             // Browsers send a bare file name; anything with folders keeps its last part.
-            let file = field
+            let Some(file) = field
                 .file_name()
                 .map(|f| f.rsplit(['/', '\\']).next().unwrap_or(f).to_owned())
-                .ok_or_else(|| bad("every part must be a file (with a filename)"))?;
+            else {
+                // A text field: a pipeline option.
+                let key = field.name().unwrap_or_default().to_owned();
+                let text = field
+                    .text()
+                    .await
+                    .map_err(|e| bad(format!("bad multipart field {key}: {}", e.body_text())))?;
+                fields.push((key, text));
+                continue;
+            };
             let bytes = match field.bytes().await {
                 Ok(b) => b,
                 Err(e) if e.status() == StatusCode::PAYLOAD_TOO_LARGE => {
@@ -101,13 +169,13 @@ async fn file_set(
             None if content_type.starts_with("model/gltf-binary") => "glb".to_owned(),
             None => {
                 return Err(bad(
-                    "send multipart/form-data, or one file with Content-Type: model/gltf-binary or ?format=glb|gltf|bvh|skel",
+                    "send multipart/form-data, or one file with Content-Type: model/gltf-binary or ?format=glb|gltf|vrm|bvh|skel",
                 ));
             }
         };
-        if !matches!(format.as_str(), "glb" | "gltf" | "bvh" | "skel") {
+        if !matches!(format.as_str(), "glb" | "gltf" | "vrm" | "bvh" | "skel") {
             return Err(bad(format!(
-                "format {format:?} is not glb, gltf, bvh or skel"
+                "format {format:?} is not glb, gltf, vrm, bvh or skel"
             )));
         }
         let bytes = Bytes::from_request(request, state).await.map_err(|e| {
@@ -123,7 +191,7 @@ async fn file_set(
     if set.is_empty() {
         return Err(bad("no files in the request"));
     }
-    Ok(set)
+    Ok((set, options_from_fields(&fields)?))
 }
 
 /// `POST /api/assets/{name}`.
@@ -136,8 +204,8 @@ pub async fn upload(
     let result = async {
         state.config.access.authorize_upload(&caller)?;
         crate::library::check_name(&name)?;
-        let set = file_set(&state, &name, request).await?;
-        Ok::<_, AppError>(ingest::upload(&state, &name, set).await?)
+        let (set, options) = file_set(&state, &name, request).await?;
+        Ok::<_, AppError>(ingest::upload(&state, &name, set, options).await?)
     }
     .await;
     audit_upload("upload", &name, &caller, result.as_ref().map(|_| ()));
@@ -162,7 +230,12 @@ pub async fn add_clips(
 ) -> Result<Json<Value>, AppError> {
     let result = async {
         state.config.access.authorize_upload(&caller)?;
-        let set = file_set(&state, &name, request).await?;
+        let (set, options) = file_set(&state, &name, request).await?;
+        if options != PipelineOptions::default() {
+            return Err(AppError::from(bad(
+                "clips take no pipeline options: change the asset's with configure_asset",
+            )));
+        }
         Ok::<_, AppError>(ingest::add_clips(&state, &name, set).await?)
     }
     .await;

@@ -8,8 +8,8 @@
 
 use crate::error::Error;
 use crate::import::files::{self, FileSet};
-use crate::library::{check_name, prepare};
-use crate::rig::Rig;
+use crate::library::{check_name, prepare_with};
+use crate::rig::{PipelineOptions, Rig};
 use crate::state::AppState;
 use crate::store::assets::{self, AssetMeta};
 use posecast_proto::command::AssetInfo;
@@ -73,7 +73,8 @@ fn check_total_bytes(state: &AppState, name: &str, more: u64) -> Result<(), Erro
     Ok(())
 }
 
-/// Uploads a new asset: import, normalise, store, add to the library. Returns the new rigs.
+/// Uploads a new asset: import, normalise with `options`, store (options included), add to
+/// the library. Returns the new rigs.
 ///
 /// # Errors
 /// A bad name, `conflict` when it is taken, `import_failed`,
@@ -82,6 +83,7 @@ pub async fn upload(
     state: &Arc<AppState>,
     name: &str,
     set: FileSet,
+    options: PipelineOptions,
 ) -> Result<Vec<AssetInfo>, Error> {
     check_name(name)?;
     if taken(state, name) {
@@ -89,8 +91,9 @@ pub async fn upload(
     }
     check_asset_bytes(state, name, set.total_bytes() as u64)?;
     let owned = name.to_owned();
+    let opts = options.clone();
     let (set, rigs) = tokio::task::spawn_blocking(move || {
-        let rigs = prepare(&owned, &set);
+        let rigs = prepare_with(&owned, &set, &opts);
         (set, rigs)
     })
     .await
@@ -111,7 +114,8 @@ pub async fn upload(
     check_total_bytes(state, name, bytes)?;
     let set = match state.store.assets_dir() {
         Some(dir) => {
-            let meta = AssetMeta::new(name, &set, rigs.iter().map(|r| r.name.clone()).collect());
+            let meta = AssetMeta::new(name, &set, rigs.iter().map(|r| r.name.clone()).collect())
+                .with_options(&options);
             tokio::task::spawn_blocking(move || assets::save_new(&dir, &set, &meta).map(|()| set))
                 .await
                 .map_err(|e| Error::internal("store task failed", &e))?
@@ -124,7 +128,7 @@ pub async fn upload(
         .into_iter()
         .map(|rig| state.world.library.insert(rig).info())
         .collect();
-    state.store.remember_upload(name, set);
+    state.store.remember_upload(name, set, options);
     Ok(infos)
 }
 
@@ -208,8 +212,10 @@ pub async fn add_clips(
             .map_err(|e| Error::Conflict(e.to_string()))?;
     }
     let owned = name.to_owned();
+    let options = upload.options.clone();
+    let opts = options.clone();
     let (combined, rigs) = tokio::task::spawn_blocking(move || {
-        let rigs = prepare(&owned, &combined);
+        let rigs = prepare_with(&owned, &combined, &opts);
         (combined, rigs)
     })
     .await
@@ -220,7 +226,7 @@ pub async fn add_clips(
         .ok_or_else(|| Error::internal("import gave no rig", &name))?;
     check_rig(state, &new_rig)?;
     if let Some(dir) = state.store.assets_dir() {
-        let meta = AssetMeta::new(name, &combined, vec![name.to_owned()]);
+        let meta = AssetMeta::new(name, &combined, vec![name.to_owned()]).with_options(&options);
         let dir = dir.join(name);
         tokio::task::spawn_blocking(move || assets::add_files(&dir, &clips, &meta))
             .await
@@ -229,8 +235,88 @@ pub async fn add_clips(
     }
     state.store.add_upload_bytes(added);
     let info = state.world.library.insert(new_rig).info();
-    state.store.remember_upload(name, combined);
+    state.store.remember_upload(name, combined, options);
     Ok(info)
+}
+
+/// Normalises uploaded asset `name` again with `options` (`configure_asset`): its files are
+/// read again (from the data folder, or memory), imported and normalised; only when that
+/// succeeds are the options stored (`meta.json` rewritten atomically) and the rigs replaced.
+/// Avatars added from then on use the new rigs; avatars in scenes keep theirs.
+///
+/// # Errors
+/// `unknown_asset`; `not_allowed_now` for an asset that was not uploaded (the built-in and
+/// `--assets` rigs) or whose files are not kept (without a data folder only `.skel` uploads
+/// keep theirs); `invalid_value` when the options cannot be applied (a `name_map` naming a
+/// joint the rig lacks, a bad orientation); `internal` when storing fails. Nothing changes on
+/// error.
+pub async fn configure(
+    state: &AppState,
+    name: &str,
+    options: PipelineOptions,
+) -> Result<Vec<AssetInfo>, Error> {
+    let _guard = state.store.assets_lock().await;
+    let Some(upload) = state.store.uploads().get(name).cloned() else {
+        let loaded = state.world.library.get(name);
+        return Err(match loaded {
+            Some(rig) => Error::NotAllowedNow(match &rig.upload {
+                Some(u) => format!("{name} belongs to upload {u}: configure {u}"),
+                None => format!(
+                    "{name} was not uploaded (built-in or --assets): only uploads can be configured"
+                ),
+            }),
+            None => Error::UnknownAsset(name.to_owned()),
+        });
+    };
+    let files = match (upload.files, state.store.assets_dir()) {
+        (Some(files), _) => files,
+        (None, Some(dir)) => {
+            let dir = dir.join(name);
+            tokio::task::spawn_blocking(move || assets::read_asset(&dir))
+                .await
+                .map_err(|e| Error::internal("read task failed", &e))?
+                .map_err(|e| {
+                    Error::internal(&format!("cannot read the stored files of {name}"), &e)
+                })?
+                .1
+        }
+        (None, None) => {
+            return Err(Error::NotAllowedNow(format!(
+                "{name}'s files are not kept (the server has no data folder): upload it again                  with these options"
+            )));
+        }
+    };
+    let owned = name.to_owned();
+    let opts = options.clone();
+    let (files, rigs) = tokio::task::spawn_blocking(move || {
+        let rigs = prepare_with(&owned, &files, &opts);
+        (files, rigs)
+    })
+    .await
+    .map_err(|e| Error::internal("import task failed", &e))?;
+    // The files imported before, so a failure now is the options'.
+    let rigs = rigs.map_err(|e| match e {
+        Error::ImportFailed(m) => Error::Invalid(m),
+        e => e,
+    })?;
+    for rig in &rigs {
+        check_rig(state, rig)?;
+    }
+    if let Some(dir) = state.store.assets_dir() {
+        let meta = AssetMeta::new(name, &files, rigs.iter().map(|r| r.name.clone()).collect())
+            .with_options(&options);
+        let dir = dir.join(name);
+        tokio::task::spawn_blocking(move || assets::add_files(&dir, &FileSet::new(), &meta))
+            .await
+            .map_err(|e| Error::internal("store task failed", &e))?
+            .map_err(|e| Error::internal("cannot store the options", &e))?;
+    }
+    let infos = rigs
+        .into_iter()
+        .map(|rig| state.world.library.insert(rig).info())
+        .collect();
+    state.store.remember_upload(name, files, options);
+    Ok(infos)
 }
 
 #[cfg(test)]
@@ -269,9 +355,14 @@ mod tests {
             ..Config::default()
         });
         on_disk.store.open().unwrap();
-        upload(&on_disk, "r", set(&[("r.skel", SKEL.into())]))
-            .await
-            .unwrap();
+        upload(
+            &on_disk,
+            "r",
+            set(&[("r.skel", SKEL.into())]),
+            PipelineOptions::default(),
+        )
+        .await
+        .unwrap();
         assert!(on_disk.store.uploads()["r"].files.is_none());
         let info = add_clips(&on_disk, "r", set(&[("wave.anim", anim())]))
             .await
@@ -281,9 +372,14 @@ mod tests {
         assert!(dir.path().join("assets/r/wave.anim").is_file());
 
         let in_memory = AppState::new(Config::default());
-        upload(&in_memory, "r", set(&[("r.skel", SKEL.into())]))
-            .await
-            .unwrap();
+        upload(
+            &in_memory,
+            "r",
+            set(&[("r.skel", SKEL.into())]),
+            PipelineOptions::default(),
+        )
+        .await
+        .unwrap();
         let kept = in_memory.store.uploads()["r"].files.clone().unwrap();
         assert_eq!(kept.get("r.skel"), Some(SKEL.as_bytes()));
         let info = add_clips(&in_memory, "r", set(&[("wave.anim", anim())]))
@@ -292,9 +388,14 @@ mod tests {
         assert_eq!(info.clips[0].name, "wave");
         let bvh = "HIERARCHY\nROOT hip\n{\n OFFSET 0 0 0\n CHANNELS 3 Zrotation Xrotation Yrotation\n \
                    End Site\n {\n  OFFSET 0 1 0\n }\n}\nMOTION\nFrames: 1\nFrame Time: 0.1\n0 0 0\n";
-        upload(&in_memory, "b", set(&[("b.bvh", bvh.into())]))
-            .await
-            .unwrap();
+        upload(
+            &in_memory,
+            "b",
+            set(&[("b.bvh", bvh.into())]),
+            PipelineOptions::default(),
+        )
+        .await
+        .unwrap();
         assert!(in_memory.store.uploads()["b"].files.is_none());
     }
 }
