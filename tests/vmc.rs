@@ -129,9 +129,37 @@ async fn a_partial_bone_set_keeps_the_other_bones() {
 
 #[tokio::test]
 async fn a_cse169_rig_with_limits_is_clamped() {
-    let Some(skel) = common::testdata_bytes("cse169/test.skel") else {
-        return;
+    // A small CSE169 humanoid (joints named in H-Anim), its right knee limited like
+    // test.skel's knee_r: about X in [-2, 0], Y and Z locked. (test.skel itself is one leg,
+    // not a humanoid, so a humanoid performer is refused on it.)
+    let limb = |side: &str, x: f32| {
+        format!(
+            "balljoint {side}_hip {{ offset {x} -0.05 0\n\
+             balljoint {side}_knee {{ offset 0 -0.42 0 rotxlimit -2 0 rotylimit 0 0 rotzlimit 0 0\n\
+             balljoint {side}_ankle {{ offset 0 -0.41 0\n\
+             balljoint {side}_midtarsal {{ offset 0 0 0.13 }} }} }} }}\n"
+        )
     };
+    let arm = |side: &str, x: f32| {
+        format!(
+            "balljoint {side}_shoulder {{ offset {x} 0 0\n\
+             balljoint {side}_elbow {{ offset {} 0 0\n\
+             balljoint {side}_wrist {{ offset {} 0 0 }} }} }}\n",
+            x * 1.4,
+            x * 1.3
+        )
+    };
+    let skel = format!(
+        "balljoint humanoid_root {{ offset 0 0.95 0\n{}{}\
+         balljoint vl5 {{ offset 0 0.1 0\n\
+         balljoint vt1 {{ offset 0 0.35 0\n{}{}\
+         balljoint skullbase {{ offset 0 0.2 0 }} }} }} }}\n",
+        limb("r", -0.09),
+        limb("l", 0.09),
+        arm("r", -0.2),
+        arm("l", 0.2)
+    )
+    .into_bytes();
     let server = server(30.0, &["skel"], Vec::new()).await;
     let to = server.vmc.inputs[0];
     let udp = sender().await;
@@ -156,10 +184,10 @@ async fn a_cse169_rig_with_limits_is_clamped() {
     .await
     .unwrap();
     let rig = server.state.world.library.get("test").unwrap();
-    let knee = rig.skeleton().find("knee_r").unwrap();
-    assert!(rig.limits[knee].is_some(), "knee_r has limits");
-    // knee_r: rotx in [-2, 0], y and z locked (test.skel). Rotations about X are the same in
-    // Unity's frame and glTF's (the mirror keeps X).
+    let knee = rig.skeleton().find("r_knee").unwrap();
+    assert!(rig.limits[knee].is_some(), "r_knee has limits");
+    // r_knee: rotx in [-2, 0], y and z locked. Rotations about X are the same in Unity's frame
+    // and glTF's (the mirror keeps X).
     for (sent, expected) in [
         (Quat::from_rotation_x(-0.8), Quat::from_rotation_x(-0.8)),
         (Quat::from_rotation_x(0.6), Quat::IDENTITY),

@@ -164,7 +164,7 @@ pub const BONES: [Bone; 52] = {
             "l_knee",
         ),
         bone("LeftFoot", Some(L_LOWER_LEG), [0.0, -0.41, 0.0], "l_ankle"),
-        bone("LeftToes", Some(L_FOOT), [0.0, -0.06, 0.13], "l_midtarsal"),
+        bone("LeftToes", Some(L_FOOT), [0.0, 0.0, 0.13], "l_midtarsal"),
         // 10: the right leg.
         bone("RightUpperLeg", Some(HIPS), [-0.09, -0.05, 0.0], "r_hip"),
         bone(
@@ -174,7 +174,7 @@ pub const BONES: [Bone; 52] = {
             "r_knee",
         ),
         bone("RightFoot", Some(R_LOWER_LEG), [0.0, -0.41, 0.0], "r_ankle"),
-        bone("RightToes", Some(R_FOOT), [0.0, -0.06, 0.13], "r_midtarsal"),
+        bone("RightToes", Some(R_FOOT), [0.0, 0.0, 0.13], "r_midtarsal"),
         // 14: the left arm and hand.
         bone(
             "LeftShoulder",
@@ -198,7 +198,7 @@ pub const BONES: [Bone; 52] = {
         bone(
             "LeftThumbProximal",
             Some(L_HAND),
-            [0.02, -0.01, 0.025],
+            [0.02, 0.0, 0.025],
             "l_thumb1",
         ),
         bone(
@@ -283,7 +283,7 @@ pub const BONES: [Bone; 52] = {
         bone(
             "RightThumbProximal",
             Some(R_HAND),
-            [-0.02, -0.01, 0.025],
+            [-0.02, 0.0, 0.025],
             "r_thumb1",
         ),
         bone(
