@@ -12,7 +12,8 @@
 //! - [`renderer`]: the scene ([`Renderer`]): avatars, ground grid, skeleton overlay, camera.
 //! - [`offscreen`]: render to a texture and read back an [`RgbaImage`]; [`image`] writes PNGs
 //!   and compares images.
-//! - [`viewer`]: a window showing avatars from a [`PoseSource`].
+//! - [`viewer`]: a window showing avatars from a [`PoseSource`], with [`orbit`] camera controls
+//!   (orbit, pan, zoom, follow and pick an avatar).
 //! - [`glb_mesh`]: an avatar's skinned mesh from the server's `.glb` mesh format.
 //! - [`procedural`]: tube meshes along bones and a small figure, for demos and tests.
 
@@ -26,6 +27,7 @@ pub mod gpu;
 pub mod gpu_types;
 pub mod image;
 pub mod offscreen;
+pub mod orbit;
 mod pipelines;
 pub mod procedural;
 pub mod renderer;

@@ -274,6 +274,13 @@ impl Renderer {
             .reduce(Aabb::union)
     }
 
+    /// [`Renderer::scene_bounds`] of one avatar, or `None` for an unknown handle or an avatar
+    /// without a pose yet.
+    #[must_use]
+    pub fn avatar_bounds(&self, handle: AvatarHandle) -> Option<Aabb> {
+        self.avatars.get(&handle.0).and_then(GpuAvatar::bounds)
+    }
+
     #[must_use]
     pub fn camera(&self) -> &Camera {
         &self.camera

@@ -2,18 +2,26 @@
 //! client implements the trait; the viewer owns the window, surface and [`Renderer`], shows
 //! frames per second and the source's status in the title, follows resizes and recovers from
 //! lost or outdated surfaces.
+//!
+//! Camera ([`super::orbit`]): it frames every avatar until you move it. Left drag or the arrow
+//! keys orbit, right (or middle) drag or W/A/S/D pan, the wheel or `+`/`-` zoom; a click on an
+//! avatar — or Tab, for the next one — follows it as it moves; Esc stops following; F (or
+//! Home) frames everything again.
 
 use super::error::RenderError;
 use super::gpu::Gpu;
+use super::orbit::{self, Orbit};
 use super::renderer::{AvatarHandle, Renderer, RendererOptions};
+use glam::{Vec2, Vec3};
 use posecast_proto::{Skeleton, SkinnedMesh, Transform};
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use winit::application::ApplicationHandler;
 use winit::dpi::PhysicalSize;
-use winit::event::WindowEvent;
+use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
 use winit::event_loop::{ActiveEventLoop, EventLoop};
+use winit::keyboard::{Key, NamedKey};
 use winit::window::{Window, WindowId};
 
 /// One change to the scene, keyed by the source's own avatar id.
@@ -109,7 +117,28 @@ struct WindowState {
     renderer: Renderer,
     handles: HashMap<u64, AvatarHandle>,
     framed: Option<super::bounds::Aabb>,
+    controls: Controls,
 }
+
+/// What the mouse and keys have done to the camera.
+#[derive(Debug, Default)]
+struct Controls {
+    /// The camera the user moved; `None` while the viewer frames every avatar by itself.
+    orbit: Option<Orbit>,
+    /// The avatar followed (the source's id) and where its centre was last frame.
+    follow: Option<(u64, Option<Vec3>)>,
+    cursor: Option<Vec2>,
+    /// The button held and where it went down (a press and release in place is a click).
+    dragging: Option<(MouseButton, Vec2)>,
+    moved: bool,
+}
+
+/// Radians the arrow keys turn the camera per press.
+const KEY_TURN: f32 = 0.087;
+/// Fraction of the view the W/A/S/D keys pan per press.
+const KEY_PAN: f32 = 0.05;
+/// Radians per pixel of a drag.
+const DRAG_TURN: f32 = 0.005;
 
 impl WindowState {
     fn new(event_loop: &ActiveEventLoop, options: &ViewerOptions) -> Result<Self, RenderError> {
@@ -163,7 +192,174 @@ impl WindowState {
             renderer,
             handles: HashMap::new(),
             framed: None,
+            controls: Controls::default(),
         })
+    }
+
+    /// The orbit to change: the user's, or — on the first touch — one that sees what the
+    /// automatic framing shows.
+    fn orbit(&mut self) -> &mut Orbit {
+        let camera = *self.renderer.camera();
+        self.controls
+            .orbit
+            .get_or_insert_with(|| Orbit::from_camera(&camera))
+    }
+
+    fn window_size(&self) -> Vec2 {
+        Vec2::new(self.config.width as f32, self.config.height as f32)
+    }
+
+    /// Follows the avatar under `pixel`, if any.
+    fn pick(&mut self, pixel: Vec2) {
+        let Some((origin, direction)) =
+            orbit::ray(self.renderer.camera(), pixel, self.window_size())
+        else {
+            return;
+        };
+        let boxes: Vec<(u64, super::bounds::Aabb)> = self
+            .handles
+            .iter()
+            .filter_map(|(&id, &h)| self.renderer.avatar_bounds(h).map(|b| (id, b)))
+            .collect();
+        if let Some(id) = orbit::pick(boxes, origin, direction) {
+            self.orbit();
+            self.controls.follow = Some((id, None));
+        }
+    }
+
+    /// Follows the next avatar (by id) after the one followed.
+    fn follow_next(&mut self) {
+        let mut ids: Vec<u64> = self.handles.keys().copied().collect();
+        ids.sort_unstable();
+        let current = self.controls.follow.map(|(id, _)| id);
+        let next = match current {
+            Some(c) => ids
+                .iter()
+                .copied()
+                .find(|&id| id > c)
+                .or(ids.first().copied()),
+            None => ids.first().copied(),
+        };
+        if let Some(id) = next {
+            self.orbit();
+            self.controls.follow = Some((id, None));
+        }
+    }
+
+    fn on_key(&mut self, key: &Key) {
+        match key {
+            Key::Named(NamedKey::ArrowLeft) => self.orbit().rotate(-KEY_TURN, 0.0),
+            Key::Named(NamedKey::ArrowRight) => self.orbit().rotate(KEY_TURN, 0.0),
+            Key::Named(NamedKey::ArrowUp) => self.orbit().rotate(0.0, KEY_TURN),
+            Key::Named(NamedKey::ArrowDown) => self.orbit().rotate(0.0, -KEY_TURN),
+            Key::Named(NamedKey::Tab) => self.follow_next(),
+            Key::Named(NamedKey::Escape) => self.controls.follow = None,
+            Key::Named(NamedKey::Home) => self.reframe(),
+            Key::Character(c) => match c.as_str() {
+                "w" | "W" => self.orbit().pan(0.0, KEY_PAN),
+                "s" | "S" => self.orbit().pan(0.0, -KEY_PAN),
+                "a" | "A" => self.orbit().pan(-KEY_PAN, 0.0),
+                "d" | "D" => self.orbit().pan(KEY_PAN, 0.0),
+                "+" | "=" => self.orbit().zoom(0.9),
+                "-" | "_" => self.orbit().zoom(1.0 / 0.9),
+                "f" | "F" => self.reframe(),
+                _ => {}
+            },
+            _ => {}
+        }
+    }
+
+    /// Back to framing every avatar automatically.
+    fn reframe(&mut self) {
+        self.controls.orbit = None;
+        self.controls.follow = None;
+        self.framed = None;
+    }
+
+    fn on_cursor(&mut self, to: Vec2) {
+        let from = self.controls.cursor.replace(to);
+        let (Some(from), Some((button, down))) = (from, self.controls.dragging) else {
+            return;
+        };
+        if to.distance(down) > 3.0 {
+            self.controls.moved = true;
+        }
+        let d = to - from;
+        let height = self.window_size().y.max(1.0);
+        match button {
+            MouseButton::Left => self.orbit().rotate(-d.x * DRAG_TURN, d.y * DRAG_TURN),
+            MouseButton::Right | MouseButton::Middle => {
+                self.orbit().pan(-d.x / height, d.y / height)
+            }
+            _ => {}
+        }
+    }
+
+    fn on_button(&mut self, button: MouseButton, state: ElementState) {
+        let Some(cursor) = self.controls.cursor else {
+            return;
+        };
+        match state {
+            ElementState::Pressed => {
+                self.controls.dragging = Some((button, cursor));
+                self.controls.moved = false;
+            }
+            ElementState::Released => {
+                let click = !self.controls.moved
+                    && self
+                        .controls
+                        .dragging
+                        .is_some_and(|(b, _)| b == MouseButton::Left);
+                self.controls.dragging = None;
+                if click {
+                    self.pick(cursor);
+                }
+            }
+        }
+    }
+
+    fn on_wheel(&mut self, delta: MouseScrollDelta) {
+        let lines = match delta {
+            MouseScrollDelta::LineDelta(_, y) => y,
+            MouseScrollDelta::PixelDelta(p) => p.y as f32 / 40.0,
+        };
+        self.orbit().zoom(0.9f32.powf(lines));
+    }
+
+    /// The user's camera, moved along with the followed avatar.
+    fn place_camera(&mut self) {
+        if let Some((id, last)) = self.controls.follow {
+            let centre = self
+                .handles
+                .get(&id)
+                .and_then(|&h| self.renderer.avatar_bounds(h))
+                .map(|b| b.center());
+            match (centre, last) {
+                (Some(now), Some(before)) => {
+                    self.orbit().follow(before, now);
+                    self.controls.follow = Some((id, Some(now)));
+                }
+                (Some(now), None) => {
+                    // Just picked: look at it from where the camera is.
+                    let o = self.orbit();
+                    o.target = now;
+                    self.controls.follow = Some((id, Some(now)));
+                }
+                // It left: stop following, keep the camera.
+                (None, _) if !self.handles.contains_key(&id) => self.controls.follow = None,
+                (None, _) => {}
+            }
+        }
+        let radius = self.renderer.scene_bounds().map_or(1.0, |b| 0.5 * b.size());
+        if let Some(orbit) = self.controls.orbit {
+            let reach = radius
+                + orbit.target.distance(
+                    self.renderer
+                        .scene_bounds()
+                        .map_or(orbit.target, |b| b.center()),
+                );
+            self.renderer.set_camera(orbit.camera(reach));
+        }
     }
 
     fn resize(&mut self, size: PhysicalSize<u32>) {
@@ -231,7 +427,11 @@ impl WindowState {
 
     /// Draws one frame; `Err` only for errors that end the viewer.
     fn draw(&mut self) -> Result<(), RenderError> {
-        self.keep_framed();
+        if self.controls.orbit.is_some() {
+            self.place_camera();
+        } else {
+            self.keep_framed();
+        }
         self.renderer.update();
         let frame = match self.surface.get_current_texture() {
             wgpu::CurrentSurfaceTexture::Success(frame) => frame,
@@ -301,6 +501,22 @@ impl ApplicationHandler for Viewer {
         match event {
             WindowEvent::CloseRequested => event_loop.exit(),
             WindowEvent::Resized(size) => state.resize(size),
+            WindowEvent::KeyboardInput { event, .. } if event.state == ElementState::Pressed => {
+                state.on_key(&event.logical_key);
+            }
+            WindowEvent::CursorMoved { position, .. } => {
+                state.on_cursor(Vec2::new(position.x as f32, position.y as f32));
+            }
+            WindowEvent::CursorLeft { .. } => {
+                state.controls.cursor = None;
+                state.controls.dragging = None;
+            }
+            WindowEvent::MouseInput {
+                state: pressed,
+                button,
+                ..
+            } => state.on_button(button, pressed),
+            WindowEvent::MouseWheel { delta, .. } => state.on_wheel(delta),
             WindowEvent::RedrawRequested => {
                 let now = Instant::now();
                 for update in self.source.poll(now) {
