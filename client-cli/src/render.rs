@@ -1,5 +1,6 @@
-//! `render`: connect, optionally pause and seek, wait for a pose that shows it, render
-//! offscreen and write a PNG.
+//! `render`: connect, take each avatar's streamed pose — or, with `--clip`/`--seek`, the pose of
+//! a private copy playing that clip at that time (`sample_pose`, which changes nothing others
+//! see) — render offscreen and write a PNG.
 
 use super::Connection;
 use anyhow::Context as _;
@@ -7,8 +8,11 @@ use clap::Args;
 use posecast_client::render::glb_mesh::GlbMesh;
 use posecast_client::render::{Gpu, Offscreen, Renderer, RendererOptions, RgbaImage, SkinningPath};
 use posecast_client::view_source::{fresh_pose, resolve_mesh, wait_for_avatars};
+use posecast_proto::Transform;
 use posecast_proto::command::Command;
-use posecast_proto::msg::AvatarId;
+use posecast_proto::msg::{AvatarId, AvatarPoseJson};
+use posecast_proto::placement::Placement;
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -16,13 +20,15 @@ use std::time::{Duration, Instant};
 pub struct RenderArgs {
     #[command(flatten)]
     connection: Connection,
-    /// The avatar to play, pause or seek (default: every avatar of the scene).
+    /// The avatar to show at `--clip`/`--seek` (default: every avatar of the scene).
     #[arg(long, env = "POSECAST_AVATAR")]
     avatar: Option<String>,
-    /// Play this clip first (no cross-fade).
+    /// Show this clip (at `--seek`, default its start) instead of the streamed pose; sampled
+    /// on a private copy of the avatar, so other viewers see no change.
     #[arg(long, env = "POSECAST_CLIP")]
     clip: Option<String>,
-    /// Pause the clip and seek it to this time, seconds from the clip's start.
+    /// Show the clip (`--clip`, default the avatar's current one) at this time, seconds from
+    /// its start, on a private copy of the avatar.
     #[arg(long, env = "POSECAST_SEEK")]
     seek: Option<f32>,
     /// Image width, pixels.
@@ -66,37 +72,31 @@ pub async fn run(args: RenderArgs) -> anyhow::Result<()> {
         Some(id) => vec![id.clone()],
         None => views.iter().map(|v| v.description.id.clone()).collect(),
     };
-    for avatar in &targets {
-        if let Some(clip) = &args.clip {
-            let play = Command::Play {
+    // `--clip`/`--seek` render a private copy of each target (`sample_pose`, read-only): what
+    // other viewers see does not change, and a view token is enough.
+    let mut sampled: HashMap<AvatarId, (Vec<Transform>, Placement)> = HashMap::new();
+    if args.clip.is_some() || args.seek.is_some() {
+        for avatar in &targets {
+            let command = Command::SamplePose {
                 avatar: avatar.clone(),
-                clip: clip.clone(),
+                clip: args.clip.clone(),
                 from_asset: None,
-                speed: None,
-                looping: None,
-                start: None,
-                fade: Some(0.0),
-                root_motion: None,
+                time: args.seek.unwrap_or(0.0),
             };
-            client
-                .command(play)
+            let value = client
+                .command(command)
                 .await
-                .with_context(|| format!("playing {clip}"))?;
-        }
-        if let Some(time) = args.seek {
-            client
-                .command(Command::Pause {
-                    avatar: avatar.clone(),
-                })
-                .await
-                .context("pausing")?;
-            client
-                .command(Command::Seek {
-                    avatar: avatar.clone(),
-                    time,
-                })
-                .await
-                .context("seeking")?;
+                .with_context(|| format!("sampling {avatar}"))?;
+            let pose: AvatarPoseJson = serde_json::from_value(value)
+                .with_context(|| format!("reading the pose of {avatar}"))?;
+            let view = views
+                .iter()
+                .find(|v| &v.description.id == avatar)
+                .with_context(|| format!("no description of {avatar}"))?;
+            let locals = view
+                .locals_of(&pose)
+                .with_context(|| format!("the pose of {avatar} does not fit its description"))?;
+            sampled.insert(avatar.clone(), (locals, pose.placement));
         }
     }
     let mut renderer = Renderer::new(
@@ -116,19 +116,28 @@ pub async fn run(args: RenderArgs) -> anyhow::Result<()> {
     let target = Offscreen::new(&gpu, args.width, args.height)?;
     for view in &views {
         let id = &view.description.id;
-        let seen = client.latest(id).map_or(0, |s| s.seq);
-        let pose = fresh_pose(&client, id, seen, WAIT)
-            .await
-            .with_context(|| format!("waiting for a pose of {id}"))?;
+        let (locals, placement, what) = match sampled.remove(id) {
+            Some((locals, placement)) => (locals, placement, "sampled privately".to_owned()),
+            None => {
+                let seen = client.latest(id).map_or(0, |s| s.seq);
+                let pose = fresh_pose(&client, id, seen, WAIT)
+                    .await
+                    .with_context(|| format!("waiting for a pose of {id}"))?;
+                (
+                    pose.locals,
+                    pose.placement,
+                    format!("pose of tick {}", pose.seq),
+                )
+            }
+        };
         let (mesh, origin) = resolve_mesh(view, &args.connection.url, fallback.as_ref()).await;
         eprintln!(
-            "{id}: {} joints, {} vertices from {origin}, pose of tick {}",
+            "{id}: {} joints, {} vertices from {origin}, {what}",
             view.skeleton.len(),
             mesh.vertex_count(),
-            pose.seq
         );
         let handle = renderer.add_avatar(&view.skeleton, &mesh)?;
-        renderer.set_placed_pose(handle, &pose.placement, &pose.locals)?;
+        renderer.set_placed_pose(handle, &placement, &locals)?;
     }
     let (image, first, steady) = timed_render(&gpu, &target, &mut renderer, args.timed_frames)?;
     image

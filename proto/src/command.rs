@@ -44,6 +44,24 @@ pub enum Command {
         /// The joint's name.
         joint: String,
     },
+    /// The pose a private copy of the avatar has playing `clip` (default: the clip it plays
+    /// now) paused at `time`: its rig, joint overrides and placement, with the clip instead of
+    /// whatever drives it. Read-only: the avatar and what every viewer sees do not change, so
+    /// a view token suffices (e.g. to render one moment of a clip). Result: the pose as a JSON
+    /// frame carries it ([`crate::msg::AvatarPoseJson`]).
+    SamplePose {
+        /// The avatar.
+        avatar: AvatarId,
+        /// The clip (of the avatar's rig, or of `from_asset`'s, retargeted); absent: the
+        /// avatar's current clip.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        clip: Option<String>,
+        /// The rig `clip` belongs to, when another (as in `play`).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        from_asset: Option<String>,
+        /// Seconds from the clip's start (wrapped for a looping clip, clamped otherwise).
+        time: f32,
+    },
     /// Create an empty scene.
     CreateScene {
         /// Its id (letters, digits, `-`, `_`; at most 64).
@@ -314,6 +332,7 @@ impl Command {
         match self {
             Self::GetAvatar { avatar }
             | Self::GetJoint { avatar, .. }
+            | Self::SamplePose { avatar, .. }
             | Self::RemoveAvatar { avatar }
             | Self::Play { avatar, .. }
             | Self::Pause { avatar }
@@ -344,6 +363,7 @@ impl Command {
                 | Self::GetAsset { .. }
                 | Self::GetAvatar { .. }
                 | Self::GetJoint { .. }
+                | Self::SamplePose { .. }
         )
     }
 }
@@ -568,6 +588,8 @@ pub enum CommandResult {
     Recorded(Box<RecordingInfo>),
     /// `get_asset`.
     Asset(Box<AssetDetail>),
+    /// `sample_pose`.
+    Pose(Box<crate::msg::AvatarPoseJson>),
     /// `create_scene`.
     SceneCreated {
         /// The new scene.

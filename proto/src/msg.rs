@@ -220,8 +220,9 @@ pub enum ServerMsg {
     Ack {
         /// The command's id.
         id: u64,
-        /// What the command returned (its shape depends on the command).
-        #[serde(default, skip_serializing_if = "serde_json::Value::is_null")]
+        /// What the command returned (its shape depends on the command); always present on
+        /// the wire, `null` for commands that return nothing.
+        #[serde(default)]
         result: serde_json::Value,
     },
     /// A pose frame in the JSON encoding.

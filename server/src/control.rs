@@ -139,14 +139,20 @@ async fn store_recording(state: &AppState, info: &RecordingInfo) -> Result<(), E
 /// workers: `play … from_asset` bakes the retargeted clip ([`crate::bake`]), so applying the
 /// command is a cache lookup and no other scene's tick waits for the bake.
 async fn prepare(state: &AppState, command: &Command) -> Result<(), Error> {
-    let Command::Play {
-        avatar,
-        clip,
-        from_asset: Some(source),
-        ..
-    } = command
-    else {
-        return Ok(());
+    let (avatar, clip, source) = match command {
+        Command::Play {
+            avatar,
+            clip,
+            from_asset: Some(source),
+            ..
+        }
+        | Command::SamplePose {
+            avatar,
+            clip: Some(clip),
+            from_asset: Some(source),
+            ..
+        } => (avatar, clip, source),
+        _ => return Ok(()),
     };
     let source = state.world.library.require(source)?;
     let target = {

@@ -7,7 +7,8 @@ use posecast_proto::command::Command;
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::{AvatarPose, FrameDecoder};
 use posecast_proto::msg::{
-    AvatarId, ClientMsg, Encoding, FrameJson, PROTOCOL_VERSION, ProtocolError, SceneId, ServerMsg,
+    AvatarId, AvatarPoseJson, ClientMsg, Encoding, FrameJson, PROTOCOL_VERSION, ProtocolError,
+    SceneId, ServerMsg,
 };
 use posecast_proto::placement::Placement;
 use posecast_proto::{Skeleton, Transform};
@@ -128,6 +129,34 @@ pub struct AvatarView {
     pub latest: Option<PoseSample>,
     /// Recent poses for interpolation.
     pub jitter: JitterBuffer,
+}
+
+impl AvatarView {
+    /// The local transforms of a pose in the JSON form (a JSON frame's entry, or the answer
+    /// of `sample_pose`): rest everywhere, then the streamed parts. `None` when the pose is of
+    /// another rig (its hash differs from the description's) or its lengths do not fit.
+    #[must_use]
+    pub fn locals_of(&self, pose: &AvatarPoseJson) -> Option<Vec<Transform>> {
+        if pose.hash != self.description.hash {
+            return None;
+        }
+        let rotations: Vec<glam::Quat> = pose
+            .rotations
+            .iter()
+            .map(|&q| glam::Quat::from_array(q))
+            .collect();
+        let translations: Vec<glam::Vec3> = pose
+            .translations
+            .iter()
+            .map(|&t| glam::Vec3::from_array(t))
+            .collect();
+        let scales: Vec<glam::Vec3> = pose
+            .scales
+            .iter()
+            .map(|&v| glam::Vec3::from_array(v))
+            .collect();
+        locals_from(self, &rotations, &translations, &scales)
+    }
 }
 
 /// Things that happened, for callers that wait on them (tests, the CLI).

@@ -12,7 +12,7 @@ use crate::render::glb_mesh::GlbMesh;
 use crate::render::procedural::{TubeOptions, tube_mesh};
 use crate::render::{AvatarUpdate, PoseSource};
 use posecast_proto::SkinnedMesh;
-use posecast_proto::msg::AvatarId;
+use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError};
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -98,15 +98,33 @@ async fn fetch_mesh(
     Ok((mesh, url.to_string()))
 }
 
+/// How long [`wait_for_avatars`] waits for an avatar `id` once the scene's other avatars have
+/// poses: a subscriber is described every avatar, and gets their poses, at once.
+const NAMED_AVATAR_GRACE: Duration = Duration::from_secs(1);
+
 /// Waits until some avatar is known (`id`, or any when `None`); returns the known avatars
 /// sorted by id.
+///
+/// # Errors
+/// At once, [`ClientError::Server`] when the server refused the subscription (no such scene,
+/// not allowed), or `unknown_avatar` when the scene's avatars have arrived without `id`;
+/// [`ClientError::Timeout`] when no avatar came within `timeout`.
 pub async fn wait_for_avatars(
     client: &Client,
     id: Option<&AvatarId>,
     timeout: Duration,
 ) -> Result<Vec<AvatarView>, ClientError> {
     let deadline = tokio::time::Instant::now() + timeout;
+    let mut others_since = None;
     loop {
+        if let Some(e) = client.stats().last_error
+            && matches!(
+                e.code,
+                ErrorCode::UnknownScene | ErrorCode::Unauthorized | ErrorCode::Forbidden
+            )
+        {
+            return Err(ClientError::Server(e));
+        }
         let mut views = client.avatars();
         views.retain(|v| v.latest.is_some());
         let found = match id {
@@ -117,7 +135,23 @@ pub async fn wait_for_avatars(
             views.sort_by(|a, b| a.description.id.0.cmp(&b.description.id.0));
             return Ok(views);
         }
-        if tokio::time::Instant::now() >= deadline {
+        let now = tokio::time::Instant::now();
+        if let Some(id) = id
+            && !views.is_empty()
+            && now.duration_since(*others_since.get_or_insert(now)) >= NAMED_AVATAR_GRACE
+        {
+            let mut present: Vec<&str> =
+                views.iter().map(|v| v.description.id.0.as_str()).collect();
+            present.sort_unstable();
+            return Err(ClientError::Server(ProtocolError::new(
+                ErrorCode::UnknownAvatar,
+                format!(
+                    "the scene has no avatar {id} (it has {})",
+                    present.join(", ")
+                ),
+            )));
+        }
+        if now >= deadline {
             return Err(ClientError::Timeout("an avatar with a pose"));
         }
         tokio::time::sleep(Duration::from_millis(5)).await;

@@ -115,6 +115,90 @@ fn joint_info(a: &Avatar, j: usize) -> JointInfo {
     }
 }
 
+/// `sample_pose`: a private copy of the avatar (rig, overrides, placement) plays the clip,
+/// paused at `time`, and is evaluated as a tick would; the avatar itself is only read. A clip
+/// from another rig is baked by the caller beforehand ([`crate::world::World::retargets`]),
+/// so this is a cache lookup.
+fn sample_pose(
+    world: &World,
+    id: &AvatarId,
+    clip: Option<&str>,
+    from_asset: Option<&str>,
+    time: f32,
+) -> Result<CommandResult, Error> {
+    let time = finite("time", time)?;
+    let source = from_asset
+        .map(|name| world.library.require(name))
+        .transpose()?;
+    let scene = world.find_avatar(id)?;
+    let (rig, overrides, placement, current, num) = {
+        let s = scene.lock();
+        let a = s
+            .avatars
+            .iter()
+            .find(|a| &a.id == id)
+            .ok_or_else(|| Error::UnknownAvatar(id.clone()))?;
+        let current = a.player.current().map(|l| {
+            (
+                l.clip.clone(),
+                l.source_asset.clone(),
+                l.looping,
+                l.root_motion,
+            )
+        });
+        (
+            a.rig.clone(),
+            a.overrides.clone(),
+            a.pose().placement,
+            current,
+            a.num(),
+        )
+    };
+    let layer = match (clip, current) {
+        (Some(clip), _) => {
+            let baked = match &source {
+                Some(src) if src.name != rig.name => {
+                    world.retargets.bake_blocking(src, clip, &rig)?
+                }
+                _ => rig.clip(clip).cloned().ok_or_else(|| Error::UnknownClip {
+                    rig: rig.name.clone(),
+                    clip: clip.to_owned(),
+                })?,
+            };
+            let source_asset = source.as_ref().map(|s| s.name.clone());
+            Layer::new(baked, source_asset, time, 1.0, true)
+        }
+        (None, Some((clip, source_asset, looping, root_motion))) => {
+            let mut layer = Layer::new(clip, source_asset, time, 1.0, looping);
+            layer.root_motion = root_motion;
+            layer
+        }
+        (None, None) => {
+            return Err(Error::invalid(format!(
+                "avatar {id} plays no clip: name the clip to sample"
+            )));
+        }
+    };
+    let mut copy = Avatar::new(id.clone(), num, rig);
+    copy.overrides = overrides;
+    copy.play(layer, 0.0);
+    if let Some(layer) = copy.player.current_mut() {
+        layer.set_paused(true);
+    }
+    copy.evaluate();
+    let pose = copy.pose();
+    Ok(CommandResult::Pose(Box::new(
+        posecast_proto::msg::AvatarPoseJson {
+            avatar: id.clone(),
+            hash: copy.description.hash.clone(),
+            rotations: pose.rotations.iter().map(|q| q.to_array()).collect(),
+            translations: pose.translations.iter().map(|t| t.to_array()).collect(),
+            scales: pose.scales.iter().map(|s| s.to_array()).collect(),
+            placement,
+        },
+    )))
+}
+
 /// Applies `command` to `world`; nothing changes when it fails.
 ///
 /// # Errors
@@ -148,6 +232,12 @@ pub fn apply(world: &World, command: &Command) -> Result<CommandResult, Error> {
             let j = joint_index(a, joint)?;
             Ok(CommandResult::Joint(Box::new(joint_info(a, j))))
         }),
+        Command::SamplePose {
+            avatar,
+            clip,
+            from_asset,
+            time,
+        } => sample_pose(world, avatar, clip.as_deref(), from_asset.as_deref(), *time),
         Command::CreateScene { scene } => {
             world.create_scene(scene.clone())?;
             Ok(CommandResult::SceneCreated {
