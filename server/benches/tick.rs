@@ -1,0 +1,139 @@
+//! CPU time of a scene's tick per avatar — sample the clip, apply overrides and limits, then
+//! quantise and encode the frame (binary, once for every subscriber) and hand it to the
+//! subscribers' outboxes — and whether a scene of 4,000 avatars holds 60 Hz on one core.
+//!
+//! A scene of N avatars (the built-in avatar, 23 joints, or CMU 01_01, 31 joints), each playing
+//! its clip from a different start, with one binary subscriber (so frames are encoded; more
+//! subscribers share the same encoded bytes). The tick runs exactly as the scene's ticker runs
+//! it (`Scene::tick`: a keyframe every 60 ticks, deltas between), on this thread. Also with a
+//! JSON subscriber added, which costs the JSON encoding the binary-only scene does not do.
+//!
+//! Run: `cargo bench -p posecast-server --bench tick`. Prints a table; asserts nothing.
+
+use anyhow::{Context, Result, bail};
+use posecast_proto::msg::{AvatarId, Encoding, SceneId};
+use posecast_proto::testing::testdata;
+use posecast_server::avatar::Avatar;
+use posecast_server::avatar::playback::Layer;
+use posecast_server::builtin::AVATAR_GLB;
+use posecast_server::import;
+use posecast_server::metrics::Metrics;
+use posecast_server::rig::Rig;
+use posecast_server::scene::Scene;
+use posecast_server::stream::feed::Subscriber;
+use posecast_server::stream::outbox::Outbox;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+const RATE: f64 = 60.0;
+const KEY_INTERVAL: u64 = 60;
+
+/// A scene of `n` avatars of `rig` playing `clip`, with subscribers of `encodings`.
+fn scene(rig: &Arc<Rig>, clip: &str, n: usize, encodings: &[Encoding]) -> Result<Scene> {
+    let scene = Scene::new(
+        SceneId("bench".into()),
+        1,
+        Arc::new(Metrics::new()),
+        RATE as f32,
+    );
+    let c = rig.clip(clip).context("no such clip")?.clone();
+    for i in 0..n {
+        let mut avatar = Avatar::new(AvatarId(format!("a{i}")), i as u32 + 1, rig.clone());
+        let start = (i as f32 * 0.137) % c.duration().max(1e-3);
+        avatar.play(Layer::new(c.clone(), None, start, 1.0, true), 0.0);
+        scene.add_avatar(avatar)?;
+    }
+    for (k, &encoding) in encodings.iter().enumerate() {
+        let sub = Subscriber::new(k as u64 + 1, Arc::new(Outbox::new()), encoding, None, 1);
+        scene.subscribe(sub)?;
+    }
+    Ok(scene)
+}
+
+/// Mean wall time of one tick over about `budget` (after a second of warm-up ticks).
+fn time_ticks(scene: &Scene, budget: Duration) -> Duration {
+    let mut seq = 0u64;
+    let mut run = |ticks: u64| {
+        for _ in 0..ticks {
+            seq += 1;
+            scene.tick(
+                seq,
+                seq as f64 / RATE,
+                1_700_000_000_000_000 + seq * 16_667,
+                KEY_INTERVAL,
+            );
+        }
+    };
+    run(60);
+    let mut ticks = 0u64;
+    let start = Instant::now();
+    while start.elapsed() < budget || ticks < 60 {
+        run(60);
+        ticks += 60;
+    }
+    start.elapsed() / u32::try_from(ticks).unwrap_or(u32::MAX)
+}
+
+fn load(path: &std::path::Path) -> Result<Arc<Rig>> {
+    let mut assets = import::load_path(path)?;
+    if assets.is_empty() {
+        bail!("{} holds no rig", path.display());
+    }
+    Ok(Arc::new(Rig::from_asset(
+        assets.remove(0),
+        &Default::default(),
+    )?))
+}
+
+fn main() -> Result<()> {
+    let mut assets = import::gltf::from_slice("avatar.glb", AVATAR_GLB)?;
+    if assets.is_empty() {
+        bail!("the built-in avatar holds no rig");
+    }
+    let builtin = Arc::new(Rig::from_asset(assets.remove(0), &Default::default())?);
+    let mut rigs = vec![("built-in walk", builtin, "walk".to_owned())];
+    let path = testdata("bvh/cmu/01_01.bvh");
+    if path.exists() {
+        let cmu = load(&path)?;
+        let clip = cmu
+            .clips
+            .first()
+            .context("CMU 01_01 has no clip")?
+            .name()
+            .to_owned();
+        rigs.push(("CMU 01_01", cmu, clip));
+    } else if std::env::var("CI").as_deref() == Ok("true") {
+        bail!("{} is missing", path.display());
+    } else {
+        eprintln!("skipping CMU 01_01: {} is absent", path.display());
+    }
+    println!(
+        "| clip | joints | avatars | subscribers | tick | per avatar | per joint | ticks/s on one core |"
+    );
+    println!("|---|---:|---:|---|---:|---:|---:|---:|");
+    for (name, rig, clip) in &rigs {
+        let joints = rig.skeleton().len();
+        for (n, encodings) in [
+            (1, vec![Encoding::Binary]),
+            (100, vec![Encoding::Binary]),
+            (4000, vec![Encoding::Binary]),
+            (100, vec![Encoding::Binary, Encoding::Json]),
+        ] {
+            let scene = scene(rig, clip, n, &encodings)?;
+            let tick = time_ticks(&scene, Duration::from_secs(2));
+            let per_avatar = tick.as_secs_f64() * 1e6 / n as f64;
+            let subs = encodings
+                .iter()
+                .map(|e| format!("{e:?}").to_lowercase())
+                .collect::<Vec<_>>()
+                .join(" + ");
+            println!(
+                "| {name} | {joints} | {n} | {subs} | {:.3} ms | {per_avatar:.2} µs | {:.0} ns | {:.0} |",
+                tick.as_secs_f64() * 1e3,
+                per_avatar * 1e3 / joints as f64,
+                1.0 / tick.as_secs_f64(),
+            );
+        }
+    }
+    Ok(())
+}
