@@ -45,6 +45,8 @@ pub struct TestServerBuilder {
     control_token: String,
     tokens: Vec<TokenRule>,
     open_view: bool,
+    /// Access rules given whole ([`TestServerBuilder::access`]), replacing the others.
+    access: Option<AccessConfig>,
     setup: Vec<Command>,
 }
 
@@ -58,6 +60,7 @@ impl Default for TestServerBuilder {
             control_token: DEFAULT_CONTROL_TOKEN.to_owned(),
             tokens: Vec::new(),
             open_view: true,
+            access: None,
             setup: Vec::new(),
         }
     }
@@ -241,6 +244,30 @@ impl TestServerBuilder {
         self
     }
 
+    /// Uses exactly these access rules, instead of [`TestServerBuilder::token`],
+    /// [`TestServerBuilder::open_view`] and the kit's own control token: to test a server
+    /// with no control token at all, or your own token file. The kit's clients and drivers
+    /// still present [`TestServerBuilder::control_token`]; give it one of these tokens.
+    ///
+    /// ```
+    /// # #[tokio::main(flavor = "current_thread")]
+    /// # async fn main() -> Result<(), posecast_testkit::KitError> {
+    /// use posecast_proto::command::Command;
+    /// use posecast_proto::msg::{AvatarId, ErrorCode};
+    /// use posecast_server::auth::AccessConfig;
+    /// // Open views and no control token: nobody may command.
+    /// let server = posecast_testkit::TestServer::builder().access(AccessConfig::default()).start().await?;
+    /// let client = server.client().await?;
+    /// let refused = client.command(Command::Pause { avatar: AvatarId("avatar".into()) }).await;
+    /// assert_eq!(refused.unwrap_err().code(), Some(ErrorCode::Unauthorized));
+    /// # server.stop().await; Ok(()) }
+    /// ```
+    #[must_use]
+    pub fn access(mut self, access: AccessConfig) -> Self {
+        self.access = Some(access);
+        self
+    }
+
     /// Keeps scenes and uploads in the data folder `dir` (default: memory only), so a test
     /// can restart a server on it.
     ///
@@ -302,21 +329,26 @@ impl TestServerBuilder {
                 "tick rate {hz} Hz is not in (0, 1000]"
             )));
         }
-        let mut access = AccessConfig {
-            open_view: self.open_view,
-            tokens: Vec::new(),
+        config.access = match self.access {
+            Some(access) => access,
+            None => {
+                let mut access = AccessConfig {
+                    open_view: self.open_view,
+                    tokens: Vec::new(),
+                };
+                let control = TokenRule::new(
+                    "posecast-testkit",
+                    Secret::new(self.control_token.clone()),
+                    Role::Control,
+                );
+                for rule in std::iter::once(control).chain(self.tokens) {
+                    access
+                        .add(rule)
+                        .map_err(|e| KitError::Start(e.to_string()))?;
+                }
+                access
+            }
         };
-        let control = TokenRule::new(
-            "posecast-testkit",
-            Secret::new(self.control_token.clone()),
-            Role::Control,
-        );
-        for rule in std::iter::once(control).chain(self.tokens) {
-            access
-                .add(rule)
-                .map_err(|e| KitError::Start(e.to_string()))?;
-        }
-        config.access = access;
         config.listen = ([127, 0, 0, 1], 0).into();
         let server = Server::start(config)
             .await
