@@ -38,8 +38,8 @@ pub struct ClientBuilder {
 }
 
 impl ClientBuilder {
-    /// A client of the server at websocket URL `url` (e.g. [`crate::TestServer::ws_url`]),
-    /// with no token.
+    /// A client of the server at websocket URL `url` (e.g. a [`crate::TestServer`]'s
+    /// [`ws_url`](posecast_server::startup::Server::ws_url)), with no token.
     ///
     /// ```
     /// # #[tokio::main(flavor = "current_thread")]
