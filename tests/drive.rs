@@ -7,7 +7,7 @@
 mod common;
 
 use glam::{Mat4, Quat, Vec3};
-use posecast_client::net::{Client, ClientError, Driver};
+use posecast_client::net::{ClientError, Driver};
 use posecast_proto::Transform;
 use posecast_proto::command::{Command, OnRelease};
 use posecast_proto::fk::forward_kinematics;
@@ -15,59 +15,57 @@ use posecast_proto::live::BinaryPose;
 use posecast_proto::msg::{AvatarId, Encoding, ErrorCode};
 use posecast_proto::quant::{MAX_ERROR_DEGREES, angle_between_degrees};
 use posecast_server::auth::{Role, Secret, TokenRule};
-use posecast_server::config::Config;
-use posecast_server::startup::Server;
+use posecast_testkit::{TestClient, TestServer};
 use std::time::Duration;
 
 const ALICE: &str = "alice-drives-avatar";
 const TICK_HZ: f32 = 30.0;
 
+const AVATAR: &str = "avatar";
+
 fn avatar() -> AvatarId {
-    AvatarId("avatar".into())
+    AvatarId(AVATAR.into())
 }
 
 /// A server whose token `alice` may command only avatar `avatar`, with `timeout` of silence.
-async fn server(timeout: Duration) -> Server {
+async fn server(timeout: Duration) -> TestServer {
     let mut access = common::test_access();
     let mut alice = TokenRule::new("alice", Secret::new(ALICE), Role::Control);
     alice.avatars = Some(vec![avatar()]);
     access.add(alice).unwrap();
-    let server = Server::start(Config {
-        listen: "127.0.0.1:0".parse().unwrap(),
-        tick_rate: TICK_HZ,
-        access,
-        drive_timeout: timeout,
-        ..Config::default()
-    })
-    .await
-    .unwrap();
-    server.ready().await.unwrap();
-    server
-}
-
-async fn driver(server: &Server, token: &str) -> Driver {
-    Driver::connect(&server.ws_url(), Some(token.into()))
+    common::kit_builder(TICK_HZ)
+        .access(access)
+        .configure(|c| c.drive_timeout = timeout)
+        .start()
         .await
         .unwrap()
 }
 
-fn joint(server: &Server, name: &str) -> usize {
-    let rig = server.state.world.library.get("avatar").unwrap();
-    rig.skeleton().find(name).unwrap()
+async fn driver(server: &TestServer, token: &str) -> Driver {
+    server.driver_as(Some(token)).await.unwrap()
+}
+
+/// A client subscribed to the avatar's scene, holding the unlimited control token.
+async fn subscriber(server: &TestServer, encoding: Encoding) -> TestClient {
+    server
+        .client_builder()
+        .encoding(encoding)
+        .connect()
+        .await
+        .unwrap()
+}
+
+fn joint(server: &TestServer, name: &str) -> usize {
+    server.joint(AVATAR, name).unwrap()
 }
 
 /// Waits until `client`'s newest pose of `avatar` satisfies `f`; returns that sample's seq.
-async fn until(client: &Client, secs: f32, f: impl Fn(&[Transform]) -> bool) -> Option<u64> {
-    let deadline = tokio::time::Instant::now() + Duration::from_secs_f32(secs);
-    while tokio::time::Instant::now() < deadline {
-        if let Some(s) = client.latest(&avatar())
-            && f(&s.locals)
-        {
-            return Some(s.seq);
-        }
-        tokio::time::sleep(Duration::from_millis(2)).await;
-    }
-    None
+async fn until(client: &TestClient, secs: f32, f: impl Fn(&[Transform]) -> bool) -> Option<u64> {
+    client
+        .wait_for_pose(AVATAR, Duration::from_secs_f32(secs), |p| f(p.locals()))
+        .await
+        .ok()
+        .map(|p| p.seq())
 }
 
 fn close(a: Quat, b: Quat) -> bool {
@@ -93,7 +91,7 @@ async fn a_driven_pose_reaches_every_subscriber_in_the_next_tick() {
     let server = server(Duration::from_secs(5)).await;
     let mut subscribers = Vec::new();
     for encoding in [Encoding::Binary, Encoding::Binary, Encoding::Json] {
-        subscribers.push(common::client(&server, encoding).await);
+        subscribers.push(subscriber(&server, encoding).await);
     }
     let d = driver(&server, ALICE).await;
     let info = d.drive(&avatar(), None, None).await.unwrap();
@@ -162,7 +160,7 @@ async fn a_source_rig_is_retargeted_in_world_space() {
     assert_eq!(status, 200, "{body}");
     let source = server.state.world.library.get("01_01").unwrap();
     let target = server.state.world.library.get("avatar").unwrap();
-    let sub = common::client(&server, Encoding::Binary).await;
+    let sub = subscriber(&server, Encoding::Binary).await;
     let d = driver(&server, ALICE).await;
     let info = d.drive(&avatar(), Some("01_01"), None).await.unwrap();
     assert_eq!(info.joints, source.skeleton().names());
@@ -264,7 +262,7 @@ async fn a_limited_token_drives_only_its_avatar_and_a_second_driver_conflicts() 
 #[tokio::test]
 async fn bad_poses_get_typed_errors_and_change_nothing() {
     let server = server(Duration::from_secs(5)).await;
-    let sub = common::client(&server, Encoding::Json).await;
+    let sub = subscriber(&server, Encoding::Json).await;
     let d = driver(&server, ALICE).await;
     let info = d.drive(&avatar(), None, None).await.unwrap();
     let elbow = joint(&server, "l_elbow");
@@ -351,12 +349,12 @@ async fn bad_poses_get_typed_errors_and_change_nothing() {
 
 /// The rotation the avatar had before driving (the driven pose starts from it): whatever it
 /// is, a refused pose must not have replaced it with identity-from-zero.
-fn sub_rest(server: &Server, name: &str, l: &[Transform]) -> Quat {
+fn sub_rest(server: &TestServer, name: &str, l: &[Transform]) -> Quat {
     l[joint(server, name)].rotation
 }
 
 /// Pauses the avatar's clip and returns its (now still) pose of `l_elbow`.
-async fn paused_clip_elbow(server: &Server, sub: &Client, d: &Driver) -> Quat {
+async fn paused_clip_elbow(server: &TestServer, sub: &TestClient, d: &Driver) -> Quat {
     d.command(Command::Pause { avatar: avatar() })
         .await
         .unwrap();
@@ -365,8 +363,8 @@ async fn paused_clip_elbow(server: &Server, sub: &Client, d: &Driver) -> Quat {
 }
 
 async fn drive_away(
-    server: &Server,
-    sub: &Client,
+    server: &TestServer,
+    sub: &TestClient,
     d: &Driver,
     on_release: Option<OnRelease>,
 ) -> Quat {
@@ -387,11 +385,11 @@ async fn drive_away(
 #[tokio::test]
 async fn the_drivers_disconnect_returns_the_avatar_to_its_clip() {
     let server = server(Duration::from_secs(30)).await;
-    let sub = common::client(&server, Encoding::Binary).await;
+    let sub = subscriber(&server, Encoding::Binary).await;
     let d = driver(&server, ALICE).await;
     let clip = paused_clip_elbow(&server, &sub, &d).await;
     drive_away(&server, &sub, &d, None).await;
-    let driven = |server: &Server| {
+    let driven = |server: &TestServer| {
         let scene = server.state.world.find_avatar(&avatar()).unwrap();
         scene.info().avatars[0].driven
     };
@@ -410,7 +408,7 @@ async fn the_drivers_disconnect_returns_the_avatar_to_its_clip() {
 #[tokio::test]
 async fn silence_past_the_timeout_returns_the_avatar_to_its_clip_or_holds() {
     let server = server(Duration::from_millis(400)).await;
-    let sub = common::client(&server, Encoding::Binary).await;
+    let sub = subscriber(&server, Encoding::Binary).await;
     let d = driver(&server, ALICE).await;
     let elbow = joint(&server, "l_elbow");
     let clip = paused_clip_elbow(&server, &sub, &d).await;

@@ -5,32 +5,33 @@
 //! the fade weight) each streamed pose shows, independently of the server, and check how it
 //! moves from frame to frame: by `speed / tick_rate` of clip time per tick, or by
 //! `1 / (tick_rate · fade)` of weight per tick.
+//!
+//! Servers, clients, fresh poses and the clips' sampling come from `posecast-testkit`.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 mod common;
 
-use common::{client, http, server, wait_for};
+use common::{http, kit_server};
 use glam::Quat;
-use posecast_client::net::{Client, PoseSample};
 use posecast_proto::Transform;
 use posecast_proto::command::Command;
-use posecast_proto::msg::{AvatarId, Encoding};
+use posecast_proto::msg::AvatarId;
 use posecast_proto::quant::angle_between_degrees;
 use posecast_server::rig::Rig;
-use std::time::{Duration, Instant};
+use posecast_testkit::{DEFAULT_TIMEOUT, StreamedPose, TestClient, sample_clip};
+use std::time::Duration;
+
+const AVATAR: &str = "avatar";
 
 fn avatar() -> AvatarId {
-    AvatarId("avatar".into())
+    AvatarId(AVATAR.into())
 }
 
 /// The clip sampled at clip time `t` (wrapped into one cycle: the clips loop).
 fn sample(rig: &Rig, clip: &str, t: f32) -> Vec<Transform> {
-    let c = rig.clip(clip).unwrap();
-    let rest = rig.skeleton().rest();
-    let mut out = rest.to_vec();
-    c.sample(c.start() + t.rem_euclid(c.duration()), rest, &mut out);
-    out
+    let duration = rig.clip(clip).unwrap().duration();
+    sample_clip(rig, clip, t.rem_euclid(duration)).unwrap()
 }
 
 /// The worst rotation difference between two poses, degrees.
@@ -81,30 +82,16 @@ fn loop_distance(a: f32, b: f32, expected: f32, period: f32) -> f32 {
     d.min(period - d)
 }
 
-/// Waits until every frame computed before the last acknowledged command has arrived (a
-/// second command's ack comes after them on the wire) and returns the newest seq by then: every
-/// later frame shows the command's effect.
-async fn settle(c: &Client) -> u64 {
-    c.command(Command::GetAvatar { avatar: avatar() })
-        .await
-        .unwrap();
-    c.latest(&avatar()).map_or(0, |p| p.seq)
+/// The seq before the first frame that shows every command acknowledged so far: every later
+/// frame shows their effect.
+async fn settle(c: &TestClient) -> u64 {
+    c.fresh_pose(AVATAR, DEFAULT_TIMEOUT).await.unwrap().seq() - 1
 }
 
 /// Distinct poses streamed after seq `after`, for `secs` seconds.
-async fn record(c: &Client, after: u64, secs: f32) -> Vec<PoseSample> {
-    let mut out: Vec<PoseSample> = Vec::new();
-    let end = Instant::now() + Duration::from_secs_f32(secs);
-    while Instant::now() < end {
-        if let Some(p) = c.latest(&avatar())
-            && p.seq > after
-            && out.last().is_none_or(|l| l.seq != p.seq)
-        {
-            out.push(p);
-        }
-        tokio::time::sleep(Duration::from_millis(3)).await;
-    }
-    out
+async fn record(c: &TestClient, after: u64, secs: f32) -> Vec<StreamedPose> {
+    c.collect_poses(AVATAR, after, Duration::from_secs_f32(secs))
+        .await
 }
 
 fn play(clip: &str, start: f32, speed: f32, fade: f32) -> Command {
@@ -133,9 +120,9 @@ async fn a_cross_fade_streams_the_slerp_of_both_clips() {
     let rate = 30.0f32;
     let fade = 1.0f32;
     let rig = posecast_server::builtin::rig().unwrap();
-    let server = server(rate).await;
-    let c = client(&server, Encoding::Binary).await;
-    assert!(wait_for(3.0, || c.latest(&avatar()).is_some()).await);
+    let server = kit_server(rate).await;
+    let c = server.client().await.unwrap();
+    c.first_pose(AVATAR, DEFAULT_TIMEOUT).await.unwrap();
     // Both clips frozen (speed 0), so only the fade weight moves.
     let from = sample(&rig, "walk", 0.3);
     let to = sample(&rig, "wave", 0.8);
@@ -143,7 +130,7 @@ async fn a_cross_fade_streams_the_slerp_of_both_clips() {
     let after = settle(&c).await;
     let held = record(&c, after, 0.2).await;
     assert!(!held.is_empty());
-    assert!(worst(&held[0].locals, &from) <= 0.01, "not the walk pose");
+    assert!(worst(held[0].locals(), &from) <= 0.01, "not the walk pose");
     c.command(play("wave", 0.8, 0.0, fade)).await.unwrap();
     let after = settle(&c).await;
     let streamed = record(&c, after, 1.6).await;
@@ -159,7 +146,7 @@ async fn a_cross_fade_streams_the_slerp_of_both_clips() {
     assert!(span > 20.0, "the clips barely differ ({span}°)");
     let mut weights = Vec::new();
     for p in &streamed {
-        let w = (angle_between_degrees(from[j].rotation, p.locals[j].rotation) / span) as f32;
+        let w = (angle_between_degrees(from[j].rotation, p.locals()[j].rotation) / span) as f32;
         let w = w.min(1.0);
         // Every joint is on its own slerp at that weight, the root translation on its lerp.
         let expected: Vec<Transform> = from
@@ -171,10 +158,14 @@ async fn a_cross_fade_streams_the_slerp_of_both_clips() {
                 scale: a.scale,
             })
             .collect();
-        let err = worst(&p.locals, &expected);
-        assert!(err < 0.03, "seq {} (w {w:.3}): {err}° off the slerp", p.seq);
+        let err = worst(p.locals(), &expected);
+        assert!(
+            err < 0.03,
+            "seq {} (w {w:.3}): {err}° off the slerp",
+            p.seq()
+        );
         let moved = p
-            .locals
+            .locals()
             .iter()
             .zip(&expected)
             .map(|(a, b)| a.translation.distance(b.translation))
@@ -182,9 +173,9 @@ async fn a_cross_fade_streams_the_slerp_of_both_clips() {
         assert!(
             moved < 1e-4,
             "seq {}: a translation {moved} m off the lerp",
-            p.seq
+            p.seq()
         );
-        weights.push((p.seq, w));
+        weights.push((p.seq(), w));
     }
     // The weight grows by 1 / (rate · fade) per tick, from 0 to 1.
     let fading: Vec<(u64, f32)> = weights
@@ -207,7 +198,7 @@ async fn a_cross_fade_streams_the_slerp_of_both_clips() {
     }
     let last = streamed.last().unwrap();
     assert!(
-        worst(&last.locals, &to) <= 0.01,
+        worst(last.locals(), &to) <= 0.01,
         "the fade did not end on the wave pose"
     );
     server.stop().await;
@@ -219,9 +210,9 @@ async fn negative_speed_runs_the_clip_backwards() {
     let speed = -1.5f32;
     let rig = posecast_server::builtin::rig().unwrap();
     let period = rig.clip("walk").unwrap().duration();
-    let server = server(rate).await;
-    let c = client(&server, Encoding::Binary).await;
-    assert!(wait_for(3.0, || c.latest(&avatar()).is_some()).await);
+    let server = kit_server(rate).await;
+    let c = server.client().await.unwrap();
+    c.first_pose(AVATAR, DEFAULT_TIMEOUT).await.unwrap();
     c.command(play("walk", 0.6, speed, 0.0)).await.unwrap();
     let after = settle(&c).await;
     let streamed = record(&c, after, 0.6).await;
@@ -229,13 +220,13 @@ async fn negative_speed_runs_the_clip_backwards() {
     let times: Vec<(u64, f32)> = streamed
         .iter()
         .map(|p| {
-            let (t, err) = clip_time_of(&rig, "walk", &p.locals);
+            let (t, err) = clip_time_of(&rig, "walk", p.locals());
             assert!(
                 err < 0.02,
                 "seq {}: no walk pose ({err}° off at best)",
-                p.seq
+                p.seq()
             );
-            (p.seq, t)
+            (p.seq(), t)
         })
         .collect();
     // Clip time goes down by |speed| · dt per tick.
@@ -266,36 +257,35 @@ async fn ticks_missed_while_blocked_are_counted_and_covered() {
     let rate = 60.0f32;
     let rig = posecast_server::builtin::rig().unwrap();
     let period = rig.clip("walk").unwrap().duration();
-    let server = server(rate).await;
-    let c = client(&server, Encoding::Binary).await;
-    assert!(wait_for(3.0, || c.latest(&avatar()).is_some()).await);
+    let server = kit_server(rate).await;
+    let c = server.client().await.unwrap();
+    c.first_pose(AVATAR, DEFAULT_TIMEOUT).await.unwrap();
     c.command(play("walk", 0.0, 1.0, 0.0)).await.unwrap();
     let after = settle(&c).await;
     let before = record(&c, after, 0.1).await.pop().expect("no frame");
     let missed_before = metric(&server, "posecast_ticks_missed_total").await;
     // Nothing runs for 300 ms: about 18 ticks are due meanwhile.
     std::thread::sleep(Duration::from_millis(300));
-    assert!(
-        wait_for(2.0, || c
-            .latest(&avatar())
-            .is_some_and(|p| p.seq > before.seq + 18))
+    let after = c
+        .wait_for_pose(AVATAR, Duration::from_secs(2), |p| {
+            p.seq() > before.seq() + 18
+        })
         .await
-    );
-    let after = c.latest(&avatar()).unwrap();
+        .unwrap();
     let missed = metric(&server, "posecast_ticks_missed_total").await - missed_before;
     assert!(missed >= 10, "{missed} ticks counted as missed");
     // The pose after the gap is the clip at the time that covers it: the clock advanced by
     // every tick, skipped or not.
-    let (t1, e1) = clip_time_of(&rig, "walk", &before.locals);
-    let (t2, e2) = clip_time_of(&rig, "walk", &after.locals);
+    let (t1, e1) = clip_time_of(&rig, "walk", before.locals());
+    let (t2, e2) = clip_time_of(&rig, "walk", after.locals());
     assert!(e1 < 0.02 && e2 < 0.02, "not walk poses ({e1}°, {e2}°)");
-    let expected = (after.seq - before.seq) as f32 / rate;
+    let expected = (after.seq() - before.seq()) as f32 / rate;
     let off = loop_distance(t1, t2, expected, period);
     assert!(
         off < 1e-3,
         "clip time {t1:.4} → {t2:.4} over ticks {} → {}, expected {expected:+.4}",
-        before.seq,
-        after.seq
+        before.seq(),
+        after.seq()
     );
     server.stop().await;
 }

@@ -9,7 +9,7 @@ use common::{client, next_text, raw, server, wait_for};
 use futures_util::{Sink, SinkExt};
 use glam::Quat;
 use posecast_proto::Transform;
-use posecast_proto::command::Command;
+use posecast_proto::command::{Command, CommandResult};
 use posecast_proto::frame::FrameDecoder;
 use posecast_proto::msg::SceneId;
 use posecast_proto::msg::{AvatarId, Encoding, ErrorCode, MAX_CLIENT_MESSAGE_BYTES, ServerMsg};
@@ -21,14 +21,17 @@ use posecast_server::scene::Scene;
 use posecast_server::stream::feed::Subscriber;
 use posecast_server::stream::outbox::{MAX_CONTROL_BYTES, MAX_PENDING_DELTAS, Outbox};
 use posecast_server::stream::writer::run_writer;
+use posecast_testkit::DEFAULT_TIMEOUT;
 use std::pin::Pin;
 use std::sync::{Arc, Mutex};
 use std::task::{Context, Poll};
 use std::time::{Duration, Instant};
 use tokio_tungstenite::tungstenite::Message;
 
+const AVATAR: &str = "avatar";
+
 fn avatar() -> AvatarId {
-    AvatarId("avatar".into())
+    AvatarId(AVATAR.into())
 }
 
 /// The worst rotation error between two poses, degrees, and the worst translation error.
@@ -65,12 +68,9 @@ async fn pause_at(c: &posecast_client::net::Client, avatar: &AvatarId, time: f32
 
 #[tokio::test]
 async fn built_in_avatar_streams_the_clip_it_plays() {
-    let server = server(60.0).await;
-    let c = client(&server, Encoding::Binary).await;
-    assert!(
-        wait_for(3.0, || c.latest(&avatar()).is_some()).await,
-        "no pose received"
-    );
+    let server = common::kit_server(60.0).await;
+    let c = server.client().await.unwrap();
+    c.first_pose(AVATAR, DEFAULT_TIMEOUT).await.unwrap();
     let view = c.avatar(&avatar()).unwrap();
     // The description is the server's rig.
     let rig = posecast_server::builtin::rig().unwrap();
@@ -93,13 +93,19 @@ async fn built_in_avatar_streams_the_clip_it_plays() {
         })
         .await
         .unwrap();
-        pause_at(&c, &avatar(), time).await;
-        let got = c.latest(&avatar()).unwrap().locals;
-        let clip = rig.clip(clip).unwrap();
-        let mut expected = rig.skeleton().rest().to_vec();
-        clip.sample(clip.start() + time, rig.skeleton().rest(), &mut expected);
-        let (rot, trans) = pose_error(&got, &expected);
-        assert!(rot <= MAX_ERROR_DEGREES, "{clip:?}: rotation error {rot}°");
+        c.command(Command::Pause { avatar: avatar() })
+            .await
+            .unwrap();
+        c.command(Command::Seek {
+            avatar: avatar(),
+            time,
+        })
+        .await
+        .unwrap();
+        let got = c.fresh_pose(AVATAR, DEFAULT_TIMEOUT).await.unwrap();
+        let expected = server.clip_pose(AVATAR, clip, time).unwrap();
+        got.assert_near(&expected, MAX_ERROR_DEGREES).unwrap();
+        let (_, trans) = pose_error(got.locals(), &expected);
         assert!(trans <= 1e-6, "{clip:?}: translation error {trans}");
     }
     server.stop().await;
@@ -446,38 +452,44 @@ async fn malformed_input_gets_typed_errors_and_harms_no_one() {
 
 #[tokio::test]
 async fn binary_and_json_subscribers_decode_the_same_poses() {
-    let server = server(60.0).await;
-    let b = client(&server, Encoding::Binary).await;
-    let j = client(&server, Encoding::Json).await;
-    assert!(
-        wait_for(3.0, || b.latest(&avatar()).is_some()
-            && j.latest(&avatar()).is_some())
+    let server = common::kit_server(60.0).await;
+    let b = server.client().await.unwrap();
+    let j = server
+        .client_builder()
+        .encoding(Encoding::Json)
+        .connect()
         .await
-    );
-    b.command(Command::SetJointRotation {
-        avatar: avatar(),
-        joint: "r_elbow".into(),
-        rotation: Quat::from_rotation_z(0.7).to_array(),
-    })
-    .await
-    .unwrap();
-    pause_at(&b, &avatar(), 1.0).await;
-    let target = b.latest(&avatar()).unwrap().seq;
-    assert!(wait_for(3.0, || j.latest(&avatar()).is_some_and(|p| p.seq >= target)).await);
-    let (rot, trans) = pose_error(
-        &b.latest(&avatar()).unwrap().locals,
-        &j.latest(&avatar()).unwrap().locals,
-    );
-    assert!(rot <= MAX_ERROR_DEGREES, "binary vs JSON: {rot}°");
-    assert!(trans <= 1e-6);
-    let elbow = b
-        .avatar(&avatar())
-        .unwrap()
-        .skeleton
-        .find("r_elbow")
         .unwrap();
-    let got = b.latest(&avatar()).unwrap().locals[elbow].rotation;
-    assert!(angle_between_degrees(got, Quat::from_rotation_z(0.7)) <= MAX_ERROR_DEGREES);
+    b.first_pose(AVATAR, DEFAULT_TIMEOUT).await.unwrap();
+    j.first_pose(AVATAR, DEFAULT_TIMEOUT).await.unwrap();
+    let q = Quat::from_rotation_z(0.7);
+    let set = b
+        .command(Command::SetJointRotation {
+            avatar: avatar(),
+            joint: "r_elbow".into(),
+            rotation: q.to_array(),
+        })
+        .await
+        .unwrap();
+    // The typed answer: the rotation set (no limits on the elbow's z turn this far).
+    let CommandResult::Rotation { rotation } = set else {
+        panic!("set_joint_rotation answered {set:?}");
+    };
+    assert!(angle_between_degrees(Quat::from_array(rotation), q) <= 1e-3);
+    pause_at(&b, &avatar(), 1.0).await;
+    let target = b.pose(AVATAR).unwrap().seq();
+    let json = j
+        .wait_for_pose(AVATAR, DEFAULT_TIMEOUT, |p| p.seq() >= target)
+        .await
+        .unwrap();
+    let binary = b.pose(AVATAR).unwrap();
+    binary
+        .assert_near(json.locals(), MAX_ERROR_DEGREES)
+        .unwrap();
+    let (_, trans) = pose_error(binary.locals(), json.locals());
+    assert!(trans <= 1e-6);
+    let got = binary.rotation("r_elbow").unwrap();
+    assert!(angle_between_degrees(got, q) <= MAX_ERROR_DEGREES);
     server.stop().await;
 }
 

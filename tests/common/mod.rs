@@ -1,4 +1,7 @@
-//! Shared set-up for the end-to-end tests: an in-process server on port 0 and clients.
+//! What the end-to-end tests share beyond `posecast-testkit` (which starts the in-process
+//! servers and connects the clients): this repository's fixed control token and access rules,
+//! `Server`/`Client`-returning shorthands for the tests written before the kit, raw websockets,
+//! HTTP requests, uploads and the shared test files.
 
 #![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]
 
@@ -6,11 +9,11 @@ pub mod child;
 pub mod vmc;
 
 use futures_util::{SinkExt, StreamExt};
-use posecast_client::net::{Client, ClientOptions};
+use posecast_client::net::Client;
 use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, ServerMsg};
 use posecast_server::auth::{AccessConfig, Role, Secret, TokenRule};
-use posecast_server::config::Config;
 use posecast_server::startup::Server;
+use posecast_testkit::{ClientBuilder, TestServer, TestServerBuilder};
 use std::time::Duration;
 use tokio_tungstenite::tungstenite::Message;
 
@@ -29,6 +32,20 @@ pub fn test_access() -> AccessConfig {
     access
 }
 
+/// A kit server with the built-in avatar at `tick_rate` Hz, [`test_access`]'s rules, and
+/// [`CONTROL`] as the token its clients and drivers present.
+pub async fn kit_server(tick_rate: f32) -> TestServer {
+    kit_builder(tick_rate).start().await.unwrap()
+}
+
+/// [`kit_server`]'s builder, to change more before starting.
+pub fn kit_builder(tick_rate: f32) -> TestServerBuilder {
+    TestServer::builder()
+        .tick_rate(tick_rate)
+        .access(test_access())
+        .control_token(CONTROL)
+}
+
 /// A server with the built-in avatar at `tick_rate` Hz on an ephemeral port.
 pub async fn server(tick_rate: f32) -> Server {
     server_with(tick_rate, test_access()).await
@@ -36,24 +53,25 @@ pub async fn server(tick_rate: f32) -> Server {
 
 /// [`server`] with other access rules.
 pub async fn server_with(tick_rate: f32, access: AccessConfig) -> Server {
-    let config = Config {
-        listen: "127.0.0.1:0".parse().unwrap(),
-        tick_rate,
-        access,
-        ..Config::default()
-    };
-    let server = Server::start(config).await.unwrap();
-    server.ready().await.unwrap();
-    server
+    TestServer::builder()
+        .tick_rate(tick_rate)
+        .access(access)
+        .control_token(CONTROL)
+        .start()
+        .await
+        .unwrap()
+        .into_server()
 }
 
 /// A library client subscribed to `default`, holding the control token.
 pub async fn client(server: &Server, encoding: Encoding) -> Client {
-    let mut options = ClientOptions::new(server.ws_url(), "default");
-    options.encoding = encoding;
-    options.reconnect = false;
-    options.token = Some(CONTROL.into());
-    Client::connect(options).await.unwrap()
+    ClientBuilder::new(server.ws_url())
+        .encoding(encoding)
+        .token(Some(CONTROL))
+        .connect()
+        .await
+        .unwrap()
+        .into_inner()
 }
 
 /// A raw websocket that has said hello with the control token (and read the welcome).
