@@ -96,6 +96,49 @@ async fn first_frame(
     }
 }
 
+/// A joiner after `place_avatar` *and a tick* (the window in which the joiner gets the
+/// scene's cached keyframe rather than one made for it): its very first frame shows the move,
+/// because placing makes the next tick a keyframe. Deterministic: the test waits for ticks.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_joiner_a_tick_after_a_move_sees_it_in_its_first_frame() {
+    let server = common::server(30.0).await;
+    let scene = server
+        .state
+        .world
+        .scene(&SceneId("default".into()))
+        .unwrap();
+    let mut ticks = scene.ticks();
+    let to = Placement {
+        position: Vec3::new(2.0, 0.0, -1.0),
+        rotation: Quat::IDENTITY,
+    };
+    for encoding in [Encoding::Binary, Encoding::Json] {
+        for x in [2.0f32, -2.0] {
+            let to = Placement {
+                position: Vec3::new(x, 0.0, -1.0),
+                ..to
+            };
+            ok(
+                server.addr,
+                &format!(
+                    r#"{{"op":"place_avatar","avatar":"avatar","position":[{x},0,-1],"rotation":[0,0,0,1]}}"#
+                ),
+            )
+            .await;
+            // Two ticks: the first after the ack may have been under way before it.
+            for _ in 0..2 {
+                ticks.changed().await.unwrap();
+            }
+            let seen = first_frame(server.addr, encoding, "default").await;
+            assert!(
+                near(&seen[&AvatarId("avatar".into())], &to),
+                "{encoding:?}: {seen:?}, wanted {to:?}"
+            );
+        }
+    }
+    server.stop().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn placement_survives_sigkill_and_reaches_late_joiners_in_both_encodings() {
     let data = tempfile::tempdir().unwrap();

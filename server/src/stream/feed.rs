@@ -178,9 +178,12 @@ impl Feed {
     }
 
     /// Notes that an avatar was placed: until the next tick, joiners get a keyframe made from
-    /// the current poses rather than the cached one.
+    /// the current poses rather than the cached one, and the next tick is a keyframe, so the
+    /// cached keyframe a later joiner gets first already shows the new placement (not only the
+    /// delta after it).
     pub fn placed(&mut self) {
         self.placed = true;
+        self.force_key = true;
     }
 
     /// Subscribes a connection (replacing its previous subscription to this scene). It gets,
