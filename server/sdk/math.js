@@ -186,6 +186,9 @@ export function eulerXYZFromQuat(q) {
   return [ex, ey, ez];
 }
 
+/** Above this dot product slerp is linear (glam's threshold, `1 − f32::EPSILON`). */
+const SLERP_LINEAR_DOT = 1 - 2 ** -23;
+
 /**
  * Shortest-arc spherical interpolation from `a` (w = 0) to `b` (w = 1), normalised — as
  * posecast-proto's `Transform::blend` does it (glam's `Quat::slerp`).
@@ -200,8 +203,8 @@ export function quatSlerp(a, b, w) {
   dot *= s;
   let k0 = 1 - w;
   let k1 = s * w;
-  if (dot <= 0.9995) {
-    // Not nearly the same rotation (there, linear then normalised: sin θ would lose precision).
+  if (dot <= SLERP_LINEAR_DOT) {
+    // Not (nearly) the same rotation: there, linear then normalised (sin θ would vanish).
     const theta = Math.acos(dot);
     k0 = Math.sin((1 - w) * theta) / Math.sin(theta);
     k1 = (s * Math.sin(w * theta)) / Math.sin(theta);
