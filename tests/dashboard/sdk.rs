@@ -65,6 +65,15 @@ client.on("frame", (f) => {{
 }});
 client.subscribe("default");
 client.connect();
+// The same stream as JSON (float rotations, every frame complete), in the same shape.
+const json = new sdk.Client({{ url: window.url, encoding: "json" }});
+window.json = {{}};
+json.on("frame", (f) => {{
+  const p = f.avatars.find((a) => a.avatar === "avatar");
+  if (p && Object.keys(window.json).length < 600) window.json[f.seq] = {{ key: f.key, rotations: p.rotations }};
+}});
+json.subscribe("default");
+json.connect();
 </script>"#
     )
 }
@@ -86,7 +95,8 @@ const SAME_BITS_DEGREES: f64 = 5e-4;
 
 /// On every tick both decoded, the page's rotations equal the Rust client's within the
 /// quantisation bound — within float rounding, in fact — and its placements within float
-/// rounding — keyframes and deltas (the
+/// rounding; the page's JSON client's float rotations are within the quantisation bound of
+/// them — keyframes and deltas (the
 /// avatar walks while it is moved, so deltas carry small and full rotation changes and
 /// placements).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -181,6 +191,34 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
         worst <= MAX_ERROR_DEGREES,
         "{worst}° over the quantisation bound"
     );
+    // The JSON client's float rotations: the binary ones are within the quantisation bound.
+    let json_frames = wait_js(&b, 5, "window.json").await;
+    let (mut json_ticks, mut worst_json) = (0, 0.0f64);
+    for (seq, (want, _)) in &rust_ticks {
+        let Some(got) = json_frames.get(seq.to_string()) else {
+            continue;
+        };
+        json_ticks += 1;
+        assert_eq!(got["key"], json!(true), "JSON frames are complete");
+        for (j, (g, w)) in got["rotations"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .zip(want)
+            .enumerate()
+        {
+            let angle = angle_between_degrees(quat(g), *w);
+            worst_json = worst_json.max(angle);
+            assert!(
+                angle <= MAX_ERROR_DEGREES,
+                "tick {seq} joint {j}: JSON {g}, binary {w:?} ({angle}°)"
+            );
+        }
+    }
+    assert!(
+        json_ticks >= 60,
+        "only {json_ticks} ticks in JSON and binary"
+    );
     // 3 s at 60 Hz: most ticks reach both (a loaded machine may skip some).
     assert!(
         ticks >= 60 && deltas >= 30,
@@ -197,7 +235,8 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
     );
     println!(
         "posecast.js vs posecast_client: {ticks} ticks ({deltas} deltas), {rotations} rotations, \
-         largest difference {worst:.2e}° (bound {MAX_ERROR_DEGREES}°), placement {worst_place:.1e}"
+         largest difference {worst:.2e}° (bound {MAX_ERROR_DEGREES}°), placement {worst_place:.1e}; \
+         JSON vs binary on {json_ticks} ticks: {worst_json:.2e}°"
     );
 }
 
