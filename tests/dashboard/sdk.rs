@@ -67,6 +67,7 @@ client.subscribe("default");
 client.connect();
 // The same stream as JSON (float rotations, every frame complete), in the same shape.
 const json = new sdk.Client({{ url: window.url, encoding: "json" }});
+window.jsonClient = json;
 window.json = {{}};
 json.on("frame", (f) => {{
   const p = f.avatars.find((a) => a.avatar === "avatar");
@@ -219,6 +220,21 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
         json_ticks >= 60,
         "only {json_ticks} ticks in JSON and binary"
     );
+    // Binary is what browsers should get: several times smaller than JSON (bytes per frame,
+    // keyframes included).
+    let sizes = b
+        .execute(
+            "return [client.stats.frameBytes / client.stats.frames, \
+                     jsonClient.stats.frameBytes / jsonClient.stats.frames];",
+            vec![],
+        )
+        .await
+        .unwrap();
+    let (binary_bytes, json_bytes) = (sizes[0].as_f64().unwrap(), sizes[1].as_f64().unwrap());
+    assert!(
+        binary_bytes * 3.0 < json_bytes,
+        "bytes per frame: binary {binary_bytes:.0}, JSON {json_bytes:.0}"
+    );
     // 3 s at 60 Hz: most ticks reach both (a loaded machine may skip some).
     assert!(
         ticks >= 60 && deltas >= 30,
@@ -236,7 +252,8 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
     println!(
         "posecast.js vs posecast_client: {ticks} ticks ({deltas} deltas), {rotations} rotations, \
          largest difference {worst:.2e}° (bound {MAX_ERROR_DEGREES}°), placement {worst_place:.1e}; \
-         JSON vs binary on {json_ticks} ticks: {worst_json:.2e}°"
+         JSON vs binary on {json_ticks} ticks: {worst_json:.2e}°; bytes per frame: binary \
+         {binary_bytes:.0}, JSON {json_bytes:.0}"
     );
 }
 
