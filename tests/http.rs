@@ -128,11 +128,64 @@ fn connect_src(policy: &str) -> Vec<String> {
         .collect()
 }
 
+/// `/sdk/`: the JavaScript client and its declarations, with their types, readable from any
+/// origin (module scripts are fetched with CORS), and revalidated by tag (304, no body).
+#[tokio::test]
+async fn the_javascript_client_is_served_to_any_origin_and_revalidated() {
+    let server = server(60.0).await;
+    for (path, content_type, starts) in [
+        (
+            "/sdk/posecast.js",
+            "text/javascript; charset=utf-8",
+            "// @ts-check",
+        ),
+        (
+            "/sdk/frames.js",
+            "text/javascript; charset=utf-8",
+            "// @ts-check",
+        ),
+        (
+            "/sdk/posecast.d.ts",
+            "application/typescript; charset=utf-8",
+            "// Type declarations",
+        ),
+    ] {
+        let origin = [("Origin", "http://elsewhere.example")];
+        let (status, head, body) = http_with_headers(server.addr, "GET", path, &origin, b"").await;
+        assert_eq!(status, 200, "{path}");
+        assert_eq!(
+            header_value(&head, "content-type").as_deref(),
+            Some(content_type)
+        );
+        assert_eq!(
+            header_value(&head, "access-control-allow-origin").as_deref(),
+            Some("*")
+        );
+        assert_eq!(
+            header_value(&head, "cache-control").as_deref(),
+            Some("no-cache")
+        );
+        assert!(body.starts_with(starts), "{path}");
+        let tag = header_value(&head, "etag").unwrap();
+        let (status, head, body) =
+            http_with_headers(server.addr, "GET", path, &[("If-None-Match", &tag)], b"").await;
+        assert_eq!(status, 304, "{path}");
+        assert!(body.is_empty(), "{path}");
+        assert_eq!(header_value(&head, "etag"), Some(tag));
+    }
+    let (status, _, body) =
+        http_with_headers(server.addr, "GET", "/sdk/nothing.js", &[], b"").await;
+    assert_eq!(status, 404);
+    let body: Value = serde_json::from_str(&body).unwrap();
+    assert_eq!(body["code"], "not_found", "{body}");
+    server.stop().await;
+}
+
 #[tokio::test]
 async fn the_dashboard_lets_websockets_reach_its_own_host_only() {
     let server = server(60.0).await;
     let host = server.addr.to_string();
-    for path in ["/", "/dashboard/connection.js"] {
+    for path in ["/", "/dashboard/app.js", "/sdk/posecast.js"] {
         let (status, head, _) = http_with_headers(server.addr, "GET", path, &[], b"").await;
         assert_eq!(status, 200, "{path}");
         let policy = header_value(&head, "content-security-policy").unwrap();

@@ -1,14 +1,15 @@
 // @ts-check
-// The posecast dashboard. It uses only the public protocol: the websocket at /ws (JSON frames,
-// pushed scene changes, commands with ack/error) and the REST API (mesh download, uploads), so
+// The posecast dashboard. It uses only the public protocol, through the JavaScript client the
+// server serves at /sdk/posecast.js (../sdk/: the websocket at /ws with binary frames, pushed
+// scene changes, commands with ack/error) and the REST API (mesh download, uploads), so
 // anything it does a third-party dashboard can do too.
 //
-// The parts: connection.js (the websocket), tokens.js, store.js (the one store every panel
+// The parts: the client (../sdk/posecast.js), tokens.js, store.js (the one store every panel
 // reads), sync.js (server messages → store and preview), viewer.js (the WebGL2 / 2D preview)
 // and one module per panel. `?debug` exposes `window.posecast` (errors seen, frame and render
 // counters, commands sent, where each avatar was drawn, the camera, the timeline) for the tests.
 
-import { Connection } from "./connection.js";
+import { Client } from "../sdk/posecast.js";
 import { Viewer } from "./viewer.js";
 import { Store } from "./store.js";
 import { Sync } from "./sync.js";
@@ -39,7 +40,7 @@ if (params.has("debug")) {
 
 tokens.takeFromHash();
 const store = new Store();
-const conn = new Connection(`${location.protocol === "https:" ? "wss:" : "ws:"}//${location.host}/ws`, tokens.forHello);
+const conn = new Client({ tokens: tokens.forHello, encoding: "binary", name: "posecast-dashboard" });
 const viewer = new Viewer($("preview", HTMLCanvasElement), { prefer2d: params.get("renderer") === "2d" });
 const sync = new Sync(store, conn, viewer);
 
@@ -101,15 +102,15 @@ if (params.has("debug")) {
   /** @type {any} */ (window).posecast = {
     errors,
     get state() { return conn.state; },
-    get frames() { return conn.frames; },
+    get frames() { return conn.stats.frames; },
     get rendered() { return viewer.renderedFrames; },
     get renderer() { return viewer.mode; },
     get meshLoaded() { return !!viewer.mesh; },
     /** Per avatar drawn: `{avatar, root, screen}`, its root joint in world space and on the canvas. */
     get drawn() { return viewer.drawn; },
-    get rtt() { return conn.rtt; },
+    get rtt() { return conn.rttMs; },
     /** Commands sent, by op. */
-    get sent() { return { ...conn.sent }; },
+    get sent() { return { ...conn.stats.commands }; },
     get camera() { return viewer.camera; },
     get timeline() { return { ...timeline.shownTime }; },
     get selected() { return store.get().selected; },
@@ -118,4 +119,4 @@ if (params.has("debug")) {
   };
 }
 
-conn.start();
+conn.connect();

@@ -3,7 +3,7 @@
 // with joint matrices M_j = W_j · B_j⁻¹ from a float texture; grid and skeletons as lines, the
 // skeletons over every mesh.
 
-import { multiply } from "./math.js";
+import { skinningMatrices } from "../sdk/posecast.js";
 import { BACKGROUND, JOINT_COLOR, MESH_COLOR, SELECTED_MESH_COLOR, gridLines, boneLines } from "./draw.js";
 
 /** @typedef {import("./draw.js").Line} Line */
@@ -239,12 +239,7 @@ export class GlRenderer {
     const n = desc.joint_names.length;
     if (mesh.jointCount && mesh.jointCount !== n) return; // stale mesh for another rig
     const primitives = this.meshPrimitives(desc.hash, mesh);
-    const skin = new Float32Array(16 * n);
-    const m = new Float32Array(16);
-    for (let j = 0; j < n; j++) {
-      multiply(m, worlds.subarray(16 * j, 16 * j + 16), desc.inverse_binds[j]);
-      skin.set(m, 16 * j);
-    }
+    const skin = skinningMatrices(desc, worlds);
     gl.activeTexture(gl.TEXTURE0);
     gl.bindTexture(gl.TEXTURE_2D, this.jointTexture);
     gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, 4 * n, 1, 0, gl.RGBA, gl.FLOAT, skin);

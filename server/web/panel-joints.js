@@ -4,7 +4,7 @@
 // (`set_joint_rotation`); world-space nudges; releasing overrides.
 
 import { $, el, num } from "./ui.js";
-import { quatAxisAngle, quatFromEulerXYZ, eulerXYZFromQuat, DEG } from "./math.js";
+import { quatAxisAngle, quatFromEulerXYZ, eulerXYZFromQuat, DEG } from "../sdk/posecast.js";
 
 /** @typedef {import("./ui.js").Ctx} Ctx */
 /** @typedef {import("./protocol.js").JointInfo} JointInfo */

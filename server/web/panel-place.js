@@ -2,7 +2,7 @@
 // Where the selected avatar stands, and moving it (`place_avatar`, at once or over seconds).
 
 import { $, num, notice } from "./ui.js";
-import { quatAxisAngle, DEG } from "./math.js";
+import { quatAxisAngle, DEG } from "../sdk/posecast.js";
 import { yawDegrees } from "./panel-scenes.js";
 
 /** @typedef {import("./ui.js").Ctx} Ctx */

@@ -4,7 +4,7 @@
 // avatars (rig, id, clip, position, facing). The list changes when the server pushes a change.
 
 import { $, el, notice } from "./ui.js";
-import { quatAxisAngle, DEG } from "./math.js";
+import { quatAxisAngle, DEG } from "../sdk/posecast.js";
 import { num } from "./ui.js";
 
 /** @typedef {import("./ui.js").Ctx} Ctx */

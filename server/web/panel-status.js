@@ -51,6 +51,7 @@ export function mount(ctx) {
       connecting: "connecting…",
       offline: "offline — reconnecting",
       refused: "refused",
+      closed: "closed",
     }[s.conn];
     pill.title = s.connDetail;
     const offline = $("offline");
@@ -69,9 +70,9 @@ export function mount(ctx) {
 
   let lastFrames = 0;
   setInterval(() => {
-    $("fps").textContent = `${conn.frames - lastFrames} frames/s`;
-    lastFrames = conn.frames;
-    if (conn.rtt !== null) $("latency").textContent = `RTT ${conn.rtt.toFixed(1)} ms`;
+    $("fps").textContent = `${conn.stats.frames - lastFrames} frames/s`;
+    lastFrames = conn.stats.frames;
+    if (conn.rttMs !== null) $("latency").textContent = `RTT ${conn.rttMs.toFixed(1)} ms`;
   }, 1000);
 }
 

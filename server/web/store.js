@@ -9,8 +9,8 @@
 /** @typedef {import("./protocol.js").AvatarDescription} AvatarDescription */
 /** @typedef {import("./protocol.js").AvatarPose} AvatarPose */
 /** @typedef {import("./protocol.js").Access} Access */
-/** @typedef {import("./connection.js").ConnState} ConnState */
-/** @typedef {import("./connection.js").Refusal} Refusal */
+/** @typedef {import("../sdk/posecast.js").ConnectionState} ConnState */
+/** @typedef {import("../sdk/posecast.js").Refusal} Refusal */
 
 /**
  * An avatar as last pushed: its state holds at the scene's tick `seq` (null: listed, not

@@ -12,7 +12,7 @@ import { notice, describeError } from "./ui.js";
 /** @typedef {import("./protocol.js").AssetInfo} AssetInfo */
 /** @typedef {import("./store.js").Store} Store */
 /** @typedef {import("./store.js").AvatarEntry} AvatarEntry */
-/** @typedef {import("./connection.js").Connection} Connection */
+/** @typedef {import("../sdk/posecast.js").Client} Connection */
 /** @typedef {import("./viewer.js").Viewer} Viewer */
 
 export class Sync {
@@ -33,8 +33,9 @@ export class Sync {
     this.welcomed = null;
     /** @type {ServerMsg[] | null} Changes that came before the answer to `watch_scenes`. */
     this.early = null;
-    conn.onState = () => this.onState();
-    conn.onMessage = (msg) => this.onMessage(msg);
+    conn.on("state", () => this.onState());
+    // The client's messages are the protocol's (frames decoded into the JSON frame's shape).
+    conn.on("message", (msg) => this.onMessage(/** @type {ServerMsg} */ (/** @type {unknown} */ (msg))));
     viewer.onPick = (avatar) => this.select(avatar);
   }
 
@@ -190,8 +191,17 @@ export class Sync {
     store.get().descriptions.clear();
     store.set({ watched: scene, frame: null, focus: null });
     store.touch("descriptions");
-    this.conn.subscribeOnly(scene);
+    this.subscribeOnly(scene);
     this.viewer.setScene(scene);
+  }
+
+  /**
+   * Keeps `scene` subscribed (across reconnects) — and only it.
+   * @param {string | null} scene
+   */
+  subscribeOnly(scene) {
+    for (const s of [...this.conn.subscriptions.keys()]) if (s !== scene) this.conn.unsubscribe(s);
+    if (scene && !this.conn.subscriptions.has(scene)) this.conn.subscribe(scene);
   }
 
   /**

@@ -4,8 +4,8 @@
 // page a token: it is stored and taken out of the address bar and history — at load and
 // whenever the hash changes in an open tab.
 
-/** @typedef {import("./connection.js").Token} Token */
-/** @typedef {import("./connection.js").TokenKind} TokenKind */
+/** @typedef {import("../sdk/posecast.js").Token} Token */
+/** @typedef {import("../sdk/posecast.js").TokenKind} TokenKind */
 
 /** @type {Record<TokenKind, string>} */
 const KEYS = { view: "posecast.token.view", control: "posecast.token.control" };

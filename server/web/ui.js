@@ -1,13 +1,13 @@
 // @ts-check
 // Small DOM helpers and what every panel is given (`Ctx`).
 
-import { ServerError } from "./connection.js";
+import { PosecastError } from "../sdk/posecast.js";
 
 /**
  * What a panel works with.
  * @typedef {object} Ctx
  * @property {import("./store.js").Store} store
- * @property {import("./connection.js").Connection} conn
+ * @property {import("../sdk/posecast.js").Client} conn
  * @property {import("./viewer.js").Viewer} viewer
  * @property {(avatar: string | null) => void} select Picks the avatar the page controls (and watches its scene).
  * @property {(scene: string | null) => void} watch Shows a scene in the preview (its first avatar picked).
@@ -67,7 +67,7 @@ export function notice(text, kind = "info") {
  * @returns {string}
  */
 export function describeError(e) {
-  if (e instanceof ServerError) {
+  if (e instanceof PosecastError) {
     if (e.code === "unauthorized") return `Refused (unauthorized): ${e.message}. Check the control token.`;
     if (e.code === "forbidden") return `Refused (forbidden): ${e.message}. This token may not do that.`;
     return `${e.code}: ${e.message}`;

@@ -7,8 +7,8 @@
 // wheel) or the keyboard (arrows, +/-, Home) while the canvas has focus; a click on an avatar
 // picks it. The camera frames the whole scene, or follows one avatar (`focusOn`).
 
-import { multiply, perspective, lookAt, transformPoint } from "./math.js";
-import { forwardKinematics, jointPositions } from "./fk.js";
+import { multiply, perspective, lookAt, transformPoint } from "../sdk/posecast.js";
+import { forwardKinematics, jointPositions } from "../sdk/posecast.js";
 import { BACKGROUND, render2d, rgb } from "./draw.js";
 import { GlRenderer } from "./draw-gl.js";
 

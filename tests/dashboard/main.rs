@@ -14,7 +14,9 @@
 //! - `layout`: at 1280×800 the controls sit beside the preview, which stays in view; at 400 px
 //!   one column without sideways scrolling;
 //! - `push`: changes made by others show within a second without the page asking (it never
-//!   sends `list_scenes`, and sends no command while idle).
+//!   sends `list_scenes`, and sends no command while idle);
+//! - `sdk`: the JavaScript client `/sdk/posecast.js` from pages on another origin: binary
+//!   frames decoded as a Rust client decodes them, typed command errors, README's example page.
 //!
 //! Needs `/usr/bin/chromium` and `/usr/bin/chromedriver` (`scripts/test` installs them).
 //! Set `POSECAST_UPDATE_SCREENSHOT=1` to also write `docs/dashboard.png` for the README.
@@ -29,6 +31,7 @@ mod controls;
 mod layout;
 mod placement;
 mod push;
+mod sdk;
 mod timeline;
 mod tokens;
 mod world;

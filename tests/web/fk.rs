@@ -1,10 +1,11 @@
-//! The page's forward kinematics against `posecast_proto::fk`.
+//! The JavaScript client's forward kinematics and skinning matrices (`server/sdk/fk.js`)
+//! against `posecast_proto::fk`.
 
 use crate::root;
 use glam::{Mat4, Quat, Vec3};
 use posecast_proto::Transform;
 use posecast_proto::description::AvatarDescription;
-use posecast_proto::fk::forward_kinematics;
+use posecast_proto::fk::{forward_kinematics, skinning_matrices};
 use posecast_proto::msg::AvatarId;
 use posecast_proto::placement::Placement;
 use posecast_proto::testing::{skeleton_bound_at_rest, skip};
@@ -51,7 +52,8 @@ impl Lcg {
 }
 
 /// One vector: a description and a pose as the page receives them, and the world matrices
-/// `posecast_proto` computes for them (`P · W_j`, column-major).
+/// `posecast_proto` computes for them (`P · W_j`, column-major) and the skinning matrices
+/// (`P · W_j · B_j⁻¹`).
 fn fk_case(desc: &AvatarDescription, rng: &mut Lcg) -> Value {
     let skeleton = desc.to_skeleton().unwrap();
     let n = skeleton.len();
@@ -91,10 +93,11 @@ fn fk_case(desc: &AvatarDescription, rng: &mut Lcg) -> Value {
         .collect();
     let mut world = vec![Mat4::IDENTITY; n];
     forward_kinematics(&skeleton, &locals, &mut world);
-    let placed: Vec<[f32; 16]> = world
-        .iter()
-        .map(|w| (placement.to_mat4() * *w).to_cols_array())
-        .collect();
+    let placed: Vec<Mat4> = world.iter().map(|w| placement.to_mat4() * *w).collect();
+    let mut skinning = vec![Mat4::IDENTITY; n];
+    skinning_matrices(&skeleton, &placed, &mut skinning);
+    let placed: Vec<[f32; 16]> = placed.iter().map(Mat4::to_cols_array).collect();
+    let skinning: Vec<[f32; 16]> = skinning.iter().map(Mat4::to_cols_array).collect();
     json!({
         "description": desc,
         "pose": {
@@ -104,12 +107,14 @@ fn fk_case(desc: &AvatarDescription, rng: &mut Lcg) -> Value {
             "placement": placement,
         },
         "worlds": placed,
+        "skinning": skinning,
     })
 }
 
-/// The page's forward kinematics agrees with `posecast_proto::fk` (within f32 rounding).
+/// The client's forward kinematics and skinning matrices agree with `posecast_proto::fk`
+/// (within f32 rounding).
 #[test]
-fn the_dashboards_forward_kinematics_matches_proto() {
+fn the_clients_forward_kinematics_and_skinning_match_proto() {
     let mut rng = Lcg(0x5eed);
     let mut cases = Vec::new();
     for i in 0..40 {
@@ -153,7 +158,7 @@ fn the_dashboards_forward_kinematics_matches_proto() {
         Ok(out) => out,
         Err(e) => {
             skip(&format!(
-                "node is not installed ({e}): the page's FK is not checked"
+                "node is not installed ({e}): the JavaScript FK is not checked"
             ));
             return;
         }
@@ -167,5 +172,5 @@ fn the_dashboards_forward_kinematics_matches_proto() {
     );
     let report: Value = serde_json::from_str(stdout.trim()).unwrap();
     assert_eq!(report["cases"], cases.len(), "{report}");
-    println!("dashboard FK vs posecast_proto: {report}");
+    println!("JavaScript FK and skinning vs posecast_proto: {report}");
 }

@@ -4,9 +4,14 @@
 //!   sample `@satisfies` its JSDoc type in `server/web/protocol.js`, so the type check (tsc,
 //!   run here and by `scripts/check-web` in `.ci/run`) fails when a field is missing, extra or
 //!   of another type on either side;
-//! - the page's forward kinematics (`server/web/fk.js`, run by node through
-//!   `server/web/check/fk.mjs`) gives the world matrices `posecast_proto::fk` gives, on random
-//!   skeletons and the built-in rig with random poses and placements.
+//! - the JavaScript client's forward kinematics and skinning matrices (`server/sdk/fk.js`, run
+//!   by node through `server/web/check/fk.mjs`) give the matrices `posecast_proto::fk` gives,
+//!   on random skeletons and the built-in rig with random poses and placements;
+//! - the client's binary decoder, jitter buffer and clock estimator (`server/sdk/frames.js`,
+//!   `jitter.js`, `clock.js`, through `server/web/check/stream.mjs`) match posecast-proto's
+//!   `FrameDecoder` and posecast-client's `JitterBuffer` and `ClockEstimator` on shared vectors;
+//! - the client's modules type-check against its declarations (`server/sdk/posecast.d.ts`),
+//!   and a TypeScript user's file (`server/sdk/check/usage.ts`) against the declarations alone.
 //!
 //! node and the TypeScript compiler (`scripts/test` installs it under `target/npm`) missing:
 //! the test is skipped, or fails under `CI=true`.
@@ -19,14 +24,16 @@ use std::process::Command as Process;
 
 mod fk;
 mod samples;
+mod stream;
 
 fn root() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR"))
 }
 
-/// The dashboard's JavaScript type-checks (`// @ts-check`, JSDoc types, the samples above).
+/// The dashboard's and the client's JavaScript type-check (`// @ts-check`, JSDoc types, the
+/// samples above), and so does a TypeScript user's file against `posecast.d.ts` alone.
 #[test]
-fn the_dashboards_javascript_type_checks() {
+fn the_dashboards_and_the_clients_javascript_type_check() {
     let tsc = root().join("target/npm/node_modules/.bin/tsc");
     if !tsc.exists() {
         skip(
@@ -34,15 +41,21 @@ fn the_dashboards_javascript_type_checks() {
         );
         return;
     }
-    let out = Process::new(&tsc)
-        .args(["-p", "server/web/tsconfig.json"])
-        .current_dir(root())
-        .output()
-        .expect("run tsc");
-    assert!(
-        out.status.success(),
-        "tsc found errors:\n{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
+    for project in [
+        "server/web/tsconfig.json",
+        "server/sdk/tsconfig.json",
+        "server/sdk/check/tsconfig.json",
+    ] {
+        let out = Process::new(&tsc)
+            .args(["--noEmit", "-p", project])
+            .current_dir(root())
+            .output()
+            .expect("run tsc");
+        assert!(
+            out.status.success(),
+            "tsc found errors in {project}:\n{}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
 }

@@ -1,10 +1,16 @@
-//! The web dashboard: static files embedded in the binary, served at `GET /` and
-//! `GET /dashboard/{file}`. The page uses only the public protocol (the websocket at `/ws` with
-//! JSON frames, and the REST API), so it is also an example of a third-party client.
+//! The web dashboard and the JavaScript client it is built on, static files embedded in the
+//! binary: the page at `GET /` and `GET /dashboard/{file}`, the client (`server/sdk/`) at
+//! `GET /sdk/{file}` — `posecast.js`, the ES module a third-party page imports, its modules and
+//! its TypeScript declarations `posecast.d.ts`. The page uses only the public protocol (the
+//! websocket at `/ws` through the client, and the REST API).
 //!
 //! Every response carries a strict Content-Security-Policy ([`content_security_policy`]):
 //! scripts, styles and images from this origin only, no inline code, network access to this
-//! origin's HTTP and websocket only.
+//! origin's HTTP and websocket only. The client's files are also readable from any origin
+//! (`Access-Control-Allow-Origin: *`: module scripts are fetched with CORS), so a page served
+//! elsewhere can import them. Every file has an `ETag` (its contents' FNV-1a 64) and
+//! `Cache-Control: no-cache`: browsers keep it and revalidate (a 304 when unchanged), so a new
+//! server binary never leaves a stale script in use.
 
 use axum::extract::Path;
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
@@ -48,7 +54,8 @@ fn is_host_source(host: &str) -> bool {
 }
 
 /// `(name, content type, contents)` of every file the page loads from `server/web/` (not
-/// `protocol.js`, JSDoc types only, nor the type check's `tsconfig.json` and `check/`).
+/// `protocol.js`, JSDoc types only, nor the type check's `tsconfig.json` and `check/`); its
+/// connection, frame decoding and forward kinematics come from the client in [`SDK`].
 const FILES: &[(&str, &str, &str)] = &[
     (
         "index.html",
@@ -61,7 +68,6 @@ const FILES: &[(&str, &str, &str)] = &[
         include_str!("../../web/style.css"),
     ),
     ("app.js", JS, include_str!("../../web/app.js")),
-    ("connection.js", JS, include_str!("../../web/connection.js")),
     ("tokens.js", JS, include_str!("../../web/tokens.js")),
     ("store.js", JS, include_str!("../../web/store.js")),
     ("sync.js", JS, include_str!("../../web/sync.js")),
@@ -70,9 +76,7 @@ const FILES: &[(&str, &str, &str)] = &[
     ("viewer.js", JS, include_str!("../../web/viewer.js")),
     ("draw.js", JS, include_str!("../../web/draw.js")),
     ("draw-gl.js", JS, include_str!("../../web/draw-gl.js")),
-    ("fk.js", JS, include_str!("../../web/fk.js")),
     ("glb.js", JS, include_str!("../../web/glb.js")),
-    ("math.js", JS, include_str!("../../web/math.js")),
     (
         "panel-status.js",
         JS,
@@ -115,15 +119,64 @@ const FILES: &[(&str, &str, &str)] = &[
     ),
 ];
 
+/// `(name, content type, contents)` of the JavaScript client's files in `server/sdk/`: the
+/// module `posecast.js` (a page imports only it), the modules it imports, and its declarations.
+const SDK: &[(&str, &str, &str)] = &[
+    ("posecast.js", JS, include_str!("../../sdk/posecast.js")),
+    ("client.js", JS, include_str!("../../sdk/client.js")),
+    ("errors.js", JS, include_str!("../../sdk/errors.js")),
+    ("frames.js", JS, include_str!("../../sdk/frames.js")),
+    ("jitter.js", JS, include_str!("../../sdk/jitter.js")),
+    ("clock.js", JS, include_str!("../../sdk/clock.js")),
+    ("fk.js", JS, include_str!("../../sdk/fk.js")),
+    ("math.js", JS, include_str!("../../sdk/math.js")),
+    (
+        "posecast.d.ts",
+        "application/typescript; charset=utf-8",
+        include_str!("../../sdk/posecast.d.ts"),
+    ),
+];
+
 const JS: &str = "text/javascript; charset=utf-8";
 
-fn serve(name: &str, request: &HeaderMap) -> Response {
-    let Some(&(_, content_type, body)) = FILES.iter().find(|(n, _, _)| *n == name) else {
-        return (StatusCode::NOT_FOUND, "no such dashboard file").into_response();
+/// The entity tag of a file: FNV-1a 64 of its contents, quoted.
+fn etag(body: &str) -> String {
+    let hash = body.bytes().fold(0xcbf2_9ce4_8422_2325_u64, |h, b| {
+        (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
+    });
+    format!("\"{hash:016x}\"")
+}
+
+/// Whether an `If-None-Match` header names `tag` (or is `*`).
+fn matches_tag(request: &HeaderMap, tag: &str) -> bool {
+    request
+        .get_all(header::IF_NONE_MATCH)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(','))
+        .map(|t| t.trim().trim_start_matches("W/"))
+        .any(|t| t == tag || t == "*")
+}
+
+fn serve(
+    files: &[(&str, &'static str, &'static str)],
+    name: &str,
+    request: &HeaderMap,
+) -> Response {
+    let Some(&(_, content_type, body)) = files.iter().find(|(n, _, _)| *n == name) else {
+        return (StatusCode::NOT_FOUND, format!("no file {name}")).into_response();
     };
     let host = request.get(header::HOST).and_then(|h| h.to_str().ok());
-    let mut response = body.into_response();
+    let tag = etag(body);
+    let mut response = if matches_tag(request, &tag) {
+        StatusCode::NOT_MODIFIED.into_response()
+    } else {
+        body.into_response()
+    };
     let headers = response.headers_mut();
+    if let Ok(tag) = HeaderValue::from_str(&tag) {
+        headers.insert(header::ETAG, tag);
+    }
     headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
     let policy = content_security_policy(host);
     headers.insert(
@@ -145,12 +198,22 @@ fn serve(name: &str, request: &HeaderMap) -> Response {
 
 /// `GET /`: the dashboard page.
 pub async fn index(headers: HeaderMap) -> Response {
-    serve("index.html", &headers)
+    serve(FILES, "index.html", &headers)
 }
 
 /// `GET /dashboard/{file}`: the page's scripts and styles.
 pub async fn file(Path(name): Path<String>, headers: HeaderMap) -> Response {
-    serve(&name, &headers)
+    serve(FILES, &name, &headers)
+}
+
+/// `GET /sdk/{file}`: the JavaScript client, readable from any origin.
+pub async fn sdk(Path(name): Path<String>, headers: HeaderMap) -> Response {
+    let mut response = serve(SDK, &name, &headers);
+    response.headers_mut().insert(
+        header::ACCESS_CONTROL_ALLOW_ORIGIN,
+        HeaderValue::from_static("*"),
+    );
+    response
 }
 
 #[cfg(test)]
@@ -165,36 +228,78 @@ mod tests {
 
     #[test]
     fn every_file_is_served_with_its_type_and_the_policy() {
-        for (name, content_type, _) in FILES {
-            let r = serve(name, &host("example.org:8080"));
-            assert_eq!(r.status(), StatusCode::OK);
-            assert_eq!(r.headers()[header::CONTENT_TYPE], *content_type);
-            assert!(r.headers().contains_key(header::CONTENT_SECURITY_POLICY));
+        for files in [FILES, SDK] {
+            for (name, content_type, _) in files {
+                let r = serve(files, name, &host("example.org:8080"));
+                assert_eq!(r.status(), StatusCode::OK);
+                assert_eq!(r.headers()[header::CONTENT_TYPE], *content_type);
+                assert!(r.headers().contains_key(header::CONTENT_SECURITY_POLICY));
+                assert_eq!(r.headers()[header::CACHE_CONTROL], "no-cache");
+            }
         }
         assert_eq!(
-            serve("../Cargo.toml", &HeaderMap::new()).status(),
+            serve(FILES, "../Cargo.toml", &HeaderMap::new()).status(),
+            StatusCode::NOT_FOUND
+        );
+        assert_eq!(
+            serve(SDK, "index.html", &HeaderMap::new()).status(),
             StatusCode::NOT_FOUND
         );
     }
 
-    /// Every module the page imports is served: each `.js` beside `index.html` (but the
-    /// type-only `protocol.js`) is in [`FILES`], and each file in [`FILES`] is there.
+    /// A request naming the file's tag gets 304 without the body; another tag, the file.
     #[test]
-    fn every_module_of_the_page_is_served() {
-        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("web");
+    fn files_are_revalidated_by_their_tag() {
+        let r = serve(SDK, "posecast.js", &HeaderMap::new());
+        let tag = r.headers()[header::ETAG].to_str().unwrap().to_owned();
+        assert_eq!(tag.len(), 18, "{tag}");
+        // A different file has a different tag.
+        let other = serve(SDK, "frames.js", &HeaderMap::new());
+        assert_ne!(other.headers()[header::ETAG], tag.as_str());
+        for (sent, status) in [
+            (tag.clone(), StatusCode::NOT_MODIFIED),
+            (format!("W/{tag}"), StatusCode::NOT_MODIFIED),
+            (
+                format!("\"0000000000000000\", {tag}"),
+                StatusCode::NOT_MODIFIED,
+            ),
+            ("\"0000000000000000\"".to_owned(), StatusCode::OK),
+        ] {
+            let mut headers = HeaderMap::new();
+            headers.insert(header::IF_NONE_MATCH, HeaderValue::from_str(&sent).unwrap());
+            assert_eq!(
+                serve(SDK, "posecast.js", &headers).status(),
+                status,
+                "{sent}"
+            );
+        }
+    }
+
+    /// The `.js` files of `dir` (but `except`), and those of `files`: the same names.
+    fn served_as_on_disk(dir: &str, files: &[(&str, &str, &str)], except: &[&str]) {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(dir);
         let mut on_disk: Vec<String> = std::fs::read_dir(&dir)
             .unwrap()
             .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-            .filter(|n| n.ends_with(".js") && n != "protocol.js")
+            .filter(|n| n.ends_with(".js") && !except.contains(&n.as_str()))
             .collect();
         on_disk.sort();
-        let mut served: Vec<String> = FILES
+        let mut served: Vec<String> = files
             .iter()
             .map(|(n, _, _)| (*n).to_owned())
             .filter(|n| n.ends_with(".js"))
             .collect();
         served.sort();
         assert_eq!(on_disk, served);
+    }
+
+    /// Every module the page imports is served: each `.js` beside `index.html` (but the
+    /// type-only `protocol.js`) is in [`FILES`], and each file in [`FILES`] is there; the
+    /// same for the client's modules and [`SDK`].
+    #[test]
+    fn every_module_of_the_page_and_the_client_is_served() {
+        served_as_on_disk("web", FILES, &["protocol.js"]);
+        served_as_on_disk("sdk", SDK, &[]);
     }
 
     /// The `connect-src` directive of a policy, split into its sources.

@@ -8,7 +8,8 @@
 //!   their own body limit (`Config::max_upload_bytes`); everything else keeps 64 KiB.
 //! - `GET /healthz` (`health`: 503 with the progress while starting, then `ok`),
 //!   `GET /metrics`.
-//! - `GET /`, `GET /dashboard/{file}`: the web dashboard (`dashboard`).
+//! - `GET /`, `GET /dashboard/{file}`: the web dashboard (`dashboard`);
+//! - `GET /sdk/{file}`: the JavaScript client `posecast.js` and its declarations (`dashboard`).
 //!
 //! Connections reach the router through `listener`, the accept loop: connection caps
 //! (`admission`), request-head and body deadlines (`body_deadline`) and the websocket
@@ -68,6 +69,7 @@ pub fn app(state: Arc<AppState>) -> Router {
         .route("/metrics", get(metrics))
         .route("/", get(dashboard::index))
         .route("/dashboard/{file}", get(dashboard::file))
+        .route("/sdk/{file}", get(dashboard::sdk))
         .fallback(not_found)
         // The body deadline starts once the request may run, not while start-up holds it.
         .layer(axum::middleware::from_fn_with_state(

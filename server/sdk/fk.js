@@ -1,18 +1,19 @@
 // @ts-check
-// Forward kinematics of a streamed pose, as posecast-proto's `fk::forward_kinematics` does it
-// (tests/web/ checks the two agree on shared vectors, through check/fk.mjs).
+// Forward kinematics and skinning matrices of a streamed pose, as posecast-proto's
+// `fk::forward_kinematics` and `fk::skinning_matrices` do it (tests/web/ checks they agree on
+// shared vectors, through ../web/check/fk.mjs).
 
 import { multiply, fromTRS } from "./math.js";
 
-/** @typedef {import("./protocol.js").AvatarDescription} AvatarDescription */
+/** @typedef {import("./posecast.js").AvatarDescription} AvatarDescription */
 
 /**
- * The pose parts `forwardKinematics` reads (a JSON frame's `AvatarPose`, or less).
+ * The pose parts `forwardKinematics` reads (a frame's `FramePose`, or less).
  * @typedef {object} PoseLike
- * @property {import("./protocol.js").Quat[]} [rotations]
- * @property {import("./protocol.js").Vec3[]} [translations]
- * @property {import("./protocol.js").Vec3[]} [scales]
- * @property {import("./protocol.js").Placement} [placement]
+ * @property {import("./posecast.js").Quat[]} [rotations]
+ * @property {import("./posecast.js").Vec3[]} [translations]
+ * @property {import("./posecast.js").Vec3[]} [scales]
+ * @property {import("./posecast.js").Placement} [placement]
  */
 
 /**
@@ -60,12 +61,30 @@ export function forwardKinematics(desc, pose) {
 /**
  * The translation column of each world matrix: joint positions in world space.
  * @param {Float32Array} worlds
- * @returns {import("./protocol.js").Vec3[]}
+ * @returns {import("./posecast.js").Vec3[]}
  */
 export function jointPositions(worlds) {
   const n = worlds.length / 16;
-  /** @type {import("./protocol.js").Vec3[]} */
+  /** @type {import("./posecast.js").Vec3[]} */
   const out = [];
   for (let j = 0; j < n; j++) out.push([worlds[16 * j + 12], worlds[16 * j + 13], worlds[16 * j + 14]]);
+  return out;
+}
+
+/**
+ * Skinning matrices M_j = W_j · B_j⁻¹ (seed 001's T_j), 16 floats each, from the world matrices
+ * `forwardKinematics` gives and the description's inverse binds.
+ * @param {AvatarDescription} desc
+ * @param {Float32Array} worlds
+ * @returns {Float32Array}
+ */
+export function skinningMatrices(desc, worlds) {
+  const n = desc.joint_names.length;
+  const out = new Float32Array(16 * n);
+  const m = new Float32Array(16);
+  for (let j = 0; j < n; j++) {
+    multiply(m, worlds.subarray(16 * j, 16 * j + 16), desc.inverse_binds[j]);
+    out.set(m, 16 * j);
+  }
   return out;
 }

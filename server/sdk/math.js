@@ -186,4 +186,53 @@ export function eulerXYZFromQuat(q) {
   return [ex, ey, ez];
 }
 
+/** Above this dot product slerp is linear (glam's threshold, `1 − f32::EPSILON`). */
+const SLERP_LINEAR_DOT = 1 - 2 ** -23;
+
+/**
+ * Shortest-arc spherical interpolation from `a` (w = 0) to `b` (w = 1), normalised — as
+ * posecast-proto's `Transform::blend` does it (glam's `Quat::slerp`).
+ * @param {ArrayLike<number>} a
+ * @param {ArrayLike<number>} b
+ * @param {number} w
+ * @returns {Quat}
+ */
+export function quatSlerp(a, b, w) {
+  let dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3];
+  const s = dot < 0 ? -1 : 1;
+  dot *= s;
+  let k0 = 1 - w;
+  let k1 = s * w;
+  if (dot <= SLERP_LINEAR_DOT) {
+    // Not (nearly) the same rotation: there, linear then normalised (sin θ would vanish).
+    const theta = Math.acos(dot);
+    k0 = Math.sin((1 - w) * theta) / Math.sin(theta);
+    k1 = (s * Math.sin(w * theta)) / Math.sin(theta);
+  }
+  const q = [0, 1, 2, 3].map((i) => a[i] * k0 + b[i] * k1);
+  const n = Math.hypot(q[0], q[1], q[2], q[3]) || 1;
+  return [q[0] / n, q[1] / n, q[2] / n, q[3] / n];
+}
+
+/**
+ * The angle between two rotations, degrees (`q` and `−q` are the same rotation).
+ * @param {ArrayLike<number>} a
+ * @param {ArrayLike<number>} b
+ * @returns {number}
+ */
+export function quatAngleDegrees(a, b) {
+  const na = Math.hypot(a[0], a[1], a[2], a[3]) || 1;
+  const nb = Math.hypot(b[0], b[1], b[2], b[3]) || 1;
+  let dot = 0;
+  let diff = 0;
+  let sum = 0;
+  for (let i = 0; i < 4; i++) dot += (a[i] / na) * (b[i] / nb);
+  const s = dot < 0 ? -1 : 1;
+  for (let i = 0; i < 4; i++) {
+    diff += (a[i] / na - (s * b[i]) / nb) ** 2;
+    sum += (a[i] / na + (s * b[i]) / nb) ** 2;
+  }
+  return (4 * Math.atan2(Math.sqrt(diff), Math.sqrt(sum)) * 180) / Math.PI;
+}
+
 export const DEG = Math.PI / 180;

@@ -1,0 +1,83 @@
+// What a TypeScript user of /sdk/posecast.js writes, type-checked against posecast.d.ts alone
+// (`tsc --noEmit -p server/sdk/check`, run by scripts/check-web and tests/web/). The
+// `@ts-expect-error` lines must stay errors: they guard that the declarations are not too loose.
+
+import {
+  Client,
+  PosecastError,
+  FrameDecoder,
+  JitterBuffer,
+  ClockEstimator,
+  forwardKinematics,
+  skinningMatrices,
+  jointPositions,
+  quatSlerp,
+  SDK_VERSION,
+  PROTOCOL_VERSION,
+  type AvatarDescription,
+  type ConnectionState,
+  type Frame,
+  type FramePose,
+  type Vec3,
+} from "../posecast.js";
+
+const client = new Client({ url: "ws://localhost:8080/ws", token: "secret", encoding: "binary", maxBackoffMs: 2000 });
+const tokens = new Client({ tokens: () => [{ kind: "control", value: "a" }, { kind: "view", value: "b" }] });
+client.subscribe("default", { avatars: ["avatar"], rate: 20 });
+client.connect();
+const state: ConnectionState = client.state;
+const version: string = `${SDK_VERSION} speaks protocol ${PROTOCOL_VERSION}`;
+
+const stop: () => void = client.on("frame", (frame: Frame) => {
+  const seq: number = frame.seq;
+  const key: boolean = frame.key;
+  for (const pose of frame.avatars) {
+    const view = client.avatar(pose.avatar);
+    if (!view) continue;
+    const desc: AvatarDescription = view.description;
+    const worlds: Float32Array = forwardKinematics(desc, pose);
+    const skin: Float32Array = skinningMatrices(desc, worlds);
+    const joints: Vec3[] = jointPositions(worlds);
+    const latest = client.latest(pose.avatar);
+    const when: number | undefined = latest?.server_time_us;
+    const shown: FramePose | null = client.pose(pose.avatar);
+    void [seq, key, skin, joints, when, shown];
+  }
+});
+client.on("state", (s) => console.log(s satisfies ConnectionState, client.detail, client.refusals));
+client.on("error", (e) => console.log(e.code, e.message));
+client.on("removed", ({ scene, avatar }) => console.log(scene, avatar));
+
+async function wave(): Promise<void> {
+  try {
+    const result: unknown = await client.command({ op: "play", avatar: "avatar", clip: "wave", fade: 0.3 });
+    void result;
+  } catch (e) {
+    if (e instanceof PosecastError) {
+      const code: string = e.code;
+      const retry: number | undefined = e.retryAfterMs;
+      void [code, retry];
+    }
+  }
+}
+
+const jitter = new JitterBuffer(60);
+const sampled = jitter.sample(1_000_000);
+if (sampled) console.log(sampled.kind satisfies "interpolated" | "extrapolated" | "held", sampled.pose.rotations);
+const clock = new ClockEstimator();
+clock.add(0, 5_000, 200);
+const offset: number = clock.offsetUs();
+const frame = new FrameDecoder().decode(new Uint8Array(32));
+const q = quatSlerp([0, 0, 0, 1], [0, 1, 0, 0], 0.5);
+
+// @ts-expect-error — a command needs its `op`.
+void client.command({ avatar: "avatar" });
+// @ts-expect-error — no such event.
+client.on("frames", () => {});
+// @ts-expect-error — encodings are "binary" or "json".
+void new Client({ encoding: "msgpack" });
+// @ts-expect-error — subscribe takes a scene name.
+client.subscribe(42);
+
+void [tokens, state, version, stop, wave, offset, frame, q];
+client.close();

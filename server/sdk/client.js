@@ -1,0 +1,578 @@
+// @ts-check
+// The connection (proto/PROTOCOL.md "Exchange"): hello with a token → welcome; subscriptions
+// kept across reconnects; descriptions; pose frames (binary by default, or JSON) decoded into
+// per-avatar poses and jitter buffers; ping/pong for the clock; commands answered by ack/error
+// as promises; reconnects with back-off (250 ms doubling to 5 s by default) and resubscribes.
+//
+// Tokens: the server welcomes a hello whose token it does not know as anonymous and names the
+// token's fault in an `unauthorized` error right after. Anyone may usually watch, so the client
+// keeps that connection and watches, remembering why the token was refused (`refusals`); only
+// when the welcome allows no viewing does it try the next token (e.g. the view token after a
+// control token the server no longer knows), and with none left it stops (`refused`).
+
+import { PosecastError } from "./errors.js";
+import { FrameDecoder } from "./frames.js";
+import { JitterBuffer } from "./jitter.js";
+import { ClockEstimator } from "./clock.js";
+
+/** @typedef {import("./posecast.js").ClientOptions} ClientOptions */
+/** @typedef {import("./posecast.js").SubscribeOptions} SubscribeOptions */
+/** @typedef {import("./posecast.js").ConnectionState} ConnectionState */
+/** @typedef {import("./posecast.js").Token} Token */
+/** @typedef {import("./posecast.js").Refusal} Refusal */
+/** @typedef {import("./posecast.js").Access} Access */
+/** @typedef {import("./posecast.js").WelcomeMessage} WelcomeMessage */
+/** @typedef {import("./posecast.js").ServerMessage} ServerMessage */
+/** @typedef {import("./posecast.js").ClientMessage} ClientMessage */
+/** @typedef {import("./posecast.js").Command} Command */
+/** @typedef {import("./posecast.js").AvatarView} AvatarView */
+/** @typedef {import("./posecast.js").AvatarDescription} AvatarDescription */
+/** @typedef {import("./posecast.js").Frame} Frame */
+/** @typedef {import("./posecast.js").FramePose} FramePose */
+/** @typedef {import("./posecast.js").Pose} Pose */
+/** @typedef {import("./posecast.js").Stats} Stats */
+/** @typedef {import("./posecast.js").ClientEvents} ClientEvents */
+/** @typedef {import("./posecast.js").Encoding} Encoding */
+
+export const PROTOCOL_VERSION = 1;
+
+/** @returns {number} The wall clock in µs since the Unix epoch. */
+export function nowMicros() {
+  return Math.round((performance.timeOrigin + performance.now()) * 1000);
+}
+
+/** @returns {string} `ws(s)://` + this page's host + `/ws` (or localhost outside a page). */
+function defaultUrl() {
+  const loc = typeof location !== "undefined" ? location : null;
+  if (!loc) return "ws://127.0.0.1:8080/ws";
+  return `${loc.protocol === "https:" ? "wss:" : "ws:"}//${loc.host}/ws`;
+}
+
+/**
+ * @param {ServerMessage} msg
+ * @returns {PosecastError}
+ */
+function errorOf(msg) {
+  const code = typeof msg.code === "string" ? msg.code : "internal";
+  const message = typeof msg.message === "string" ? msg.message : code;
+  return new PosecastError(code, message, {
+    id: typeof msg.id === "number" ? msg.id : undefined,
+    retryAfterMs: typeof msg.retry_after_ms === "number" ? msg.retry_after_ms : undefined,
+  });
+}
+
+export class Client {
+  /** @param {ClientOptions} [options] */
+  constructor(options = {}) {
+    this.url = options.url ?? defaultUrl();
+    /** @type {Encoding} */
+    this.encoding = options.encoding ?? "binary";
+    const tokens = options.tokens ?? (options.token ? [{ kind: /** @type {const} */ ("control"), value: options.token }] : []);
+    /** @type {() => Token[]} */
+    this.tokens = typeof tokens === "function" ? tokens : () => tokens;
+    this.name = options.name ?? "posecast-js";
+    this.reconnect = options.reconnect ?? true;
+    this.initialBackoffMs = options.initialBackoffMs ?? 250;
+    this.maxBackoffMs = options.maxBackoffMs ?? 5000;
+    this.commandTimeoutMs = options.commandTimeoutMs ?? 8000;
+    this.pingIntervalMs = options.pingIntervalMs ?? 1000;
+
+    /** @type {ConnectionState} */
+    this.state = "closed";
+    this.detail = "";
+    /** @type {WelcomeMessage | null} */
+    this.welcome = null;
+    /** @type {Access | null} */
+    this.access = null;
+    /** @type {Token | null} */
+    this.token = null;
+    /** @type {Refusal[]} */
+    this.refusals = [];
+    this.tickRate = 60;
+    /** @type {number | null} */
+    this.rttMs = null;
+    this.clock = new ClockEstimator();
+    /** @type {Stats} */
+    this.stats = { frames: 0, keyframes: 0, frameBytes: 0, undecodable: 0, stale: 0, connects: 0, commands: {} };
+    /** @type {Map<string, SubscribeOptions>} */
+    this.subscriptions = new Map();
+    /** @type {Map<string, AvatarView & {num: number}>} */
+    this.avatars = new Map();
+
+    /** @type {Map<number, string>} Scene number (from `subscribed`) → scene. */
+    this.sceneNames = new Map();
+    this.decoder = new FrameDecoder();
+    /** @type {Map<number, {resolve: (v: unknown) => void, reject: (e: PosecastError) => void, timer: ReturnType<typeof setTimeout>}>} */
+    this.pending = new Map();
+    /** @type {Map<number, number>} Ping id → its send time, µs. */
+    this.pings = new Map();
+    this.nextId = 1;
+    this.nextPing = 1;
+    this.backoff = this.initialBackoffMs;
+    this.tokenIndex = 0;
+    this.stopped = true;
+    /** @type {ReturnType<typeof setTimeout> | undefined} */
+    this.timer = undefined;
+    /** @type {ReturnType<typeof setInterval> | undefined} */
+    this.pinger = undefined;
+    /** @type {WebSocket | null} */
+    this.ws = null;
+    /** Set between a welcome that ignored the token and the `unauthorized` error naming it. */
+    this.awaitingTokenError = false;
+    /** @type {Map<string, Set<(value: any) => void>>} */
+    this.listeners = new Map();
+  }
+
+  /**
+   * @template {keyof ClientEvents} K
+   * @param {K} event
+   * @param {(value: ClientEvents[K]) => void} listener
+   * @returns {() => void}
+   */
+  on(event, listener) {
+    let set = this.listeners.get(event);
+    if (!set) this.listeners.set(event, (set = new Set()));
+    set.add(listener);
+    return () => set.delete(listener);
+  }
+
+  /**
+   * @template {keyof ClientEvents} K
+   * @param {K} event
+   * @param {ClientEvents[K]} value
+   */
+  emit(event, value) {
+    for (const l of this.listeners.get(event) ?? []) {
+      try {
+        l(value);
+      } catch (e) {
+        // A listener's bug must not break the connection; it still shows in the console.
+        console.error(e);
+      }
+    }
+  }
+
+  connect() {
+    this.stopped = false;
+    this.tokenIndex = 0;
+    this.refusals = [];
+    this.backoff = this.initialBackoffMs;
+    if (this.pinger === undefined && this.pingIntervalMs > 0) {
+      this.pinger = setInterval(() => this.ping(), this.pingIntervalMs);
+    }
+    this.open();
+  }
+
+  restart() {
+    this.drop();
+    this.failPending(new PosecastError("offline", "reconnecting"));
+    this.connect();
+  }
+
+  close() {
+    this.stopped = true;
+    this.drop();
+    clearInterval(this.pinger);
+    this.pinger = undefined;
+    this.failPending(new PosecastError("offline", "the client was closed"));
+    this.setState("closed");
+  }
+
+  /** Forgets the current socket without reconnecting from its close. */
+  drop() {
+    clearTimeout(this.timer);
+    const ws = this.ws;
+    this.ws = null;
+    if (ws) {
+      ws.onclose = null;
+      ws.onmessage = null;
+      ws.close();
+    }
+  }
+
+  /**
+   * @param {ConnectionState} state
+   * @param {string} [detail]
+   */
+  setState(state, detail = "") {
+    this.state = state;
+    this.detail = detail;
+    this.emit("state", state);
+  }
+
+  open() {
+    clearTimeout(this.timer);
+    const token = this.tokens()[this.tokenIndex] ?? null;
+    this.token = token;
+    this.welcome = null;
+    this.access = null;
+    this.awaitingTokenError = false;
+    this.setState("connecting");
+    /** @type {WebSocket} */
+    let ws;
+    try {
+      ws = new WebSocket(this.url);
+    } catch (e) {
+      this.scheduleReconnect(String(e));
+      return;
+    }
+    ws.binaryType = "arraybuffer";
+    this.ws = ws;
+    ws.onopen = () => {
+      /** @type {ClientMessage} */
+      const hello = { type: "hello", version: PROTOCOL_VERSION, encoding: this.encoding, client: this.name };
+      if (token) hello.token = token.value;
+      ws.send(JSON.stringify(hello));
+    };
+    ws.onmessage = (e) => {
+      const received = nowMicros();
+      if (typeof e.data !== "string") {
+        if (this.welcome) this.onBinary(/** @type {ArrayBuffer} */ (e.data), received);
+        return;
+      }
+      /** @type {ServerMessage} */
+      let msg;
+      try {
+        msg = JSON.parse(e.data);
+      } catch {
+        return;
+      }
+      if (!msg || typeof msg.type !== "string") return;
+      if (this.welcome) this.handle(msg, received, e.data.length);
+      else if (msg.type === "welcome") this.onWelcome(/** @type {WelcomeMessage} */ (/** @type {unknown} */ (msg)));
+      else if (msg.type === "error" && this.awaitingTokenError && msg.code === "unauthorized") {
+        // Why the token that did not let this client watch was refused: now the next one.
+        this.tokenRefused(String(msg.message));
+        this.nextToken(this.detail || "no token lets this client watch");
+      } else if (msg.type === "error") this.refuseHello(String(msg.code), String(msg.message));
+    };
+    ws.onclose = () => {
+      if (this.ws !== ws) return;
+      this.ws = null;
+      this.failPending(new PosecastError("offline", "the connection closed"));
+      if (this.stopped) return;
+      if (this.reconnect) this.scheduleReconnect("connection lost");
+      else this.setState("closed", "connection lost");
+    };
+    ws.onerror = () => {};
+  }
+
+  /** @param {WelcomeMessage} msg */
+  onWelcome(msg) {
+    const access = msg.access ?? { view: true, control: false };
+    if (this.token && !access.name) {
+      // The server did not know the token; its `unauthorized` error (with the reason) follows.
+      this.refusals.push({ kind: this.token.kind, code: "unauthorized", message: "the server does not know this token" });
+      this.awaitingTokenError = true;
+    }
+    if (!access.view) {
+      const why = this.token ? "no token lets this client watch" : "watching this server needs a view token";
+      this.detail = why;
+      // With a refused token, its reason follows at once; move on then (or after a second).
+      if (this.awaitingTokenError) this.timer = setTimeout(() => this.nextToken(why), 1000);
+      else this.nextToken(why);
+      return;
+    }
+    this.welcome = msg;
+    this.access = access;
+    this.tickRate = msg.tick_rate > 0 ? msg.tick_rate : 60;
+    this.backoff = this.initialBackoffMs;
+    // A new connection: its own scene numbers and keyframes.
+    this.decoder = new FrameDecoder();
+    this.sceneNames.clear();
+    this.stats.connects++;
+    this.setState("online");
+    for (const [scene, options] of this.subscriptions) this.sendSubscribe(scene, options);
+    this.ping();
+  }
+
+  /** @param {string} message */
+  tokenRefused(message) {
+    this.awaitingTokenError = false;
+    const last = this.refusals[this.refusals.length - 1];
+    if (last) last.message = message;
+  }
+
+  /**
+   * The hello itself was refused (an error before any welcome): the next token, or stop.
+   * @param {string} code
+   * @param {string} message
+   */
+  refuseHello(code, message) {
+    if (this.token) this.refusals.push({ kind: this.token.kind, code, message });
+    this.nextToken(`${code}: ${message}`);
+  }
+
+  /** @param {string} why */
+  nextToken(why) {
+    this.drop();
+    if (this.tokenIndex + 1 < this.tokens().length) {
+      this.tokenIndex++;
+      this.open();
+      return;
+    }
+    this.stopped = true;
+    this.setState("refused", why);
+  }
+
+  /** @param {string} reason */
+  scheduleReconnect(reason) {
+    this.setState("offline", reason);
+    const delay = this.backoff;
+    this.backoff = Math.min(this.backoff * 2, this.maxBackoffMs);
+    this.tokenIndex = 0;
+    this.timer = setTimeout(() => {
+      this.refusals = [];
+      this.open();
+    }, delay);
+  }
+
+  /** @param {PosecastError} error */
+  failPending(error) {
+    for (const { reject, timer } of this.pending.values()) {
+      clearTimeout(timer);
+      reject(error);
+    }
+    this.pending.clear();
+  }
+
+  /**
+   * @param {ClientMessage} msg
+   * @returns {boolean}
+   */
+  send(msg) {
+    if (this.ws && this.ws.readyState === WebSocket.OPEN && this.state === "online") {
+      this.ws.send(JSON.stringify(msg));
+      return true;
+    }
+    return false;
+  }
+
+  /**
+   * @param {Command} command
+   * @returns {Promise<unknown>}
+   */
+  command(command) {
+    return new Promise((resolve, reject) => {
+      const id = this.nextId++;
+      if (!this.send({ type: "command", id, command })) {
+        reject(new PosecastError("offline", "not connected"));
+        return;
+      }
+      this.stats.commands[command.op] = (this.stats.commands[command.op] ?? 0) + 1;
+      const timer = setTimeout(() => {
+        this.pending.delete(id);
+        reject(new PosecastError("timeout", `no answer to ${command.op} within ${this.commandTimeoutMs / 1000} s`, { id }));
+      }, this.commandTimeoutMs);
+      this.pending.set(id, { resolve, reject, timer });
+    });
+  }
+
+  /**
+   * @param {string} scene
+   * @param {SubscribeOptions} [options]
+   */
+  subscribe(scene, options = {}) {
+    this.subscriptions.set(scene, options);
+    this.sendSubscribe(scene, options);
+  }
+
+  /**
+   * @param {string} scene
+   * @param {SubscribeOptions} options
+   */
+  sendSubscribe(scene, options) {
+    /** @type {ClientMessage} */
+    const msg = { type: "subscribe", scene };
+    if (options.avatars) msg.avatars = options.avatars;
+    if (options.rate !== undefined) msg.rate = options.rate;
+    this.send(msg);
+  }
+
+  /** @param {string} scene */
+  unsubscribe(scene) {
+    if (this.subscriptions.delete(scene)) this.send({ type: "unsubscribe", scene });
+    this.dropScene(scene);
+  }
+
+  /** @param {string} scene */
+  forget(scene) {
+    this.subscriptions.delete(scene);
+    this.dropScene(scene);
+  }
+
+  /** @param {string} scene */
+  dropScene(scene) {
+    for (const [id, view] of this.avatars) if (view.scene === scene) this.avatars.delete(id);
+  }
+
+  /**
+   * @param {string} id
+   * @returns {AvatarView | undefined}
+   */
+  avatar(id) {
+    return this.avatars.get(id);
+  }
+
+  /**
+   * @param {string} id
+   * @returns {Pose | null}
+   */
+  latest(id) {
+    return this.avatars.get(id)?.latest ?? null;
+  }
+
+  /**
+   * @param {string} id
+   * @param {number} [nowUs]
+   * @returns {FramePose | null}
+   */
+  pose(id, nowUs) {
+    return this.avatars.get(id)?.jitter.playout(nowUs ?? nowMicros()) ?? null;
+  }
+
+  ping() {
+    if (typeof document !== "undefined" && document.hidden) return;
+    const id = this.nextPing++ & 0xffffffff;
+    const t0 = nowMicros();
+    if (this.send({ type: "ping", id, client_time_us: t0 })) {
+      this.pings.set(id, t0);
+      // Pongs that never came are not kept for ever.
+      if (this.pings.size > 64) this.pings.delete(this.pings.keys().next().value ?? id);
+    }
+  }
+
+  /**
+   * @param {ServerMessage} msg
+   * @param {number} received
+   * @param {number} bytes
+   */
+  handle(msg, received, bytes) {
+    switch (msg.type) {
+      case "frame": {
+        const f = /** @type {Omit<Frame, "key" | "bytes" | "received_us">} */ (/** @type {unknown} */ (msg));
+        this.onFrame({ type: "frame", scene: f.scene, seq: f.seq, server_time_us: f.server_time_us, key: true, bytes, received_us: received, avatars: f.avatars });
+        return;
+      }
+      case "pong": {
+        const t0 = typeof msg.client_time_us === "number" ? msg.client_time_us : NaN;
+        this.rttMs = (received - t0) / 1000;
+        this.clock.add(t0, Number(msg.server_time_us), received);
+        this.pings.delete(Number(msg.id));
+        break;
+      }
+      case "subscribed":
+        this.sceneNames.set(Number(msg.scene_num), String(msg.scene));
+        break;
+      case "unsubscribed":
+        // Deleted, or the server going away: a reconnect renews it unless it was forgotten.
+        this.dropScene(String(msg.scene));
+        break;
+      case "scene_deleted":
+        this.forget(String(msg.scene));
+        break;
+      case "description": {
+        const desc = /** @type {AvatarDescription} */ (msg.avatar);
+        const scene = String(msg.scene);
+        const old = this.avatars.get(desc.id);
+        this.avatars.set(desc.id, {
+          scene,
+          num: desc.num,
+          description: desc,
+          latest: old && old.description.hash === desc.hash ? old.latest : null,
+          jitter: old && old.description.hash === desc.hash ? old.jitter : new JitterBuffer(this.tickRate),
+        });
+        this.emit("description", desc);
+        break;
+      }
+      case "avatar_removed": {
+        const avatar = String(msg.avatar);
+        this.avatars.delete(avatar);
+        this.emit("removed", { scene: String(msg.scene), avatar });
+        break;
+      }
+      case "ack":
+      case "error": {
+        const id = typeof msg.id === "number" ? msg.id : undefined;
+        const p = id !== undefined ? this.pending.get(id) : undefined;
+        if (p && id !== undefined) {
+          this.pending.delete(id);
+          clearTimeout(p.timer);
+          if (msg.type === "ack") p.resolve(msg.result ?? null);
+          else p.reject(errorOf(msg));
+          return;
+        }
+        if (msg.type === "error" && this.awaitingTokenError && msg.code === "unauthorized") {
+          // The reason the hello's token was refused: kept, it is not a failure now.
+          this.tokenRefused(String(msg.message));
+          this.emit("state", this.state);
+          return;
+        }
+        if (msg.type === "error") this.emit("error", errorOf(msg));
+        break;
+      }
+    }
+    this.emit("message", msg);
+  }
+
+  /**
+   * @param {ArrayBuffer} data
+   * @param {number} received
+   */
+  onBinary(data, received) {
+    let decoded;
+    try {
+      decoded = this.decoder.decode(data);
+    } catch {
+      this.stats.undecodable++;
+      return;
+    }
+    const scene = this.sceneNames.get(decoded.scene_num);
+    if (scene === undefined) {
+      this.stats.undecodable++;
+      return;
+    }
+    /** @type {Map<number, string>} */
+    const ids = new Map();
+    for (const [id, view] of this.avatars) if (view.scene === scene) ids.set(view.num, id);
+    /** @type {FramePose[]} */
+    const avatars = [];
+    for (const a of decoded.avatars) {
+      const avatar = ids.get(a.num);
+      if (avatar === undefined) continue; // not described (yet): nothing to pose
+      avatars.push({ avatar, hash: a.hash, rotations: a.rotations, translations: a.translations, scales: a.scales, placement: a.placement });
+    }
+    this.onFrame({
+      type: "frame",
+      scene,
+      seq: decoded.seq,
+      server_time_us: decoded.server_time_us,
+      key: decoded.key,
+      bytes: data.byteLength,
+      received_us: received,
+      avatars,
+    });
+  }
+
+  /** @param {Frame} frame */
+  onFrame(frame) {
+    this.stats.frames++;
+    if (frame.key) this.stats.keyframes++;
+    this.stats.frameBytes += frame.bytes;
+    const fresh = [];
+    for (const pose of frame.avatars) {
+      const view = this.avatars.get(pose.avatar);
+      if (!view) continue;
+      if (view.description.hash !== pose.hash) {
+        this.stats.stale++;
+        continue;
+      }
+      view.latest = { ...pose, seq: frame.seq, server_time_us: frame.server_time_us, received_us: frame.received_us };
+      view.jitter.push(frame.server_time_us, frame.received_us, pose);
+      fresh.push(pose);
+    }
+    frame.avatars = fresh;
+    this.emit("frame", frame);
+    this.emit("message", frame);
+  }
+}

@@ -1,0 +1,26 @@
+// @ts-check
+// The SDK's one error type: a refused or failed command, a refused hello, a malformed frame.
+
+/** @typedef {import("./posecast.js").ErrorCode} ErrorCode */
+
+/**
+ * A refusal or failure with the protocol's error code (`unauthorized`, `forbidden`,
+ * `unknown_avatar`, …; proto/PROTOCOL.md) or the SDK's own (`offline`, `timeout`).
+ */
+export class PosecastError extends Error {
+  /**
+   * @param {ErrorCode} code
+   * @param {string} message
+   * @param {{id?: number, retryAfterMs?: number}} [options]
+   */
+  constructor(code, message, options = {}) {
+    super(message);
+    this.name = "PosecastError";
+    /** @type {ErrorCode} */
+    this.code = code;
+    /** @type {number | undefined} The command's id, when the error answered one. */
+    this.id = options.id;
+    /** @type {number | undefined} With `rate_limited`: when to try again. */
+    this.retryAfterMs = options.retryAfterMs;
+  }
+}

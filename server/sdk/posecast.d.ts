@@ -1,0 +1,399 @@
+// Type declarations of posecast's JavaScript client, served at /sdk/posecast.d.ts beside the
+// module it describes (/sdk/posecast.js). This file is the API reference; proto/PROTOCOL.md is
+// the reference of the messages. SDK version 1 speaks protocol version 1.
+//
+//   import { Client } from "/sdk/posecast.js";
+//   const client = new Client({ token: "…" });          // ws(s)://this host/ws, binary frames
+//   client.subscribe("default");
+//   client.on("frame", (frame) => { … client.pose("avatar") … });
+//   client.connect();
+//   await client.command({ op: "play", avatar: "avatar", clip: "walk" });
+
+/** The SDK's version. */
+export declare const SDK_VERSION: string;
+/** The protocol version the SDK speaks (the `hello`'s `version`). */
+export declare const PROTOCOL_VERSION: 1;
+
+export type Vec3 = [number, number, number];
+/** `[x, y, z, w]`. */
+export type Quat = [number, number, number, number];
+/** 16 floats, column-major (`p' = M p`). */
+export type Mat4 = Float32Array;
+export type Encoding = "binary" | "json";
+
+/** Where an avatar stands: `P = T(position) · R(rotation)` (metres, Y up). */
+export interface Placement {
+  position: Vec3;
+  rotation: Quat;
+}
+
+/** What the hello's token allows (`welcome.access`). */
+export interface Access {
+  view: boolean;
+  control: boolean;
+  /** The token's name, when one was accepted. */
+  name?: string;
+  scenes?: string[];
+  avatars?: string[];
+}
+
+/** An avatar's rig (the `description` message's `avatar`). */
+export interface AvatarDescription {
+  id: string;
+  /** The avatar's number in binary frames. */
+  num: number;
+  name: string;
+  joint_names: string[];
+  /** Parent index per joint (parents before children), -1 for a root. */
+  parents: number[];
+  rest_translations: Vec3[];
+  rest_rotations: Quat[];
+  rest_scales: Vec3[];
+  /** `B⁻¹` per joint, 16 floats column-major. */
+  inverse_binds: number[][];
+  /** Joints whose translation each frame carries, in the order of a pose's `translations`. */
+  translated_joints: number[];
+  /** Joints whose scale each frame carries, in the order of a pose's `scales`. */
+  scaled_joints: number[];
+  mesh_url: string | null;
+  clip?: string;
+  /** 16 hex digits; every frame's pose carries the hash of the rig it was made for. */
+  hash: string;
+}
+
+/** One avatar's pose in a frame: the JSON frame's shape, also for decoded binary frames. */
+export interface FramePose {
+  avatar: string;
+  /** The description hash (16 hex digits) of the rig the pose is for. */
+  hash: string;
+  /** Local rotation of every joint. */
+  rotations: Quat[];
+  /** Local translation of each of the description's `translated_joints`. */
+  translations: Vec3[];
+  /** Local scale of each of the description's `scaled_joints`. */
+  scales: Vec3[];
+  /** The avatar's placement at this tick. */
+  placement: Placement;
+}
+
+/** A decoded pose frame (binary or JSON; both give this shape). */
+export interface Frame {
+  type: "frame";
+  scene: string;
+  /** The scene's tick. */
+  seq: number;
+  /** Server time of the tick, µs since the Unix epoch. */
+  server_time_us: number;
+  /** A binary keyframe, or a JSON frame (always complete). */
+  key: boolean;
+  /** Bytes of the message. */
+  bytes: number;
+  /** When it arrived, µs since the Unix epoch on this machine. */
+  received_us: number;
+  avatars: FramePose[];
+}
+
+/** The newest (or a played-out) pose of an avatar, with the tick it shows. */
+export interface Pose extends FramePose {
+  seq: number;
+  server_time_us: number;
+  received_us: number;
+}
+
+/** Any message the server sends (proto/PROTOCOL.md); binary frames arrive as {@link Frame}. */
+export interface ServerMessage {
+  type: string;
+  [field: string]: unknown;
+}
+
+/** `welcome`: the server's answer to the hello. */
+export interface WelcomeMessage {
+  type: "welcome";
+  version: number;
+  encoding: Encoding;
+  server: string;
+  tick_rate: number;
+  server_time_us: number;
+  access: Access;
+}
+
+/** A command (`op` and its fields, proto/PROTOCOL.md "Commands"). */
+export interface Command {
+  op: string;
+  [field: string]: unknown;
+}
+
+/** Any message a client sends. */
+export interface ClientMessage {
+  type: string;
+  [field: string]: unknown;
+}
+
+/**
+ * The protocol's error codes (later servers may add codes), and the SDK's own: `offline` (not
+ * connected, or the connection closed before the answer) and `timeout` (no answer in time).
+ */
+export type ErrorCode =
+  | "bad_message" | "unexpected_binary" | "message_too_large" | "unsupported_version"
+  | "not_allowed_now" | "unknown_scene" | "unknown_avatar" | "unknown_clip" | "unknown_joint"
+  | "invalid_value" | "unauthorized" | "forbidden" | "conflict" | "import_failed" | "too_large"
+  | "internal" | "unknown_asset" | "quota_exceeded" | "rate_limited" | "timeout" | "unavailable"
+  | "not_humanoid" | "no_mesh" | "offline"
+  | (string & {});
+
+/** A refused or failed command (or request): the protocol's error code and message. */
+export declare class PosecastError extends Error {
+  constructor(code: ErrorCode, message: string, options?: { id?: number; retryAfterMs?: number });
+  /** `"PosecastError"`. */
+  readonly name: string;
+  readonly code: ErrorCode;
+  /** The command's id, when the error answered one. */
+  readonly id: number | undefined;
+  /** With `rate_limited`: when to try again. */
+  readonly retryAfterMs: number | undefined;
+}
+
+export type TokenKind = "control" | "view";
+export interface Token {
+  kind: TokenKind;
+  value: string;
+}
+/** A token the server refused in a hello, and why. */
+export interface Refusal {
+  kind: TokenKind;
+  code: string;
+  message: string;
+}
+
+/**
+ * - `connecting`: opening, or waiting for the welcome;
+ * - `online`: welcomed, with view rights;
+ * - `offline`: the connection dropped; reconnecting after the back-off;
+ * - `refused`: no token lets this client watch; stopped until {@link Client.restart};
+ * - `closed`: {@link Client.close} was called.
+ */
+export type ConnectionState = "connecting" | "online" | "offline" | "refused" | "closed";
+
+export interface ClientOptions {
+  /** The websocket URL; default `ws(s)://` + this page's host + `/ws`. */
+  url?: string;
+  /** One token (control or view). */
+  token?: string;
+  /**
+   * Tokens to try in order (control first, then view), read at each (re)connect. A token the
+   * server does not know leaves the connection watching (anonymously) when the server lets
+   * anyone watch; otherwise the next token is tried.
+   */
+  tokens?: Token[] | (() => Token[]);
+  /** Frame encoding; default `"binary"` (several times smaller than JSON). */
+  encoding?: Encoding;
+  /** The `client` name in the hello; default `"posecast-js"`. */
+  name?: string;
+  /** Reconnect when the connection drops (default true), resubscribing. */
+  reconnect?: boolean;
+  /** First reconnect delay, ms (default 250), doubled after every failure up to `maxBackoffMs`. */
+  initialBackoffMs?: number;
+  /** Longest reconnect delay, ms (default 5000). */
+  maxBackoffMs?: number;
+  /** How long a command waits for its answer, ms (default 8000). */
+  commandTimeoutMs?: number;
+  /** Ping interval for the clock offset and round trip, ms (default 1000; 0: never). */
+  pingIntervalMs?: number;
+}
+
+export interface SubscribeOptions {
+  /** Only these avatars of the scene. */
+  avatars?: string[];
+  /** Frames per second wanted (the server sends every `round(tick_rate / rate)`-th tick). */
+  rate?: number;
+}
+
+/** What the client knows of one subscribed avatar. */
+export interface AvatarView {
+  scene: string;
+  description: AvatarDescription;
+  /** The newest decoded pose. */
+  latest: Pose | null;
+  /** Its recent poses, for playout. */
+  jitter: JitterBuffer;
+}
+
+export interface Stats {
+  /** Frames decoded. */
+  frames: number;
+  /** Binary keyframes among them (JSON frames count as keyframes). */
+  keyframes: number;
+  /** Bytes of frame messages received. */
+  frameBytes: number;
+  /** Binary frames that could not be decoded (a delta without its keyframe, malformed bytes). */
+  undecodable: number;
+  /** Poses for a rig other than the described one (skipped). */
+  stale: number;
+  /** Connections welcomed. */
+  connects: number;
+  /** Commands sent, by op. */
+  commands: Record<string, number>;
+}
+
+export interface ClientEvents {
+  /** The state, access or refusals changed. */
+  state: ConnectionState;
+  /** Every server message after the welcome, frames decoded into {@link Frame}. */
+  message: ServerMessage | Frame;
+  /** A pose frame of a subscribed scene. */
+  frame: Frame;
+  /** An avatar's description (new, or its rig changed). */
+  description: AvatarDescription;
+  /** An avatar left a subscribed scene. */
+  removed: { scene: string; avatar: string };
+  /** An error that answered no command (e.g. subscribing to an unknown scene). */
+  error: PosecastError;
+}
+
+/** A connection to a posecast server (proto/PROTOCOL.md) that keeps itself connected. */
+export declare class Client {
+  constructor(options?: ClientOptions);
+  readonly url: string;
+  readonly encoding: Encoding;
+  readonly state: ConnectionState;
+  /** Why the state is what it is ("connection lost", a refusal's reason…). */
+  readonly detail: string;
+  /** The current connection's welcome (null until welcomed). */
+  readonly welcome: WelcomeMessage | null;
+  readonly access: Access | null;
+  /** The token the current connection presented. */
+  readonly token: Token | null;
+  /** Tokens refused since the last (re)start, in the order tried. */
+  readonly refusals: Refusal[];
+  /** Ticks per second (from the welcome; 60 before). */
+  readonly tickRate: number;
+  /** Round trip of the newest ping, ms (null before the first pong). */
+  readonly rttMs: number | null;
+  readonly clock: ClockEstimator;
+  readonly stats: Stats;
+  /** Subscriptions kept across reconnects. */
+  readonly subscriptions: ReadonlyMap<string, SubscribeOptions>;
+  /** Every described avatar of the subscribed scenes, by id. */
+  readonly avatars: ReadonlyMap<string, AvatarView>;
+
+  /** Connects (again), trying the tokens from the first. */
+  connect(): void;
+  /** Closes and connects at once (e.g. after the tokens changed); pending commands fail `offline`. */
+  restart(): void;
+  /** Closes for good (no reconnect); pending commands fail `offline`. */
+  close(): void;
+  /** Subscribes to a scene now (when online) and after every reconnect. */
+  subscribe(scene: string, options?: SubscribeOptions): void;
+  /** Ends a subscription. */
+  unsubscribe(scene: string): void;
+  /** Stops renewing a subscription the server ended (its scene was deleted), without a message. */
+  forget(scene: string): void;
+  /** Sends a message when online; whether it was sent. */
+  send(message: ClientMessage): boolean;
+  /** Runs a command: resolves with its `ack`'s result, rejects with a {@link PosecastError}. */
+  command(command: Command): Promise<unknown>;
+  /** An avatar's description and poses. */
+  avatar(id: string): AvatarView | undefined;
+  /** An avatar's newest decoded pose. */
+  latest(id: string): Pose | null;
+  /**
+   * The pose to show now (or at client time `nowUs`, µs since the Unix epoch): the avatar's
+   * jitter buffer played out ({@link JitterBuffer.playout}).
+   */
+  pose(id: string, nowUs?: number): FramePose | null;
+  /** Calls `listener` on every `event`; returns a function that stops it. */
+  on<K extends keyof ClientEvents>(event: K, listener: (value: ClientEvents[K]) => void): () => void;
+}
+
+/** How a played-out pose was made. */
+export type Sampled = "interpolated" | "extrapolated" | "held";
+
+/**
+ * An avatar's recent poses by server time, played out a little in the past: at client time
+ * `now` it shows server time `now − D`, `D` = the 99.5th percentile of the recent raw transits
+ * (arrival − stamp) + one tick; between two frames it interpolates (slerp, lerp); past the
+ * newest it extrapolates from the last two for at most 100 ms, then holds.
+ */
+export declare class JitterBuffer {
+  constructor(tickRate: number);
+  /** Adds a pose stamped `serverTimeUs`, received at `arrivalUs` (any epoch); older stamps are ignored. */
+  push(serverTimeUs: number, arrivalUs: number, pose: FramePose): void;
+  /** The playout delay, µs (includes the clock offset: only `now − delay` is meaningful). */
+  delayUs(): number;
+  /** Arrival jitter (RFC 3550), µs. */
+  jitterUs(): number;
+  /** Frames held. */
+  readonly length: number;
+  /** The pose at server time `timeUs`, and how it was made. */
+  sample(timeUs: number): { pose: FramePose; kind: Sampled } | null;
+  /** The server time shown at client time `nowUs`. */
+  playoutTime(nowUs: number): number;
+  /** The pose to show at client time `nowUs`. */
+  playout(nowUs: number): FramePose | null;
+}
+
+/**
+ * Clock offset and round trip from ping/pong: `rtt = t1 − t0`, `offset = server − (t0 + t1)/2`,
+ * from the fastest of the last 16 exchanges.
+ */
+export declare class ClockEstimator {
+  constructor();
+  add(t0Us: number, serverUs: number, t1Us: number): void;
+  /** `server − client`, µs (0 before any sample). */
+  offsetUs(): number;
+  /** The smallest recent round trip, µs. */
+  rttUs(): number | null;
+}
+
+/** The binary frame decoder (proto/PROTOCOL.md "Pose frames"); keeps keyframes for deltas. */
+export declare class FrameDecoder {
+  constructor();
+  /** Decodes one binary frame; throws a {@link PosecastError} `bad_message` on malformed bytes or a missing keyframe (and changes nothing). */
+  decode(bytes: ArrayBuffer | Uint8Array): BinaryFrame;
+}
+export interface BinaryFrame {
+  key: boolean;
+  scene_num: number;
+  seq: number;
+  server_time_us: number;
+  base_seq: number;
+  avatars: { num: number; hash: string; rotations: Quat[]; translations: Vec3[]; scales: Vec3[]; placement: Placement }[];
+}
+/** Decodes a 48-bit smallest-three rotation. */
+export declare function decodeQuat(bits: number): Quat;
+
+/**
+ * World matrices of every joint (16 floats each): `W_j = W_parent(j) · T(t_j) R_j S_j`, roots
+ * `W_root = P · D_root` with `P` the pose's placement. Rotations from the pose (rest when absent);
+ * translations and scales for the description's translated / scaled joints, rest otherwise.
+ */
+export declare function forwardKinematics(
+  desc: AvatarDescription,
+  pose: Partial<Pick<FramePose, "rotations" | "translations" | "scales" | "placement">> | null,
+): Float32Array;
+/** Skinning matrices `M_j = W_j · B_j⁻¹` (16 floats each) from {@link forwardKinematics}' world matrices. */
+export declare function skinningMatrices(desc: AvatarDescription, worlds: Float32Array): Float32Array;
+/** Joint positions in world space (the translation column of each world matrix). */
+export declare function jointPositions(worlds: Float32Array): Vec3[];
+
+export declare function identity(): Mat4;
+/** `out = a · b`; `out` may not alias `a` or `b`. */
+export declare function multiply(out: Mat4, a: ArrayLike<number>, b: ArrayLike<number>): Mat4;
+/** `out = T(t) · R(q) · S(s)`. */
+export declare function fromTRS(out: Mat4, t: ArrayLike<number>, q: ArrayLike<number>, s: ArrayLike<number>): Mat4;
+export declare function perspective(fovy: number, aspect: number, near: number, far: number): Mat4;
+export declare function lookAt(eye: ArrayLike<number>, target: ArrayLike<number>, up: ArrayLike<number>): Mat4;
+/** `m · [p, 1]`, homogeneous. */
+export declare function transformPoint(m: ArrayLike<number>, p: ArrayLike<number>): Quat;
+export declare function quatAxisAngle(axis: ArrayLike<number>, angle: number): Quat;
+/** `a · b` (b first). */
+export declare function quatMul(a: Quat, b: Quat): Quat;
+export declare function quatFromEulerXYZ(x: number, y: number, z: number): Quat;
+export declare function eulerXYZFromQuat(q: Quat): Vec3;
+/** Shortest-arc slerp, normalised. */
+export declare function quatSlerp(a: ArrayLike<number>, b: ArrayLike<number>, w: number): Quat;
+/** The angle between two rotations, degrees (`q ≡ −q`). */
+export declare function quatAngleDegrees(a: ArrayLike<number>, b: ArrayLike<number>): number;
+export declare const DEG: number;
+/** µs since the Unix epoch. */
+export declare function nowMicros(): number;

@@ -1,0 +1,40 @@
+// @ts-check
+// posecast's JavaScript client: one ES module, no build step, no dependencies, served by the
+// server at /sdk/posecast.js (its modules beside it under /sdk/), with TypeScript declarations
+// at /sdk/posecast.d.ts — the API reference. The dashboard at / is built on it.
+//
+//   import { Client } from "/sdk/posecast.js";
+//   const client = new Client({ token });       // ws(s)://this host/ws, binary frames
+//   client.subscribe("default");
+//   client.on("frame", () => draw(client.pose("avatar")));
+//   client.connect();
+//
+// - client.js: the connection (hello/welcome, token fallback, subscriptions, commands as
+//   promises, ping/pong, reconnect with back-off);
+// - frames.js: the binary frame decoder (keyframes, deltas, smallest-three rotations);
+// - jitter.js, clock.js: playout of the stream and the clock offset, as posecast-client does;
+// - fk.js, math.js: forward kinematics and skinning matrices (checked against posecast-proto);
+// - errors.js: PosecastError, with the protocol's error code.
+
+export const SDK_VERSION = "1.0.0";
+export { Client, PROTOCOL_VERSION, nowMicros } from "./client.js";
+export { PosecastError } from "./errors.js";
+export { FrameDecoder, decodeQuat } from "./frames.js";
+export { JitterBuffer } from "./jitter.js";
+export { ClockEstimator } from "./clock.js";
+export { forwardKinematics, skinningMatrices, jointPositions } from "./fk.js";
+export {
+  identity,
+  multiply,
+  fromTRS,
+  perspective,
+  lookAt,
+  transformPoint,
+  quatAxisAngle,
+  quatMul,
+  quatFromEulerXYZ,
+  eulerXYZFromQuat,
+  quatSlerp,
+  quatAngleDegrees,
+  DEG,
+} from "./math.js";

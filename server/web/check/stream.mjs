@@ -1,0 +1,130 @@
+// Checks the JavaScript client's binary decoder, jitter buffer and clock estimator
+// (server/sdk/frames.js, jitter.js, clock.js) against vectors from their Rust twins
+// (posecast_proto::frame::FrameDecoder, posecast_client::net::jitter / clock), written by
+// tests/web/stream.rs: `node stream.mjs FILE`. Prints a report and exits 1 on a mismatch.
+
+import { readFileSync } from "node:fs";
+import { FrameDecoder } from "../../sdk/frames.js";
+import { JitterBuffer } from "../../sdk/jitter.js";
+import { ClockEstimator } from "../../sdk/clock.js";
+import { quatAngleDegrees } from "../../sdk/math.js";
+
+// The two decoders read the same bits (f64 here, f32 in Rust): float rounding only.
+const SAME_BITS_DEGREES = 5e-4;
+// Blends in f64 against glam's f32 slerp, extrapolated up to 6 ticks.
+const BLEND_DEGREES = 5e-3;
+const LENGTH = 1e-4;
+
+const vectors = JSON.parse(readFileSync(process.argv[2], "utf8"));
+/** @type {string[]} */
+const failures = [];
+let worstRotation = 0;
+let worstBlend = 0;
+
+/**
+ * @param {number[][]} got
+ * @param {number[][]} want
+ * @param {string} what
+ * @param {number} bound
+ * @returns {number} The largest difference, degrees.
+ */
+function rotations(got, want, what, bound) {
+  if (got.length !== want.length) {
+    failures.push(`${what}: ${got.length} rotations, expected ${want.length}`);
+    return 0;
+  }
+  let worst = 0;
+  got.forEach((q, j) => {
+    const a = quatAngleDegrees(q, want[j]);
+    worst = Math.max(worst, a);
+    if (!(a <= bound)) failures.push(`${what} joint ${j}: ${q} vs ${want[j]} (${a}°)`);
+  });
+  return worst;
+}
+
+/**
+ * @param {number[]} got
+ * @param {number[]} want
+ * @param {string} what
+ * @param {number} [bound]
+ */
+function numbers(got, want, what, bound = LENGTH) {
+  const g = got.flat(2);
+  const w = want.flat(2);
+  if (g.length !== w.length || g.some((x, i) => !(Math.abs(x - w[i]) <= bound))) failures.push(`${what}: ${JSON.stringify(got)} vs ${JSON.stringify(want)}`);
+}
+
+// Frames, in order through one decoder: refused ones must throw and change nothing.
+const decoder = new FrameDecoder();
+let frames = 0;
+let refused = 0;
+vectors.frames.forEach((/** @type {any} */ f, i) => {
+  /** @type {any} */
+  let got;
+  try {
+    got = decoder.decode(new Uint8Array(f.bytes));
+  } catch (e) {
+    if (f.expect !== null || !(e instanceof Error && /** @type {any} */ (e).code === "bad_message")) failures.push(`frame ${i}: threw ${e}`);
+    else refused++;
+    return;
+  }
+  if (f.expect === null) {
+    failures.push(`frame ${i}: decoded, but the Rust decoder refuses it`);
+    return;
+  }
+  frames++;
+  const want = f.expect;
+  for (const k of ["key", "scene_num", "seq", "server_time_us", "base_seq"]) {
+    if (got[k] !== want[k]) failures.push(`frame ${i} ${k}: ${got[k]} vs ${want[k]}`);
+  }
+  if (got.avatars.length !== want.avatars.length) {
+    failures.push(`frame ${i}: ${got.avatars.length} avatars, expected ${want.avatars.length}`);
+    return;
+  }
+  got.avatars.forEach((/** @type {any} */ a, k) => {
+    const w = want.avatars[k];
+    const what = `frame ${i} (seq ${want.seq}) avatar ${w.num}`;
+    if (a.num !== w.num || a.hash !== w.hash) failures.push(`${what}: num/hash ${a.num} ${a.hash} vs ${w.num} ${w.hash}`);
+    worstRotation = Math.max(worstRotation, rotations(a.rotations, w.rotations, what, SAME_BITS_DEGREES));
+    numbers(a.translations, w.translations, `${what} translations`, 0);
+    numbers(a.scales, w.scales, `${what} scales`, 0);
+    numbers(a.placement.position, w.placement.position, `${what} placement`, 0);
+    numbers(a.placement.rotation, w.placement.rotation, `${what} placement`, 0);
+  });
+});
+
+// The jitter buffer: the same pushes, the same delay, the same samples.
+const buffer = new JitterBuffer(60);
+let samples = 0;
+/** @type {Record<string, number>} */
+const kinds = {};
+const placement = { position: [0, 0, 0], rotation: [0, 0, 0, 1] };
+for (const step of vectors.jitter) {
+  buffer.push(step.stamp, step.arrival, { avatar: "a", hash: "", rotations: step.rotations, translations: step.translations, scales: [], placement });
+  if (Math.abs(buffer.delayUs() - step.delay) > 1e-6) failures.push(`after stamp ${step.stamp}: delay ${buffer.delayUs()} vs ${step.delay}`);
+  for (const q of step.queries) {
+    samples++;
+    kinds[q.kind] = (kinds[q.kind] ?? 0) + 1;
+    const time = buffer.playoutTime(q.now);
+    if (Math.abs(time - q.time) > 1e-6) failures.push(`at ${q.now}: playout time ${time} vs ${q.time}`);
+    const s = buffer.sample(time);
+    if (!s || s.kind !== q.kind) {
+      failures.push(`at ${q.now}: ${s?.kind} vs ${q.kind}`);
+      continue;
+    }
+    worstBlend = Math.max(worstBlend, rotations(s.pose.rotations, q.rotations, `sample at ${q.now}`, BLEND_DEGREES));
+    numbers(s.pose.translations, q.translations, `sample at ${q.now} translations`);
+  }
+}
+
+// The clock: the fastest exchange's offset and round trip.
+const clock = new ClockEstimator();
+for (const c of vectors.clock) {
+  clock.add(c.t0, c.server, c.t1);
+  if (Math.abs(clock.offsetUs() - c.offset) > 1e-6 || clock.rttUs() !== c.rtt) {
+    failures.push(`clock after ${c.t0}: ${clock.offsetUs()} / ${clock.rttUs()} vs ${c.offset} / ${c.rtt}`);
+  }
+}
+
+console.log(JSON.stringify({ frames, refused, samples, kinds, worst_rotation_degrees: worstRotation, worst_blend_degrees: worstBlend, failures: failures.slice(0, 20) }));
+process.exit(failures.length ? 1 : 0);

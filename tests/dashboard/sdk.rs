@@ -1,0 +1,386 @@
+//! The JavaScript client (`/sdk/posecast.js`) in headless Chromium, from pages served on
+//! another origin that import only it: its binary decoding against a Rust client's on the same
+//! ticks, its typed command errors, and README's "Build your own dashboard" page as written.
+
+use crate::browser::*;
+use crate::common::{self, CONTROL};
+use posecast_client::net::{Client, ClientOptions, Event};
+use posecast_proto::msg::{AvatarId, Encoding};
+use posecast_proto::quant::{MAX_ERROR_DEGREES, angle_between_degrees};
+use serde_json::{Value, json};
+use std::collections::BTreeMap;
+use std::time::{Duration, Instant};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+/// Serves `html` at `http://127.0.0.1:PORT/` (any path) until the test ends: the page's origin
+/// differs from the posecast server's, as a third party's page would.
+async fn serve_page(html: String) -> String {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    tokio::spawn(async move {
+        while let Ok((mut stream, _)) = listener.accept().await {
+            let html = html.clone();
+            tokio::spawn(async move {
+                let mut head = Vec::new();
+                let mut buf = [0u8; 4096];
+                while !head.windows(4).any(|w| w == b"\r\n\r\n") && head.len() < 65536 {
+                    match stream.read(&mut buf).await {
+                        Ok(0) | Err(_) => return,
+                        Ok(n) => head.extend_from_slice(&buf[..n]),
+                    }
+                }
+                let answer = format!(
+                    "HTTP/1.1 200 OK\r\nContent-Type: text/html; charset=utf-8\r\n\
+                     Content-Length: {}\r\nConnection: close\r\n\r\n{html}",
+                    html.len()
+                );
+                if stream.write_all(answer.as_bytes()).await.is_ok() {
+                    stream.shutdown().await.ok();
+                }
+            });
+        }
+    });
+    format!("http://{addr}/")
+}
+
+/// A page that imports only the client and records, per tick, the decoded rotations and
+/// placement of `avatar` (and whether the frame was a keyframe).
+fn recording_page(addr: std::net::SocketAddr) -> String {
+    format!(
+        r#"<!doctype html><meta charset="utf-8"><title>posecast.js</title>
+<script type="module">
+import * as sdk from "http://{addr}/sdk/posecast.js";
+window.sdk = sdk;
+window.url = "ws://{addr}/ws";
+const client = new sdk.Client({{ url: window.url }});
+window.client = client;
+window.recorded = {{}};
+window.recordedCount = 0;
+client.on("frame", (f) => {{
+  const p = f.avatars.find((a) => a.avatar === "avatar");
+  if (p && window.recordedCount < 600) {{
+    window.recorded[f.seq] = {{ key: f.key, rotations: p.rotations, placement: p.placement }};
+    window.recordedCount++;
+  }}
+}});
+client.subscribe("default");
+client.connect();
+// The same stream as JSON (float rotations, every frame complete), in the same shape.
+const json = new sdk.Client({{ url: window.url, encoding: "json" }});
+window.jsonClient = json;
+window.json = {{}};
+json.on("frame", (f) => {{
+  const p = f.avatars.find((a) => a.avatar === "avatar");
+  if (p && Object.keys(window.json).length < 600) window.json[f.seq] = {{ key: f.key, rotations: p.rotations }};
+}});
+json.subscribe("default");
+json.connect();
+</script>"#
+    )
+}
+
+fn quat(v: &Value) -> glam::Quat {
+    let a: Vec<f32> = v
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_f64().unwrap() as f32)
+        .collect();
+    glam::Quat::from_xyzw(a[0], a[1], a[2], a[3])
+}
+
+/// Both decoders read the same 48 bits per rotation, so they differ by float rounding only
+/// (f64 in JavaScript, f32 in Rust: measured 1.5e-5°); one 15-bit level off is about 0.005°,
+/// inside the quantisation bound but not this.
+const SAME_BITS_DEGREES: f64 = 5e-4;
+
+/// On every tick both decoded, the page's rotations equal the Rust client's within the
+/// quantisation bound — within float rounding, in fact — and its placements within float
+/// rounding; the page's JSON client's float rotations are within the quantisation bound of
+/// them — keyframes and deltas (the
+/// avatar walks while it is moved, so deltas carry small and full rotation changes and
+/// placements).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
+    let server = common::server(60.0).await;
+    for body in [
+        json!({"op": "play", "avatar": "avatar", "clip": "walk", "fade": 0}),
+        json!({"op": "place_avatar", "avatar": "avatar", "position": [3, 0, -2], "rotation": glam::Quat::from_rotation_y(1.5).to_array(), "duration": 30}),
+    ] {
+        let (status, answer) = command(&server, body).await;
+        assert_eq!(status, 200, "{answer}");
+    }
+    let mut options = ClientOptions::new(server.ws_url(), "default");
+    options.encoding = Encoding::Binary;
+    options.reconnect = false;
+    let rust = Client::connect(options).await.unwrap();
+    let avatar = AvatarId("avatar".into());
+
+    let page = serve_page(recording_page(server.addr)).await;
+    let (_driver, b) = browser().await;
+    b.goto(&page).await.unwrap();
+    wait_js(&b, 20, "window.recordedCount > 0").await;
+
+    // The Rust client's pose of every tick it decoded, for 3 s.
+    let mut rust_ticks: BTreeMap<u64, (Vec<glam::Quat>, [f32; 7])> = BTreeMap::new();
+    let mut events = rust.events();
+    let end = Instant::now() + Duration::from_secs(3);
+    while Instant::now() < end {
+        let Ok(Ok(event)) = tokio::time::timeout(Duration::from_millis(200), events.recv()).await
+        else {
+            continue;
+        };
+        if let Event::Frame { seq, .. } = event
+            && let Some(p) = rust.latest(&avatar)
+            && p.seq == seq
+        {
+            let pl = p.placement;
+            let placement = [
+                pl.position.x,
+                pl.position.y,
+                pl.position.z,
+                pl.rotation.x,
+                pl.rotation.y,
+                pl.rotation.z,
+                pl.rotation.w,
+            ];
+            let rotations = p.locals.iter().map(|t| t.rotation).collect();
+            rust_ticks.insert(seq, (rotations, placement));
+        }
+    }
+    let recorded = wait_js(&b, 5, "window.recordedCount >= 200 && window.recorded").await;
+    let recorded = recorded.as_object().unwrap();
+
+    let (mut ticks, mut deltas, mut rotations, mut worst, mut worst_place) =
+        (0, 0, 0, 0.0f64, 0.0f32);
+    for (seq, (want, want_place)) in &rust_ticks {
+        let Some(got) = recorded.get(&seq.to_string()) else {
+            continue;
+        };
+        ticks += 1;
+        if got["key"] == json!(false) {
+            deltas += 1;
+        }
+        let got_rotations = got["rotations"].as_array().unwrap();
+        assert_eq!(got_rotations.len(), want.len(), "joints at tick {seq}");
+        for (j, (g, w)) in got_rotations.iter().zip(want).enumerate() {
+            let angle = angle_between_degrees(quat(g), *w);
+            worst = worst.max(angle);
+            rotations += 1;
+            assert!(
+                angle <= SAME_BITS_DEGREES,
+                "tick {seq} joint {j}: the page decoded {g}, the Rust client {w:?} ({angle}°)"
+            );
+        }
+        let p = &got["placement"];
+        let got_place: Vec<f32> = p["position"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .chain(p["rotation"].as_array().unwrap())
+            .map(|x| x.as_f64().unwrap() as f32)
+            .collect();
+        for (g, w) in got_place.iter().zip(want_place) {
+            worst_place = worst_place.max((g - w).abs());
+            assert!(
+                (g - w).abs() <= 1e-5,
+                "tick {seq}: placement {p} vs {want_place:?}"
+            );
+        }
+    }
+    assert!(
+        worst <= MAX_ERROR_DEGREES,
+        "{worst}° over the quantisation bound"
+    );
+    // The JSON client's float rotations: the binary ones are within the quantisation bound.
+    let json_frames = wait_js(&b, 5, "window.json").await;
+    let (mut json_ticks, mut worst_json) = (0, 0.0f64);
+    for (seq, (want, _)) in &rust_ticks {
+        let Some(got) = json_frames.get(seq.to_string()) else {
+            continue;
+        };
+        json_ticks += 1;
+        assert_eq!(got["key"], json!(true), "JSON frames are complete");
+        for (j, (g, w)) in got["rotations"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .zip(want)
+            .enumerate()
+        {
+            let angle = angle_between_degrees(quat(g), *w);
+            worst_json = worst_json.max(angle);
+            assert!(
+                angle <= MAX_ERROR_DEGREES,
+                "tick {seq} joint {j}: JSON {g}, binary {w:?} ({angle}°)"
+            );
+        }
+    }
+    assert!(
+        json_ticks >= 60,
+        "only {json_ticks} ticks in JSON and binary"
+    );
+    // Binary is what browsers should get: several times smaller than JSON (bytes per frame,
+    // keyframes included).
+    let sizes = b
+        .execute(
+            "return [client.stats.frameBytes / client.stats.frames, \
+                     jsonClient.stats.frameBytes / jsonClient.stats.frames];",
+            vec![],
+        )
+        .await
+        .unwrap();
+    let (binary_bytes, json_bytes) = (sizes[0].as_f64().unwrap(), sizes[1].as_f64().unwrap());
+    assert!(
+        binary_bytes * 3.0 < json_bytes,
+        "bytes per frame: binary {binary_bytes:.0}, JSON {json_bytes:.0}"
+    );
+    // 3 s at 60 Hz: most ticks reach both (a loaded machine may skip some).
+    assert!(
+        ticks >= 60 && deltas >= 30,
+        "only {ticks} ticks ({deltas} deltas) decoded by both; the Rust client had {}, the page {}",
+        rust_ticks.len(),
+        recorded.len()
+    );
+    // The avatar moved: the compared poses are not one pose repeated.
+    let moved = rust_ticks.values().map(|(r, _)| r[1]).collect::<Vec<_>>();
+    assert!(
+        angle_between_degrees(moved[0], moved[moved.len() / 2]) > 0.5
+            || angle_between_degrees(moved[0], moved[moved.len() - 1]) > 0.5,
+        "the avatar did not move"
+    );
+    println!(
+        "posecast.js vs posecast_client: {ticks} ticks ({deltas} deltas), {rotations} rotations, \
+         largest difference {worst:.2e}° (bound {MAX_ERROR_DEGREES}°), placement {worst_place:.1e}; \
+         JSON vs binary on {json_ticks} ticks: {worst_json:.2e}°; bytes per frame: binary \
+         {binary_bytes:.0}, JSON {json_bytes:.0}"
+    );
+}
+
+/// Commands whose promises reject with the typed error: `play` without a token is
+/// `unauthorized` (and changes nothing), `get_avatar` of an unknown avatar `unknown_avatar`; a
+/// control token the server does not know leaves the client watching, the refusal recorded.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn command_promises_reject_with_the_typed_error() {
+    let server = common::server(60.0).await;
+    let page = serve_page(recording_page(server.addr)).await;
+    let (_driver, b) = browser().await;
+    b.goto(&page).await.unwrap();
+    wait_js(&b, 20, "window.client && window.client.state === 'online'").await;
+    let script = format!(
+        r#"const done = arguments[0];
+(async () => {{
+  const {{ Client, PosecastError }} = window.sdk;
+  const online = (c) => new Promise((resolve) => {{
+    c.on("state", (s) => s === "online" && resolve(c));
+    c.connect();
+  }});
+  const refusal = async (c, command) => {{
+    try {{
+      return {{ resolved: await c.command(command) }};
+    }} catch (e) {{
+      return {{ typed: e instanceof PosecastError, name: e.name, code: e.code, message: e.message, id: e.id ?? null }};
+    }}
+  }};
+  const viewer = await online(new Client({{ url: window.url, reconnect: false }}));
+  const controller = await online(new Client({{ url: window.url, reconnect: false, token: "{CONTROL}" }}));
+  const wrong = await online(new Client({{ url: window.url, reconnect: false, token: "not-a-token" }}));
+  await new Promise((r) => setTimeout(r, 300)); // the refusal's reason follows the welcome
+  const out = {{
+    play: await refusal(viewer, {{ op: "play", avatar: "avatar", clip: "wave" }}),
+    unknown: await refusal(controller, {{ op: "get_avatar", avatar: "nobody" }}),
+    known: await refusal(controller, {{ op: "get_avatar", avatar: "avatar" }}),
+    wrong: {{ state: wrong.state, access: wrong.access, refusals: wrong.refusals }},
+  }};
+  for (const c of [viewer, controller, wrong]) c.close();
+  done(out);
+}})().catch((e) => done({{ failed: String(e) }}));"#
+    );
+    let out = b.execute_async(&script, vec![]).await.unwrap();
+    assert_eq!(out["play"]["typed"], json!(true), "{out}");
+    assert_eq!(out["play"]["name"], "PosecastError", "{out}");
+    assert_eq!(out["play"]["code"], "unauthorized", "{out}");
+    assert!(
+        out["play"]["id"].is_u64(),
+        "the error names its command: {out}"
+    );
+    assert_eq!(out["unknown"]["typed"], json!(true), "{out}");
+    assert_eq!(out["unknown"]["code"], "unknown_avatar", "{out}");
+    assert_eq!(
+        out["known"]["resolved"]["clip"], "idle",
+        "a command that succeeds resolves with its result: {out}"
+    );
+    assert_eq!(out["wrong"]["state"], "online", "{out}");
+    assert_eq!(out["wrong"]["access"]["control"], json!(false), "{out}");
+    assert_eq!(out["wrong"]["refusals"][0]["code"], "unauthorized", "{out}");
+    // The refused play changed nothing.
+    assert_eq!(avatar_state(&server, "avatar").await["clip"], "idle");
+}
+
+/// README's example page, exactly as written but for the server's address, served from
+/// another origin: it draws the avatar, its tick advances, its root is where the Rust client
+/// has it, and its button shows the typed refusal.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_readmes_example_page_shows_poses() {
+    let readme =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md")).unwrap();
+    let section = readme
+        .split("\n## Build your own dashboard")
+        .nth(1)
+        .expect("README has a section \"Build your own dashboard\"");
+    let example = section
+        .split("```html\n")
+        .nth(1)
+        .and_then(|s| s.split("\n```").next())
+        .expect("the section has an html example");
+    assert!(
+        example.contains("localhost:8080/sdk/posecast.js"),
+        "{example}"
+    );
+    let server = common::server(60.0).await;
+    let page = serve_page(example.replace("localhost:8080", &server.addr.to_string())).await;
+    let mut options = ClientOptions::new(server.ws_url(), "default");
+    options.reconnect = false;
+    let rust = Client::connect(options).await.unwrap();
+    let (_driver, b) = browser().await;
+    b.goto(&page).await.unwrap();
+
+    let status = "document.getElementById('status').textContent.match(/^avatar: tick (\\d+), root at y = (-?[0-9.]+) m$/)";
+    let first = wait_js(&b, 20, status).await;
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let second = wait_js(&b, 5, status).await;
+    let tick = |v: &Value| v[1].as_str().unwrap().parse::<u64>().unwrap();
+    assert!(
+        tick(&second) >= tick(&first) + 10,
+        "the page's tick advances: {first} then {second}"
+    );
+    // Idle, in place: the root's height moves by millimetres between the page's (played-out)
+    // tick and the Rust client's newest.
+    let page_y: f32 = second[2].as_str().unwrap().parse().unwrap();
+    let rust_y = rust.latest(&AvatarId("avatar".into())).unwrap().locals[0]
+        .translation
+        .y;
+    assert!(
+        (page_y - rust_y).abs() < 0.02,
+        "root height: the page {page_y} m, the Rust client {rust_y} m"
+    );
+    // Something was drawn on the canvas.
+    let drawn = b
+        .execute(
+            "const c = document.getElementById('view'); \
+             const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data; \
+             let n = 0; for (let i = 3; i < d.length; i += 4) if (d[i] > 0) n++; return n;",
+            vec![],
+        )
+        .await
+        .unwrap();
+    assert!(drawn.as_u64().unwrap() > 100, "pixels drawn: {drawn}");
+    find(&b, "#wave").await.click().await.unwrap();
+    wait_js(
+        &b,
+        10,
+        "document.getElementById('wave').textContent === 'refused: unauthorized'",
+    )
+    .await;
+    assert_eq!(avatar_state(&server, "avatar").await["clip"], "idle");
+}

@@ -1,0 +1,304 @@
+//! The JavaScript client's stream parts against their Rust twins, on shared vectors run by
+//! node through `server/web/check/stream.mjs`:
+//! - `server/sdk/frames.js` decodes binary frames (keyframes, deltas with every tag, placements
+//!   in keyframes and deltas, translations and scales; truncated, trailing, bad-magic and
+//!   orphan-delta frames refused without changing its keyframes) as `posecast_proto::frame`'s
+//!   `FrameDecoder` does;
+//! - `server/sdk/jitter.js` gives the playout delay and sampled poses (and how each was made)
+//!   of posecast-client's `JitterBuffer` on an irregular stream with late and lost frames;
+//! - `server/sdk/clock.js` gives `ClockEstimator`'s offset and round trip.
+
+use crate::root;
+use glam::{Quat, Vec3};
+use posecast_client::net::clock::ClockEstimator;
+use posecast_client::net::jitter::{JitterBuffer, Sampled};
+use posecast_proto::Transform;
+use posecast_proto::frame::{
+    AvatarPose, ChunkEncoder, FrameDecoder, FrameHeader, FrameKind, write_header,
+};
+use posecast_proto::placement::Placement;
+use posecast_proto::testing::skip;
+use serde_json::{Value, json};
+use std::process::Command as Process;
+
+/// A small deterministic generator (the vectors must not change from run to run).
+struct Lcg(u64);
+
+impl Lcg {
+    fn next(&mut self) -> f32 {
+        self.0 = self
+            .0
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        ((self.0 >> 40) as f32) / ((1u64 << 24) as f32)
+    }
+
+    fn range(&mut self, lo: f32, hi: f32) -> f32 {
+        lo + (hi - lo) * self.next()
+    }
+
+    fn vec3(&mut self) -> Vec3 {
+        Vec3::new(
+            self.range(-1.0, 1.0),
+            self.range(-1.0, 1.0),
+            self.range(-1.0, 1.0),
+        )
+    }
+
+    fn quat(&mut self) -> Quat {
+        loop {
+            let q = Quat::from_xyzw(
+                self.range(-1.0, 1.0),
+                self.range(-1.0, 1.0),
+                self.range(-1.0, 1.0),
+                self.range(-1.0, 1.0),
+            );
+            if q.length() > 0.1 {
+                return q.normalize();
+            }
+        }
+    }
+}
+
+fn pose_json(p: &AvatarPose) -> Value {
+    json!({
+        "num": p.avatar_num,
+        "hash": format!("{:016x}", p.hash),
+        "rotations": p.rotations.iter().map(|q| q.to_array()).collect::<Vec<_>>(),
+        "translations": p.translations.iter().map(|t| t.to_array()).collect::<Vec<_>>(),
+        "scales": p.scales.iter().map(|s| s.to_array()).collect::<Vec<_>>(),
+        "placement": {
+            "position": p.placement.position.to_array(),
+            "rotation": p.placement.rotation.to_array(),
+        },
+    })
+}
+
+/// Binary frames of two avatars and what `FrameDecoder` makes of each, in order (a frame it
+/// refuses: `null`, and it must change nothing).
+fn frame_vectors(rng: &mut Lcg) -> Vec<Value> {
+    let joints = [9usize, 23];
+    let mut poses: Vec<AvatarPose> = joints
+        .iter()
+        .enumerate()
+        .map(|(i, &n)| AvatarPose {
+            avatar_num: i as u32 + 1,
+            hash: 0x9f0c_1234_abcd_0000 + i as u64,
+            rotations: (0..n).map(|_| rng.quat()).collect(),
+            translations: vec![rng.vec3()],
+            scales: if i == 1 {
+                vec![rng.vec3(), rng.vec3()]
+            } else {
+                vec![]
+            },
+            placement: Placement::IDENTITY,
+        })
+        .collect();
+    let mut encoders = vec![ChunkEncoder::new(); poses.len()];
+    let mut decoder = FrameDecoder::new();
+    let mut out = Vec::new();
+    let mut key_seq = 0;
+    for seq in 100u64..160 {
+        let kind = if seq % 20 == 0 {
+            FrameKind::Key
+        } else {
+            FrameKind::Delta
+        };
+        if kind == FrameKind::Key {
+            key_seq = seq;
+        }
+        for pose in &mut poses {
+            for q in &mut pose.rotations {
+                let r = rng.next();
+                // Unchanged (tag 0), a small turn (tag 1) or a new rotation (tag 2).
+                if r < 0.3 {
+                } else if r < 0.8 {
+                    *q = (Quat::from_scaled_axis(rng.vec3() * 0.004) * *q).normalize();
+                } else {
+                    *q = rng.quat();
+                }
+            }
+            pose.translations[0] += rng.vec3() * 0.01;
+            if rng.next() < 0.3 {
+                pose.placement =
+                    Placement::try_new((rng.vec3() * 5.0).to_array(), rng.quat().to_array())
+                        .unwrap();
+            }
+        }
+        let header = FrameHeader {
+            kind,
+            scene_num: 3,
+            seq,
+            server_time_us: 1_763_891_000_000_000 + seq * 16_667,
+            base_seq: key_seq,
+        };
+        let mut bytes = Vec::new();
+        write_header(&header, poses.len() as u16, &mut bytes);
+        for (pose, encoder) in poses.iter().zip(&mut encoders) {
+            encoder.encode(pose, kind, &mut bytes);
+        }
+        // Refused frames between the good ones: cut short, one byte too many, not a frame,
+        // and a delta against a keyframe never sent.
+        if seq % 7 == 3 {
+            let mut bad = vec![bytes[..bytes.len() - 1].to_vec(), bytes.clone()];
+            bad[1].push(0);
+            let mut magic = bytes.clone();
+            magic[0] = b'Q';
+            bad.push(magic);
+            if kind == FrameKind::Delta {
+                let mut orphan = bytes.clone();
+                orphan[24..32].copy_from_slice(&(key_seq - 1).to_le_bytes());
+                bad.push(orphan);
+            }
+            for b in bad {
+                assert!(decoder.decode(&b).is_err());
+                out.push(json!({"bytes": b, "expect": null}));
+            }
+        }
+        let frame = decoder.decode(&bytes).unwrap();
+        out.push(json!({
+            "bytes": bytes,
+            "expect": {
+                "key": kind == FrameKind::Key,
+                "scene_num": frame.header.scene_num,
+                "seq": frame.header.seq,
+                "server_time_us": frame.header.server_time_us,
+                "base_seq": frame.header.base_seq,
+                "avatars": frame.avatars.iter().map(pose_json).collect::<Vec<_>>(),
+            },
+        }));
+        if kind == FrameKind::Key {
+            // A later keyframe cut short in its last chunk: refused whole, so the first
+            // avatar's keyframe stays this one and the next deltas still decode.
+            let mut cut = bytes.clone();
+            cut[8..16].copy_from_slice(&(seq + 500).to_le_bytes());
+            cut[24..32].copy_from_slice(&(seq + 500).to_le_bytes());
+            cut.pop();
+            assert!(decoder.decode(&cut).is_err());
+            out.push(json!({"bytes": cut, "expect": null}));
+        }
+    }
+    out
+}
+
+fn kind_name(k: Sampled) -> &'static str {
+    match k {
+        Sampled::Interpolated => "interpolated",
+        Sampled::Extrapolated => "extrapolated",
+        Sampled::Held => "held",
+    }
+}
+
+/// A 60 Hz stream with jittery arrivals, a late burst and a gap pushed into a
+/// `JitterBuffer`, queried around the playout point after every few pushes.
+fn jitter_vectors(rng: &mut Lcg) -> Value {
+    let tick = 16_667u64;
+    let mut buffer = JitterBuffer::new(60.0);
+    let mut steps = Vec::new();
+    let mut pose: Vec<Transform> = (0..3)
+        .map(|_| Transform {
+            translation: rng.vec3(),
+            rotation: rng.quat(),
+            scale: Vec3::ONE,
+        })
+        .collect();
+    let start = 5_000_000u64;
+    for i in 0..400u64 {
+        if (200..215).contains(&i) {
+            continue; // a quarter-second gap: extrapolated, then held
+        }
+        for t in &mut pose {
+            t.rotation = (Quat::from_scaled_axis(rng.vec3() * 0.05) * t.rotation).normalize();
+            t.translation += rng.vec3() * 0.01;
+        }
+        let stamp = start + i * tick;
+        // 20 ms base delay (and clock offset), up to 8 ms jitter, now and then 60 ms late.
+        let late = if i % 53 == 0 { 60_000.0 } else { 0.0 };
+        let arrival = stamp + 20_000 + (rng.range(0.0, 8_000.0) + late) as u64;
+        buffer.push(stamp, arrival, pose.clone());
+        let mut queries = Vec::new();
+        if i % 5 == 0 {
+            for offset in [-40_000.0, -8_000.0, 0.0, 9_000.0, 50_000.0, 150_000.0] {
+                let now = arrival as f64 + offset;
+                let time = buffer.playout_time(now as u64);
+                let (sampled, kind) = buffer.sample_with_kind(time).unwrap();
+                queries.push(json!({
+                    "now": now as u64,
+                    "time": time,
+                    "kind": kind_name(kind),
+                    "rotations": sampled.iter().map(|t| t.rotation.to_array()).collect::<Vec<_>>(),
+                    "translations": sampled.iter().map(|t| t.translation.to_array()).collect::<Vec<_>>(),
+                }));
+            }
+        }
+        steps.push(json!({
+            "stamp": stamp,
+            "arrival": arrival,
+            "rotations": pose.iter().map(|t| t.rotation.to_array()).collect::<Vec<_>>(),
+            "translations": pose.iter().map(|t| t.translation.to_array()).collect::<Vec<_>>(),
+            "delay": buffer.delay_us(),
+            "queries": queries,
+        }));
+    }
+    json!(steps)
+}
+
+/// Ping/pong exchanges, the slow ones asymmetric, and the estimate after each.
+fn clock_vectors(rng: &mut Lcg) -> Value {
+    let mut clock = ClockEstimator::new();
+    let offset = 7_340_000.0f32;
+    let mut out = Vec::new();
+    let mut t0 = 1_000_000u64;
+    for _ in 0..40 {
+        let up = rng.range(200.0, 30_000.0);
+        let down = rng.range(200.0, 30_000.0);
+        let server = (t0 as f32 + up + offset) as u64;
+        let t1 = t0 + (up + down) as u64;
+        clock.add(t0, server, t1);
+        out.push(json!({
+            "t0": t0, "server": server, "t1": t1,
+            "offset": clock.offset_us(), "rtt": clock.rtt_us(),
+        }));
+        t0 = t1 + 100_000;
+    }
+    json!(out)
+}
+
+#[test]
+fn the_clients_decoder_jitter_buffer_and_clock_match_the_rust_ones() {
+    let mut rng = Lcg(0x57_4ea4);
+    let vectors = json!({
+        "frames": frame_vectors(&mut rng),
+        "jitter": jitter_vectors(&mut rng),
+        "clock": clock_vectors(&mut rng),
+    });
+    let file = std::env::temp_dir().join(format!("posecast-stream-{}.json", std::process::id()));
+    std::fs::write(&file, serde_json::to_vec(&vectors).unwrap()).unwrap();
+    let script = root().join("server/web/check/stream.mjs");
+    let out = match Process::new("node").arg(&script).arg(&file).output() {
+        Ok(out) => out,
+        Err(e) => {
+            skip(&format!(
+                "node is not installed ({e}): the JavaScript decoder is not checked"
+            ));
+            return;
+        }
+    };
+    std::fs::remove_file(&file).ok();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "stream.mjs: {stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: Value = serde_json::from_str(stdout.trim()).unwrap();
+    assert!(report["frames"].as_u64().unwrap() >= 60, "{report}");
+    assert!(report["refused"].as_u64().unwrap() >= 20, "{report}");
+    for kind in ["interpolated", "extrapolated", "held"] {
+        assert!(
+            report["kinds"][kind].as_u64().unwrap_or(0) >= 5,
+            "{kind}: {report}"
+        );
+    }
+    println!("JavaScript stream parts vs Rust: {report}");
+}
