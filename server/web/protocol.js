@@ -145,7 +145,7 @@ export {};
 /** @typedef {{type: "scene_deleted", scene: string}} SceneDeletedMsg */
 /** @typedef {{type: "avatar_changed", scene: string, seq: number, avatar: AvatarState}} AvatarChangedMsg */
 /** @typedef {{type: "pong", id: number, client_time_us: number, server_time_us: number}} PongMsg */
-/** @typedef {{type: "ack", id: number, result?: unknown}} AckMsg */
+/** @typedef {{type: "ack", id: number, result: unknown}} AckMsg */
 /** @typedef {{type: "frame", scene: string, seq: number, server_time_us: number, avatars: AvatarPose[]}} FrameMsg */
 /** @typedef {{type: "error"} & ProtocolError} ErrorMsg */
 

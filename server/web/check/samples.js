@@ -256,6 +256,7 @@ export const ack = /** @satisfies {import("../protocol.js").AckMsg} */ ({
 
 export const ackNull = /** @satisfies {import("../protocol.js").AckMsg} */ ({
   "id": 5,
+  "result": null,
   "type": "ack"
 });
 
