@@ -51,6 +51,8 @@ struct Row {
     tags: [usize; 3],
     max_err_key: f64,
     max_err_delta: f64,
+    /// The v2 estimate ([`estimate_v2`]).
+    v2: V2Estimate,
 }
 
 fn mean(v: &[usize]) -> f64 {
@@ -189,7 +191,147 @@ fn measure(name: &str, rig: &Rig, clip: &Clip) -> Result<Row> {
         });
         row.json_frame.push(serde_json::to_string(&message)?.len());
     }
+    row.v2 = estimate_v2(rig, clip);
     Ok(row)
+}
+
+/// What a wire v2 as issue 14 sketches would cost: each frame against the *previous* one, every
+/// 15-bit level predicted from the frames before (the previous level, or constant velocity
+/// `2·l₋₁ − l₋₂`, whichever has done better: [`Adaptive`]), the zigzagged residual Rice-coded
+/// with a parameter adapted per joint and component from its past residuals (so the decoder can
+/// follow without side information); a joint whose dropped
+/// component changed goes in full (6 bytes). Translations quantised to 1/8192 m (error ≤ 0.061
+/// mm) and coded the same way. Headers as v2 would need them: 8 bytes a frame (magic and kind,
+/// scene, seq and time as varints), 2 a delta chunk, 13 + 6·J + 12·T a keyframe chunk.
+/// Nothing is encoded: this counts bits, to size the work, not to ship it.
+#[derive(Debug, Default, Clone, Copy)]
+struct V2Estimate {
+    /// Mean bytes per joint per frame, one avatar per frame (its header not shared), over 60 s:
+    /// keyframes once a second, and only the first.
+    per_joint_keyed: f64,
+    per_joint_unkeyed: f64,
+    /// Share of joint-frames whose dropped component changed (sent in full).
+    escapes: f64,
+}
+
+/// Bits of `u` in a Rice code of parameter `k`, escaping long quotients to 15 raw bits.
+fn rice_bits(u: u64, k: u32) -> u64 {
+    let q = u >> k;
+    if q > 16 {
+        17 + 16
+    } else {
+        q + 1 + u64::from(k)
+    }
+}
+
+/// One level's coder: of two predictions — the previous frame (`still`) and constant velocity
+/// (`moving`) — it codes the residual of the one whose running mean has been smaller (noisy
+/// motion-capture joints do better without the velocity term, which doubles their noise), with
+/// the Rice parameter `k = ⌊log₂(mean |residual| + 1)⌋` of that running mean. The decoder can
+/// keep the same state from the levels it decodes, so nothing is sent about either choice.
+#[derive(Debug, Default, Clone, Copy)]
+struct Adaptive {
+    /// Running means of the zigzagged residuals, in 1/16 units: still, moving.
+    mean16: [u64; 2],
+}
+
+impl Adaptive {
+    fn code(&mut self, still: i64, moving: i64) -> u64 {
+        let zigzag = |r: i64| ((r << 1) ^ (r >> 63)) as u64;
+        let u = [zigzag(still), zigzag(moving)];
+        let pick = usize::from(self.mean16[1] <= self.mean16[0]);
+        let k = 63 - ((self.mean16[pick] >> 4) + 1).leading_zeros();
+        let bits = rice_bits(u[pick], k.min(15));
+        for (mean, u) in self.mean16.iter_mut().zip(u) {
+            // mean ← 7/8 mean + 1/8 u.
+            *mean = *mean - (*mean >> 3) + ((u.min(1 << 20) << 4) >> 3);
+        }
+        bits
+    }
+}
+
+fn estimate_v2(rig: &Rig, clip: &Clip) -> V2Estimate {
+    let skeleton = rig.skeleton();
+    let rest = skeleton.rest();
+    let joints = skeleton.len();
+    let translated: Vec<usize> = rig.translated.iter().map(|&j| usize::from(j)).collect();
+    let mut locals: Vec<Transform> = rest.to_vec();
+    let frames = (60.0 * RATE) as usize;
+    let levels = |bits: u64| {
+        let l = |k: u32| ((bits >> (15 * (2 - k))) & 0x7fff) as i64;
+        ((bits >> 45) & 3, [l(0), l(1), l(2)])
+    };
+    // The last two frames of every joint: (dropped component, the three levels).
+    type Levels = Option<(u64, [i64; 3])>;
+    let mut history: Vec<[Levels; 2]> = vec![[None, None]; joints];
+    let mut thistory: Vec<[Option<[i64; 3]>; 2]> = vec![[None, None]; translated.len()];
+    let mut coders = vec![Adaptive::default(); 3 * (joints + translated.len())];
+    let (mut keyed_bits, mut unkeyed_bits, mut escapes) = (0u64, 0u64, 0u64);
+    let key_chunk_bits = 8 * (13 + 6 * joints + 12 * translated.len()) as u64;
+    let duration = clip.duration().max(1e-3);
+    for i in 0..frames {
+        let t = clip.start() + (i as f32 / RATE) % duration;
+        clip.sample(t.min(clip.end()), rest, &mut locals);
+        let mut delta_bits = 8 * 2u64 + 1; // chunk head, "any index changed" flag
+        let mut changed_any = false;
+        for (j, local) in locals.iter().enumerate() {
+            let (index, now) = levels(quant::encode(local.rotation));
+            let [prev, prev2] = history[j];
+            match prev {
+                Some((pi, pl)) if pi == index => {
+                    let velocity = match prev2 {
+                        Some((qi, ql)) if qi == index => [0, 1, 2].map(|c| pl[c] - ql[c]),
+                        _ => [0; 3],
+                    };
+                    for c in 0..3 {
+                        let still = now[c] - pl[c];
+                        delta_bits += coders[3 * j + c].code(still, still - velocity[c]);
+                    }
+                }
+                _ => {
+                    changed_any = true;
+                    escapes += 1;
+                    delta_bits += 48;
+                }
+            }
+            history[j] = [Some((index, now)), prev];
+        }
+        if changed_any {
+            delta_bits += joints as u64; // which joints went in full
+        }
+        for (k, &j) in translated.iter().enumerate() {
+            let now = locals[j]
+                .translation
+                .to_array()
+                .map(|v| (f64::from(v) * 8192.0).round() as i64);
+            let [prev, prev2] = thistory[k];
+            let predicted = match (prev, prev2) {
+                (Some(p), Some(q)) => [0, 1, 2].map(|c| 2 * p[c] - q[c]),
+                (Some(p), None) => p,
+                _ => [0; 3],
+            };
+            for c in 0..3 {
+                let still = now[c] - prev.map_or(0, |p| p[c]);
+                delta_bits += coders[3 * (joints + k) + c].code(still, now[c] - predicted[c]);
+            }
+            thistory[k] = [Some(now), prev];
+        }
+        let delta_bits = delta_bits.div_ceil(8) * 8;
+        let header = 8 * 8;
+        keyed_bits += header
+            + if i % KEY_INTERVAL == 0 {
+                key_chunk_bits
+            } else {
+                delta_bits
+            };
+        unkeyed_bits += header + if i == 0 { key_chunk_bits } else { delta_bits };
+    }
+    let per_joint = |bits: u64| bits as f64 / 8.0 / frames as f64 / joints as f64;
+    V2Estimate {
+        per_joint_keyed: per_joint(keyed_bits),
+        per_joint_unkeyed: per_joint(unkeyed_bits),
+        escapes: escapes as f64 / (frames * joints) as f64,
+    }
 }
 
 fn print(rows: &[Row]) {
@@ -240,6 +382,27 @@ fn print(rows: &[Row]) {
             r.max_err_key,
             r.max_err_delta,
             quant::MAX_ERROR_DEGREES,
+        );
+    }
+    println!(
+        "\nA wire v2 estimate (`estimate_v2`: against the previous frame, constant-velocity prediction, adaptive Rice residuals; 60 s looping, one avatar per frame, headers included)\n"
+    );
+    println!(
+        "| clip | v1 B/joint (today, +32 B header) | v2 B/joint, keyframe every 1 s | v2 B/joint, first keyframe only | joints sent in full (dropped component changed) |"
+    );
+    println!("|---|---:|---:|---:|---:|");
+    for r in rows {
+        let v1 = (r.key_bytes.iter().sum::<usize>()
+            + r.delta_bytes.iter().sum::<usize>()
+            + HEADER_BYTES * r.frames) as f64
+            / r.frames as f64
+            / r.joints as f64;
+        println!(
+            "| {} | {v1:.2} | {:.2} | {:.2} | {:.2} % |",
+            r.name,
+            r.v2.per_joint_keyed,
+            r.v2.per_joint_unkeyed,
+            100.0 * r.v2.escapes,
         );
     }
     println!(
