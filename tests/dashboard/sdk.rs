@@ -384,3 +384,77 @@ async fn the_readmes_example_page_shows_poses() {
     .await;
     assert_eq!(avatar_state(&server, "avatar").await["clip"], "idle");
 }
+
+/// The client on its own (no dashboard around it): the server stops, the client goes offline
+/// and keeps trying with back-off; a server back on the same address gets it online again,
+/// subscribed as before (descriptions and frames of the same avatar flow), without the page
+/// doing anything.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_client_reconnects_and_resubscribes_after_a_restart() {
+    use posecast_server::config::Config;
+    use posecast_server::startup::Server;
+    let server = common::server(60.0).await;
+    let addr = server.addr;
+    let page = serve_page(format!(
+        r#"<!doctype html><meta charset="utf-8"><title>reconnect</title>
+<script type="module">
+import {{ Client }} from "http://{addr}/sdk/posecast.js";
+const client = new Client({{ url: "ws://{addr}/ws" }});
+window.states = [];
+window.frames = 0;
+window.described = 0;
+client.on("state", (s) => window.states.push(s));
+client.on("description", () => window.described++);
+client.on("frame", (f) => {{ if (f.avatars.some((a) => a.avatar === "avatar")) window.frames++; }});
+client.subscribe("default");
+client.connect();
+window.client = client;
+</script>"#
+    ))
+    .await;
+    let (_driver, b) = browser().await;
+    b.goto(&page).await.unwrap();
+    wait_js(&b, 20, "window.frames > 30 && window.described >= 1").await;
+    server.stop().await;
+    wait_js(&b, 10, "window.client.state !== 'online'").await;
+    // Down for a while: several attempts, none connecting.
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let frames = b.execute("return window.frames;", vec![]).await.unwrap();
+    let described = b.execute("return window.described;", vec![]).await.unwrap();
+    let server = Server::start(Config {
+        listen: addr,
+        tick_rate: 60.0,
+        access: common::test_access(),
+        ..Config::default()
+    })
+    .await
+    .expect("restart on the same address");
+    server.ready().await.unwrap();
+    let back = Instant::now();
+    wait_js(
+        &b,
+        15,
+        &format!(
+            "window.client.state === 'online' && window.described > {described} && window.frames > {frames} + 30"
+        ),
+    )
+    .await;
+    let took = back.elapsed();
+    let states = b.execute("return window.states;", vec![]).await.unwrap();
+    let states: Vec<&str> = states
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(Value::as_str)
+        .collect();
+    assert!(
+        states.iter().filter(|s| **s == "online").count() >= 2,
+        "online, then online again: {states:?}"
+    );
+    // Back-off is capped at 5 s: the restarted server is found within one more attempt.
+    assert!(
+        took < Duration::from_secs(8),
+        "back after {took:?}: {states:?}"
+    );
+    server.stop().await;
+}
