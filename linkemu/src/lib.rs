@@ -53,8 +53,9 @@ pub const SEGMENT: usize = 1448;
 /// The shortest emulated retransmission timeout (Linux's minimum RTO).
 pub const MIN_RTO: Duration = Duration::from_millis(200);
 
-/// Receive buffer of the proxy's socket to the upstream (the kernel doubles it).
-const UPSTREAM_RCVBUF: u32 = 8 << 10;
+/// Receive buffer of the proxy's socket to the upstream (the kernel doubles it): small, so
+/// loopback adds little buffering of its own between the sender and the emulated link.
+const UPSTREAM_RCVBUF: u32 = 4 << 10;
 
 /// The impairments of a link (both directions alike).
 #[derive(Debug, Clone, PartialEq)]
@@ -69,7 +70,10 @@ pub struct LinkConfig {
     pub rate_bps: Option<u64>,
     /// Bytes the bottleneck queue holds per direction.
     pub queue_bytes: usize,
-    /// Bytes of one connection in flight through the proxy per direction (TCP's window).
+    /// Bytes of one connection in flight through the proxy per direction: TCP's congestion
+    /// window. The default, 16 KiB, is about the bandwidth-delay product of 2 Mbit/s × 64 ms;
+    /// a real flow's window at a congested bottleneck shrinks to its share of the queue (the
+    /// proxy does not drop, so it does not shrink): past it, bytes wait in the sender's socket.
     pub window_bytes: usize,
     /// Seed of the random delays and losses.
     pub seed: u64,
@@ -77,7 +81,7 @@ pub struct LinkConfig {
 
 impl Default for LinkConfig {
     /// A perfect link: no delay, no loss, no rate limit; a 32 KiB queue (used with a rate),
-    /// a 64 KiB window.
+    /// a 16 KiB window.
     fn default() -> Self {
         Self {
             delay: Duration::ZERO,
@@ -85,7 +89,7 @@ impl Default for LinkConfig {
             loss: 0.0,
             rate_bps: None,
             queue_bytes: 32 << 10,
-            window_bytes: 64 << 10,
+            window_bytes: 16 << 10,
             seed: 1,
         }
     }

@@ -280,11 +280,11 @@ async fn a_full_queue_stops_reading_so_the_senders_are_held_back() {
     );
     eprintln!("in 2 s: {written} bytes written upstream, {read} read by the clients");
     // What the senders could hand over: 2 s at the rate and the shared queue, plus per
-    // connection the proxy's receive buffer (8 KiB, doubled by the kernel) and the sender's
-    // own (8 KiB, doubled), and a segment being read — about 490 KB. Without the shared
+    // connection the proxy's receive buffer (4 KiB, doubled by the kernel), the sender's own
+    // (8 KiB, doubled) and a segment being read — about 420 KB. Without the shared
     // queue each connection would fill its window (8 × 64 KiB more); without back-pressure
     // loopback takes megabytes.
-    let per_connection = (16 << 10) + (16 << 10) + SEGMENT as u64;
+    let per_connection = (8 << 10) + (16 << 10) + SEGMENT as u64;
     let bound = 200_000 + (16 << 10) + CONNECTIONS * per_connection;
     assert!(written <= bound, "{written} > {bound}");
     assert!(read <= 200_000 + SEGMENT as u64 * CONNECTIONS, "{read}");
