@@ -61,8 +61,8 @@ pub struct Seen {
     /// From connecting to the first frame (the join keyframe).
     pub joined_after: Option<Duration>,
     /// Every frame after the first that the viewer would show: (arrival µs, server time µs).
-    /// Not among them: a keyframe that came only as the reference of the delta right behind it
-    /// (a paced viewer that skipped the keyframe's tick gets it just before its next delta,
+    /// Not among them: a keyframe that came (within 2 ms) together with the delta right behind
+    /// it that refers to it, only as its reference (a paced viewer that skipped the keyframe's tick gets it just before its next delta,
     /// which is newer and shown instead) — counted in `references`.
     pub frames: Vec<(u64, u64)>,
     /// Keyframes received only as the reference of the next delta.
@@ -173,6 +173,7 @@ async fn view(addr: SocketAddr, encoding: Encoding, seen: &Mutex<Seen>) -> Resul
                 // A delta whose keyframe came just before it: that keyframe was its reference.
                 if header.kind == posecast_proto::frame::FrameKind::Delta
                     && last_key == Some(header.base_seq)
+                    && s.frames.last().is_some_and(|(a, _)| arrival - a <= 2_000)
                     && s.frames.pop().is_some()
                 {
                     s.references += 1;
