@@ -15,24 +15,26 @@
 //!   retransmission timeout (at 5 % loss of 60 segments a second, most of the time is inside
 //!   one); the smallest recent one ignores that, a standing queue raises even the smallest.
 //! - *an unanswered ping* older than the base round trip plus [`UNANSWERED_LATE`] counts as a
-//!   sample of its age (a queue so long no answer comes back yet); the first ping goes right after the
-//!   welcome, before a subscription's descriptions, so the base is known early;
+//!   sample of its age (a queue so long no answer comes back yet); the first ping goes right
+//!   after the welcome, before a subscription's descriptions, so the base is known early;
 //! - *frames superseded in the outbox* (the writer could not hand them to the socket in time).
 //!
 //! **Control** (AIMD on discrete steps, with hysteresis): queueing above [`QUEUE_TARGET`] or
 //! superseded frames cut the rate to the step at or below ¾ of it (½ past a quarter of
 //! [`FAR_BEHIND`], ¼ past it), at most once per [`HOLD`] so the queue can drain; a rate held
 //! without either signal for a probing wait goes up one step. The wait is 1 s per frame/s the
-//! step adds (at most 4×), with ±25 % jitter so connections sharing a link do not move in
+//! step adds (at most 4 s), with ±25 % jitter so connections sharing a link do not move in
 //! lock-step. (The wait does not grow after a raise that failed: the connections that had
 //! been unlucky would then fall behind the others for good.) The hysteresis is in the
 //! thresholds: lowered above [`QUEUE_TARGET`], raised only after a whole wait below half of it.
 //!
-//! **Fairness.** Connections sharing a bottleneck see the same queueing delay, so they back off
-//! together and probe upwards one at a time. A connection that joined while the link was
-//! already queued never saw its empty round trip, would take the queue for its base and
-//! crowd out the others: connections from one address share their base ([`Paths`]; one
-//! address is most often one access link); every connection keeps at least the lowest step
+//! **Fairness.** Connections sharing a bottleneck see the same queueing delay. A connection
+//! that joined while the link was already queued never saw its empty round trip, would take
+//! the queue for its base and crowd out the others: connections from one address share their
+//! base ([`Paths`]; one address is most often one access link) and their cuts (two of them
+//! cutting within [`CONFIRM`] is a cut for all, at most every [`PATH_HOLD`]; one alone may
+//! be a lost segment's stall) — simultaneous multiplicative cuts and additive raises make
+//! their rates converge; every connection keeps at least the lowest step
 //! (1 Hz) — no connection starves while others stream — and, staggered by connection, paced
 //! subscribers do not all send on the same tick.
 
@@ -72,6 +74,9 @@ pub const HOLD: Duration = Duration::from_millis(500);
 /// Least time between two cuts shared by a path.
 pub const PATH_HOLD: Duration = Duration::from_secs(2);
 
+/// How soon a second connection's cut confirms a first one's as the path's.
+pub const CONFIRM: Duration = Duration::from_secs(1);
+
 /// Round trips the current one is the smallest of (0.8 s of samples).
 pub const CURRENT_OF: usize = 4;
 
@@ -99,8 +104,10 @@ fn hz(level: usize) -> f64 {
 pub struct Path {
     /// (start of the current window, its minimum, the previous window's minimum).
     windows: Mutex<(Instant, Option<Duration>, Option<Duration>)>,
-    /// The last cut of a connection on the path: when, and by what factor.
+    /// The last cut of the path: when, and by what factor.
     congestion: Mutex<Option<(Instant, f64)>>,
+    /// A connection's cut not yet confirmed by another's: when, and whose.
+    unconfirmed: Mutex<Option<(Instant, u64)>>,
 }
 
 impl Path {
@@ -108,13 +115,29 @@ impl Path {
         Self {
             windows: Mutex::new((Instant::now(), None, None)),
             congestion: Mutex::new(None),
+            unconfirmed: Mutex::new(None),
         }
     }
 
-    /// A connection cut its rate by `factor` at `now`: the others follow, unless the path's
-    /// last cut was less than [`PATH_HOLD`] ago (one queue, one cut: the queue takes a while
-    /// to drain after everyone cut). Returns the event recorded.
-    fn congested(&self, now: Instant, factor: f64) -> Option<Instant> {
+    /// Connection `who` cut its rate by `factor` at `now` for a standing queue. Once another
+    /// connection did too within [`CONFIRM`] (a shared queue delays every connection; a
+    /// retransmission stall only its own), the others follow, unless the path's last cut was
+    /// less than [`PATH_HOLD`] ago (one queue, one cut: it takes a while to drain after
+    /// everyone cut). Returns the event recorded.
+    fn congested(&self, now: Instant, factor: f64, who: u64) -> Option<Instant> {
+        {
+            let mut u = self
+                .unconfirmed
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
+            match *u {
+                Some((at, other)) if other != who && now - at <= CONFIRM => *u = None,
+                _ => {
+                    *u = Some((now, who));
+                    return None;
+                }
+            }
+        }
         let mut c = self
             .congestion
             .lock()
@@ -216,6 +239,8 @@ struct Control {
     /// The oldest unanswered probe (one in flight at a time).
     outstanding: Option<Instant>,
     seed: u64,
+    /// Who this is on its path (the first seed).
+    id: u64,
     /// Shared with the other connections from the same address.
     path: Option<Arc<Path>>,
     /// The newest congestion event of the path acted on.
@@ -235,6 +260,7 @@ impl Control {
             this_wait: PROBE_WAIT,
             outstanding: None,
             seed: seed | 1,
+            id: seed,
             path: None,
             seen_event: None,
         };
@@ -324,7 +350,7 @@ impl Control {
                 // Only a standing queue (seen in every recent round trip, not one late ping or a
                 // writer woken late) is news for the whole path.
                 if let (Some(path), true) = (&self.path, standing && queueing.is_some()) {
-                    self.seen_event = path.congested(now, factor).or(self.seen_event);
+                    self.seen_event = path.congested(now, factor, self.id).or(self.seen_event);
                 }
             }
         } else if queueing.is_some_and(|q| q <= QUEUE_TARGET / 2) {
@@ -470,6 +496,11 @@ mod tests {
     use super::*;
 
     const MS: Duration = Duration::from_millis(1);
+
+    #[test]
+    fn the_metrics_label_the_same_steps() {
+        assert_eq!(STEPS, crate::metrics::pace::STEPS);
+    }
 
     #[test]
     fn a_rate_sends_that_many_of_60_ticks_evenly_whatever_the_phase() {
