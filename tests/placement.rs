@@ -91,6 +91,8 @@ async fn first_frame(
                 }
                 other => panic!("unexpected before the first frame: {other:?}"),
             },
+            // Round-trip probes of the adaptive rate (answered by the library).
+            Message::Ping(_) => {}
             other => panic!("unexpected message {other:?}"),
         }
     }

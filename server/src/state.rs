@@ -7,6 +7,7 @@ use crate::metrics::Metrics;
 use crate::readiness::Readiness;
 use crate::store::Store;
 use crate::stream::outbox::Outbox;
+use crate::stream::pace::Paths;
 use crate::world::World;
 use axum::extract::ws::Message;
 use posecast_proto::msg::SceneId;
@@ -40,6 +41,8 @@ pub struct AppState {
     pub readiness: Readiness,
     /// The connections watching the scene list ([`crate::changes`]).
     pub watchers: Watchers,
+    /// Round trips shared by connections from one address (the adaptive rate's base).
+    pub paths: Paths,
 }
 
 /// The open websockets' outboxes, and whether the server is shutting down (in one lock, so a
@@ -64,6 +67,7 @@ impl AppState {
             store: Store::new(config.data_dir.clone()),
             readiness: Readiness::default(),
             watchers: Watchers::default(),
+            paths: Paths::default(),
             config,
         })
     }

@@ -4,8 +4,10 @@
 //! **Playout point.** A frame stamped `s` on the server's clock arrives at `a` on the
 //! client's; its *raw transit* `a − s` is the one-way delay plus the (constant) clock offset.
 //! Rendering at client time `now` samples server time `now − D` with
-//! `D = q(a − s) + one tick`, where `q` is the 99.5th percentile of the raw transits of the
-//! last [`WINDOW`] frames (4 s at 60 Hz). Every frame stamped up to `now − D + tick` then
+//! `D = q(a − s) + one frame interval`, where `q` is the 99.5th percentile of the raw transits
+//! of the last [`WINDOW`] frames (10 s at 60 Hz) and the interval is the longest gap between
+//! the stamps of the last [`GAPS`] frames (one tick at full rate; more when the server paces
+//! the connection, `server/src/stream/pace.rs`). Every frame stamped up to `now − D + tick` then
 //! arrived with 99.5 % probability, so the point lies between two received frames and is
 //! interpolated. The clock offset cancels out: no ping is needed to play out. The delay
 //! follows the link: a steady 25 ms one way gives ~25 ms + a tick; TCP's recovery of a lost
@@ -28,6 +30,9 @@ pub const WINDOW: usize = 600;
 /// The share of recent frames the playout delay waits for: 99.5 % (one frame in 200 may
 /// arrive after its turn and is extrapolated over).
 pub const QUANTILE: f64 = 0.995;
+
+/// Stamp gaps the frame interval is the longest of.
+pub const GAPS: usize = 16;
 
 /// Longest extrapolation past the newest frame, µs.
 pub const MAX_EXTRAPOLATION_US: f64 = 100_000.0;
@@ -59,6 +64,9 @@ pub struct JitterBuffer {
     since_sort: u32,
     jitter_us: f64,
     last_transit: Option<f64>,
+    /// Gaps between the stamps of the last frames, µs (the server's send interval: a paced
+    /// connection gets fewer frames than ticks).
+    gaps: VecDeque<f64>,
 }
 
 impl JitterBuffer {
@@ -78,6 +86,7 @@ impl JitterBuffer {
             since_sort: 0,
             jitter_us: 0.0,
             last_transit: None,
+            gaps: VecDeque::with_capacity(GAPS),
         }
     }
 
@@ -111,6 +120,12 @@ impl JitterBuffer {
             let rank = ((sorted.len() as f64 * QUANTILE).ceil() as usize).clamp(1, sorted.len());
             self.transit_p99 = sorted[rank - 1];
         }
+        if let Some((last, _)) = self.frames.back() {
+            if self.gaps.len() == GAPS {
+                self.gaps.pop_front();
+            }
+            self.gaps.push_back((server_time_us - last) as f64);
+        }
         if self.frames.len() == CAPACITY {
             self.frames.pop_front();
         }
@@ -124,11 +139,19 @@ impl JitterBuffer {
     }
 
     /// The current playout delay on the client's clock, µs: the 99.5th percentile of the raw
-    /// transits plus one tick (see the module doc). Includes the clock offset, so only
+    /// transits plus one frame interval ([`Self::interval_us`]; see the module doc). Includes the clock offset, so only
     /// `now − delay` is meaningful, as a server time.
     #[must_use]
     pub fn delay_us(&self) -> f64 {
-        (self.transit_p99 + self.tick_us).min(self.transit_floor() + MAX_DELAY_US)
+        (self.transit_p99 + self.interval_us()).min(self.transit_floor() + MAX_DELAY_US)
+    }
+
+    /// The frames' interval: the longest gap between the stamps of the last [`GAPS`] frames,
+    /// at least one tick (a paced stream sends fewer frames than ticks: the frame after the
+    /// playout point is then up to one interval after it).
+    #[must_use]
+    pub fn interval_us(&self) -> f64 {
+        self.gaps.iter().copied().fold(self.tick_us, f64::max)
     }
 
     /// The smallest raw transit in the window (the offset plus the fastest delivery).
@@ -227,8 +250,9 @@ mod tests {
             b.push(i * 16_667, i * 16_667 + 500 + wobble, pose(0.0, 0.0));
         }
         assert!(b.jitter_us() > 4_000.0, "jitter {}", b.jitter_us());
-        // The late half arrives 8.5 ms after its stamp: the delay covers it.
-        assert!((b.delay_us() - (8_500.0 + 1e6 / 60.0)).abs() < 1e-6);
+        // The late half arrives 8.5 ms after its stamp: the delay covers it, plus the frames'
+        // interval (16,667 µs between stamps).
+        assert!((b.delay_us() - (8_500.0 + 16_667.0)).abs() < 1e-6);
     }
 
     /// A link with one-way `delay` ± `jitter` (uniform), and TCP loss: a lost segment is
@@ -318,6 +342,35 @@ mod tests {
             // extrapolation bound behind it, an interpolated one not at all.
             assert!(worst <= MAX_EXTRAPOLATION_US + tick, "{worst}");
         }
+    }
+
+    #[test]
+    fn a_paced_stream_is_interpolated_too() {
+        // 5 frames a second (a paced connection at 60 ticks/s), 30 ms in transit, rendered at
+        // 60 Hz: the playout point waits one frame interval (200 ms), so the next frame has
+        // always arrived.
+        let frames: Vec<(u64, u64)> = (0..100u64)
+            .map(|i| (10_000_000 + i * 200_000, 10_030_000 + i * 200_000))
+            .collect();
+        let mut b = JitterBuffer::new(60.0);
+        let (mut interpolated, mut other) = (0, 0);
+        let mut next = 0;
+        let mut now = frames[0].1 as f64;
+        while now < frames[frames.len() - 1].1 as f64 {
+            while next < frames.len() && frames[next].1 as f64 <= now {
+                b.push(frames[next].0, frames[next].1, pose(0.0, 0.0));
+                next += 1;
+            }
+            if now >= frames[0].1 as f64 + 2e6 {
+                match b.sample_with_kind(b.playout_time(now as u64)).unwrap().1 {
+                    Sampled::Interpolated => interpolated += 1,
+                    _ => other += 1,
+                }
+            }
+            now += 1e6 / 60.0;
+        }
+        assert!((b.interval_us() - 200_000.0).abs() < 1.0);
+        assert_eq!(other, 0, "{interpolated} interpolated");
     }
 
     #[test]

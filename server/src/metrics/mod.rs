@@ -14,9 +14,11 @@ use prometheus_client::registry::Registry;
 
 use crate::quota::Quota;
 pub mod net;
+pub mod pace;
 pub mod vmc;
 
 use net::NetCounters;
+use pace::PaceCounters;
 use vmc::VmcCounters;
 
 /// The `Content-Type` of [`Metrics::render`]'s text.
@@ -67,6 +69,9 @@ pub struct Metrics {
     // --- the VMC gateway (issue 17) ---
     /// VMC datagrams in, refusals, poses applied, bundles out ([`VmcCounters`]).
     pub vmc: VmcCounters,
+    // --- the adaptive frame rate (issue 22) ---
+    /// Connections per adaptive rate step, rate changes ([`PaceCounters`]).
+    pub pace: PaceCounters,
 }
 
 impl Default for Metrics {
@@ -145,6 +150,7 @@ impl Metrics {
         );
         let net = NetCounters::new(r);
         let vmc = VmcCounters::new(r);
+        let pace = PaceCounters::new(r);
         Self {
             registry,
             connections_open,
@@ -168,6 +174,7 @@ impl Metrics {
             rate_limited,
             net,
             vmc,
+            pace,
         }
     }
 
@@ -423,7 +430,24 @@ posecast_vmc_poses_refused_total{reason="no_avatar"} 0
 posecast_vmc_poses_refused_total{reason="not_humanoid"} 0
 posecast_vmc_bundles_sent_total 0
 posecast_vmc_bytes_sent_total 0
-posecast_vmc_send_errors_total 0"#;
+posecast_vmc_send_errors_total 0
+posecast_connection_rate{per_60_ticks="60"} 0
+posecast_connection_rate{per_60_ticks="45"} 0
+posecast_connection_rate{per_60_ticks="30"} 0
+posecast_connection_rate{per_60_ticks="24"} 0
+posecast_connection_rate{per_60_ticks="20"} 0
+posecast_connection_rate{per_60_ticks="15"} 0
+posecast_connection_rate{per_60_ticks="12"} 0
+posecast_connection_rate{per_60_ticks="10"} 0
+posecast_connection_rate{per_60_ticks="8"} 0
+posecast_connection_rate{per_60_ticks="6"} 0
+posecast_connection_rate{per_60_ticks="5"} 0
+posecast_connection_rate{per_60_ticks="4"} 0
+posecast_connection_rate{per_60_ticks="3"} 0
+posecast_connection_rate{per_60_ticks="2"} 0
+posecast_connection_rate{per_60_ticks="1"} 0
+posecast_rate_changes_total{way="down"} 0
+posecast_rate_changes_total{way="up"} 0"#;
 
     /// Sample lines with their values parsed, so `0` and `0.0` compare equal.
     fn samples(text: &str) -> BTreeSet<(String, u64)> {

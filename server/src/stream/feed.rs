@@ -9,6 +9,7 @@
 //! ([`crate::scene`]): the feed reads them and never changes what an avatar does.
 
 use super::outbox::{OutFrame, Outbox, message_len};
+use super::pace;
 use super::publish::{Piece, Published};
 use crate::avatar::Avatar;
 use crate::error::Error;
@@ -31,7 +32,8 @@ pub struct Subscriber {
     pub encoding: Encoding,
     /// Only these avatars, or all.
     pub filter: Option<Vec<AvatarId>>,
-    /// It gets every `every`-th tick (1: all of them).
+    /// It gets every `every`-th tick (1: all of them), or fewer while its connection's
+    /// adaptive rate ([`crate::stream::pace`]) is lower.
     pub every: u32,
     /// The tick of the last keyframe it was sent: a subscriber that skips ticks may skip a
     /// keyframe, and then gets it before its next delta.
@@ -376,7 +378,15 @@ impl Feed {
         let mut bytes_out = 0u64;
         let mut offered = 0u64;
         for sub in &mut self.subscribers {
-            if !at.seq.is_multiple_of(u64::from(sub.every)) {
+            // The connection's adaptive rate may be lower than the subscription's; paced
+            // connections are staggered by their id, so they do not all send on one tick.
+            let paced = sub.outbox.pace().rate();
+            let due = if u64::from(paced) * u64::from(sub.every) < 60 {
+                pace::sends(paced, at.seq, sub.conn)
+            } else {
+                at.seq.is_multiple_of(u64::from(sub.every))
+            };
+            if !due {
                 continue;
             }
             let filter = sub.filter.as_deref();

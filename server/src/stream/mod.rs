@@ -5,8 +5,10 @@
 //! - `publish`: a frame as per-avatar pieces in both encodings.
 //! - [`outbox`]: the bounded per-connection queue (newest frame wins).
 //! - [`writer`]: the task that drains an outbox into its websocket.
+//! - [`pace`]: a connection's adaptive frame rate (lowered until its link keeps up).
 
 pub mod feed;
 pub mod outbox;
+pub mod pace;
 mod publish;
 pub mod writer;

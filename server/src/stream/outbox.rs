@@ -16,6 +16,7 @@
 //! lock so the writer takes control messages and frames together in publication order (a
 //! description always reaches the client before the first frame that needs it).
 
+use super::pace::Pace;
 use axum::extract::ws::{CloseFrame, Message};
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::Mutex;
@@ -94,6 +95,8 @@ pub struct Outbox {
     state: Mutex<State>,
     notify: Notify,
     dropped: AtomicU64,
+    /// The connection's adaptive frame rate (its subscriptions' frames follow it).
+    pace: Pace,
 }
 
 /// What the writer should do next.
@@ -252,6 +255,12 @@ impl Outbox {
     #[must_use]
     pub fn snapshot_bytes(&self) -> usize {
         self.lock().snapshot_bytes
+    }
+
+    /// The connection's adaptive frame rate.
+    #[must_use]
+    pub fn pace(&self) -> &Pace {
+        &self.pace
     }
 
     /// Frames replaced before the writer could send them (the client read too slowly).

@@ -17,6 +17,7 @@ use crate::service::ws_liveness::{Due, Liveness};
 use crate::state::AppState;
 use crate::stream::feed::{Subscriber, text};
 use crate::stream::outbox::Outbox;
+use crate::stream::pace::{Change, PROBE_INTERVAL};
 use crate::stream::writer::run_writer;
 use axum::extract::ws::{Message, WebSocket, close_code};
 use futures_util::{Sink, Stream, StreamExt};
@@ -27,6 +28,7 @@ use posecast_proto::msg::{
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
+use tokio::time::Instant;
 use tracing::{Instrument, debug, info, info_span};
 
 /// How long the reader waits for the client's answering close frame once the writer has sent
@@ -56,6 +58,9 @@ where
     S: Stream<Item = Result<Message, axum::Error>> + Sink<Message> + Send + 'static,
 {
     let outbox = Arc::new(Outbox::new());
+    outbox
+        .pace()
+        .set_path(state.paths.join(peer.map(|p| p.ip())));
     let conn = state.register_connection(&outbox);
     let peer = peer.map_or_else(|| "-".to_owned(), |p| p.to_string());
     let span = info_span!("ws", conn, peer = %peer, caller = tracing::field::Empty);
@@ -81,9 +86,17 @@ where
         let mut writer_done = false;
         let mut client_closed = false;
         let mut liveness = Liveness::new(&state.config.net);
+        state.metrics.pace.opened();
+        // The adaptive rate's round-trip probes (only while subscribed: frames flow then).
+        let mut probe = tokio::time::interval(PROBE_INTERVAL);
+        probe.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
             let message = tokio::select! {
                 m = stream.next() => m,
+                _ = probe.tick(), if !session.scenes.is_empty() => {
+                    session.probe();
+                    continue;
+                }
                 _ = &mut writer => {
                     writer_done = true;
                     None
@@ -112,7 +125,11 @@ where
                     client_closed = true;
                     false
                 }
-                Ok(Message::Ping(_) | Message::Pong(_)) => true,
+                Ok(Message::Pong(payload)) => {
+                    session.pong(&payload);
+                    true
+                }
+                Ok(Message::Ping(_)) => true,
                 Err(e) => {
                     if let Some((error, code, reason)) = read_failure(e) {
                         session.error(error);
@@ -153,6 +170,7 @@ where
         }
         state.unregister_connection(conn);
         state.metrics.connection_closed(outbox.dropped_frames());
+        state.metrics.pace.closed(outbox.pace().level());
         info!(
             frames_dropped = outbox.dropped_frames(),
             client_closed, "websocket closed"
@@ -270,6 +288,44 @@ impl Session {
         false
     }
 
+    /// Samples the round trip for the adaptive rate: a ping carrying the server's time (as
+    /// the liveness pings do), unless one is unanswered — which counts as late by its age.
+    fn probe(&self) {
+        let pace = self.outbox.pace();
+        let (send, change) = pace.probe(Instant::now(), self.outbox.dropped_frames());
+        self.rate_changed(change);
+        if send {
+            let payload = unix_micros().to_le_bytes().to_vec();
+            self.outbox.push_control(Message::Ping(payload.into()));
+        }
+    }
+
+    /// A pong: if it answers one of the server's pings (8 bytes, the server's time when it
+    /// was sent), its round trip goes to the adaptive rate.
+    fn pong(&self, payload: &[u8]) {
+        let Ok(sent) = <[u8; 8]>::try_from(payload) else {
+            return;
+        };
+        let now = unix_micros();
+        let sent = u64::from_le_bytes(sent);
+        if sent > now {
+            return;
+        }
+        let rtt = Duration::from_micros(now - sent);
+        let change = self.outbox.pace().answered(Instant::now(), rtt);
+        self.rate_changed(change);
+    }
+
+    fn rate_changed(&self, change: Option<Change>) {
+        if let Some(c) = change {
+            self.state.metrics.pace.changed(c.from, c.to);
+            debug!(
+                per_60_ticks = crate::stream::pace::STEPS[c.to],
+                "adaptive frame rate changed"
+            );
+        }
+    }
+
     /// Acts on a liveness deadline ([`Liveness`]); `false` ends the connection: no hello in
     /// time (`timeout` error, close 1008, like any other bad first message), or nothing heard
     /// for the idle timeout (close 1008 without an error: a peer that answers nothing would
@@ -371,6 +427,8 @@ impl Session {
         if let Some(e) = refused {
             self.error(e);
         }
+        // The adaptive rate's first round trip, before any subscription's descriptions.
+        self.probe();
         true
     }
 

@@ -31,12 +31,15 @@ pub struct Shared {
     pub ready: AtomicUsize,
     /// Clients that failed to connect or subscribe.
     pub failed: AtomicUsize,
+    /// Whether clients keep every frame's arrival (`--link`).
+    record_arrivals: bool,
 }
 
 impl Shared {
     /// `parallel` connections may be in their handshake at once.
-    pub fn new(parallel: usize) -> Self {
+    pub fn new(parallel: usize, record_arrivals: bool) -> Self {
         Self {
+            record_arrivals,
             phase: AtomicU8::new(Phase::Warmup as u8),
             done: watch::Sender::new(false),
             connecting: Semaphore::new(parallel.max(1)),
@@ -77,6 +80,23 @@ pub struct ClientStats {
     pub failure: Option<String>,
     /// The connection ended before the run did.
     pub closed_early: bool,
+    /// Every frame's arrival, when the run records them (`--link`).
+    pub arrivals: Vec<Arrival>,
+}
+
+/// One frame as it arrived.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Arrival {
+    /// When, µs since the Unix epoch.
+    pub arrival_us: u64,
+    /// The frame's `server_time_us`.
+    pub stamp_us: u64,
+    /// Its tick.
+    pub seq: u64,
+    /// The keyframe it refers to.
+    pub base_seq: u64,
+    /// Whether it is a keyframe.
+    pub key: bool,
 }
 
 impl ClientStats {
@@ -142,6 +162,15 @@ pub async fn run(
                     stats
                         .latencies_us
                         .push(u32::try_from(latency).unwrap_or(u32::MAX));
+                    if shared.record_arrivals {
+                        stats.arrivals.push(Arrival {
+                            arrival_us: now,
+                            stamp_us: header.server_time_us,
+                            seq: header.seq,
+                            base_seq: header.base_seq,
+                            key: header.base_seq == header.seq,
+                        });
+                    }
                 }
             }
             Some(Ok(Message::Text(text))) => {

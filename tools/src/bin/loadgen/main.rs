@@ -11,6 +11,16 @@
 //! loadgen --spawn-server --avatars 10 --clients 2000 --seconds 10
 //! ```
 //!
+//! `--link SPEC` (repeatable) or `--link-suite` put an emulated link between the clients and
+//! the server (`posecast-linkemu`: delay, jitter, loss, a rate shared by every client — e.g.
+//! `--link delay=25ms,jitter=10ms,loss=1%,rate=2mbit`) and print, per condition, what viewers
+//! got: frames/s per client, frame age p50/p99, worst freeze, interpolated share of displayed
+//! poses (see `link.rs`):
+//!
+//! ```text
+//! loadgen --spawn-server --avatars 10 --clients 50 --seconds 10 --link-suite
+//! ```
+//!
 //! `--spawn-server` runs the `posecast` binary built beside this one on a free loopback port,
 //! fills its `default` scene up to M built-in avatars (it starts with one playing `idle`; the
 //! others play `walk`, `wave`, `idle` in turn) with websocket commands, and stops the server at
@@ -19,6 +29,7 @@
 //! the same limit.
 
 mod client;
+mod link;
 mod reference;
 mod report;
 mod server;
@@ -89,6 +100,15 @@ pub struct Args {
     /// Run as the reference server on this address (what `--server reference` spawns).
     #[arg(long, hide = true)]
     serve_reference: Option<std::net::SocketAddr>,
+    /// Reach the server through an emulated link, e.g. `delay=25ms,jitter=10ms,loss=1%,
+    /// rate=2mbit` (also `queue=32kb`, `window=16kb`, `seed=N`; `none`): one run per `--link`,
+    /// then a table of what viewers got.
+    #[arg(long, conflicts_with = "serve_reference")]
+    link: Vec<String>,
+    /// The issue's conditions, one run each: none, 25 ms, ± 10 ms jitter, 1 % and 5 % loss,
+    /// 2 Mbit/s shared by every client.
+    #[arg(long, conflicts_with = "link")]
+    link_suite: bool,
 }
 
 /// The server(s) a `--spawn-server` run measures.
@@ -144,6 +164,9 @@ fn main() -> Result<()> {
 }
 
 async fn run(args: Args, fd_limit: u64) -> Result<()> {
+    if args.link_suite || !args.link.is_empty() {
+        return run_links(&args, fd_limit).await;
+    }
     if !args.spawn_server {
         let url = args.url.clone().context("--url or --spawn-server")?;
         let scene = args.scene.clone().unwrap_or_else(|| "default".into());
@@ -180,6 +203,90 @@ async fn run(args: Args, fd_limit: u64) -> Result<()> {
     Ok(())
 }
 
+/// `--link`/`--link-suite`: one measurement per link condition, through a proxy in this
+/// process, against one server (spawned, or `--url`); then the table.
+async fn run_links(args: &Args, fd_limit: u64) -> Result<()> {
+    let specs: Vec<String> = if args.link_suite {
+        link::SUITE.iter().map(|s| (*s).to_owned()).collect()
+    } else {
+        args.link.clone()
+    };
+    let configs = specs
+        .iter()
+        .map(|s| {
+            s.parse::<posecast_linkemu::LinkConfig>()
+                .with_context(|| format!("--link {s}"))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let token = args
+        .control_token
+        .clone()
+        .unwrap_or_else(|| format!("loadgen-{:032x}", rand::random::<u128>()));
+    let scene = args.scene.clone().unwrap_or_else(|| "default".into());
+    let (child, url) = if args.spawn_server {
+        let child =
+            server::Spawned::start(args.server_bin.as_deref(), args.tick_rate, fd_limit, &token)
+                .await?;
+        let url = child.ws_url();
+        if let Err(e) = server::create_scene(&url, &token, &scene, args.avatars, &args.clips).await
+        {
+            child.stop().await;
+            return Err(e);
+        }
+        (Some(child), url)
+    } else {
+        (None, args.url.clone().context("--url or --spawn-server")?)
+    };
+    let upstream: std::net::SocketAddr = authority(&url)?
+        .parse()
+        .with_context(|| format!("{url}: --link needs an IP address and port"))?;
+    let mut rows = Vec::new();
+    let mut result = Ok(());
+    for (spec, config) in specs.iter().zip(configs) {
+        eprintln!("— link {config} —");
+        let limited = config.rate_bps.is_some();
+        let proxy =
+            match posecast_linkemu::Proxy::start(upstream, posecast_linkemu::Link::new(config))
+                .await
+            {
+                Ok(p) => p,
+                Err(e) => {
+                    result = Err(e.into());
+                    break;
+                }
+            };
+        let through = format!("ws://{}/ws", proxy.addr());
+        // On a rate-limited link every client's join (its descriptions) crosses it first.
+        let mut run_args = Args::parse_from(["loadgen", "--url", &through]);
+        run_args.clients = args.clients;
+        run_args.seconds = args.seconds;
+        run_args.warmup = if limited {
+            args.warmup.max(25.0)
+        } else {
+            args.warmup
+        };
+        run_args.connect_parallel = args.connect_parallel;
+        run_args.rate = args.rate;
+        match measure_stats(&run_args, &through, &scene, true).await {
+            Ok((stats, wall)) => {
+                let row = link::row(spec, &stats, wall, args.tick_rate);
+                eprintln!("{row:?}");
+                rows.push(row);
+            }
+            Err(e) => {
+                result = Err(e);
+                break;
+            }
+        }
+    }
+    if let Some(child) = child {
+        child.stop().await;
+    }
+    result?;
+    link::print(&rows);
+    Ok(())
+}
+
 /// Starts posecast, fills its scene, measures, stops it.
 async fn spawn_and_measure(args: &Args, fd_limit: u64) -> Result<report::Summary> {
     let token = args
@@ -199,8 +306,58 @@ async fn spawn_and_measure(args: &Args, fd_limit: u64) -> Result<report::Summary
     result
 }
 
+/// Connects the clients, warms up, records for `--seconds`: every client's stats and the
+/// wall time measured. `record`: keep every frame's arrival.
+async fn measure_stats(
+    args: &Args,
+    url: &str,
+    scene: &str,
+    record: bool,
+) -> Result<(Vec<ClientStats>, f64)> {
+    let shared = Arc::new(client::Shared::new(args.connect_parallel, record));
+    let tasks: Vec<_> = (0..args.clients)
+        .map(|i| {
+            let shared = shared.clone();
+            let url = url.to_owned();
+            let scene = scene.to_owned();
+            let rate = args.rate;
+            tokio::spawn(async move { client::run(i, &url, &scene, rate, &shared).await })
+        })
+        .collect();
+    let deadline = Instant::now() + Duration::from_secs(30 + args.clients as u64 / 20);
+    loop {
+        let ready = shared.ready.load(Ordering::Relaxed) + shared.failed.load(Ordering::Relaxed);
+        if ready >= args.clients || Instant::now() > deadline {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    eprintln!(
+        "{} of {} clients subscribed ({} failed); warming up {:.1} s",
+        shared.ready.load(Ordering::Relaxed),
+        args.clients,
+        shared.failed.load(Ordering::Relaxed),
+        args.warmup
+    );
+    tokio::time::sleep(Duration::from_secs_f64(args.warmup)).await;
+    let began = Instant::now();
+    shared.set_phase(Phase::Measure);
+    tokio::time::sleep(Duration::from_secs_f64(args.seconds)).await;
+    shared.set_phase(Phase::Done);
+    let wall = began.elapsed().as_secs_f64();
+    let mut stats = Vec::with_capacity(tasks.len());
+    for t in tasks {
+        match tokio::time::timeout(Duration::from_secs(10), t).await {
+            Ok(Ok(s)) => stats.push(s),
+            Ok(Err(e)) => bail!("a client task panicked: {e}"),
+            Err(_) => stats.push(ClientStats::failed("did not stop within 10 s")),
+        }
+    }
+    Ok((stats, wall))
+}
+
 async fn measure(args: &Args, url: &str, scene: &str, pid: Option<u32>) -> Result<report::Summary> {
-    let shared = Arc::new(client::Shared::new(args.connect_parallel));
+    let shared = Arc::new(client::Shared::new(args.connect_parallel, false));
     let connect_began = Instant::now();
     let tasks: Vec<_> = (0..args.clients)
         .map(|i| {

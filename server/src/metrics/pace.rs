@@ -1,0 +1,94 @@
+//! Counters of the adaptive frame rate (`crate::stream::pace`): how many connections send at
+//! each step, and how often rates went down and up. Kept apart (`Metrics::pace`) like the
+//! network counters.
+
+use crate::metrics::{GaugeU64, labelled_counters};
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::registry::Registry;
+
+/// The adaptive rate's steps, frames per 60 ticks (the stream layer's `pace::STEPS`, which
+/// this layer cannot use: its tests check the two agree).
+pub const STEPS: [u32; 15] = [60, 45, 30, 24, 20, 15, 12, 10, 8, 6, 5, 4, 3, 2, 1];
+
+/// Labels of [`STEPS`].
+const RATES: [&str; STEPS.len()] = [
+    "60", "45", "30", "24", "20", "15", "12", "10", "8", "6", "5", "4", "3", "2", "1",
+];
+
+/// Connections per step and rate changes. Relaxed atomics: exact totals, no ordering.
+#[derive(Debug)]
+pub struct PaceCounters {
+    /// By step (index into [`STEPS`]).
+    at: [GaugeU64; STEPS.len()],
+    lowered: Counter,
+    raised: Counter,
+}
+
+impl PaceCounters {
+    /// All zero, registered in `registry`.
+    pub(crate) fn new(registry: &mut Registry) -> Self {
+        let family = Family::<[(&'static str, &'static str); 1], GaugeU64>::default();
+        let at = RATES.map(|r| family.get_or_create(&[("per_60_ticks", r)]).clone());
+        registry.register(
+            "connection_rate",
+            "Websocket connections by their adaptive frame rate (frames per 60 ticks)",
+            family,
+        );
+        let [lowered, raised] = labelled_counters(
+            registry,
+            "rate_changes",
+            "Adaptive frame rate changes of websocket connections",
+            "way",
+            ["down", "up"],
+        );
+        Self {
+            at,
+            lowered,
+            raised,
+        }
+    }
+
+    /// A connection started at the first step.
+    pub fn opened(&self) {
+        self.at[0].inc();
+    }
+
+    /// A connection at step `level` closed.
+    pub fn closed(&self, level: usize) {
+        if let Some(g) = self.at.get(level) {
+            g.dec();
+        }
+    }
+
+    /// A connection moved from step `from` to step `to`.
+    pub fn changed(&self, from: usize, to: usize) {
+        if let (Some(a), Some(b)) = (self.at.get(from), self.at.get(to)) {
+            a.dec();
+            b.inc();
+        }
+        if to > from {
+            self.lowered.inc();
+        } else {
+            self.raised.inc();
+        }
+    }
+
+    /// Connections at step `level` now.
+    #[must_use]
+    pub fn at(&self, level: usize) -> u64 {
+        self.at.get(level).map_or(0, GaugeU64::get)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn labels_are_the_steps() {
+        for (label, step) in RATES.iter().zip(STEPS) {
+            assert_eq!(label.parse::<u32>().unwrap(), step);
+        }
+    }
+}

@@ -1,0 +1,604 @@
+//! A connection's adaptive frame rate: lowered until the link keeps up, raised again when it
+//! recovers.
+//!
+//! **Why.** Behind a thin link the bytes a connection cannot deliver queue in the network (a
+//! bottleneck's buffer, the kernel's socket), where the newest-frame-wins outbox cannot replace
+//! them: frames arrive seconds late. So each connection sends only `rate` of every 60 ticks
+//! ([`STEPS`]: 60, 45, 30, 24, 20, 15, 12, 10, 8, 6, 5, 4, 3, 2, 1 — frames per second at
+//! 60 ticks/s), evenly spread, when that is lower than its subscription's rate.
+//!
+//! **Signals**, sampled by a small websocket ping every [`PROBE_INTERVAL`] while the
+//! connection is subscribed (the payload is the server's time, so the pong gives the round
+//! trip; a ping queues behind the frames already on their way, so it measures the queue):
+//! - *queueing delay*: the smallest of the last [`CURRENT_OF`] round trips above the smallest
+//!   of the last [`BASE_WINDOW`] (the path's own). A lost segment stalls the samples of a
+//!   retransmission timeout (at 5 % loss of 60 segments a second, most of the time is inside
+//!   one); the smallest recent one ignores that, a standing queue raises even the smallest.
+//! - *an unanswered ping* older than the base round trip plus [`UNANSWERED_LATE`] counts as a
+//!   sample of its age (a queue so long no answer comes back yet); the first ping goes right
+//!   after the welcome, before a subscription's descriptions, so the base is known early;
+//! - *frames superseded in the outbox* (the writer could not hand them to the socket in time).
+//!
+//! **Control** (AIMD on discrete steps, with hysteresis): queueing above [`QUEUE_TARGET`] or
+//! superseded frames cut the rate to the step at or below ¾ of it (½ past a quarter of
+//! [`FAR_BEHIND`], ¼ past it), at most once per [`HOLD`] so the queue can drain; a rate held
+//! without either signal for a probing wait goes up one step. The wait is 1 s per frame/s the
+//! step adds (at most 4 s), with ±25 % jitter so connections sharing a link do not move in
+//! lock-step. (The wait does not grow after a raise that failed: the connections that had
+//! been unlucky would then fall behind the others for good.) The hysteresis is in the
+//! thresholds: lowered above [`QUEUE_TARGET`], raised only after a whole wait below half of it.
+//!
+//! **Fairness.** Connections sharing a bottleneck see the same queueing delay. A connection
+//! that joined while the link was already queued never saw its empty round trip, would take
+//! the queue for its base and crowd out the others: connections from one address share their
+//! base ([`Paths`]; one address is most often one access link) and their cuts (two of them
+//! cutting within [`CONFIRM`] is a cut for all, at most every [`PATH_HOLD`]; one alone may
+//! be a lost segment's stall) — simultaneous multiplicative cuts and additive raises make
+//! their rates converge; every connection keeps at least the lowest step
+//! (1 Hz) — no connection starves while others stream — and, staggered by connection, paced
+//! subscribers do not all send on the same tick.
+
+use std::collections::{HashMap, VecDeque};
+use std::net::IpAddr;
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::{Arc, Mutex, Weak};
+use std::time::Duration;
+use tokio::time::Instant;
+
+/// The rates a connection steps through: frames per 60 ticks (per second at 60 ticks/s).
+/// Neighbours differ by at most half, so a probe upwards overloads a link by at most that much.
+pub const STEPS: [u32; 15] = [60, 45, 30, 24, 20, 15, 12, 10, 8, 6, 5, 4, 3, 2, 1];
+
+/// Whether a connection at `rate` frames per 60 ticks sends tick `seq`; `phase` staggers
+/// connections (so they do not all send on one tick). `rate` of every 60 consecutive ticks
+/// are sent, evenly spread.
+#[must_use]
+pub fn sends(rate: u32, seq: u64, phase: u64) -> bool {
+    let j = seq.wrapping_add(phase) % 60;
+    let rate = u64::from(rate.min(60));
+    (j + 1) * rate / 60 != j * rate / 60
+}
+
+/// How often a subscribed connection's round trip is sampled.
+pub const PROBE_INTERVAL: Duration = Duration::from_millis(200);
+
+/// Queueing delay past which the rate goes down.
+pub const QUEUE_TARGET: Duration = Duration::from_millis(40);
+
+/// Queueing delay past which it goes down two steps.
+pub const FAR_BEHIND: Duration = Duration::from_millis(400);
+
+/// Least time between two lowerings (the queue drains meanwhile).
+pub const HOLD: Duration = Duration::from_millis(500);
+
+/// Least time between two cuts shared by a path.
+pub const PATH_HOLD: Duration = Duration::from_secs(2);
+
+/// How soon a second connection's cut confirms a first one's as the path's.
+pub const CONFIRM: Duration = Duration::from_secs(1);
+
+/// Round trips the current one is the smallest of (0.8 s of samples).
+pub const CURRENT_OF: usize = 4;
+
+/// How long the smallest round trip is remembered (the path's own round trip).
+pub const BASE_WINDOW: Duration = Duration::from_secs(10);
+
+/// How far past the base round trip an unanswered ping counts as late: more than a
+/// retransmission stall (a lost segment holds a ping back 200 ms or more without any queue).
+pub const UNANSWERED_LATE: Duration = Duration::from_millis(300);
+
+/// The round trip assumed before the first answer.
+pub const UNKNOWN_BASE: Duration = Duration::from_millis(200);
+
+/// The wait before raising by one frame per second.
+const PROBE_WAIT: Duration = Duration::from_secs(1);
+
+/// Frames per second at step `level` when the scene ticks at 60 Hz (the steps' unit).
+fn hz(level: usize) -> f64 {
+    f64::from(STEPS[level.min(STEPS.len() - 1)])
+}
+
+/// Connections from one client address: the smallest round trip any of them saw lately (the
+/// path's own, without a queue).
+#[derive(Debug)]
+pub struct Path {
+    /// (start of the current window, its minimum, the previous window's minimum).
+    windows: Mutex<(Instant, Option<Duration>, Option<Duration>)>,
+    /// The last cut of the path: when, and by what factor.
+    congestion: Mutex<Option<(Instant, f64)>>,
+    /// A connection's cut not yet confirmed by another's: when, and whose.
+    unconfirmed: Mutex<Option<(Instant, u64)>>,
+}
+
+impl Path {
+    fn new() -> Self {
+        Self {
+            windows: Mutex::new((Instant::now(), None, None)),
+            congestion: Mutex::new(None),
+            unconfirmed: Mutex::new(None),
+        }
+    }
+
+    /// Connection `who` cut its rate by `factor` at `now` for a standing queue. Once another
+    /// connection did too within [`CONFIRM`] (a shared queue delays every connection; a
+    /// retransmission stall only its own), the others follow, unless the path's last cut was
+    /// less than [`PATH_HOLD`] ago (one queue, one cut: it takes a while to drain after
+    /// everyone cut). Returns the event recorded.
+    fn congested(&self, now: Instant, factor: f64, who: u64) -> Option<Instant> {
+        {
+            let mut u = self
+                .unconfirmed
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
+            match *u {
+                Some((at, other)) if other != who && now - at <= CONFIRM => *u = None,
+                _ => {
+                    *u = Some((now, who));
+                    return None;
+                }
+            }
+        }
+        let mut c = self
+            .congestion
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if c.is_some_and(|(at, _)| now - at < PATH_HOLD) {
+            return None;
+        }
+        *c = Some((now, factor));
+        Some(now)
+    }
+
+    fn congestion(&self) -> Option<(Instant, f64)> {
+        *self
+            .congestion
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, (Instant, Option<Duration>, Option<Duration>)> {
+        self.windows
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// Rolls the windows: each lasts [`BASE_WINDOW`], so the base covers the last 10–20 s.
+    fn roll(w: &mut (Instant, Option<Duration>, Option<Duration>), now: Instant) {
+        if now - w.0 >= BASE_WINDOW {
+            let skipped = now - w.0 >= BASE_WINDOW * 2;
+            *w = (now, None, if skipped { None } else { w.1 });
+        }
+    }
+
+    fn observe(&self, now: Instant, rtt: Duration) {
+        let mut w = self.lock();
+        Self::roll(&mut w, now);
+        w.1 = Some(w.1.map_or(rtt, |m| m.min(rtt)));
+    }
+
+    fn base(&self, now: Instant) -> Option<Duration> {
+        let mut w = self.lock();
+        Self::roll(&mut w, now);
+        match (w.1, w.2) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
+    }
+}
+
+/// The [`Path`]s of the server's connections, by client address.
+#[derive(Debug, Default)]
+pub struct Paths {
+    by_address: Mutex<HashMap<IpAddr, Weak<Path>>>,
+}
+
+impl Paths {
+    /// The path of a connection from `address` (its own when the address is unknown).
+    pub fn join(&self, address: Option<IpAddr>) -> Arc<Path> {
+        let Some(address) = address else {
+            return Arc::new(Path::new());
+        };
+        let mut map = self
+            .by_address
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if let Some(path) = map.get(&address).and_then(Weak::upgrade) {
+            return path;
+        }
+        // Forget the paths nobody uses any more before adding one.
+        map.retain(|_, p| p.strong_count() > 0);
+        let path = Arc::new(Path::new());
+        map.insert(address, Arc::downgrade(&path));
+        path
+    }
+}
+
+/// A change of rate, for the metrics.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Change {
+    /// The step before (index into [`STEPS`]).
+    pub from: usize,
+    /// The step after.
+    pub to: usize,
+}
+
+#[derive(Debug)]
+struct Control {
+    level: usize,
+    /// (when, round trip) of recent samples, for the base.
+    rtts: VecDeque<(Instant, Duration)>,
+    /// The last [`CURRENT_OF`] round trips.
+    recent: VecDeque<Duration>,
+    /// The outbox's superseded-frame count at the last sample.
+    superseded: u64,
+    last_lowered: Option<Instant>,
+    /// Since when neither signal fired.
+    calm_since: Instant,
+    /// The wait of this calm spell, jittered.
+    this_wait: Duration,
+    /// The oldest unanswered probe (one in flight at a time).
+    outstanding: Option<Instant>,
+    seed: u64,
+    /// Who this is on its path (the first seed).
+    id: u64,
+    /// Shared with the other connections from the same address.
+    path: Option<Arc<Path>>,
+    /// The newest congestion event of the path acted on.
+    seen_event: Option<Instant>,
+}
+
+impl Control {
+    fn new(seed: u64) -> Self {
+        let now = Instant::now();
+        let mut c = Self {
+            level: 0,
+            rtts: VecDeque::new(),
+            recent: VecDeque::new(),
+            superseded: 0,
+            last_lowered: None,
+            calm_since: now,
+            this_wait: PROBE_WAIT,
+            outstanding: None,
+            seed: seed | 1,
+            id: seed,
+            path: None,
+            seen_event: None,
+        };
+        c.rejitter();
+        c
+    }
+
+    /// A new jittered wait: the probing wait × 0.75–1.25.
+    fn rejitter(&mut self) {
+        // xorshift64: a different sequence per connection, no shared generator.
+        self.seed ^= self.seed << 13;
+        self.seed ^= self.seed >> 7;
+        self.seed ^= self.seed << 17;
+        let unit = (self.seed >> 11) as f64 / (1u64 << 53) as f64;
+        self.this_wait = PROBE_WAIT.mul_f64(0.75 + 0.5 * unit);
+    }
+
+    fn base(&self, now: Instant) -> Option<Duration> {
+        let own = self.rtts.iter().map(|(_, r)| *r).min();
+        match (own, self.path.as_ref().and_then(|p| p.base(now))) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
+    }
+
+    /// The current round trip: the smallest of the last [`CURRENT_OF`] (once there are).
+    fn current(&self) -> Option<Duration> {
+        if self.recent.len() < CURRENT_OF {
+            return None;
+        }
+        self.recent.iter().copied().min()
+    }
+
+    /// Acts on the signals at `now`: `queueing` (if known) and frames superseded since the last
+    /// sample.
+    /// Cuts the rate to the step at or below `factor` of it.
+    fn lower(&mut self, now: Instant, factor: f64) {
+        let target = hz(self.level) * factor;
+        self.level = (self.level + 1..STEPS.len())
+            .find(|&l| hz(l) <= target)
+            .unwrap_or(STEPS.len() - 1);
+        self.last_lowered = Some(now);
+        self.calm_since = now;
+        // Judge the new rate by its own round trips.
+        self.recent.clear();
+        self.rejitter();
+    }
+
+    /// `standing`: the queueing is from answered round trips (not one late ping).
+    fn decide(
+        &mut self,
+        now: Instant,
+        queueing: Option<Duration>,
+        superseded: u64,
+        standing: bool,
+    ) -> Option<Change> {
+        let from = self.level;
+        let may_lower = self.last_lowered.is_none_or(|t| now - t >= HOLD);
+        // Another connection on the path cut its rate: the queue is shared, so cut too (the
+        // cuts of one path are simultaneous, which is what makes AIMD converge to fair rates).
+        let event = self.path.as_ref().and_then(|p| p.congestion());
+        if let Some((at, factor)) = event
+            && self.seen_event.is_none_or(|seen| at > seen)
+        {
+            self.seen_event = Some(at);
+            if may_lower && self.level + 1 < STEPS.len() {
+                self.lower(now, factor);
+                return Some(Change {
+                    from,
+                    to: self.level,
+                });
+            }
+        }
+        let congested = superseded >= 2 || queueing.is_some_and(|q| q > QUEUE_TARGET);
+        if congested {
+            self.calm_since = now;
+            if may_lower && self.level + 1 < STEPS.len() {
+                // Multiplicative decrease, the further behind the bigger the cut: connections
+                // sharing a link all cut by the same factor, so the faster ones give up more
+                // (with the additive increase below, their rates converge).
+                let factor = match queueing {
+                    Some(q) if q > FAR_BEHIND => 0.25,
+                    Some(q) if q > FAR_BEHIND / 4 => 0.5,
+                    _ => 0.75,
+                };
+                self.lower(now, factor);
+                // Only a standing queue (seen in every recent round trip, not one late ping or a
+                // writer woken late) is news for the whole path.
+                if let (Some(path), true) = (&self.path, standing && queueing.is_some()) {
+                    self.seen_event = path.congested(now, factor, self.id).or(self.seen_event);
+                }
+            }
+        } else if queueing.is_some_and(|q| q <= QUEUE_TARGET / 2) {
+            // Additive increase: the wait grows with the step (1 s per frame/s, at most 4 s),
+            // so every connection gains frames per second at about the same pace.
+            let wait = self
+                .this_wait
+                .mul_f64((hz(self.level.saturating_sub(1)) - hz(self.level)).clamp(1.0, 4.0));
+            if self.level > 0 && now - self.calm_since >= wait {
+                self.level -= 1;
+                self.calm_since = now;
+                self.rejitter();
+            }
+        }
+        (self.level != from).then_some(Change {
+            from,
+            to: self.level,
+        })
+    }
+}
+
+/// A connection's pace: its current rate and what decides it.
+#[derive(Debug)]
+pub struct Pace {
+    rate: AtomicU32,
+    control: Mutex<Control>,
+}
+
+impl Default for Pace {
+    /// Full rate, seeded by a running count (each connection probes on its own schedule).
+    fn default() -> Self {
+        static SEEDS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
+        Self::new(SEEDS.fetch_add(1, Ordering::Relaxed))
+    }
+}
+
+impl Pace {
+    /// Full rate; `seed` (e.g. the connection id) staggers its probing from other connections'.
+    #[must_use]
+    pub fn new(seed: u64) -> Self {
+        Self {
+            rate: AtomicU32::new(STEPS[0]),
+            control: Mutex::new(Control::new(seed.wrapping_mul(0x9e37_79b9_7f4a_7c15))),
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Control> {
+        // Every update leaves the state consistent: a poisoned lock is still usable.
+        self.control
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// The connection's rate: frames per 60 ticks (60: every tick); see [`sends`].
+    #[must_use]
+    pub fn rate(&self) -> u32 {
+        self.rate.load(Ordering::Relaxed)
+    }
+
+    /// Shares the base round trip with the other connections on `path`.
+    pub fn set_path(&self, path: Arc<Path>) {
+        self.lock().path = Some(path);
+    }
+
+    /// The current step (index into [`STEPS`]).
+    #[must_use]
+    pub fn level(&self) -> usize {
+        self.lock().level
+    }
+
+    fn apply(&self, change: Option<Change>) -> Option<Change> {
+        if let Some(c) = change {
+            self.rate.store(STEPS[c.to], Ordering::Relaxed);
+        }
+        change
+    }
+
+    /// Time to probe at `now`: returns whether to send a ping (none while one is unanswered).
+    /// An unanswered ping older than the base round trip plus [`UNANSWERED_LATE`] counts as a
+    /// sample of its age; `superseded` is the outbox's running count of superseded frames.
+    pub fn probe(&self, now: Instant, superseded: u64) -> (bool, Option<Change>) {
+        let mut c = self.lock();
+        let new_superseded = superseded.saturating_sub(c.superseded);
+        c.superseded = superseded;
+        match c.outstanding {
+            None => {
+                c.outstanding = Some(now);
+                let change = if new_superseded >= 2 {
+                    c.decide(now, None, new_superseded, false)
+                } else {
+                    None
+                };
+                drop(c);
+                (true, self.apply(change))
+            }
+            Some(sent) => {
+                let age = now - sent;
+                // Before the first answer the path's round trip is unknown: take it as
+                // UNKNOWN_BASE (a long path), so a first ping stuck behind a queue still counts.
+                let base = c.base(now).unwrap_or(UNKNOWN_BASE);
+                let queueing = Some(age.saturating_sub(base));
+                // Past a retransmission stall: one lost segment (TCP's 200 ms minimum RTO)
+                // is not a queue.
+                let late = queueing.filter(|q| *q > UNANSWERED_LATE);
+                let change = if late.is_some() || new_superseded >= 2 {
+                    c.decide(now, late, new_superseded, false)
+                } else {
+                    None
+                };
+                drop(c);
+                (false, self.apply(change))
+            }
+        }
+    }
+
+    /// A pong arrived at `now` for a ping sent `rtt` ago.
+    pub fn answered(&self, now: Instant, rtt: Duration) -> Option<Change> {
+        let mut c = self.lock();
+        c.outstanding = None;
+        c.rtts.push_back((now, rtt));
+        while c.rtts.front().is_some_and(|(t, _)| now - *t > BASE_WINDOW) {
+            c.rtts.pop_front();
+        }
+        if c.recent.len() == CURRENT_OF {
+            c.recent.pop_front();
+        }
+        c.recent.push_back(rtt);
+        if let Some(path) = &c.path {
+            path.observe(now, rtt);
+        }
+        let queueing = match (c.current(), c.base(now)) {
+            (Some(m), Some(b)) => Some(m.saturating_sub(b)),
+            _ => None,
+        };
+        let change = c.decide(now, queueing, 0, true);
+        drop(c);
+        self.apply(change)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MS: Duration = Duration::from_millis(1);
+
+    #[test]
+    fn the_metrics_label_the_same_steps() {
+        assert_eq!(STEPS, crate::metrics::pace::STEPS);
+    }
+
+    #[test]
+    fn a_rate_sends_that_many_of_60_ticks_evenly_whatever_the_phase() {
+        for rate in STEPS {
+            for phase in [0, 7, 59, 1_000_003] {
+                let sent: Vec<u64> = (1_000..1_120).filter(|&s| sends(rate, s, phase)).collect();
+                assert_eq!(sent.len() as u32, 2 * rate, "{rate} {phase}");
+                // Evenly: gaps differ by at most one tick.
+                let gaps: Vec<u64> = sent.windows(2).map(|w| w[1] - w[0]).collect();
+                let (min, max) = (gaps.iter().min(), gaps.iter().max());
+                if let (Some(min), Some(max)) = (min, max) {
+                    assert!(max - min <= 1, "{rate}: {gaps:?}");
+                }
+            }
+        }
+        // Phases spread connections of one rate over the ticks.
+        let first: std::collections::BTreeSet<u64> = (0..10)
+            .map(|phase| (0..60).find(|&s| sends(5, s, phase)).unwrap())
+            .collect();
+        assert!(first.len() >= 8, "{first:?}");
+    }
+
+    /// Feeds probes every 200 ms from `from_s` to `to_s` whose round trip is `rtt(t)`.
+    fn run(pace: &Pace, start: Instant, from_s: f64, to_s: f64, rtt: impl Fn(f64) -> Duration) {
+        let mut t = from_s;
+        while t < to_s {
+            let now = start + Duration::from_secs_f64(t);
+            let (send, _) = pace.probe(now, 0);
+            if send {
+                let r = rtt(t);
+                pace.answered(now + r, r);
+            }
+            t += 0.2;
+        }
+    }
+
+    #[test]
+    fn a_standing_queue_lowers_the_rate_and_a_drained_one_raises_it_again() {
+        let pace = Pace::new(1);
+        let start = Instant::now();
+        // 50 ms round trips: the path's own; full rate stays.
+        run(&pace, start, 0.0, 5.0, |_| 50 * MS);
+        assert_eq!(pace.rate(), 60);
+        // A queue of 100 ms builds: one step down per HOLD (500 ms) while it stands.
+        run(&pace, start, 5.0, 7.0, |_| 150 * MS);
+        let lowered = pace.level();
+        assert!((2..=4).contains(&lowered), "{lowered}");
+        // The queue drains: back up one step per probing wait (≥ 1.5 s each).
+        run(&pace, start, 7.0, 30.0, |_| 50 * MS);
+        assert_eq!(pace.rate(), 60);
+    }
+
+    #[test]
+    fn retransmission_stalls_do_not_lower_it() {
+        let pace = Pace::new(2);
+        let start = Instant::now();
+        // Retransmission stalls (250 ms) in three samples of ten among 50 ms round trips:
+        // the smallest of four ignores them.
+        run(&pace, start, 0.0, 20.0, |t| {
+            if matches!((t * 5.0).round() as u64 % 10, 3..=5) {
+                250 * MS
+            } else {
+                50 * MS
+            }
+        });
+        assert_eq!(pace.rate(), 60);
+    }
+
+    #[test]
+    fn superseded_frames_lower_it_and_it_never_drops_below_the_last_step() {
+        let pace = Pace::new(3);
+        let start = Instant::now();
+        run(&pace, start, 0.0, 1.0, |_| 10 * MS);
+        let mut superseded = 0;
+        for i in 0..100u32 {
+            superseded += 5;
+            let now = start + Duration::from_secs(1) + 600 * MS * i;
+            let (send, _) = pace.probe(now, superseded);
+            if send {
+                pace.answered(now + 10 * MS, 10 * MS);
+            }
+        }
+        assert_eq!(pace.rate(), *STEPS.last().unwrap());
+    }
+
+    #[test]
+    fn an_unanswered_ping_counts_as_a_late_one() {
+        let pace = Pace::new(4);
+        let start = Instant::now();
+        run(&pace, start, 0.0, 2.0, |_| 20 * MS);
+        // A ping sent at 2 s is not answered: at 2.2 s it could be a lost segment's
+        // retransmission (no cut); by 2.4 s it is 400 ms old, 380 ms more than the base —
+        // past a quarter of FAR_BEHIND, so the rate halves: 60 → 30.
+        assert!(pace.probe(start + 2000 * MS, 0).0);
+        assert_eq!(pace.probe(start + 2200 * MS, 0), (false, None));
+        let (send, change) = pace.probe(start + 2400 * MS, 0);
+        assert!(!send, "one ping in flight at a time");
+        assert_eq!(change, Some(Change { from: 0, to: 2 }));
+        assert_eq!(pace.rate(), 30);
+    }
+}

@@ -1,0 +1,226 @@
+//! `--link`: the clients reach the server through an emulated link (`posecast-linkemu`, in this
+//! process), one run per condition, and a table of what viewers got: delivered frames per
+//! second per client (min and mean), frame age p50/p99, the worst freeze (longest time
+//! without a new frame), and the share of displayed poses the client library's jitter buffer
+//! (`client/src/net/jitter.rs`, rendering at 60 Hz) interpolates between two received frames.
+//!
+//! Frame ages are arrival − the frame's `server_time_us` (one machine, one clock) of the
+//! frames a viewer would show: a keyframe that arrives (within 2 ms) together with the delta
+//! right behind it that refers to it (a paced viewer that skipped the keyframe's tick gets both at once) is not
+//! shown and not counted.
+
+use crate::client::{Arrival, ClientStats};
+use posecast_client::net::jitter::{JitterBuffer, Sampled};
+
+/// The conditions of `--link-suite`: the (none, delay, jitter, 1 % and 5 % loss, a
+/// 2 Mbit/s link shared by every client).
+pub const SUITE: [&str; 6] = [
+    "none",
+    "delay=25ms",
+    "delay=25ms,jitter=10ms",
+    "delay=25ms,jitter=10ms,loss=1%",
+    "delay=25ms,jitter=10ms,loss=5%",
+    "rate=2mbit",
+];
+
+/// One condition's figures.
+#[derive(Debug, Clone)]
+pub struct Row {
+    /// The link description.
+    pub link: String,
+    /// Clients that delivered figures.
+    pub clients: usize,
+    /// Shown frames per second per client: the least and the mean.
+    pub fps_min: f64,
+    /// See `fps_min`.
+    pub fps_mean: f64,
+    /// Frame age, ms.
+    pub age_p50: f64,
+    /// See `age_p50`.
+    pub age_p99: f64,
+    /// Longest time any client went without a new frame, ms.
+    pub worst_freeze: f64,
+    /// Share of the displayed poses that were interpolated (the rest extrapolated or held).
+    pub interpolated: f64,
+    /// Share held (a repeated received pose).
+    pub held: f64,
+}
+
+/// Frames this close arrived together (one write of the server's).
+const TOGETHER_US: u64 = 2_000;
+
+/// The frames a viewer would show (see the module docs).
+fn shown(arrivals: &[Arrival]) -> Vec<Arrival> {
+    let mut out: Vec<Arrival> = Vec::with_capacity(arrivals.len());
+    for a in arrivals {
+        if !a.key
+            && let Some(last) = out.last()
+            && last.key
+            && last.seq == a.base_seq
+            && a.arrival_us.saturating_sub(last.arrival_us) <= TOGETHER_US
+        {
+            out.pop();
+        }
+        out.push(*a);
+    }
+    out
+}
+
+fn quantile(v: &mut [f64], q: f64) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    let rank = ((v.len() as f64 * q).ceil() as usize).clamp(1, v.len());
+    v[rank - 1]
+}
+
+/// Plays one client's frames out through a jitter buffer, rendering at 60 Hz from 2 s after
+/// its first frame (the buffer learns the link meanwhile) to its last: counts of
+/// (interpolated, extrapolated, held).
+fn playout(frames: &[Arrival], tick_rate: f32) -> [u64; 3] {
+    let mut counts = [0u64; 3];
+    let (Some(first), Some(last)) = (frames.first(), frames.last()) else {
+        return counts;
+    };
+    let mut buffer = JitterBuffer::new(tick_rate);
+    let step = 1e6 / 60.0;
+    let start = first.arrival_us as f64 + 2e6;
+    let mut now = first.arrival_us as f64;
+    let mut next = 0;
+    while now <= last.arrival_us as f64 {
+        while next < frames.len() && frames[next].arrival_us as f64 <= now {
+            let f = frames[next];
+            buffer.push(f.stamp_us, f.arrival_us, Vec::new());
+            next += 1;
+        }
+        if now >= start
+            && let Some((_, kind)) = buffer.sample_with_kind(buffer.playout_time(now as u64))
+        {
+            counts[match kind {
+                Sampled::Interpolated => 0,
+                Sampled::Extrapolated => 1,
+                Sampled::Held => 2,
+            }] += 1;
+        }
+        now += step;
+    }
+    counts
+}
+
+/// The figures of one condition from the clients' records over `seconds`.
+pub fn row(link: &str, stats: &[ClientStats], seconds: f64, tick_rate: f32) -> Row {
+    let mut rates = Vec::new();
+    let mut ages = Vec::new();
+    let mut worst_freeze = 0.0f64;
+    let mut counts = [0u64; 3];
+    for s in stats.iter().filter(|s| s.failure.is_none()) {
+        let frames = shown(&s.arrivals);
+        rates.push(frames.len() as f64 / seconds);
+        ages.extend(
+            frames
+                .iter()
+                .map(|f| f.arrival_us.saturating_sub(f.stamp_us) as f64 / 1e3),
+        );
+        for w in frames.windows(2) {
+            worst_freeze = worst_freeze.max((w[1].arrival_us - w[0].arrival_us) as f64 / 1e3);
+        }
+        let c = playout(&frames, tick_rate);
+        for (total, n) in counts.iter_mut().zip(c) {
+            *total += n;
+        }
+    }
+    let displayed = counts.iter().sum::<u64>().max(1) as f64;
+    Row {
+        link: link.to_owned(),
+        clients: rates.len(),
+        fps_min: rates.iter().copied().fold(f64::INFINITY, f64::min),
+        fps_mean: rates.iter().sum::<f64>() / rates.len().max(1) as f64,
+        age_p50: quantile(&mut ages, 0.5),
+        age_p99: quantile(&mut ages, 0.99),
+        worst_freeze,
+        interpolated: counts[0] as f64 / displayed,
+        held: counts[2] as f64 / displayed,
+    }
+}
+
+/// Prints the table (Markdown, as README has it).
+pub fn print(rows: &[Row]) {
+    println!(
+        "| link | clients | frames/s per client, min / mean | frame age p50 / p99 | worst freeze | interpolated | held |"
+    );
+    println!("|---|---|---|---|---|---|---|");
+    for r in rows {
+        println!(
+            "| {} | {} | {:.1} / {:.1} | {:.0} / {:.0} ms | {:.0} ms | {:.1} % | {:.1} % |",
+            r.link,
+            r.clients,
+            r.fps_min,
+            r.fps_mean,
+            r.age_p50,
+            r.age_p99,
+            r.worst_freeze,
+            100.0 * r.interpolated,
+            100.0 * r.held
+        );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn frame(seq: u64, base: u64, arrival_ms: u64) -> Arrival {
+        Arrival {
+            arrival_us: arrival_ms * 1_000,
+            stamp_us: seq * 16_667,
+            seq,
+            base_seq: base,
+            key: seq == base,
+        }
+    }
+
+    #[test]
+    fn a_reference_keyframe_is_not_shown_but_a_keyframe_on_its_own_is() {
+        let frames = [
+            frame(60, 60, 1_000),
+            frame(72, 60, 1_200),
+            frame(120, 120, 2_000), // the scene's keyframe, delivered late...
+            frame(122, 120, 2_000), // ...with the delta after it: the reference
+            frame(134, 120, 2_200),
+        ];
+        let s = shown(&frames);
+        let seqs: Vec<u64> = s.iter().map(|f| f.seq).collect();
+        assert_eq!(seqs, [60, 72, 122, 134]);
+    }
+
+    #[test]
+    fn steady_frames_on_a_steady_link_are_all_interpolated() {
+        // 60 Hz, 30 ms in transit each: rendering 30 ms + a tick behind finds two frames
+        // around every point.
+        let frames: Vec<Arrival> = (0..600u64)
+            .map(|i| Arrival {
+                arrival_us: i * 16_667 + 30_000,
+                stamp_us: i * 16_667,
+                seq: i,
+                base_seq: i - i % 60,
+                key: i % 60 == 0,
+            })
+            .collect();
+        let [interpolated, extrapolated, held] = playout(&frames, 60.0);
+        assert!(interpolated > 400, "{interpolated}");
+        assert_eq!((extrapolated, held), (0, 0));
+        let r = row(
+            "x",
+            &[ClientStats {
+                arrivals: frames,
+                ..ClientStats::default()
+            }],
+            10.0,
+            60.0,
+        );
+        assert!((r.fps_mean - 60.0).abs() < 0.1, "{r:?}");
+        assert!((r.age_p50 - 30.0).abs() < 0.01, "{r:?}");
+        assert!((r.worst_freeze - 16.667).abs() < 0.01, "{r:?}");
+    }
+}
