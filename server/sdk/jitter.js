@@ -5,9 +5,11 @@
 //
 // Playout point: a frame stamped s (server clock) arriving at a (client clock) has raw transit
 // a − s, the one-way delay plus the constant clock offset. At client time `now` the buffer shows
-// server time now − D, D = q(a − s) + one tick, q the 99.5th percentile of the last 600 raw
-// transits: every frame stamped up to now − D + tick has then arrived with 99.5 % probability,
-// so the point lies between two received frames and is interpolated. The offset cancels out.
+// server time now − D, D = q(a − s) + one frame interval, q the 99.5th percentile of the last
+// 600 raw transits and the interval the longest gap between the stamps of the last 16 frames
+// (one tick at full rate; more when the server paces the connection): every frame stamped up to
+// now − D + interval has then arrived with 99.5 % probability, so the point lies between two
+// received frames and is interpolated. The offset cancels out.
 // Past the newest frame the pose is extrapolated from the last two for at most 100 ms, then held.
 
 import { quatSlerp } from "./math.js";
@@ -20,6 +22,8 @@ import { quatSlerp } from "./math.js";
 export const CAPACITY = 64;
 /** Raw transits kept for the delay estimate (10 s at 60 Hz). */
 export const WINDOW = 600;
+/** Stamp gaps the frame interval is the longest of. */
+export const GAPS = 16;
 /** The share of recent frames the playout delay waits for. */
 export const QUANTILE = 0.995;
 /** Longest extrapolation past the newest frame, µs. */
@@ -77,6 +81,8 @@ export class JitterBuffer {
     this.jitter = 0;
     /** @type {number | null} */
     this.lastTransit = null;
+    /** @type {number[]} Gaps between the stamps of the last frames, µs (a paced connection gets fewer frames than ticks). */
+    this.gaps = [];
   }
 
   get length() {
@@ -107,6 +113,10 @@ export class JitterBuffer {
       const rank = Math.min(sorted.length, Math.max(1, Math.ceil(sorted.length * QUANTILE)));
       this.transitQuantile = sorted[rank - 1];
     }
+    if (last) {
+      if (this.gaps.length === GAPS) this.gaps.shift();
+      this.gaps.push(serverTimeUs - last.t);
+    }
     if (this.frames.length === CAPACITY) this.frames.shift();
     this.frames.push({ t: serverTimeUs, pose });
   }
@@ -116,11 +126,16 @@ export class JitterBuffer {
     return this.jitter;
   }
 
-  /** @returns {number} The playout delay, µs: the transits' 99.5th percentile + one tick. */
+  /** @returns {number} The playout delay, µs: the transits' 99.5th percentile + one frame interval. */
   delayUs() {
     let floor = Infinity;
     for (const t of this.transits) floor = Math.min(floor, t);
-    return Math.min(this.transitQuantile + this.tickUs, floor + MAX_DELAY_US);
+    return Math.min(this.transitQuantile + this.intervalUs(), floor + MAX_DELAY_US);
+  }
+
+  /** @returns {number} The frames' interval, µs: the longest recent stamp gap, at least one tick. */
+  intervalUs() {
+    return this.gaps.reduce((a, b) => Math.max(a, b), this.tickUs);
   }
 
   /**
