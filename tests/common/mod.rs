@@ -3,6 +3,7 @@
 #![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]
 
 pub mod child;
+pub mod nats;
 pub mod vmc;
 
 use futures_util::{SinkExt, StreamExt};

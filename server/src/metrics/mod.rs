@@ -13,9 +13,11 @@ use prometheus_client::metrics::histogram::Histogram;
 use prometheus_client::registry::Registry;
 
 use crate::quota::Quota;
+pub mod cluster;
 pub mod net;
 pub mod vmc;
 
+use cluster::ClusterCounters;
 use net::NetCounters;
 use vmc::VmcCounters;
 
@@ -67,6 +69,9 @@ pub struct Metrics {
     // --- the VMC gateway (issue 17) ---
     /// VMC datagrams in, refusals, poses applied, bundles out ([`VmcCounters`]).
     pub vmc: VmcCounters,
+    // --- scale-out (issue 15) ---
+    /// Scenes owned and relayed, NATS bytes ([`ClusterCounters`]).
+    pub cluster: ClusterCounters,
 }
 
 impl Default for Metrics {
@@ -145,6 +150,7 @@ impl Metrics {
         );
         let net = NetCounters::new(r);
         let vmc = VmcCounters::new(r);
+        let cluster = ClusterCounters::new(r);
         Self {
             registry,
             connections_open,
@@ -168,6 +174,7 @@ impl Metrics {
             rate_limited,
             net,
             vmc,
+            cluster,
         }
     }
 
@@ -423,7 +430,15 @@ posecast_vmc_poses_refused_total{reason="no_avatar"} 0
 posecast_vmc_poses_refused_total{reason="not_humanoid"} 0
 posecast_vmc_bundles_sent_total 0
 posecast_vmc_bytes_sent_total 0
-posecast_vmc_send_errors_total 0"#;
+posecast_vmc_send_errors_total 0
+posecast_cluster_scenes_owned 0
+posecast_cluster_scenes_relayed 0
+posecast_nats_published_total 0
+posecast_nats_published_bytes_total 0
+posecast_nats_received_total 0
+posecast_nats_received_bytes_total 0
+posecast_nats_publish_dropped_total 0
+posecast_cluster_takeovers_total 0"#;
 
     /// Sample lines with their values parsed, so `0` and `0.0` compare equal.
     fn samples(text: &str) -> BTreeSet<(String, u64)> {

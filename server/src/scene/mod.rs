@@ -11,8 +11,11 @@ pub(crate) mod ticker;
 use crate::avatar::Avatar;
 use crate::error::Error;
 use crate::metrics::Metrics;
-use crate::stream::feed::{Feed, Subscriber, TickStamp};
+use crate::stream::feed::{Feed, RelayRefused, Subscriber, Tap, TickStamp};
+use axum::extract::ws::Message;
+use bytes::Bytes;
 use posecast_proto::command::SceneInfo;
+use posecast_proto::description::AvatarDescription;
 use posecast_proto::msg::{AvatarId, SceneId};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Mutex, MutexGuard};
@@ -35,6 +38,13 @@ impl SceneState {
     /// The avatar with this id.
     pub fn avatar_mut(&mut self, id: &AvatarId) -> Option<&mut Avatar> {
         self.avatars.iter_mut().find(|a| &a.id == id)
+    }
+
+    /// Whether the scene has avatar `id` (ticked here, or relayed from its owner).
+    #[must_use]
+    pub fn has_avatar(&self, id: &AvatarId) -> bool {
+        self.avatars.iter().any(|a| &a.id == id)
+            || self.feed.relayed_avatars().iter().any(|d| &d.id == id)
     }
 
     /// The number of the last tick (0 before the first): avatars' clip times are at it.
@@ -154,6 +164,7 @@ impl Scene {
             scene: self.id.clone(),
             avatars: s.avatars.iter().map(|a| a.state(&self.id)).collect(),
             subscribers: s.feed.len(),
+            owner: None,
         }
     }
 
@@ -174,6 +185,47 @@ impl Scene {
         s.feed.publish(&s.avatars, s.last, key_interval);
         drop(guard);
         self.ticks.send_replace(seq);
+    }
+
+    /// Whether the scene is ticked on another server and only relayed here.
+    #[must_use]
+    pub fn is_relay(&self) -> bool {
+        self.lock().feed.is_relay()
+    }
+
+    /// Hands every tick's frame and the avatars' descriptions to `tap` ([`Feed::set_tap`]).
+    pub fn set_tap(&self, tap: Option<Tap>) {
+        self.lock().feed.set_tap(tap);
+    }
+
+    /// The cached keyframe and delta as relayed frames ([`Feed::cached_frames`]).
+    #[must_use]
+    pub fn cached_frames(&self) -> Vec<Bytes> {
+        self.lock().feed.cached_frames()
+    }
+
+    /// A relayed scene's avatars changed ([`Feed::relay_avatars`]).
+    pub fn relay_avatars(&self, avatars: Vec<AvatarDescription>) {
+        self.lock().feed.relay_avatars(avatars);
+    }
+
+    /// A relayed scene's frame ([`Feed::relay_frame`]).
+    ///
+    /// # Errors
+    /// As [`Feed::relay_frame`].
+    pub fn relay_frame(&self, bytes: &[u8]) -> Result<(), RelayRefused> {
+        self.lock().feed.relay_frame(bytes)
+    }
+
+    /// News of a relayed avatar for the subscribers covering it.
+    pub fn relay_change(&self, avatar: &AvatarId, message: &Message) {
+        self.lock().feed.push_change(avatar, message);
+    }
+
+    /// A relayed scene's frames now come from a new owner: cached frames are dropped and
+    /// subscribers wait for its first keyframe.
+    pub fn restart_frames(&self) {
+        self.lock().feed.restart_frames();
     }
 
     /// Tick numbers as ticks run (each change: a tick has run and its poses are set).

@@ -5,8 +5,10 @@
 //! - `publish`: a frame as per-avatar pieces in both encodings.
 //! - [`outbox`]: the bounded per-connection queue (newest frame wins).
 //! - [`writer`]: the task that drains an outbox into its websocket.
+//! - [`relay`]: a published frame as bytes for another server (scale-out), and back.
 
 pub mod feed;
 pub mod outbox;
 mod publish;
+pub mod relay;
 pub mod writer;

@@ -1,0 +1,596 @@
+//! Scale-out through NATS: three `posecast` processes and a `nats-server` on loopback. A scene
+//! created on one server is ticked there and served by all: the same bytes on every server, a
+//! late joiner's current pose at once, commands through any server reaching the owner, and
+//! another server taking the scene over from its last acknowledged state when the owner is
+//! killed.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+mod common;
+
+use common::child::Posecast;
+use common::nats::Nats;
+use common::{CONTROL, Ws, command_to, raw_at};
+use futures_util::{SinkExt, StreamExt};
+use posecast_proto::frame::{FrameDecoder, FrameKind, read_header};
+use posecast_proto::msg::Encoding;
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use tokio_tungstenite::tungstenite::Message;
+
+/// Ticks per second of every server here: 50 ms a tick.
+const RATE: f32 = 20.0;
+const TICK: Duration = Duration::from_millis(50);
+
+fn node(nats: &Nats, name: &str, lease: &str) -> Posecast {
+    Posecast::start(
+        &[
+            "--nats",
+            &nats.url(),
+            "--node",
+            name,
+            "--lease",
+            lease,
+            "--no-persist",
+            "--tick-rate",
+            &RATE.to_string(),
+            "--control-token",
+            CONTROL,
+        ],
+        &[],
+    )
+}
+
+async fn ok(addr: SocketAddr, json: &str) -> serde_json::Value {
+    let (status, body) = command_to(addr, json).await;
+    assert_eq!(status, 200, "{json}: {body}");
+    body
+}
+
+/// Waits (at most 10 s) until `addr` lists scene `scene` with an owner; returns the owner.
+async fn owner_seen_by(addr: SocketAddr, scene: &str) -> String {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let body = ok(addr, r#"{"op":"list_scenes"}"#).await;
+        let owner = body["result"]
+            .as_array()
+            .and_then(|scenes| scenes.iter().find(|s| s["scene"] == scene))
+            .and_then(|s| s["owner"].as_str().map(str::to_owned));
+        if let Some(owner) = owner {
+            return owner;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{addr} never listed {scene}: {body}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// Everything a subscriber receives, with arrival times, read by a task of its own.
+#[derive(Clone, Default)]
+struct Recorder(Arc<Mutex<Vec<(Instant, Message)>>>);
+
+impl Recorder {
+    async fn subscribe(addr: SocketAddr, encoding: Encoding, token: Option<&str>) -> (Self, Ws) {
+        let mut ws = raw_at(addr, encoding, token).await;
+        ws.send(Message::Text(
+            r#"{"type":"subscribe","scene":"stage"}"#.into(),
+        ))
+        .await
+        .unwrap();
+        (Self::default(), ws)
+    }
+
+    fn spawn(self, mut ws: Ws) -> Self {
+        let log = self.0.clone();
+        tokio::spawn(async move {
+            while let Some(Ok(m)) = ws.next().await {
+                log.lock().unwrap().push((Instant::now(), m));
+            }
+        });
+        self
+    }
+
+    fn messages(&self) -> Vec<(Instant, Message)> {
+        self.0.lock().unwrap().clone()
+    }
+
+    /// Binary frames by tick number.
+    fn frames(&self) -> BTreeMap<u64, Vec<u8>> {
+        self.messages()
+            .into_iter()
+            .filter_map(|(_, m)| match m {
+                Message::Binary(b) => Some((read_header(&b).unwrap().0.seq, b.to_vec())),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// The text messages of one type, as they came.
+    fn texts(&self, kind: &str) -> Vec<String> {
+        self.messages()
+            .into_iter()
+            .filter_map(|(_, m)| match m {
+                Message::Text(t) if t.contains(&format!(r#""type":"{kind}""#)) => {
+                    Some(t.to_string())
+                }
+                _ => None,
+            })
+            .collect()
+    }
+}
+
+/// The value of metric `name` (a line `name value`) in `addr`'s `/metrics`.
+async fn metric(addr: SocketAddr, name: &str) -> f64 {
+    let (status, text) =
+        common::http_raw(addr, Some(CONTROL), "GET", "/metrics", "text/plain", b"").await;
+    assert_eq!(status, 200);
+    text.lines()
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no {name} in {text}"))
+}
+
+/// A scene `stage` created on `owner` with avatar `dancer` walking.
+async fn stage(owner: SocketAddr) {
+    ok(owner, r#"{"op":"create_scene","scene":"stage"}"#).await;
+    ok(
+        owner,
+        r#"{"op":"add_avatar","scene":"stage","asset":"avatar","avatar":"dancer","clip":"walk"}"#,
+    )
+    .await;
+}
+
+/// The index of joint `name` in the description text.
+fn joint_index(description: &str, name: &str) -> usize {
+    let d: serde_json::Value = serde_json::from_str(description).unwrap();
+    d["avatar"]["joint_names"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .position(|j| j == name)
+        .unwrap()
+}
+
+/// Rotations of joint `j` in every binary frame received after `after`, decoded.
+fn rotations_after(rec: &Recorder, j: usize, after: Instant) -> Vec<(Instant, [f32; 4])> {
+    let mut decoder = FrameDecoder::new();
+    let mut out = Vec::new();
+    for (at, m) in rec.messages() {
+        if let Message::Binary(b) = m
+            && let Ok(frame) = decoder.decode(&b)
+            && at > after
+        {
+            out.push((at, frame.avatars[0].rotations[j].to_array()));
+        }
+    }
+    out
+}
+
+fn same_rotation(a: [f32; 4], b: [f32; 4]) -> bool {
+    let dot: f32 = a.iter().zip(b).map(|(x, y)| x * y).sum();
+    dot.abs() > 0.9999
+}
+
+/// A client on B gets byte-identical frames and descriptions to a client on the owner A; a
+/// late joiner on C gets the description and a keyframe of the current pose before the next
+/// tick, the same bytes as A's; every server lists the scene with its owner.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_server_serves_the_owners_bytes() {
+    let Some(nats) = Nats::start() else { return };
+    let a = node(&nats, "a", "2");
+    let b = node(&nats, "b", "2");
+    let c = node(&nats, "c", "2");
+    stage(a.addr).await;
+    for n in [&a, &b, &c] {
+        assert_eq!(owner_seen_by(n.addr, "stage").await, "a");
+    }
+    let (on_a, ws) = Recorder::subscribe(a.addr, Encoding::Binary, None).await;
+    let on_a = on_a.spawn(ws);
+    let (on_b, ws) = Recorder::subscribe(b.addr, Encoding::Binary, None).await;
+    let on_b = on_b.spawn(ws);
+    // The counters of the window the frames are compared over.
+    let published = metric(a.addr, "posecast_nats_published_bytes_total").await;
+    let received = metric(b.addr, "posecast_nats_received_bytes_total").await;
+    let window = Instant::now();
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let published = metric(a.addr, "posecast_nats_published_bytes_total").await - published;
+    let received = metric(b.addr, "posecast_nats_received_bytes_total").await - received;
+    let seconds = window.elapsed().as_secs_f64();
+
+    let (fa, fb) = (on_a.frames(), on_b.frames());
+    let common: Vec<u64> = fa.keys().filter(|s| fb.contains_key(s)).copied().collect();
+    assert!(
+        common.len() >= 20,
+        "{} ticks seen on both (A {}, B {})",
+        common.len(),
+        fa.len(),
+        fb.len()
+    );
+    for seq in &common {
+        assert_eq!(fa[seq], fb[seq], "frame {seq} differs between A and B");
+    }
+    // Per node: A owns the scene and publishes it, B and C relay it and receive it; A
+    // publishes at least the binary chunks of every tick (one avatar, 20 ticks a second).
+    for (n, owned, relayed) in [(&a, 1.0, 0.0), (&b, 0.0, 1.0), (&c, 0.0, 1.0)] {
+        assert_eq!(metric(n.addr, "posecast_cluster_scenes_owned").await, owned);
+        assert_eq!(
+            metric(n.addr, "posecast_cluster_scenes_relayed").await,
+            relayed
+        );
+    }
+    let chunk_bytes: usize = common.iter().map(|s| fa[s].len()).sum::<usize>() / common.len();
+    assert!(
+        published / seconds > f64::from(RATE) * 0.8 * chunk_bytes as f64,
+        "A published {published} B in {seconds:.2} s"
+    );
+    assert!(
+        received > 0.0 && received <= published * 1.05,
+        "B received {received} B, A published {published} B"
+    );
+    println!(
+        "NATS: owner published {:.0} B/s for one scene of one avatar at {RATE} Hz (binary frame {chunk_bytes} B), a relay received {:.0} B/s",
+        published / seconds,
+        received / seconds
+    );
+    let description = on_a.texts("description");
+    assert_eq!(description.len(), 1);
+    assert_eq!(on_b.texts("description"), description);
+    assert_eq!(on_b.texts("subscribed"), on_a.texts("subscribed"));
+
+    // The late joiner on C: subscribed, the description, then at once the scene's last
+    // keyframe and the newest delta after it — no older than the newest frame A had sent when
+    // C asked — the same bytes as A's.
+    let newest_on_a = *on_a.frames().keys().last().unwrap();
+    let (on_c, mut ws) = Recorder::subscribe(c.addr, Encoding::Binary, None).await;
+    let asked = Instant::now();
+    let mut texts = Vec::new();
+    let mut frames = Vec::new();
+    while frames.len() < 2 {
+        match tokio::time::timeout(Duration::from_secs(5), ws.next()).await {
+            Ok(Some(Ok(Message::Binary(b)))) => frames.push((asked.elapsed(), b)),
+            Ok(Some(Ok(Message::Text(t)))) => texts.push(t.to_string()),
+            other => panic!("C: {other:?} after {texts:?}"),
+        }
+    }
+    drop(on_c);
+    assert!(texts[0].contains(r#""type":"subscribed""#), "{texts:?}");
+    assert_eq!(
+        texts[1..],
+        description[..],
+        "C's description differs from A's"
+    );
+    let key = read_header(&frames[0].1).unwrap().0;
+    let next = read_header(&frames[1].1).unwrap().0;
+    assert_eq!(key.kind, FrameKind::Key, "C's first frame is a keyframe");
+    let current = if next.kind == FrameKind::Delta {
+        assert_eq!(
+            next.base_seq, key.seq,
+            "the delta refers to the keyframe before it"
+        );
+        next.seq
+    } else {
+        key.seq
+    };
+    assert!(
+        current + 2 >= newest_on_a,
+        "C's current pose is tick {current}, A had sent {newest_on_a}"
+    );
+    // A has recorded those ticks by now (they may have reached C first).
+    tokio::time::sleep(TICK * 4).await;
+    let fa = on_a.frames();
+    assert_eq!(
+        frames[0].1[..],
+        fa[&key.seq][..],
+        "C's keyframe differs from A's"
+    );
+    if next.kind == FrameKind::Delta {
+        assert_eq!(
+            frames[1].1[..],
+            fa[&next.seq][..],
+            "C's delta differs from A's"
+        );
+    }
+    println!(
+        "late joiner on C: keyframe (tick {}) after {:.1} ms, current pose (tick {current}) after {:.1} ms",
+        key.seq,
+        frames[0].0.as_secs_f64() * 1e3,
+        frames[1].0.as_secs_f64() * 1e3
+    );
+}
+
+/// A command sent to C reaches the owner A, is acknowledged once through C, and its effect
+/// is in B's stream within two ticks; a command refused at C (no token) or at the owner
+/// (unknown joint, its error code carried back) changes nothing anywhere.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn commands_through_any_server_reach_the_owner() {
+    let Some(nats) = Nats::start() else { return };
+    let a = node(&nats, "a", "2");
+    let b = node(&nats, "b", "2");
+    let c = node(&nats, "c", "2");
+    stage(a.addr).await;
+    assert_eq!(owner_seen_by(c.addr, "stage").await, "a");
+    assert_eq!(owner_seen_by(b.addr, "stage").await, "a");
+    let (on_b, ws) = Recorder::subscribe(b.addr, Encoding::Binary, None).await;
+    let on_b = on_b.spawn(ws);
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let description = on_b.texts("description");
+    assert_eq!(description.len(), 1, "{:?}", on_b.texts("error"));
+    let j = joint_index(&description[0], "l_elbow");
+
+    // The command through C's websocket.
+    let mut commander = raw_at(c.addr, Encoding::Json, Some(CONTROL)).await;
+    let rotation = [0.5f32, 0.5, -0.5, 0.5];
+    commander
+        .send(Message::Text(
+            format!(
+                r#"{{"type":"command","id":7,"command":{{"op":"set_joint_rotation","avatar":"dancer","joint":"l_elbow","rotation":{rotation:?}}}}}"#
+            )
+            .into(),
+        ))
+        .await
+        .unwrap();
+    let mut acks = 0;
+    let mut acked_at = None;
+    let deadline = Instant::now() + Duration::from_secs(2);
+    while let Ok(Some(Ok(m))) = tokio::time::timeout_at(deadline.into(), commander.next()).await {
+        if let Message::Text(t) = m {
+            let v: serde_json::Value = serde_json::from_str(&t).unwrap();
+            assert_ne!(v["type"], "error", "{v}");
+            if v["type"] == "ack" && v["id"] == 7 {
+                acks += 1;
+                acked_at.get_or_insert(Instant::now());
+                let set: Vec<f32> =
+                    serde_json::from_value(v["result"]["rotation"].clone()).unwrap();
+                assert!(same_rotation(set.try_into().unwrap(), rotation), "{v}");
+            }
+        }
+    }
+    assert_eq!(acks, 1, "acknowledged once");
+    let acked_at = acked_at.unwrap();
+    let seen = rotations_after(&on_b, j, acked_at);
+    let first_with = seen.iter().find(|(_, q)| same_rotation(*q, rotation));
+    let (at, _) = first_with.unwrap_or_else(|| panic!("B never showed the rotation: {seen:?}"));
+    // Two ticks, plus what a loaded machine adds to delivery: the advertised figure.
+    assert!(
+        at.duration_since(acked_at) <= TICK * 2 + Duration::from_millis(100),
+        "B showed it {:?} after the ack",
+        at.duration_since(acked_at)
+    );
+    // From then on every frame on B holds it.
+    assert!(
+        seen.iter()
+            .skip_while(|(t, _)| t < at)
+            .all(|(_, q)| same_rotation(*q, rotation))
+    );
+
+    // Refused at C: no token.
+    let (status, body) = common::http_raw(
+        c.addr,
+        None,
+        "POST",
+        "/api/commands",
+        "application/json",
+        br#"{"op":"set_joint_rotation","avatar":"dancer","joint":"l_elbow","rotation":[0,0,0,1]}"#,
+    )
+    .await;
+    assert_eq!(status, 401, "{body}");
+    // Refused at the owner: its error code comes back through C.
+    let (status, body) = command_to(
+        c.addr,
+        r#"{"op":"set_joint_rotation","avatar":"dancer","joint":"no_such_joint","rotation":[0,0,0,1]}"#,
+    )
+    .await;
+    assert_eq!(
+        (status, body["code"].as_str()),
+        (404, Some("unknown_joint")),
+        "{body}"
+    );
+    let refused_at = Instant::now();
+    tokio::time::sleep(TICK * 6).await;
+    let after = rotations_after(&on_b, j, refused_at);
+    assert!(after.len() >= 3, "{after:?}");
+    assert!(
+        after.iter().all(|(_, q)| same_rotation(*q, rotation)),
+        "a refused command changed B's stream: {after:?}"
+    );
+    // And the owner still holds the acknowledged rotation.
+    let joint = ok(
+        a.addr,
+        r#"{"op":"get_joint","avatar":"dancer","joint":"l_elbow"}"#,
+    )
+    .await;
+    let local: Vec<f32> = serde_json::from_value(joint["result"]["rotation"].clone()).unwrap();
+    assert!(
+        same_rotation(local.try_into().unwrap(), rotation),
+        "{joint}"
+    );
+}
+
+/// SIGKILL the owner: within the lease time and a second another server ticks the scene from
+/// its last acknowledged state, and subscribers on the two others resume with a keyframe.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn another_server_takes_over_from_the_last_ack() {
+    let Some(nats) = Nats::start() else { return };
+    let lease = Duration::from_millis(1500);
+    let a = node(&nats, "a", "1.5");
+    let b = node(&nats, "b", "1.5");
+    let c = node(&nats, "c", "1.5");
+    stage(a.addr).await;
+    assert_eq!(owner_seen_by(b.addr, "stage").await, "a");
+    assert_eq!(owner_seen_by(c.addr, "stage").await, "a");
+    // The last acknowledged change, made through B.
+    let rotation = [0.0f32, 0.70710677, 0.0, 0.70710677];
+    ok(
+        b.addr,
+        &format!(
+            r#"{{"op":"set_joint_rotation","avatar":"dancer","joint":"l_elbow","rotation":{rotation:?}}}"#
+        ),
+    )
+    .await;
+    let (on_b, ws) = Recorder::subscribe(b.addr, Encoding::Binary, None).await;
+    let on_b = on_b.spawn(ws);
+    let (on_c, ws) = Recorder::subscribe(c.addr, Encoding::Binary, None).await;
+    let on_c = on_c.spawn(ws);
+    tokio::time::sleep(Duration::from_millis(700)).await;
+    let j = joint_index(&on_b.texts("description")[0], "l_elbow");
+
+    let killed = Instant::now();
+    a.kill();
+    let new_owner = loop {
+        let (status, body) = command_to(b.addr, r#"{"op":"list_scenes"}"#).await;
+        let owner = body["result"][0]["owner"]
+            .as_str()
+            .unwrap_or_default()
+            .to_owned();
+        if status == 200 && (owner == "b" || owner == "c") {
+            break owner;
+        }
+        assert!(
+            killed.elapsed() < Duration::from_secs(15),
+            "no new owner: {body}"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    for (name, rec) in [("B", &on_b), ("C", &on_c)] {
+        // Frames still in flight from A arrive within a few ticks of the kill; the new
+        // owner's are the ones after the gap.
+        let resumed: Vec<(Instant, Vec<u8>)> = rec
+            .messages()
+            .into_iter()
+            .filter_map(|(t, m)| match m {
+                Message::Binary(b) if t > killed + TICK * 4 => Some((t, b.to_vec())),
+                _ => None,
+            })
+            .collect();
+        let (at, first) = resumed
+            .first()
+            .unwrap_or_else(|| panic!("{name}: no frame after the kill"));
+        let header = read_header(first).unwrap().0;
+        assert_eq!(
+            header.kind,
+            FrameKind::Key,
+            "{name}: first frame after the takeover"
+        );
+        let after = at.duration_since(killed);
+        println!(
+            "{name}: stream resumed {:.0} ms after the owner was killed (new owner {new_owner})",
+            after.as_secs_f64() * 1e3
+        );
+        assert!(
+            after <= lease + Duration::from_secs(1),
+            "{name}: resumed after {after:?}"
+        );
+        // The acknowledged override is in the new owner's frames.
+        let rotations = rotations_after(rec, j, *at - Duration::from_millis(1));
+        assert!(!rotations.is_empty());
+        assert!(
+            rotations.iter().all(|(_, q)| same_rotation(*q, rotation)),
+            "{name}: {rotations:?}"
+        );
+        // Nothing from A after the takeover: tick numbers only go up from the new owner's key.
+        let seqs: Vec<u64> = resumed
+            .iter()
+            .map(|(_, b)| read_header(b).unwrap().0.seq)
+            .collect();
+        assert!(seqs.windows(2).all(|w| w[0] < w[1]), "{name}: {seqs:?}");
+    }
+}
+
+/// NATS unreachable at start: the server does not start, and says which URLs it tried.
+#[test]
+fn an_unreachable_nats_fails_the_start_naming_the_urls() {
+    let free = || {
+        std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port()
+    };
+    let urls = format!("nats://127.0.0.1:{},nats://127.0.0.1:{}", free(), free());
+    let (status, output) = common::child::run_to_exit(&["--nats", &urls, "--no-persist"], &[]);
+    assert!(!status.success(), "{output}");
+    assert!(
+        output.contains(&format!("cannot join the cluster through NATS at {urls}")),
+        "{output}"
+    );
+    assert!(!output.contains("panicked"), "{output}");
+}
+
+/// NATS lost while running: the owner keeps ticking its scene for its own subscribers and
+/// reports `degraded`; once NATS is back both servers are healthy and the relay's stream
+/// resumes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn servers_survive_a_nats_restart() {
+    let Some(mut nats) = Nats::start() else {
+        return;
+    };
+    let a = node(&nats, "a", "2");
+    let b = node(&nats, "b", "2");
+    stage(a.addr).await;
+    assert_eq!(owner_seen_by(b.addr, "stage").await, "a");
+    let (on_a, ws) = Recorder::subscribe(a.addr, Encoding::Binary, None).await;
+    let on_a = on_a.spawn(ws);
+    let (on_b, ws) = Recorder::subscribe(b.addr, Encoding::Binary, None).await;
+    let on_b = on_b.spawn(ws);
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert_eq!(a.health(), Some((200, "ok".into())));
+
+    nats.stop();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let health = a.health();
+        if health
+            .as_ref()
+            .is_some_and(|(status, body)| *status == 200 && body.contains(r#""status":"degraded""#))
+        {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "A never said degraded: {health:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let recent = Instant::now() - Duration::from_millis(500);
+    let served = on_a
+        .messages()
+        .iter()
+        .filter(|(t, m)| *t > recent && m.is_binary())
+        .count();
+    assert!(
+        served >= 5,
+        "A's own subscriber got {served} frames in 0.5 s without NATS"
+    );
+
+    nats.restart();
+    let back = Instant::now();
+    for n in [&a, &b] {
+        let deadline = back + Duration::from_secs(20);
+        while n.health() != Some((200, "ok".into())) {
+            assert!(Instant::now() < deadline, "{:?}", n.health());
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+    let deadline = back + Duration::from_secs(20);
+    loop {
+        let resumed = on_b
+            .messages()
+            .iter()
+            .filter(|(t, m)| *t > back && m.is_binary())
+            .count();
+        if resumed >= 10 {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "B's stream did not resume ({resumed} frames)"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    println!("relay resumed {:?} after NATS restarted", back.elapsed());
+}
