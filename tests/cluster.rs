@@ -25,6 +25,10 @@ const RATE: f32 = 20.0;
 const TICK: Duration = Duration::from_millis(50);
 
 fn node(nats: &Nats, name: &str, lease: &str) -> Posecast {
+    node_at(nats, name, lease, RATE)
+}
+
+fn node_at(nats: &Nats, name: &str, lease: &str, rate: f32) -> Posecast {
     Posecast::start(
         &[
             "--nats",
@@ -35,7 +39,7 @@ fn node(nats: &Nats, name: &str, lease: &str) -> Posecast {
             lease,
             "--no-persist",
             "--tick-rate",
-            &RATE.to_string(),
+            &rate.to_string(),
             "--control-token",
             CONTROL,
         ],
@@ -163,7 +167,13 @@ fn rotations_after(rec: &Recorder, j: usize, after: Instant) -> Vec<(Instant, [f
             && let Ok(frame) = decoder.decode(&b)
             && at > after
         {
-            out.push((at, frame.avatars[0].rotations[j].to_array()));
+            // A frame without the avatar or joint holds no rotation: NaN never matches.
+            let q = frame
+                .avatars
+                .first()
+                .and_then(|a| a.rotations.get(j))
+                .map_or([f32::NAN; 4], |q| q.to_array());
+            out.push((at, q));
         }
     }
     out
@@ -299,6 +309,52 @@ async fn every_server_serves_the_owners_bytes() {
         frames[0].0.as_secs_f64() * 1e3,
         frames[1].0.as_secs_f64() * 1e3
     );
+}
+
+/// A late joiner on a relaying server gets the description and the current pose at once, not
+/// at the next tick: with one tick a second, it subscribes just after a tick reached another
+/// subscriber of that server and must have that tick's frame, the same bytes, long before the
+/// next.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_late_joiner_on_a_relay_gets_the_current_pose_before_the_next_tick() {
+    let Some(nats) = Nats::start() else { return };
+    let a = node_at(&nats, "a", "2", 1.0);
+    let c = node_at(&nats, "c", "2", 1.0);
+    stage(a.addr).await;
+    assert_eq!(owner_seen_by(c.addr, "stage").await, "a");
+    let (_, mut reference) = Recorder::subscribe(c.addr, Encoding::Binary, None).await;
+    let mut ticks = 0;
+    let tick = loop {
+        match tokio::time::timeout(Duration::from_secs(5), reference.next()).await {
+            // The second tick seen: the relay has been running for a tick already.
+            Ok(Some(Ok(Message::Binary(b)))) if ticks == 1 => break b,
+            Ok(Some(Ok(Message::Binary(_)))) => ticks += 1,
+            Ok(Some(Ok(_))) => {}
+            other => panic!("reference: {other:?}"),
+        }
+    };
+    let (_, mut joiner) = Recorder::subscribe(c.addr, Encoding::Binary, None).await;
+    let asked = Instant::now();
+    let mut texts = Vec::new();
+    let first = loop {
+        match tokio::time::timeout(Duration::from_secs(5), joiner.next()).await {
+            Ok(Some(Ok(Message::Binary(b)))) => break b,
+            Ok(Some(Ok(Message::Text(t)))) => texts.push(t.to_string()),
+            other => panic!("joiner: {other:?} after {texts:?}"),
+        }
+    };
+    let waited = asked.elapsed();
+    assert_eq!(texts.len(), 2, "subscribed and one description: {texts:?}");
+    assert!(texts[1].contains(r#""type":"description""#), "{texts:?}");
+    assert_eq!(
+        first, tick,
+        "the joiner's first frame is the tick the relay last sent"
+    );
+    assert!(
+        waited < Duration::from_millis(500),
+        "the current pose came {waited:?} after subscribing (ticks are 1 s apart)"
+    );
+    println!("late joiner on a relay: current pose after {waited:?}");
 }
 
 /// A command sent to C reaches the owner A, is acknowledged once through C, and its effect

@@ -239,3 +239,76 @@ pub fn decode(bytes: &[u8]) -> Result<RelayFrame, RelayError> {
     }
     Ok(RelayFrame { header, pieces })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::avatar::Avatar;
+    use crate::stream::publish::Piece;
+    use posecast_proto::frame::ChunkEncoder;
+    use std::sync::Arc;
+
+    fn frame() -> Published {
+        let rig = Arc::new(crate::builtin::rig().unwrap());
+        let pieces = ["a", "bb"]
+            .iter()
+            .enumerate()
+            .map(|(i, id)| {
+                let mut a = Avatar::new(AvatarId((*id).into()), i as u32 + 7, rig.clone());
+                if let Some(walk) = rig.clip("walk").cloned() {
+                    a.play(
+                        crate::avatar::playback::Layer::new(walk, None, 0.0, 1.0, true),
+                        0.0,
+                    );
+                }
+                a.tick(0.37 * (i as f64 + 1.0));
+                Piece::encode(&a, &mut ChunkEncoder::new(), FrameKind::Key, false)
+            })
+            .collect();
+        Published {
+            header: FrameHeader {
+                kind: FrameKind::Key,
+                scene_num: 0xdead_beef,
+                seq: 1 << 40,
+                server_time_us: 1_764_000_000_123_456,
+                base_seq: 1 << 40,
+            },
+            pieces,
+        }
+    }
+
+    /// What the owner encodes reads back as its header, chunks and poses, bit for bit.
+    #[test]
+    fn a_frame_reads_back_as_written() {
+        let f = frame();
+        let back = decode(&encode(&f)).unwrap();
+        assert_eq!(back.header, f.header);
+        assert_eq!(back.pieces.len(), 2);
+        for (b, p) in back.pieces.iter().zip(&f.pieces) {
+            assert_eq!(&b.avatar, p.id());
+            assert_eq!(b.chunk, p.chunk);
+            assert_eq!(b.pose, p.pose);
+            assert!(!b.pose.rotations.is_empty());
+        }
+        assert_eq!(peek_seq(&encode(&f)), Some(1 << 40));
+    }
+
+    /// Every cut, a byte too many and a wrong magic are refused, never read short.
+    #[test]
+    fn damaged_bytes_are_refused() {
+        let bytes = encode(&frame());
+        for cut in 0..bytes.len() {
+            assert!(decode(&bytes[..cut]).is_err(), "cut at {cut}");
+        }
+        let mut long = bytes.to_vec();
+        long.push(0);
+        assert_eq!(
+            decode(&long),
+            Err(RelayError::Invalid("bytes after the last piece"))
+        );
+        let mut magic = bytes.to_vec();
+        magic[0] = b'X';
+        assert_eq!(decode(&magic), Err(RelayError::Magic));
+        assert_eq!(peek_seq(&magic), None);
+    }
+}
