@@ -295,11 +295,42 @@ impl Cluster {
                     }
                 }
                 Err(e) if e.kind() == kv::UpdateErrorKind::WrongLastRevision => {
-                    warn!(scene = %id, "lease lost to another server: giving the scene up");
-                    self.give_up(state, &id);
+                    // Lapsed (NATS was unreachable for longer than the lease): taken again if
+                    // nobody took it meanwhile, given up if somebody did.
+                    let value = Bytes::from(self.conn.node.clone());
+                    match self.conn.leases.create(key(&id), value).await {
+                        Ok(next) => self.retake(state, &id, next).await,
+                        Err(_) => {
+                            warn!(scene = %id, "lease taken by another server: giving the scene up");
+                            self.give_up(state, &id);
+                        }
+                    }
                 }
                 // NATS unreachable: keep ticking (local subscribers are served) and retry.
                 Err(e) => warn!(scene = %id, error = %e, "cannot renew the lease"),
+            }
+        }
+    }
+
+    /// The lease of a scene ticked here lapsed and was taken again at `revision`. If nobody
+    /// changed the scene meanwhile (its snapshot is the one written here), it goes on here
+    /// under a new epoch (relays that saw a newer owner's epoch would ignore the old one);
+    /// otherwise another server owned it in between, and the scene restarts from the bucket.
+    async fn retake(&self, state: &Arc<AppState>, id: &SceneId, revision: u64) {
+        let ours = lock(&self.owned).get(id).map(|o| o.snapshot_revision);
+        let stored = self.conn.scenes.entry(key(id)).await.ok().flatten();
+        match (ours, stored, state.world.scene(id)) {
+            (Some(ours), Some(entry), Ok(scene)) if entry.revision == ours => {
+                info!(scene = %id, "lease had lapsed: taken again");
+                if let Some(o) = lock(&self.owned).remove(id) {
+                    o.stop();
+                }
+                self.adopt(state, &scene, revision, ours);
+            }
+            _ => {
+                warn!(scene = %id, "the scene changed elsewhere while its lease had lapsed: restarting it from the cluster's copy");
+                self.give_up(state, id);
+                self.conn.leases.delete(key(id)).await.ok();
             }
         }
     }
@@ -377,8 +408,10 @@ impl Cluster {
 
     /// A scene without a lease, now ours: restored from its snapshot and ticked here.
     async fn take_over(self: &Arc<Self>, state: &Arc<AppState>, id: &SceneId, revision: u64) {
+        let mut snapshot_revision = 0;
         let file = match self.conn.scenes.entry(key(id)).await {
             Ok(Some(entry)) if entry.operation == kv::Operation::Put => {
+                snapshot_revision = entry.revision;
                 serde_json::from_slice::<serde_json::Value>(&entry.value)
                     .map_err(|e| e.to_string())
                     .and_then(|v| snapshot::parse_lenient(&v))
@@ -417,7 +450,7 @@ impl Cluster {
             Ok(scene) => {
                 state.metrics.cluster.takeover();
                 info!(scene = %id, avatars = file.avatars.len(), "took the scene over");
-                self.adopt(state, &scene, revision);
+                self.adopt(state, &scene, revision, snapshot_revision);
             }
             Err(e) => {
                 warn!(scene = %id, error = %e, "cannot take the scene over");
@@ -433,11 +466,15 @@ impl Cluster {
         let file = snapshot::snapshot(&scene, crate::scene::ticker::unix_micros());
         let bytes = serde_json::to_vec(&file)
             .map_err(|e| Error::internal("cannot serialise the scene", &e))?;
-        self.conn
+        let revision = self
+            .conn
             .scenes
             .put(key(id), Bytes::from(bytes))
             .await
             .map_err(|e| unavailable("cannot store the scene in NATS", &e))?;
+        if let Some(o) = lock(&self.owned).get_mut(id) {
+            o.snapshot_revision = revision;
+        }
         Ok(())
     }
 
@@ -557,7 +594,7 @@ impl crate::state::Cluster for Cluster {
                 Command::CreateScene { .. } => {
                     let revision = lock(&self.claims).remove(id);
                     if let (Some(revision), Ok(scene)) = (revision, state.world.scene(id)) {
-                        self.adopt(&state, &scene, revision);
+                        self.adopt(&state, &scene, revision, 0);
                     }
                     self.write_snapshot(&state, id).await
                 }

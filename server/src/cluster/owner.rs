@@ -30,6 +30,8 @@ const PUBLISH_QUEUE: usize = 1024;
 #[derive(Debug)]
 pub(super) struct Owned {
     pub(super) lease_revision: u64,
+    /// The revision of the scene's snapshot this server last wrote or restored.
+    pub(super) snapshot_revision: u64,
     _tasks: [Task; 2],
 }
 
@@ -86,8 +88,15 @@ pub(super) fn decode_sync(b: &[u8]) -> Option<(u64, Vec<AvatarDescription>, Vec<
 
 impl Cluster {
     /// Starts ticking `scene` for the cluster under the lease created at `revision` (its
-    /// epoch): its frames are published from the next tick on and its requests answered.
-    pub(super) fn adopt(&self, state: &Arc<AppState>, scene: &Arc<Scene>, revision: u64) {
+    /// epoch), its state being the snapshot of revision `snapshot`: its frames are published
+    /// from the next tick on and its requests answered.
+    pub(super) fn adopt(
+        &self,
+        state: &Arc<AppState>,
+        scene: &Arc<Scene>,
+        revision: u64,
+        snapshot: u64,
+    ) {
         let (tx, rx) = mpsc::channel::<(&'static str, Bytes)>(PUBLISH_QUEUE);
         let metrics = state.metrics.clone();
         let tap = Tap(Arc::new(move |relayed: Relayed| {
@@ -134,6 +143,7 @@ impl Cluster {
             scene.id.clone(),
             Owned {
                 lease_revision: revision,
+                snapshot_revision: snapshot,
                 _tasks: [Task(publisher), Task(responder)],
             },
         );
