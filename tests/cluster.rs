@@ -113,6 +113,17 @@ impl Recorder {
             .collect()
     }
 
+    /// JSON frames by tick number.
+    fn json_frames(&self) -> BTreeMap<u64, String> {
+        self.texts("frame")
+            .into_iter()
+            .map(|t| {
+                let v: serde_json::Value = serde_json::from_str(&t).unwrap();
+                (v["seq"].as_u64().unwrap(), t)
+            })
+            .collect()
+    }
+
     /// The text messages of one type, as they came.
     fn texts(&self, kind: &str) -> Vec<String> {
         self.messages()
@@ -201,6 +212,10 @@ async fn every_server_serves_the_owners_bytes() {
     let on_a = on_a.spawn(ws);
     let (on_b, ws) = Recorder::subscribe(b.addr, Encoding::Binary, None).await;
     let on_b = on_b.spawn(ws);
+    let (json_a, ws) = Recorder::subscribe(a.addr, Encoding::Json, None).await;
+    let json_a = json_a.spawn(ws);
+    let (json_b, ws) = Recorder::subscribe(b.addr, Encoding::Json, None).await;
+    let json_b = json_b.spawn(ws);
     // The counters of the window the frames are compared over.
     let published = metric(a.addr, "posecast_nats_published_bytes_total").await;
     let received = metric(b.addr, "posecast_nats_received_bytes_total").await;
@@ -221,6 +236,17 @@ async fn every_server_serves_the_owners_bytes() {
     );
     for seq in &common {
         assert_eq!(fa[seq], fb[seq], "frame {seq} differs between A and B");
+    }
+    // JSON too: the relay writes the same text from the same floats.
+    let (ja, jb) = (json_a.json_frames(), json_b.json_frames());
+    let common_json: Vec<u64> = ja.keys().filter(|s| jb.contains_key(s)).copied().collect();
+    assert!(
+        common_json.len() >= 20,
+        "{} JSON ticks on both",
+        common_json.len()
+    );
+    for seq in &common_json {
+        assert_eq!(ja[seq], jb[seq], "JSON frame {seq} differs between A and B");
     }
     // Per node: A owns the scene and publishes it, B and C relay it and receive it; A
     // publishes at least the binary chunks of every tick (one avatar, 20 ticks a second).
