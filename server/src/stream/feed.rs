@@ -81,7 +81,7 @@ pub enum Relayed {
     /// The scene's avatars, in scene order: sent before the first frame and before the first
     /// frame after they change.
     Avatars(Vec<Arc<AvatarDescription>>),
-    /// A tick's frame ([`relay::encode`]).
+    /// A tick's frame, as bytes for another server ([`relay`]).
     Frame(Bytes),
     /// News of one avatar (`avatar_changed`) for the subscribers covering it.
     Change {
