@@ -676,3 +676,59 @@ async fn servers_survive_a_nats_restart() {
     }
     println!("relay resumed {:?} after NATS restarted", back.elapsed());
 }
+
+/// The client library given several servers of a cluster: it connects to the first that
+/// answers, and when that one dies goes on with the next, getting the scene's frames again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_client_library_fails_over_to_another_server() {
+    use posecast_client::net::{Client, ClientOptions, Event};
+    let Some(nats) = Nats::start() else { return };
+    let a = node(&nats, "a", "1.5");
+    let b = node(&nats, "b", "1.5");
+    stage(a.addr).await;
+    assert_eq!(owner_seen_by(b.addr, "stage").await, "a");
+    let dead = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap();
+    let mut options = ClientOptions::new(format!("ws://{dead}/ws"), "stage");
+    options.fallback_urls = vec![format!("ws://{}/ws", a.addr), format!("ws://{}/ws", b.addr)];
+    let client = Client::connect(options).await.unwrap();
+    let mut events = client.events();
+    let frames_before = {
+        let deadline = Instant::now() + Duration::from_secs(5);
+        let mut n = 0;
+        while n < 5 {
+            match tokio::time::timeout_at(deadline.into(), events.recv()).await {
+                Ok(Ok(Event::Frame { .. })) => n += 1,
+                Ok(Ok(_)) => {}
+                other => panic!("no frames from A: {other:?}"),
+            }
+        }
+        n
+    };
+    let killed = Instant::now();
+    a.kill();
+    // Disconnected, connected again (to B), then frames of the scene.
+    let deadline = killed + Duration::from_secs(15);
+    let mut reconnected = false;
+    let mut frames_after = 0;
+    while frames_after < 5 {
+        match tokio::time::timeout_at(deadline.into(), events.recv()).await {
+            Ok(Ok(Event::Connected)) => reconnected = true,
+            Ok(Ok(Event::Frame { .. })) if reconnected => frames_after += 1,
+            Ok(Ok(_)) | Ok(Err(_)) => {}
+            Err(_) => panic!("no frames after the failover (reconnected: {reconnected})"),
+        }
+    }
+    assert!(client.is_connected());
+    assert!(
+        client
+            .latest(&posecast_proto::msg::AvatarId("dancer".into()))
+            .is_some()
+    );
+    println!(
+        "{frames_before} frames from A, then {frames_after} through B {:?} after A was killed",
+        killed.elapsed()
+    );
+}
