@@ -23,8 +23,11 @@
 mod owner;
 mod relay;
 
+use crate::builtin::BUILTIN_ASSET;
 use crate::config::Config;
+use crate::control;
 use crate::error::Error;
+use crate::restore::{DEFAULT_AVATAR, DEFAULT_SCENE};
 use crate::state::AppState;
 use crate::store::snapshot;
 use async_nats::jetstream::{self, kv};
@@ -32,7 +35,7 @@ use bytes::Bytes;
 use futures_util::StreamExt;
 use futures_util::future::BoxFuture;
 use posecast_proto::command::{Command, CommandResult, SceneInfo};
-use posecast_proto::msg::{ProtocolError, SceneId};
+use posecast_proto::msg::{AvatarId, ProtocolError, SceneId};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -259,8 +262,49 @@ impl Cluster {
         self.state.upgrade()
     }
 
+    /// The first server to start on a new NATS makes scene `default` with the built-in avatar
+    /// playing `idle`, as a server on its own does on a new data folder (a key `initialised`
+    /// in the scenes bucket — not a scene id's hex — records that it was done, so a deleted
+    /// `default` stays deleted).
+    async fn first_start(&self, state: &Arc<AppState>) {
+        if !state.config.builtin || state.world.library.get(BUILTIN_ASSET).is_none() {
+            return;
+        }
+        if self
+            .conn
+            .scenes
+            .create("initialised", Bytes::from_static(b"1"))
+            .await
+            .is_err()
+        {
+            return;
+        }
+        let commands = [
+            Command::CreateScene {
+                scene: SceneId(DEFAULT_SCENE.into()),
+            },
+            Command::AddAvatar {
+                scene: SceneId(DEFAULT_SCENE.into()),
+                asset: BUILTIN_ASSET.into(),
+                avatar: Some(AvatarId(DEFAULT_AVATAR.into())),
+                clip: Some("idle".into()),
+                position: None,
+                rotation: None,
+            },
+        ];
+        for command in &commands {
+            if let Err(e) = control::execute_here(state, command).await {
+                warn!(error = %e, "could not create the default scene");
+                return;
+            }
+        }
+    }
+
     /// The lease loop: renew what is owned, take over what lost its owner, relay the rest.
     async fn run(self: Arc<Self>) {
+        if let Some(state) = self.state() {
+            self.first_start(&state).await;
+        }
         let period = self.conn.lease / 3;
         loop {
             let Some(state) = self.state() else { return };
