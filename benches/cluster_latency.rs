@@ -152,7 +152,12 @@ async fn main() -> anyhow::Result<()> {
     let b = server(port, "b").await?;
     let mut control = connect(&a).await?;
     // Only the bench's scene goes through NATS (the first server made `default`).
-    command(&mut control, 100, r#"{"op":"delete_scene","scene":"default"}"#).await?;
+    command(
+        &mut control,
+        100,
+        r#"{"op":"delete_scene","scene":"default"}"#,
+    )
+    .await?;
     command(&mut control, 1, r#"{"op":"create_scene","scene":"bench"}"#).await?;
     for i in 0..AVATARS {
         let add = format!(

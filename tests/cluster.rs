@@ -492,6 +492,60 @@ async fn commands_through_any_server_reach_the_owner() {
         same_rotation(local.try_into().unwrap(), rotation),
         "{joint}"
     );
+
+    // Avatars added and removed through C: B's subscriber is told as A's would be — the new
+    // avatar's description (A's bytes), frames holding both, then `avatar_removed`.
+    let (on_a, ws) = Recorder::subscribe(a.addr, Encoding::Binary, None).await;
+    let on_a = on_a.spawn(ws);
+    tokio::time::sleep(TICK * 4).await;
+    ok(
+        c.addr,
+        r#"{"op":"add_avatar","scene":"stage","asset":"avatar","avatar":"guest","clip":"wave"}"#,
+    )
+    .await;
+    let added = Instant::now();
+    let deadline = added + Duration::from_secs(5);
+    while !on_b
+        .texts("description")
+        .iter()
+        .any(|d| d.contains(r#""id":"guest""#))
+    {
+        assert!(
+            Instant::now() < deadline,
+            "B never described the new avatar"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    tokio::time::sleep(TICK * 4).await;
+    let guest = |rec: &Recorder| {
+        rec.texts("description")
+            .into_iter()
+            .find(|d| d.contains(r#""id":"guest""#))
+            .unwrap()
+    };
+    assert_eq!(
+        guest(&on_b),
+        guest(&on_a),
+        "the new avatar's description differs"
+    );
+    let mut decoder = FrameDecoder::new();
+    let both = on_b
+        .messages()
+        .into_iter()
+        .filter_map(|(t, m)| match m {
+            Message::Binary(b) if t > added => decoder.decode(&b).ok(),
+            _ => None,
+        })
+        .filter(|f| f.avatars.len() == 2)
+        .count();
+    assert!(both >= 2, "{both} frames with both avatars on B");
+    ok(b.addr, r#"{"op":"remove_avatar","avatar":"guest"}"#).await;
+    let deadline = Instant::now() + Duration::from_secs(5);
+    while on_b.texts("avatar_removed").is_empty() {
+        assert!(Instant::now() < deadline, "B never said the avatar left");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert!(on_b.texts("avatar_removed")[0].contains(r#""avatar":"guest""#));
 }
 
 /// SIGKILL the owner: within the lease time and a second another server ticks the scene from

@@ -6,24 +6,29 @@
 //! descriptions and cached keyframe and delta (so a joiner here gets the current pose at once,
 //! as on the owner); live frames not newer than those are skipped. Every message carries the
 //! owner's epoch: an older owner's are ignored, a newer owner's first drops the frames kept
-//! from the old one (its first frame is a keyframe).
+//! from the old one (its first frame is a keyframe). A frame naming an avatar not described
+//! here (descriptions lost when the owner's queue to NATS was full) makes the relay ask the
+//! owner for its descriptions again.
 
 use super::owner::{Change, decode_sync};
 use super::{Cluster, EPOCH, KIND, REQUEST_TIMEOUT, Task, lock, relay_subject, request_subject};
 use crate::metrics::Metrics;
 use crate::scene::Scene;
 use crate::state::AppState;
+use crate::stream::feed::RelayRefused;
 use crate::stream::relay::peek_seq;
 use axum::extract::ws::{Message, Utf8Bytes};
 use bytes::Bytes;
 use futures_util::StreamExt;
 use posecast_proto::description::AvatarDescription;
 use std::sync::{Arc, Weak};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 use tracing::{debug, warn};
 
 /// How often a relay asks again for an owner that did not answer its first request.
 const SYNC_RETRY: Duration = Duration::from_millis(200);
+/// How often, at most, a relay asks the owner again for descriptions it missed.
+const RESYNC_INTERVAL: Duration = Duration::from_secs(1);
 
 /// A scene relayed here: who owns it, and the task relaying it (stopped when dropped).
 #[derive(Debug)]
@@ -97,6 +102,23 @@ fn header(msg: &async_nats::Message, name: &str) -> String {
         .unwrap_or_default()
 }
 
+/// Asks the owner for its epoch, descriptions and cached frames.
+async fn ask_sync(
+    client: &async_nats::Client,
+    scene: &Scene,
+    metrics: &Metrics,
+) -> Option<(u64, Vec<AvatarDescription>, Vec<Bytes>)> {
+    let mut headers = async_nats::HeaderMap::new();
+    headers.insert(KIND, "sync");
+    let asked = client.request_with_headers(request_subject(&scene.id), headers, Bytes::new());
+    let reply = tokio::time::timeout(REQUEST_TIMEOUT, asked)
+        .await
+        .ok()?
+        .ok()?;
+    metrics.cluster.received(reply.payload.len());
+    decode_sync(&reply.payload)
+}
+
 /// Relays until stopped or the scene is deleted.
 async fn run(
     client: async_nats::Client,
@@ -115,24 +137,19 @@ async fn run(
     let mut last_seq: Option<u64> = None;
     // What the owner has now; live messages wait in the subscription meanwhile.
     loop {
-        let mut headers = async_nats::HeaderMap::new();
-        headers.insert(KIND, "sync");
-        let asked = client.request_with_headers(request_subject(&scene.id), headers, Bytes::new());
-        if let Ok(Ok(reply)) = tokio::time::timeout(REQUEST_TIMEOUT, asked).await {
-            metrics.cluster.received(reply.payload.len());
-            if let Some((e, avatars, frames)) = decode_sync(&reply.payload) {
-                epoch = e;
-                scene.relay_avatars(avatars);
-                for f in frames {
-                    if scene.relay_frame(&f).is_ok() {
-                        last_seq = peek_seq(&f);
-                    }
+        if let Some((e, avatars, frames)) = ask_sync(&client, &scene, &metrics).await {
+            epoch = e;
+            scene.relay_avatars(avatars);
+            for f in frames {
+                if scene.relay_frame(&f).is_ok() {
+                    last_seq = peek_seq(&f);
                 }
-                break;
             }
+            break;
         }
         tokio::time::sleep(SYNC_RETRY).await;
     }
+    let mut last_resync: Option<Instant> = None;
     while let Some(msg) = live.next().await {
         metrics.cluster.received(msg.payload.len());
         let kind = header(&msg, KIND);
@@ -166,6 +183,22 @@ async fn run(
                 }
                 match scene.relay_frame(&msg.payload) {
                     Ok(()) => last_seq = Some(seq),
+                    // Descriptions missed (the owner's queue to NATS was full): asked for
+                    // again, at most once a second.
+                    Err(RelayRefused::UnknownAvatar(avatar))
+                        if last_resync.is_none_or(|t| t.elapsed() >= RESYNC_INTERVAL) =>
+                    {
+                        debug!(scene = %scene.id, %avatar, "descriptions missed: asking the owner");
+                        last_resync = Some(Instant::now());
+                        if let Some((e, avatars, _)) = ask_sync(&client, &scene, &metrics).await
+                            && e == epoch
+                        {
+                            scene.relay_avatars(avatars);
+                            if scene.relay_frame(&msg.payload).is_ok() {
+                                last_seq = Some(seq);
+                            }
+                        }
+                    }
                     Err(e) => debug!(scene = %scene.id, error = %e, "frame not relayed"),
                 }
             }
