@@ -661,16 +661,17 @@ fn an_unreachable_nats_fails_the_start_naming_the_urls() {
     assert!(!output.contains("panicked"), "{output}");
 }
 
-/// NATS lost while running: the owner keeps ticking its scene for its own subscribers and
-/// reports `degraded`; once NATS is back both servers are healthy and the relay's stream
-/// resumes.
+/// NATS lost while running, for longer than the lease: the owner keeps ticking its scene for
+/// its own subscribers and reports `degraded`; once NATS is back both servers are healthy, one
+/// of them owns the scene (the old owner again, or the other one, which may win the lapsed
+/// lease), and both servers' subscribers get frames again without being unsubscribed.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn servers_survive_a_nats_restart() {
     let Some(mut nats) = Nats::start() else {
         return;
     };
-    let a = node(&nats, "a", "2");
-    let b = node(&nats, "b", "2");
+    let a = node(&nats, "a", "1");
+    let b = node(&nats, "b", "1");
     stage(a.addr).await;
     assert_eq!(owner_seen_by(b.addr, "stage").await, "a");
     let (on_a, ws) = Recorder::subscribe(a.addr, Encoding::Binary, None).await;
@@ -681,6 +682,7 @@ async fn servers_survive_a_nats_restart() {
     assert_eq!(a.health(), Some((200, "ok".into())));
 
     nats.stop();
+    let stopped = Instant::now();
     let deadline = Instant::now() + Duration::from_secs(10);
     loop {
         let health = a.health();
@@ -708,6 +710,8 @@ async fn servers_survive_a_nats_restart() {
         "A's own subscriber got {served} frames in 0.5 s without NATS"
     );
 
+    // Down for longer than the 1 s lease: it has lapsed when NATS is back.
+    tokio::time::sleep(Duration::from_millis(2500).saturating_sub(stopped.elapsed())).await;
     nats.restart();
     let back = Instant::now();
     for n in [&a, &b] {
@@ -717,23 +721,31 @@ async fn servers_survive_a_nats_restart() {
             tokio::time::sleep(Duration::from_millis(50)).await;
         }
     }
-    let deadline = back + Duration::from_secs(20);
-    loop {
-        let resumed = on_b
-            .messages()
-            .iter()
-            .filter(|(t, m)| *t > back && m.is_binary())
-            .count();
-        if resumed >= 10 {
-            break;
+    for (name, rec) in [("A", &on_a), ("B", &on_b)] {
+        let deadline = back + Duration::from_secs(20);
+        loop {
+            let resumed = rec
+                .messages()
+                .iter()
+                .filter(|(t, m)| *t > back + Duration::from_secs(2) && m.is_binary())
+                .count();
+            if resumed >= 10 {
+                break;
+            }
+            assert!(
+                Instant::now() < deadline,
+                "{name}'s stream did not resume ({resumed} frames)"
+            );
+            tokio::time::sleep(Duration::from_millis(50)).await;
         }
-        assert!(
-            Instant::now() < deadline,
-            "B's stream did not resume ({resumed} frames)"
-        );
-        tokio::time::sleep(Duration::from_millis(50)).await;
+        assert_eq!(rec.texts("unsubscribed"), Vec::<String>::new(), "{name}");
     }
-    println!("relay resumed {:?} after NATS restarted", back.elapsed());
+    let owner = owner_seen_by(a.addr, "stage").await;
+    assert_eq!(owner_seen_by(b.addr, "stage").await, owner);
+    println!(
+        "streams resumed {:?} after NATS restarted; owner now {owner}",
+        back.elapsed()
+    );
 }
 
 /// The client library given several servers of a cluster: it connects to the first that
@@ -790,4 +802,67 @@ async fn the_client_library_fails_over_to_another_server() {
         "{frames_before} frames from A, then {frames_after} through B {:?} after A was killed",
         killed.elapsed()
     );
+}
+
+/// An owner whose lease another server took while it lived gives the scene up without
+/// dropping its subscribers: they stay subscribed, get no frames while the scene is owned
+/// elsewhere, and get a keyframe and the scene's frames again once a server ticks it here.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_owner_whose_lease_was_taken_keeps_its_subscribers() {
+    let Some(nats) = Nats::start() else {
+        return;
+    };
+    let a = node(&nats, "a", "1");
+    stage(a.addr).await;
+    assert_eq!(owner_seen_by(a.addr, "stage").await, "a");
+    let (on_a, ws) = Recorder::subscribe(a.addr, Encoding::Binary, None).await;
+    let on_a = on_a.spawn(ws);
+    tokio::time::sleep(Duration::from_millis(500)).await;
+
+    // "x" takes the lease, as a server would whose clock ran past A's lease.
+    let client = async_nats::connect(nats.url()).await.unwrap();
+    let leases = async_nats::jetstream::new(client)
+        .get_key_value("posecast_leases")
+        .await
+        .unwrap();
+    let key: String = "stage".bytes().map(|b| format!("{b:02x}")).collect();
+    leases.put(&key, "x".into()).await.unwrap();
+    let taken = Instant::now();
+    let deadline = taken + Duration::from_secs(10);
+    while owner_seen_by(a.addr, "stage").await != "x" {
+        assert!(Instant::now() < deadline, "A never gave the scene up");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    // "x" is no server: nothing ticks the scene until its lease lapses and A takes it back.
+    let given_up = Instant::now();
+    leases.purge(&key).await.unwrap();
+    let deadline = given_up + Duration::from_secs(10);
+    while owner_seen_by(a.addr, "stage").await != "a" {
+        assert!(Instant::now() < deadline, "A never took the scene back");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert_eq!(on_a.texts("unsubscribed"), Vec::<String>::new());
+    let frames: Vec<(Instant, Vec<u8>)> = on_a
+        .messages()
+        .into_iter()
+        .filter_map(|(t, m)| match m {
+            Message::Binary(b) => Some((t, b.to_vec())),
+            _ => None,
+        })
+        .collect();
+    let back: Vec<&(Instant, Vec<u8>)> = frames.iter().filter(|(t, _)| *t > given_up).collect();
+    assert!(
+        back.len() >= 5,
+        "{} frames after A took the scene back",
+        back.len()
+    );
+    let first = read_header(&back[0].1).unwrap().0;
+    assert_eq!(
+        first.kind,
+        FrameKind::Key,
+        "the first frame after the takeover"
+    );
+    // The descriptions were not sent again: the subscriber holds the same ones.
+    assert_eq!(on_a.texts("description").len(), 1);
 }

@@ -379,8 +379,9 @@ impl Cluster {
         }
     }
 
-    /// Stops ticking a scene another server now owns; its subscribers here are unsubscribed
-    /// (they subscribe again and get the new owner's frames through the relay).
+    /// Stops ticking a scene another server now owns: it becomes a relayed scene here (the
+    /// next look relays it), and its subscribers here stay subscribed and get the new owner's
+    /// frames, from a keyframe.
     fn give_up(&self, state: &AppState, id: &SceneId) {
         if let Some(o) = lock(&self.owned).remove(id) {
             o.stop();
@@ -388,7 +389,9 @@ impl Cluster {
         if let Ok(scene) = state.world.scene(id) {
             scene.set_tap(None);
         }
-        state.world.delete_scene(id).ok();
+        if state.world.demote(id).is_err() {
+            state.world.delete_scene(id).ok();
+        }
     }
 
     /// Every scene of the cluster: take over those without a lease, relay the others.
@@ -476,10 +479,11 @@ impl Cluster {
                 return;
             }
         };
-        let relayed = lock(&self.relays).remove(id);
-        let now = crate::scene::ticker::unix_micros();
-        let scene = if let Some(r) = relayed {
+        if let Some(r) = lock(&self.relays).remove(id) {
             r.stop();
+        }
+        let now = crate::scene::ticker::unix_micros();
+        let scene = if state.world.scene(id).is_ok_and(|s| s.is_relay()) {
             match state.world.promote(id) {
                 Ok(scene) => {
                     snapshot::restore_into(&state.world, &file, now);

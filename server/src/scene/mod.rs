@@ -66,6 +66,9 @@ pub struct Scene {
     stop: Notify,
     /// The number of the last tick run, for services that act once per tick (VMC out).
     ticks: tokio::sync::watch::Sender<u64>,
+    /// Changed whenever the scene stops being ticked here ([`Scene::stop_ticking`]): its tick
+    /// task ends.
+    ticker_generation: tokio::sync::watch::Sender<u64>,
 }
 
 impl Scene {
@@ -84,6 +87,7 @@ impl Scene {
             stopped: AtomicBool::new(false),
             stop: Notify::new(),
             ticks: tokio::sync::watch::Sender::new(0),
+            ticker_generation: tokio::sync::watch::Sender::new(0),
         }
     }
 
@@ -174,6 +178,10 @@ impl Scene {
     pub fn tick(&self, seq: u64, clock: f64, server_time_us: u64, key_interval: u64) {
         let mut guard = self.lock();
         let s = &mut *guard;
+        if s.feed.is_relay() {
+            // Ticked elsewhere now; this tick task is about to end.
+            return;
+        }
         s.last = TickStamp {
             seq,
             server_time_us,
@@ -185,6 +193,17 @@ impl Scene {
         s.feed.publish(&s.avatars, s.last, key_interval);
         drop(guard);
         self.ticks.send_replace(seq);
+    }
+
+    /// Ends the scene's tick task (the scene goes on, relayed: [`crate::world::World::demote`]).
+    pub fn stop_ticking(&self) {
+        self.ticker_generation.send_modify(|g| *g += 1);
+    }
+
+    /// Changes when the tick task must end ([`Scene::stop_ticking`]).
+    #[must_use]
+    pub fn ticker_generation(&self) -> tokio::sync::watch::Receiver<u64> {
+        self.ticker_generation.subscribe()
     }
 
     /// Whether the scene is ticked on another server and only relayed here.

@@ -206,10 +206,11 @@ impl Feed {
         self.relay.as_deref().unwrap_or(&[])
     }
 
-    /// Makes the feed a relay of a scene ticked elsewhere, with no avatars yet; its cached
-    /// frames are dropped (they came from ticks here).
-    pub fn begin_relay(&mut self) {
-        self.relay = Some(Vec::new());
+    /// Makes the feed a relay of a scene ticked elsewhere, whose subscribers hold the
+    /// descriptions of `avatars` (none for a new relay); its cached frames are dropped (they
+    /// came from ticks here).
+    pub fn begin_relay(&mut self, avatars: Vec<Arc<AvatarDescription>>) {
+        self.relay = Some(avatars);
         self.tap = None;
         self.restart_frames();
     }

@@ -162,6 +162,27 @@ impl World {
         self.insert_scene(id, false)
     }
 
+    /// Makes a scene ticked here a relayed one (another server owns it now): its tick task
+    /// ends and its avatars leave this server, while its subscribers stay subscribed (the
+    /// descriptions they hold are kept, so the owner's, the same, are not sent again).
+    ///
+    /// # Errors
+    /// `unknown_scene`; `conflict` when the scene is relayed already.
+    pub fn demote(&self, id: &SceneId) -> Result<Arc<Scene>, Error> {
+        let scene = self.scene(id)?;
+        {
+            let mut s = scene.lock();
+            if s.feed.is_relay() {
+                return Err(Error::Conflict(format!("scene {id} is relayed already")));
+            }
+            let described = s.avatars.iter().map(|a| a.description.clone()).collect();
+            s.avatars.clear();
+            s.feed.begin_relay(described);
+        }
+        scene.stop_ticking();
+        Ok(scene)
+    }
+
     fn insert_scene(&self, id: SceneId, quota: bool) -> Result<Arc<Scene>, Error> {
         self.insert(id, quota, true)
     }
@@ -202,7 +223,7 @@ impl World {
             self.tick_rate,
         ));
         if !ticked {
-            scene.lock().feed.begin_relay();
+            scene.lock().feed.begin_relay(Vec::new());
         }
         scenes.insert(id, scene.clone());
         if ticked {
