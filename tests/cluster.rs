@@ -866,3 +866,49 @@ async fn an_owner_whose_lease_was_taken_keeps_its_subscribers() {
     // The descriptions were not sent again: the subscriber holds the same ones.
     assert_eq!(on_a.texts("description").len(), 1);
 }
+
+/// A scene-list watcher on B hears of a scene created, an avatar added and removed and the
+/// scene deleted through A, as it would of changes made on B.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_watcher_on_another_server_hears_of_changes() {
+    let Some(nats) = Nats::start() else {
+        return;
+    };
+    let a = node(&nats, "a", "1");
+    let b = node(&nats, "b", "1");
+    let mut watcher = raw_at(b.addr, Encoding::Json, Some(CONTROL)).await;
+    watcher
+        .send(Message::Text(r#"{"type":"watch_scenes"}"#.into()))
+        .await
+        .unwrap();
+    let mut next = async |kind: &str| -> serde_json::Value {
+        let deadline = Instant::now() + Duration::from_secs(10);
+        loop {
+            match tokio::time::timeout_at(deadline.into(), watcher.next()).await {
+                Ok(Some(Ok(Message::Text(t)))) => {
+                    let v: serde_json::Value = serde_json::from_str(&t).unwrap();
+                    if v["type"] == kind {
+                        return v;
+                    }
+                }
+                Ok(Some(Ok(_))) => {}
+                other => panic!("no {kind}: {other:?}"),
+            }
+        }
+    };
+    next("scenes").await;
+    ok(a.addr, r#"{"op":"create_scene","scene":"later"}"#).await;
+    assert_eq!(next("scene_created").await["scene"], "later");
+    ok(
+        a.addr,
+        r#"{"op":"add_avatar","scene":"later","asset":"avatar","avatar":"visitor","clip":"wave"}"#,
+    )
+    .await;
+    let changed = next("avatar_changed").await;
+    assert_eq!(changed["avatar"]["avatar"], "visitor", "{changed}");
+    assert_eq!(changed["avatar"]["clip"], "wave", "{changed}");
+    ok(a.addr, r#"{"op":"remove_avatar","avatar":"visitor"}"#).await;
+    assert_eq!(next("avatar_removed").await["avatar"], "visitor");
+    ok(a.addr, r#"{"op":"delete_scene","scene":"later"}"#).await;
+    assert_eq!(next("scene_deleted").await["scene"], "later");
+}

@@ -16,11 +16,13 @@ use crate::metrics::Metrics;
 use crate::scene::Scene;
 use crate::state::AppState;
 use crate::stream::feed::RelayRefused;
+use crate::stream::feed::text;
 use crate::stream::relay::peek_seq;
 use axum::extract::ws::{Message, Utf8Bytes};
 use bytes::Bytes;
 use futures_util::StreamExt;
 use posecast_proto::description::AvatarDescription;
+use posecast_proto::msg::{AvatarId, SceneId, ServerMsg};
 use std::sync::{Arc, Weak};
 use std::time::{Duration, Instant};
 use tracing::{debug, warn};
@@ -45,12 +47,7 @@ impl Relayed {
 impl Cluster {
     /// Relays scene `id`, owned by `owner`, to this server's subscribers (from now on, if it
     /// is not relayed yet).
-    pub(super) fn relay(
-        &self,
-        state: &Arc<AppState>,
-        id: &posecast_proto::msg::SceneId,
-        owner: String,
-    ) {
+    pub(super) fn relay(&self, state: &Arc<AppState>, id: &SceneId, owner: String) {
         if let Some(r) = lock(&self.relays).get_mut(id) {
             r.owner = owner;
             return;
@@ -63,7 +60,12 @@ impl Cluster {
                 return;
             }
             Err(_) => match state.world.insert_relay(id.clone()) {
-                Ok(scene) => scene,
+                Ok(scene) => {
+                    // Scene-list watchers here hear of it as of one created here.
+                    let msg = text(&ServerMsg::SceneCreated { scene: id.clone() });
+                    state.watchers.push(&state.config.access, id, &msg, &[]);
+                    scene
+                }
                 Err(e) => {
                     warn!(scene = %id, error = %e, "cannot relay the scene");
                     return;
@@ -86,11 +88,32 @@ impl Cluster {
     }
 
     /// Stops relaying a scene the cluster no longer has, and removes it here.
-    pub(super) fn drop_relay(&self, state: &AppState, id: &posecast_proto::msg::SceneId) {
+    pub(super) fn drop_relay(&self, state: &AppState, id: &SceneId) {
         if let Some(r) = lock(&self.relays).remove(id) {
             r.stop();
-            state.world.delete_scene(id).ok();
+            if state.world.delete_scene(id).is_ok() {
+                deleted(state, id);
+            }
         }
+    }
+}
+
+/// Tells this server's scene-list watchers that a relayed scene is gone.
+fn deleted(state: &AppState, id: &SceneId) {
+    let msg = text(&ServerMsg::SceneDeleted { scene: id.clone() });
+    state.watchers.push(&state.config.access, id, &msg, &[]);
+}
+
+/// Tells this server's scene-list watchers that avatars of a relayed scene left (those
+/// subscribed to it were told by its feed).
+fn removed(state: &Weak<AppState>, id: &SceneId, gone: Vec<(AvatarId, Vec<u64>)>) {
+    let Some(state) = state.upgrade() else { return };
+    for (avatar, told) in gone {
+        let msg = text(&ServerMsg::AvatarRemoved {
+            scene: id.clone(),
+            avatar,
+        });
+        state.watchers.push(&state.config.access, id, &msg, &told);
     }
 }
 
@@ -139,7 +162,7 @@ async fn run(
     loop {
         if let Some((e, avatars, frames)) = ask_sync(&client, &scene, &metrics).await {
             epoch = e;
-            scene.relay_avatars(avatars);
+            removed(&state, &scene.id, scene.relay_avatars(avatars));
             for f in frames {
                 if scene.relay_frame(&f).is_ok() {
                     last_seq = peek_seq(&f);
@@ -154,8 +177,10 @@ async fn run(
         metrics.cluster.received(msg.payload.len());
         let kind = header(&msg, KIND);
         if kind == "deleted" {
-            if let Some(state) = state.upgrade() {
-                state.world.delete_scene(&scene.id).ok();
+            if let Some(state) = state.upgrade()
+                && state.world.delete_scene(&scene.id).is_ok()
+            {
+                deleted(&state, &scene.id);
             }
             return;
         }
@@ -171,7 +196,7 @@ async fn run(
         }
         match kind.as_str() {
             "avatars" => match serde_json::from_slice::<Vec<AvatarDescription>>(&msg.payload) {
-                Ok(avatars) => scene.relay_avatars(avatars),
+                Ok(avatars) => removed(&state, &scene.id, scene.relay_avatars(avatars)),
                 Err(e) => debug!(scene = %scene.id, error = %e, "unreadable descriptions"),
             },
             "frame" => {
@@ -193,7 +218,7 @@ async fn run(
                         if let Some((e, avatars, _)) = ask_sync(&client, &scene, &metrics).await
                             && e == epoch
                         {
-                            scene.relay_avatars(avatars);
+                            removed(&state, &scene.id, scene.relay_avatars(avatars));
                             if scene.relay_frame(&msg.payload).is_ok() {
                                 last_seq = Some(seq);
                             }
@@ -203,7 +228,16 @@ async fn run(
                 }
             }
             "change" => match serde_json::from_slice::<Change>(&msg.payload) {
-                Ok(c) => scene.relay_change(&c.avatar, &Message::Text(Utf8Bytes::from(c.text))),
+                Ok(c) => {
+                    let msg = Message::Text(Utf8Bytes::from(c.text));
+                    let told = scene.relay_change(&c.avatar, &msg);
+                    // Watchers hear of it too, as of a change made here.
+                    if let Some(state) = state.upgrade() {
+                        state
+                            .watchers
+                            .push(&state.config.access, &scene.id, &msg, &told);
+                    }
+                }
                 Err(e) => debug!(scene = %scene.id, error = %e, "unreadable change"),
             },
             _ => {}

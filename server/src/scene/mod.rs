@@ -127,6 +127,8 @@ impl Scene {
         }
         s.feed.avatar_added(&avatar);
         s.avatars.push(avatar);
+        let s = &mut *s;
+        s.feed.tap_avatars(&s.avatars);
         Ok(())
     }
 
@@ -136,6 +138,8 @@ impl Scene {
         let index = s.avatars.iter().position(|a| &a.id == id)?;
         let avatar = s.avatars.remove(index);
         s.feed.avatar_removed(&avatar);
+        let s = &mut *s;
+        s.feed.tap_avatars(&s.avatars);
         Some(avatar)
     }
 
@@ -223,9 +227,10 @@ impl Scene {
         self.lock().feed.cached_frames()
     }
 
-    /// A relayed scene's avatars changed ([`Feed::relay_avatars`]).
-    pub fn relay_avatars(&self, avatars: Vec<AvatarDescription>) {
-        self.lock().feed.relay_avatars(avatars);
+    /// A relayed scene's avatars changed ([`Feed::relay_avatars`]): the avatars gone, with
+    /// the connections told.
+    pub fn relay_avatars(&self, avatars: Vec<AvatarDescription>) -> Vec<(AvatarId, Vec<u64>)> {
+        self.lock().feed.relay_avatars(avatars)
     }
 
     /// A relayed scene's frame ([`Feed::relay_frame`]).
@@ -236,9 +241,9 @@ impl Scene {
         self.lock().feed.relay_frame(bytes)
     }
 
-    /// News of a relayed avatar for the subscribers covering it.
-    pub fn relay_change(&self, avatar: &AvatarId, message: &Message) {
-        self.lock().feed.push_change(avatar, message);
+    /// News of a relayed avatar for the subscribers covering it. Returns their connections.
+    pub fn relay_change(&self, avatar: &AvatarId, message: &Message) -> Vec<u64> {
+        self.lock().feed.push_change(avatar, message)
     }
 
     /// A relayed scene's frames now come from a new owner: cached frames are dropped and

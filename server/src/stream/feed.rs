@@ -183,6 +183,23 @@ impl Feed {
         self.tapped.clear();
     }
 
+    /// Hands the tap the avatars' descriptions if they changed since it last had them (called
+    /// when avatars come and go, so news of an avatar never reaches a relay before its
+    /// description, and before each frame).
+    pub fn tap_avatars(&mut self, avatars: &[Avatar]) {
+        let Some(tap) = &self.tap else { return };
+        let same = self.tapped.len() == avatars.len()
+            && self
+                .tapped
+                .iter()
+                .zip(avatars)
+                .all(|(t, a)| Arc::ptr_eq(t, &a.description));
+        if !same {
+            self.tapped = avatars.iter().map(|a| a.description.clone()).collect();
+            (tap.0)(Relayed::Avatars(self.tapped.clone()));
+        }
+    }
+
     /// The last keyframe and the newest delta after it, relayed-frame bytes ([`relay`]), for a
     /// server that starts relaying the scene.
     #[must_use]
@@ -237,11 +254,13 @@ impl Feed {
     }
 
     /// A relay's avatars are now `avatars` (in scene order): subscribers covering a new or
-    /// changed one get its description, those covering a gone one `avatar_removed`.
-    pub fn relay_avatars(&mut self, avatars: Vec<AvatarDescription>) {
+    /// changed one get its description, those covering a gone one `avatar_removed`. Returns
+    /// the avatars gone, each with the connections told.
+    pub fn relay_avatars(&mut self, avatars: Vec<AvatarDescription>) -> Vec<(AvatarId, Vec<u64>)> {
         let Some(old) = self.relay.take() else {
-            return;
+            return Vec::new();
         };
+        let mut removed = Vec::new();
         let mut new = Vec::with_capacity(avatars.len());
         for d in avatars {
             if let Some(kept) = old.iter().find(|o| o.id == d.id && ***o == d) {
@@ -261,11 +280,15 @@ impl Feed {
                 scene: self.scene.clone(),
                 avatar: gone.id.clone(),
             });
+            let mut told = Vec::new();
             for sub in self.subscribers.iter().filter(|sub| sub.wants(&gone.id)) {
                 sub.outbox.push_control(msg.clone());
+                told.push(sub.conn);
             }
+            removed.push((gone.id.clone(), told));
         }
         self.relay = Some(new);
+        removed
     }
 
     /// Fans out a frame the scene's owner published ([`relay::decode`]), as [`Feed::publish`]
@@ -582,17 +605,8 @@ impl Feed {
             self.metrics.json_encoded(pieces.len() as u64);
         }
         let published = Published { header, pieces };
+        self.tap_avatars(avatars);
         if let Some(tap) = &self.tap {
-            let same = self.tapped.len() == avatars.len()
-                && self
-                    .tapped
-                    .iter()
-                    .zip(avatars)
-                    .all(|(t, a)| Arc::ptr_eq(t, &a.description));
-            if !same {
-                self.tapped = avatars.iter().map(|a| a.description.clone()).collect();
-                (tap.0)(Relayed::Avatars(self.tapped.clone()));
-            }
             (tap.0)(Relayed::Frame(relay::encode(&published)));
         }
         self.fan_out(published, key);
