@@ -106,6 +106,17 @@ struct Args {
     /// avatar=127.0.0.1:39540 (repeatable). Only from here: no command can add one.
     #[arg(long = "vmc-out", env = "POSECAST_VMC_OUT", value_delimiter = ',')]
     vmc_out: Vec<VmcOut>,
+    /// NATS server URLs (comma-separated; any one will do): run as one server of a cluster
+    /// that shares scenes through NATS with JetStream (README "Scale-out with NATS").
+    #[arg(long, env = "POSECAST_NATS", value_delimiter = ',')]
+    nats: Vec<String>,
+    /// This server's name in the cluster (default: host name and port).
+    #[arg(long, env = "POSECAST_NODE")]
+    node: Option<String>,
+    /// Seconds a scene's owner holds it without renewing (renewed every third of it); a scene
+    /// whose owner died is ticked by another server within it.
+    #[arg(long, env = "POSECAST_LEASE", default_value = "3", value_parser = seconds)]
+    lease: Duration,
 }
 
 /// Quotas and the command rate limit (`posecast_server::quota`).
@@ -369,6 +380,9 @@ async fn main() -> anyhow::Result<()> {
         net: args.net.limits(),
         vmc_in: args.vmc_in,
         vmc_out: args.vmc_out,
+        nats: args.nats,
+        node: args.node,
+        lease_ttl: args.lease,
     };
     raise_open_files_limit();
     // Registered before the server listens: a SIGTERM that arrives during start-up (as soon as

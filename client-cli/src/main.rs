@@ -37,6 +37,10 @@ struct Connection {
     /// The server's websocket URL.
     #[arg(long, env = "POSECAST_URL", default_value = "ws://127.0.0.1:8080/ws")]
     url: String,
+    /// Other servers of the same cluster (`posecast --nats`), tried in turn when `--url`
+    /// cannot be reached or drops (comma-separated websocket URLs).
+    #[arg(long, env = "POSECAST_FALLBACK_URLS", value_delimiter = ',')]
+    fallback_url: Vec<String>,
     /// The scene to subscribe to.
     #[arg(long, env = "POSECAST_SCENE", default_value = "default")]
     scene: String,
@@ -51,6 +55,7 @@ struct Connection {
 impl Connection {
     async fn connect(&self, reconnect: bool) -> anyhow::Result<Client> {
         let mut options = ClientOptions::new(&self.url, &self.scene);
+        options.fallback_urls = self.fallback_url.clone();
         options.token = self.token.clone();
         options.reconnect = reconnect;
         if self.json_frames {

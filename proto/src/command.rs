@@ -377,6 +377,9 @@ pub struct SceneInfo {
     pub avatars: Vec<AvatarState>,
     /// Current subscriber count.
     pub subscribers: usize,
+    /// The server ticking it, when servers form a cluster (`--nats`); absent otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub owner: Option<String>,
 }
 
 /// A loaded rig as listed.

@@ -47,7 +47,18 @@ pub struct Config {
     /// Only here, from the command line or environment: no command can add one, so nobody
     /// with a token can make the server send UDP to an address of their choosing.
     pub vmc_out: Vec<VmcOut>,
+
+    // --- Scale-out (issue 15) ---
+    /// NATS servers of the cluster (`--nats`); empty: a server on its own, as before.
+    pub nats: Vec<String>,
+    /// This server's name in the cluster (`--node`); `None`: host name and port.
+    pub node: Option<String>,
+    /// How long a scene's ownership lasts unless its owner renews it (every third of it).
+    pub lease_ttl: Duration,
 }
+
+/// Default [`Config::lease_ttl`]: 3 s (a scene whose owner died is ticked again within it).
+pub const DEFAULT_LEASE_TTL: Duration = Duration::from_secs(3);
 
 /// Default [`Config::max_upload_bytes`]: 32 MiB.
 pub const DEFAULT_MAX_UPLOAD_BYTES: usize = 32 << 20;
@@ -75,6 +86,9 @@ impl Default for Config {
             net: NetLimits::default(),
             vmc_in: Vec::new(),
             vmc_out: Vec::new(),
+            nats: Vec::new(),
+            node: None,
+            lease_ttl: DEFAULT_LEASE_TTL,
         }
     }
 }

@@ -35,6 +35,22 @@ pub fn execute(state: &AppState, command: &Command) -> Result<CommandResult, Err
 /// As [`execute`]; or `internal` when storing failed, in which case the change
 /// *is* in effect in memory but not on disk.
 pub async fn execute_durable(state: &AppState, command: &Command) -> Result<CommandResult, Error> {
+    // In a cluster, a command on a scene another server ticks runs there; its answer comes
+    // back through here.
+    if let Some(forwarded) = state.cluster().and_then(|c| c.forward(command)) {
+        return forwarded.await;
+    }
+    execute_here(state, command).await
+}
+
+/// [`execute_durable`] on this server, never forwarded: what a scene's owner runs for a
+/// command another server of the cluster forwarded to it. In a cluster a change is also
+/// stored where every server reads it ([`crate::state::Cluster::stored`]) before the answer,
+/// and `create_scene` claims the id cluster-wide first; `list_scenes` lists the cluster's.
+///
+/// # Errors
+/// As [`execute_durable`]; `unavailable` for a scene that another server ticks.
+pub async fn execute_here(state: &AppState, command: &Command) -> Result<CommandResult, Error> {
     if let Command::ConfigureAsset { asset, options } = command {
         // Stored (meta.json) before the answer, like an upload.
         let result = crate::ingest::configure(state, asset, options.clone())
@@ -47,7 +63,16 @@ pub async fn execute_durable(state: &AppState, command: &Command) -> Result<Comm
         state.metrics.command(false);
         return Err(e);
     }
-    if command.is_read_only() || state.store.root().is_none() {
+    let cluster = state.cluster();
+    if let Some(cluster) = cluster
+        && matches!(command, Command::ListScenes)
+    {
+        return match execute(state, command)? {
+            CommandResult::Scenes(local) => Ok(CommandResult::Scenes(cluster.listing(local).await)),
+            other => Ok(other),
+        };
+    }
+    if command.is_read_only() || (state.store.root().is_none() && cluster.is_none()) {
         return execute(state, command);
     }
     // The scene is looked up before executing: after `remove_avatar` the avatar is gone.
@@ -58,9 +83,36 @@ pub async fn execute_durable(state: &AppState, command: &Command) -> Result<Comm
             .and_then(|a| state.world.find_avatar(a).ok())
             .map(|s| s.id.clone()),
     };
-    let result = execute(state, command)?;
+    if cluster.is_some()
+        && let Some(id) = &scene
+        && state.world.scene(id).is_ok_and(|s| s.is_relay())
+    {
+        // Forwarded here while the scene's ownership moved away: the sender may retry.
+        return Err(Error::Unavailable(format!(
+            "scene {id} is ticked by another server now: try again"
+        )));
+    }
+    let claimed = match (cluster, command) {
+        (Some(cluster), Command::CreateScene { scene: id, .. }) => {
+            cluster.claim(id).await?;
+            Some((cluster, id))
+        }
+        _ => None,
+    };
+    let result = match execute(state, command) {
+        Ok(result) => result,
+        Err(e) => {
+            if let Some((cluster, id)) = claimed {
+                cluster.unclaim(id).await;
+            }
+            return Err(e);
+        }
+    };
     if let Some(scene) = scene {
         state.store.persist_scene(&state.world, &scene).await?;
+        if let Some(cluster) = cluster {
+            cluster.stored(command, &scene).await?;
+        }
     }
     if let CommandResult::Recorded(info) = &result {
         store_recording(state, info).await?;

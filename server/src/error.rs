@@ -96,6 +96,10 @@ pub enum Error {
     /// A rig without a mesh asked for its mesh.
     #[error("rig {0} has no mesh")]
     NoMesh(String),
+    /// The error another server of the cluster answered with (a forwarded command), as it
+    /// was on the wire.
+    #[error("{}", .0.message)]
+    Remote(ProtocolError),
 }
 
 impl Error {
@@ -122,6 +126,7 @@ impl Error {
             Self::Unavailable(_) => ErrorCode::Unavailable,
             Self::NotHumanoid(_) => ErrorCode::NotHumanoid,
             Self::NoMesh(_) => ErrorCode::NoMesh,
+            Self::Remote(wire) => wire.code,
         }
     }
 
@@ -144,6 +149,9 @@ impl Error {
 
 impl From<Error> for ProtocolError {
     fn from(e: Error) -> Self {
+        if let Error::Remote(wire) = e {
+            return wire;
+        }
         let mut wire = Self::new(e.code(), e.to_string());
         if let Error::RateLimited { retry_after_ms, .. } = e {
             wire.retry_after_ms = Some(retry_after_ms);

@@ -21,7 +21,9 @@
 //!    normalised and stored; an upload normalised again with new options), [`changes`] (what
 //!    commands changed, pushed to subscribers and scene-list watchers), live drivers of a
 //!    connection, the VMC gateway ([`vmc`]: UDP performers as live drivers, avatars sent to
-//!    VMC receivers), start-up loading ([`readiness`]).
+//!    VMC receivers), start-up loading ([`readiness`]), scale-out through NATS ([`cluster`]:
+//!    scene ownership by lease, frames relayed between servers, commands forwarded to a
+//!    scene's owner).
 //! 6. **Transport** — [`service`]: the axum router, accept loop and limits, websocket
 //!    sessions, REST, uploads, dashboard, health.
 //! 7. **Entry** — [`startup`]: [`startup::Server`] listens at once, restores in the
@@ -37,6 +39,7 @@ pub mod bake;
 pub mod builtin;
 pub mod changes;
 pub mod clip;
+pub mod cluster;
 pub mod config;
 pub mod control;
 pub mod error;

@@ -119,9 +119,14 @@ fn run(state: &AppState, plan: Plan) -> std::io::Result<()> {
         return Ok(());
     }
     state.store.restore_recordings(&state.world);
-    state.store.restore_scenes(&state.world);
+    // In a cluster (`--nats`) scenes live in NATS, where every server reads them
+    // (`crate::cluster`), not in this server's folder.
+    let clustered = !state.config.nats.is_empty();
+    if !clustered {
+        state.store.restore_scenes(&state.world);
+    }
     if plan.first_start && !state.readiness.stopped() {
-        if state.config.builtin {
+        if state.config.builtin && !clustered {
             create_default_scene(state);
         }
         for scene in state.world.scenes() {

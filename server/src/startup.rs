@@ -51,6 +51,15 @@ impl Server {
         // Bound before serving (and before the data folder), so a busy UDP port fails the
         // start like a busy TCP one; a packet that arrives before its avatar is restored waits
         // (`vmc::input`).
+        // NATS before anything is served or loaded: an unreachable cluster fails the start,
+        // naming the URLs. In a cluster, scene and avatar numbers come from their ids, so
+        // every server writes the same frames.
+        let cluster = if config.nats.is_empty() {
+            None
+        } else {
+            state.world.number_from_ids();
+            Some(crate::cluster::connect(&config, addr.port()).await?)
+        };
         let vmc = crate::vmc::start(&state).await?;
         let first_start = match open_data_folder(&state) {
             Ok(first) => first,
@@ -68,6 +77,9 @@ impl Server {
             task.abort();
             vmc.abort();
             return Err(e);
+        }
+        if let Some(conn) = cluster {
+            crate::cluster::start(&state, conn);
         }
         Ok(Self {
             addr,

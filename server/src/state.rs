@@ -3,6 +3,7 @@
 
 use crate::auth::{AccessConfig, Caller};
 use crate::config::Config;
+use crate::error::Error;
 use crate::metrics::Metrics;
 use crate::readiness::Readiness;
 use crate::store::Store;
@@ -10,7 +11,10 @@ use crate::stream::outbox::Outbox;
 use crate::stream::pace::Paths;
 use crate::world::World;
 use axum::extract::ws::Message;
+use futures_util::future::BoxFuture;
+use posecast_proto::command::{Command, CommandResult, SceneInfo};
 use posecast_proto::msg::SceneId;
+use std::sync::OnceLock;
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -43,6 +47,40 @@ pub struct AppState {
     pub watchers: Watchers,
     /// Round trips shared by connections from one address (the adaptive rate's base).
     pub paths: Paths,
+    /// The cluster this server is part of (`--nats`), once joined.
+    cluster: OnceLock<Arc<dyn Cluster>>,
+}
+
+/// What a cluster of servers (scale-out through NATS, `crate::cluster`) does for the services
+/// that run commands: set once the server has joined ([`AppState::join_cluster`]).
+pub trait Cluster: Send + Sync + std::fmt::Debug {
+    /// `Some` when `command` acts on a scene ticked by another server: the future sends it
+    /// there and answers with that server's answer.
+    fn forward<'a>(
+        &'a self,
+        command: &'a Command,
+    ) -> Option<BoxFuture<'a, Result<CommandResult, Error>>>;
+    /// Claims scene id `scene` cluster-wide before it is created here.
+    ///
+    /// # Errors
+    /// `conflict` when the cluster has that scene; `unavailable` without NATS.
+    fn claim<'a>(&'a self, scene: &'a SceneId) -> BoxFuture<'a, Result<(), Error>>;
+    /// Gives a claim back (the scene could not be created here after all).
+    fn unclaim<'a>(&'a self, scene: &'a SceneId) -> BoxFuture<'a, ()>;
+    /// After `command` changed scene `scene` here: stores the scene where every server can
+    /// read it (deleted: removes it), before the command is acknowledged.
+    ///
+    /// # Errors
+    /// `internal` or `unavailable` when it could not be stored (the change is in effect here).
+    fn stored<'a>(
+        &'a self,
+        command: &'a Command,
+        scene: &'a SceneId,
+    ) -> BoxFuture<'a, Result<(), Error>>;
+    /// The scene list of the whole cluster, from this server's own `local` listing.
+    fn listing(&self, local: Vec<SceneInfo>) -> BoxFuture<'_, Vec<SceneInfo>>;
+    /// Whether the connection to NATS is lost (local scenes are still served).
+    fn degraded(&self) -> bool;
 }
 
 /// The open websockets' outboxes, and whether the server is shutting down (in one lock, so a
@@ -68,8 +106,20 @@ impl AppState {
             readiness: Readiness::default(),
             watchers: Watchers::default(),
             paths: Paths::default(),
+            cluster: OnceLock::new(),
             config,
         })
+    }
+
+    /// The cluster this server has joined, if any.
+    #[must_use]
+    pub fn cluster(&self) -> Option<&Arc<dyn Cluster>> {
+        self.cluster.get()
+    }
+
+    /// Joins a cluster (once: a second call is ignored and returns `false`).
+    pub fn join_cluster(&self, cluster: Arc<dyn Cluster>) -> bool {
+        self.cluster.set(cluster).is_ok()
     }
 
     /// Registers a connection's outbox; returns its id. A connection whose upgrade completes

@@ -7,6 +7,7 @@
 
 pub mod child;
 pub mod link;
+pub mod nats;
 pub mod vmc;
 
 use futures_util::{SinkExt, StreamExt};

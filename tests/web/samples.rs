@@ -135,6 +135,7 @@ fn samples() -> Vec<(&'static str, &'static str, Value)> {
                     scene: scene("lobby"),
                     avatars: vec![state(true)],
                     subscribers: 3,
+                    owner: None,
                 }],
             }),
         ),

@@ -33,6 +33,9 @@ pub fn unix_micros() -> u64 {
 pub struct ClientOptions {
     /// The websocket URL, e.g. `ws://127.0.0.1:8080/ws`.
     pub url: String,
+    /// Other servers of the same cluster (`--nats`), tried in turn after `url` when a
+    /// connection cannot be made or drops: every one of them serves the same scenes.
+    pub fallback_urls: Vec<String>,
     /// Pose frame encoding.
     pub encoding: Encoding,
     /// View or control token.
@@ -56,6 +59,7 @@ impl ClientOptions {
     pub fn new(url: impl Into<String>, scene: &str) -> Self {
         Self {
             url: url.into(),
+            fallback_urls: Vec::new(),
             encoding: Encoding::Binary,
             token: None,
             subscriptions: vec![(SceneId(scene.to_string()), None)],
@@ -397,25 +401,47 @@ async fn run(
     events: broadcast::Sender<Event>,
     mut ready: Ready,
 ) {
-    let mut backoff = Duration::from_millis(100);
+    const FIRST_BACKOFF: Duration = Duration::from_millis(100);
+    let urls: Vec<String> = std::iter::once(options.url.clone())
+        .chain(options.fallback_urls.iter().cloned())
+        .collect();
+    // The URL tried next, and how many attempts in a row have failed to get a welcome.
+    let mut at = 0usize;
+    let mut failures = 0usize;
+    let mut backoff = FIRST_BACKOFF;
     loop {
-        let result = session(&options, &shared, &mut outgoing, &events, &mut ready).await;
-        {
+        let url = &urls[at % urls.len()];
+        let result = session(&options, url, &shared, &mut outgoing, &events, &mut ready).await;
+        let welcomed = {
             let mut s = lock(&shared);
+            let welcomed = s.connected;
             s.connected = false;
             // Commands in flight will not be answered on a new connection.
             s.pending.clear();
-        }
+            welcomed
+        };
         events.send(Event::Disconnected).ok();
+        if welcomed {
+            failures = 0;
+            backoff = FIRST_BACKOFF;
+        } else {
+            failures += 1;
+        }
         match result {
             Err(e) => {
+                // The next server of the list: its scenes are the same.
+                at += 1;
+                if ready.is_some() && failures < urls.len() {
+                    debug!(url, error = %e, "cannot connect: trying the next server");
+                    continue;
+                }
                 if let Some(r) = ready.take() {
                     r.send(Err(e)).ok();
                     return;
                 }
-                warn!(error = %e, "connection lost");
+                warn!(url, error = %e, "connection lost");
             }
-            Ok(()) => debug!("connection closed"),
+            Ok(()) => debug!(url, "connection closed"),
         }
         if !options.reconnect || outgoing.is_closed() {
             return;
@@ -427,16 +453,17 @@ async fn run(
 
 async fn session(
     options: &ClientOptions,
+    url: &str,
     shared: &Arc<Mutex<Shared>>,
     outgoing: &mut mpsc::Receiver<ClientMsg>,
     events: &broadcast::Sender<Event>,
     ready: &mut Ready,
 ) -> Result<(), ClientError> {
     let connect_err = |e: &dyn std::fmt::Display| ClientError::Connect {
-        url: options.url.clone(),
+        url: url.to_owned(),
         message: e.to_string(),
     };
-    let (ws, _) = tokio_tungstenite::connect_async(options.url.as_str())
+    let (ws, _) = tokio_tungstenite::connect_async(url)
         .await
         .map_err(|e| connect_err(&e))?;
     let (mut sink, mut stream) = ws.split();

@@ -13,10 +13,12 @@ use prometheus_client::metrics::histogram::Histogram;
 use prometheus_client::registry::Registry;
 
 use crate::quota::Quota;
+pub mod cluster;
 pub mod net;
 pub mod pace;
 pub mod vmc;
 
+use cluster::ClusterCounters;
 use net::NetCounters;
 use pace::PaceCounters;
 use vmc::VmcCounters;
@@ -72,6 +74,9 @@ pub struct Metrics {
     // --- the adaptive frame rate (issue 22) ---
     /// Connections per adaptive rate step, rate changes ([`PaceCounters`]).
     pub pace: PaceCounters,
+    // --- scale-out (issue 15) ---
+    /// Scenes owned and relayed, NATS bytes ([`ClusterCounters`]).
+    pub cluster: ClusterCounters,
 }
 
 impl Default for Metrics {
@@ -151,6 +156,7 @@ impl Metrics {
         let net = NetCounters::new(r);
         let vmc = VmcCounters::new(r);
         let pace = PaceCounters::new(r);
+        let cluster = ClusterCounters::new(r);
         Self {
             registry,
             connections_open,
@@ -175,6 +181,7 @@ impl Metrics {
             net,
             vmc,
             pace,
+            cluster,
         }
     }
 
@@ -447,7 +454,15 @@ posecast_connection_rate{per_60_ticks="3"} 0
 posecast_connection_rate{per_60_ticks="2"} 0
 posecast_connection_rate{per_60_ticks="1"} 0
 posecast_rate_changes_total{way="down"} 0
-posecast_rate_changes_total{way="up"} 0"#;
+posecast_rate_changes_total{way="up"} 0
+posecast_cluster_scenes_owned 0
+posecast_cluster_scenes_relayed 0
+posecast_nats_published_total 0
+posecast_nats_published_bytes_total 0
+posecast_nats_received_total 0
+posecast_nats_received_bytes_total 0
+posecast_nats_publish_dropped_total 0
+posecast_cluster_takeovers_total 0"#;
 
     /// Sample lines with their values parsed, so `0` and `0.0` compare equal.
     fn samples(text: &str) -> BTreeSet<(String, u64)> {

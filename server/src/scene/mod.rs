@@ -11,8 +11,11 @@ pub(crate) mod ticker;
 use crate::avatar::Avatar;
 use crate::error::Error;
 use crate::metrics::Metrics;
-use crate::stream::feed::{Feed, Subscriber, TickStamp};
+use crate::stream::feed::{Feed, RelayRefused, Subscriber, Tap, TickStamp};
+use axum::extract::ws::Message;
+use bytes::Bytes;
 use posecast_proto::command::SceneInfo;
+use posecast_proto::description::AvatarDescription;
 use posecast_proto::msg::{AvatarId, SceneId};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Mutex, MutexGuard};
@@ -37,6 +40,13 @@ impl SceneState {
         self.avatars.iter_mut().find(|a| &a.id == id)
     }
 
+    /// Whether the scene has avatar `id` (ticked here, or relayed from its owner).
+    #[must_use]
+    pub fn has_avatar(&self, id: &AvatarId) -> bool {
+        self.avatars.iter().any(|a| &a.id == id)
+            || self.feed.relayed_avatars().iter().any(|d| &d.id == id)
+    }
+
     /// The number of the last tick (0 before the first): avatars' clip times are at it.
     #[must_use]
     pub fn last_seq(&self) -> u64 {
@@ -56,6 +66,9 @@ pub struct Scene {
     stop: Notify,
     /// The number of the last tick run, for services that act once per tick (VMC out).
     ticks: tokio::sync::watch::Sender<u64>,
+    /// Changed whenever the scene stops being ticked here ([`Scene::stop_ticking`]): its tick
+    /// task ends.
+    ticker_generation: tokio::sync::watch::Sender<u64>,
 }
 
 impl Scene {
@@ -74,6 +87,7 @@ impl Scene {
             stopped: AtomicBool::new(false),
             stop: Notify::new(),
             ticks: tokio::sync::watch::Sender::new(0),
+            ticker_generation: tokio::sync::watch::Sender::new(0),
         }
     }
 
@@ -113,6 +127,8 @@ impl Scene {
         }
         s.feed.avatar_added(&avatar);
         s.avatars.push(avatar);
+        let s = &mut *s;
+        s.feed.tap_avatars(&s.avatars);
         Ok(())
     }
 
@@ -122,6 +138,8 @@ impl Scene {
         let index = s.avatars.iter().position(|a| &a.id == id)?;
         let avatar = s.avatars.remove(index);
         s.feed.avatar_removed(&avatar);
+        let s = &mut *s;
+        s.feed.tap_avatars(&s.avatars);
         Some(avatar)
     }
 
@@ -154,6 +172,7 @@ impl Scene {
             scene: self.id.clone(),
             avatars: s.avatars.iter().map(|a| a.state(&self.id)).collect(),
             subscribers: s.feed.len(),
+            owner: None,
         }
     }
 
@@ -163,6 +182,10 @@ impl Scene {
     pub fn tick(&self, seq: u64, clock: f64, server_time_us: u64, key_interval: u64) {
         let mut guard = self.lock();
         let s = &mut *guard;
+        if s.feed.is_relay() {
+            // Ticked elsewhere now; this tick task is about to end.
+            return;
+        }
         s.last = TickStamp {
             seq,
             server_time_us,
@@ -174,6 +197,59 @@ impl Scene {
         s.feed.publish(&s.avatars, s.last, key_interval);
         drop(guard);
         self.ticks.send_replace(seq);
+    }
+
+    /// Ends the scene's tick task (the scene goes on, relayed: [`crate::world::World::demote`]).
+    pub fn stop_ticking(&self) {
+        self.ticker_generation.send_modify(|g| *g += 1);
+    }
+
+    /// Changes when the tick task must end ([`Scene::stop_ticking`]).
+    #[must_use]
+    pub fn ticker_generation(&self) -> tokio::sync::watch::Receiver<u64> {
+        self.ticker_generation.subscribe()
+    }
+
+    /// Whether the scene is ticked on another server and only relayed here.
+    #[must_use]
+    pub fn is_relay(&self) -> bool {
+        self.lock().feed.is_relay()
+    }
+
+    /// Hands every tick's frame and the avatars' descriptions to `tap` ([`Feed::set_tap`]).
+    pub fn set_tap(&self, tap: Option<Tap>) {
+        self.lock().feed.set_tap(tap);
+    }
+
+    /// The cached keyframe and delta as relayed frames ([`Feed::cached_frames`]).
+    #[must_use]
+    pub fn cached_frames(&self) -> Vec<Bytes> {
+        self.lock().feed.cached_frames()
+    }
+
+    /// A relayed scene's avatars changed ([`Feed::relay_avatars`]): the avatars gone, with
+    /// the connections told.
+    pub fn relay_avatars(&self, avatars: Vec<AvatarDescription>) -> Vec<(AvatarId, Vec<u64>)> {
+        self.lock().feed.relay_avatars(avatars)
+    }
+
+    /// A relayed scene's frame ([`Feed::relay_frame`]).
+    ///
+    /// # Errors
+    /// As [`Feed::relay_frame`].
+    pub fn relay_frame(&self, bytes: &[u8]) -> Result<(), RelayRefused> {
+        self.lock().feed.relay_frame(bytes)
+    }
+
+    /// News of a relayed avatar for the subscribers covering it. Returns their connections.
+    pub fn relay_change(&self, avatar: &AvatarId, message: &Message) -> Vec<u64> {
+        self.lock().feed.push_change(avatar, message)
+    }
+
+    /// A relayed scene's frames now come from a new owner: cached frames are dropped and
+    /// subscribers wait for its first keyframe.
+    pub fn restart_frames(&self) {
+        self.lock().feed.restart_frames();
     }
 
     /// Tick numbers as ticks run (each change: a tick has run and its poses are set).

@@ -33,10 +33,13 @@ pub async fn run(scene: Arc<Scene>, rate: f32, metrics: Arc<Metrics>) {
     // A keyframe at least once a second.
     let key_interval = (rate.ceil() as u64).max(1);
     let mut last: Option<u64> = None;
+    let mut generation = scene.ticker_generation();
+    generation.borrow_and_update();
     loop {
         let due = tokio::select! {
             due = interval.tick() => due,
             () = scene.stopped() => return,
+            _ = generation.changed() => return,
         };
         let late = Instant::now().saturating_duration_since(due);
         // The tick number of the deadline that just passed, from absolute time.

@@ -32,7 +32,18 @@ enum NotReady {
 /// JSON body saying what is loading, so a load balancer waits (`Retry-After: 1`).
 pub async fn healthz(State(state): State<Arc<AppState>>) -> Response {
     let body = match state.readiness.phase() {
-        Phase::Ready => return "ok".into_response(),
+        Phase::Ready => {
+            if state.cluster().is_some_and(|c| c.degraded()) {
+                // Still serving the scenes ticked here: not a reason to take it out of a
+                // load balancer, but worth an operator's look.
+                return Json(serde_json::json!({
+                    "status": "degraded",
+                    "reason": "the connection to NATS is lost: scenes of other servers are not relayed and commands for them fail"
+                }))
+                .into_response();
+            }
+            return "ok".into_response();
+        }
         Phase::Starting => {
             let (assets_loaded, assets_total) = state.readiness.progress();
             NotReady::Starting {

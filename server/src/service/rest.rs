@@ -149,7 +149,7 @@ pub async fn scenes(
     caller: Caller,
 ) -> Result<Json<Value>, AppError> {
     state.config.access.authorize_read(&caller)?;
-    let scenes = control::execute(&state, &Command::ListScenes)?;
+    let scenes = control::execute_durable(&state, &Command::ListScenes).await?;
     Ok(Json(
         state.config.access.visible(&caller, scenes).to_value(),
     ))

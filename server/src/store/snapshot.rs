@@ -250,6 +250,13 @@ pub fn extrapolate(p: &PlaybackRecord, duration: f32, elapsed_s: f64) -> f32 {
 /// The scene itself cannot be created (bad id, already exists).
 pub fn restore(world: &World, file: &SceneFile, now_us: u64) -> Result<(), crate::error::Error> {
     world.restore_scene(file.scene.clone())?;
+    restore_into(world, file, now_us);
+    Ok(())
+}
+
+/// [`restore`] into the scene of that id, which exists already (a server of a cluster taking
+/// a scene over keeps the scene its subscribers are on).
+pub fn restore_into(world: &World, file: &SceneFile, now_us: u64) {
     let elapsed_s = now_us.saturating_sub(file.saved_us) as f64 / 1e6;
     for rec in &file.avatars {
         let placement = Placement::try_new(
@@ -288,7 +295,6 @@ pub fn restore(world: &World, file: &SceneFile, now_us: u64) -> Result<(), crate
         }
         a.evaluate();
     }
-    Ok(())
 }
 
 fn restore_playback(world: &World, avatar: &AvatarId, p: &PlaybackRecord, elapsed_s: f64) {

@@ -11,10 +11,12 @@
 use super::outbox::{OutFrame, Outbox, message_len};
 use super::pace;
 use super::publish::{Piece, Published};
+use super::relay::{self, RelayError, RelayFrame};
 use crate::avatar::Avatar;
 use crate::error::Error;
 use crate::metrics::Metrics;
 use axum::extract::ws::{Message, Utf8Bytes};
+use bytes::Bytes;
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::{ChunkEncoder, FrameHeader, FrameKind};
 use posecast_proto::msg::{AvatarId, Encoding, SceneId, ServerMsg};
@@ -74,6 +76,56 @@ pub struct TickStamp {
     pub server_time_us: u64,
 }
 
+/// What the scene's owner hands on to other servers through its tap ([`Feed::set_tap`]), in
+/// publication order.
+#[derive(Debug, Clone)]
+pub enum Relayed {
+    /// The scene's avatars, in scene order: sent before the first frame and before the first
+    /// frame after they change.
+    Avatars(Vec<Arc<AvatarDescription>>),
+    /// A tick's frame, as bytes for another server ([`relay`]).
+    Frame(Bytes),
+    /// News of one avatar (`avatar_changed`) for the subscribers covering it.
+    Change {
+        /// The avatar.
+        avatar: AvatarId,
+        /// The message as the owner's subscribers got it.
+        message: Message,
+    },
+}
+
+/// Where a tap hands what it relays (called under the scene's lock: it must not block).
+#[derive(Clone)]
+pub struct Tap(pub Arc<dyn Fn(Relayed) + Send + Sync>);
+
+impl std::fmt::Debug for Tap {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Tap")
+    }
+}
+
+/// A relayed frame the feed could not take.
+#[derive(Debug, thiserror::Error)]
+pub enum RelayRefused {
+    /// The bytes are not a relayed frame.
+    #[error(transparent)]
+    Unreadable(#[from] RelayError),
+    /// The feed is not a relay (its scene is ticked here).
+    #[error("scene is ticked here, not relayed")]
+    NotRelay,
+    /// The frame names an avatar whose description has not arrived.
+    #[error("frame names avatar {0}, whose description has not arrived")]
+    UnknownAvatar(AvatarId),
+    /// The frame belongs to another scene number.
+    #[error("frame of scene number {got}, this scene is number {expected}")]
+    SceneNum {
+        /// This scene's number.
+        expected: u32,
+        /// The frame's.
+        got: u32,
+    },
+}
+
 /// One scene's subscribers and the frame state they share (kept under the scene's lock, next
 /// to the avatars, so a joiner's first frames and the next tick are in order).
 #[derive(Debug)]
@@ -94,6 +146,12 @@ pub struct Feed {
     descriptions: HashMap<AvatarId, (Arc<AvatarDescription>, Message)>,
     /// An avatar was placed since the last tick: the cached frames show the old placement.
     placed: bool,
+    /// Where each tick is handed on to other servers, if anywhere.
+    tap: Option<Tap>,
+    /// The descriptions the tap last handed on.
+    tapped: Vec<Arc<AvatarDescription>>,
+    /// `Some` while the feed relays a scene ticked elsewhere: that scene's avatars.
+    relay: Option<Vec<Arc<AvatarDescription>>>,
 }
 
 impl Feed {
@@ -114,7 +172,164 @@ impl Feed {
             last_delta: None,
             descriptions: HashMap::new(),
             placed: false,
+            tap: None,
+            tapped: Vec::new(),
+            relay: None,
         }
+    }
+
+    /// Hands every tick's frame, and the avatars' descriptions when they change, to `tap`
+    /// (`None`: to nobody). A new tap starts with the descriptions.
+    pub fn set_tap(&mut self, tap: Option<Tap>) {
+        self.tap = tap;
+        self.tapped.clear();
+    }
+
+    /// Hands the tap the avatars' descriptions if they changed since it last had them (called
+    /// when avatars come and go, so news of an avatar never reaches a relay before its
+    /// description, and before each frame).
+    pub fn tap_avatars(&mut self, avatars: &[Avatar]) {
+        let Some(tap) = &self.tap else { return };
+        let same = self.tapped.len() == avatars.len()
+            && self
+                .tapped
+                .iter()
+                .zip(avatars)
+                .all(|(t, a)| Arc::ptr_eq(t, &a.description));
+        if !same {
+            self.tapped = avatars.iter().map(|a| a.description.clone()).collect();
+            (tap.0)(Relayed::Avatars(self.tapped.clone()));
+        }
+    }
+
+    /// The last keyframe and the newest delta after it, relayed-frame bytes ([`relay`]), for a
+    /// server that starts relaying the scene.
+    #[must_use]
+    pub fn cached_frames(&self) -> Vec<Bytes> {
+        self.last_key
+            .iter()
+            .chain(self.last_delta.iter())
+            .map(relay::encode)
+            .collect()
+    }
+
+    /// Whether the feed relays frames made elsewhere rather than publishing ticks.
+    #[must_use]
+    pub fn is_relay(&self) -> bool {
+        self.relay.is_some()
+    }
+
+    /// The relayed avatars' descriptions (empty unless a relay).
+    #[must_use]
+    pub fn relayed_avatars(&self) -> &[Arc<AvatarDescription>] {
+        self.relay.as_deref().unwrap_or(&[])
+    }
+
+    /// Makes the feed a relay of a scene ticked elsewhere, whose subscribers hold the
+    /// descriptions of `avatars` (none for a new relay); its cached frames are dropped (they
+    /// came from ticks here).
+    pub fn begin_relay(&mut self, avatars: Vec<Arc<AvatarDescription>>) {
+        self.relay = Some(avatars);
+        self.tap = None;
+        self.restart_frames();
+    }
+
+    /// The scene is ticked here again: the next frame is a keyframe, and joiners wait for it.
+    /// Descriptions stay cached, so avatars restored as they were are not described twice.
+    pub fn end_relay(&mut self) {
+        self.relay = None;
+        self.restart_frames();
+    }
+
+    /// Forgets every frame: a new source of frames begins (a new owner, or ticks here), whose
+    /// first frame is a keyframe. Subscribers keep their subscriptions.
+    pub fn restart_frames(&mut self) {
+        self.last_key = None;
+        self.last_delta = None;
+        self.last_key_seq = None;
+        self.force_key = true;
+        self.encoders.clear();
+        for sub in &mut self.subscribers {
+            sub.key_sent = None;
+            sub.outbox.clear_scene(self.num);
+        }
+    }
+
+    /// A relay's avatars are now `avatars` (in scene order): subscribers covering a new or
+    /// changed one get its description, those covering a gone one `avatar_removed`. Returns
+    /// the avatars gone, each with the connections told.
+    pub fn relay_avatars(&mut self, avatars: Vec<AvatarDescription>) -> Vec<(AvatarId, Vec<u64>)> {
+        let Some(old) = self.relay.take() else {
+            return Vec::new();
+        };
+        let mut removed = Vec::new();
+        let mut new = Vec::with_capacity(avatars.len());
+        for d in avatars {
+            if let Some(kept) = old.iter().find(|o| o.id == d.id && ***o == d) {
+                new.push(kept.clone());
+                continue;
+            }
+            let d = Arc::new(d);
+            let msg = description_message(&self.scene, &mut self.descriptions, &d);
+            for sub in self.subscribers.iter().filter(|sub| sub.wants(&d.id)) {
+                sub.outbox.push_control(msg.clone());
+            }
+            new.push(d);
+        }
+        for gone in old.iter().filter(|o| !new.iter().any(|n| n.id == o.id)) {
+            self.descriptions.remove(&gone.id);
+            let msg = text(&ServerMsg::AvatarRemoved {
+                scene: self.scene.clone(),
+                avatar: gone.id.clone(),
+            });
+            let mut told = Vec::new();
+            for sub in self.subscribers.iter().filter(|sub| sub.wants(&gone.id)) {
+                sub.outbox.push_control(msg.clone());
+                told.push(sub.conn);
+            }
+            removed.push((gone.id.clone(), told));
+        }
+        self.relay = Some(new);
+        removed
+    }
+
+    /// Fans out a frame the scene's owner published ([`relay::decode`]), as [`Feed::publish`]
+    /// does a tick's: the same bytes, the same outbox rules.
+    ///
+    /// # Errors
+    /// The bytes are unreadable, of another scene, or name an avatar not described yet; or
+    /// the feed is not a relay. Nothing is sent then.
+    pub fn relay_frame(&mut self, bytes: &[u8]) -> Result<(), RelayRefused> {
+        let RelayFrame { header, pieces } = relay::decode(bytes)?;
+        let Some(avatars) = &self.relay else {
+            return Err(RelayRefused::NotRelay);
+        };
+        if header.scene_num != self.num {
+            return Err(RelayRefused::SceneNum {
+                expected: self.num,
+                got: header.scene_num,
+            });
+        }
+        let json = self
+            .subscribers
+            .iter()
+            .any(|sub| sub.encoding == Encoding::Json);
+        let pieces = pieces
+            .into_iter()
+            .map(|p| {
+                let d = avatars
+                    .iter()
+                    .find(|d| d.id == p.avatar)
+                    .ok_or_else(|| RelayRefused::UnknownAvatar(p.avatar.clone()))?;
+                Ok(Piece::relayed(d.clone(), p.chunk, p.pose, json))
+            })
+            .collect::<Result<Vec<Piece>, RelayRefused>>()?;
+        if json {
+            self.metrics.json_encoded(pieces.len() as u64);
+        }
+        let key = header.kind == FrameKind::Key;
+        self.fan_out(Published { header, pieces }, key);
+        Ok(())
     }
 
     /// Number of subscribers.
@@ -132,9 +347,17 @@ impl Feed {
     /// An avatar joined the scene: subscribers covering it get its description, and the next
     /// frame is a keyframe.
     pub fn avatar_added(&mut self, avatar: &Avatar) {
+        // A relay that becomes the owner restores the avatars its subscribers were already
+        // told about: the same description is not sent twice.
+        let known = self
+            .descriptions
+            .get(&avatar.id)
+            .is_some_and(|(d, _)| **d == *avatar.description);
         let msg = description_message(&self.scene, &mut self.descriptions, &avatar.description);
-        for sub in self.subscribers.iter().filter(|sub| sub.wants(&avatar.id)) {
-            sub.outbox.push_control(msg.clone());
+        if !known {
+            for sub in self.subscribers.iter().filter(|sub| sub.wants(&avatar.id)) {
+                sub.outbox.push_control(msg.clone());
+            }
         }
         self.encoders.insert(avatar.num(), ChunkEncoder::new());
         self.force_key = true;
@@ -158,6 +381,12 @@ impl Feed {
     /// Hands `message` — news of avatar `avatar` (`avatar_changed`) — to every subscriber
     /// covering it. Returns their connections (each told once, whoever else tells others).
     pub fn push_change(&self, avatar: &AvatarId, message: &Message) -> Vec<u64> {
+        if let Some(tap) = &self.tap {
+            (tap.0)(Relayed::Change {
+                avatar: avatar.clone(),
+                message: message.clone(),
+            });
+        }
         self.subscribers
             .iter()
             .filter(|sub| sub.wants(avatar))
@@ -203,10 +432,14 @@ impl Feed {
         last: TickStamp,
         mut sub: Subscriber,
     ) -> Result<(), Error> {
+        let described: Vec<Arc<AvatarDescription>> = match &self.relay {
+            Some(relayed) => relayed.clone(),
+            None => avatars.iter().map(|a| a.description.clone()).collect(),
+        };
         if let Some(filter) = &sub.filter
             && let Some(missing) = filter
                 .iter()
-                .find(|id| !avatars.iter().any(|a| &a.id == *id))
+                .find(|id| !described.iter().any(|d| &d.id == *id))
         {
             return Err(Error::NotInScene {
                 scene: self.scene.clone(),
@@ -221,13 +454,13 @@ impl Feed {
             rate: Some(self.tick_rate / sub.every as f32),
         }));
         // Exempt from the outbox's stall bound: a scene of many avatars is not a slow client.
-        let descriptions: Vec<Message> = avatars
+        let descriptions: Vec<Message> = described
             .iter()
-            .filter(|a| sub.wants(&a.id))
-            .map(|a| description_message(&self.scene, &mut self.descriptions, &a.description))
+            .filter(|d| sub.wants(&d.id))
+            .map(|d| description_message(&self.scene, &mut self.descriptions, d))
             .collect();
         sub.outbox.push_snapshot(self.num, descriptions);
-        sub.key_sent = self.first_frames(avatars, last, &sub);
+        sub.key_sent = self.first_frames(avatars, &described, last, &sub);
         self.subscribers.push(sub);
         Ok(())
     }
@@ -237,13 +470,14 @@ impl Feed {
     fn first_frames(
         &mut self,
         avatars: &mut [Avatar],
+        described: &[Arc<AvatarDescription>],
         last: TickStamp,
         sub: &Subscriber,
     ) -> Option<u64> {
         let filter = sub.filter.as_deref();
         let json = sub.encoding == Encoding::Json;
         let key = self.last_key.as_mut()?;
-        let wanted = avatars.iter().filter(|a| sub.wants(&a.id));
+        let wanted = described.iter().filter(|d| sub.wants(&d.id));
         if !self.placed && key.covers(wanted, |id| sub.wants(id)) {
             if json {
                 let mut made = key.ensure_json();
@@ -264,6 +498,11 @@ impl Feed {
                 );
             }
             return self.last_key_seq;
+        }
+        if self.relay.is_some() {
+            // No poses here to make a keyframe from: the owner's next frame is one (it forces
+            // a keyframe whenever its avatars change).
+            return None;
         }
         // The cached keyframe predates a change of avatars: a keyframe of the current poses, for
         // this subscriber only, labelled with the last tick.
@@ -371,6 +610,20 @@ impl Feed {
             self.metrics.json_encoded(pieces.len() as u64);
         }
         let published = Published { header, pieces };
+        self.tap_avatars(avatars);
+        if let Some(tap) = &self.tap {
+            (tap.0)(Relayed::Frame(relay::encode(&published)));
+        }
+        self.fan_out(published, key);
+    }
+
+    /// Offers a frame to every subscriber due for it (a subscriber that skipped the keyframe
+    /// its deltas refer to gets that first), then keeps it for joiners.
+    fn fan_out(&mut self, published: Published, key: bool) {
+        let at = TickStamp {
+            seq: published.header.seq,
+            server_time_us: published.header.server_time_us,
+        };
         // Encode once per (encoding, filter); with no filters that is once per encoding.
         let mut cache: HashMap<(Encoding, Option<&[AvatarId]>), Message> = HashMap::new();
         // The scene's keyframe, for subscribers at a lower rate that skipped its tick.

@@ -6,9 +6,11 @@
 //! - [`outbox`]: the bounded per-connection queue (newest frame wins).
 //! - [`writer`]: the task that drains an outbox into its websocket.
 //! - [`pace`]: a connection's adaptive frame rate (lowered until its link keeps up).
+//! - [`relay`]: a published frame as bytes for another server (scale-out), and back.
 
 pub mod feed;
 pub mod outbox;
 pub mod pace;
 mod publish;
+pub mod relay;
 pub mod writer;

@@ -17,20 +17,16 @@ use posecast_proto::msg::{AvatarId, AvatarPoseJson, Encoding, SceneId};
 use std::borrow::Cow;
 use std::sync::Arc;
 
-/// An avatar's pose as JSON, or the pose to write it from when somebody asks.
-#[derive(Debug)]
-enum Json {
-    Encoded(String),
-    Pending(AvatarPose),
-}
-
 /// One avatar's part of a frame.
 #[derive(Debug)]
 pub(super) struct Piece {
     /// The description the pose belongs to (its id, number and hash).
     description: Arc<AvatarDescription>,
-    chunk: Bytes,
-    json: Json,
+    pub(super) chunk: Bytes,
+    /// The pose the chunk encodes (what its JSON is written from, and what a relay carries).
+    pub(super) pose: AvatarPose,
+    /// The pose as JSON, once somebody needed it.
+    json: Option<String>,
 }
 
 impl Piece {
@@ -60,26 +56,39 @@ impl Piece {
     }
 
     fn new(a: &Avatar, chunk: Vec<u8>, json: bool) -> Self {
-        let json = if json {
-            Json::Encoded(pose_json(&a.description, &a.pose))
-        } else {
-            Json::Pending(a.pose.clone())
-        };
+        Self::relayed(
+            a.description.clone(),
+            Bytes::from(chunk),
+            a.pose.clone(),
+            json,
+        )
+    }
+
+    /// A piece made elsewhere (by the scene's owner on another server): its description, the
+    /// chunk as encoded there and the pose it encodes.
+    pub(super) fn relayed(
+        description: Arc<AvatarDescription>,
+        chunk: Bytes,
+        pose: AvatarPose,
+        json: bool,
+    ) -> Self {
+        let json = json.then(|| pose_json(&description, &pose));
         Self {
-            description: a.description.clone(),
-            chunk: Bytes::from(chunk),
+            description,
+            chunk,
+            pose,
             json,
         }
     }
 
-    fn id(&self) -> &AvatarId {
+    pub(super) fn id(&self) -> &AvatarId {
         &self.description.id
     }
 
     fn json(&self) -> Cow<'_, str> {
         match &self.json {
-            Json::Encoded(s) => Cow::Borrowed(s),
-            Json::Pending(pose) => Cow::Owned(pose_json(&self.description, pose)),
+            Some(s) => Cow::Borrowed(s),
+            None => Cow::Owned(pose_json(&self.description, &self.pose)),
         }
     }
 }
@@ -110,8 +119,8 @@ impl Published {
     pub(super) fn ensure_json(&mut self) -> u64 {
         let mut n = 0;
         for p in &mut self.pieces {
-            if let Json::Pending(pose) = &p.json {
-                p.json = Json::Encoded(pose_json(&p.description, pose));
+            if p.json.is_none() {
+                p.json = Some(pose_json(&p.description, &p.pose));
                 n += 1;
             }
         }
@@ -123,14 +132,14 @@ impl Published {
     /// who has just received those descriptions. Pieces of avatars `wants` rejects are ignored.
     pub(super) fn covers<'a>(
         &self,
-        mut avatars: impl Iterator<Item = &'a Avatar>,
+        mut avatars: impl Iterator<Item = &'a Arc<AvatarDescription>>,
         wants: impl Fn(&AvatarId) -> bool,
     ) -> bool {
         let mut pieces = self.pieces.iter().filter(|p| wants(p.id()));
         loop {
             match (avatars.next(), pieces.next()) {
                 (None, None) => return true,
-                (Some(a), Some(p)) if Arc::ptr_eq(&a.description, &p.description) => {}
+                (Some(a), Some(p)) if Arc::ptr_eq(a, &p.description) => {}
                 _ => return false,
             }
         }

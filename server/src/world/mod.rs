@@ -21,7 +21,7 @@ use crate::scene::{Scene, ticker};
 use posecast_proto::msg::{AvatarId, SceneId, check_id};
 use posecast_proto::placement::Placement;
 use std::collections::BTreeMap;
-use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 
 /// Every scene, and the rigs their avatars are made of.
@@ -41,6 +41,21 @@ pub struct World {
     /// Held from the "is this avatar id free?" check to the insertion, so two scenes cannot
     /// both take one id.
     avatar_ids: Mutex<()>,
+    /// Scene and avatar numbers derived from their ids (servers of a cluster agree on them).
+    numbers_from_ids: AtomicBool,
+}
+
+/// A number for a binary frame derived from an id: 32-bit FNV-1a, never 0. Servers of a
+/// cluster derive the same numbers for the same scenes and avatars without asking each other,
+/// so frames and descriptions are the same bytes on every server and after a failover.
+#[must_use]
+pub fn number_of(id: &str) -> u32 {
+    let mut h: u32 = 0x811c_9dc5;
+    for b in id.bytes() {
+        h ^= u32::from(b);
+        h = h.wrapping_mul(0x0100_0193);
+    }
+    h.max(1)
 }
 
 impl World {
@@ -57,7 +72,47 @@ impl World {
             next_scene_num: AtomicU32::new(1),
             next_avatar_num: AtomicU32::new(1),
             avatar_ids: Mutex::new(()),
+            numbers_from_ids: AtomicBool::new(false),
         }
+    }
+
+    /// From now on scenes and avatars are numbered by [`number_of`] their id (cluster mode);
+    /// an id whose number another scene or avatar holds is refused as a conflict.
+    pub fn number_from_ids(&self) {
+        self.numbers_from_ids.store(true, Ordering::SeqCst);
+    }
+
+    /// Adds a scene ticked on another server, relayed here ([`Scene::is_relay`]): no ticker,
+    /// no quota. It takes the number its owner gives it ([`number_of`]).
+    ///
+    /// # Errors
+    /// Invalid id, or `conflict` when it exists.
+    pub fn insert_relay(&self, id: SceneId) -> Result<Arc<Scene>, Error> {
+        self.insert(id, false, false)
+    }
+
+    /// Makes a relayed scene one ticked here (its owner is gone and this server took it over):
+    /// its subscribers stay, and get a keyframe at its first tick here. Returns it.
+    ///
+    /// # Errors
+    /// `unknown_scene`; `conflict` when the scene is already ticked here.
+    pub fn promote(&self, id: &SceneId) -> Result<Arc<Scene>, Error> {
+        let scene = self.scene(id)?;
+        {
+            let mut s = scene.lock();
+            if !s.feed.is_relay() {
+                return Err(Error::Conflict(format!(
+                    "scene {id} is ticked here already"
+                )));
+            }
+            s.feed.end_relay();
+        }
+        tokio::spawn(ticker::run(
+            scene.clone(),
+            self.tick_rate,
+            self.metrics.clone(),
+        ));
+        Ok(scene)
     }
 
     /// The limits the world enforces (and the services on it: uploads, retargeting).
@@ -107,7 +162,32 @@ impl World {
         self.insert_scene(id, false)
     }
 
+    /// Makes a scene ticked here a relayed one (another server owns it now): its tick task
+    /// ends and its avatars leave this server, while its subscribers stay subscribed (the
+    /// descriptions they hold are kept, so the owner's, the same, are not sent again).
+    ///
+    /// # Errors
+    /// `unknown_scene`; `conflict` when the scene is relayed already.
+    pub fn demote(&self, id: &SceneId) -> Result<Arc<Scene>, Error> {
+        let scene = self.scene(id)?;
+        {
+            let mut s = scene.lock();
+            if s.feed.is_relay() {
+                return Err(Error::Conflict(format!("scene {id} is relayed already")));
+            }
+            let described = s.avatars.iter().map(|a| a.description.clone()).collect();
+            s.avatars.clear();
+            s.feed.begin_relay(described);
+        }
+        scene.stop_ticking();
+        Ok(scene)
+    }
+
     fn insert_scene(&self, id: SceneId, quota: bool) -> Result<Arc<Scene>, Error> {
+        self.insert(id, quota, true)
+    }
+
+    fn insert(&self, id: SceneId, quota: bool, ticked: bool) -> Result<Arc<Scene>, Error> {
         check_id("scene", &id.0).map_err(|e| Error::Invalid(e.message))?;
         let mut scenes = self
             .scenes
@@ -124,19 +204,35 @@ impl World {
                 max,
             ));
         }
-        let num = self.next_scene_num.fetch_add(1, Ordering::Relaxed);
+        let num = if self.numbers_from_ids.load(Ordering::SeqCst) {
+            let num = number_of(&id.0);
+            if let Some(other) = scenes.values().find(|s| s.num == num) {
+                return Err(Error::Conflict(format!(
+                    "scene {id} would share frame number {num} with scene {}: choose another id",
+                    other.id
+                )));
+            }
+            num
+        } else {
+            self.next_scene_num.fetch_add(1, Ordering::Relaxed)
+        };
         let scene = Arc::new(Scene::new(
             id.clone(),
             num,
             self.metrics.clone(),
             self.tick_rate,
         ));
+        if !ticked {
+            scene.lock().feed.begin_relay(Vec::new());
+        }
         scenes.insert(id, scene.clone());
-        tokio::spawn(ticker::run(
-            scene.clone(),
-            self.tick_rate,
-            self.metrics.clone(),
-        ));
+        if ticked {
+            tokio::spawn(ticker::run(
+                scene.clone(),
+                self.tick_rate,
+                self.metrics.clone(),
+            ));
+        }
         Ok(scene)
     }
 
@@ -208,9 +304,11 @@ impl World {
     ) -> Result<(Arc<Scene>, AvatarId), Error> {
         let scene = self.scene(scene)?;
         let rig = self.library.require(asset)?;
-        let num = self.next_avatar_num.fetch_add(1, Ordering::Relaxed);
-        let id = id.unwrap_or_else(|| AvatarId(format!("{}-{num}", rig.name)));
+        let seq = self.next_avatar_num.fetch_add(1, Ordering::Relaxed);
+        let id = id.unwrap_or_else(|| AvatarId(format!("{}-{seq}", rig.name)));
         check_id("avatar", &id.0).map_err(|e| Error::Invalid(e.message))?;
+        let by_id = self.numbers_from_ids.load(Ordering::SeqCst);
+        let num = if by_id { number_of(&id.0) } else { seq };
         let mut avatar = Avatar::new(id.clone(), num, rig);
         avatar.place(placement, 0.0);
         // Ids are unique across scenes, and each scene checks only its own: the check of every
@@ -221,6 +319,21 @@ impl World {
             .unwrap_or_else(std::sync::PoisonError::into_inner);
         if self.find_avatar(&id).is_ok() {
             return Err(Error::Conflict(format!("avatar {id} exists")));
+        }
+        if by_id
+            && let Some(other) = self.scenes().iter().find_map(|s| {
+                let s = s.lock();
+                s.avatars
+                    .iter()
+                    .map(|a| a.description.clone())
+                    .chain(s.feed.relayed_avatars().iter().cloned())
+                    .find(|d| d.num == num)
+                    .map(|d| d.id.clone())
+            })
+        {
+            return Err(Error::Conflict(format!(
+                "avatar {id} would share frame number {num} with avatar {other}: choose another id"
+            )));
         }
         // Checked under the same lock as the insertion: concurrent adds cannot overshoot.
         let max = self.quotas.max_avatars_per_scene;
@@ -243,7 +356,7 @@ impl World {
     pub fn find_avatar(&self, id: &AvatarId) -> Result<Arc<Scene>, Error> {
         self.scenes()
             .into_iter()
-            .find(|s| s.lock().avatars.iter().any(|a| &a.id == id))
+            .find(|s| s.lock().has_avatar(id))
             .ok_or_else(|| Error::UnknownAvatar(id.clone()))
     }
 

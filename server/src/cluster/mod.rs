@@ -1,0 +1,730 @@
+//! Scale-out: one scene served from many servers through NATS (`--nats`).
+//!
+//! - this module: [`connect`] (NATS and its two key-value buckets, before the server
+//!   listens), [`Cluster`] (what the services ask of the cluster, [`crate::state::Cluster`]),
+//!   and the lease loop that decides which server ticks which scene.
+//! - `owner`: a scene ticked here — its frames, descriptions and avatar changes published,
+//!   commands and joiners' requests answered.
+//! - `relay`: a scene ticked elsewhere — its frames fanned out here to this server's
+//!   subscribers, as the same bytes.
+//!
+//! **Ownership.** Every scene of the cluster has a key in bucket `posecast_scenes` holding its
+//! snapshot (the scene file of [`crate::store`], written at every acknowledged change) and, while
+//! some server ticks it, a key in bucket `posecast_leases` (entries expire after the lease
+//! time) holding that server's name. A server acquires a lease by creating the key (only one
+//! create succeeds) and renews it every third of the lease time by updating it at the revision
+//! it last wrote (compare-and-set: a renewal after somebody else took the lease fails). Every
+//! third of the lease time each server also looks at every scene: one without a lease is taken
+//! over (restored from its snapshot and ticked here); one leased to another server is relayed.
+//!
+//! Keys and subject tokens are the scene id in lowercase hex (ids may hold characters NATS
+//! does not allow in either).
+
+mod owner;
+mod relay;
+
+use crate::builtin::BUILTIN_ASSET;
+use crate::config::Config;
+use crate::control;
+use crate::error::Error;
+use crate::restore::{DEFAULT_AVATAR, DEFAULT_SCENE};
+use crate::state::AppState;
+use crate::store::snapshot;
+use async_nats::jetstream::{self, kv};
+use bytes::Bytes;
+use futures_util::StreamExt;
+use futures_util::future::BoxFuture;
+use posecast_proto::command::{Command, CommandResult, SceneInfo};
+use posecast_proto::msg::{AvatarId, ProtocolError, SceneId};
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, Weak};
+use std::time::Duration;
+use tokio::task::JoinHandle;
+use tracing::{info, warn};
+
+/// The bucket of scene snapshots (one key per scene of the cluster).
+const SCENES_BUCKET: &str = "posecast_scenes";
+/// The bucket of leases (one key per ticked scene; entries expire).
+const LEASES_BUCKET: &str = "posecast_leases";
+/// How long a forwarded command or a request to a scene's owner may take.
+const REQUEST_TIMEOUT: Duration = Duration::from_secs(5);
+/// How long connecting to NATS at start may take before the start fails.
+const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// Header naming what a message on a scene's relay subject is (`avatars`, `frame`, `change`,
+/// `deleted`) or what a request asks (`command`, `sync`, `info`).
+const KIND: &str = "Posecast-Kind";
+/// Header with the owner's epoch: the revision of the lease it created. A newer owner's is
+/// higher, so relays never interleave two owners' frames.
+const EPOCH: &str = "Posecast-Epoch";
+
+/// A scene id as a key and subject token: its bytes in lowercase hex.
+fn key(id: &SceneId) -> String {
+    id.0.bytes().map(|b| format!("{b:02x}")).collect()
+}
+
+/// The scene id of a key ([`key`]), if it is one.
+fn unkey(key: &str) -> Option<SceneId> {
+    if !key.len().is_multiple_of(2) {
+        return None;
+    }
+    let bytes = (0..key.len())
+        .step_by(2)
+        .map(|i| u8::from_str_radix(key.get(i..i + 2)?, 16).ok())
+        .collect::<Option<Vec<u8>>>()?;
+    String::from_utf8(bytes).ok().map(SceneId)
+}
+
+/// Where a scene's owner publishes what its subscribers get.
+fn relay_subject(id: &SceneId) -> String {
+    format!("posecast.scene.{}.relay", key(id))
+}
+
+/// Where a scene's owner answers commands and joiners.
+fn request_subject(id: &SceneId) -> String {
+    format!("posecast.scene.{}.req", key(id))
+}
+
+/// This server's connection to NATS, made before it listens.
+#[derive(Debug)]
+pub struct Connection {
+    client: async_nats::Client,
+    scenes: kv::Store,
+    leases: kv::Store,
+    node: String,
+    lease: Duration,
+    lost: Arc<AtomicBool>,
+}
+
+impl Connection {
+    /// This server's name in the cluster.
+    #[must_use]
+    pub fn node(&self) -> &str {
+        &self.node
+    }
+}
+
+fn host_name() -> String {
+    std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .ok()
+        .or_else(|| std::env::var("HOSTNAME").ok())
+        .map(|h| h.trim().to_owned())
+        .filter(|h| !h.is_empty())
+        .unwrap_or_else(|| "posecast".into())
+}
+
+/// Connects to the NATS servers of `config.nats` (any one of them will do; the client fails
+/// over between them) and opens the cluster's buckets, creating them on the first start.
+/// `port` is the port this server listens on (part of its default node name).
+///
+/// # Errors
+/// No NATS server can be reached, or JetStream is not enabled there: the error names the
+/// URLs.
+pub async fn connect(config: &Config, port: u16) -> std::io::Result<Connection> {
+    let urls = config.nats.join(",");
+    let fail = |what: String| {
+        std::io::Error::new(
+            std::io::ErrorKind::ConnectionRefused,
+            format!("cannot join the cluster through NATS at {urls}: {what}"),
+        )
+    };
+    let lease = config.lease_ttl.max(Duration::from_millis(300));
+    let node = config
+        .node
+        .clone()
+        .unwrap_or_else(|| format!("{}:{port}", host_name()));
+    let lost = Arc::new(AtomicBool::new(false));
+    let flag = lost.clone();
+    let options = async_nats::ConnectOptions::new()
+        .name(format!("posecast {node}"))
+        .connection_timeout(CONNECT_TIMEOUT)
+        .request_timeout(Some(REQUEST_TIMEOUT))
+        .event_callback(move |event| {
+            let flag = flag.clone();
+            async move {
+                match event {
+                    async_nats::Event::Disconnected => {
+                        warn!("NATS connection lost: serving local scenes only until it is back");
+                        flag.store(true, Ordering::SeqCst);
+                    }
+                    async_nats::Event::Connected if flag.swap(false, Ordering::SeqCst) => {
+                        info!("NATS connection back");
+                    }
+                    _ => {}
+                }
+            }
+        });
+    let client = tokio::time::timeout(CONNECT_TIMEOUT * 2, options.connect(config.nats.as_slice()))
+        .await
+        .map_err(|_| fail("timed out".into()))?
+        .map_err(|e| fail(e.to_string()))?;
+    let js = jetstream::new(client.clone());
+    // The bucket's stream made here rather than by `create_key_value`, which first reads the
+    // account's information in a shape servers before 2.10 (Debian's 2.9) do not answer in.
+    // The layout is the key-value one: one subject per key, the last value kept.
+    let open = |name: &'static str, max_age: Duration| {
+        let js = js.clone();
+        async move {
+            let config = jetstream::stream::Config {
+                name: format!("KV_{name}"),
+                subjects: vec![format!("$KV.{name}.>")],
+                max_messages_per_subject: 1,
+                max_age,
+                allow_rollup: true,
+                deny_delete: true,
+                allow_direct: true,
+                discard: jetstream::stream::DiscardPolicy::New,
+                num_replicas: 1,
+                ..Default::default()
+            };
+            if let Err(created) = js.get_or_create_stream(config).await {
+                return Err(fail(format!(
+                    "cannot create key-value bucket {name} ({created}): is JetStream enabled (nats-server -js)?"
+                )));
+            }
+            js.get_key_value(name)
+                .await
+                .map_err(|e| fail(format!("cannot open key-value bucket {name}: {e}")))
+        }
+    };
+    let scenes = open(SCENES_BUCKET, Duration::ZERO).await?;
+    let leases = open(LEASES_BUCKET, lease).await?;
+    info!(nats = %urls, node = %node, lease_ms = lease.as_millis() as u64, "joined the cluster");
+    Ok(Connection {
+        client,
+        scenes,
+        leases,
+        node,
+        lease,
+        lost,
+    })
+}
+
+/// What a scene's owner answers a forwarded command with.
+#[derive(Debug, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+enum Reply {
+    Ok(serde_json::Value),
+    Error(ProtocolError),
+}
+
+/// The cluster as this server sees it.
+#[derive(Debug)]
+pub struct Cluster {
+    conn: Connection,
+    state: Weak<AppState>,
+    /// Scenes ticked here: their lease revisions and tasks.
+    owned: Mutex<HashMap<SceneId, owner::Owned>>,
+    /// Scenes relayed here: their owners and relay tasks.
+    relays: Mutex<HashMap<SceneId, relay::Relayed>>,
+    /// Leases created by `claim` for scenes about to be created here.
+    claims: Mutex<HashMap<SceneId, u64>>,
+    /// Orders snapshot writes: a later write always holds every earlier change.
+    writes: tokio::sync::Mutex<()>,
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+fn unavailable(what: &str, e: &dyn std::fmt::Display) -> Error {
+    Error::Unavailable(format!("{what}: {e}"))
+}
+
+/// Joins the cluster once the server is ready (everything loaded): from then on, scenes are
+/// created cluster-wide, commands reach their scene's owner, and scenes are owned and relayed
+/// (the lease loop runs until the server stops).
+pub fn start(state: &Arc<AppState>, conn: Connection) -> Arc<Cluster> {
+    let cluster = Arc::new(Cluster {
+        conn,
+        state: Arc::downgrade(state),
+        owned: Mutex::new(HashMap::new()),
+        relays: Mutex::new(HashMap::new()),
+        claims: Mutex::new(HashMap::new()),
+        writes: tokio::sync::Mutex::new(()),
+    });
+    state.join_cluster(cluster.clone());
+    let running = cluster.clone();
+    let state = state.clone();
+    tokio::spawn(async move {
+        if state.readiness.wait().await.is_err() {
+            return;
+        }
+        running.run().await;
+    });
+    cluster
+}
+
+impl Cluster {
+    fn state(&self) -> Option<Arc<AppState>> {
+        self.state.upgrade()
+    }
+
+    /// The first server to start on a new NATS makes scene `default` with the built-in avatar
+    /// playing `idle`, as a server on its own does on a new data folder (a key `initialised`
+    /// in the scenes bucket — not a scene id's hex — records that it was done, so a deleted
+    /// `default` stays deleted).
+    async fn first_start(&self, state: &Arc<AppState>) {
+        if !state.config.builtin || state.world.library.get(BUILTIN_ASSET).is_none() {
+            return;
+        }
+        if self
+            .conn
+            .scenes
+            .create("initialised", Bytes::from_static(b"1"))
+            .await
+            .is_err()
+        {
+            return;
+        }
+        let commands = [
+            Command::CreateScene {
+                scene: SceneId(DEFAULT_SCENE.into()),
+            },
+            Command::AddAvatar {
+                scene: SceneId(DEFAULT_SCENE.into()),
+                asset: BUILTIN_ASSET.into(),
+                avatar: Some(AvatarId(DEFAULT_AVATAR.into())),
+                clip: Some("idle".into()),
+                position: None,
+                rotation: None,
+            },
+        ];
+        for command in &commands {
+            if let Err(e) = control::execute_here(state, command).await {
+                warn!(error = %e, "could not create the default scene");
+                return;
+            }
+        }
+    }
+
+    /// The lease loop: renew what is owned, take over what lost its owner, relay the rest.
+    async fn run(self: Arc<Self>) {
+        if let Some(state) = self.state() {
+            self.first_start(&state).await;
+        }
+        let period = self.conn.lease / 3;
+        loop {
+            let Some(state) = self.state() else { return };
+            if state.readiness.stopped() {
+                return;
+            }
+            self.renew(&state).await;
+            if let Err(e) = self.scan(&state).await {
+                warn!(error = %e, "cannot read the cluster's scenes from NATS");
+            }
+            state.metrics.cluster.scenes(
+                lock(&self.owned).len() as u64,
+                lock(&self.relays).len() as u64,
+            );
+            drop(state);
+            tokio::time::sleep(period).await;
+        }
+    }
+
+    /// Renews every lease held; a scene whose lease another server took is given up.
+    async fn renew(&self, state: &Arc<AppState>) {
+        let held: Vec<(SceneId, u64)> = lock(&self.owned)
+            .iter()
+            .map(|(id, o)| (id.clone(), o.lease_revision))
+            .collect();
+        for (id, revision) in held {
+            let value = Bytes::from(self.conn.node.clone());
+            match self.conn.leases.update(key(&id), value, revision).await {
+                Ok(next) => {
+                    if let Some(o) = lock(&self.owned).get_mut(&id) {
+                        o.lease_revision = next;
+                    }
+                }
+                Err(e) if e.kind() == kv::UpdateErrorKind::WrongLastRevision => {
+                    // Lapsed (NATS was unreachable for longer than the lease): taken again if
+                    // nobody took it meanwhile, given up if somebody did.
+                    let value = Bytes::from(self.conn.node.clone());
+                    match self.conn.leases.create(key(&id), value).await {
+                        Ok(next) => self.retake(state, &id, next).await,
+                        Err(_) => {
+                            warn!(scene = %id, "lease taken by another server: giving the scene up");
+                            self.give_up(state, &id);
+                        }
+                    }
+                }
+                // NATS unreachable: keep ticking (local subscribers are served) and retry.
+                Err(e) => warn!(scene = %id, error = %e, "cannot renew the lease"),
+            }
+        }
+    }
+
+    /// The lease of a scene ticked here lapsed and was taken again at `revision`. If nobody
+    /// changed the scene meanwhile (its snapshot is the one written here), it goes on here
+    /// under a new epoch (relays that saw a newer owner's epoch would ignore the old one);
+    /// otherwise another server owned it in between, and the scene restarts from the bucket.
+    async fn retake(&self, state: &Arc<AppState>, id: &SceneId, revision: u64) {
+        let ours = lock(&self.owned).get(id).map(|o| o.snapshot_revision);
+        let stored = self.conn.scenes.entry(key(id)).await.ok().flatten();
+        match (ours, stored, state.world.scene(id)) {
+            (Some(ours), Some(entry), Ok(scene)) if entry.revision == ours => {
+                info!(scene = %id, "lease had lapsed: taken again");
+                if let Some(o) = lock(&self.owned).remove(id) {
+                    o.stop();
+                }
+                self.adopt(state, &scene, revision, ours);
+            }
+            _ => {
+                warn!(scene = %id, "the scene changed elsewhere while its lease had lapsed: restarting it from the cluster's copy");
+                self.give_up(state, id);
+                self.conn.leases.delete(key(id)).await.ok();
+            }
+        }
+    }
+
+    /// Stops ticking a scene another server now owns: it becomes a relayed scene here (the
+    /// next look relays it), and its subscribers here stay subscribed and get the new owner's
+    /// frames, from a keyframe.
+    fn give_up(&self, state: &AppState, id: &SceneId) {
+        if let Some(o) = lock(&self.owned).remove(id) {
+            o.stop();
+        }
+        if let Ok(scene) = state.world.scene(id) {
+            scene.set_tap(None);
+        }
+        if state.world.demote(id).is_err() {
+            state.world.delete_scene(id).ok();
+        }
+    }
+
+    /// Every scene of the cluster: take over those without a lease, relay the others.
+    async fn scan(self: &Arc<Self>, state: &Arc<AppState>) -> Result<(), Error> {
+        let mut keys = self
+            .conn
+            .scenes
+            .keys()
+            .await
+            .map_err(|e| unavailable("cannot list scenes", &e))?;
+        let mut ids = Vec::new();
+        while let Some(k) = keys.next().await {
+            let k = k.map_err(|e| unavailable("cannot list scenes", &e))?;
+            if let Some(id) = unkey(&k) {
+                ids.push(id);
+            }
+        }
+        for id in &ids {
+            if lock(&self.owned).contains_key(id) || lock(&self.claims).contains_key(id) {
+                continue;
+            }
+            let lease = self
+                .conn
+                .leases
+                .entry(key(id))
+                .await
+                .map_err(|e| unavailable("cannot read a lease", &e))?;
+            match lease {
+                Some(entry) if entry.operation == kv::Operation::Put => {
+                    let owner = String::from_utf8_lossy(&entry.value).into_owned();
+                    if owner == self.conn.node {
+                        // Ours from before a restart of this process: it lapses by itself,
+                        // then a scan takes it over from its snapshot.
+                        continue;
+                    }
+                    self.relay(state, id, owner);
+                }
+                _ => match self
+                    .conn
+                    .leases
+                    .create(key(id), Bytes::from(self.conn.node.clone()))
+                    .await
+                {
+                    Ok(revision) => self.take_over(state, id, revision).await,
+                    Err(e) if e.kind() == kv::CreateErrorKind::AlreadyExists => {}
+                    Err(e) => warn!(scene = %id, error = %e, "cannot take a lease"),
+                },
+            }
+        }
+        // Scenes gone from the cluster (deleted on a server whose message was missed).
+        let gone: Vec<SceneId> = lock(&self.relays)
+            .keys()
+            .filter(|id| !ids.contains(id))
+            .cloned()
+            .collect();
+        for id in gone {
+            self.drop_relay(state, &id);
+        }
+        Ok(())
+    }
+
+    /// A scene without a lease, now ours: restored from its snapshot and ticked here.
+    async fn take_over(self: &Arc<Self>, state: &Arc<AppState>, id: &SceneId, revision: u64) {
+        let mut snapshot_revision = 0;
+        let file = match self.conn.scenes.entry(key(id)).await {
+            Ok(Some(entry)) if entry.operation == kv::Operation::Put => {
+                snapshot_revision = entry.revision;
+                serde_json::from_slice::<serde_json::Value>(&entry.value)
+                    .map_err(|e| e.to_string())
+                    .and_then(|v| snapshot::parse_lenient(&v))
+            }
+            Ok(_) => Err("no snapshot".into()),
+            Err(e) => Err(e.to_string()),
+        };
+        let file = match file {
+            Ok((file, dropped)) => {
+                for d in dropped {
+                    warn!(scene = %id, "{d}");
+                }
+                file
+            }
+            Err(e) => {
+                warn!(scene = %id, error = %e, "cannot take the scene over: its snapshot is unusable");
+                self.conn.leases.delete(key(id)).await.ok();
+                return;
+            }
+        };
+        if let Some(r) = lock(&self.relays).remove(id) {
+            r.stop();
+        }
+        let now = crate::scene::ticker::unix_micros();
+        let scene = if state.world.scene(id).is_ok_and(|s| s.is_relay()) {
+            match state.world.promote(id) {
+                Ok(scene) => {
+                    snapshot::restore_into(&state.world, &file, now);
+                    Ok(scene)
+                }
+                Err(e) => Err(e),
+            }
+        } else {
+            snapshot::restore(&state.world, &file, now).and_then(|()| state.world.scene(id))
+        };
+        match scene {
+            Ok(scene) => {
+                state.metrics.cluster.takeover();
+                info!(scene = %id, avatars = file.avatars.len(), "took the scene over");
+                self.adopt(state, &scene, revision, snapshot_revision);
+            }
+            Err(e) => {
+                warn!(scene = %id, error = %e, "cannot take the scene over");
+                self.conn.leases.delete(key(id)).await.ok();
+            }
+        }
+    }
+
+    /// Writes scene `id`'s snapshot to the cluster's bucket.
+    async fn write_snapshot(&self, state: &AppState, id: &SceneId) -> Result<(), Error> {
+        let _order = self.writes.lock().await;
+        let scene = state.world.scene(id)?;
+        let file = snapshot::snapshot(&scene, crate::scene::ticker::unix_micros());
+        let bytes = serde_json::to_vec(&file)
+            .map_err(|e| Error::internal("cannot serialise the scene", &e))?;
+        let revision = self
+            .conn
+            .scenes
+            .put(key(id), Bytes::from(bytes))
+            .await
+            .map_err(|e| unavailable("cannot store the scene in NATS", &e))?;
+        if let Some(o) = lock(&self.owned).get_mut(id) {
+            o.snapshot_revision = revision;
+        }
+        Ok(())
+    }
+
+    /// Sends a request to scene `id`'s owner and waits for the answer.
+    async fn request(&self, id: &SceneId, kind: &str, payload: Bytes) -> Result<Bytes, Error> {
+        let mut headers = async_nats::HeaderMap::new();
+        headers.insert(KIND, kind);
+        let state = self.state();
+        if let Some(s) = &state {
+            s.metrics.cluster.published(payload.len());
+        }
+        let reply = self
+            .conn
+            .client
+            .request_with_headers(request_subject(id), headers, payload)
+            .await
+            .map_err(|e| {
+                unavailable(
+                    &format!("the server ticking scene {id} did not answer (try again)"),
+                    &e,
+                )
+            })?;
+        if let Some(s) = &state {
+            s.metrics.cluster.received(reply.payload.len());
+        }
+        Ok(reply.payload)
+    }
+
+    /// The scene a command acts on, when it is relayed here.
+    fn relayed_target(&self, command: &Command) -> Option<SceneId> {
+        let state = self.state()?;
+        let scene = match command.scene() {
+            Some(id) => state.world.scene(id).ok()?,
+            None => state.world.find_avatar(command.avatar()?).ok()?,
+        };
+        scene.is_relay().then(|| scene.id.clone())
+    }
+}
+
+impl crate::state::Cluster for Cluster {
+    fn forward<'a>(
+        &'a self,
+        command: &'a Command,
+    ) -> Option<BoxFuture<'a, Result<CommandResult, Error>>> {
+        if matches!(command, Command::ListScenes) {
+            return None;
+        }
+        let id = self.relayed_target(command)?;
+        Some(Box::pin(async move {
+            let payload = serde_json::to_vec(command)
+                .map_err(|e| Error::internal("cannot serialise the command", &e))?;
+            let reply = self.request(&id, "command", Bytes::from(payload)).await?;
+            match serde_json::from_slice::<Reply>(&reply) {
+                Ok(Reply::Ok(value)) => serde_json::from_value(value)
+                    .map_err(|e| Error::internal("unreadable answer from the scene's server", &e)),
+                Ok(Reply::Error(wire)) => Err(Error::Remote(wire)),
+                Err(e) => Err(Error::internal(
+                    "unreadable answer from the scene's server",
+                    &e,
+                )),
+            }
+        }))
+    }
+
+    fn claim<'a>(&'a self, id: &'a SceneId) -> BoxFuture<'a, Result<(), Error>> {
+        Box::pin(async move {
+            if crate::world::number_of(&id.0) == 0 {
+                return Err(Error::invalid("scene id"));
+            }
+            let empty = snapshot::SceneFile {
+                format: snapshot::SCENE_FORMAT,
+                scene: id.clone(),
+                saved_us: crate::scene::ticker::unix_micros(),
+                avatars: Vec::new(),
+            };
+            let bytes = serde_json::to_vec(&empty)
+                .map_err(|e| Error::internal("cannot serialise the scene", &e))?;
+            match self.conn.scenes.create(key(id), Bytes::from(bytes)).await {
+                Ok(_) => {}
+                Err(e) if e.kind() == kv::CreateErrorKind::AlreadyExists => {
+                    return Err(Error::Conflict(format!("scene {id} exists")));
+                }
+                Err(e) => return Err(unavailable("cannot create the scene in NATS", &e)),
+            }
+            let lease = Bytes::from(self.conn.node.clone());
+            match self.conn.leases.create(key(id), lease).await {
+                Ok(revision) => {
+                    lock(&self.claims).insert(id.clone(), revision);
+                    Ok(())
+                }
+                Err(e) => {
+                    self.conn.scenes.delete(key(id)).await.ok();
+                    Err(unavailable("cannot take the new scene's lease", &e))
+                }
+            }
+        })
+    }
+
+    fn unclaim<'a>(&'a self, id: &'a SceneId) -> BoxFuture<'a, ()> {
+        Box::pin(async move {
+            lock(&self.claims).remove(id);
+            self.conn.leases.delete(key(id)).await.ok();
+            self.conn.scenes.delete(key(id)).await.ok();
+        })
+    }
+
+    fn stored<'a>(
+        &'a self,
+        command: &'a Command,
+        id: &'a SceneId,
+    ) -> BoxFuture<'a, Result<(), Error>> {
+        Box::pin(async move {
+            let Some(state) = self.state() else {
+                return Err(Error::Unavailable("the server is stopping".into()));
+            };
+            match command {
+                Command::CreateScene { .. } => {
+                    let revision = lock(&self.claims).remove(id);
+                    if let (Some(revision), Ok(scene)) = (revision, state.world.scene(id)) {
+                        self.adopt(&state, &scene, revision, 0);
+                    }
+                    self.write_snapshot(&state, id).await
+                }
+                Command::DeleteScene { .. } => {
+                    if let Some(o) = lock(&self.owned).remove(id) {
+                        o.stop();
+                    }
+                    self.conn
+                        .scenes
+                        .delete(key(id))
+                        .await
+                        .map_err(|e| unavailable("cannot delete the scene in NATS", &e))?;
+                    self.conn.leases.delete(key(id)).await.ok();
+                    let mut headers = async_nats::HeaderMap::new();
+                    headers.insert(KIND, "deleted");
+                    self.conn
+                        .client
+                        .publish_with_headers(relay_subject(id), headers, Bytes::new())
+                        .await
+                        .map_err(|e| unavailable("cannot tell the cluster", &e))?;
+                    Ok(())
+                }
+                _ => self.write_snapshot(&state, id).await,
+            }
+        })
+    }
+
+    fn listing(&self, local: Vec<SceneInfo>) -> BoxFuture<'_, Vec<SceneInfo>> {
+        Box::pin(async move {
+            let mut out = Vec::with_capacity(local.len());
+            for mut info in local {
+                let owner = lock(&self.relays).get(&info.scene).map(|r| r.owner.clone());
+                match owner {
+                    None => info.owner = Some(self.conn.node.clone()),
+                    Some(owner) => {
+                        // The owner knows the avatars and what they play.
+                        let asked = self.request(&info.scene, "info", Bytes::new()).await;
+                        if let Ok(remote) = asked.and_then(|b| {
+                            serde_json::from_slice::<SceneInfo>(&b)
+                                .map_err(|e| Error::internal("info", &e))
+                        }) {
+                            info.avatars = remote.avatars;
+                        }
+                        info.owner = Some(owner);
+                    }
+                }
+                out.push(info);
+            }
+            out
+        })
+    }
+
+    fn degraded(&self) -> bool {
+        self.conn.lost.load(Ordering::SeqCst)
+    }
+}
+
+/// Stops a task when its owner is dropped.
+#[derive(Debug)]
+struct Task(JoinHandle<()>);
+
+impl Drop for Task {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Keys are valid NATS key and subject tokens, and give the id back.
+    #[test]
+    fn keys_round_trip_and_use_only_hex() {
+        for id in ["default", "a.b c/*>", "ünï", ""] {
+            let id = SceneId(id.into());
+            let k = key(&id);
+            assert!(k.bytes().all(|b| b.is_ascii_hexdigit()), "{k}");
+            assert_eq!(unkey(&k), Some(id));
+        }
+        assert_eq!(key(&SceneId("a.".into())), "612e");
+        assert_eq!(unkey("6"), None);
+        assert_eq!(unkey("zz"), None);
+    }
+}

@@ -1,0 +1,103 @@
+//! A `nats-server` child process with JetStream on a free loopback port, for the cluster tests
+//! (`scripts/test` installs the Debian package when it is missing).
+
+use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// `nats-server -js` on `127.0.0.1`, killed (and its store folder removed) when dropped.
+pub struct Nats {
+    child: Child,
+    program: &'static str,
+    /// Its client port.
+    pub port: u16,
+    store: tempfile::TempDir,
+}
+
+fn spawn(program: &str, port: u16, store: &std::path::Path) -> Child {
+    Command::new(program)
+        .args(["-js", "-a", "127.0.0.1", "-p", &port.to_string(), "-sd"])
+        .arg(store)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("cannot start nats-server")
+}
+
+impl Nats {
+    /// Starts it and waits until it accepts connections (at most 20 s); `None`, after
+    /// [`posecast_proto::testing::skip`] (a failure under `CI=true`), when `nats-server` is
+    /// not installed.
+    pub fn start() -> Option<Self> {
+        let program = [
+            "nats-server",
+            "/usr/sbin/nats-server",
+            "/usr/bin/nats-server",
+        ]
+        .into_iter()
+        .find(|p| {
+            Command::new(p)
+                .arg("--version")
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .status()
+                .is_ok()
+        });
+        let Some(program) = program else {
+            posecast_proto::testing::skip(
+                "nats-server is not installed (apt-get install nats-server; scripts/test does)",
+            );
+            return None;
+        };
+        let store = tempfile::tempdir().unwrap();
+        let port = TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let nats = Self {
+            child: spawn(program, port, store.path()),
+            program,
+            port,
+            store,
+        };
+        nats.wait_listening();
+        Some(nats)
+    }
+
+    fn wait_listening(&self) {
+        let addr = SocketAddr::from(([127, 0, 0, 1], self.port));
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while TcpStream::connect_timeout(&addr, Duration::from_millis(200)).is_err() {
+            assert!(
+                Instant::now() < deadline,
+                "nats-server did not listen on {addr}"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// Its URL.
+    pub fn url(&self) -> String {
+        format!("nats://127.0.0.1:{}", self.port)
+    }
+
+    /// Kills it (SIGKILL): clients see the connection drop.
+    pub fn stop(&mut self) {
+        self.child.kill().ok();
+        self.child.wait().ok();
+    }
+
+    /// Starts it again on the same port with the same store (what JetStream held survives).
+    pub fn restart(&mut self) {
+        self.stop();
+        self.child = spawn(self.program, self.port, self.store.path());
+        self.wait_listening();
+    }
+}
+
+impl Drop for Nats {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
