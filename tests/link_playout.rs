@@ -105,6 +105,7 @@ fn report(what: &str, s: &Shown) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn at_one_percent_loss_nearly_every_pose_is_interpolated() {
+    let _turn = common::link::one_at_a_time().await;
     let (s, _) = render("delay=25ms,jitter=10ms,loss=1%,seed=11", 12.0).await;
     report("25 ± 10 ms, 1 % loss", &s);
     assert!(s.total() >= 300, "rendering fell behind: {s:?}");
@@ -117,6 +118,7 @@ async fn at_one_percent_loss_nearly_every_pose_is_interpolated() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn at_five_percent_loss_few_poses_repeat() {
+    let _turn = common::link::one_at_a_time().await;
     let (s, _) = render("delay=25ms,jitter=10ms,loss=5%,seed=12", 12.0).await;
     report("25 ± 10 ms, 5 % loss", &s);
     assert!(s.total() >= 300, "rendering fell behind: {s:?}");
@@ -126,6 +128,7 @@ async fn at_five_percent_loss_few_poses_repeat() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_clock_offset_is_within_two_milliseconds_on_one_machine() {
+    let _turn = common::link::one_at_a_time().await;
     // Directly and through the jittery link: server and client share this machine's clock.
     for link in ["none", "delay=25ms,jitter=10ms"] {
         let (_, client) = render(link, 4.0).await;

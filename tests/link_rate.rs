@@ -37,6 +37,7 @@ fn figures(viewers: &[Viewer], from: u64, to: u64) -> (Vec<f64>, Vec<f64>) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn fifty_viewers_share_two_megabits_fairly_and_a_newcomer_joins() {
+    let _turn = common::link::one_at_a_time().await;
     let server = scene_server(10).await;
     let link: LinkConfig = "rate=2mbit".parse().unwrap();
     let proxy = Proxy::start(server.addr, Link::new(link)).await.unwrap();
@@ -104,6 +105,7 @@ async fn fifty_viewers_share_two_megabits_fairly_and_a_newcomer_joins() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn one_json_viewer_on_two_megabits_gets_fresh_frames() {
+    let _turn = common::link::one_at_a_time().await;
     let server = scene_server(10).await;
     let proxy = Proxy::start(server.addr, Link::new("rate=2mbit".parse().unwrap()))
         .await

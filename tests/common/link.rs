@@ -13,6 +13,13 @@ use std::time::Duration;
 use tokio::task::JoinHandle;
 use tokio_tungstenite::tungstenite::Message;
 
+/// One link test at a time in a test binary: each measures frame ages in milliseconds on two
+/// shared cores, so two at once would measure each other.
+pub async fn one_at_a_time() -> tokio::sync::MutexGuard<'static, ()> {
+    static TURN: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+    TURN.lock().await
+}
+
 /// Microseconds since the Unix epoch: frames' `server_time_us` are on this clock (server and
 /// viewers share the machine, so a frame's age is `arrival − stamp`).
 pub fn unix_micros() -> u64 {
