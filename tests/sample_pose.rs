@@ -114,6 +114,19 @@ async fn a_view_token_samples_a_private_copy_and_nobody_sees_a_change() {
     let err = angle_between_degrees(Quat::from_array(overridden.rotations[elbow]), q);
     assert!(err < 1e-3, "the override is {err}° off");
 
+    // Extreme but finite times are a time like any other (wrapped into the looping clip): a
+    // finite pose of unit rotations, not an error or NaN.
+    for time in [3e38f32, -1e19, f32::MIN_POSITIVE] {
+        let pose = sample(&viewer, Some("walk"), time).await.unwrap();
+        assert!(
+            pose.rotations
+                .iter()
+                .all(|q| (Quat::from_array(*q).length() - 1.0).abs() < 1e-4)
+                && pose.translations.iter().flatten().all(|v| v.is_finite()),
+            "time {time}: {pose:?}"
+        );
+    }
+
     // Errors are typed, and over REST a view (no token) suffices too.
     let e = sample(&viewer, Some("fly"), 0.0).await.unwrap_err();
     assert!(
