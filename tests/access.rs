@@ -293,6 +293,7 @@ async fn scene_tokens_view_tokens_and_private_views() {
         scene: SceneId("default".into()),
         avatars: None,
         rate: None,
+        joints: None,
     };
     let text = serde_json::to_string(&subscribe).unwrap();
     ws.send(Message::Text(text.clone().into())).await.unwrap();
@@ -334,6 +335,7 @@ async fn scene_tokens_view_tokens_and_private_views() {
         scene: SceneId("lobby".into()),
         avatars: None,
         rate: None,
+        joints: None,
     };
     lobby
         .send(Message::Text(serde_json::to_string(&own).unwrap().into()))

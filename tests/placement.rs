@@ -53,6 +53,7 @@ async fn first_frame(
             scene: SceneId(scene.into()),
             avatars: None,
             rate: None,
+            joints: None,
         },
     ] {
         let text = serde_json::to_string(&msg).unwrap();

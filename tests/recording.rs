@@ -83,6 +83,7 @@ async fn a_recording_holds_what_was_streamed_exports_and_survives_a_restart() {
         scene: SceneId("default".into()),
         avatars: None,
         rate: None,
+        joints: None,
     };
     ws.send(Message::Text(
         serde_json::to_string(&subscribe).unwrap().into(),

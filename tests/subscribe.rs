@@ -117,6 +117,7 @@ impl Watcher {
             scene: SceneId(scene.into()),
             avatars,
             rate: None,
+            joints: None,
         };
         ws.send(Message::Text(serde_json::to_string(&sub).unwrap().into()))
             .await

@@ -72,6 +72,7 @@ async fn stale_frames_after_a_stall(lowat: u32) -> (usize, usize) {
             scene: SceneId("default".into()),
             avatars: None,
             rate: None,
+            joints: None,
         },
     ] {
         ws.send(Message::text(serde_json::to_string(&msg).unwrap()))

@@ -261,6 +261,117 @@ impl ChunkEncoder {
     }
 }
 
+/// Appends to `out` the chunk `chunk` (one avatar's, as [`ChunkEncoder::encode`] wrote it, of
+/// a frame of kind `kind`) cut down to the joints `selection` names ([`crate::subset`]): the
+/// selected rotations (keyframe: their 6 bytes; delta: their tags and bytes), translations
+/// and scales, and the placement as it was. A delta cut this way decodes against the keyframe
+/// cut the same way, so one encoding serves every subset.
+///
+/// # Errors
+/// The chunk is malformed, or its joint, translation or scale counts are not the ones the
+/// selection was made for.
+pub fn select_chunk(
+    chunk: &[u8],
+    kind: FrameKind,
+    selection: &crate::subset::Selection,
+    out: &mut Vec<u8>,
+) -> Result<(), FrameError> {
+    let start = out.len();
+    let result = select_into(chunk, kind, selection, out);
+    if result.is_err() {
+        out.truncate(start);
+    }
+    result
+}
+
+fn select_into(
+    chunk: &[u8],
+    kind: FrameKind,
+    selection: &crate::subset::Selection,
+    out: &mut Vec<u8>,
+) -> Result<(), FrameError> {
+    let mut r = Reader {
+        bytes: chunk,
+        at: 0,
+    };
+    let head = r.take(12)?;
+    let avatar = u32::from_le_bytes([head[0], head[1], head[2], head[3]]);
+    let joints = usize::from(r.u16()?);
+    let translations = usize::from(r.u16()?);
+    let scales_field = r.u16()?;
+    let scales = usize::from(scales_field & !PLACEMENT_FLAG);
+    if joints != selection.joint_count {
+        return Err(FrameError::JointCount {
+            avatar,
+            expected: selection.joint_count,
+            actual: joints,
+        });
+    }
+    let streamed_fits = |which: &[usize], n: usize| which.iter().all(|&i| i < n);
+    if !streamed_fits(&selection.translations, translations)
+        || !streamed_fits(&selection.scales, scales)
+    {
+        return Err(FrameError::Truncated {
+            at: r.at,
+            needed: 12,
+        });
+    }
+    out.extend_from_slice(head);
+    for n in [selection.joints.len(), selection.translations.len()] {
+        out.extend_from_slice(&(n as u16).to_le_bytes());
+    }
+    let flag = scales_field & PLACEMENT_FLAG;
+    out.extend_from_slice(&(selection.scales.len() as u16 | flag).to_le_bytes());
+    match kind {
+        FrameKind::Key => {
+            let rotations = r.take(joints * quant::BYTES)?;
+            for j in selection.joint_indices() {
+                out.extend_from_slice(&rotations[j * quant::BYTES..(j + 1) * quant::BYTES]);
+            }
+        }
+        FrameKind::Delta => {
+            let tags = r.take(joints.div_ceil(4))?;
+            let tag = |j: usize| (tags[j / 4] >> (2 * (j % 4))) & 3;
+            // Where each joint's bytes start.
+            let mut at = Vec::with_capacity(joints + 1);
+            let mut offset = 0usize;
+            for j in 0..joints {
+                at.push(offset);
+                offset += match tag(j) {
+                    0 => 0,
+                    1 => 3,
+                    2 => quant::BYTES,
+                    _ => return Err(FrameError::Tag { avatar, joint: j }),
+                };
+            }
+            let data = r.take(offset)?;
+            let tags_at = out.len();
+            out.resize(tags_at + selection.joints.len().div_ceil(4), 0);
+            for (k, j) in selection.joint_indices().enumerate() {
+                let t = tag(j);
+                out[tags_at + k / 4] |= t << (2 * (k % 4));
+                let len = [0, 3, quant::BYTES][usize::from(t)];
+                out.extend_from_slice(&data[at[j]..at[j] + len]);
+            }
+        }
+    }
+    let streamed = r.take((translations + scales) * 12)?;
+    let (t_bytes, s_bytes) = streamed.split_at(translations * 12);
+    for &i in &selection.translations {
+        out.extend_from_slice(&t_bytes[i * 12..(i + 1) * 12]);
+    }
+    for &i in &selection.scales {
+        out.extend_from_slice(&s_bytes[i * 12..(i + 1) * 12]);
+    }
+    if flag != 0 {
+        out.extend_from_slice(r.take(28)?);
+    }
+    if r.at != chunk.len() {
+        return Err(FrameError::Trailing(chunk.len() - r.at));
+    }
+    Ok(())
+}
+
 const LEVEL_MASK: u64 = (1 << 15) - 1;
 
 fn levels(bits: u64) -> (u64, [i32; 3]) {
@@ -597,6 +708,95 @@ mod tests {
                 }
             }
         }
+    }
+
+    proptest! {
+        /// A chunk cut to a joint subset decodes to exactly the subset of the full chunk's
+        /// decoded pose, keyframes and deltas alike (the delta against the cut keyframe).
+        #[test]
+        fn a_selected_chunk_decodes_to_the_selected_part_of_the_full_pose(
+            key in prop::collection::vec(arb_quat(), 1..40),
+            nudges in prop::collection::vec((arb_quat(), f32s(0.0..1.0), 0u8..3), 40),
+            mask in prop::collection::vec(any::<bool>(), 40),
+            translated in prop::collection::vec(any::<bool>(), 40),
+            placed in any::<bool>(),
+        ) {
+            let n = key.len();
+            let delta: Vec<Quat> = key.iter().zip(&nudges).map(|(&k, &(r, t, kind))| match kind {
+                0 => k,
+                1 => k.slerp(r, t * 1e-3).normalize(),
+                _ => r,
+            }).collect();
+            let translated: Vec<usize> = (0..n).filter(|&j| translated[j]).collect();
+            let with = |rotations: Vec<Quat>, x: f32| AvatarPose {
+                translations: translated.iter().map(|&j| Vec3::new(j as f32, x, 0.5)).collect(),
+                scales: vec![Vec3::splat(2.0)],
+                placement: if placed {
+                    Placement { position: Vec3::new(x, 0.0, 1.0), rotation: Quat::from_rotation_y(x) }
+                } else {
+                    Placement::IDENTITY
+                },
+                ..pose(rotations)
+            };
+            let joints: Vec<u16> = (0..n).filter(|&j| mask[j]).map(|j| j as u16).collect();
+            let selection = crate::subset::Selection {
+                joint_count: n,
+                translations: translated.iter().enumerate()
+                    .filter(|&(_, &j)| mask[j]).map(|(i, _)| i).collect(),
+                scales: if mask[0] { vec![0] } else { vec![] },
+                joints,
+            };
+            let mut enc = ChunkEncoder::new();
+            let full_key = frame(FrameKind::Key, 10, 10, &mut enc, &with(key.clone(), 1.0));
+            let full_delta = frame(FrameKind::Delta, 11, 10, &mut enc, &with(delta, 2.0));
+            let mut full = FrameDecoder::new();
+            let mut cut = FrameDecoder::new();
+            for (bytes, kind) in [(&full_key, FrameKind::Key), (&full_delta, FrameKind::Delta)] {
+                let whole = full.decode(bytes).unwrap();
+                let mut selected = bytes[..HEADER_BYTES].to_vec();
+                select_chunk(&bytes[HEADER_BYTES..], kind, &selection, &mut selected).unwrap();
+                let part = cut.decode(&selected).unwrap();
+                let (w, p) = (&whole.avatars[0], &part.avatars[0]);
+                let picked: Vec<Quat> = selection.joint_indices().map(|j| w.rotations[j]).collect();
+                prop_assert_eq!(&p.rotations, &picked);
+                prop_assert_eq!(&p.translations, &crate::subset::Selection::pick(&w.translations, selection.translations.iter().copied()));
+                prop_assert_eq!(&p.scales, &crate::subset::Selection::pick(&w.scales, selection.scales.iter().copied()));
+                prop_assert_eq!(p.placement, w.placement);
+                prop_assert_eq!((p.avatar_num, p.hash), (w.avatar_num, w.hash));
+                prop_assert!(selected.len() <= bytes.len());
+            }
+        }
+    }
+
+    #[test]
+    fn selecting_from_a_chunk_of_another_rig_or_a_broken_one_is_an_error() {
+        let q = vec![Quat::from_rotation_x(0.4); 6];
+        let mut enc = ChunkEncoder::new();
+        let kb = frame(FrameKind::Key, 1, 1, &mut enc, &pose(q));
+        let chunk = &kb[HEADER_BYTES..];
+        let of = |joint_count: usize| crate::subset::Selection {
+            joint_count,
+            joints: vec![0, 2],
+            translations: vec![0],
+            scales: vec![],
+        };
+        let mut out = vec![7u8];
+        assert_eq!(
+            select_chunk(chunk, FrameKind::Key, &of(5), &mut out),
+            Err(FrameError::JointCount {
+                avatar: 7,
+                expected: 5,
+                actual: 6
+            })
+        );
+        for len in 0..chunk.len() {
+            assert!(select_chunk(&chunk[..len], FrameKind::Key, &of(6), &mut out).is_err());
+            assert_eq!(out, vec![7u8], "nothing is left behind on error");
+        }
+        // A keyframe read as a delta: its first byte is not a valid tag set or runs short.
+        let _ = select_chunk(chunk, FrameKind::Delta, &of(6), &mut out);
+        select_chunk(chunk, FrameKind::Key, &of(6), &mut out).unwrap();
+        assert_eq!(out.len(), 1 + 18 + 2 * 6 + 12);
     }
 
     #[test]

@@ -13,6 +13,7 @@
 //! - [`command`]: control commands shared by REST and websocket.
 //! - [`placement`]: an avatar's world placement (position, rotation).
 //! - [`live`]: the pose messages of a live driver (binary encoding).
+//! - [`subset`]: joint subsets a subscription may ask for (by depth or by name).
 //! - [`rig_options`]: how the server normalises an imported rig (per-asset pipeline options).
 //!
 //! Conventions: column vectors, right-handed, Y up, metres, seconds (see DESIGN.md).
@@ -30,6 +31,7 @@ pub mod quant;
 pub mod rig_options;
 pub mod skeleton;
 pub mod skinning;
+pub mod subset;
 #[cfg(any(test, feature = "testing"))]
 #[allow(clippy::expect_used)]
 pub mod testing;

@@ -81,6 +81,10 @@ pub enum ClientMsg {
         /// least every tick) and says the rate it chose in `subscribed`.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         rate: Option<f32>,
+        /// Only these joints of every avatar ([`crate::subset`]: `{"depth": 3}` or
+        /// `{"names": […]}`, with their ancestors); absent: all of them.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        joints: Option<crate::subset::JointSet>,
     },
     /// Stop receiving a scene.
     Unsubscribe {
@@ -156,6 +160,9 @@ pub enum ServerMsg {
         /// Frames per second this subscription gets (the tick rate divided by a whole number).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         rate: Option<f32>,
+        /// The joint set its frames carry (as subscribed; absent: every joint).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        joints: Option<crate::subset::JointSet>,
     },
     /// Subscription ended (on request or because the scene was deleted).
     Unsubscribed {
@@ -395,7 +402,8 @@ pub struct AvatarPoseJson {
     pub avatar: AvatarId,
     /// The description hash the pose belongs to (16 hex digits).
     pub hash: String,
-    /// Local rotation of every joint, `[x, y, z, w]`, in description order.
+    /// Local rotation of every joint, `[x, y, z, w]`, in description order (with a joint
+    /// subset: of the joints in `joints`, in that order).
     pub rotations: Vec<[f32; 4]>,
     /// Local translation of every joint in the description's `translated_joints`, in order.
     pub translations: Vec<[f32; 3]>,
@@ -405,6 +413,10 @@ pub struct AvatarPoseJson {
     /// server that predates placement: the identity).
     #[serde(default)]
     pub placement: crate::placement::Placement,
+    /// With a joint subset ([`crate::subset`]): the joints `rotations` are of, ascending; the
+    /// translations and scales are then those of these joints only. Absent: every joint.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub joints: Option<Vec<u16>>,
 }
 
 #[cfg(test)]

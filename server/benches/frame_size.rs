@@ -181,6 +181,7 @@ fn measure(name: &str, rig: &Rig, clip: &Clip) -> Result<Row> {
             translations: pose.translations.iter().map(|v| v.to_array()).collect(),
             scales: pose.scales.iter().map(|v| v.to_array()).collect(),
             placement: pose.placement,
+            joints: None,
         };
         row.json_object.push(serde_json::to_string(&object)?.len());
         let message = ServerMsg::Frame(FrameJson {

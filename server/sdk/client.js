@@ -14,6 +14,7 @@ import { PosecastError } from "./errors.js";
 import { FrameDecoder } from "./frames.js";
 import { JitterBuffer } from "./jitter.js";
 import { ClockEstimator } from "./clock.js";
+import { expandPose, selectJoints } from "./subset.js";
 
 /** @typedef {import("./posecast.js").ClientOptions} ClientOptions */
 /** @typedef {import("./posecast.js").SubscribeOptions} SubscribeOptions */
@@ -33,6 +34,7 @@ import { ClockEstimator } from "./clock.js";
 /** @typedef {import("./posecast.js").Stats} Stats */
 /** @typedef {import("./posecast.js").ClientEvents} ClientEvents */
 /** @typedef {import("./posecast.js").Encoding} Encoding */
+/** @typedef {import("./posecast.js").JointSet} JointSet */
 
 export const PROTOCOL_VERSION = 1;
 
@@ -100,6 +102,8 @@ export class Client {
     this.avatars = new Map();
 
     /** @type {Map<number, string>} Scene number (from `subscribed`) → scene. */
+    /** @type {Map<string, JointSet>} Each subscribed scene's joint set (from `subscribed`). */
+    this.jointSets = new Map();
     this.sceneNames = new Map();
     this.decoder = new FrameDecoder();
     /** @type {Map<number, {resolve: (v: unknown) => void, reject: (e: PosecastError) => void, timer: ReturnType<typeof setTimeout>}>} */
@@ -386,6 +390,7 @@ export class Client {
     const msg = { type: "subscribe", scene };
     if (options.avatars) msg.avatars = options.avatars;
     if (options.rate !== undefined) msg.rate = options.rate;
+    if (options.joints !== undefined) msg.joints = options.joints;
     this.send(msg);
   }
 
@@ -463,6 +468,8 @@ export class Client {
       }
       case "subscribed":
         this.sceneNames.set(Number(msg.scene_num), String(msg.scene));
+        if (msg.joints) this.jointSets.set(String(msg.scene), /** @type {JointSet} */ (msg.joints));
+        else this.jointSets.delete(String(msg.scene));
         break;
       case "unsubscribed":
         // Deleted, or the server going away: a reconnect renews it unless it was forgotten.
@@ -475,10 +482,13 @@ export class Client {
         const desc = /** @type {AvatarDescription} */ (msg.avatar);
         const scene = String(msg.scene);
         const old = this.avatars.get(desc.id);
+        const set = this.jointSets.get(scene);
+        const joints = set ? selectJoints(set, desc) : null;
         this.avatars.set(desc.id, {
           scene,
           num: desc.num,
           description: desc,
+          joints: joints && joints.length < desc.parents.length ? joints : null,
           latest: old && old.description.hash === desc.hash ? old.latest : null,
           jitter: old && old.description.hash === desc.hash ? old.jitter : new JitterBuffer(this.tickRate),
         });
@@ -548,6 +558,7 @@ export class Client {
       seq: decoded.seq,
       server_time_us: decoded.server_time_us,
       key: decoded.key,
+      binary: true,
       bytes: data.byteLength,
       received_us: received,
       avatars,
@@ -560,12 +571,23 @@ export class Client {
     if (frame.key) this.stats.keyframes++;
     this.stats.frameBytes += frame.bytes;
     const fresh = [];
-    for (const pose of frame.avatars) {
+    for (let pose of frame.avatars) {
       const view = this.avatars.get(pose.avatar);
       if (!view) continue;
       if (view.description.hash !== pose.hash) {
         this.stats.stale++;
         continue;
+      }
+      // A subset (a JSON frame lists its joints; a binary one has the subscription's): made
+      // whole, every joint not sent at rest.
+      const joints = pose.joints ?? (frame.binary ? view.joints : null);
+      if (joints) {
+        const whole = expandPose(pose, view.description, joints);
+        if (!whole) {
+          this.stats.undecodable++;
+          continue;
+        }
+        pose = { avatar: pose.avatar, hash: pose.hash, placement: pose.placement, ...whole };
       }
       view.latest = { ...pose, seq: frame.seq, server_time_us: frame.server_time_us, received_us: frame.received_us };
       view.jitter.push(frame.server_time_us, frame.received_us, pose);

@@ -74,7 +74,18 @@ export interface FramePose {
   scales: Vec3[];
   /** The avatar's placement at this tick. */
   placement: Placement;
+  /**
+   * A JSON frame of a subscription with a joint set lists the joints it carries (the client
+   * hands on whole poses: every joint not sent at rest).
+   */
+  joints?: number[];
 }
+
+/**
+ * Which joints of every avatar a subscription gets: joints at most `depth` levels below a
+ * root, or the named joints; each with its ancestors, every root always (proto/PROTOCOL.md).
+ */
+export type JointSet = { depth: number } | { names: string[] };
 
 /** A decoded pose frame (binary or JSON; both give this shape). */
 export interface Frame {
@@ -86,6 +97,8 @@ export interface Frame {
   server_time_us: number;
   /** A binary keyframe, or a JSON frame (always complete). */
   key: boolean;
+  /** Whether it came as a binary frame. */
+  binary?: boolean;
   /** Bytes of the message. */
   bytes: number;
   /** When it arrived, µs since the Unix epoch on this machine. */
@@ -206,12 +219,16 @@ export interface SubscribeOptions {
   avatars?: string[];
   /** Frames per second wanted (the server sends every `round(tick_rate / rate)`-th tick). */
   rate?: number;
+  /** Only these joints of every avatar (fewer bytes for distant or small avatars). */
+  joints?: JointSet;
 }
 
 /** What the client knows of one subscribed avatar. */
 export interface AvatarView {
   scene: string;
   description: AvatarDescription;
+  /** The joints its binary frames carry, when the subscription has a joint set selecting fewer than all. */
+  joints?: number[] | null;
   /** The newest decoded pose. */
   latest: Pose | null;
   /** Its recent poses, for playout. */
@@ -367,6 +384,15 @@ export declare function decodeQuat(bits: number): Quat;
  * `W_root = P · D_root` with `P` the pose's placement. Rotations from the pose (rest when absent);
  * translations and scales for the description's translated / scaled joints, rest otherwise.
  */
+/** The joints of `description` a joint set selects, ascending (as the server selects them). */
+export declare function selectJoints(set: JointSet, description: AvatarDescription): number[];
+/** A pose of only `joints` made whole, every other joint at rest; `null` when it does not fit. */
+export declare function expandPose(
+  pose: { rotations: Quat[]; translations: Vec3[]; scales: Vec3[] },
+  description: AvatarDescription,
+  joints: number[],
+): { rotations: Quat[]; translations: Vec3[]; scales: Vec3[] } | null;
+
 export declare function forwardKinematics(
   desc: AvatarDescription,
   pose: Partial<Pick<FramePose, "rotations" | "translations" | "scales" | "placement">> | null,

@@ -13,6 +13,7 @@
 //   promises, ping/pong, reconnect with back-off);
 // - frames.js: the binary frame decoder (keyframes, deltas, smallest-three rotations);
 // - jitter.js, clock.js: playout of the stream and the clock offset, as posecast-client does;
+// - subset.js: joint subsets (a subscription's `joints`), made whole at rest;
 // - fk.js, math.js: forward kinematics and skinning matrices (checked against posecast-proto);
 // - errors.js: PosecastError, with the protocol's error code.
 
@@ -22,6 +23,7 @@ export { PosecastError } from "./errors.js";
 export { FrameDecoder, decodeQuat } from "./frames.js";
 export { JitterBuffer } from "./jitter.js";
 export { ClockEstimator } from "./clock.js";
+export { selectJoints, expandPose } from "./subset.js";
 export { forwardKinematics, skinningMatrices, jointPositions } from "./fk.js";
 export {
   identity,

@@ -125,6 +125,7 @@ export {};
  * @property {Vec3[]} translations
  * @property {Vec3[]} scales
  * @property {Placement} placement
+ * @property {number[]} [joints] With a joint set: the joints `rotations` are of.
  */
 
 /**
@@ -136,7 +137,8 @@ export {};
  */
 
 /** @typedef {{type: "welcome", version: number, encoding: Encoding, server: string, tick_rate: number, server_time_us: number, access: Access}} WelcomeMsg */
-/** @typedef {{type: "subscribed", scene: string, scene_num: number, rate?: number}} SubscribedMsg */
+/** @typedef {{depth: number} | {names: string[]}} JointSet */
+/** @typedef {{type: "subscribed", scene: string, scene_num: number, rate?: number, joints?: JointSet}} SubscribedMsg */
 /** @typedef {{type: "unsubscribed", scene: string}} UnsubscribedMsg */
 /** @typedef {{type: "description", scene: string, avatar: AvatarDescription}} DescriptionMsg */
 /** @typedef {{type: "avatar_removed", scene: string, avatar: string}} AvatarRemovedMsg */
@@ -173,7 +175,7 @@ export {};
 
 /**
  * @typedef {{type: "hello", version: number, encoding: Encoding, token?: string, client?: string}
- *   | {type: "subscribe", scene: string, avatars?: string[], rate?: number}
+ *   | {type: "subscribe", scene: string, avatars?: string[], rate?: number, joints?: JointSet}
  *   | {type: "unsubscribe", scene: string}
  *   | {type: "ping", id: number, client_time_us: number}
  *   | {type: "command", id: number, command: Command}

@@ -140,6 +140,7 @@ async fn view(addr: SocketAddr, encoding: Encoding, seen: &Mutex<Seen>) -> Resul
             scene: SceneId("default".into()),
             avatars: None,
             rate: None,
+            joints: None,
         },
     ] {
         ws.send(Message::text(serde_json::to_string(&msg).unwrap()))

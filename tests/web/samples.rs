@@ -11,6 +11,7 @@ use posecast_proto::msg::{
     SceneId, ServerMsg,
 };
 use posecast_proto::placement::Placement;
+use posecast_proto::subset::JointSet;
 use serde_json::{Value, json};
 use std::fmt::Write as _;
 fn scene(s: &str) -> SceneId {
@@ -102,6 +103,7 @@ fn samples() -> Vec<(&'static str, &'static str, Value)> {
                 scene: scene("lobby"),
                 scene_num: 2,
                 rate: Some(20.0),
+                joints: Some(JointSet::Depth(3)),
             }),
         ),
         (
@@ -201,6 +203,7 @@ fn samples() -> Vec<(&'static str, &'static str, Value)> {
                     translations: vec![[0.0, 0.9, 0.0]],
                     scales: vec![[1.0, 1.0, 1.0]],
                     placement: Placement::IDENTITY,
+                    joints: Some(vec![0, 1]),
                 }],
             })),
         ),
@@ -263,6 +266,7 @@ fn samples() -> Vec<(&'static str, &'static str, Value)> {
                 scene: scene("lobby"),
                 avatars: Some(vec![avatar("guest")]),
                 rate: Some(20.0),
+                joints: Some(JointSet::Names(vec!["Head".into()])),
             }),
         ),
         ("watchScenes", "ClientMsg", v!(ClientMsg::WatchScenes)),

@@ -6,17 +6,22 @@
 //!   `FrameDecoder` does;
 //! - `server/sdk/jitter.js` gives the playout delay and sampled poses (and how each was made)
 //!   of posecast-client's `JitterBuffer` on an irregular stream with late and lost frames;
-//! - `server/sdk/clock.js` gives `ClockEstimator`'s offset and round trip.
+//! - `server/sdk/clock.js` gives `ClockEstimator`'s offset and round trip;
+//! - `server/sdk/subset.js` selects the joints `posecast_proto::subset` does (by depth, by
+//!   name with ancestors, on random trees) and makes a subset pose whole at rest.
 
 use crate::root;
 use glam::{Quat, Vec3};
 use posecast_client::net::clock::ClockEstimator;
 use posecast_client::net::jitter::{JitterBuffer, Sampled};
 use posecast_proto::Transform;
+use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::{
     AvatarPose, ChunkEncoder, FrameDecoder, FrameHeader, FrameKind, write_header,
 };
+use posecast_proto::msg::AvatarId;
 use posecast_proto::placement::Placement;
+use posecast_proto::subset::JointSet;
 use posecast_proto::testing::skip;
 use serde_json::{Value, json};
 use std::process::Command as Process;
@@ -264,6 +269,92 @@ fn clock_vectors(rng: &mut Lcg) -> Value {
     json!(out)
 }
 
+/// Random trees and joint sets: the joints `posecast_proto::subset` selects, and a pose of
+/// those joints made whole by hand (every other joint at rest) — what `subset.js` must give.
+fn subset_vectors(rng: &mut Lcg) -> Value {
+    let mut out = Vec::new();
+    for case in 0..40 {
+        let n = 1 + (rng.next() * 40.0) as usize;
+        // Parents before children; about one tree in four has a second root.
+        let parents: Vec<i32> = (0..n)
+            .map(|j| {
+                if j == 0 || rng.next() < 0.05 {
+                    -1
+                } else {
+                    (rng.next() * j as f32) as i32
+                }
+            })
+            .collect();
+        let names: Vec<String> = (0..n).map(|j| format!("j{j}")).collect();
+        let rest_rotations: Vec<[f32; 4]> = (0..n).map(|_| rng.quat().to_array()).collect();
+        let rest_translations: Vec<[f32; 3]> = (0..n).map(|_| rng.vec3().to_array()).collect();
+        let rest_scales: Vec<[f32; 3]> = (0..n).map(|_| rng.vec3().to_array()).collect();
+        let translated: Vec<u16> = (0..n as u16).filter(|_| rng.next() < 0.3).collect();
+        let scaled: Vec<u16> = (0..n as u16).filter(|_| rng.next() < 0.2).collect();
+        let d = AvatarDescription {
+            id: AvatarId(format!("a{case}")),
+            num: case,
+            name: "tree".into(),
+            joint_names: names.clone(),
+            parents: parents.clone(),
+            rest_translations,
+            rest_rotations,
+            rest_scales,
+            inverse_binds: vec![glam::Mat4::IDENTITY.to_cols_array(); n],
+            translated_joints: translated,
+            scaled_joints: scaled,
+            mesh_url: None,
+            clip: None,
+            hash: String::new(),
+        };
+        let set = if case % 2 == 0 {
+            JointSet::Depth((rng.next() * 6.0) as u16)
+        } else {
+            let k = 1 + (rng.next() * 4.0) as usize;
+            let mut picked: Vec<String> = (0..k)
+                .map(|_| names[(rng.next() * n as f32) as usize].clone())
+                .collect();
+            picked.push("no such joint".into());
+            JointSet::Names(picked)
+        };
+        let sel = set.select(&d);
+        // The part sent, and the whole pose by hand.
+        let sent_rotations: Vec<[f32; 4]> =
+            sel.joints.iter().map(|_| rng.quat().to_array()).collect();
+        let sent_t: Vec<[f32; 3]> = sel
+            .translations
+            .iter()
+            .map(|_| rng.vec3().to_array())
+            .collect();
+        let sent_s: Vec<[f32; 3]> = sel.scales.iter().map(|_| rng.vec3().to_array()).collect();
+        let mut rotations = d.rest_rotations.clone();
+        for (k, &j) in sel.joints.iter().enumerate() {
+            rotations[usize::from(j)] = sent_rotations[k];
+        }
+        let whole = |list: &[u16], which: &[usize], sent: &[[f32; 3]], rest: &[[f32; 3]]| {
+            list.iter()
+                .enumerate()
+                .map(|(i, &j)| match which.iter().position(|&w| w == i) {
+                    Some(k) => sent[k],
+                    None => rest[usize::from(j)],
+                })
+                .collect::<Vec<_>>()
+        };
+        out.push(json!({
+            "description": d,
+            "set": set,
+            "joints": sel.joints,
+            "sent": {"rotations": sent_rotations, "translations": sent_t, "scales": sent_s},
+            "whole": {
+                "rotations": rotations,
+                "translations": whole(&d.translated_joints, &sel.translations, &sent_t, &d.rest_translations),
+                "scales": whole(&d.scaled_joints, &sel.scales, &sent_s, &d.rest_scales),
+            },
+        }));
+    }
+    json!(out)
+}
+
 #[test]
 fn the_clients_decoder_jitter_buffer_and_clock_match_the_rust_ones() {
     let mut rng = Lcg(0x57_4ea4);
@@ -271,6 +362,7 @@ fn the_clients_decoder_jitter_buffer_and_clock_match_the_rust_ones() {
         "frames": frame_vectors(&mut rng),
         "jitter": jitter_vectors(&mut rng),
         "clock": clock_vectors(&mut rng),
+        "subsets": subset_vectors(&mut rng),
     });
     let file = std::env::temp_dir().join(format!("posecast-stream-{}.json", std::process::id()));
     std::fs::write(&file, serde_json::to_vec(&vectors).unwrap()).unwrap();
@@ -294,6 +386,7 @@ fn the_clients_decoder_jitter_buffer_and_clock_match_the_rust_ones() {
     let report: Value = serde_json::from_str(stdout.trim()).unwrap();
     assert!(report["frames"].as_u64().unwrap() >= 60, "{report}");
     assert!(report["refused"].as_u64().unwrap() >= 20, "{report}");
+    assert_eq!(report["subsets"].as_u64(), Some(40), "{report}");
     for kind in ["interpolated", "extrapolated", "held"] {
         assert!(
             report["kinds"][kind].as_u64().unwrap_or(0) >= 5,

@@ -11,6 +11,7 @@ use posecast_proto::msg::{
     SceneId, ServerMsg,
 };
 use posecast_proto::placement::Placement;
+use posecast_proto::subset::{JointSet, Selection};
 use posecast_proto::{Skeleton, Transform};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -51,6 +52,9 @@ pub struct ClientOptions {
     /// Frames per second wanted from every subscription (`None`: every tick); the server
     /// sends every `round(tick_rate / rate)`-th tick.
     pub rate: Option<f32>,
+    /// Only these joints of every avatar, from every subscription (`None`: all). The joints
+    /// left out stay at their rest transforms in the poses this client gives.
+    pub joints: Option<JointSet>,
 }
 
 impl ClientOptions {
@@ -67,6 +71,7 @@ impl ClientOptions {
             ping_interval: Duration::from_secs(1),
             name: "posecast-client".into(),
             rate: None,
+            joints: None,
         }
     }
 }
@@ -133,6 +138,9 @@ pub struct AvatarView {
     pub latest: Option<PoseSample>,
     /// Recent poses for interpolation.
     pub jitter: JitterBuffer,
+    /// The joints its binary frames carry, when its subscription asked for a joint set
+    /// (`None`: every joint).
+    pub selection: Option<Selection>,
 }
 
 impl AvatarView {
@@ -159,7 +167,11 @@ impl AvatarView {
             .iter()
             .map(|&v| glam::Vec3::from_array(v))
             .collect();
-        locals_from(self, &rotations, &translations, &scales)
+        let listed = match &pose.joints {
+            Some(joints) => Some(Selection::of_joints(&self.description, joints)?),
+            None => None,
+        };
+        locals_from(self, listed.as_ref(), &rotations, &translations, &scales)
     }
 }
 
@@ -226,6 +238,8 @@ struct Shared {
     avatars: HashMap<AvatarId, AvatarView>,
     by_num: HashMap<u32, AvatarId>,
     scene_nums: HashMap<u32, SceneId>,
+    /// Each subscribed scene's joint set, as `subscribed` said.
+    joint_sets: HashMap<SceneId, JointSet>,
     pending: HashMap<u64, oneshot::Sender<Result<serde_json::Value, ProtocolError>>>,
     pings: HashMap<u32, u64>,
     clock: ClockEstimator,
@@ -483,6 +497,7 @@ async fn session(
             scene: scene.clone(),
             avatars: avatars.clone(),
             rate: options.rate,
+            joints: options.joints.clone(),
         };
         sink.send(to_text(&sub))
             .await
@@ -549,8 +564,15 @@ fn on_server_msg(
             Some(Event::Connected)
         }
         ServerMsg::Subscribed {
-            scene, scene_num, ..
+            scene,
+            scene_num,
+            joints,
+            ..
         } => {
+            match joints {
+                Some(set) => s.joint_sets.insert(scene.clone(), set),
+                None => s.joint_sets.remove(&scene),
+            };
             s.scene_nums.insert(scene_num, scene);
             None
         }
@@ -562,6 +584,11 @@ fn on_server_msg(
             Ok(skeleton) => {
                 let id = avatar.id.clone();
                 let tick_rate = s.tick_rate;
+                let selection = s
+                    .joint_sets
+                    .get(&scene)
+                    .map(|set| set.select(&avatar))
+                    .filter(|sel| !sel.is_all());
                 s.by_num.insert(avatar.num, id.clone());
                 s.avatars.insert(
                     id.clone(),
@@ -571,6 +598,7 @@ fn on_server_msg(
                         skeleton: Arc::new(skeleton),
                         latest: None,
                         jitter: JitterBuffer::new(tick_rate),
+                        selection,
                     },
                 );
                 Some(Event::Description(id))
@@ -667,28 +695,44 @@ fn record(
     }
 }
 
-/// Local transforms from a decoded pose: rest everywhere, then the streamed parts.
+/// Local transforms from a decoded pose: rest everywhere, then the streamed parts — of every
+/// joint, or of the joints of `selection` when the pose carries only those.
 fn locals_from(
     view: &AvatarView,
+    selection: Option<&Selection>,
     rotations: &[glam::Quat],
     translations: &[glam::Vec3],
     scales: &[glam::Vec3],
 ) -> Option<Vec<Transform>> {
     let d = &view.description;
-    if rotations.len() != view.skeleton.len()
-        || translations.len() != d.translated_joints.len()
-        || scales.len() != d.scaled_joints.len()
+    let all = |n: usize| (0..n).collect::<Vec<usize>>();
+    let (joints, translated, scaled) = match selection {
+        Some(sel) if sel.joint_count == view.skeleton.len() => (
+            sel.joint_indices().collect(),
+            Selection::pick(&d.translated_joints, sel.translations.iter().copied()),
+            Selection::pick(&d.scaled_joints, sel.scales.iter().copied()),
+        ),
+        Some(_) => return None,
+        None => (
+            all(view.skeleton.len()),
+            d.translated_joints.clone(),
+            d.scaled_joints.clone(),
+        ),
+    };
+    if rotations.len() != joints.len()
+        || translations.len() != translated.len()
+        || scales.len() != scaled.len()
     {
         return None;
     }
     let mut locals = view.skeleton.rest().to_vec();
-    for (l, q) in locals.iter_mut().zip(rotations) {
-        l.rotation = *q;
+    for (&j, q) in joints.iter().zip(rotations) {
+        locals[j].rotation = *q;
     }
-    for (&j, t) in d.translated_joints.iter().zip(translations) {
+    for (&j, t) in translated.iter().zip(translations) {
         locals[usize::from(j)].translation = *t;
     }
-    for (&j, v) in d.scaled_joints.iter().zip(scales) {
+    for (&j, v) in scaled.iter().zip(scales) {
         locals[usize::from(j)].scale = *v;
     }
     Some(locals)
@@ -733,7 +777,13 @@ fn on_binary(
             s.stats.stale += 1;
             continue;
         }
-        if let Some(locals) = locals_from(view, rotations, translations, scales) {
+        if let Some(locals) = locals_from(
+            view,
+            view.selection.as_ref(),
+            rotations,
+            translations,
+            scales,
+        ) {
             record(
                 &mut s,
                 &id,
@@ -785,7 +835,15 @@ fn on_json_frame(s: &mut Shared, frame: FrameJson, len: usize, received: u64) ->
             .iter()
             .map(|v| glam::Vec3::from_array(*v))
             .collect();
-        if let Some(locals) = locals_from(view, &q, &t, &sc) {
+        let listed = match &pose.joints {
+            Some(joints) => Selection::of_joints(&view.description, joints),
+            None => None,
+        };
+        if pose.joints.is_some() && listed.is_none() {
+            s.stats.undecodable += 1;
+            continue;
+        }
+        if let Some(locals) = locals_from(view, listed.as_ref(), &q, &t, &sc) {
             record(
                 s,
                 &pose.avatar,

@@ -20,6 +20,7 @@ use bytes::Bytes;
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::{ChunkEncoder, FrameHeader, FrameKind};
 use posecast_proto::msg::{AvatarId, Encoding, SceneId, ServerMsg};
+use posecast_proto::subset::JointSet;
 use std::collections::HashMap;
 use std::sync::Arc;
 
@@ -37,6 +38,8 @@ pub struct Subscriber {
     /// It gets every `every`-th tick (1: all of them), or fewer while its connection's
     /// adaptive rate ([`crate::stream::pace`]) is lower.
     pub every: u32,
+    /// Only these joints of every avatar, or all.
+    pub joints: Option<JointSet>,
     /// The tick of the last keyframe it was sent: a subscriber that skips ticks may skip a
     /// keyframe, and then gets it before its next delta.
     key_sent: Option<u64>,
@@ -58,8 +61,16 @@ impl Subscriber {
             encoding,
             filter,
             every: every.max(1),
+            joints: None,
             key_sent: None,
         }
+    }
+
+    /// The same subscription, limited to the joints of `joints` (`None`: every joint).
+    #[must_use]
+    pub fn with_joints(mut self, joints: Option<JointSet>) -> Self {
+        self.joints = joints;
+        self
     }
 
     fn wants(&self, avatar: &AvatarId) -> bool {
@@ -125,6 +136,9 @@ pub enum RelayRefused {
         got: u32,
     },
 }
+
+/// What a frame message is made for: an encoding, an avatar filter and a joint set.
+type Cut<'a> = (Encoding, Option<&'a [AvatarId]>, Option<&'a JointSet>);
 
 /// One scene's subscribers and the frame state they share (kept under the scene's lock, next
 /// to the avatars, so a joiner's first frames and the next tick are in order).
@@ -452,6 +466,7 @@ impl Feed {
             scene: self.scene.clone(),
             scene_num: self.num,
             rate: Some(self.tick_rate / sub.every as f32),
+            joints: sub.joints.clone(),
         }));
         // Exempt from the outbox's stall bound: a scene of many avatars is not a slow client.
         let descriptions: Vec<Message> = described
@@ -475,6 +490,7 @@ impl Feed {
         sub: &Subscriber,
     ) -> Option<u64> {
         let filter = sub.filter.as_deref();
+        let joints = sub.joints.as_ref();
         let json = sub.encoding == Encoding::Json;
         let key = self.last_key.as_mut()?;
         let wanted = described.iter().filter(|d| sub.wants(&d.id));
@@ -484,11 +500,11 @@ impl Feed {
                 made += self.last_delta.as_mut().map_or(0, Published::ensure_json);
                 self.metrics.json_encoded(made);
             }
-            let message = key.message(&self.scene, sub.encoding, filter);
+            let message = key.message(&self.scene, sub.encoding, filter, joints);
             sub.outbox
                 .push_frame(self.num, OutFrame { message, key: true });
             if let Some(delta) = &self.last_delta {
-                let message = delta.message(&self.scene, sub.encoding, filter);
+                let message = delta.message(&self.scene, sub.encoding, filter, joints);
                 sub.outbox.push_frame(
                     self.num,
                     OutFrame {
@@ -529,7 +545,7 @@ impl Feed {
             },
             pieces,
         };
-        let message = fresh.message(&self.scene, sub.encoding, filter);
+        let message = fresh.message(&self.scene, sub.encoding, filter, joints);
         sub.outbox
             .push_frame(self.num, OutFrame { message, key: true });
         // A keyframe of its own: the scene's next deltas do not refer to it (and a full-rate
@@ -624,10 +640,11 @@ impl Feed {
             seq: published.header.seq,
             server_time_us: published.header.server_time_us,
         };
-        // Encode once per (encoding, filter); with no filters that is once per encoding.
-        let mut cache: HashMap<(Encoding, Option<&[AvatarId]>), Message> = HashMap::new();
+        // Encode once per (encoding, filter, joint set); with no filters and no joint sets
+        // that is once per encoding.
+        let mut cache: HashMap<Cut<'_>, Message> = HashMap::new();
         // The scene's keyframe, for subscribers at a lower rate that skipped its tick.
-        let mut key_cache: HashMap<(Encoding, Option<&[AvatarId]>), Message> = HashMap::new();
+        let mut key_cache: HashMap<Cut<'_>, Message> = HashMap::new();
         let mut bytes_out = 0u64;
         let mut offered = 0u64;
         for sub in &mut self.subscribers {
@@ -643,6 +660,7 @@ impl Feed {
                 continue;
             }
             let filter = sub.filter.as_deref();
+            let joints = sub.joints.as_ref();
             if !key && sub.key_sent != self.last_key_seq {
                 let Some(last_key) = &mut self.last_key else {
                     continue;
@@ -651,8 +669,8 @@ impl Feed {
                     self.metrics.json_encoded(last_key.ensure_json());
                 }
                 let message = key_cache
-                    .entry((sub.encoding, filter))
-                    .or_insert_with(|| last_key.message(&self.scene, sub.encoding, filter))
+                    .entry((sub.encoding, filter, joints))
+                    .or_insert_with(|| last_key.message(&self.scene, sub.encoding, filter, joints))
                     .clone();
                 bytes_out += message_len(&message) as u64;
                 sub.outbox
@@ -660,8 +678,8 @@ impl Feed {
                 sub.key_sent = self.last_key_seq;
             }
             let message = cache
-                .entry((sub.encoding, filter))
-                .or_insert_with(|| published.message(&self.scene, sub.encoding, filter))
+                .entry((sub.encoding, filter, joints))
+                .or_insert_with(|| published.message(&self.scene, sub.encoding, filter, joints))
                 .clone();
             bytes_out += message_len(&message) as u64;
             sub.outbox.push_frame(self.num, OutFrame { message, key });

@@ -12,8 +12,11 @@ use axum::extract::ws::{Message, Utf8Bytes};
 use bytes::Bytes;
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::AvatarPose;
-use posecast_proto::frame::{ChunkEncoder, FrameHeader, FrameKind, HEADER_BYTES, write_header};
+use posecast_proto::frame::{
+    ChunkEncoder, FrameHeader, FrameKind, HEADER_BYTES, select_chunk, write_header,
+};
 use posecast_proto::msg::{AvatarId, AvatarPoseJson, Encoding, SceneId};
+use posecast_proto::subset::{JointSet, Selection};
 use std::borrow::Cow;
 use std::sync::Arc;
 
@@ -94,17 +97,29 @@ impl Piece {
 }
 
 fn pose_json(d: &AvatarDescription, pose: &AvatarPose) -> String {
-    // Serialising this type cannot fail (strings and float arrays; non-finite floats become
-    // null); an empty object keeps the frame valid JSON if that ever changes.
-    serde_json::to_string(&AvatarPoseJson {
+    pose_json_of(d, pose, None)
+}
+
+/// The JSON object of `pose`, or of the joints `selection` names (listed in it as `joints`).
+fn pose_json_of(d: &AvatarDescription, pose: &AvatarPose, selection: Option<&Selection>) -> String {
+    let mut json = AvatarPoseJson {
         avatar: d.id.clone(),
         hash: d.hash.clone(),
         rotations: pose.rotations.iter().map(|q| q.to_array()).collect(),
         translations: pose.translations.iter().map(|t| t.to_array()).collect(),
         scales: pose.scales.iter().map(|t| t.to_array()).collect(),
         placement: pose.placement,
-    })
-    .unwrap_or_else(|_| "{}".into())
+        joints: None,
+    };
+    if let Some(sel) = selection {
+        json.rotations = Selection::pick(&json.rotations, sel.joint_indices());
+        json.translations = Selection::pick(&json.translations, sel.translations.iter().copied());
+        json.scales = Selection::pick(&json.scales, sel.scales.iter().copied());
+        json.joints = Some(sel.joints.clone());
+    }
+    // Serialising this type cannot fail (strings and float arrays; non-finite floats become
+    // null); an empty object keeps the frame valid JSON if that ever changes.
+    serde_json::to_string(&json).unwrap_or_else(|_| "{}".into())
 }
 
 /// A frame as published.
@@ -146,28 +161,47 @@ impl Published {
     }
 
     /// The frame as one websocket message, with only the avatars `filter` names (all when
-    /// `None`).
+    /// `None`) and of each only the joints of `joints` (all when `None`).
     pub(super) fn message(
         &self,
         scene: &SceneId,
         encoding: Encoding,
         filter: Option<&[AvatarId]>,
+        joints: Option<&JointSet>,
     ) -> Message {
         let keep = |p: &&Piece| filter.is_none_or(|f| f.contains(p.id()));
+        // Each kept piece with the part of its rig the joint set selects (`None`: all of it).
+        let selected = self.pieces.iter().filter(keep).map(|p| {
+            let selection = joints
+                .map(|set| set.select(&p.description))
+                .filter(|s| !s.is_all());
+            (p, selection)
+        });
         match encoding {
             Encoding::Binary => {
-                let chunks: Vec<&Bytes> =
-                    self.pieces.iter().filter(keep).map(|p| &p.chunk).collect();
-                let len = HEADER_BYTES + chunks.iter().map(|c| c.len()).sum::<usize>();
-                let mut out = Vec::with_capacity(len);
+                let mut body = Vec::new();
+                let mut count = 0usize;
+                for (p, selection) in selected {
+                    match selection {
+                        None => body.extend_from_slice(&p.chunk),
+                        // The chunk was made from this description by this server (or the
+                        // owner): it fits. Should it not, the avatar is left out of the frame
+                        // rather than sent as something the client cannot decode.
+                        Some(sel) => {
+                            if select_chunk(&p.chunk, self.header.kind, &sel, &mut body).is_err() {
+                                continue;
+                            }
+                        }
+                    }
+                    count += 1;
+                }
+                let mut out = Vec::with_capacity(HEADER_BYTES + body.len());
                 write_header(
                     &self.header,
-                    chunks.len().min(usize::from(u16::MAX)) as u16,
+                    count.min(usize::from(u16::MAX)) as u16,
                     &mut out,
                 );
-                for c in chunks {
-                    out.extend_from_slice(c);
-                }
+                out.extend_from_slice(&body);
                 Message::Binary(Bytes::from(out))
             }
             Encoding::Json => {
@@ -178,11 +212,16 @@ impl Published {
                     r#"{{"type":"frame","scene":{scene},"seq":{},"server_time_us":{},"avatars":["#,
                     self.header.seq, self.header.server_time_us
                 );
-                for (i, p) in self.pieces.iter().filter(keep).enumerate() {
+                for (i, (p, selection)) in selected.enumerate() {
                     if i > 0 {
                         out.push(',');
                     }
-                    out.push_str(&p.json());
+                    match selection {
+                        None => out.push_str(&p.json()),
+                        Some(sel) => {
+                            out.push_str(&pose_json_of(&p.description, &p.pose, Some(&sel)))
+                        }
+                    }
                 }
                 out.push_str("]}");
                 Message::Text(Utf8Bytes::from(out))

@@ -195,6 +195,7 @@ fn sample_pose(
             translations: pose.translations.iter().map(|t| t.to_array()).collect(),
             scales: pose.scales.iter().map(|s| s.to_array()).collect(),
             placement,
+            joints: None,
         },
     )))
 }

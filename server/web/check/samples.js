@@ -25,6 +25,9 @@ export const welcome = /** @satisfies {import("../protocol.js").WelcomeMsg} */ (
 });
 
 export const subscribed = /** @satisfies {import("../protocol.js").SubscribedMsg} */ ({
+  "joints": {
+    "depth": 3
+  },
   "rate": 20.0,
   "scene": "lobby",
   "scene_num": 2,
@@ -265,6 +268,10 @@ export const frame = /** @satisfies {import("../protocol.js").FrameMsg} */ ({
     {
       "avatar": "guest",
       "hash": "0123456789abcdef",
+      "joints": [
+        0,
+        1
+      ],
       "placement": {
         "position": [
           0.0,
@@ -375,6 +382,11 @@ export const subscribe = /** @satisfies {import("../protocol.js").ClientMsg} */ 
   "avatars": [
     "guest"
   ],
+  "joints": {
+    "names": [
+      "Head"
+    ]
+  },
   "rate": 20.0,
   "scene": "lobby",
   "type": "subscribe"

@@ -1,13 +1,15 @@
 // Checks the JavaScript client's binary decoder, jitter buffer and clock estimator
 // (server/sdk/frames.js, jitter.js, clock.js) against vectors from their Rust twins
 // (posecast_proto::frame::FrameDecoder, posecast_client::net::jitter / clock), written by
-// tests/web/stream.rs: `node stream.mjs FILE`. Prints a report and exits 1 on a mismatch.
+// tests/web/stream.rs: `node stream.mjs FILE`; and joint subsets (server/sdk/subset.js against
+// posecast_proto::subset). Prints a report and exits 1 on a mismatch.
 
 import { readFileSync } from "node:fs";
 import { FrameDecoder } from "../../sdk/frames.js";
 import { JitterBuffer } from "../../sdk/jitter.js";
 import { ClockEstimator } from "../../sdk/clock.js";
 import { quatAngleDegrees } from "../../sdk/math.js";
+import { expandPose, selectJoints } from "../../sdk/subset.js";
 
 // The two decoders read the same bits (f64 here, f32 in Rust): float rounding only.
 const SAME_BITS_DEGREES = 5e-4;
@@ -126,5 +128,26 @@ for (const c of vectors.clock) {
   }
 }
 
-console.log(JSON.stringify({ frames, refused, samples, kinds, worst_rotation_degrees: worstRotation, worst_blend_degrees: worstBlend, failures: failures.slice(0, 20) }));
+// Joint subsets: the same joints selected, the same whole pose (exact: copies, no arithmetic).
+let subsets = 0;
+for (const c of vectors.subsets) {
+  const joints = selectJoints(c.set, c.description);
+  if (JSON.stringify(joints) !== JSON.stringify(c.joints)) {
+    failures.push(`subset ${JSON.stringify(c.set)} of ${c.description.parents}: ${joints} vs ${c.joints}`);
+    continue;
+  }
+  const whole = expandPose(c.sent, c.description, joints);
+  const same = (/** @type {string} */ k) => JSON.stringify(whole?.[k]) === JSON.stringify(c.whole[k]);
+  if (!same("rotations") || !same("translations") || !same("scales")) {
+    failures.push(`subset ${c.description.id}: whole pose differs`);
+    continue;
+  }
+  if (expandPose({ ...c.sent, rotations: [...c.sent.rotations, [0, 0, 0, 1]] }, c.description, joints) !== null) {
+    failures.push(`subset ${c.description.id}: a pose of the wrong length was accepted`);
+    continue;
+  }
+  subsets++;
+}
+
+console.log(JSON.stringify({ frames, refused, samples, subsets, kinds, worst_rotation_degrees: worstRotation, worst_blend_degrees: worstBlend, failures: failures.slice(0, 20) }));
 process.exit(failures.length ? 1 : 0);

@@ -9,6 +9,7 @@
 
 use crate::auth::Caller;
 use crate::control;
+use crate::error::Error;
 use crate::live::Drives;
 use crate::metrics::net::Timeout;
 use crate::quota::{TokenBucket, rate_limited};
@@ -25,6 +26,7 @@ use posecast_proto::msg::{
     ClientMsg, Encoding, ErrorCode, MAX_CLIENT_MESSAGE_BYTES, PROTOCOL_VERSION, ProtocolError,
     SceneId, ServerMsg,
 };
+use posecast_proto::subset::JointSet;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
@@ -469,6 +471,7 @@ impl Session {
                 scene,
                 avatars,
                 rate,
+                joints,
             } => {
                 // A subscription costs the scene work under its lock (descriptions, a
                 // keyframe): it is charged to the same rate limit as commands.
@@ -483,20 +486,28 @@ impl Session {
                     ids.dedup();
                     ids
                 });
-                let result = self
-                    .state
-                    .config
-                    .access
-                    .authorize_view(&self.caller, &scene)
+                let result = joints
+                    .as_ref()
+                    .map_or(Ok(()), JointSet::validate)
+                    .map_err(|e| Error::invalid(e.to_string()))
+                    .and_then(|()| {
+                        self.state
+                            .config
+                            .access
+                            .authorize_view(&self.caller, &scene)
+                    })
                     .and_then(|()| self.state.world.scene(&scene))
                     .and_then(|s| {
-                        s.subscribe(Subscriber::new(
-                            self.conn,
-                            self.outbox.clone(),
-                            encoding,
-                            avatars,
-                            every_nth_tick(self.state.config.tick_rate, rate),
-                        ))
+                        s.subscribe(
+                            Subscriber::new(
+                                self.conn,
+                                self.outbox.clone(),
+                                encoding,
+                                avatars,
+                                every_nth_tick(self.state.config.tick_rate, rate),
+                            )
+                            .with_joints(joints),
+                        )
                     });
                 match result {
                     Ok(()) => {

@@ -230,6 +230,7 @@ pub async fn connect(index: usize, url: &str, scene: &str, rate: Option<f32>) ->
             scene: SceneId(scene.to_owned()),
             avatars: None,
             rate,
+            joints: None,
         },
     )
     .await?;

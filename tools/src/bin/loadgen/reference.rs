@@ -136,6 +136,7 @@ async fn client(
                     scene,
                     scene_num: 1,
                     rate: Some(tick_rate),
+                    joints: None,
                 })?)
                 .await?;
                 break;
