@@ -130,6 +130,7 @@ const SDK: &[(&str, &str, &str)] = &[
     ("clock.js", JS, include_str!("../../sdk/clock.js")),
     ("fk.js", JS, include_str!("../../sdk/fk.js")),
     ("math.js", JS, include_str!("../../sdk/math.js")),
+    ("subset.js", JS, include_str!("../../sdk/subset.js")),
     (
         "posecast.d.ts",
         "application/typescript; charset=utf-8",
@@ -245,6 +246,33 @@ mod tests {
             serve(SDK, "index.html", &HeaderMap::new()).status(),
             StatusCode::NOT_FOUND
         );
+    }
+
+    /// Every module and declaration file of the two folders is embedded: a file added to the
+    /// folder but not to the list would leave every page importing it broken.
+    #[test]
+    fn every_file_of_the_folders_is_embedded() {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+        for (folder, files) in [("web", FILES), ("sdk", SDK)] {
+            let on_disk: Vec<String> = std::fs::read_dir(root.join(folder))
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .filter(|n| {
+                    [".js", ".ts", ".html", ".css"]
+                        .iter()
+                        .any(|ext| n.ends_with(ext))
+                })
+                // JSDoc types only, for the type check: never imported at run time.
+                .filter(|n| !(folder == "web" && n == "protocol.js"))
+                .collect();
+            for name in &on_disk {
+                assert!(
+                    files.iter().any(|(f, _, _)| f == name),
+                    "{folder}/{name} is not embedded in {}",
+                    file!()
+                );
+            }
+        }
     }
 
     /// A request naming the file's tag gets 304 without the body; another tag, the file.
