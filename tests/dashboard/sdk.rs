@@ -1,6 +1,7 @@
 //! The JavaScript client (`/sdk/posecast.js`) in headless Chromium, from pages served on
 //! another origin that import only it: its binary decoding against a Rust client's on the same
-//! ticks, its typed command errors, and README's "Build your own dashboard" page as written.
+//! ticks (all joints, and a joint subset made whole), its typed command errors, and README's
+//! "Build your own dashboard" page as written.
 
 use crate::browser::*;
 use crate::common::{self, CONTROL};
@@ -75,6 +76,16 @@ json.on("frame", (f) => {{
 }});
 json.subscribe("default");
 json.connect();
+// Binary frames of the left arm's chain only (a joint subset), made whole by the client.
+const arm = new sdk.Client({{ url: window.url }});
+window.armClient = arm;
+window.arm = {{}};
+arm.on("frame", (f) => {{
+  const p = f.avatars.find((a) => a.avatar === "avatar");
+  if (p && Object.keys(window.arm).length < 600) window.arm[f.seq] = {{ key: f.key, rotations: p.rotations }};
+}});
+arm.subscribe("default", {{ joints: {{ names: ["l_wrist"] }} }});
+arm.connect();
 </script>"#
     )
 }
@@ -220,17 +231,56 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
         json_ticks >= 60,
         "only {json_ticks} ticks in JSON and binary"
     );
+    // The arm-only client: the chain to the left wrist as the full stream decodes it (the same
+    // bits), every other joint at its rest rotation — whole poses, from fewer bytes.
+    let description = rust.avatar(&avatar).unwrap().description.clone();
+    let chain =
+        posecast_proto::subset::JointSet::Names(vec!["l_wrist".into()]).select(&description);
+    let arm_frames = wait_js(&b, 5, "Object.keys(window.arm).length > 60 && window.arm").await;
+    let mut arm_ticks = 0;
+    for (seq, (want, _)) in &rust_ticks {
+        let Some(got) = arm_frames.get(seq.to_string()) else {
+            continue;
+        };
+        arm_ticks += 1;
+        let got = got["rotations"].as_array().unwrap();
+        assert_eq!(got.len(), want.len(), "whole poses at tick {seq}");
+        for (j, (g, w)) in got.iter().zip(want).enumerate() {
+            let expected = if chain.joints.contains(&(j as u16)) {
+                *w
+            } else {
+                glam::Quat::from_array(description.rest_rotations[j])
+            };
+            let angle = angle_between_degrees(quat(g), expected);
+            assert!(
+                angle <= SAME_BITS_DEGREES,
+                "tick {seq} joint {j}: the arm-only page has {g}, expected {expected:?} ({angle}°)"
+            );
+        }
+    }
+    assert!(
+        arm_ticks >= 60,
+        "only {arm_ticks} ticks of the arm-only client"
+    );
     // Binary is what browsers should get: several times smaller than JSON (bytes per frame,
     // keyframes included).
     let sizes = b
         .execute(
             "return [client.stats.frameBytes / client.stats.frames, \
-                     jsonClient.stats.frameBytes / jsonClient.stats.frames];",
+                     jsonClient.stats.frameBytes / jsonClient.stats.frames, \
+                     armClient.stats.frameBytes / armClient.stats.frames, \
+                     armClient.stats.undecodable];",
             vec![],
         )
         .await
         .unwrap();
     let (binary_bytes, json_bytes) = (sizes[0].as_f64().unwrap(), sizes[1].as_f64().unwrap());
+    let arm_bytes = sizes[2].as_f64().unwrap();
+    assert_eq!(sizes[3], json!(0), "arm-only frames all decoded");
+    assert!(
+        arm_bytes < binary_bytes,
+        "arm-only {arm_bytes:.0} B, all joints {binary_bytes:.0} B a frame"
+    );
     assert!(
         binary_bytes * 3.0 < json_bytes,
         "bytes per frame: binary {binary_bytes:.0}, JSON {json_bytes:.0}"
@@ -253,7 +303,9 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
         "posecast.js vs posecast_client: {ticks} ticks ({deltas} deltas), {rotations} rotations, \
          largest difference {worst:.2e}° (bound {MAX_ERROR_DEGREES}°), placement {worst_place:.1e}; \
          JSON vs binary on {json_ticks} ticks: {worst_json:.2e}°; bytes per frame: binary \
-         {binary_bytes:.0}, JSON {json_bytes:.0}"
+         {binary_bytes:.0}, JSON {json_bytes:.0}, binary of the left arm's chain \
+         ({} joints, {arm_ticks} ticks compared) {arm_bytes:.0}",
+        chain.joints.len()
     );
 }
 
