@@ -12,7 +12,7 @@ mod common;
 
 use futures_util::{SinkExt, StreamExt};
 use posecast_proto::frame::read_header;
-use posecast_proto::msg::{AvatarId, ClientMsg, Encoding, PROTOCOL_VERSION, SceneId};
+use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, SceneId};
 use posecast_server::config::{Config, NetLimits};
 use posecast_server::startup::Server;
 use std::time::Duration;
@@ -38,23 +38,7 @@ async fn stale_frames_after_a_stall(lowat: u32) -> (usize, usize) {
     .unwrap();
     server.ready().await.unwrap();
     // Twenty avatars: frames of a few kilobytes, as a busy scene sends.
-    for i in 0..20 {
-        server
-            .state
-            .world
-            .add_avatar(
-                &SceneId("default".into()),
-                posecast_server::builtin::BUILTIN_ASSET,
-                Some(AvatarId(format!("extra-{i}"))),
-            )
-            .unwrap();
-        let clip = ["walk", "wave", "idle"][i % 3];
-        common::command_to(
-            server.addr,
-            &format!(r#"{{"op":"play","avatar":"extra-{i}","clip":"{clip}"}}"#),
-        )
-        .await;
-    }
+    common::add_extras(&server, 0..20).await;
     let socket = tokio::net::TcpSocket::new_v4().unwrap();
     socket.set_recv_buffer_size(4096).unwrap();
     let stream = socket.connect(server.addr).await.unwrap();

@@ -4,7 +4,7 @@
 
 use futures_util::{SinkExt, StreamExt};
 use posecast_proto::frame::read_header;
-use posecast_proto::msg::{AvatarId, ClientMsg, Encoding, PROTOCOL_VERSION, SceneId};
+use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, SceneId};
 use posecast_server::config::Config;
 use posecast_server::startup::Server;
 use std::net::SocketAddr;
@@ -40,23 +40,7 @@ pub async fn scene_server(avatars: usize) -> Server {
     .await
     .unwrap();
     server.ready().await.unwrap();
-    for i in 1..avatars {
-        server
-            .state
-            .world
-            .add_avatar(
-                &SceneId("default".into()),
-                posecast_server::builtin::BUILTIN_ASSET,
-                Some(AvatarId(format!("extra-{i}"))),
-            )
-            .unwrap();
-        let clip = ["walk", "wave", "idle"][i % 3];
-        super::command_to(
-            server.addr,
-            &format!(r#"{{"op":"play","avatar":"extra-{i}","clip":"{clip}"}}"#),
-        )
-        .await;
-    }
+    super::add_extras(&server, 1..avatars).await;
     server
 }
 

@@ -267,6 +267,29 @@ pub fn testdata_bytes(relative: &str) -> Option<Vec<u8>> {
     Some(std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display())))
 }
 
+/// Adds built-in avatars `extra-{i}` for `i` in `numbers` to scene `default`, playing `walk`,
+/// `wave` and `idle` in turn (by `i`).
+#[allow(dead_code)]
+pub async fn add_extras(server: &Server, numbers: std::ops::Range<usize>) {
+    for i in numbers {
+        server
+            .state
+            .world
+            .add_avatar(
+                &posecast_proto::msg::SceneId("default".into()),
+                posecast_server::builtin::BUILTIN_ASSET,
+                Some(posecast_proto::msg::AvatarId(format!("extra-{i}"))),
+            )
+            .unwrap();
+        let clip = ["walk", "wave", "idle"][i % 3];
+        command_to(
+            server.addr,
+            &format!(r#"{{"op":"play","avatar":"extra-{i}","clip":"{clip}"}}"#),
+        )
+        .await;
+    }
+}
+
 /// A REST command to `addr`; returns status and the parsed body.
 pub async fn command_to(addr: std::net::SocketAddr, json: &str) -> (u16, serde_json::Value) {
     let (status, body) = http_to(
