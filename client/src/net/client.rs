@@ -5,7 +5,8 @@ use super::jitter::JitterBuffer;
 use futures_util::{SinkExt, StreamExt};
 use posecast_proto::command::Command;
 use posecast_proto::description::AvatarDescription;
-use posecast_proto::frame::{AvatarPose, FrameDecoder};
+use posecast_proto::frame::{AvatarPose, Frame, FrameDecoder};
+use posecast_proto::frame2::{self, Frame2Decoder};
 use posecast_proto::msg::{
     AvatarId, AvatarPoseJson, ClientMsg, Encoding, FrameJson, PROTOCOL_VERSION, ProtocolError,
     SceneId, ServerMsg,
@@ -51,6 +52,9 @@ pub struct ClientOptions {
     /// Frames per second wanted from every subscription (`None`: every tick); the server
     /// sends every `round(tick_rate / rate)`-th tick.
     pub rate: Option<f32>,
+    /// Protocol version asked for in hello: 2 gets wire v2 binary frames
+    /// ([`posecast_proto::frame2`], about a third of v1's bytes), 1 the v1 frames.
+    pub version: u32,
 }
 
 impl ClientOptions {
@@ -67,6 +71,7 @@ impl ClientOptions {
             ping_interval: Duration::from_secs(1),
             name: "posecast-client".into(),
             rate: None,
+            version: PROTOCOL_VERSION,
         }
     }
 }
@@ -470,7 +475,7 @@ async fn session(
     let to_text =
         |m: &ClientMsg| Message::Text(serde_json::to_string(m).unwrap_or_default().into());
     let hello = ClientMsg::Hello {
-        version: PROTOCOL_VERSION,
+        version: options.version,
         encoding: options.encoding,
         token: options.token.clone(),
         client: Some(options.name.clone()),
@@ -488,7 +493,7 @@ async fn session(
             .await
             .map_err(|e| connect_err(&e))?;
     }
-    let mut decoder = FrameDecoder::new();
+    let mut decoder = Decoders::default();
     let mut ping = tokio::time::interval(options.ping_interval);
     let mut ping_id = 0u32;
     loop {
@@ -694,10 +699,27 @@ fn locals_from(
     Some(locals)
 }
 
+/// Both wires' decoders: a frame's first byte says which it is.
+#[derive(Debug, Default)]
+struct Decoders {
+    v1: FrameDecoder,
+    v2: Frame2Decoder,
+}
+
+impl Decoders {
+    fn decode(&mut self, bytes: &[u8]) -> Result<Frame, String> {
+        if bytes.first() == Some(&frame2::MAGIC) {
+            self.v2.decode(bytes).map_err(|e| e.to_string())
+        } else {
+            self.v1.decode(bytes).map_err(|e| e.to_string())
+        }
+    }
+}
+
 fn on_binary(
     shared: &Arc<Mutex<Shared>>,
     events: &broadcast::Sender<Event>,
-    decoder: &mut FrameDecoder,
+    decoder: &mut Decoders,
     bytes: &[u8],
     received: u64,
 ) {
