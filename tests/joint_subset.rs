@@ -44,6 +44,16 @@ async fn subsets_carry_exactly_the_selected_joints_for_fewer_bytes() {
         .connect()
         .await
         .unwrap();
+    // A wire-v2 connection gets a subset as v1 frames cut to it (told apart by the first byte).
+    let depth_v2 = server
+        .client_builder()
+        .options(|o| {
+            o.joints = Some(JointSet::Depth(2));
+            o.version = 2;
+        })
+        .connect()
+        .await
+        .unwrap();
     let hand = server
         .client_builder()
         .encoding(Encoding::Json)
@@ -51,7 +61,7 @@ async fn subsets_carry_exactly_the_selected_joints_for_fewer_bytes() {
         .connect()
         .await
         .unwrap();
-    for c in [&full, &depth, &hand] {
+    for c in [&full, &depth, &hand, &depth_v2] {
         c.first_pose("avatar", Duration::from_secs(10))
             .await
             .unwrap();
@@ -84,17 +94,22 @@ async fn subsets_carry_exactly_the_selected_joints_for_fewer_bytes() {
         Some(depth_joints.clone())
     );
 
-    let before: Vec<_> = [&full, &depth, &hand].iter().map(|c| c.stats()).collect();
-    let seen = collect(&[&full, &depth, &hand], &avatar, Duration::from_secs(3)).await;
-    let after: Vec<_> = [&full, &depth, &hand].iter().map(|c| c.stats()).collect();
+    let clients = [&full, &depth, &hand, &depth_v2];
+    let before: Vec<_> = clients.iter().map(|c| c.stats()).collect();
+    let seen = collect(&clients, &avatar, Duration::from_secs(3)).await;
+    let after: Vec<_> = clients.iter().map(|c| c.stats()).collect();
 
     let rest = skeleton.rest();
-    let mut compared = [0usize; 2];
-    for (k, (poses, selection)) in [(&seen[1], &depth_joints), (&seen[2], &hand_joints)]
-        .into_iter()
-        .enumerate()
+    let mut compared = [0usize; 3];
+    for (k, (poses, selection)) in [
+        (&seen[1], &depth_joints),
+        (&seen[2], &hand_joints),
+        (&seen[3], &depth_joints),
+    ]
+    .into_iter()
+    .enumerate()
     {
-        let bound = if k == 0 { 0.0 } else { MAX_ERROR_DEGREES };
+        let bound = if k == 1 { MAX_ERROR_DEGREES } else { 0.0 };
         for (seq, pose) in poses {
             let Some(reference) = seen[0].get(seq) else {
                 continue;
@@ -129,6 +144,7 @@ async fn subsets_carry_exactly_the_selected_joints_for_fewer_bytes() {
     assert!(after[1].keyframes - before[1].keyframes < frames(1));
     assert_eq!(after[1].undecodable, 0);
     assert_eq!(after[2].undecodable, 0);
+    assert_eq!(after[3].undecodable, 0);
     // Fewer bytes: the frame header, chunk head and root translation stay (one avatar, no
     // placement), the rotations shrink with the joints.
     let fixed = (HEADER_BYTES + 18 + 12 * description.translated_joints.len()) as f64;

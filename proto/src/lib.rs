@@ -10,6 +10,7 @@
 //! - [`msg`]: the websocket protocol's messages (versioned hello, subscribe, errors, …).
 //! - [`description`]: an avatar's rig as sent to clients, with its hash.
 //! - [`frame`]: binary pose frames (keyframes and deltas).
+//! - [`frame2`]: wire v2 frames (deltas against the previous frame, Rice-coded residuals).
 //! - [`command`]: control commands shared by REST and websocket.
 //! - [`placement`]: an avatar's world placement (position, rotation).
 //! - [`live`]: the pose messages of a live driver (binary encoding).
@@ -24,6 +25,7 @@ pub mod description;
 pub mod dof;
 pub mod fk;
 pub mod frame;
+pub mod frame2;
 pub mod live;
 pub mod msg;
 pub mod placement;

@@ -11,9 +11,13 @@ use crate::description::AvatarDescription;
 use serde::{Deserialize, Serialize};
 use std::fmt;
 
-/// The protocol version this crate speaks. A hello with any other version is refused with
-/// [`ErrorCode::UnsupportedVersion`].
+/// The protocol version clients speak unless they ask for another ([`SUPPORTED_VERSIONS`]).
 pub const PROTOCOL_VERSION: u32 = 1;
+
+/// The protocol versions a server accepts; a hello with any other is refused with
+/// [`ErrorCode::UnsupportedVersion`]. Version 2 differs only in binary pose frames
+/// ([`crate::frame2`] instead of [`crate::frame`]); every other message is the same.
+pub const SUPPORTED_VERSIONS: [u32; 2] = [1, 2];
 
 /// Largest message the server accepts from a client, in bytes (hello, subscribe, commands).
 /// Uploads of assets go through HTTP, not the websocket.
@@ -57,7 +61,7 @@ pub enum Encoding {
 pub enum ClientMsg {
     /// First message of every connection.
     Hello {
-        /// Must equal [`PROTOCOL_VERSION`].
+        /// One of [`SUPPORTED_VERSIONS`] (1: binary frames are [`crate::frame`]; 2: [`crate::frame2`]).
         version: u32,
         /// The encoding of pose frames the client wants.
         encoding: Encoding,
@@ -309,7 +313,7 @@ pub enum ErrorCode {
     UnexpectedBinary,
     /// Larger than [`MAX_CLIENT_MESSAGE_BYTES`].
     MessageTooLarge,
-    /// Hello carried a version other than [`PROTOCOL_VERSION`].
+    /// Hello carried a version not in [`SUPPORTED_VERSIONS`].
     UnsupportedVersion,
     /// A message other than hello before the hello, or a second hello.
     NotAllowedNow,

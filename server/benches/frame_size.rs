@@ -17,6 +17,7 @@ use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::{
     AvatarPose, ChunkEncoder, FrameDecoder, FrameHeader, FrameKind, HEADER_BYTES, write_header,
 };
+use posecast_proto::frame2;
 use posecast_proto::msg::{AvatarId, AvatarPoseJson, FrameJson, SceneId, ServerMsg};
 use posecast_proto::quant;
 use posecast_proto::testing::testdata;
@@ -24,6 +25,7 @@ use posecast_server::builtin::AVATAR_GLB;
 use posecast_server::clip::Clip;
 use posecast_server::import;
 use posecast_server::rig::Rig;
+use std::time::Instant;
 
 /// Server tick rate the figures are for.
 const RATE: f32 = 60.0;
@@ -53,6 +55,87 @@ struct Row {
     max_err_delta: f64,
     /// The v2 estimate ([`estimate_v2`]).
     v2: V2Estimate,
+    /// Wire v2 as shipped ([`measure_v2`]): keyframe every second, and first only.
+    v2_keyed: V2Measured,
+    v2_unkeyed: V2Measured,
+}
+
+/// Wire v2 measured through the real encoder and decoder ([`posecast_proto::frame2`]).
+#[derive(Debug, Default, Clone, Copy)]
+struct V2Measured {
+    /// Mean bytes per joint per frame, whole frames (header included), one avatar a frame.
+    per_joint: f64,
+    /// Mean encode time of one avatar-frame (quantise + code), ns.
+    encode_ns: f64,
+    /// Largest rotation error after decoding, degrees; largest translation error, m.
+    max_err: f64,
+    max_terr: f64,
+}
+
+/// Plays `clip` looping for 60 s at 60 Hz through `frame2::StreamEncoder` and
+/// `Frame2Decoder` (a receiver that gets every frame): a keyframe every `key_every` ticks
+/// (`None`: the first only). Checks every decoded level against the encoder's.
+fn measure_v2(rig: &Rig, clip: &Clip, key_every: Option<usize>) -> Result<V2Measured> {
+    let skeleton = rig.skeleton();
+    let rest = skeleton.rest();
+    let mut locals: Vec<Transform> = rest.to_vec();
+    let frames = (60.0 * RATE) as usize;
+    let duration = clip.duration().max(1e-3);
+    let mut encoder = frame2::StreamEncoder::new();
+    let mut decoder = frame2::Frame2Decoder::new();
+    let (mut bytes, mut encode_ns) = (0usize, 0u128);
+    let mut m = V2Measured::default();
+    for i in 0..frames {
+        let t = clip.start() + (i as f32 / RATE) % duration;
+        clip.sample(t.min(clip.end()), rest, &mut locals);
+        let pose = AvatarPose {
+            avatar_num: 0,
+            hash: 0x5eed,
+            rotations: locals.iter().map(|l| l.rotation).collect(),
+            translations: rig
+                .translated
+                .iter()
+                .map(|&j| locals[usize::from(j)].translation)
+                .collect(),
+            scales: rig
+                .scaled
+                .iter()
+                .map(|&j| locals[usize::from(j)].scale)
+                .collect(),
+            placement: Default::default(),
+        };
+        let key = key_every.map_or(i == 0, |k| i % k == 0);
+        let seq = i as u64 + 1;
+        let started = Instant::now();
+        let (out, _) = encoder.encode(
+            1,
+            seq,
+            1_750_000_000_000_000 + seq * 16_667,
+            std::slice::from_ref(&pose),
+            key,
+        );
+        encode_ns += started.elapsed().as_nanos();
+        bytes += out.len();
+        let got = decoder
+            .decode_levels(&out)
+            .with_context(|| format!("v2 frame {seq} does not decode"))?;
+        let [a] = got.avatars.as_slice() else {
+            bail!("v2 frame {seq}: {} avatars", got.avatars.len());
+        };
+        if *a.levels != frame2::QuantPose::from_pose(&pose) {
+            bail!("v2 frame {seq}: decoded levels differ from the encoder's");
+        }
+        let back = a.levels.to_pose(0, 0x5eed);
+        for (x, y) in pose.rotations.iter().zip(&back.rotations) {
+            m.max_err = m.max_err.max(quant::angle_between_degrees(*x, *y));
+        }
+        for (x, y) in pose.translations.iter().zip(&back.translations) {
+            m.max_terr = m.max_terr.max(f64::from((*x - *y).abs().max_element()));
+        }
+    }
+    m.per_joint = bytes as f64 / frames as f64 / skeleton.len() as f64;
+    m.encode_ns = encode_ns as f64 / frames as f64;
+    Ok(m)
 }
 
 fn mean(v: &[usize]) -> f64 {
@@ -193,6 +276,8 @@ fn measure(name: &str, rig: &Rig, clip: &Clip) -> Result<Row> {
         row.json_frame.push(serde_json::to_string(&message)?.len());
     }
     row.v2 = estimate_v2(rig, clip);
+    row.v2_keyed = measure_v2(rig, clip, Some(KEY_INTERVAL))?;
+    row.v2_unkeyed = measure_v2(rig, clip, None)?;
     Ok(row)
 }
 
@@ -404,6 +489,31 @@ fn print(rows: &[Row]) {
             r.v2.per_joint_keyed,
             r.v2.per_joint_unkeyed,
             100.0 * r.v2.escapes,
+        );
+    }
+    println!(
+        "\nWire v2 measured (`measure_v2`: real encoder and decoder, 60 s looping at {RATE} Hz, one avatar per frame, whole frames with their header; encode time per avatar-frame, quantisation included)\n"
+    );
+    println!(
+        "| clip | joints | raw f32 (28 B/joint) | JSON B/joint | v1 B/joint | v2 B/joint, key every 1 s | v2 B/joint, first key only | v2 encode ns/avatar | v2 max rotation error ° | v2 max translation error m |"
+    );
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    for r in rows {
+        let v1 = (r.key_bytes.iter().sum::<usize>()
+            + r.delta_bytes.iter().sum::<usize>()
+            + HEADER_BYTES * r.frames) as f64
+            / r.frames as f64
+            / r.joints as f64;
+        println!(
+            "| {} | {} | 28 | {:.1} | {v1:.2} | {:.2} | {:.2} | {:.0} | {:.5} | {:.6} |",
+            r.name,
+            r.joints,
+            mean(&r.json_frame) / r.joints as f64,
+            r.v2_keyed.per_joint,
+            r.v2_unkeyed.per_joint,
+            r.v2_keyed.encode_ns,
+            r.v2_keyed.max_err.max(r.v2_unkeyed.max_err),
+            r.v2_keyed.max_terr.max(r.v2_unkeyed.max_terr),
         );
     }
     println!(

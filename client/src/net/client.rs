@@ -5,7 +5,8 @@ use super::jitter::JitterBuffer;
 use futures_util::{SinkExt, StreamExt};
 use posecast_proto::command::Command;
 use posecast_proto::description::AvatarDescription;
-use posecast_proto::frame::{AvatarPose, FrameDecoder};
+use posecast_proto::frame::{AvatarPose, Frame, FrameDecoder};
+use posecast_proto::frame2::{self, Frame2Decoder};
 use posecast_proto::msg::{
     AvatarId, AvatarPoseJson, ClientMsg, Encoding, FrameJson, PROTOCOL_VERSION, ProtocolError,
     SceneId, ServerMsg,
@@ -55,6 +56,9 @@ pub struct ClientOptions {
     /// Only these joints of every avatar, from every subscription (`None`: all). The joints
     /// left out stay at their rest transforms in the poses this client gives.
     pub joints: Option<JointSet>,
+    /// Protocol version asked for in hello: 2 gets wire v2 binary frames
+    /// ([`posecast_proto::frame2`], about a third of v1's bytes), 1 the v1 frames.
+    pub version: u32,
 }
 
 impl ClientOptions {
@@ -72,6 +76,7 @@ impl ClientOptions {
             name: "posecast-client".into(),
             rate: None,
             joints: None,
+            version: PROTOCOL_VERSION,
         }
     }
 }
@@ -484,7 +489,7 @@ async fn session(
     let to_text =
         |m: &ClientMsg| Message::Text(serde_json::to_string(m).unwrap_or_default().into());
     let hello = ClientMsg::Hello {
-        version: PROTOCOL_VERSION,
+        version: options.version,
         encoding: options.encoding,
         token: options.token.clone(),
         client: Some(options.name.clone()),
@@ -503,7 +508,7 @@ async fn session(
             .await
             .map_err(|e| connect_err(&e))?;
     }
-    let mut decoder = FrameDecoder::new();
+    let mut decoder = Decoders::default();
     let mut ping = tokio::time::interval(options.ping_interval);
     let mut ping_id = 0u32;
     loop {
@@ -738,10 +743,27 @@ fn locals_from(
     Some(locals)
 }
 
+/// Both wires' decoders: a frame's first byte says which it is.
+#[derive(Debug, Default)]
+struct Decoders {
+    v1: FrameDecoder,
+    v2: Frame2Decoder,
+}
+
+impl Decoders {
+    fn decode(&mut self, bytes: &[u8]) -> Result<Frame, String> {
+        if bytes.first() == Some(&frame2::MAGIC) {
+            self.v2.decode(bytes).map_err(|e| e.to_string())
+        } else {
+            self.v1.decode(bytes).map_err(|e| e.to_string())
+        }
+    }
+}
+
 fn on_binary(
     shared: &Arc<Mutex<Shared>>,
     events: &broadcast::Sender<Event>,
-    decoder: &mut FrameDecoder,
+    decoder: &mut Decoders,
     bytes: &[u8],
     received: u64,
 ) {

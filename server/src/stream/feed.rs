@@ -12,6 +12,7 @@ use super::outbox::{OutFrame, Outbox, message_len};
 use super::pace;
 use super::publish::{Piece, Published};
 use super::relay::{self, RelayError, RelayFrame};
+use super::wire2::{self, Ring};
 use crate::avatar::Avatar;
 use crate::error::Error;
 use crate::metrics::Metrics;
@@ -43,6 +44,9 @@ pub struct Subscriber {
     /// The tick of the last keyframe it was sent: a subscriber that skips ticks may skip a
     /// keyframe, and then gets it before its next delta.
     key_sent: Option<u64>,
+    /// The protocol version of its connection: binary subscribers of version 2 get wire v2
+    /// frames ([`wire2`]).
+    pub version: u32,
 }
 
 impl Subscriber {
@@ -63,6 +67,7 @@ impl Subscriber {
             every: every.max(1),
             joints: None,
             key_sent: None,
+            version: 1,
         }
     }
 
@@ -71,6 +76,19 @@ impl Subscriber {
     pub fn with_joints(mut self, joints: Option<JointSet>) -> Self {
         self.joints = joints;
         self
+    }
+
+    /// The same subscription on a connection of protocol version `version`.
+    #[must_use]
+    pub fn with_version(mut self, version: u32) -> Self {
+        self.version = version;
+        self
+    }
+
+    /// Whether it gets wire v2 frames. A joint subset is served as v1 frames cut to its
+    /// joints (a v2 client tells the wires apart by the first byte).
+    fn v2(&self) -> bool {
+        self.encoding == Encoding::Binary && self.version >= 2 && self.joints.is_none()
     }
 
     fn wants(&self, avatar: &AvatarId) -> bool {
@@ -166,6 +184,8 @@ pub struct Feed {
     tapped: Vec<Arc<AvatarDescription>>,
     /// `Some` while the feed relays a scene ticked elsewhere: that scene's avatars.
     relay: Option<Vec<Arc<AvatarDescription>>>,
+    /// Recent ticks as levels, while some subscriber gets wire v2.
+    ring: Ring,
 }
 
 impl Feed {
@@ -189,6 +209,7 @@ impl Feed {
             tap: None,
             tapped: Vec::new(),
             relay: None,
+            ring: Ring::default(),
         }
     }
 
@@ -263,6 +284,7 @@ impl Feed {
         self.last_key_seq = None;
         self.force_key = true;
         self.encoders.clear();
+        self.ring.clear();
         for sub in &mut self.subscribers {
             sub.key_sent = None;
             sub.outbox.clear_scene(self.num);
@@ -491,6 +513,10 @@ impl Feed {
     ) -> Option<u64> {
         let filter = sub.filter.as_deref();
         let joints = sub.joints.as_ref();
+        if sub.v2() {
+            self.first_frames_v2(avatars, described, last, sub);
+            return None;
+        }
         let json = sub.encoding == Encoding::Json;
         let key = self.last_key.as_mut()?;
         let wanted = described.iter().filter(|d| sub.wants(&d.id));
@@ -551,6 +577,65 @@ impl Feed {
         // A keyframe of its own: the scene's next deltas do not refer to it (and a full-rate
         // binary subscriber's next tick is a keyframe, forced above).
         None
+    }
+
+    /// [`Feed::first_frames`] for a wire v2 subscriber: a v2 keyframe of the newest cached
+    /// frame, which starts its chain (later deltas refer to it), or, when the cache predates a
+    /// change of avatars, of the current poses, labelled `last`, after which its next frame is
+    /// a keyframe (the scene's frames do not continue from those poses).
+    fn first_frames_v2(
+        &mut self,
+        avatars: &mut [Avatar],
+        described: &[Arc<AvatarDescription>],
+        last: TickStamp,
+        sub: &Subscriber,
+    ) {
+        let filter = sub.filter.as_deref();
+        let wanted = described.iter().filter(|d| sub.wants(&d.id));
+        let covered = !self.placed
+            && self
+                .last_key
+                .as_ref()
+                .is_some_and(|k| k.covers(wanted, |id| sub.wants(id)));
+        if covered {
+            let Some(newest) = self.last_delta.as_ref().or(self.last_key.as_ref()) else {
+                return;
+            };
+            let now = self.ring.record(newest);
+            if let Some(message) = self.ring.message(newest, &now, None, filter) {
+                sub.outbox.push_chained(
+                    self.num,
+                    OutFrame { message, key: true },
+                    newest.header.seq,
+                );
+            }
+            return;
+        }
+        if self.relay.is_some() {
+            // The owner's next frame is a keyframe; until then there are no poses here.
+            return;
+        }
+        let pieces: Vec<Piece> = avatars
+            .iter_mut()
+            .filter(|a| sub.wants(&a.id))
+            .map(|a| Piece::fresh_key(a, false))
+            .collect();
+        let fresh = Published {
+            header: FrameHeader {
+                kind: FrameKind::Key,
+                scene_num: self.num,
+                seq: last.seq,
+                server_time_us: last.server_time_us,
+                base_seq: last.seq,
+            },
+            pieces,
+        };
+        let now = wire2::levels(&fresh);
+        if let Some(message) = self.ring.message(&fresh, &now, None, filter) {
+            sub.outbox
+                .push_frame(self.num, OutFrame { message, key: true });
+        }
+        sub.outbox.break_chain(self.num);
     }
 
     /// Ends a connection's subscription. Returns whether it had one.
@@ -647,6 +732,16 @@ impl Feed {
         let mut key_cache: HashMap<Cut<'_>, Message> = HashMap::new();
         let mut bytes_out = 0u64;
         let mut offered = 0u64;
+        // Wire v2: the tick's levels, and its frames by the chain they continue (`None`: the
+        // keyframe) and filter — each made at most once.
+        let levels = if self.subscribers.iter().any(Subscriber::v2) {
+            Some(self.ring.record(&published))
+        } else {
+            self.ring.clear();
+            None
+        };
+        type V2Key<'a> = (Option<Vec<u64>>, Option<&'a [AvatarId]>);
+        let mut v2_cache: HashMap<V2Key<'_>, Option<Message>> = HashMap::new();
         for sub in &mut self.subscribers {
             // The connection's adaptive rate may be lower than the subscription's; paced
             // connections are staggered by their id, so they do not all send on one tick.
@@ -661,6 +756,44 @@ impl Feed {
             }
             let filter = sub.filter.as_deref();
             let joints = sub.joints.as_ref();
+            if sub.v2() {
+                let Some(levels) = &levels else { continue };
+                let ring = &self.ring;
+                // A delta continues the frames the subscriber will hold; none (a frame was
+                // replaced unsent, it just joined, the rate changed the ticks it got: anything
+                // not in the ring) or a keyframe tick: the tick's shared keyframe.
+                let delta = (!key)
+                    .then(|| sub.outbox.chain(self.num))
+                    .flatten()
+                    .and_then(|chain| {
+                        v2_cache
+                            .entry((Some(chain.clone()), filter))
+                            .or_insert_with(|| {
+                                ring.message(&published, levels, Some(&chain), filter)
+                            })
+                            .clone()
+                    });
+                let frame = match delta {
+                    Some(message) => OutFrame {
+                        message,
+                        key: false,
+                    },
+                    None => {
+                        let Some(message) = v2_cache
+                            .entry((None, filter))
+                            .or_insert_with(|| ring.message(&published, levels, None, filter))
+                            .clone()
+                        else {
+                            continue;
+                        };
+                        OutFrame { message, key: true }
+                    }
+                };
+                bytes_out += message_len(&frame.message) as u64;
+                sub.outbox.push_chained(self.num, frame, at.seq);
+                offered += 1;
+                continue;
+            }
             if !key && sub.key_sent != self.last_key_seq {
                 let Some(last_key) = &mut self.last_key else {
                     continue;

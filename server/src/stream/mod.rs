@@ -7,10 +7,13 @@
 //! - [`writer`]: the task that drains an outbox into its websocket.
 //! - [`pace`]: a connection's adaptive frame rate (lowered until its link keeps up).
 //! - [`relay`]: a published frame as bytes for another server (scale-out), and back.
+//! - [`wire2`]: wire v2 frames (protocol version 2), shared by subscribers holding the same
+//!   frames.
 
 pub mod feed;
 pub mod outbox;
 pub mod pace;
 mod publish;
 pub mod relay;
+pub mod wire2;
 pub mod writer;

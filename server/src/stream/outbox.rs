@@ -51,6 +51,9 @@ pub const MAX_PENDING_DELTAS: usize = 2;
 struct Slot {
     key: Option<OutFrame>,
     deltas: VecDeque<OutFrame>,
+    /// Wire v2: the ticks of the frames the client will have decoded once everything pending
+    /// is sent, newest first (what a v2 delta may refer to); empty until a v2 keyframe.
+    chain: Vec<u64>,
 }
 
 #[derive(Debug)]
@@ -224,6 +227,52 @@ impl Outbox {
             self.dropped.fetch_add(replaced, Ordering::Relaxed);
         }
         self.notify.notify_one();
+    }
+
+    /// Wire v2: the ticks a delta pushed now may refer to — the frames the client will have
+    /// decoded once everything pending is sent, newest first (at most
+    /// [`posecast_proto::frame2::MAX_DEPTH`]). `None` when there is no such chain (no v2
+    /// keyframe yet, or the scene was cleared) or when a delta pushed now would replace a
+    /// pending frame (the chain would break): the subscriber needs a keyframe then.
+    #[must_use]
+    pub fn chain(&self, scene_num: u32) -> Option<Vec<u64>> {
+        let s = self.lock();
+        let slot = s.frames.get(&scene_num)?;
+        (!slot.chain.is_empty() && slot.deltas.len() < MAX_PENDING_DELTAS)
+            .then(|| slot.chain.clone())
+    }
+
+    /// Wire v2: offers scene `scene_num`'s frame of tick `seq`, as [`Outbox::push_frame`]
+    /// does, and records it in the scene's chain ([`Outbox::chain`]): a keyframe starts a new
+    /// chain, a delta extends it — unless it replaced a pending frame, which breaks the chain
+    /// (the next frame must be a keyframe).
+    pub fn push_chained(&self, scene_num: u32, frame: OutFrame, seq: u64) {
+        let mut s = self.lock();
+        if s.closed {
+            return;
+        }
+        let slot = s.frames.entry(scene_num).or_default();
+        let key = frame.key;
+        let broke = !key && slot.deltas.len() >= MAX_PENDING_DELTAS;
+        if key {
+            slot.chain.clear();
+        }
+        if broke {
+            slot.chain.clear();
+        } else {
+            slot.chain.insert(0, seq);
+            slot.chain.truncate(posecast_proto::frame2::MAX_DEPTH);
+        }
+        drop(s);
+        self.push_frame(scene_num, frame);
+    }
+
+    /// Wire v2: the next frame of the scene must be a keyframe (what was pushed last is not
+    /// what the other subscribers' deltas refer to).
+    pub fn break_chain(&self, scene_num: u32) {
+        if let Some(slot) = self.lock().frames.get_mut(&scene_num) {
+            slot.chain.clear();
+        }
     }
 
     /// Forgets what is pending for a scene: its frames and its unsent subscription snapshot

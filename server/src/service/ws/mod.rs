@@ -24,7 +24,7 @@ use axum::extract::ws::{Message, WebSocket, close_code};
 use futures_util::{Sink, Stream, StreamExt};
 use posecast_proto::msg::{
     ClientMsg, Encoding, ErrorCode, MAX_CLIENT_MESSAGE_BYTES, PROTOCOL_VERSION, ProtocolError,
-    SceneId, ServerMsg,
+    SUPPORTED_VERSIONS, SceneId, ServerMsg,
 };
 use posecast_proto::subset::JointSet;
 use std::net::SocketAddr;
@@ -80,6 +80,7 @@ where
             state: state.clone(),
             outbox: outbox.clone(),
             encoding: None,
+            version: PROTOCOL_VERSION,
             scenes: Vec::new(),
             caller: Caller::Anonymous,
             commands: TokenBucket::new(state.config.command_rate),
@@ -257,6 +258,8 @@ struct Session {
     state: Arc<AppState>,
     outbox: Arc<Outbox>,
     encoding: Option<Encoding>,
+    /// The protocol version the hello asked for (1 until then).
+    version: u32,
     scenes: Vec<SceneId>,
     caller: Caller,
     /// The connection's command rate limit.
@@ -395,17 +398,18 @@ impl Session {
                 );
             }
         };
-        if version != PROTOCOL_VERSION {
+        if !SUPPORTED_VERSIONS.contains(&version) {
             return self.refuse(
                 ProtocolError::new(
                     ErrorCode::UnsupportedVersion,
-                    format!("protocol version {version} is not supported; this server speaks {PROTOCOL_VERSION}"),
+                    format!("protocol version {version} is not supported; this server speaks {SUPPORTED_VERSIONS:?}"),
                 ),
                 close_code::POLICY,
                 "unsupported protocol version",
             );
         }
         self.encoding = Some(encoding);
+        self.version = version;
         // An unknown token leaves the connection anonymous (it may still watch when
         // views are open) and is reported right after the welcome.
         let access = &self.state.config.access;
@@ -419,7 +423,7 @@ impl Session {
         tracing::Span::current().record("caller", self.caller.name());
         info!(?encoding, token = self.caller.name(), "hello");
         self.send(&ServerMsg::Welcome {
-            version: PROTOCOL_VERSION,
+            version,
             encoding,
             server: format!("posecast {}", env!("CARGO_PKG_VERSION")),
             tick_rate: self.state.config.tick_rate,
@@ -506,7 +510,8 @@ impl Session {
                                 avatars,
                                 every_nth_tick(self.state.config.tick_rate, rate),
                             )
-                            .with_joints(joints),
+                            .with_joints(joints)
+                            .with_version(self.version),
                         )
                     });
                 match result {

@@ -1,0 +1,956 @@
+//! Wire v2 binary pose frames: every delta against the previous frame its receiver decoded,
+//! with predicted, Rice-coded residuals (protocol version 2; `proto/PROTOCOL.md` has the full
+//! layout).
+//!
+//! Rotations are the same 48-bit smallest-three levels as v1 ([`crate::quant`]), so a v2
+//! frame decodes to exactly the rotations a v1 frame of the same tick does. Translations are
+//! quantised to [`TRANSLATION_STEP`] (error ≤ [`MAX_TRANSLATION_ERROR`] m). Scales and the
+//! placement travel as f32, in a delta only when they changed.
+//!
+//! ```text
+//! header   u8 magic 0x51 ('Q'), u8 kind (1 keyframe, 2 delta),
+//!          varints: avatar chunk count, scene number, seq, server time (µs since the epoch),
+//!          delta only: seq − base_seq (≥ 1)
+//! key chunk    varint avatar number, u64 description hash, varints J, T, S, u8 flags
+//!              (bit 0: placement follows), J × 6-byte rotations, T × 3 zigzag-varint
+//!              translation levels, S × 3 f32 scales, [placement: 3 f32 position, 4 f32 rotation]
+//! delta chunk  varint avatar number, u8 flags (bit 0 placement follows, bit 1 scales follow,
+//!              bit 2 escape mask present, bits 4–7 depth − 1), then a bit stream (LSB first,
+//!              padded to a byte): [J escape bits], per joint either 2 + 3 × 15 bits in full
+//!              (escaped) or 3 Rice-coded residuals, then 3 Rice-coded residuals per
+//!              translation; then [S × 3 f32 scales], [placement]
+//! ```
+//!
+//! **Prediction.** A delta chunk of depth `d` refers to the receiver's last `d` decoded frames
+//! of the avatar, newest first: `h₀` (at `base_seq`), `h₁`, … For each component (a rotation
+//! level of a joint whose dropped component is the same in `h₀…`, or a translation level), the
+//! history values `h₀…hₙ₋₁` (`n ≤ d`; for rotations only the leading frames with `h₀`'s dropped
+//! component count) give still residuals `sᵢ = hᵢ − hᵢ₊₁` and velocity residuals
+//! `vᵢ = hᵢ − 2hᵢ₊₁ + hᵢ₊₂`. With `n ≥ 3` and `mean zigzag(v) < mean zigzag(s)` the prediction is
+//! `2h₀ − h₁` (constant velocity), otherwise `h₀`; the Rice parameter is
+//! `k = ⌊log₂(m + 1)⌋` of the chosen mean `m` (integer division), [`K_WITHOUT_HISTORY`] when
+//! `n = 1`. Rotation predictions are clamped to the level range. The encoder and the decoder
+//! compute this from the same decoded levels, so nothing about it is sent, and a frame's
+//! state is a function of the frames it refers to alone (any receiver holding them decodes it).
+//!
+//! **Residuals.** `u = zigzag(level − prediction)`; Rice code of parameter `k`: `q = u >> k`
+//! one-bits, a zero, then the low `k` bits of `u`; when `q ≥` [`RICE_ESCAPE`]: that many
+//! one-bits, then 6 bits `n − 1` and the `n`-bit value of `u` (`n` its bit length).
+//!
+//! **Escape.** A joint whose dropped component differs from `h₀`'s is sent in full; the chunk
+//! then carries one escape bit per joint.
+
+use crate::frame::{AvatarPose, Frame, FrameHeader, FrameKind};
+use crate::placement::Placement;
+use crate::quant;
+use glam::{Quat, Vec3};
+use std::collections::{HashMap, VecDeque};
+use std::sync::Arc;
+
+/// First byte of every v2 frame (v1's is [`crate::frame::MAGIC`]).
+pub const MAGIC: u8 = 0x51;
+/// Most frames a delta chunk may refer to (its depth).
+pub const MAX_DEPTH: usize = 8;
+/// Translation quantisation step, metres.
+pub const TRANSLATION_STEP: f64 = 1.0 / 8192.0;
+/// Bound on a translation's error after quantisation, metres (half a step), for
+/// |x| < 2³¹ · [`TRANSLATION_STEP`] (262,144 m; larger values are clamped).
+pub const MAX_TRANSLATION_ERROR: f64 = TRANSLATION_STEP / 2.0;
+/// Rice parameter of a component with no history beyond the base.
+pub const K_WITHOUT_HISTORY: u32 = 5;
+/// Unary quotient at which a residual is written raw.
+pub const RICE_ESCAPE: u64 = 20;
+/// Most joints, translations or scales a chunk may declare (a bound on what a decoder
+/// allocates from a few bytes).
+pub const MAX_COUNT: usize = 1 << 16;
+
+const FLAG_PLACEMENT: u8 = 1;
+const FLAG_SCALES: u8 = 2;
+const FLAG_ESCAPES: u8 = 4;
+const LEVEL_MAX: i64 = (1 << 15) - 2;
+const LEVEL_MASK: u64 = (1 << 15) - 1;
+
+/// Why a v2 frame could not be decoded (or encoded as asked).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum Frame2Error {
+    /// Ran out of bytes.
+    #[error("frame truncated at byte {at}")]
+    Truncated {
+        /// Offset where data ran out.
+        at: usize,
+    },
+    /// Not a v2 frame.
+    #[error("bad magic byte {0:#04x} (a v2 frame starts with 0x51)")]
+    Magic(u8),
+    /// Unknown frame kind.
+    #[error("unknown frame kind {0}")]
+    Kind(u8),
+    /// A varint longer than 10 bytes or a number too large for its field.
+    #[error("number out of range at byte {at}")]
+    Number {
+        /// Offset of the number.
+        at: usize,
+    },
+    /// A count above [`MAX_COUNT`].
+    #[error("avatar {avatar}: {count} items exceed the limit of {MAX_COUNT}")]
+    Count {
+        /// The avatar.
+        avatar: u32,
+        /// The declared count.
+        count: u64,
+    },
+    /// Bytes left over after the last chunk.
+    #[error("{0} trailing bytes after the last avatar chunk")]
+    Trailing(usize),
+    /// A delta of seq gap 0 or larger than seq.
+    #[error("delta base gap {gap} invalid for seq {seq}")]
+    BaseGap {
+        /// The frame's seq.
+        seq: u64,
+        /// The gap read.
+        gap: u64,
+    },
+    /// A delta whose base frame is not this decoder's newest of the avatar, or that refers to
+    /// more frames than it holds. Wait for the next keyframe.
+    #[error(
+        "avatar {avatar}: delta against frame {base_seq} (depth {depth}), which this decoder does not hold"
+    )]
+    MissingBase {
+        /// The avatar.
+        avatar: u32,
+        /// The frame the delta needs.
+        base_seq: u64,
+        /// Frames it refers to.
+        depth: usize,
+    },
+    /// A delta chunk of depth 0 or a reserved flag bit set.
+    #[error("avatar {avatar}: invalid chunk flags {flags:#04x}")]
+    Flags {
+        /// The avatar.
+        avatar: u32,
+        /// The flags byte.
+        flags: u8,
+    },
+    /// The same avatar twice in one frame.
+    #[error("avatar {0} appears twice in one frame")]
+    Duplicate(u32),
+}
+
+/// One avatar's pose as levels: what v2 codes losslessly.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct QuantPose {
+    /// Smallest-three bits of each joint's rotation ([`quant::encode`]).
+    pub rotations: Vec<u64>,
+    /// Translation levels, units of [`TRANSLATION_STEP`].
+    pub translations: Vec<[i32; 3]>,
+    /// Scales, as sent (f32).
+    pub scales: Vec<Vec3>,
+    /// World placement.
+    pub placement: Placement,
+}
+
+/// The level of a translation component: `round(x / TRANSLATION_STEP)`, clamped to i32;
+/// non-finite values give 0.
+#[must_use]
+pub fn translation_level(x: f32) -> i32 {
+    if !x.is_finite() {
+        return 0;
+    }
+    (f64::from(x) / TRANSLATION_STEP)
+        .round()
+        .clamp(f64::from(i32::MIN), f64::from(i32::MAX)) as i32
+}
+
+/// The translation component a level stands for (`level · TRANSLATION_STEP`).
+#[must_use]
+pub fn translation_value(level: i32) -> f32 {
+    (f64::from(level) * TRANSLATION_STEP) as f32
+}
+
+impl QuantPose {
+    /// Quantises a pose.
+    #[must_use]
+    pub fn from_pose(pose: &AvatarPose) -> Self {
+        Self {
+            rotations: pose.rotations.iter().map(|&q| quant::encode(q)).collect(),
+            translations: pose
+                .translations
+                .iter()
+                .map(|t| t.to_array().map(translation_level))
+                .collect(),
+            scales: pose.scales.clone(),
+            placement: pose.placement,
+        }
+    }
+
+    /// The pose these levels stand for.
+    #[must_use]
+    pub fn to_pose(&self, avatar_num: u32, hash: u64) -> AvatarPose {
+        AvatarPose {
+            avatar_num,
+            hash,
+            rotations: self.rotations.iter().map(|&b| quant::decode(b)).collect(),
+            translations: self
+                .translations
+                .iter()
+                .map(|l| Vec3::from_array(l.map(translation_value)))
+                .collect(),
+            scales: self.scales.clone(),
+            placement: self.placement,
+        }
+    }
+
+    fn same_shape(&self, other: &Self) -> bool {
+        self.rotations.len() == other.rotations.len()
+            && self.translations.len() == other.translations.len()
+            && self.scales.len() == other.scales.len()
+    }
+}
+
+/// Writes a v2 frame header. `base_seq` is ignored for a keyframe.
+pub fn write_header(header: &FrameHeader, avatar_count: usize, out: &mut Vec<u8>) {
+    out.push(MAGIC);
+    out.push(match header.kind {
+        FrameKind::Key => 1,
+        FrameKind::Delta => 2,
+    });
+    varint(avatar_count as u64, out);
+    varint(u64::from(header.scene_num), out);
+    varint(header.seq, out);
+    varint(header.server_time_us, out);
+    if header.kind == FrameKind::Delta {
+        varint(header.seq.saturating_sub(header.base_seq), out);
+    }
+}
+
+fn varint(mut v: u64, out: &mut Vec<u8>) {
+    while v >= 0x80 {
+        out.push((v as u8) | 0x80);
+        v >>= 7;
+    }
+    out.push(v as u8);
+}
+
+fn zigzag(r: i64) -> u64 {
+    ((r << 1) ^ (r >> 63)) as u64
+}
+
+fn unzigzag(u: u64) -> i64 {
+    ((u >> 1) as i64) ^ -((u & 1) as i64)
+}
+
+/// Appends a keyframe chunk of `pose`.
+pub fn encode_key(avatar_num: u32, hash: u64, pose: &QuantPose, out: &mut Vec<u8>) {
+    varint(u64::from(avatar_num), out);
+    out.extend_from_slice(&hash.to_le_bytes());
+    varint(pose.rotations.len() as u64, out);
+    varint(pose.translations.len() as u64, out);
+    varint(pose.scales.len() as u64, out);
+    let placement = !pose.placement.is_identity();
+    out.push(if placement { FLAG_PLACEMENT } else { 0 });
+    for bits in &pose.rotations {
+        out.extend_from_slice(&bits.to_le_bytes()[..quant::BYTES]);
+    }
+    for t in &pose.translations {
+        for c in t {
+            varint(zigzag(i64::from(*c)), out);
+        }
+    }
+    write_scales_placement(pose, true, placement, out);
+}
+
+fn write_scales_placement(pose: &QuantPose, scales: bool, placement: bool, out: &mut Vec<u8>) {
+    if scales {
+        for s in &pose.scales {
+            for c in s.to_array() {
+                out.extend_from_slice(&c.to_le_bytes());
+            }
+        }
+    }
+    if placement {
+        let p = &pose.placement;
+        for c in p
+            .position
+            .to_array()
+            .into_iter()
+            .chain(p.rotation.to_array())
+        {
+            out.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+}
+
+/// Appends a delta chunk of `pose` against `history` (the receiver's last decoded frames of
+/// the avatar, newest first; at most [`MAX_DEPTH`] are used). Returns `false`, writing
+/// nothing, when there is no history or the newest differs in its joint, translation or scale
+/// counts (send a keyframe then).
+pub fn encode_delta(
+    avatar_num: u32,
+    pose: &QuantPose,
+    history: &[&QuantPose],
+    out: &mut Vec<u8>,
+) -> bool {
+    let Some(base) = history.first() else {
+        return false;
+    };
+    if !pose.same_shape(base) {
+        return false;
+    }
+    // Older frames of another shape cannot be predicted from: the depth stops before them.
+    let depth = history
+        .iter()
+        .take(MAX_DEPTH)
+        .take_while(|h| h.same_shape(base))
+        .count();
+    let history = &history[..depth];
+    varint(u64::from(avatar_num), out);
+    let escapes = pose
+        .rotations
+        .iter()
+        .zip(&base.rotations)
+        .any(|(a, b)| index(*a) != index(*b));
+    let scales = pose.scales != base.scales;
+    let placement = pose.placement != base.placement;
+    let mut flags = ((depth - 1) as u8) << 4;
+    for (set, bit) in [
+        (placement, FLAG_PLACEMENT),
+        (scales, FLAG_SCALES),
+        (escapes, FLAG_ESCAPES),
+    ] {
+        if set {
+            flags |= bit;
+        }
+    }
+    out.push(flags);
+    let mut w = BitWriter::new(out);
+    if escapes {
+        for (a, b) in pose.rotations.iter().zip(&base.rotations) {
+            w.put(u64::from(index(*a) != index(*b)), 1);
+        }
+    }
+    let mut h = [0i64; MAX_DEPTH];
+    for (j, &bits) in pose.rotations.iter().enumerate() {
+        let i = index(bits);
+        if i != index(base.rotations[j]) {
+            w.put(bits & ((1 << 47) - 1), 47);
+            continue;
+        }
+        let n = history
+            .iter()
+            .take_while(|f| index(f.rotations[j]) == i)
+            .count();
+        for c in 0..3 {
+            for (slot, f) in h.iter_mut().zip(&history[..n]) {
+                *slot = level(f.rotations[j], c);
+            }
+            let (pred, k) = predict(&h[..n], true);
+            w.rice(zigzag(level(bits, c) - pred), k);
+        }
+    }
+    for (t, now) in pose.translations.iter().enumerate() {
+        for (c, &value) in now.iter().enumerate() {
+            for (slot, f) in h.iter_mut().zip(history) {
+                *slot = i64::from(f.translations[t][c]);
+            }
+            let (pred, k) = predict(&h[..depth], false);
+            w.rice(zigzag(i64::from(value) - pred), k);
+        }
+    }
+    w.finish();
+    write_scales_placement(pose, scales, placement, out);
+    true
+}
+
+fn index(bits: u64) -> u64 {
+    (bits >> 45) & 3
+}
+
+fn level(bits: u64, c: usize) -> i64 {
+    ((bits >> (15 * (2 - c))) & LEVEL_MASK) as i64
+}
+
+/// The prediction and Rice parameter of a component from its history `h` (newest first, at
+/// least one value); see the module docs.
+fn predict(h: &[i64], rotation: bool) -> (i64, u32) {
+    let n = h.len();
+    if n < 2 {
+        return (h[0], K_WITHOUT_HISTORY);
+    }
+    let still: u64 = (0..n - 1)
+        .map(|i| zigzag(h[i] - h[i + 1]).min(1 << 40))
+        .sum();
+    let velocity: u64 = (0..n.saturating_sub(2))
+        .map(|i| zigzag(h[i] - 2 * h[i + 1] + h[i + 2]).min(1 << 40))
+        .sum();
+    let (pred, mean) = if n >= 3 && velocity * (n as u64 - 1) < still * (n as u64 - 2) {
+        (2 * h[0] - h[1], velocity / (n as u64 - 2))
+    } else {
+        (h[0], still / (n as u64 - 1))
+    };
+    let pred = if rotation {
+        pred.clamp(0, LEVEL_MAX)
+    } else {
+        pred
+    };
+    (pred, (mean + 1).ilog2())
+}
+
+struct BitWriter<'a> {
+    out: &'a mut Vec<u8>,
+    acc: u64,
+    bits: u32,
+}
+
+impl<'a> BitWriter<'a> {
+    fn new(out: &'a mut Vec<u8>) -> Self {
+        Self {
+            out,
+            acc: 0,
+            bits: 0,
+        }
+    }
+
+    /// Appends the low `n` bits of `v` (`n ≤ 32`).
+    fn put(&mut self, v: u64, n: u32) {
+        if n > 32 {
+            self.put(v, 32);
+            self.put(v >> 32, n - 32);
+            return;
+        }
+        let v = if n == 0 {
+            0
+        } else {
+            v & (u64::MAX >> (64 - n))
+        };
+        self.acc |= v << self.bits;
+        self.bits += n;
+        while self.bits >= 8 {
+            self.out.push(self.acc as u8);
+            self.acc >>= 8;
+            self.bits -= 8;
+        }
+    }
+
+    fn rice(&mut self, u: u64, k: u32) {
+        let q = u >> k;
+        if q < RICE_ESCAPE {
+            self.put((1 << q) - 1, q as u32 + 1);
+            self.put(u, k);
+        } else {
+            self.put((1 << RICE_ESCAPE) - 1, RICE_ESCAPE as u32);
+            let n = (64 - u.leading_zeros()).max(1);
+            self.put(u64::from(n - 1), 6);
+            self.put(u, n);
+        }
+    }
+
+    fn finish(mut self) {
+        if self.bits > 0 {
+            self.put(0, 8 - self.bits);
+        }
+    }
+}
+
+struct Reader<'a> {
+    bytes: &'a [u8],
+    at: usize,
+}
+
+impl<'a> Reader<'a> {
+    fn take(&mut self, n: usize) -> Result<&'a [u8], Frame2Error> {
+        let end = self
+            .at
+            .checked_add(n)
+            .filter(|&e| e <= self.bytes.len())
+            .ok_or(Frame2Error::Truncated { at: self.at })?;
+        let s = &self.bytes[self.at..end];
+        self.at = end;
+        Ok(s)
+    }
+    fn u8(&mut self) -> Result<u8, Frame2Error> {
+        Ok(self.take(1)?[0])
+    }
+    fn u64(&mut self) -> Result<u64, Frame2Error> {
+        let mut a = [0u8; 8];
+        a.copy_from_slice(self.take(8)?);
+        Ok(u64::from_le_bytes(a))
+    }
+    fn f32(&mut self) -> Result<f32, Frame2Error> {
+        let mut a = [0u8; 4];
+        a.copy_from_slice(self.take(4)?);
+        Ok(f32::from_le_bytes(a))
+    }
+    fn vec3(&mut self) -> Result<Vec3, Frame2Error> {
+        Ok(Vec3::new(self.f32()?, self.f32()?, self.f32()?))
+    }
+    fn varint(&mut self) -> Result<u64, Frame2Error> {
+        let start = self.at;
+        let mut v = 0u64;
+        for shift in (0..70).step_by(7) {
+            let b = self.u8()?;
+            let part = u64::from(b & 0x7f);
+            if shift == 63 && part > 1 {
+                break;
+            }
+            v |= part << shift;
+            if b & 0x80 == 0 {
+                return Ok(v);
+            }
+        }
+        Err(Frame2Error::Number { at: start })
+    }
+    fn varint_u32(&mut self) -> Result<u32, Frame2Error> {
+        let at = self.at;
+        u32::try_from(self.varint()?).map_err(|_| Frame2Error::Number { at })
+    }
+    fn count(&mut self, avatar: u32) -> Result<usize, Frame2Error> {
+        let count = self.varint()?;
+        match usize::try_from(count) {
+            Ok(n) if n <= MAX_COUNT => Ok(n),
+            _ => Err(Frame2Error::Count { avatar, count }),
+        }
+    }
+    fn placement(&mut self) -> Result<Placement, Frame2Error> {
+        let position = self.vec3()?;
+        let q = [self.f32()?, self.f32()?, self.f32()?, self.f32()?];
+        Ok(Placement {
+            position,
+            rotation: Quat::from_array(q),
+        })
+    }
+}
+
+struct BitReader<'r, 'a> {
+    r: &'r mut Reader<'a>,
+    acc: u64,
+    bits: u32,
+}
+
+impl BitReader<'_, '_> {
+    fn get(&mut self, n: u32) -> Result<u64, Frame2Error> {
+        if n > 32 {
+            let low = self.get(32)?;
+            return Ok(low | self.get(n - 32)? << 32);
+        }
+        while self.bits < n {
+            self.acc |= u64::from(self.r.u8()?) << self.bits;
+            self.bits += 8;
+        }
+        let v = if n == 0 {
+            0
+        } else {
+            self.acc & (u64::MAX >> (64 - n))
+        };
+        self.acc = if n == 64 { 0 } else { self.acc >> n };
+        self.bits -= n;
+        Ok(v)
+    }
+
+    fn rice(&mut self, k: u32) -> Result<u64, Frame2Error> {
+        let mut q = 0;
+        while q < RICE_ESCAPE && self.get(1)? == 1 {
+            q += 1;
+        }
+        if q < RICE_ESCAPE {
+            return Ok(q << k | self.get(k)?);
+        }
+        let n = self.get(6)? as u32 + 1;
+        self.get(n)
+    }
+}
+
+/// One avatar of a decoded v2 frame, as levels.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DecodedAvatar {
+    /// The avatar's number.
+    pub avatar_num: u32,
+    /// Its description hash (a delta's is its base's).
+    pub hash: u64,
+    /// Its pose as levels.
+    pub levels: Arc<QuantPose>,
+}
+
+/// A decoded v2 frame, as levels.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LevelFrame {
+    /// Its header (`base_seq == seq` for a keyframe).
+    pub header: FrameHeader,
+    /// One entry per avatar chunk.
+    pub avatars: Vec<DecodedAvatar>,
+}
+
+impl LevelFrame {
+    /// The frame as poses (rotations and translations from their levels).
+    #[must_use]
+    pub fn to_frame(&self) -> Frame {
+        Frame {
+            header: self.header,
+            avatars: self
+                .avatars
+                .iter()
+                .map(|a| a.levels.to_pose(a.avatar_num, a.hash))
+                .collect(),
+        }
+    }
+}
+
+#[derive(Debug, Default)]
+struct AvatarHistory {
+    hash: u64,
+    /// Newest first: (seq, levels).
+    frames: VecDeque<(u64, Arc<QuantPose>)>,
+}
+
+/// Decodes v2 frames, keeping each (scene, avatar)'s last [`MAX_DEPTH`] decoded frames.
+#[derive(Debug, Default)]
+pub struct Frame2Decoder {
+    history: HashMap<(u32, u32), AvatarHistory>,
+}
+
+/// Reads a v2 frame's header and chunk count.
+///
+/// # Errors
+/// Truncated, bad magic, unknown kind, a bad number.
+pub fn read_header(bytes: &[u8]) -> Result<(FrameHeader, usize), Frame2Error> {
+    let mut r = Reader { bytes, at: 0 };
+    header(&mut r)
+}
+
+fn header(r: &mut Reader<'_>) -> Result<(FrameHeader, usize), Frame2Error> {
+    let magic = r.u8()?;
+    if magic != MAGIC {
+        return Err(Frame2Error::Magic(magic));
+    }
+    let kind = match r.u8()? {
+        1 => FrameKind::Key,
+        2 => FrameKind::Delta,
+        k => return Err(Frame2Error::Kind(k)),
+    };
+    let at = r.at;
+    let count = usize::try_from(r.varint()?).map_err(|_| Frame2Error::Number { at })?;
+    let scene_num = r.varint_u32()?;
+    let seq = r.varint()?;
+    let server_time_us = r.varint()?;
+    let base_seq = match kind {
+        FrameKind::Key => seq,
+        FrameKind::Delta => {
+            let gap = r.varint()?;
+            if gap == 0 || gap > seq {
+                return Err(Frame2Error::BaseGap { seq, gap });
+            }
+            seq - gap
+        }
+    };
+    Ok((
+        FrameHeader {
+            kind,
+            scene_num,
+            seq,
+            server_time_us,
+            base_seq,
+        },
+        count,
+    ))
+}
+
+impl Frame2Decoder {
+    /// A decoder holding nothing.
+    #[must_use]
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Decodes one v2 frame into poses. On error nothing is changed.
+    ///
+    /// # Errors
+    /// Malformed bytes, or a delta whose base this decoder does not hold.
+    pub fn decode(&mut self, bytes: &[u8]) -> Result<Frame, Frame2Error> {
+        Ok(self.decode_levels(bytes)?.to_frame())
+    }
+
+    /// Decodes one v2 frame into levels, remembering it for the deltas after it. On error
+    /// nothing is changed.
+    ///
+    /// # Errors
+    /// Malformed bytes, or a delta whose base this decoder does not hold.
+    pub fn decode_levels(&mut self, bytes: &[u8]) -> Result<LevelFrame, Frame2Error> {
+        let mut r = Reader { bytes, at: 0 };
+        let (header, count) = header(&mut r)?;
+        let mut avatars: Vec<DecodedAvatar> = Vec::with_capacity(count.min(bytes.len() / 2));
+        for _ in 0..count {
+            let a = match header.kind {
+                FrameKind::Key => key_chunk(&mut r)?,
+                FrameKind::Delta => self.delta_chunk(&mut r, &header)?,
+            };
+            if avatars.iter().any(|b| b.avatar_num == a.avatar_num) {
+                return Err(Frame2Error::Duplicate(a.avatar_num));
+            }
+            avatars.push(a);
+        }
+        if r.at != bytes.len() {
+            return Err(Frame2Error::Trailing(bytes.len() - r.at));
+        }
+        for a in &avatars {
+            let h = self
+                .history
+                .entry((header.scene_num, a.avatar_num))
+                .or_default();
+            if header.kind == FrameKind::Key {
+                h.frames.clear();
+                h.hash = a.hash;
+            }
+            h.frames.push_front((header.seq, a.levels.clone()));
+            h.frames.truncate(MAX_DEPTH);
+        }
+        Ok(LevelFrame { header, avatars })
+    }
+
+    /// Forgets a scene's frames (the client left it).
+    pub fn forget_scene(&mut self, scene_num: u32) {
+        self.history.retain(|(s, _), _| *s != scene_num);
+    }
+
+    fn delta_chunk(
+        &self,
+        r: &mut Reader<'_>,
+        header: &FrameHeader,
+    ) -> Result<DecodedAvatar, Frame2Error> {
+        let avatar = r.varint_u32()?;
+        let flags = r.u8()?;
+        if flags & 8 != 0 {
+            return Err(Frame2Error::Flags { avatar, flags });
+        }
+        let depth = usize::from(flags >> 4) + 1;
+        let missing = Frame2Error::MissingBase {
+            avatar,
+            base_seq: header.base_seq,
+            depth,
+        };
+        let Some(held) = self.history.get(&(header.scene_num, avatar)) else {
+            return Err(missing);
+        };
+        if depth > MAX_DEPTH
+            || held.frames.len() < depth
+            || held.frames.front().map(|f| f.0) != Some(header.base_seq)
+        {
+            return Err(missing);
+        }
+        let history: Vec<&QuantPose> = held.frames.iter().take(depth).map(|f| &*f.1).collect();
+        let base = history[0];
+        if history.iter().any(|h| !h.same_shape(base)) {
+            return Err(missing);
+        }
+        let mut pose = QuantPose {
+            rotations: Vec::with_capacity(base.rotations.len()),
+            translations: Vec::with_capacity(base.translations.len()),
+            scales: base.scales.clone(),
+            placement: base.placement,
+        };
+        let mut b = BitReader { r, acc: 0, bits: 0 };
+        let joints = base.rotations.len();
+        let mut escaped = vec![false; joints];
+        if flags & FLAG_ESCAPES != 0 {
+            for e in &mut escaped {
+                *e = b.get(1)? == 1;
+            }
+        }
+        let mut h = [0i64; MAX_DEPTH];
+        for (j, &esc) in escaped.iter().enumerate() {
+            if esc {
+                pose.rotations.push(b.get(47)?);
+                continue;
+            }
+            let i = index(base.rotations[j]);
+            let n = history
+                .iter()
+                .take_while(|f| index(f.rotations[j]) == i)
+                .count();
+            let mut bits = i;
+            for c in 0..3 {
+                for (slot, f) in h.iter_mut().zip(&history[..n]) {
+                    *slot = level(f.rotations[j], c);
+                }
+                let (pred, k) = predict(&h[..n], true);
+                let value = pred + unzigzag(b.rice(k)?);
+                if !(0..=LEVEL_MASK as i64).contains(&value) {
+                    return Err(Frame2Error::Number { at: b.r.at });
+                }
+                bits = bits << 15 | value as u64;
+            }
+            pose.rotations.push(bits);
+        }
+        for t in 0..base.translations.len() {
+            let mut v = [0i32; 3];
+            for (c, out) in v.iter_mut().enumerate() {
+                for (slot, f) in h.iter_mut().zip(&history) {
+                    *slot = i64::from(f.translations[t][c]);
+                }
+                let (pred, k) = predict(&h[..depth], false);
+                *out = i32::try_from(pred.wrapping_add(unzigzag(b.rice(k)?)))
+                    .map_err(|_| Frame2Error::Number { at: b.r.at })?;
+            }
+            pose.translations.push(v);
+        }
+        if flags & FLAG_SCALES != 0 {
+            for s in &mut pose.scales {
+                *s = r.vec3()?;
+            }
+        }
+        if flags & FLAG_PLACEMENT != 0 {
+            pose.placement = r.placement()?;
+        }
+        Ok(DecodedAvatar {
+            avatar_num: avatar,
+            hash: held.hash,
+            levels: Arc::new(pose),
+        })
+    }
+}
+
+fn key_chunk(r: &mut Reader<'_>) -> Result<DecodedAvatar, Frame2Error> {
+    let avatar = r.varint_u32()?;
+    let hash = r.u64()?;
+    let joints = r.count(avatar)?;
+    let translations = r.count(avatar)?;
+    let scales = r.count(avatar)?;
+    let flags = r.u8()?;
+    if flags & !FLAG_PLACEMENT != 0 {
+        return Err(Frame2Error::Flags { avatar, flags });
+    }
+    // Check the bytes are there before allocating for them.
+    let needed = joints * quant::BYTES + translations * 3 + scales * 12;
+    if r.bytes.len() - r.at < needed {
+        return Err(Frame2Error::Truncated { at: r.bytes.len() });
+    }
+    let mut pose = QuantPose {
+        rotations: Vec::with_capacity(joints),
+        translations: Vec::with_capacity(translations),
+        scales: Vec::with_capacity(scales),
+        placement: Placement::IDENTITY,
+    };
+    for _ in 0..joints {
+        let mut b = [0u8; 8];
+        b[..quant::BYTES].copy_from_slice(r.take(quant::BYTES)?);
+        pose.rotations.push(u64::from_le_bytes(b));
+    }
+    for _ in 0..translations {
+        let mut v = [0i32; 3];
+        for c in &mut v {
+            let at = r.at;
+            *c = i32::try_from(unzigzag(r.varint()?)).map_err(|_| Frame2Error::Number { at })?;
+        }
+        pose.translations.push(v);
+    }
+    for _ in 0..scales {
+        pose.scales.push(r.vec3()?);
+    }
+    if flags & FLAG_PLACEMENT != 0 {
+        pose.placement = r.placement()?;
+    }
+    Ok(DecodedAvatar {
+        avatar_num: avatar,
+        hash,
+        levels: Arc::new(pose),
+    })
+}
+
+/// Encodes whole v2 frames for one receiver that gets every frame it is given: keeps its
+/// last [`MAX_DEPTH`] frames per avatar as the decoder does. For tests, benches and single
+/// streams; the server shares encodings between subscribers instead.
+#[derive(Debug, Default)]
+pub struct StreamEncoder {
+    history: HashMap<u32, VecDeque<Arc<QuantPose>>>,
+    last_seq: Option<u64>,
+}
+
+impl StreamEncoder {
+    /// An encoder whose first frame will be a keyframe.
+    #[must_use]
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Encodes `poses` as tick `seq`: a keyframe when `key` or when some avatar has no
+    /// compatible history, else a delta against the previous frame. Returns the bytes and
+    /// the kind written.
+    pub fn encode(
+        &mut self,
+        scene_num: u32,
+        seq: u64,
+        server_time_us: u64,
+        poses: &[AvatarPose],
+        key: bool,
+    ) -> (Vec<u8>, FrameKind) {
+        let quantised: Vec<Arc<QuantPose>> = poses
+            .iter()
+            .map(|p| Arc::new(QuantPose::from_pose(p)))
+            .collect();
+        let mut body = Vec::new();
+        let mut kind = FrameKind::Key;
+        if !key && let Some(base_seq) = self.last_seq {
+            let mut ok = true;
+            for (p, q) in poses.iter().zip(&quantised) {
+                let h: Vec<&QuantPose> = self
+                    .history
+                    .get(&p.avatar_num)
+                    .map(|h| h.iter().map(|f| &**f).collect())
+                    .unwrap_or_default();
+                if !encode_delta(p.avatar_num, q, &h, &mut body) {
+                    ok = false;
+                    break;
+                }
+            }
+            if ok {
+                kind = FrameKind::Delta;
+                let mut out = Vec::with_capacity(body.len() + 24);
+                write_header(
+                    &FrameHeader {
+                        kind,
+                        scene_num,
+                        seq,
+                        server_time_us,
+                        base_seq,
+                    },
+                    poses.len(),
+                    &mut out,
+                );
+                out.extend_from_slice(&body);
+                self.remember(poses, quantised, seq, false);
+                return (out, kind);
+            }
+            body.clear();
+        }
+        let mut out = Vec::new();
+        write_header(
+            &FrameHeader {
+                kind,
+                scene_num,
+                seq,
+                server_time_us,
+                base_seq: seq,
+            },
+            poses.len(),
+            &mut out,
+        );
+        for (p, q) in poses.iter().zip(&quantised) {
+            encode_key(p.avatar_num, p.hash, q, &mut out);
+        }
+        self.remember(poses, quantised, seq, true);
+        (out, kind)
+    }
+
+    fn remember(&mut self, poses: &[AvatarPose], q: Vec<Arc<QuantPose>>, seq: u64, key: bool) {
+        if key {
+            self.history.clear();
+        }
+        for (p, q) in poses.iter().zip(q) {
+            let h = self.history.entry(p.avatar_num).or_default();
+            h.push_front(q);
+            h.truncate(MAX_DEPTH);
+        }
+        self.last_seq = Some(seq);
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,341 @@
+use super::*;
+use crate::testing::{arb_quat, f32s};
+use proptest::prelude::*;
+
+fn pose(num: u32, rotations: Vec<Quat>, translations: Vec<Vec3>, scales: Vec<Vec3>) -> AvatarPose {
+    AvatarPose {
+        avatar_num: num,
+        hash: 0x1234_5678_9abc_def0 ^ u64::from(num),
+        rotations,
+        translations,
+        scales,
+        placement: Placement::IDENTITY,
+    }
+}
+
+fn frame_bytes(kind: FrameKind, seq: u64, base: u64, chunks: &[u8], count: usize) -> Vec<u8> {
+    let mut out = Vec::new();
+    write_header(
+        &FrameHeader {
+            kind,
+            scene_num: 4,
+            seq,
+            server_time_us: 1_750_000_000_000_000 + seq,
+            base_seq: base,
+        },
+        count,
+        &mut out,
+    );
+    out.extend_from_slice(chunks);
+    out
+}
+
+#[test]
+fn constant_velocity_costs_one_bit_a_component() {
+    // Levels 10, 8, 6 of every component (newest first): still residuals zigzag 4, 4, the
+    // velocity residual 0, so the prediction is 12 with k = 0 and a level of 12 costs the
+    // single bit "0". One joint: avatar varint, flags, 3 bits padded to a byte.
+    let bits = |l: u64| 3 << 45 | l << 30 | l << 15 | l;
+    let history: Vec<QuantPose> = [10, 8, 6]
+        .map(|l| QuantPose {
+            rotations: vec![bits(l)],
+            ..QuantPose::default()
+        })
+        .into();
+    let refs: Vec<&QuantPose> = history.iter().collect();
+    let now = QuantPose {
+        rotations: vec![bits(12)],
+        ..QuantPose::default()
+    };
+    let mut out = Vec::new();
+    assert!(encode_delta(3, &now, &refs, &mut out));
+    assert_eq!(out, vec![3, 2 << 4, 0]);
+    // One level off the prediction: zigzag 1 or 2 with k = 0 is "10" or "110".
+    let off = QuantPose {
+        rotations: vec![bits(13)],
+        ..QuantPose::default()
+    };
+    out.clear();
+    assert!(encode_delta(3, &off, &refs, &mut out));
+    // 3 × "110" (zigzag(+1) = 2) = 9 bits: two bytes of stream.
+    assert_eq!(out.len(), 4);
+}
+
+#[test]
+fn predict_picks_still_for_noise_and_velocity_for_motion() {
+    assert_eq!(predict(&[7], true), (7, K_WITHOUT_HISTORY));
+    // Alternating noise: still residuals ±1 beat velocity residuals ±2.
+    assert_eq!(predict(&[5, 4, 5, 4], false).0, 5);
+    assert_eq!(predict(&[100, 90, 80, 70], false), (110, 0));
+    // Prediction clamped to the level range for rotations, not for translations.
+    assert_eq!(predict(&[32766, 32700, 32634], true).0, 32766);
+    assert_eq!(predict(&[32766, 32700, 32634], false).0, 32832);
+}
+
+#[test]
+fn translations_within_the_stated_bound() {
+    for x in [
+        0.0f32,
+        1e-5,
+        -0.3,
+        1.0 / 16384.0,
+        12.345_678,
+        -999.999,
+        5000.123,
+    ] {
+        let back = translation_value(translation_level(x));
+        assert!(
+            (f64::from(back) - f64::from(x)).abs() <= MAX_TRANSLATION_ERROR,
+            "{x} -> {back}"
+        );
+    }
+    assert_eq!(translation_level(f32::NAN), 0);
+    assert_eq!(translation_level(1e30), i32::MAX);
+}
+
+/// Random smooth-ish motion of one rig: per joint a start rotation, an angular velocity and
+/// per-tick noise; every so often a joint jumps to an arbitrary rotation.
+#[derive(Debug, Clone)]
+struct Motion {
+    start: Vec<Quat>,
+    spin: Vec<Vec3>,
+    noise: f32,
+    jumps: Vec<(usize, usize, Quat)>,
+    translations: usize,
+    scales: usize,
+}
+
+fn arb_motion() -> impl Strategy<Value = Motion> {
+    (1usize..40).prop_flat_map(|joints| {
+        (
+            prop::collection::vec(arb_quat(), joints),
+            prop::collection::vec(prop::array::uniform3(f32s(-3.0..3.0)), joints),
+            prop_oneof![Just(0.0f32), f32s(0.0..0.01)],
+            prop::collection::vec((0usize..60, 0..joints, arb_quat()), 0..4),
+            0usize..3,
+            0usize..2,
+        )
+            .prop_map(|(start, spin, noise, jumps, translations, scales)| Motion {
+                start: start
+                    .into_iter()
+                    .map(|q| {
+                        if q.length() < 1e-3 {
+                            Quat::IDENTITY
+                        } else {
+                            q.normalize()
+                        }
+                    })
+                    .collect(),
+                spin: spin.into_iter().map(Vec3::from_array).collect(),
+                noise,
+                jumps,
+                translations,
+                scales,
+            })
+    })
+}
+
+impl Motion {
+    fn at(&self, tick: usize, num: u32) -> AvatarPose {
+        let t = tick as f32 / 60.0;
+        let mut rng = (tick as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        let mut noise = || {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            ((rng >> 40) as f32 / (1u64 << 24) as f32 - 0.5) * self.noise
+        };
+        let mut rotations: Vec<Quat> = self
+            .start
+            .iter()
+            .zip(&self.spin)
+            .map(|(&q, &w)| {
+                let n = Vec3::new(noise(), noise(), noise());
+                (Quat::from_scaled_axis(w * t + n) * q).normalize()
+            })
+            .collect();
+        for &(when, joint, q) in &self.jumps {
+            if tick >= when && q.length() > 1e-3 {
+                rotations[joint] = q.normalize();
+            }
+        }
+        let translations = (0..self.translations)
+            .map(|k| Vec3::new(t * (k as f32 + 0.5), 0.9 + 0.05 * (t * 7.0).sin(), -t) + noise())
+            .collect();
+        let scales = (0..self.scales)
+            .map(|_| Vec3::splat(if tick > 30 { 1.5 } else { 1.0 }))
+            .collect();
+        let mut p = pose(num, rotations, translations, scales);
+        if tick % 17 == 5 {
+            p.placement.position = Vec3::new(t, 0.0, 1.0);
+        }
+        p
+    }
+}
+
+fn assert_decoded(expected: &AvatarPose, q: &QuantPose, got: &DecodedAvatar) {
+    assert_eq!(got.avatar_num, expected.avatar_num);
+    assert_eq!(got.hash, expected.hash);
+    // Exactly the encoder's levels; within the bounds of the source.
+    assert_eq!(&*got.levels, q);
+    let decoded = got.levels.to_pose(got.avatar_num, got.hash);
+    for (a, b) in expected.rotations.iter().zip(&decoded.rotations) {
+        assert!(quant::angle_between_degrees(*a, *b) <= quant::MAX_ERROR_DEGREES);
+    }
+    for (a, b) in expected.translations.iter().zip(&decoded.translations) {
+        for c in 0..3 {
+            assert!(f64::from((a[c] - b[c]).abs()) <= MAX_TRANSLATION_ERROR + 1e-7);
+        }
+    }
+    assert_eq!(decoded.scales, expected.scales);
+    assert_eq!(decoded.placement, expected.placement);
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+
+    /// Two avatars streamed for 60 ticks to a reader that gets every frame (deltas against
+    /// the previous one) and to a slow reader that misses random frames and, after a gap,
+    /// gets a keyframe or a delta against the last frame it decoded (whichever the sender
+    /// chooses): both decode exactly the encoder's levels every time.
+    #[test]
+    fn every_reader_decodes_the_encoders_levels(
+        a in arb_motion(),
+        b in arb_motion(),
+        drops in prop::collection::vec(any::<bool>(), 60),
+        key_after_gap in prop::collection::vec(any::<bool>(), 60),
+    ) {
+        let mut fast = Frame2Decoder::new();
+        let mut slow = Frame2Decoder::new();
+        let mut stream = StreamEncoder::new();
+        // The sender's ring of quantised poses by tick, and the slow reader's decoded seqs.
+        let mut ring: Vec<Vec<Arc<QuantPose>>> = Vec::new();
+        let mut slow_seqs: Vec<u64> = Vec::new();
+        for tick in 0..60usize {
+            let seq = tick as u64 + 1;
+            let poses = [a.at(tick, 1), b.at(tick, 9)];
+            let q: Vec<Arc<QuantPose>> = poses.iter().map(|p| Arc::new(QuantPose::from_pose(p))).collect();
+            let (bytes, _) = stream.encode(4, seq, 7, &poses, tick == 0);
+            let got = fast.decode_levels(&bytes).unwrap();
+            prop_assert_eq!(got.header.seq, seq);
+            for ((p, q), g) in poses.iter().zip(&q).zip(&got.avatars) {
+                assert_decoded(p, q, g);
+            }
+            ring.push(q.clone());
+            if drops[tick] && tick > 0 {
+                continue;
+            }
+            let gap = slow_seqs.first().is_some_and(|&s| s + 1 != seq);
+            let delta = !(slow_seqs.is_empty() || gap && key_after_gap[tick]);
+            let bytes = if delta {
+                let base = slow_seqs[0];
+                let mut body = Vec::new();
+                for (k, (p, now)) in poses.iter().zip(&q).enumerate() {
+                    let h: Vec<&QuantPose> = slow_seqs.iter().map(|&s| &*ring[s as usize - 1][k]).collect();
+                    prop_assert!(encode_delta(p.avatar_num, now, &h, &mut body));
+                }
+                frame_bytes(FrameKind::Delta, seq, base, &body, 2)
+            } else {
+                let mut body = Vec::new();
+                for (p, now) in poses.iter().zip(&q) {
+                    encode_key(p.avatar_num, p.hash, now, &mut body);
+                }
+                slow_seqs.clear();
+                frame_bytes(FrameKind::Key, seq, seq, &body, 2)
+            };
+            let got = slow.decode_levels(&bytes).unwrap();
+            for ((p, q), g) in poses.iter().zip(&q).zip(&got.avatars) {
+                assert_decoded(p, q, g);
+            }
+            slow_seqs.insert(0, seq);
+            slow_seqs.truncate(MAX_DEPTH);
+        }
+    }
+
+    #[test]
+    fn garbage_never_panics(bytes in prop::collection::vec(any::<u8>(), 0..400)) {
+        let mut dec = Frame2Decoder::new();
+        let _ = dec.decode(&bytes);
+        for kind in [1u8, 2] {
+            let mut framed = vec![MAGIC, kind];
+            framed.extend_from_slice(&bytes);
+            let _ = dec.decode(&framed);
+        }
+    }
+
+    /// Random bytes as the body of a delta against a held frame: exercises the bit reader
+    /// and the Rice escapes on arbitrary input.
+    #[test]
+    fn garbage_deltas_never_panic(bytes in prop::collection::vec(any::<u8>(), 0..200), depth in 0u8..16) {
+        let p = pose(1, vec![Quat::from_rotation_x(0.4); 5], vec![Vec3::ONE], vec![Vec3::ONE]);
+        let mut stream = StreamEncoder::new();
+        let mut dec = Frame2Decoder::new();
+        for seq in 1..4 {
+            dec.decode(&stream.encode(4, seq, 0, std::slice::from_ref(&p), false).0).unwrap();
+        }
+        let mut body = vec![1, depth << 4 | (bytes.first().copied().unwrap_or(0) & 7)];
+        body.extend_from_slice(&bytes);
+        let _ = dec.decode(&frame_bytes(FrameKind::Delta, 4, 3, &body, 1));
+    }
+}
+
+#[test]
+fn every_truncation_is_an_error_and_leaves_the_decoder_unchanged() {
+    let m = Motion {
+        start: vec![Quat::from_rotation_y(0.3); 6],
+        spin: vec![Vec3::new(0.5, 1.0, 0.0); 6],
+        noise: 0.002,
+        jumps: vec![(3, 2, Quat::from_rotation_x(3.0))],
+        translations: 1,
+        scales: 1,
+    };
+    let mut stream = StreamEncoder::new();
+    let mut dec = Frame2Decoder::new();
+    for tick in 0..6 {
+        let p = m.at(tick, 2);
+        let (bytes, kind) = stream.encode(4, tick as u64 + 1, 0, std::slice::from_ref(&p), false);
+        assert_eq!(kind == FrameKind::Key, tick == 0);
+        for len in 0..bytes.len() {
+            assert!(
+                dec.decode(&bytes[..len]).is_err(),
+                "tick {tick}, length {len}"
+            );
+        }
+        let mut long = bytes.clone();
+        long.push(0);
+        assert_eq!(dec.decode(&long), Err(Frame2Error::Trailing(1)));
+        // The failed attempts changed nothing: the whole frame still decodes against its base.
+        let got = dec.decode_levels(&bytes).unwrap();
+        assert_eq!(*got.avatars[0].levels, QuantPose::from_pose(&p));
+    }
+}
+
+#[test]
+fn a_delta_against_a_frame_not_held_is_refused() {
+    let p = pose(1, vec![Quat::IDENTITY; 3], vec![], vec![]);
+    let mut stream = StreamEncoder::new();
+    let key = stream.encode(4, 1, 0, std::slice::from_ref(&p), true).0;
+    let delta = stream.encode(4, 2, 0, std::slice::from_ref(&p), false).0;
+    let delta3 = stream.encode(4, 3, 0, std::slice::from_ref(&p), false).0;
+    let mut dec = Frame2Decoder::new();
+    assert_eq!(
+        dec.decode(&delta),
+        Err(Frame2Error::MissingBase {
+            avatar: 1,
+            base_seq: 1,
+            depth: 1
+        })
+    );
+    dec.decode(&key).unwrap();
+    // Frame 3 refers to 2 (depth 2), which this decoder skipped.
+    assert!(matches!(
+        dec.decode(&delta3),
+        Err(Frame2Error::MissingBase { base_seq: 2, .. })
+    ));
+    dec.decode(&delta).unwrap();
+    dec.decode(&delta3).unwrap();
+    // An unchanged pose of 3 joints: 2 chunk bytes and 9 one-bit residuals (2 bytes).
+    let (_, count) = read_header(&delta3).unwrap();
+    assert_eq!(count, 1);
+    assert!(delta3.ends_with(&[1, 1 << 4, 0, 0]));
+}

@@ -1,0 +1,122 @@
+//! Wire v2 for a scene's binary subscribers that asked for protocol version 2
+//! ([`posecast_proto::frame2`]): each tick's poses as levels, kept for a few ticks, and the
+//! frames made from them — per tick at most one keyframe and one delta per distinct chain of
+//! frames a subscriber holds ([`super::outbox::Outbox::chain`]), shared by every subscriber
+//! holding that chain.
+
+use super::publish::Published;
+use axum::extract::ws::Message;
+use bytes::Bytes;
+use posecast_proto::frame::{FrameHeader, FrameKind};
+use posecast_proto::frame2::{self, QuantPose};
+use posecast_proto::msg::AvatarId;
+use std::collections::{HashMap, VecDeque};
+use std::sync::Arc;
+
+/// Ticks of levels kept: deltas may refer to this far back (a subscriber at 10 Hz of a 60 Hz
+/// scene refers to 6 ticks per frame, [`frame2::MAX_DEPTH`] frames deep). A subscriber whose
+/// frames are older gets a keyframe.
+pub const RING_TICKS: usize = 6 * frame2::MAX_DEPTH;
+
+/// One avatar's levels at a tick, with the description hash they belong to.
+type Levels = (u64, Arc<QuantPose>);
+
+/// The scene's recent ticks as levels, newest first.
+#[derive(Debug, Default)]
+pub(super) struct Ring {
+    ticks: VecDeque<(u64, HashMap<u32, Levels>)>,
+}
+
+impl Ring {
+    /// Forgets everything (a new source of frames, or no v2 subscriber left).
+    pub(super) fn clear(&mut self) {
+        self.ticks.clear();
+    }
+
+    /// The levels of `published`, recorded as its tick's when that tick is newer than every
+    /// tick recorded (an older one, e.g. a cached frame for a joiner, is not: a subscriber
+    /// holding it gets a keyframe next).
+    pub(super) fn record(&mut self, published: &Published) -> Arc<HashMap<u32, Levels>> {
+        let seq = published.header.seq;
+        if let Some((_, levels)) = self.ticks.iter().find(|(s, _)| *s == seq) {
+            return Arc::new(levels.clone());
+        }
+        let levels = levels(published);
+        if self.ticks.front().is_none_or(|(s, _)| *s < seq) {
+            self.ticks.push_front((seq, levels.clone()));
+            self.ticks.truncate(RING_TICKS);
+        }
+        Arc::new(levels)
+    }
+
+    fn get(&self, seq: u64, avatar: u32) -> Option<&Levels> {
+        self.ticks
+            .iter()
+            .find(|(s, _)| *s == seq)
+            .and_then(|(_, l)| l.get(&avatar))
+    }
+
+    /// A v2 frame of `published` (whose levels are `now`) for a subscriber holding `chain`
+    /// (`None`: a keyframe), with only the avatars `filter` names. `None` when some avatar
+    /// cannot be coded against the chain (it is new, changed rig, or its frames left the
+    /// ring): the subscriber needs a keyframe.
+    pub(super) fn message(
+        &self,
+        published: &Published,
+        now: &HashMap<u32, Levels>,
+        chain: Option<&[u64]>,
+        filter: Option<&[AvatarId]>,
+    ) -> Option<Message> {
+        let pieces: Vec<_> = published
+            .pieces
+            .iter()
+            .filter(|p| filter.is_none_or(|f| f.contains(p.id())))
+            .collect();
+        let seq = published.header.seq;
+        let mut body = Vec::with_capacity(16 + 8 * pieces.len());
+        for p in &pieces {
+            let num = p.pose.avatar_num;
+            let (hash, levels) = now.get(&num)?;
+            match chain {
+                None => frame2::encode_key(num, *hash, levels, &mut body),
+                Some(chain) => {
+                    let history: Vec<&QuantPose> = chain
+                        .iter()
+                        .map_while(|&s| self.get(s, num).filter(|(h, _)| h == hash))
+                        .map(|(_, l)| &**l)
+                        .collect();
+                    if !frame2::encode_delta(num, levels, &history, &mut body) {
+                        return None;
+                    }
+                }
+            }
+        }
+        let header = FrameHeader {
+            kind: if chain.is_some() {
+                FrameKind::Delta
+            } else {
+                FrameKind::Key
+            },
+            base_seq: chain.and_then(|c| c.first().copied()).unwrap_or(seq),
+            ..published.header
+        };
+        let mut out = Vec::with_capacity(24 + body.len());
+        frame2::write_header(&header, pieces.len(), &mut out);
+        out.extend_from_slice(&body);
+        Some(Message::Binary(Bytes::from(out)))
+    }
+}
+
+/// Every avatar's levels in `published`, by avatar number.
+pub(super) fn levels(published: &Published) -> HashMap<u32, Levels> {
+    published
+        .pieces
+        .iter()
+        .map(|p| {
+            (
+                p.pose.avatar_num,
+                (p.pose.hash, Arc::new(QuantPose::from_pose(&p.pose))),
+            )
+        })
+        .collect()
+}

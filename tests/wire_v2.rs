@@ -1,0 +1,193 @@
+//! Wire v2 (protocol version 2) end to end: the scene's feed serving v1 and v2 subscribers
+//! side by side, a slow v2 reader and a half-rate one; and the native client over a real
+//! websocket asking for version 2.
+
+#![allow(clippy::unwrap_used)]
+
+mod common;
+
+use axum::extract::ws::Message as AxumMessage;
+use common::{CONTROL, server, wait_for};
+use posecast_client::net::Client;
+use posecast_proto::frame::{Frame, FrameDecoder, FrameKind};
+use posecast_proto::frame2::{self, Frame2Decoder, MAX_TRANSLATION_ERROR};
+use posecast_proto::msg::{AvatarId, Encoding, SceneId};
+use posecast_server::avatar::Avatar;
+use posecast_server::metrics::Metrics;
+use posecast_server::scene::Scene;
+use posecast_server::stream::feed::Subscriber;
+use posecast_server::stream::outbox::{Next, Outbox};
+use posecast_testkit::ClientBuilder;
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::Duration;
+
+/// Everything binary the outbox holds now (it always holds something after a tick for a due
+/// subscriber; an empty outbox would block, hence the timeout).
+async fn drain(outbox: &Outbox) -> Vec<Vec<u8>> {
+    match tokio::time::timeout(Duration::from_secs(5), outbox.next()).await {
+        Ok(Next::Send(messages)) => messages
+            .into_iter()
+            .filter_map(|m| match m {
+                AxumMessage::Binary(b) => Some(b.to_vec()),
+                _ => None,
+            })
+            .collect(),
+        other => panic!("outbox gave {other:?}"),
+    }
+}
+
+fn assert_same_pose(v1: &Frame, v2: &Frame) {
+    assert_eq!(v1.header.seq, v2.header.seq);
+    assert_eq!(v1.avatars.len(), v2.avatars.len());
+    for (a, b) in v1.avatars.iter().zip(&v2.avatars) {
+        assert_eq!(a.avatar_num, b.avatar_num);
+        assert_eq!(a.hash, b.hash);
+        // The same 48-bit levels decode to bit-identical quaternions.
+        assert_eq!(a.rotations, b.rotations, "seq {}", v1.header.seq);
+        assert_eq!(a.scales, b.scales);
+        assert_eq!(a.placement, b.placement);
+        for (x, y) in a.translations.iter().zip(&b.translations) {
+            let err = (*x - *y).abs().max_element();
+            assert!(f64::from(err) <= MAX_TRANSLATION_ERROR + 1e-6, "{x} vs {y}");
+        }
+    }
+}
+
+#[tokio::test]
+async fn v1_and_v2_subscribers_decode_the_same_poses_even_when_slow() {
+    let metrics = Arc::new(Metrics::new());
+    let scene = Scene::new(SceneId("s".into()), 1, metrics, 60.0);
+    let rig = Arc::new(posecast_server::builtin::rig().unwrap());
+    for (i, id) in ["a", "b"].into_iter().enumerate() {
+        scene
+            .add_avatar(Avatar::new(AvatarId(id.into()), i as u32 + 1, rig.clone()))
+            .unwrap();
+    }
+    let v1 = Arc::new(Outbox::new());
+    let v2 = Arc::new(Outbox::new());
+    let slow = Arc::new(Outbox::new());
+    let half = Arc::new(Outbox::new());
+    for (conn, outbox, every, version) in [
+        (1, &v1, 1, 1),
+        (2, &v2, 1, 2),
+        (3, &slow, 1, 2),
+        (4, &half, 2, 2),
+    ] {
+        scene
+            .subscribe(
+                Subscriber::new(conn, outbox.clone(), Encoding::Binary, None, every)
+                    .with_version(version),
+            )
+            .unwrap();
+    }
+    let mut d1 = FrameDecoder::new();
+    let mut decoders = [
+        Frame2Decoder::new(),
+        Frame2Decoder::new(),
+        Frame2Decoder::new(),
+    ];
+    let mut by_seq: HashMap<u64, Frame> = HashMap::new();
+    let mut kinds = [[0usize; 2]; 3];
+    let (mut v1_bytes, mut v2_bytes) = (0usize, 0usize);
+    // The slow reader reads at irregular ticks: in between, the outbox replaces its frames.
+    let mut rng = 0x2545_f491_4f6c_dd1du64;
+    let ticks = 360u64;
+    for seq in 1..=ticks {
+        scene.tick(seq, seq as f64 / 60.0, seq * 16_667, 60);
+        for bytes in drain(&v1).await {
+            let f = d1.decode(&bytes).unwrap();
+            v1_bytes += bytes.len();
+            by_seq.insert(f.header.seq, f);
+        }
+        rng ^= rng << 13;
+        rng ^= rng >> 7;
+        rng ^= rng << 17;
+        let reads = [true, rng.is_multiple_of(5), seq.is_multiple_of(2)];
+        for (k, outbox) in [&v2, &slow, &half].into_iter().enumerate() {
+            if !reads[k] {
+                continue;
+            }
+            for bytes in drain(outbox).await {
+                assert_eq!(bytes[0], frame2::MAGIC);
+                let f = decoders[k]
+                    .decode(&bytes)
+                    .unwrap_or_else(|e| panic!("reader {k}, tick {seq}: {e}"));
+                kinds[k][usize::from(f.header.kind == FrameKind::Delta)] += 1;
+                if k == 0 {
+                    v2_bytes += bytes.len();
+                }
+                let reference = by_seq.get(&f.header.seq).unwrap();
+                assert_same_pose(reference, &f);
+            }
+        }
+    }
+    // The full-rate reader got a keyframe a second (the scene's key interval) and deltas
+    // otherwise; the half-rate one deltas too (against 2 ticks back); the slow one keyframes
+    // after its gaps, and still some deltas (reads on consecutive ticks).
+    assert_eq!(kinds[0][0] + kinds[0][1], ticks as usize);
+    assert!(kinds[0][0] <= 2 + ticks as usize / 60, "{kinds:?}");
+    assert!(kinds[2][1] >= kinds[2][0] * 5, "{kinds:?}");
+    assert!(kinds[1][0] > 0, "{kinds:?}");
+    assert!(
+        (v2_bytes as f64) < 0.6 * v1_bytes as f64,
+        "v2 {v2_bytes} B vs v1 {v1_bytes} B"
+    );
+}
+
+async fn connect(server: &posecast_server::startup::Server, version: u32) -> Client {
+    ClientBuilder::new(server.ws_url())
+        .encoding(Encoding::Binary)
+        .token(Some(CONTROL))
+        .options(|o| o.version = version)
+        .connect()
+        .await
+        .unwrap()
+        .into_inner()
+}
+
+#[tokio::test]
+async fn the_native_client_speaks_v2_and_sees_what_a_v1_client_sees() {
+    let server = server(60.0).await;
+    let c1 = connect(&server, 1).await;
+    let c2 = connect(&server, 2).await;
+    let id = AvatarId("avatar".into());
+    assert!(
+        wait_for(10.0, || c1.latest(&id).is_some()
+            && c2.latest(&id).is_some())
+        .await,
+        "no poses"
+    );
+    // Let a few seconds of v2 deltas through, then compare the newest pose of one tick.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let mut compared = 0;
+    for _ in 0..200 {
+        let (a, b) = (c1.latest(&id).unwrap(), c2.latest(&id).unwrap());
+        if a.seq == b.seq {
+            assert_eq!(a.locals.len(), b.locals.len());
+            for (x, y) in a.locals.iter().zip(&b.locals) {
+                assert_eq!(x.rotation, y.rotation, "tick {}", a.seq);
+                assert!(
+                    f64::from((x.translation - y.translation).abs().max_element())
+                        <= MAX_TRANSLATION_ERROR + 1e-6
+                );
+            }
+            compared += 1;
+            if compared >= 5 {
+                break;
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(7)).await;
+    }
+    assert!(compared >= 5, "only {compared} common ticks");
+    let (s1, s2) = (c1.stats(), c2.stats());
+    assert_eq!(s2.undecodable, 0);
+    assert!(s2.frames > 30 && s1.frames > 30);
+    let per = |s: &posecast_client::net::Stats| s.frame_bytes as f64 / s.frames as f64;
+    assert!(
+        per(&s2) < 0.6 * per(&s1),
+        "v2 {} B vs v1 {} B a frame",
+        per(&s2),
+        per(&s1)
+    );
+}
