@@ -37,7 +37,13 @@ async fn collect(
 async fn subsets_carry_exactly_the_selected_joints_for_fewer_bytes() {
     let server = TestServer::builder().tick_rate(30.0).start().await.unwrap();
     let avatar = AvatarId("avatar".into());
-    let full = server.client().await.unwrap();
+    // The reference: every joint, wire v1 (as subsets are served), f32 translations.
+    let full = server
+        .client_builder()
+        .options(|o| o.version = 1)
+        .connect()
+        .await
+        .unwrap();
     let depth = server
         .client_builder()
         .options(|o| o.joints = Some(JointSet::Depth(2)))

@@ -6,13 +6,16 @@
 //! its clip from a different start, with one binary subscriber (so frames are encoded; more
 //! subscribers share the same encoded bytes). The tick runs exactly as the scene's ticker runs
 //! it (`Scene::tick`: a keyframe every 60 ticks, deltas between), on this thread. Also with a
-//! JSON subscriber added, which costs the JSON encoding the binary-only scene does not do.
+//! JSON subscriber added, which costs the JSON encoding the binary-only scene does not do; and
+//! with one wire-v2 subscriber (protocol version 2) instead, whose frames are coded against the
+//! previous frame (its outbox emptied every tick, as a writer keeping up would).
 //!
 //! Times are this thread's CPU time (`CLOCK_THREAD_CPUTIME_ID`), so other work on the shared
 //! cores does not inflate them. Run: `cargo bench -p posecast-server --bench tick`. Prints a
 //! table; asserts nothing.
 
 use anyhow::{Context, Result, bail};
+use futures_util::FutureExt;
 use posecast_proto::msg::{AvatarId, Encoding, SceneId};
 use posecast_proto::testing::testdata;
 use posecast_server::avatar::Avatar;
@@ -30,8 +33,11 @@ use std::time::{Duration, Instant};
 const RATE: f64 = 60.0;
 const KEY_INTERVAL: u64 = 60;
 
-/// A scene of `n` avatars of `rig` playing `clip`, with subscribers of `encodings`.
-fn scene(rig: &Arc<Rig>, clip: &str, n: usize, encodings: &[Encoding]) -> Result<Scene> {
+/// A subscriber's encoding and protocol version (2: wire v2 binary frames).
+type Sub = (Encoding, u32);
+
+/// A scene of `n` avatars of `rig` playing `clip`, with subscribers `subs`, and their outboxes.
+fn scene(rig: &Arc<Rig>, clip: &str, n: usize, subs: &[Sub]) -> Result<(Scene, Vec<Arc<Outbox>>)> {
     let scene = Scene::new(
         SceneId("bench".into()),
         1,
@@ -45,11 +51,15 @@ fn scene(rig: &Arc<Rig>, clip: &str, n: usize, encodings: &[Encoding]) -> Result
         avatar.play(Layer::new(c.clone(), None, start, 1.0, true), 0.0);
         scene.add_avatar(avatar)?;
     }
-    for (k, &encoding) in encodings.iter().enumerate() {
-        let sub = Subscriber::new(k as u64 + 1, Arc::new(Outbox::new()), encoding, None, 1);
+    let mut outboxes = Vec::new();
+    for (k, &(encoding, version)) in subs.iter().enumerate() {
+        let outbox = Arc::new(Outbox::new());
+        let sub =
+            Subscriber::new(k as u64 + 1, outbox.clone(), encoding, None, 1).with_version(version);
         scene.subscribe(sub)?;
+        outboxes.push(outbox);
     }
-    Ok(scene)
+    Ok((scene, outboxes))
 }
 
 /// This thread's CPU time: what the tick costs, not what other processes on the shared cores
@@ -62,8 +72,10 @@ fn thread_cpu() -> Duration {
     )
 }
 
-/// Mean CPU time of one tick over about `budget` of it (after a second of warm-up ticks).
-fn time_ticks(scene: &Scene, budget: Duration) -> Duration {
+/// Mean CPU time of one tick over about `budget` of it (after a second of warm-up ticks). The
+/// outboxes are emptied after each tick, as their writers would (a wire-v2 subscriber whose
+/// frame was never taken would get keyframes only).
+fn time_ticks(scene: &Scene, outboxes: &[Arc<Outbox>], budget: Duration) -> Duration {
     let mut seq = 0u64;
     let mut run = |ticks: u64| {
         for _ in 0..ticks {
@@ -74,6 +86,9 @@ fn time_ticks(scene: &Scene, budget: Duration) -> Duration {
                 1_700_000_000_000_000 + seq * 16_667,
                 KEY_INTERVAL,
             );
+            for outbox in outboxes {
+                let _ = outbox.next().now_or_never();
+            }
         }
     };
     run(60);
@@ -126,18 +141,26 @@ fn main() -> Result<()> {
     println!("|---|---:|---:|---|---:|---:|---:|---:|");
     for (name, rig, clip) in &rigs {
         let joints = rig.skeleton().len();
-        for (n, encodings) in [
-            (1, vec![Encoding::Binary]),
-            (100, vec![Encoding::Binary]),
-            (4000, vec![Encoding::Binary]),
-            (100, vec![Encoding::Binary, Encoding::Json]),
+        let v1 = (Encoding::Binary, 1);
+        let v2 = (Encoding::Binary, 2);
+        let json = (Encoding::Json, 1);
+        for (n, subs) in [
+            (1, vec![v1]),
+            (100, vec![v1]),
+            (4000, vec![v1]),
+            (100, vec![v1, json]),
+            (100, vec![v2]),
+            (4000, vec![v2]),
         ] {
-            let scene = scene(rig, clip, n, &encodings)?;
-            let tick = time_ticks(&scene, Duration::from_secs(2));
+            let (scene, outboxes) = scene(rig, clip, n, &subs)?;
+            let tick = time_ticks(&scene, &outboxes, Duration::from_secs(2));
             let per_avatar = tick.as_secs_f64() * 1e6 / n as f64;
-            let subs = encodings
+            let subs = subs
                 .iter()
-                .map(|e| format!("{e:?}").to_lowercase())
+                .map(|(e, v)| match (e, v) {
+                    (Encoding::Binary, 2) => "binary v2".to_owned(),
+                    (e, _) => format!("{e:?}").to_lowercase(),
+                })
                 .collect::<Vec<_>>()
                 .join(" + ");
             println!(

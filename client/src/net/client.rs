@@ -8,8 +8,7 @@ use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::{AvatarPose, Frame, FrameDecoder};
 use posecast_proto::frame2::{self, Frame2Decoder};
 use posecast_proto::msg::{
-    AvatarId, AvatarPoseJson, ClientMsg, Encoding, FrameJson, PROTOCOL_VERSION, ProtocolError,
-    SceneId, ServerMsg,
+    AvatarId, AvatarPoseJson, ClientMsg, Encoding, FrameJson, ProtocolError, SceneId, ServerMsg,
 };
 use posecast_proto::placement::Placement;
 use posecast_proto::subset::{JointSet, Selection};
@@ -56,8 +55,9 @@ pub struct ClientOptions {
     /// Only these joints of every avatar, from every subscription (`None`: all). The joints
     /// left out stay at their rest transforms in the poses this client gives.
     pub joints: Option<JointSet>,
-    /// Protocol version asked for in hello: 2 gets wire v2 binary frames
-    /// ([`posecast_proto::frame2`], about a third of v1's bytes), 1 the v1 frames.
+    /// Protocol version asked for in hello (default 2): 2 gets wire v2 binary frames
+    /// ([`posecast_proto::frame2`], about half of v1's bytes), 1 the v1 frames
+    /// ([`posecast_proto::frame`]; a server of before version 2 accepts only that).
     pub version: u32,
 }
 
@@ -76,7 +76,7 @@ impl ClientOptions {
             name: "posecast-client".into(),
             rate: None,
             joints: None,
-            version: PROTOCOL_VERSION,
+            version: 2,
         }
     }
 }

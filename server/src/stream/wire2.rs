@@ -21,10 +21,13 @@ pub const RING_TICKS: usize = 6 * frame2::MAX_DEPTH;
 /// One avatar's levels at a tick, with the description hash they belong to.
 type Levels = (u64, Arc<QuantPose>);
 
+/// Every avatar's levels at one tick, by avatar number.
+pub(super) type TickLevels = HashMap<u32, Levels>;
+
 /// The scene's recent ticks as levels, newest first.
 #[derive(Debug, Default)]
 pub(super) struct Ring {
-    ticks: VecDeque<(u64, HashMap<u32, Levels>)>,
+    ticks: VecDeque<(u64, Arc<TickLevels>)>,
 }
 
 impl Ring {
@@ -36,24 +39,31 @@ impl Ring {
     /// The levels of `published`, recorded as its tick's when that tick is newer than every
     /// tick recorded (an older one, e.g. a cached frame for a joiner, is not: a subscriber
     /// holding it gets a keyframe next).
-    pub(super) fn record(&mut self, published: &Published) -> Arc<HashMap<u32, Levels>> {
+    pub(super) fn record(&mut self, published: &Published) -> Arc<TickLevels> {
         let seq = published.header.seq;
         if let Some((_, levels)) = self.ticks.iter().find(|(s, _)| *s == seq) {
-            return Arc::new(levels.clone());
+            return levels.clone();
         }
-        let levels = levels(published);
+        let levels = Arc::new(levels(published));
         if self.ticks.front().is_none_or(|(s, _)| *s < seq) {
             self.ticks.push_front((seq, levels.clone()));
             self.ticks.truncate(RING_TICKS);
         }
-        Arc::new(levels)
+        levels
     }
 
-    fn get(&self, seq: u64, avatar: u32) -> Option<&Levels> {
-        self.ticks
+    /// The recorded ticks of `chain` (newest first), up to the first one no longer kept.
+    fn ticks_of(&self, chain: &[u64]) -> Vec<&TickLevels> {
+        chain
             .iter()
-            .find(|(s, _)| *s == seq)
-            .and_then(|(_, l)| l.get(&avatar))
+            .take(frame2::MAX_DEPTH)
+            .map_while(|&seq| {
+                self.ticks
+                    .iter()
+                    .find(|(s, _)| *s == seq)
+                    .map(|(_, l)| &**l)
+            })
+            .collect()
     }
 
     /// A v2 frame of `published` (whose levels are `now`) for a subscriber holding `chain`
@@ -63,7 +73,7 @@ impl Ring {
     pub(super) fn message(
         &self,
         published: &Published,
-        now: &HashMap<u32, Levels>,
+        now: &TickLevels,
         chain: Option<&[u64]>,
         filter: Option<&[AvatarId]>,
     ) -> Option<Message> {
@@ -74,21 +84,24 @@ impl Ring {
             .collect();
         let seq = published.header.seq;
         let mut body = Vec::with_capacity(16 + 8 * pieces.len());
+        let ticks = chain.map(|c| self.ticks_of(c)).unwrap_or_default();
+        let mut history: Vec<&QuantPose> = Vec::with_capacity(ticks.len());
         for p in &pieces {
             let num = p.pose.avatar_num;
             let (hash, levels) = now.get(&num)?;
-            match chain {
-                None => frame2::encode_key(num, *hash, levels, &mut body),
-                Some(chain) => {
-                    let history: Vec<&QuantPose> = chain
-                        .iter()
-                        .map_while(|&s| self.get(s, num).filter(|(h, _)| h == hash))
-                        .map(|(_, l)| &**l)
-                        .collect();
-                    if !frame2::encode_delta(num, levels, &history, &mut body) {
-                        return None;
-                    }
-                }
+            if chain.is_none() {
+                frame2::encode_key(num, *hash, levels, &mut body);
+                continue;
+            }
+            history.clear();
+            history.extend(
+                ticks
+                    .iter()
+                    .map_while(|t| t.get(&num).filter(|(h, _)| h == hash))
+                    .map(|(_, l)| &**l),
+            );
+            if !frame2::encode_delta(num, levels, &history, &mut body) {
+                return None;
             }
         }
         let header = FrameHeader {
@@ -108,7 +121,7 @@ impl Ring {
 }
 
 /// Every avatar's levels in `published`, by avatar number.
-pub(super) fn levels(published: &Published) -> HashMap<u32, Levels> {
+pub(super) fn levels(published: &Published) -> TickLevels {
     published
         .pieces
         .iter()
