@@ -389,7 +389,7 @@ fn v2_frame(kind: FrameKind, seq: u64, base_seq: u64, time: u64, body: &[u8]) ->
 }
 
 /// Short sequences, each for a fresh decoder: three good frames of a 5-joint avatar, then one
-/// odd one — a delta chunk of random bytes (any depth, flags and bit stream: whatever
+/// odd one — a delta with a bit or two flipped, a delta chunk of random bytes (any depth, flags and bit stream: whatever
 /// `Frame2Decoder` makes of it, decoded or refused), a keyframe with the avatar twice, a count
 /// over the limit, an 11-byte varint, a scene number over u32 — and what it makes of that.
 fn frame2_odd_vectors(rng: &mut Lcg) -> Vec<Value> {
@@ -453,6 +453,30 @@ fn frame2_odd_vectors(rng: &mut Lcg) -> Vec<Value> {
             _ => odd.push(bytes),
         }
     }
+    // The next good delta (the avatar turned and moved) with one or two bytes changed.
+    let mut moved = pose.clone();
+    for q in &mut moved.rotations {
+        *q = (Quat::from_scaled_axis(rng.vec3() * 0.01) * *q).normalize();
+    }
+    moved.translations[0] += rng.vec3() * 0.01;
+    let next = {
+        let mut stream = StreamEncoder::new();
+        for seq in 1..4 {
+            stream.encode(4, seq, 0, std::slice::from_ref(&pose), false);
+        }
+        stream
+            .encode(4, 4, 0, std::slice::from_ref(&moved), false)
+            .0
+    };
+    for case in 0..60 {
+        let mut b = next.clone();
+        for _ in 0..1 + case % 2 {
+            let at = (rng.next() * b.len() as f32) as usize;
+            b[at] ^= 1 << (rng.next() * 8.0) as u32;
+        }
+        odd.push(b);
+    }
+    odd.push(next);
     let mut chunk = Vec::new();
     frame2::encode_key(1, 9, &QuantPose::from_pose(&pose), &mut chunk);
     odd.push(
@@ -698,6 +722,7 @@ fn the_clients_decoder_jitter_buffer_and_clock_match_the_rust_ones() {
     assert!(v2["slow"]["refused"].as_u64().unwrap() >= 60, "{report}");
     let odd = &report["odd"];
     assert_eq!(odd["beyond"].as_u64(), Some(1), "{report}");
+    assert_eq!(report["fuzz"].as_u64(), Some(3000), "{report}");
     assert!(odd["decoded"].as_u64().unwrap() >= 10, "{report}");
     assert!(odd["refused"].as_u64().unwrap() >= 50, "{report}");
     for kind in ["interpolated", "extrapolated", "held"] {
