@@ -12,6 +12,7 @@
 
 import { PosecastError } from "./errors.js";
 import { FrameDecoder } from "./frames.js";
+import { Frame2Decoder, MAGIC2 } from "./frames2.js";
 import { JitterBuffer } from "./jitter.js";
 import { ClockEstimator } from "./clock.js";
 import { expandPose, selectJoints } from "./subset.js";
@@ -36,7 +37,8 @@ import { expandPose, selectJoints } from "./subset.js";
 /** @typedef {import("./posecast.js").Encoding} Encoding */
 /** @typedef {import("./posecast.js").JointSet} JointSet */
 
-export const PROTOCOL_VERSION = 1;
+/** The protocol version a client asks for unless told otherwise: 2, wire v2 binary frames. */
+export const PROTOCOL_VERSION = 2;
 
 /** @returns {number} The wall clock in µs since the Unix epoch. */
 export function nowMicros() {
@@ -69,6 +71,8 @@ export class Client {
     this.url = options.url ?? defaultUrl();
     /** @type {Encoding} */
     this.encoding = options.encoding ?? "binary";
+    /** The protocol version asked for in the hello: 2 (wire v2 frames) or 1 (v1 frames). */
+    this.version = options.version ?? PROTOCOL_VERSION;
     const tokens = options.tokens ?? (options.token ? [{ kind: /** @type {const} */ ("control"), value: options.token }] : []);
     /** @type {() => Token[]} */
     this.tokens = typeof tokens === "function" ? tokens : () => tokens;
@@ -106,6 +110,7 @@ export class Client {
     this.jointSets = new Map();
     this.sceneNames = new Map();
     this.decoder = new FrameDecoder();
+    this.decoder2 = new Frame2Decoder();
     /** @type {Map<number, {resolve: (v: unknown) => void, reject: (e: PosecastError) => void, timer: ReturnType<typeof setTimeout>}>} */
     this.pending = new Map();
     /** @type {Map<number, number>} Ping id → its send time, µs. */
@@ -224,7 +229,7 @@ export class Client {
     this.ws = ws;
     ws.onopen = () => {
       /** @type {ClientMessage} */
-      const hello = { type: "hello", version: PROTOCOL_VERSION, encoding: this.encoding, client: this.name };
+      const hello = { type: "hello", version: this.version, encoding: this.encoding, client: this.name };
       if (token) hello.token = token.value;
       ws.send(JSON.stringify(hello));
     };
@@ -283,6 +288,7 @@ export class Client {
     this.backoff = this.initialBackoffMs;
     // A new connection: its own scene numbers and keyframes.
     this.decoder = new FrameDecoder();
+    this.decoder2 = new Frame2Decoder();
     this.sceneNames.clear();
     this.stats.connects++;
     this.setState("online");
@@ -409,6 +415,8 @@ export class Client {
   /** @param {string} scene */
   dropScene(scene) {
     for (const [id, view] of this.avatars) if (view.scene === scene) this.avatars.delete(id);
+    // Its v2 frames are of no use any more (a new subscription starts with a keyframe).
+    for (const [num, name] of this.sceneNames) if (name === scene) this.decoder2.forgetScene(num);
   }
 
   /**
@@ -532,7 +540,10 @@ export class Client {
   onBinary(data, received) {
     let decoded;
     try {
-      decoded = this.decoder.decode(data);
+      // A v2 connection still gets v1 frames for a subscription with a joint subset: the
+      // first byte says which wire a frame is.
+      const first = data.byteLength > 0 ? new Uint8Array(data, 0, 1)[0] : 0;
+      decoded = first === MAGIC2 ? this.decoder2.decode(data) : this.decoder.decode(data);
     } catch {
       this.stats.undecodable++;
       return;

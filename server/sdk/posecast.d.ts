@@ -1,6 +1,7 @@
 // Type declarations of posecast's JavaScript client, served at /sdk/posecast.d.ts beside the
 // module it describes (/sdk/posecast.js). This file is the API reference; proto/PROTOCOL.md is
-// the reference of the messages. SDK version 1 speaks protocol version 1.
+// the reference of the messages. SDK version 1.1 speaks protocol version 2 (wire v2 binary
+// frames) by default, and version 1 when asked (`ClientOptions.version`).
 //
 //   import { Client } from "/sdk/posecast.js";
 //   const client = new Client({ token: "…" });          // ws(s)://this host/ws, binary frames
@@ -12,7 +13,7 @@
 /** The SDK's version. */
 export declare const SDK_VERSION: string;
 /** The protocol version the SDK speaks (the `hello`'s `version`). */
-export declare const PROTOCOL_VERSION: 1;
+export declare const PROTOCOL_VERSION: 2;
 
 export type Vec3 = [number, number, number];
 /** `[x, y, z, w]`. */
@@ -200,6 +201,12 @@ export interface ClientOptions {
   tokens?: Token[] | (() => Token[]);
   /** Frame encoding; default `"binary"` (several times smaller than JSON). */
   encoding?: Encoding;
+  /**
+   * Protocol version asked for in the hello: 2 (default; binary frames in wire v2, deltas
+   * against the previous frame, about half the bytes of v1) or 1 (v1 frames). Frames of a
+   * subscription with `joints` are v1 on either; the client decodes both.
+   */
+  version?: 1 | 2;
   /** The `client` name in the hello; default `"posecast-js"`. */
   name?: string;
   /** Reconnect when the connection drops (default true), resubscribing. */
@@ -272,6 +279,8 @@ export declare class Client {
   constructor(options?: ClientOptions);
   readonly url: string;
   readonly encoding: Encoding;
+  /** The protocol version asked for in the hello (`welcome.version` says the one in use). */
+  readonly version: 1 | 2;
   readonly state: ConnectionState;
   /** Why the state is what it is ("connection lost", a refusal's reason…). */
   readonly detail: string;
@@ -375,6 +384,21 @@ export interface BinaryFrame {
   server_time_us: number;
   base_seq: number;
   avatars: { num: number; hash: string; rotations: Quat[]; translations: Vec3[]; scales: Vec3[]; placement: Placement }[];
+}
+/**
+ * Decodes wire v2 frames (first byte 0x51; proto/PROTOCOL.md "Pose frames, wire v2"), keeping
+ * each (scene, avatar)'s last 8 decoded frames for the deltas that refer to them — the twin of
+ * posecast-proto's `Frame2Decoder`. One decoder per connection.
+ */
+export declare class Frame2Decoder {
+  constructor();
+  /**
+   * Decodes one v2 frame; throws a {@link PosecastError} `bad_message` on malformed bytes or a
+   * delta whose base frames are not held (and changes nothing).
+   */
+  decode(bytes: ArrayBuffer | Uint8Array): BinaryFrame;
+  /** Forgets a scene's frames (the client left it). */
+  forgetScene(sceneNum: number): void;
 }
 /** Decodes a 48-bit smallest-three rotation. */
 export declare function decodeQuat(bits: number): Quat;

@@ -12,15 +12,18 @@
 // - client.js: the connection (hello/welcome, token fallback, subscriptions, commands as
 //   promises, ping/pong, reconnect with back-off);
 // - frames.js: the binary frame decoder (keyframes, deltas, smallest-three rotations);
+// - frames2.js: the wire v2 decoder (protocol version 2: deltas against the previous frame,
+//   predicted levels, Rice-coded residuals);
 // - jitter.js, clock.js: playout of the stream and the clock offset, as posecast-client does;
 // - subset.js: joint subsets (a subscription's `joints`), made whole at rest;
 // - fk.js, math.js: forward kinematics and skinning matrices (checked against posecast-proto);
 // - errors.js: PosecastError, with the protocol's error code.
 
-export const SDK_VERSION = "1.0.0";
+export const SDK_VERSION = "1.1.0";
 export { Client, PROTOCOL_VERSION, nowMicros } from "./client.js";
 export { PosecastError } from "./errors.js";
 export { FrameDecoder, decodeQuat } from "./frames.js";
+export { Frame2Decoder } from "./frames2.js";
 export { JitterBuffer } from "./jitter.js";
 export { ClockEstimator } from "./clock.js";
 export { selectJoints, expandPose } from "./subset.js";

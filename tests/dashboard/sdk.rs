@@ -45,7 +45,9 @@ async fn serve_page(html: String) -> String {
 }
 
 /// A page that imports only the client and records, per tick, the decoded rotations and
-/// placement of `avatar` (and whether the frame was a keyframe).
+/// placement of `avatar` (and whether the frame was a keyframe): its default client (protocol
+/// version 2, wire v2 frames), one asking for version 1, one for JSON and one for a joint
+/// subset (v1 frames on a version-2 connection).
 fn recording_page(addr: std::net::SocketAddr) -> String {
     format!(
         r#"<!doctype html><meta charset="utf-8"><title>posecast.js</title>
@@ -66,6 +68,16 @@ client.on("frame", (f) => {{
 }});
 client.subscribe("default");
 client.connect();
+// The same stream in v1 frames (protocol version 1).
+const v1 = new sdk.Client({{ url: window.url, version: 1 }});
+window.v1Client = v1;
+window.v1 = {{}};
+v1.on("frame", (f) => {{
+  const p = f.avatars.find((a) => a.avatar === "avatar");
+  if (p && Object.keys(window.v1).length < 600) window.v1[f.seq] = {{ key: f.key, rotations: p.rotations, placement: p.placement }};
+}});
+v1.subscribe("default");
+v1.connect();
 // The same stream as JSON (float rotations, every frame complete), in the same shape.
 const json = new sdk.Client({{ url: window.url, encoding: "json" }});
 window.jsonClient = json;
@@ -100,17 +112,84 @@ fn quat(v: &Value) -> glam::Quat {
     glam::Quat::from_xyzw(a[0], a[1], a[2], a[3])
 }
 
+/// How a page client's recorded ticks compare with the Rust client's.
+struct Compared {
+    ticks: usize,
+    deltas: usize,
+    rotations: usize,
+    worst: f64,
+    worst_place: f32,
+}
+
+/// On every tick both decoded, the page client's rotations equal the Rust client's within
+/// float rounding (the same 48 bits), and its placement too.
+fn compare(
+    rust_ticks: &BTreeMap<u64, (Vec<glam::Quat>, [f32; 7])>,
+    recorded: &serde_json::Map<String, Value>,
+    wire: &str,
+) -> Compared {
+    let (mut ticks, mut deltas, mut rotations, mut worst, mut worst_place) =
+        (0, 0, 0, 0.0f64, 0.0f32);
+    for (seq, (want, want_place)) in rust_ticks {
+        let Some(got) = recorded.get(&seq.to_string()) else {
+            continue;
+        };
+        ticks += 1;
+        if got["key"] == json!(false) {
+            deltas += 1;
+        }
+        let got_rotations = got["rotations"].as_array().unwrap();
+        assert_eq!(got_rotations.len(), want.len(), "joints at tick {seq}");
+        for (j, (g, w)) in got_rotations.iter().zip(want).enumerate() {
+            let angle = angle_between_degrees(quat(g), *w);
+            worst = worst.max(angle);
+            rotations += 1;
+            assert!(
+                angle <= SAME_BITS_DEGREES,
+                "{wire} tick {seq} joint {j}: the page decoded {g}, the Rust client {w:?} ({angle}°)"
+            );
+        }
+        let p = &got["placement"];
+        let got_place: Vec<f32> = p["position"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .chain(p["rotation"].as_array().unwrap())
+            .map(|x| x.as_f64().unwrap() as f32)
+            .collect();
+        for (g, w) in got_place.iter().zip(want_place) {
+            worst_place = worst_place.max((g - w).abs());
+            assert!(
+                (g - w).abs() <= 1e-5,
+                "{wire} tick {seq}: placement {p} vs {want_place:?}"
+            );
+        }
+    }
+    assert!(
+        worst <= MAX_ERROR_DEGREES,
+        "{wire}: {worst}° over the quantisation bound"
+    );
+    Compared {
+        ticks,
+        deltas,
+        rotations,
+        worst,
+        worst_place,
+    }
+}
+
 /// Both decoders read the same 48 bits per rotation, so they differ by float rounding only
 /// (f64 in JavaScript, f32 in Rust: measured 1.5e-5°); one 15-bit level off is about 0.005°,
 /// inside the quantisation bound but not this.
 const SAME_BITS_DEGREES: f64 = 5e-4;
 
-/// On every tick both decoded, the page's rotations equal the Rust client's within the
-/// quantisation bound — within float rounding, in fact — and its placements within float
-/// rounding; the page's JSON client's float rotations are within the quantisation bound of
-/// them — keyframes and deltas (the
-/// avatar walks while it is moved, so deltas carry small and full rotation changes and
-/// placements).
+/// On every tick both decoded, the page's rotations — its default client's, wire v2, and a
+/// version-1 client's — equal the Rust client's (v1 frames) within the quantisation bound —
+/// within float rounding, in fact — and its placements within float rounding; the page's JSON
+/// client's float rotations are within the quantisation bound of them — keyframes and deltas
+/// (the avatar walks while it is moved, so deltas carry small and full rotation changes and
+/// placements). v2 frames are smaller than v1 frames, which are several times smaller than
+/// JSON; the joint-subset client, on a version-2 connection, decodes its v1 frames.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
     let server = common::server(60.0).await;
@@ -162,46 +241,21 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
     let recorded = wait_js(&b, 5, "window.recordedCount >= 200 && window.recorded").await;
     let recorded = recorded.as_object().unwrap();
 
-    let (mut ticks, mut deltas, mut rotations, mut worst, mut worst_place) =
-        (0, 0, 0, 0.0f64, 0.0f32);
-    for (seq, (want, want_place)) in &rust_ticks {
-        let Some(got) = recorded.get(&seq.to_string()) else {
-            continue;
-        };
-        ticks += 1;
-        if got["key"] == json!(false) {
-            deltas += 1;
-        }
-        let got_rotations = got["rotations"].as_array().unwrap();
-        assert_eq!(got_rotations.len(), want.len(), "joints at tick {seq}");
-        for (j, (g, w)) in got_rotations.iter().zip(want).enumerate() {
-            let angle = angle_between_degrees(quat(g), *w);
-            worst = worst.max(angle);
-            rotations += 1;
-            assert!(
-                angle <= SAME_BITS_DEGREES,
-                "tick {seq} joint {j}: the page decoded {g}, the Rust client {w:?} ({angle}°)"
-            );
-        }
-        let p = &got["placement"];
-        let got_place: Vec<f32> = p["position"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .chain(p["rotation"].as_array().unwrap())
-            .map(|x| x.as_f64().unwrap() as f32)
-            .collect();
-        for (g, w) in got_place.iter().zip(want_place) {
-            worst_place = worst_place.max((g - w).abs());
-            assert!(
-                (g - w).abs() <= 1e-5,
-                "tick {seq}: placement {p} vs {want_place:?}"
-            );
-        }
-    }
+    let v2 = compare(&rust_ticks, recorded, "v2");
+    let v1_recorded = wait_js(&b, 5, "Object.keys(window.v1).length > 60 && window.v1").await;
+    let v1 = compare(&rust_ticks, v1_recorded.as_object().unwrap(), "v1");
+    let Compared {
+        ticks,
+        deltas,
+        rotations,
+        worst,
+        worst_place,
+    } = v2;
     assert!(
-        worst <= MAX_ERROR_DEGREES,
-        "{worst}° over the quantisation bound"
+        v1.ticks >= 60 && v1.deltas >= 30,
+        "only {} ticks ({} deltas) decoded by the v1 page client and the Rust client",
+        v1.ticks,
+        v1.deltas
     );
     // The JSON client's float rotations: the binary ones are within the quantisation bound.
     let json_frames = wait_js(&b, 5, "window.json").await;
@@ -262,28 +316,38 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
         arm_ticks >= 60,
         "only {arm_ticks} ticks of the arm-only client"
     );
-    // Binary is what browsers should get: several times smaller than JSON (bytes per frame,
-    // keyframes included).
+    // Binary is what browsers should get: several times smaller than JSON, and v2 (the
+    // default) smaller than v1 (bytes per frame, keyframes included).
     let sizes = b
         .execute(
             "return [client.stats.frameBytes / client.stats.frames, \
                      jsonClient.stats.frameBytes / jsonClient.stats.frames, \
                      armClient.stats.frameBytes / armClient.stats.frames, \
-                     armClient.stats.undecodable];",
+                     armClient.stats.undecodable, \
+                     v1Client.stats.frameBytes / v1Client.stats.frames, \
+                     [client, v1Client, armClient].map((c) => c.welcome.version), \
+                     client.stats.undecodable, v1Client.stats.undecodable];",
             vec![],
         )
         .await
         .unwrap();
     let (binary_bytes, json_bytes) = (sizes[0].as_f64().unwrap(), sizes[1].as_f64().unwrap());
-    let arm_bytes = sizes[2].as_f64().unwrap();
+    let (arm_bytes, v1_bytes) = (sizes[2].as_f64().unwrap(), sizes[4].as_f64().unwrap());
     assert_eq!(sizes[3], json!(0), "arm-only frames all decoded");
+    assert_eq!(sizes[5], json!([2, 1, 2]), "protocol versions welcomed");
+    assert_eq!(sizes[6], json!(0), "v2 frames all decoded");
+    assert_eq!(sizes[7], json!(0), "v1 frames all decoded");
     assert!(
-        arm_bytes < binary_bytes,
-        "arm-only {arm_bytes:.0} B, all joints {binary_bytes:.0} B a frame"
+        arm_bytes < v1_bytes,
+        "arm-only {arm_bytes:.0} B, all joints {v1_bytes:.0} B a v1 frame"
     );
     assert!(
-        binary_bytes * 3.0 < json_bytes,
-        "bytes per frame: binary {binary_bytes:.0}, JSON {json_bytes:.0}"
+        binary_bytes < v1_bytes,
+        "bytes per frame: v2 {binary_bytes:.0}, v1 {v1_bytes:.0}"
+    );
+    assert!(
+        v1_bytes * 3.0 < json_bytes,
+        "bytes per frame: v1 {v1_bytes:.0}, JSON {json_bytes:.0}"
     );
     // 3 s at 60 Hz: most ticks reach both (a loaded machine may skip some).
     assert!(
@@ -302,9 +366,13 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
     println!(
         "posecast.js vs posecast_client: {ticks} ticks ({deltas} deltas), {rotations} rotations, \
          largest difference {worst:.2e}° (bound {MAX_ERROR_DEGREES}°), placement {worst_place:.1e}; \
-         JSON vs binary on {json_ticks} ticks: {worst_json:.2e}°; bytes per frame: binary \
-         {binary_bytes:.0}, JSON {json_bytes:.0}, binary of the left arm's chain \
+         v1 page client: {} ticks ({} deltas), largest difference {:.2e}°; \
+         JSON vs binary on {json_ticks} ticks: {worst_json:.2e}°; bytes per frame: v2 \
+         {binary_bytes:.1}, v1 {v1_bytes:.1}, JSON {json_bytes:.0}, v1 of the left arm's chain \
          ({} joints, {arm_ticks} ticks compared) {arm_bytes:.0}",
+        v1.ticks,
+        v1.deltas,
+        v1.worst,
         chain.joints.len()
     );
 }

@@ -7,9 +7,10 @@
 //! - the JavaScript client's forward kinematics and skinning matrices (`server/sdk/fk.js`, run
 //!   by node through `server/web/check/fk.mjs`) give the matrices `posecast_proto::fk` gives,
 //!   on random skeletons and the built-in rig with random poses and placements;
-//! - the client's binary decoder, jitter buffer and clock estimator (`server/sdk/frames.js`,
-//!   `jitter.js`, `clock.js`, through `server/web/check/stream.mjs`) match posecast-proto's
-//!   `FrameDecoder` and posecast-client's `JitterBuffer` and `ClockEstimator` on shared vectors;
+//! - the client's binary decoders, jitter buffer and clock estimator (`server/sdk/frames.js`,
+//!   `frames2.js`, `jitter.js`, `clock.js`, through `server/web/check/stream.mjs`) match
+//!   posecast-proto's `FrameDecoder` and `Frame2Decoder` and posecast-client's `JitterBuffer`
+//!   and `ClockEstimator` on shared vectors;
 //! - the client's modules type-check against its declarations (`server/sdk/posecast.d.ts`),
 //!   and a TypeScript user's file (`server/sdk/check/usage.ts`) against the declarations alone.
 //!

@@ -4,6 +4,13 @@
 //!   in keyframes and deltas, translations and scales; truncated, trailing, bad-magic and
 //!   orphan-delta frames refused without changing its keyframes) as `posecast_proto::frame`'s
 //!   `FrameDecoder` does;
+//! - `server/sdk/frames2.js` decodes wire v2 frames made by `posecast_proto::frame2` (a reader
+//!   of every frame, deltas up to depth 8; a slow reader with gaps, keyframes or deltas against
+//!   its last decoded frame; escapes, Rice escapes, placements, scales) to the same rotations
+//!   (float rounding), translations, scales and placements as `Frame2Decoder`, refuses what it
+//!   refuses (cut short, trailing, magic, kind, bases not held, reserved flags, zero gaps,
+//!   duplicates, counts, long varints) without changing its state, and agrees with it on random
+//!   delta bit streams;
 //! - `server/sdk/jitter.js` gives the playout delay and sampled poses (and how each was made)
 //!   of posecast-client's `JitterBuffer` on an irregular stream with late and lost frames;
 //! - `server/sdk/clock.js` gives `ClockEstimator`'s offset and round trip;
@@ -17,8 +24,9 @@ use posecast_client::net::jitter::{JitterBuffer, Sampled};
 use posecast_proto::Transform;
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::{
-    AvatarPose, ChunkEncoder, FrameDecoder, FrameHeader, FrameKind, write_header,
+    AvatarPose, ChunkEncoder, Frame, FrameDecoder, FrameHeader, FrameKind, write_header,
 };
+use posecast_proto::frame2::{self, Frame2Decoder, QuantPose, StreamEncoder};
 use posecast_proto::msg::AvatarId;
 use posecast_proto::placement::Placement;
 use posecast_proto::subset::JointSet;
@@ -184,6 +192,323 @@ fn frame_vectors(rng: &mut Lcg) -> Vec<Value> {
         }
     }
     out
+}
+
+/// The expected decoding of a frame (as both decoders report it).
+fn frame_json(frame: &Frame) -> Value {
+    json!({
+        "key": frame.header.kind == FrameKind::Key,
+        "scene_num": frame.header.scene_num,
+        "seq": frame.header.seq,
+        "server_time_us": frame.header.server_time_us,
+        "base_seq": frame.header.base_seq,
+        "avatars": frame.avatars.iter().map(pose_json).collect::<Vec<_>>(),
+    })
+}
+
+/// A v2 frame's bytes with its header rewritten (`seq`, `base_seq`), its chunks kept.
+fn v2_rehead(bytes: &[u8], seq: u64, base_seq: u64) -> Vec<u8> {
+    let (header, count) = frame2::read_header(bytes).unwrap();
+    let mut old = Vec::new();
+    frame2::write_header(&header, count, &mut old);
+    let mut out = Vec::new();
+    frame2::write_header(
+        &FrameHeader {
+            seq,
+            base_seq,
+            ..header
+        },
+        count,
+        &mut out,
+    );
+    out.extend_from_slice(&bytes[old.len()..]);
+    out
+}
+
+/// Malformed variants of a v2 frame the decoder holding `decoder`'s state refuses (checked
+/// here): cut short (by one byte and at a random point), one byte too many, v1's magic, an
+/// unknown kind, and for a delta a base it does not hold, a reserved flag bit and a zero gap.
+fn v2_refused(bytes: &[u8], decoder: &mut Frame2Decoder, rng: &mut Lcg) -> Vec<Value> {
+    let (header, _) = frame2::read_header(bytes).unwrap();
+    let mut bad = vec![
+        bytes[..bytes.len() - 1].to_vec(),
+        bytes[..(rng.next() * bytes.len() as f32) as usize].to_vec(),
+        [bytes, &[0]].concat(),
+    ];
+    let mut magic = bytes.to_vec();
+    magic[0] = posecast_proto::frame::MAGIC;
+    bad.push(magic);
+    let mut kind = bytes.to_vec();
+    kind[1] = 3;
+    bad.push(kind);
+    if header.kind == FrameKind::Delta {
+        bad.push(v2_rehead(bytes, header.seq, header.base_seq - 1));
+        bad.push(v2_rehead(bytes, header.seq + 3, header.base_seq + 3));
+        let mut head = Vec::new();
+        frame2::write_header(&header, 2, &mut head);
+        // The first chunk's flags follow its avatar number (one byte: avatars 1 and 2).
+        let mut reserved = bytes.to_vec();
+        reserved[head.len() + 1] |= 8;
+        bad.push(reserved);
+        let mut gap = bytes.to_vec();
+        gap[head.len() - 1] = 0;
+        bad.push(gap);
+    }
+    bad.into_iter()
+        .map(|b| {
+            assert!(decoder.decode(&b).is_err(), "{b:?}");
+            json!({"bytes": b, "expect": null})
+        })
+        .collect()
+}
+
+/// Two avatars moving for 120 ticks, coded in wire v2 by `posecast_proto::frame2`: what
+/// `Frame2Decoder` makes of each frame, in order, (`fast`) for a reader of every frame (the
+/// `StreamEncoder`'s deltas against the previous frame, up to depth 8, a keyframe every 40
+/// ticks) and (`slow`) for one that misses frames and, after a gap, gets a keyframe or a delta
+/// against the last frame it decoded — and the fast stream's deltas whose base it lacks.
+/// Joints mostly turn a little (predicted, Rice-coded), some jump (escapes), the first avatar
+/// now and then teleports (Rice escapes); placements and scales change. Malformed frames
+/// between the good ones: `null`, and they change nothing.
+fn frame2_vectors(rng: &mut Lcg) -> Value {
+    let joints = [9usize, 23];
+    let mut poses: Vec<AvatarPose> = joints
+        .iter()
+        .enumerate()
+        .map(|(i, &n)| AvatarPose {
+            avatar_num: i as u32 + 1,
+            hash: 0xf00d_0000_0000_0000 + i as u64,
+            rotations: (0..n).map(|_| rng.quat()).collect(),
+            translations: vec![rng.vec3(); i + 1],
+            scales: if i == 1 {
+                vec![rng.vec3(), rng.vec3()]
+            } else {
+                vec![]
+            },
+            placement: Placement::IDENTITY,
+        })
+        .collect();
+    let spin: Vec<Vec<Vec3>> = poses
+        .iter()
+        .map(|p| p.rotations.iter().map(|_| rng.vec3() * 0.02).collect())
+        .collect();
+    let velocity = rng.vec3() * 0.02;
+    let mut stream = StreamEncoder::new();
+    let (mut fast, mut slow) = (Frame2Decoder::new(), Frame2Decoder::new());
+    let (mut fast_out, mut slow_out) = (Vec::new(), Vec::new());
+    let mut ring: Vec<Vec<QuantPose>> = Vec::new();
+    let mut slow_seqs: Vec<u64> = Vec::new();
+    let (first, ticks) = (1000u64, 120u64);
+    for seq in first..first + ticks {
+        for (pose, spin) in poses.iter_mut().zip(&spin) {
+            for (q, w) in pose.rotations.iter_mut().zip(spin) {
+                let r = rng.next();
+                if r < 0.05 {
+                    *q = rng.quat();
+                } else if r < 0.9 {
+                    *q = (Quat::from_scaled_axis(*w + rng.vec3() * 0.001) * *q).normalize();
+                }
+            }
+            for t in &mut pose.translations {
+                *t += velocity + rng.vec3() * 0.0005;
+            }
+            if rng.next() < 0.1 {
+                pose.placement =
+                    Placement::try_new((rng.vec3() * 5.0).to_array(), rng.quat().to_array())
+                        .unwrap();
+            }
+            if rng.next() < 0.1 {
+                for s in &mut pose.scales {
+                    *s = rng.vec3();
+                }
+            }
+        }
+        if seq % 13 == 0 {
+            poses[0].translations[0] += Vec3::new(100.0, -40.0, 7.5);
+        }
+        let time = 1_763_891_000_000_000 + seq * 16_667;
+        let (bytes, kind) = stream.encode(5, seq, time, &poses, seq % 40 == 0);
+        if seq % 5 == 2 {
+            fast_out.extend(v2_refused(&bytes, &mut fast, rng));
+        }
+        let frame = fast.decode(&bytes).unwrap();
+        fast_out.push(json!({"bytes": bytes, "expect": frame_json(&frame)}));
+        let q: Vec<QuantPose> = poses.iter().map(QuantPose::from_pose).collect();
+        ring.push(q.clone());
+
+        // The slow reader: misses about one frame in three.
+        if rng.next() < 0.35 && seq > first {
+            continue;
+        }
+        if kind == FrameKind::Delta && slow_seqs.first() != Some(&(seq - 1)) {
+            // The fast stream's delta refers to a frame this reader missed.
+            assert!(slow.decode(&bytes).is_err());
+            slow_out.push(json!({"bytes": bytes, "expect": null}));
+        }
+        let gap = slow_seqs.first().is_some_and(|&s| s + 1 != seq);
+        let mut body = Vec::new();
+        let bytes = if slow_seqs.is_empty() || gap && rng.next() < 0.3 {
+            for (p, now) in poses.iter().zip(&q) {
+                frame2::encode_key(p.avatar_num, p.hash, now, &mut body);
+            }
+            slow_seqs.clear();
+            v2_frame(FrameKind::Key, seq, seq, time, &body)
+        } else {
+            for (k, (p, now)) in poses.iter().zip(&q).enumerate() {
+                let h: Vec<&QuantPose> = slow_seqs
+                    .iter()
+                    .map(|&s| &ring[(s - first) as usize][k])
+                    .collect();
+                assert!(frame2::encode_delta(p.avatar_num, now, &h, &mut body));
+            }
+            v2_frame(FrameKind::Delta, seq, slow_seqs[0], time, &body)
+        };
+        if seq % 4 == 1 {
+            slow_out.extend(v2_refused(&bytes, &mut slow, rng));
+        }
+        let frame = slow.decode(&bytes).unwrap();
+        slow_out.push(json!({"bytes": bytes, "expect": frame_json(&frame)}));
+        slow_seqs.insert(0, seq);
+        slow_seqs.truncate(frame2::MAX_DEPTH);
+    }
+    json!({"fast": fast_out, "slow": slow_out, "odd": frame2_odd_vectors(rng)})
+}
+
+fn v2_frame(kind: FrameKind, seq: u64, base_seq: u64, time: u64, body: &[u8]) -> Vec<u8> {
+    let mut out = Vec::new();
+    let header = FrameHeader {
+        kind,
+        scene_num: 5,
+        seq,
+        server_time_us: time,
+        base_seq,
+    };
+    frame2::write_header(&header, 2, &mut out);
+    out.extend_from_slice(body);
+    out
+}
+
+/// Short sequences, each for a fresh decoder: three good frames of a 5-joint avatar, then one
+/// odd one — a delta with a bit or two flipped, a delta chunk of random bytes (any depth, flags and bit stream: whatever
+/// `Frame2Decoder` makes of it, decoded or refused), a keyframe with the avatar twice, a count
+/// over the limit, an 11-byte varint, a scene number over u32 — and what it makes of that.
+fn frame2_odd_vectors(rng: &mut Lcg) -> Vec<Value> {
+    let pose = AvatarPose {
+        avatar_num: 1,
+        hash: 0xabad_cafe_0000_0001,
+        rotations: (0..5).map(|_| rng.quat()).collect(),
+        translations: vec![rng.vec3()],
+        scales: vec![Vec3::ONE],
+        placement: Placement::IDENTITY,
+    };
+    let header = |kind, count: usize, seq: u64, base_seq: u64| {
+        let mut out = Vec::new();
+        frame2::write_header(
+            &FrameHeader {
+                kind,
+                scene_num: 4,
+                seq,
+                server_time_us: 77,
+                base_seq,
+            },
+            count,
+            &mut out,
+        );
+        out
+    };
+    let prefix: Vec<Vec<u8>> = {
+        let mut stream = StreamEncoder::new();
+        (1..4)
+            .map(|seq| {
+                stream
+                    .encode(4, seq, 0, std::slice::from_ref(&pose), false)
+                    .0
+            })
+            .collect()
+    };
+    let primed = || {
+        let mut dec = Frame2Decoder::new();
+        for p in &prefix {
+            dec.decode(p).unwrap();
+        }
+        dec
+    };
+    let mut odd: Vec<Vec<u8>> = Vec::new();
+    for case in 0..120 {
+        let mut bytes = header(FrameKind::Delta, 1, 4, 3);
+        let depth = (rng.next() * 4.0) as u8;
+        bytes.extend([1, depth << 4 | (rng.next() * 8.0) as u8]);
+        // Mostly ones (long unary runs, Rice escapes) in some cases, uniform in others.
+        let ones = case % 3 == 0;
+        let start = bytes.len();
+        for _ in 0..(rng.next() * 80.0) as usize {
+            let b = (rng.next() * 256.0) as u8;
+            bytes.push(if ones { b | 0xf7 } else { b });
+        }
+        // Every other case cut where the Rust decoder takes it whole, if anywhere: random bit
+        // streams decoded, not only refused.
+        let fits = (start..=bytes.len()).find(|&n| primed().decode(&bytes[..n]).is_ok());
+        match fits {
+            Some(n) if case % 2 == 0 => odd.push(bytes[..n].to_vec()),
+            _ => odd.push(bytes),
+        }
+    }
+    // The next good delta (the avatar turned and moved) with one or two bytes changed.
+    let mut moved = pose.clone();
+    for q in &mut moved.rotations {
+        *q = (Quat::from_scaled_axis(rng.vec3() * 0.01) * *q).normalize();
+    }
+    moved.translations[0] += rng.vec3() * 0.01;
+    let next = {
+        let mut stream = StreamEncoder::new();
+        for seq in 1..4 {
+            stream.encode(4, seq, 0, std::slice::from_ref(&pose), false);
+        }
+        stream
+            .encode(4, 4, 0, std::slice::from_ref(&moved), false)
+            .0
+    };
+    for case in 0..60 {
+        let mut b = next.clone();
+        for _ in 0..1 + case % 2 {
+            let at = (rng.next() * b.len() as f32) as usize;
+            b[at] ^= 1 << (rng.next() * 8.0) as u32;
+        }
+        odd.push(b);
+    }
+    odd.push(next);
+    let mut chunk = Vec::new();
+    frame2::encode_key(1, 9, &QuantPose::from_pose(&pose), &mut chunk);
+    odd.push(
+        [
+            header(FrameKind::Key, 2, 9, 9),
+            chunk.clone(),
+            chunk.clone(),
+        ]
+        .concat(),
+    );
+    let mut count = header(FrameKind::Key, 1, 9, 9);
+    count.extend([1, 0, 0, 0, 0, 0, 0, 0, 0, 0x80, 0x80, 0x08, 0, 0, 0]);
+    odd.push(count);
+    let mut long = vec![frame2::MAGIC, 1];
+    long.extend([0x81; 10]);
+    long.push(1);
+    odd.push(long);
+    let mut scene = vec![frame2::MAGIC, 1, 0];
+    scene.extend([0x80, 0x80, 0x80, 0x80, 0x10, 1, 1]);
+    odd.push(scene);
+    // A keyframe of seq 2⁶⁰: the Rust decoder takes it; the JavaScript one refuses it (beyond
+    // 2⁵³, it cannot hold the seq exactly).
+    odd.push([header(FrameKind::Key, 1, 1 << 60, 1 << 60), chunk].concat());
+    odd.into_iter()
+        .map(|b| {
+            let expect = primed().decode(&b).ok().map(|f| frame_json(&f));
+            let beyond_js = expect
+                .as_ref()
+                .is_some_and(|f| f["seq"].as_u64() > Some(1 << 53));
+            json!({"prefix": prefix, "bytes": b, "expect": expect, "beyond_js": beyond_js})
+        })
+        .collect()
 }
 
 fn kind_name(k: Sampled) -> &'static str {
@@ -360,6 +685,7 @@ fn the_clients_decoder_jitter_buffer_and_clock_match_the_rust_ones() {
     let mut rng = Lcg(0x57_4ea4);
     let vectors = json!({
         "frames": frame_vectors(&mut rng),
+        "frames2": frame2_vectors(&mut rng),
         "jitter": jitter_vectors(&mut rng),
         "clock": clock_vectors(&mut rng),
         "subsets": subset_vectors(&mut rng),
@@ -387,6 +713,18 @@ fn the_clients_decoder_jitter_buffer_and_clock_match_the_rust_ones() {
     assert!(report["frames"].as_u64().unwrap() >= 60, "{report}");
     assert!(report["refused"].as_u64().unwrap() >= 20, "{report}");
     assert_eq!(report["subsets"].as_u64(), Some(40), "{report}");
+    let v2 = &report["v2"];
+    assert_eq!(v2["fast"]["frames"].as_u64(), Some(120), "{report}");
+    assert!(v2["fast"]["keys"].as_u64().unwrap() >= 3, "{report}");
+    assert!(v2["fast"]["refused"].as_u64().unwrap() >= 100, "{report}");
+    assert!(v2["slow"]["frames"].as_u64().unwrap() >= 60, "{report}");
+    assert!(v2["slow"]["keys"].as_u64().unwrap() >= 3, "{report}");
+    assert!(v2["slow"]["refused"].as_u64().unwrap() >= 60, "{report}");
+    let odd = &report["odd"];
+    assert_eq!(odd["beyond"].as_u64(), Some(1), "{report}");
+    assert_eq!(report["fuzz"].as_u64(), Some(3000), "{report}");
+    assert!(odd["decoded"].as_u64().unwrap() >= 10, "{report}");
+    assert!(odd["refused"].as_u64().unwrap() >= 50, "{report}");
     for kind in ["interpolated", "extrapolated", "held"] {
         assert!(
             report["kinds"][kind].as_u64().unwrap_or(0) >= 5,

@@ -6,6 +6,7 @@ import {
   Client,
   PosecastError,
   FrameDecoder,
+  Frame2Decoder,
   JitterBuffer,
   ClockEstimator,
   forwardKinematics,
@@ -68,6 +69,9 @@ const clock = new ClockEstimator();
 clock.add(0, 5_000, 200);
 const offset: number = clock.offsetUs();
 const frame = new FrameDecoder().decode(new Uint8Array(32));
+const frame2 = new Frame2Decoder().decode(new Uint8Array([0x51, 1, 0, 0, 1, 0]));
+const v1 = new Client({ version: 1 });
+const asked: 1 | 2 = v1.version;
 const q = quatSlerp([0, 0, 0, 1], [0, 1, 0, 0], 0.5);
 
 // @ts-expect-error — a command needs its `op`.
@@ -76,8 +80,10 @@ void client.command({ avatar: "avatar" });
 client.on("frames", () => {});
 // @ts-expect-error — encodings are "binary" or "json".
 void new Client({ encoding: "msgpack" });
+// @ts-expect-error — protocol versions are 1 or 2.
+void new Client({ version: 3 });
 // @ts-expect-error — subscribe takes a scene name.
 client.subscribe(42);
 
-void [tokens, state, version, stop, wave, offset, frame, q];
+void [tokens, state, version, stop, wave, offset, frame, frame2, asked, q];
 client.close();

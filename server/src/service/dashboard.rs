@@ -126,6 +126,7 @@ const SDK: &[(&str, &str, &str)] = &[
     ("client.js", JS, include_str!("../../sdk/client.js")),
     ("errors.js", JS, include_str!("../../sdk/errors.js")),
     ("frames.js", JS, include_str!("../../sdk/frames.js")),
+    ("frames2.js", JS, include_str!("../../sdk/frames2.js")),
     ("jitter.js", JS, include_str!("../../sdk/jitter.js")),
     ("clock.js", JS, include_str!("../../sdk/clock.js")),
     ("fk.js", JS, include_str!("../../sdk/fk.js")),

@@ -1,0 +1,411 @@
+// @ts-check
+// Wire v2 binary pose frames (proto/PROTOCOL.md "Pose frames, wire v2"; Rust: posecast-proto
+// `frame2.rs`, `Frame2Decoder`): magic 0x51, varint header; keyframe chunks carry 48-bit
+// smallest-three rotations and zigzag-varint translation levels (1/8192 m); delta chunks refer
+// to the receiver's last ≤ 8 decoded frames of the avatar and carry Rice-coded residuals of
+// predicted levels (or a joint's 47 bits in full, flagged in an escape mask).
+//
+// Numbers: rotations (≤ 48 bits), levels and Rice sums (< 2⁴⁴) are exact JS numbers. Varints
+// are read as BigInt (up to 64 bits, as the Rust reader); the header's seq and server time must
+// also fit a JS number exactly (< 2⁵³ — 4.7 million years of 60 Hz ticks, µs until the year
+// 2255): a frame beyond that is refused (`bad_message`) rather than decoded with a rounded seq.
+// A Rice residual of 53 bits or more cannot give a level in range (its magnitude is ≥ 2⁵²), so
+// it is refused as the Rust decoder refuses it, without BigInt.
+
+import { PosecastError } from "./errors.js";
+import { decodeQuat } from "./frames.js";
+
+/** @typedef {import("./posecast.js").Vec3} Vec3 */
+/** @typedef {import("./posecast.js").Placement} Placement */
+/** @typedef {import("./posecast.js").BinaryFrame} BinaryFrame */
+
+/** First byte of every v2 frame (v1's is 0x50). */
+export const MAGIC2 = 0x51;
+/** Most frames a delta chunk may refer to. */
+export const MAX_DEPTH = 8;
+/** Translation quantisation step, metres. */
+export const TRANSLATION_STEP = 1 / 8192;
+const K_WITHOUT_HISTORY = 5;
+const RICE_ESCAPE = 20;
+const MAX_COUNT = 1 << 16;
+const FLAG_PLACEMENT = 1;
+const FLAG_SCALES = 2;
+const FLAG_ESCAPES = 4;
+const LEVEL_MAX = 2 ** 15 - 2;
+const LEVEL_MASK = 2 ** 15 - 1;
+const CAP = 2 ** 40;
+const TWO_15 = 2 ** 15;
+const TWO_32 = 2 ** 32;
+const TWO_45 = 2 ** 45;
+const I32_MIN = -(2 ** 31);
+const I32_MAX = 2 ** 31 - 1;
+const U32_MAX = 2n ** 32n - 1n;
+const SAFE = BigInt(Number.MAX_SAFE_INTEGER);
+
+/**
+ * One avatar's pose as levels: what v2 codes losslessly (`frame2::QuantPose`).
+ * @typedef {{rotations: number[], translations: [number, number, number][], scales: Vec3[], placement: Placement}} QuantPose
+ */
+
+/** @param {string} message */
+function bad(message) {
+  return new PosecastError("bad_message", `v2 frame: ${message}`);
+}
+
+/** @param {number} r an integer @returns {number} */
+function zigzag(r) {
+  return r >= 0 ? 2 * r : -2 * r - 1;
+}
+
+/** @param {number} u a non-negative integer @returns {number} */
+function unzigzag(u) {
+  return u % 2 === 0 ? u / 2 : -(u + 1) / 2;
+}
+
+/** The dropped component's index (bits 45–46). @param {number} bits */
+function index(bits) {
+  return Math.floor(bits / TWO_45) % 4;
+}
+
+/** The stored level `c` (0: bits 30–44, 1: 15–29, 2: 0–14). @param {number} bits @param {number} c */
+function level(bits, c) {
+  return Math.floor(bits / TWO_15 ** (2 - c)) % TWO_15;
+}
+
+/** ⌊log₂ x⌋ of an integer x ≥ 1 (exact; `Math.log2` may round near powers of two). @param {number} x */
+function ilog2(x) {
+  let k = 0;
+  while (2 ** (k + 1) <= x) k++;
+  return k;
+}
+
+/**
+ * The prediction and Rice parameter of a component from its history `h` (newest first, at
+ * least one value) — as `frame2.rs`'s `predict`.
+ * @param {number[]} h
+ * @param {boolean} rotation
+ * @returns {[number, number]}
+ */
+export function predict(h, rotation) {
+  const n = h.length;
+  if (n < 2) return [h[0], K_WITHOUT_HISTORY];
+  let still = 0;
+  for (let i = 0; i < n - 1; i++) still += Math.min(zigzag(h[i] - h[i + 1]), CAP);
+  let velocity = 0;
+  for (let i = 0; i + 2 < n; i++) velocity += Math.min(zigzag(h[i] - 2 * h[i + 1] + h[i + 2]), CAP);
+  let pred;
+  let mean;
+  if (n >= 3 && velocity * (n - 1) < still * (n - 2)) {
+    pred = 2 * h[0] - h[1];
+    mean = Math.floor(velocity / (n - 2));
+  } else {
+    pred = h[0];
+    mean = Math.floor(still / (n - 1));
+  }
+  if (rotation) pred = Math.min(LEVEL_MAX, Math.max(0, pred));
+  return [pred, ilog2(mean + 1)];
+}
+
+/** A bounds-checked little-endian reader: running past the end is a `bad_message`. */
+class Reader {
+  /** @param {DataView} view */
+  constructor(view) {
+    this.view = view;
+    this.at = 0;
+  }
+
+  /** @param {number} n */
+  need(n) {
+    if (this.at + n > this.view.byteLength) throw bad(`truncated at byte ${this.at}`);
+    const at = this.at;
+    this.at += n;
+    return at;
+  }
+  u8() {
+    return this.view.getUint8(this.need(1));
+  }
+  /** A u64 as 16 hex digits (description hashes). */
+  hex64() {
+    const at = this.need(8);
+    const hi = this.view.getUint32(at + 4, true).toString(16).padStart(8, "0");
+    return hi + this.view.getUint32(at, true).toString(16).padStart(8, "0");
+  }
+  f32() {
+    return this.view.getFloat32(this.need(4), true);
+  }
+  /** @returns {Vec3} */
+  vec3() {
+    return [this.f32(), this.f32(), this.f32()];
+  }
+  /** @returns {Placement} */
+  placement() {
+    return { position: this.vec3(), rotation: [this.f32(), this.f32(), this.f32(), this.f32()] };
+  }
+  /** A LEB128 u64 (at most 10 bytes, no bits above 64), as BigInt. */
+  varint() {
+    const start = this.at;
+    let v = 0n;
+    for (let shift = 0n; shift < 70n; shift += 7n) {
+      const b = this.u8();
+      const part = BigInt(b & 0x7f);
+      if (shift === 63n && part > 1n) break;
+      v |= part << shift;
+      if ((b & 0x80) === 0) return v;
+    }
+    throw bad(`number out of range at byte ${start}`);
+  }
+  /** A varint that must fit a u32. */
+  varintU32() {
+    const at = this.at;
+    const v = this.varint();
+    if (v > U32_MAX) throw bad(`number out of range at byte ${at}`);
+    return Number(v);
+  }
+  /** A varint that must fit a JS number exactly (seq, server time). @param {string} what */
+  varintSafe(what) {
+    const at = this.at;
+    const v = this.varint();
+    if (v > SAFE) throw bad(`${what} ${v} at byte ${at} is beyond 2^53, which this client cannot hold exactly`);
+    return Number(v);
+  }
+  /** A count of joints, translations or scales. @param {number} avatar */
+  count(avatar) {
+    const v = this.varint();
+    if (v > BigInt(MAX_COUNT)) throw bad(`avatar ${avatar}: ${v} items exceed the limit of ${MAX_COUNT}`);
+    return Number(v);
+  }
+}
+
+/** Reads bits least significant first, as `frame2.rs`'s `BitReader`. */
+class BitReader {
+  /** @param {Reader} r */
+  constructor(r) {
+    this.r = r;
+    this.acc = 0; // < 2⁴⁰: at most 39 pending bits
+    this.bits = 0;
+  }
+
+  /**
+   * The next `n` bits (n ≤ 64) as a number: exact below 2⁵³, a rounded value (still ≥ 2⁵²)
+   * above — only ever compared with a range it cannot be in.
+   * @param {number} n
+   * @returns {number}
+   */
+  get(n) {
+    if (n > 32) {
+      const low = this.get(32);
+      return low + this.get(n - 32) * TWO_32;
+    }
+    while (this.bits < n) {
+      this.acc += this.r.u8() * 2 ** this.bits;
+      this.bits += 8;
+    }
+    const unit = 2 ** n;
+    const v = this.acc % unit;
+    this.acc = (this.acc - v) / unit;
+    this.bits -= n;
+    return v;
+  }
+
+  /** A Rice-coded value of parameter `k`. @param {number} k */
+  rice(k) {
+    let q = 0;
+    while (q < RICE_ESCAPE && this.get(1) === 1) q++;
+    if (q < RICE_ESCAPE) return q * 2 ** k + this.get(k);
+    const n = this.get(6) + 1;
+    return this.get(n);
+  }
+}
+
+/**
+ * @param {QuantPose} a
+ * @param {QuantPose} b
+ */
+function sameShape(a, b) {
+  return a.rotations.length === b.rotations.length && a.translations.length === b.translations.length && a.scales.length === b.scales.length;
+}
+
+/** @returns {Placement} */
+function identityPlacement() {
+  return { position: [0, 0, 0], rotation: [0, 0, 0, 1] };
+}
+
+/**
+ * A keyframe chunk.
+ * @param {Reader} r
+ * @returns {{num: number, hash: string, levels: QuantPose}}
+ */
+function keyChunk(r) {
+  const num = r.varintU32();
+  const hash = r.hex64();
+  const joints = r.count(num);
+  const translations = r.count(num);
+  const scales = r.count(num);
+  const flags = r.u8();
+  if (flags & ~FLAG_PLACEMENT) throw bad(`avatar ${num}: invalid chunk flags ${flags}`);
+  if (r.view.byteLength - r.at < joints * 6 + translations * 3 + scales * 12) throw bad(`truncated at byte ${r.view.byteLength}`);
+  /** @type {QuantPose} */
+  const levels = { rotations: [], translations: [], scales: [], placement: identityPlacement() };
+  for (let j = 0; j < joints; j++) {
+    const at = r.need(6);
+    levels.rotations.push(r.view.getUint16(at + 4, true) * TWO_32 + r.view.getUint32(at, true));
+  }
+  for (let t = 0; t < translations; t++) {
+    /** @type {[number, number, number]} */
+    const v = [0, 0, 0];
+    for (let c = 0; c < 3; c++) {
+      const at = r.at;
+      const u = r.varint();
+      const x = (u >> 1n) ^ -(u & 1n);
+      if (x < BigInt(I32_MIN) || x > BigInt(I32_MAX)) throw bad(`number out of range at byte ${at}`);
+      v[c] = Number(x);
+    }
+    levels.translations.push(v);
+  }
+  for (let s = 0; s < scales; s++) levels.scales.push(r.vec3());
+  if (flags & FLAG_PLACEMENT) levels.placement = r.placement();
+  return { num, hash, levels };
+}
+
+/**
+ * Decodes v2 frames, keeping each (scene, avatar)'s last 8 decoded frames — the JavaScript
+ * twin of posecast-proto's `Frame2Decoder`. One decoder per connection.
+ */
+export class Frame2Decoder {
+  constructor() {
+    /** @type {Map<string, {hash: string, frames: {seq: number, levels: QuantPose}[]}>} "scene:avatar" → newest first. */
+    this.history = new Map();
+  }
+
+  /**
+   * Decodes one v2 frame, remembering it for the deltas after it. On error (malformed bytes, a
+   * delta whose base frame this decoder does not hold) it throws `bad_message` and nothing
+   * changes.
+   * @param {ArrayBuffer | Uint8Array} bytes
+   * @returns {BinaryFrame}
+   */
+  decode(bytes) {
+    const view =
+      bytes instanceof Uint8Array ? new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength) : new DataView(bytes);
+    const r = new Reader(view);
+    const magic = r.u8();
+    if (magic !== MAGIC2) throw bad(`bad magic byte ${magic} (a v2 frame starts with ${MAGIC2})`);
+    const kind = r.u8();
+    if (kind !== 1 && kind !== 2) throw bad(`unknown frame kind ${kind}`);
+    const key = kind === 1;
+    const count = r.varint();
+    const sceneNum = r.varintU32();
+    const seq = r.varintSafe("seq");
+    const serverTimeUs = r.varintSafe("server time");
+    let baseSeq = seq;
+    if (!key) {
+      const gap = r.varint();
+      if (gap === 0n || gap > BigInt(seq)) throw bad(`delta base gap ${gap} invalid for seq ${seq}`);
+      baseSeq = seq - Number(gap);
+    }
+    /** @type {{num: number, hash: string, levels: QuantPose}[]} */
+    const decoded = [];
+    // Every chunk takes at least 2 bytes, so a count beyond the bytes fails on them first.
+    for (let c = 0n; c < count; c++) {
+      const a = key ? keyChunk(r) : this.deltaChunk(r, sceneNum, baseSeq);
+      if (decoded.some((b) => b.num === a.num)) throw bad(`avatar ${a.num} appears twice in one frame`);
+      decoded.push(a);
+    }
+    if (r.at !== view.byteLength) throw bad(`${view.byteLength - r.at} trailing bytes after the last avatar chunk`);
+    for (const a of decoded) {
+      const slot = `${sceneNum}:${a.num}`;
+      let h = this.history.get(slot);
+      if (!h) this.history.set(slot, (h = { hash: a.hash, frames: [] }));
+      if (key) {
+        h.frames = [];
+        h.hash = a.hash;
+      }
+      h.frames.unshift({ seq, levels: a.levels });
+      if (h.frames.length > MAX_DEPTH) h.frames.length = MAX_DEPTH;
+    }
+    return {
+      key,
+      scene_num: sceneNum,
+      seq,
+      server_time_us: serverTimeUs,
+      base_seq: baseSeq,
+      avatars: decoded.map(({ num, hash, levels }) => ({
+        num,
+        hash,
+        rotations: levels.rotations.map(decodeQuat),
+        translations: levels.translations.map((t) => /** @type {Vec3} */ (t.map((l) => Math.fround(l * TRANSLATION_STEP)))),
+        scales: levels.scales.map((s) => /** @type {Vec3} */ ([...s])),
+        placement: { position: [...levels.placement.position], rotation: [...levels.placement.rotation] },
+      })),
+    };
+  }
+
+  /**
+   * Forgets a scene's frames (the client left it).
+   * @param {number} sceneNum
+   */
+  forgetScene(sceneNum) {
+    for (const slot of [...this.history.keys()]) if (slot.startsWith(`${sceneNum}:`)) this.history.delete(slot);
+  }
+
+  /**
+   * A delta chunk against the held frames of its avatar.
+   * @param {Reader} r
+   * @param {number} sceneNum
+   * @param {number} baseSeq
+   * @returns {{num: number, hash: string, levels: QuantPose}}
+   */
+  deltaChunk(r, sceneNum, baseSeq) {
+    const num = r.varintU32();
+    const flags = r.u8();
+    if (flags & 8) throw bad(`avatar ${num}: invalid chunk flags ${flags}`);
+    const depth = (flags >> 4) + 1;
+    const held = this.history.get(`${sceneNum}:${num}`);
+    const missing = () => bad(`avatar ${num}: delta against frame ${baseSeq} (depth ${depth}), which this decoder does not hold`);
+    if (!held || depth > MAX_DEPTH || held.frames.length < depth || held.frames[0].seq !== baseSeq) throw missing();
+    const history = held.frames.slice(0, depth).map((f) => f.levels);
+    const base = history[0];
+    if (history.some((h) => !sameShape(h, base))) throw missing();
+    /** @type {QuantPose} */
+    const pose = { rotations: [], translations: [], scales: base.scales, placement: base.placement };
+    const b = new BitReader(r);
+    const joints = base.rotations.length;
+    const escaped = new Array(joints).fill(false);
+    if (flags & FLAG_ESCAPES) for (let j = 0; j < joints; j++) escaped[j] = b.get(1) === 1;
+    for (let j = 0; j < joints; j++) {
+      if (escaped[j]) {
+        pose.rotations.push(b.get(47));
+        continue;
+      }
+      const i = index(base.rotations[j]);
+      let n = 0;
+      while (n < history.length && index(history[n].rotations[j]) === i) n++;
+      let bits = i;
+      for (let c = 0; c < 3; c++) {
+        const h = history.slice(0, n).map((f) => level(f.rotations[j], c));
+        const [pred, k] = predict(h, true);
+        const value = pred + unzigzag(b.rice(k));
+        if (!(value >= 0 && value <= LEVEL_MASK)) throw bad(`avatar ${num}: rotation level out of range at byte ${r.at}`);
+        bits = bits * TWO_15 + value;
+      }
+      pose.rotations.push(bits);
+    }
+    for (let t = 0; t < base.translations.length; t++) {
+      /** @type {[number, number, number]} */
+      const v = [0, 0, 0];
+      for (let c = 0; c < 3; c++) {
+        const [pred, k] = predict(
+          history.map((f) => f.translations[t][c]),
+          false,
+        );
+        const value = pred + unzigzag(b.rice(k));
+        if (!(value >= I32_MIN && value <= I32_MAX)) throw bad(`avatar ${num}: translation level out of range at byte ${r.at}`);
+        v[c] = value;
+      }
+      pose.translations.push(v);
+    }
+    if (flags & FLAG_SCALES) pose.scales = base.scales.map(() => r.vec3());
+    if (flags & FLAG_PLACEMENT) pose.placement = r.placement();
+    return { num, hash: held.hash, levels: pose };
+  }
+}
