@@ -923,3 +923,134 @@ async fn a_watcher_on_another_server_hears_of_changes() {
     ok(a.addr, r#"{"op":"delete_scene","scene":"later"}"#).await;
     assert_eq!(next("scene_deleted").await["scene"], "later");
 }
+
+/// The description of avatar `avatar` among a recorder's description messages, once there.
+async fn description_of(rec: &Recorder, avatar: &str) -> serde_json::Value {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let found = rec.texts("description").into_iter().find_map(|t| {
+            let v: serde_json::Value = serde_json::from_str(&t).unwrap();
+            (v["avatar"]["id"] == avatar).then_some(v)
+        });
+        if let Some(v) = found {
+            return v;
+        }
+        assert!(Instant::now() < deadline, "no description of {avatar}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// Waits (at most 15 s) until `addr` answers `get_asset` for `asset`; returns the answer.
+async fn asset_seen_by(addr: SocketAddr, asset: &str) -> serde_json::Value {
+    let deadline = Instant::now() + Duration::from_secs(15);
+    loop {
+        let (status, body) =
+            command_to(addr, &format!(r#"{{"op":"get_asset","asset":"{asset}"}}"#)).await;
+        if status == 200 {
+            return body["result"].clone();
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{addr} never had asset {asset}: {body}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+/// An upload accepted by A is stored where every server reads it and imported by all of them
+/// with its pipeline options: after the owner A is SIGKILLed, the server that takes the scene
+/// over has the rig and streams the avatar made of it, with the description hash A gave it
+/// (the options change the rig, so a server that imported it with the defaults would differ);
+/// a server started after the upload has the asset, described exactly as A describes it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn uploads_reach_every_server_and_survive_the_owner() {
+    let Some(nats) = Nats::start() else { return };
+    let Some(cesium) = common::testdata_bytes("gltf/CesiumMan/glTF-Binary/CesiumMan.glb") else {
+        return;
+    };
+    let a = node(&nats, "a", "1.5");
+    let b = node(&nats, "b", "1.5");
+    let c = node(&nats, "c", "1.5");
+    ok(a.addr, r#"{"op":"create_scene","scene":"stage"}"#).await;
+    assert_eq!(owner_seen_by(b.addr, "stage").await, "a");
+    assert_eq!(owner_seen_by(c.addr, "stage").await, "a");
+    let (status, body) = common::http_to(
+        a.addr,
+        "POST",
+        "/api/assets/cesium?metres_per_unit=2",
+        "model/gltf-binary",
+        &cesium,
+    )
+    .await;
+    assert_eq!(status, 200, "{body}");
+    let uploaded: serde_json::Value = serde_json::from_str(&body).unwrap();
+    let clip = uploaded["result"][0]["clips"][0]["name"]
+        .as_str()
+        .unwrap()
+        .to_owned();
+    // Through B, which forwards it to the owner A.
+    ok(
+        b.addr,
+        &format!(
+            r#"{{"op":"add_avatar","scene":"stage","asset":"cesium","avatar":"runner","clip":"{clip}"}}"#
+        ),
+    )
+    .await;
+    let (on_a, ws) = Recorder::subscribe(a.addr, Encoding::Binary, None).await;
+    let on_a = on_a.spawn(ws);
+    let on_owner = description_of(&on_a, "runner").await;
+    let hash = on_owner["avatar"]["hash"].as_str().unwrap().to_owned();
+    let described = asset_seen_by(a.addr, "cesium").await;
+    assert_eq!(described["options"]["metres_per_unit"], 2.0, "{described}");
+    for other in [b.addr, c.addr] {
+        assert_eq!(asset_seen_by(other, "cesium").await, described);
+    }
+
+    let killed = Instant::now();
+    a.kill();
+    let new_owner = loop {
+        let (status, body) = command_to(b.addr, r#"{"op":"list_scenes"}"#).await;
+        let owner = body["result"]
+            .as_array()
+            .and_then(|scenes| scenes.iter().find(|s| s["scene"] == "stage"))
+            .and_then(|s| s["owner"].as_str())
+            .unwrap_or_default()
+            .to_owned();
+        if status == 200 && (owner == "b" || owner == "c") {
+            break owner;
+        }
+        assert!(
+            killed.elapsed() < Duration::from_secs(15),
+            "no new owner: {body}"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    let owner_addr = if new_owner == "b" { b.addr } else { c.addr };
+    let (fresh, ws) = Recorder::subscribe(owner_addr, Encoding::Binary, None).await;
+    let fresh = fresh.spawn(ws);
+    let taken_over = description_of(&fresh, "runner").await;
+    assert_eq!(taken_over["avatar"]["hash"], hash.as_str(), "{taken_over}");
+    // Frames of the restored avatar, carrying that hash.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let hash = u64::from_str_radix(&hash, 16).unwrap();
+    loop {
+        let mut decoder = FrameDecoder::new();
+        let streamed = fresh.messages().into_iter().any(|(_, m)| {
+            matches!(m, Message::Binary(b) if decoder
+                .decode(&b)
+                .is_ok_and(|f| f.avatars.iter().any(|a| a.hash == hash && !a.rotations.is_empty())))
+        });
+        if streamed {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{new_owner} streams no frame of runner"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+
+    // A server started after the upload has it, described as A described it.
+    let d = node(&nats, "d", "1.5");
+    assert_eq!(asset_seen_by(d.addr, "cesium").await, described);
+}

@@ -5,6 +5,7 @@
 //!   and the lease loop that decides which server ticks which scene.
 //! - `owner`: a scene ticked here — its frames, descriptions and avatar changes published,
 //!   commands and joiners' requests answered.
+//! - `assets`: uploaded assets in object store `posecast_assets`, imported by every server.
 //! - `relay`: a scene ticked elsewhere — its frames fanned out here to this server's
 //!   subscribers, as the same bytes.
 //!
@@ -20,6 +21,7 @@
 //! Keys and subject tokens are the scene id in lowercase hex (ids may hold characters NATS
 //! does not allow in either).
 
+mod assets;
 mod owner;
 mod relay;
 
@@ -93,6 +95,7 @@ pub struct Connection {
     client: async_nats::Client,
     scenes: kv::Store,
     leases: kv::Store,
+    assets: assets::Bucket,
     node: String,
     lease: Duration,
     lost: Arc<AtomicBool>,
@@ -191,11 +194,13 @@ pub async fn connect(config: &Config, port: u16) -> std::io::Result<Connection> 
     };
     let scenes = open(SCENES_BUCKET, Duration::ZERO).await?;
     let leases = open(LEASES_BUCKET, lease).await?;
+    let assets = assets::open(&js).await.map_err(fail)?;
     info!(nats = %urls, node = %node, lease_ms = lease.as_millis() as u64, "joined the cluster");
     Ok(Connection {
         client,
         scenes,
         leases,
+        assets,
         node,
         lease,
         lost,
@@ -223,6 +228,10 @@ pub struct Cluster {
     claims: Mutex<HashMap<SceneId, u64>>,
     /// Orders snapshot writes: a later write always holds every earlier change.
     writes: tokio::sync::Mutex<()>,
+    /// Uploads of the assets bucket this server has (or refused): name → object nuid.
+    applied: Mutex<HashMap<String, String>>,
+    /// Scenes not taken over for want of an asset, each logged once.
+    short_of_assets: Mutex<HashMap<SceneId, std::collections::BTreeSet<String>>>,
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -244,6 +253,8 @@ pub fn start(state: &Arc<AppState>, conn: Connection) -> Arc<Cluster> {
         relays: Mutex::new(HashMap::new()),
         claims: Mutex::new(HashMap::new()),
         writes: tokio::sync::Mutex::new(()),
+        applied: Mutex::new(HashMap::new()),
+        short_of_assets: Mutex::new(HashMap::new()),
     });
     state.join_cluster(cluster.clone());
     let running = cluster.clone();
@@ -303,6 +314,11 @@ impl Cluster {
     /// The lease loop: renew what is owned, take over what lost its owner, relay the rest.
     async fn run(self: Arc<Self>) {
         if let Some(state) = self.state() {
+            // The cluster's uploads before any scene is owned here: a scene taken over finds
+            // its avatars' rigs.
+            if let Err(e) = self.sync_assets(&state).await {
+                warn!(error = %e, "cannot read the cluster's uploads from NATS");
+            }
             self.first_start(&state).await;
         }
         let period = self.conn.lease / 3;
@@ -312,6 +328,9 @@ impl Cluster {
                 return;
             }
             self.renew(&state).await;
+            if let Err(e) = self.sync_assets(&state).await {
+                warn!(error = %e, "cannot read the cluster's uploads from NATS");
+            }
             if let Err(e) = self.scan(&state).await {
                 warn!(error = %e, "cannot read the cluster's scenes from NATS");
             }
@@ -479,6 +498,18 @@ impl Cluster {
                 return;
             }
         };
+        // Restoring without an avatar's rig would drop the avatar, and the next snapshot
+        // written here would lose it for good: the scene waits for a server that has them.
+        let missing = Self::missing_assets(state, &file);
+        if !missing.is_empty() {
+            let again = lock(&self.short_of_assets).insert(id.clone(), missing.clone());
+            if again.as_ref() != Some(&missing) {
+                warn!(scene = %id, ?missing, "not taking the scene over: this server lacks assets its avatars use");
+            }
+            self.conn.leases.delete(key(id)).await.ok();
+            return;
+        }
+        lock(&self.short_of_assets).remove(id);
         if let Some(r) = lock(&self.relays).remove(id) {
             r.stop();
         }
@@ -697,6 +728,26 @@ impl crate::state::Cluster for Cluster {
 
     fn degraded(&self) -> bool {
         self.conn.lost.load(Ordering::SeqCst)
+    }
+
+    fn share_asset<'a>(
+        &'a self,
+        name: &'a str,
+        files: &'a crate::import::files::FileSet,
+        options: &'a crate::rig::PipelineOptions,
+    ) -> BoxFuture<'a, Result<(), Error>> {
+        Box::pin(self.share(name, files, options))
+    }
+
+    fn unshare_asset<'a>(&'a self, name: &'a str) -> BoxFuture<'a, ()> {
+        Box::pin(self.unshare(name))
+    }
+
+    fn shared_asset<'a>(
+        &'a self,
+        name: &'a str,
+    ) -> BoxFuture<'a, Result<Option<crate::import::files::FileSet>, Error>> {
+        Box::pin(self.shared_files(name))
     }
 }
 
