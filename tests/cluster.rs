@@ -1054,3 +1054,108 @@ async fn uploads_reach_every_server_and_survive_the_owner() {
     let d = node(&nats, "d", "1.5");
     assert_eq!(asset_seen_by(d.addr, "cesium").await, described);
 }
+
+/// What the cluster's bucket holds that a server cannot use changes nothing there and is
+/// logged: a malformed object, and an upload over its asset quota. A server lacking an
+/// avatar's rig does not take the scene over when its owner dies (restoring would drop the
+/// avatar, and its next snapshot lose it); a server started later that has the rig does, with
+/// the avatar.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn unusable_uploads_change_nothing_and_lose_nothing() {
+    let Some(nats) = Nats::start() else { return };
+    let Some(cesium) = common::testdata_bytes("gltf/CesiumMan/glTF-Binary/CesiumMan.glb") else {
+        return;
+    };
+    let a = node(&nats, "a", "1");
+    // Room for CesiumMan's 490,956 bytes on A, not on B.
+    let b = Posecast::start(
+        &[
+            "--nats",
+            &nats.url(),
+            "--node",
+            "b",
+            "--lease",
+            "1",
+            "--no-persist",
+            "--tick-rate",
+            &RATE.to_string(),
+            "--control-token",
+            CONTROL,
+            "--max-asset-bytes",
+            "100000",
+        ],
+        &[],
+    );
+    let client = async_nats::connect(nats.url()).await.unwrap();
+    let bucket = async_nats::jetstream::new(client)
+        .get_object_store("posecast_assets")
+        .await
+        .unwrap();
+    bucket
+        .put("junk", &mut b"PCA1\xff\xff\xff\xffnot a bundle".as_slice())
+        .await
+        .unwrap();
+    let (status, body) = common::http_to(
+        a.addr,
+        "POST",
+        "/api/assets/cesium",
+        "model/gltf-binary",
+        &cesium,
+    )
+    .await;
+    assert_eq!(status, 200, "{body}");
+    ok(a.addr, r#"{"op":"create_scene","scene":"stage"}"#).await;
+    ok(
+        a.addr,
+        r#"{"op":"add_avatar","scene":"stage","asset":"cesium","avatar":"runner"}"#,
+    )
+    .await;
+    assert_eq!(owner_seen_by(b.addr, "stage").await, "a");
+    let logged = |server: &Posecast, what: &str| {
+        server
+            .output()
+            .iter()
+            .any(|l| l.contains(what) && l.contains("not loaded here"))
+    };
+    assert!(
+        common::wait_for(10.0, || logged(&b, "junk") && logged(&b, "cesium")).await,
+        "{:#?}",
+        b.output()
+    );
+    for name in ["junk", "cesium"] {
+        let (status, body) =
+            command_to(b.addr, &format!(r#"{{"op":"get_asset","asset":"{name}"}}"#)).await;
+        assert_eq!(status, 404, "{body}");
+    }
+    assert!(logged(&a, "junk"), "{:#?}", a.output());
+
+    a.kill();
+    // Three lease times: B does not take the scene over.
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let (status, body) = command_to(b.addr, r#"{"op":"list_scenes"}"#).await;
+    assert_eq!(status, 200);
+    let stage = body["result"]
+        .as_array()
+        .and_then(|scenes| scenes.iter().find(|s| s["scene"] == "stage"))
+        .cloned();
+    assert_ne!(
+        stage.as_ref().and_then(|s| s["owner"].as_str()),
+        Some("b"),
+        "{body}"
+    );
+    assert!(
+        b.output()
+            .iter()
+            .any(|l| l.contains("lacks assets") && l.contains("cesium")),
+        "{:#?}",
+        b.output()
+    );
+    assert_eq!(b.health().map(|(s, _)| s), Some(200));
+    // C has room for the rig: it takes the scene over with the avatar.
+    let c = node(&nats, "c", "1");
+    assert_eq!(owner_seen_by(c.addr, "stage").await, "c");
+    let (on_c, ws) = Recorder::subscribe(c.addr, Encoding::Binary, None).await;
+    let on_c = on_c.spawn(ws);
+    let runner = description_of(&on_c, "runner").await;
+    assert_eq!(runner["avatar"]["name"], "cesium", "{runner}");
+}
