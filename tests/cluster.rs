@@ -1159,3 +1159,72 @@ async fn unusable_uploads_change_nothing_and_lose_nothing() {
     let runner = description_of(&on_c, "runner").await;
     assert_eq!(runner["avatar"]["name"], "cesium", "{runner}");
 }
+
+/// A scene-list watcher's first list on B shows a scene ticked by A with its avatars as A
+/// lists them (ids, rigs, clips) and with its owner.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_watchers_first_list_shows_relayed_scenes_with_their_avatars() {
+    let Some(nats) = Nats::start() else { return };
+    let a = node(&nats, "a", "1");
+    let b = node(&nats, "b", "1");
+    stage(a.addr).await;
+    ok(
+        a.addr,
+        r#"{"op":"add_avatar","scene":"stage","asset":"avatar","avatar":"greeter","clip":"wave"}"#,
+    )
+    .await;
+    assert_eq!(owner_seen_by(b.addr, "stage").await, "a");
+    let on_a = ok(a.addr, r#"{"op":"list_scenes"}"#).await;
+    let summary = |scene: &serde_json::Value| -> Vec<(String, String, String)> {
+        scene["avatars"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|a| {
+                (
+                    a["avatar"].as_str().unwrap().to_owned(),
+                    a["asset"].as_str().unwrap().to_owned(),
+                    a["clip"].as_str().unwrap_or_default().to_owned(),
+                )
+            })
+            .collect()
+    };
+    let find = |scenes: &serde_json::Value| {
+        scenes
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|s| s["scene"] == "stage")
+            .cloned()
+            .unwrap_or_else(|| panic!("no stage in {scenes}"))
+    };
+    let expected = summary(&find(&on_a["result"]));
+    assert_eq!(
+        expected,
+        [
+            ("dancer".into(), "avatar".into(), "walk".into()),
+            ("greeter".into(), "avatar".into(), "wave".into())
+        ]
+    );
+    let mut watcher = raw_at(b.addr, Encoding::Json, Some(CONTROL)).await;
+    watcher
+        .send(Message::Text(r#"{"type":"watch_scenes"}"#.into()))
+        .await
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let first = loop {
+        match tokio::time::timeout_at(deadline.into(), watcher.next()).await {
+            Ok(Some(Ok(Message::Text(t)))) => {
+                let v: serde_json::Value = serde_json::from_str(&t).unwrap();
+                if v["type"] == "scenes" {
+                    break v;
+                }
+            }
+            Ok(Some(Ok(_))) => {}
+            other => panic!("no scene list: {other:?}"),
+        }
+    };
+    let listed = find(&first["scenes"]);
+    assert_eq!(summary(&listed), expected, "{first}");
+    assert_eq!(listed["owner"], "a", "{first}");
+}

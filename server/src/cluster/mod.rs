@@ -703,26 +703,29 @@ impl crate::state::Cluster for Cluster {
 
     fn listing(&self, local: Vec<SceneInfo>) -> BoxFuture<'_, Vec<SceneInfo>> {
         Box::pin(async move {
-            let mut out = Vec::with_capacity(local.len());
-            for mut info in local {
+            // The owners are asked all at once: one round trip, not one per scene.
+            let each = local.into_iter().map(|mut info| async move {
                 let owner = lock(&self.relays).get(&info.scene).map(|r| r.owner.clone());
                 match owner {
                     None => info.owner = Some(self.conn.node.clone()),
                     Some(owner) => {
                         // The owner knows the avatars and what they play.
                         let asked = self.request(&info.scene, "info", Bytes::new()).await;
-                        if let Ok(remote) = asked.and_then(|b| {
+                        match asked.and_then(|b| {
                             serde_json::from_slice::<SceneInfo>(&b)
                                 .map_err(|e| Error::internal("info", &e))
                         }) {
-                            info.avatars = remote.avatars;
+                            Ok(remote) => info.avatars = remote.avatars,
+                            Err(e) => {
+                                warn!(scene = %info.scene, error = %e, "listed without its avatars");
+                            }
                         }
                         info.owner = Some(owner);
                     }
                 }
-                out.push(info);
-            }
-            out
+                info
+            });
+            futures_util::future::join_all(each).await
         })
     }
 

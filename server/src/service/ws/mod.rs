@@ -552,6 +552,12 @@ impl Session {
                     .map(|s| s.info())
                     .filter(|s| access.authorize_view(&self.caller, &s.scene).is_ok())
                     .collect();
+                // In a cluster, scenes ticked elsewhere with their avatars, as their owners
+                // have them (and every scene with its owner), as `list_scenes` answers.
+                let scenes = match self.state.cluster() {
+                    Some(cluster) => cluster.listing(scenes).await,
+                    None => scenes,
+                };
                 self.send(&ServerMsg::Scenes { scenes });
                 true
             }
