@@ -29,22 +29,27 @@ fn node(nats: &Nats, name: &str, lease: &str) -> Posecast {
 }
 
 fn node_at(nats: &Nats, name: &str, lease: &str, rate: f32) -> Posecast {
-    Posecast::start(
-        &[
-            "--nats",
-            &nats.url(),
-            "--node",
-            name,
-            "--lease",
-            lease,
-            "--no-persist",
-            "--tick-rate",
-            &rate.to_string(),
-            "--control-token",
-            CONTROL,
-        ],
-        &[],
-    )
+    node_with(nats, name, lease, rate, &[])
+}
+
+fn node_with(nats: &Nats, name: &str, lease: &str, rate: f32, more: &[&str]) -> Posecast {
+    let url = nats.url();
+    let rate = rate.to_string();
+    let mut args = vec![
+        "--nats",
+        &url,
+        "--node",
+        name,
+        "--lease",
+        lease,
+        "--no-persist",
+        "--tick-rate",
+        &rate,
+        "--control-token",
+        CONTROL,
+    ];
+    args.extend_from_slice(more);
+    Posecast::start(&args, &[])
 }
 
 async fn ok(addr: SocketAddr, json: &str) -> serde_json::Value {
@@ -1068,24 +1073,7 @@ async fn unusable_uploads_change_nothing_and_lose_nothing() {
     };
     let a = node(&nats, "a", "1");
     // Room for CesiumMan's 490,956 bytes on A, not on B.
-    let b = Posecast::start(
-        &[
-            "--nats",
-            &nats.url(),
-            "--node",
-            "b",
-            "--lease",
-            "1",
-            "--no-persist",
-            "--tick-rate",
-            &RATE.to_string(),
-            "--control-token",
-            CONTROL,
-            "--max-asset-bytes",
-            "100000",
-        ],
-        &[],
-    );
+    let b = node_with(&nats, "b", "1", RATE, &["--max-asset-bytes", "100000"]);
     let client = async_nats::connect(nats.url()).await.unwrap();
     let bucket = async_nats::jetstream::new(client)
         .get_object_store("posecast_assets")
@@ -1227,4 +1215,23 @@ async fn a_watchers_first_list_shows_relayed_scenes_with_their_avatars() {
     let listed = find(&first["scenes"]);
     assert_eq!(summary(&listed), expected, "{first}");
     assert_eq!(listed["owner"], "a", "{first}");
+}
+
+/// `--max-scenes` counts every scene the creating server holds, relayed ones included: every
+/// server holds every scene of the cluster, so the limit is the cluster's as that server sees
+/// it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn relayed_scenes_count_toward_max_scenes() {
+    let Some(nats) = Nats::start() else { return };
+    let a = node_with(&nats, "a", "1", RATE, &["--max-scenes", "2"]);
+    let b = node(&nats, "b", "1");
+    // `default` (made by the first server) and `elsewhere`, ticked by B.
+    ok(b.addr, r#"{"op":"create_scene","scene":"elsewhere"}"#).await;
+    assert_eq!(owner_seen_by(a.addr, "elsewhere").await, "b");
+    owner_seen_by(a.addr, "default").await;
+    let (status, body) = command_to(a.addr, r#"{"op":"create_scene","scene":"third"}"#).await;
+    assert_eq!(status, 429, "{body}");
+    assert_eq!(body["code"], "quota_exceeded", "{body}");
+    // Nothing changed anywhere: B (no limit of its own) can still make it.
+    ok(b.addr, r#"{"op":"create_scene","scene":"third"}"#).await;
 }
