@@ -1235,3 +1235,124 @@ async fn relayed_scenes_count_toward_max_scenes() {
     // Nothing changed anywhere: B (no limit of its own) can still make it.
     ok(b.addr, r#"{"op":"create_scene","scene":"third"}"#).await;
 }
+
+/// Reads text messages until one of type `kind` (at most 10 s).
+async fn next_of(ws: &mut common::Ws, kind: &str) -> serde_json::Value {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        match tokio::time::timeout_at(deadline.into(), ws.next()).await {
+            Ok(Some(Ok(Message::Text(t)))) => {
+                let v: serde_json::Value = serde_json::from_str(&t).unwrap();
+                if v["type"] == kind {
+                    return v;
+                }
+            }
+            Ok(Some(Ok(_))) => {}
+            other => panic!("no {kind}: {other:?}"),
+        }
+    }
+}
+
+/// A driver connected to B drives an avatar ticked by A: `drive` is acknowledged through B,
+/// its JSON and binary poses show in A's frames (the rotations sent), a pose naming an
+/// unknown joint is refused at B, and when the driver leaves the avatar goes back to its clip.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_driver_on_a_relay_drives_the_owners_avatar() {
+    let Some(nats) = Nats::start() else { return };
+    // A silent driver keeps its avatar for a minute: only its leaving releases it sooner.
+    let a = node_with(&nats, "a", "1", RATE, &["--drive-timeout", "60"]);
+    let b = node(&nats, "b", "1");
+    stage(a.addr).await;
+    assert_eq!(owner_seen_by(b.addr, "stage").await, "a");
+    let (on_a, ws) = Recorder::subscribe(a.addr, Encoding::Binary, None).await;
+    let on_a = on_a.spawn(ws);
+    let description = description_of(&on_a, "dancer").await.to_string();
+    let (elbow, knee) = (
+        joint_index(&description, "l_elbow"),
+        joint_index(&description, "r_knee"),
+    );
+
+    let mut driver = raw_at(b.addr, Encoding::Json, Some(CONTROL)).await;
+    driver
+        .send(Message::Text(
+            r#"{"type":"command","id":7,"command":{"op":"drive","avatar":"dancer"}}"#.into(),
+        ))
+        .await
+        .unwrap();
+    let ack = next_of(&mut driver, "ack").await;
+    assert_eq!(ack["id"], 7, "{ack}");
+    let num = ack["result"]["avatar_num"].as_u64().unwrap();
+    assert!(
+        ack["result"]["joints"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|j| j == "l_elbow"),
+        "{ack}"
+    );
+    let q = [0.0f32, 0.70710677, 0.0, 0.70710677];
+    let sent = Instant::now();
+    driver
+        .send(Message::Text(
+            format!(r#"{{"type":"pose","avatar":"dancer","rotations":{{"l_elbow":{q:?}}}}}"#)
+                .into(),
+        ))
+        .await
+        .unwrap();
+    let seen = |j: usize, q: [f32; 4], after: Instant| {
+        let on_a = on_a.clone();
+        async move {
+            common::wait_for(5.0, || {
+                rotations_after(&on_a, j, after)
+                    .iter()
+                    .any(|(_, r)| same_rotation(*r, q))
+            })
+            .await
+        }
+    };
+    assert!(
+        seen(elbow, q, sent).await,
+        "A's frames never showed the pose"
+    );
+    // The binary form, by joint index.
+    let r = glam::Quat::from_rotation_x(-0.8);
+    let pose = posecast_proto::live::BinaryPose {
+        avatar_num: u32::try_from(num).unwrap(),
+        time_us: None,
+        root_position: None,
+        rotations: vec![(u16::try_from(knee).unwrap(), r)],
+    };
+    let sent = Instant::now();
+    driver
+        .send(Message::Binary(pose.encode().into()))
+        .await
+        .unwrap();
+    assert!(
+        seen(knee, r.to_array(), sent).await,
+        "A's frames never showed the binary pose"
+    );
+    // Refused where the driver is.
+    driver
+        .send(Message::Text(
+            r#"{"type":"pose","avatar":"dancer","rotations":{"no_such_joint":[0,0,0,1]}}"#.into(),
+        ))
+        .await
+        .unwrap();
+    let error = next_of(&mut driver, "error").await;
+    assert_eq!(error["code"], "unknown_joint", "{error}");
+
+    // The driver leaves: the walk takes the elbow again.
+    drop(driver);
+    let left = Instant::now();
+    assert!(
+        common::wait_for(5.0, || {
+            rotations_after(&on_a, elbow, left + Duration::from_millis(300))
+                .iter()
+                .filter(|(_, r)| !same_rotation(*r, q))
+                .count()
+                > 5
+        })
+        .await,
+        "the avatar stayed driven after its driver left"
+    );
+}

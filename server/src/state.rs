@@ -103,6 +103,21 @@ pub trait Cluster: Send + Sync + std::fmt::Debug {
     /// # Errors
     /// `unavailable` when NATS cannot be read; `internal` when the stored copy is unusable.
     fn shared_asset<'a>(&'a self, name: &'a str) -> BoxFuture<'a, Result<Option<FileSet>, Error>>;
+    /// Sends `drive` (`command`) for an avatar of scene `scene`, ticked elsewhere, to the
+    /// scene's owner, which drives the avatar for connection `conn` of this server; answers
+    /// with the owner's answer.
+    fn drive<'a>(
+        &'a self,
+        scene: &'a SceneId,
+        conn: u64,
+        command: &'a Command,
+    ) -> BoxFuture<'a, Result<CommandResult, Error>>;
+    /// Passes a live pose of connection `conn` (a [`posecast_proto::live::BinaryPose`],
+    /// checked here) to the owner of `scene`. Dropped and counted when the queue to NATS is
+    /// full.
+    fn pose(&self, scene: &SceneId, conn: u64, pose: Vec<u8>);
+    /// Connection `conn` left: the owner of `scene` releases the avatars it drives there.
+    fn release(&self, scene: &SceneId, conn: u64);
 }
 
 /// The open websockets' outboxes, and whether the server is shutting down (in one lock, so a

@@ -6,6 +6,7 @@
 //! - `owner`: a scene ticked here — its frames, descriptions and avatar changes published,
 //!   commands and joiners' requests answered.
 //! - `assets`: uploaded assets in object store `posecast_assets`, imported by every server.
+//! - `drive`: live driving of an avatar through its scene's owner.
 //! - `relay`: a scene ticked elsewhere — its frames fanned out here to this server's
 //!   subscribers, as the same bytes.
 //!
@@ -22,6 +23,7 @@
 //! does not allow in either).
 
 mod assets;
+mod drive;
 mod owner;
 mod relay;
 
@@ -232,6 +234,11 @@ pub struct Cluster {
     applied: Mutex<HashMap<String, String>>,
     /// Scenes not taken over for want of an asset, each logged once.
     short_of_assets: Mutex<HashMap<SceneId, std::collections::BTreeSet<String>>>,
+    /// Drivers on other servers of avatars ticked here.
+    drivers: drive::Drivers,
+    /// Poses of this server's drivers for avatars ticked elsewhere, to publish.
+    poses: tokio::sync::mpsc::Sender<drive::Outgoing>,
+    _pose_publisher: Task,
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -246,6 +253,12 @@ fn unavailable(what: &str, e: &dyn std::fmt::Display) -> Error {
 /// created cluster-wide, commands reach their scene's owner, and scenes are owned and relayed
 /// (the lease loop runs until the server stops).
 pub fn start(state: &Arc<AppState>, conn: Connection) -> Arc<Cluster> {
+    let (poses, queued) = tokio::sync::mpsc::channel(drive::POSE_QUEUE);
+    let publisher = tokio::spawn(drive::publish(
+        conn.client.clone(),
+        queued,
+        state.metrics.clone(),
+    ));
     let cluster = Arc::new(Cluster {
         conn,
         state: Arc::downgrade(state),
@@ -255,6 +268,9 @@ pub fn start(state: &Arc<AppState>, conn: Connection) -> Arc<Cluster> {
         writes: tokio::sync::Mutex::new(()),
         applied: Mutex::new(HashMap::new()),
         short_of_assets: Mutex::new(HashMap::new()),
+        drivers: Arc::new(Mutex::new(HashMap::new())),
+        poses,
+        _pose_publisher: Task(publisher),
     });
     state.join_cluster(cluster.clone());
     let running = cluster.clone();
@@ -751,6 +767,23 @@ impl crate::state::Cluster for Cluster {
         name: &'a str,
     ) -> BoxFuture<'a, Result<Option<crate::import::files::FileSet>, Error>> {
         Box::pin(self.shared_files(name))
+    }
+
+    fn drive<'a>(
+        &'a self,
+        scene: &'a SceneId,
+        conn: u64,
+        command: &'a Command,
+    ) -> BoxFuture<'a, Result<CommandResult, Error>> {
+        Box::pin(self.drive_remote(scene, conn, command))
+    }
+
+    fn pose(&self, scene: &SceneId, conn: u64, pose: Vec<u8>) {
+        self.send_pose(scene, conn, "pose", Bytes::from(pose));
+    }
+
+    fn release(&self, scene: &SceneId, conn: u64) {
+        self.send_pose(scene, conn, "leave", Bytes::new());
     }
 }
 

@@ -116,7 +116,7 @@ where
                 Ok(Message::Text(t)) => session.on_text(t.as_str()).await,
                 Ok(Message::Binary(b)) => {
                     // Binary client messages are live poses only (`proto/src/live.rs`).
-                    if let Err(e) = session.drives.binary_pose(&b) {
+                    if let Err(e) = session.drives.binary_pose(&session.state, &b) {
                         session.error(e);
                     }
                     true
@@ -572,9 +572,9 @@ impl Session {
                 time_us,
             } => {
                 // Not acknowledged (up to 120 a second): errors only.
-                if let Err(e) = self
-                    .drives
-                    .json_pose(&avatar, &rotations, root_position, time_us)
+                if let Err(e) =
+                    self.drives
+                        .json_pose(&self.state, &avatar, &rotations, root_position, time_us)
                 {
                     self.error(e);
                 }
@@ -600,9 +600,12 @@ impl Session {
                         .access
                         .authorize(&self.caller, &self.state.world, &command);
                 let result = match authorized {
-                    Ok(()) => match self.drives.command(&self.state, &command) {
+                    Ok(()) => match self.drives.command_remote(&self.state, &command).await {
                         Some(result) => result,
-                        None => control::execute_durable(&self.state, &command).await,
+                        None => match self.drives.command(&self.state, &command) {
+                            Some(result) => result,
+                            None => control::execute_durable(&self.state, &command).await,
+                        },
                     },
                     Err(e) => Err(e),
                 };
