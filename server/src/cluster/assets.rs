@@ -135,17 +135,21 @@ pub(super) async fn open(js: &async_nats::jetstream::Context) -> Result<Bucket, 
         num_replicas: 1,
         ..Default::default()
     };
-    js.get_or_create_stream(config).await.map_err(|e| {
+    let stream = js.get_or_create_stream(config).await.map_err(|e| {
         format!("cannot create object store {ASSETS_BUCKET} ({e}): is JetStream enabled (nats-server -js)?")
     })?;
     js.get_object_store(ASSETS_BUCKET)
         .await
-        .map(Bucket)
+        .map(|store| Bucket(store, stream))
         .map_err(|e| format!("cannot open object store {ASSETS_BUCKET}: {e}"))
 }
 
-/// The bucket (the client's handle has no `Debug`).
-pub(super) struct Bucket(pub(super) object_store::ObjectStore);
+/// The bucket (the client's handle has no `Debug`), and its stream, whose last sequence
+/// number tells whether anything was put since the last look.
+pub(super) struct Bucket(
+    pub(super) object_store::ObjectStore,
+    async_nats::jetstream::stream::Stream,
+);
 
 impl std::fmt::Debug for Bucket {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -257,6 +261,20 @@ impl Cluster {
     /// be used (malformed, over a quota, refused by the importer, or named as a rig this
     /// server loaded itself) is logged once per version and changes nothing here.
     pub(super) async fn sync_assets(&self, state: &AppState) -> Result<(), Error> {
+        // One request when nothing was put since the last complete look (the usual case),
+        // rather than a consumer over every object's metadata.
+        let last = self
+            .conn
+            .assets
+            .1
+            .get_info()
+            .await
+            .map_err(|e| unavailable("cannot read the cluster's assets", &e))?
+            .state
+            .last_sequence;
+        if *lock(&self.assets_seen) == Some(last) {
+            return Ok(());
+        }
         let mut listed = self
             .conn
             .assets
@@ -307,6 +325,7 @@ impl Cluster {
             }
             lock(&self.applied).insert(name, nuid);
         }
+        *lock(&self.assets_seen) = Some(last);
         Ok(())
     }
 

@@ -232,6 +232,8 @@ pub struct Cluster {
     writes: tokio::sync::Mutex<()>,
     /// Uploads of the assets bucket this server has (or refused): name → object nuid.
     applied: Mutex<HashMap<String, String>>,
+    /// The assets bucket's last sequence number at the last complete look.
+    assets_seen: Mutex<Option<u64>>,
     /// Scenes not taken over for want of an asset, each logged once.
     short_of_assets: Mutex<HashMap<SceneId, std::collections::BTreeSet<String>>>,
     /// Drivers on other servers of avatars ticked here.
@@ -267,6 +269,7 @@ pub fn start(state: &Arc<AppState>, conn: Connection) -> Arc<Cluster> {
         claims: Mutex::new(HashMap::new()),
         writes: tokio::sync::Mutex::new(()),
         applied: Mutex::new(HashMap::new()),
+        assets_seen: Mutex::new(None),
         short_of_assets: Mutex::new(HashMap::new()),
         drivers: Arc::new(Mutex::new(HashMap::new())),
         poses,
