@@ -1356,3 +1356,117 @@ async fn a_driver_on_a_relay_drives_the_owners_avatar() {
         "the avatar stayed driven after its driver left"
     );
 }
+
+/// The owner of a scene whose avatar is driven through B is SIGKILLed; the driver goes on
+/// sending poses to B, and they show in the frames of the server that took the scene over.
+/// With two servers B takes it over and applies them itself; with three, C (B cannot load an
+/// asset the scene uses, so it does not take it over) and B sends the `drive` again to C.
+async fn driving_survives_a_takeover(through_another: bool) {
+    let Some(nats) = Nats::start() else { return };
+    let cesium = if through_another {
+        match common::testdata_bytes("gltf/CesiumMan/glTF-Binary/CesiumMan.glb") {
+            Some(bytes) => Some(bytes),
+            None => return,
+        }
+    } else {
+        None
+    };
+    let a = node_with(&nats, "a", "1", RATE, &["--drive-timeout", "60"]);
+    let b = node_with(
+        &nats,
+        "b",
+        "1",
+        RATE,
+        &["--drive-timeout", "60", "--max-asset-bytes", "100000"],
+    );
+    let c = through_another.then(|| node_with(&nats, "c", "1", RATE, &["--drive-timeout", "60"]));
+    stage(a.addr).await;
+    if let Some(cesium) = &cesium {
+        let (status, body) = common::http_to(
+            a.addr,
+            "POST",
+            "/api/assets/cesium",
+            "model/gltf-binary",
+            cesium,
+        )
+        .await;
+        assert_eq!(status, 200, "{body}");
+        ok(
+            a.addr,
+            r#"{"op":"add_avatar","scene":"stage","asset":"cesium","avatar":"runner"}"#,
+        )
+        .await;
+    }
+    assert_eq!(owner_seen_by(b.addr, "stage").await, "a");
+    let mut driver = raw_at(b.addr, Encoding::Json, Some(CONTROL)).await;
+    driver
+        .send(Message::Text(
+            r#"{"type":"command","id":1,"command":{"op":"drive","avatar":"dancer"}}"#.into(),
+        ))
+        .await
+        .unwrap();
+    let ack = next_of(&mut driver, "ack").await;
+    assert!(ack["result"]["avatar_num"].is_u64(), "{ack}");
+    a.kill();
+    let killed = Instant::now();
+    let expected = if through_another { "c" } else { "b" };
+    let new_owner = loop {
+        let (_, body) = command_to(b.addr, r#"{"op":"list_scenes"}"#).await;
+        let owner = body["result"]
+            .as_array()
+            .and_then(|scenes| scenes.iter().find(|s| s["scene"] == "stage"))
+            .and_then(|s| s["owner"].as_str())
+            .unwrap_or_default()
+            .to_owned();
+        if owner == "b" || owner == "c" {
+            break owner;
+        }
+        assert!(
+            killed.elapsed() < Duration::from_secs(15),
+            "no new owner: {body}"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    assert_eq!(new_owner, expected);
+    let owner_addr = c.as_ref().map_or(b.addr, |c| c.addr);
+    let (on_owner, ws) = Recorder::subscribe(owner_addr, Encoding::Binary, None).await;
+    let on_owner = on_owner.spawn(ws);
+    let description = description_of(&on_owner, "dancer").await.to_string();
+    let elbow = joint_index(&description, "l_elbow");
+    // The walk does not hold the elbow there: only the driver's poses do.
+    let q = [0.0f32, 0.70710677, 0.0, 0.70710677];
+    let pose = format!(r#"{{"type":"pose","avatar":"dancer","rotations":{{"l_elbow":{q:?}}}}}"#);
+    let began = Instant::now();
+    let seen = loop {
+        driver
+            .send(Message::Text(pose.clone().into()))
+            .await
+            .unwrap();
+        let held = rotations_after(&on_owner, elbow, began);
+        if held.len() >= 5 && held.iter().rev().take(5).all(|(_, r)| same_rotation(*r, q)) {
+            break true;
+        }
+        if began.elapsed() > Duration::from_secs(10) {
+            break false;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    assert!(
+        seen,
+        "{new_owner} never showed the driver's poses after the takeover"
+    );
+    println!(
+        "poses through B shown by the new owner {new_owner} {:.0} ms after it took over",
+        began.elapsed().as_secs_f64() * 1e3
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn driving_through_a_relay_survives_it_taking_the_scene_over() {
+    driving_survives_a_takeover(false).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn driving_through_a_relay_survives_another_server_taking_the_scene_over() {
+    driving_survives_a_takeover(true).await;
+}

@@ -10,6 +10,10 @@
 //! pose of that driver. `leave` on the same subject (the connection closed) releases the
 //! avatars as the `drive` asked (back to the clip, or holding the last pose); a relaying
 //! server that dies without saying so leaves them to the drive timeout.
+//!
+//! When the scene changes owner, the relaying server sends the `drive` again to the new
+//! owner before its next pose (poses in between are dropped); when it takes the scene over
+//! itself, it runs the `drive` for the connection here and applies the poses directly.
 
 use super::{Cluster, KIND, Reply, key, lock, request_subject, unavailable};
 use crate::error::Error;
@@ -40,6 +44,56 @@ pub(super) type Drivers = Arc<Mutex<HashMap<String, Drives>>>;
 
 /// One pose or leave to publish: subject, kind, driver, payload.
 pub(super) type Outgoing = (String, &'static str, String, Bytes);
+
+/// A drive of a connection here, run by a scene's owner: the command, and the owner that
+/// runs it (`None` while it is being sent again to a new owner).
+#[derive(Debug)]
+pub(super) struct RemoteDrive {
+    command: Command,
+    owner: Option<String>,
+}
+
+/// This server's connections' drives run elsewhere, by scene and connection.
+pub(super) type RemoteDrives = Arc<Mutex<HashMap<(SceneId, u64), RemoteDrive>>>;
+
+/// Sends `drive` to scene `scene`'s owner for `driver`; the owner's answer.
+async fn request_drive(
+    client: &async_nats::Client,
+    scene: &SceneId,
+    driver: &str,
+    command: &Command,
+    metrics: Option<&Metrics>,
+) -> Result<CommandResult, Error> {
+    let payload = serde_json::to_vec(command)
+        .map_err(|e| Error::internal("cannot serialise the command", &e))?;
+    let mut headers = async_nats::HeaderMap::new();
+    headers.insert(KIND, "drive");
+    headers.insert(DRIVER, driver);
+    if let Some(m) = metrics {
+        m.cluster.published(payload.len());
+    }
+    let reply = client
+        .request_with_headers(request_subject(scene), headers, Bytes::from(payload))
+        .await
+        .map_err(|e| {
+            unavailable(
+                &format!("the server ticking scene {scene} did not answer (try again)"),
+                &e,
+            )
+        })?;
+    if let Some(m) = metrics {
+        m.cluster.received(reply.payload.len());
+    }
+    match serde_json::from_slice::<Reply>(&reply.payload) {
+        Ok(Reply::Ok(value)) => serde_json::from_value(value)
+            .map_err(|e| Error::internal("unreadable answer from the scene's server", &e)),
+        Ok(Reply::Error(wire)) => Err(Error::Remote(wire)),
+        Err(e) => Err(Error::internal(
+            "unreadable answer from the scene's server",
+            &e,
+        )),
+    }
+}
 
 /// Publishes the queued poses and leaves in order until the queue closes.
 pub(super) async fn publish(
@@ -154,44 +208,126 @@ impl Cluster {
         conn: u64,
         command: &Command,
     ) -> Result<CommandResult, Error> {
-        let payload = serde_json::to_vec(command)
-            .map_err(|e| Error::internal("cannot serialise the command", &e))?;
-        let mut headers = async_nats::HeaderMap::new();
-        headers.insert(KIND, "drive");
-        headers.insert(DRIVER, self.driver(conn).as_str());
+        // An owner not known yet counts as another one: the next pose sends `drive` again.
+        let owner = Some(
+            lock(&self.relays)
+                .get(scene)
+                .map(|r| r.owner.clone())
+                .unwrap_or_default(),
+        );
         let state = self.state();
-        if let Some(s) = &state {
-            s.metrics.cluster.published(payload.len());
+        let result = request_drive(
+            &self.conn.client,
+            scene,
+            &self.driver(conn),
+            command,
+            state.as_ref().map(|s| &*s.metrics),
+        )
+        .await;
+        if result.is_ok() {
+            lock(&self.remote_drives).insert(
+                (scene.clone(), conn),
+                RemoteDrive {
+                    command: command.clone(),
+                    owner,
+                },
+            );
         }
-        let reply = self
-            .conn
-            .client
-            .request_with_headers(request_subject(scene), headers, Bytes::from(payload))
-            .await
-            .map_err(|e| {
-                unavailable(
-                    &format!("the server ticking scene {scene} did not answer (try again)"),
-                    &e,
-                )
-            })?;
-        if let Some(s) = &state {
-            s.metrics.cluster.received(reply.payload.len());
-        }
-        match serde_json::from_slice::<Reply>(&reply.payload) {
-            Ok(Reply::Ok(value)) => serde_json::from_value(value)
-                .map_err(|e| Error::internal("unreadable answer from the scene's server", &e)),
-            Ok(Reply::Error(wire)) => Err(Error::Remote(wire)),
-            Err(e) => Err(Error::internal(
-                "unreadable answer from the scene's server",
-                &e,
-            )),
-        }
+        result
     }
 
-    pub(super) fn send_pose(&self, scene: &SceneId, conn: u64, kind: &'static str, pose: Bytes) {
-        let item = (pose_subject(scene), kind, self.driver(conn), pose);
-        if self.poses.try_send(item).is_err()
-            && let Some(state) = self.state()
+    /// Passes a pose of connection `conn` on to whoever ticks `scene` now: published for its
+    /// owner, sent after the `drive` again when the owner changed, applied here when this
+    /// server took the scene over.
+    pub(super) fn send_pose(&self, scene: &SceneId, conn: u64, pose: Bytes) {
+        let Some(state) = self.state() else { return };
+        let driver = self.driver(conn);
+        let key = (scene.clone(), conn);
+        if lock(&self.owned).contains_key(scene) {
+            let command = lock(&self.remote_drives)
+                .get(&key)
+                .map(|r| r.command.clone());
+            let mut drivers = lock(&self.drivers);
+            if !drivers.contains_key(&driver)
+                && let Some(command) = command
+            {
+                let payload = serde_json::to_vec(&command).unwrap_or_default();
+                drop(drivers);
+                if let Reply::Error(e) =
+                    answer_drive(&state, &self.drivers, driver.clone(), &payload)
+                {
+                    warn!(scene = %scene, driver, error = ?e, "cannot go on driving after the takeover");
+                }
+                drivers = lock(&self.drivers);
+            }
+            if let Some(drives) = drivers.get_mut(&driver)
+                && let Err(e) = drives.binary_pose(&state, &pose)
+            {
+                debug!(scene = %scene, driver, error = %e, "pose not applied");
+            }
+            return;
+        }
+        let current = lock(&self.relays).get(scene).map(|r| r.owner.clone());
+        let mut remote = lock(&self.remote_drives);
+        let Some(drive) = remote.get_mut(&key) else {
+            return;
+        };
+        if current.is_some() && drive.owner == current {
+            drop(remote);
+            self.publish_pose(scene, "pose", driver, pose, &state);
+            return;
+        }
+        let (Some(new_owner), Some(_)) = (current, drive.owner.take()) else {
+            // Being sent to the new owner already, or no owner known right now: dropped.
+            return;
+        };
+        let command = drive.command.clone();
+        drop(remote);
+        let client = self.conn.client.clone();
+        let remote = self.remote_drives.clone();
+        let scene = scene.clone();
+        tokio::spawn(async move {
+            match request_drive(&client, &scene, &driver, &command, None).await {
+                Ok(_) => {
+                    if let Some(d) = lock(&remote).get_mut(&(scene.clone(), conn)) {
+                        d.owner = Some(new_owner);
+                    }
+                }
+                Err(e) => {
+                    warn!(scene = %scene, driver, error = %e, "cannot go on driving with the scene's new owner");
+                    lock(&remote).remove(&(scene, conn));
+                }
+            }
+        });
+    }
+
+    /// Connection `conn` left: its drives of `scene` end where the scene is ticked.
+    pub(super) fn end_drives(&self, scene: &SceneId, conn: u64) {
+        let Some(state) = self.state() else { return };
+        lock(&self.remote_drives).remove(&(scene.clone(), conn));
+        let driver = self.driver(conn);
+        if lock(&self.owned).contains_key(scene) {
+            let removed = lock(&self.drivers).remove(&driver);
+            if let Some(mut drives) = removed {
+                drives.leave(&state);
+            }
+            return;
+        }
+        self.publish_pose(scene, "leave", driver, Bytes::new(), &state);
+    }
+
+    fn publish_pose(
+        &self,
+        scene: &SceneId,
+        kind: &'static str,
+        driver: String,
+        payload: Bytes,
+        state: &AppState,
+    ) {
+        if self
+            .poses
+            .try_send((pose_subject(scene), kind, driver, payload))
+            .is_err()
         {
             state.metrics.cluster.publish_dropped();
         }

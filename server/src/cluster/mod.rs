@@ -238,6 +238,8 @@ pub struct Cluster {
     short_of_assets: Mutex<HashMap<SceneId, std::collections::BTreeSet<String>>>,
     /// Drivers on other servers of avatars ticked here.
     drivers: drive::Drivers,
+    /// Drives of this server's connections run by other servers.
+    remote_drives: drive::RemoteDrives,
     /// Poses of this server's drivers for avatars ticked elsewhere, to publish.
     poses: tokio::sync::mpsc::Sender<drive::Outgoing>,
     _pose_publisher: Task,
@@ -272,6 +274,7 @@ pub fn start(state: &Arc<AppState>, conn: Connection) -> Arc<Cluster> {
         assets_seen: Mutex::new(None),
         short_of_assets: Mutex::new(HashMap::new()),
         drivers: Arc::new(Mutex::new(HashMap::new())),
+        remote_drives: Arc::new(Mutex::new(HashMap::new())),
         poses,
         _pose_publisher: Task(publisher),
     });
@@ -782,11 +785,11 @@ impl crate::state::Cluster for Cluster {
     }
 
     fn pose(&self, scene: &SceneId, conn: u64, pose: Vec<u8>) {
-        self.send_pose(scene, conn, "pose", Bytes::from(pose));
+        self.send_pose(scene, conn, Bytes::from(pose));
     }
 
     fn release(&self, scene: &SceneId, conn: u64) {
-        self.send_pose(scene, conn, "leave", Bytes::new());
+        self.end_drives(scene, conn);
     }
 }
 
