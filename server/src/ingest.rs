@@ -3,6 +3,10 @@
 //! the library and acknowledged. On any failure nothing changes: no library entry, no file
 //! left in the data folder.
 //!
+//! In a cluster (`--nats`) an upload, its added clips and its new options are also put where
+//! every server reads them ([`crate::state::Cluster::share_asset`]) before the answer, and the
+//! other servers load them with [`adopt_shared`].
+//!
 //! Uploads come over REST only (`service::upload`); the websocket keeps its 64 KiB message
 //! bound, which is what lets a connection's reader stay small and never buffer a model.
 
