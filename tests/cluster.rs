@@ -1470,3 +1470,70 @@ async fn driving_through_a_relay_survives_it_taking_the_scene_over() {
 async fn driving_through_a_relay_survives_another_server_taking_the_scene_over() {
     driving_survives_a_takeover(true).await;
 }
+
+/// A clip recorded on A (`record` … `stop_recording`) reaches B's rig, and when A is
+/// SIGKILLed B takes the scene over with the avatar still playing the recording.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn recordings_reach_every_server_and_survive_the_owner() {
+    let Some(nats) = Nats::start() else { return };
+    let a = node(&nats, "a", "1");
+    let b = node(&nats, "b", "1");
+    stage(a.addr).await;
+    assert_eq!(owner_seen_by(b.addr, "stage").await, "a");
+    ok(
+        a.addr,
+        r#"{"op":"record","avatar":"dancer","clip":"take1"}"#,
+    )
+    .await;
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let stopped = ok(a.addr, r#"{"op":"stop_recording","avatar":"dancer"}"#).await;
+    assert_eq!(stopped["result"]["clip"], "take1", "{stopped}");
+    let duration = stopped["result"]["duration"].as_f64().unwrap();
+    ok(a.addr, r#"{"op":"play","avatar":"dancer","clip":"take1"}"#).await;
+    // B's rig has it, as long as A's.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let asset = asset_seen_by(b.addr, "avatar").await;
+        let take = asset["clips"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|c| c["name"] == "take1")
+            .cloned();
+        if let Some(take) = take {
+            assert!(
+                (take["duration"].as_f64().unwrap() - duration).abs() < 1e-3,
+                "{take} vs {duration}"
+            );
+            break;
+        }
+        assert!(Instant::now() < deadline, "B never had take1: {asset}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    a.kill();
+    let killed = Instant::now();
+    loop {
+        let (_, body) = command_to(b.addr, r#"{"op":"list_scenes"}"#).await;
+        let stage = body["result"]
+            .as_array()
+            .and_then(|scenes| scenes.iter().find(|s| s["scene"] == "stage"))
+            .cloned()
+            .unwrap_or_default();
+        if stage["owner"] == "b" {
+            let dancer = stage["avatars"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|a| a["avatar"] == "dancer")
+                .cloned()
+                .unwrap();
+            assert_eq!(dancer["clip"], "take1", "{stage}");
+            break;
+        }
+        assert!(
+            killed.elapsed() < Duration::from_secs(15),
+            "B never took over: {body}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}

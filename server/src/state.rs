@@ -103,6 +103,18 @@ pub trait Cluster: Send + Sync + std::fmt::Debug {
     /// # Errors
     /// `unavailable` when NATS cannot be read; `internal` when the stored copy is unusable.
     fn shared_asset<'a>(&'a self, name: &'a str) -> BoxFuture<'a, Result<Option<FileSet>, Error>>;
+    /// Stores recorded clip `clip` of rig `rig` (`glb`: the file `DIR/recordings` holds)
+    /// where every server can read it, before `stop_recording` is acknowledged; every server
+    /// puts it on its rig from there.
+    ///
+    /// # Errors
+    /// `unavailable` when it could not be stored.
+    fn share_recording<'a>(
+        &'a self,
+        rig: &'a str,
+        clip: &'a str,
+        glb: Vec<u8>,
+    ) -> BoxFuture<'a, Result<(), Error>>;
     /// Sends `drive` (`command`) for an avatar of scene `scene`, ticked elsewhere, to the
     /// scene's owner, which drives the avatar for connection `conn` of this server; answers
     /// with the owner's answer.

@@ -6,6 +6,10 @@
 //! any scene) and imports what changed with the bundle's options, as the uploading server did.
 //! Objects are compared by their `nuid`, which every put renews.
 //!
+//! Recorded clips (`stop_recording`) go into the same bucket as objects named
+//! `recording:<rig>/<clip>` (`:` is not allowed in an upload's name) holding the glTF file the
+//! data folder keeps; every server puts them on its rig as it restores them at start.
+//!
 //! A bundle: `PCA1`, a little-endian `u32` header length, the header (JSON: format, name,
 //! options, each file's name and size) and the files' bytes one after the other. One object is
 //! one put, so a reader sees every file of one version or the previous version, never a mix.
@@ -157,6 +161,14 @@ impl std::fmt::Debug for Bucket {
     }
 }
 
+/// The object name of recorded clip `clip` of rig `rig`.
+fn recording_name(rig: &str, clip: &str) -> String {
+    format!("{RECORDING}{rig}/{clip}")
+}
+
+/// The prefix of recordings' object names.
+const RECORDING: &str = "recording:";
+
 /// Why a bucket object was not loaded: worth retrying (NATS) or not (its content).
 enum Unloaded {
     Nats(String),
@@ -207,12 +219,46 @@ impl Cluster {
         lock(&self.applied).remove(name);
     }
 
+    /// Puts recorded clip `clip` of rig `rig` (its glTF file) into the bucket.
+    pub(super) async fn put_recording(
+        &self,
+        rig: &str,
+        clip: &str,
+        glb: Vec<u8>,
+    ) -> Result<(), Error> {
+        let name = recording_name(rig, clip);
+        let meta = ObjectMetadata {
+            name: name.clone(),
+            ..Default::default()
+        };
+        let put = self
+            .conn
+            .assets
+            .0
+            .put(meta, &mut glb.as_slice())
+            .await
+            .map_err(|e| unavailable("cannot store the recording in NATS", &e))?;
+        if let Some(s) = self.state() {
+            s.metrics.cluster.published(glb.len());
+        }
+        lock(&self.applied).insert(name, put.nuid);
+        Ok(())
+    }
+
     /// Upload `name`'s bundle as the bucket holds it now (`None`: not there).
     async fn fetch(
         &self,
         state: &AppState,
         name: &str,
     ) -> Result<Option<(String, FileSet, PipelineOptions)>, Unloaded> {
+        match self.fetch_bytes(state, name).await? {
+            Some(bytes) => decode(&bytes).map(Some).map_err(Unloaded::Content),
+            None => Ok(None),
+        }
+    }
+
+    /// Object `name`'s bytes (`None`: not there), bounded by the asset quota.
+    async fn fetch_bytes(&self, state: &AppState, name: &str) -> Result<Option<Vec<u8>>, Unloaded> {
         let mut object = match self.conn.assets.0.get(name).await {
             Ok(object) => object,
             Err(e) if e.kind() == object_store::GetErrorKind::NotFound => return Ok(None),
@@ -238,7 +284,33 @@ impl Cluster {
                 "it holds more than {max} bytes (--max-asset-bytes)"
             )));
         }
-        decode(&bytes).map(Some).map_err(Unloaded::Content)
+        Ok(Some(bytes))
+    }
+
+    /// Puts recording object `name` (`recording:<rig>/<clip>`) on its rig. `Ok(false)`: its
+    /// rig is not loaded here (yet: it may be an upload still to come).
+    async fn load_recording(&self, state: &AppState, name: &str) -> Result<bool, Unloaded> {
+        let (rig_name, clip) = name
+            .strip_prefix(RECORDING)
+            .and_then(|rest| rest.rsplit_once('/'))
+            .ok_or_else(|| Unloaded::Content("not a recording's name".into()))?;
+        let Some(rig) = state.world.library.get(rig_name) else {
+            return Ok(false);
+        };
+        if rig.clip(clip).is_some() {
+            // Recorded here, or loaded before.
+            return Ok(true);
+        }
+        let Some(bytes) = self.fetch_bytes(state, name).await? else {
+            return Ok(true);
+        };
+        let clip = crate::store::recordings::recording_from_bytes(&rig, clip, &bytes)
+            .map_err(|e| Unloaded::Content(e.to_string()))?;
+        state
+            .world
+            .add_clip(rig_name, clip)
+            .map_err(|e| Unloaded::Content(e.to_string()))?;
+        Ok(true)
     }
 
     /// Upload `name`'s files as the bucket holds them.
@@ -289,8 +361,31 @@ impl Cluster {
                 objects.push((info.name, info.nuid));
             }
         }
+        // Uploads before recordings: a recording's rig may be an upload of the same look.
+        objects.sort_by_key(|(name, _)| name.starts_with(RECORDING));
+        let mut waiting = false;
         for (name, nuid) in objects {
             if lock(&self.applied).get(&name) == Some(&nuid) {
+                continue;
+            }
+            if name.starts_with(RECORDING) {
+                match self.load_recording(state, &name).await {
+                    Ok(true) => {
+                        info!(recording = %name, "loaded a recording from the cluster");
+                    }
+                    Ok(false) => {
+                        // Its rig may come later: looked at again at the next look.
+                        waiting = true;
+                        continue;
+                    }
+                    Err(Unloaded::Nats(e)) => {
+                        return Err(unavailable("cannot read a recording from NATS", &e));
+                    }
+                    Err(Unloaded::Content(e)) => {
+                        warn!(recording = %name, error = %e, "the cluster's recording is not loaded here (nothing changed)");
+                    }
+                }
+                lock(&self.applied).insert(name, nuid);
                 continue;
             }
             // Under the assets lock, as uploads here: one that was just shared from here is
@@ -325,21 +420,35 @@ impl Cluster {
             }
             lock(&self.applied).insert(name, nuid);
         }
-        *lock(&self.assets_seen) = Some(last);
+        if !waiting {
+            *lock(&self.assets_seen) = Some(last);
+        }
         Ok(())
     }
 
     /// The assets a scene's snapshot names (its avatars' rigs and the rigs their clips are
-    /// retargeted from) that this server has not loaded.
+    /// retargeted from) that this server has not loaded, and the clips they play that those
+    /// rigs lack here (`rig/clip`: a recording not loaded yet).
     pub(super) fn missing_assets(state: &AppState, file: &SceneFile) -> BTreeSet<String> {
-        file.avatars
-            .iter()
-            .flat_map(|a| {
-                std::iter::once(a.asset.clone())
-                    .chain(a.playback.as_ref().and_then(|p| p.from_asset.clone()))
-            })
-            .filter(|name| state.world.library.get(name).is_none())
-            .collect()
+        let mut missing = BTreeSet::new();
+        for a in &file.avatars {
+            let source = a
+                .playback
+                .as_ref()
+                .and_then(|p| p.from_asset.clone())
+                .unwrap_or_else(|| a.asset.clone());
+            for name in [&a.asset, &source] {
+                if state.world.library.get(name).is_none() {
+                    missing.insert(name.clone());
+                }
+            }
+            if let (Some(p), Some(rig)) = (&a.playback, state.world.library.get(&source))
+                && rig.clip(&p.clip).is_none()
+            {
+                missing.insert(format!("{source}/{}", p.clip));
+            }
+        }
+        missing
     }
 }
 

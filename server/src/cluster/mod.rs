@@ -775,6 +775,15 @@ impl crate::state::Cluster for Cluster {
         Box::pin(self.shared_files(name))
     }
 
+    fn share_recording<'a>(
+        &'a self,
+        rig: &'a str,
+        clip: &'a str,
+        glb: Vec<u8>,
+    ) -> BoxFuture<'a, Result<(), Error>> {
+        Box::pin(self.put_recording(rig, clip, glb))
+    }
+
     fn drive<'a>(
         &'a self,
         scene: &'a SceneId,
