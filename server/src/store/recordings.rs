@@ -125,7 +125,8 @@ fn read_recording(rig: &Rig, path: &Path) -> Result<Clip, Unusable> {
     recording_from_bytes(rig, &stem, &bytes)
 }
 
-/// Recorded clip `stem` of `rig` from a recording file's bytes (see [`read_recording`]).
+/// Recorded clip `stem` of `rig` from a recording file's bytes: the same joints in the same
+/// order as the rig, and a clip named `stem`.
 ///
 /// # Errors
 /// Not a glTF binary, no skin, not the rig's joints, or no clip of that name.
