@@ -6,14 +6,23 @@
 //! 10 s; each frame's latency is its arrival time minus the tick time in its header (the
 //! owner's clock, the same machine's). Prints p50 / p99 / max for clients on A and on B, and the
 //! NATS bytes per second A published and B received for the scene.
+//!
+//! Then live driving: a driver on A (the owner), then one on B (its poses go to A through
+//! NATS), each sends 120 poses a second for 2.5 s to `walker0`, each a distinct `l_elbow`
+//! angle, while 20 library clients on A record when each pose first shows; latency = seen −
+//! sent (one machine, one clock).
 
 use futures_util::{SinkExt, StreamExt};
+use glam::Quat;
+use posecast_client::net::{Client, ClientOptions, Driver, Event};
 use posecast_proto::frame::read_header;
+use posecast_proto::msg::AvatarId;
 use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, ServerMsg};
 use posecast_server::auth::{AccessConfig, Role, Secret, TokenRule};
 use posecast_server::config::Config;
 use posecast_server::startup::Server;
 use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tokio_tungstenite::tungstenite::Message;
 
@@ -141,11 +150,11 @@ async fn subscriber(mut ws: Ws) -> anyhow::Result<Vec<u64>> {
     Ok(latencies)
 }
 
-fn report(name: &str, mut l: Vec<u64>) {
+fn report(name: &str, what: &str, mut l: Vec<u64>) {
     l.sort_unstable();
     let at = |q: f64| l[((l.len() - 1) as f64 * q) as usize] as f64 / 1e3;
     println!(
-        "{name}: {} frames, p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms",
+        "{name}: {} {what}, p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms",
         l.len(),
         at(0.5),
         at(0.99),
@@ -216,14 +225,93 @@ async fn main() -> anyhow::Result<()> {
         "{AVATARS} avatars at 60 Hz, {CLIENTS} binary subscribers on the owner A and {CLIENTS} on the relay B, {} s",
         measured_seconds()
     );
-    report("clients on A (owner)", on_a_lat);
-    report("clients on B (relay)", on_b_lat);
+    report("clients on A (owner)", "frames", on_a_lat);
+    report("clients on B (relay)", "frames", on_b_lat);
     println!(
         "NATS: A published {:.1} kB/s, B received {:.1} kB/s for the scene",
         published as f64 / seconds / 1e3,
         received as f64 / seconds / 1e3
     );
+    for (name, server) in [("A (owner)", &a), ("B (relay)", &b)] {
+        let mut l = drive_latency(&a, server).await?;
+        anyhow::ensure!(!l.is_empty(), "no pose of the driver on {name} was seen");
+        l.sort_unstable();
+        report(
+            &format!("driver on {name} → clients on A"),
+            "poses seen",
+            l.iter().map(|d| d.as_micros() as u64).collect(),
+        );
+    }
     b.stop().await;
     a.stop().await;
     Ok(())
+}
+
+/// Radians between consecutive poses' elbow angles (far above the quantisation step).
+const STEP: f32 = 0.004;
+
+/// Pose in → pose out: a driver on `via` drives `walker0` (ticked by `owner`); 20 clients on
+/// the owner record when each pose first shows.
+async fn drive_latency(owner: &Server, via: &Server) -> anyhow::Result<Vec<Duration>> {
+    let poses = 2 * 120 * measured_seconds() as usize / 4 + 10;
+    let avatar = AvatarId("walker0".into());
+    let elbow = owner
+        .state
+        .world
+        .library
+        .get("avatar")
+        .and_then(|r| r.skeleton().find("l_elbow"))
+        .ok_or_else(|| anyhow::anyhow!("no l_elbow"))?;
+    let sent: Arc<Mutex<Vec<Option<Instant>>>> = Arc::new(Mutex::new(vec![None; poses]));
+    let latencies = Arc::new(Mutex::new(Vec::new()));
+    let mut clients = Vec::new();
+    for _ in 0..CLIENTS {
+        let mut options = ClientOptions::new(owner.ws_url(), "bench");
+        options.encoding = Encoding::Binary;
+        options.reconnect = false;
+        let client = Arc::new(Client::connect(options).await?);
+        let (sent, latencies, avatar) = (sent.clone(), latencies.clone(), avatar.clone());
+        let c = client.clone();
+        let mut events = client.events();
+        tokio::spawn(async move {
+            let mut last = None;
+            while let Ok(e) = events.recv().await {
+                let Event::Frame { .. } = e else { continue };
+                let Some(s) = c.latest(&avatar) else { continue };
+                let (axis, angle) = s.locals[elbow].rotation.to_axis_angle();
+                let k = (angle * axis.z.signum() / STEP).round();
+                if !(k >= 1.0 && (k as usize) < poses) || last == Some(k as usize) {
+                    continue;
+                }
+                last = Some(k as usize);
+                let t = sent.lock().map(|s| s[k as usize]).unwrap_or(None);
+                if let (Some(t), Ok(mut l)) = (t, latencies.lock()) {
+                    l.push(t.elapsed());
+                }
+            }
+        });
+        clients.push(client);
+    }
+    let driver = Driver::connect(&via.ws_url(), Some(TOKEN.into())).await?;
+    driver.drive(&avatar, None, None).await?;
+    let mut interval = tokio::time::interval(Duration::from_secs_f64(1.0 / 120.0));
+    for k in 1..poses {
+        interval.tick().await;
+        let q = Quat::from_rotation_z(k as f32 * STEP);
+        if let Ok(mut s) = sent.lock() {
+            s[k] = Some(Instant::now());
+        }
+        driver
+            .send_pose(&avatar, [("l_elbow".to_string(), q.to_array())], None, None)
+            .await?;
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    if let Some(e) = driver.next_error(Duration::from_millis(10)).await {
+        anyhow::bail!("the driver got an error: {e}");
+    }
+    // Its drive ends with its connection, before the next driver's.
+    drop(driver);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    drop(clients);
+    Ok(latencies.lock().map(|l| l.clone()).unwrap_or_default())
 }

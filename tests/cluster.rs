@@ -29,22 +29,27 @@ fn node(nats: &Nats, name: &str, lease: &str) -> Posecast {
 }
 
 fn node_at(nats: &Nats, name: &str, lease: &str, rate: f32) -> Posecast {
-    Posecast::start(
-        &[
-            "--nats",
-            &nats.url(),
-            "--node",
-            name,
-            "--lease",
-            lease,
-            "--no-persist",
-            "--tick-rate",
-            &rate.to_string(),
-            "--control-token",
-            CONTROL,
-        ],
-        &[],
-    )
+    node_with(nats, name, lease, rate, &[])
+}
+
+fn node_with(nats: &Nats, name: &str, lease: &str, rate: f32, more: &[&str]) -> Posecast {
+    let url = nats.url();
+    let rate = rate.to_string();
+    let mut args = vec![
+        "--nats",
+        &url,
+        "--node",
+        name,
+        "--lease",
+        lease,
+        "--no-persist",
+        "--tick-rate",
+        &rate,
+        "--control-token",
+        CONTROL,
+    ];
+    args.extend_from_slice(more);
+    Posecast::start(&args, &[])
 }
 
 async fn ok(addr: SocketAddr, json: &str) -> serde_json::Value {
@@ -922,4 +927,613 @@ async fn a_watcher_on_another_server_hears_of_changes() {
     assert_eq!(next("avatar_removed").await["avatar"], "visitor");
     ok(a.addr, r#"{"op":"delete_scene","scene":"later"}"#).await;
     assert_eq!(next("scene_deleted").await["scene"], "later");
+}
+
+/// The description of avatar `avatar` among a recorder's description messages, once there.
+async fn description_of(rec: &Recorder, avatar: &str) -> serde_json::Value {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let found = rec.texts("description").into_iter().find_map(|t| {
+            let v: serde_json::Value = serde_json::from_str(&t).unwrap();
+            (v["avatar"]["id"] == avatar).then_some(v)
+        });
+        if let Some(v) = found {
+            return v;
+        }
+        assert!(Instant::now() < deadline, "no description of {avatar}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// Waits (at most 15 s) until `addr` answers `get_asset` for `asset`; returns the answer.
+async fn asset_seen_by(addr: SocketAddr, asset: &str) -> serde_json::Value {
+    let deadline = Instant::now() + Duration::from_secs(15);
+    loop {
+        let (status, body) =
+            command_to(addr, &format!(r#"{{"op":"get_asset","asset":"{asset}"}}"#)).await;
+        if status == 200 {
+            return body["result"].clone();
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{addr} never had asset {asset}: {body}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+/// An upload accepted by A is stored where every server reads it and imported by all of them
+/// with its pipeline options: after the owner A is SIGKILLed, the server that takes the scene
+/// over has the rig and streams the avatar made of it, with the description hash A gave it
+/// (the options change the rig, so a server that imported it with the defaults would differ);
+/// a server started after the upload has the asset, described exactly as A describes it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn uploads_reach_every_server_and_survive_the_owner() {
+    let Some(nats) = Nats::start() else { return };
+    let Some(cesium) = common::testdata_bytes("gltf/CesiumMan/glTF-Binary/CesiumMan.glb") else {
+        return;
+    };
+    let a = node(&nats, "a", "1.5");
+    let b = node(&nats, "b", "1.5");
+    let c = node(&nats, "c", "1.5");
+    ok(a.addr, r#"{"op":"create_scene","scene":"stage"}"#).await;
+    assert_eq!(owner_seen_by(b.addr, "stage").await, "a");
+    assert_eq!(owner_seen_by(c.addr, "stage").await, "a");
+    let (status, body) = common::http_to(
+        a.addr,
+        "POST",
+        "/api/assets/cesium?metres_per_unit=2",
+        "model/gltf-binary",
+        &cesium,
+    )
+    .await;
+    assert_eq!(status, 200, "{body}");
+    let uploaded: serde_json::Value = serde_json::from_str(&body).unwrap();
+    let clip = uploaded["result"][0]["clips"][0]["name"]
+        .as_str()
+        .unwrap()
+        .to_owned();
+    // Through B, which forwards it to the owner A.
+    ok(
+        b.addr,
+        &format!(
+            r#"{{"op":"add_avatar","scene":"stage","asset":"cesium","avatar":"runner","clip":"{clip}"}}"#
+        ),
+    )
+    .await;
+    let (on_a, ws) = Recorder::subscribe(a.addr, Encoding::Binary, None).await;
+    let on_a = on_a.spawn(ws);
+    let on_owner = description_of(&on_a, "runner").await;
+    let hash = on_owner["avatar"]["hash"].as_str().unwrap().to_owned();
+    let described = asset_seen_by(a.addr, "cesium").await;
+    assert_eq!(described["options"]["metres_per_unit"], 2.0, "{described}");
+    for other in [b.addr, c.addr] {
+        assert_eq!(asset_seen_by(other, "cesium").await, described);
+    }
+
+    let killed = Instant::now();
+    a.kill();
+    let new_owner = loop {
+        let (status, body) = command_to(b.addr, r#"{"op":"list_scenes"}"#).await;
+        let owner = body["result"]
+            .as_array()
+            .and_then(|scenes| scenes.iter().find(|s| s["scene"] == "stage"))
+            .and_then(|s| s["owner"].as_str())
+            .unwrap_or_default()
+            .to_owned();
+        if status == 200 && (owner == "b" || owner == "c") {
+            break owner;
+        }
+        assert!(
+            killed.elapsed() < Duration::from_secs(15),
+            "no new owner: {body}"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    let owner_addr = if new_owner == "b" { b.addr } else { c.addr };
+    let (fresh, ws) = Recorder::subscribe(owner_addr, Encoding::Binary, None).await;
+    let fresh = fresh.spawn(ws);
+    let taken_over = description_of(&fresh, "runner").await;
+    assert_eq!(taken_over["avatar"]["hash"], hash.as_str(), "{taken_over}");
+    // Frames of the restored avatar, carrying that hash.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let hash = u64::from_str_radix(&hash, 16).unwrap();
+    loop {
+        let mut decoder = FrameDecoder::new();
+        let streamed = fresh.messages().into_iter().any(|(_, m)| {
+            matches!(m, Message::Binary(b) if decoder
+                .decode(&b)
+                .is_ok_and(|f| f.avatars.iter().any(|a| a.hash == hash && !a.rotations.is_empty())))
+        });
+        if streamed {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{new_owner} streams no frame of runner"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+
+    // A server started after the upload has it, described as A described it.
+    let d = node(&nats, "d", "1.5");
+    assert_eq!(asset_seen_by(d.addr, "cesium").await, described);
+}
+
+/// What the cluster's bucket holds that a server cannot use changes nothing there and is
+/// logged: a malformed object, and an upload over its asset quota. A server lacking an
+/// avatar's rig does not take the scene over when its owner dies (restoring would drop the
+/// avatar, and its next snapshot lose it); a server started later that has the rig does, with
+/// the avatar.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn unusable_uploads_change_nothing_and_lose_nothing() {
+    let Some(nats) = Nats::start() else { return };
+    let Some(cesium) = common::testdata_bytes("gltf/CesiumMan/glTF-Binary/CesiumMan.glb") else {
+        return;
+    };
+    let a = node(&nats, "a", "1");
+    // Room for CesiumMan's 490,956 bytes on A, not on B.
+    let b = node_with(&nats, "b", "1", RATE, &["--max-asset-bytes", "100000"]);
+    let client = async_nats::connect(nats.url()).await.unwrap();
+    let bucket = async_nats::jetstream::new(client)
+        .get_object_store("posecast_assets")
+        .await
+        .unwrap();
+    bucket
+        .put("junk", &mut b"PCA1\xff\xff\xff\xffnot a bundle".as_slice())
+        .await
+        .unwrap();
+    let (status, body) = common::http_to(
+        a.addr,
+        "POST",
+        "/api/assets/cesium",
+        "model/gltf-binary",
+        &cesium,
+    )
+    .await;
+    assert_eq!(status, 200, "{body}");
+    ok(a.addr, r#"{"op":"create_scene","scene":"stage"}"#).await;
+    ok(
+        a.addr,
+        r#"{"op":"add_avatar","scene":"stage","asset":"cesium","avatar":"runner"}"#,
+    )
+    .await;
+    assert_eq!(owner_seen_by(b.addr, "stage").await, "a");
+    let logged = |server: &Posecast, what: &str| {
+        server
+            .output()
+            .iter()
+            .any(|l| l.contains(what) && l.contains("not loaded here"))
+    };
+    assert!(
+        common::wait_for(10.0, || logged(&b, "junk") && logged(&b, "cesium")).await,
+        "{:#?}",
+        b.output()
+    );
+    for name in ["junk", "cesium"] {
+        let (status, body) =
+            command_to(b.addr, &format!(r#"{{"op":"get_asset","asset":"{name}"}}"#)).await;
+        assert_eq!(status, 404, "{body}");
+    }
+    assert!(logged(&a, "junk"), "{:#?}", a.output());
+
+    a.kill();
+    // Three lease times: B does not take the scene over.
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let (status, body) = command_to(b.addr, r#"{"op":"list_scenes"}"#).await;
+    assert_eq!(status, 200);
+    let stage = body["result"]
+        .as_array()
+        .and_then(|scenes| scenes.iter().find(|s| s["scene"] == "stage"))
+        .cloned();
+    assert_ne!(
+        stage.as_ref().and_then(|s| s["owner"].as_str()),
+        Some("b"),
+        "{body}"
+    );
+    assert!(
+        b.output()
+            .iter()
+            .any(|l| l.contains("lacks assets") && l.contains("cesium")),
+        "{:#?}",
+        b.output()
+    );
+    assert_eq!(b.health().map(|(s, _)| s), Some(200));
+    // C has room for the rig: it takes the scene over with the avatar.
+    let c = node(&nats, "c", "1");
+    assert_eq!(owner_seen_by(c.addr, "stage").await, "c");
+    let (on_c, ws) = Recorder::subscribe(c.addr, Encoding::Binary, None).await;
+    let on_c = on_c.spawn(ws);
+    let runner = description_of(&on_c, "runner").await;
+    assert_eq!(runner["avatar"]["name"], "cesium", "{runner}");
+}
+
+/// A scene-list watcher's first list on B shows a scene ticked by A with its avatars as A
+/// lists them (ids, rigs, clips) and with its owner.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_watchers_first_list_shows_relayed_scenes_with_their_avatars() {
+    let Some(nats) = Nats::start() else { return };
+    let a = node(&nats, "a", "1");
+    let b = node(&nats, "b", "1");
+    stage(a.addr).await;
+    ok(
+        a.addr,
+        r#"{"op":"add_avatar","scene":"stage","asset":"avatar","avatar":"greeter","clip":"wave"}"#,
+    )
+    .await;
+    assert_eq!(owner_seen_by(b.addr, "stage").await, "a");
+    let on_a = ok(a.addr, r#"{"op":"list_scenes"}"#).await;
+    let summary = |scene: &serde_json::Value| -> Vec<(String, String, String)> {
+        scene["avatars"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|a| {
+                (
+                    a["avatar"].as_str().unwrap().to_owned(),
+                    a["asset"].as_str().unwrap().to_owned(),
+                    a["clip"].as_str().unwrap_or_default().to_owned(),
+                )
+            })
+            .collect()
+    };
+    let find = |scenes: &serde_json::Value| {
+        scenes
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|s| s["scene"] == "stage")
+            .cloned()
+            .unwrap_or_else(|| panic!("no stage in {scenes}"))
+    };
+    let expected = summary(&find(&on_a["result"]));
+    assert_eq!(
+        expected,
+        [
+            ("dancer".into(), "avatar".into(), "walk".into()),
+            ("greeter".into(), "avatar".into(), "wave".into())
+        ]
+    );
+    let mut watcher = raw_at(b.addr, Encoding::Json, Some(CONTROL)).await;
+    watcher
+        .send(Message::Text(r#"{"type":"watch_scenes"}"#.into()))
+        .await
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let first = loop {
+        match tokio::time::timeout_at(deadline.into(), watcher.next()).await {
+            Ok(Some(Ok(Message::Text(t)))) => {
+                let v: serde_json::Value = serde_json::from_str(&t).unwrap();
+                if v["type"] == "scenes" {
+                    break v;
+                }
+            }
+            Ok(Some(Ok(_))) => {}
+            other => panic!("no scene list: {other:?}"),
+        }
+    };
+    let listed = find(&first["scenes"]);
+    assert_eq!(summary(&listed), expected, "{first}");
+    assert_eq!(listed["owner"], "a", "{first}");
+}
+
+/// `--max-scenes` counts every scene the creating server holds, relayed ones included: every
+/// server holds every scene of the cluster, so the limit is the cluster's as that server sees
+/// it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn relayed_scenes_count_toward_max_scenes() {
+    let Some(nats) = Nats::start() else { return };
+    let a = node_with(&nats, "a", "1", RATE, &["--max-scenes", "2"]);
+    let b = node(&nats, "b", "1");
+    // `default` (made by the first server) and `elsewhere`, ticked by B.
+    ok(b.addr, r#"{"op":"create_scene","scene":"elsewhere"}"#).await;
+    assert_eq!(owner_seen_by(a.addr, "elsewhere").await, "b");
+    owner_seen_by(a.addr, "default").await;
+    let (status, body) = command_to(a.addr, r#"{"op":"create_scene","scene":"third"}"#).await;
+    assert_eq!(status, 429, "{body}");
+    assert_eq!(body["code"], "quota_exceeded", "{body}");
+    // Nothing changed anywhere: B (no limit of its own) can still make it.
+    ok(b.addr, r#"{"op":"create_scene","scene":"third"}"#).await;
+}
+
+/// Reads text messages until one of type `kind` (at most 10 s).
+async fn next_of(ws: &mut common::Ws, kind: &str) -> serde_json::Value {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        match tokio::time::timeout_at(deadline.into(), ws.next()).await {
+            Ok(Some(Ok(Message::Text(t)))) => {
+                let v: serde_json::Value = serde_json::from_str(&t).unwrap();
+                if v["type"] == kind {
+                    return v;
+                }
+            }
+            Ok(Some(Ok(_))) => {}
+            other => panic!("no {kind}: {other:?}"),
+        }
+    }
+}
+
+/// A driver connected to B drives an avatar ticked by A: `drive` is acknowledged through B,
+/// its JSON and binary poses show in A's frames (the rotations sent), a pose naming an
+/// unknown joint is refused at B, and when the driver leaves the avatar goes back to its clip.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_driver_on_a_relay_drives_the_owners_avatar() {
+    let Some(nats) = Nats::start() else { return };
+    // A silent driver keeps its avatar for a minute: only its leaving releases it sooner.
+    let a = node_with(&nats, "a", "1", RATE, &["--drive-timeout", "60"]);
+    let b = node(&nats, "b", "1");
+    stage(a.addr).await;
+    assert_eq!(owner_seen_by(b.addr, "stage").await, "a");
+    let (on_a, ws) = Recorder::subscribe(a.addr, Encoding::Binary, None).await;
+    let on_a = on_a.spawn(ws);
+    let description = description_of(&on_a, "dancer").await.to_string();
+    let (elbow, knee) = (
+        joint_index(&description, "l_elbow"),
+        joint_index(&description, "r_knee"),
+    );
+
+    let mut driver = raw_at(b.addr, Encoding::Json, Some(CONTROL)).await;
+    driver
+        .send(Message::Text(
+            r#"{"type":"command","id":7,"command":{"op":"drive","avatar":"dancer"}}"#.into(),
+        ))
+        .await
+        .unwrap();
+    let ack = next_of(&mut driver, "ack").await;
+    assert_eq!(ack["id"], 7, "{ack}");
+    let num = ack["result"]["avatar_num"].as_u64().unwrap();
+    assert!(
+        ack["result"]["joints"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|j| j == "l_elbow"),
+        "{ack}"
+    );
+    let q = [0.0f32, 0.70710677, 0.0, 0.70710677];
+    let sent = Instant::now();
+    driver
+        .send(Message::Text(
+            format!(r#"{{"type":"pose","avatar":"dancer","rotations":{{"l_elbow":{q:?}}}}}"#)
+                .into(),
+        ))
+        .await
+        .unwrap();
+    let seen = |j: usize, q: [f32; 4], after: Instant| {
+        let on_a = on_a.clone();
+        async move {
+            common::wait_for(5.0, || {
+                rotations_after(&on_a, j, after)
+                    .iter()
+                    .any(|(_, r)| same_rotation(*r, q))
+            })
+            .await
+        }
+    };
+    assert!(
+        seen(elbow, q, sent).await,
+        "A's frames never showed the pose"
+    );
+    // The binary form, by joint index.
+    let r = glam::Quat::from_rotation_x(-0.8);
+    let pose = posecast_proto::live::BinaryPose {
+        avatar_num: u32::try_from(num).unwrap(),
+        time_us: None,
+        root_position: None,
+        rotations: vec![(u16::try_from(knee).unwrap(), r)],
+    };
+    let sent = Instant::now();
+    driver
+        .send(Message::Binary(pose.encode().into()))
+        .await
+        .unwrap();
+    assert!(
+        seen(knee, r.to_array(), sent).await,
+        "A's frames never showed the binary pose"
+    );
+    // Refused where the driver is.
+    driver
+        .send(Message::Text(
+            r#"{"type":"pose","avatar":"dancer","rotations":{"no_such_joint":[0,0,0,1]}}"#.into(),
+        ))
+        .await
+        .unwrap();
+    let error = next_of(&mut driver, "error").await;
+    assert_eq!(error["code"], "unknown_joint", "{error}");
+
+    // The driver leaves: the walk takes the elbow again.
+    drop(driver);
+    let left = Instant::now();
+    assert!(
+        common::wait_for(5.0, || {
+            rotations_after(&on_a, elbow, left + Duration::from_millis(300))
+                .iter()
+                .filter(|(_, r)| !same_rotation(*r, q))
+                .count()
+                > 5
+        })
+        .await,
+        "the avatar stayed driven after its driver left"
+    );
+}
+
+/// The owner of a scene whose avatar is driven through B is SIGKILLed; the driver goes on
+/// sending poses to B, and they show in the frames of the server that took the scene over.
+/// With two servers B takes it over and applies them itself; with three, C (B cannot load an
+/// asset the scene uses, so it does not take it over) and B sends the `drive` again to C.
+async fn driving_survives_a_takeover(through_another: bool) {
+    let Some(nats) = Nats::start() else { return };
+    let cesium = if through_another {
+        match common::testdata_bytes("gltf/CesiumMan/glTF-Binary/CesiumMan.glb") {
+            Some(bytes) => Some(bytes),
+            None => return,
+        }
+    } else {
+        None
+    };
+    let a = node_with(&nats, "a", "1", RATE, &["--drive-timeout", "60"]);
+    let b = node_with(
+        &nats,
+        "b",
+        "1",
+        RATE,
+        &["--drive-timeout", "60", "--max-asset-bytes", "100000"],
+    );
+    let c = through_another.then(|| node_with(&nats, "c", "1", RATE, &["--drive-timeout", "60"]));
+    stage(a.addr).await;
+    if let Some(cesium) = &cesium {
+        let (status, body) = common::http_to(
+            a.addr,
+            "POST",
+            "/api/assets/cesium",
+            "model/gltf-binary",
+            cesium,
+        )
+        .await;
+        assert_eq!(status, 200, "{body}");
+        ok(
+            a.addr,
+            r#"{"op":"add_avatar","scene":"stage","asset":"cesium","avatar":"runner"}"#,
+        )
+        .await;
+    }
+    assert_eq!(owner_seen_by(b.addr, "stage").await, "a");
+    let mut driver = raw_at(b.addr, Encoding::Json, Some(CONTROL)).await;
+    driver
+        .send(Message::Text(
+            r#"{"type":"command","id":1,"command":{"op":"drive","avatar":"dancer"}}"#.into(),
+        ))
+        .await
+        .unwrap();
+    let ack = next_of(&mut driver, "ack").await;
+    assert!(ack["result"]["avatar_num"].is_u64(), "{ack}");
+    a.kill();
+    let killed = Instant::now();
+    let expected = if through_another { "c" } else { "b" };
+    let new_owner = loop {
+        let (_, body) = command_to(b.addr, r#"{"op":"list_scenes"}"#).await;
+        let owner = body["result"]
+            .as_array()
+            .and_then(|scenes| scenes.iter().find(|s| s["scene"] == "stage"))
+            .and_then(|s| s["owner"].as_str())
+            .unwrap_or_default()
+            .to_owned();
+        if owner == "b" || owner == "c" {
+            break owner;
+        }
+        assert!(
+            killed.elapsed() < Duration::from_secs(15),
+            "no new owner: {body}"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    assert_eq!(new_owner, expected);
+    let owner_addr = c.as_ref().map_or(b.addr, |c| c.addr);
+    let (on_owner, ws) = Recorder::subscribe(owner_addr, Encoding::Binary, None).await;
+    let on_owner = on_owner.spawn(ws);
+    let description = description_of(&on_owner, "dancer").await.to_string();
+    let elbow = joint_index(&description, "l_elbow");
+    // The walk does not hold the elbow there: only the driver's poses do.
+    let q = [0.0f32, 0.70710677, 0.0, 0.70710677];
+    let pose = format!(r#"{{"type":"pose","avatar":"dancer","rotations":{{"l_elbow":{q:?}}}}}"#);
+    let began = Instant::now();
+    let seen = loop {
+        driver
+            .send(Message::Text(pose.clone().into()))
+            .await
+            .unwrap();
+        let held = rotations_after(&on_owner, elbow, began);
+        if held.len() >= 5 && held.iter().rev().take(5).all(|(_, r)| same_rotation(*r, q)) {
+            break true;
+        }
+        if began.elapsed() > Duration::from_secs(10) {
+            break false;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    assert!(
+        seen,
+        "{new_owner} never showed the driver's poses after the takeover"
+    );
+    println!(
+        "poses through B shown by the new owner {new_owner} {:.0} ms after it took over",
+        began.elapsed().as_secs_f64() * 1e3
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn driving_through_a_relay_survives_it_taking_the_scene_over() {
+    driving_survives_a_takeover(false).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn driving_through_a_relay_survives_another_server_taking_the_scene_over() {
+    driving_survives_a_takeover(true).await;
+}
+
+/// A clip recorded on A (`record` … `stop_recording`) reaches B's rig, and when A is
+/// SIGKILLed B takes the scene over with the avatar still playing the recording.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn recordings_reach_every_server_and_survive_the_owner() {
+    let Some(nats) = Nats::start() else { return };
+    let a = node(&nats, "a", "1");
+    let b = node(&nats, "b", "1");
+    stage(a.addr).await;
+    assert_eq!(owner_seen_by(b.addr, "stage").await, "a");
+    ok(
+        a.addr,
+        r#"{"op":"record","avatar":"dancer","clip":"take1"}"#,
+    )
+    .await;
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let stopped = ok(a.addr, r#"{"op":"stop_recording","avatar":"dancer"}"#).await;
+    assert_eq!(stopped["result"]["clip"], "take1", "{stopped}");
+    let duration = stopped["result"]["duration"].as_f64().unwrap();
+    ok(a.addr, r#"{"op":"play","avatar":"dancer","clip":"take1"}"#).await;
+    // B's rig has it, as long as A's.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let asset = asset_seen_by(b.addr, "avatar").await;
+        let take = asset["clips"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|c| c["name"] == "take1")
+            .cloned();
+        if let Some(take) = take {
+            assert!(
+                (take["duration"].as_f64().unwrap() - duration).abs() < 1e-3,
+                "{take} vs {duration}"
+            );
+            break;
+        }
+        assert!(Instant::now() < deadline, "B never had take1: {asset}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    a.kill();
+    let killed = Instant::now();
+    loop {
+        let (_, body) = command_to(b.addr, r#"{"op":"list_scenes"}"#).await;
+        let stage = body["result"]
+            .as_array()
+            .and_then(|scenes| scenes.iter().find(|s| s["scene"] == "stage"))
+            .cloned()
+            .unwrap_or_default();
+        if stage["owner"] == "b" {
+            let dancer = stage["avatars"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|a| a["avatar"] == "dancer")
+                .cloned()
+                .unwrap();
+            assert_eq!(dancer["clip"], "take1", "{stage}");
+            break;
+        }
+        assert!(
+            killed.elapsed() < Duration::from_secs(15),
+            "B never took over: {body}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
 }

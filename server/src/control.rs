@@ -116,8 +116,35 @@ pub async fn execute_here(state: &AppState, command: &Command) -> Result<Command
     }
     if let CommandResult::Recorded(info) = &result {
         store_recording(state, info).await?;
+        if let Some(cluster) = cluster {
+            share_recording(state, cluster.as_ref(), info).await?;
+        }
     }
     Ok(result)
+}
+
+/// Puts a clip `stop_recording` just added where every server of the cluster reads it.
+///
+/// # Errors
+/// `internal` or `unavailable`: the clip is then playable here only.
+async fn share_recording(
+    state: &AppState,
+    cluster: &dyn crate::state::Cluster,
+    info: &RecordingInfo,
+) -> Result<(), Error> {
+    let rig = state.world.library.require(&info.asset)?;
+    let clip = rig
+        .clip(&info.clip)
+        .cloned()
+        .ok_or_else(|| Error::UnknownClip {
+            rig: info.asset.clone(),
+            clip: info.clip.clone(),
+        })?;
+    let glb = tokio::task::spawn_blocking(move || crate::export::clip_glb(&rig, &clip))
+        .await
+        .map_err(|e| Error::internal("export task failed", &e))?
+        .map_err(|e| Error::internal("cannot write the recording as glTF", &e))?;
+    cluster.share_recording(&info.asset, &info.clip, glb).await
 }
 
 /// Writes the audit line of a client's command: at `info` for one that changes something

@@ -3,6 +3,10 @@
 //! the library and acknowledged. On any failure nothing changes: no library entry, no file
 //! left in the data folder.
 //!
+//! In a cluster (`--nats`) an upload, its added clips and its new options are also put where
+//! every server reads them ([`crate::state::Cluster::share_asset`]) before the answer, and the
+//! other servers load them with [`adopt_shared`].
+//!
 //! Uploads come over REST only (`service::upload`); the websocket keeps its 64 KiB message
 //! bound, which is what lets a connection's reader stay small and never buffer a model.
 
@@ -112,14 +116,28 @@ pub async fn upload(
     }
     let bytes = set.total_bytes() as u64;
     check_total_bytes(state, name, bytes)?;
+    // In a cluster, where every server reads it first: a failure there changes nothing.
+    if let Some(cluster) = state.cluster() {
+        cluster.share_asset(name, &set, &options).await?;
+    }
     let set = match state.store.assets_dir() {
         Some(dir) => {
             let meta = AssetMeta::new(name, &set, rigs.iter().map(|r| r.name.clone()).collect())
                 .with_options(&options);
-            tokio::task::spawn_blocking(move || assets::save_new(&dir, &set, &meta).map(|()| set))
-                .await
-                .map_err(|e| Error::internal("store task failed", &e))?
-                .map_err(|e| Error::internal("cannot store the upload", &e))?
+            let saved = tokio::task::spawn_blocking(move || {
+                assets::save_new(&dir, &set, &meta).map(|()| set)
+            })
+            .await
+            .map_err(|e| Error::internal("store task failed", &e))
+            .and_then(|r| r.map_err(|e| Error::internal("cannot store the upload", &e)));
+            match (saved, state.cluster()) {
+                (Ok(set), _) => set,
+                (Err(e), Some(cluster)) => {
+                    cluster.unshare_asset(name).await;
+                    return Err(e);
+                }
+                (Err(e), None) => return Err(e),
+            }
         }
         None => set,
     };
@@ -181,6 +199,7 @@ pub async fn add_clips(
     // read them again, under the assets lock so they are the ones the rig was made from.
     let original = match upload.files {
         Some(files) => files,
+        None if state.cluster().is_some() => shared_files(state, name).await?,
         None => {
             let reading = state.clone();
             let owned = name.to_owned();
@@ -225,7 +244,12 @@ pub async fn add_clips(
         .next()
         .ok_or_else(|| Error::internal("import gave no rig", &name))?;
     check_rig(state, &new_rig)?;
-    if let Some(dir) = state.store.assets_dir() {
+    if let Some(cluster) = state.cluster() {
+        cluster.share_asset(name, &combined, &options).await?;
+    }
+    if let Some(dir) = state.store.assets_dir()
+        && dir.join(name).is_dir()
+    {
         let meta = AssetMeta::new(name, &combined, vec![name.to_owned()]).with_options(&options);
         let dir = dir.join(name);
         tokio::task::spawn_blocking(move || assets::add_files(&dir, &clips, &meta))
@@ -270,6 +294,7 @@ pub async fn configure(
     };
     let files = match (upload.files, state.store.assets_dir()) {
         (Some(files), _) => files,
+        (None, _) if state.cluster().is_some() => shared_files(state, name).await?,
         (None, Some(dir)) => {
             let dir = dir.join(name);
             tokio::task::spawn_blocking(move || assets::read_asset(&dir))
@@ -302,7 +327,12 @@ pub async fn configure(
     for rig in &rigs {
         check_rig(state, rig)?;
     }
-    if let Some(dir) = state.store.assets_dir() {
+    if let Some(cluster) = state.cluster() {
+        cluster.share_asset(name, &files, &options).await?;
+    }
+    if let Some(dir) = state.store.assets_dir()
+        && dir.join(name).is_dir()
+    {
         let meta = AssetMeta::new(name, &files, rigs.iter().map(|r| r.name.clone()).collect())
             .with_options(&options);
         let dir = dir.join(name);
@@ -316,6 +346,73 @@ pub async fn configure(
         .map(|rig| state.world.library.insert(rig).info())
         .collect();
     state.store.remember_upload(name, files, options);
+    Ok(infos)
+}
+
+/// Upload `name`'s files as the cluster stores them (its servers other than the one it was
+/// uploaded to keep no copy of their own).
+async fn shared_files(state: &AppState, name: &str) -> Result<FileSet, Error> {
+    let Some(cluster) = state.cluster() else {
+        return Err(Error::internal("no cluster", &name));
+    };
+    cluster.shared_asset(name).await?.ok_or_else(|| {
+        Error::NotAllowedNow(format!(
+            "{name}'s files are not in the cluster's store: upload it again"
+        ))
+    })
+}
+
+/// Loads an upload another server of the cluster stored ([`crate::state::Cluster::share_asset`])
+/// as that server did: normalised with its options, within this server's quotas. A new
+/// version (clips added, options changed) replaces the rigs; avatars in scenes keep theirs.
+/// The caller holds the store's assets lock. Nothing is written to the data folder: the
+/// cluster's store is the upload's copy.
+///
+/// # Errors
+/// A bad name; `conflict` when a rig of that name was loaded here otherwise (built in,
+/// `--assets`); a quota; `import_failed`. Nothing changes on error.
+pub async fn adopt_shared(
+    state: &AppState,
+    name: &str,
+    set: FileSet,
+    options: PipelineOptions,
+) -> Result<Vec<AssetInfo>, Error> {
+    check_name(name)?;
+    let prefix = format!("{name}#");
+    if let Some(rig) = state
+        .world
+        .library
+        .all()
+        .iter()
+        .find(|r| (r.name == name || r.name.starts_with(&prefix)) && r.upload.is_none())
+    {
+        return Err(Error::Conflict(format!(
+            "rig {} is loaded here from --assets or built in",
+            rig.name
+        )));
+    }
+    let bytes = set.total_bytes() as u64;
+    check_asset_bytes(state, name, bytes)?;
+    let owned = name.to_owned();
+    let opts = options.clone();
+    let (set, rigs) = tokio::task::spawn_blocking(move || {
+        let rigs = prepare_with(&owned, &set, &opts);
+        (set, rigs)
+    })
+    .await
+    .map_err(|e| Error::internal("import task failed", &e))?;
+    let rigs = rigs?;
+    for rig in &rigs {
+        check_rig(state, rig)?;
+    }
+    if !state.store.uploads().contains_key(name) {
+        state.store.add_upload_bytes(bytes);
+    }
+    let infos = rigs
+        .into_iter()
+        .map(|rig| state.world.library.insert(rig).info())
+        .collect();
+    state.store.remember_upload(name, set, options);
     Ok(infos)
 }
 

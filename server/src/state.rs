@@ -4,8 +4,10 @@
 use crate::auth::{AccessConfig, Caller};
 use crate::config::Config;
 use crate::error::Error;
+use crate::import::files::FileSet;
 use crate::metrics::Metrics;
 use crate::readiness::Readiness;
+use crate::rig::PipelineOptions;
 use crate::store::Store;
 use crate::stream::outbox::Outbox;
 use crate::stream::pace::Paths;
@@ -81,6 +83,53 @@ pub trait Cluster: Send + Sync + std::fmt::Debug {
     fn listing(&self, local: Vec<SceneInfo>) -> BoxFuture<'_, Vec<SceneInfo>>;
     /// Whether the connection to NATS is lost (local scenes are still served).
     fn degraded(&self) -> bool;
+    /// Stores uploaded asset `name` (its files and pipeline options) where every server can
+    /// read it, before the upload (or its new clips or options) is acknowledged; every server
+    /// imports it from there.
+    ///
+    /// # Errors
+    /// `unavailable` when it could not be stored.
+    fn share_asset<'a>(
+        &'a self,
+        name: &'a str,
+        files: &'a FileSet,
+        options: &'a PipelineOptions,
+    ) -> BoxFuture<'a, Result<(), Error>>;
+    /// Removes asset `name` from the cluster's store (an upload that failed here after it
+    /// was shared).
+    fn unshare_asset<'a>(&'a self, name: &'a str) -> BoxFuture<'a, ()>;
+    /// The files of uploaded asset `name` as the cluster stores them (`None`: not there).
+    ///
+    /// # Errors
+    /// `unavailable` when NATS cannot be read; `internal` when the stored copy is unusable.
+    fn shared_asset<'a>(&'a self, name: &'a str) -> BoxFuture<'a, Result<Option<FileSet>, Error>>;
+    /// Stores recorded clip `clip` of rig `rig` (`glb`: the file `DIR/recordings` holds)
+    /// where every server can read it, before `stop_recording` is acknowledged; every server
+    /// puts it on its rig from there.
+    ///
+    /// # Errors
+    /// `unavailable` when it could not be stored.
+    fn share_recording<'a>(
+        &'a self,
+        rig: &'a str,
+        clip: &'a str,
+        glb: Vec<u8>,
+    ) -> BoxFuture<'a, Result<(), Error>>;
+    /// Sends `drive` (`command`) for an avatar of scene `scene`, ticked elsewhere, to the
+    /// scene's owner, which drives the avatar for connection `conn` of this server; answers
+    /// with the owner's answer.
+    fn drive<'a>(
+        &'a self,
+        scene: &'a SceneId,
+        conn: u64,
+        command: &'a Command,
+    ) -> BoxFuture<'a, Result<CommandResult, Error>>;
+    /// Passes a live pose of connection `conn` (a [`posecast_proto::live::BinaryPose`],
+    /// checked here) to the owner of `scene`. Dropped and counted when the queue to NATS is
+    /// full.
+    fn pose(&self, scene: &SceneId, conn: u64, pose: Vec<u8>);
+    /// Connection `conn` left: the owner of `scene` releases the avatars it drives there.
+    fn release(&self, scene: &SceneId, conn: u64);
 }
 
 /// The open websockets' outboxes, and whether the server is shutting down (in one lock, so a

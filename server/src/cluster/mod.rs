@@ -5,6 +5,8 @@
 //!   and the lease loop that decides which server ticks which scene.
 //! - `owner`: a scene ticked here — its frames, descriptions and avatar changes published,
 //!   commands and joiners' requests answered.
+//! - `assets`: uploaded assets in object store `posecast_assets`, imported by every server.
+//! - `drive`: live driving of an avatar through its scene's owner.
 //! - `relay`: a scene ticked elsewhere — its frames fanned out here to this server's
 //!   subscribers, as the same bytes.
 //!
@@ -20,6 +22,8 @@
 //! Keys and subject tokens are the scene id in lowercase hex (ids may hold characters NATS
 //! does not allow in either).
 
+mod assets;
+mod drive;
 mod owner;
 mod relay;
 
@@ -93,6 +97,7 @@ pub struct Connection {
     client: async_nats::Client,
     scenes: kv::Store,
     leases: kv::Store,
+    assets: assets::Bucket,
     node: String,
     lease: Duration,
     lost: Arc<AtomicBool>,
@@ -191,11 +196,13 @@ pub async fn connect(config: &Config, port: u16) -> std::io::Result<Connection> 
     };
     let scenes = open(SCENES_BUCKET, Duration::ZERO).await?;
     let leases = open(LEASES_BUCKET, lease).await?;
+    let assets = assets::open(&js).await.map_err(fail)?;
     info!(nats = %urls, node = %node, lease_ms = lease.as_millis() as u64, "joined the cluster");
     Ok(Connection {
         client,
         scenes,
         leases,
+        assets,
         node,
         lease,
         lost,
@@ -223,6 +230,19 @@ pub struct Cluster {
     claims: Mutex<HashMap<SceneId, u64>>,
     /// Orders snapshot writes: a later write always holds every earlier change.
     writes: tokio::sync::Mutex<()>,
+    /// Uploads of the assets bucket this server has (or refused): name → object nuid.
+    applied: Mutex<HashMap<String, String>>,
+    /// The assets bucket's last sequence number at the last complete look.
+    assets_seen: Mutex<Option<u64>>,
+    /// Scenes not taken over for want of an asset, each logged once.
+    short_of_assets: Mutex<HashMap<SceneId, std::collections::BTreeSet<String>>>,
+    /// Drivers on other servers of avatars ticked here.
+    drivers: drive::Drivers,
+    /// Drives of this server's connections run by other servers.
+    remote_drives: drive::RemoteDrives,
+    /// Poses of this server's drivers for avatars ticked elsewhere, to publish.
+    poses: tokio::sync::mpsc::Sender<drive::Outgoing>,
+    _pose_publisher: Task,
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -237,6 +257,12 @@ fn unavailable(what: &str, e: &dyn std::fmt::Display) -> Error {
 /// created cluster-wide, commands reach their scene's owner, and scenes are owned and relayed
 /// (the lease loop runs until the server stops).
 pub fn start(state: &Arc<AppState>, conn: Connection) -> Arc<Cluster> {
+    let (poses, queued) = tokio::sync::mpsc::channel(drive::POSE_QUEUE);
+    let publisher = tokio::spawn(drive::publish(
+        conn.client.clone(),
+        queued,
+        state.metrics.clone(),
+    ));
     let cluster = Arc::new(Cluster {
         conn,
         state: Arc::downgrade(state),
@@ -244,6 +270,13 @@ pub fn start(state: &Arc<AppState>, conn: Connection) -> Arc<Cluster> {
         relays: Mutex::new(HashMap::new()),
         claims: Mutex::new(HashMap::new()),
         writes: tokio::sync::Mutex::new(()),
+        applied: Mutex::new(HashMap::new()),
+        assets_seen: Mutex::new(None),
+        short_of_assets: Mutex::new(HashMap::new()),
+        drivers: Arc::new(Mutex::new(HashMap::new())),
+        remote_drives: Arc::new(Mutex::new(HashMap::new())),
+        poses,
+        _pose_publisher: Task(publisher),
     });
     state.join_cluster(cluster.clone());
     let running = cluster.clone();
@@ -303,6 +336,11 @@ impl Cluster {
     /// The lease loop: renew what is owned, take over what lost its owner, relay the rest.
     async fn run(self: Arc<Self>) {
         if let Some(state) = self.state() {
+            // The cluster's uploads before any scene is owned here: a scene taken over finds
+            // its avatars' rigs.
+            if let Err(e) = self.sync_assets(&state).await {
+                warn!(error = %e, "cannot read the cluster's uploads from NATS");
+            }
             self.first_start(&state).await;
         }
         let period = self.conn.lease / 3;
@@ -312,6 +350,9 @@ impl Cluster {
                 return;
             }
             self.renew(&state).await;
+            if let Err(e) = self.sync_assets(&state).await {
+                warn!(error = %e, "cannot read the cluster's uploads from NATS");
+            }
             if let Err(e) = self.scan(&state).await {
                 warn!(error = %e, "cannot read the cluster's scenes from NATS");
             }
@@ -479,6 +520,18 @@ impl Cluster {
                 return;
             }
         };
+        // Restoring without an avatar's rig would drop the avatar, and the next snapshot
+        // written here would lose it for good: the scene waits for a server that has them.
+        let missing = Self::missing_assets(state, &file);
+        if !missing.is_empty() {
+            let again = lock(&self.short_of_assets).insert(id.clone(), missing.clone());
+            if again.as_ref() != Some(&missing) {
+                warn!(scene = %id, ?missing, "not taking the scene over: this server lacks assets its avatars use");
+            }
+            self.conn.leases.delete(key(id)).await.ok();
+            return;
+        }
+        lock(&self.short_of_assets).remove(id);
         if let Some(r) = lock(&self.relays).remove(id) {
             r.stop();
         }
@@ -672,31 +725,80 @@ impl crate::state::Cluster for Cluster {
 
     fn listing(&self, local: Vec<SceneInfo>) -> BoxFuture<'_, Vec<SceneInfo>> {
         Box::pin(async move {
-            let mut out = Vec::with_capacity(local.len());
-            for mut info in local {
+            // The owners are asked all at once: one round trip, not one per scene.
+            let each = local.into_iter().map(|mut info| async move {
                 let owner = lock(&self.relays).get(&info.scene).map(|r| r.owner.clone());
                 match owner {
                     None => info.owner = Some(self.conn.node.clone()),
                     Some(owner) => {
                         // The owner knows the avatars and what they play.
                         let asked = self.request(&info.scene, "info", Bytes::new()).await;
-                        if let Ok(remote) = asked.and_then(|b| {
+                        match asked.and_then(|b| {
                             serde_json::from_slice::<SceneInfo>(&b)
                                 .map_err(|e| Error::internal("info", &e))
                         }) {
-                            info.avatars = remote.avatars;
+                            Ok(remote) => info.avatars = remote.avatars,
+                            Err(e) => {
+                                warn!(scene = %info.scene, error = %e, "listed without its avatars");
+                            }
                         }
                         info.owner = Some(owner);
                     }
                 }
-                out.push(info);
-            }
-            out
+                info
+            });
+            futures_util::future::join_all(each).await
         })
     }
 
     fn degraded(&self) -> bool {
         self.conn.lost.load(Ordering::SeqCst)
+    }
+
+    fn share_asset<'a>(
+        &'a self,
+        name: &'a str,
+        files: &'a crate::import::files::FileSet,
+        options: &'a crate::rig::PipelineOptions,
+    ) -> BoxFuture<'a, Result<(), Error>> {
+        Box::pin(self.share(name, files, options))
+    }
+
+    fn unshare_asset<'a>(&'a self, name: &'a str) -> BoxFuture<'a, ()> {
+        Box::pin(self.unshare(name))
+    }
+
+    fn shared_asset<'a>(
+        &'a self,
+        name: &'a str,
+    ) -> BoxFuture<'a, Result<Option<crate::import::files::FileSet>, Error>> {
+        Box::pin(self.shared_files(name))
+    }
+
+    fn share_recording<'a>(
+        &'a self,
+        rig: &'a str,
+        clip: &'a str,
+        glb: Vec<u8>,
+    ) -> BoxFuture<'a, Result<(), Error>> {
+        Box::pin(self.put_recording(rig, clip, glb))
+    }
+
+    fn drive<'a>(
+        &'a self,
+        scene: &'a SceneId,
+        conn: u64,
+        command: &'a Command,
+    ) -> BoxFuture<'a, Result<CommandResult, Error>> {
+        Box::pin(self.drive_remote(scene, conn, command))
+    }
+
+    fn pose(&self, scene: &SceneId, conn: u64, pose: Vec<u8>) {
+        self.send_pose(scene, conn, Bytes::from(pose));
+    }
+
+    fn release(&self, scene: &SceneId, conn: u64) {
+        self.end_drives(scene, conn);
     }
 }
 

@@ -32,7 +32,7 @@ pub(super) struct Owned {
     pub(super) lease_revision: u64,
     /// The revision of the scene's snapshot this server last wrote or restored.
     pub(super) snapshot_revision: u64,
-    _tasks: [Task; 2],
+    _tasks: [Task; 3],
 }
 
 impl Owned {
@@ -137,6 +137,13 @@ impl Cluster {
             scene.id.clone(),
             revision,
             Arc::downgrade(state),
+            self.drivers.clone(),
+        ));
+        let poses = tokio::spawn(super::drive::serve_poses(
+            self.conn.client.clone(),
+            scene.id.clone(),
+            self.drivers.clone(),
+            Arc::downgrade(state),
         ));
         scene.set_tap(Some(tap));
         lock(&self.owned).insert(
@@ -144,7 +151,7 @@ impl Cluster {
             Owned {
                 lease_revision: revision,
                 snapshot_revision: snapshot,
-                _tasks: [Task(publisher), Task(responder)],
+                _tasks: [Task(publisher), Task(responder), Task(poses)],
             },
         );
     }
@@ -177,7 +184,13 @@ async fn publish(
 }
 
 /// Answers the scene's requests until stopped.
-async fn answer(client: async_nats::Client, id: SceneId, epoch: u64, state: Weak<AppState>) {
+async fn answer(
+    client: async_nats::Client,
+    id: SceneId,
+    epoch: u64,
+    state: Weak<AppState>,
+    drivers: super::drive::Drivers,
+) {
     let mut requests = match client.subscribe(request_subject(&id)).await {
         Ok(s) => s,
         Err(e) => {
@@ -199,6 +212,7 @@ async fn answer(client: async_nats::Client, id: SceneId, epoch: u64, state: Weak
             .unwrap_or_default();
         let client = client.clone();
         let id = id.clone();
+        let drivers = drivers.clone();
         // Each on its own: a command waiting for its write does not hold up a joiner.
         tokio::spawn(async move {
             let answer = match kind.as_str() {
@@ -213,6 +227,11 @@ async fn answer(client: async_nats::Client, id: SceneId, epoch: u64, state: Weak
                             format!("not a valid command: {e}"),
                         )),
                     };
+                    Bytes::from(serde_json::to_vec(&reply).unwrap_or_default())
+                }
+                "drive" => {
+                    let driver = super::drive::driver_of(&msg);
+                    let reply = super::drive::answer_drive(&state, &drivers, driver, &msg.payload);
                     Bytes::from(serde_json::to_vec(&reply).unwrap_or_default())
                 }
                 "sync" => {

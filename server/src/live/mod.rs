@@ -17,11 +17,12 @@ use crate::error::Error;
 use crate::scene::Scene;
 
 use crate::avatar::live::{LivePose, ValidPose};
+use crate::quota::{CommandRate, TokenBucket};
 use crate::state::AppState;
 use glam::{Quat, Vec3};
 use posecast_proto::command::{Command, CommandResult, DriveInfo, OnRelease};
 use posecast_proto::live::{BinaryPose, MAX_RATE_HZ};
-use posecast_proto::msg::AvatarId;
+use posecast_proto::msg::{AvatarId, SceneId};
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Instant;
@@ -34,6 +35,37 @@ pub const MAX_ROOT_METRES: f32 = 10_000.0;
 pub struct Drives {
     conn: u64,
     driven: Vec<(AvatarId, u32, Arc<Scene>)>,
+    /// Avatars of scenes ticked on other servers of a cluster, driven there for this
+    /// connection: poses are checked here and passed on.
+    remote: Vec<RemoteDrive>,
+}
+
+/// An avatar driven through its scene's owner ([`Drives::command_remote`]).
+#[derive(Debug)]
+struct RemoteDrive {
+    avatar: AvatarId,
+    num: u32,
+    scene: SceneId,
+    /// The source rig's joints, as the owner's `drive` answer listed them.
+    joints: Vec<String>,
+    rate: TokenBucket,
+}
+
+fn pose_rate() -> TokenBucket {
+    TokenBucket::new(CommandRate {
+        per_second: f64::from(MAX_RATE_HZ),
+        burst: crate::avatar::live::RATE_BURST,
+    })
+}
+
+fn rate_limited(wait: std::time::Duration) -> Error {
+    let ms = u64::try_from(wait.as_millis().max(1)).unwrap_or(u64::MAX);
+    Error::RateLimited {
+        message: format!(
+            "poses are limited to {MAX_RATE_HZ} per second per driver: try again in {ms} ms"
+        ),
+        retry_after_ms: ms,
+    }
 }
 
 fn not_driving(avatar: impl std::fmt::Display) -> Error {
@@ -49,7 +81,79 @@ impl Drives {
         Self {
             conn,
             driven: Vec::new(),
+            remote: Vec::new(),
         }
+    }
+
+    /// Whether it drives an avatar of this server still.
+    #[must_use]
+    pub fn is_driving(&self) -> bool {
+        self.driven.iter().any(|(avatar, _, scene)| {
+            scene
+                .lock()
+                .avatar_mut(avatar)
+                .and_then(|a| a.live.as_ref())
+                .is_some_and(|l| l.driver == Some(self.conn))
+        })
+    }
+
+    /// `drive` of an avatar whose scene another server of the cluster ticks: sent to that
+    /// server, which drives the avatar for this connection; from then on this connection's
+    /// poses for it are checked here (driver, rate, joints, values) and passed on. `None` when
+    /// the command is not a `drive` of such an avatar. Authorisation is the caller's.
+    pub async fn command_remote(
+        &mut self,
+        state: &AppState,
+        command: &Command,
+    ) -> Option<Result<CommandResult, Error>> {
+        let Command::Drive { avatar, .. } = command else {
+            return None;
+        };
+        let cluster = state.cluster()?;
+        let scene = state
+            .world
+            .find_avatar(avatar)
+            .ok()
+            .filter(|s| s.is_relay())?;
+        let result = cluster.drive(&scene.id, self.conn, command).await;
+        state.metrics.command(result.is_ok());
+        if let Ok(CommandResult::Drive(info)) = &result {
+            self.driven.retain(|(id, _, _)| id != avatar);
+            self.remote.retain(|r| &r.avatar != avatar);
+            self.remote.push(RemoteDrive {
+                avatar: avatar.clone(),
+                num: info.avatar_num,
+                scene: scene.id.clone(),
+                joints: info.joints.clone(),
+                rate: pose_rate(),
+            });
+        }
+        Some(result)
+    }
+
+    /// Checks a pose for an avatar driven through its owner and passes it on.
+    fn remote_pose(
+        state: &AppState,
+        conn: u64,
+        r: &mut RemoteDrive,
+        pose: BinaryPose,
+    ) -> Result<(), Error> {
+        r.rate.take_at(Instant::now()).map_err(rate_limited)?;
+        root(pose.root_position)?;
+        for &(j, q) in &pose.rotations {
+            if usize::from(j) >= r.joints.len() {
+                return Err(Error::UnknownJoint {
+                    owner: format!("the driven rig (of {} joints)", r.joints.len()),
+                    joint: format!("index {j}"),
+                });
+            }
+            rotation(&format!("index {j}"), q.to_array())?;
+        }
+        let cluster = state
+            .cluster()
+            .ok_or_else(|| Error::Unavailable("not in a cluster".into()))?;
+        cluster.pose(&r.scene, conn, pose.encode());
+        Ok(())
     }
 
     /// Runs `drive` (this connection becomes the driver) — the one command that needs the
@@ -148,12 +252,34 @@ impl Drives {
     /// # Errors
     /// See the module documentation; nothing changes on error.
     pub fn json_pose(
-        &self,
+        &mut self,
+        state: &AppState,
         avatar: &AvatarId,
         rotations: &BTreeMap<String, [f32; 4]>,
         root_position: Option<[f32; 3]>,
         time_us: Option<u64>,
     ) -> Result<(), Error> {
+        if let Some(r) = self.remote.iter_mut().find(|r| &r.avatar == avatar) {
+            let mut pose = BinaryPose {
+                avatar_num: r.num,
+                time_us,
+                root_position: root_position.map(Vec3::from_array),
+                rotations: Vec::with_capacity(rotations.len()),
+            };
+            for (name, q) in rotations {
+                let j = r
+                    .joints
+                    .iter()
+                    .position(|n| n == name)
+                    .and_then(|j| u16::try_from(j).ok())
+                    .ok_or_else(|| Error::UnknownJoint {
+                        owner: format!("the rig driving {avatar}"),
+                        joint: name.clone(),
+                    })?;
+                pose.rotations.push((j, rotation(name, *q)?));
+            }
+            return Self::remote_pose(state, self.conn, r, pose);
+        }
         let (_, _, scene) = self
             .driven
             .iter()
@@ -181,8 +307,11 @@ impl Drives {
     ///
     /// # Errors
     /// `unexpected_binary` when the bytes are not a pose; otherwise as [`Drives::json_pose`].
-    pub fn binary_pose(&self, bytes: &[u8]) -> Result<(), Error> {
+    pub fn binary_pose(&mut self, state: &AppState, bytes: &[u8]) -> Result<(), Error> {
         let msg = BinaryPose::decode(bytes).map_err(|e| Error::UnexpectedBinary(e.to_string()))?;
+        if let Some(r) = self.remote.iter_mut().find(|r| r.num == msg.avatar_num) {
+            return Self::remote_pose(state, self.conn, r, msg);
+        }
         let (avatar, _, scene) = self
             .driven
             .iter()
@@ -223,15 +352,7 @@ impl Drives {
             .and_then(|a| a.live.as_mut())
             .filter(|l| l.driver == Some(self.conn))
             .ok_or_else(|| not_driving(avatar))?;
-        live.take_rate(now).map_err(|wait| {
-            let ms = u64::try_from(wait.as_millis().max(1)).unwrap_or(u64::MAX);
-            Error::RateLimited {
-                message: format!(
-                    "poses are limited to {MAX_RATE_HZ} per second per driver: try again in {ms} ms"
-                ),
-                retry_after_ms: ms,
-            }
-        })?;
+        live.take_rate(now).map_err(rate_limited)?;
         let pose = validate(live)?;
         live.store(pose, now);
         Ok(())
@@ -240,6 +361,14 @@ impl Drives {
     /// The connection left: each avatar it still drives returns to its clip or holds its last
     /// pose, as its `drive` asked.
     pub fn leave(&mut self, state: &AppState) {
+        if let Some(cluster) = state.cluster() {
+            let mut scenes: Vec<&SceneId> = self.remote.iter().map(|r| &r.scene).collect();
+            scenes.dedup();
+            for scene in scenes {
+                cluster.release(scene, self.conn);
+            }
+        }
+        self.remote.clear();
         for (avatar, _, scene) in self.driven.drain(..) {
             let mut s = scene.lock();
             if let Some(a) = s.avatar_mut(&avatar)

@@ -122,7 +122,17 @@ fn read_recording(rig: &Rig, path: &Path) -> Result<Clip, Unusable> {
         file: file.clone(),
         source,
     })?;
-    let asset = crate::import::gltf::from_slice(&file, &bytes)
+    recording_from_bytes(rig, &stem, &bytes)
+}
+
+/// Recorded clip `stem` of `rig` from a recording file's bytes: the same joints in the same
+/// order as the rig, and a clip named `stem`.
+///
+/// # Errors
+/// Not a glTF binary, no skin, not the rig's joints, or no clip of that name.
+pub fn recording_from_bytes(rig: &Rig, stem: &str, bytes: &[u8]) -> Result<Clip, Unusable> {
+    let file = format!("{stem}.glb");
+    let asset = crate::import::gltf::from_slice(&file, bytes)
         .map_err(|e| Unusable::Content(e.to_string()))?
         .into_iter()
         .next()

@@ -119,7 +119,7 @@ where
                 Ok(Message::Text(t)) => session.on_text(t.as_str()).await,
                 Ok(Message::Binary(b)) => {
                     // Binary client messages are live poses only (`proto/src/live.rs`).
-                    if let Err(e) = session.drives.binary_pose(&b) {
+                    if let Err(e) = session.drives.binary_pose(&session.state, &b) {
                         session.error(e);
                     }
                     true
@@ -568,6 +568,12 @@ impl Session {
                     .map(|s| s.info())
                     .filter(|s| access.authorize_view(&self.caller, &s.scene).is_ok())
                     .collect();
+                // In a cluster, scenes ticked elsewhere with their avatars, as their owners
+                // have them (and every scene with its owner), as `list_scenes` answers.
+                let scenes = match self.state.cluster() {
+                    Some(cluster) => cluster.listing(scenes).await,
+                    None => scenes,
+                };
                 self.send(&ServerMsg::Scenes { scenes });
                 true
             }
@@ -582,9 +588,9 @@ impl Session {
                 time_us,
             } => {
                 // Not acknowledged (up to 120 a second): errors only.
-                if let Err(e) = self
-                    .drives
-                    .json_pose(&avatar, &rotations, root_position, time_us)
+                if let Err(e) =
+                    self.drives
+                        .json_pose(&self.state, &avatar, &rotations, root_position, time_us)
                 {
                     self.error(e);
                 }
@@ -610,9 +616,12 @@ impl Session {
                         .access
                         .authorize(&self.caller, &self.state.world, &command);
                 let result = match authorized {
-                    Ok(()) => match self.drives.command(&self.state, &command) {
+                    Ok(()) => match self.drives.command_remote(&self.state, &command).await {
                         Some(result) => result,
-                        None => control::execute_durable(&self.state, &command).await,
+                        None => match self.drives.command(&self.state, &command) {
+                            Some(result) => result,
+                            None => control::execute_durable(&self.state, &command).await,
+                        },
                     },
                     Err(e) => Err(e),
                 };

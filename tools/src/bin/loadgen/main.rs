@@ -21,6 +21,13 @@
 //! loadgen --spawn-server --avatars 10 --clients 50 --seconds 10 --link-suite
 //! ```
 //!
+//! `--cluster N` (with `--spawn-server`) runs N servers joined through a `nats-server -js`
+//! child, `--clients` on each, and reports every server (see `cluster.rs`):
+//!
+//! ```text
+//! loadgen --spawn-server --cluster 3 --avatars 10 --clients 500 --seconds 10
+//! ```
+//!
 //! `--spawn-server` runs the `posecast` binary built beside this one on a free loopback port,
 //! fills its `default` scene up to M built-in avatars (it starts with one playing `idle`; the
 //! others play `walk`, `wave`, `idle` in turn) with websocket commands, and stops the server at
@@ -29,6 +36,7 @@
 //! the same limit.
 
 mod client;
+mod cluster;
 mod link;
 mod reference;
 mod report;
@@ -109,6 +117,10 @@ pub struct Args {
     /// 2 Mbit/s shared by every client.
     #[arg(long, conflicts_with = "link")]
     link_suite: bool,
+    /// With --spawn-server: this many servers joined through a spawned `nats-server -js`,
+    /// `--clients` on each; the first owns the scene, the others relay it.
+    #[arg(long, requires = "spawn_server", conflicts_with_all = ["link", "link_suite", "server"])]
+    cluster: Option<usize>,
 }
 
 /// The server(s) a `--spawn-server` run measures.
@@ -146,7 +158,10 @@ fn main() -> Result<()> {
     {
         bail!("--clients must be positive, --seconds positive, --warmup non-negative");
     }
-    let needed = args.clients as u64 + 64;
+    if args.cluster == Some(0) {
+        bail!("--cluster needs at least one server");
+    }
+    let needed = (args.clients * args.cluster.unwrap_or(1)) as u64 + 64;
     let limit = server::open_files_limit()?;
     if limit < needed {
         bail!(
@@ -166,6 +181,9 @@ fn main() -> Result<()> {
 async fn run(args: Args, fd_limit: u64) -> Result<()> {
     if args.link_suite || !args.link.is_empty() {
         return run_links(&args, fd_limit).await;
+    }
+    if let Some(nodes) = args.cluster {
+        return cluster::run(&args, nodes, fd_limit).await;
     }
     if !args.spawn_server {
         let url = args.url.clone().context("--url or --spawn-server")?;

@@ -77,6 +77,17 @@ impl Spawned {
         fd_limit: u64,
         control_token: &str,
     ) -> Result<Self> {
+        Self::start_with(bin, tick_rate, fd_limit, control_token, Vec::new()).await
+    }
+
+    /// [`Spawned::start`] with more arguments (a cluster node's `--nats`, `--node`).
+    pub async fn start_with(
+        bin: Option<&Path>,
+        tick_rate: f32,
+        fd_limit: u64,
+        control_token: &str,
+        more: Vec<String>,
+    ) -> Result<Self> {
         let bin = match bin {
             Some(b) => b.to_owned(),
             None => sibling("posecast")?,
@@ -98,6 +109,9 @@ impl Spawned {
                     "--max-connections-per-address".into(),
                     posecast_server::config::DEFAULT_MAX_CONNECTIONS.to_string(),
                 ]
+                .into_iter()
+                .chain(more)
+                .collect()
             },
         )
         .await
@@ -299,6 +313,24 @@ pub async fn create_scene(
     ws.close(None).await.ok();
     eprintln!("scene {scene}: {avatars} avatars");
     Ok(())
+}
+
+/// `GET path` at `host:port` (HTTP/1.0, 5 s bound): status and body.
+pub async fn http_get(authority: &str, path: &str) -> Result<(u16, String)> {
+    let mut stream = tokio::net::TcpStream::connect(authority).await?;
+    let request = format!("GET {path} HTTP/1.0\r\nHost: {authority}\r\n\r\n");
+    stream.write_all(request.as_bytes()).await?;
+    let mut text = String::new();
+    tokio::time::timeout(Duration::from_secs(5), stream.read_to_string(&mut text))
+        .await
+        .with_context(|| format!("{path} did not answer in 5 s"))??;
+    let status = text
+        .split(' ')
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(0);
+    let body = text.split_once("\r\n\r\n").map_or("", |(_, b)| b);
+    Ok((status, body.to_owned()))
 }
 
 /// The server's `/metrics` counters (`posecast_name value` lines) at `host:port`.
