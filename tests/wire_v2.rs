@@ -191,3 +191,30 @@ async fn the_native_client_speaks_v2_and_sees_what_a_v1_client_sees() {
         per(&s1)
     );
 }
+
+/// A server of before protocol version 2 refuses `hello {version: 2}` with
+/// `unsupported_version` and closes: the native client, asking for 2 by default, says hello
+/// again with version 1 and is welcomed — it works with the old server out of the box.
+#[tokio::test]
+async fn the_native_client_falls_back_to_version_1_for_an_older_server() {
+    use posecast_proto::msg::SUPPORTED_VERSIONS;
+
+    let (addr, hellos) = common::version_1_server().await;
+    let client = ClientBuilder::new(format!("ws://{addr}/ws"))
+        .connect()
+        .await
+        .expect("welcomed after falling back");
+    assert!(client.is_connected());
+    assert_eq!(*hellos.lock().unwrap(), vec![2, 1]);
+    assert_eq!(SUPPORTED_VERSIONS, [1, 2]);
+    // Any refused version above 1 falls back to 1 the same way.
+    let mut options = posecast_client::net::ClientOptions::new(format!("ws://{addr}/ws"), "x");
+    options.version = 3;
+    options.reconnect = false;
+    let refused = Client::connect(options).await;
+    assert!(
+        refused.is_ok(),
+        "3 is refused, then 1 welcomed: {refused:?}"
+    );
+    assert_eq!(*hellos.lock().unwrap(), vec![2, 1, 3, 1]);
+}

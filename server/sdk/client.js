@@ -253,6 +253,11 @@ export class Client {
         // Why the token that did not let this client watch was refused: now the next one.
         this.tokenRefused(String(msg.message));
         this.nextToken(this.detail || "no token lets this client watch");
+      } else if (msg.type === "error" && msg.code === "unsupported_version" && this.version > 1) {
+        // A server of before protocol version 2: say hello again with version 1.
+        this.version = 1;
+        this.drop();
+        this.open();
       } else if (msg.type === "error") this.refuseHello(String(msg.code), String(msg.message));
     };
     ws.onclose = () => {

@@ -204,7 +204,9 @@ export interface ClientOptions {
   /**
    * Protocol version asked for in the hello: 2 (default; binary frames in wire v2, deltas
    * against the previous frame, about half the bytes of v1) or 1 (v1 frames). Frames of a
-   * subscription with `joints` are v1 on either; the client decodes both.
+   * subscription with `joints` are v1 on either; the client decodes both. A server that
+   * refuses 2 (`unsupported_version`: one of before protocol version 2) gets a second hello
+   * with 1, and `Client.version` becomes 1.
    */
   version?: 1 | 2;
   /** The `client` name in the hello; default `"posecast-js"`. */
@@ -279,7 +281,7 @@ export declare class Client {
   constructor(options?: ClientOptions);
   readonly url: string;
   readonly encoding: Encoding;
-  /** The protocol version asked for in the hello (`welcome.version` says the one in use). */
+  /** The protocol version said in the hello (1 after a server refused 2; `welcome.version` says the one in use). */
   readonly version: 1 | 2;
   readonly state: ConnectionState;
   /** Why the state is what it is ("connection lost", a refusal's reason…). */

@@ -397,3 +397,63 @@ pub async fn get_bytes(addr: std::net::SocketAddr, path: &str) -> (u16, Vec<u8>)
     );
     (status, response[end + 4..].to_vec())
 }
+
+/// A websocket server as one of before protocol version 2 behaves: it welcomes a hello of
+/// version 1 (and then says nothing) and refuses any other with `unsupported_version`, closing
+/// as a server does. Returns its address and the versions of the hellos it got, in order.
+#[allow(dead_code)]
+pub async fn version_1_server() -> (
+    std::net::SocketAddr,
+    std::sync::Arc<std::sync::Mutex<Vec<u32>>>,
+) {
+    use posecast_proto::msg::{Access, ErrorCode, ProtocolError};
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let hellos = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+    let seen = hellos.clone();
+    tokio::spawn(async move {
+        while let Ok((stream, _)) = listener.accept().await {
+            let seen = seen.clone();
+            tokio::spawn(async move {
+                let Ok(mut ws) = tokio_tungstenite::accept_async(stream).await else {
+                    return;
+                };
+                while let Some(Ok(Message::Text(text))) = ws.next().await {
+                    let Ok(ClientMsg::Hello { version, .. }) = serde_json::from_str(&text) else {
+                        continue;
+                    };
+                    seen.lock().unwrap().push(version);
+                    let answer = if version == 1 {
+                        ServerMsg::Welcome {
+                            version: 1,
+                            encoding: Encoding::Binary,
+                            server: "posecast 0.0.1 (protocol version 1 only)".into(),
+                            tick_rate: 60.0,
+                            server_time_us: 0,
+                            access: Access {
+                                view: true,
+                                ..Access::default()
+                            },
+                        }
+                    } else {
+                        ServerMsg::Error(ProtocolError::new(
+                            ErrorCode::UnsupportedVersion,
+                            format!("version {version} is not supported; this server speaks 1"),
+                        ))
+                    };
+                    let text = serde_json::to_string(&answer).unwrap();
+                    if ws.send(Message::text(text)).await.is_err() {
+                        return;
+                    }
+                    if version != 1 {
+                        // Close as a server does: send the close, read until the client's.
+                        ws.close(None).await.ok();
+                        while let Some(Ok(_)) = ws.next().await {}
+                        return;
+                    }
+                }
+            });
+        }
+    });
+    (addr, hellos)
+}

@@ -578,3 +578,35 @@ window.client = client;
     );
     server.stop().await;
 }
+
+/// Against a server of before protocol version 2 (it refuses `hello {version: 2}` with
+/// `unsupported_version`), the client — asking for 2 by default — says hello again with 1 and
+/// comes online.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_client_falls_back_to_version_1_for_an_older_server() {
+    // The posecast server only serves the SDK's files; the client talks to the old one.
+    let server = common::server(60.0).await;
+    let (old, hellos) = common::version_1_server().await;
+    let page = serve_page(format!(
+        r#"<!doctype html><meta charset="utf-8"><title>old server</title>
+<script type="module">
+import * as sdk from "http://{}/sdk/posecast.js";
+const client = new sdk.Client({{ url: "ws://{old}/ws" }});
+window.client = client;
+client.connect();
+</script>"#,
+        server.addr
+    ))
+    .await;
+    let (_driver, b) = browser().await;
+    b.goto(&page).await.unwrap();
+    wait_js(
+        &b,
+        15,
+        "window.client && window.client.state === 'online' && window.client.version === 1 \
+         && window.client.welcome.version === 1",
+    )
+    .await;
+    assert_eq!(*hellos.lock().unwrap(), vec![2, 1]);
+    server.stop().await;
+}

@@ -8,7 +8,8 @@ use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::{AvatarPose, Frame, FrameDecoder};
 use posecast_proto::frame2::{self, Frame2Decoder};
 use posecast_proto::msg::{
-    AvatarId, AvatarPoseJson, ClientMsg, Encoding, FrameJson, ProtocolError, SceneId, ServerMsg,
+    AvatarId, AvatarPoseJson, ClientMsg, Encoding, ErrorCode, FrameJson, ProtocolError, SceneId,
+    ServerMsg,
 };
 use posecast_proto::placement::Placement;
 use posecast_proto::subset::{JointSet, Selection};
@@ -57,7 +58,8 @@ pub struct ClientOptions {
     pub joints: Option<JointSet>,
     /// Protocol version asked for in hello (default 2): 2 gets wire v2 binary frames
     /// ([`posecast_proto::frame2`], about half of v1's bytes), 1 the v1 frames
-    /// ([`posecast_proto::frame`]; a server of before version 2 accepts only that).
+    /// ([`posecast_proto::frame`]). A server that refuses the version (`unsupported_version`:
+    /// one of before protocol version 2) gets a second hello with version 1.
     pub version: u32,
 }
 
@@ -428,9 +430,21 @@ async fn run(
     let mut at = 0usize;
     let mut failures = 0usize;
     let mut backoff = FIRST_BACKOFF;
+    // The version said in hello: the one asked for, or 1 once a server refused it (a server
+    // that predates protocol version 2 speaks only 1).
+    let mut version = options.version;
     loop {
         let url = &urls[at % urls.len()];
-        let result = session(&options, url, &shared, &mut outgoing, &events, &mut ready).await;
+        let result = session(
+            &options,
+            version,
+            url,
+            &shared,
+            &mut outgoing,
+            &events,
+            &mut ready,
+        )
+        .await;
         let welcomed = {
             let mut s = lock(&shared);
             let welcomed = s.connected;
@@ -447,6 +461,14 @@ async fn run(
             failures += 1;
         }
         match result {
+            Err(ClientError::Server(e))
+                if e.code == ErrorCode::UnsupportedVersion && version > 1 =>
+            {
+                debug!(url, version, "version refused: saying hello with version 1");
+                version = 1;
+                failures = failures.saturating_sub(1);
+                continue;
+            }
             Err(e) => {
                 // The next server of the list: its scenes are the same.
                 at += 1;
@@ -472,6 +494,7 @@ async fn run(
 
 async fn session(
     options: &ClientOptions,
+    version: u32,
     url: &str,
     shared: &Arc<Mutex<Shared>>,
     outgoing: &mut mpsc::Receiver<ClientMsg>,
@@ -489,7 +512,7 @@ async fn session(
     let to_text =
         |m: &ClientMsg| Message::Text(serde_json::to_string(m).unwrap_or_default().into());
     let hello = ClientMsg::Hello {
-        version: options.version,
+        version,
         encoding: options.encoding,
         token: options.token.clone(),
         client: Some(options.name.clone()),
@@ -522,7 +545,7 @@ async fn session(
                     Message::Text(text) => {
                         match serde_json::from_str::<ServerMsg>(text.as_str()) {
                             Ok(m) => {
-                                on_server_msg(shared, events, m, text.len(), received, ready)?;
+                                on_server_msg(shared, events, m, text.len(), received, ready, version > 1)?;
                             }
                             Err(e) => warn!(error = %e, "unparseable server message"),
                         }
@@ -556,6 +579,7 @@ fn on_server_msg(
     len: usize,
     received: u64,
     ready: &mut Ready,
+    may_downgrade: bool,
 ) -> Result<(), ClientError> {
     let mut s = lock(shared);
     let event = match msg {
@@ -638,6 +662,9 @@ fn on_server_msg(
             } else if s.connected {
                 s.stats.last_error = Some(e.clone());
                 Some(Event::Error(e))
+            } else if may_downgrade && e.code == ErrorCode::UnsupportedVersion {
+                // A server that predates this version: `run` says hello again with version 1.
+                return Err(ClientError::Server(e));
             } else {
                 // Refused before the welcome (bad version, bad token): the first connect fails.
                 drop(s);
