@@ -710,6 +710,12 @@ impl Frame2Decoder {
         self.history.retain(|(s, _), _| *s != scene_num);
     }
 
+    /// Forgets one avatar's frames (it left the scene), so a long-lived decoder holds only
+    /// avatars still there.
+    pub fn forget_avatar(&mut self, scene_num: u32, avatar_num: u32) {
+        self.history.remove(&(scene_num, avatar_num));
+    }
+
     fn delta_chunk(
         &self,
         r: &mut Reader<'_>,

@@ -545,6 +545,7 @@ async fn session(
                     Message::Text(text) => {
                         match serde_json::from_str::<ServerMsg>(text.as_str()) {
                             Ok(m) => {
+                                forget_frames(shared, &mut decoder, &m);
                                 on_server_msg(shared, events, m, text.len(), received, ready, version > 1)?;
                             }
                             Err(e) => warn!(error = %e, "unparseable server message"),
@@ -768,6 +769,31 @@ fn locals_from(
         locals[usize::from(j)].scale = *v;
     }
     Some(locals)
+}
+
+/// Drops the v2 decoder's frames of a scene left or an avatar gone (before `msg` is handled,
+/// while the numbers are still known): a long-lived client holds frames of live avatars only.
+fn forget_frames(shared: &Mutex<Shared>, decoder: &mut Decoders, msg: &ServerMsg) {
+    let s = lock(shared);
+    let scene_num = |scene: &SceneId| {
+        s.scene_nums
+            .iter()
+            .find(|(_, id)| *id == scene)
+            .map(|(n, _)| *n)
+    };
+    match msg {
+        ServerMsg::Unsubscribed { scene } => {
+            if let Some(n) = scene_num(scene) {
+                decoder.v2.forget_scene(n);
+            }
+        }
+        ServerMsg::AvatarRemoved { scene, avatar } => {
+            if let (Some(n), Some(view)) = (scene_num(scene), s.avatars.get(avatar)) {
+                decoder.v2.forget_avatar(n, view.description.num);
+            }
+        }
+        _ => {}
+    }
 }
 
 /// Both wires' decoders: a frame's first byte says which it is.

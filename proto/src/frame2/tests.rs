@@ -339,3 +339,33 @@ fn a_delta_against_a_frame_not_held_is_refused() {
     assert_eq!(count, 1);
     assert!(delta3.ends_with(&[1, 1 << 4, 0, 0]));
 }
+
+#[test]
+fn a_forgotten_avatar_or_scene_needs_a_keyframe_again() {
+    let a = pose(1, vec![Quat::IDENTITY; 2], vec![], vec![]);
+    let b = pose(2, vec![Quat::from_rotation_x(0.5); 2], vec![], vec![]);
+    let mut stream = StreamEncoder::new();
+    let key = stream.encode(4, 1, 0, &[a.clone(), b], true).0;
+    // Avatar 2 left: the next frame carries avatar 1 only, against the keyframe.
+    let only_a = stream.encode(4, 2, 0, std::slice::from_ref(&a), false).0;
+    let decoder = || {
+        let mut dec = Frame2Decoder::new();
+        dec.decode(&key).unwrap();
+        dec
+    };
+    // Forgetting the avatar that left, or another scene's avatar 1, loses nothing needed.
+    let mut kept = decoder();
+    kept.forget_avatar(4, 2);
+    kept.forget_avatar(5, 1);
+    kept.decode(&only_a).unwrap();
+    // Forgetting avatar 1 itself, or the scene: its delta is refused until a keyframe.
+    let mut forgot = decoder();
+    forgot.forget_avatar(4, 1);
+    assert!(matches!(
+        forgot.decode(&only_a),
+        Err(Frame2Error::MissingBase { avatar: 1, .. })
+    ));
+    let mut left = decoder();
+    left.forget_scene(4);
+    assert!(left.decode(&only_a).is_err());
+}
