@@ -12,9 +12,10 @@
 //! angle, while 20 library clients on A record when each pose first shows; latency = seen −
 //! sent (one machine, one clock).
 
+#[path = "common/drive.rs"]
+mod drive;
+
 use futures_util::{SinkExt, StreamExt};
-use glam::Quat;
-use posecast_client::net::{Client, ClientOptions, Driver, Event};
 use posecast_proto::frame::read_header;
 use posecast_proto::msg::AvatarId;
 use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, ServerMsg};
@@ -22,7 +23,6 @@ use posecast_server::auth::{AccessConfig, Role, Secret, TokenRule};
 use posecast_server::config::Config;
 use posecast_server::startup::Server;
 use std::process::{Child, Command, Stdio};
-use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tokio_tungstenite::tungstenite::Message;
 
@@ -247,71 +247,17 @@ async fn main() -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Radians between consecutive poses' elbow angles (far above the quantisation step).
-const STEP: f32 = 0.004;
-
 /// Pose in → pose out: a driver on `via` drives `walker0` (ticked by `owner`); 20 clients on
 /// the owner record when each pose first shows.
 async fn drive_latency(owner: &Server, via: &Server) -> anyhow::Result<Vec<Duration>> {
-    let poses = 2 * 120 * measured_seconds() as usize / 4 + 10;
-    let avatar = AvatarId("walker0".into());
-    let elbow = owner
-        .state
-        .world
-        .library
-        .get("avatar")
-        .and_then(|r| r.skeleton().find("l_elbow"))
-        .ok_or_else(|| anyhow::anyhow!("no l_elbow"))?;
-    let sent: Arc<Mutex<Vec<Option<Instant>>>> = Arc::new(Mutex::new(vec![None; poses]));
-    let latencies = Arc::new(Mutex::new(Vec::new()));
-    let mut clients = Vec::new();
-    for _ in 0..CLIENTS {
-        let mut options = ClientOptions::new(owner.ws_url(), "bench");
-        options.encoding = Encoding::Binary;
-        options.reconnect = false;
-        let client = Arc::new(Client::connect(options).await?);
-        let (sent, latencies, avatar) = (sent.clone(), latencies.clone(), avatar.clone());
-        let c = client.clone();
-        let mut events = client.events();
-        tokio::spawn(async move {
-            let mut last = None;
-            while let Ok(e) = events.recv().await {
-                let Event::Frame { .. } = e else { continue };
-                let Some(s) = c.latest(&avatar) else { continue };
-                let (axis, angle) = s.locals[elbow].rotation.to_axis_angle();
-                let k = (angle * axis.z.signum() / STEP).round();
-                if !(k >= 1.0 && (k as usize) < poses) || last == Some(k as usize) {
-                    continue;
-                }
-                last = Some(k as usize);
-                let t = sent.lock().map(|s| s[k as usize]).unwrap_or(None);
-                if let (Some(t), Ok(mut l)) = (t, latencies.lock()) {
-                    l.push(t.elapsed());
-                }
-            }
-        });
-        clients.push(client);
-    }
-    let driver = Driver::connect(&via.ws_url(), Some(TOKEN.into())).await?;
-    driver.drive(&avatar, None, None).await?;
-    let mut interval = tokio::time::interval(Duration::from_secs_f64(1.0 / 120.0));
-    for k in 1..poses {
-        interval.tick().await;
-        let q = Quat::from_rotation_z(k as f32 * STEP);
-        if let Ok(mut s) = sent.lock() {
-            s[k] = Some(Instant::now());
-        }
-        driver
-            .send_pose(&avatar, [("l_elbow".to_string(), q.to_array())], None, None)
-            .await?;
-    }
-    tokio::time::sleep(Duration::from_millis(300)).await;
-    if let Some(e) = driver.next_error(Duration::from_millis(10)).await {
-        anyhow::bail!("the driver got an error: {e}");
-    }
-    // Its drive ends with its connection, before the next driver's.
-    drop(driver);
-    tokio::time::sleep(Duration::from_millis(300)).await;
-    drop(clients);
-    Ok(latencies.lock().map(|l| l.clone()).unwrap_or_default())
+    drive::pose_latencies(drive::Run {
+        watch: owner,
+        scene: "bench",
+        drive_url: via.ws_url(),
+        token: TOKEN,
+        avatar: AvatarId("walker0".into()),
+        clients: CLIENTS,
+        poses: 2 * 120 * measured_seconds() as usize / 4 + 10,
+    })
+    .await
 }

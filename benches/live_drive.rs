@@ -7,20 +7,20 @@
 //! machine, one clock). Then, without a server, an avatar of the built-in rig driven from CMU
 //! 01_01's skeleton (`../shared/testdata`) is ticked with a new pose every tick.
 
+#[path = "common/drive.rs"]
+mod drive;
+
 use glam::Quat;
-use posecast_client::net::{Client, ClientOptions, Driver, Event};
-use posecast_proto::msg::{AvatarId, Encoding};
+use posecast_proto::msg::AvatarId;
 use posecast_server::auth::{AccessConfig, Role, Secret, TokenRule};
 use posecast_server::config::Config;
 use posecast_server::startup::Server;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 const TOKEN: &str = "bench-control-token";
 const SUBSCRIBERS: usize = 100;
 const POSES: usize = 600;
-/// Radians between consecutive poses' elbow angles (far above the quantisation step).
-const STEP: f32 = 0.004;
 
 fn percentile(sorted: &[Duration], p: f64) -> Duration {
     let i = ((sorted.len() as f64 - 1.0) * p).round() as usize;
@@ -40,59 +40,16 @@ async fn latency() -> anyhow::Result<()> {
     })
     .await?;
     server.ready().await?;
-    let avatar = AvatarId("avatar".into());
-    let elbow = server
-        .state
-        .world
-        .library
-        .get("avatar")
-        .and_then(|r| r.skeleton().find("l_elbow"))
-        .ok_or_else(|| anyhow::anyhow!("no l_elbow"))?;
-    let sent: Arc<Mutex<Vec<Option<Instant>>>> = Arc::new(Mutex::new(vec![None; POSES]));
-    let latencies = Arc::new(Mutex::new(Vec::new()));
-    let mut clients = Vec::new();
-    for _ in 0..SUBSCRIBERS {
-        let mut options = ClientOptions::new(server.ws_url(), "default");
-        options.encoding = Encoding::Binary;
-        options.reconnect = false;
-        let client = Arc::new(Client::connect(options).await?);
-        let (sent, latencies, avatar) = (sent.clone(), latencies.clone(), avatar.clone());
-        let c = client.clone();
-        let mut events = client.events();
-        tokio::spawn(async move {
-            let mut last = None;
-            while let Ok(e) = events.recv().await {
-                let Event::Frame { .. } = e else { continue };
-                let Some(s) = c.latest(&avatar) else { continue };
-                let (axis, angle) = s.locals[elbow].rotation.to_axis_angle();
-                let k = (angle * axis.z.signum() / STEP).round();
-                if !(k >= 1.0 && (k as usize) < POSES) || last == Some(k as usize) {
-                    continue;
-                }
-                last = Some(k as usize);
-                let t = sent.lock().map(|s| s[k as usize]).unwrap_or(None);
-                if let (Some(t), Ok(mut l)) = (t, latencies.lock()) {
-                    l.push(t.elapsed());
-                }
-            }
-        });
-        clients.push(client);
-    }
-    let driver = Driver::connect(&server.ws_url(), Some(TOKEN.into())).await?;
-    driver.drive(&avatar, None, None).await?;
-    let mut interval = tokio::time::interval(Duration::from_secs_f64(1.0 / 120.0));
-    for k in 1..POSES {
-        interval.tick().await;
-        let q = Quat::from_rotation_z(k as f32 * STEP);
-        if let Ok(mut s) = sent.lock() {
-            s[k] = Some(Instant::now());
-        }
-        driver
-            .send_pose(&avatar, [("l_elbow".to_string(), q.to_array())], None, None)
-            .await?;
-    }
-    tokio::time::sleep(Duration::from_millis(300)).await;
-    let mut l = latencies.lock().map(|l| l.clone()).unwrap_or_default();
+    let mut l = drive::pose_latencies(drive::Run {
+        watch: &server,
+        scene: "default",
+        drive_url: server.ws_url(),
+        token: TOKEN,
+        avatar: AvatarId("avatar".into()),
+        clients: SUBSCRIBERS,
+        poses: POSES,
+    })
+    .await?;
     l.sort();
     println!(
         "pose in -> pose out, {SUBSCRIBERS} subscribers, 120 Hz driver, 60 Hz ticks: {} samples, p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms",
@@ -101,9 +58,6 @@ async fn latency() -> anyhow::Result<()> {
         percentile(&l, 0.99).as_secs_f64() * 1e3,
         l.last().copied().unwrap_or_default().as_secs_f64() * 1e3,
     );
-    if let Some(e) = driver.next_error(Duration::from_millis(10)).await {
-        println!("driver got an error: {e}");
-    }
     server.stop().await;
     Ok(())
 }
