@@ -84,11 +84,14 @@ impl JointSet {
                 }
             }
             Self::Names(names) => {
+                // Hashed once: a long list costs its length plus the joints, not their product.
+                let names: std::collections::HashSet<&str> =
+                    names.iter().map(String::as_str).collect();
                 for j in 0..n {
                     let named = description
                         .joint_names
                         .get(j)
-                        .is_some_and(|own| names.iter().any(|name| name == own));
+                        .is_some_and(|own| names.contains(own.as_str()));
                     if parent(j).is_none() || named {
                         // The joint and its ancestors (at most n steps: a cycle ends it).
                         let mut at = j;

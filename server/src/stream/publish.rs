@@ -18,6 +18,7 @@ use posecast_proto::frame::{
 use posecast_proto::msg::{AvatarId, AvatarPoseJson, Encoding, SceneId};
 use posecast_proto::subset::{JointSet, Selection};
 use std::borrow::Cow;
+use std::collections::HashMap;
 use std::sync::Arc;
 
 /// One avatar's part of a frame.
@@ -170,25 +171,39 @@ impl Published {
         joints: Option<&JointSet>,
     ) -> Message {
         let keep = |p: &&Piece| filter.is_none_or(|f| f.contains(p.id()));
-        // Each kept piece with the part of its rig the joint set selects (`None`: all of it).
-        let selected = self.pieces.iter().filter(keep).map(|p| {
-            let selection = joints
-                .map(|set| set.select(&p.description))
-                .filter(|s| !s.is_all());
-            (p, selection)
-        });
+        // Each kept piece with the part of its rig the joint set selects (`None`: all of it),
+        // selected once per rig (its description hash): avatars of one rig share it.
+        let mut by_rig: HashMap<&str, Option<Arc<Selection>>> = HashMap::new();
+        let selected: Vec<(&Piece, Option<Arc<Selection>>)> = self
+            .pieces
+            .iter()
+            .filter(keep)
+            .map(|p| {
+                let selection = joints.and_then(|set| {
+                    by_rig
+                        .entry(p.description.hash.as_str())
+                        .or_insert_with(|| {
+                            Some(set.select(&p.description))
+                                .filter(|s| !s.is_all())
+                                .map(Arc::new)
+                        })
+                        .clone()
+                });
+                (p, selection)
+            })
+            .collect();
         match encoding {
             Encoding::Binary => {
                 let mut body = Vec::new();
                 let mut count = 0usize;
-                for (p, selection) in selected {
+                for (p, selection) in &selected {
                     match selection {
                         None => body.extend_from_slice(&p.chunk),
                         // The chunk was made from this description by this server (or the
                         // owner): it fits. Should it not, the avatar is left out of the frame
                         // rather than sent as something the client cannot decode.
                         Some(sel) => {
-                            if select_chunk(&p.chunk, self.header.kind, &sel, &mut body).is_err() {
+                            if select_chunk(&p.chunk, self.header.kind, sel, &mut body).is_err() {
                                 continue;
                             }
                         }
@@ -212,14 +227,14 @@ impl Published {
                     r#"{{"type":"frame","scene":{scene},"seq":{},"server_time_us":{},"avatars":["#,
                     self.header.seq, self.header.server_time_us
                 );
-                for (i, (p, selection)) in selected.enumerate() {
+                for (i, (p, selection)) in selected.iter().enumerate() {
                     if i > 0 {
                         out.push(',');
                     }
                     match selection {
                         None => out.push_str(&p.json()),
                         Some(sel) => {
-                            out.push_str(&pose_json_of(&p.description, &p.pose, Some(&sel)))
+                            out.push_str(&pose_json_of(&p.description, &p.pose, Some(sel)))
                         }
                     }
                 }
