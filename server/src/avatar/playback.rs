@@ -149,19 +149,80 @@ impl Layer {
     }
 }
 
-/// What an avatar plays: the current layer and, during a cross-fade, the one fading out.
+/// Fades kept at most under the current layer: a `play` beyond that many overlapping fades
+/// freezes the oldest two into one still pose (continuous at that instant; see
+/// [`Player::sample`]), so `play` spam cannot grow the stack or the tick's work.
+pub const MAX_FADES: usize = 8;
+
+/// What an avatar plays: the current layer and, under it, the layers still fading out.
+///
+/// **A fade stack.** Each `play … fade` puts the new layer on top of what was playing, at
+/// weight 0 rising to 1 over the fade; a `play` during a fade pushes another one instead of
+/// dropping the fade in progress (which made the pose jump: 28.6° in the black-box trial). The
+/// pose is evaluated bottom up, `P = S₀; P ← blend(P, Sᵢ₊₁, wᵢ)` for each fade `i`, so a
+/// new layer changes nothing at the instant it starts (`w = 0`) and every weight moves
+/// continuously with the clock. Once a fade's weight reaches 1, it and everything below it
+/// contribute nothing and are dropped.
 #[derive(Debug, Default)]
 pub struct Player {
     current: Option<Layer>,
-    fading: Option<Fade>,
+    /// Fades under `current`, oldest first: `fading[i].from` is what the layer above it
+    /// (`fading[i + 1].from`, or `current` for the newest) fades in over.
+    fading: Vec<Fade>,
     /// The scene clock (seconds) at the last tick.
     clock: f64,
     scratch: Vec<Transform>,
 }
 
+/// What a layer fades in over.
+#[derive(Debug)]
+enum Under {
+    /// A clip that keeps playing while it fades out.
+    Layer(Layer),
+    /// A still pose: the bottom of a stack that grew past [`MAX_FADES`], frozen at the tick it
+    /// was collapsed (`name`: the clip it showed most of, for [`FadeState::from`]).
+    Frozen { pose: Vec<Transform>, name: String },
+}
+
+impl Under {
+    fn name(&self) -> &str {
+        match self {
+            Under::Layer(layer) => layer.clip.name(),
+            Under::Frozen { name, .. } => name,
+        }
+    }
+
+    fn source_asset(&self) -> Option<String> {
+        match self {
+            Under::Layer(layer) => layer.source_asset.clone(),
+            Under::Frozen { .. } => None,
+        }
+    }
+
+    fn set_clock(&mut self, clock: f64) {
+        if let Under::Layer(layer) = self {
+            layer.set_clock(clock);
+        }
+    }
+
+    fn sample(&mut self, rest: &[Transform], out: &mut [Transform]) {
+        match self {
+            Under::Layer(layer) => layer.sample(rest, out),
+            Under::Frozen { pose, .. } => {
+                for (o, p) in out
+                    .iter_mut()
+                    .zip(pose.iter().chain(rest.iter().skip(pose.len())))
+                {
+                    *o = *p;
+                }
+            }
+        }
+    }
+}
+
 #[derive(Debug)]
 struct Fade {
-    from: Layer,
+    from: Under,
     /// Scene clock at the start of the fade.
     started: f64,
     duration: f32,
@@ -197,36 +258,37 @@ impl Player {
         self.clock
     }
 
-    /// The cross-fade in progress, as clients see it (`AvatarState::fade`).
+    /// The newest cross-fade in progress, as clients see it (`AvatarState::fade`): the layer
+    /// the current one fades in over.
     #[must_use]
     pub fn fade(&self) -> Option<FadeState> {
-        self.fading.as_ref().map(|f| FadeState {
-            from: f.from.clip.name().to_string(),
-            from_asset: f.from.source_asset.clone(),
+        self.fading.last().map(|f| FadeState {
+            from: f.from.name().to_string(),
+            from_asset: f.from.source_asset(),
             elapsed: (self.clock - f.started).max(0.0) as f32,
             duration: f.duration,
         })
     }
 
-    /// Starts `layer` at the current clock, cross-fading from the current one over `fade`
-    /// seconds (0: cut).
+    /// Starts `layer` at the current clock, cross-fading from what plays now (the current
+    /// layer and any fades still in progress under it) over `fade` seconds (0: cut).
     pub fn play(&mut self, mut layer: Layer, fade: f32) {
         layer.start_at(self.clock);
         let from = self.current.replace(layer);
-        self.fading = match from {
-            Some(from) if fade > 0.0 => Some(Fade {
-                from,
+        match from {
+            Some(from) if fade > 0.0 => self.fading.push(Fade {
+                from: Under::Layer(from),
                 started: self.clock,
                 duration: fade,
             }),
-            _ => None,
-        };
+            _ => self.fading.clear(),
+        }
     }
 
     /// Stops playing: the rest pose from now on.
     pub fn stop(&mut self) {
         self.current = None;
-        self.fading = None;
+        self.fading.clear();
     }
 
     /// Moves every clock to scene clock `clock` (seconds; the tick's time, derived from its
@@ -236,40 +298,284 @@ impl Player {
         if let Some(layer) = &mut self.current {
             layer.set_clock(clock);
         }
-        if let Some(fade) = &mut self.fading {
+        for fade in &mut self.fading {
             fade.from.set_clock(clock);
-            if fade.weight(clock) >= 1.0 {
-                self.fading = None;
+        }
+        // A finished fade hides everything below it, itself included.
+        if let Some(done) = self.fading.iter().rposition(|f| f.weight(clock) >= 1.0) {
+            self.fading.drain(..=done);
+        }
+    }
+
+    /// Writes the pose into `out` (one transform per joint): the fade stack evaluated bottom
+    /// up, each layer blended over the pose below it by its fade's `w = elapsed / duration`
+    /// (slerp of rotations, lerp of translations and scales, so each fade is continuous at both
+    /// ends). No layer: `rest`.
+    pub fn sample(&mut self, rest: &[Transform], out: &mut [Transform]) {
+        if self.fading.len() > MAX_FADES {
+            self.collapse_bottom(rest, out.len());
+        }
+        self.sample_stack(rest, out);
+    }
+
+    /// The stack's pose, bottom up (no collapsing).
+    fn sample_stack(&mut self, rest: &[Transform], out: &mut [Transform]) {
+        let Some(current) = &mut self.current else {
+            let n = out.len().min(rest.len());
+            out[..n].copy_from_slice(&rest[..n]);
+            return;
+        };
+        let Some((first, _)) = self.fading.split_first_mut() else {
+            current.sample(rest, out);
+            return;
+        };
+        first.from.sample(rest, out);
+        self.scratch.resize(out.len(), Transform::IDENTITY);
+        let clock = self.clock;
+        for i in 0..self.fading.len() {
+            let w = self.fading[i].weight(clock);
+            match self.fading.get_mut(i + 1) {
+                Some(next) => next.from.sample(rest, &mut self.scratch),
+                None => current.sample(rest, &mut self.scratch),
+            }
+            for (o, s) in out.iter_mut().zip(&self.scratch) {
+                *o = o.blend(s, w);
             }
         }
     }
 
-    /// Writes the pose into `out` (one transform per joint): the current layer, blended with
-    /// the fading one by `w = elapsed / duration` (slerp of rotations, lerp of translations and
-    /// scales, so the fade is continuous at both ends). No layer: `rest`.
-    pub fn sample(&mut self, rest: &[Transform], out: &mut [Transform]) {
-        match &mut self.current {
-            Some(layer) => layer.sample(rest, out),
-            None => {
-                let n = out.len().min(rest.len());
-                out[..n].copy_from_slice(&rest[..n]);
-            }
+    /// Replaces the two oldest entries of the stack by the pose they make now, held still: the
+    /// stack's pose at this clock is unchanged (the same blend, computed once).
+    fn collapse_bottom(&mut self, rest: &[Transform], joints: usize) {
+        let (Some(bottom), Some(next)) = (self.fading.first(), self.fading.get(1)) else {
+            return;
+        };
+        let w = bottom.weight(self.clock);
+        let name = if w < 0.5 {
+            bottom.from.name()
+        } else {
+            next.from.name()
         }
-        if let Some(fade) = &mut self.fading {
-            self.scratch.resize(out.len(), Transform::IDENTITY);
-            fade.from.sample(rest, &mut self.scratch);
-            let w = fade.weight(self.clock);
-            for (o, f) in out.iter_mut().zip(&self.scratch) {
-                *o = f.blend(o, w);
-            }
+        .to_string();
+        let mut pose = vec![Transform::IDENTITY; joints];
+        let mut above = vec![Transform::IDENTITY; joints];
+        self.fading[0].from.sample(rest, &mut pose);
+        self.fading[1].from.sample(rest, &mut above);
+        for (p, a) in pose.iter_mut().zip(&above) {
+            *p = p.blend(a, w);
         }
+        self.fading.remove(0);
+        self.fading[0].from = Under::Frozen { pose, name };
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::clip::JointChannels;
+    use crate::clip::{Interpolation, JointChannels, RotationChannel, Track};
+    use glam::{Quat, Vec3};
+    use proptest::prelude::*;
+
+    /// A one-joint clip swinging about `axis` by `amplitude · sin(2π t / duration)` radians: a
+    /// seamless loop whose angular speed is at most `amplitude · 2π / duration` (keys every
+    /// ~0.05 s, interpolated).
+    fn swinging(name: &str, axis: Vec3, amplitude: f32, duration: f32) -> Arc<Clip> {
+        let n = (duration / 0.05).ceil() as usize;
+        let times: Vec<f32> = (0..=n).map(|k| k as f32 * duration / n as f32).collect();
+        let values: Vec<Quat> = times
+            .iter()
+            .map(|t| {
+                let phase = std::f32::consts::TAU * t / duration;
+                Quat::from_axis_angle(axis.normalize(), amplitude * phase.sin())
+            })
+            .collect();
+        let track = Track::new(Interpolation::Linear, times, values).unwrap();
+        let joint = JointChannels {
+            rotation: Some(RotationChannel::Keys(track)),
+            ..JointChannels::default()
+        };
+        Arc::new(Clip::new(name, vec![joint], Some((0.0, duration))).unwrap())
+    }
+
+    /// The angle (radians) between the joint's rotations in two poses.
+    fn angle(a: &[Transform], b: &[Transform]) -> f32 {
+        // atan2 of the relative rotation's parts, not acos of a dot: exact near zero in f32.
+        let d = a[0].rotation.inverse() * b[0].rotation;
+        2.0 * d.xyz().length().atan2(d.w.abs())
+    }
+
+    fn pose(player: &mut Player) -> Vec<Transform> {
+        let rest = [Transform::IDENTITY];
+        let mut out = [Transform::IDENTITY];
+        player.sample(&rest, &mut out);
+        out.to_vec()
+    }
+
+    /// The black-box case: `play` while a fade is in progress. The fade in progress goes on
+    /// under the new one, so the pose at the instant of the second `play` is unchanged (it
+    /// jumped by the in-progress fade's share before: 45° here).
+    #[test]
+    fn play_during_a_fade_is_continuous() {
+        let mut player = Player::new();
+        player.play(Layer::new(still("a", 0.0), None, 0.0, 1.0, true), 0.0);
+        player.play(Layer::new(still("b", 90.0), None, 0.0, 1.0, true), 1.0);
+        player.set_clock(0.5);
+        let before = pose(&mut player);
+        assert!((angle(&before, &[Transform::IDENTITY]).to_degrees() - 45.0).abs() < 0.01);
+        player.play(Layer::new(still("c", -90.0), None, 0.0, 1.0, true), 1.0);
+        let after = pose(&mut player);
+        assert!(
+            angle(&before, &after) < 1e-5,
+            "jumped {}°",
+            angle(&before, &after).to_degrees()
+        );
+        // Both fades finish: the pose is c's alone, and the stack is empty again.
+        player.set_clock(1.6);
+        let end = pose(&mut player);
+        let c = Quat::from_rotation_y((-90f32).to_radians());
+        assert!(
+            angle(
+                &end,
+                &[Transform {
+                    rotation: c,
+                    ..Transform::IDENTITY
+                }]
+            ) < 1e-4
+        );
+        assert!(player.fading.is_empty());
+    }
+
+    /// A one-joint clip holding a rotation of `deg` about Y.
+    fn still(name: &str, deg: f32) -> Arc<Clip> {
+        let q = Quat::from_rotation_y(deg.to_radians());
+        let track = Track::new(Interpolation::Step, vec![0.0], vec![q]).unwrap();
+        let joint = JointChannels {
+            rotation: Some(RotationChannel::Keys(track)),
+            ..JointChannels::default()
+        };
+        Arc::new(Clip::new(name, vec![joint], Some((0.0, 1.0))).unwrap())
+    }
+
+    #[derive(Debug, Clone)]
+    enum Op {
+        Tick,
+        Play {
+            clip: usize,
+            fade: f32,
+            start: f32,
+            speed: f32,
+        },
+        Speed(f32),
+        Pause(bool),
+    }
+
+    fn op() -> impl Strategy<Value = Op> {
+        prop_oneof![
+            6 => Just(Op::Tick),
+            3 => (0..4usize, 0.0f32..1.5, 0.0f32..2.0, -2.0f32..2.0)
+                .prop_map(|(clip, fade, start, speed)| Op::Play { clip, fade, start, speed }),
+            1 => (-2.0f32..2.0).prop_map(Op::Speed),
+            1 => any::<bool>().prop_map(Op::Pause),
+        ]
+    }
+
+    proptest! {
+        /// Random play / speed / pause sequences on looping clips moving at up to 2π rad/s, ticked at
+        /// 60 Hz: a command never changes the pose at its instant (every `play` here fades,
+        /// except those with fade 0, which cut by definition), and a tick moves the joint by at
+        /// most what the layers' speeds and the fades' weights can move it in 1/60 s.
+        #[test]
+        fn the_pose_never_jumps(ops in proptest::collection::vec(op(), 1..200)) {
+            // Seamless loops, so wrapping is no jump of the clip's own, swinging at most 1 rad
+            // each: two poses are never near 180° apart, where a slerp blend flips its arc.
+            let tau = std::f32::consts::TAU;
+            let clips = [
+                swinging("x", Vec3::X, 1.0, 2.0),
+                swinging("y", Vec3::Y, 1.0, 1.5),
+                swinging("z", Vec3::Z, 0.8, 3.0),
+                swinging("d", Vec3::new(1.0, 1.0, 0.0), 1.0, 1.0),
+            ];
+            let fastest = tau * 2.0; // rad/s: the fastest clip (1 rad · 2π / 1 s) at |speed| ≤ 2
+            let rate = 60.0;
+            let mut player = Player::new();
+            player.play(Layer::new(clips[0].clone(), None, 0.0, 1.0, true), 0.0);
+            let mut tick = 0u64;
+            let mut last = pose(&mut player);
+            for op in ops {
+                match op {
+                    Op::Tick => {
+                        // Worst case per tick: every layer turning at the fastest clip's
+                        // speed and every fade's weight moving by dt / duration over an angle
+                        // of at most π, composed over the stack.
+                        let dt = 1.0 / rate;
+                        let fades: f32 = player.fading.iter()
+                            .map(|f| std::f32::consts::PI * dt as f32 / f.duration).sum();
+                        let bound = fastest * dt as f32 * (player.fading.len() + 1) as f32 + fades;
+                        tick += 1;
+                        player.set_clock(tick as f64 / rate);
+                        let now = pose(&mut player);
+                        prop_assert!(angle(&last, &now) <= bound + 1e-4,
+                            "tick moved {}° (bound {}°)", angle(&last, &now).to_degrees(), bound.to_degrees());
+                        last = now;
+                    }
+                    Op::Play { clip, fade, start, speed } => {
+                        let fade = if fade < 0.05 { 0.0 } else { fade };
+                        player.play(Layer::new(clips[clip].clone(), None, start, speed, true), fade);
+                        let now = pose(&mut player);
+                        if fade > 0.0 {
+                            prop_assert!(angle(&last, &now) < 1e-4,
+                                "play jumped {}°", angle(&last, &now).to_degrees());
+                        }
+                        last = now;
+                    }
+                    Op::Speed(s) => {
+                        if let Some(layer) = player.current_mut() { layer.set_speed(s); }
+                        let now = pose(&mut player);
+                        prop_assert!(angle(&last, &now) < 1e-4);
+                        last = now;
+                    }
+                    Op::Pause(p) => {
+                        if let Some(layer) = player.current_mut() { layer.set_paused(p); }
+                        let now = pose(&mut player);
+                        prop_assert!(angle(&last, &now) < 1e-4);
+                        last = now;
+                    }
+                }
+                prop_assert!(player.fading.len() <= MAX_FADES + 1);
+            }
+        }
+    }
+
+    /// Past [`MAX_FADES`] overlapping fades the two oldest become one still pose; the pose at
+    /// that tick is the one the whole stack made.
+    #[test]
+    fn a_full_stack_collapses_without_a_jump() {
+        let mut player = Player::new();
+        let clips = [
+            swinging("x", Vec3::X, 1.0, 2.0),
+            swinging("y", Vec3::Y, 1.0, 1.5),
+        ];
+        player.play(Layer::new(clips[0].clone(), None, 0.0, 1.0, true), 0.0);
+        let mut tick = 0u64;
+        for k in 0..(MAX_FADES + 3) {
+            player.play(
+                Layer::new(clips[k % 2].clone(), None, 0.3 * k as f32, 1.0, true),
+                5.0,
+            );
+            tick += 1;
+            player.set_clock(tick as f64 / 60.0);
+            // The pose an uncollapsed stack gives, then the (possibly collapsing) sample.
+            let mut full = [Transform::IDENTITY];
+            player.sample_stack(&[Transform::IDENTITY], &mut full);
+            let got = pose(&mut player);
+            assert!(
+                angle(&full, &got) < 1e-4,
+                "collapse moved {}°",
+                angle(&full, &got).to_degrees()
+            );
+            assert!(player.fading.len() <= MAX_FADES);
+        }
+    }
 
     /// A one-joint clip of `duration` seconds whose rotation is irrelevant here.
     fn clip(duration: f32) -> Arc<Clip> {
@@ -337,9 +643,9 @@ mod tests {
         player.play(Layer::new(clip(1.0), None, 0.0, 1.0, true), 0.0);
         player.play(Layer::new(clip(1.0), None, 0.0, 1.0, true), 0.5);
         player.set_clock(2.25);
-        let w = player.fading.as_ref().unwrap().weight(player.clock);
+        let w = player.fading.last().unwrap().weight(player.clock);
         assert!((w - 0.5).abs() < 1e-6, "{w}");
         player.set_clock(2.5);
-        assert!(player.fading.is_none());
+        assert!(player.fading.is_empty());
     }
 }

@@ -52,6 +52,12 @@ impl SceneState {
     pub fn last_seq(&self) -> u64 {
         self.last.seq
     }
+
+    /// The scene clock (seconds) at the last tick: `last_seq / tick rate`.
+    #[must_use]
+    pub fn clock(&self) -> f64 {
+        self.clock
+    }
 }
 
 /// A scene.

@@ -41,9 +41,13 @@ pub async fn run(scene: Arc<Scene>, rate: f32, metrics: Arc<Metrics>) {
             () = scene.stopped() => return,
             _ = generation.changed() => return,
         };
-        let late = Instant::now().saturating_duration_since(due);
-        // The tick number of the deadline that just passed, from absolute time.
-        let seq = (due.duration_since(start).as_secs_f64() / period.as_secs_f64()).round() as u64;
+        let now = Instant::now();
+        let late = now.saturating_duration_since(due);
+        // The tick number of the latest deadline passed, from absolute time. Not `due`'s: after
+        // a stall the interval hands back the oldest missed deadline first, which would run
+        // one tick a whole stall behind before jumping.
+        let seq =
+            (now.duration_since(start).as_secs_f64() / period.as_secs_f64() + 1e-9).floor() as u64;
         let elapsed_ticks = last.map_or(1, |l| seq.saturating_sub(l).max(1));
         if elapsed_ticks > 1 {
             metrics.ticks_missed(elapsed_ticks - 1);
@@ -58,5 +62,49 @@ pub async fn run(scene: Arc<Scene>, rate: f32, metrics: Arc<Metrics>) {
             key_interval,
         );
         metrics.tick_done(began.elapsed(), late);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use posecast_proto::msg::SceneId;
+
+    /// Under tokio's paused clock (time moves only when the test says): tick `n` runs at
+    /// `start + n / rate`, its scene clock is exactly `n / rate`, and a stall of several
+    /// periods is one tick that skips to the current number, the gap counted as missed.
+    #[tokio::test(start_paused = true)]
+    async fn ticks_follow_absolute_deadlines_and_skip_after_a_stall() {
+        let rate = 60.0f32;
+        let metrics = Arc::new(Metrics::new());
+        let scene = Arc::new(Scene::new(SceneId("t".into()), 1, metrics.clone(), rate));
+        let mut ticks = scene.ticks();
+        let task = tokio::spawn(run(scene.clone(), rate, metrics.clone()));
+        let period = Duration::from_secs_f64(1.0 / f64::from(rate));
+
+        // The first deadline is the start itself; then one tick per period.
+        for n in 0..=120u64 {
+            if n > 0 {
+                tokio::time::advance(period).await;
+            }
+            ticks.changed().await.unwrap();
+            let seq = *ticks.borrow_and_update();
+            assert_eq!(seq, n, "tick number after {n} periods");
+            let s = scene.lock();
+            assert_eq!(s.last_seq(), n);
+            assert_eq!(s.clock(), n as f64 / f64::from(rate), "clock == seq / rate");
+        }
+        assert_eq!(metrics.missed(), 0);
+
+        // A stall of 10 periods (the task could not run): the next tick is number 130,
+        // not 121, and the 9 deadlines in between are counted missed, not run.
+        tokio::time::advance(period * 10).await;
+        ticks.changed().await.unwrap();
+        assert_eq!(*ticks.borrow_and_update(), 130);
+        assert_eq!(metrics.missed(), 9);
+        assert_eq!(scene.lock().clock(), 130.0 / f64::from(rate));
+
+        scene.shut();
+        task.await.unwrap();
     }
 }
