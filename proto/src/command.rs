@@ -247,9 +247,10 @@ pub enum Command {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         max_seconds: Option<f32>,
     },
-    /// Stop the avatar's recording: the clip joins its rig at once (playable by every avatar of
-    /// that rig) and, with a data folder, is stored before the answer. Result:
-    /// [`RecordingInfo`].
+    /// Stop the avatar's recording: with a data folder the clip is stored, then it joins its
+    /// rig (playable by every avatar of that rig), then the answer. Result: [`RecordingInfo`].
+    /// A refusal (`quota_exceeded`, `storage_full`, `internal`) discards the take and leaves
+    /// nothing: the clip's name is free again.
     StopRecording {
         /// The avatar.
         avatar: AvatarId,
