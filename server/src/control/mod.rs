@@ -169,10 +169,10 @@ async fn execute_here_as(
             cluster.stored(command, &scene).await?;
         }
     }
-    if let CommandResult::Recorded(info) = &result {
-        if let Some(cluster) = cluster {
-            share_recording(state, cluster.as_ref(), info).await?;
-        }
+    if let CommandResult::Recorded(info) = &result
+        && let Some(cluster) = cluster
+    {
+        share_recording(state, cluster.as_ref(), info).await?;
     }
     Ok(result)
 }

@@ -89,7 +89,7 @@ mod tests {
             }
         );
         o.remove(Some("alice"), 50);
-        assert!(o.by_owner.get("alice").is_none());
+        assert!(!o.by_owner.contains_key("alice"));
         assert_eq!(o.usage(Some("bob")).bytes, 7);
     }
 }
