@@ -4,6 +4,8 @@
 //! store's own prefixes and suffixes (`.upload-`, `.corrupt`, `.tmp`, `.json`, `.glb`) it
 //! holds.
 
+// Compiled for tests only (`store/mod.rs`); the attribute also tells scripts/check-layers.
+#[cfg(test)]
 use super::*;
 use crate::config::Config;
 use crate::state::AppState;
