@@ -324,3 +324,160 @@ async fn a_subscribe_flood_is_rate_limited() {
     );
     server.stop().await;
 }
+
+/// The binary on `data` with an access file: the tests' unlimited token and alice, limited to
+/// avatar `alice` and to two stored objects of her own.
+fn start_binary(data: &std::path::Path, access: &std::path::Path) -> common::child::Posecast {
+    common::child::Posecast::start(
+        &[
+            "--tick-rate",
+            "30",
+            "--data",
+            data.to_str().unwrap(),
+            "--access-file",
+            access.to_str().unwrap(),
+        ],
+        &[],
+    )
+}
+
+/// A command to `addr` as `token`: status and body.
+async fn command_at(addr: std::net::SocketAddr, token: &str, json: &str) -> (u16, Value) {
+    let (s, b) = common::http_raw(
+        addr,
+        Some(token),
+        "POST",
+        "/api/commands",
+        "application/json",
+        json.as_bytes(),
+    )
+    .await;
+    (s, serde_json::from_str(&b).unwrap_or(Value::Null))
+}
+
+/// Records `clip` on avatar `alice` as `token` and stops: the stop's status and body. A stop
+/// before the first tick is retried with a longer take.
+async fn take_as(addr: std::net::SocketAddr, token: &str, clip: &str) -> (u16, Value) {
+    let record = format!(r#"{{"op":"record","avatar":"alice","clip":"{clip}"}}"#);
+    for attempt in 1..=20u64 {
+        let (s, b) = command_at(addr, token, &record).await;
+        assert_eq!(s, 200, "{record}: {b}");
+        tokio::time::sleep(Duration::from_millis(100 * attempt)).await;
+        let (s, b) = command_at(addr, token, r#"{"op":"stop_recording","avatar":"alice"}"#).await;
+        if b["code"] != "invalid_value" {
+            return (s, b);
+        }
+    }
+    panic!("no tick recorded in 20 tries");
+}
+
+/// Issue 37: one limited token cannot fill everyone's room. Its recordings count against its
+/// own quota (owner stored with each, so a restart does not reset it); others still record;
+/// it deletes only its own, and a delete frees its quota; a clip being played is not deleted.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_tokens_quota_holds_across_a_restart_and_deletes_free_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let (data, access) = (dir.path().join("data"), dir.path().join("access.toml"));
+    std::fs::write(
+        &access,
+        format!(
+            "[[token]]\nname = \"admin\"\nrole = \"control\"\ntoken = \"{CONTROL}\"\n\n\
+             [[token]]\nname = \"alice\"\nrole = \"control\"\ntoken = \"{ALICE}\"\n\
+             avatars = [\"alice\"]\nmax_objects = 2\n"
+        ),
+    )
+    .unwrap();
+    let server = start_binary(&data, &access);
+    let addr = server.addr;
+    let (s, b) = command_at(
+        addr,
+        CONTROL,
+        r#"{"op":"add_avatar","scene":"default","asset":"avatar","avatar":"alice"}"#,
+    )
+    .await;
+    assert_eq!(s, 200, "{b}");
+    for clip in ["a1", "a2"] {
+        let (s, b) = take_as(addr, ALICE, clip).await;
+        assert_eq!(s, 200, "{clip}: {b}");
+    }
+    let (s, b) = take_as(addr, ALICE, "a3").await;
+    assert_quota(s, &b, "token_objects");
+    // Refused: the name is free, and nobody else is affected.
+    let (s, b) = take_as(addr, CONTROL, "a3").await;
+    assert_eq!(s, 200, "another token is refused too: {b}");
+    server.kill();
+
+    let server = start_binary(&data, &access);
+    let addr = server.addr;
+    let (s, b) = take_as(addr, ALICE, "a4").await;
+    assert_quota(s, &b, "token_objects");
+    // Not hers to delete.
+    let (s, b) = common::http_raw(
+        addr,
+        Some(ALICE),
+        "DELETE",
+        "/api/assets/avatar/clips/a3",
+        "",
+        b"",
+    )
+    .await;
+    assert_eq!(s, 403, "{b}");
+    // Being played: refused, typed.
+    let (s, b) = command_at(
+        addr,
+        CONTROL,
+        r#"{"op":"play","avatar":"alice","clip":"a2"}"#,
+    )
+    .await;
+    assert_eq!(s, 200, "{b}");
+    let (s, b) = command_at(
+        addr,
+        ALICE,
+        r#"{"op":"delete_clip","asset":"avatar","clip":"a2"}"#,
+    )
+    .await;
+    assert_eq!((s, b["code"].as_str()), (409, Some("conflict")), "{b}");
+    // Hers: deleted, and her quota has room again.
+    let (s, b) = common::http_raw(
+        addr,
+        Some(ALICE),
+        "DELETE",
+        "/api/assets/avatar/clips/a1",
+        "",
+        b"",
+    )
+    .await;
+    assert_eq!(s, 200, "{b}");
+    let (s, b) = take_as(addr, ALICE, "a4").await;
+    assert_eq!(s, 200, "the delete freed nothing: {b}");
+    server.kill();
+
+    let server = start_binary(&data, &access);
+    let (s, b) = command_at(
+        server.addr,
+        CONTROL,
+        r#"{"op":"get_asset","asset":"avatar"}"#,
+    )
+    .await;
+    assert_eq!(s, 200, "{b}");
+    let clips: Vec<&str> = b["result"]["clips"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|c| c["name"].as_str())
+        .collect();
+    for clip in ["a2", "a3", "a4"] {
+        assert!(clips.contains(&clip), "{clip} lost: {clips:?}");
+    }
+    assert!(
+        !clips.contains(&"a1"),
+        "a deleted clip came back: {clips:?}"
+    );
+    let avatar = command_at(
+        server.addr,
+        CONTROL,
+        r#"{"op":"get_avatar","avatar":"alice"}"#,
+    )
+    .await;
+    assert_eq!(avatar.1["result"]["clip"], "a2", "{:?}", avatar.1);
+}

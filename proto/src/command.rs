@@ -247,12 +247,32 @@ pub enum Command {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         max_seconds: Option<f32>,
     },
-    /// Stop the avatar's recording: the clip joins its rig at once (playable by every avatar of
-    /// that rig) and, with a data folder, is stored before the answer. Result:
-    /// [`RecordingInfo`].
+    /// Stop the avatar's recording: with a data folder the clip is stored, then it joins its
+    /// rig (playable by every avatar of that rig), then the answer. Result: [`RecordingInfo`].
+    /// A refusal (`quota_exceeded`, `storage_full`, `internal`) discards the take and leaves
+    /// nothing: the clip's name is free again.
     StopRecording {
         /// The avatar.
         avatar: AvatarId,
+    },
+    /// Delete a clip recorded on a rig (`stop_recording`): taken off the rig and, with a data
+    /// folder, removed from it before the answer, freeing its bytes from the quotas. Refused
+    /// with `conflict` while an avatar plays it (stop the avatar first); `unknown_clip` for a
+    /// clip that is not a stored recording (a file's clips go with `delete_asset`). A token
+    /// limited to scenes or avatars deletes only recordings it made.
+    DeleteClip {
+        /// The rig.
+        asset: String,
+        /// The recorded clip.
+        clip: String,
+    },
+    /// Delete an uploaded asset: its rigs leave the library and its folder the data folder
+    /// (and the cluster's store), with the recordings made on its rigs, freeing their bytes.
+    /// Refused with `conflict` while an avatar is made of one of its rigs or plays a clip
+    /// retargeted from one. Needs an unlimited control token, or the token that uploaded it.
+    DeleteAsset {
+        /// The upload's name.
+        asset: String,
     },
 }
 

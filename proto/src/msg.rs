@@ -361,6 +361,10 @@ pub enum ErrorCode {
     NotHumanoid,
     /// The rig has no mesh (HTTP 404 for `GET /api/assets/{name}/mesh.glb`).
     NoMesh,
+    /// The server's disk (or its file-system quota) is full: the change was not made and
+    /// nothing of it is stored (HTTP 507). Free room (`delete_clip`, `delete_asset`) or ask
+    /// the operator.
+    StorageFull,
 }
 
 /// What a connection (or a REST request) may do, as decided from its token.

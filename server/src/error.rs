@@ -96,6 +96,9 @@ pub enum Error {
     /// A rig without a mesh asked for its mesh.
     #[error("rig {0} has no mesh")]
     NoMesh(String),
+    /// The disk is full (`ENOSPC`, `EDQUOT`): nothing was changed or stored.
+    #[error("{0}")]
+    StorageFull(String),
     /// The error another server of the cluster answered with (a forwarded command), as it
     /// was on the wire.
     #[error("{}", .0.message)]
@@ -126,6 +129,7 @@ impl Error {
             Self::Unavailable(_) => ErrorCode::Unavailable,
             Self::NotHumanoid(_) => ErrorCode::NotHumanoid,
             Self::NoMesh(_) => ErrorCode::NoMesh,
+            Self::StorageFull(_) => ErrorCode::StorageFull,
             Self::Remote(wire) => wire.code,
         }
     }
@@ -141,10 +145,32 @@ impl Error {
         ProtocolError::from(self).for_command(id)
     }
 
+    /// The error for an I/O failure while storing `what`: [`Error::StorageFull`] when the disk
+    /// or a file-system quota is full (so a client can tell "free room" from "try again"),
+    /// else [`Error::Internal`].
+    #[must_use]
+    pub fn storing(what: &str, e: &std::io::Error) -> Self {
+        if is_storage_full(e) {
+            Self::StorageFull(format!("{what}: the server's disk is full ({e})"))
+        } else {
+            Self::internal(what, e)
+        }
+    }
+
     /// An [`Error::Internal`]: `what` failed because of `e`.
     pub fn internal(what: &str, e: &dyn std::fmt::Display) -> Self {
         Self::Internal(format!("{what}: {e}"))
     }
+}
+
+/// Whether an I/O error means "no room": `ENOSPC` (disk full) or `EDQUOT` (a file-system
+/// quota), as `io::ErrorKind` names them.
+#[must_use]
+pub fn is_storage_full(e: &std::io::Error) -> bool {
+    matches!(
+        e.kind(),
+        std::io::ErrorKind::StorageFull | std::io::ErrorKind::QuotaExceeded
+    )
 }
 
 impl From<Error> for ProtocolError {

@@ -77,6 +77,56 @@ fn check_total_bytes(state: &AppState, name: &str, more: u64) -> Result<(), Erro
     Ok(())
 }
 
+/// Refuses `bytes` more for `what` past the server's byte quota or `caller`'s token quota
+/// (bytes or objects). Called under the assets lock.
+///
+/// # Errors
+/// `quota_exceeded` naming the quota.
+pub fn check_room(
+    state: &AppState,
+    caller: &crate::auth::Caller,
+    what: &str,
+    bytes: u64,
+) -> Result<(), Error> {
+    let max = state.config.quotas.max_upload_total_bytes;
+    let now = state.store.upload_bytes();
+    if now.saturating_add(bytes) > max {
+        return Err(state.metrics.refuse_quota(
+            crate::quota::Quota::UploadTotalBytes,
+            format!("uploads and recordings hold {now} bytes and {what} adds {bytes}"),
+            max,
+        ));
+    }
+    if let crate::auth::Caller::Token(t) = caller {
+        let used = state.store.owners().usage(Some(&t.name));
+        if let Some(max) = t.quota.max_bytes
+            && used.bytes.saturating_add(bytes) > max
+        {
+            return Err(state.metrics.refuse_quota(
+                crate::quota::Quota::TokenBytes,
+                format!(
+                    "token {} holds {} bytes and {what} adds {bytes}",
+                    t.name, used.bytes
+                ),
+                max,
+            ));
+        }
+        if let Some(max) = t.quota.max_objects
+            && used.objects >= max
+        {
+            return Err(state.metrics.refuse_quota(
+                crate::quota::Quota::TokenObjects,
+                format!(
+                    "token {} holds {} uploads and recordings; {what} is one more",
+                    t.name, used.objects
+                ),
+                max,
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// Uploads a new asset: import, normalise with `options`, store (options included), add to
 /// the library. Returns the new rigs.
 ///
@@ -85,6 +135,7 @@ fn check_total_bytes(state: &AppState, name: &str, more: u64) -> Result<(), Erro
 /// `internal` when storing fails. Nothing changes on error.
 pub async fn upload(
     state: &Arc<AppState>,
+    caller: &crate::auth::Caller,
     name: &str,
     set: FileSet,
     options: PipelineOptions,
@@ -116,6 +167,7 @@ pub async fn upload(
     }
     let bytes = set.total_bytes() as u64;
     check_total_bytes(state, name, bytes)?;
+    check_room(state, caller, &format!("upload {name}"), bytes)?;
     // In a cluster, where every server reads it first: a failure there changes nothing.
     if let Some(cluster) = state.cluster() {
         cluster.share_asset(name, &set, &options).await?;
@@ -123,7 +175,8 @@ pub async fn upload(
     let set = match state.store.assets_dir() {
         Some(dir) => {
             let meta = AssetMeta::new(name, &set, rigs.iter().map(|r| r.name.clone()).collect())
-                .with_options(&options);
+                .with_options(&options)
+                .with_owner(caller.owner());
             let saved = tokio::task::spawn_blocking(move || {
                 assets::save_new(&dir, &set, &meta).map(|()| set)
             })
@@ -142,11 +195,13 @@ pub async fn upload(
         None => set,
     };
     state.store.add_upload_bytes(bytes);
+    state.store.owners().add(caller.owner(), bytes);
     let infos = rigs
         .into_iter()
         .map(|rig| state.world.library.insert(rig).info())
         .collect();
     state.store.remember_upload(name, set, options);
+    state.store.set_upload_owner(name, caller.owner(), bytes);
     Ok(infos)
 }
 
@@ -250,7 +305,9 @@ pub async fn add_clips(
     if let Some(dir) = state.store.assets_dir()
         && dir.join(name).is_dir()
     {
-        let meta = AssetMeta::new(name, &combined, vec![name.to_owned()]).with_options(&options);
+        let meta = AssetMeta::new(name, &combined, vec![name.to_owned()])
+            .with_options(&options)
+            .with_owner(state.store.upload_owner(name).as_deref());
         let dir = dir.join(name);
         tokio::task::spawn_blocking(move || assets::add_files(&dir, &clips, &meta))
             .await
@@ -258,6 +315,8 @@ pub async fn add_clips(
             .map_err(|e| Error::internal("cannot store the clips", &e))?;
     }
     state.store.add_upload_bytes(added);
+    let owner = state.store.upload_owner(name);
+    state.store.owners().grow(owner.as_deref(), added);
     let info = state.world.library.insert(new_rig).info();
     state.store.remember_upload(name, combined, options);
     Ok(info)
@@ -334,7 +393,8 @@ pub async fn configure(
         && dir.join(name).is_dir()
     {
         let meta = AssetMeta::new(name, &files, rigs.iter().map(|r| r.name.clone()).collect())
-            .with_options(&options);
+            .with_options(&options)
+            .with_owner(state.store.upload_owner(name).as_deref());
         let dir = dir.join(name);
         tokio::task::spawn_blocking(move || assets::add_files(&dir, &FileSet::new(), &meta))
             .await
@@ -416,6 +476,93 @@ pub async fn adopt_shared(
     Ok(infos)
 }
 
+/// `delete_asset`: upload `name`'s rigs leave the library, its folder (with the recordings
+/// made on its rigs) the data folder, and it leaves the cluster's store; its bytes are freed
+/// from the server's and its owner's quota.
+///
+/// # Errors
+/// `unknown_asset` (no such upload), `not_allowed_now` (built in or from `--assets`),
+/// `forbidden` (another token's), `conflict` (an avatar is made of or plays one of its
+/// rigs), `internal`/`storage_full` (the files could not be removed: nothing changed).
+pub async fn delete(
+    state: &AppState,
+    caller: &crate::auth::Caller,
+    name: &str,
+) -> Result<(), Error> {
+    let _guard = state.store.assets_lock().await;
+    let Some((owner, bytes)) = state.store.upload_owner_and_bytes(name) else {
+        return Err(if state.world.library.get(name).is_some() {
+            Error::NotAllowedNow(format!(
+                "asset {name} is not an upload (built in or from --assets): it cannot be deleted"
+            ))
+        } else {
+            Error::UnknownAsset(name.to_owned())
+        });
+    };
+    state
+        .config
+        .access
+        .authorize_delete(caller, owner.as_deref())?;
+    let rigs: Vec<String> = state
+        .world
+        .library
+        .all()
+        .into_iter()
+        .filter(|r| r.upload.as_deref() == Some(name) || r.name == name)
+        .map(|r| r.name.clone())
+        .collect();
+    for rig in &rigs {
+        if let Some(avatar) = state.world.playing(rig, None) {
+            return Err(Error::Conflict(format!(
+                "avatar {avatar} uses rig {rig} of asset {name}: remove it first"
+            )));
+        }
+    }
+    let recordings: Vec<(String, String)> = state
+        .store
+        .recordings()
+        .keys()
+        .filter(|(r, _)| rigs.contains(r))
+        .cloned()
+        .collect();
+    if let Some(dir) = state.store.assets_dir() {
+        let (assets, recs, owned) = (dir, state.store.recordings_dir(), name.to_owned());
+        let gone = recordings.clone();
+        tokio::task::spawn_blocking(move || {
+            assets::delete(&assets, &owned)?;
+            if let Some(recs) = recs {
+                for (rig, clip) in &gone {
+                    crate::store::recordings::delete(&recs, rig, clip)?;
+                }
+            }
+            Ok::<_, std::io::Error>(())
+        })
+        .await
+        .map_err(|e| Error::internal("store task failed", &e))?
+        .map_err(|e| Error::storing("cannot delete the asset", &e))?;
+    }
+    if let Some(cluster) = state.cluster() {
+        cluster.unshare_asset(name).await;
+        for (rig, clip) in &recordings {
+            cluster.unshare_recording(rig, clip).await;
+        }
+    }
+    for rig in &rigs {
+        state.world.library.remove(rig);
+    }
+    state.store.forget_upload(name, owner.as_deref(), bytes);
+    for key in &recordings {
+        if let Some(stored) = state.store.recordings().remove(key) {
+            state.store.sub_upload_bytes(stored.bytes);
+            state
+                .store
+                .owners()
+                .remove(stored.owner.as_deref(), stored.bytes);
+        }
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -454,6 +601,7 @@ mod tests {
         on_disk.store.open().unwrap();
         upload(
             &on_disk,
+            &crate::auth::Caller::Anonymous,
             "r",
             set(&[("r.skel", SKEL.into())]),
             PipelineOptions::default(),
@@ -471,6 +619,7 @@ mod tests {
         let in_memory = AppState::new(Config::default());
         upload(
             &in_memory,
+            &crate::auth::Caller::Anonymous,
             "r",
             set(&[("r.skel", SKEL.into())]),
             PipelineOptions::default(),
@@ -487,6 +636,7 @@ mod tests {
                    End Site\n {\n  OFFSET 0 1 0\n }\n}\nMOTION\nFrames: 1\nFrame Time: 0.1\n0 0 0\n";
         upload(
             &in_memory,
+            &crate::auth::Caller::Anonymous,
             "b",
             set(&[("b.bvh", bvh.into())]),
             PipelineOptions::default(),

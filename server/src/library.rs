@@ -41,6 +41,15 @@ impl Library {
     /// # Errors
     /// `unknown_asset`, or `conflict` when the rig has a clip of that name.
     pub fn add_clip(&self, name: &str, clip: Clip) -> Result<Arc<Rig>, Error> {
+        self.add_clips(name, vec![clip])
+    }
+
+    /// [`Library::add_clip`] for several clips, in one new rig.
+    ///
+    /// # Errors
+    /// `unknown_asset`, or `conflict` when the rig has a clip of one of those names (then
+    /// none is added).
+    pub fn add_clips(&self, name: &str, clips: Vec<Clip>) -> Result<Arc<Rig>, Error> {
         let mut rigs = self
             .rigs
             .write()
@@ -48,15 +57,47 @@ impl Library {
         let rig = rigs
             .get(name)
             .ok_or_else(|| Error::UnknownAsset(name.to_owned()))?;
-        if rig.clip(clip.name()).is_some() {
-            return Err(Error::Conflict(format!(
-                "rig {name} already has a clip {}",
-                clip.name()
-            )));
+        let mut seen = std::collections::BTreeSet::new();
+        for clip in &clips {
+            if rig.clip(clip.name()).is_some() || !seen.insert(clip.name()) {
+                return Err(Error::Conflict(format!(
+                    "rig {name} already has a clip {}",
+                    clip.name()
+                )));
+            }
         }
-        let rig = Arc::new(rig.with_clip(clip));
+        let rig = Arc::new(rig.with_clips(clips));
         rigs.insert(name.to_owned(), rig.clone());
         Ok(rig)
+    }
+
+    /// Takes clip `clip` off rig `name` (the rig is replaced by one without it). Returns the
+    /// new rig.
+    ///
+    /// # Errors
+    /// `unknown_asset` or `unknown_clip`.
+    pub fn remove_clip(&self, name: &str, clip: &str) -> Result<Arc<Rig>, Error> {
+        let mut rigs = self
+            .rigs
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let rig = rigs
+            .get(name)
+            .ok_or_else(|| Error::UnknownAsset(name.to_owned()))?;
+        let rig = Arc::new(rig.without_clip(clip).ok_or_else(|| Error::UnknownClip {
+            rig: name.to_owned(),
+            clip: clip.to_owned(),
+        })?);
+        rigs.insert(name.to_owned(), rig.clone());
+        Ok(rig)
+    }
+
+    /// Removes rig `name` from the library (`delete_asset`); the rigs it was.
+    pub fn remove(&self, name: &str) -> Option<Arc<Rig>> {
+        self.rigs
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .remove(name)
     }
 
     /// The rig named `name`, or the typed error every caller reports.

@@ -63,11 +63,15 @@ pub enum Quota {
     UploadTotalBytes,
     /// A retargeted clip larger than the bake cache ([`crate::bake::DEFAULT_CACHE_BYTES`]).
     RetargetBytes,
+    /// Bytes of the uploads and recordings one token made (its access-file `max_bytes`).
+    TokenBytes,
+    /// Uploads and recordings one token made (its access-file `max_objects`).
+    TokenObjects,
 }
 
 impl Quota {
     /// Every quota, in metric order.
-    pub const ALL: [Quota; 8] = [
+    pub const ALL: [Quota; 10] = [
         Quota::Scenes,
         Quota::AvatarsPerScene,
         Quota::Joints,
@@ -76,6 +80,8 @@ impl Quota {
         Quota::AssetBytes,
         Quota::UploadTotalBytes,
         Quota::RetargetBytes,
+        Quota::TokenBytes,
+        Quota::TokenObjects,
     ];
 
     /// Its name in errors and metrics.
@@ -90,6 +96,8 @@ impl Quota {
             Quota::AssetBytes => "asset_bytes",
             Quota::UploadTotalBytes => "upload_total_bytes",
             Quota::RetargetBytes => "retarget_bytes",
+            Quota::TokenBytes => "token_bytes",
+            Quota::TokenObjects => "token_objects",
         }
     }
 

@@ -115,6 +115,9 @@ pub trait Cluster: Send + Sync + std::fmt::Debug {
         clip: &'a str,
         glb: Vec<u8>,
     ) -> BoxFuture<'a, Result<(), Error>>;
+    /// Removes recorded clip `clip` of rig `rig` from the cluster's store (`delete_clip`),
+    /// best effort: a server restoring it later finds it gone.
+    fn unshare_recording<'a>(&'a self, rig: &'a str, clip: &'a str) -> BoxFuture<'a, ()>;
     /// Sends `drive` (`command`) for an avatar of scene `scene`, ticked elsewhere, to the
     /// scene's owner, which drives the avatar for connection `conn` of this server; answers
     /// with the owner's answer.

@@ -35,11 +35,20 @@ struct FileConfig {
 struct FileAccess {
     #[serde(default = "yes")]
     open_view: bool,
+    /// Every token's quota unless its `[[token]]` gives its own.
+    #[serde(default)]
+    token_max_bytes: Option<u64>,
+    #[serde(default)]
+    token_max_objects: Option<u64>,
 }
 
 impl Default for FileAccess {
     fn default() -> Self {
-        Self { open_view: true }
+        Self {
+            open_view: true,
+            token_max_bytes: None,
+            token_max_objects: None,
+        }
     }
 }
 
@@ -56,6 +65,8 @@ struct FileToken {
     token_env: Option<String>,
     scenes: Option<Vec<SceneId>>,
     avatars: Option<Vec<AvatarId>>,
+    max_bytes: Option<u64>,
+    max_objects: Option<u64>,
 }
 
 /// Shortest token accepted.
@@ -73,7 +84,12 @@ impl AccessConfig {
     /// role = "control"           # or "view"
     /// token_env = "ALICE_TOKEN"  # or token = "…"
     /// avatars = ["alice"]        # optional limit; also scenes = […]
+    /// max_bytes = 104857600      # optional: bytes of the uploads and recordings it makes
+    /// max_objects = 100          # optional: how many of them
     /// ```
+    ///
+    /// `[access]` may give `token_max_bytes` and `token_max_objects`: every token's quota
+    /// unless its own entry gives one.
     ///
     /// `env` looks up `token_env` variables (the process environment in the binary).
     ///
@@ -108,6 +124,10 @@ impl AccessConfig {
                 role: t.role,
                 scenes: t.scenes,
                 avatars: t.avatars,
+                quota: super::TokenQuota {
+                    max_bytes: t.max_bytes.or(file.access.token_max_bytes),
+                    max_objects: t.max_objects.or(file.access.token_max_objects),
+                },
             })?;
         }
         Ok(config)
@@ -145,6 +165,7 @@ mod tests {
         let text = r#"
             [access]
             open_view = false
+            token_max_bytes = 1000
 
             [[token]]
             name = "admin"
@@ -162,11 +183,21 @@ mod tests {
             role = "view"
             token = "view-token-1"
             scenes = ["lobby"]
+            max_objects = 3
         "#;
         let c = AccessConfig::from_toml(text, |v| (v == "ALICE").then(|| "alice-token".into()))
             .unwrap();
         assert!(!c.open_view);
         assert_eq!(c.tokens.len(), 3);
+        // The [access] default, and a token's own value next to it.
+        assert_eq!(
+            c.tokens[2].quota,
+            super::super::TokenQuota {
+                max_bytes: Some(1000),
+                max_objects: Some(3)
+            }
+        );
+        assert_eq!(c.tokens[0].quota.max_objects, None);
         let alice = c.identify(Some("alice-token")).unwrap();
         assert_eq!(alice.name(), "alice");
         let access = c.access(&alice);

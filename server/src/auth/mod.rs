@@ -48,6 +48,20 @@ pub struct TokenRule {
     pub scenes: Option<Vec<SceneId>>,
     /// Only these avatars.
     pub avatars: Option<Vec<AvatarId>>,
+    /// What the uploads and recordings this token makes may hold in all.
+    pub quota: TokenQuota,
+}
+
+/// A token's share of the data folder (issue 37): uploads and recordings it made, counted
+/// against it as well as against the server's `upload_total_bytes`. `None`: no limit but the
+/// server's.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TokenQuota {
+    /// Bytes of its stored uploads and recordings.
+    pub max_bytes: Option<u64>,
+    /// Number of its stored uploads and recordings.
+    pub max_objects: Option<u64>,
 }
 
 impl TokenRule {
@@ -60,7 +74,14 @@ impl TokenRule {
             role,
             scenes: None,
             avatars: None,
+            quota: TokenQuota::default(),
         }
+    }
+
+    /// Whether it is limited to some scenes or avatars.
+    #[must_use]
+    pub fn is_limited(&self) -> bool {
+        !self.unlimited()
     }
 
     fn unlimited(&self) -> bool {
@@ -87,6 +108,16 @@ pub enum Caller {
 }
 
 impl Caller {
+    /// The name objects it makes are owned by (uploads, recordings): its token's name, none
+    /// when anonymous.
+    #[must_use]
+    pub fn owner(&self) -> Option<&str> {
+        match self {
+            Self::Anonymous => None,
+            Self::Token(t) => Some(&t.name),
+        }
+    }
+
     /// The token's name, for logs.
     #[must_use]
     pub fn name(&self) -> &str {
@@ -224,6 +255,23 @@ impl AccessConfig {
         }
     }
 
+    /// May `caller` delete an object (an upload, a recording) made by `owner`? An unlimited
+    /// control token deletes anything; a limited one what it made itself.
+    ///
+    /// # Errors
+    /// Unauthorized without a token, Forbidden with a view token or someone else's object.
+    pub fn authorize_delete(&self, caller: &Caller, owner: Option<&str>) -> Result<(), Error> {
+        let t = control_token(caller)?;
+        if t.unlimited() || owner == Some(t.name.as_str()) {
+            Ok(())
+        } else {
+            Err(forbidden(format!(
+                "token {} may delete only what it made",
+                t.name
+            )))
+        }
+    }
+
     /// May `caller` run `command`? The avatar's scene is looked up in `world` for tokens
     /// limited to scenes.
     ///
@@ -247,6 +295,10 @@ impl AccessConfig {
         }
         let t = control_token(caller)?;
         if t.unlimited() {
+            return Ok(());
+        }
+        if let Command::DeleteClip { .. } | Command::DeleteAsset { .. } = command {
+            // Who made the object decides ([`AccessConfig::authorize_delete`], where it runs).
             return Ok(());
         }
         let scene_ok = match (command.scene(), command.avatar()) {

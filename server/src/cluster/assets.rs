@@ -219,6 +219,11 @@ impl Cluster {
         lock(&self.applied).remove(name);
     }
 
+    /// Removes recorded clip `clip` of rig `rig` from the bucket (`delete_clip`).
+    pub(super) async fn unshare_recording(&self, rig: &str, clip: &str) {
+        self.unshare(&recording_name(rig, clip)).await;
+    }
+
     /// Puts recorded clip `clip` of rig `rig` (its glTF file) into the bucket.
     pub(super) async fn put_recording(
         &self,

@@ -768,6 +768,10 @@ impl crate::state::Cluster for Cluster {
         Box::pin(self.unshare(name))
     }
 
+    fn unshare_recording<'a>(&'a self, rig: &'a str, clip: &'a str) -> BoxFuture<'a, ()> {
+        Box::pin(self.unshare_recording(rig, clip))
+    }
+
     fn shared_asset<'a>(
         &'a self,
         name: &'a str,

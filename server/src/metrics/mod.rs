@@ -396,6 +396,8 @@ posecast_quota_refused_total{quota="clip_joint_seconds"} 0
 posecast_quota_refused_total{quota="asset_bytes"} 0
 posecast_quota_refused_total{quota="upload_total_bytes"} 0
 posecast_quota_refused_total{quota="retarget_bytes"} 0
+posecast_quota_refused_total{quota="token_bytes"} 0
+posecast_quota_refused_total{quota="token_objects"} 0
 posecast_subscribers_total_open 0
 posecast_subscribers{scene="default"} 0
 posecast_tick_seconds_bucket{le="0.0001"} 0

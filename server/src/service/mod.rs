@@ -49,15 +49,20 @@ pub fn app(state: Arc<AppState>) -> Router {
         .route("/api/scenes", get(rest::scenes))
         .route("/api/assets", get(rest::assets))
         .route("/api/assets/{name}/mesh.glb", get(rest::mesh))
-        .route("/api/assets/{name}/clips/{file}", get(rest::clip_file))
+        .route(
+            "/api/assets/{name}/clips/{file}",
+            get(rest::clip_file).delete(rest::delete_clip),
+        )
         .layer(axum::extract::DefaultBodyLimit::max(
             MAX_CLIENT_MESSAGE_BYTES,
         ))
         .route(
             "/api/assets/{name}",
-            post(upload::upload).layer(axum::extract::DefaultBodyLimit::max(
-                state.config.max_upload_bytes,
-            )),
+            post(upload::upload)
+                .layer(axum::extract::DefaultBodyLimit::max(
+                    state.config.max_upload_bytes,
+                ))
+                .delete(rest::delete_asset),
         )
         .route(
             "/api/assets/{name}/clips",

@@ -58,6 +58,7 @@ impl IntoResponse for AppError {
             ErrorCode::NotFound => StatusCode::NOT_FOUND,
             ErrorCode::Timeout => StatusCode::REQUEST_TIMEOUT,
             ErrorCode::Unavailable => StatusCode::SERVICE_UNAVAILABLE,
+            ErrorCode::StorageFull => StatusCode::INSUFFICIENT_STORAGE,
             _ => StatusCode::BAD_REQUEST,
         };
         let mut response = (status, Json(self.0)).into_response();
@@ -135,12 +136,57 @@ pub async fn command(
         .access
         .authorize(&caller, &state.world, &command)
     {
-        Ok(()) => control::execute_durable(&state, &command).await,
+        Ok(()) => control::execute_as(&state, &caller, &command).await,
         Err(e) => Err(e),
     };
     control::audit(caller.name(), &command, &result);
     let result = state.config.access.visible(&caller, result?);
     Ok(Json(json!({ "result": result })))
+}
+
+/// `DELETE /api/assets/{name}`: the `delete_asset` command.
+pub async fn delete_asset(
+    State(state): State<Arc<AppState>>,
+    caller: Caller,
+    Path(name): Path<String>,
+) -> Result<Json<Value>, AppError> {
+    run(&state, &caller, &Command::DeleteAsset { asset: name }).await
+}
+
+/// `DELETE /api/assets/{name}/clips/{clip}`: the `delete_clip` command (the clip's bare name,
+/// or `{clip}.glb` as `GET` serves it).
+pub async fn delete_clip(
+    State(state): State<Arc<AppState>>,
+    caller: Caller,
+    Path((name, clip)): Path<(String, String)>,
+) -> Result<Json<Value>, AppError> {
+    let clip = match clip.strip_suffix(".glb") {
+        Some(stem)
+            if state
+                .world
+                .library
+                .get(&name)
+                .is_some_and(|r| r.clip(&clip).is_none()) =>
+        {
+            stem.to_owned()
+        }
+        _ => clip,
+    };
+    run(&state, &caller, &Command::DeleteClip { asset: name, clip }).await
+}
+
+/// Authorises, runs and audits `command` as `POST /api/commands` does.
+async fn run(
+    state: &AppState,
+    caller: &Caller,
+    command: &Command,
+) -> Result<Json<Value>, AppError> {
+    let result = match state.config.access.authorize(caller, &state.world, command) {
+        Ok(()) => control::execute_as(state, caller, command).await,
+        Err(e) => Err(e),
+    };
+    control::audit(caller.name(), command, &result);
+    Ok(Json(json!({ "result": result? })))
 }
 
 /// `GET /api/scenes`.

@@ -38,6 +38,10 @@ pub struct AssetMeta {
     /// `configure_asset`); absent: the defaults.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub options: Option<PipelineOptions>,
+    /// The name of the token that uploaded it (whose quota it counts against); absent: the
+    /// server's own, or written by an older version.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub owner: Option<String>,
 }
 
 impl AssetMeta {
@@ -51,7 +55,15 @@ impl AssetMeta {
             rigs,
             saved_us: unix_micros(),
             options: None,
+            owner: None,
         }
+    }
+
+    /// The same meta owned by `owner`.
+    #[must_use]
+    pub fn with_owner(mut self, owner: Option<&str>) -> Self {
+        self.owner = owner.map(str::to_owned);
+        self
     }
 
     /// The same meta with `options` (none when they are the defaults).
@@ -110,6 +122,31 @@ pub fn save_new(assets: &Path, set: &FileSet, meta: &AssetMeta) -> io::Result<()
         }
     }
     result
+}
+
+/// Deletes stored asset `name` durably: its folder is renamed to a temporary name (one
+/// atomic step, fsynced: after a crash the asset is either there or gone, and a leftover
+/// temporary folder is removed at the next start), then removed.
+///
+/// # Errors
+/// Any I/O error but "not found"; the asset is then still there.
+pub fn delete(assets: &Path, name: &str) -> io::Result<()> {
+    static SEQ: AtomicU64 = AtomicU64::new(0);
+    let dir = assets.join(name);
+    if !dir.exists() {
+        return Ok(());
+    }
+    let tmp = assets.join(format!(
+        "{UPLOAD_TMP_PREFIX}deleted-{name}-{}-{}",
+        std::process::id(),
+        SEQ.fetch_add(1, Ordering::Relaxed)
+    ));
+    std::fs::rename(&dir, &tmp)?;
+    sync_dir(assets)?;
+    if let Err(e) = std::fs::remove_dir_all(&tmp) {
+        warn!(dir = %tmp.display(), error = %e, "cannot remove a deleted asset's folder (removed at the next start)");
+    }
+    Ok(())
 }
 
 /// Adds files to a stored asset: each written atomically, then the new `meta.json` (which
@@ -216,9 +253,12 @@ impl Store {
                     info!(asset = %rig.name, joints = rig.skeleton().len(), "restored upload");
                     world.library.insert(rig);
                 }
-                self.add_upload_bytes(set.total_bytes() as u64);
+                let bytes = set.total_bytes() as u64;
+                self.add_upload_bytes(bytes);
+                self.owners().add(meta.owner.as_deref(), bytes);
                 let options = meta.options.clone().unwrap_or_default();
                 self.remember_upload(&meta.name, set, options);
+                self.set_upload_owner(&meta.name, meta.owner.as_deref(), bytes);
             }
             Err(reason) => set_aside(dir, &reason.to_string()),
         }

@@ -46,6 +46,9 @@
 
 pub(crate) mod assets;
 mod atomic;
+#[cfg(test)]
+mod names_tests;
+pub mod owners;
 pub mod recordings;
 pub mod snapshot;
 
@@ -86,6 +89,10 @@ pub struct Store {
     /// Every uploaded asset by name: what is needed to add clips to it later, never its
     /// files when they are on disk.
     uploads: std::sync::Mutex<BTreeMap<String, Upload>>,
+    /// Stored recordings by (rig, clip): their size and owner (for quotas and `delete_clip`).
+    recordings: std::sync::Mutex<BTreeMap<(String, String), recordings::StoredRecording>>,
+    /// What each token holds ([`owners::Owners`]).
+    owners: std::sync::Mutex<owners::Owners>,
 }
 
 /// What the store keeps in memory of an uploaded asset. With a data folder that is no bytes:
@@ -101,6 +108,10 @@ pub(crate) struct Upload {
     pub files: Option<FileSet>,
     /// The pipeline options its rigs were normalised with.
     pub options: crate::rig::PipelineOptions,
+    /// The token that uploaded it (its `meta.json`'s `owner`).
+    pub owner: Option<String>,
+    /// Bytes of its files, as counted in the quotas.
+    pub bytes: u64,
 }
 
 /// Acks waiting for one scene write: the scenes to write and where the result goes.
@@ -186,6 +197,8 @@ impl Store {
             batches_written: std::sync::atomic::AtomicU64::new(0),
             upload_bytes: std::sync::atomic::AtomicU64::new(0),
             uploads: std::sync::Mutex::new(BTreeMap::new()),
+            recordings: std::sync::Mutex::new(BTreeMap::new()),
+            owners: std::sync::Mutex::new(owners::Owners::default()),
         }
     }
 
@@ -225,6 +238,22 @@ impl Store {
             .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 
+    /// The stored recordings by (rig, clip).
+    pub(crate) fn recordings(
+        &self,
+    ) -> std::sync::MutexGuard<'_, BTreeMap<(String, String), recordings::StoredRecording>> {
+        self.recordings
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// What each token holds.
+    pub(crate) fn owners(&self) -> std::sync::MutexGuard<'_, owners::Owners> {
+        self.owners
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
     /// Records upload `name` made of `set` (see [`Upload`] for what is kept of it).
     pub(crate) fn remember_upload(
         &self,
@@ -234,12 +263,44 @@ impl Store {
     ) {
         let main = set.main_file().map(str::to_owned).unwrap_or_default();
         let keep = self.root.is_none() && crate::import::files::extension(&main) == "skel";
+        let bytes = set.total_bytes() as u64;
+        let mut uploads = self.uploads();
+        // Adding clips or options keeps who uploaded it.
+        let owner = uploads.get(name).and_then(|u| u.owner.clone());
         let upload = Upload {
             main,
             files: keep.then_some(set),
             options,
+            owner,
+            bytes,
         };
-        self.uploads().insert(name.to_owned(), upload);
+        uploads.insert(name.to_owned(), upload);
+    }
+
+    /// Notes who uploaded `name` (and its bytes).
+    pub(crate) fn set_upload_owner(&self, name: &str, owner: Option<&str>, bytes: u64) {
+        if let Some(u) = self.uploads().get_mut(name) {
+            u.owner = owner.map(str::to_owned);
+            u.bytes = bytes;
+        }
+    }
+
+    /// Who uploaded `name`.
+    pub(crate) fn upload_owner(&self, name: &str) -> Option<String> {
+        self.uploads().get(name).and_then(|u| u.owner.clone())
+    }
+
+    /// Who uploaded `name` and its bytes; `None` when it is no upload.
+    pub(crate) fn upload_owner_and_bytes(&self, name: &str) -> Option<(Option<String>, u64)> {
+        self.uploads().get(name).map(|u| (u.owner.clone(), u.bytes))
+    }
+
+    /// Forgets upload `name` (deleted) and frees its bytes.
+    pub(crate) fn forget_upload(&self, name: &str, owner: Option<&str>, bytes: u64) {
+        if self.uploads().remove(name).is_some() {
+            self.sub_upload_bytes(bytes);
+            self.owners().remove(owner, bytes);
+        }
     }
 
     /// Creates the folders, removes temporary files a crash left behind (never acknowledged),
@@ -438,6 +499,18 @@ impl Store {
     pub(crate) fn add_upload_bytes(&self, n: u64) {
         self.upload_bytes
             .fetch_add(n, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// Counts `n` bytes less (a deleted upload or recording).
+    pub(crate) fn sub_upload_bytes(&self, n: u64) {
+        // Never below 0: a concurrent add always came with its own bytes.
+        self.upload_bytes
+            .fetch_update(
+                std::sync::atomic::Ordering::Relaxed,
+                std::sync::atomic::Ordering::Relaxed,
+                |v| Some(v.saturating_sub(n)),
+            )
+            .ok();
     }
 
     /// Scene writes so far (each a group commit of one or more acks).

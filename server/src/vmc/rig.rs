@@ -121,7 +121,7 @@ impl VmcRig {
         }
         hanim[NECK] = neck.map(str::to_owned);
         Arc::new(Rig::new(
-            self.rig.asset.clone(),
+            (*self.rig.asset).clone(),
             self.rig.pipeline.clone(),
             Vec::new(),
             hanim,

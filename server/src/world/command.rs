@@ -496,32 +496,65 @@ pub fn apply(world: &World, command: &Command) -> Result<CommandResult, Error> {
             })
         }
         Command::StopRecording { avatar } => {
-            let (rig, recorder) = with_avatar(world, avatar, |a| {
-                let recorder = a.recording.take().ok_or_else(|| {
-                    Error::NotAllowedNow(format!("avatar {} is not recording", a.id))
-                })?;
-                Ok((a.rig.name.clone(), recorder))
-            })?;
-            let (frames, dropped) = (recorder.frames(), recorder.dropped());
-            let clip = recorder
-                .finish()
-                .map_err(|e| Error::invalid(format!("nothing to keep: {e}")))?;
-            let info = RecordingInfo {
-                asset: rig.clone(),
-                clip: clip.name().to_owned(),
-                duration: clip.duration(),
-                frames,
-                dropped,
-            };
-            world.add_clip(&rig, clip)?;
+            let (rig, recorder) = take_recording(world, avatar)?;
+            let info = finish_recording(world, &rig, recorder)?;
             Ok(CommandResult::Recorded(Box::new(info)))
         }
+        Command::DeleteClip { asset, clip } => {
+            world.remove_clip(asset, clip, true)?;
+            Ok(CommandResult::Done)
+        }
+        Command::DeleteAsset { .. } => Err(Error::NotAllowedNow(
+            "delete_asset runs through the store (uploads are files)".into(),
+        )),
 
         Command::ReleaseDrive { avatar } => with_avatar(world, avatar, |a| {
             a.release_drive();
             Ok(CommandResult::Done)
         }),
     }
+}
+
+/// `stop_recording`'s first, quick half, under the scene's lock: the avatar stops recording
+/// and its recorder is handed over. Returns the rig's name and the recorder.
+///
+/// # Errors
+/// `unknown_avatar`, or `not_allowed_now` when it is not recording.
+pub fn take_recording(world: &World, avatar: &AvatarId) -> Result<(String, Recorder), Error> {
+    with_avatar(world, avatar, |a| {
+        let recorder = a
+            .recording
+            .take()
+            .ok_or_else(|| Error::NotAllowedNow(format!("avatar {} is not recording", a.id)))?;
+        Ok((a.rig.name.clone(), recorder))
+    })
+}
+
+/// `stop_recording`'s slow half, with no scene lock held: the samples become a clip (tens
+/// of milliseconds for a 64 MiB take) that joins rig `rig`. Callers run it off the async
+/// workers ([`crate::control`]), so no scene's tick waits for it.
+///
+/// # Errors
+/// `invalid_value` when nothing was recorded; `conflict` when the rig got a clip of that
+/// name meanwhile.
+pub fn finish_recording(
+    world: &World,
+    rig: &str,
+    recorder: Recorder,
+) -> Result<RecordingInfo, Error> {
+    let (frames, dropped) = (recorder.frames(), recorder.dropped());
+    let clip = recorder
+        .finish()
+        .map_err(|e| Error::invalid(format!("nothing to keep: {e}")))?;
+    let info = RecordingInfo {
+        asset: rig.to_owned(),
+        clip: clip.name().to_owned(),
+        duration: clip.duration(),
+        frames,
+        dropped,
+    };
+    world.add_clip(rig, clip)?;
+    Ok(info)
 }
 
 /// A validated placement, or `invalid_value` naming what is wrong.

@@ -366,7 +366,66 @@ impl World {
     /// # Errors
     /// As [`Library::add_clip`].
     pub fn add_clip(&self, rig: &str, clip: Clip) -> Result<Arc<crate::rig::Rig>, Error> {
-        let new = self.library.add_clip(rig, clip)?;
+        self.add_clips(rig, vec![clip])
+    }
+
+    /// [`World::add_clip`] for several clips at once (restoring a rig's recordings).
+    ///
+    /// # Errors
+    /// As [`Library::add_clips`].
+    pub fn add_clips(&self, rig: &str, clips: Vec<Clip>) -> Result<Arc<crate::rig::Rig>, Error> {
+        let new = self.library.add_clips(rig, clips)?;
+        self.move_avatars_to(&new);
+        Ok(new)
+    }
+
+    /// Takes clip `clip` off rig `rig` and moves every avatar of the rig onto the new one.
+    /// With `unless_playing`, refuses (`conflict`, naming the avatar) while an avatar plays
+    /// it — on its own rig or retargeted (`from_asset`) — and changes nothing.
+    ///
+    /// # Errors
+    /// `unknown_asset`, `unknown_clip`, or `conflict`.
+    pub fn remove_clip(&self, rig: &str, clip: &str, unless_playing: bool) -> Result<(), Error> {
+        if unless_playing && let Some(avatar) = self.playing(rig, Some(clip)) {
+            return Err(Error::Conflict(format!(
+                "avatar {avatar} plays clip {clip} of rig {rig}: stop it first"
+            )));
+        }
+        let new = self.library.remove_clip(rig, clip)?;
+        self.move_avatars_to(&new);
+        Ok(())
+    }
+
+    /// An avatar that plays `clip` of rig `rig` (any clip of it when `None`) or, for `None`,
+    /// is made of the rig: what `delete_clip` and `delete_asset` refuse to take away.
+    #[must_use]
+    pub fn playing(&self, rig: &str, clip: Option<&str>) -> Option<AvatarId> {
+        let retargeted = clip.map(|c| format!("{rig}:{c}"));
+        for scene in self.scenes() {
+            let s = scene.lock();
+            for a in &s.avatars {
+                if clip.is_none() && a.rig.name == rig {
+                    return Some(a.id.clone());
+                }
+                let Some(layer) = a.player.current() else {
+                    continue;
+                };
+                let name = layer.clip.name();
+                let plays = match (&layer.source_asset, clip) {
+                    (Some(src), None) => src == rig,
+                    (Some(src), Some(_)) => src == rig && Some(name) == retargeted.as_deref(),
+                    (None, Some(c)) => a.rig.name == rig && name == c,
+                    (None, None) => false,
+                };
+                if plays {
+                    return Some(a.id.clone());
+                }
+            }
+        }
+        None
+    }
+
+    fn move_avatars_to(&self, new: &Arc<crate::rig::Rig>) {
         for scene in self.scenes() {
             for a in scene.lock().avatars.iter_mut() {
                 if a.rig.name == new.name {
@@ -374,7 +433,6 @@ impl World {
                 }
             }
         }
-        Ok(new)
     }
 
     /// Stops every scene's ticker and ends its subscriptions.

@@ -54,6 +54,16 @@ pub fn from_slice(name: &str, bytes: &[u8]) -> Result<Vec<Asset>, ImportError> {
     from_slice_with_base(name, bytes, None)
 }
 
+/// [`from_slice`] without the meshes: skeletons and clips only. What restoring a stored
+/// recording needs (its rig's mesh is in every recording file, and decoding it thousands of
+/// times dominated a restart with a full quota).
+///
+/// # Errors
+/// As [`from_slice`].
+pub fn skeletons_and_clips(name: &str, bytes: &[u8]) -> Result<Vec<Asset>, ImportError> {
+    import_slice(name, bytes, None, false)
+}
+
 /// Reads an external buffer named by a plain relative URI (already checked, `%20` decoded):
 /// from the file's folder ([`super::load_path`]) or from an uploaded file set.
 pub(crate) type External<'a> = &'a dyn Fn(&str) -> Result<Vec<u8>, ImportError>;
@@ -63,6 +73,15 @@ pub(crate) fn from_slice_with_base(
     name: &str,
     bytes: &[u8],
     base: Option<External<'_>>,
+) -> Result<Vec<Asset>, ImportError> {
+    import_slice(name, bytes, base, true)
+}
+
+fn import_slice(
+    name: &str,
+    bytes: &[u8],
+    base: Option<External<'_>>,
+    with_meshes: bool,
 ) -> Result<Vec<Asset>, ImportError> {
     let gltf = gltf::Gltf::from_slice(bytes).map_err(|source| ImportError::Gltf {
         file: name.to_owned(),
@@ -75,7 +94,14 @@ pub(crate) fn from_slice_with_base(
     // error here (the explicit checks above and in `accessor` cover every case we know of).
     let vrm = vrm::humanoid(bytes);
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        import_document(name, doc, gltf.blob.clone(), base, vrm.as_ref())
+        import_document(
+            name,
+            doc,
+            gltf.blob.clone(),
+            base,
+            vrm.as_ref(),
+            with_meshes,
+        )
     }))
     .unwrap_or_else(|_| {
         Err(ImportError::Unsupported {
@@ -111,6 +137,7 @@ fn import_document(
     blob: Option<Vec<u8>>,
     base: Option<External<'_>>,
     vrm: Option<&vrm::Humanoid>,
+    with_meshes: bool,
 ) -> Result<Vec<Asset>, ImportError> {
     let buffers = Buffers {
         file: name,
@@ -142,6 +169,7 @@ fn import_document(
         nodes: &nodes,
         animated: &animated,
         vrm,
+        with_meshes,
     };
     skins
         .iter()
@@ -319,6 +347,8 @@ struct Context<'a> {
     nodes: &'a Nodes,
     animated: &'a [bool],
     vrm: Option<&'a vrm::Humanoid>,
+    /// Whether to read the meshes ([`skeletons_and_clips`] does not).
+    with_meshes: bool,
 }
 
 impl Context<'_> {
@@ -535,8 +565,14 @@ impl Context<'_> {
                 }
             })?;
 
-        let mut meshes = self.meshes(skin, &skin_to_skel, count, &mut notes)?;
-        let rigid = self.rigid_meshes(skin, &skel_of_node, skeleton.inverse_bind(), &mut notes)?;
+        let (mut meshes, rigid) = if self.with_meshes {
+            (
+                self.meshes(skin, &skin_to_skel, count, &mut notes)?,
+                self.rigid_meshes(skin, &skel_of_node, skeleton.inverse_bind(), &mut notes)?,
+            )
+        } else {
+            (Vec::new(), Vec::new())
+        };
         if !rigid.is_empty() {
             notes.push(format!(
                 "{} mesh primitive(s) parented to joints imported rigidly skinned (weight 1)",

@@ -205,7 +205,7 @@ pub async fn upload(
         state.config.access.authorize_upload(&caller)?;
         crate::library::check_name(&name)?;
         let (set, options) = file_set(&state, &name, request).await?;
-        Ok::<_, AppError>(ingest::upload(&state, &name, set, options).await?)
+        Ok::<_, AppError>(ingest::upload(&state, &caller, &name, set, options).await?)
     }
     .await;
     audit_upload("upload", &name, &caller, result.as_ref().map(|_| ()));

@@ -620,7 +620,7 @@ impl Session {
                         Some(result) => result,
                         None => match self.drives.command(&self.state, &command) {
                             Some(result) => result,
-                            None => control::execute_durable(&self.state, &command).await,
+                            None => control::execute_as(&self.state, &self.caller, &command).await,
                         },
                     },
                     Err(e) => Err(e),

@@ -3,11 +3,12 @@
 //! announced to the connections that follow the world ([`changes`]), and — with a data
 //! folder — acknowledged only once stored.
 
+mod objects;
+
+use crate::auth::Caller;
 use crate::changes;
 use crate::error::Error;
-use crate::quota::Quota;
 use crate::state::AppState;
-use crate::store::recordings::{self, Saved};
 use crate::world::command;
 use posecast_proto::command::{Command, CommandResult, RecordingInfo};
 
@@ -35,12 +36,26 @@ pub fn execute(state: &AppState, command: &Command) -> Result<CommandResult, Err
 /// As [`execute`]; or `internal` when storing failed, in which case the change
 /// *is* in effect in memory but not on disk.
 pub async fn execute_durable(state: &AppState, command: &Command) -> Result<CommandResult, Error> {
+    execute_as(state, &Caller::Anonymous, command).await
+}
+
+/// [`execute_durable`] for `caller` (authorised already): what it makes (a recording) is
+/// owned by its token and counted against its quota ([`crate::auth::TokenQuota`]), and what
+/// it may delete depends on who made it.
+///
+/// # Errors
+/// As [`execute_durable`].
+pub async fn execute_as(
+    state: &AppState,
+    caller: &Caller,
+    command: &Command,
+) -> Result<CommandResult, Error> {
     // In a cluster, a command on a scene another server ticks runs there; its answer comes
     // back through here.
     if let Some(forwarded) = state.cluster().and_then(|c| c.forward(command)) {
         return forwarded.await;
     }
-    execute_here(state, command).await
+    execute_here_as(state, caller, command).await
 }
 
 /// [`execute_durable`] on this server, never forwarded: what a scene's owner runs for a
@@ -51,6 +66,29 @@ pub async fn execute_durable(state: &AppState, command: &Command) -> Result<Comm
 /// # Errors
 /// As [`execute_durable`]; `unavailable` for a scene that another server ticks.
 pub async fn execute_here(state: &AppState, command: &Command) -> Result<CommandResult, Error> {
+    // Forwarded by another server: the caller is not known here, so what it makes has no
+    // owner (it counts against the server's quota only).
+    execute_here_as(state, &Caller::Anonymous, command).await
+}
+
+async fn execute_here_as(
+    state: &AppState,
+    caller: &Caller,
+    command: &Command,
+) -> Result<CommandResult, Error> {
+    match command {
+        Command::DeleteClip { asset, clip } => {
+            let result = objects::delete_clip(state, caller, asset, clip).await;
+            state.metrics.command(result.is_ok());
+            return result.map(|()| CommandResult::Done);
+        }
+        Command::DeleteAsset { asset } => {
+            let result = objects::delete_asset(state, caller, asset).await;
+            state.metrics.command(result.is_ok());
+            return result.map(|()| CommandResult::Done);
+        }
+        _ => {}
+    }
     if let Command::ConfigureAsset { asset, options } = command {
         // Stored (meta.json) before the answer, like an upload.
         let result = crate::ingest::configure(state, asset, options.clone())
@@ -71,6 +109,14 @@ pub async fn execute_here(state: &AppState, command: &Command) -> Result<Command
             CommandResult::Scenes(local) => Ok(CommandResult::Scenes(cluster.listing(local).await)),
             other => Ok(other),
         };
+    }
+    if let Command::StopRecording { avatar } = command
+        && state.store.root().is_none()
+        && cluster.is_none()
+    {
+        let result = objects::stop_recording(state, caller, avatar).await;
+        state.metrics.command(result.is_ok());
+        return result;
     }
     if command.is_read_only() || (state.store.root().is_none() && cluster.is_none()) {
         return execute(state, command);
@@ -99,7 +145,16 @@ pub async fn execute_here(state: &AppState, command: &Command) -> Result<Command
         }
         _ => None,
     };
-    let result = match execute(state, command) {
+    let executed = match command {
+        // Off the tick path, stored before it joins the rig ([`objects::stop_recording`]).
+        Command::StopRecording { avatar } => {
+            let result = objects::stop_recording(state, caller, avatar).await;
+            state.metrics.command(result.is_ok());
+            result
+        }
+        _ => execute(state, command),
+    };
+    let result = match executed {
         Ok(result) => result,
         Err(e) => {
             if let Some((cluster, id)) = claimed {
@@ -114,11 +169,10 @@ pub async fn execute_here(state: &AppState, command: &Command) -> Result<Command
             cluster.stored(command, &scene).await?;
         }
     }
-    if let CommandResult::Recorded(info) = &result {
-        store_recording(state, info).await?;
-        if let Some(cluster) = cluster {
-            share_recording(state, cluster.as_ref(), info).await?;
-        }
+    if let CommandResult::Recorded(info) = &result
+        && let Some(cluster) = cluster
+    {
+        share_recording(state, cluster.as_ref(), info).await?;
     }
     Ok(result)
 }
@@ -168,49 +222,6 @@ pub fn audit(caller: &str, command: &Command, result: &Result<CommandResult, Err
         tracing::debug!(target: "posecast::audit", op, target, caller, outcome, "command");
     } else {
         tracing::info!(target: "posecast::audit", op, target, caller, outcome, "command");
-    }
-}
-
-/// Stores a clip `stop_recording` just added (`DIR/recordings/<rig>/<clip>.glb`), counted
-/// against the uploads' byte quota ([`crate::quota::Quotas::max_upload_total_bytes`]).
-///
-/// # Errors
-/// `quota_exceeded` or `internal`: the clip is then playable until the server stops, not
-/// stored.
-async fn store_recording(state: &AppState, info: &RecordingInfo) -> Result<(), Error> {
-    let Some(dir) = state.store.recordings_dir() else {
-        return Ok(());
-    };
-    let rig = state.world.library.require(&info.asset)?;
-    let clip = rig
-        .clip(&info.clip)
-        .cloned()
-        .ok_or_else(|| Error::UnknownClip {
-            rig: info.asset.clone(),
-            clip: info.clip.clone(),
-        })?;
-    // Uploads and recordings share one byte budget, checked and spent under one lock.
-    let _guard = state.store.assets_lock().await;
-    let max = state.world.quotas().max_upload_total_bytes;
-    let now = state.store.upload_bytes();
-    let room = max.saturating_sub(now);
-    let saved = tokio::task::spawn_blocking(move || recordings::save(&dir, &rig, &clip, room))
-        .await
-        .map_err(|e| Error::internal("store task failed", &e))?
-        .map_err(|e| Error::internal("cannot store the recording", &e))?;
-    match saved {
-        Saved::Stored(bytes) => {
-            state.store.add_upload_bytes(bytes);
-            Ok(())
-        }
-        Saved::NoRoom(bytes) => Err(state.metrics.refuse_quota(
-            Quota::UploadTotalBytes,
-            format!(
-                "uploads and recordings hold {now} bytes and recording {} adds {bytes} (it plays until the server stops, but is not stored)",
-                info.clip
-            ),
-            max,
-        )),
     }
 }
 
