@@ -213,3 +213,102 @@ async fn the_dashboard_lets_websockets_reach_its_own_host_only() {
     assert_eq!(policy.matches("connect-src").count(), 1, "{policy}");
     server.stop().await;
 }
+
+/// Sends `request` as raw bytes and reads the answer until the server closes: (status, head,
+/// body).
+async fn raw(addr: std::net::SocketAddr, request: &[u8]) -> (u16, String, String) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut stream = tokio::net::TcpStream::connect(addr).await.unwrap();
+    // The server may answer and close before it has read all of an oversized head.
+    stream.write_all(request).await.ok();
+    let mut response = Vec::new();
+    let read = tokio::time::timeout(
+        std::time::Duration::from_secs(30),
+        stream.read_to_end(&mut response),
+    )
+    .await;
+    assert!(read.is_ok(), "no answer within 30 s");
+    let text = String::from_utf8_lossy(&response).to_string();
+    let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
+    let status = head
+        .split(' ')
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(0);
+    (status, head.to_owned(), body.to_owned())
+}
+
+/// Issue 37: what hyper answers by itself, before any handler (a head it cannot parse, a URI
+/// too long or too many headers for it), has the typed body too; and a HEAD that is not allowed says so in
+/// the typed error's headers (a HEAD answer carries no content, RFC 9110 §9.3.2).
+#[tokio::test]
+async fn malformed_requests_and_a_refused_head_are_typed() {
+    let server = server(60.0).await;
+    let host = server.addr;
+    let long_uri = format!(
+        "GET /api/scenes?{} HTTP/1.1\r\nHost: {host}\r\n\r\n",
+        "a".repeat(70_000)
+    );
+    // More headers than hyper parses (100).
+    let many_headers = format!(
+        "GET /api/scenes HTTP/1.1\r\nHost: {host}\r\n{}\r\n",
+        (0..150)
+            .map(|i| format!("X-H{i}: {i}\r\n"))
+            .collect::<String>()
+    );
+    for (what, request, status, code) in [
+        (
+            "a malformed request line",
+            format!("GET /a b c d\r\nHost: {host}\r\n\r\n"),
+            400,
+            "bad_message",
+        ),
+        (
+            "a header without a colon",
+            format!("GET /healthz HTTP/1.1\r\nHost: {host}\r\nno colon here\r\n\r\n"),
+            400,
+            "bad_message",
+        ),
+        ("a 70 KB URI", long_uri, 414, "too_large"),
+        ("150 headers", many_headers, 431, "too_large"),
+    ] {
+        let (got, head, body) = raw(server.addr, request.as_bytes()).await;
+        assert_eq!(got, status, "{what}: {head}");
+        assert!(
+            header_value(&head, "content-type").is_some_and(|v| v.starts_with("application/json")),
+            "{what}: {head}"
+        );
+        assert_eq!(
+            header_value(&head, "content-length"),
+            Some(body.len().to_string()),
+            "{what}: {head}"
+        );
+        assert_eq!(typed(what, &body).0, code, "{what}");
+    }
+    // HEAD on a POST-only route: 405 with the typed error's type and length, and no content.
+    let (got, head, body) = raw(
+        server.addr,
+        format!("HEAD /api/commands HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n")
+            .as_bytes(),
+    )
+    .await;
+    assert_eq!(got, 405, "{head}");
+    assert!(
+        header_value(&head, "content-type").is_some_and(|v| v.starts_with("application/json")),
+        "{head}"
+    );
+    assert!(header_value(&head, "allow").is_some(), "{head}");
+    let length: usize = header_value(&head, "content-length")
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0);
+    assert!(length > 0, "HEAD: no typed body announced: {head}");
+    assert!(body.is_empty(), "HEAD: content sent: {body:?}");
+    // A well-formed request on the same server is still served as before.
+    let (got, _, _) = raw(
+        server.addr,
+        format!("GET /healthz HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n").as_bytes(),
+    )
+    .await;
+    assert_eq!(got, 200);
+    server.stop().await;
+}

@@ -25,6 +25,12 @@
 //! - **in order**: TCP delivers bytes in order, so a segment never arrives before the one ahead
 //!   of it on its connection (a late or lost segment holds everything behind it: head-of-line
 //!   blocking).
+//! - **reordering** (`reorder=3`): jitter wider than the gap between two segments of a
+//!   connection reorders them on a real path; TCP then holds the early ones (the in-order rule
+//!   above) and, when a segment is overtaken by `reorder` later ones, takes it for lost: a
+//!   spurious retransmission, modelled as the sender sending nothing new for a round trip
+//!   (see [`reorder`](crate::reorder) for the model and its limits). Without `reorder`, only
+//!   the in-order holds remain.
 //! - **window**: at most `window` bytes of a connection are between the proxy's read and its
 //!   write (TCP's in-flight bound); past it the proxy stops reading that connection.
 //!
@@ -66,6 +72,10 @@ pub struct LinkConfig {
     pub jitter: Duration,
     /// Probability that a segment is lost (and retransmitted: see the module docs), 0–1.
     pub loss: f64,
+    /// Reordering's cost: a segment overtaken by this many later segments of its connection
+    /// makes the sender retransmit spuriously and stall for a round trip (3: TCP's
+    /// duplicate-ACK threshold); `None`: reordered segments are only held in order.
+    pub reorder: Option<u32>,
     /// Bottleneck rate in bits per second, shared by every connection; `None`: unlimited.
     pub rate_bps: Option<u64>,
     /// Bytes the bottleneck queue holds per direction.
@@ -87,6 +97,7 @@ impl Default for LinkConfig {
             delay: Duration::ZERO,
             jitter: Duration::ZERO,
             loss: 0.0,
+            reorder: None,
             rate_bps: None,
             queue_bytes: 32 << 10,
             window_bytes: 16 << 10,
@@ -124,7 +135,8 @@ impl std::error::Error for ParseError {}
 impl FromStr for LinkConfig {
     type Err = ParseError;
 
-    /// `delay=25ms,jitter=10ms,loss=1%,rate=2mbit,queue=32kb,window=64kb,seed=7`, any subset in
+    /// `delay=25ms,jitter=10ms,loss=1%,reorder=3,rate=2mbit,queue=32kb,window=64kb,seed=7`, any
+    /// subset in
     /// any order (`none` or an empty string: a perfect link). Durations take `us`, `ms` or `s`;
     /// rates `bit`, `kbit`, `mbit`, `gbit` (per second, decimal); sizes `b`, `kb`, `mb`
     /// (binary); loss a percentage or a fraction.
@@ -143,6 +155,17 @@ impl FromStr for LinkConfig {
                 "delay" => config.delay = duration(&value)?,
                 "jitter" => config.jitter = duration(&value)?,
                 "loss" => config.loss = fraction(&value)?,
+                "reorder" => {
+                    let n: u32 = value.parse().map_err(|_| {
+                        ParseError(format!("reorder `{value}`: a number of segments (≥ 1)"))
+                    })?;
+                    if n == 0 {
+                        return Err(ParseError(format!(
+                            "reorder `{value}`: a number of segments (≥ 1)"
+                        )));
+                    }
+                    config.reorder = Some(n);
+                }
                 "rate" => config.rate_bps = Some(rate(&value)?),
                 "queue" => config.queue_bytes = size(&value)?,
                 "window" => config.window_bytes = size(&value)?,
@@ -153,7 +176,7 @@ impl FromStr for LinkConfig {
                 }
                 _ => {
                     return Err(ParseError(format!(
-                        "unknown link parameter `{key}` (delay, jitter, loss, rate, queue, window, seed)"
+                        "unknown link parameter `{key}` (delay, jitter, loss, reorder, rate, queue, window, seed)"
                     )));
                 }
             }
@@ -178,6 +201,9 @@ impl fmt::Display for LinkConfig {
         }
         if self.loss > 0.0 {
             parts.push(format!("loss={}%", self.loss * 100.0));
+        }
+        if let Some(n) = self.reorder {
+            parts.push(format!("reorder={n}"));
         }
         if let Some(r) = self.rate_bps {
             parts.push(format!("rate={}kbit", r as f64 / 1e3));
@@ -276,6 +302,8 @@ pub struct DirectionStats {
     pub segments: u64,
     /// Segments lost (and delivered a retransmission stall late).
     pub lost: u64,
+    /// Segments overtaken by `reorder` later ones: spurious retransmissions (each a stall).
+    pub spurious: u64,
 }
 
 /// One direction of a link: its bottleneck queue and transmission clock, its dice, its totals.
@@ -289,6 +317,7 @@ struct Direction {
     bytes: AtomicU64,
     segments: AtomicU64,
     lost: AtomicU64,
+    spurious: AtomicU64,
 }
 
 impl Direction {
@@ -300,6 +329,7 @@ impl Direction {
             bytes: AtomicU64::new(0),
             segments: AtomicU64::new(0),
             lost: AtomicU64::new(0),
+            spurious: AtomicU64::new(0),
         }
     }
 
@@ -308,6 +338,7 @@ impl Direction {
             bytes: self.bytes.load(Ordering::Relaxed),
             segments: self.segments.load(Ordering::Relaxed),
             lost: self.lost.load(Ordering::Relaxed),
+            spurious: self.spurious.load(Ordering::Relaxed),
         }
     }
 }
@@ -364,10 +395,10 @@ impl Link {
         }
     }
 
-    /// When a segment of `bytes` that may enter the bottleneck now arrives, and whether it was
-    /// lost, given the arrival of the segment ahead of it on its connection. Also returns
-    /// when it leaves the bottleneck queue.
-    fn schedule(&self, way: Way, bytes: usize, ahead: Instant) -> (Instant, Instant, bool) {
+    /// When a segment of `bytes` that may enter the bottleneck now leaves its queue, when it
+    /// would arrive on its own (before the in-order hold of `reorder::Order`), and whether
+    /// it was lost.
+    fn schedule(&self, way: Way, bytes: usize) -> (Instant, Instant, bool) {
         let d = self.direction(way);
         let now = Instant::now();
         let departs = match self.config.rate_bps {
@@ -396,7 +427,7 @@ impl Link {
         if lost {
             arrives += self.config.rto();
         }
-        (departs, arrives.max(ahead), lost)
+        (departs, arrives, lost)
     }
 }
 
@@ -498,7 +529,7 @@ async fn pump(mut from: OwnedReadHalf, mut to: OwnedWriteHalf, link: Arc<Link>, 
     let reader = {
         let link = link.clone();
         async move {
-            let mut ahead = Instant::now();
+            let mut order = reorder::Order::new(Instant::now());
             let mut buf = vec![0u8; SEGMENT];
             loop {
                 let Ok(mut in_window) = window.clone().acquire_many_owned(SEGMENT as u32).await
@@ -524,8 +555,12 @@ async fn pump(mut from: OwnedReadHalf, mut to: OwnedWriteHalf, link: Arc<Link>, 
                 } else {
                     None
                 };
-                let (departs, arrives, lost) = link.schedule(way, n, ahead);
-                ahead = arrives;
+                let (departs, raw, lost) = link.schedule(way, n);
+                let placed = order.place(&link.config, departs, raw, lost);
+                let arrives = placed.arrives;
+                if placed.spurious {
+                    direction.spurious.fetch_add(1, Ordering::Relaxed);
+                }
                 if let Some(p) = queued {
                     tokio::spawn(async move {
                         tokio::time::sleep_until(departs).await;
@@ -565,6 +600,8 @@ async fn pump(mut from: OwnedReadHalf, mut to: OwnedWriteHalf, link: Arc<Link>, 
     writer.await;
     reader.abort();
 }
+
+pub mod reorder;
 
 #[cfg(test)]
 mod tests;

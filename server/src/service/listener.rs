@@ -7,6 +7,7 @@
 //! error with a log line each time.
 
 use super::admission::{Admission, Admitted, Refusal};
+use super::head_errors::TypedHeadErrors;
 use super::limits::{REFUSAL_TIMEOUT, REFUSING_MAX, effective_max_connections, nofile_soft_limit};
 use super::rest::AppError;
 use crate::config::NetLimits;
@@ -199,7 +200,7 @@ impl Connection {
             .header_read_timeout(self.header_read_timeout);
         let service = TowerToHyperService::new(self.router);
         let conn = builder
-            .serve_connection(TokioIo::new(self.io), service)
+            .serve_connection(TokioIo::new(TypedHeadErrors::new(self.io)), service)
             .with_upgrades();
         tokio::pin!(conn);
         let mut stopping = false;
@@ -240,7 +241,10 @@ async fn refuse<G: Unpin + Send + 'static>(
     builder.timer(TokioTimer::new()).header_read_timeout(wait);
     let router = Router::new().fallback(refusal).with_state(why);
     let conn = builder
-        .serve_connection(TokioIo::new(io), TowerToHyperService::new(router))
+        .serve_connection(
+            TokioIo::new(TypedHeadErrors::new(io)),
+            TowerToHyperService::new(router),
+        )
         .with_upgrades();
     if tokio::time::timeout(wait, conn).await.is_err() {
         trace!("refused connection did not finish in time; dropped");

@@ -16,11 +16,13 @@
 //! liveness rules, all configured by `NetLimits`; counted in [`crate::metrics::net`].
 //!
 //! Every error response has the typed body `{"code", "message"}`, including axum's own
-//! rejections (405, 413, extractor errors) and unknown paths (404): see [`typed_errors`].
+//! rejections (405, 413, extractor errors) and unknown paths (404): see [`typed_errors`]; and
+//! hyper's answers to a head it cannot parse (400, 414, 431): see `head_errors`.
 
 mod admission;
 mod body_deadline;
 mod dashboard;
+mod head_errors;
 mod health;
 pub mod limits;
 pub(crate) mod listener;

@@ -10,10 +10,20 @@
 //! **Signals**, sampled by a small websocket ping every [`PROBE_INTERVAL`] while the
 //! connection is subscribed (the payload is the server's time, so the pong gives the round
 //! trip; a ping queues behind the frames already on their way, so it measures the queue):
-//! - *queueing delay*: the smallest of the last [`CURRENT_OF`] round trips above the smallest
-//!   of the last [`BASE_WINDOW`] (the path's own). A lost segment stalls the samples of a
-//!   retransmission timeout (at 5 % loss of 60 segments a second, most of the time is inside
-//!   one); the smallest recent one ignores that, a standing queue raises even the smallest.
+//! - *queueing delay*: the smallest of the last [`CURRENT_OF`] round trips (the *floor*)
+//!   above the smallest of the last [`BASE_WINDOW`] (the path's own), less the connection's
+//!   *jitter allowance*. A lost segment stalls the samples of a retransmission timeout (at 5 %
+//!   loss of 60 segments a second, most of the time is inside one); the smallest recent one
+//!   ignores that, a standing queue raises even the smallest.
+//! - *jitter is not queueing*: on a jittery path (a radio link; a path that reorders packets,
+//!   which TCP turns into head-of-line holds and spurious retransmissions) round trips spread
+//!   without the floor rising for good: the smallest of four lands anywhere in the spread,
+//!   while the base is the smallest of hundreds. So the queueing delay is counted above twice
+//!   the connection's jitter `J` (RFC 3550 §6.4.1's estimator over consecutive round trips,
+//!   `J += (|Dᵢ| − J) / 16`, `Dᵢ = rttᵢ − rttᵢ₋₁`), at most [`QUEUE_TARGET`] above — unless
+//!   the path floor (below) stands more than [`QUEUE_TARGET`] above the base: spread on a
+//!   rising floor is a shared queue's (a thin link's queue moves as its senders do), and is
+//!   counted from the base.
 //! - *an unanswered ping* older than the base round trip plus [`UNANSWERED_LATE`] counts as a
 //!   sample of its age (a queue so long no answer comes back yet); the first ping goes right
 //!   after the welcome, before a subscription's descriptions, so the base is known early;
@@ -31,12 +41,18 @@
 //! **Fairness.** Connections sharing a bottleneck see the same queueing delay. A connection
 //! that joined while the link was already queued never saw its empty round trip, would take
 //! the queue for its base and crowd out the others: connections from one address share their
-//! base ([`Paths`]; one address is most often one access link) and their cuts (two of them
-//! cutting within [`CONFIRM`] is a cut for all, at most every [`PATH_HOLD`]; one alone may
-//! be a lost segment's stall) — simultaneous multiplicative cuts and additive raises make
-//! their rates converge; every connection keeps at least the lowest step
-//! (1 Hz) — no connection starves while others stream — and, staggered by connection, paced
-//! subscribers do not all send on the same tick.
+//! base ([`Paths`]; one address is most often one access link) and the path's cuts. A path cut
+//! needs the path's own evidence: the *path floor*, the smallest round trip any of its
+//! connections saw in the last [`FLOOR_WINDOW`] (after its last cut), more than
+//! [`QUEUE_TARGET`] above the base — a queue the path shares delays every packet on it, even
+//! the luckiest; one connection's stall or a jittery sample delays only its own. Then every
+//! connection of the path cuts by the same factor, at most every [`PATH_HOLD`].
+//! Simultaneous multiplicative cuts and additive raises make their rates converge. (Until
+//! issue 37 any two connections cutting within a second made the whole path cut: with 50
+//! connections and jittery round trips, some two always did, and all 50 fell to 3–4 frames/s
+//! where each alone kept 59.) Every connection keeps at least the lowest step (1 Hz) — no
+//! connection starves while others stream — and, staggered by connection, paced subscribers
+//! do not all send on the same tick.
 
 use std::collections::{HashMap, VecDeque};
 use std::net::IpAddr;
@@ -74,8 +90,14 @@ pub const HOLD: Duration = Duration::from_millis(500);
 /// Least time between two cuts shared by a path.
 pub const PATH_HOLD: Duration = Duration::from_secs(2);
 
-/// How soon a second connection's cut confirms a first one's as the path's.
-pub const CONFIRM: Duration = Duration::from_secs(1);
+/// How far back the path floor looks: two probes of each connection (a path of one or two
+/// connections has too few samples for a floor: its own round trips judge it). Short, so the
+/// floor follows a thin link's queue as it moves; on a path of many connections it is still
+/// the smallest of dozens of round trips.
+pub const FLOOR_WINDOW: Duration = Duration::from_millis(400);
+
+/// The path floor's buckets (one minimum each), so a busy path costs a fixed memory.
+const FLOOR_BUCKET: Duration = Duration::from_millis(50);
 
 /// Round trips the current one is the smallest of (0.8 s of samples).
 pub const CURRENT_OF: usize = 4;
@@ -98,45 +120,51 @@ fn hz(level: usize) -> f64 {
     f64::from(STEPS[level.min(STEPS.len() - 1)])
 }
 
+/// The multiplicative decrease for a queue of `queueing`: the further behind, the bigger the
+/// cut (connections sharing a link all cut by the same factor, so the faster ones give up
+/// more; with the additive increase their rates converge).
+fn cut_factor(queueing: Duration) -> f64 {
+    if queueing > FAR_BEHIND {
+        0.25
+    } else if queueing > FAR_BEHIND / 4 {
+        0.5
+    } else {
+        0.75
+    }
+}
+
 /// Connections from one client address: the smallest round trip any of them saw lately (the
-/// path's own, without a queue).
+/// path's own, without a queue), the smallest in the last [`FLOOR_WINDOW`] (the path floor) and the
+/// path's last cut.
 #[derive(Debug)]
 pub struct Path {
     /// (start of the current window, its minimum, the previous window's minimum).
     windows: Mutex<(Instant, Option<Duration>, Option<Duration>)>,
+    /// The path floor: (bucket start, smallest round trip, samples) over [`FLOOR_WINDOW`],
+    /// since the last cut.
+    floor: Mutex<VecDeque<(Instant, Duration, u32)>>,
     /// The last cut of the path: when, and by what factor.
     congestion: Mutex<Option<(Instant, f64)>>,
-    /// A connection's cut not yet confirmed by another's: when, and whose.
-    unconfirmed: Mutex<Option<(Instant, u64)>>,
 }
 
 impl Path {
     fn new() -> Self {
         Self {
             windows: Mutex::new((Instant::now(), None, None)),
+            floor: Mutex::new(VecDeque::new()),
             congestion: Mutex::new(None),
-            unconfirmed: Mutex::new(None),
         }
     }
 
-    /// Connection `who` cut its rate by `factor` at `now` for a standing queue. Once another
-    /// connection did too within [`CONFIRM`] (a shared queue delays every connection; a
-    /// retransmission stall only its own), the others follow, unless the path's last cut was
-    /// less than [`PATH_HOLD`] ago (one queue, one cut: it takes a while to drain after
-    /// everyone cut). Returns the event recorded.
-    fn congested(&self, now: Instant, factor: f64, who: u64) -> Option<Instant> {
-        {
-            let mut u = self
-                .unconfirmed
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner);
-            match *u {
-                Some((at, other)) if other != who && now - at <= CONFIRM => *u = None,
-                _ => {
-                    *u = Some((now, who));
-                    return None;
-                }
-            }
+    /// Judges the path floor at `now` against the path's `base`: when every round trip of the
+    /// last [`FLOOR_WINDOW`] (at least [`CURRENT_OF`] of them) stood more than
+    /// [`QUEUE_TARGET`] above it, the queue is the path's: a cut for every connection on it,
+    /// by the factor of that queue, unless the last was less than [`PATH_HOLD`] ago (one
+    /// queue, one cut: it takes a while to drain after everyone cut). Returns the cut.
+    fn judge(&self, now: Instant, base: Duration) -> Option<(Instant, f64)> {
+        let queueing = self.floor_above(now, base)?;
+        if queueing <= QUEUE_TARGET {
+            return None;
         }
         let mut c = self
             .congestion
@@ -145,8 +173,36 @@ impl Path {
         if c.is_some_and(|(at, _)| now - at < PATH_HOLD) {
             return None;
         }
-        *c = Some((now, factor));
-        Some(now)
+        let cut = (now, cut_factor(queueing));
+        *c = Some(cut);
+        // Judge the next cut by the round trips after this one.
+        self.floor_lock().clear();
+        Some(cut)
+    }
+
+    /// The path floor's height above `base` at `now`, once the last [`FLOOR_WINDOW`] holds at
+    /// least [`CURRENT_OF`] round trips.
+    fn floor_above(&self, now: Instant, base: Duration) -> Option<Duration> {
+        let mut floor = self.floor_lock();
+        while floor
+            .front()
+            .is_some_and(|(at, _, _)| now - *at > FLOOR_WINDOW)
+        {
+            floor.pop_front();
+        }
+        let samples: u32 = floor.iter().map(|(_, _, n)| n).sum();
+        // The window must be (nearly) full: a cut's first samples are not a floor yet.
+        let spans = floor
+            .front()
+            .is_some_and(|(at, _, _)| now - *at + FLOOR_BUCKET >= FLOOR_WINDOW);
+        let smallest = floor.iter().map(|(_, m, _)| *m).min()?;
+        (spans && samples as usize >= CURRENT_OF).then(|| smallest.saturating_sub(base))
+    }
+
+    fn floor_lock(&self) -> std::sync::MutexGuard<'_, VecDeque<(Instant, Duration, u32)>> {
+        self.floor
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 
     fn congestion(&self) -> Option<(Instant, f64)> {
@@ -171,9 +227,19 @@ impl Path {
     }
 
     fn observe(&self, now: Instant, rtt: Duration) {
-        let mut w = self.lock();
-        Self::roll(&mut w, now);
-        w.1 = Some(w.1.map_or(rtt, |m| m.min(rtt)));
+        {
+            let mut w = self.lock();
+            Self::roll(&mut w, now);
+            w.1 = Some(w.1.map_or(rtt, |m| m.min(rtt)));
+        }
+        let mut floor = self.floor_lock();
+        match floor.back_mut() {
+            Some((at, m, n)) if now - *at < FLOOR_BUCKET => {
+                *m = (*m).min(rtt);
+                *n += 1;
+            }
+            _ => floor.push_back((now, rtt, 1)),
+        }
     }
 
     fn base(&self, now: Instant) -> Option<Duration> {
@@ -229,6 +295,9 @@ struct Control {
     rtts: VecDeque<(Instant, Duration)>,
     /// The last [`CURRENT_OF`] round trips.
     recent: VecDeque<Duration>,
+    /// RFC 3550's jitter over consecutive round trips, and the last round trip.
+    jitter: Duration,
+    last_rtt: Option<Duration>,
     /// The outbox's superseded-frame count at the last sample.
     superseded: u64,
     last_lowered: Option<Instant>,
@@ -239,8 +308,6 @@ struct Control {
     /// The oldest unanswered probe (one in flight at a time).
     outstanding: Option<Instant>,
     seed: u64,
-    /// Who this is on its path (the first seed).
-    id: u64,
     /// Shared with the other connections from the same address.
     path: Option<Arc<Path>>,
     /// The newest congestion event of the path acted on.
@@ -254,13 +321,14 @@ impl Control {
             level: 0,
             rtts: VecDeque::new(),
             recent: VecDeque::new(),
+            jitter: Duration::ZERO,
+            last_rtt: None,
             superseded: 0,
             last_lowered: None,
             calm_since: now,
             this_wait: PROBE_WAIT,
             outstanding: None,
             seed: seed | 1,
-            id: seed,
             path: None,
             seen_event: None,
         };
@@ -294,8 +362,29 @@ impl Control {
         self.recent.iter().copied().min()
     }
 
-    /// Acts on the signals at `now`: `queueing` (if known) and frames superseded since the last
-    /// sample.
+    /// Takes in a round trip: the jitter estimate `J += (|D| − J) / 16` (RFC 3550 §6.4.1).
+    fn sample(&mut self, rtt: Duration) {
+        if let Some(last) = self.last_rtt {
+            let d = rtt.abs_diff(last);
+            self.jitter = if d >= self.jitter {
+                self.jitter + (d - self.jitter) / 16
+            } else {
+                self.jitter - (self.jitter - d) / 16
+            };
+        }
+        self.last_rtt = Some(rtt);
+        if self.recent.len() == CURRENT_OF {
+            self.recent.pop_front();
+        }
+        self.recent.push_back(rtt);
+    }
+
+    /// How far above the base the floor of a jittery path lands without any queue: 2 `J`, at
+    /// most [`QUEUE_TARGET`] (so a standing queue of twice the target still cuts).
+    fn allowance(&self) -> Duration {
+        (self.jitter * 2).min(QUEUE_TARGET)
+    }
+
     /// Cuts the rate to the step at or below `factor` of it.
     fn lower(&mut self, now: Instant, factor: f64) {
         let target = hz(self.level) * factor;
@@ -309,18 +398,18 @@ impl Control {
         self.rejitter();
     }
 
-    /// `standing`: the queueing is from answered round trips (not one late ping).
+    /// Acts on the signals at `now`: `queueing` (if known) and frames superseded since the last
+    /// sample, after any cut of the path.
     fn decide(
         &mut self,
         now: Instant,
         queueing: Option<Duration>,
         superseded: u64,
-        standing: bool,
     ) -> Option<Change> {
         let from = self.level;
         let may_lower = self.last_lowered.is_none_or(|t| now - t >= HOLD);
-        // Another connection on the path cut its rate: the queue is shared, so cut too (the
-        // cuts of one path are simultaneous, which is what makes AIMD converge to fair rates).
+        // The path's floor rose: the queue is shared, so every connection on it cuts (the cuts
+        // of one path are simultaneous, which is what makes AIMD converge to fair rates).
         let event = self.path.as_ref().and_then(|p| p.congestion());
         if let Some((at, factor)) = event
             && self.seen_event.is_none_or(|seen| at > seen)
@@ -338,20 +427,8 @@ impl Control {
         if congested {
             self.calm_since = now;
             if may_lower && self.level + 1 < STEPS.len() {
-                // Multiplicative decrease, the further behind the bigger the cut: connections
-                // sharing a link all cut by the same factor, so the faster ones give up more
-                // (with the additive increase below, their rates converge).
-                let factor = match queueing {
-                    Some(q) if q > FAR_BEHIND => 0.25,
-                    Some(q) if q > FAR_BEHIND / 4 => 0.5,
-                    _ => 0.75,
-                };
+                let factor = queueing.map_or(0.75, cut_factor);
                 self.lower(now, factor);
-                // Only a standing queue (seen in every recent round trip, not one late ping or a
-                // writer woken late) is news for the whole path.
-                if let (Some(path), true) = (&self.path, standing && queueing.is_some()) {
-                    self.seen_event = path.congested(now, factor, self.id).or(self.seen_event);
-                }
             }
         } else if queueing.is_some_and(|q| q <= QUEUE_TARGET / 2) {
             // Additive increase: the wait grows with the step (1 s per frame/s, at most 4 s),
@@ -439,7 +516,7 @@ impl Pace {
             None => {
                 c.outstanding = Some(now);
                 let change = if new_superseded >= 2 {
-                    c.decide(now, None, new_superseded, false)
+                    c.decide(now, None, new_superseded)
                 } else {
                     None
                 };
@@ -456,7 +533,7 @@ impl Pace {
                 // is not a queue.
                 let late = queueing.filter(|q| *q > UNANSWERED_LATE);
                 let change = if late.is_some() || new_superseded >= 2 {
-                    c.decide(now, late, new_superseded, false)
+                    c.decide(now, late, new_superseded)
                 } else {
                     None
                 };
@@ -474,18 +551,28 @@ impl Pace {
         while c.rtts.front().is_some_and(|(t, _)| now - *t > BASE_WINDOW) {
             c.rtts.pop_front();
         }
-        if c.recent.len() == CURRENT_OF {
-            c.recent.pop_front();
-        }
-        c.recent.push_back(rtt);
-        if let Some(path) = &c.path {
+        c.sample(rtt);
+        let mut allowance = c.allowance();
+        if let (Some(path), Some(base)) = (c.path.clone(), c.base(now)) {
+            path.observe(now, rtt);
+            // Spread on a rising floor is a queue's, not jitter: no allowance then.
+            if path
+                .floor_above(now, base)
+                .is_some_and(|q| q > QUEUE_TARGET)
+            {
+                allowance = Duration::ZERO;
+            }
+            path.judge(now, base);
+        } else if let Some(path) = &c.path {
             path.observe(now, rtt);
         }
+        // Above the base and the jitter allowance: a queue of this connection's own (or of
+        // its path).
         let queueing = match (c.current(), c.base(now)) {
-            (Some(m), Some(b)) => Some(m.saturating_sub(b)),
+            (Some(m), Some(b)) => Some(m.saturating_sub(b).saturating_sub(allowance)),
             _ => None,
         };
-        let change = c.decide(now, queueing, 0, true);
+        let change = c.decide(now, queueing, 0);
         drop(c);
         self.apply(change)
     }
@@ -584,6 +671,115 @@ mod tests {
             }
         }
         assert_eq!(pace.rate(), *STEPS.last().unwrap());
+    }
+
+    /// A seeded uniform draw in `[0, 1)` (xorshift64), so the simulated links repeat.
+    fn unit(state: &mut u64) -> f64 {
+        *state ^= *state << 13;
+        *state ^= *state >> 7;
+        *state ^= *state << 17;
+        (*state >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    /// `n` connections, of one address if `shared` (else each of its own), each probing every
+    /// 200 ms (staggered) for `seconds`; `rtt(connection, t, dice)` gives a round trip.
+    /// Returns each connection's mean frames per second over the second half.
+    fn path_of(
+        shared: bool,
+        n: usize,
+        seconds: f64,
+        mut rtt: impl FnMut(usize, f64, &mut u64) -> f64,
+    ) -> Vec<f64> {
+        let paths = Paths::default();
+        let paces: Vec<Pace> = (0..n)
+            .map(|i| {
+                let p = Pace::new(100 + i as u64);
+                let last = if shared { 7 } else { i as u8 };
+                p.set_path(paths.join(Some(IpAddr::from([192, 0, 2, last]))));
+                p
+            })
+            .collect();
+        let start = Instant::now();
+        let mut dice = 0x2545_f491_4f6c_dd1d_u64;
+        let mut sums = vec![0.0; n];
+        let mut counted = 0u32;
+        // Answers in flight: (when it arrives, who, its round trip), in milliseconds.
+        let mut pending: Vec<(u64, usize, f64)> = Vec::new();
+        let at = |ms: u64| start + Duration::from_millis(ms);
+        for ms in (0..(seconds * 1000.0) as u64).step_by(2) {
+            let t = ms as f64 / 1e3;
+            // Connection i probes at i × 4 ms (mod 200 ms).
+            for (i, pace) in paces.iter().enumerate() {
+                if ms % 200 == (i as u64 * 4) % 200 && pace.probe(at(ms), 0).0 {
+                    let r = rtt(i, t, &mut dice);
+                    pending.push((ms + (r * 1e3).round() as u64, i, r));
+                }
+            }
+            pending.retain(|&(arrives, i, r)| {
+                let due = arrives <= ms;
+                if due {
+                    paces[i].answered(at(ms), Duration::from_secs_f64(r));
+                }
+                !due
+            });
+            if t >= seconds / 2.0 && ms % 100 == 0 {
+                for (sum, pace) in sums.iter_mut().zip(&paces) {
+                    *sum += f64::from(pace.rate());
+                }
+                counted += 1;
+            }
+        }
+        sums.iter().map(|s| s / f64::from(counted.max(1))).collect()
+    }
+
+    #[test]
+    fn jitter_without_a_rising_floor_is_not_a_queue() {
+        // 25 ± 20 ms each way (reordering jitter as wide as the queue target): round trips
+        // spread over 10–90 ms, the floor stays at 10.
+        let rates = path_of(false, 1, 60.0, |_, _, d| {
+            0.010 + 0.040 * unit(d) + 0.040 * unit(d)
+        });
+        assert!(rates[0] >= 57.0, "{rates:?}");
+    }
+
+    #[test]
+    fn fifty_connections_of_one_address_do_not_multiply_each_others_stalls() {
+        // 25 ± 10 ms each way, and now and then one connection's own stall (a spurious
+        // retransmission cutting its window): a second of round trips 80 ms longer, about
+        // every 20 s per connection — 2.5 a second among 50.
+        let stalls = || {
+            let mut stalled_until = [0.0f64; 50];
+            move |i: usize, t: f64, d: &mut u64| {
+                if t >= stalled_until[i] && unit(d) < 0.2 / 20.0 {
+                    stalled_until[i] = t + 1.0;
+                }
+                let stall = if t < stalled_until[i] { 0.080 } else { 0.0 };
+                0.030 + 0.020 * unit(d) + 0.020 * unit(d) + stall
+            }
+        };
+        // What each gets alone (its own address), and behind one address.
+        let alone = path_of(false, 50, 60.0, stalls());
+        let shared = path_of(true, 50, 60.0, stalls());
+        let figures = |r: &[f64]| {
+            let min = r.iter().copied().fold(f64::INFINITY, f64::min);
+            (min, r.iter().sum::<f64>() / r.len() as f64)
+        };
+        let ((alone_min, alone_mean), (min, mean)) = (figures(&alone), figures(&shared));
+        eprintln!(
+            "50 connections with their own stalls: frames/s alone min {alone_min:.1} mean \
+             {alone_mean:.1}; behind one address min {min:.1} mean {mean:.1}"
+        );
+        assert!(mean >= 0.95 * alone_mean, "{shared:?} vs alone {alone:?}");
+        assert!(min >= alone_min - 5.0, "{shared:?} vs alone {alone:?}");
+    }
+
+    #[test]
+    fn a_standing_queue_shared_by_the_path_cuts_every_connection() {
+        // 20 connections behind one bottleneck: at 10 s a queue of 150 ms stands for all.
+        let rates = path_of(true, 20, 20.0, |_, t, d| {
+            0.020 + 0.002 * unit(d) + if t >= 10.0 { 0.150 } else { 0.0 }
+        });
+        assert!(rates.iter().all(|&r| r <= 30.0), "{rates:?}");
     }
 
     #[test]
