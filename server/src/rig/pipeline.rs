@@ -167,9 +167,11 @@ pub fn normalise(asset: Asset, options: &PipelineOptions) -> Result<Normalised, 
     steps.push(format!("units ({why}): x{s}"));
     if humanoid {
         let shape = RestShape::measure(&asset, &hanim);
-        let (stature, how) = match (shape.readable, shape.hip_height(asset.skeleton.parents())) {
-            (None, Some((h, _))) => (h / 0.530, "estimated from the legs"),
-            _ => (rig_height(&asset), "at rest"),
+        // Stature from the hips (the hip joint stands at 0.530 of it, Drillis & Contini):
+        // neither raised arms, a crumpled rest pose nor props on the mesh change it.
+        let (stature, how) = match shape.hip_height(asset.skeleton.parents()) {
+            Some((h, _)) => (h / 0.530, "from its hips"),
+            None => (rig_height(&asset), "at rest"),
         };
         if !(MIN_HUMAN_METRES..=MAX_HUMAN_METRES).contains(&stature) {
             let note = format!(
