@@ -135,7 +135,10 @@ fn accessors_without_buffer_views_are_zeros() {
         assert_eq!(a.mesh.positions(), b.mesh.positions());
     }
     println!("{:?}", stripped.source.notes);
-    assert!(has(&stripped.source.notes, &["morph targets", "not imported"]));
+    assert!(has(
+        &stripped.source.notes,
+        &["morph targets", "not imported"]
+    ));
 
     // POSITION as zeros plus a sparse block holding every vertex: the original positions.
     let mut bin2 = Bin::default();
@@ -161,7 +164,12 @@ fn accessors_without_buffer_views_are_zeros() {
         .unwrap()
         .remove(0);
     let want = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
-    let got: Vec<[f32; 3]> = a.meshes[0].mesh.positions().iter().map(|v| v.to_array()).collect();
+    let got: Vec<[f32; 3]> = a.meshes[0]
+        .mesh
+        .positions()
+        .iter()
+        .map(|v| v.to_array())
+        .collect();
     assert_eq!(got, want);
     // Without the sparse block: zeros.
     sparse_doc["accessors"][pos]
@@ -171,16 +179,23 @@ fn accessors_without_buffer_views_are_zeros() {
     let z = gltf::from_slice("zeros.glb", &glb(&sparse_doc, &bin2.bytes))
         .unwrap()
         .remove(0);
-    assert!(z.meshes[0].mesh.positions().iter().all(|v| *v == glam::Vec3::ZERO));
+    assert!(
+        z.meshes[0]
+            .mesh
+            .positions()
+            .iter()
+            .all(|v| *v == glam::Vec3::ZERO)
+    );
 
     // 2000 accessors naming a buffer view that does not exist: a few lines, with the count.
     for _ in 0..2000 {
-        doc["accessors"]
-            .as_array_mut()
-            .unwrap()
-            .push(json!({"bufferView": 99999, "componentType": 5126, "count": 1, "type": "SCALAR"}));
+        doc["accessors"].as_array_mut().unwrap().push(
+            json!({"bufferView": 99999, "componentType": 5126, "count": 1, "type": "SCALAR"}),
+        );
     }
-    let e = gltf::from_slice("broken.glb", &glb(&doc, &bin)).unwrap_err().to_string();
+    let e = gltf::from_slice("broken.glb", &glb(&doc, &bin))
+        .unwrap_err()
+        .to_string();
     println!("{} bytes: {e}", e.len());
     assert!(e.len() < 600, "{} bytes", e.len());
     assert!(e.contains("2000 in all"), "{e}");
@@ -214,6 +229,12 @@ fn joints_without_influence_and_foreign_channels_are_counted() {
         .remove(0);
     let notes = &asset.source.notes;
     println!("{notes:#?}");
-    assert!(has(notes, &["1 of 2 joints move no vertex", "tip"]), "{notes:?}");
-    assert!(has(notes, &["1 channel(s) on nodes outside this rig ignored"]), "{notes:?}");
+    assert!(
+        has(notes, &["1 of 2 joints move no vertex", "tip"]),
+        "{notes:?}"
+    );
+    assert!(
+        has(notes, &["1 channel(s) on nodes outside this rig ignored"]),
+        "{notes:?}"
+    );
 }

@@ -14,8 +14,8 @@ mod rig_support;
 use glam::{Mat4, Quat, Vec3};
 use posecast_proto::fk::forward_kinematics;
 use posecast_server::asset::Asset;
-use posecast_server::builtin::variants::{self, Naming, QUADRUPED_BVH};
 use posecast_server::builtin::JOINT_COUNT;
+use posecast_server::builtin::variants::{self, Naming, QUADRUPED_BVH};
 use posecast_server::clip::Clip;
 use posecast_server::import::{bvh, gltf};
 use posecast_server::rig::{
@@ -67,7 +67,12 @@ fn hold_rest(text: &str) -> String {
     let first: Vec<&str> = lines.next().unwrap().split_whitespace().collect();
     let mut frame = vec!["0".to_owned(); first.len()];
     // The root's three position channels come first in posecast's writer.
-    frame[..3].clone_from_slice(&first[..3].iter().map(|s| (*s).to_owned()).collect::<Vec<_>>());
+    frame[..3].clone_from_slice(
+        &first[..3]
+            .iter()
+            .map(|s| (*s).to_owned())
+            .collect::<Vec<_>>(),
+    );
     let frame = frame.join(" ");
     format!("{head}MOTION\nFrames: 3\nFrame Time: 0.5\n{frame}\n{frame}\n{frame}\n")
 }
@@ -114,13 +119,20 @@ fn map_bvh(
         let t = line.trim();
         let indent = &line[..line.len() - line.trim_start().len()];
         if let Some(rest) = t.strip_prefix("OFFSET") {
-            let v: Vec<f32> = rest.split_whitespace().map(|x| x.parse().unwrap()).collect();
+            let v: Vec<f32> = rest
+                .split_whitespace()
+                .map(|x| x.parse().unwrap())
+                .collect();
             let o = offset(Vec3::new(v[0], v[1], v[2]));
             out.push_str(&format!("{indent}OFFSET {} {} {}\n", o.x, o.y, o.z));
         } else if let Some(rest) = t.strip_prefix("CHANNELS") {
             let names: Vec<String> = rest.split_whitespace().skip(1).map(str::to_owned).collect();
             let (renamed, _) = frame(&names, &vec![0.0; names.len()]);
-            out.push_str(&format!("{indent}CHANNELS {} {}\n", renamed.len(), renamed.join(" ")));
+            out.push_str(&format!(
+                "{indent}CHANNELS {} {}\n",
+                renamed.len(),
+                renamed.join(" ")
+            ));
             channels.push(names);
         } else {
             out.push_str(line);
@@ -129,7 +141,11 @@ fn map_bvh(
     }
     out.push_str("MOTION");
     let mut lines = motion.lines().filter(|l| !l.trim().is_empty());
-    out.push_str(&format!("\n{}\n{}\n", lines.next().unwrap(), lines.next().unwrap()));
+    out.push_str(&format!(
+        "\n{}\n{}\n",
+        lines.next().unwrap(),
+        lines.next().unwrap()
+    ));
     for l in lines {
         let v: Vec<f32> = l.split_whitespace().map(|x| x.parse().unwrap()).collect();
         let mut at = 0;
@@ -197,7 +213,10 @@ fn scaled(text: &str, k: f32) -> String {
 /// Random turns of every joint frame (a crumpled identity pose, motion unchanged).
 fn crumple(asset: Asset) -> Asset {
     let turns: Vec<Quat> = (0..asset.skeleton.len())
-        .map(|j| Quat::from_rotation_y(1.1 + 0.7 * j as f32) * Quat::from_rotation_x(0.9 + 0.4 * j as f32))
+        .map(|j| {
+            Quat::from_rotation_y(1.1 + 0.7 * j as f32)
+                * Quat::from_rotation_x(0.9 + 0.4 * j as f32)
+        })
         .collect();
     let (a, _, _) = adjust_bind(asset, &turns).unwrap();
     let text = posecast_server::export::bvh::write(&a.skeleton, &a.clips[0], None).unwrap();
@@ -221,7 +240,10 @@ fn a_bent_over_human_is_a_humanoid() {
     let rest = positions(&n, Some(&n.asset.clips[0]), 0.25);
     // The fixture bends: its spine is about 80° from its legs (180° − 100°).
     let bend = spine_to_legs(&n, &positions(&n, None, 0.0));
-    println!("bent over: spine {bend:.1}° from the legs; {}", class_step(&n));
+    println!(
+        "bent over: spine {bend:.1}° from the legs; {}",
+        class_step(&n)
+    );
     assert!(n.humanoid, "{}", class_step(&n));
     assert!(rest.iter().all(|p| p.is_finite()));
 }
@@ -236,7 +258,10 @@ fn a_crumpled_rig_bowing_in_its_clip_is_a_humanoid() {
     let clip = &n.asset.clips[0];
     let mid = positions(&n, Some(clip), clip.start() + 0.5 * clip.duration());
     let bend = spine_to_legs(&n, &mid);
-    println!("crumpled, bowing: spine {bend:.1}° from the legs mid-clip; {}", class_step(&n));
+    println!(
+        "crumpled, bowing: spine {bend:.1}° from the legs mid-clip; {}",
+        class_step(&n)
+    );
     assert!(bend < 120.0, "the fixture bows: {bend}");
     assert!(n.humanoid, "{}", class_step(&n));
     let avatar = norm(rig_support::builtin());
@@ -261,7 +286,10 @@ fn a_quadruped_stretching_in_its_clip_is_not_a_humanoid() {
     let stretch = (mid[joint(&fox, "vt1")] - mid[joint(&fox, "humanoid_root")])
         .angle_between(mid[joint(&fox, "l_ankle")] - mid[joint(&fox, "l_hip")])
         .to_degrees();
-    println!("quadruped: legs {stretch:.1}° from the spine mid-clip; {}", class_step(&fox));
+    println!(
+        "quadruped: legs {stretch:.1}° from the spine mid-clip; {}",
+        class_step(&fox)
+    );
     assert!(stretch > 120.0, "the fixture stretches: {stretch}");
     assert!(!fox.humanoid, "{}", class_step(&fox));
     assert!(fox.neutral_pose.is_none());
@@ -289,17 +317,30 @@ fn a_z_up_bvh_is_stood_up() {
         .find(|n| n.contains("up axis guessed"))
         .cloned();
     println!("{note:?}");
-    assert!(note.as_deref().is_some_and(|n| n.contains("+Z")), "{:?}", turned.steps);
+    assert!(
+        note.as_deref().is_some_and(|n| n.contains("+Z")),
+        "{:?}",
+        turned.steps
+    );
     let (a, b) = (&original.asset.clips[0], &turned.asset.clips[0]);
     let scale = 1.8;
     let mut worst = 0.0f32;
     for i in 0..=20 {
         let t = a.duration() * i as f32 / 20.0;
-        let (p, q) = (positions(&original, Some(a), t), positions(&turned, Some(b), t));
-        let (rp, rq) = (p[joint(&original, "humanoid_root")], q[joint(&turned, "humanoid_root")]);
+        let (p, q) = (
+            positions(&original, Some(a), t),
+            positions(&turned, Some(b), t),
+        );
+        let (rp, rq) = (
+            p[joint(&original, "humanoid_root")],
+            q[joint(&turned, "humanoid_root")],
+        );
         for (x, y) in p.iter().zip(&q) {
             worst = worst.max((x.y - y.y).abs());
-            let (hx, hy) = ((*x - rp).with_y(0.0).length(), (*y - rq).with_y(0.0).length());
+            let (hx, hy) = (
+                (*x - rp).with_y(0.0).length(),
+                (*y - rq).with_y(0.0).length(),
+            );
             worst = worst.max((hx - hy).abs());
         }
     }
@@ -351,13 +392,21 @@ fn implausible_humanoids_are_warned_about() {
     println!("{:?}", n.asset.source.notes);
     assert!((n.units.metres_per_unit - 1.0).abs() < 1e-9);
     assert!(
-        n.asset.source.notes.iter().any(|s| s.contains("warning") && s.contains("0.2")),
+        n.asset
+            .source
+            .notes
+            .iter()
+            .any(|s| s.contains("warning") && s.contains("0.2")),
         "{:?}",
         n.steps
     );
     let normal = gltf_support::builtin_skeleton_glb(1.0, |j| JOINTS[j].name.to_owned(), &[], None);
     let n = norm(gltf::from_slice("normal.glb", &normal).unwrap().remove(0));
-    assert!(!n.asset.source.notes.iter().any(|s| s.contains("warning")), "{:?}", n.steps);
+    assert!(
+        !n.asset.source.notes.iter().any(|s| s.contains("warning")),
+        "{:?}",
+        n.steps
+    );
     // Hips 94 cm × 20 = 1880 units: 1.88 m in millimetres, more than a factor 1.5 above
     // 1.1 m, and no other named unit nearer: scaled so the hips stand 0.95 m high.
     let odd = norm(bvh::parse("odd.bvh", &scaled(&builtin_bvh(None), 20.0)).unwrap());
@@ -366,37 +415,111 @@ fn implausible_humanoids_are_warned_about() {
     assert!(step.contains("no common unit fits"), "{step}");
     // The built-in's hip joints stand 94 cm above its soles (JOINTS: hip 0.94 m, sole 0).
     let expected = 0.95 / (94.0 * 20.0);
-    assert!((odd.units.metres_per_unit / expected - 1.0).abs() < 1e-5, "{step}");
+    assert!(
+        (odd.units.metres_per_unit / expected - 1.0).abs() < 1e-5,
+        "{step}"
+    );
 }
 
+/// The table README shows: every rig of the shared test files and the variants here, with
+/// its classification, confidence, up axis and units as the pipeline decided them.
 #[test]
 fn figures_of_the_shared_rigs() {
+    let mut rigs: Vec<(String, Asset)> = Vec::new();
     for rel in [
         "gltf/CesiumMan/glTF-Binary/CesiumMan.glb",
         "gltf/RiggedFigure/glTF-Binary/RiggedFigure.glb",
+        "gltf/RiggedSimple/glTF-Binary/RiggedSimple.glb",
+        "gltf/SimpleSkin/glTF/SimpleSkin.gltf",
+        "gltf/RecursiveSkeletons/glTF-Binary/RecursiveSkeletons.glb",
         "gltf/ReadyPlayerMe/PreviewMesh.glb",
         "bvh/cmu/01_01.bvh",
+        "bvh/fairmotion/sinusoidal.bvh",
+        "bvh/bvh_anim/test_simple.bvh",
         "cse169/wasp.skel",
         "cse169/test.skel",
+        "cse169/tube.skel",
     ] {
         let Some(assets) = rig_support::load(rel) else {
             continue;
         };
-        let n = norm(assets[0].clone());
-        println!("{rel}: {:#?}\nnotes {:#?}", n.steps, n.asset.source.notes);
+        rigs.push((format!("`{rel}`"), assets[0].clone()));
     }
-    for (name, text) in [
-        ("bandai", {
-            let turns: Vec<Quat> = (0..JOINT_COUNT)
-                .map(|j| Quat::from_rotation_y(1.1 + 0.3 * j as f32) * Quat::from_rotation_x(0.9))
-                .collect();
-            variants::bvh(Naming::Bandai, "walk", Some(&turns)).unwrap()
-        }),
-        ("fox", QUADRUPED_BVH.to_owned()),
-        ("builtin", builtin_bvh(None)),
-        ("bow", hold_rest(&builtin_bvh(Some(&bow_turns(100.0))))),
-    ] {
-        let n = norm(bvh::parse(&format!("{name}.bvh"), &text).unwrap());
-        println!("{name}: {:#?}", n.steps);
+    let turns: Vec<Quat> = (0..JOINT_COUNT)
+        .map(|j| Quat::from_rotation_y(1.1 + 0.3 * j as f32) * Quat::from_rotation_x(0.9))
+        .collect();
+    let cmu = posecast_proto::testing::require_testdata("bvh/cmu/01_01.bvh")
+        .map(|p| std::fs::read_to_string(p).unwrap());
+    let mut texts = vec![
+        ("built-in as mocapbank-style BVH", builtin_bvh(None)),
+        (
+            "built-in as Bandai-style BVH, joint frames turned",
+            variants::bvh(Naming::Bandai, "walk", Some(&turns)).unwrap(),
+        ),
+        (
+            "built-in bent over 100° at rest",
+            hold_rest(&builtin_bvh(Some(&bow_turns(100.0)))),
+        ),
+        (
+            "built-in BVH in inches",
+            scaled(&builtin_bvh(None), 1.0 / 2.54),
+        ),
+        (
+            "quadruped BVH (`builtin::variants`)",
+            QUADRUPED_BVH.to_owned(),
+        ),
+    ];
+    if let Some(cmu) = cmu {
+        texts.push(("CMU 01_01 turned Z-up", z_up(&cmu)));
+    }
+    for (label, text) in texts {
+        rigs.push((label.to_owned(), bvh::parse("v.bvh", &text).unwrap()));
+    }
+    println!("| rig | classification | confidence | up axis | units | height |");
+    println!("|---|---|---:|---|---|---:|");
+    for (label, asset) in rigs {
+        let n = norm(asset);
+        let class = if n.humanoid {
+            "humanoid"
+        } else {
+            "not humanoid"
+        };
+        let step = |p: &str| n.steps.iter().find(|s| s.starts_with(p)).cloned();
+        let confidence = step("classification")
+            .and_then(|s| s.split("confidence ").nth(1).map(|c| c[..4].to_owned()))
+            .unwrap_or_default();
+        let up = if n.steps.iter().any(|s| s.contains("up axis guessed")) {
+            "guessed +Z"
+        } else if n
+            .steps
+            .iter()
+            .any(|s| s.starts_with("re-orient (Z-up source"))
+        {
+            "file: Z_UP node"
+        } else if n.steps.iter().any(|s| s.starts_with("up axis: +Y")) {
+            "+Y (rest shows it)"
+        } else {
+            "+Y (kept)"
+        };
+        let units = step("units (")
+            .map(|s| {
+                let how = s.trim_start_matches("units (");
+                let named = ["metres", "centimetres", "CMU", "inches", "from the file"]
+                    .into_iter()
+                    .find(|w| how.contains(&format!(": {w}")) || how.starts_with(w));
+                format!(
+                    "×{} ({})",
+                    n.units.metres_per_unit,
+                    named.unwrap_or("guessed")
+                )
+            })
+            .unwrap_or_default();
+        let height = n.units.height * n.units.metres_per_unit;
+        let warn = if n.asset.source.notes.iter().any(|s| s.contains("warning")) {
+            " ⚠"
+        } else {
+            ""
+        };
+        println!("| {label} | {class} | {confidence} | {up} | {units} | {height:.2} m{warn} |");
     }
 }

@@ -86,7 +86,11 @@ pub fn classify(asset: &Asset, hanim: &[Option<String>]) -> Classification {
             "the arms do not hang from a spine joint above the root".into(),
         ]);
     }
-    if shape.legs.iter().any(|l| is_ancestor(parents, chest, l.top)) {
+    if shape
+        .legs
+        .iter()
+        .any(|l| is_ancestor(parents, chest, l.top))
+    {
         return not(vec!["the legs hang from the chest, not the pelvis".into()]);
     }
     let mut evidence = vec!["two legs from the pelvis, two arms from a chest above it".to_owned()];

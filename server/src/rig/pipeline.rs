@@ -7,10 +7,10 @@ use posecast_proto::fk::forward_kinematics;
 pub use posecast_proto::rig_options::{PipelineOptions, ReorientFrame, UpAxisOverride};
 
 use super::humanoid::classify;
-use super::rest_shape::RestShape;
 use super::names::{NameMapping, map_names};
 use super::neutral::{NeutralPose, apply_neutral_pose, hanim_pose};
 use super::reorient::{SignedAxis, reorient, reorient_bind_frame, scale_units};
+use super::rest_shape::RestShape;
 use super::simplify::simplify;
 use super::{JointMaps, RigError, compose_maps};
 use crate::asset::{Asset, SourceFormat, UpAxis};
@@ -283,7 +283,10 @@ const NAMED_UNITS: &[(f32, &str)] = &[
     (1.0, "metres"),
     (0.304_8, "feet"),
     (0.1, "decimetres"),
-    (0.025_4 / 0.45, "CMU motion-capture units (inches / 0.45, the CMU ASF length scale)"),
+    (
+        0.025_4 / 0.45,
+        "CMU motion-capture units (inches / 0.45, the CMU ASF length scale)",
+    ),
     (0.025_4, "inches"),
     (0.01, "centimetres"),
     (0.001, "millimetres"),
@@ -302,7 +305,10 @@ fn units_from_hips(h: f32) -> (f32, String) {
         Some(&(s, name)) if off(s) == 0.0 => (s, name.to_owned()),
         Some(&(s, name)) if off(s) <= 1.5f32.ln() => (
             s,
-            format!("{name}, the nearest (the hips then stand {:.2} m high)", h * s),
+            format!(
+                "{name}, the nearest (the hips then stand {:.2} m high)",
+                h * s
+            ),
         ),
         _ => (
             0.95 / h,

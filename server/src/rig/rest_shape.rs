@@ -157,7 +157,9 @@ impl RestShape {
         let d = self
             .legs
             .iter()
-            .map(|l| (self.world[l.end.unwrap_or(l.middle)] - self.world[l.top]).normalize_or_zero())
+            .map(|l| {
+                (self.world[l.end.unwrap_or(l.middle)] - self.world[l.top]).normalize_or_zero()
+            })
             .sum::<Vec3>()
             .normalize_or_zero();
         (d != Vec3::ZERO).then_some(d)

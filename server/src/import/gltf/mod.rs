@@ -419,9 +419,10 @@ impl Context<'_> {
                     if targets > 0 {
                         morphs.0 += targets;
                         morphs.1 += 1;
-                        morphs
-                            .2
-                            .insert(mesh.name().map_or(format!("mesh{}", mesh.index()), str::to_owned));
+                        morphs.2.insert(
+                            mesh.name()
+                                .map_or(format!("mesh{}", mesh.index()), str::to_owned),
+                        );
                     }
                     let m = prim.material();
                     if let Some(i) = m.index() {
