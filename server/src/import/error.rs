@@ -60,6 +60,15 @@ pub enum ImportError {
     /// The glTF JSON or GLB container is malformed.
     #[error("{file}: glTF: {source}")]
     Gltf { file: String, source: gltf::Error },
+    /// The glTF document breaks the specification's rules: the first problems (at most
+    /// [`ImportError::MAX_LISTED`]) and how many there are, so a file with thousands of them
+    /// gives a message of a few lines.
+    #[error("{file}: invalid glTF: {}", listed(problems, *count))]
+    GltfInvalid {
+        file: String,
+        problems: Vec<String>,
+        count: usize,
+    },
     #[error("{file}: accessor {accessor}: {message}")]
     Accessor {
         file: String,
@@ -81,4 +90,21 @@ pub enum ImportError {
     /// A file-level problem with no narrower place (e.g. a glTF without skins).
     #[error("{file}: {message}")]
     Unsupported { file: String, message: String },
+}
+
+impl ImportError {
+    /// Most problems an error lists one by one; the rest are counted.
+    pub const MAX_LISTED: usize = 5;
+}
+
+/// `a; b; c (and 12 more, 15 in all)`.
+fn listed(problems: &[String], count: usize) -> String {
+    let mut s = problems.join("; ");
+    if count > problems.len() {
+        s.push_str(&format!(
+            " (and {} more, {count} in all)",
+            count - problems.len()
+        ));
+    }
+    s
 }

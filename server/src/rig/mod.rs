@@ -10,7 +10,8 @@
 //! - [`neutral`](mod@neutral): a new neutral pose `H` (`V_i = V_parent(i) H_i`) and the H-Anim pose found by
 //!   aligning named segments with target directions.
 //! - [`names`](mod@names): joint names to H-Anim names, by names and limb chains.
-//! - [`humanoid`](mod@humanoid): whether a rig is a humanoid.
+//! - [`rest_shape`](mod@rest_shape): what the rest skeleton says (lengths, directions, up, hips).
+//! - [`humanoid`](mod@humanoid): whether a rig is a humanoid, from its rest skeleton.
 //! - [`retarget`](mod@retarget): a clip of one normalised rig replayed on another, matched in world space.
 //! - [`pipeline`](mod@pipeline): the default sequence, configurable per asset, recording what it did.
 
@@ -21,6 +22,7 @@ pub mod neutral;
 pub mod pipeline;
 mod playable;
 mod reorient;
+pub mod rest_shape;
 pub mod retarget;
 mod simplify;
 

@@ -10,6 +10,7 @@ use super::humanoid::classify;
 use super::names::{NameMapping, map_names};
 use super::neutral::{NeutralPose, apply_neutral_pose, hanim_pose};
 use super::reorient::{SignedAxis, reorient, reorient_bind_frame, scale_units};
+use super::rest_shape::RestShape;
 use super::simplify::simplify;
 use super::{JointMaps, RigError, compose_maps};
 use crate::asset::{Asset, SourceFormat, UpAxis};
@@ -108,7 +109,48 @@ pub fn normalise(asset: Asset, options: &PipelineOptions) -> Result<Normalised, 
             angle.to_degrees()
         ));
     }
-    let (units, why) = units(&asset, options.metres_per_unit);
+    if options.up_axis.is_none() {
+        let shape = RestShape::measure(&asset, &hanim);
+        match shape.up_guess() {
+            Some((up, off, forward)) if up != SignedAxis::PosY => {
+                let r = SignedAxis::rotation_to_y_up(up, forward)?;
+                let (a, m) = reorient(asset, r)?;
+                asset = a;
+                compose_maps(&mut maps, &m);
+                world_change.0 = (r * world_change.0).normalize();
+                let (axis, angle) = r.to_axis_angle();
+                let note = format!(
+                    "up axis guessed from the rest skeleton: {} (the legs point down it, \
+                     {off:.0}° off; the head above the hips), facing {}; re-oriented to +Y \
+                     ({:.1} deg about {axis:.3}); set up_axis to override",
+                    axis_name(up),
+                    forward.map_or("unknown", axis_name),
+                    angle.to_degrees()
+                );
+                steps.push(format!("re-orient: {note}"));
+                asset.source.notes.push(note);
+            }
+            Some((_, off, _)) => steps.push(format!(
+                "up axis: +Y, as the rest skeleton shows (the legs point down it, {off:.0}° off)"
+            )),
+            None => steps.push(match shape.readable {
+                Some(_) => "up axis: kept: the legs of the standing rest pose are not near an \
+                            axis, or the head is below the hips"
+                    .to_owned(),
+                None if shape.legs.len() == 2 => "up axis: kept: the rest pose is not standing \
+                                                  (legs bent or apart), so it shows no up axis"
+                    .to_owned(),
+                None => "up axis: kept: no legs mapped to read it from".to_owned(),
+            }),
+        }
+    }
+    let class = classify(&asset, &hanim);
+    let humanoid = options.humanoid.unwrap_or(class.humanoid);
+    let shape = RestShape::measure(&asset, &hanim);
+    let hips = humanoid
+        .then(|| shape.hip_height(asset.skeleton.parents()))
+        .flatten();
+    let (units, why) = units(&asset, options.metres_per_unit, hips);
     let s = units.metres_per_unit;
     if !(s.is_finite() && s > 0.0) {
         return Err(RigError::BadInput {
@@ -123,11 +165,28 @@ pub fn normalise(asset: Asset, options: &PipelineOptions) -> Result<Normalised, 
         world_change.1 = s;
     }
     steps.push(format!("units ({why}): x{s}"));
-    let class = classify(&asset, &hanim);
-    let humanoid = options.humanoid.unwrap_or(class.humanoid);
+    if humanoid {
+        let shape = RestShape::measure(&asset, &hanim);
+        // Stature from the hips (the hip joint stands at 0.530 of it, Drillis & Contini):
+        // neither raised arms, a crumpled rest pose nor props on the mesh change it.
+        let (stature, how) = match shape.hip_height(asset.skeleton.parents()) {
+            Some((h, _)) => (h / 0.530, "from its hips"),
+            None => (rig_height(&asset), "at rest"),
+        };
+        if !(MIN_HUMAN_METRES..=MAX_HUMAN_METRES).contains(&stature) {
+            let note = format!(
+                "warning: this humanoid is {stature:.2} m tall ({how}), outside \
+                 {MIN_HUMAN_METRES}–{MAX_HUMAN_METRES} m: check its units (set metres_per_unit)"
+            );
+            steps.push(format!("units: {note}"));
+            asset.source.notes.push(note);
+        }
+    }
+    let confidence = format!("confidence {:.2}", class.confidence);
     steps.push(match options.humanoid {
         Some(h) => format!(
-            "classification: {} (configured; classified {}: {})",
+            "classification: {} (configured; classified {}, {confidence}, from the rest \
+             skeleton: {})",
             if h { "humanoid" } else { "not humanoid" },
             if class.humanoid {
                 "humanoid"
@@ -137,7 +196,7 @@ pub fn normalise(asset: Asset, options: &PipelineOptions) -> Result<Normalised, 
             class.reason
         ),
         None => format!(
-            "classification: {} ({})",
+            "classification: {} ({confidence}, from the rest skeleton: {})",
             if humanoid { "humanoid" } else { "not humanoid" },
             class.reason
         ),
@@ -209,12 +268,63 @@ fn orientation(
     }
 }
 
+/// Shortest humanoid (metres) that passes without a warning.
+pub const MIN_HUMAN_METRES: f32 = 0.5;
+/// Tallest humanoid (metres) that passes without a warning.
+pub const MAX_HUMAN_METRES: f32 = 3.0;
+
+/// Where a person's hip joints stand above the feet, metres: the units guess puts a humanoid's
+/// hips in this range.
+pub const HIP_METRES: (f32, f32) = (0.8, 1.1);
+
+/// Units a skeleton-only file may be in, metres per unit. Their hip ranges do not overlap
+/// (neighbours differ by more than 1.1 / 0.8), so at most one fits.
+const NAMED_UNITS: &[(f32, &str)] = &[
+    (1.0, "metres"),
+    (0.304_8, "feet"),
+    (0.1, "decimetres"),
+    (
+        0.025_4 / 0.45,
+        "CMU motion-capture units (inches / 0.45, the CMU ASF length scale)",
+    ),
+    (0.025_4, "inches"),
+    (0.01, "centimetres"),
+    (0.001, "millimetres"),
+];
+
+/// The unit that puts hips `h` (file units) at [`HIP_METRES`]: the named unit they fit, else
+/// the nearest one when within a factor 1.5 of the range, else the scale that puts them at
+/// 0.95 m. Returns metres per unit and its description.
+fn units_from_hips(h: f32) -> (f32, String) {
+    let (lo, hi) = HIP_METRES;
+    let off = |s: f32| (lo / (h * s)).ln().max((h * s / hi).ln()).max(0.0);
+    let best = NAMED_UNITS
+        .iter()
+        .min_by(|a, b| off(a.0).total_cmp(&off(b.0)));
+    match best {
+        Some(&(s, name)) if off(s) == 0.0 => (s, name.to_owned()),
+        Some(&(s, name)) if off(s) <= 1.5f32.ln() => (
+            s,
+            format!(
+                "{name}, the nearest (the hips then stand {:.2} m high)",
+                h * s
+            ),
+        ),
+        _ => (
+            0.95 / h,
+            "no common unit fits: scaled so the hips stand 0.95 m high".to_owned(),
+        ),
+    }
+}
+
 /// Metres per file unit: as configured; else what the file says, unless the rig is then
 /// implausibly tall or small (outside 0.3–3 m) and its height in file units names a unit
 /// (0.3–3: metres, 30–300: centimetres, 300–3000: millimetres) — glTF says metres by
 /// specification, yet centimetre exports are common; else, where the format does not say
-/// (BVH, CSE169), that guess; else 1. Returns the scale and what decided it, with the height.
-fn units(asset: &Asset, configured: Option<f32>) -> (Units, String) {
+/// (BVH, CSE169): for a humanoid, the unit that puts its hips 0.8–1.1 m above its feet
+/// (`hips`: their height in file units and how it was found, [`units_from_hips`]); for other
+/// rigs the height guess; else 1. Returns the scale and what decided it, with the height.
+fn units(asset: &Asset, configured: Option<f32>, hips: Option<(f32, &str)>) -> (Units, String) {
     let height = rig_height(asset);
     let units = |metres_per_unit: f32, source: &str| Units {
         metres_per_unit,
@@ -231,24 +341,34 @@ fn units(asset: &Asset, configured: Option<f32>) -> (Units, String) {
         _ => None,
     };
     let plausible = |s: f32| (0.3..=3.0).contains(&(height * s));
-    match (asset.source.metres_per_unit, guess) {
-        (Some(s), _) if plausible(s) => (units(s, "file"), "from the file".to_owned()),
-        (Some(s), Some((g, name))) if (g - s).abs() > f32::EPSILON => (
+    match (asset.source.metres_per_unit, guess, hips) {
+        (Some(s), _, _) if plausible(s) => (units(s, "file"), "from the file".to_owned()),
+        (Some(s), Some((g, name)), _) if (g - s).abs() > f32::EPSILON => (
             units(g, "guessed"),
             format!(
                 "guessed from the rig's height, {height:.3} units: {name}, not the file's \
                  {s} m per unit; set metres_per_unit to override"
             ),
         ),
-        (Some(s), _) => (units(s, "file"), "from the file".to_owned()),
-        (None, Some((g, name))) => (
+        (Some(s), _, _) => (units(s, "file"), "from the file".to_owned()),
+        (None, _, Some((h, how))) => {
+            let (s, name) = units_from_hips(h);
+            (
+                units(s, "guessed"),
+                format!(
+                    "guessed from the humanoid's hips, {h:.3} units above its feet ({how}): \
+                     {name}; set metres_per_unit to override"
+                ),
+            )
+        }
+        (None, Some((g, name)), None) => (
             units(g, "guessed"),
             format!(
                 "guessed from the rig's height, {height:.3} units: {name}; set \
                  metres_per_unit to override"
             ),
         ),
-        (None, None) => (
+        (None, None, None) => (
             units(1.0, "guessed"),
             format!("unknown from the rig's height, {height:.3} units, kept: set metres_per_unit"),
         ),
@@ -275,4 +395,15 @@ pub fn rig_height(asset: &Asset) -> f32 {
     }
     let extent = hi - lo;
     if extent.is_finite() { extent } else { 0.0 }
+}
+
+fn axis_name(a: SignedAxis) -> &'static str {
+    match a {
+        SignedAxis::PosX => "+X",
+        SignedAxis::NegX => "-X",
+        SignedAxis::PosY => "+Y",
+        SignedAxis::NegY => "-Y",
+        SignedAxis::PosZ => "+Z",
+        SignedAxis::NegZ => "-Z",
+    }
 }

@@ -43,6 +43,19 @@ impl Context<'_> {
                     "animation {a} ({clip_name}): {morphs} morph target weight channel(s) skipped"
                 ));
             }
+            let ignored = anim
+                .channels()
+                .filter(|ch| {
+                    ch.target().property() != Property::MorphTargetWeights
+                        && !skel_of_node.contains_key(&ch.target().node().index())
+                })
+                .count();
+            if ignored > 0 {
+                notes.push(format!(
+                    "animation {a} ({clip_name}): {ignored} channel(s) on nodes outside this \
+                     rig ignored"
+                ));
+            }
             for (c, ch) in anim.channels().enumerate() {
                 let target = ch.target();
                 let Some(&joint) = skel_of_node.get(&target.node().index()) else {

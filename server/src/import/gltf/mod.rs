@@ -83,11 +83,13 @@ fn import_slice(
     base: Option<External<'_>>,
     with_meshes: bool,
 ) -> Result<Vec<Asset>, ImportError> {
-    let gltf = gltf::Gltf::from_slice(bytes).map_err(|source| ImportError::Gltf {
-        file: name.to_owned(),
-        source,
-    })?;
+    let gltf =
+        gltf::Gltf::from_slice_without_validation(bytes).map_err(|source| ImportError::Gltf {
+            file: name.to_owned(),
+            source,
+        })?;
     let doc = &gltf.document;
+    validate(name, doc)?;
     check_channel_targets(name, doc)?;
     // The gltf crate's accessors index the document with `unwrap` after its validation; a
     // gap in that validation must not take the server down, so a panic in it becomes an
@@ -108,6 +110,42 @@ fn import_slice(
             file: name.to_owned(),
             message: "the glTF parser failed on malformed input".to_owned(),
         })
+    })
+}
+
+/// The `gltf` crate's validation less the one rule glTF 2.0 does not have: gltf-json 1.4
+/// reports `accessors[i].bufferView: Missing data` for an accessor with neither `bufferView`
+/// nor `sparse`, yet the specification (3.6.2.1, "Accessors") says such an accessor is all
+/// zeros — Ready Player Me avatars have hundreds of them, as morph targets. Those are read as
+/// zeros ([`super::accessor`]); every other problem is reported, the first
+/// [`ImportError::MAX_LISTED`] of them and the count.
+fn validate(file: &str, doc: &gltf::Document) -> Result<(), ImportError> {
+    use gltf::json::validation::{Error, Validate};
+    let root = doc.as_json();
+    let viewless: std::collections::HashSet<String> = root
+        .accessors
+        .iter()
+        .enumerate()
+        .filter(|(_, a)| a.buffer_view.is_none())
+        .map(|(i, _)| format!("accessors[{i}].bufferView"))
+        .collect();
+    let mut problems = Vec::new();
+    root.validate(root, gltf::json::Path::new, &mut |path, error| {
+        let path = path();
+        if matches!(error, Error::Missing) && viewless.contains(path.as_str()) {
+            return;
+        }
+        problems.push(format!("{path}: {error}"));
+    });
+    if problems.is_empty() {
+        return Ok(());
+    }
+    let count = problems.len();
+    problems.truncate(ImportError::MAX_LISTED);
+    Err(ImportError::GltfInvalid {
+        file: file.to_owned(),
+        problems,
+        count,
     })
 }
 
@@ -327,6 +365,17 @@ impl Nodes {
     }
 }
 
+/// Up to [`ImportError::MAX_LISTED`] names, then how many more: notes stay short on rigs
+/// with hundreds of joints.
+pub(super) fn listed(names: &[String]) -> String {
+    let shown = names.len().min(ImportError::MAX_LISTED);
+    let mut s = names[..shown].join(", ");
+    if names.len() > shown {
+        s.push_str(&format!(" and {} more", names.len() - shown));
+    }
+    s
+}
+
 /// `a · b` for a rigid `a` (unit scale), exact in TRS form.
 fn compose_rigid(a: &Transform, b: &Transform) -> Transform {
     Transform {
@@ -383,6 +432,8 @@ impl Context<'_> {
         };
         let mut materials = std::collections::BTreeSet::new();
         let mut loose = Vec::new();
+        // (targets, primitives, mesh names) of the morph targets on this skin's meshes.
+        let mut morphs = (0usize, 0usize, std::collections::BTreeSet::new());
         for node in self.doc.nodes() {
             let Some(mesh) = node.mesh() else { continue };
             let ours = match node.skin() {
@@ -394,6 +445,15 @@ impl Context<'_> {
             }
             if ours {
                 for prim in mesh.primitives() {
+                    let targets = prim.morph_targets().len();
+                    if targets > 0 {
+                        morphs.0 += targets;
+                        morphs.1 += 1;
+                        morphs.2.insert(
+                            mesh.name()
+                                .map_or(format!("mesh{}", mesh.index()), str::to_owned),
+                        );
+                    }
                     let m = prim.material();
                     if let Some(i) = m.index() {
                         materials.insert(m.name().map_or(format!("material{i}"), str::to_owned));
@@ -405,14 +465,33 @@ impl Context<'_> {
         if !materials.is_empty() {
             let list: Vec<String> = materials.into_iter().collect();
             notes.push(format!(
-                "materials not imported (posecast serves geometry only): {}",
-                list.join(", ")
+                "{} materials not imported (posecast serves geometry only): {}",
+                list.len(),
+                listed(&list)
+            ));
+        }
+        if morphs.0 > 0 {
+            let list: Vec<String> = morphs.2.into_iter().collect();
+            notes.push(format!(
+                "{} morph targets on {} primitives not imported yet (the base shape is): {}",
+                morphs.0,
+                morphs.1,
+                listed(&list)
             ));
         }
         if !loose.is_empty() {
             notes.push(format!(
-                "meshes on nodes that hang from no joint not imported: {}",
-                loose.join(", ")
+                "{} meshes on nodes that hang from no joint not imported: {}",
+                loose.len(),
+                listed(&loose)
+            ));
+        }
+        let skins = self.doc.skins().len();
+        if skins > 1 {
+            notes.push(format!(
+                "the file has {skins} skins: this asset is skin {}, the others are assets of \
+                 their own",
+                skin.index()
             ));
         }
         notes
@@ -580,6 +659,30 @@ impl Context<'_> {
             ));
         }
         meshes.extend(rigid);
+        if !meshes.is_empty() {
+            let mut used = vec![false; count];
+            for m in &meshes {
+                for (j, w) in m.mesh.joints().iter().zip(m.mesh.weights()) {
+                    if *w > 0.0
+                        && let Some(u) = used.get_mut(usize::from(*j))
+                    {
+                        *u = true;
+                    }
+                }
+            }
+            let idle: Vec<String> = (0..count)
+                .filter(|&j| !used[j])
+                .map(|j| skeleton.names()[j].clone())
+                .collect();
+            if !idle.is_empty() {
+                notes.push(format!(
+                    "{} of {count} joints move no vertex (kept: they place their children, and \
+                     clips may drive them): {}",
+                    idle.len(),
+                    listed(&idle)
+                ));
+            }
+        }
         let clips = self.clips(&skel_of_node, &maps, count, &mut notes)?;
         notes.extend(self.unimported_notes(skin));
 
