@@ -6,7 +6,7 @@
 use crate::changes;
 use crate::error::Error;
 use crate::quota::Quota;
-use crate::state::AppState;
+use crate::state::{AppState, RunError};
 use crate::store::recordings::{self, Saved};
 use crate::world::command;
 use posecast_proto::command::{Command, CommandResult, RecordingInfo};
@@ -33,24 +33,44 @@ pub fn execute(state: &AppState, command: &Command) -> Result<CommandResult, Err
 ///
 /// # Errors
 /// As [`execute`]; or `internal` when storing failed, in which case the change
-/// *is* in effect in memory but not on disk.
+/// *is* in effect in memory but not on disk (on a server of a cluster it is undone:
+/// [`crate::state::Cluster::commit`]).
 pub async fn execute_durable(state: &AppState, command: &Command) -> Result<CommandResult, Error> {
-    // In a cluster, a command on a scene another server ticks runs there; its answer comes
-    // back through here.
-    if let Some(forwarded) = state.cluster().and_then(|c| c.forward(command)) {
-        return forwarded.await;
-    }
-    execute_here(state, command).await
+    execute_keyed(state, command, None).await
 }
 
-/// [`execute_durable`] on this server, never forwarded: what a scene's owner runs for a
+/// [`execute_durable`] with the client's idempotency key (REST `Idempotency-Key`, a
+/// websocket command's `idempotency_key`): on a server of a cluster a command whose key the
+/// scene's latest commands carried is answered with that command's result and not applied
+/// again, on whichever server the retry arrives.
+///
+/// # Errors
+/// As [`execute_durable`].
+pub async fn execute_keyed(
+    state: &AppState,
+    command: &Command,
+    key: Option<&str>,
+) -> Result<CommandResult, Error> {
+    // In a cluster, a command on a scene another server ticks runs there; its answer comes
+    // back through here.
+    if let Some(forwarded) = state.cluster().and_then(|c| c.forward(command, key)) {
+        return forwarded.await;
+    }
+    execute_here(state, command, key).await
+}
+
+/// [`execute_keyed`] on this server, never forwarded: what a scene's owner runs for a
 /// command another server of the cluster forwarded to it. In a cluster a change is also
-/// stored where every server reads it ([`crate::state::Cluster::stored`]) before the answer,
+/// stored where every server reads it ([`crate::state::Cluster::commit`]) before the answer,
 /// and `create_scene` claims the id cluster-wide first; `list_scenes` lists the cluster's.
 ///
 /// # Errors
 /// As [`execute_durable`]; `unavailable` for a scene that another server ticks.
-pub async fn execute_here(state: &AppState, command: &Command) -> Result<CommandResult, Error> {
+pub async fn execute_here(
+    state: &AppState,
+    command: &Command,
+    key: Option<&str>,
+) -> Result<CommandResult, Error> {
     if let Command::ConfigureAsset { asset, options } = command {
         // Stored (meta.json) before the answer, like an upload.
         let result = crate::ingest::configure(state, asset, options.clone())
@@ -92,28 +112,27 @@ pub async fn execute_here(state: &AppState, command: &Command) -> Result<Command
             "scene {id} is ticked by another server now: try again"
         )));
     }
-    let claimed = match (cluster, command) {
-        (Some(cluster), Command::CreateScene { scene: id, .. }) => {
-            cluster.claim(id).await?;
-            Some((cluster, id))
+    let result = match (cluster, &scene) {
+        (Some(cluster), Some(id)) => {
+            let run = Box::pin(async move {
+                let result = execute(state, command).map_err(RunError::Refused)?;
+                state
+                    .store
+                    .persist_scene(&state.world, id)
+                    .await
+                    .map_err(RunError::NotStored)?;
+                Ok(result)
+            });
+            cluster.commit(command, id, key, run).await?
         }
-        _ => None,
-    };
-    let result = match execute(state, command) {
-        Ok(result) => result,
-        Err(e) => {
-            if let Some((cluster, id)) = claimed {
-                cluster.unclaim(id).await;
+        (_, scene) => {
+            let result = execute(state, command)?;
+            if let Some(scene) = scene {
+                state.store.persist_scene(&state.world, scene).await?;
             }
-            return Err(e);
+            result
         }
     };
-    if let Some(scene) = scene {
-        state.store.persist_scene(&state.world, &scene).await?;
-        if let Some(cluster) = cluster {
-            cluster.stored(command, &scene).await?;
-        }
-    }
     if let CommandResult::Recorded(info) = &result {
         store_recording(state, info).await?;
         if let Some(cluster) = cluster {
