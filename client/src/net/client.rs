@@ -390,7 +390,9 @@ impl Client {
             let unknown = match &outcome {
                 Err(ClientError::Timeout(_)) => true,
                 Err(ClientError::Closed) => !self.outgoing.is_closed(),
-                Err(ClientError::Server(e)) => e.code == posecast_proto::msg::ErrorCode::Unavailable,
+                Err(ClientError::Server(e)) => {
+                    e.code == posecast_proto::msg::ErrorCode::Unavailable
+                }
                 _ => false,
             };
             if !unknown || left == 0 {

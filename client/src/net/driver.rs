@@ -135,7 +135,8 @@ impl Driver {
             id,
             command,
             idempotency_key: None,
-        }).await?;
+        })
+        .await?;
         match tokio::time::timeout(Duration::from_secs(10), rx).await {
             Ok(Ok(result)) => result.map_err(ClientError::Server),
             Ok(Err(_)) => Err(ClientError::Closed),

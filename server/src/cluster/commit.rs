@@ -150,7 +150,12 @@ pub(super) fn roll_back(
 
 /// The avatars a command may have changed: the one it names, and any that came or went.
 fn touched(command: &Command, before: &SceneFile, after: &SceneFile) -> BTreeSet<AvatarId> {
-    let ids = |f: &SceneFile| f.avatars.iter().map(|a| a.id.clone()).collect::<BTreeSet<_>>();
+    let ids = |f: &SceneFile| {
+        f.avatars
+            .iter()
+            .map(|a| a.id.clone())
+            .collect::<BTreeSet<_>>()
+    };
     let (was, is) = (ids(before), ids(after));
     let mut touched: BTreeSet<AvatarId> = was.symmetric_difference(&is).cloned().collect();
     if let Some(a) = command.avatar() {
@@ -200,7 +205,12 @@ impl Cluster {
             Err(RunError::Refused(e)) => return Err(e),
             Err(RunError::NotStored(e)) => {
                 let after = snapshot::snapshot(&scene, now);
-                roll_back(&state.world, &before, &touched(command, &before, &after), now);
+                roll_back(
+                    &state.world,
+                    &before,
+                    &touched(command, &before, &after),
+                    now,
+                );
                 return Err(e);
             }
         };
@@ -458,7 +468,9 @@ impl Cluster {
             let slot = self.slot(&id);
             let recent = slot.lock().await;
             match self.write_snapshot(state, &id, &recent).await {
-                Written::Stored => info!(scene = %id, "stored again after a write of unknown outcome"),
+                Written::Stored => {
+                    info!(scene = %id, "stored again after a write of unknown outcome")
+                }
                 Written::Fenced => {
                     warn!(scene = %id, "another server took the scene over: giving it up");
                     self.give_up(state, &id);
@@ -510,7 +522,12 @@ mod tests {
         ));
         assert_eq!(answered(&recent, "k2", "add_avatar"), None);
         for i in 0..RECENT {
-            remember(&mut recent, &format!("n{i}"), "stop".into(), &CommandResult::Done);
+            remember(
+                &mut recent,
+                &format!("n{i}"),
+                "stop".into(),
+                &CommandResult::Done,
+            );
         }
         assert_eq!(recent.len(), RECENT);
         assert_eq!(answered(&recent, "k1", "add_avatar"), None);
@@ -537,11 +554,19 @@ mod tests {
                 r#"{{"op":"add_avatar","scene":"s","asset":"{BUILTIN_ASSET}","avatar":"{a}"}}"#
             ));
         }
-        run(r#"{"op":"set_joint_rotation","avatar":"changed","joint":"l_knee","rotation":[0.3826834,0,0,0.9238795]}"#);
+        run(
+            r#"{"op":"set_joint_rotation","avatar":"changed","joint":"l_knee","rotation":[0.3826834,0,0,0.9238795]}"#,
+        );
         let id = SceneId("s".into());
         let scene = state.world.scene(&id).unwrap();
         let kept = |s: &crate::scene::Scene| {
-            s.lock().avatars.iter().find(|a| a.id.0 == "kept").unwrap().description.clone()
+            s.lock()
+                .avatars
+                .iter()
+                .find(|a| a.id.0 == "kept")
+                .unwrap()
+                .description
+                .clone()
         };
         let kept_before = kept(&scene);
         for json in [

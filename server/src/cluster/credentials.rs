@@ -58,7 +58,9 @@ fn decode(s: &str) -> Result<String, String> {
                     .and_then(|x| u8::from_str_radix(x, 16).ok()),
                 _ => None,
             };
-            out.push(value.ok_or("a '%' in the URL's credentials is not followed by two hex digits")?);
+            out.push(
+                value.ok_or("a '%' in the URL's credentials is not followed by two hex digits")?,
+            );
         } else {
             out.push(b);
         }

@@ -136,7 +136,9 @@ pub async fn command(
         Some(_) => {
             return Err(ProtocolError::new(
                 ErrorCode::InvalidValue,
-                format!("Idempotency-Key must be 1 to {MAX_IDEMPOTENCY_KEY} visible ASCII characters"),
+                format!(
+                    "Idempotency-Key must be 1 to {MAX_IDEMPOTENCY_KEY} visible ASCII characters"
+                ),
             )
             .into());
         }
