@@ -66,14 +66,14 @@ async fn post(addr: SocketAddr, json: &str, key: Option<&str>) -> (u16, serde_js
     (status, value)
 }
 
-/// `posecast_cluster_scenes_owned` of `addr`.
-async fn scenes_owned(addr: SocketAddr) -> f64 {
+/// `posecast_cluster_takeovers_total` of `addr`.
+async fn takeovers(addr: SocketAddr) -> f64 {
     let (status, text) =
         common::http_raw(addr, Some(CONTROL), "GET", "/metrics", "text/plain", b"").await;
     assert_eq!(status, 200);
     text.lines()
         .find_map(|l| {
-            l.strip_prefix("posecast_cluster_scenes_owned ")?
+            l.strip_prefix("posecast_cluster_takeovers_total ")?
                 .trim()
                 .parse()
                 .ok()
@@ -169,6 +169,10 @@ async fn a_paused_owner_acknowledges_nothing_it_cannot_store() {
     let mut failovers = Vec::new();
     for run in 0..runs {
         let frozen = nodes[owner];
+        let mut taken = Vec::new();
+        for n in &nodes {
+            taken.push(takeovers(n.addr).await);
+        }
         frozen.signal("STOP");
         let stopped = Instant::now();
         let requests: Vec<_> = (0..20)
@@ -188,7 +192,7 @@ async fn a_paused_owner_acknowledges_nothing_it_cannot_store() {
         let taker = loop {
             let mut found = None;
             for (i, n) in nodes.iter().enumerate() {
-                if i != owner && scenes_owned(n.addr).await > 0.0 {
+                if i != owner && takeovers(n.addr).await > taken[i] {
                     found = Some(i);
                 }
             }
