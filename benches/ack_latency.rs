@@ -33,6 +33,7 @@ async fn connection(url: String, commands: usize) -> anyhow::Result<Vec<Duration
     for id in 0..=commands as u64 {
         let command = ClientMsg::Command {
             id,
+            idempotency_key: None,
             command: Command::SetSpeed {
                 avatar: AvatarId("avatar".into()),
                 speed: 1.0 + (id % 3) as f32 * 0.1,

@@ -120,6 +120,7 @@ async fn ws_command(addr: SocketAddr, json: &str) {
         },
         ClientMsg::Command {
             id: 7,
+            idempotency_key: None,
             command: serde_json::from_str(json).unwrap(),
         },
     ] {
@@ -386,6 +387,7 @@ async fn grouped_and_rate_limited_acks_survive_sigkill() {
                     loop {
                         let c = ClientMsg::Command {
                             id: k,
+                            idempotency_key: None,
                             command: serde_json::from_str(&json).unwrap(),
                         };
                         let text = serde_json::to_string(&c).unwrap();

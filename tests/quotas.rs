@@ -204,6 +204,7 @@ async fn a_command_flood_is_rate_limited_with_a_retry_hint_that_holds() {
     for id in 0..n {
         let c = ClientMsg::Command {
             id,
+            idempotency_key: None,
             command: serde_json::from_str(r#"{"op":"set_speed","avatar":"avatar","speed":1.5}"#)
                 .unwrap(),
         };
@@ -238,6 +239,7 @@ async fn a_command_flood_is_rate_limited_with_a_retry_hint_that_holds() {
     tokio::time::sleep(Duration::from_millis(hint + 60)).await;
     let c = ClientMsg::Command {
         id: 99,
+        idempotency_key: None,
         command: serde_json::from_str(r#"{"op":"list_scenes"}"#).unwrap(),
     };
     ws.send(Message::Text(serde_json::to_string(&c).unwrap().into()))

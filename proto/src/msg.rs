@@ -109,6 +109,12 @@ pub enum ClientMsg {
         id: u64,
         /// What to do.
         command: crate::command::Command,
+        /// Chosen by the client (1–128 visible ASCII characters, unique per command, e.g. a
+        /// UUID): a command sent again with the same key after an unknown outcome (a timeout,
+        /// a dropped connection) is answered with the first one's result and applied at most
+        /// once, on whichever server of a cluster it reaches (PROTOCOL.md, "Idempotency").
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        idempotency_key: Option<String>,
     },
     /// Ask for changes of the scene list: the server answers [`ServerMsg::Scenes`] (every
     /// scene this connection may watch, as `list_scenes` lists them), then pushes

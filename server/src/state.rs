@@ -53,32 +53,54 @@ pub struct AppState {
     cluster: OnceLock<Arc<dyn Cluster>>,
 }
 
+/// How a command [`Cluster::commit`] runs failed.
+#[derive(Debug)]
+pub enum RunError {
+    /// Refused: nothing was changed.
+    Refused(Error),
+    /// Applied in memory, then not stored in the data folder (the commit undoes it).
+    NotStored(Error),
+}
+
+impl RunError {
+    /// The error to answer with.
+    #[must_use]
+    pub fn into_error(self) -> Error {
+        match self {
+            Self::Refused(e) | Self::NotStored(e) => e,
+        }
+    }
+}
+
 /// What a cluster of servers (scale-out through NATS, `crate::cluster`) does for the services
 /// that run commands: set once the server has joined ([`AppState::join_cluster`]).
 pub trait Cluster: Send + Sync + std::fmt::Debug {
     /// `Some` when `command` acts on a scene ticked by another server: the future sends it
-    /// there and answers with that server's answer.
+    /// there (with the client's idempotency `key`) and answers with that server's answer.
     fn forward<'a>(
         &'a self,
         command: &'a Command,
+        key: Option<&'a str>,
     ) -> Option<BoxFuture<'a, Result<CommandResult, Error>>>;
-    /// Claims scene id `scene` cluster-wide before it is created here.
+    /// Runs `run` — `command` applied here to scene `scene` and stored in this server's data
+    /// folder — and stores the scene where every server reads it, before the command is
+    /// acknowledged (`create_scene` claims the id cluster-wide first). Commands on one scene
+    /// commit one at a time, and the write to the cluster is conditioned on this server still
+    /// owning the scene (fencing): a command that cannot be stored, for a stale owner's sake or
+    /// NATS's, is undone here and answered with an error — it changes nothing, then or later.
+    /// `key`, the client's idempotency key: a key the scene's latest commands carried is
+    /// answered with that command's result, without running `run` again.
     ///
     /// # Errors
-    /// `conflict` when the cluster has that scene; `unavailable` without NATS.
-    fn claim<'a>(&'a self, scene: &'a SceneId) -> BoxFuture<'a, Result<(), Error>>;
-    /// Gives a claim back (the scene could not be created here after all).
-    fn unclaim<'a>(&'a self, scene: &'a SceneId) -> BoxFuture<'a, ()>;
-    /// After `command` changed scene `scene` here: stores the scene where every server can
-    /// read it (deleted: removes it), before the command is acknowledged.
-    ///
-    /// # Errors
-    /// `internal` or `unavailable` when it could not be stored (the change is in effect here).
-    fn stored<'a>(
+    /// `run`'s error; `unavailable` when the scene is not ticked here (any longer) or could not
+    /// be stored; `conflict` for a key used by another kind of command.
+    fn commit<'a>(
         &'a self,
         command: &'a Command,
         scene: &'a SceneId,
-    ) -> BoxFuture<'a, Result<(), Error>>;
+        key: Option<&'a str>,
+        run: BoxFuture<'a, Result<CommandResult, RunError>>,
+    ) -> BoxFuture<'a, Result<CommandResult, Error>>;
     /// The scene list of the whole cluster, from this server's own `local` listing.
     fn listing(&self, local: Vec<SceneInfo>) -> BoxFuture<'_, Vec<SceneInfo>>;
     /// Whether the connection to NATS is lost (local scenes are still served).

@@ -90,6 +90,15 @@ impl Posecast {
         self.child.wait().unwrap();
     }
 
+    /// Sends signal `name` (`STOP`, `CONT`…) to the process.
+    pub fn signal(&self, name: &str) {
+        let status = Command::new("kill")
+            .args([&format!("-{name}"), &self.child.id().to_string()])
+            .status()
+            .expect("cannot run kill");
+        assert!(status.success(), "kill -{name} failed");
+    }
+
     /// SIGTERM: a graceful shutdown.
     pub fn terminate(&self) {
         let status = Command::new("kill")

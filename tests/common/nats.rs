@@ -9,15 +9,18 @@ use std::time::{Duration, Instant};
 pub struct Nats {
     child: Child,
     program: &'static str,
+    /// More arguments (credentials: `--user`/`--pass`, `--auth`).
+    extra: Vec<String>,
     /// Its client port.
     pub port: u16,
     store: tempfile::TempDir,
 }
 
-fn spawn(program: &str, port: u16, store: &std::path::Path) -> Child {
+fn spawn(program: &str, port: u16, store: &std::path::Path, extra: &[String]) -> Child {
     Command::new(program)
         .args(["-js", "-a", "127.0.0.1", "-p", &port.to_string(), "-sd"])
         .arg(store)
+        .args(extra)
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
@@ -29,6 +32,13 @@ impl Nats {
     /// [`posecast_proto::testing::skip`] (a failure under `CI=true`), when `nats-server` is
     /// not installed.
     pub fn start() -> Option<Self> {
+        Self::start_with(&[])
+    }
+
+    /// [`Nats::start`] with more arguments for `nats-server` (e.g. `--user u --pass p`, or
+    /// `--auth TOKEN`: clients must then authenticate).
+    pub fn start_with(extra: &[&str]) -> Option<Self> {
+        let extra: Vec<String> = extra.iter().map(|&a| a.to_owned()).collect();
         let program = [
             "nats-server",
             "/usr/sbin/nats-server",
@@ -56,8 +66,9 @@ impl Nats {
             .unwrap()
             .port();
         let nats = Self {
-            child: spawn(program, port, store.path()),
+            child: spawn(program, port, store.path(), &extra),
             program,
+            extra,
             port,
             store,
         };
@@ -91,7 +102,7 @@ impl Nats {
     /// Starts it again on the same port with the same store (what JetStream held survives).
     pub fn restart(&mut self) {
         self.stop();
-        self.child = spawn(self.program, self.port, self.store.path());
+        self.child = spawn(self.program, self.port, self.store.path(), &self.extra);
         self.wait_listening();
     }
 }

@@ -76,7 +76,13 @@ fn samples() -> Vec<(&'static str, &'static str, Value)> {
         clip: Some("walk".into()),
         hash: "0123456789abcdef".into(),
     };
-    let command = |id: u64, command: Command| v!(ClientMsg::Command { id, command });
+    let command = |id: u64, command: Command| {
+        v!(ClientMsg::Command {
+            id,
+            command,
+            idempotency_key: None
+        })
+    };
     vec![
         (
             "welcome",

@@ -253,12 +253,32 @@ struct Shared {
     stats: Stats,
 }
 
+/// The pause before a command is sent again ([`Client::command_retrying`]): a cluster's
+/// scene changes owner within its lease time, a few seconds.
+const RETRY_PAUSE: Duration = Duration::from_millis(500);
+
+/// A value no other client (of this process or another) picks: the clock in nanoseconds, the
+/// process id and a counter, in hex.
+fn nonce() -> String {
+    static COUNTER: AtomicU64 = AtomicU64::new(0);
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos());
+    format!(
+        "{now:x}-{:x}-{:x}",
+        std::process::id(),
+        COUNTER.fetch_add(1, Ordering::Relaxed)
+    )
+}
+
 /// A connection to a posecast server. Dropping it stops the background task.
 pub struct Client {
     shared: Arc<Mutex<Shared>>,
     outgoing: mpsc::Sender<ClientMsg>,
     events: broadcast::Sender<Event>,
     next_id: AtomicU64,
+    /// This client's part of its idempotency keys ([`Client::command_retrying`]).
+    nonce: String,
     task: tokio::task::JoinHandle<()>,
 }
 
@@ -305,6 +325,7 @@ impl Client {
             outgoing,
             events,
             next_id: AtomicU64::new(1),
+            nonce: nonce(),
             task,
         };
         match tokio::time::timeout(Duration::from_secs(10), ready_rx).await {
@@ -340,10 +361,66 @@ impl Client {
     /// # Errors
     /// The server's typed error, a timeout, or a closed client.
     pub async fn command(&self, command: Command) -> Result<serde_json::Value, ClientError> {
+        self.command_keyed(command, None).await
+    }
+
+    /// [`Client::command`] that is safe to retry: sent with an idempotency key of its own
+    /// (this client's nonce and the command's number), and sent again with the same key after
+    /// an unknown outcome — the connection dropped before the answer, no answer within 10 s,
+    /// or the server's `unavailable` — up to `attempts` times in all, after the client has
+    /// reconnected (to its server or a fallback). A server of a cluster applies it at most
+    /// once and answers a repeat with the first answer (PROTOCOL.md, "Idempotency").
+    ///
+    /// # Errors
+    /// The last attempt's error; any other typed error at once.
+    pub async fn command_retrying(
+        &self,
+        command: Command,
+        attempts: u32,
+    ) -> Result<serde_json::Value, ClientError> {
+        let key = format!(
+            "{}-{}",
+            self.nonce,
+            self.next_id.fetch_add(1, Ordering::Relaxed)
+        );
+        let mut left = attempts.max(1);
+        loop {
+            left -= 1;
+            let outcome = self.command_keyed(command.clone(), Some(key.clone())).await;
+            let unknown = match &outcome {
+                Err(ClientError::Timeout(_)) => true,
+                Err(ClientError::Closed) => !self.outgoing.is_closed(),
+                Err(ClientError::Server(e)) => {
+                    e.code == posecast_proto::msg::ErrorCode::Unavailable
+                }
+                _ => false,
+            };
+            if !unknown || left == 0 {
+                return outcome;
+            }
+            // Sent again once connected (a dropped connection reconnects by itself).
+            let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+            while !self.is_connected() && tokio::time::Instant::now() < deadline {
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+            tokio::time::sleep(RETRY_PAUSE).await;
+        }
+    }
+
+    async fn command_keyed(
+        &self,
+        command: Command,
+        idempotency_key: Option<String>,
+    ) -> Result<serde_json::Value, ClientError> {
         let id = self.next_id.fetch_add(1, Ordering::Relaxed);
         let (tx, rx) = oneshot::channel();
         lock(&self.shared).pending.insert(id, tx);
-        self.send(ClientMsg::Command { id, command }).await?;
+        self.send(ClientMsg::Command {
+            id,
+            command,
+            idempotency_key,
+        })
+        .await?;
         match tokio::time::timeout(Duration::from_secs(10), rx).await {
             Ok(Ok(result)) => result.map_err(ClientError::Server),
             Ok(Err(_)) => Err(ClientError::Closed),

@@ -131,7 +131,12 @@ impl Driver {
         let id = self.next_id.fetch_add(1, Ordering::Relaxed);
         let (tx, rx) = oneshot::channel();
         lock(&self.pending).insert(id, tx);
-        self.send_text(&ClientMsg::Command { id, command }).await?;
+        self.send_text(&ClientMsg::Command {
+            id,
+            command,
+            idempotency_key: None,
+        })
+        .await?;
         match tokio::time::timeout(Duration::from_secs(10), rx).await {
             Ok(Ok(result)) => result.map_err(ClientError::Server),
             Ok(Err(_)) => Err(ClientError::Closed),

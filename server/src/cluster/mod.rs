@@ -3,6 +3,8 @@
 //! - this module: [`connect`] (NATS and its two key-value buckets, before the server
 //!   listens), [`Cluster`] (what the services ask of the cluster, [`crate::state::Cluster`]),
 //!   and the lease loop that decides which server ticks which scene.
+//! - `commit`: a command on a scene ticked here applied, stored with fencing, and
+//!   acknowledged — or undone; idempotency keys.
 //! - `owner`: a scene ticked here — its frames, descriptions and avatar changes published,
 //!   commands and joiners' requests answered.
 //! - `assets`: uploaded assets in object store `posecast_assets`, imported by every server.
@@ -23,6 +25,8 @@
 //! does not allow in either).
 
 mod assets;
+mod commit;
+mod credentials;
 mod drive;
 mod owner;
 mod relay;
@@ -60,6 +64,8 @@ const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
 /// Header naming what a message on a scene's relay subject is (`avatars`, `frame`, `change`,
 /// `deleted`) or what a request asks (`command`, `sync`, `info`).
 const KIND: &str = "Posecast-Kind";
+/// Header with a forwarded command's idempotency key.
+const IDEMPOTENCY_KEY: &str = "Posecast-Idempotency-Key";
 /// Header with the owner's epoch: the revision of the lease it created. A newer owner's is
 /// higher, so relays never interleave two owners' frames.
 const EPOCH: &str = "Posecast-Epoch";
@@ -128,7 +134,13 @@ fn host_name() -> String {
 /// No NATS server can be reached, or JetStream is not enabled there: the error names the
 /// URLs.
 pub async fn connect(config: &Config, port: u16) -> std::io::Result<Connection> {
-    let urls = config.nats.join(",");
+    // Printed without their credentials, which go to the client as options.
+    let urls = config
+        .nats
+        .iter()
+        .map(|u| credentials::redact(u))
+        .collect::<Vec<_>>()
+        .join(",");
     let fail = |what: String| {
         std::io::Error::new(
             std::io::ErrorKind::ConnectionRefused,
@@ -140,9 +152,17 @@ pub async fn connect(config: &Config, port: u16) -> std::io::Result<Connection> 
         .node
         .clone()
         .unwrap_or_else(|| format!("{}:{port}", host_name()));
+    let (plain, auth) = credentials::take(&config.nats).map_err(fail)?;
     let lost = Arc::new(AtomicBool::new(false));
     let flag = lost.clone();
-    let options = async_nats::ConnectOptions::new()
+    let options = match auth {
+        None => async_nats::ConnectOptions::new(),
+        Some(credentials::Auth::UserPassword(user, password)) => {
+            async_nats::ConnectOptions::with_user_and_password(user, password)
+        }
+        Some(credentials::Auth::Token(token)) => async_nats::ConnectOptions::with_token(token),
+    };
+    let options = options
         .name(format!("posecast {node}"))
         .connection_timeout(CONNECT_TIMEOUT)
         .request_timeout(Some(REQUEST_TIMEOUT))
@@ -161,7 +181,7 @@ pub async fn connect(config: &Config, port: u16) -> std::io::Result<Connection> 
                 }
             }
         });
-    let client = tokio::time::timeout(CONNECT_TIMEOUT * 2, options.connect(config.nats.as_slice()))
+    let client = tokio::time::timeout(CONNECT_TIMEOUT * 2, options.connect(plain.as_slice()))
         .await
         .map_err(|_| fail("timed out".into()))?
         .map_err(|e| fail(e.to_string()))?;
@@ -226,10 +246,10 @@ pub struct Cluster {
     owned: Mutex<HashMap<SceneId, owner::Owned>>,
     /// Scenes relayed here: their owners and relay tasks.
     relays: Mutex<HashMap<SceneId, relay::Relayed>>,
-    /// Leases created by `claim` for scenes about to be created here.
-    claims: Mutex<HashMap<SceneId, u64>>,
-    /// Orders snapshot writes: a later write always holds every earlier change.
-    writes: tokio::sync::Mutex<()>,
+    /// Scenes about to be created here, claimed cluster-wide (the lease loop leaves them be).
+    claims: Mutex<std::collections::HashSet<SceneId>>,
+    /// Per scene ticked here: the lock its commands commit under, and its keyed answers.
+    slots: Mutex<HashMap<SceneId, commit::Slot>>,
     /// Uploads of the assets bucket this server has (or refused): name → object nuid.
     applied: Mutex<HashMap<String, String>>,
     /// The assets bucket's last sequence number at the last complete look.
@@ -268,8 +288,8 @@ pub fn start(state: &Arc<AppState>, conn: Connection) -> Arc<Cluster> {
         state: Arc::downgrade(state),
         owned: Mutex::new(HashMap::new()),
         relays: Mutex::new(HashMap::new()),
-        claims: Mutex::new(HashMap::new()),
-        writes: tokio::sync::Mutex::new(()),
+        claims: Mutex::new(std::collections::HashSet::new()),
+        slots: Mutex::new(HashMap::new()),
         applied: Mutex::new(HashMap::new()),
         assets_seen: Mutex::new(None),
         short_of_assets: Mutex::new(HashMap::new()),
@@ -326,7 +346,7 @@ impl Cluster {
             },
         ];
         for command in &commands {
-            if let Err(e) = control::execute_here(state, command).await {
+            if let Err(e) = control::execute_here(state, command, None).await {
                 warn!(error = %e, "could not create the default scene");
                 return;
             }
@@ -350,6 +370,7 @@ impl Cluster {
                 return;
             }
             self.renew(&state).await;
+            self.repair(&state).await;
             if let Err(e) = self.sync_assets(&state).await {
                 warn!(error = %e, "cannot read the cluster's uploads from NATS");
             }
@@ -373,10 +394,12 @@ impl Cluster {
             .collect();
         for (id, revision) in held {
             let value = Bytes::from(self.conn.node.clone());
+            let asked = std::time::Instant::now();
             match self.conn.leases.update(key(&id), value, revision).await {
                 Ok(next) => {
                     if let Some(o) = lock(&self.owned).get_mut(&id) {
                         o.lease_revision = next;
+                        o.renewed(asked + self.conn.lease);
                     }
                 }
                 Err(e) if e.kind() == kv::UpdateErrorKind::WrongLastRevision => {
@@ -427,6 +450,7 @@ impl Cluster {
         if let Some(o) = lock(&self.owned).remove(id) {
             o.stop();
         }
+        lock(&self.slots).remove(id);
         if let Ok(scene) = state.world.scene(id) {
             scene.set_tap(None);
         }
@@ -451,7 +475,7 @@ impl Cluster {
             }
         }
         for id in &ids {
-            if lock(&self.owned).contains_key(id) || lock(&self.claims).contains_key(id) {
+            if lock(&self.owned).contains_key(id) || lock(&self.claims).contains(id) {
                 continue;
             }
             let lease = self
@@ -549,9 +573,27 @@ impl Cluster {
         };
         match scene {
             Ok(scene) => {
-                state.metrics.cluster.takeover();
-                info!(scene = %id, avatars = file.avatars.len(), "took the scene over");
-                self.adopt(state, &scene, revision, snapshot_revision);
+                // Written back before it is ticked here: from now on the previous owner's
+                // writes fail (fencing), so whatever it still applies is never acknowledged.
+                let recent: commit::Recent = file.recent.iter().cloned().collect();
+                let slot = self.slot(id);
+                let mut table = slot.lock().await;
+                match self.fence(state, id, snapshot_revision, &recent).await {
+                    Ok(fenced) => {
+                        *table = recent;
+                        state.metrics.cluster.takeover();
+                        info!(scene = %id, avatars = file.avatars.len(), "took the scene over");
+                        self.adopt(state, &scene, revision, fenced);
+                    }
+                    Err(e) => {
+                        drop(table);
+                        // The previous owner wrote meanwhile: the next look starts again
+                        // from its newer snapshot.
+                        info!(scene = %id, error = %e, "the scene changed while being taken over: trying again at the next look");
+                        self.give_up(state, id);
+                        self.conn.leases.delete(key(id)).await.ok();
+                    }
+                }
             }
             Err(e) => {
                 warn!(scene = %id, error = %e, "cannot take the scene over");
@@ -560,29 +602,19 @@ impl Cluster {
         }
     }
 
-    /// Writes scene `id`'s snapshot to the cluster's bucket.
-    async fn write_snapshot(&self, state: &AppState, id: &SceneId) -> Result<(), Error> {
-        let _order = self.writes.lock().await;
-        let scene = state.world.scene(id)?;
-        let file = snapshot::snapshot(&scene, crate::scene::ticker::unix_micros());
-        let bytes = serde_json::to_vec(&file)
-            .map_err(|e| Error::internal("cannot serialise the scene", &e))?;
-        let revision = self
-            .conn
-            .scenes
-            .put(key(id), Bytes::from(bytes))
-            .await
-            .map_err(|e| unavailable("cannot store the scene in NATS", &e))?;
-        if let Some(o) = lock(&self.owned).get_mut(id) {
-            o.snapshot_revision = revision;
-        }
-        Ok(())
-    }
-
     /// Sends a request to scene `id`'s owner and waits for the answer.
-    async fn request(&self, id: &SceneId, kind: &str, payload: Bytes) -> Result<Bytes, Error> {
+    async fn request(
+        &self,
+        id: &SceneId,
+        kind: &str,
+        idempotency_key: Option<&str>,
+        payload: Bytes,
+    ) -> Result<Bytes, Error> {
         let mut headers = async_nats::HeaderMap::new();
         headers.insert(KIND, kind);
+        if let Some(k) = idempotency_key {
+            headers.insert(IDEMPOTENCY_KEY, k);
+        }
         let state = self.state();
         if let Some(s) = &state {
             s.metrics.cluster.published(payload.len());
@@ -619,6 +651,7 @@ impl crate::state::Cluster for Cluster {
     fn forward<'a>(
         &'a self,
         command: &'a Command,
+        idempotency_key: Option<&'a str>,
     ) -> Option<BoxFuture<'a, Result<CommandResult, Error>>> {
         if matches!(command, Command::ListScenes) {
             return None;
@@ -627,7 +660,9 @@ impl crate::state::Cluster for Cluster {
         Some(Box::pin(async move {
             let payload = serde_json::to_vec(command)
                 .map_err(|e| Error::internal("cannot serialise the command", &e))?;
-            let reply = self.request(&id, "command", Bytes::from(payload)).await?;
+            let reply = self
+                .request(&id, "command", idempotency_key, Bytes::from(payload))
+                .await?;
             match serde_json::from_slice::<Reply>(&reply) {
                 Ok(Reply::Ok(value)) => serde_json::from_value(value)
                     .map_err(|e| Error::internal("unreadable answer from the scene's server", &e)),
@@ -640,86 +675,19 @@ impl crate::state::Cluster for Cluster {
         }))
     }
 
-    fn claim<'a>(&'a self, id: &'a SceneId) -> BoxFuture<'a, Result<(), Error>> {
-        Box::pin(async move {
-            if crate::world::number_of(&id.0) == 0 {
-                return Err(Error::invalid("scene id"));
-            }
-            let empty = snapshot::SceneFile {
-                format: snapshot::SCENE_FORMAT,
-                scene: id.clone(),
-                saved_us: crate::scene::ticker::unix_micros(),
-                avatars: Vec::new(),
-            };
-            let bytes = serde_json::to_vec(&empty)
-                .map_err(|e| Error::internal("cannot serialise the scene", &e))?;
-            match self.conn.scenes.create(key(id), Bytes::from(bytes)).await {
-                Ok(_) => {}
-                Err(e) if e.kind() == kv::CreateErrorKind::AlreadyExists => {
-                    return Err(Error::Conflict(format!("scene {id} exists")));
-                }
-                Err(e) => return Err(unavailable("cannot create the scene in NATS", &e)),
-            }
-            let lease = Bytes::from(self.conn.node.clone());
-            match self.conn.leases.create(key(id), lease).await {
-                Ok(revision) => {
-                    lock(&self.claims).insert(id.clone(), revision);
-                    Ok(())
-                }
-                Err(e) => {
-                    self.conn.scenes.delete(key(id)).await.ok();
-                    Err(unavailable("cannot take the new scene's lease", &e))
-                }
-            }
-        })
-    }
-
-    fn unclaim<'a>(&'a self, id: &'a SceneId) -> BoxFuture<'a, ()> {
-        Box::pin(async move {
-            lock(&self.claims).remove(id);
-            self.conn.leases.delete(key(id)).await.ok();
-            self.conn.scenes.delete(key(id)).await.ok();
-        })
-    }
-
-    fn stored<'a>(
+    fn commit<'a>(
         &'a self,
         command: &'a Command,
-        id: &'a SceneId,
-    ) -> BoxFuture<'a, Result<(), Error>> {
+        scene: &'a SceneId,
+        idempotency_key: Option<&'a str>,
+        run: BoxFuture<'a, Result<CommandResult, crate::state::RunError>>,
+    ) -> BoxFuture<'a, Result<CommandResult, Error>> {
         Box::pin(async move {
             let Some(state) = self.state() else {
                 return Err(Error::Unavailable("the server is stopping".into()));
             };
-            match command {
-                Command::CreateScene { .. } => {
-                    let revision = lock(&self.claims).remove(id);
-                    if let (Some(revision), Ok(scene)) = (revision, state.world.scene(id)) {
-                        self.adopt(&state, &scene, revision, 0);
-                    }
-                    self.write_snapshot(&state, id).await
-                }
-                Command::DeleteScene { .. } => {
-                    if let Some(o) = lock(&self.owned).remove(id) {
-                        o.stop();
-                    }
-                    self.conn
-                        .scenes
-                        .delete(key(id))
-                        .await
-                        .map_err(|e| unavailable("cannot delete the scene in NATS", &e))?;
-                    self.conn.leases.delete(key(id)).await.ok();
-                    let mut headers = async_nats::HeaderMap::new();
-                    headers.insert(KIND, "deleted");
-                    self.conn
-                        .client
-                        .publish_with_headers(relay_subject(id), headers, Bytes::new())
-                        .await
-                        .map_err(|e| unavailable("cannot tell the cluster", &e))?;
-                    Ok(())
-                }
-                _ => self.write_snapshot(&state, id).await,
-            }
+            self.commit_command(&state, command, scene, idempotency_key, run)
+                .await
         })
     }
 
@@ -732,7 +700,7 @@ impl crate::state::Cluster for Cluster {
                     None => info.owner = Some(self.conn.node.clone()),
                     Some(owner) => {
                         // The owner knows the avatars and what they play.
-                        let asked = self.request(&info.scene, "info", Bytes::new()).await;
+                        let asked = self.request(&info.scene, "info", None, Bytes::new()).await;
                         match asked.and_then(|b| {
                             serde_json::from_slice::<SceneInfo>(&b)
                                 .map_err(|e| Error::internal("info", &e))

@@ -4,7 +4,9 @@
 //! by other servers, the current descriptions and frames for a server that starts relaying,
 //! the scene's listing.
 
-use super::{Cluster, EPOCH, KIND, Reply, Task, lock, relay_subject, request_subject};
+use super::{
+    Cluster, EPOCH, IDEMPOTENCY_KEY, KIND, Reply, Task, lock, relay_subject, request_subject,
+};
 use crate::control;
 use crate::metrics::Metrics;
 use crate::scene::Scene;
@@ -17,7 +19,8 @@ use posecast_proto::command::Command;
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError, SceneId};
 use serde::{Deserialize, Serialize};
-use std::sync::{Arc, Weak};
+use std::sync::{Arc, Mutex, Weak};
+use std::time::Instant;
 use tokio::sync::mpsc;
 use tracing::{debug, warn};
 
@@ -32,12 +35,24 @@ pub(super) struct Owned {
     pub(super) lease_revision: u64,
     /// The revision of the scene's snapshot this server last wrote or restored.
     pub(super) snapshot_revision: u64,
+    /// The bytes of a write whose outcome is unknown (NATS did not answer): if they turn up
+    /// in the bucket, they are this server's and are overwritten ([`super::commit`]).
+    pub(super) unsure: Option<Bytes>,
+    /// Until when the lease is surely this server's (its last renewal's request time plus the
+    /// lease time): past it, frames are not published, so a paused owner that wakes up never
+    /// interleaves its frames with a new owner's while it finds out.
+    held_until: Arc<Mutex<Instant>>,
     _tasks: [Task; 3],
 }
 
 impl Owned {
     /// Stops publishing and answering for the scene.
     pub(super) fn stop(self) {}
+
+    /// The lease was renewed: surely held until `until`.
+    pub(super) fn renewed(&self, until: Instant) {
+        *lock(&self.held_until) = until;
+    }
 }
 
 /// `avatar_changed` news of one avatar, as relayed.
@@ -125,11 +140,13 @@ impl Cluster {
                 metrics.cluster.publish_dropped();
             }
         }));
+        let held_until = Arc::new(Mutex::new(Instant::now() + self.conn.lease));
         let publisher = tokio::spawn(publish(
             self.conn.client.clone(),
             relay_subject(&scene.id),
             revision,
             rx,
+            held_until.clone(),
             state.metrics.clone(),
         ));
         let responder = tokio::spawn(answer(
@@ -151,22 +168,30 @@ impl Cluster {
             Owned {
                 lease_revision: revision,
                 snapshot_revision: snapshot,
+                unsure: None,
+                held_until,
                 _tasks: [Task(publisher), Task(responder), Task(poses)],
             },
         );
     }
 }
 
-/// Publishes what the tap queued, in order, with the owner's epoch.
+/// Publishes what the tap queued, in order, with the owner's epoch — while the lease is surely
+/// held (`held_until`); past that, what comes is dropped until a renewal (or a giving up).
 async fn publish(
     client: async_nats::Client,
     subject: String,
     epoch: u64,
     mut rx: mpsc::Receiver<(&'static str, Bytes)>,
+    held_until: Arc<Mutex<Instant>>,
     metrics: Arc<Metrics>,
 ) {
     let epoch = epoch.to_string();
     while let Some((kind, payload)) = rx.recv().await {
+        if Instant::now() > *lock(&held_until) {
+            debug!(subject, "lease not renewed in time: not published");
+            continue;
+        }
         let mut headers = async_nats::HeaderMap::new();
         headers.insert(KIND, kind);
         headers.insert(EPOCH, epoch.as_str());
@@ -217,11 +242,24 @@ async fn answer(
         tokio::spawn(async move {
             let answer = match kind.as_str() {
                 "command" => {
+                    let key = msg
+                        .headers
+                        .as_ref()
+                        .and_then(|h| h.get(IDEMPOTENCY_KEY))
+                        .map(|v| v.as_str().to_owned());
                     let reply = match serde_json::from_slice::<Command>(&msg.payload) {
-                        Ok(command) => match control::execute_here(&state, &command).await {
-                            Ok(result) => Reply::Ok(result.to_value()),
-                            Err(e) => Reply::Error(e.into()),
-                        },
+                        Ok(command) => {
+                            match control::execute_here(&state, &command, key.as_deref()).await {
+                                Ok(result) => Reply::Ok(result.to_value()),
+                                // Given up meanwhile (another server took the scene over and
+                                // got this request too): that server answers, not this one,
+                                // whose "not applied" could arrive first and be untrue there.
+                                Err(_) if !state.world.scene(&id).is_ok_and(|s| !s.is_relay()) => {
+                                    return;
+                                }
+                                Err(e) => Reply::Error(e.into()),
+                            }
+                        }
                         Err(e) => Reply::Error(ProtocolError::new(
                             ErrorCode::BadMessage,
                             format!("not a valid command: {e}"),

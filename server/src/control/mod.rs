@@ -8,7 +8,7 @@ mod objects;
 use crate::auth::Caller;
 use crate::changes;
 use crate::error::Error;
-use crate::state::AppState;
+use crate::state::{AppState, RunError};
 use crate::world::command;
 use posecast_proto::command::{Command, CommandResult, RecordingInfo};
 
@@ -34,14 +34,18 @@ pub fn execute(state: &AppState, command: &Command) -> Result<CommandResult, Err
 ///
 /// # Errors
 /// As [`execute`]; or `internal` when storing failed, in which case the change
-/// *is* in effect in memory but not on disk.
+/// *is* in effect in memory but not on disk (on a server of a cluster it is undone:
+/// [`crate::state::Cluster::commit`]).
 pub async fn execute_durable(state: &AppState, command: &Command) -> Result<CommandResult, Error> {
-    execute_as(state, &Caller::Anonymous, command).await
+    execute_as(state, &Caller::Anonymous, command, None).await
 }
 
 /// [`execute_durable`] for `caller` (authorised already): what it makes (a recording) is
 /// owned by its token and counted against its quota ([`crate::auth::TokenQuota`]), and what
-/// it may delete depends on who made it.
+/// it may delete depends on who made it. `key` is the client's idempotency key (REST
+/// `Idempotency-Key`, a websocket command's `idempotency_key`): on a server of a cluster a
+/// command whose key the scene's latest commands carried is answered with that command's
+/// result and not applied again, on whichever server the retry arrives.
 ///
 /// # Errors
 /// As [`execute_durable`].
@@ -49,32 +53,38 @@ pub async fn execute_as(
     state: &AppState,
     caller: &Caller,
     command: &Command,
+    key: Option<&str>,
 ) -> Result<CommandResult, Error> {
     // In a cluster, a command on a scene another server ticks runs there; its answer comes
     // back through here.
-    if let Some(forwarded) = state.cluster().and_then(|c| c.forward(command)) {
+    if let Some(forwarded) = state.cluster().and_then(|c| c.forward(command, key)) {
         return forwarded.await;
     }
-    execute_here_as(state, caller, command).await
+    execute_here_as(state, caller, command, key).await
 }
 
 /// [`execute_durable`] on this server, never forwarded: what a scene's owner runs for a
 /// command another server of the cluster forwarded to it. In a cluster a change is also
-/// stored where every server reads it ([`crate::state::Cluster::stored`]) before the answer,
+/// stored where every server reads it ([`crate::state::Cluster::commit`]) before the answer,
 /// and `create_scene` claims the id cluster-wide first; `list_scenes` lists the cluster's.
 ///
 /// # Errors
 /// As [`execute_durable`]; `unavailable` for a scene that another server ticks.
-pub async fn execute_here(state: &AppState, command: &Command) -> Result<CommandResult, Error> {
+pub async fn execute_here(
+    state: &AppState,
+    command: &Command,
+    key: Option<&str>,
+) -> Result<CommandResult, Error> {
     // Forwarded by another server: the caller is not known here, so what it makes has no
     // owner (it counts against the server's quota only).
-    execute_here_as(state, &Caller::Anonymous, command).await
+    execute_here_as(state, &Caller::Anonymous, command, key).await
 }
 
 async fn execute_here_as(
     state: &AppState,
     caller: &Caller,
     command: &Command,
+    key: Option<&str>,
 ) -> Result<CommandResult, Error> {
     match command {
         Command::DeleteClip { asset, clip } => {
@@ -138,37 +148,39 @@ async fn execute_here_as(
             "scene {id} is ticked by another server now: try again"
         )));
     }
-    let claimed = match (cluster, command) {
-        (Some(cluster), Command::CreateScene { scene: id, .. }) => {
-            cluster.claim(id).await?;
-            Some((cluster, id))
+    // Applies the command here: `stop_recording` off the tick path, stored before its clip
+    // joins the rig ([`objects::stop_recording`]).
+    let apply = || async move {
+        match command {
+            Command::StopRecording { avatar } => {
+                let result = objects::stop_recording(state, caller, avatar).await;
+                state.metrics.command(result.is_ok());
+                result
+            }
+            _ => execute(state, command),
         }
-        _ => None,
     };
-    let executed = match command {
-        // Off the tick path, stored before it joins the rig ([`objects::stop_recording`]).
-        Command::StopRecording { avatar } => {
-            let result = objects::stop_recording(state, caller, avatar).await;
-            state.metrics.command(result.is_ok());
+    let result = match (cluster, &scene) {
+        (Some(cluster), Some(id)) => {
+            let run = Box::pin(async move {
+                let result = apply().await.map_err(RunError::Refused)?;
+                state
+                    .store
+                    .persist_scene(&state.world, id)
+                    .await
+                    .map_err(RunError::NotStored)?;
+                Ok(result)
+            });
+            cluster.commit(command, id, key, run).await?
+        }
+        (_, scene) => {
+            let result = apply().await?;
+            if let Some(scene) = scene {
+                state.store.persist_scene(&state.world, scene).await?;
+            }
             result
         }
-        _ => execute(state, command),
     };
-    let result = match executed {
-        Ok(result) => result,
-        Err(e) => {
-            if let Some((cluster, id)) = claimed {
-                cluster.unclaim(id).await;
-            }
-            return Err(e);
-        }
-    };
-    if let Some(scene) = scene {
-        state.store.persist_scene(&state.world, &scene).await?;
-        if let Some(cluster) = cluster {
-            cluster.stored(command, &scene).await?;
-        }
-    }
     if let CommandResult::Recorded(info) = &result
         && let Some(cluster) = cluster
     {

@@ -119,12 +119,31 @@ fn bearer_token(value: &str) -> Option<&str> {
     (scheme.eq_ignore_ascii_case("bearer") && !token.is_empty()).then_some(token)
 }
 
+/// The longest idempotency key taken (a UUID is 36 characters).
+const MAX_IDEMPOTENCY_KEY: usize = 128;
+
 /// `POST /api/commands`.
 pub async fn command(
     State(state): State<Arc<AppState>>,
     caller: Caller,
+    headers: axum::http::HeaderMap,
     body: Bytes,
 ) -> Result<Json<Value>, AppError> {
+    // A retry after an unknown outcome (a timeout) carries the first try's key and is
+    // applied at most once (README, "Scale-out with NATS").
+    let key = match headers.get("idempotency-key").map(|v| v.to_str()) {
+        None => None,
+        Some(Ok(k)) if !k.is_empty() && k.len() <= MAX_IDEMPOTENCY_KEY => Some(k.to_owned()),
+        Some(_) => {
+            return Err(ProtocolError::new(
+                ErrorCode::InvalidValue,
+                format!(
+                    "Idempotency-Key must be 1 to {MAX_IDEMPOTENCY_KEY} visible ASCII characters"
+                ),
+            )
+            .into());
+        }
+    };
     // The body is JSON whatever its Content-Type (so `curl -d '{…}'` works). That is safe
     // from cross-site form posts because every command needs an `Authorization` header,
     // which a form cannot set.
@@ -136,7 +155,7 @@ pub async fn command(
         .access
         .authorize(&caller, &state.world, &command)
     {
-        Ok(()) => control::execute_as(&state, &caller, &command).await,
+        Ok(()) => control::execute_as(&state, &caller, &command, key.as_deref()).await,
         Err(e) => Err(e),
     };
     control::audit(caller.name(), &command, &result);

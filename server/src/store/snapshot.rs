@@ -29,6 +29,23 @@ pub struct SceneFile {
     pub saved_us: u64,
     /// Avatars in the order they were added.
     pub avatars: Vec<AvatarRecord>,
+    /// The answers of the scene's latest commands that carried an idempotency key, oldest
+    /// first (a cluster's owner keeps them in the snapshot, so a retry after a failover is
+    /// answered by the new owner without applying the command again); files without: none.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub recent: Vec<RecentCommand>,
+}
+
+/// A command that carried an idempotency key, and its answer.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RecentCommand {
+    /// The client's key.
+    pub key: String,
+    /// The command's `op` (a key used again for another command is refused, not answered).
+    pub op: String,
+    /// The result it was acknowledged with (`CommandResult` as JSON).
+    pub result: serde_json::Value,
 }
 
 /// One avatar.
@@ -79,6 +96,7 @@ pub fn snapshot(scene: &Scene, now_us: u64) -> SceneFile {
         scene: scene.id.clone(),
         saved_us: now_us,
         avatars: s.avatars.iter().map(record).collect(),
+        recent: Vec::new(),
     }
 }
 
@@ -213,12 +231,21 @@ pub fn parse_lenient(value: &serde_json::Value) -> Result<(SceneFile, Vec<String
             placement,
         });
     }
+    // A table that does not parse costs the retries' answers only, never the scene.
+    let recent = match field("recent") {
+        Value::Null => Vec::new(),
+        r => serde_json::from_value::<Vec<RecentCommand>>(r).unwrap_or_else(|e| {
+            dropped.push(format!("the answers of recent commands ({e})"));
+            Vec::new()
+        }),
+    };
     Ok((
         SceneFile {
             format,
             scene,
             saved_us,
             avatars,
+            recent,
         },
         dropped,
     ))

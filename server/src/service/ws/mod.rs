@@ -604,7 +604,11 @@ impl Session {
                 });
                 true
             }
-            ClientMsg::Command { id, command } => {
+            ClientMsg::Command {
+                id,
+                command,
+                idempotency_key,
+            } => {
                 if let Err(wait) = self.commands.take() {
                     self.state.metrics.rate_limited();
                     self.error(rate_limited(wait).for_command(id));
@@ -620,7 +624,15 @@ impl Session {
                         Some(result) => result,
                         None => match self.drives.command(&self.state, &command) {
                             Some(result) => result,
-                            None => control::execute_as(&self.state, &self.caller, &command).await,
+                            None => {
+                                control::execute_as(
+                                    &self.state,
+                                    &self.caller,
+                                    &command,
+                                    idempotency_key.as_deref(),
+                                )
+                                .await
+                            }
                         },
                     },
                     Err(e) => Err(e),

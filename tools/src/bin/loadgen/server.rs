@@ -257,7 +257,15 @@ fn sibling(name: &str) -> Result<PathBuf> {
 }
 
 async fn command(ws: &mut Ws, id: u64, command: Command) -> Result<()> {
-    client::send(ws, &ClientMsg::Command { id, command }).await?;
+    client::send(
+        ws,
+        &ClientMsg::Command {
+            id,
+            command,
+            idempotency_key: None,
+        },
+    )
+    .await?;
     client::expect(
         ws,
         |m| matches!(m, ServerMsg::Ack { id: a, .. } if *a == id),
