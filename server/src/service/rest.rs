@@ -201,7 +201,7 @@ async fn run(
     command: &Command,
 ) -> Result<Json<Value>, AppError> {
     let result = match state.config.access.authorize(caller, &state.world, command) {
-        Ok(()) => control::execute_as(state, caller, command).await,
+        Ok(()) => control::execute_as(state, caller, command, None).await,
         Err(e) => Err(e),
     };
     control::audit(caller.name(), command, &result);
