@@ -338,26 +338,33 @@ impl Cluster {
         };
         let bytes = serde_json::to_vec(&empty)
             .map_err(|e| Error::internal("cannot serialise the scene", &e))?;
-        let stored = match self.conn.scenes.create(key(id), Bytes::from(bytes)).await {
+        // The lease first, then the scene's key: the other servers' lease loops look at scene
+        // keys, and one without a lease is taken over — created in the other order, a new
+        // scene could be taken over between the two creates, and its creator refused.
+        let lease = Bytes::from(self.conn.node.clone());
+        let lease_revision = match self.conn.leases.create(key(id), lease).await {
             Ok(revision) => revision,
             Err(e) if e.kind() == kv::CreateErrorKind::AlreadyExists => {
                 return Err(Error::Conflict(format!("scene {id} exists")));
             }
-            Err(e) => return Err(unavailable("cannot create the scene in NATS", &e)),
+            Err(e) => return Err(unavailable("cannot take the new scene's lease", &e)),
         };
-        let lease = Bytes::from(self.conn.node.clone());
-        match self.conn.leases.create(key(id), lease).await {
-            Ok(revision) => {
+        match self.conn.scenes.create(key(id), Bytes::from(bytes)).await {
+            Ok(stored) => {
                 lock(&self.claims).insert(id.clone());
-                Ok((revision, stored))
+                Ok((lease_revision, stored))
             }
             Err(e) => {
                 self.conn
-                    .scenes
-                    .delete_expect_revision(key(id), Some(stored))
+                    .leases
+                    .delete_expect_revision(key(id), Some(lease_revision))
                     .await
                     .ok();
-                Err(unavailable("cannot take the new scene's lease", &e))
+                if e.kind() == kv::CreateErrorKind::AlreadyExists {
+                    Err(Error::Conflict(format!("scene {id} exists")))
+                } else {
+                    Err(unavailable("cannot create the scene in NATS", &e))
+                }
             }
         }
     }
