@@ -642,10 +642,19 @@ async fn another_server_takes_over_from_the_last_ack() {
             .first()
             .unwrap_or_else(|| panic!("{name}: no frame after the kill"));
         let header = read_header(first).unwrap().0;
+        let around: Vec<String> = frames
+            [gap_end.saturating_sub(3)..(gap_end + 5).min(frames.len())]
+            .iter()
+            .map(|(t, b)| {
+                let h = read_header(b).unwrap().0;
+                let ms = t.saturating_duration_since(killed).as_millis();
+                format!("{ms} ms {:?} seq {}", h.kind, h.seq)
+            })
+            .collect();
         assert_eq!(
             header.kind,
             FrameKind::Key,
-            "{name}: first frame after the takeover"
+            "{name}: first frame after the takeover; frames around the gap: {around:?}"
         );
         let after = at.duration_since(killed);
         println!(
