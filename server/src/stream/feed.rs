@@ -214,8 +214,13 @@ impl Feed {
     }
 
     /// Hands every tick's frame, and the avatars' descriptions when they change, to `tap`
-    /// (`None`: to nobody). A new tap starts with the descriptions.
+    /// (`None`: to nobody). A new tap starts with the descriptions and a keyframe: a relay
+    /// fed by it has none of the frames before (a scene taken over may tick a while before its
+    /// tap is set, and its first keyframe would otherwise reach no relay).
     pub fn set_tap(&mut self, tap: Option<Tap>) {
+        if tap.is_some() {
+            self.force_key = true;
+        }
         self.tap = tap;
         self.tapped.clear();
     }
