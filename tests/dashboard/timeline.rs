@@ -103,8 +103,9 @@ async fn the_timeline_moves_with_the_stream() {
     let renders = samples.last().unwrap()[2].as_u64().unwrap() - samples[0][2].as_u64().unwrap();
     let gaps = samples.len() - 1;
     assert!(
-        changes(0) >= 10
-            && changes(1) >= 10
+        // At least 10 changes, or every gap when a loaded browser sampled fewer times.
+        changes(0) >= gaps.min(10)
+            && changes(1) >= gaps.min(10)
             && 2 * changes(0) >= gaps
             && 2 * changes(1) >= gaps
             && renders >= 30,
