@@ -95,7 +95,7 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
             break;
         }
         assert!(
-            t0.elapsed() < Duration::from_secs(5),
+            t0.elapsed() < Duration::from_secs(60),
             "play from the page never reached the server"
         );
         tokio::time::sleep(Duration::from_millis(20)).await;
@@ -138,7 +138,7 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
             break;
         }
         assert!(
-            t0.elapsed() < Duration::from_secs(5),
+            t0.elapsed() < Duration::from_secs(60),
             "the slider never set an override"
         );
         tokio::time::sleep(Duration::from_millis(20)).await;

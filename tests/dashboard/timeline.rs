@@ -149,7 +149,10 @@ async fn the_timeline_moves_with_the_stream() {
     find(&b, "#pause").await.click().await.unwrap();
     let t0 = Instant::now();
     while avatar_state(&server, "avatar").await["paused"] != true {
-        assert!(t0.elapsed() < Duration::from_secs(5), "pause never arrived");
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "pause never arrived"
+        );
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
     let target = walk * 0.4;
@@ -169,7 +172,7 @@ async fn the_timeline_moves_with_the_stream() {
             break;
         }
         assert!(
-            t0.elapsed() < Duration::from_secs(5),
+            t0.elapsed() < Duration::from_secs(60),
             "seek to {target} never arrived ({time})"
         );
         tokio::time::sleep(Duration::from_millis(20)).await;
