@@ -29,7 +29,7 @@
 //!   connection reorders them on a real path; TCP then holds the early ones (the in-order rule
 //!   above) and, when a segment is overtaken by `reorder` later ones, takes it for lost: a
 //!   spurious retransmission, modelled as the sender sending nothing new for a round trip
-//!   (see [`reorder`](crate::reorder) for the model and its limits). Without `reorder`, only
+//!   (see [`reorder`] for the model and its limits). Without `reorder`, only
 //!   the in-order holds remain.
 //! - **window**: at most `window` bytes of a connection are between the proxy's read and its
 //!   write (TCP's in-flight bound); past it the proxy stops reading that connection.

@@ -6,7 +6,7 @@
 //! segments of a connection. TCP hides the reordering from the application but not its cost:
 //!
 //! - **head-of-line holds**: the receiver hands bytes over in order, so a segment that arrives
-//!   early waits for every segment ahead of it ([`Order::place`] never delivers a segment before
+//!   early waits for every segment ahead of it (`Order::place` never delivers a segment before
 //!   the one ahead);
 //! - **spurious retransmissions**: when a segment is overtaken by [`LinkConfig::reorder`] later
 //!   segments of its connection (3 is the classic duplicate-ACK threshold; Linux's RACK can take
