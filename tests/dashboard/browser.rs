@@ -70,7 +70,7 @@ pub async fn browser() -> (Driver, Browser) {
         profile,
         _turn: turn,
     };
-    let deadline = Instant::now() + Duration::from_secs(20);
+    let deadline = Instant::now() + Duration::from_secs(60);
     while tokio::net::TcpStream::connect(("127.0.0.1", port))
         .await
         .is_err()
@@ -121,7 +121,7 @@ pub async fn wait_js(b: &Browser, secs: u64, expr: &str) -> Value {
 
 pub async fn find(b: &Browser, css: &str) -> fantoccini::elements::Element {
     b.wait()
-        .at_most(Duration::from_secs(10))
+        .at_most(Duration::from_secs(60))
         .for_element(Locator::Css(css))
         .await
         .unwrap_or_else(|e| panic!("no element {css}: {e}"))

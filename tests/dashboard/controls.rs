@@ -72,17 +72,17 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
         .unwrap();
     find(&b, r#"#scene-list button[data-avatar="avatar"]"#).await;
     find(&b, r#"#scene-list button[data-avatar="skel"]"#).await;
-    wait_js(&b, 10, "window.posecast.state === 'online' && window.posecast.frames > 10 && window.posecast.rendered > 10").await;
-    let renderer = wait_js(&b, 5, "window.posecast.renderer").await;
-    wait_js(&b, 10, "window.posecast.meshLoaded").await;
+    wait_js(&b, 60, "window.posecast.state === 'online' && window.posecast.frames > 10 && window.posecast.rendered > 10").await;
+    let renderer = wait_js(&b, 60, "window.posecast.renderer").await;
+    wait_js(&b, 60, "window.posecast.meshLoaded").await;
     assert_eq!(errors(&b).await, json!([]), "errors while loading");
     let fps = wait_js(
         &b,
-        5,
+        60,
         "/^[1-9][0-9]* frames/.test(document.getElementById('fps').textContent) && document.getElementById('fps').textContent",
     )
     .await;
-    let rtt = wait_js(&b, 5, "window.posecast.rtt").await;
+    let rtt = wait_js(&b, 60, "window.posecast.rtt").await;
 
     phases.push(("load", started.elapsed()));
     // 2. Play "walk": the avatar's state and the pose stream change.
@@ -107,7 +107,7 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
     );
     wait_js(
         &b,
-        5,
+        60,
         "document.querySelector('[data-field=clip]')?.textContent === 'walk'",
     )
     .await;
@@ -130,7 +130,7 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
     let before = lab.latest(&skel).unwrap().locals[knee_r].rotation;
     // The sliders span the limits `get_joint` reports from test.skel: rotx [−2, 0] rad
     // (−114.6°…0°), roty and rotz locked at 0; they start at the pose, rotx −2 (−114.6°).
-    wait_js(&b, 5, "document.getElementById('dof-0').min === '-115' && document.getElementById('dof-0').max === '0' && document.getElementById('dof-1').min === '0' && document.getElementById('dof-1').max === '0' && Math.abs(Number(document.getElementById('dof-0').value) + 114.6) < 0.6").await;
+    wait_js(&b, 60, "document.getElementById('dof-0').min === '-115' && document.getElementById('dof-0').max === '0' && document.getElementById('dof-1').min === '0' && document.getElementById('dof-1').max === '0' && Math.abs(Number(document.getElementById('dof-0').value) + 114.6) < 0.6").await;
     slider.send_keys(&Key::End.to_string()).await.unwrap();
     let t0 = Instant::now();
     loop {
@@ -144,7 +144,7 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
     // The page shows the value the server applied.
-    wait_js(&b, 5, "document.getElementById('dof-0-out').textContent === '0.0°' && document.getElementById('dof-0').max === '0'").await;
+    wait_js(&b, 60, "document.getElementById('dof-0-out').textContent === '0.0°' && document.getElementById('dof-0').max === '0'").await;
     // The same values again over REST (changes nothing): the rotation the server sets for them.
     let (s, r) = command(
         &server,
@@ -183,12 +183,17 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
         .click()
         .await
         .unwrap();
-    wait_js(&b, 10, "window.posecast.meshLoaded").await;
-    let rendered = wait_js(&b, 5, "window.posecast.rendered")
+    wait_js(&b, 60, "window.posecast.meshLoaded").await;
+    let rendered = wait_js(&b, 60, "window.posecast.rendered")
         .await
         .as_u64()
         .unwrap();
-    wait_js(&b, 5, &format!("window.posecast.rendered > {rendered} + 5")).await;
+    wait_js(
+        &b,
+        60,
+        &format!("window.posecast.rendered > {rendered} + 5"),
+    )
+    .await;
     b.execute("window.scrollTo(0, 0);", vec![]).await.unwrap();
     let png_bytes = b.screenshot().await.unwrap();
     std::fs::write(artifacts().join("dashboard.png"), &png_bytes).unwrap();
@@ -214,7 +219,7 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
             let paths: Vec<String> = files.iter().map(|p| p.display().to_string()).collect();
             input.send_keys(&paths.join("\n")).await.unwrap();
             find(&b, "#upload-submit").await.click().await.unwrap();
-            let v = wait_js(&b, 20, "(() => { const t = document.getElementById('upload-result').textContent; return /^(Imported|Upload refused|Upload failed)/.test(t) ? t : null; })()").await;
+            let v = wait_js(&b, 60, "(() => { const t = document.getElementById('upload-result').textContent; return /^(Imported|Upload refused|Upload failed)/.test(t) ? t : null; })()").await;
             v.as_str().unwrap_or_default().to_owned()
         }
     };
@@ -255,7 +260,7 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
     phases.push(("uploads", started.elapsed()));
     // 5. Narrow screens: no horizontal scrolling at 400 px.
     b.set_window_size(400, 800).await.unwrap();
-    wait_js(&b, 5, "window.innerWidth <= 400").await;
+    wait_js(&b, 60, "window.innerWidth <= 400").await;
     let overflow = b
         .execute(
             "return document.documentElement.scrollWidth - window.innerWidth;",
@@ -273,7 +278,7 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
     b.goto(&format!("{base}/?debug&renderer=2d")).await.unwrap();
     wait_js(
         &b,
-        10,
+        60,
         "window.posecast.renderer === '2d' && window.posecast.rendered > 10",
     )
     .await;
@@ -289,7 +294,7 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
     assert_eq!(errors(&b).await, json!([]), "errors during the session");
     let addr = server.addr;
     server.stop().await;
-    wait_js(&b, 10, "document.getElementById('conn-state').textContent.startsWith('offline') && !document.getElementById('offline').hidden").await;
+    wait_js(&b, 60, "document.getElementById('conn-state').textContent.startsWith('offline') && !document.getElementById('offline').hidden").await;
     phases.push(("offline", started.elapsed()));
 
     // 7. A server back on the same address: the page reconnects, resubscribes and streams.
@@ -303,7 +308,7 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
     .expect("restart on the same address");
     wait_js(
         &b,
-        15,
+        60,
         "window.posecast.state === 'online' && document.getElementById('offline').hidden",
     )
     .await;
@@ -314,7 +319,7 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
     let frames = frames.as_u64().unwrap_or(0);
     wait_js(
         &b,
-        10,
+        60,
         &format!("window.posecast.frames > {frames} + 10 && document.querySelector('#scene-list button[data-avatar=\"avatar\"]') !== null"),
     )
     .await;

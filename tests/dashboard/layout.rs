@@ -42,7 +42,7 @@ async fn controls_sit_beside_the_preview_and_narrow_screens_still_work() {
     b.goto(&format!("{}/?debug#control={CONTROL}", server.http_url()))
         .await
         .unwrap();
-    wait_js(&b, 10, "window.posecast.state === 'online' && window.posecast.selected === 'avatar' && window.posecast.rendered > 5").await;
+    wait_js(&b, 60, "window.posecast.state === 'online' && window.posecast.selected === 'avatar' && window.posecast.rendered > 5").await;
     find(&b, r#"#joint-tree button[data-joint="l_elbow"]"#)
         .await
         .click()
@@ -68,7 +68,7 @@ async fn controls_sit_beside_the_preview_and_narrow_screens_still_work() {
     let mut report = Vec::new();
     for (width, height) in [(1280u32, 800u32), (400, 800)] {
         b.set_window_size(width, height).await.unwrap();
-        wait_js(&b, 5, &format!("window.innerWidth <= {width}")).await;
+        wait_js(&b, 60, &format!("window.innerWidth <= {width}")).await;
         for slider in ["#dof-0", "#dof-2", "#place-submit", "#release-all"] {
             let g = b.execute(GEOMETRY, vec![json!(slider)]).await.unwrap();
             let (vw, vh) = (g["vw"].as_f64().unwrap(), g["vh"].as_f64().unwrap());

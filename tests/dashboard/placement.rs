@@ -40,7 +40,7 @@ async fn the_preview_draws_every_avatar_where_it_stands() {
         };
         wait_js(
             &b,
-            15,
+            60,
             &format!(
                 "window.posecast.renderer === '{renderer}' && window.posecast.drawn.length === 2 \
                  && {ready}"
@@ -48,11 +48,16 @@ async fn the_preview_draws_every_avatar_where_it_stands() {
         )
         .await;
         // A few more renders, so the mesh that just arrived is on screen.
-        let rendered = wait_js(&b, 5, "window.posecast.rendered")
+        let rendered = wait_js(&b, 60, "window.posecast.rendered")
             .await
             .as_u64()
             .unwrap();
-        wait_js(&b, 5, &format!("window.posecast.rendered > {rendered} + 2")).await;
+        wait_js(
+            &b,
+            60,
+            &format!("window.posecast.rendered > {rendered} + 2"),
+        )
+        .await;
         b.execute("window.scrollTo(0, 0);", vec![]).await.unwrap();
         let drawn = b
             .execute("return window.posecast.drawn;", vec![])

@@ -209,7 +209,7 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
     let page = serve_page(recording_page(server.addr)).await;
     let (_driver, b) = browser().await;
     b.goto(&page).await.unwrap();
-    wait_js(&b, 20, "window.recordedCount > 0").await;
+    wait_js(&b, 60, "window.recordedCount > 0").await;
 
     // The Rust client's pose of every tick it decoded, for 3 s.
     let mut rust_ticks: BTreeMap<u64, (Vec<glam::Quat>, [f32; 7])> = BTreeMap::new();
@@ -238,11 +238,11 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
             rust_ticks.insert(seq, (rotations, placement));
         }
     }
-    let recorded = wait_js(&b, 5, "window.recordedCount >= 200 && window.recorded").await;
+    let recorded = wait_js(&b, 60, "window.recordedCount >= 200 && window.recorded").await;
     let recorded = recorded.as_object().unwrap();
 
     let v2 = compare(&rust_ticks, recorded, "v2");
-    let v1_recorded = wait_js(&b, 5, "Object.keys(window.v1).length > 60 && window.v1").await;
+    let v1_recorded = wait_js(&b, 60, "Object.keys(window.v1).length > 60 && window.v1").await;
     let v1 = compare(&rust_ticks, v1_recorded.as_object().unwrap(), "v1");
     let Compared {
         ticks,
@@ -258,7 +258,7 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
         v1.deltas
     );
     // The JSON client's float rotations: the binary ones are within the quantisation bound.
-    let json_frames = wait_js(&b, 5, "window.json").await;
+    let json_frames = wait_js(&b, 60, "window.json").await;
     let (mut json_ticks, mut worst_json) = (0, 0.0f64);
     for (seq, (want, _)) in &rust_ticks {
         let Some(got) = json_frames.get(seq.to_string()) else {
@@ -290,7 +290,7 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
     let description = rust.avatar(&avatar).unwrap().description.clone();
     let chain =
         posecast_proto::subset::JointSet::Names(vec!["l_wrist".into()]).select(&description);
-    let arm_frames = wait_js(&b, 5, "Object.keys(window.arm).length > 60 && window.arm").await;
+    let arm_frames = wait_js(&b, 60, "Object.keys(window.arm).length > 60 && window.arm").await;
     let mut arm_ticks = 0;
     for (seq, (want, _)) in &rust_ticks {
         let Some(got) = arm_frames.get(seq.to_string()) else {
@@ -386,7 +386,7 @@ async fn command_promises_reject_with_the_typed_error() {
     let page = serve_page(recording_page(server.addr)).await;
     let (_driver, b) = browser().await;
     b.goto(&page).await.unwrap();
-    wait_js(&b, 20, "window.client && window.client.state === 'online'").await;
+    wait_js(&b, 60, "window.client && window.client.state === 'online'").await;
     let script = format!(
         r#"const done = arguments[0];
 (async () => {{
@@ -466,9 +466,9 @@ async fn the_readmes_example_page_shows_poses() {
     b.goto(&page).await.unwrap();
 
     let status = "document.getElementById('status').textContent.match(/^avatar: tick (\\d+), root at y = (-?[0-9.]+) m$/)";
-    let first = wait_js(&b, 20, status).await;
+    let first = wait_js(&b, 60, status).await;
     tokio::time::sleep(Duration::from_millis(500)).await;
-    let second = wait_js(&b, 5, status).await;
+    let second = wait_js(&b, 60, status).await;
     let tick = |v: &Value| v[1].as_str().unwrap().parse::<u64>().unwrap();
     assert!(
         tick(&second) >= tick(&first) + 10,
@@ -498,7 +498,7 @@ async fn the_readmes_example_page_shows_poses() {
     find(&b, "#wave").await.click().await.unwrap();
     wait_js(
         &b,
-        10,
+        60,
         "document.getElementById('wave').textContent === 'refused: unauthorized'",
     )
     .await;
@@ -534,9 +534,9 @@ window.client = client;
     .await;
     let (_driver, b) = browser().await;
     b.goto(&page).await.unwrap();
-    wait_js(&b, 20, "window.frames > 30 && window.described >= 1").await;
+    wait_js(&b, 60, "window.frames > 30 && window.described >= 1").await;
     server.stop().await;
-    wait_js(&b, 10, "window.client.state !== 'online'").await;
+    wait_js(&b, 60, "window.client.state !== 'online'").await;
     // Down for a while: several attempts, none connecting.
     tokio::time::sleep(Duration::from_millis(1500)).await;
     let frames = b.execute("return window.frames;", vec![]).await.unwrap();
@@ -553,7 +553,7 @@ window.client = client;
     let back = Instant::now();
     wait_js(
         &b,
-        15,
+        60,
         &format!(
             "window.client.state === 'online' && window.described > {described} && window.frames > {frames} + 30"
         ),
@@ -602,7 +602,7 @@ client.connect();
     b.goto(&page).await.unwrap();
     wait_js(
         &b,
-        15,
+        60,
         "window.client && window.client.state === 'online' && window.client.version === 1 \
          && window.client.welcome.version === 1",
     )

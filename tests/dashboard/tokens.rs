@@ -28,7 +28,7 @@ async fn a_wrong_control_token_is_refused_and_changes_nothing() {
         b.goto(&format!("{}/?debug", server.http_url()))
             .await
             .unwrap();
-        wait_js(&b, 10, "window.posecast.state").await;
+        wait_js(&b, 60, "window.posecast.state").await;
         find(&b, "#token-view")
             .await
             .send_keys("view-token")
@@ -43,20 +43,20 @@ async fn a_wrong_control_token_is_refused_and_changes_nothing() {
         // The refusal is shown, with the server's reason; the page watches.
         wait_js(
             &b,
-            10,
+            60,
             "/refused the control token \\(unauthorized: the token is not valid on this server\\)/.test(document.getElementById('auth-status').textContent)",
         )
         .await;
         find(&b, r#"#scene-list button[data-avatar="avatar"]"#).await;
         wait_js(
             &b,
-            10,
+            60,
             "window.posecast.state === 'online' && window.posecast.frames > 5 \
              && document.getElementById('conn-state').textContent === 'watching' \
              && document.getElementById('playback-controls').disabled",
         )
         .await;
-        let name = wait_js(&b, 5, "window.posecast.access").await["name"].clone();
+        let name = wait_js(&b, 60, "window.posecast.access").await["name"].clone();
         let expected = if open_view {
             serde_json::Value::Null
         } else {
@@ -115,14 +115,14 @@ async fn after_a_restart_with_a_new_token_the_page_watches_until_the_new_link_is
         .unwrap();
     wait_js(
         &b,
-        10,
+        60,
         "window.posecast.state === 'online' && window.posecast.access?.control === true \
          && location.hash === '' && document.getElementById('conn-state').textContent === 'online'",
     )
     .await;
 
     server.stop().await;
-    wait_js(&b, 10, "window.posecast.state === 'offline'").await;
+    wait_js(&b, 60, "window.posecast.state === 'offline'").await;
     let server = Server::start(Config {
         listen: addr,
         tick_rate: 60.0,
@@ -134,7 +134,7 @@ async fn after_a_restart_with_a_new_token_the_page_watches_until_the_new_link_is
     // Back, watching: frames flow and the page says why it may not control.
     let frames = wait_js(
         &b,
-        15,
+        60,
         "window.posecast.state === 'online' && window.posecast.frames",
     )
     .await
@@ -142,7 +142,7 @@ async fn after_a_restart_with_a_new_token_the_page_watches_until_the_new_link_is
     .unwrap();
     wait_js(
         &b,
-        10,
+        60,
         &format!(
             "window.posecast.frames > {frames} + 30 \
              && document.getElementById('conn-state').textContent === 'watching' \
@@ -153,11 +153,11 @@ async fn after_a_restart_with_a_new_token_the_page_watches_until_the_new_link_is
     .await;
     let fps = wait_js(
         &b,
-        5,
+        60,
         "/^[1-9][0-9]* frames/.test(document.getElementById('fps').textContent) && document.getElementById('fps').textContent",
     )
     .await;
-    let why = wait_js(&b, 5, "document.getElementById('auth-status').textContent").await;
+    let why = wait_js(&b, 60, "document.getElementById('auth-status').textContent").await;
     let why = why.as_str().unwrap();
     assert!(
         why.contains(
@@ -172,7 +172,7 @@ async fn after_a_restart_with_a_new_token_the_page_watches_until_the_new_link_is
         .unwrap();
     wait_js(
         &b,
-        10,
+        60,
         "window.posecast.state === 'online' && window.posecast.access?.control === true \
          && document.getElementById('conn-state').textContent === 'online' \
          && document.getElementById('auth-status').textContent === '' \

@@ -74,16 +74,38 @@ async fn click(b: &Browser, css: &str) {
     find(b, css).await.click().await.unwrap();
 }
 
-/// A destructive button: the second click confirms.
+/// A destructive button: the second click confirms. The first click is a real pointer click;
+/// the confirming click is made in the page only while the button is still armed, because on a
+/// loaded machine the webdriver round trip can outlast the page's confirmation window, and a
+/// late second click would arm the button again instead of acting.
 async fn click_twice(b: &Browser, css: &str) {
-    click(b, css).await;
-    wait_js(
-        b,
-        5,
-        &format!("document.querySelector('{css}').dataset.armed === '1'"),
-    )
-    .await;
-    click(b, css).await;
+    let t0 = Instant::now();
+    loop {
+        click(b, css).await;
+        let confirmed = b
+            .execute(
+                "const e = document.querySelector(arguments[0]); \
+                 if (!e || e.dataset.armed !== '1') return false; \
+                 e.click(); return e.dataset.armed === undefined;",
+                vec![json!(css)],
+            )
+            .await
+            .unwrap();
+        if confirmed == json!(true) {
+            return;
+        }
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "{css} was never armed and confirmed"
+        );
+        // Let an armed button time out so the next first click arms it afresh.
+        wait_js(
+            b,
+            60,
+            &format!("document.querySelector('{css}')?.dataset.armed === undefined"),
+        )
+        .await;
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -94,7 +116,7 @@ async fn the_page_manages_scenes_and_avatars() {
     b.goto(&format!("{base}/?debug#control={CONTROL}"))
         .await
         .unwrap();
-    wait_js(&b, 10, "window.posecast.state === 'online' && window.posecast.access?.control === true && window.posecast.selected === 'avatar'").await;
+    wait_js(&b, 60, "window.posecast.state === 'online' && window.posecast.access?.control === true && window.posecast.selected === 'avatar'").await;
 
     // A scene: created and watched.
     find(&b, "#scene-name")
@@ -103,7 +125,7 @@ async fn the_page_manages_scenes_and_avatars() {
         .await
         .unwrap();
     click(&b, "#scene-create").await;
-    wait_js(&b, 5, "window.posecast.watched === 'stage'").await;
+    wait_js(&b, 60, "window.posecast.watched === 'stage'").await;
     let (_, listed) = http(&server, "GET", "/api/scenes", None).await;
     assert!(listed.contains("\"stage\""), "{listed}");
 
@@ -114,7 +136,7 @@ async fn the_page_manages_scenes_and_avatars() {
         ("back", "", 0.0, -1.5, 180.0),
     ];
     for (id, clip, x, z, yaw) in placed {
-        wait_js(&b, 5, "document.getElementById('add-scene').value === 'stage' && document.getElementById('add-rig').value === 'avatar'").await;
+        wait_js(&b, 60, "document.getElementById('add-scene').value === 'stage' && document.getElementById('add-rig').value === 'avatar'").await;
         set_value(&b, "add-id", id).await;
         set_value(&b, "add-clip", clip).await;
         set_value(&b, "add-x", &x.to_string()).await;
@@ -145,12 +167,12 @@ async fn the_page_manages_scenes_and_avatars() {
             "{state}"
         );
         // The page picks what it added.
-        wait_js(&b, 5, &format!("window.posecast.selected === '{id}'")).await;
+        wait_js(&b, 60, &format!("window.posecast.selected === '{id}'")).await;
     }
     // All three drawn, each over its placement (the rest root is on the rig's Y axis).
     wait_js(
         &b,
-        15,
+        60,
         "window.posecast.drawn.length === 3 && window.posecast.meshLoaded",
     )
     .await;
@@ -181,11 +203,11 @@ async fn the_page_manages_scenes_and_avatars() {
     )
     .await
     .unwrap();
-    wait_js(&b, 5, "window.posecast.selected === 'left' && document.querySelector('#scene-list button[data-avatar=\"left\"]').getAttribute('aria-pressed') === 'true'").await;
+    wait_js(&b, 60, "window.posecast.selected === 'left' && document.querySelector('#scene-list button[data-avatar=\"left\"]').getAttribute('aria-pressed') === 'true'").await;
 
     // "right" picked from the list, moved with the placement form.
     click(&b, r#"#scene-list button[data-avatar="right"]"#).await;
-    wait_js(&b, 5, "window.posecast.selected === 'right' && document.getElementById('place-x').value === '1.2'").await;
+    wait_js(&b, 60, "window.posecast.selected === 'right' && document.getElementById('place-x').value === '1.2'").await;
     set_value(&b, "place-x", "2").await;
     set_value(&b, "place-z", "0.5").await;
     click(&b, "#place-submit").await;
@@ -208,13 +230,13 @@ async fn the_page_manages_scenes_and_avatars() {
 
     // The camera follows "right", then frames the whole scene again.
     click(&b, r#"#scene-list button[data-focus="right"]"#).await;
-    let camera = wait_js(&b, 5, "window.posecast.camera.focus === 'right' && Math.abs(window.posecast.camera.target[0] - 2) < 0.3 && Math.abs(window.posecast.camera.target[2] - 0.5) < 0.3 && window.posecast.camera").await;
+    let camera = wait_js(&b, 60, "window.posecast.camera.focus === 'right' && Math.abs(window.posecast.camera.target[0] - 2) < 0.3 && Math.abs(window.posecast.camera.target[2] - 0.5) < 0.3 && window.posecast.camera").await;
     click(&b, "#frame-all").await;
-    wait_js(&b, 5, "window.posecast.camera.focus === null && Math.abs(window.posecast.camera.target[0] - 2) > 0.5").await;
+    wait_js(&b, 60, "window.posecast.camera.focus === null && Math.abs(window.posecast.camera.target[0] - 2) > 0.5").await;
 
     // "back" picked and given a clip; the others keep theirs.
     click(&b, r#"#scene-list button[data-avatar="back"]"#).await;
-    wait_js(&b, 5, "window.posecast.selected === 'back'").await;
+    wait_js(&b, 60, "window.posecast.selected === 'back'").await;
     find(&b, "#clip-select")
         .await
         .select_by_value(r#"[null,"wave"]"#)
@@ -226,13 +248,13 @@ async fn the_page_manages_scenes_and_avatars() {
     assert_eq!(avatar_state(&server, "right").await["clip"], "idle");
 
     // The screenshot of the scene: three avatars where they stand, "back" selected.
-    let rendered = wait_js(&b, 5, "window.posecast.rendered")
+    let rendered = wait_js(&b, 60, "window.posecast.rendered")
         .await
         .as_u64()
         .unwrap();
     wait_js(
         &b,
-        5,
+        60,
         &format!("window.posecast.rendered > {rendered} + 10"),
     )
     .await;
@@ -268,7 +290,7 @@ async fn the_page_manages_scenes_and_avatars() {
         );
         tokio::time::sleep(Duration::from_millis(30)).await;
     }
-    wait_js(&b, 5, "window.posecast.drawn.length === 2 && !document.querySelector('#scene-list [data-avatar=\"back\"]')").await;
+    wait_js(&b, 60, "window.posecast.drawn.length === 2 && !document.querySelector('#scene-list [data-avatar=\"back\"]')").await;
     click_twice(&b, r#"#scene-list button[data-delete-scene="stage"]"#).await;
     let t0 = Instant::now();
     loop {
@@ -282,7 +304,7 @@ async fn the_page_manages_scenes_and_avatars() {
         );
         tokio::time::sleep(Duration::from_millis(30)).await;
     }
-    wait_js(&b, 5, "!document.querySelector('#scene-list [data-scene=\"stage\"]') && window.posecast.watched === 'default' && window.posecast.selected === 'avatar'").await;
+    wait_js(&b, 60, "!document.querySelector('#scene-list [data-scene=\"stage\"]') && window.posecast.watched === 'default' && window.posecast.selected === 'avatar'").await;
     assert!(
         b.find(Locator::Css("#scene-list [data-avatar=\"left\"]"))
             .await
