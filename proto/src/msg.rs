@@ -371,6 +371,11 @@ pub enum ErrorCode {
     /// nothing of it is stored (HTTP 507). Free room (`delete_clip`, `delete_asset`) or ask
     /// the operator.
     StorageFull,
+    /// The command may or may not have been applied (HTTP 504): in a cluster, the server
+    /// ticking the scene did not answer in time, or its write to the cluster's store was not
+    /// answered and may have landed. Retry with the same idempotency key: it applies at most
+    /// once. (`unavailable`, by contrast, means not applied.)
+    OutcomeUnknown,
 }
 
 /// What a connection (or a REST request) may do, as decided from its token.

@@ -96,6 +96,12 @@ pub enum Error {
     /// A rig without a mesh asked for its mesh.
     #[error("rig {0} has no mesh")]
     NoMesh(String),
+    /// The command may or may not have been applied: another server of the cluster did not
+    /// answer in time, or a write to the cluster's store was not answered (it may have
+    /// landed). Unlike [`Error::Unavailable`] (not applied), a retry must carry the same
+    /// idempotency key to apply at most once.
+    #[error("{0}")]
+    OutcomeUnknown(String),
     /// The disk is full (`ENOSPC`, `EDQUOT`): nothing was changed or stored.
     #[error("{0}")]
     StorageFull(String),
@@ -130,6 +136,7 @@ impl Error {
             Self::NotHumanoid(_) => ErrorCode::NotHumanoid,
             Self::NoMesh(_) => ErrorCode::NoMesh,
             Self::StorageFull(_) => ErrorCode::StorageFull,
+            Self::OutcomeUnknown(_) => ErrorCode::OutcomeUnknown,
             Self::Remote(wire) => wire.code,
         }
     }

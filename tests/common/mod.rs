@@ -6,6 +6,7 @@
 #![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]
 
 pub mod child;
+pub mod cluster;
 pub mod link;
 pub mod nats;
 pub mod vmc;

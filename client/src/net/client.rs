@@ -367,7 +367,7 @@ impl Client {
     /// [`Client::command`] that is safe to retry: sent with an idempotency key of its own
     /// (this client's nonce and the command's number), and sent again with the same key after
     /// an unknown outcome — the connection dropped before the answer, no answer within 10 s,
-    /// or the server's `unavailable` — up to `attempts` times in all, after the client has
+    /// the server's `outcome_unknown` — or after `unavailable` (not applied), up to `attempts` times in all, after the client has
     /// reconnected (to its server or a fallback). A server of a cluster applies it at most
     /// once and answers a repeat with the first answer (PROTOCOL.md, "Idempotency").
     ///
@@ -390,9 +390,11 @@ impl Client {
             let unknown = match &outcome {
                 Err(ClientError::Timeout(_)) => true,
                 Err(ClientError::Closed) => !self.outgoing.is_closed(),
-                Err(ClientError::Server(e)) => {
-                    e.code == posecast_proto::msg::ErrorCode::Unavailable
-                }
+                Err(ClientError::Server(e)) => matches!(
+                    e.code,
+                    posecast_proto::msg::ErrorCode::Unavailable
+                        | posecast_proto::msg::ErrorCode::OutcomeUnknown
+                ),
                 _ => false,
             };
             if !unknown || left == 0 {

@@ -102,14 +102,18 @@ fn fenced(id: &SceneId) -> Error {
     ))
 }
 
+/// A write that failed: `unavailable` when NATS refused it (not applied); when NATS did not
+/// answer, the write may have landed and this server may be stopped before it overwrites it,
+/// so the answer is `outcome_unknown` (the stored snapshot then holds the command's
+/// idempotency key too, and a retry with it is answered from there, applied once).
 fn not_stored(error: &str, unknown: bool) -> Error {
-    let unknown = if unknown {
-        "; NATS did not answer in time, and should the write have landed it is overwritten with the scene as it is"
-    } else {
-        ""
-    };
+    if unknown {
+        return Error::OutcomeUnknown(format!(
+            "cannot store the scene in NATS ({error}): NATS did not answer in time, so the command may have been applied; this server undoes it, and a retry with the same idempotency key applies it at most once"
+        ));
+    }
     Error::Unavailable(format!(
-        "cannot store the scene in NATS ({error}): the command was not applied (try again, with the same idempotency key){unknown}"
+        "cannot store the scene in NATS ({error}): the command was not applied (try again)"
     ))
 }
 

@@ -269,6 +269,23 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
+/// A request to a scene's owner that got no answer. With no server listening on the scene's
+/// subject, or a request NATS refused to send, nothing was applied (`unavailable`); a request
+/// that was sent and not answered in time may have been applied by its owner, which may only
+/// be slow (`outcome_unknown`: retry with the same idempotency key).
+fn relay_failed(id: &SceneId, e: &async_nats::RequestError) -> Error {
+    use async_nats::RequestErrorKind as Kind;
+    match e.kind() {
+        Kind::NoResponders | Kind::InvalidSubject | Kind::MaxPayloadExceeded => unavailable(
+            &format!("no server ticks scene {id} now: the command was not applied (try again)"),
+            e,
+        ),
+        Kind::TimedOut | Kind::Other => Error::OutcomeUnknown(format!(
+            "the server ticking scene {id} did not answer in time ({e}): the command may have been applied; retry with the same idempotency key to apply it at most once"
+        )),
+    }
+}
+
 fn unavailable(what: &str, e: &dyn std::fmt::Display) -> Error {
     Error::Unavailable(format!("{what}: {e}"))
 }
@@ -624,12 +641,7 @@ impl Cluster {
             .client
             .request_with_headers(request_subject(id), headers, payload)
             .await
-            .map_err(|e| {
-                unavailable(
-                    &format!("the server ticking scene {id} did not answer (try again)"),
-                    &e,
-                )
-            })?;
+            .map_err(|e| relay_failed(id, &e))?;
         if let Some(s) = &state {
             s.metrics.cluster.received(reply.payload.len());
         }

@@ -183,12 +183,13 @@ impl Store {
                 );
                 continue;
             };
+            let files: Vec<PathBuf> = sorted_entries(&rig_dir)
+                .into_iter()
+                .filter(|f| f.extension().is_some_and(|e| e == "glb"))
+                .collect();
             let mut clips = Vec::new();
-            for file in sorted_entries(&rig_dir) {
-                if file.extension().is_none_or(|e| e != "glb") {
-                    continue;
-                }
-                match read_recording(&rig, &file) {
+            for (file, read) in files.iter().zip(read_all(&rig, &files)) {
+                match read {
                     Ok((clip, stored)) => {
                         if rig.clip(clip.name()).is_some()
                             || clips
@@ -196,14 +197,14 @@ impl Store {
                                 .any(|(c, _): &(Clip, _)| c.name() == clip.name())
                         {
                             set_aside(
-                                &file,
+                                file,
                                 &format!("rig {name} already has a clip {}", clip.name()),
                             );
                             continue;
                         }
                         clips.push((clip, stored));
                     }
-                    Err(reason) => set_aside(&file, &reason.to_string()),
+                    Err(reason) => set_aside(file, &reason.to_string()),
                 }
             }
             if clips.is_empty() {
@@ -233,6 +234,47 @@ impl Store {
             }
         }
     }
+}
+
+/// [`read_recording`] of every file, in order, on as many threads as the machine has cores
+/// (at most one per file): decoding is the bulk of a restart with a full quota, and each file
+/// decodes on its own.
+fn read_all(rig: &Rig, files: &[PathBuf]) -> Vec<Result<(Clip, StoredRecording), Unusable>> {
+    let threads = std::thread::available_parallelism()
+        .map_or(1, std::num::NonZeroUsize::get)
+        .min(files.len());
+    if threads <= 1 {
+        return files.iter().map(|f| read_recording(rig, f)).collect();
+    }
+    // Each thread takes the next file not yet taken (sizes vary: a 64 MiB take beside 220 kB
+    // ones), and the results are put back in the files' order.
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let mut read: Vec<(usize, Result<(Clip, StoredRecording), Unusable>)> =
+        std::thread::scope(|scope| {
+            let workers: Vec<_> = (0..threads)
+                .map(|_| {
+                    scope.spawn(|| {
+                        let mut out = Vec::new();
+                        loop {
+                            let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                            let Some(file) = files.get(i) else {
+                                return out;
+                            };
+                            out.push((i, read_recording(rig, file)));
+                        }
+                    })
+                })
+                .collect();
+            workers
+                .into_iter()
+                .flat_map(|w| {
+                    w.join()
+                        .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+                })
+                .collect()
+        });
+    read.sort_unstable_by_key(|(i, _)| *i);
+    read.into_iter().map(|(_, r)| r).collect()
 }
 
 /// A folder's entries in name order (none when it cannot be read).

@@ -1,7 +1,7 @@
 //! Start-up time with a full upload quota (issue 37: a restart with 1 GiB of recordings took
 //! 202 s).
 //!
-//! `cargo bench -p posecast --bench restart_full_quota` — writes, once, a data folder under
+//! `cargo bench -p posecast-server --bench restart_full_quota` — writes, once, a data folder under
 //! `target/` holding `POSECAST_BENCH_GIB` (default 1) GiB of recorded clips of the built-in
 //! rig, each a 10 s take at 60 Hz (≈ 220 kB, the size of the issue's 4,890 short
 //! recordings), then starts an in-process server on it three times and prints the time from
@@ -72,6 +72,7 @@ async fn main() -> anyhow::Result<()> {
         .and_then(|v| v.parse().ok())
         .unwrap_or(if bench { 1.0 } else { 0.002 });
     let data = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("..")
         .join("target")
         .join(format!("bench-restart-{gib}gib"));
     let began = Instant::now();
