@@ -146,7 +146,7 @@ impl VrmAnimation {
             }
             // Bounded walk: `Nodes::new` refused cycles' second parents, but a loop of single
             // parents must not hang the import either.
-            let mut cur = parents[*node];
+            let mut cur = parents.get(*node).copied().flatten();
             let mut steps = 0;
             while let Some(p) = cur {
                 if p == hips || steps > nodes {
