@@ -441,8 +441,14 @@ async fn vrma_uploads_play_on_humanoid_avatars() {
     assert_eq!(b["result"][0]["humanoid"], true, "{b}");
     assert_eq!(b["result"][0]["mapped"], 22, "{b}");
     let notes = b["result"][0]["notes"].to_string();
-    assert!(notes.contains("VRM animation (VRMC_vrm_animation 1.0)"), "{notes}");
-    assert!(notes.contains("1 mesh(es) and 1 skin(s) not imported"), "{notes}");
+    assert!(
+        notes.contains("VRM animation (VRMC_vrm_animation 1.0)"),
+        "{notes}"
+    );
+    assert!(
+        notes.contains("1 mesh(es) and 1 skin(s) not imported"),
+        "{notes}"
+    );
     // As a raw body too.
     let (s, b) = http_to(
         addr,
@@ -467,12 +473,10 @@ async fn vrma_uploads_play_on_humanoid_avatars() {
     .await;
     assert_eq!(s, 200, "{b}");
 
-    let avatar = posecast_server::import::gltf::from_slice(
-        "avatar",
-        posecast_server::builtin::AVATAR_GLB,
-    )
-    .unwrap()
-    .remove(0);
+    let avatar =
+        posecast_server::import::gltf::from_slice("avatar", posecast_server::builtin::AVATAR_GLB)
+            .unwrap()
+            .remove(0);
     let rig = posecast_server::rig::Rig::from_asset(avatar, &Default::default()).unwrap();
     let skeleton = &rig.asset.skeleton;
     let mapped: Vec<usize> = (0..skeleton.len())

@@ -152,10 +152,7 @@ fn vrma_doc() -> (Value, Vec<u8>) {
     let arm_parent = world_rot(JOINTS[arm].parent.unwrap());
     // G(t=1) = Q · W_arm, so L(t=1) = W_parent⁻¹ · Q · W_arm.
     let arm_end = (arm_parent.inverse() * q_arm() * world_rot(arm)).normalize();
-    let arm_keys = bin.floats(
-        &[arm_rest.to_array(), arm_end.to_array()].concat(),
-        "VEC4",
-    );
+    let arm_keys = bin.floats(&[arm_rest.to_array(), arm_end.to_array()].concat(), "VEC4");
     let (_, hips_rest) = local(0);
     let hips_end = hips_rest + root_rot.inverse() * DELTA;
     let hips_keys = bin.floats(
@@ -218,11 +215,15 @@ fn vrma() -> Vec<u8> {
 fn vrma_edited(edit: impl FnOnce(String) -> String) -> Vec<u8> {
     let (doc, bin) = vrma_doc();
     let text = edit(serde_json::to_string(&doc).unwrap());
-    let doc: Value = serde_json::from_str(&text).unwrap_or(Value::Null);
-    if doc.is_null() {
-        panic!("edited JSON does not parse");
-    }
-    // Write the edited text itself (serde_json would drop a repeated key).
+    assert!(
+        serde_json::from_str::<Value>(&text).is_ok(),
+        "edited JSON does not parse"
+    );
+    glb_of_text(text, bin)
+}
+
+/// A GLB of JSON `text` as it is (serde_json would drop a repeated key) and `bin`.
+fn glb_of_text(text: String, bin: Vec<u8>) -> Vec<u8> {
     let mut json = text.into_bytes();
     while !json.len().is_multiple_of(4) {
         json.push(b' ');
@@ -250,7 +251,10 @@ fn import(name: &str, bytes: Vec<u8>) -> Result<Vec<posecast_server::asset::Asse
     import_set(&set)
 }
 
-fn world_positions(skeleton: &posecast_proto::Skeleton, locals: &[posecast_proto::Transform]) -> Vec<Vec3> {
+fn world_positions(
+    skeleton: &posecast_proto::Skeleton,
+    locals: &[posecast_proto::Transform],
+) -> Vec<Vec3> {
     let mut world = vec![Mat4::IDENTITY; skeleton.len()];
     forward_kinematics(skeleton, locals, &mut world);
     world.iter().map(|w| w.w_axis.truncate()).collect()
@@ -306,7 +310,10 @@ fn the_skeleton_and_bone_map_are_the_files() {
         "1 humanoid bones without an H-Anim counterpart not imported: jaw",
         "1 expressions not imported",
         "1 channel(s) on them ignored: preset/aa",
-        &format!("lookAt target (node {}) not imported, 1 channel(s) on it ignored", extra().look),
+        &format!(
+            "lookAt target (node {}) not imported, 1 channel(s) on it ignored",
+            extra().look
+        ),
         "1 nodes outside the humanoid bone map not imported: hair",
         "3 channel(s) on nodes outside this rig ignored",
     ] {
@@ -412,7 +419,11 @@ fn retargeted_onto_humanoids_the_arm_turns_and_the_hips_move_as_the_file_says() 
             angle(right0, right1),
         );
         assert!(angle(arm0, d0) < MAX_DEGREES, "{}", target.asset.name);
-        assert!(angle(arm1, expected_dir) < MAX_DEGREES, "{}", target.asset.name);
+        assert!(
+            angle(arm1, expected_dir) < MAX_DEGREES,
+            "{}",
+            target.asset.name
+        );
         assert!(angle(right0, right1) < MAX_DEGREES, "{}", target.asset.name);
         assert!(
             (moved - k * DELTA).length() < 1e-3,
@@ -494,7 +505,10 @@ fn malformed_extensions_are_typed_errors() {
     );
     // No hips.
     let e = vrma_error(
-        vrma_edited(|s| s.replacen(r#""hips":{"node":0},"#, "", 1).replacen(r#","hips":{"node":0}"#, "", 1)),
+        vrma_edited(|s| {
+            s.replacen(r#""hips":{"node":0},"#, "", 1)
+                .replacen(r#","hips":{"node":0}"#, "", 1)
+        }),
         "dance.vrma",
     );
     assert_eq!(
@@ -534,10 +548,16 @@ fn malformed_extensions_are_typed_errors() {
     );
     assert_eq!(e, VrmaError::Absent);
     // Errors name the file.
-    let msg = import("dance.vrma", vrma_edited(|s| s.replacen(r#""hips":{"node":0}"#, r#""hips":{"node":999}"#, 1)))
-        .unwrap_err()
-        .to_string();
-    assert!(msg.starts_with("dance.vrma: VRMC_vrm_animation: humanoid bone \"hips\" names node 999"), "{msg}");
+    let msg = import(
+        "dance.vrma",
+        vrma_edited(|s| s.replacen(r#""hips":{"node":0}"#, r#""hips":{"node":999}"#, 1)),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        msg.starts_with("dance.vrma: VRMC_vrm_animation: humanoid bone \"hips\" names node 999"),
+        "{msg}"
+    );
 }
 
 #[test]
@@ -549,4 +569,83 @@ fn any_gltf_with_the_extension_and_no_skin_is_a_vrm_animation() {
     let plain = vrma_edited(|s| s.replacen(r#""VRMC_vrm_animation":"#, r#""OTHER_ext":"#, 1));
     let e = import("dance.glb", plain).unwrap_err().to_string();
     assert!(e.contains("no skins"), "{e}");
+}
+
+/// Mutants of the fixture's JSON (digits changed, huge or negative numbers, spans deleted or
+/// repeated) into the importer: each is imported or refused, never a panic, and what imports
+/// samples and retargets.
+#[test]
+fn mutated_vrma_files_never_panic() {
+    let (doc, bin) = vrma_doc();
+    let text = serde_json::to_string(&doc).unwrap();
+    let target = normalise(rig_support::builtin(), &PipelineOptions::default()).unwrap();
+    let mut seed = 0x2545_F491_4F6C_DD1Du64;
+    let mut next = move |n: usize| {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        (seed % n as u64) as usize
+    };
+    let (mut ok, mut refused) = (0, 0);
+    for case in 0..300 {
+        let mut t = text.clone().into_bytes();
+        // Mutate inside the extension half of the time, that is what this importer reads:
+        // the extension's object (its keys end with `specVersion`).
+        let ext = text.find(r#""VRMC_vrm_animation":{"#).unwrap();
+        let ext_end = ext + text[ext..].find(r#""specVersion""#).unwrap();
+        for _ in 0..1 + next(3) {
+            let at = if next(2) == 0 {
+                ext + next(ext_end - ext)
+            } else {
+                next(t.len())
+            }
+            .min(t.len() - 1);
+            match next(4) {
+                0 if t[at].is_ascii_digit() => t[at] = b'0' + next(10) as u8,
+                1 => {
+                    let end = (at + 1 + next(12)).min(t.len());
+                    t.drain(at..end);
+                }
+                2 => {
+                    let end = (at + 1 + next(24)).min(t.len());
+                    let span = t[at..end].to_vec();
+                    t.splice(at..at, span);
+                }
+                _ if t[at].is_ascii_digit() => {
+                    let huge: &[u8] = [&b"99999999999"[..], b"-1", b"4294967296", b"1e40"][next(4)];
+                    t.splice(at..at + 1, huge.iter().copied());
+                }
+                _ => {}
+            }
+        }
+        let mutant = String::from_utf8_lossy(&t).into_owned();
+        let bytes = glb_of_text(mutant, bin.clone());
+        let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            let assets = match import("f.vrma", bytes) {
+                Ok(a) => a,
+                Err(e) => {
+                    // The importer's panic guard must not be what catches a mutant.
+                    assert!(!e.to_string().contains("parser failed"), "case {case}: {e}");
+                    return false;
+                }
+            };
+            for a in assets {
+                if let Ok(n) = normalise(a, &PipelineOptions::default())
+                    && n.humanoid
+                {
+                    for c in &n.asset.clips {
+                        let _ = retarget(RigView::from(&n), c, RigView::from(&target));
+                    }
+                }
+            }
+            true
+        }));
+        match result {
+            Ok(true) => ok += 1,
+            Ok(false) => refused += 1,
+            Err(_) => panic!("case {case} panicked"),
+        }
+    }
+    println!("{ok} mutants imported, {refused} refused");
+    assert!(ok > 0 && refused > 0, "{ok} imported, {refused} refused");
 }

@@ -15,7 +15,9 @@ pub enum ImportError {
         path: PathBuf,
         source: std::io::Error,
     },
-    #[error("{path}: unknown file type (expected .gltf, .glb, .vrm, .vrma, .skel, .skin, .anim or .bvh)")]
+    #[error(
+        "{path}: unknown file type (expected .gltf, .glb, .vrm, .vrma, .skel, .skin, .anim or .bvh)"
+    )]
     UnknownFormat { path: PathBuf },
     /// A token that does not fit the grammar.
     #[error("{file}: line {line}: expected {expected}, found {found:?}")]

@@ -113,7 +113,9 @@ fn import_slice(
         vrm: vrm.as_ref(),
         // A `.vrma` is always read as one; another glTF with the extension when it has no
         // skin (with one, it is a skinned rig and the extension is not its business).
-        animation: animation.as_ref().filter(|_| is_vrma || doc.skins().len() == 0),
+        animation: animation
+            .as_ref()
+            .filter(|_| is_vrma || doc.skins().len() == 0),
     };
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
         import_document(name, doc, gltf.blob.clone(), base, source, with_meshes)

@@ -4,13 +4,13 @@
 //! T-pose and the hips' translation is in metres (glTF units), so the motion needs nothing but
 //! the bone map to be retargeted onto any humanoid.
 //!
-//! This file reads and checks the extension; [`super::Context::animation_rig`] builds the
+//! This file reads and checks the extension; `Context::animation_rig` (`vrma_rig.rs`) builds the
 //! skeleton. `expressions` (a node per expression whose `translation.x` is its weight) and
 //! `lookAt` (a node whose model-space position is the gaze target) are read so the notes can
 //! say what was left: posecast imports neither (expression weights drive morph targets, which
 //! are not imported yet).
 //!
-//! The extension's JSON is read with a tree of our own ([`Json`]) rather than
+//! The extension's JSON is read with a tree of our own (`Json`) rather than
 //! `serde_json::Value`, whose maps keep the last of two equal keys: a bone listed twice must be
 //! an error, not a silent choice.
 
@@ -223,9 +223,7 @@ pub fn read(json: &[u8]) -> Result<Option<VrmAnimation>, VrmaError> {
             }
         }
     }
-    let look_at = last(ext, "lookAt")
-        .map(|l| node(l, "lookAt"))
-        .transpose()?;
+    let look_at = last(ext, "lookAt").map(|l| node(l, "lookAt")).transpose()?;
     Ok(Some(VrmAnimation {
         spec_version,
         bones,
@@ -370,7 +368,10 @@ mod tests {
                 bone: "hips".into()
             }
         );
-        assert_eq!(e(r#"{"specVersion":"1.0"}"#), shape("humanoid", "an object"));
+        assert_eq!(
+            e(r#"{"specVersion":"1.0"}"#),
+            shape("humanoid", "an object")
+        );
         assert_eq!(
             e(r#"{"humanoid":{"humanBones":[]}}"#),
             shape("humanoid.humanBones", "an object")

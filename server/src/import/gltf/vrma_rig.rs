@@ -105,11 +105,7 @@ impl Context<'_> {
                 .count()
         };
         if !animation.expressions.is_empty() {
-            let names: Vec<String> = animation
-                .expressions
-                .iter()
-                .map(|e| e.0.clone())
-                .collect();
+            let names: Vec<String> = animation.expressions.iter().map(|e| e.0.clone()).collect();
             let channels: usize = animation.expressions.iter().map(|e| channels_on(e.1)).sum();
             notes.push(format!(
                 "{} expressions not imported (their weights drive morph targets, which are not \

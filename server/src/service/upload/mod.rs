@@ -173,7 +173,10 @@ async fn file_set(
                 ));
             }
         };
-        if !matches!(format.as_str(), "glb" | "gltf" | "vrm" | "vrma" | "bvh" | "skel") {
+        if !matches!(
+            format.as_str(),
+            "glb" | "gltf" | "vrm" | "vrma" | "bvh" | "skel"
+        ) {
             return Err(bad(format!(
                 "format {format:?} is not glb, gltf, vrm, vrma, bvh or skel"
             )));
