@@ -305,6 +305,12 @@ async fn upload_answers_carry_the_importers_notes() {
 /// The built-in avatar's `.glb` as a VRM 1.0 file: its JSON chunk gains a `VRMC_vrm` humanoid
 /// naming every joint but `sacroiliac` (VRM has no such bone).
 fn builtin_as_vrm() -> Vec<u8> {
+    builtin_with_bone_map("VRMC_vrm", false)
+}
+
+/// The built-in avatar's `.glb` with a VRM 1.0 humanoid bone map in the root extension
+/// `extension`, the clavicles and toes included when `full`.
+fn builtin_with_bone_map(extension: &str, full: bool) -> Vec<u8> {
     let glb = posecast_server::builtin::AVATAR_GLB;
     let json_len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
     let mut doc: Value = serde_json::from_slice(&glb[20..20 + json_len]).unwrap();
@@ -333,14 +339,18 @@ fn builtin_as_vrm() -> Vec<u8> {
                 "r_hip" => "rightUpperLeg",
                 "r_knee" => "rightLowerLeg",
                 "r_ankle" => "rightFoot",
+                "l_sternoclavicular" if full => "leftShoulder",
+                "r_sternoclavicular" if full => "rightShoulder",
+                "l_midtarsal" if full => "leftToes",
+                "r_midtarsal" if full => "rightToes",
                 _ => return None,
             };
             Some((bone.to_owned(), json!({ "node": i })))
         })
         .collect();
-    doc["extensionsUsed"] = json!(["VRMC_vrm"]);
+    doc["extensionsUsed"] = json!([extension]);
     doc["extensions"] =
-        json!({"VRMC_vrm": {"specVersion": "1.0", "humanoid": {"humanBones": bones}}});
+        json!({extension: {"specVersion": "1.0", "humanoid": {"humanBones": bones}}});
     let mut json = serde_json::to_vec(&doc).unwrap();
     while !json.len().is_multiple_of(4) {
         json.push(b' ');
@@ -399,5 +409,100 @@ async fn vrm_uploads_take_the_files_humanoid_bones() {
             "{d}"
         );
     }
+    server.stop().await;
+}
+
+/// World rotation of every joint from local rotations (`G_j = G_parent(j) · L_j`).
+fn world_rotations(parents: &[Option<usize>], rotations: &[[f32; 4]]) -> Vec<glam::Quat> {
+    let mut world: Vec<glam::Quat> = Vec::with_capacity(rotations.len());
+    for (j, r) in rotations.iter().enumerate() {
+        let local = glam::Quat::from_array(*r);
+        world.push(match parents[j] {
+            Some(p) => world[p] * local,
+            None => local,
+        });
+    }
+    world
+}
+
+/// A VRM animation (issue 33, goal 7) uploads as a rig of its own and plays on an avatar with
+/// `play … from_asset`. The fixture is the built-in avatar's own file named `.vrma`, with its
+/// 22 VRM bones in `VRMC_vrm_animation` (its rest pose is a T-pose, as the specification
+/// wants): its skin and mesh are left out, its clips kept. Reference: played on the built-in
+/// avatar itself, every mapped joint's world rotation equals the one of the avatar's own clip.
+#[tokio::test]
+async fn vrma_uploads_play_on_humanoid_avatars() {
+    let data = tempfile::tempdir().unwrap();
+    let server = server(data.path()).await;
+    let addr = server.addr;
+    let vrma = builtin_with_bone_map("VRMC_vrm_animation", true);
+    let (s, b) = upload(addr, "/api/assets/moves", &[("moves.vrma", &vrma)], &[]).await;
+    assert_eq!(s, 200, "{b}");
+    assert_eq!(b["result"][0]["humanoid"], true, "{b}");
+    assert_eq!(b["result"][0]["mapped"], 22, "{b}");
+    let notes = b["result"][0]["notes"].to_string();
+    assert!(
+        notes.contains("VRM animation (VRMC_vrm_animation 1.0)"),
+        "{notes}"
+    );
+    assert!(
+        notes.contains("1 mesh(es) and 1 skin(s) not imported"),
+        "{notes}"
+    );
+    // As a raw body too.
+    let (s, b) = http_to(
+        addr,
+        "POST",
+        "/api/assets/moves2?format=vrma",
+        "application/octet-stream",
+        &vrma,
+    )
+    .await;
+    assert_eq!(s, 200, "{b}");
+
+    let (s, b) = command(
+        addr,
+        json!({"op": "add_avatar", "scene": "default", "asset": "avatar", "avatar": "p"}),
+    )
+    .await;
+    assert_eq!(s, 200, "{b}");
+    let (s, b) = command(
+        addr,
+        json!({"op": "play", "avatar": "p", "clip": "walk", "from_asset": "moves", "fade": 0}),
+    )
+    .await;
+    assert_eq!(s, 200, "{b}");
+
+    let avatar =
+        posecast_server::import::gltf::from_slice("avatar", posecast_server::builtin::AVATAR_GLB)
+            .unwrap()
+            .remove(0);
+    let rig = posecast_server::rig::Rig::from_asset(avatar, &Default::default()).unwrap();
+    let skeleton = &rig.asset.skeleton;
+    let mapped: Vec<usize> = (0..skeleton.len())
+        .filter(|&j| rig.hanim[j].as_deref().is_some_and(|h| h != "sacroiliac"))
+        .collect();
+    assert_eq!(mapped.len(), 22);
+    let mut worst = 0.0f32;
+    for time in [0.2f32, 0.5, 0.9] {
+        let mut poses = Vec::new();
+        for from in [Some("moves"), None] {
+            let mut c = json!({"op": "sample_pose", "avatar": "p", "clip": "walk", "time": time});
+            if let Some(f) = from {
+                c["from_asset"] = json!(f);
+            }
+            let (s, b) = command(addr, c).await;
+            assert_eq!(s, 200, "{b}");
+            let rotations: Vec<[f32; 4]> =
+                serde_json::from_value(b["result"]["rotations"].clone()).unwrap();
+            poses.push(world_rotations(skeleton.parents(), &rotations));
+        }
+        for &j in &mapped {
+            let d = poses[0][j].angle_between(poses[1][j]).to_degrees();
+            worst = worst.max(d);
+            assert!(d < 0.5, "{} at {time} s: {d}°", skeleton.names()[j]);
+        }
+    }
+    println!("vrma walk on the built-in avatar: worst world rotation {worst:.4}° off its own walk");
     server.stop().await;
 }

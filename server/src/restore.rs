@@ -196,7 +196,10 @@ fn importable_files(dir: &Path) -> Vec<PathBuf> {
                 .and_then(|e| e.to_str())
                 .unwrap_or("")
                 .to_ascii_lowercase();
-            matches!(ext.as_str(), "glb" | "gltf" | "vrm" | "bvh" | "skel")
+            matches!(
+                ext.as_str(),
+                "glb" | "gltf" | "vrm" | "vrma" | "bvh" | "skel"
+            )
         })
         .collect();
     paths.sort();

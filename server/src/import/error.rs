@@ -15,7 +15,9 @@ pub enum ImportError {
         path: PathBuf,
         source: std::io::Error,
     },
-    #[error("{path}: unknown file type (expected .gltf, .glb, .skel, .skin, .anim or .bvh)")]
+    #[error(
+        "{path}: unknown file type (expected .gltf, .glb, .vrm, .vrma, .skel, .skin, .anim or .bvh)"
+    )]
     UnknownFormat { path: PathBuf },
     /// A token that does not fit the grammar.
     #[error("{file}: line {line}: expected {expected}, found {found:?}")]
@@ -86,6 +88,13 @@ pub enum ImportError {
         file: String,
         node: usize,
         message: String,
+    },
+    /// A VRM animation's `VRMC_vrm_animation` extension is malformed or does not fit the
+    /// document (a bone on a missing node, a bone twice, no hips, …).
+    #[error("{file}: {source}")]
+    VrmAnimation {
+        file: String,
+        source: crate::import::gltf::vrma::VrmaError,
     },
     /// A file-level problem with no narrower place (e.g. a glTF without skins).
     #[error("{file}: {message}")]

@@ -3,7 +3,7 @@
 //! up in the set and never on the file system.
 //!
 //! A set holds exactly one main file, which gives the format:
-//! - one `.glb` (or `.vrm`, which is a GLB), or one `.gltf` plus the `.bin` (and image) files
+//! - one `.glb` (or `.vrm`, or `.vrma`, which are GLBs), or one `.gltf` plus the `.bin` (and image) files
 //!   its buffer URIs name;
 //! - one `.bvh`;
 //! - one `.skel`, at most one `.skin` (its mesh) and any number of `.anim` files (its clips,
@@ -118,7 +118,7 @@ impl FileSet {
             .filter(|n| {
                 matches!(
                     extension(n).as_str(),
-                    "glb" | "gltf" | "vrm" | "bvh" | "skel"
+                    "glb" | "gltf" | "vrm" | "vrma" | "bvh" | "skel"
                 )
             })
             .collect();
@@ -130,7 +130,7 @@ impl FileSet {
                 let message = if matches!(ext.as_str(), "skin" | "anim") {
                     format!("a .{ext} file needs its .skel: upload the .skel with it")
                 } else {
-                    "no .glb, .gltf, .vrm, .bvh or .skel file".to_owned()
+                    "no .glb, .gltf, .vrm, .vrma, .bvh or .skel file".to_owned()
                 };
                 return Err(ImportError::Unsupported {
                     file: first,
@@ -172,7 +172,7 @@ pub fn import_set(set: &FileSet) -> Result<Vec<Asset>, ImportError> {
     let main = set.main_file()?;
     let bytes = set.get(main).unwrap_or_default();
     match extension(main).as_str() {
-        "glb" | "gltf" | "vrm" => {
+        "glb" | "gltf" | "vrm" | "vrma" => {
             let external = |uri: &str| {
                 set.get(uri)
                     .map(<[u8]>::to_vec)

@@ -1,6 +1,7 @@
 //! Importers, one file per format, all producing [`Asset`]s.
 //!
-//! - [`gltf`]: glTF 2.0 (`.gltf` with embedded or external buffers, `.glb`).
+//! - [`gltf`]: glTF 2.0 (`.gltf` with embedded or external buffers, `.glb`), VRM (`.vrm`) and
+//!   VRM animations (`.vrma`).
 //! - [`skel`], [`skin`], [`anim`], assembled by [`cse169`]: the UCSD CSE169 course formats.
 //! - [`bvh`]: Biovision hierarchy motion capture.
 //!
@@ -32,6 +33,8 @@ pub const MAX_FILE_BYTES: u64 = 1 << 30;
 /// Loads the assets in a file, by extension (case-insensitive):
 /// - `.gltf` / `.glb`: one asset per skin (see [`gltf::from_slice`]); external buffers are
 ///   read relative to the file's folder.
+/// - `.vrm`: a GLB, as `.glb`; `.vrma` (a VRM animation): one skeleton-only asset with clips
+///   ([`gltf::vrma`]).
 /// - `.skel`: one asset. A `.skin` with the same stem in the same folder is its mesh, and
 ///   `<stem>.anim` and `<stem>_*.anim` there are its clips (e.g. `wasp.skel`, `wasp.skin`,
 ///   `wasp_walk.anim`), in name order.
@@ -51,7 +54,7 @@ pub fn load_path(path: &Path) -> Result<Vec<Asset>, ImportError> {
         .unwrap_or("asset")
         .to_owned();
     match ext.as_str() {
-        "gltf" | "glb" | "vrm" => {
+        "gltf" | "glb" | "vrm" | "vrma" => {
             let bytes = read(path)?;
             let dir = path.parent().unwrap_or(Path::new("."));
             let external = |uri: &str| read(&dir.join(uri));

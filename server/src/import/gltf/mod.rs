@@ -31,6 +31,8 @@
 mod clips;
 mod mesh;
 pub mod vrm;
+pub mod vrma;
+mod vrma_rig;
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -95,15 +97,28 @@ fn import_slice(
     // gap in that validation must not take the server down, so a panic in it becomes an
     // error here (the explicit checks above and in `accessor` cover every case we know of).
     let vrm = vrm::humanoid(bytes);
+    let vrma_err = |source| ImportError::VrmAnimation {
+        file: name.to_owned(),
+        source,
+    };
+    let animation = match vrm::json_chunk(bytes).map(vrma::read).transpose() {
+        Ok(a) => a.flatten(),
+        Err(e) => return Err(vrma_err(e)),
+    };
+    let is_vrma = super::files::extension(name) == "vrma";
+    if is_vrma && animation.is_none() {
+        return Err(vrma_err(vrma::VrmaError::Absent));
+    }
+    let source = Source {
+        vrm: vrm.as_ref(),
+        // A `.vrma` is always read as one; another glTF with the extension when it has no
+        // skin (with one, it is a skinned rig and the extension is not its business).
+        animation: animation
+            .as_ref()
+            .filter(|_| is_vrma || doc.skins().len() == 0),
+    };
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        import_document(
-            name,
-            doc,
-            gltf.blob.clone(),
-            base,
-            vrm.as_ref(),
-            with_meshes,
-        )
+        import_document(name, doc, gltf.blob.clone(), base, source, with_meshes)
     }))
     .unwrap_or_else(|_| {
         Err(ImportError::Unsupported {
@@ -169,12 +184,21 @@ fn check_channel_targets(file: &str, doc: &gltf::Document) -> Result<(), ImportE
     Ok(())
 }
 
+/// What the file's extensions say about its rigs.
+#[derive(Clone, Copy)]
+struct Source<'a> {
+    /// A VRM's humanoid bone map.
+    vrm: Option<&'a vrm::Humanoid>,
+    /// A VRM animation's extension: the file is read as one ([`vrma`]).
+    animation: Option<&'a vrma::VrmAnimation>,
+}
+
 fn import_document(
     name: &str,
     doc: &gltf::Document,
     blob: Option<Vec<u8>>,
     base: Option<External<'_>>,
-    vrm: Option<&vrm::Humanoid>,
+    source: Source<'_>,
     with_meshes: bool,
 ) -> Result<Vec<Asset>, ImportError> {
     let buffers = Buffers {
@@ -183,10 +207,10 @@ fn import_document(
     };
     let nodes = Nodes::new(name, doc)?;
     let skins: Vec<gltf::Skin<'_>> = doc.skins().collect();
-    if skins.is_empty() {
+    if skins.is_empty() && source.animation.is_none() {
         return Err(ImportError::Unsupported {
             file: name.to_owned(),
-            message: "no skins: posecast imports skinned rigs".to_owned(),
+            message: "no skins: posecast imports skinned rigs (and VRM animations)".to_owned(),
         });
     }
     let stem = name.rsplit_once('.').map_or(name, |(s, _)| s);
@@ -206,9 +230,12 @@ fn import_document(
         buffers: &buffers,
         nodes: &nodes,
         animated: &animated,
-        vrm,
+        vrm: source.vrm,
         with_meshes,
     };
+    if let Some(animation) = source.animation {
+        return Ok(vec![ctx.animation_rig(animation, stem.to_owned())?]);
+    }
     skins
         .iter()
         .map(|skin| {
@@ -389,6 +416,7 @@ fn is_rigid(t: &Transform) -> bool {
     (t.scale - Vec3::ONE).abs().max_element() < 1e-6
 }
 
+#[derive(Clone, Copy)]
 struct Context<'a> {
     file: &'a str,
     doc: &'a gltf::Document,
@@ -498,8 +526,6 @@ impl Context<'_> {
     }
 
     fn skin(&self, skin: &gltf::Skin<'_>, name: String) -> Result<Asset, ImportError> {
-        let nodes = self.nodes;
-        let node_count = nodes.local.len();
         let joints: Vec<usize> = skin.joints().map(|n| n.index()).collect();
         if joints.is_empty() {
             return Err(ImportError::Unsupported {
@@ -507,15 +533,34 @@ impl Context<'_> {
                 message: format!("skin {} has no joints", skin.index()),
             });
         }
+        self.rig(&joints, Some(skin), name)
+    }
+
+    /// The asset of a set of joint nodes (non-empty): the skeleton of the joints and their
+    /// ancestors (folded where static and rigid, see the module docs), the clips that move
+    /// them, and, with a `skin`, its inverse binds and meshes. Without one (a VRM animation)
+    /// every joint is bound at rest.
+    fn rig(
+        &self,
+        joints: &[usize],
+        skin: Option<&gltf::Skin<'_>>,
+        name: String,
+    ) -> Result<Asset, ImportError> {
+        let nodes = self.nodes;
+        let node_count = nodes.local.len();
         let mut skin_index_of: HashMap<usize, usize> = HashMap::with_capacity(joints.len());
         for (k, &j) in joints.iter().enumerate() {
+            if j >= node_count {
+                return Err(self.node_err(j, "is not a node of the file"));
+            }
             if skin_index_of.insert(j, k).is_some() {
-                return Err(self.node_err(j, format!("listed twice in skin {}", skin.index())));
+                let place = skin.map_or_else(String::new, |s| format!(" in skin {}", s.index()));
+                return Err(self.node_err(j, format!("listed twice{place}")));
             }
         }
         // The joints and all their ancestors.
         let mut in_set = vec![false; node_count];
-        for &j in &joints {
+        for &j in joints {
             let mut cur = Some(j);
             while let Some(x) = cur {
                 if in_set[x] {
@@ -602,8 +647,10 @@ impl Context<'_> {
         }
         let mut inverse_bind: Vec<Mat4> = world.iter().map(Mat4::inverse).collect();
         let mut notes = Vec::new();
-        match skin.inverse_bind_matrices() {
-            Some(acc) => {
+        match skin.map(gltf::Skin::inverse_bind_matrices) {
+            // Bound at rest: no skin, no vertices to bind.
+            None => {}
+            Some(Some(acc)) => {
                 let v = self
                     .buffers
                     .read_as(&acc, Dimensions::Mat4, "inverseBindMatrices")?;
@@ -624,7 +671,7 @@ impl Context<'_> {
                     inverse_bind[skin_to_skel[k]] = Mat4::from_cols_array(&a);
                 }
             }
-            None => {
+            Some(None) => {
                 for k in 0..joints.len() {
                     inverse_bind[skin_to_skel[k]] = Mat4::IDENTITY;
                 }
@@ -644,7 +691,7 @@ impl Context<'_> {
                 }
             })?;
 
-        let (mut meshes, rigid) = if self.with_meshes {
+        let (mut meshes, rigid) = if let Some(skin) = skin.filter(|_| self.with_meshes) {
             (
                 self.meshes(skin, &skin_to_skel, count, &mut notes)?,
                 self.rigid_meshes(skin, &skel_of_node, skeleton.inverse_bind(), &mut notes)?,
@@ -684,7 +731,9 @@ impl Context<'_> {
             }
         }
         let clips = self.clips(&skel_of_node, &maps, count, &mut notes)?;
-        notes.extend(self.unimported_notes(skin));
+        if let Some(skin) = skin {
+            notes.extend(self.unimported_notes(skin));
+        }
 
         let mut source = SourceInfo::new(SourceFormat::Gltf);
         if let Some(h) = self.vrm {
@@ -717,7 +766,8 @@ impl Context<'_> {
             .iter()
             .map(|&i| members[i])
             .find(|n| skin_index_of.contains_key(n))
-            .unwrap_or(joints[0]);
+            .or_else(|| joints.first().copied())
+            .unwrap_or(0);
         let above = nodes.parent_global(root);
         if above
             .transform_vector3(Vec3::Z)

@@ -23,19 +23,24 @@ pub struct Humanoid {
     pub bones: Vec<(usize, String, String)>,
 }
 
-/// The humanoid bone map of a glTF document (GLB or JSON bytes), if it is a VRM.
+/// The JSON of a glTF document: a GLB's JSON chunk, or the bytes themselves.
 #[must_use]
-pub fn humanoid(bytes: &[u8]) -> Option<Humanoid> {
-    let json = if bytes.starts_with(b"glTF") {
+pub fn json_chunk(bytes: &[u8]) -> Option<&[u8]> {
+    if bytes.starts_with(b"glTF") {
         let len = u32::from_le_bytes(bytes.get(12..16)?.try_into().ok()?) as usize;
         if bytes.get(16..20)? != b"JSON" {
             return None;
         }
-        bytes.get(20..20usize.checked_add(len)?)?
+        bytes.get(20..20usize.checked_add(len)?)
     } else {
-        bytes
-    };
-    let doc: Value = serde_json::from_slice(json).ok()?;
+        Some(bytes)
+    }
+}
+
+/// The humanoid bone map of a glTF document (GLB or JSON bytes), if it is a VRM.
+#[must_use]
+pub fn humanoid(bytes: &[u8]) -> Option<Humanoid> {
+    let doc: Value = serde_json::from_slice(json_chunk(bytes)?).ok()?;
     let ext = doc.get("extensions")?;
     let (version, pairs): (Version, Vec<(String, usize)>) =
         if let Some(bones) = ext.pointer("/VRMC_vrm/humanoid/humanBones") {

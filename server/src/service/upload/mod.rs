@@ -1,9 +1,9 @@
 //! Asset uploads over HTTP (see [`crate::ingest`] for what happens to the files).
 //!
 //! - `POST /api/assets/{name}`: a new asset from a `multipart/form-data` body whose file
-//!   parts' names give the format (one `.glb` or `.vrm`; one `.gltf` with its `.bin`/image files; one
+//!   parts' names give the format (one `.glb`, `.vrm` or `.vrma`; one `.gltf` with its `.bin`/image files; one
 //!   `.bvh`; one `.skel` with an optional `.skin` and `.anim` clips), or from a raw body of one
-//!   file: `Content-Type: model/gltf-binary`, or any type with `?format=glb|gltf|vrm|bvh|skel`.
+//!   file: `Content-Type: model/gltf-binary`, or any type with `?format=glb|gltf|vrm|vrma|bvh|skel`.
 //!   → `200 {"result": [AssetInfo, …]}` (several for a multi-skin glTF).
 //! - `POST /api/assets/{name}/clips`: `.anim` clips (multipart) added to an uploaded `.skel`
 //!   asset. → `200 {"result": AssetInfo}`.
@@ -169,13 +169,16 @@ async fn file_set(
             None if content_type.starts_with("model/gltf-binary") => "glb".to_owned(),
             None => {
                 return Err(bad(
-                    "send multipart/form-data, or one file with Content-Type: model/gltf-binary or ?format=glb|gltf|vrm|bvh|skel",
+                    "send multipart/form-data, or one file with Content-Type: model/gltf-binary or ?format=glb|gltf|vrm|vrma|bvh|skel",
                 ));
             }
         };
-        if !matches!(format.as_str(), "glb" | "gltf" | "vrm" | "bvh" | "skel") {
+        if !matches!(
+            format.as_str(),
+            "glb" | "gltf" | "vrm" | "vrma" | "bvh" | "skel"
+        ) {
             return Err(bad(format!(
-                "format {format:?} is not glb, gltf, vrm, bvh or skel"
+                "format {format:?} is not glb, gltf, vrm, vrma, bvh or skel"
             )));
         }
         let bytes = Bytes::from_request(request, state).await.map_err(|e| {
