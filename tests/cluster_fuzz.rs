@@ -95,7 +95,7 @@ async fn run(seed: u64, steps: u64) {
     let stop = Arc::new(AtomicBool::new(false));
     let client = {
         let (addrs, outcomes, stop) = (addrs.clone(), outcomes.clone(), stop.clone());
-        let mut rng = Rng(seed ^ 0xC11E_17);
+        let mut rng = Rng(seed ^ 0x00C1_1E17);
         tokio::spawn(async move {
             let mut requests = Vec::new();
             let mut i = 0u64;

@@ -495,3 +495,65 @@ async fn a_busy_port_is_named_and_the_data_folder_left_alone() {
         "the data folder was created before listening"
     );
 }
+
+/// The avatars of scene `scene` as `addr` lists them.
+async fn avatars_of(addr: SocketAddr, scene: &str) -> Vec<String> {
+    let scenes = ok(addr, r#"{"op":"list_scenes"}"#).await;
+    scenes
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|s| s["scene"] == scene)
+        .map(|s| {
+            s["avatars"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|a| a["avatar"].as_str().unwrap().to_owned())
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
+/// A server on its own (issue 37, goal 2): a command sent again with its idempotency key
+/// after an unknown outcome is answered with the first answer and applied once — also after
+/// the server was SIGKILLed right after the answer (the answer is stored with the change);
+/// the key used for another op is a conflict, and a new key applies again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_keyed_command_applies_once_also_after_sigkill() {
+    use common::cluster::try_post;
+    let data = tempfile::tempdir().unwrap();
+    let server = start(data.path());
+    let addr = server.addr;
+    // No avatar id: a second application would add a second avatar.
+    let add = r#"{"op":"add_avatar","scene":"default","asset":"avatar"}"#;
+    let before = avatars_of(addr, "default").await.len();
+    let (status, first) = try_post(addr, add, Some("retry-1")).await.unwrap();
+    assert_eq!(status, 200, "{first}");
+    let (status, again) = try_post(addr, add, Some("retry-1")).await.unwrap();
+    assert_eq!((status, &again), (200, &first));
+    assert_eq!(avatars_of(addr, "default").await.len(), before + 1);
+    let added = first["result"]["avatar"].as_str().unwrap().to_owned();
+    let remove = format!(r#"{{"op":"remove_avatar","avatar":"{added}"}}"#);
+    let (status, body) = try_post(addr, &remove, Some("retry-1")).await.unwrap();
+    assert_eq!(
+        (status, body["code"].as_str()),
+        (409, Some("conflict")),
+        "{body}"
+    );
+
+    server.kill();
+    let server = start(data.path());
+    let addr = server.addr;
+    let (status, after) = try_post(addr, add, Some("retry-1")).await.unwrap();
+    assert_eq!(
+        (status, &after),
+        (200, &first),
+        "answered from the stored scene"
+    );
+    assert_eq!(avatars_of(addr, "default").await.len(), before + 1);
+    let (status, other) = try_post(addr, add, Some("retry-2")).await.unwrap();
+    assert_eq!(status, 200, "{other}");
+    assert_ne!(other, first);
+    assert_eq!(avatars_of(addr, "default").await.len(), before + 2);
+}

@@ -22,31 +22,24 @@
 //! command cannot come back through a takeover.
 //!
 //! **Idempotency.** A command may carry a key chosen by the client. The answers of the
-//! scene's latest keyed commands ([`RECENT`]) live in the scene's lock and in its snapshot
+//! scene's latest keyed commands ([`crate::scene::answers::RECENT`]) live in the scene's lock and in its snapshot
 //! ([`snapshot::SceneFile::recent`]), so a retry of an acknowledged command — on this server,
 //! or on the one that took the scene over — is answered with the first answer and applied
 //! once.
 
 use super::{Cluster, KIND, key, lock, relay_subject, unavailable};
 use crate::error::Error;
+use crate::scene::answers::{Recent, answered, op_of, remember};
 use crate::state::{AppState, RunError};
-use crate::store::snapshot::{self, RecentCommand, SceneFile};
+use crate::store::snapshot::{self, SceneFile};
 use async_nats::jetstream::kv;
 use bytes::Bytes;
 use futures_util::future::BoxFuture;
 use posecast_proto::command::{Command, CommandResult};
 use posecast_proto::msg::{AvatarId, SceneId};
-use std::collections::{BTreeSet, VecDeque};
+use std::collections::BTreeSet;
 use std::sync::Arc;
 use tracing::{info, warn};
-
-/// How many keyed commands' answers a scene keeps (the oldest is forgotten first): enough
-/// for every client of a scene to retry its last few commands, small enough that the
-/// snapshot stays a few kilobytes.
-pub(super) const RECENT: usize = 256;
-
-/// The answers of a scene's latest keyed commands, oldest first.
-pub(super) type Recent = VecDeque<RecentCommand>;
 
 /// One lock per scene ticked here, guarding its [`Recent`] table.
 pub(super) type Slot = Arc<tokio::sync::Mutex<Recent>>;
@@ -60,40 +53,6 @@ pub(super) enum Written {
     Fenced,
     /// NATS refused it or did not answer; `unknown` when it may have landed.
     Failed { error: String, unknown: bool },
-}
-
-/// The op of a command, as on the wire (`add_avatar`).
-fn op_of(command: &Command) -> String {
-    serde_json::to_value(command)
-        .ok()
-        .and_then(|v| v.get("op").and_then(|o| o.as_str()).map(str::to_owned))
-        .unwrap_or_default()
-}
-
-/// The answer of a keyed command already acknowledged, or `None` when the key is new.
-fn answered(recent: &Recent, key: &str, op: &str) -> Option<Result<CommandResult, Error>> {
-    let done = recent.iter().find(|r| r.key == key)?;
-    if done.op != op {
-        return Some(Err(Error::Conflict(format!(
-            "idempotency key {key} was used for a {} command: choose a new key for each command",
-            done.op
-        ))));
-    }
-    Some(
-        serde_json::from_value(done.result.clone())
-            .map_err(|e| Error::internal("unreadable stored answer", &e)),
-    )
-}
-
-fn remember(recent: &mut Recent, key: &str, op: String, result: &CommandResult) {
-    recent.push_back(RecentCommand {
-        key: key.to_owned(),
-        op,
-        result: result.to_value(),
-    });
-    while recent.len() > RECENT {
-        recent.pop_front();
-    }
 }
 
 fn fenced(id: &SceneId) -> Error {
@@ -516,34 +475,6 @@ impl Cluster {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// A key answers its own command again; another op under the same key is a conflict; the
-    /// table keeps the latest RECENT keys.
-    #[test]
-    fn recent_answers_again_and_forgets_the_oldest() {
-        let mut recent = Recent::new();
-        let added = CommandResult::AvatarAdded {
-            avatar: AvatarId("a1".into()),
-        };
-        remember(&mut recent, "k1", "add_avatar".into(), &added);
-        assert_eq!(answered(&recent, "k1", "add_avatar"), Some(Ok(added)));
-        assert!(matches!(
-            answered(&recent, "k1", "remove_avatar"),
-            Some(Err(Error::Conflict(_)))
-        ));
-        assert_eq!(answered(&recent, "k2", "add_avatar"), None);
-        for i in 0..RECENT {
-            remember(
-                &mut recent,
-                &format!("n{i}"),
-                "stop".into(),
-                &CommandResult::Done,
-            );
-        }
-        assert_eq!(recent.len(), RECENT);
-        assert_eq!(answered(&recent, "k1", "add_avatar"), None);
-        assert!(answered(&recent, "n0", "stop").is_some());
-    }
 
     /// Every kind of change a command makes to a scene is undone: the scene's snapshot after
     /// the undo is the one before the command (at the same instant, nothing playing), and an

@@ -592,7 +592,7 @@ impl Cluster {
             Ok(scene) => {
                 // Written back before it is ticked here: from now on the previous owner's
                 // writes fail (fencing), so whatever it still applies is never acknowledged.
-                let recent: commit::Recent = file.recent.iter().cloned().collect();
+                let recent: crate::scene::answers::Recent = file.recent.iter().cloned().collect();
                 let slot = self.slot(id);
                 let mut table = slot.lock().await;
                 match self.fence(state, id, snapshot_revision, &recent).await {

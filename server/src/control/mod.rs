@@ -8,6 +8,7 @@ mod objects;
 use crate::auth::Caller;
 use crate::changes;
 use crate::error::Error;
+use crate::scene::{Scene, answers};
 use crate::state::{AppState, RunError};
 use crate::world::command;
 use posecast_proto::command::{Command, CommandResult, RecordingInfo};
@@ -81,6 +82,50 @@ pub async fn execute_here(
 }
 
 async fn execute_here_as(
+    state: &AppState,
+    caller: &Caller,
+    command: &Command,
+    key: Option<&str>,
+) -> Result<CommandResult, Error> {
+    // A server on its own answers a keyed command's retry from the scene's answers
+    // (`scene::answers`); a cluster's owner does so in `cluster::commit`. The scene's keyed
+    // lock is held until the answer is remembered and stored.
+    let keyed = match key {
+        Some(k) if state.cluster().is_none() && !command.is_read_only() => {
+            target_scene(state, command).map(|scene| (k, scene))
+        }
+        _ => None,
+    };
+    let Some((key, scene)) = keyed else {
+        return execute_unkeyed(state, caller, command, key).await;
+    };
+    let _order = scene.keyed.lock().await;
+    let op = answers::op_of(command);
+    if let Some(again) = answers::answered(&scene.answers(), key, &op) {
+        return again;
+    }
+    let result = execute_unkeyed(state, caller, command, Some(key)).await;
+    let known = scene.answers().iter().any(|a| a.key == key);
+    if let Ok(r) = &result
+        && !known
+    {
+        // Not stored with the scene (no data folder, or a command that does not store it):
+        // remembered for retries while the server runs.
+        answers::remember(&mut scene.answers(), key, op, r);
+    }
+    result
+}
+
+/// The scene a command acts on, when it exists (looked up before executing: after
+/// `remove_avatar` the avatar is gone).
+fn target_scene(state: &AppState, command: &Command) -> Option<std::sync::Arc<Scene>> {
+    match command.scene() {
+        Some(id) => state.world.scene(id).ok(),
+        None => state.world.find_avatar(command.avatar()?).ok(),
+    }
+}
+
+async fn execute_unkeyed(
     state: &AppState,
     caller: &Caller,
     command: &Command,
@@ -176,7 +221,17 @@ async fn execute_here_as(
         (_, scene) => {
             let result = apply().await?;
             if let Some(scene) = scene {
-                state.store.persist_scene(&state.world, scene).await?;
+                // A keyed command's answer goes into the stored snapshot with its change, so
+                // a retry after a restart is answered too.
+                let remembered = key.zip(state.world.scene(scene).ok()).inspect(|(k, s)| {
+                    answers::remember(&mut s.answers(), k, answers::op_of(command), &result);
+                });
+                if let Err(e) = state.store.persist_scene(&state.world, scene).await {
+                    if let Some((k, s)) = remembered {
+                        answers::forget(&mut s.answers(), k);
+                    }
+                    return Err(e);
+                }
             }
             result
         }

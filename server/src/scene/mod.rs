@@ -5,7 +5,9 @@
 //! - this module: [`Scene`] — a tick moves every avatar to the scene clock, then the feed
 //!   encodes and fans out the frame.
 //! - `ticker`: the drift-free tick task of a scene.
+//! - [`answers`]: the answers of its latest commands that carried an idempotency key.
 
+pub mod answers;
 pub(crate) mod ticker;
 
 use crate::avatar::Avatar;
@@ -75,6 +77,11 @@ pub struct Scene {
     /// Changed whenever the scene stops being ticked here ([`Scene::stop_ticking`]): its tick
     /// task ends.
     ticker_generation: tokio::sync::watch::Sender<u64>,
+    /// Held by a keyed command on a server on its own from before its key is looked up until
+    /// its answer is remembered and stored, so two tries of one key never both apply.
+    pub keyed: tokio::sync::Mutex<()>,
+    /// The answers of its latest keyed commands ([`answers`]), in its snapshot.
+    answers: Mutex<answers::Recent>,
 }
 
 impl Scene {
@@ -94,7 +101,16 @@ impl Scene {
             stop: Notify::new(),
             ticks: tokio::sync::watch::Sender::new(0),
             ticker_generation: tokio::sync::watch::Sender::new(0),
+            keyed: tokio::sync::Mutex::new(()),
+            answers: Mutex::new(answers::Recent::new()),
         }
+    }
+
+    /// The answers of its latest keyed commands ([`answers`]). Held briefly (no awaits).
+    pub fn answers(&self) -> MutexGuard<'_, answers::Recent> {
+        self.answers
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 
     /// Locks the scene. Critical sections are short (no awaits, no I/O), and every update

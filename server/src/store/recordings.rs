@@ -236,10 +236,13 @@ impl Store {
     }
 }
 
+/// What [`read_recording`] made of one file.
+type Read = Result<(Clip, StoredRecording), Unusable>;
+
 /// [`read_recording`] of every file, in order, on as many threads as the machine has cores
 /// (at most one per file): decoding is the bulk of a restart with a full quota, and each file
 /// decodes on its own.
-fn read_all(rig: &Rig, files: &[PathBuf]) -> Vec<Result<(Clip, StoredRecording), Unusable>> {
+fn read_all(rig: &Rig, files: &[PathBuf]) -> Vec<Read> {
     let threads = std::thread::available_parallelism()
         .map_or(1, std::num::NonZeroUsize::get)
         .min(files.len());
@@ -249,30 +252,29 @@ fn read_all(rig: &Rig, files: &[PathBuf]) -> Vec<Result<(Clip, StoredRecording),
     // Each thread takes the next file not yet taken (sizes vary: a 64 MiB take beside 220 kB
     // ones), and the results are put back in the files' order.
     let next = std::sync::atomic::AtomicUsize::new(0);
-    let mut read: Vec<(usize, Result<(Clip, StoredRecording), Unusable>)> =
-        std::thread::scope(|scope| {
-            let workers: Vec<_> = (0..threads)
-                .map(|_| {
-                    scope.spawn(|| {
-                        let mut out = Vec::new();
-                        loop {
-                            let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                            let Some(file) = files.get(i) else {
-                                return out;
-                            };
-                            out.push((i, read_recording(rig, file)));
-                        }
-                    })
+    let mut read: Vec<(usize, Read)> = std::thread::scope(|scope| {
+        let workers: Vec<_> = (0..threads)
+            .map(|_| {
+                scope.spawn(|| {
+                    let mut out = Vec::new();
+                    loop {
+                        let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        let Some(file) = files.get(i) else {
+                            return out;
+                        };
+                        out.push((i, read_recording(rig, file)));
+                    }
                 })
-                .collect();
-            workers
-                .into_iter()
-                .flat_map(|w| {
-                    w.join()
-                        .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
-                })
-                .collect()
-        });
+            })
+            .collect();
+        workers
+            .into_iter()
+            .flat_map(|w| {
+                w.join()
+                    .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+            })
+            .collect()
+    });
     read.sort_unstable_by_key(|(i, _)| *i);
     read.into_iter().map(|(_, r)| r).collect()
 }

@@ -30,23 +30,13 @@ pub struct SceneFile {
     /// Avatars in the order they were added.
     pub avatars: Vec<AvatarRecord>,
     /// The answers of the scene's latest commands that carried an idempotency key, oldest
-    /// first (a cluster's owner keeps them in the snapshot, so a retry after a failover is
-    /// answered by the new owner without applying the command again); files without: none.
+    /// first ([`crate::scene::answers`]): a retry after a restart, or after a failover in a
+    /// cluster, is answered without applying the command again; files without: none.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub recent: Vec<RecentCommand>,
 }
 
-/// A command that carried an idempotency key, and its answer.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct RecentCommand {
-    /// The client's key.
-    pub key: String,
-    /// The command's `op` (a key used again for another command is refused, not answered).
-    pub op: String,
-    /// The result it was acknowledged with (`CommandResult` as JSON).
-    pub result: serde_json::Value,
-}
+pub use crate::scene::answers::RecentCommand;
 
 /// One avatar.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -96,7 +86,7 @@ pub fn snapshot(scene: &Scene, now_us: u64) -> SceneFile {
         scene: scene.id.clone(),
         saved_us: now_us,
         avatars: s.avatars.iter().map(record).collect(),
-        recent: Vec::new(),
+        recent: scene.answers().iter().cloned().collect(),
     }
 }
 
@@ -285,6 +275,9 @@ pub fn restore(world: &World, file: &SceneFile, now_us: u64) -> Result<(), crate
 /// a scene over keeps the scene its subscribers are on).
 pub fn restore_into(world: &World, file: &SceneFile, now_us: u64) {
     let elapsed_s = now_us.saturating_sub(file.saved_us) as f64 / 1e6;
+    if let Ok(scene) = world.scene(&file.scene) {
+        *scene.answers() = file.recent.iter().cloned().collect();
+    }
     for rec in &file.avatars {
         let placement = Placement::try_new(
             rec.placement.position.to_array(),
