@@ -3,7 +3,7 @@
 //!
 //! **One asset per skeleton.** The skins of one skeleton (one per hand and one for the body
 //! in FBX2glTF exports; RecursiveSkeletons' 21 skins on each of its 4 skeletons) are merged
-//! into one rig whose meshes hold each primitive once ([`skins`]); skins of disjoint
+//! into one rig whose meshes hold each primitive once (`skins.rs`); skins of disjoint
 //! skeletons (two characters in one file) give several assets, `<stem>#<first skin's name
 //! or index>`, each with the meshes of the nodes that use its skins and the clips that move
 //! its joints. A file without skins is refused.
