@@ -263,7 +263,7 @@ fn posed(asset: &Asset, t: f32) -> (Vec<Vec<Vec3>>, Vec<Mat4>) {
     (meshes, b.world.clone())
 }
 
-fn mesh<'a>(asset: &'a Asset, name: &str) -> usize {
+fn mesh(asset: &Asset, name: &str) -> usize {
     asset
         .meshes
         .iter()
