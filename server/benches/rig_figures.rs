@@ -117,10 +117,11 @@ fn main() {
         };
         let assets = load_path(&path).unwrap();
         let count = assets.len();
-        // RecursiveSkeletons' 84 skins are alike: its first stands for all.
+        // RecursiveSkeletons' 4 skeletons (21 skins each, merged) are alike: its first stands
+        // for all.
         let asset = assets.into_iter().next().unwrap();
         let label = if count > 1 {
-            format!("`{rel}` (first of {count} skins)")
+            format!("`{rel}` (first of {count} rigs)")
         } else {
             format!("`{rel}`")
         };

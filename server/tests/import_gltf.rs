@@ -192,9 +192,9 @@ fn figures_match_sources() {
         ),
         (
             "gltf/RecursiveSkeletons/glTF-Binary/RecursiveSkeletons.glb",
-            10,
-            40,
-            76,
+            210,
+            840,
+            1596,
             0.0,
             2.0,
             UpAxis::Y,
@@ -217,18 +217,34 @@ fn figures_match_sources() {
     }
 }
 
+/// Its README: "4 large skeleton armatures, 84 skin bindings", the one 40-vertex mesh bound
+/// 21 times to each skeleton: one rig per skeleton, each instance once.
 #[test]
-fn recursive_skeletons_gives_one_asset_per_skin() {
+fn recursive_skeletons_gives_one_asset_per_skeleton() {
     let Some(assets) = load("gltf/RecursiveSkeletons/glTF-Binary/RecursiveSkeletons.glb") else {
         return;
     };
-    assert_eq!(assets.len(), 84);
+    assert_eq!(assets.len(), 4);
     let names: std::collections::HashSet<&str> = assets.iter().map(|a| a.name.as_str()).collect();
-    assert_eq!(names.len(), 84);
+    assert_eq!(names.len(), 4);
     for a in &assets {
-        assert_eq!(skin_joints(a), 10, "{}", a.name);
-        assert_eq!(vertex_and_triangle_counts(a), (40, 76));
+        assert_eq!(skin_joints(a), 210, "{}", a.name);
+        assert_eq!(a.meshes.len(), 21, "{}", a.name);
+        for m in &a.meshes {
+            assert_eq!(
+                (m.mesh.vertex_count(), m.mesh.indices().len() / 3),
+                (40, 76)
+            );
+        }
         assert_eq!(a.clips[0].name(), "Track0");
+        assert!(
+            a.source
+                .notes
+                .iter()
+                .any(|n| n.starts_with("21 skins of one skeleton merged")),
+            "{:?}",
+            a.source.notes
+        );
     }
 }
 

@@ -28,7 +28,7 @@ pub fn builtin() -> Asset {
         .remove(0)
 }
 
-/// Every rig in ../shared/testdata (a few of RecursiveSkeletons' 84) and the built-in avatar.
+/// Every rig in ../shared/testdata (a few of RecursiveSkeletons' 4) and the built-in avatar.
 pub fn all_rigs() -> Vec<Asset> {
     let mut out = Vec::new();
     for rel in [

@@ -1,5 +1,5 @@
 //! glTF meshes of one skin: triangle primitives with their joints and weights, remapped to
-//! the skeleton's joint order.
+//! the skeleton's joint order (of the rig its skin is merged into, see [`super::skins`]).
 
 use std::collections::HashMap;
 
@@ -13,10 +13,13 @@ use crate::asset::AssetMesh;
 use crate::import::ImportError;
 
 impl Context<'_> {
+    /// The primitives of the nodes skinned by `skin`, their vertices stored as `bake · v` (the
+    /// skin's `C_s` in its merged rig) and their joints mapped by `skin_to_skel`.
     pub(super) fn meshes(
         &self,
         skin: &gltf::Skin<'_>,
         skin_to_skel: &[usize],
+        bake: Mat4,
         joint_count: usize,
         notes: &mut Vec<String>,
     ) -> Result<Vec<AssetMesh>, ImportError> {
@@ -40,6 +43,21 @@ impl Context<'_> {
                 let Some((positions, normals, indices)) = self.geometry(&prim, &label, notes)?
                 else {
                     continue;
+                };
+                let (positions, normals) = if bake == Mat4::IDENTITY {
+                    (positions, normals)
+                } else {
+                    let normal_matrix = glam::Mat3::from_mat4(bake).inverse().transpose();
+                    (
+                        positions
+                            .iter()
+                            .map(|p| bake.transform_point3(*p))
+                            .collect(),
+                        normals
+                            .iter()
+                            .map(|v| (normal_matrix * *v).normalize_or(Vec3::Y))
+                            .collect(),
+                    )
                 };
                 let n = positions.len();
                 let mut sets = Vec::new();
@@ -152,19 +170,19 @@ impl Context<'_> {
         Ok(Some((positions, normals, indices)))
     }
 
-    /// Meshes on nodes without a skin that hang from a joint of `skin` (the node itself or its
-    /// nearest ancestor that is one): imported rigidly skinned to that joint, weight 1, their
+    /// Meshes on nodes without a skin that hang from one of `joints` (the node itself or its
+    /// nearest ancestor that is one: each mesh once, however many skins were merged): imported rigidly skinned to that joint, weight 1, their
     /// vertices moved into the joint's bind space, `v_bind = B_j · L · v` with `L` the rest
     /// transforms from the joint down to the mesh node, so that at any pose
     /// `W_j · B_j⁻¹ · v_bind = W_j · L · v`, where the node hierarchy puts them.
     pub(super) fn rigid_meshes(
         &self,
-        skin: &gltf::Skin<'_>,
+        joints: &[usize],
         skel_of_node: &HashMap<usize, usize>,
         inverse_bind: &[Mat4],
         notes: &mut Vec<String>,
     ) -> Result<Vec<AssetMesh>, ImportError> {
-        let joints: Vec<usize> = skin.joints().map(|n| n.index()).collect();
+        let joints: std::collections::HashSet<usize> = joints.iter().copied().collect();
         let mut out = Vec::new();
         for node in self.doc.nodes() {
             let (None, Some(mesh)) = (node.skin(), node.mesh()) else {

@@ -1,10 +1,12 @@
 //! glTF 2.0 (`.gltf` + `.bin`, embedded data URIs, `.glb`) through the `gltf` crate's parser
 //! and validator, with bounds-checked accessor reading of our own.
 //!
-//! **One asset per skin.** A file with several skins (RecursiveSkeletons: 84 skins sharing one
-//! mesh) gives several assets, `<stem>#<skin name or index>`, each with the meshes of the
-//! nodes that use that skin and the clips that move its joints. A file without skins is
-//! refused.
+//! **One asset per skeleton.** The skins of one skeleton (one per hand and one for the body
+//! in FBX2glTF exports; RecursiveSkeletons' 21 skins on each of its 4 skeletons) are merged
+//! into one rig whose meshes hold each primitive once (`skins.rs`); skins of disjoint
+//! skeletons (two characters in one file) give several assets, `<stem>#<first skin's name
+//! or index>`, each with the meshes of the nodes that use its skins and the clips that move
+//! its joints. A file without skins is refused.
 //!
 //! **Non-joint ancestors.** The skeleton of a skin is its joints plus every ancestor node of a
 //! joint. Ancestors that are not joints are folded into their children when they are static
@@ -30,6 +32,7 @@
 
 mod clips;
 mod mesh;
+mod skins;
 pub mod vrm;
 pub mod vrma;
 mod vrma_rig;
@@ -39,7 +42,6 @@ use std::path::Path;
 
 use base64::Engine as _;
 use glam::{Mat4, Quat, Vec3};
-use gltf::accessor::Dimensions;
 use gltf::animation::Property;
 use posecast_proto::skeleton::topological_order;
 use posecast_proto::{Skeleton, Transform};
@@ -236,18 +238,20 @@ fn import_document(
     if let Some(animation) = source.animation {
         return Ok(vec![ctx.animation_rig(animation, stem.to_owned())?]);
     }
-    skins
+    let groups = ctx.skin_groups(&skins)?;
+    let single = groups.len() == 1;
+    groups
         .iter()
-        .map(|skin| {
-            let asset_name = if skins.len() == 1 {
-                stem.to_owned()
-            } else {
-                match skin.name() {
+        .map(|group| {
+            let asset_name = match group.skins.first() {
+                _ if single => stem.to_owned(),
+                Some(skin) => match skin.name() {
                     Some(n) if !n.is_empty() => format!("{stem}#{n}"),
                     _ => format!("{stem}#skin{}", skin.index()),
-                }
+                },
+                None => stem.to_owned(),
             };
-            ctx.skin(skin, asset_name)
+            ctx.skin_group(group, asset_name)
         })
         .collect()
 }
@@ -439,8 +443,8 @@ impl Context<'_> {
 
     /// What a skin's asset leaves out: the materials of its meshes (posecast serves geometry),
     /// and meshes on nodes that hang from no joint of any skin (scenery: not part of a rig).
-    fn unimported_notes(&self, skin: &gltf::Skin<'_>) -> Vec<String> {
-        let joints: Vec<usize> = skin.joints().map(|n| n.index()).collect();
+    fn unimported_notes(&self, group: &skins::SkinGroup<'_>) -> Vec<String> {
+        let joints = &group.joints;
         let all_joints: Vec<usize> = self
             .doc
             .skins()
@@ -465,8 +469,8 @@ impl Context<'_> {
         for node in self.doc.nodes() {
             let Some(mesh) = node.mesh() else { continue };
             let ours = match node.skin() {
-                Some(s) => s.index() == skin.index(),
-                None => hangs_from(node.index(), &joints),
+                Some(s) => group.skins.iter().any(|g| g.index() == s.index()),
+                None => hangs_from(node.index(), joints),
             };
             if node.skin().is_none() && !hangs_from(node.index(), &all_joints) {
                 loose.push(self.nodes.names[node.index()].clone());
@@ -515,35 +519,24 @@ impl Context<'_> {
             ));
         }
         let skins = self.doc.skins().len();
-        if skins > 1 {
+        if skins > group.skins.len() {
             notes.push(format!(
-                "the file has {skins} skins: this asset is skin {}, the others are assets of \
-                 their own",
-                skin.index()
+                "the file has {skins} skins: this asset holds {} of them, the others (other \
+                 skeletons) are assets of their own",
+                group.skins.len()
             ));
         }
         notes
     }
 
-    fn skin(&self, skin: &gltf::Skin<'_>, name: String) -> Result<Asset, ImportError> {
-        let joints: Vec<usize> = skin.joints().map(|n| n.index()).collect();
-        if joints.is_empty() {
-            return Err(ImportError::Unsupported {
-                file: self.file.to_owned(),
-                message: format!("skin {} has no joints", skin.index()),
-            });
-        }
-        self.rig(&joints, Some(skin), name)
-    }
-
     /// The asset of a set of joint nodes (non-empty): the skeleton of the joints and their
     /// ancestors (folded where static and rigid, see the module docs), the clips that move
-    /// them, and, with a `skin`, its inverse binds and meshes. Without one (a VRM animation)
-    /// every joint is bound at rest.
+    /// them, and, with a group of skins ([`skins`]), their inverse binds and meshes. Without
+    /// one (a VRM animation) every joint is bound at rest.
     fn rig(
         &self,
         joints: &[usize],
-        skin: Option<&gltf::Skin<'_>>,
+        group: Option<&skins::SkinGroup<'_>>,
         name: String,
     ) -> Result<Asset, ImportError> {
         let nodes = self.nodes;
@@ -554,8 +547,7 @@ impl Context<'_> {
                 return Err(self.node_err(j, "is not a node of the file"));
             }
             if skin_index_of.insert(j, k).is_some() {
-                let place = skin.map_or_else(String::new, |s| format!(" in skin {}", s.index()));
-                return Err(self.node_err(j, format!("listed twice{place}")));
+                return Err(self.node_err(j, "listed twice"));
             }
         }
         // The joints and all their ancestors.
@@ -630,13 +622,7 @@ impl Context<'_> {
         for (s, &n) in skel_nodes.iter().enumerate() {
             skel_of_node.insert(n, s);
         }
-        // skin joint k -> skeleton joint
-        let skin_to_skel: Vec<usize> = joints
-            .iter()
-            .map(|j| skel_of_node.get(j).copied().unwrap_or(0))
-            .collect();
-
-        // Inverse binds: the skin's, or bound at rest for helpers.
+        // Inverse binds: the skins' (merged, see [`skins`]), or bound at rest for helpers.
         let mut world = vec![Mat4::IDENTITY; count];
         for s in 0..count {
             let l = rest[s].to_mat4();
@@ -647,36 +633,13 @@ impl Context<'_> {
         }
         let mut inverse_bind: Vec<Mat4> = world.iter().map(Mat4::inverse).collect();
         let mut notes = Vec::new();
-        match skin.map(gltf::Skin::inverse_bind_matrices) {
-            // Bound at rest: no skin, no vertices to bind.
-            None => {}
-            Some(Some(acc)) => {
-                let v = self
-                    .buffers
-                    .read_as(&acc, Dimensions::Mat4, "inverseBindMatrices")?;
-                if v.len() < joints.len() * 16 {
-                    return Err(ImportError::Accessor {
-                        file: self.file.to_owned(),
-                        accessor: acc.index(),
-                        message: format!(
-                            "{} inverse bind matrices for {} joints",
-                            v.len() / 16,
-                            joints.len()
-                        ),
-                    });
-                }
-                for (k, chunk) in v.chunks_exact(16).take(joints.len()).enumerate() {
-                    let mut a = [0.0f32; 16];
-                    a.copy_from_slice(chunk);
-                    inverse_bind[skin_to_skel[k]] = Mat4::from_cols_array(&a);
+        if let Some(group) = group {
+            for (node, b) in &group.binds {
+                if let Some(&s) = skel_of_node.get(node) {
+                    inverse_bind[s] = *b;
                 }
             }
-            Some(None) => {
-                for k in 0..joints.len() {
-                    inverse_bind[skin_to_skel[k]] = Mat4::IDENTITY;
-                }
-                notes.push("skin has no inverseBindMatrices: identity used".to_owned());
-            }
+            notes.extend(group.notes.iter().cloned());
         }
         let names = unique_names(skel_nodes.iter().map(|&n| nodes.names[n].clone()));
         notes.extend(renamed_note(
@@ -691,14 +654,24 @@ impl Context<'_> {
                 }
             })?;
 
-        let (mut meshes, rigid) = if let Some(skin) = skin.filter(|_| self.with_meshes) {
-            (
-                self.meshes(skin, &skin_to_skel, count, &mut notes)?,
-                self.rigid_meshes(skin, &skel_of_node, skeleton.inverse_bind(), &mut notes)?,
-            )
-        } else {
-            (Vec::new(), Vec::new())
-        };
+        let mut meshes = Vec::new();
+        let mut rigid = Vec::new();
+        if let Some(group) = group.filter(|_| self.with_meshes) {
+            for (skin, bake) in group.skins.iter().zip(&group.bakes) {
+                // skin joint k -> skeleton joint
+                let skin_to_skel: Vec<usize> = skin
+                    .joints()
+                    .map(|j| skel_of_node.get(&j.index()).copied().unwrap_or(0))
+                    .collect();
+                meshes.extend(self.meshes(skin, &skin_to_skel, *bake, count, &mut notes)?);
+            }
+            rigid = self.rigid_meshes(
+                &group.joints,
+                &skel_of_node,
+                skeleton.inverse_bind(),
+                &mut notes,
+            )?;
+        }
         if !rigid.is_empty() {
             notes.push(format!(
                 "{} mesh primitive(s) parented to joints imported rigidly skinned (weight 1)",
@@ -731,8 +704,8 @@ impl Context<'_> {
             }
         }
         let clips = self.clips(&skel_of_node, &maps, count, &mut notes)?;
-        if let Some(skin) = skin {
-            notes.extend(self.unimported_notes(skin));
+        if let Some(group) = group {
+            notes.extend(self.unimported_notes(group));
         }
 
         let mut source = SourceInfo::new(SourceFormat::Gltf);
