@@ -43,9 +43,11 @@ struct Split {
     other_pose: bool,
 }
 
-/// The split file, and for each part (`armR`, `armL`, `body`) the original vertex of each of
-/// its vertices.
-fn split_cesium(split: Split) -> Option<(Vec<u8>, HashMap<String, Vec<usize>>)> {
+/// For each part (`armR`, `armL`, `body`), the original vertex of each of its vertices.
+type Origins = HashMap<String, Vec<usize>>;
+
+/// The split file, and where its parts' vertices come from.
+fn split_cesium(split: Split) -> Option<(Vec<u8>, Origins)> {
     let bytes = std::fs::read(require_testdata(CESIUM)?).unwrap();
     let file = gltf::Gltf::from_slice(&bytes).unwrap();
     let blob = file.blob.clone().unwrap();
