@@ -146,13 +146,33 @@ pub fn strict() -> bool {
     std::env::var("CI").is_ok_and(|v| !v.is_empty() && v != "false" && v != "0")
 }
 
-/// Reports a test that cannot run here: a panic under [`strict`] (CI), a note otherwise.
+/// Reports a test that cannot run here: a panic under [`strict`] (CI), a note otherwise. The
+/// reason also goes, one line per skip, to the file `POSECAST_SKIP_LOG` names when it is set:
+/// `cargo test` hides a passing test's output, so `scripts/test` counts the skips from there
+/// and prints them after the run.
 ///
 /// # Panics
 /// Under `CI=true`, always.
 pub fn skip(reason: &str) {
+    if let Some(log) = std::env::var_os("POSECAST_SKIP_LOG")
+        && let Err(e) = note_skip(std::path::Path::new(&log), reason)
+    {
+        eprintln!("cannot note the skip in {}: {e}", log.to_string_lossy());
+    }
     assert!(!strict(), "CI=true and a test input is missing: {reason}");
     eprintln!("SKIPPING: {reason}");
+}
+
+/// Appends `reason` as one line to `log`: one write in append mode, so tests running in
+/// parallel never interleave within a line.
+fn note_skip(log: &std::path::Path, reason: &str) -> std::io::Result<()> {
+    use std::io::Write;
+    let line = format!("{}\n", reason.replace('\n', " "));
+    std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(log)?
+        .write_all(line.as_bytes())
 }
 
 /// [`testdata`] when the file exists; otherwise [`skip`] (a failure under `CI=true`) and `None`.
@@ -287,5 +307,19 @@ pub fn assert_valid_gltf(files: &[(&str, Vec<u8>)]) {
             r.errors, 0,
             "{label}: the validator found errors (listed above)"
         );
+    }
+}
+
+#[cfg(test)]
+mod skip_tests {
+    #[test]
+    fn every_skip_is_one_line_of_the_log() {
+        let log = std::env::temp_dir().join(format!("posecast-skips-{}", std::process::id()));
+        std::fs::remove_file(&log).ok();
+        super::note_skip(&log, "no GPU").unwrap();
+        super::note_skip(&log, "two\nlines").unwrap();
+        let text = std::fs::read_to_string(&log).unwrap();
+        std::fs::remove_file(&log).ok();
+        assert_eq!(text, "no GPU\ntwo lines\n");
     }
 }
