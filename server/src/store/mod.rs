@@ -740,4 +740,43 @@ mod tests {
             joints.len()
         );
     }
+
+    /// Write before ack, deterministically (issue 35): while the store's write lock is held —
+    /// a write that has not finished — a command is applied but not answered, and its scene
+    /// file does not hold it yet; once the lock is released the command is answered, and the
+    /// file holds the change by then.
+    #[tokio::test]
+    async fn the_ack_waits_for_the_write() {
+        let dir = tempfile::tempdir().unwrap();
+        let state = state_on(dir.path());
+        let command = |json: &str| serde_json::from_str::<Command>(json).unwrap();
+        execute_durable(&state, &command(r#"{"op":"create_scene","scene":"s"}"#))
+            .await
+            .unwrap();
+        let path = dir.path().join("scenes/s.json");
+        let stored =
+            |path: &Path| std::fs::read_to_string(path).is_ok_and(|text| text.contains(r#""a""#));
+        assert!(!stored(&path));
+
+        let barrier = state.store.lock.clone().lock_owned().await;
+        let ack = tokio::spawn({
+            let state = state.clone();
+            let add = command(r#"{"op":"add_avatar","scene":"s","asset":"avatar","avatar":"a"}"#);
+            async move { execute_durable(&state, &add).await }
+        });
+        // One thread: the command runs only while this test yields, up to the write it waits
+        // for.
+        let avatar = posecast_proto::msg::AvatarId("a".into());
+        while state.world.find_avatar(&avatar).is_err() {
+            tokio::task::yield_now().await;
+        }
+        for _ in 0..100 {
+            tokio::task::yield_now().await;
+        }
+        assert!(!ack.is_finished(), "answered before its write was done");
+        assert!(!stored(&path), "written while the store was held");
+        drop(barrier);
+        ack.await.unwrap().unwrap();
+        assert!(stored(&path), "answered, and not on disk");
+    }
 }
