@@ -8,40 +8,11 @@
 mod gltf_support;
 mod rig_support;
 
-use gltf_support::{builtin_skeleton_glb, glb};
+use gltf_support::{builtin_skeleton_glb, glb, vrm_bone};
 use posecast_server::builtin::skeleton::JOINTS;
 use posecast_server::import::files::{FileSet, import_set};
 use posecast_server::rig::{PipelineOptions, RigView, normalise, retarget};
 use serde_json::{Value, json};
-
-/// The VRM bone of each built-in joint (`sacroiliac` has none).
-fn vrm_bone(hanim: &str) -> Option<&'static str> {
-    Some(match hanim {
-        "humanoid_root" => "hips",
-        "vl5" => "spine",
-        "vt10" => "chest",
-        "vt1" => "upperChest",
-        "vc4" => "neck",
-        "skullbase" => "head",
-        "l_sternoclavicular" => "leftShoulder",
-        "l_shoulder" => "leftUpperArm",
-        "l_elbow" => "leftLowerArm",
-        "l_wrist" => "leftHand",
-        "l_hip" => "leftUpperLeg",
-        "l_knee" => "leftLowerLeg",
-        "l_ankle" => "leftFoot",
-        "l_midtarsal" => "leftToes",
-        "r_sternoclavicular" => "rightShoulder",
-        "r_shoulder" => "rightUpperArm",
-        "r_elbow" => "rightLowerArm",
-        "r_wrist" => "rightHand",
-        "r_hip" => "rightUpperLeg",
-        "r_knee" => "rightLowerLeg",
-        "r_ankle" => "rightFoot",
-        "r_midtarsal" => "rightToes",
-        _ => return None,
-    })
-}
 
 /// The built-in skeleton in T-pose as glTF nodes `n0`, `n1`, … (plus a hair bone `LeftArm`
 /// whose name a guesser would take for an arm), one skinned triangle, and the VRM extension

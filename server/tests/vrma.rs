@@ -17,7 +17,7 @@ mod gltf_support;
 mod rig_support;
 
 use glam::{Mat4, Quat, Vec3};
-use gltf_support::{Bin, glb};
+use gltf_support::{Bin, glb, vrm_bone};
 use posecast_proto::fk::forward_kinematics;
 use posecast_server::builtin::skeleton::JOINTS;
 use posecast_server::clip::Clip;
@@ -26,36 +26,6 @@ use posecast_server::import::files::{FileSet, import_set};
 use posecast_server::import::gltf::vrma::VrmaError;
 use posecast_server::rig::{Normalised, PipelineOptions, RigView, normalise, retarget};
 use serde_json::{Value, json};
-
-/// The VRM 1.0 bone of each built-in joint (`sacroiliac` has none: it stays a node between
-/// the hips and the legs).
-fn vrm_bone(hanim: &str) -> Option<&'static str> {
-    Some(match hanim {
-        "humanoid_root" => "hips",
-        "vl5" => "spine",
-        "vt10" => "chest",
-        "vt1" => "upperChest",
-        "vc4" => "neck",
-        "skullbase" => "head",
-        "l_sternoclavicular" => "leftShoulder",
-        "l_shoulder" => "leftUpperArm",
-        "l_elbow" => "leftLowerArm",
-        "l_wrist" => "leftHand",
-        "l_hip" => "leftUpperLeg",
-        "l_knee" => "leftLowerLeg",
-        "l_ankle" => "leftFoot",
-        "l_midtarsal" => "leftToes",
-        "r_sternoclavicular" => "rightShoulder",
-        "r_shoulder" => "rightUpperArm",
-        "r_elbow" => "rightLowerArm",
-        "r_wrist" => "rightHand",
-        "r_hip" => "rightUpperLeg",
-        "r_knee" => "rightLowerLeg",
-        "r_ankle" => "rightFoot",
-        "r_midtarsal" => "rightToes",
-        _ => return None,
-    })
-}
 
 fn joint_index(name: &str) -> usize {
     JOINTS.iter().position(|j| j.name == name).unwrap()

@@ -176,3 +176,33 @@ pub fn builtin_skeleton_glb(
     bin.finish(&mut doc);
     glb(&doc, &bin.bytes)
 }
+
+/// The VRM 1.0 bone of each built-in joint (`sacroiliac` has none: it stays a node between
+/// the hips and the legs).
+pub fn vrm_bone(hanim: &str) -> Option<&'static str> {
+    Some(match hanim {
+        "humanoid_root" => "hips",
+        "vl5" => "spine",
+        "vt10" => "chest",
+        "vt1" => "upperChest",
+        "vc4" => "neck",
+        "skullbase" => "head",
+        "l_sternoclavicular" => "leftShoulder",
+        "l_shoulder" => "leftUpperArm",
+        "l_elbow" => "leftLowerArm",
+        "l_wrist" => "leftHand",
+        "l_hip" => "leftUpperLeg",
+        "l_knee" => "leftLowerLeg",
+        "l_ankle" => "leftFoot",
+        "l_midtarsal" => "leftToes",
+        "r_sternoclavicular" => "rightShoulder",
+        "r_shoulder" => "rightUpperArm",
+        "r_elbow" => "rightLowerArm",
+        "r_wrist" => "rightHand",
+        "r_hip" => "rightUpperLeg",
+        "r_knee" => "rightLowerLeg",
+        "r_ankle" => "rightFoot",
+        "r_midtarsal" => "rightToes",
+        _ => return None,
+    })
+}
