@@ -17,7 +17,7 @@ mod gltf_support;
 mod rig_support;
 
 use glam::{Mat4, Quat, Vec3};
-use gltf_support::{Bin, glb, vrm_bone};
+use gltf_support::{Bin, glb, glb_of_text, vrm_bone};
 use posecast_proto::fk::forward_kinematics;
 use posecast_server::builtin::skeleton::JOINTS;
 use posecast_server::clip::Clip;
@@ -189,30 +189,7 @@ fn vrma_edited(edit: impl FnOnce(String) -> String) -> Vec<u8> {
         serde_json::from_str::<Value>(&text).is_ok(),
         "edited JSON does not parse"
     );
-    glb_of_text(text, bin)
-}
-
-/// A GLB of JSON `text` as it is (serde_json would drop a repeated key) and `bin`.
-fn glb_of_text(text: String, bin: Vec<u8>) -> Vec<u8> {
-    let mut json = text.into_bytes();
-    while !json.len().is_multiple_of(4) {
-        json.push(b' ');
-    }
-    let mut bin = bin;
-    while !bin.len().is_multiple_of(4) {
-        bin.push(0);
-    }
-    let total = 12 + 8 + json.len() + 8 + bin.len();
-    let mut out = b"glTF".to_vec();
-    out.extend_from_slice(&2u32.to_le_bytes());
-    out.extend_from_slice(&(total as u32).to_le_bytes());
-    out.extend_from_slice(&(json.len() as u32).to_le_bytes());
-    out.extend_from_slice(b"JSON");
-    out.extend_from_slice(&json);
-    out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
-    out.extend_from_slice(b"BIN\0");
-    out.extend_from_slice(&bin);
-    out
+    glb_of_text(&text, &bin)
 }
 
 fn import(name: &str, bytes: Vec<u8>) -> Result<Vec<posecast_server::asset::Asset>, ImportError> {
@@ -589,7 +566,7 @@ fn mutated_vrma_files_never_panic() {
             }
         }
         let mutant = String::from_utf8_lossy(&t).into_owned();
-        let bytes = glb_of_text(mutant, bin.clone());
+        let bytes = glb_of_text(&mutant, &bin);
         let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
             let assets = match import("f.vrma", bytes) {
                 Ok(a) => a,

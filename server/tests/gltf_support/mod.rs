@@ -77,7 +77,12 @@ impl Bin {
 
 /// A GLB file: the JSON chunk (space-padded) and the binary chunk (zero-padded).
 pub fn glb(doc: &Value, bin: &[u8]) -> Vec<u8> {
-    let mut json = serde_json::to_vec(doc).unwrap();
+    glb_of_text(&serde_json::to_string(doc).unwrap(), bin)
+}
+
+/// [`glb`] of JSON `text` as it is (serde_json would drop a repeated key).
+pub fn glb_of_text(text: &str, bin: &[u8]) -> Vec<u8> {
+    let mut json = text.as_bytes().to_vec();
     while !json.len().is_multiple_of(4) {
         json.push(b' ');
     }
