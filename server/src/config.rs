@@ -25,10 +25,10 @@ pub struct Config {
     pub data_dir: Option<PathBuf>,
     /// Largest upload request body, bytes.
     pub max_upload_bytes: usize,
-    /// Limits on scenes, avatars, rig and clip sizes, upload bytes ([`crate::quota`]).
-    pub quotas: crate::quota::Quotas,
-    /// Commands per second per connection ([`crate::quota::CommandRate`]).
-    pub command_rate: crate::quota::CommandRate,
+    /// Limits on scenes, avatars, rig and clip sizes, upload bytes ([`posecast_core::quota`]).
+    pub quotas: posecast_core::quota::Quotas,
+    /// Commands per second per connection ([`posecast_core::quota::CommandRate`]).
+    pub command_rate: posecast_core::quota::CommandRate,
     /// How long a graceful shutdown waits, at most, for HTTP requests to finish and for every
     /// websocket's close frame to be sent (and answered) before the server stops regardless.
     pub shutdown_drain: Duration,
@@ -79,8 +79,8 @@ impl Default for Config {
             access: AccessConfig::default(),
             data_dir: None,
             max_upload_bytes: DEFAULT_MAX_UPLOAD_BYTES,
-            quotas: crate::quota::Quotas::default(),
-            command_rate: crate::quota::CommandRate::default(),
+            quotas: posecast_core::quota::Quotas::default(),
+            command_rate: posecast_core::quota::CommandRate::default(),
             shutdown_drain: DEFAULT_SHUTDOWN_DRAIN,
             drive_timeout: DEFAULT_DRIVE_TIMEOUT,
             net: NetLimits::default(),

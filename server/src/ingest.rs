@@ -1,5 +1,5 @@
-//! Uploading assets: an in-memory file set is imported ([`crate::import::files`]), normalised
-//! like the rigs loaded at start ([`crate::library::prepare`]), stored durably, and only then added to
+//! Uploading assets: an in-memory file set is imported ([`posecast_rigs::import::files`]), normalised
+//! like the rigs loaded at start ([`posecast_rigs::library::prepare`]), stored durably, and only then added to
 //! the library and acknowledged. On any failure nothing changes: no library entry, no file
 //! left in the data folder.
 //!
@@ -10,13 +10,13 @@
 //! Uploads come over REST only (`service::upload`); the websocket keeps its 64 KiB message
 //! bound, which is what lets a connection's reader stay small and never buffer a model.
 
-use crate::error::Error;
-use crate::import::files::{self, FileSet};
-use crate::library::{check_name, prepare_with};
-use crate::rig::{PipelineOptions, Rig};
 use crate::state::AppState;
 use crate::store::assets::{self, AssetMeta};
+use posecast_core::error::Error;
 use posecast_proto::command::AssetInfo;
+use posecast_rigs::import::files::{self, FileSet};
+use posecast_rigs::library::{check_name, prepare_with};
+use posecast_rigs::rig::{PipelineOptions, Rig};
 use std::sync::Arc;
 
 /// Whether `name` is taken: a loaded rig `name` or `name#…`, an upload, or a stored folder.
@@ -40,7 +40,7 @@ fn conflict(name: &str) -> Error {
     Error::Conflict(format!("an asset named {name} exists"))
 }
 
-/// The rig quotas ([`crate::rig::Rig::check_quotas`]), counted in the metrics when refused.
+/// The rig quotas ([`posecast_rigs::rig::Rig::check_quotas`]), counted in the metrics when refused.
 fn check_rig(state: &AppState, rig: &Rig) -> Result<(), Error> {
     rig.check_quotas(&state.config.quotas)
         .map_err(|(quota, e)| {
@@ -49,12 +49,12 @@ fn check_rig(state: &AppState, rig: &Rig) -> Result<(), Error> {
         })
 }
 
-/// Refuses a file set larger than [`crate::quota::Quotas::max_asset_bytes`].
+/// Refuses a file set larger than [`posecast_core::quota::Quotas::max_asset_bytes`].
 fn check_asset_bytes(state: &AppState, name: &str, bytes: u64) -> Result<(), Error> {
     let max = state.config.quotas.max_asset_bytes;
     if bytes > max {
         return Err(state.metrics.refuse_quota(
-            crate::quota::Quota::AssetBytes,
+            posecast_core::quota::Quota::AssetBytes,
             format!("asset {name} would hold {bytes} bytes"),
             max,
         ));
@@ -62,14 +62,14 @@ fn check_asset_bytes(state: &AppState, name: &str, bytes: u64) -> Result<(), Err
     Ok(())
 }
 
-/// Refuses `more` bytes past [`crate::quota::Quotas::max_upload_total_bytes`] (called under
+/// Refuses `more` bytes past [`posecast_core::quota::Quotas::max_upload_total_bytes`] (called under
 /// the assets lock, so concurrent uploads cannot overshoot together).
 fn check_total_bytes(state: &AppState, name: &str, more: u64) -> Result<(), Error> {
     let max = state.config.quotas.max_upload_total_bytes;
     let now = state.store.upload_bytes();
     if now.saturating_add(more) > max {
         return Err(state.metrics.refuse_quota(
-            crate::quota::Quota::UploadTotalBytes,
+            posecast_core::quota::Quota::UploadTotalBytes,
             format!("uploads hold {now} bytes and {name} adds {more}"),
             max,
         ));
@@ -92,7 +92,7 @@ pub fn check_room(
     let now = state.store.upload_bytes();
     if now.saturating_add(bytes) > max {
         return Err(state.metrics.refuse_quota(
-            crate::quota::Quota::UploadTotalBytes,
+            posecast_core::quota::Quota::UploadTotalBytes,
             format!("uploads and recordings hold {now} bytes and {what} adds {bytes}"),
             max,
         ));
@@ -103,7 +103,7 @@ pub fn check_room(
             && used.bytes.saturating_add(bytes) > max
         {
             return Err(state.metrics.refuse_quota(
-                crate::quota::Quota::TokenBytes,
+                posecast_core::quota::Quota::TokenBytes,
                 format!(
                     "token {} holds {} bytes and {what} adds {bytes}",
                     t.name, used.bytes
@@ -115,7 +115,7 @@ pub fn check_room(
             && used.objects >= max
         {
             return Err(state.metrics.refuse_quota(
-                crate::quota::Quota::TokenObjects,
+                posecast_core::quota::Quota::TokenObjects,
                 format!(
                     "token {} holds {} uploads and recordings; {what} is one more",
                     t.name, used.objects

@@ -5,7 +5,7 @@
 //! /healthz` answers 503 with the progress, and every request that reads or changes scenes or
 //! assets waits here (see the README, "Persistence").
 
-use crate::error::Error;
+use posecast_core::error::Error;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use tokio::sync::watch;
 

@@ -8,12 +8,12 @@
 //! process asked to stop during a long start must be able to exit — the runtime waits for
 //! its blocking-pool tasks when it shuts down, never for this thread.
 
-use crate::avatar::playback::Layer;
-use crate::builtin::BUILTIN_ASSET;
-use crate::import;
-use crate::rig::PipelineOptions;
 use crate::state::AppState;
 use posecast_proto::msg::{AvatarId, SceneId};
+use posecast_rigs::builtin::BUILTIN_ASSET;
+use posecast_rigs::import;
+use posecast_rigs::rig::PipelineOptions;
+use posecast_sim::avatar::playback::Layer;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use tracing::{info, warn};
@@ -144,7 +144,7 @@ fn run(state: &AppState, plan: Plan) -> std::io::Result<()> {
 }
 
 fn load_builtin(state: &AppState) {
-    match crate::builtin::rig() {
+    match posecast_rigs::builtin::rig() {
         Ok(rig) => {
             state.world.library.insert(rig);
         }
@@ -212,7 +212,7 @@ fn load_file(state: &AppState, path: &Path) {
         Ok(assets) => {
             for asset in assets {
                 let name = asset.name.clone();
-                match crate::rig::Rig::from_asset(asset, &PipelineOptions::default()) {
+                match posecast_rigs::rig::Rig::from_asset(asset, &PipelineOptions::default()) {
                     Ok(rig) => {
                         info!(asset = %name, joints = rig.skeleton().len(), steps = ?rig.pipeline, "loaded");
                         state.world.library.insert(rig);

@@ -3,19 +3,19 @@
 
 use crate::auth::{AccessConfig, Caller};
 use crate::config::Config;
-use crate::error::Error;
-use crate::import::files::FileSet;
 use crate::metrics::Metrics;
 use crate::readiness::Readiness;
-use crate::rig::PipelineOptions;
 use crate::store::Store;
 use crate::stream::outbox::Outbox;
 use crate::stream::pace::Paths;
 use crate::world::World;
 use axum::extract::ws::Message;
 use futures_util::future::BoxFuture;
+use posecast_core::error::Error;
 use posecast_proto::command::{Command, CommandResult, SceneInfo};
 use posecast_proto::msg::SceneId;
+use posecast_rigs::import::files::FileSet;
+use posecast_rigs::rig::PipelineOptions;
 use std::sync::OnceLock;
 
 use std::collections::HashMap;

@@ -1,6 +1,6 @@
 // @ts-check
 // A small binary glTF (.glb) reader for the server's skinned mesh
-// (GET /api/assets/{name}/mesh.glb, see server/src/export/): every primitive of the first
+// (GET /api/assets/{name}/mesh.glb, see rigs/src/export/): every primitive of the first
 // skinned mesh, with POSITION, NORMAL, JOINTS_0, WEIGHTS_0 and indices.
 
 /**

@@ -12,8 +12,8 @@
 //! Missing or unknown token: `unauthorized` (HTTP 401). A valid token without the
 //! right: `forbidden` (HTTP 403).
 
-use crate::error::Error;
 use crate::world::World;
+use posecast_core::error::Error;
 use posecast_proto::command::{Command, CommandResult};
 use posecast_proto::msg::{Access, AvatarId, SceneId};
 use serde::Deserialize;
@@ -326,7 +326,7 @@ impl AccessConfig {
     }
 }
 
-/// A limited token places only rigs of at most [`crate::quota::Quotas::limited_max_joints`]
+/// A limited token places only rigs of at most [`posecast_core::quota::Quotas::limited_max_joints`]
 /// joints: one user's avatar cannot make every viewer of the scene download a huge rig.
 fn limited_rig_size(world: &World, command: &Command) -> Result<(), Error> {
     let Command::AddAvatar { asset, .. } = command else {
@@ -335,7 +335,7 @@ fn limited_rig_size(world: &World, command: &Command) -> Result<(), Error> {
     let max = world.quotas().limited_max_joints;
     match world.library.get(asset) {
         Some(rig) if rig.skeleton().len() > max => Err(world.metrics.refuse_quota(
-            crate::quota::Quota::LimitedJoints,
+            posecast_core::quota::Quota::LimitedJoints,
             format!(
                 "rig {asset} has {} joints; a limited token may place rigs of up to",
                 rig.skeleton().len()

@@ -15,13 +15,13 @@
 //! one put, so a reader sees every file of one version or the previous version, never a mix.
 
 use super::{Cluster, lock, unavailable};
-use crate::error::Error;
-use crate::import::files::FileSet;
-use crate::rig::PipelineOptions;
 use crate::state::AppState;
 use crate::store::snapshot::SceneFile;
 use async_nats::jetstream::object_store::{self, ObjectMetadata};
 use futures_util::StreamExt;
+use posecast_core::error::Error;
+use posecast_rigs::import::files::FileSet;
+use posecast_rigs::rig::PipelineOptions;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeSet;
 use tokio::io::AsyncReadExt;

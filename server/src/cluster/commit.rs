@@ -28,13 +28,13 @@
 //! once.
 
 use super::{Cluster, KIND, key, lock, relay_subject, unavailable};
-use crate::error::Error;
 use crate::scene::answers::{Recent, answered, op_of, remember};
 use crate::state::{AppState, RunError};
 use crate::store::snapshot::{self, SceneFile};
 use async_nats::jetstream::kv;
 use bytes::Bytes;
 use futures_util::future::BoxFuture;
+use posecast_core::error::Error;
 use posecast_proto::command::{Command, CommandResult};
 use posecast_proto::msg::{AvatarId, SceneId};
 use std::collections::BTreeSet;
@@ -482,9 +482,12 @@ mod tests {
     /// removed and added again).
     #[tokio::test]
     async fn a_rolled_back_command_leaves_the_scene_as_it_was_stored() {
-        use crate::builtin::BUILTIN_ASSET;
+        use posecast_rigs::builtin::BUILTIN_ASSET;
         let state = AppState::new(crate::config::Config::default());
-        state.world.library.insert(crate::builtin::rig().unwrap());
+        state
+            .world
+            .library
+            .insert(posecast_rigs::builtin::rig().unwrap());
         let run = |json: &str| {
             let command: Command = serde_json::from_str(json).unwrap();
             crate::control::execute(&state, &command).unwrap();

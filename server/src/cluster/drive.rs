@@ -16,12 +16,12 @@
 //! itself, it runs the `drive` for the connection here and applies the poses directly.
 
 use super::{Cluster, KIND, Reply, key, lock, request_subject, unavailable};
-use crate::error::Error;
 use crate::live::Drives;
 use crate::metrics::Metrics;
 use crate::state::AppState;
 use bytes::Bytes;
 use futures_util::StreamExt;
+use posecast_core::error::Error;
 use posecast_proto::command::{Command, CommandResult};
 use posecast_proto::msg::{ErrorCode, ProtocolError, SceneId};
 use std::collections::HashMap;

@@ -31,10 +31,8 @@ mod drive;
 mod owner;
 mod relay;
 
-use crate::builtin::BUILTIN_ASSET;
 use crate::config::Config;
 use crate::control;
-use crate::error::Error;
 use crate::restore::{DEFAULT_AVATAR, DEFAULT_SCENE};
 use crate::state::AppState;
 use crate::store::snapshot;
@@ -42,8 +40,10 @@ use async_nats::jetstream::{self, kv};
 use bytes::Bytes;
 use futures_util::StreamExt;
 use futures_util::future::BoxFuture;
+use posecast_core::error::Error;
 use posecast_proto::command::{Command, CommandResult, SceneInfo};
 use posecast_proto::msg::{AvatarId, ProtocolError, SceneId};
+use posecast_rigs::builtin::BUILTIN_ASSET;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -738,8 +738,8 @@ impl crate::state::Cluster for Cluster {
     fn share_asset<'a>(
         &'a self,
         name: &'a str,
-        files: &'a crate::import::files::FileSet,
-        options: &'a crate::rig::PipelineOptions,
+        files: &'a posecast_rigs::import::files::FileSet,
+        options: &'a posecast_rigs::rig::PipelineOptions,
     ) -> BoxFuture<'a, Result<(), Error>> {
         Box::pin(self.share(name, files, options))
     }
@@ -755,7 +755,7 @@ impl crate::state::Cluster for Cluster {
     fn shared_asset<'a>(
         &'a self,
         name: &'a str,
-    ) -> BoxFuture<'a, Result<Option<crate::import::files::FileSet>, Error>> {
+    ) -> BoxFuture<'a, Result<Option<posecast_rigs::import::files::FileSet>, Error>> {
         Box::pin(self.shared_files(name))
     }
 

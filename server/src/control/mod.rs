@@ -7,10 +7,10 @@ mod objects;
 
 use crate::auth::Caller;
 use crate::changes;
-use crate::error::Error;
 use crate::scene::{Scene, answers};
 use crate::state::{AppState, RunError};
 use crate::world::command;
+use posecast_core::error::Error;
 use posecast_proto::command::{Command, CommandResult, RecordingInfo};
 
 /// Executes a command in memory and tells the connections that follow what it changed
@@ -261,7 +261,7 @@ async fn share_recording(
             rig: info.asset.clone(),
             clip: info.clip.clone(),
         })?;
-    let glb = tokio::task::spawn_blocking(move || crate::export::clip_glb(&rig, &clip))
+    let glb = tokio::task::spawn_blocking(move || posecast_rigs::export::clip_glb(&rig, &clip))
         .await
         .map_err(|e| Error::internal("export task failed", &e))?
         .map_err(|e| Error::internal("cannot write the recording as glTF", &e))?;
@@ -293,7 +293,7 @@ pub fn audit(caller: &str, command: &Command, result: &Result<CommandResult, Err
 }
 
 /// The slow part of a command, done before it takes any scene lock and off the async
-/// workers: `play … from_asset` bakes the retargeted clip ([`crate::bake`]), so applying the
+/// workers: `play … from_asset` bakes the retargeted clip ([`posecast_sim::bake`]), so applying the
 /// command is a cache lookup and no other scene's tick waits for the bake.
 async fn prepare(state: &AppState, command: &Command) -> Result<(), Error> {
     let (avatar, clip, source) = match command {

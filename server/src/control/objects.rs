@@ -11,10 +11,10 @@
 
 use crate::auth::Caller;
 use crate::changes;
-use crate::error::Error;
 use crate::state::AppState;
 use crate::store::recordings::{self, StoredRecording};
 use crate::world::command::take_recording;
+use posecast_core::error::Error;
 use posecast_proto::command::{Command, CommandResult, RecordingInfo};
 use posecast_proto::msg::AvatarId;
 
@@ -43,7 +43,7 @@ pub(super) async fn stop_recording(
             .map_err(|e| Error::invalid(format!("nothing to keep: {e}")))?;
         let glb = match store {
             Some(_) => Some(
-                crate::export::clip_glb(&rig, &clip)
+                posecast_rigs::export::clip_glb(&rig, &clip)
                     .map_err(|e| Error::internal("cannot write the recording as glTF", &e))?,
             ),
             None => None,

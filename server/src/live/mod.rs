@@ -13,16 +13,16 @@
 //! and within [`MAX_ROOT_METRES`] (`invalid_value`). A pose failing any check changes nothing.
 
 use crate::changes;
-use crate::error::Error;
 use crate::scene::Scene;
+use posecast_core::error::Error;
 
-use crate::avatar::live::{LivePose, ValidPose};
-use crate::quota::{CommandRate, TokenBucket};
 use crate::state::AppState;
 use glam::{Quat, Vec3};
+use posecast_core::quota::{CommandRate, TokenBucket};
 use posecast_proto::command::{Command, CommandResult, DriveInfo, OnRelease};
 use posecast_proto::live::{BinaryPose, MAX_RATE_HZ};
 use posecast_proto::msg::{AvatarId, SceneId};
+use posecast_sim::avatar::live::{LivePose, ValidPose};
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Instant;
@@ -54,7 +54,7 @@ struct RemoteDrive {
 fn pose_rate() -> TokenBucket {
     TokenBucket::new(CommandRate {
         per_second: f64::from(MAX_RATE_HZ),
-        burst: crate::avatar::live::RATE_BURST,
+        burst: posecast_sim::avatar::live::RATE_BURST,
     })
 }
 

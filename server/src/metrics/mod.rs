@@ -12,7 +12,7 @@ use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::Histogram;
 use prometheus_client::registry::Registry;
 
-use crate::quota::Quota;
+use posecast_core::quota::Quota;
 pub mod cluster;
 pub mod net;
 pub mod pace;
@@ -266,7 +266,7 @@ impl Metrics {
         quota: Quota,
         what: impl std::fmt::Display,
         limit: impl std::fmt::Display,
-    ) -> crate::error::Error {
+    ) -> posecast_core::error::Error {
         self.quota_refused(quota);
         quota.exceeded(what, limit)
     }

@@ -7,7 +7,7 @@
 //! one at a time, [`super::Scene::keyed`]); a cluster's owner keeps it beside its commit lock
 //! (`cluster::commit`) with the same functions.
 
-use crate::error::Error;
+use posecast_core::error::Error;
 use posecast_proto::command::{Command, CommandResult};
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;

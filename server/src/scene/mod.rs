@@ -1,4 +1,4 @@
-//! Scenes: avatars played on one clock ([`crate::avatar`]), published to their subscribers
+//! Scenes: avatars played on one clock ([`posecast_sim::avatar`]), published to their subscribers
 //! ([`crate::stream::feed`]), under one lock so a joiner's first frames and the next tick are
 //! in order.
 //!
@@ -10,15 +10,15 @@
 pub mod answers;
 pub(crate) mod ticker;
 
-use crate::avatar::Avatar;
-use crate::error::Error;
 use crate::metrics::Metrics;
 use crate::stream::feed::{Feed, RelayRefused, Subscriber, Tap, TickStamp};
 use axum::extract::ws::Message;
 use bytes::Bytes;
+use posecast_core::error::Error;
 use posecast_proto::command::SceneInfo;
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::msg::{AvatarId, SceneId};
+use posecast_sim::avatar::Avatar;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Mutex, MutexGuard};
 use tokio::sync::Notify;

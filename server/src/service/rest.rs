@@ -26,8 +26,8 @@ use std::sync::Arc;
 #[derive(Debug)]
 pub struct AppError(pub ProtocolError);
 
-impl From<crate::error::Error> for AppError {
-    fn from(e: crate::error::Error) -> Self {
+impl From<posecast_core::error::Error> for AppError {
+    fn from(e: posecast_core::error::Error) -> Self {
         Self(e.into())
     }
 }
@@ -231,9 +231,9 @@ pub async fn mesh(
     state.config.access.authorize_read(&caller)?;
     let rig = state.world.library.require(&name)?;
     if rig.asset.meshes.is_empty() {
-        return Err(crate::error::Error::NoMesh(name).into());
+        return Err(posecast_core::error::Error::NoMesh(name).into());
     }
-    let bytes = crate::export::mesh_glb(rig.skeleton(), &rig.asset.meshes)
+    let bytes = posecast_rigs::export::mesh_glb(rig.skeleton(), &rig.asset.meshes)
         .map_err(|e| ProtocolError::new(ErrorCode::Internal, format!("rig {name}: {e}")))?;
     Ok((
         [(axum::http::header::CONTENT_TYPE, "model/gltf-binary")],
@@ -261,17 +261,19 @@ pub async fn clip_file(
     let clip = rig
         .clip(clip)
         .cloned()
-        .ok_or_else(|| crate::error::Error::UnknownClip {
+        .ok_or_else(|| posecast_core::error::Error::UnknownClip {
             rig: name.clone(),
             clip: clip.to_owned(),
         })?;
-    let (content_type, export): (&str, fn(&crate::rig::Rig, &crate::clip::Clip) -> _) = match format
-    {
+    let (content_type, export): (
+        &str,
+        fn(&posecast_rigs::rig::Rig, &posecast_rigs::clip::Clip) -> _,
+    ) = match format {
         "glb" => ("model/gltf-binary", |rig, clip| {
-            crate::export::clip_glb(rig, clip)
+            posecast_rigs::export::clip_glb(rig, clip)
         }),
         "bvh" => ("text/plain; charset=utf-8", |rig, clip| {
-            crate::export::clip_bvh(rig, clip).map(String::into_bytes)
+            posecast_rigs::export::clip_bvh(rig, clip).map(String::into_bytes)
         }),
         other => {
             return Err(ProtocolError::new(
@@ -283,8 +285,8 @@ pub async fn clip_file(
     };
     let bytes = tokio::task::spawn_blocking(move || export(&rig, &clip))
         .await
-        .map_err(|e| crate::error::Error::internal("export task failed", &e))?
-        .map_err(|e| crate::error::Error::internal(&format!("exporting {file}"), &e))?;
+        .map_err(|e| posecast_core::error::Error::internal("export task failed", &e))?
+        .map_err(|e| posecast_core::error::Error::internal(&format!("exporting {file}"), &e))?;
     Ok((
         [
             (axum::http::header::CONTENT_TYPE, content_type.to_owned()),

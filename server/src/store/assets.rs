@@ -5,10 +5,10 @@
 
 use super::atomic::{self, sync_dir};
 use super::{Store, UPLOAD_TMP_PREFIX, Unusable, set_aside};
-use crate::import::files::FileSet;
-use crate::rig::PipelineOptions;
 use crate::scene::ticker::unix_micros;
 use crate::world::World;
+use posecast_rigs::import::files::FileSet;
+use posecast_rigs::rig::PipelineOptions;
 use serde::{Deserialize, Serialize};
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
@@ -239,7 +239,7 @@ impl Store {
     pub fn restore_upload(&self, world: &World, dir: &Path) {
         let loaded = read_asset(dir).and_then(|(meta, set)| {
             let options = meta.options.clone().unwrap_or_default();
-            let rigs = crate::library::prepare_with(&meta.name, &set, &options)
+            let rigs = posecast_rigs::library::prepare_with(&meta.name, &set, &options)
                 .map_err(|e| Unusable::Content(e.to_string()))?;
             Ok((meta, set, rigs))
         });

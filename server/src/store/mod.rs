@@ -52,11 +52,11 @@ pub mod owners;
 pub mod recordings;
 pub mod snapshot;
 
-use crate::error::Error;
-use crate::import::files::FileSet;
 use crate::scene::ticker::unix_micros;
 use crate::world::World;
+use posecast_core::error::Error;
 use posecast_proto::msg::SceneId;
+use posecast_rigs::import::files::FileSet;
 use std::collections::{BTreeMap, BTreeSet};
 use std::io::{self, Write as _};
 use std::path::{Path, PathBuf};
@@ -107,7 +107,7 @@ pub(crate) struct Upload {
     /// The files, only without a data folder and only for a `.skel`.
     pub files: Option<FileSet>,
     /// The pipeline options its rigs were normalised with.
-    pub options: crate::rig::PipelineOptions,
+    pub options: posecast_rigs::rig::PipelineOptions,
     /// The token that uploaded it (its `meta.json`'s `owner`).
     pub owner: Option<String>,
     /// Bytes of its files, as counted in the quotas.
@@ -259,10 +259,10 @@ impl Store {
         &self,
         name: &str,
         set: FileSet,
-        options: crate::rig::PipelineOptions,
+        options: posecast_rigs::rig::PipelineOptions,
     ) {
         let main = set.main_file().map(str::to_owned).unwrap_or_default();
-        let keep = self.root.is_none() && crate::import::files::extension(&main) == "skel";
+        let keep = self.root.is_none() && posecast_rigs::import::files::extension(&main) == "skel";
         let bytes = set.total_bytes() as u64;
         let mut uploads = self.uploads();
         // Adding clips or options keeps who uploaded it.
@@ -624,7 +624,10 @@ mod tests {
             ..Config::default()
         });
         state.store.open().unwrap();
-        state.world.library.insert(crate::builtin::rig().unwrap());
+        state
+            .world
+            .library
+            .insert(posecast_rigs::builtin::rig().unwrap());
         state
     }
 

@@ -57,7 +57,7 @@ fn state_on(dir: &Path) -> std::sync::Arc<AppState> {
     state
         .world
         .library
-        .insert(crate::builtin::rig().expect("built-in rig"));
+        .insert(posecast_rigs::builtin::rig().expect("built-in rig"));
     state
 }
 
@@ -80,7 +80,7 @@ proptest! {
             }
             let mut clip = base.clone();
             clip.set_name(name.clone());
-            let glb = crate::export::clip_glb(&rig, &clip).expect("export");
+            let glb = posecast_rigs::export::clip_glb(&rig, &clip).expect("export");
             recordings::save(&recordings, &rig.name, name, &glb, Some("alice")).expect("save");
             kept.push(name.clone());
         }
@@ -142,11 +142,11 @@ proptest! {
         let assets = state.store.assets_dir().expect("a data folder");
         let mut kept = Vec::new();
         for name in &names {
-            if crate::library::check_name(name).is_err() {
+            if posecast_rigs::library::check_name(name).is_err() {
                 continue;
             }
             let mut set = FileSet::new();
-            set.insert("model.glb", crate::builtin::AVATAR_GLB.to_vec()).expect("insert");
+            set.insert("model.glb", posecast_rigs::builtin::AVATAR_GLB.to_vec()).expect("insert");
             let meta = assets::AssetMeta::new(name, &set, vec![name.clone()]);
             assets::save_new(&assets, &set, &meta).expect("save");
             kept.push(name.clone());
@@ -165,7 +165,7 @@ proptest! {
 
 /// Clips the built-in rig comes with.
 fn base_clips() -> usize {
-    crate::builtin::rig().map_or(0, |r| r.clips.len())
+    posecast_rigs::builtin::rig().map_or(0, |r| r.clips.len())
 }
 
 proptest! {

@@ -16,9 +16,9 @@
 
 use super::atomic::{self, write_atomic};
 use super::{Store, Unusable, set_aside};
-use crate::clip::Clip;
-use crate::rig::Rig;
 use crate::world::World;
+use posecast_rigs::clip::Clip;
+use posecast_rigs::rig::Rig;
 use serde::{Deserialize, Serialize};
 use std::io;
 use std::path::{Path, PathBuf};
@@ -97,7 +97,7 @@ fn files(recordings: &Path, rig: &str, clip: &str) -> (PathBuf, PathBuf) {
 /// recording to restore. Blocking: call it off the async workers.
 ///
 /// # Errors
-/// An I/O error (the disk full among them: [`crate::error::is_storage_full`]).
+/// An I/O error (the disk full among them: [`posecast_core::error::is_storage_full`]).
 pub fn save(
     recordings: &Path,
     rig: &str,
@@ -363,7 +363,7 @@ fn read_meta(path: &Path, clip: &str) -> Result<Option<String>, Unusable> {
 /// Not a glTF binary, no skin, not the rig's joints, or no clip of that name.
 pub fn recording_from_bytes(rig: &Rig, stem: &str, bytes: &[u8]) -> Result<Clip, Unusable> {
     let file = format!("{}.glb", encode_name(stem));
-    let asset = crate::import::gltf::skeletons_and_clips(&file, bytes)
+    let asset = posecast_rigs::import::gltf::skeletons_and_clips(&file, bytes)
         .map_err(|e| Unusable::Content(e.to_string()))?
         .into_iter()
         .next()

@@ -1,13 +1,13 @@
 //! A scene as stored in `scenes/<scene>.json`: its avatars, what each plays and its joint
 //! overrides, by joint *name* so a file stays meaningful if joint order ever changes.
 
-use crate::avatar::Avatar;
 use crate::scene::Scene;
 use crate::world::World;
 use crate::world::command;
 use posecast_proto::command::{Command, RootMotion};
 use posecast_proto::msg::{AvatarId, SceneId};
 use posecast_proto::placement::Placement;
+use posecast_sim::avatar::Avatar;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use tracing::warn;
@@ -265,7 +265,11 @@ pub fn extrapolate(p: &PlaybackRecord, duration: f32, elapsed_s: f64) -> f32 {
 ///
 /// # Errors
 /// The scene itself cannot be created (bad id, already exists).
-pub fn restore(world: &World, file: &SceneFile, now_us: u64) -> Result<(), crate::error::Error> {
+pub fn restore(
+    world: &World,
+    file: &SceneFile,
+    now_us: u64,
+) -> Result<(), posecast_core::error::Error> {
     world.restore_scene(file.scene.clone())?;
     restore_into(world, file, now_us);
     Ok(())
@@ -362,9 +366,9 @@ fn restore_playback(world: &World, avatar: &AvatarId, p: &PlaybackRecord, elapse
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::builtin::BUILTIN_ASSET;
     use crate::config::Config;
     use crate::state::AppState;
+    use posecast_rigs::builtin::BUILTIN_ASSET;
 
     fn cmd(state: &AppState, json: &str) -> serde_json::Value {
         crate::control::execute(state, &serde_json::from_str(json).unwrap())
@@ -375,7 +379,10 @@ mod tests {
     #[tokio::test]
     async fn snapshot_round_trips_through_json_and_restore() {
         let state = AppState::new(Config::default());
-        state.world.library.insert(crate::builtin::rig().unwrap());
+        state
+            .world
+            .library
+            .insert(posecast_rigs::builtin::rig().unwrap());
         cmd(&state, r#"{"op":"create_scene","scene":"s"}"#);
         cmd(
             &state,
@@ -421,7 +428,10 @@ mod tests {
 
         // Restore into a fresh state 2 s later: a's clock moved 1 s (speed 0.5), b's did not.
         let fresh = AppState::new(Config::default());
-        fresh.world.library.insert(crate::builtin::rig().unwrap());
+        fresh
+            .world
+            .library
+            .insert(posecast_rigs::builtin::rig().unwrap());
         restore(&fresh.world, &back, 3_000_000).unwrap();
         let again = snapshot(&fresh.world.scene(&SceneId("s".into())).unwrap(), 3_000_000);
         let (ra, rb) = (&again.avatars[0], &again.avatars[1]);
@@ -444,7 +454,10 @@ mod tests {
     #[tokio::test]
     async fn restore_skips_what_no_longer_exists() {
         let state = AppState::new(Config::default());
-        state.world.library.insert(crate::builtin::rig().unwrap());
+        state
+            .world
+            .library
+            .insert(posecast_rigs::builtin::rig().unwrap());
         let file: SceneFile = serde_json::from_value(serde_json::json!({
             "format": 1, "scene": "s", "saved_us": 0,
             "avatars": [

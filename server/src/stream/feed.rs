@@ -13,15 +13,15 @@ use super::pace;
 use super::publish::{Piece, Published};
 use super::relay::{self, RelayError, RelayFrame};
 use super::wire2::{self, Ring};
-use crate::avatar::Avatar;
-use crate::error::Error;
 use crate::metrics::Metrics;
 use axum::extract::ws::{Message, Utf8Bytes};
 use bytes::Bytes;
+use posecast_core::error::Error;
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::{ChunkEncoder, FrameHeader, FrameKind};
 use posecast_proto::msg::{AvatarId, Encoding, SceneId, ServerMsg};
 use posecast_proto::subset::JointSet;
+use posecast_sim::avatar::Avatar;
 use std::collections::HashMap;
 use std::sync::Arc;
 

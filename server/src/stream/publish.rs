@@ -7,7 +7,6 @@
 //! piece keeps the pose, and a JSON late joiner served from the cached frames gets its JSON
 //! made then ([`Published::ensure_json`]) — the same text the tick would have written.
 
-use crate::avatar::Avatar;
 use axum::extract::ws::{Message, Utf8Bytes};
 use bytes::Bytes;
 use posecast_proto::description::AvatarDescription;
@@ -17,6 +16,7 @@ use posecast_proto::frame::{
 };
 use posecast_proto::msg::{AvatarId, AvatarPoseJson, Encoding, SceneId};
 use posecast_proto::subset::{JointSet, Selection};
+use posecast_sim::avatar::Avatar;
 use std::borrow::Cow;
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -42,20 +42,20 @@ impl Piece {
         kind: FrameKind,
         json: bool,
     ) -> Self {
-        let mut chunk = Vec::with_capacity(32 + 6 * a.pose.rotations.len());
-        encoder.encode(&a.pose, kind, &mut chunk);
+        let mut chunk = Vec::with_capacity(32 + 6 * a.pose().rotations.len());
+        encoder.encode(a.pose(), kind, &mut chunk);
         Self::new(a, chunk, json)
     }
 
     /// A keyframe chunk of the avatar's current pose for one joiner. A fresh encoder, so the
     /// avatar's own — what every other subscriber's deltas refer to — is left alone.
     pub(super) fn fresh_key(a: &mut Avatar, json: bool) -> Self {
-        if a.pose.rotations.len() != a.description.joint_names.len() {
+        if a.pose().rotations.len() != a.description.joint_names.len() {
             // Added without a clip and not ticked yet: its pose was never evaluated.
             a.evaluate();
         }
-        let mut chunk = Vec::with_capacity(32 + 6 * a.pose.rotations.len());
-        ChunkEncoder::new().encode(&a.pose, FrameKind::Key, &mut chunk);
+        let mut chunk = Vec::with_capacity(32 + 6 * a.pose().rotations.len());
+        ChunkEncoder::new().encode(a.pose(), FrameKind::Key, &mut chunk);
         Self::new(a, chunk, json)
     }
 
@@ -63,7 +63,7 @@ impl Piece {
         Self::relayed(
             a.description.clone(),
             Bytes::from(chunk),
-            a.pose.clone(),
+            a.pose().clone(),
             json,
         )
     }

@@ -243,13 +243,13 @@ pub fn decode(bytes: &[u8]) -> Result<RelayFrame, RelayError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::avatar::Avatar;
     use crate::stream::publish::Piece;
     use posecast_proto::frame::ChunkEncoder;
+    use posecast_sim::avatar::Avatar;
     use std::sync::Arc;
 
     fn frame() -> Published {
-        let rig = Arc::new(crate::builtin::rig().unwrap());
+        let rig = Arc::new(posecast_rigs::builtin::rig().unwrap());
         let pieces = ["a", "bb"]
             .iter()
             .enumerate()
@@ -257,7 +257,7 @@ mod tests {
                 let mut a = Avatar::new(AvatarId((*id).into()), i as u32 + 7, rig.clone());
                 if let Some(walk) = rig.clip("walk").cloned() {
                     a.play(
-                        crate::avatar::playback::Layer::new(walk, None, 0.0, 1.0, true),
+                        posecast_sim::avatar::playback::Layer::new(walk, None, 0.0, 1.0, true),
                         0.0,
                     );
                 }

@@ -8,7 +8,7 @@
 //! never holds a scene's lock longer than one pose.
 //!
 //! **Live-driving rules.** The input is a live driver like a websocket connection: it claims
-//! the avatar with its first pose ([`crate::avatar::live::LivePose`], released to the clip when
+//! the avatar with its first pose ([`posecast_sim::avatar::live::LivePose`], released to the clip when
 //! the performer is silent for `--drive-timeout`). If another driver (a websocket `drive`)
 //! holds the avatar, the input **waits**: its poses are counted as refused (`busy`) and
 //! dropped, a warning is logged once, and it takes the avatar with its next pose after that
@@ -31,12 +31,12 @@ use tracing::{debug, info, warn};
 use super::packet::{self, Message};
 use super::rig::VmcRig;
 use super::unity::{BONES, LEG_BONES, LEG_LENGTH, mirror_position, mirror_rotation};
-use crate::avatar::live::{LivePose, ValidPose};
 use crate::config::VmcIn;
 use crate::metrics::vmc::{PacketDrop, PoseRefusal};
-use crate::quota::{CommandRate, TokenBucket};
 use crate::scene::Scene;
 use crate::state::AppState;
+use posecast_core::quota::{CommandRate, TokenBucket};
+use posecast_sim::avatar::live::{LivePose, ValidPose};
 
 /// Datagrams one input decodes per second at most (sustained): a performer sending every bone
 /// as its own datagram at 120 Hz needs ~7,000. Beyond it datagrams are read and counted

@@ -29,8 +29,8 @@
 //! Hips also carry the root's rotation: `R_hips = R_root · R_hips,local`.
 //!
 //! **Onto the avatar.** From there it is the world-space retargeting of seed 001 that
-//! `drive … source` and `play … from_asset` use ([`crate::rig::retarget::PoseRetargeter`],
-//! per tick through [`crate::avatar::live::LivePose`]): world rotations down the source tree,
+//! `drive … source` and `play … from_asset` use ([`posecast_rigs::rig::retarget::PoseRetargeter`],
+//! per tick through [`posecast_sim::avatar::live::LivePose`]): world rotations down the source tree,
 //! `G_i = G_parent(i) · R'_i`; every avatar joint with the H-Anim name of a Unity bone takes
 //! its world rotation, and its local rotation follows, `L_j = G_parent(j)⁻¹ · G_src(j)`;
 //! unmatched joints stay neutral. Then joint overrides and DOF clamping (seed 002), as for

@@ -25,11 +25,11 @@ use tracing::debug;
 
 use super::rig::VmcRig;
 use super::unity::{BONES, mirror_position, mirror_rotation};
-use crate::avatar::Avatar;
 use crate::config::VmcOut;
-use crate::rig::Rig;
-use crate::rig::retarget::{PoseRetargeter, PoseScratch};
 use crate::state::AppState;
+use posecast_rigs::rig::Rig;
+use posecast_rigs::rig::retarget::{PoseRetargeter, PoseScratch};
+use posecast_sim::avatar::Avatar;
 
 /// Turns poses of avatars of one rig into VMC bundles.
 #[derive(Debug)]
@@ -51,7 +51,7 @@ impl Encoder {
     ///
     /// # Errors
     /// The rig has no `humanoid_root` (or cannot be measured, see [`PoseRetargeter::new`]).
-    pub fn new(vmc: Arc<VmcRig>, rig: &Rig) -> Result<Self, crate::rig::RigError> {
+    pub fn new(vmc: Arc<VmcRig>, rig: &Rig) -> Result<Self, posecast_rigs::rig::RigError> {
         let target = vmc.for_target(rig);
         let map = PoseRetargeter::new(rig.view(), target.view())?;
         let scratch = PoseScratch::new(rig.view(), target.view());

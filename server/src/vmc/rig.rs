@@ -1,6 +1,6 @@
 //! The VMC performer as a source rig: the Unity humanoid's T-pose ([`super::unity::BONES`])
 //! normalised like every imported rig, so the stream drives avatars through the same
-//! world-space retargeting ([`crate::rig::retarget::PoseRetargeter`]) as any other source.
+//! world-space retargeting ([`posecast_rigs::rig::retarget::PoseRetargeter`]) as any other source.
 //!
 //! The T-pose is the rig's rest pose with identity rotations, as VMC's local rotations are
 //! relative to it. Normalisation (seed 000) makes the H-Anim pose (arms down) its neutral pose
@@ -15,10 +15,10 @@ use glam::{Mat4, Quat, Vec3};
 use posecast_proto::{Skeleton, Transform};
 
 use super::unity::{BONES, NECK, TORSO};
-use crate::asset::{Asset, SourceFormat, SourceInfo};
-use crate::rig::names::HANIM_SPINE;
-use crate::rig::neutral::NeutralPose;
-use crate::rig::{PipelineOptions, Rig, RigError, normalise};
+use posecast_rigs::asset::{Asset, SourceFormat, SourceInfo};
+use posecast_rigs::rig::names::HANIM_SPINE;
+use posecast_rigs::rig::neutral::NeutralPose;
+use posecast_rigs::rig::{PipelineOptions, Rig, RigError, normalise};
 
 /// The source rig's name (not a valid asset id, so no uploaded rig can share it).
 pub const RIG_NAME: &str = "VMC humanoid (T-pose)";
@@ -211,7 +211,7 @@ mod tests {
     #[test]
     fn the_torso_follows_the_targets_spine() {
         let vmc = VmcRig::new().unwrap();
-        let builtin = crate::builtin::rig().unwrap();
+        let builtin = posecast_rigs::builtin::rig().unwrap();
         let fitted = vmc.for_target(&builtin);
         let name = |bone: &str| fitted.hanim[bone_index(bone).unwrap()].clone();
         assert_eq!(name("Spine").as_deref(), Some("vl5"));

@@ -393,7 +393,7 @@ mod tests {
             assert!(b.parent.is_none_or(|p| p < i), "{}", b.name);
             assert!(is_human_body_bone(b.name), "{}", b.name);
             assert_eq!(bone_index(b.name), Some(i));
-            assert!(crate::rig::names::is_hanim(b.hanim), "{}", b.hanim);
+            assert!(posecast_rigs::rig::names::is_hanim(b.hanim), "{}", b.hanim);
         }
         // The right side mirrors the left.
         for (i, b) in BONES.iter().enumerate() {

@@ -4,14 +4,14 @@
 //! callers' ([`crate::control`]).
 
 use super::World;
-use crate::avatar::Avatar;
-use crate::avatar::playback::{DEFAULT_FADE, Layer};
-use crate::avatar::recording::{RecordLimits, Recorder};
-use crate::error::Error;
 use glam::Quat;
+use posecast_core::error::Error;
 use posecast_proto::command::{Command, CommandResult, DofInfo, JointInfo, RecordingInfo};
 use posecast_proto::msg::{AvatarId, check_id};
 use posecast_proto::placement::Placement;
+use posecast_sim::avatar::Avatar;
+use posecast_sim::avatar::playback::{DEFAULT_FADE, Layer};
+use posecast_sim::avatar::recording::{RecordLimits, Recorder};
 use serde_json::Value;
 
 /// A finite, non-zero quaternion, normalised (in f64, so huge finite components cannot

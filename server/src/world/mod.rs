@@ -10,16 +10,16 @@
 
 pub mod command;
 
-use crate::avatar::Avatar;
-use crate::bake::RetargetCache;
-use crate::clip::Clip;
-use crate::error::Error;
-use crate::library::Library;
 use crate::metrics::Metrics;
-use crate::quota::{Quota, Quotas};
 use crate::scene::{Scene, ticker};
+use posecast_core::error::Error;
+use posecast_core::quota::{Quota, Quotas};
 use posecast_proto::msg::{AvatarId, SceneId, check_id};
 use posecast_proto::placement::Placement;
+use posecast_rigs::clip::Clip;
+use posecast_rigs::library::Library;
+use posecast_sim::avatar::Avatar;
+use posecast_sim::bake::RetargetCache;
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
@@ -29,7 +29,7 @@ use std::sync::{Arc, Mutex, RwLock};
 pub struct World {
     /// Loaded rigs.
     pub library: Library,
-    /// Baked retargeted clips (`play … from_asset`), see [`crate::bake`].
+    /// Baked retargeted clips (`play … from_asset`), see [`posecast_sim::bake`].
     pub retargets: RetargetCache,
     /// Counters (ticks, quota refusals).
     pub metrics: Arc<Metrics>,
@@ -149,7 +149,7 @@ impl World {
     ///
     /// # Errors
     /// Invalid id, `conflict` when it exists, or `quota_exceeded` past
-    /// [`crate::quota::Quotas::max_scenes`].
+    /// [`posecast_core::quota::Quotas::max_scenes`].
     pub fn create_scene(&self, id: SceneId) -> Result<Arc<Scene>, Error> {
         self.insert_scene(id, true)
     }
@@ -255,7 +255,7 @@ impl World {
     ///
     /// # Errors
     /// Unknown scene or rig, invalid or duplicate id, or `quota_exceeded` past
-    /// [`crate::quota::Quotas::max_avatars_per_scene`].
+    /// [`posecast_core::quota::Quotas::max_avatars_per_scene`].
     pub fn add_avatar(
         &self,
         scene: &SceneId,
@@ -365,7 +365,7 @@ impl World {
     ///
     /// # Errors
     /// As [`Library::add_clip`].
-    pub fn add_clip(&self, rig: &str, clip: Clip) -> Result<Arc<crate::rig::Rig>, Error> {
+    pub fn add_clip(&self, rig: &str, clip: Clip) -> Result<Arc<posecast_rigs::rig::Rig>, Error> {
         self.add_clips(rig, vec![clip])
     }
 
@@ -373,7 +373,11 @@ impl World {
     ///
     /// # Errors
     /// As [`Library::add_clips`].
-    pub fn add_clips(&self, rig: &str, clips: Vec<Clip>) -> Result<Arc<crate::rig::Rig>, Error> {
+    pub fn add_clips(
+        &self,
+        rig: &str,
+        clips: Vec<Clip>,
+    ) -> Result<Arc<posecast_rigs::rig::Rig>, Error> {
         let new = self.library.add_clips(rig, clips)?;
         self.move_avatars_to(&new);
         Ok(new)
@@ -425,7 +429,7 @@ impl World {
         None
     }
 
-    fn move_avatars_to(&self, new: &Arc<crate::rig::Rig>) {
+    fn move_avatars_to(&self, new: &Arc<posecast_rigs::rig::Rig>) {
         for scene in self.scenes() {
             for a in scene.lock().avatars.iter_mut() {
                 if a.rig.name == new.name {
@@ -446,8 +450,8 @@ impl World {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::builtin::BUILTIN_ASSET;
     use posecast_proto::msg::ErrorCode;
+    use posecast_rigs::builtin::BUILTIN_ASSET;
 
     /// Many adds of one id into different scenes at the same moment: exactly one wins, every
     /// other one is a conflict, and the id ends up in one scene only.
@@ -455,7 +459,7 @@ mod tests {
     async fn concurrent_adds_of_one_avatar_id_into_different_scenes_take_it_once() {
         const SCENES: usize = 8;
         let state = Arc::new(World::new(1.0, Quotas::default(), Arc::new(Metrics::new())));
-        state.library.insert(crate::builtin::rig().unwrap());
+        state.library.insert(posecast_rigs::builtin::rig().unwrap());
         let scene = |i: usize| SceneId(format!("s{i}"));
         for i in 0..SCENES {
             state.create_scene(scene(i)).unwrap();

@@ -20,15 +20,15 @@
 use super::rest::AppError;
 use crate::auth::Caller;
 
-use crate::import::files::FileSet;
 use crate::ingest;
-use crate::rig::PipelineOptions;
 use crate::state::AppState;
 use axum::Json;
 use axum::body::Bytes;
 use axum::extract::{FromRequest, Multipart, Path, Request, State};
 use axum::http::{StatusCode, header};
 use posecast_proto::msg::{ErrorCode, ProtocolError};
+use posecast_rigs::import::files::FileSet;
+use posecast_rigs::rig::PipelineOptions;
 use serde_json::{Value, json};
 use std::sync::Arc;
 
@@ -46,7 +46,7 @@ fn bad(message: impl Into<String>) -> ProtocolError {
     ProtocolError::new(ErrorCode::InvalidValue, message)
 }
 
-fn import_failed(e: &crate::import::ImportError) -> ProtocolError {
+fn import_failed(e: &posecast_rigs::import::ImportError) -> ProtocolError {
     ProtocolError::new(ErrorCode::ImportFailed, e.to_string())
 }
 
@@ -206,7 +206,7 @@ pub async fn upload(
 ) -> Result<Json<Value>, AppError> {
     let result = async {
         state.config.access.authorize_upload(&caller)?;
-        crate::library::check_name(&name)?;
+        posecast_rigs::library::check_name(&name)?;
         let (set, options) = file_set(&state, &name, request).await?;
         Ok::<_, AppError>(ingest::upload(&state, &caller, &name, set, options).await?)
     }

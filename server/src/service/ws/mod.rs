@@ -9,10 +9,8 @@
 
 use crate::auth::Caller;
 use crate::control;
-use crate::error::Error;
 use crate::live::Drives;
 use crate::metrics::net::Timeout;
-use crate::quota::{TokenBucket, rate_limited};
 use crate::scene::ticker::unix_micros;
 use crate::service::ws_liveness::{Due, Liveness};
 use crate::state::AppState;
@@ -22,6 +20,8 @@ use crate::stream::pace::{Change, PROBE_INTERVAL};
 use crate::stream::writer::run_writer;
 use axum::extract::ws::{Message, WebSocket, close_code};
 use futures_util::{Sink, Stream, StreamExt};
+use posecast_core::error::Error;
+use posecast_core::quota::{TokenBucket, rate_limited};
 use posecast_proto::msg::{
     ClientMsg, Encoding, ErrorCode, MAX_CLIENT_MESSAGE_BYTES, PROTOCOL_VERSION, ProtocolError,
     SUPPORTED_VERSIONS, SceneId, ServerMsg,

@@ -109,7 +109,7 @@ fn state() -> Arc<AppState> {
     state
         .world
         .library
-        .insert(crate::builtin::rig().expect("built-in rig"));
+        .insert(posecast_rigs::builtin::rig().expect("built-in rig"));
     state.readiness.begin(0);
     state.readiness.finish(Ok(()));
     let scene = SceneId("s".into());
@@ -118,7 +118,7 @@ fn state() -> Arc<AppState> {
         .world
         .add_avatar(
             &scene,
-            crate::builtin::BUILTIN_ASSET,
+            posecast_rigs::builtin::BUILTIN_ASSET,
             Some(posecast_proto::msg::AvatarId("a".into())),
         )
         .expect("avatar");

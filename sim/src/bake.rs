@@ -4,13 +4,13 @@
 //!
 //! `play … from_asset` on a long clip used to bake inside the scene lock on a runtime worker:
 //! a 27,510 s clip stalled every scene's stream for up to a second per command. Now
-//! [`crate::control::execute_durable`] bakes first ([`RetargetCache::bake`]) and the command
+//! the server's `control::execute_durable` bakes first ([`RetargetCache::bake`]) and the command
 //! only looks the result up. Rigs are keyed by identity (`Arc` pointer, checked through a
 //! `Weak`), so a rig replaced by an upload never serves a stale bake.
 
-use crate::clip::Clip;
-use crate::error::Error;
-use crate::rig::Rig;
+use posecast_core::error::Error;
+use posecast_rigs::clip::Clip;
+use posecast_rigs::rig::Rig;
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, Weak};
 use tokio::sync::Semaphore;
@@ -19,7 +19,7 @@ use tokio::sync::Semaphore;
 pub const DEFAULT_CACHE_BYTES: usize = 256 << 20;
 
 /// The clip `clip` of rig `source`, retargeted onto `target` (matching H-Anim joints in world
-/// space relative to both rigs' neutral pose, baked at 30 Hz; see [`crate::rig::retarget()`]).
+/// space relative to both rigs' neutral pose, baked at 30 Hz; see [`posecast_rigs::rig::retarget()`]).
 /// CPU-heavy for long clips: call it from the blocking pool, never under a scene lock.
 ///
 /// # Errors
@@ -30,7 +30,7 @@ pub fn retarget(source: &Rig, target: &Rig, clip: &str) -> Result<Clip, Error> {
         rig: source.name.clone(),
         clip: clip.to_owned(),
     })?;
-    let mut out = crate::rig::retarget(source.view(), c, target.view()).map_err(|e| {
+    let mut out = posecast_rigs::rig::retarget(source.view(), c, target.view()).map_err(|e| {
         e.to_error(&format!(
             "cannot retarget {clip} from {} onto {}",
             source.name, target.name
@@ -44,9 +44,10 @@ pub fn retarget(source: &Rig, target: &Rig, clip: &str) -> Result<Clip, Error> {
 /// clips are linear quaternion tracks at a fixed rate, plus one root translation track).
 #[must_use]
 pub fn baked_bytes(clip: &Clip) -> usize {
-    let keys =
-        (f64::from(clip.duration()) * f64::from(crate::rig::retarget::DEFAULT_RATE_HZ)).ceil();
-    let keys = (keys as usize).clamp(1, crate::rig::retarget::MAX_KEYS) + 1;
+    let keys = (f64::from(clip.duration())
+        * f64::from(posecast_rigs::rig::retarget::DEFAULT_RATE_HZ))
+    .ceil();
+    let keys = (keys as usize).clamp(1, posecast_rigs::rig::retarget::MAX_KEYS) + 1;
     keys * (clip.joint_count() + 1) * (16 + 4)
 }
 
@@ -54,8 +55,9 @@ pub fn baked_bytes(clip: &Clip) -> usize {
 /// keys from the source clip's duration, tracks from the target's joints.
 fn estimated_bytes(source: &Rig, clip: &str, target: &Rig) -> usize {
     let duration = source.clip(clip).map_or(0.0, |c| c.duration());
-    let keys = (f64::from(duration) * f64::from(crate::rig::retarget::DEFAULT_RATE_HZ)).ceil();
-    let keys = (keys as usize).clamp(1, crate::rig::retarget::MAX_KEYS) + 1;
+    let keys =
+        (f64::from(duration) * f64::from(posecast_rigs::rig::retarget::DEFAULT_RATE_HZ)).ceil();
+    let keys = (keys as usize).clamp(1, posecast_rigs::rig::retarget::MAX_KEYS) + 1;
     keys * (target.skeleton().len() + 1) * (16 + 4)
 }
 
@@ -148,7 +150,7 @@ impl RetargetCache {
     fn check_size(&self, source: &Rig, clip: &str, target: &Rig) -> Result<(), Error> {
         let bytes = estimated_bytes(source, clip, target);
         if bytes > self.limit {
-            return Err(crate::quota::Quota::RetargetBytes.exceeded(
+            return Err(posecast_core::quota::Quota::RetargetBytes.exceeded(
                 format!(
                     "{clip} of {} baked onto {} ({} joints) would take {bytes} bytes",
                     source.name,
@@ -275,7 +277,7 @@ mod tests {
 
     /// A rig named `name` whose only clip is the built-in walk stretched to `seconds`.
     fn rig(name: &str, seconds: f32) -> Arc<Rig> {
-        let mut rig = crate::builtin::rig().unwrap();
+        let mut rig = posecast_rigs::builtin::rig().unwrap();
         let walk = rig.clip("walk").unwrap();
         let clip = Clip::new("long", walk.channels().to_vec(), Some((0.0, seconds))).unwrap();
         rig.name = name.into();

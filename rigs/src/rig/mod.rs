@@ -139,11 +139,11 @@ impl RigError {
     /// A retargeting failure as the server's error, `context` first: `not_humanoid` when a
     /// humanoid meets a rig that is not one, else `invalid_value`.
     #[must_use]
-    pub fn to_error(&self, context: &str) -> crate::error::Error {
+    pub fn to_error(&self, context: &str) -> posecast_core::error::Error {
         let message = format!("{context}: {self}");
         match self {
-            Self::HumanoidMismatch { .. } => crate::error::Error::NotHumanoid(message),
-            _ => crate::error::Error::Invalid(message),
+            Self::HumanoidMismatch { .. } => posecast_core::error::Error::NotHumanoid(message),
+            _ => posecast_core::error::Error::Invalid(message),
         }
     }
 }

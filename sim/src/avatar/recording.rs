@@ -23,12 +23,12 @@
 //! best read), linear translation and scale tracks for the streamed ones, time from 0 at
 //! the first tick to the last; tracks that never changed are stored once.
 
-use crate::clip::{Clip, ClipError, Interpolation, JointChannels, RotationChannel, Track};
-use crate::clip::{TrackValue, VectorChannel};
 use glam::{Quat, Vec3};
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::AvatarPose;
 use posecast_proto::placement::Placement;
+use posecast_rigs::clip::{Clip, ClipError, Interpolation, JointChannels, RotationChannel, Track};
+use posecast_rigs::clip::{TrackValue, VectorChannel};
 
 /// How much one recording may hold.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -341,13 +341,13 @@ fn append_bounded<T: Copy>(v: &mut Vec<T>, row: &[T], max_frames: usize) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::asset::Asset;
     use posecast_proto::Transform;
     use posecast_proto::msg::AvatarId;
+    use posecast_rigs::asset::Asset;
 
     /// The built-in avatar as imported: turned rest frames, `walk` moves the root.
     fn avatar() -> Asset {
-        crate::import::gltf::from_slice("avatar.glb", crate::builtin::AVATAR_GLB)
+        posecast_rigs::import::gltf::from_slice("avatar.glb", posecast_rigs::builtin::AVATAR_GLB)
             .unwrap()
             .remove(0)
     }

@@ -12,7 +12,6 @@ pub mod playback;
 pub mod recording;
 
 use crate::avatar::live::LivePose;
-use crate::rig::Rig;
 use glam::{Mat4, Quat};
 use placement::{Placing, RootTrack};
 use playback::{Layer, Player};
@@ -23,6 +22,7 @@ use posecast_proto::fk::forward_kinematics;
 use posecast_proto::frame::AvatarPose;
 use posecast_proto::msg::{AvatarId, SceneId};
 use posecast_proto::{DecomposeError, Transform};
+use posecast_rigs::rig::Rig;
 use recording::Recorder;
 use std::sync::Arc;
 use std::time::Instant;
@@ -59,7 +59,7 @@ pub struct Avatar {
     /// The pose at the last tick (local transforms, one per joint).
     pub locals: Vec<Transform>,
     world: Vec<Mat4>,
-    pub(crate) pose: AvatarPose,
+    pose: AvatarPose,
     /// Where it stands in the scene ([`placement`]).
     pub placing: Placing,
     pub(super) root_track: RootTrack,

@@ -1,9 +1,9 @@
 //! Clip playback on one avatar: a clock per clip (speed, loop, pause, seek) and a cross-fade
 //! from the previous clip to the next.
 
-use crate::clip::{Clip, Sampler};
 use posecast_proto::Transform;
 use posecast_proto::command::{FadeState, RootMotion};
+use posecast_rigs::clip::{Clip, Sampler};
 use std::sync::Arc;
 
 /// Default cross-fade duration, seconds.
@@ -372,8 +372,8 @@ impl Player {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::clip::{Interpolation, JointChannels, RotationChannel, Track};
     use glam::{Quat, Vec3};
+    use posecast_rigs::clip::{Interpolation, JointChannels, RotationChannel, Track};
     use proptest::prelude::*;
 
     /// A one-joint clip swinging about `axis` by `amplitude · sin(2π t / duration)` radians: a

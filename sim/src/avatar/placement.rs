@@ -8,11 +8,11 @@
 //!   horizontal root displacement, turned by the placement's rotation).
 
 use super::playback::Layer;
-use crate::clip::Clip;
 use glam::Vec3;
 use posecast_proto::Transform;
 use posecast_proto::command::RootMotion;
 use posecast_proto::placement::{MAX_PLACEMENT_METRES, Placement};
+use posecast_rigs::clip::Clip;
 use std::sync::Arc;
 
 /// A move from one placement to another over a span of scene clock.
@@ -227,14 +227,14 @@ impl super::Avatar {
 mod tests {
     use super::*;
     use crate::avatar::Avatar;
-    use crate::clip::{Interpolation, JointChannels, Track, VectorChannel};
     use glam::Quat;
     use posecast_proto::msg::AvatarId;
+    use posecast_rigs::clip::{Interpolation, JointChannels, Track, VectorChannel};
 
     /// The built-in avatar playing a 1 s looping clip whose root walks 1 m along +Z (its
     /// height and the rest of the rig as at rest), in `mode`, standing at `placement`.
     fn walker(mode: RootMotion, placement: Placement) -> Avatar {
-        let rig = Arc::new(crate::builtin::rig().unwrap());
+        let rig = Arc::new(posecast_rigs::builtin::rig().unwrap());
         let root = rig.skeleton().rest()[0].translation;
         let mut joints = vec![JointChannels::default(); rig.skeleton().len()];
         joints[0].translation = Some(VectorChannel::Keys(

@@ -1,14 +1,14 @@
 //! One live-driven avatar's driver state: the latest source pose, its retargeting onto the
 //! avatar's rig, and when the driver counts as gone.
 
-use crate::quota::{CommandRate, TokenBucket};
-use crate::rig::Rig;
-use crate::rig::retarget::{PoseRetargeter, PoseScratch};
 use glam::{Mat4, Quat, Vec3};
+use posecast_core::quota::{CommandRate, TokenBucket};
 use posecast_proto::Transform;
 use posecast_proto::command::OnRelease;
 use posecast_proto::fk::forward_kinematics;
 use posecast_proto::live::MAX_RATE_HZ;
+use posecast_rigs::rig::Rig;
+use posecast_rigs::rig::retarget::{PoseRetargeter, PoseScratch};
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -78,7 +78,7 @@ impl LivePose {
         target: &Arc<Rig>,
         current: &[Transform],
         timeout: Duration,
-    ) -> Result<Self, crate::rig::RigError> {
+    ) -> Result<Self, posecast_rigs::rig::RigError> {
         let same = Arc::ptr_eq(&source, target) || source.name == target.name;
         let map = if same {
             None

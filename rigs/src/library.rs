@@ -4,10 +4,10 @@
 pub use crate::rig::{JointLimits, Rig};
 
 use crate::clip::Clip;
-use crate::error::Error;
 use crate::import::ImportError;
 use crate::import::files::{self, FileSet};
 use crate::rig::PipelineOptions;
+use posecast_core::error::Error;
 use posecast_proto::msg::check_id;
 use std::collections::BTreeMap;
 use std::sync::{Arc, RwLock};

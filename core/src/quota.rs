@@ -61,7 +61,7 @@ pub enum Quota {
     AssetBytes,
     /// [`Quotas::max_upload_total_bytes`].
     UploadTotalBytes,
-    /// A retargeted clip larger than the bake cache ([`crate::bake::DEFAULT_CACHE_BYTES`]).
+    /// A retargeted clip larger than the bake cache (`posecast_sim::bake::DEFAULT_CACHE_BYTES`).
     RetargetBytes,
     /// Bytes of the uploads and recordings one token made (its access-file `max_bytes`).
     TokenBytes,
