@@ -7,8 +7,8 @@ use posecast_proto::Transform;
 use posecast_proto::fk::PoseBuffers;
 use posecast_proto::skinning::skin_cpu;
 use posecast_proto::testing::require_testdata;
-use posecast_server::clip::RotationChannel;
-use posecast_server::import::{self, anim, cse169, skel, skin};
+use posecast_rigs::clip::RotationChannel;
+use posecast_rigs::import::{self, anim, cse169, skel, skin};
 
 fn text(rel: &str) -> Option<String> {
     let path = require_testdata(rel)?;

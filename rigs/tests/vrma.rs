@@ -19,12 +19,12 @@ mod rig_support;
 use glam::{Mat4, Quat, Vec3};
 use gltf_support::{Bin, glb, glb_of_text, vrm_bone};
 use posecast_proto::fk::forward_kinematics;
-use posecast_server::builtin::skeleton::JOINTS;
-use posecast_server::clip::Clip;
-use posecast_server::import::ImportError;
-use posecast_server::import::files::{FileSet, import_set};
-use posecast_server::import::gltf::vrma::VrmaError;
-use posecast_server::rig::{Normalised, PipelineOptions, RigView, normalise, retarget};
+use posecast_rigs::builtin::skeleton::JOINTS;
+use posecast_rigs::clip::Clip;
+use posecast_rigs::import::ImportError;
+use posecast_rigs::import::files::{FileSet, import_set};
+use posecast_rigs::import::gltf::vrma::VrmaError;
+use posecast_rigs::rig::{Normalised, PipelineOptions, RigView, normalise, retarget};
 use serde_json::{Value, json};
 
 fn joint_index(name: &str) -> usize {
@@ -192,7 +192,7 @@ fn vrma_edited(edit: impl FnOnce(String) -> String) -> Vec<u8> {
     glb_of_text(&text, &bin)
 }
 
-fn import(name: &str, bytes: Vec<u8>) -> Result<Vec<posecast_server::asset::Asset>, ImportError> {
+fn import(name: &str, bytes: Vec<u8>) -> Result<Vec<posecast_rigs::asset::Asset>, ImportError> {
     let mut set = FileSet::new();
     set.insert(name, bytes).unwrap();
     import_set(&set)

@@ -12,8 +12,8 @@ use posecast_proto::Transform;
 use posecast_proto::fk::PoseBuffers;
 use posecast_proto::skinning::skin_cpu;
 use posecast_proto::testing::{require_testdata, testdata};
-use posecast_server::asset::{Asset, UpAxis};
-use posecast_server::import::{self, ImportError, gltf as gltf_import};
+use posecast_rigs::asset::{Asset, UpAxis};
+use posecast_rigs::import::{self, ImportError, gltf as gltf_import};
 
 fn path(rel: &str) -> Option<PathBuf> {
     require_testdata(rel)

@@ -13,12 +13,12 @@ mod rig_support;
 
 use glam::{Mat4, Quat, Vec3};
 use posecast_proto::fk::forward_kinematics;
-use posecast_server::asset::Asset;
-use posecast_server::builtin::JOINT_COUNT;
-use posecast_server::builtin::variants::{self, Naming, QUADRUPED_BVH};
-use posecast_server::clip::Clip;
-use posecast_server::import::{bvh, gltf};
-use posecast_server::rig::{
+use posecast_rigs::asset::Asset;
+use posecast_rigs::builtin::JOINT_COUNT;
+use posecast_rigs::builtin::variants::{self, Naming, QUADRUPED_BVH};
+use posecast_rigs::clip::Clip;
+use posecast_rigs::import::{bvh, gltf};
+use posecast_rigs::rig::{
     Normalised, PipelineOptions, RigView, adjust_bind, map_names, normalise, retarget,
 };
 
@@ -219,7 +219,7 @@ fn crumple(asset: Asset) -> Asset {
         })
         .collect();
     let (a, _, _) = adjust_bind(asset, &turns).unwrap();
-    let text = posecast_server::export::bvh::write(&a.skeleton, &a.clips[0], None).unwrap();
+    let text = posecast_rigs::export::bvh::write(&a.skeleton, &a.clips[0], None).unwrap();
     bvh::parse("crumpled.bvh", &text).unwrap()
 }
 
@@ -386,7 +386,7 @@ fn units_are_guessed_from_the_hips() {
 /// no unit fits is scaled to a person and noted.
 #[test]
 fn implausible_humanoids_are_warned_about() {
-    use posecast_server::builtin::skeleton::JOINTS;
+    use posecast_rigs::builtin::skeleton::JOINTS;
     let tiny = gltf_support::builtin_skeleton_glb(0.12, |j| JOINTS[j].name.to_owned(), &[], None);
     let n = norm(gltf::from_slice("tiny.glb", &tiny).unwrap().remove(0));
     println!("{:?}", n.asset.source.notes);

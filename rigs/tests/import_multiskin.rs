@@ -17,8 +17,8 @@ use gltf_support::{Bin, glb};
 use posecast_proto::fk::PoseBuffers;
 use posecast_proto::skinning::skin_cpu;
 use posecast_proto::testing::require_testdata;
-use posecast_server::asset::Asset;
-use posecast_server::import::gltf as gltf_import;
+use posecast_rigs::asset::Asset;
+use posecast_rigs::import::gltf as gltf_import;
 use serde_json::{Value, json};
 
 const CESIUM: &str = "gltf/CesiumMan/glTF-Binary/CesiumMan.glb";

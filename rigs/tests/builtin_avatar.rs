@@ -10,7 +10,7 @@ use gltf::animation::util::ReadOutputs;
 use posecast_proto::fk::PoseBuffers;
 use posecast_proto::skinning::skin_cpu;
 use posecast_proto::{Skeleton, SkinnedMesh, Transform};
-use posecast_server::builtin::{AVATAR_GLB, generate};
+use posecast_rigs::builtin::{AVATAR_GLB, generate};
 
 /// H-Anim (ISO/IEC 19774) joint names for the body, spine and limbs, without the hands'
 /// and face's finer joints, which the built-in avatar does not use.

@@ -122,7 +122,7 @@ pub fn builtin_skeleton_glb(
     extensions: Option<Value>,
 ) -> Vec<u8> {
     use glam::{Mat4, Vec3};
-    use posecast_server::builtin::skeleton::JOINTS;
+    use posecast_rigs::builtin::skeleton::JOINTS;
     let mut bin = Bin::default();
     let (pos, idx) = triangle(&mut bin);
     let joints = bin.u16s(&[0; 12], "VEC4");

@@ -9,9 +9,9 @@ mod gltf_support;
 mod rig_support;
 
 use gltf_support::{builtin_skeleton_glb, glb, vrm_bone};
-use posecast_server::builtin::skeleton::JOINTS;
-use posecast_server::import::files::{FileSet, import_set};
-use posecast_server::rig::{PipelineOptions, RigView, normalise, retarget};
+use posecast_rigs::builtin::skeleton::JOINTS;
+use posecast_rigs::import::files::{FileSet, import_set};
+use posecast_rigs::rig::{PipelineOptions, RigView, normalise, retarget};
 use serde_json::{Value, json};
 
 /// The built-in skeleton in T-pose as glTF nodes `n0`, `n1`, … (plus a hair bone `LeftArm`
@@ -78,7 +78,7 @@ fn a_glb_without_the_extension_is_mapped_by_names_only() {
     doc.as_object_mut().unwrap().remove("extensions");
     let bin_start = 20 + json_len + 8;
     let plain = glb(&doc, &bytes[bin_start..]);
-    let asset = posecast_server::import::gltf::from_slice("plain.glb", &plain)
+    let asset = posecast_rigs::import::gltf::from_slice("plain.glb", &plain)
         .unwrap()
         .remove(0);
     let n = normalise(asset, &PipelineOptions::default()).unwrap();

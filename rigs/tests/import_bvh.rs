@@ -8,8 +8,8 @@ use glam::{Mat3, Mat4, Vec3};
 use posecast_proto::Transform;
 use posecast_proto::fk::forward_kinematics;
 use posecast_proto::testing::require_testdata;
-use posecast_server::asset::Asset;
-use posecast_server::import;
+use posecast_rigs::asset::Asset;
+use posecast_rigs::import;
 
 fn load(rel: &str) -> Option<(Asset, String)> {
     let path = require_testdata(rel)?;

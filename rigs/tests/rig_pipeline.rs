@@ -9,8 +9,8 @@
 mod rig_support;
 
 use glam::Quat;
-use posecast_server::rig::pipeline::ReorientFrame;
-use posecast_server::rig::{NeutralPose, PipelineOptions, SignedAxis, normalise};
+use posecast_rigs::rig::pipeline::ReorientFrame;
+use posecast_rigs::rig::{NeutralPose, PipelineOptions, SignedAxis, normalise};
 use rig_support::{all_rigs, builtin, deviation, load};
 
 #[test]
@@ -86,7 +86,7 @@ fn options_parse_from_json_and_configure_steps() {
     // A rotation given directly.
     let q = Quat::from_rotation_y(0.5);
     let o = PipelineOptions {
-        up_axis: Some(posecast_server::rig::UpAxisOverride {
+        up_axis: Some(posecast_rigs::rig::UpAxisOverride {
             rotation: Some(q.to_array()),
             frame: Some(ReorientFrame::World),
             ..Default::default()

@@ -10,8 +10,8 @@ use std::panic::{AssertUnwindSafe, catch_unwind};
 
 use posecast_proto::Transform;
 use posecast_proto::testing::require_testdata;
-use posecast_server::asset::Asset;
-use posecast_server::import::{anim, bvh, gltf, skel, skin};
+use posecast_rigs::asset::Asset;
+use posecast_rigs::import::{anim, bvh, gltf, skel, skin};
 
 const CASES: usize = 300;
 
@@ -233,7 +233,7 @@ fn skel_mutants() {
     {
         fuzz(rel, 0xA5A5_0001 + i as u64, false, &|b| {
             let s = skel::parse("f.skel", &text(b)?).ok()?;
-            posecast_server::import::cse169::assemble("f", s, None, vec![])
+            posecast_rigs::import::cse169::assemble("f", s, None, vec![])
                 .ok()
                 .map(|a| vec![a])
         });
@@ -253,7 +253,7 @@ fn skin_mutants() {
         let s = skel::parse(skel_rel, &k).unwrap();
         fuzz(rel, 0x5EED_0001 + i as u64, false, &|b| {
             let m = skin::parse("f.skin", &text(b)?, &s.skeleton).ok()?;
-            let a = posecast_server::import::cse169::assemble("f", s.clone(), Some(m), vec![]);
+            let a = posecast_rigs::import::cse169::assemble("f", s.clone(), Some(m), vec![]);
             a.ok().map(|a| vec![a])
         });
     }
@@ -272,7 +272,7 @@ fn anim_mutants() {
     let s = skel::parse("wasp.skel", &k).unwrap();
     fuzz("cse169/wasp_walk.anim", 0xA11A_0001, false, &|b| {
         let clip = anim::parse("f.anim", &text(b)?, &s.skeleton).ok()?;
-        let a = posecast_server::import::cse169::assemble("f", s.clone(), None, vec![clip]);
+        let a = posecast_rigs::import::cse169::assemble("f", s.clone(), None, vec![clip]);
         a.ok().map(|a| vec![a])
     });
 }

@@ -7,7 +7,7 @@
 mod gltf_support;
 
 use gltf_support::{Bin, glb, triangle};
-use posecast_server::import::{bvh, files, gltf};
+use posecast_rigs::import::{bvh, files, gltf};
 use serde_json::json;
 
 fn has(notes: &[String], words: &[&str]) -> bool {

@@ -8,9 +8,9 @@
 mod gltf_support;
 
 use gltf_support::{Bin, builtin_skeleton_glb, glb, triangle};
-use posecast_server::builtin::skeleton::JOINTS;
-use posecast_server::import::{anim, gltf, skel};
-use posecast_server::rig::{PipelineOptions, normalise};
+use posecast_rigs::builtin::skeleton::JOINTS;
+use posecast_rigs::import::{anim, gltf, skel};
+use posecast_rigs::rig::{PipelineOptions, normalise};
 use serde_json::json;
 
 #[test]

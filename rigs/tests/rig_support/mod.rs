@@ -7,12 +7,12 @@ use posecast_proto::fk::{PoseBuffers, forward_kinematics};
 use posecast_proto::skinning::skin_cpu;
 use posecast_proto::testing::{arb_parents, arb_quat, f32s, require_testdata};
 use posecast_proto::{Skeleton, SkinnedMesh, Transform};
-use posecast_server::asset::{Asset, AssetMesh, SourceFormat, SourceInfo};
-use posecast_server::builtin::AVATAR_GLB;
-use posecast_server::clip::{
+use posecast_rigs::asset::{Asset, AssetMesh, SourceFormat, SourceInfo};
+use posecast_rigs::builtin::AVATAR_GLB;
+use posecast_rigs::clip::{
     Clip, Interpolation, JointChannels, RotationChannel, Track, VectorChannel,
 };
-use posecast_server::import::{gltf, load_path};
+use posecast_rigs::import::{gltf, load_path};
 use proptest::prelude::*;
 
 /// Loads a shared test file (every asset in it); `None`, with a message, when it is missing.

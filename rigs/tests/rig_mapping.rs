@@ -11,10 +11,10 @@ mod rig_support;
 
 use glam::{Mat4, Quat, Vec3};
 use posecast_proto::fk::forward_kinematics;
-use posecast_server::builtin::variants::{self, Naming, QUADRUPED_BVH};
-use posecast_server::clip::Clip;
-use posecast_server::import::bvh;
-use posecast_server::rig::{Normalised, PipelineOptions, RigError, RigView, normalise, retarget};
+use posecast_rigs::builtin::variants::{self, Naming, QUADRUPED_BVH};
+use posecast_rigs::clip::Clip;
+use posecast_rigs::import::bvh;
+use posecast_rigs::rig::{Normalised, PipelineOptions, RigError, RigView, normalise, retarget};
 use rig_support::builtin;
 
 fn normalised(name: &str, text: &str, options: &PipelineOptions) -> Normalised {

@@ -12,9 +12,9 @@ mod rig_support;
 
 use glam::{Mat4, Vec3};
 use posecast_proto::fk::forward_kinematics;
-use posecast_server::clip::Clip;
-use posecast_server::rig::retarget::DEFAULT_RATE_HZ;
-use posecast_server::rig::{Normalised, PipelineOptions, RigView, normalise, retarget};
+use posecast_rigs::clip::Clip;
+use posecast_rigs::rig::retarget::DEFAULT_RATE_HZ;
+use posecast_rigs::rig::{Normalised, PipelineOptions, RigView, normalise, retarget};
 use rig_support::{builtin, load};
 
 fn normalised(rel: &str) -> Option<Normalised> {

@@ -11,8 +11,8 @@ use std::hint::black_box;
 use criterion::{Criterion, criterion_group, criterion_main};
 use posecast_proto::Transform;
 use posecast_proto::testing::testdata;
-use posecast_server::clip::Clip;
-use posecast_server::import;
+use posecast_rigs::clip::Clip;
+use posecast_rigs::import;
 
 fn cases() -> Option<Vec<(String, Clip, Vec<Transform>)>> {
     let path = testdata("bvh/cmu/01_01.bvh");
@@ -41,7 +41,7 @@ fn sampling(c: &mut Criterion) {
         let mut t = clip.start();
         c.bench_function(&format!("{name}/exact_forward"), |b| {
             b.iter(|| {
-                t = clip.wrap_time(t + step, posecast_server::clip::Wrap::Loop);
+                t = clip.wrap_time(t + step, posecast_rigs::clip::Wrap::Loop);
                 clip.sample(black_box(t), rest, &mut out);
                 black_box(&out);
             })
@@ -63,7 +63,7 @@ fn sampling(c: &mut Criterion) {
         let mut t = clip.start();
         c.bench_function(&format!("{name}/sampler_forward"), |b| {
             b.iter(|| {
-                t = clip.wrap_time(t + step, posecast_server::clip::Wrap::Loop);
+                t = clip.wrap_time(t + step, posecast_rigs::clip::Wrap::Loop);
                 sampler.sample(clip, black_box(t), rest, &mut out);
                 black_box(&out);
             })

@@ -10,12 +10,12 @@
 use glam::{Quat, Vec3};
 use posecast_proto::testing::require_testdata;
 use posecast_proto::{Skeleton, Transform};
-use posecast_server::asset::Asset;
-use posecast_server::builtin::AVATAR_GLB;
-use posecast_server::clip::{Clip, RotationChannel};
-use posecast_server::export::bvh::{self, CENTIMETRES_PER_METRE};
-use posecast_server::import;
-use posecast_server::rig::{PipelineOptions, normalise};
+use posecast_rigs::asset::Asset;
+use posecast_rigs::builtin::AVATAR_GLB;
+use posecast_rigs::clip::{Clip, RotationChannel};
+use posecast_rigs::export::bvh::{self, CENTIMETRES_PER_METRE};
+use posecast_rigs::import;
+use posecast_rigs::rig::{PipelineOptions, normalise};
 
 const MAX_DEGREES: f32 = 0.01;
 const MAX_METRES: f32 = 1e-4;

@@ -16,12 +16,12 @@
 use glam::{Mat4, Quat, Vec3};
 use posecast_proto::fk::forward_kinematics;
 use posecast_proto::testing::require_testdata;
-use posecast_server::asset::Asset;
-use posecast_server::builtin::variants::{self, Naming, QUADRUPED_BVH};
-use posecast_server::builtin::{AVATAR_GLB, JOINT_COUNT};
-use posecast_server::clip::Clip;
-use posecast_server::import::{bvh, gltf, load_path};
-use posecast_server::rig::{Normalised, PipelineOptions, RigView, normalise, retarget};
+use posecast_rigs::asset::Asset;
+use posecast_rigs::builtin::variants::{self, Naming, QUADRUPED_BVH};
+use posecast_rigs::builtin::{AVATAR_GLB, JOINT_COUNT};
+use posecast_rigs::clip::Clip;
+use posecast_rigs::import::{bvh, gltf, load_path};
+use posecast_rigs::rig::{Normalised, PipelineOptions, RigView, normalise, retarget};
 
 fn positions(n: &Normalised, clip: &Clip, t: f32) -> Vec<Vec3> {
     let sk = &n.asset.skeleton;

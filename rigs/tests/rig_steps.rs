@@ -11,8 +11,8 @@ mod rig_support;
 
 use glam::{Mat3, Mat4, Quat, Vec3};
 use posecast_proto::testing::{arb_quat, f32s};
-use posecast_server::rig::neutral::hanim_pose;
-use posecast_server::rig::{
+use posecast_rigs::rig::neutral::hanim_pose;
+use posecast_rigs::rig::{
     RigError, SignedAxis, adjust_bind, apply_neutral_pose, map_names, reorient,
     reorient_bind_frame, scale_units, simplify,
 };
@@ -146,7 +146,7 @@ fn mirrored_bind_is_reported() {
         ib,
     )
     .unwrap();
-    let asset = posecast_server::asset::Asset {
+    let asset = posecast_rigs::asset::Asset {
         skeleton: mirrored,
         ..asset
     };

@@ -11,9 +11,9 @@ mod rig_support;
 
 use glam::{Mat4, Quat, Vec3};
 use posecast_proto::fk::forward_kinematics;
-use posecast_server::asset::Asset;
-use posecast_server::rig::names::HANIM_SPINE;
-use posecast_server::rig::{Normalised, PipelineOptions, map_names, normalise};
+use posecast_rigs::asset::Asset;
+use posecast_rigs::rig::names::HANIM_SPINE;
+use posecast_rigs::rig::{Normalised, PipelineOptions, map_names, normalise};
 use rig_support::{builtin, load};
 
 fn humanoids() -> Vec<Asset> {

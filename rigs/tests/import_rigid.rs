@@ -11,8 +11,8 @@ use glam::{Mat4, Quat, Vec3};
 use gltf_support::{Bin, glb, triangle};
 use posecast_proto::fk::PoseBuffers;
 use posecast_proto::skinning::skin_cpu;
-use posecast_server::import::gltf;
-use posecast_server::rig::{PipelineOptions, normalise};
+use posecast_rigs::import::gltf;
+use posecast_rigs::rig::{PipelineOptions, normalise};
 use serde_json::json;
 
 /// The arm's rest rotation and its animated end rotation.
@@ -74,7 +74,7 @@ fn robot() -> Vec<u8> {
     glb(&doc, &bin.bytes)
 }
 
-fn skinned(asset: &posecast_server::asset::Asset, t: f32) -> Vec<Vec<Vec3>> {
+fn skinned(asset: &posecast_rigs::asset::Asset, t: f32) -> Vec<Vec<Vec3>> {
     let sk = &asset.skeleton;
     let mut locals = sk.rest().to_vec();
     asset.clips[0].sample(t, sk.rest(), &mut locals);
@@ -130,7 +130,7 @@ fn meshes_parented_to_joints_are_rigidly_skinned() {
     }
     // Normalised and served: mesh.glb holds all three.
     let n = normalise(asset, &PipelineOptions::default()).unwrap();
-    let served = posecast_server::export::mesh_glb(&n.asset.skeleton, &n.asset.meshes).unwrap();
+    let served = posecast_rigs::export::mesh_glb(&n.asset.skeleton, &n.asset.meshes).unwrap();
     let back = gltf::from_slice("mesh.glb", &served).unwrap().remove(0);
     let vertices: usize = back.meshes.iter().map(|m| m.mesh.vertex_count()).sum();
     assert_eq!(vertices, 9);

@@ -23,9 +23,9 @@ use glam::{Mat4, Quat, Vec3};
 use posecast_proto::fk::forward_kinematics;
 use posecast_proto::testing::arb_quat;
 use posecast_proto::{Skeleton, Transform};
-use posecast_server::asset::{Asset, SourceFormat};
-use posecast_server::clip::{Clip, Interpolation, RotationChannel, Track};
-use posecast_server::rig::{
+use posecast_rigs::asset::{Asset, SourceFormat};
+use posecast_rigs::clip::{Clip, Interpolation, RotationChannel, Track};
+use posecast_rigs::rig::{
     Normalised, PipelineOptions, RigView, adjust_bind, normalise, retarget, simplify,
 };
 use proptest::prelude::*;
