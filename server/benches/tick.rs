@@ -13,6 +13,12 @@
 //! Times are this thread's CPU time (`CLOCK_THREAD_CPUTIME_ID`), so other work on the shared
 //! cores does not inflate them. Run: `cargo bench -p posecast-server --bench tick`. Prints a
 //! table; asserts nothing.
+//!
+//! The last two columns are wall time per tick: the whole tick, which is how long the scene
+//! lock was held before the tick published outside it (every command on the scene waited for
+//! all of it), and how long it is held now (`Scene::tick`'s return: moving the avatars and
+//! copying their poses; encoding and fan-out run under the feed's lock after it). The rows
+//! with 500 subscribers are where fan-out dominates.
 
 use anyhow::{Context, Result, bail};
 use futures_util::FutureExt;
@@ -75,31 +81,52 @@ fn thread_cpu() -> Duration {
 /// Mean CPU time of one tick over about `budget` of it (after a second of warm-up ticks). The
 /// outboxes are emptied after each tick, as their writers would (a wire-v2 subscriber whose
 /// frame was never taken would get keyframes only).
-fn time_ticks(scene: &Scene, outboxes: &[Arc<Outbox>], budget: Duration) -> Duration {
+fn time_ticks(scene: &Scene, outboxes: &[Arc<Outbox>], budget: Duration) -> Times {
     let mut seq = 0u64;
+    // The wall time of the ticks run and of their part under the scene lock.
     let mut run = |ticks: u64| {
+        let (mut whole, mut held) = (Duration::ZERO, Duration::ZERO);
         for _ in 0..ticks {
             seq += 1;
-            scene.tick(
+            let began = Instant::now();
+            held += scene.tick(
                 seq,
                 seq as f64 / RATE,
                 1_700_000_000_000_000 + seq * 16_667,
                 KEY_INTERVAL,
             );
+            whole += began.elapsed();
             for outbox in outboxes {
                 let _ = outbox.next().now_or_never();
             }
         }
+        (whole, held)
     };
     run(60);
+    let (mut whole, mut held) = (Duration::ZERO, Duration::ZERO);
     let mut ticks = 0u64;
     let start = thread_cpu();
     let wall = Instant::now();
     while (thread_cpu() - start < budget && wall.elapsed() < 10 * budget) || ticks < 60 {
-        run(60);
+        let (w, h) = run(60);
+        whole += w;
+        held += h;
         ticks += 60;
     }
-    (thread_cpu() - start) / u32::try_from(ticks).unwrap_or(u32::MAX)
+    let n = u32::try_from(ticks).unwrap_or(u32::MAX);
+    Times {
+        cpu: (thread_cpu() - start) / n,
+        whole: whole / n,
+        held: held / n,
+    }
+}
+
+/// Per tick: this thread's CPU time, and the wall time of the whole tick and of the part
+/// under the scene lock.
+struct Times {
+    cpu: Duration,
+    whole: Duration,
+    held: Duration,
 }
 
 fn load(path: &std::path::Path) -> Result<Arc<Rig>> {
@@ -136,9 +163,9 @@ fn main() -> Result<()> {
         eprintln!("skipping CMU 01_01: {} is absent", path.display());
     }
     println!(
-        "| clip | joints | avatars | subscribers | tick | per avatar | per joint | ticks/s on one core |"
+        "| clip | joints | avatars | subscribers | tick | per avatar | per joint | ticks/s on one core | whole tick (wall; the lock before) | scene lock held (wall) |"
     );
-    println!("|---|---:|---:|---|---:|---:|---:|---:|");
+    println!("|---|---:|---:|---|---:|---:|---:|---:|---:|---:|");
     for (name, rig, clip) in &rigs {
         let joints = rig.skeleton().len();
         let v1 = (Encoding::Binary, 1);
@@ -151,23 +178,29 @@ fn main() -> Result<()> {
             (100, vec![v1, json]),
             (100, vec![v2]),
             (4000, vec![v2]),
+            (100, vec![v1; 500]),
+            (100, vec![v2; 500]),
         ] {
             let (scene, outboxes) = scene(rig, clip, n, &subs)?;
-            let tick = time_ticks(&scene, &outboxes, Duration::from_secs(2));
+            let times = time_ticks(&scene, &outboxes, Duration::from_secs(2));
+            let tick = times.cpu;
             let per_avatar = tick.as_secs_f64() * 1e6 / n as f64;
-            let subs = subs
-                .iter()
-                .map(|(e, v)| match (e, v) {
-                    (Encoding::Binary, 2) => "binary v2".to_owned(),
-                    (e, _) => format!("{e:?}").to_lowercase(),
-                })
-                .collect::<Vec<_>>()
-                .join(" + ");
+            let label = |(e, v): &Sub| match (e, v) {
+                (Encoding::Binary, 2) => "binary v2".to_owned(),
+                (e, _) => format!("{e:?}").to_lowercase(),
+            };
+            let subs = if subs.len() > 2 {
+                format!("{} × {}", subs.len(), label(&subs[0]))
+            } else {
+                subs.iter().map(label).collect::<Vec<_>>().join(" + ")
+            };
             println!(
-                "| {name} | {joints} | {n} | {subs} | {:.3} ms | {per_avatar:.2} µs | {:.0} ns | {:.0} |",
+                "| {name} | {joints} | {n} | {subs} | {:.3} ms | {per_avatar:.2} µs | {:.0} ns | {:.0} | {:.3} ms | {:.3} ms |",
                 tick.as_secs_f64() * 1e3,
                 per_avatar * 1e3 / joints as f64,
                 1.0 / tick.as_secs_f64(),
+                times.whole.as_secs_f64() * 1e3,
+                times.held.as_secs_f64() * 1e3,
             );
         }
     }

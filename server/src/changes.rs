@@ -77,8 +77,7 @@ pub fn after(state: &AppState, command: &Command, before: Before, result: &Comma
                 return;
             };
             // The feed told the subscribers covering it; the watchers among them are told.
-            let s = scene.lock();
-            let told = s.feed.covering(avatar);
+            let told = scene.feed().covering(avatar);
             let msg = text(&ServerMsg::AvatarRemoved {
                 scene: scene.id.clone(),
                 avatar: avatar.clone(),
@@ -138,7 +137,7 @@ fn announce(
         seq: s.last_seq(),
         avatar: Box::new(now),
     });
-    let told = s.feed.push_change(id, &msg);
+    let told = scene.feed().push_change(id, &msg);
     state
         .watchers
         .push(&state.config.access, &scene.id, &msg, &told);

@@ -279,7 +279,7 @@ async fn answer(
                     let s = scene.lock();
                     let avatars: Vec<AvatarDescription> =
                         s.avatars.iter().map(|a| (*a.description).clone()).collect();
-                    let frames = s.feed.cached_frames();
+                    let frames = scene.feed().cached_frames();
                     drop(s);
                     encode_sync(epoch, &avatars, &frames)
                 }

@@ -54,6 +54,7 @@ pub struct Metrics {
     frames_dropped: Counter,
     ticks_missed: Counter,
     tick_seconds: Histogram,
+    scene_lock_seconds: Histogram,
     /// The histogram's count, for [`Self::ticks`] (prometheus-client reads it only in tests).
     ticks: AtomicU64,
     tick_late_micros_max: GaugeU64,
@@ -153,6 +154,12 @@ impl Metrics {
             "Time to run one scene tick",
             tick_seconds.clone(),
         );
+        let scene_lock_seconds = Histogram::new(TICK_BUCKETS);
+        r.register(
+            "scene_lock_seconds",
+            "Time a tick holds its scene's lock (moving the avatars and copying their poses; the frame is encoded and fanned out after)",
+            scene_lock_seconds.clone(),
+        );
         let net = NetCounters::new(r);
         let vmc = VmcCounters::new(r);
         let pace = PaceCounters::new(r);
@@ -169,6 +176,7 @@ impl Metrics {
             frames_dropped,
             ticks_missed,
             tick_seconds,
+            scene_lock_seconds,
             ticks: AtomicU64::new(0),
             tick_late_micros_max,
             commands,
@@ -225,10 +233,12 @@ impl Metrics {
         self.ticks_missed.inc_by(n);
     }
 
-    /// A tick took `took` and started `late` after its deadline.
-    pub fn tick_done(&self, took: Duration, late: Duration) {
+    /// A tick took `took`, started `late` after its deadline and held its scene's lock for
+    /// `held` of that.
+    pub fn tick_done(&self, took: Duration, late: Duration, held: Duration) {
         self.ticks.fetch_add(1, Relaxed);
         self.tick_seconds.observe(took.as_secs_f64());
+        self.scene_lock_seconds.observe(held.as_secs_f64());
         self.tick_late_micros_max
             .inner()
             .fetch_max(late.as_micros() as u64, Relaxed);
@@ -413,6 +423,19 @@ posecast_tick_seconds_bucket{le="0.1"} 0
 posecast_tick_seconds_bucket{le="+Inf"} 0
 posecast_tick_seconds_sum 0
 posecast_tick_seconds_count 0
+posecast_scene_lock_seconds_bucket{le="0.0001"} 0
+posecast_scene_lock_seconds_bucket{le="0.00025"} 0
+posecast_scene_lock_seconds_bucket{le="0.0005"} 0
+posecast_scene_lock_seconds_bucket{le="0.001"} 0
+posecast_scene_lock_seconds_bucket{le="0.0025"} 0
+posecast_scene_lock_seconds_bucket{le="0.005"} 0
+posecast_scene_lock_seconds_bucket{le="0.01"} 0
+posecast_scene_lock_seconds_bucket{le="0.025"} 0
+posecast_scene_lock_seconds_bucket{le="0.05"} 0
+posecast_scene_lock_seconds_bucket{le="0.1"} 0
+posecast_scene_lock_seconds_bucket{le="+Inf"} 0
+posecast_scene_lock_seconds_sum 0
+posecast_scene_lock_seconds_count 0
 posecast_tcp_connections_open 0
 posecast_tcp_connections_accepted_total 0
 posecast_connections_refused_total{cap="global"} 0
@@ -514,8 +537,16 @@ posecast_cluster_takeovers_total 0"#;
         m.quota_refused(Quota::Joints);
         m.net.timed_out(net::Timeout::Idle);
         // 0.3 ms: above the 0.25 ms bucket, inside the 0.5 ms one; 0.2 s: only in +Inf.
-        m.tick_done(Duration::from_micros(300), Duration::from_micros(40));
-        m.tick_done(Duration::from_millis(200), Duration::from_micros(7));
+        m.tick_done(
+            Duration::from_micros(300),
+            Duration::from_micros(40),
+            Duration::from_micros(60),
+        );
+        m.tick_done(
+            Duration::from_millis(200),
+            Duration::from_micros(7),
+            Duration::from_micros(90),
+        );
         let text = m.render(&[("a\"b\\c\nd".into(), 2)], 5).unwrap();
         for line in [
             "posecast_connections_open 1",
@@ -532,6 +563,9 @@ posecast_cluster_takeovers_total 0"#;
             "posecast_tick_seconds_sum 0.2003",
             "posecast_tick_seconds_count 2",
             "posecast_tick_late_seconds_max_micros 40",
+            // 60 µs and 90 µs: both under the 0.1 ms bucket.
+            "posecast_scene_lock_seconds_bucket{le=\"0.0001\"} 2",
+            "posecast_scene_lock_seconds_count 2",
             "posecast_subscribers_total_open 5",
             // The label value escaped as the text format requires: \" \\ \n.
             "posecast_subscribers{scene=\"a\\\"b\\\\c\\nd\"} 2",

@@ -1,16 +1,23 @@
-//! Scenes: avatars played on one clock ([`posecast_sim::avatar`]), published to their subscribers
-//! ([`crate::stream::feed`]), under one lock so a joiner's first frames and the next tick are
-//! in order.
+//! Scenes: avatars played on one clock ([`posecast_sim::avatar`]), published to their
+//! subscribers ([`crate::stream::feed`]).
 //!
-//! - this module: [`Scene`] — a tick moves every avatar to the scene clock, then the feed
-//!   encodes and fans out the frame.
+//! - this module: [`Scene`] — a tick moves every avatar to the scene clock under the scene
+//!   lock and copies their poses; the feed encodes and fans out the frame after that lock is
+//!   released, under its own.
 //! - `ticker`: the drift-free tick task of a scene.
 //! - [`answers`]: the answers of its latest commands that carried an idempotency key.
 
 pub mod answers;
 pub(crate) mod ticker;
 
+// Two locks, always taken in this order: the scene's (`Scene::lock`: avatars, clock), then the
+// feed's (`Scene::feed`: subscribers, cached frames, encoders). A tick takes the feed's before
+// it lets go of the scene's, so anything that needs both (a joiner's first frames, an avatar
+// added or removed) sees a tick either wholly before or wholly after it, while commands that
+// need only the scene lock run during the tick's encoding and fan-out.
+
 use crate::metrics::Metrics;
+use crate::stream::Snapshot;
 use crate::stream::feed::{Feed, RelayRefused, Subscriber, Tap, TickStamp};
 use axum::extract::ws::Message;
 use bytes::Bytes;
@@ -21,6 +28,7 @@ use posecast_proto::msg::{AvatarId, SceneId};
 use posecast_sim::avatar::Avatar;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Mutex, MutexGuard};
+use std::time::{Duration, Instant};
 use tokio::sync::Notify;
 
 /// What a scene holds, behind its lock.
@@ -28,8 +36,6 @@ use tokio::sync::Notify;
 pub struct SceneState {
     /// The avatars, in the order they were added.
     pub avatars: Vec<Avatar>,
-    /// Its subscribers and the frames they share.
-    pub feed: Feed,
     /// The last tick.
     last: TickStamp,
     /// The scene clock (seconds) at the last tick; avatars added later start on it.
@@ -40,13 +46,6 @@ impl SceneState {
     /// The avatar with this id.
     pub fn avatar_mut(&mut self, id: &AvatarId) -> Option<&mut Avatar> {
         self.avatars.iter_mut().find(|a| &a.id == id)
-    }
-
-    /// Whether the scene has avatar `id` (ticked here, or relayed from its owner).
-    #[must_use]
-    pub fn has_avatar(&self, id: &AvatarId) -> bool {
-        self.avatars.iter().any(|a| &a.id == id)
-            || self.feed.relayed_avatars().iter().any(|d| &d.id == id)
     }
 
     /// The number of the last tick (0 before the first): avatars' clip times are at it.
@@ -70,6 +69,8 @@ pub struct Scene {
     /// Its number in binary frames.
     pub num: u32,
     state: Mutex<SceneState>,
+    /// Its subscribers and the frames they share; taken after `state` when both are needed.
+    feed: Mutex<Feed>,
     stopped: AtomicBool,
     stop: Notify,
     /// The number of the last tick run, for services that act once per tick (VMC out).
@@ -91,10 +92,10 @@ impl Scene {
         Self {
             state: Mutex::new(SceneState {
                 avatars: Vec::new(),
-                feed: Feed::new(id.clone(), num, metrics, tick_rate),
                 last: TickStamp::default(),
                 clock: 0.0,
             }),
+            feed: Mutex::new(Feed::new(id.clone(), num, metrics, tick_rate)),
             id,
             num,
             stopped: AtomicBool::new(false),
@@ -113,19 +114,36 @@ impl Scene {
             .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 
-    /// Locks the scene. Critical sections are short (no awaits, no I/O), and every update
-    /// leaves the state consistent, so a poisoned lock is still usable.
+    /// Locks the scene: its avatars and clock. Critical sections are short (no awaits, no
+    /// I/O), and every update leaves the state consistent, so a poisoned lock is still usable.
     pub fn lock(&self) -> MutexGuard<'_, SceneState> {
         self.state
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 
+    /// Locks the scene's feed: its subscribers and cached frames. Alone, or while holding
+    /// [`Scene::lock`]'s guard — never the scene lock while holding this one (a tick takes
+    /// them in that order).
+    pub fn feed(&self) -> MutexGuard<'_, Feed> {
+        self.feed
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// Whether the scene has avatar `id` (ticked here, or relayed from its owner).
+    #[must_use]
+    pub fn has_avatar(&self, id: &AvatarId) -> bool {
+        let s = self.lock();
+        s.avatars.iter().any(|a| &a.id == id)
+            || self.feed().relayed_avatars().iter().any(|d| &d.id == id)
+    }
+
     /// Stops the ticker and ends every subscription.
     pub fn shut(&self) {
         self.stopped.store(true, Ordering::SeqCst);
         self.stop.notify_waiters();
-        self.lock().feed.close();
+        self.feed().close();
     }
 
     /// Whether [`Scene::shut`] was called.
@@ -147,10 +165,10 @@ impl Scene {
                 self.id, avatar.id
             )));
         }
-        s.feed.avatar_added(&avatar);
+        let mut feed = self.feed();
+        feed.avatar_added(&avatar);
         s.avatars.push(avatar);
-        let s = &mut *s;
-        s.feed.tap_avatars(&s.avatars);
+        feed.tap_avatars(s.avatars.iter().map(|a| &a.description));
         Ok(())
     }
 
@@ -159,9 +177,9 @@ impl Scene {
         let mut s = self.lock();
         let index = s.avatars.iter().position(|a| &a.id == id)?;
         let avatar = s.avatars.remove(index);
-        s.feed.avatar_removed(&avatar);
-        let s = &mut *s;
-        s.feed.tap_avatars(&s.avatars);
+        let mut feed = self.feed();
+        feed.avatar_removed(&avatar);
+        feed.tap_avatars(s.avatars.iter().map(|a| &a.description));
         Some(avatar)
     }
 
@@ -170,20 +188,20 @@ impl Scene {
     /// # Errors
     /// `unknown_avatar` when the filter names an avatar not in the scene.
     pub fn subscribe(&self, sub: Subscriber) -> Result<(), Error> {
-        let mut guard = self.lock();
-        let s = &mut *guard;
-        s.feed.subscribe(&mut s.avatars, s.last, sub)
+        let mut s = self.lock();
+        let last = s.last;
+        self.feed().subscribe(&mut s.avatars, last, sub)
     }
 
     /// Ends a connection's subscription. Returns whether it had one.
     pub fn unsubscribe(&self, conn: u64) -> bool {
-        self.lock().feed.unsubscribe(conn)
+        self.feed().unsubscribe(conn)
     }
 
     /// Number of subscribers.
     #[must_use]
     pub fn subscriber_count(&self) -> usize {
-        self.lock().feed.len()
+        self.feed().len()
     }
 
     /// The listing shown to clients.
@@ -193,20 +211,22 @@ impl Scene {
         SceneInfo {
             scene: self.id.clone(),
             avatars: s.avatars.iter().map(|a| a.state(&self.id)).collect(),
-            subscribers: s.feed.len(),
+            subscribers: self.feed().len(),
             owner: None,
         }
     }
 
     /// One tick: move every avatar to scene clock `clock` (seconds, derived from `seq` by the
-    /// ticker, never accumulated), then publish the frame of tick `seq`
-    /// ([`Feed::publish`], a keyframe at least every `key_interval` ticks).
-    pub fn tick(&self, seq: u64, clock: f64, server_time_us: u64, key_interval: u64) {
-        let mut guard = self.lock();
-        let s = &mut *guard;
-        if s.feed.is_relay() {
+    /// ticker, never accumulated) and copy their poses, under the scene lock; then publish the
+    /// frame of tick `seq` ([`Feed::publish`], a keyframe at least every `key_interval`
+    /// ticks) under the feed's lock only. Returns how long the scene lock was held.
+    pub fn tick(&self, seq: u64, clock: f64, server_time_us: u64, key_interval: u64) -> Duration {
+        let mut s = self.lock();
+        let held = Instant::now();
+        let mut feed = self.feed();
+        if feed.is_relay() {
             // Ticked elsewhere now; this tick task is about to end.
-            return;
+            return held.elapsed();
         }
         s.last = TickStamp {
             seq,
@@ -216,9 +236,16 @@ impl Scene {
         for a in &mut s.avatars {
             a.tick(clock);
         }
-        s.feed.publish(&s.avatars, s.last, key_interval);
-        drop(guard);
+        let snapshots: Vec<Snapshot> = s.avatars.iter().map(Snapshot::of).collect();
+        let at = s.last;
+        // The feed's lock was taken before the poses moved, so nothing that needs both locks
+        // comes between the poses and their frame; commands on the avatars go on from here.
+        drop(s);
+        let held = held.elapsed();
+        feed.publish(snapshots, at, key_interval);
+        drop(feed);
         self.ticks.send_replace(seq);
+        held
     }
 
     /// Ends the scene's tick task (the scene goes on, relayed: [`crate::world::World::demote`]).
@@ -235,24 +262,24 @@ impl Scene {
     /// Whether the scene is ticked on another server and only relayed here.
     #[must_use]
     pub fn is_relay(&self) -> bool {
-        self.lock().feed.is_relay()
+        self.feed().is_relay()
     }
 
     /// Hands every tick's frame and the avatars' descriptions to `tap` ([`Feed::set_tap`]).
     pub fn set_tap(&self, tap: Option<Tap>) {
-        self.lock().feed.set_tap(tap);
+        self.feed().set_tap(tap);
     }
 
     /// The cached keyframe and delta as relayed frames ([`Feed::cached_frames`]).
     #[must_use]
     pub fn cached_frames(&self) -> Vec<Bytes> {
-        self.lock().feed.cached_frames()
+        self.feed().cached_frames()
     }
 
     /// A relayed scene's avatars changed ([`Feed::relay_avatars`]): the avatars gone, with
     /// the connections told.
     pub fn relay_avatars(&self, avatars: Vec<AvatarDescription>) -> Vec<(AvatarId, Vec<u64>)> {
-        self.lock().feed.relay_avatars(avatars)
+        self.feed().relay_avatars(avatars)
     }
 
     /// A relayed scene's frame ([`Feed::relay_frame`]).
@@ -260,18 +287,18 @@ impl Scene {
     /// # Errors
     /// As [`Feed::relay_frame`].
     pub fn relay_frame(&self, bytes: &[u8]) -> Result<(), RelayRefused> {
-        self.lock().feed.relay_frame(bytes)
+        self.feed().relay_frame(bytes)
     }
 
     /// News of a relayed avatar for the subscribers covering it. Returns their connections.
     pub fn relay_change(&self, avatar: &AvatarId, message: &Message) -> Vec<u64> {
-        self.lock().feed.push_change(avatar, message)
+        self.feed().push_change(avatar, message)
     }
 
     /// A relayed scene's frames now come from a new owner: cached frames are dropped and
     /// subscribers wait for its first keyframe.
     pub fn restart_frames(&self) {
-        self.lock().feed.restart_frames();
+        self.feed().restart_frames();
     }
 
     /// Tick numbers as ticks run (each change: a tick has run and its poses are set).
@@ -287,5 +314,65 @@ impl Scene {
             return;
         }
         notified.await;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::stream::feed::Relayed;
+    use crate::stream::outbox::Outbox;
+    use posecast_proto::msg::Encoding;
+    use std::sync::Arc;
+    use std::sync::atomic::AtomicUsize;
+
+    /// A tick publishes outside the scene lock: while its frame is being fanned out (the tap
+    /// sees each frame from inside `Feed::publish`), the scene lock is free for a command,
+    /// and the feed's lock is the one held.
+    #[test]
+    fn the_frame_is_published_with_the_scene_lock_free() {
+        let rig = Arc::new(posecast_rigs::builtin::rig().unwrap());
+        let scene = Arc::new(Scene::new(
+            SceneId("s".into()),
+            1,
+            Arc::new(Metrics::new()),
+            60.0,
+        ));
+        let mut avatar = Avatar::new(AvatarId("a".into()), 1, rig.clone());
+        let walk = rig.clip("walk").unwrap().clone();
+        avatar.play(
+            posecast_sim::avatar::playback::Layer::new(walk, None, 0.0, 1.0, true),
+            0.0,
+        );
+        scene.add_avatar(avatar).unwrap();
+        let outbox = Arc::new(Outbox::new());
+        scene
+            .subscribe(Subscriber::new(7, outbox, Encoding::Binary, None, 1))
+            .unwrap();
+        let frames = Arc::new(AtomicUsize::new(0));
+        let free = Arc::new(AtomicUsize::new(0));
+        let seen = scene.clone();
+        let (f, fr) = (frames.clone(), free.clone());
+        scene.set_tap(Some(Tap(Arc::new(move |relayed| {
+            if let Relayed::Frame(_) = relayed {
+                f.fetch_add(1, Ordering::SeqCst);
+                let scene_free = seen.state.try_lock().is_ok();
+                let feed_held = seen.feed.try_lock().is_err();
+                if scene_free && feed_held {
+                    fr.fetch_add(1, Ordering::SeqCst);
+                }
+            }
+        }))));
+        for seq in 1..=5u64 {
+            let held = scene.tick(seq, seq as f64 / 60.0, seq, 60);
+            assert!(held < Duration::from_secs(5));
+        }
+        scene.set_tap(None);
+        assert_eq!(frames.load(Ordering::SeqCst), 5, "a frame per tick");
+        assert_eq!(
+            free.load(Ordering::SeqCst),
+            5,
+            "every frame fanned out with the scene lock free and the feed's held"
+        );
     }
 }

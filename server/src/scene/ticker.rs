@@ -55,13 +55,13 @@ pub async fn run(scene: Arc<Scene>, rate: f32, metrics: Arc<Metrics>) {
         last = Some(seq);
         let began = std::time::Instant::now();
         // The scene clock comes from the tick number, so playback never accumulates rounding.
-        scene.tick(
+        let held = scene.tick(
             seq,
             seq as f64 / f64::from(rate),
             unix_micros(),
             key_interval,
         );
-        metrics.tick_done(began.elapsed(), late);
+        metrics.tick_done(began.elapsed(), late, held);
     }
 }
 

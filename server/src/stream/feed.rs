@@ -10,7 +10,7 @@
 
 use super::outbox::{OutFrame, Outbox, message_len};
 use super::pace;
-use super::publish::{Piece, Published};
+use super::publish::{Piece, Published, Snapshot};
 use super::relay::{self, RelayError, RelayFrame};
 use super::wire2::{self, Ring};
 use crate::metrics::Metrics;
@@ -228,16 +228,21 @@ impl Feed {
     /// Hands the tap the avatars' descriptions if they changed since it last had them (called
     /// when avatars come and go, so news of an avatar never reaches a relay before its
     /// description, and before each frame).
-    pub fn tap_avatars(&mut self, avatars: &[Avatar]) {
+    pub fn tap_avatars<'a, I>(&mut self, descriptions: I)
+    where
+        I: IntoIterator<Item = &'a Arc<AvatarDescription>>,
+        I::IntoIter: ExactSizeIterator + Clone,
+    {
         let Some(tap) = &self.tap else { return };
-        let same = self.tapped.len() == avatars.len()
+        let descriptions = descriptions.into_iter();
+        let same = self.tapped.len() == descriptions.len()
             && self
                 .tapped
                 .iter()
-                .zip(avatars)
-                .all(|(t, a)| Arc::ptr_eq(t, &a.description));
+                .zip(descriptions.clone())
+                .all(|(t, d)| Arc::ptr_eq(t, d));
         if !same {
-            self.tapped = avatars.iter().map(|a| a.description.clone()).collect();
+            self.tapped = descriptions.cloned().collect();
             (tap.0)(Relayed::Avatars(self.tapped.clone()));
         }
     }
@@ -667,21 +672,21 @@ impl Feed {
         }
     }
 
-    /// Publishes tick `at` of `avatars` (already moved to it): encodes the frame once per
-    /// encoding and offers it to every subscriber. A keyframe when forced (an avatar added or
-    /// removed, a joiner who missed the keyframe) or when `key_interval` ticks have passed
-    /// since the last one.
-    pub fn publish(&mut self, avatars: &[Avatar], at: TickStamp, key_interval: u64) {
+    /// Publishes tick `at`: the avatars' poses at it, copied under the scene lock
+    /// ([`Snapshot::of`]). Encodes the frame once per encoding and offers it to every
+    /// subscriber. A keyframe when forced (an avatar added or removed, a joiner who missed the
+    /// keyframe) or when `key_interval` ticks have passed since the last one.
+    pub fn publish(&mut self, snapshots: Vec<Snapshot>, at: TickStamp, key_interval: u64) {
         self.placed = false;
         let key = self.force_key
             || self
                 .last_key_seq
                 .is_none_or(|k| at.seq.saturating_sub(k) >= key_interval)
-            || avatars.iter().any(|a| {
+            || snapshots.iter().any(|a| {
                 !self
                     .encoders
                     .get(&a.num())
-                    .is_some_and(|e| e.has_key(a.pose().rotations.len()))
+                    .is_some_and(|e| e.has_key(a.pose.rotations.len()))
             });
         let kind = if key {
             FrameKind::Key
@@ -705,8 +710,9 @@ impl Feed {
             .subscribers
             .iter()
             .any(|sub| sub.encoding == Encoding::Json);
-        let pieces: Vec<Piece> = avatars
-            .iter()
+        self.tap_avatars(snapshots.iter().map(|a| &a.description));
+        let pieces: Vec<Piece> = snapshots
+            .into_iter()
             .map(|a| {
                 let encoder = self.encoders.entry(a.num()).or_default();
                 Piece::encode(a, encoder, kind, json)
@@ -716,7 +722,6 @@ impl Feed {
             self.metrics.json_encoded(pieces.len() as u64);
         }
         let published = Published { header, pieces };
-        self.tap_avatars(avatars);
         if let Some(tap) = &self.tap {
             (tap.0)(Relayed::Frame(relay::encode(&published)));
         }

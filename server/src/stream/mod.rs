@@ -2,7 +2,8 @@
 //!
 //! - [`feed`]: a scene's subscribers, and each tick's frame encoded once per encoding and
 //!   fanned out to them (with what a late joiner starts from).
-//! - `publish`: a frame as per-avatar pieces in both encodings.
+//! - `publish`: a frame as per-avatar pieces in both encodings, made from the poses a tick
+//!   copied under the scene lock ([`Snapshot`]).
 //! - [`outbox`]: the bounded per-connection queue (newest frame wins).
 //! - [`writer`]: the task that drains an outbox into its websocket.
 //! - [`pace`]: a connection's adaptive frame rate (lowered until its link keeps up).
@@ -17,3 +18,5 @@ mod publish;
 pub mod relay;
 pub mod wire2;
 pub mod writer;
+
+pub use publish::Snapshot;

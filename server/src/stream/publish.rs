@@ -21,6 +21,34 @@ use std::borrow::Cow;
 use std::collections::HashMap;
 use std::sync::Arc;
 
+/// An avatar's pose at a tick, copied under the scene lock ([`crate::scene::Scene::tick`]):
+/// the frame is encoded from it and fanned out after the lock is released, so commands on
+/// the scene do not wait for the encoding.
+#[derive(Debug, Clone)]
+pub struct Snapshot {
+    /// The description the pose belongs to (its id, number and hash).
+    pub description: Arc<AvatarDescription>,
+    /// The pose at the tick.
+    pub pose: AvatarPose,
+}
+
+impl Snapshot {
+    /// The avatar's pose as it is now.
+    #[must_use]
+    pub fn of(avatar: &Avatar) -> Self {
+        Self {
+            description: avatar.description.clone(),
+            pose: avatar.pose().clone(),
+        }
+    }
+
+    /// Its avatar's number in binary frames.
+    #[must_use]
+    pub fn num(&self) -> u32 {
+        self.description.num
+    }
+}
+
 /// One avatar's part of a frame.
 #[derive(Debug)]
 pub(super) struct Piece {
@@ -37,14 +65,19 @@ impl Piece {
     /// The avatar's chunk for the frame being ticked, through its own `encoder` (which keeps a
     /// keyframe chunk as the reference for the deltas after it), and its JSON object if `json`.
     pub(super) fn encode(
-        a: &Avatar,
+        snapshot: Snapshot,
         encoder: &mut ChunkEncoder,
         kind: FrameKind,
         json: bool,
     ) -> Self {
-        let mut chunk = Vec::with_capacity(32 + 6 * a.pose().rotations.len());
-        encoder.encode(a.pose(), kind, &mut chunk);
-        Self::new(a, chunk, json)
+        let mut chunk = Vec::with_capacity(32 + 6 * snapshot.pose.rotations.len());
+        encoder.encode(&snapshot.pose, kind, &mut chunk);
+        Self::relayed(
+            snapshot.description,
+            Bytes::from(chunk),
+            snapshot.pose,
+            json,
+        )
     }
 
     /// A keyframe chunk of the avatar's current pose for one joiner. A fresh encoder, so the
@@ -54,16 +87,10 @@ impl Piece {
             // Added without a clip and not ticked yet: its pose was never evaluated.
             a.evaluate();
         }
-        let mut chunk = Vec::with_capacity(32 + 6 * a.pose().rotations.len());
-        ChunkEncoder::new().encode(a.pose(), FrameKind::Key, &mut chunk);
-        Self::new(a, chunk, json)
-    }
-
-    fn new(a: &Avatar, chunk: Vec<u8>, json: bool) -> Self {
-        Self::relayed(
-            a.description.clone(),
-            Bytes::from(chunk),
-            a.pose().clone(),
+        Self::encode(
+            Snapshot::of(a),
+            &mut ChunkEncoder::new(),
+            FrameKind::Key,
             json,
         )
     }

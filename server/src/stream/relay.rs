@@ -243,7 +243,7 @@ pub fn decode(bytes: &[u8]) -> Result<RelayFrame, RelayError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::stream::publish::Piece;
+    use crate::stream::publish::{Piece, Snapshot};
     use posecast_proto::frame::ChunkEncoder;
     use posecast_sim::avatar::Avatar;
     use std::sync::Arc;
@@ -262,7 +262,12 @@ mod tests {
                     );
                 }
                 a.tick(0.37 * (i as f64 + 1.0));
-                Piece::encode(&a, &mut ChunkEncoder::new(), FrameKind::Key, false)
+                Piece::encode(
+                    Snapshot::of(&a),
+                    &mut ChunkEncoder::new(),
+                    FrameKind::Key,
+                    false,
+                )
             })
             .collect();
         Published {

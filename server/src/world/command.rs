@@ -455,7 +455,7 @@ pub fn apply(world: &World, command: &Command) -> Result<CommandResult, Error> {
                 .ok_or_else(|| Error::UnknownAvatar(avatar.clone()))?;
             a.place(to, f64::from(duration));
             // The scene's cached frames show the old placement: a joiner gets a fresh keyframe.
-            s.feed.placed();
+            scene.feed().placed();
             Ok(CommandResult::Done)
         }
 

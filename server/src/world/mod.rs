@@ -99,13 +99,13 @@ impl World {
     pub fn promote(&self, id: &SceneId) -> Result<Arc<Scene>, Error> {
         let scene = self.scene(id)?;
         {
-            let mut s = scene.lock();
-            if !s.feed.is_relay() {
+            let mut feed = scene.feed();
+            if !feed.is_relay() {
                 return Err(Error::Conflict(format!(
                     "scene {id} is ticked here already"
                 )));
             }
-            s.feed.end_relay();
+            feed.end_relay();
         }
         tokio::spawn(ticker::run(
             scene.clone(),
@@ -172,12 +172,13 @@ impl World {
         let scene = self.scene(id)?;
         {
             let mut s = scene.lock();
-            if s.feed.is_relay() {
+            let mut feed = scene.feed();
+            if feed.is_relay() {
                 return Err(Error::Conflict(format!("scene {id} is relayed already")));
             }
             let described = s.avatars.iter().map(|a| a.description.clone()).collect();
             s.avatars.clear();
-            s.feed.begin_relay(described);
+            feed.begin_relay(described);
         }
         scene.stop_ticking();
         Ok(scene)
@@ -223,7 +224,7 @@ impl World {
             self.tick_rate,
         ));
         if !ticked {
-            scene.lock().feed.begin_relay(Vec::new());
+            scene.feed().begin_relay(Vec::new());
         }
         scenes.insert(id, scene.clone());
         if ticked {
@@ -321,12 +322,12 @@ impl World {
             return Err(Error::Conflict(format!("avatar {id} exists")));
         }
         if by_id
-            && let Some(other) = self.scenes().iter().find_map(|s| {
-                let s = s.lock();
+            && let Some(other) = self.scenes().iter().find_map(|scene| {
+                let s = scene.lock();
                 s.avatars
                     .iter()
                     .map(|a| a.description.clone())
-                    .chain(s.feed.relayed_avatars().iter().cloned())
+                    .chain(scene.feed().relayed_avatars().iter().cloned())
                     .find(|d| d.num == num)
                     .map(|d| d.id.clone())
             })
@@ -356,7 +357,7 @@ impl World {
     pub fn find_avatar(&self, id: &AvatarId) -> Result<Arc<Scene>, Error> {
         self.scenes()
             .into_iter()
-            .find(|s| s.lock().has_avatar(id))
+            .find(|s| s.has_avatar(id))
             .ok_or_else(|| Error::UnknownAvatar(id.clone()))
     }
 
