@@ -1,6 +1,6 @@
 //! A thin link shared by many viewers (issue 22, items 2 and 4): 2 Mbit/s through the
 //! emulating proxy for 50 binary viewers of 10 avatars — about ten times what the link carries
-//! at 60 Hz. Each connection's adaptive rate (`server/src/stream/pace.rs`) brings its frames
+//! at 60 Hz. Each connection's adaptive rate (`stream/src/pace.rs`) brings its frames
 //! down to what the link delivers, fairly: every viewer keeps getting fresh frames (p99 age
 //! ≤ 300 ms; before, frames were 5–11 s stale and most viewers got under one a second) and a
 //! newcomer joins at once (before: no welcome at all). One JSON viewer alone on 2 Mbit/s

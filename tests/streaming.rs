@@ -289,12 +289,12 @@ async fn a_stalled_subscriber_loses_frames_not_memory_and_delays_no_one() {
     }
     let stalled_writer = tokio::spawn({
         let (outbox, metrics) = (stalled.clone(), metrics.clone());
-        async move { run_writer(&outbox, NeverReady, &metrics).await }
+        async move { run_writer(&outbox, NeverReady, &*metrics).await }
     });
     let received = Reader::default();
     let reading_writer = tokio::spawn({
         let (outbox, metrics, sink) = (reading.clone(), metrics.clone(), received.clone());
-        async move { run_writer(&outbox, sink, &metrics).await }
+        async move { run_writer(&outbox, sink, &*metrics).await }
     });
     let ticks = 600u64;
     let mut max_pending = 0;

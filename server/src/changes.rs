@@ -2,7 +2,7 @@
 //!
 //! After a command changed the world ([`crate::control::execute`], and `drive` for a
 //! websocket connection; also when a live driver leaves), [`after`] tells, once each:
-//! - the scene's subscribers covering the avatar (through its [`crate::stream::feed::Feed`]):
+//! - the scene's subscribers covering the avatar (through its [`posecast_stream::feed::Feed`]):
 //!   `avatar_changed` — `avatar_removed` they already get from the feed;
 //! - the connections watching the scene list ([`crate::state::Watchers`], `watch_scenes`) that may watch the
 //!   scene: `scene_created`, `scene_deleted`, `avatar_changed`, `avatar_removed`.
@@ -12,16 +12,16 @@
 //! itself; the server sends one message per change a command makes, never per tick. Joint
 //! overrides (a slider dragged sends dozens of commands a second) are announced only when the
 //! set of overridden joints changes. Each message is bounded like every control message (a
-//! connection that does not read is closed, [`crate::stream::outbox::MAX_CONTROL_BYTES`]).
+//! connection that does not read is closed, [`posecast_stream::outbox::MAX_CONTROL_BYTES`]).
 //!
 //! Pushes to one scene's watchers and subscribers happen under the scene's lock, so two
 //! changes of one avatar reach every connection in the order they were made.
 
 use crate::scene::Scene;
 use crate::state::AppState;
-use crate::stream::feed::text;
 use posecast_proto::command::{AvatarState, Command, CommandResult};
 use posecast_proto::msg::{AvatarId, ServerMsg};
+use posecast_stream::feed::text;
 use std::sync::Arc;
 
 /// What a command may change, noted before it runs.

@@ -1,19 +1,18 @@
 //! The posecast server: it imports rigs and clips, normalises them, plays them in scenes and
 //! streams each avatar's local joint rotations to websocket clients.
 //!
-//! It builds on three crates of its own, each a layer cargo keeps below this one:
+//! It builds on four crates of its own, each a layer cargo keeps below this one:
 //! `posecast-core` ([`error`], [`quota`]), `posecast-rigs` (the assets: [`asset`],
-//! [`import`], [`clip`], [`rig`], [`builtin`], [`library`], [`export`]) and `posecast-sim`
-//! (the simulation: [`avatar`], [`bake`]). They are re-exported here under their old paths.
+//! [`import`], [`clip`], [`rig`], [`builtin`], [`library`], [`export`]), `posecast-sim`
+//! (the simulation: [`avatar`], [`bake`]) and `posecast-stream` (publication: [`stream`]).
+//! They are re-exported here under their old paths.
 //!
 //! This crate's own modules are layered; each uses only the layers above it
 //! (`scripts/check-layers` fails CI otherwise):
 //!
-//! 1. **Publication** — [`stream`] (a scene's feed: each tick encoded once per encoding and
-//!    fanned out into per-connection outboxes, drained by writers).
-//! 2. **World** — [`scene`] (avatars and their feed under one lock, the tick task),
+//! 1. **World** — [`scene`] (avatars and their feed under one lock, the tick task),
 //!    [`world`] (every scene, ids, quotas; [`world::command`]: a command applied to it).
-//! 3. **Services** — [`auth`] (tokens), [`store`] (the data folder), [`config`], [`state`]
+//! 2. **Services** — [`auth`] (tokens), [`store`] (the data folder), [`config`], [`state`]
 //!    (the world plus connections, store and start-up progress), [`control`] (commands for
 //!    clients: counted, and acknowledged once stored), [`ingest`] (uploads imported,
 //!    normalised and stored; an upload normalised again with new options), [`changes`] (what
@@ -22,9 +21,9 @@
 //!    VMC receivers), start-up loading ([`readiness`]), scale-out through NATS ([`cluster`]:
 //!    scene ownership by lease, frames relayed between servers, commands forwarded to a
 //!    scene's owner).
-//! 4. **Transport** — [`service`]: the axum router, accept loop and limits, websocket
+//! 3. **Transport** — [`service`]: the axum router, accept loop and limits, websocket
 //!    sessions, REST, uploads, dashboard, health.
-//! 5. **Entry** — [`startup`]: [`startup::Server`] listens at once, restores in the
+//! 4. **Entry** — [`startup`]: [`startup::Server`] listens at once, restores in the
 //!    background, shuts down gracefully.
 //!
 //! Used by all of them: [`metrics`] (counters).
@@ -34,6 +33,7 @@
 pub use posecast_core::{error, quota};
 pub use posecast_rigs::{asset, builtin, clip, export, import, library, rig};
 pub use posecast_sim::{avatar, bake};
+pub use posecast_stream as stream;
 
 pub mod auth;
 pub mod changes;
@@ -50,6 +50,5 @@ pub mod service;
 pub mod startup;
 pub mod state;
 pub mod store;
-pub mod stream;
 pub mod vmc;
 pub mod world;

@@ -6,8 +6,6 @@ use crate::config::Config;
 use crate::metrics::Metrics;
 use crate::readiness::Readiness;
 use crate::store::Store;
-use crate::stream::outbox::Outbox;
-use crate::stream::pace::Paths;
 use crate::world::World;
 use axum::extract::ws::Message;
 use futures_util::future::BoxFuture;
@@ -16,6 +14,8 @@ use posecast_proto::command::{Command, CommandResult, SceneInfo};
 use posecast_proto::msg::SceneId;
 use posecast_rigs::import::files::FileSet;
 use posecast_rigs::rig::PipelineOptions;
+use posecast_stream::outbox::Outbox;
+use posecast_stream::pace::Paths;
 use std::sync::OnceLock;
 
 use std::collections::HashMap;

@@ -7,7 +7,7 @@
 //! `D = q(a − s) + one frame interval`, where `q` is the 99.5th percentile of the raw transits
 //! of the last [`WINDOW`] frames (10 s at 60 Hz) and the interval is the longest gap between
 //! the stamps of the last [`GAPS`] frames (one tick at full rate; more when the server paces
-//! the connection, `server/src/stream/pace.rs`). Every frame stamped up to `now − D + tick` then
+//! the connection, `stream/src/pace.rs`). Every frame stamped up to `now − D + tick` then
 //! arrived with 99.5 % probability, so the point lies between two received frames and is
 //! interpolated. The clock offset cancels out: no ping is needed to play out. The delay
 //! follows the link: a steady 25 ms one way gives ~25 ms + a tick; TCP's recovery of a lost

@@ -11,13 +11,13 @@ use crate::control;
 use crate::metrics::Metrics;
 use crate::scene::Scene;
 use crate::state::AppState;
-use crate::stream::feed::{Relayed, Tap};
 use axum::extract::ws::Message;
 use bytes::{BufMut, Bytes, BytesMut};
 use futures_util::StreamExt;
 use posecast_proto::command::Command;
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError, SceneId};
+use posecast_stream::feed::{Relayed, Tap};
 use serde::{Deserialize, Serialize};
 use std::sync::{Arc, Mutex, Weak};
 use std::time::Instant;
@@ -65,7 +65,7 @@ pub(super) struct Change {
 /// What a relay starts from: the owner's epoch, descriptions and cached frames.
 ///
 /// Layout: epoch (u64 LE), descriptions' JSON length (u32 LE) and JSON array, frame count
-/// (u32 LE), then each frame's length (u32 LE) and bytes ([`crate::stream::relay`]).
+/// (u32 LE), then each frame's length (u32 LE) and bytes ([`posecast_stream::relay`]).
 pub(super) fn encode_sync(epoch: u64, avatars: &[AvatarDescription], frames: &[Bytes]) -> Bytes {
     let json = serde_json::to_vec(avatars).unwrap_or_else(|_| b"[]".to_vec());
     let mut out = BytesMut::new();

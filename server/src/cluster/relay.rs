@@ -1,6 +1,6 @@
 //! A scene ticked by another server, relayed here: its owner's frames, descriptions and
 //! avatar changes fanned out to this server's subscribers through the scene's feed (the same
-//! bytes and outbox rules as on the owner, [`crate::stream::feed::Feed::relay_frame`]).
+//! bytes and outbox rules as on the owner, [`posecast_stream::feed::Feed::relay_frame`]).
 //!
 //! A relay starts by subscribing to the scene's relay subject, then asks the owner for its
 //! descriptions and cached keyframe and delta (so a joiner here gets the current pose at once,
@@ -15,14 +15,14 @@ use super::{Cluster, EPOCH, KIND, REQUEST_TIMEOUT, Task, lock, relay_subject, re
 use crate::metrics::Metrics;
 use crate::scene::Scene;
 use crate::state::AppState;
-use crate::stream::feed::RelayRefused;
-use crate::stream::feed::text;
-use crate::stream::relay::peek_seq;
 use axum::extract::ws::{Message, Utf8Bytes};
 use bytes::Bytes;
 use futures_util::StreamExt;
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::msg::{AvatarId, SceneId, ServerMsg};
+use posecast_stream::feed::RelayRefused;
+use posecast_stream::feed::text;
+use posecast_stream::relay::peek_seq;
 use std::sync::{Arc, Weak};
 use std::time::{Duration, Instant};
 use tracing::{debug, warn};

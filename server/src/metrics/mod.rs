@@ -375,6 +375,21 @@ pub(crate) fn labelled_counters<const N: usize>(
     counters
 }
 
+/// The stream layer counts into the server's metrics.
+impl posecast_stream::Counters for Metrics {
+    fn frames_offered(&self, frames: u64, bytes: u64) {
+        Metrics::frames_offered(self, frames, bytes);
+    }
+
+    fn json_encoded(&self, poses: u64) {
+        Metrics::json_encoded(self, poses);
+    }
+
+    fn sent(&self, messages: u64, bytes: u64) {
+        Metrics::sent(self, messages, bytes);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

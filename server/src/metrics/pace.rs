@@ -1,4 +1,4 @@
-//! Counters of the adaptive frame rate (`crate::stream::pace`): how many connections send at
+//! Counters of the adaptive frame rate (`posecast_stream::pace`): how many connections send at
 //! each step, and how often rates went down and up. Kept apart (`Metrics::pace`) like the
 //! network counters.
 
@@ -7,9 +7,8 @@ use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
 use prometheus_client::registry::Registry;
 
-/// The adaptive rate's steps, frames per 60 ticks (the stream layer's `pace::STEPS`, which
-/// this layer cannot use: its tests check the two agree).
-pub const STEPS: [u32; 15] = [60, 45, 30, 24, 20, 15, 12, 10, 8, 6, 5, 4, 3, 2, 1];
+/// The adaptive rate's steps, frames per 60 ticks (the stream layer's, one list).
+pub use posecast_stream::pace::STEPS;
 
 /// Labels of [`STEPS`].
 const RATES: [&str; STEPS.len()] = [

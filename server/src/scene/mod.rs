@@ -1,5 +1,5 @@
 //! Scenes: avatars played on one clock ([`posecast_sim::avatar`]), published to their
-//! subscribers ([`crate::stream::feed`]).
+//! subscribers ([`posecast_stream::feed`]).
 //!
 //! - this module: [`Scene`] — a tick moves every avatar to the scene clock under the scene
 //!   lock and copies their poses; the feed encodes and fans out the frame after that lock is
@@ -17,8 +17,6 @@ pub(crate) mod ticker;
 // need only the scene lock run during the tick's encoding and fan-out.
 
 use crate::metrics::Metrics;
-use crate::stream::Snapshot;
-use crate::stream::feed::{Feed, RelayRefused, Subscriber, Tap, TickStamp};
 use axum::extract::ws::Message;
 use bytes::Bytes;
 use posecast_core::error::Error;
@@ -26,6 +24,8 @@ use posecast_proto::command::SceneInfo;
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::msg::{AvatarId, SceneId};
 use posecast_sim::avatar::Avatar;
+use posecast_stream::Snapshot;
+use posecast_stream::feed::{Feed, RelayRefused, Subscriber, Tap, TickStamp};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Mutex, MutexGuard};
 use std::time::{Duration, Instant};
@@ -320,9 +320,9 @@ impl Scene {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::stream::feed::Relayed;
-    use crate::stream::outbox::Outbox;
     use posecast_proto::msg::Encoding;
+    use posecast_stream::feed::Relayed;
+    use posecast_stream::outbox::Outbox;
     use std::sync::Arc;
     use std::sync::atomic::AtomicUsize;
 

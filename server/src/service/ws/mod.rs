@@ -14,10 +14,6 @@ use crate::metrics::net::Timeout;
 use crate::scene::ticker::unix_micros;
 use crate::service::ws_liveness::{Due, Liveness};
 use crate::state::AppState;
-use crate::stream::feed::{Subscriber, text};
-use crate::stream::outbox::Outbox;
-use crate::stream::pace::{Change, PROBE_INTERVAL};
-use crate::stream::writer::run_writer;
 use axum::extract::ws::{Message, WebSocket, close_code};
 use futures_util::{Sink, Stream, StreamExt};
 use posecast_core::error::Error;
@@ -27,6 +23,10 @@ use posecast_proto::msg::{
     SUPPORTED_VERSIONS, SceneId, ServerMsg,
 };
 use posecast_proto::subset::JointSet;
+use posecast_stream::feed::{Subscriber, text};
+use posecast_stream::outbox::Outbox;
+use posecast_stream::pace::{Change, PROBE_INTERVAL};
+use posecast_stream::writer::run_writer;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
@@ -73,7 +73,7 @@ where
         let mut writer = {
             let outbox = outbox.clone();
             let metrics = state.metrics.clone();
-            tokio::spawn(async move { run_writer(&outbox, sink, &metrics).await })
+            tokio::spawn(async move { run_writer(&outbox, sink, &*metrics).await })
         };
         let mut session = Session {
             conn,
@@ -325,7 +325,7 @@ impl Session {
         if let Some(c) = change {
             self.state.metrics.pace.changed(c.from, c.to);
             debug!(
-                per_60_ticks = crate::stream::pace::STEPS[c.to],
+                per_60_ticks = posecast_stream::pace::STEPS[c.to],
                 "adaptive frame rate changed"
             );
         }

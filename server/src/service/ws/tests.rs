@@ -260,7 +260,7 @@ async fn a_reader_that_stalls_gets_the_newest_frame_not_a_backlog() {
     // 30 Hz for half a second: about 15 ticks while nothing is read.
     tokio::time::sleep(Duration::from_millis(500)).await;
     let (pending, dropped) = state.outbox_extremes();
-    let bound = 1 + crate::stream::outbox::MAX_PENDING_DELTAS;
+    let bound = 1 + posecast_stream::outbox::MAX_PENDING_DELTAS;
     assert!(pending <= bound, "{pending} frames wait for one scene");
     assert!(
         dropped >= 5,

@@ -585,11 +585,6 @@ mod tests {
     const MS: Duration = Duration::from_millis(1);
 
     #[test]
-    fn the_metrics_label_the_same_steps() {
-        assert_eq!(STEPS, crate::metrics::pace::STEPS);
-    }
-
-    #[test]
     fn a_rate_sends_that_many_of_60_ticks_evenly_whatever_the_phase() {
         for rate in STEPS {
             for phase in [0, 7, 59, 1_000_003] {

@@ -5,15 +5,15 @@
 //! only while a subscriber wants it) — per avatar pieces first, so subscribers limited to some
 //! avatars get the same pieces reassembled — and hands the same bytes to every subscriber's
 //! [`Outbox`]. It keeps each avatar's delta encoder (the keyframe its deltas refer to) and the
-//! scene's last keyframe and delta for joiners. The poses themselves are the scene's
-//! ([`crate::scene`]): the feed reads them and never changes what an avatar does.
+//! scene's last keyframe and delta for joiners. The poses themselves are the scene's (the
+//! server's `scene` module): the feed reads them and never changes what an avatar does.
 
 use super::outbox::{OutFrame, Outbox, message_len};
 use super::pace;
 use super::publish::{Piece, Published, Snapshot};
 use super::relay::{self, RelayError, RelayFrame};
 use super::wire2::{self, Ring};
-use crate::metrics::Metrics;
+use crate::Counters;
 use axum::extract::ws::{Message, Utf8Bytes};
 use bytes::Bytes;
 use posecast_core::error::Error;
@@ -37,7 +37,7 @@ pub struct Subscriber {
     /// Only these avatars, or all.
     pub filter: Option<Vec<AvatarId>>,
     /// It gets every `every`-th tick (1: all of them), or fewer while its connection's
-    /// adaptive rate ([`crate::stream::pace`]) is lower.
+    /// adaptive rate ([`crate::pace`]) is lower.
     pub every: u32,
     /// Only these joints of every avatar, or all.
     pub joints: Option<JointSet>,
@@ -164,7 +164,7 @@ type Cut<'a> = (Encoding, Option<&'a [AvatarId]>, Option<&'a JointSet>);
 pub struct Feed {
     scene: SceneId,
     num: u32,
-    metrics: Arc<Metrics>,
+    metrics: Arc<dyn Counters>,
     /// Ticks per second (what a subscription's rate divides).
     tick_rate: f32,
     subscribers: Vec<Subscriber>,
@@ -192,7 +192,7 @@ impl Feed {
     /// The feed of scene `scene` (number `num` in binary frames) ticking at `tick_rate`, with
     /// no subscribers.
     #[must_use]
-    pub fn new(scene: SceneId, num: u32, metrics: Arc<Metrics>, tick_rate: f32) -> Self {
+    pub fn new(scene: SceneId, num: u32, metrics: Arc<dyn Counters>, tick_rate: f32) -> Self {
         Self {
             scene,
             num,

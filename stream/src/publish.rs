@@ -21,7 +21,7 @@ use std::borrow::Cow;
 use std::collections::HashMap;
 use std::sync::Arc;
 
-/// An avatar's pose at a tick, copied under the scene lock ([`crate::scene::Scene::tick`]):
+/// An avatar's pose at a tick, copied under the scene lock (the server's `Scene::tick`):
 /// the frame is encoded from it and fanned out after the lock is released, so commands on
 /// the scene do not wait for the encoding.
 #[derive(Debug, Clone)]

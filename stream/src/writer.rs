@@ -5,7 +5,7 @@
 //! absorb megabytes before a write blocks.
 
 use super::outbox::{Next, Outbox, message_len};
-use crate::metrics::Metrics;
+use crate::Counters;
 use axum::extract::ws::{CloseFrame, Message, close_code};
 use futures_util::{Sink, SinkExt};
 
@@ -15,7 +15,7 @@ const CLOSE_SEND_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(1
 /// Sends what the outbox hands out, in order, until the outbox closes (then a close frame:
 /// 1008 when the client stopped reading, the reader's choice or 1000 otherwise) or the sink
 /// fails (the peer is gone).
-pub async fn run_writer<S>(outbox: &Outbox, mut sink: S, metrics: &Metrics)
+pub async fn run_writer<S>(outbox: &Outbox, mut sink: S, metrics: &dyn Counters)
 where
     S: Sink<Message> + Unpin,
 {

@@ -243,7 +243,7 @@ pub fn decode(bytes: &[u8]) -> Result<RelayFrame, RelayError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::stream::publish::{Piece, Snapshot};
+    use crate::publish::{Piece, Snapshot};
     use posecast_proto::frame::ChunkEncoder;
     use posecast_sim::avatar::Avatar;
     use std::sync::Arc;
