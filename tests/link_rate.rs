@@ -57,8 +57,8 @@ fn jain(rates: &[f64]) -> f64 {
 /// Measured (`cargo test --test link_rate fair_shares -- --ignored --test-threads=1
 /// --nocapture`, 2 busy cores), the tenths' ratio over 12 s: 0.46–0.61 with the shared cuts
 /// (14 runs: 0.55, 0.56, 0.57, 0.56, 0.61, 0.59, 0.59, 0.59, 0.50, 0.46, 0.61, 0.59, 0.58,
-/// 0.60), 0.32–0.48 without them (9 runs). So the code as it is does not hold this bound reliably (2 of its
-/// last 4 runs fell below; in one, 12 viewers got 1.25–2.75 frames/s while 38 got
+/// 0.60), 0.32–0.48 without them (9 runs). So the code as it is does not hold this bound
+/// reliably (2 of 14 runs fell below; in one, 12 viewers got 1.25–2.75 frames/s while 38 got
 /// 3.25–3.83), and no bound both passes it and fails without the shared cuts: the test is
 /// ignored until the pacing is fairer. Tenths, not the single slowest and fastest: a viewer at
 /// 1–4 frames/s shows 12–50 frames in 12 s, and the extremes of 50 such counts are noise as
