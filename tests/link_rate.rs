@@ -1,11 +1,12 @@
 //! A thin link shared by many viewers (issue 22, items 2 and 4): 2 Mbit/s through the
 //! emulating proxy for 50 binary viewers of 10 avatars — about ten times what the link carries
 //! at 60 Hz. Each connection's adaptive rate (`stream/src/pace.rs`) brings its frames
-//! down to what the link delivers, fairly: every viewer keeps getting fresh frames (p99 age
-//! ≤ 300 ms; before, frames were 5–11 s stale and most viewers got under one a second) and a
-//! newcomer joins at once (before: no welcome at all). One JSON viewer alone on 2 Mbit/s
-//! (a JSON frame is ~10 KB: the link carries 24 a second) gets fresh frames too (before: p99
-//! 355 ms and rising).
+//! down to what the link delivers: every viewer keeps getting fresh frames (p99 age ≤ 300 ms;
+//! before, frames were 5–11 s stale and most viewers got under one a second) and a newcomer
+//! joins at once (before: no welcome at all). Whether the slowest get a fair share of what the
+//! fastest get is an ignored test (issue 35, see `MIN_FAIR_SHARE`): not reliably yet. One JSON
+//! viewer alone on 2 Mbit/s (a JSON frame is ~10 KB: the link carries 24 a second) gets fresh
+//! frames too (before: p99 355 ms and rising).
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -14,6 +15,7 @@ mod common;
 use common::link::{Viewer, quantile, scene_server, unix_micros};
 use posecast_linkemu::{Link, LinkConfig, Proxy};
 use posecast_proto::msg::Encoding;
+use posecast_server::startup::Server;
 use std::time::Duration;
 
 /// Frames each viewer got per second and the ages (µs) of all frames, over `[from, to)`.
@@ -35,19 +37,66 @@ fn figures(viewers: &[Viewer], from: u64, to: u64) -> (Vec<f64>, Vec<f64>) {
     (rates, ages)
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn fifty_viewers_share_two_megabits_fairly_and_a_newcomer_joins() {
-    let _turn = common::link::one_at_a_time().await;
+/// Jain's fairness index of `rates`, `(Σx)² / (n·Σx²)`: 1 when all are equal, `k/n` when `k`
+/// of `n` share everything and the others get nothing.
+fn jain(rates: &[f64]) -> f64 {
+    let sum: f64 = rates.iter().sum();
+    let squares: f64 = rates.iter().map(|r| r * r).sum();
+    if squares == 0.0 {
+        return 0.0;
+    }
+    sum * sum / (rates.len() as f64 * squares)
+}
+
+/// The least share of the fastest tenth's frame rate the slowest tenth of 50 viewers sharing a
+/// bottleneck should get, over 12 s (issue 35: fairness, the slowest against the fastest, not
+/// a floor). The path's shared cuts (`Path::judge` in `server/src/stream/pace.rs`) make every
+/// connection behind the link cut together, by one factor, so with additive increases their
+/// rates should converge; without them each cuts on its own queue samples.
+///
+/// Measured (`cargo test --test link_rate fair_shares -- --ignored --test-threads=1
+/// --nocapture`, 2 busy cores), the tenths' ratio over 12 s: 0.46–0.61 with the shared cuts
+/// (14 runs: 0.55, 0.56, 0.57, 0.56, 0.61, 0.59, 0.59, 0.59, 0.50, 0.46, 0.61, 0.59, 0.58,
+/// 0.60), 0.32–0.48 without them (9 runs). So the code as it is does not hold this bound
+/// reliably (2 of 14 runs fell below; in one, 12 viewers got 1.25–2.75 frames/s while 38 got
+/// 3.25–3.83), and no bound both passes it and fails without the shared cuts: the test is
+/// ignored until the pacing is fairer. Tenths, not the single slowest and fastest: a viewer at
+/// 1–4 frames/s shows 12–50 frames in 12 s, and the extremes of 50 such counts are noise as
+/// much as rate (single slowest / fastest: 0.33–0.60 with the cuts, 0.18–0.37 without). Not
+/// Jain's index `(Σx)²/(n·Σx²)`: the middle 40 dominate it, and its ranges overlap
+/// (0.961–0.986 with the cuts, 0.870–0.970 without).
+const MIN_FAIR_SHARE: f64 = 0.52;
+
+/// A scene of 10 avatars behind 2 Mbit/s and 50 binary viewers arriving one every 150 ms
+/// (each join is 52 KB of descriptions, a fifth of a second of the whole link).
+async fn fifty_on_two_megabits() -> (Server, Proxy, Vec<Viewer>) {
     let server = scene_server(10).await;
     let link: LinkConfig = "rate=2mbit".parse().unwrap();
     let proxy = Proxy::start(server.addr, Link::new(link)).await.unwrap();
-    // Viewers arrive one every 150 ms (each join is 52 KB of descriptions, a fifth of a
-    // second of the whole link), then the rates settle.
     let mut viewers = Vec::new();
     for _ in 0..50 {
         viewers.push(Viewer::spawn(proxy.addr(), Encoding::Binary));
         tokio::time::sleep(Duration::from_millis(150)).await;
     }
+    (server, proxy, viewers)
+}
+
+/// The mean frames/s of the slowest and of the fastest tenth of `viewers` over `[from, to)`,
+/// and every viewer's, sorted.
+fn tenths(viewers: &[Viewer], from: u64, to: u64) -> (f64, f64, Vec<f64>) {
+    let (mut shares, _) = figures(viewers, from, to);
+    shares.sort_by(f64::total_cmp);
+    let tenth = (shares.len() / 10).max(1);
+    let slowest = shares[..tenth].iter().sum::<f64>() / tenth as f64;
+    let fastest = shares[shares.len() - tenth..].iter().sum::<f64>() / tenth as f64;
+    (slowest, fastest, shares)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn fifty_viewers_share_two_megabits_fairly_and_a_newcomer_joins() {
+    let _turn = common::link::one_at_a_time().await;
+    let (server, proxy, viewers) = fifty_on_two_megabits().await;
+    // Then the rates settle.
     tokio::time::sleep(Duration::from_secs(20)).await;
     let from = unix_micros();
     tokio::time::sleep(Duration::from_secs(6)).await;
@@ -98,6 +147,36 @@ async fn fifty_viewers_share_two_megabits_fairly_and_a_newcomer_joins() {
     assert!(
         joined.is_some_and(|j| j <= Duration::from_secs(2)),
         "the newcomer's first frame came after {joined:?}"
+    );
+    drop(viewers);
+    server.stop().await;
+}
+
+/// Issue 35: viewers sharing a bottleneck get fair shares — the slowest tenth at least
+/// `MIN_FAIR_SHARE` of the fastest tenth's frame rate over 12 s. Red with the path's shared
+/// cuts switched off, but not reliably green with them (see `MIN_FAIR_SHARE`).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "issue 35: the pacing is not reliably this fair yet (0.46–0.61 against 0.52)"]
+async fn fifty_viewers_behind_one_bottleneck_get_fair_shares() {
+    let _turn = common::link::one_at_a_time().await;
+    let (server, _proxy, viewers) = fifty_on_two_megabits().await;
+    // Judged over 12 s after 14 s of settling, the same 26 s as the test above.
+    tokio::time::sleep(Duration::from_secs(14)).await;
+    let from = unix_micros();
+    tokio::time::sleep(Duration::from_secs(12)).await;
+    let to = unix_micros();
+    let (slowest, fastest, shares) = tenths(&viewers, from, to);
+    eprintln!(
+        "50 viewers on 2 Mbit/s over 12 s: slowest tenth {slowest:.2}, fastest tenth \
+         {fastest:.2} frames/s (ratio {:.2}; single slowest / fastest {:.2}, Jain's index \
+         {:.3})",
+        slowest / fastest,
+        shares[0] / shares[shares.len() - 1],
+        jain(&shares)
+    );
+    assert!(
+        slowest / fastest >= MIN_FAIR_SHARE,
+        "slowest tenth {slowest:.2} against fastest tenth {fastest:.2} frames/s: {shares:.2?}"
     );
     drop(viewers);
     server.stop().await;
