@@ -21,10 +21,10 @@ mod rig_support;
 use glam::{EulerRot, Mat4, Quat, Vec3};
 use posecast_proto::fk::forward_kinematics;
 use posecast_proto::{Skeleton, Transform};
-use posecast_server::asset::{Asset, SourceFormat, SourceInfo};
-use posecast_server::clip::Clip;
-use posecast_server::rig::retarget::DEFAULT_RATE_HZ;
-use posecast_server::rig::{Normalised, PipelineOptions, RigView, normalise, retarget};
+use posecast_rigs::asset::{Asset, SourceFormat, SourceInfo};
+use posecast_rigs::clip::Clip;
+use posecast_rigs::rig::retarget::DEFAULT_RATE_HZ;
+use posecast_rigs::rig::{Normalised, PipelineOptions, RigView, normalise, retarget};
 use rig_support::load;
 
 /// The largest segment-direction error allowed for world-space retargeting, degrees
