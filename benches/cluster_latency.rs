@@ -119,7 +119,7 @@ async fn command(ws: &mut Ws, id: u64, json: &str) -> anyhow::Result<serde_json:
         };
         if let Message::Text(t) = m? {
             match serde_json::from_str::<ServerMsg>(t.as_str())? {
-                ServerMsg::Ack { id: a, result } if a == id => return Ok(result),
+                ServerMsg::Ack { id: a, result } if a == id => return Ok(result.to_value()),
                 ServerMsg::Error(e) => anyhow::bail!("{json}: {e:?}"),
                 _ => {}
             }

@@ -35,10 +35,14 @@ impl Surface<'_> {
                     Err(serde_json::from_value(v).unwrap())
                 }
             }
-            Self::Ws(client) => client.command(command).await.map_err(|e| match e {
-                ClientError::Server(e) => e,
-                other => panic!("websocket failed: {other}"),
-            }),
+            Self::Ws(client) => client
+                .command(command)
+                .await
+                .map(|r| r.to_value())
+                .map_err(|e| match e {
+                    ClientError::Server(e) => e,
+                    other => panic!("websocket failed: {other}"),
+                }),
         }
     }
 

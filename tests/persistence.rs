@@ -407,7 +407,7 @@ async fn grouped_and_rate_limited_acks_survive_sigkill() {
                         };
                         match answer {
                             ServerMsg::Ack { result, .. } => {
-                                last = Some(quat(&result["rotation"]));
+                                last = Some(quat(&result.to_value()["rotation"]));
                                 break;
                             }
                             ServerMsg::Error(e) if e.code == ErrorCode::RateLimited => {

@@ -44,7 +44,7 @@ async fn sample(
             time,
         })
         .await?;
-    Ok(serde_json::from_value(value).unwrap())
+    Ok(serde_json::from_value(value.to_value()).unwrap())
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -65,7 +65,8 @@ async fn a_view_token_samples_a_private_copy_and_nobody_sees_a_change() {
     let before = control
         .command(Command::GetAvatar { avatar: id.clone() })
         .await
-        .unwrap();
+        .unwrap()
+        .to_value();
 
     // A view-only connection (no token) samples walk at 0.25 s: exactly the clip there
     // (floats, not quantised), with the avatar's description hash.
@@ -91,7 +92,8 @@ async fn a_view_token_samples_a_private_copy_and_nobody_sees_a_change() {
     let after = control
         .command(Command::GetAvatar { avatar: id.clone() })
         .await
-        .unwrap();
+        .unwrap()
+        .to_value();
     for field in ["clip", "paused", "speed", "overrides", "placement"] {
         assert_eq!(before[field], after[field], "{field} changed");
     }

@@ -142,7 +142,8 @@ async fn a_testdata_rig_streams_its_clip() {
             rotation: None,
         })
         .await
-        .unwrap();
+        .unwrap()
+        .to_value();
     assert_eq!(reply["avatar"], "cesium-1");
     let id = AvatarId("cesium-1".into());
     let rig = server.state.world.library.get("cesium").unwrap();

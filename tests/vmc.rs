@@ -76,7 +76,8 @@ async fn a_vmc_performer_drives_the_builtin_avatar_within_0_05_degrees() {
             avatar: avatar("avatar"),
         })
         .await
-        .unwrap();
+        .unwrap()
+        .to_value();
     assert_eq!(state["driven"], true, "{state}");
 }
 
@@ -394,6 +395,7 @@ async fn blend_shapes_show_in_get_avatar() {
         })
         .await
         .unwrap()
+        .to_value()
     };
     let deadline = tokio::time::Instant::now() + Duration::from_secs(3);
     let mut state = get().await;

@@ -111,7 +111,8 @@ async fn python_osc_drives_the_avatar() {
             avatar: avatar("avatar"),
         })
         .await
-        .unwrap();
+        .unwrap()
+        .to_value();
     assert_eq!(state["blend_shapes"]["Joy"], 0.5, "{state}");
     assert_eq!(state["blend_shapes"]["Blink"], 1.0, "{state}");
     let m = &server.state.metrics.vmc;

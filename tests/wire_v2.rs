@@ -192,9 +192,10 @@ async fn the_native_client_speaks_v2_and_sees_what_a_v1_client_sees() {
     );
 }
 
-/// A server of before protocol version 2 refuses `hello {version: 2}` with
-/// `unsupported_version` and closes: the native client, asking for 2 by default, says hello
-/// again with version 1 and is welcomed — it works with the old server out of the box.
+/// A server of before protocol version 2 refuses `hello {version: 3}` and `{version: 2}` with
+/// `unsupported_version` and closes: the native client, asking for 3 by default, says hello
+/// again with the version before until it is welcomed with 1 — it works with the old server
+/// out of the box.
 #[tokio::test]
 async fn the_native_client_falls_back_to_version_1_for_an_older_server() {
     use posecast_proto::msg::SUPPORTED_VERSIONS;
@@ -205,16 +206,16 @@ async fn the_native_client_falls_back_to_version_1_for_an_older_server() {
         .await
         .expect("welcomed after falling back");
     assert!(client.is_connected());
-    assert_eq!(*hellos.lock().unwrap(), vec![2, 1]);
-    assert_eq!(SUPPORTED_VERSIONS, [1, 2]);
-    // Any refused version above 1 falls back to 1 the same way.
+    assert_eq!(*hellos.lock().unwrap(), vec![3, 2, 1]);
+    assert_eq!(SUPPORTED_VERSIONS, [1, 2, 3]);
+    // Any refused version above 1 falls back the same way.
     let mut options = posecast_client::net::ClientOptions::new(format!("ws://{addr}/ws"), "x");
-    options.version = 3;
+    options.version = 2;
     options.reconnect = false;
     let refused = Client::connect(options).await;
     assert!(
         refused.is_ok(),
-        "3 is refused, then 1 welcomed: {refused:?}"
+        "2 is refused, then 1 welcomed: {refused:?}"
     );
-    assert_eq!(*hellos.lock().unwrap(), vec![2, 1, 3, 1]);
+    assert_eq!(*hellos.lock().unwrap(), vec![3, 2, 1, 2, 1]);
 }

@@ -3,13 +3,13 @@
 //! see) — render offscreen and write a PNG.
 
 use super::Connection;
-use anyhow::Context as _;
+use anyhow::{Context as _, bail};
 use clap::Args;
 use posecast_client::render::glb_mesh::GlbMesh;
 use posecast_client::render::{Gpu, Offscreen, Renderer, RendererOptions, RgbaImage, SkinningPath};
 use posecast_client::view_source::{fresh_pose, resolve_mesh, wait_for_avatars};
 use posecast_proto::Transform;
-use posecast_proto::command::Command;
+use posecast_proto::command::{Command, CommandResult};
 use posecast_proto::msg::{AvatarId, AvatarPoseJson};
 use posecast_proto::placement::Placement;
 use std::collections::HashMap;
@@ -83,12 +83,14 @@ pub async fn run(args: RenderArgs) -> anyhow::Result<()> {
                 from_asset: None,
                 time: args.seek.unwrap_or(0.0),
             };
-            let value = client
+            let result = client
                 .command(command)
                 .await
                 .with_context(|| format!("sampling {avatar}"))?;
-            let pose: AvatarPoseJson = serde_json::from_value(value)
-                .with_context(|| format!("reading the pose of {avatar}"))?;
+            let CommandResult::Pose(pose) = result else {
+                bail!("sample_pose of {avatar} answered {result:?}, not a pose");
+            };
+            let pose: AvatarPoseJson = *pose;
             let view = views
                 .iter()
                 .find(|v| &v.description.id == avatar)

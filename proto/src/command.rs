@@ -588,18 +588,18 @@ mod tests {
     }
 }
 
-/// What a successful command returns (`ack.result`; REST `{"result": …}`), one variant per
-/// shape. Serialised as the bare value — an array, an object, or `null` (omitted from the
-/// `ack`) — so the JSON is the same as before this type existed.
-///
-/// Deserialising a result is untagged and so ambiguous for an empty list; a client that knows
-/// which command it sent can deserialise the value into that variant's type directly.
+/// What a successful command returns, one variant per shape. Tagged: `kind` names the shape
+/// (snake_case, e.g. `avatar_added`) and `result` holds the value — an array or an object;
+/// `null` in an `ack` or a REST answer for [`CommandResult::Done`] (these write
+/// [`CommandResult::to_tagged_value`]), absent in serde's own form (cluster messages, stored
+/// answers). An `ack` of protocol version 1 or 2 carries the bare value alone
+/// ([`CommandResult::to_value`]), which [`CommandResult::from_bare`] reads back by its shape.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(untagged)]
+#[serde(tag = "kind", content = "result", rename_all = "snake_case")]
 pub enum CommandResult {
     /// `list_scenes`.
     Scenes(Vec<SceneInfo>),
-    /// `list_assets`.
+    /// `list_assets`, `configure_asset`, an upload.
     Assets(Vec<AssetInfo>),
     /// `get_avatar`.
     Avatar(Box<AvatarState>),
@@ -641,19 +641,162 @@ pub enum CommandResult {
 }
 
 impl CommandResult {
-    /// The result as a JSON value (`null` for [`CommandResult::Done`]).
+    /// The shape's name on the wire (`kind`): `scenes`, `avatar_added`, `done`, …
+    #[must_use]
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Self::Scenes(_) => "scenes",
+            Self::Assets(_) => "assets",
+            Self::Avatar(_) => "avatar",
+            Self::Joint(_) => "joint",
+            Self::Drive(_) => "drive",
+            Self::Recorded(_) => "recorded",
+            Self::Asset(_) => "asset",
+            Self::Pose(_) => "pose",
+            Self::SceneCreated { .. } => "scene_created",
+            Self::AvatarAdded { .. } => "avatar_added",
+            Self::Dofs { .. } => "dofs",
+            Self::Rotation { .. } => "rotation",
+            Self::Done => "done",
+        }
+    }
+
+    /// The bare value, as versions 1 and 2 of the protocol carry it in `ack.result` (`null` for
+    /// [`CommandResult::Done`]).
     #[must_use]
     pub fn to_value(&self) -> serde_json::Value {
         // Serialising these types cannot fail (no maps with non-string keys).
-        serde_json::to_value(self).unwrap_or(serde_json::Value::Null)
+        match serde_json::to_value(self) {
+            Ok(serde_json::Value::Object(mut tagged)) => {
+                tagged.remove("result").unwrap_or(serde_json::Value::Null)
+            }
+            _ => serde_json::Value::Null,
+        }
+    }
+
+    /// `{"kind": …, "result": …}` with the bare value (`null` for [`CommandResult::Done`]): an
+    /// `ack` of protocol version 3 and a REST answer.
+    #[must_use]
+    pub fn to_tagged_value(&self) -> serde_json::Value {
+        serde_json::json!({ "kind": self.kind(), "result": self.to_value() })
+    }
+
+    /// Reads a bare value (an `ack` of protocol version 1 or 2, an answer stored before results
+    /// were tagged) by its shape: the first variant whose type reads it, in declaration order.
+    /// An empty list reads as [`CommandResult::Scenes`]; a client that knows which command it
+    /// sent can read the value as that command's type instead.
+    ///
+    /// # Errors
+    /// No variant's type reads the value.
+    pub fn from_bare(value: serde_json::Value) -> Result<Self, serde_json::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Bare {
+            Scenes(Vec<SceneInfo>),
+            Assets(Vec<AssetInfo>),
+            Avatar(Box<AvatarState>),
+            Joint(Box<JointInfo>),
+            Drive(Box<DriveInfo>),
+            Recorded(Box<RecordingInfo>),
+            Asset(Box<AssetDetail>),
+            Pose(Box<crate::msg::AvatarPoseJson>),
+            SceneCreated {
+                scene: SceneId,
+            },
+            AvatarAdded {
+                avatar: AvatarId,
+            },
+            Dofs {
+                rotation: [f32; 4],
+                values: Vec<f32>,
+            },
+            Rotation {
+                rotation: [f32; 4],
+            },
+            Done(()),
+        }
+        Ok(match serde_json::from_value(value)? {
+            Bare::Scenes(v) => Self::Scenes(v),
+            Bare::Assets(v) => Self::Assets(v),
+            Bare::Avatar(v) => Self::Avatar(v),
+            Bare::Joint(v) => Self::Joint(v),
+            Bare::Drive(v) => Self::Drive(v),
+            Bare::Recorded(v) => Self::Recorded(v),
+            Bare::Asset(v) => Self::Asset(v),
+            Bare::Pose(v) => Self::Pose(v),
+            Bare::SceneCreated { scene } => Self::SceneCreated { scene },
+            Bare::AvatarAdded { avatar } => Self::AvatarAdded { avatar },
+            Bare::Dofs { rotation, values } => Self::Dofs { rotation, values },
+            Bare::Rotation { rotation } => Self::Rotation { rotation },
+            Bare::Done(()) => Self::Done,
+        })
+    }
+
+    /// Reads a result either way it is written: tagged (`{"kind", "result"}`) or bare
+    /// ([`CommandResult::from_bare`]) — for what was stored or sent before results were tagged.
+    ///
+    /// # Errors
+    /// Neither way reads the value.
+    pub fn from_tagged_or_bare(value: serde_json::Value) -> Result<Self, serde_json::Error> {
+        if value.get("kind").is_some_and(serde_json::Value::is_string) {
+            serde_json::from_value(value)
+        } else {
+            Self::from_bare(value)
+        }
     }
 }
 
 #[cfg(test)]
 mod result_tests {
     use super::*;
+    use serde_json::json;
 
-    /// The shapes clients parsed before the type existed.
+    /// Version 3 (and REST) write the kind beside the value; `done` has no value.
+    #[test]
+    fn results_are_tagged_with_their_kind() {
+        let added = CommandResult::AvatarAdded {
+            avatar: AvatarId("a".into()),
+        };
+        assert_eq!(
+            serde_json::to_value(&added).unwrap(),
+            json!({ "kind": "avatar_added", "result": { "avatar": "a" } })
+        );
+        assert_eq!(
+            serde_json::to_value(CommandResult::Done).unwrap(),
+            json!({ "kind": "done" })
+        );
+        assert_eq!(
+            serde_json::to_value(CommandResult::Scenes(Vec::new())).unwrap(),
+            json!({ "kind": "scenes", "result": [] })
+        );
+        // An empty list keeps its kind (bare, it would read as `scenes`).
+        let assets = CommandResult::Assets(Vec::new());
+        let back: CommandResult =
+            serde_json::from_value(serde_json::to_value(&assets).unwrap()).unwrap();
+        assert_eq!(back, assets);
+        // `done` is read with or without a null value.
+        let done: CommandResult =
+            serde_json::from_value(json!({ "kind": "done", "result": null })).unwrap();
+        assert_eq!(done, CommandResult::Done);
+        for r in [
+            added,
+            CommandResult::Done,
+            CommandResult::Rotation {
+                rotation: [0.0, 0.0, 0.0, 1.0],
+            },
+            CommandResult::Dofs {
+                rotation: [0.0, 0.0, 0.0, 1.0],
+                values: vec![0.5],
+            },
+        ] {
+            let tagged = serde_json::to_value(&r).unwrap();
+            assert_eq!(tagged["kind"], r.kind(), "{tagged}");
+            assert_eq!(CommandResult::from_tagged_or_bare(tagged).unwrap(), r);
+            assert_eq!(CommandResult::from_tagged_or_bare(r.to_value()).unwrap(), r);
+        }
+    }
+
+    /// The bare shapes versions 1 and 2 carry, as clients parsed them before the kind.
     #[test]
     fn results_serialise_as_bare_values() {
         assert_eq!(CommandResult::Done.to_value(), serde_json::Value::Null);
@@ -662,23 +805,20 @@ mod result_tests {
                 avatar: AvatarId("a".into())
             }
             .to_value(),
-            serde_json::json!({ "avatar": "a" })
+            json!({ "avatar": "a" })
         );
         assert_eq!(
             CommandResult::Rotation {
                 rotation: [0.0, 0.0, 0.0, 1.0]
             }
             .to_value(),
-            serde_json::json!({ "rotation": [0.0, 0.0, 0.0, 1.0] })
+            json!({ "rotation": [0.0, 0.0, 0.0, 1.0] })
         );
-        assert_eq!(
-            CommandResult::Scenes(Vec::new()).to_value(),
-            serde_json::json!([])
-        );
-        let dofs: CommandResult = serde_json::from_value(
-            serde_json::json!({ "rotation": [0.0, 0.0, 0.0, 1.0], "values": [0.5] }),
-        )
-        .unwrap();
+        assert_eq!(CommandResult::Scenes(Vec::new()).to_value(), json!([]));
+        let dofs =
+            CommandResult::from_bare(json!({ "rotation": [0.0, 0.0, 0.0, 1.0], "values": [0.5] }))
+                .unwrap();
         assert!(matches!(dofs, CommandResult::Dofs { .. }), "{dofs:?}");
+        assert!(CommandResult::from_bare(json!({ "nothing": 1 })).is_err());
     }
 }

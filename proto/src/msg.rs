@@ -15,9 +15,10 @@ use std::fmt;
 pub const PROTOCOL_VERSION: u32 = 1;
 
 /// The protocol versions a server accepts; a hello with any other is refused with
-/// [`ErrorCode::UnsupportedVersion`]. Version 2 differs only in binary pose frames
-/// ([`crate::frame2`] instead of [`crate::frame`]); every other message is the same.
-pub const SUPPORTED_VERSIONS: [u32; 2] = [1, 2];
+/// [`ErrorCode::UnsupportedVersion`]. Version 2 differs from 1 only in binary pose frames
+/// ([`crate::frame2`] instead of [`crate::frame`]); version 3 is version 2 with tagged
+/// command results in `ack` ([`ServerMsg::Ack`]). Every other message is the same.
+pub const SUPPORTED_VERSIONS: [u32; 3] = [1, 2, 3];
 
 /// Largest message the server accepts from a client, in bytes (hello, subscribe, commands).
 /// Uploads of assets go through HTTP, not the websocket.
@@ -233,19 +234,64 @@ pub enum ServerMsg {
         /// The server clock when answering, microseconds since the Unix epoch.
         server_time_us: u64,
     },
-    /// A command succeeded.
+    /// A command succeeded. `"result"` holds the value (`null` for `done`); protocol version
+    /// 3 also names its shape in `"kind"` ([`crate::command::CommandResult::kind`]), versions
+    /// 1 and 2 do not ([`ServerMsg::ack_bare`]). Both are read.
     Ack {
         /// The command's id.
         id: u64,
-        /// What the command returned (its shape depends on the command); always present on
-        /// the wire, `null` for commands that return nothing.
-        #[serde(default)]
-        result: serde_json::Value,
+        /// What the command returned.
+        #[serde(
+            flatten,
+            serialize_with = "tagged",
+            deserialize_with = "tagged_or_bare"
+        )]
+        result: crate::command::CommandResult,
     },
     /// A pose frame in the JSON encoding.
     Frame(FrameJson),
     /// Something went wrong. `id` is the command's id when a command failed.
     Error(ProtocolError),
+}
+
+/// Writes an ack's result as `"kind"` and `"result"`, `null` for `done`.
+fn tagged<S: serde::Serializer>(
+    result: &crate::command::CommandResult,
+    s: S,
+) -> Result<S::Ok, S::Error> {
+    use serde::ser::SerializeMap;
+    let mut map = s.serialize_map(Some(2))?;
+    map.serialize_entry("kind", result.kind())?;
+    map.serialize_entry("result", &result.to_value())?;
+    map.end()
+}
+
+/// Reads an ack's result tagged (version 3) or bare (versions 1 and 2).
+fn tagged_or_bare<'de, D: serde::Deserializer<'de>>(
+    d: D,
+) -> Result<crate::command::CommandResult, D::Error> {
+    #[derive(Deserialize)]
+    struct Fields {
+        #[serde(default)]
+        kind: Option<String>,
+        #[serde(default)]
+        result: serde_json::Value,
+    }
+    let Fields { kind, result } = Fields::deserialize(d)?;
+    let read = match kind {
+        Some(kind) => serde_json::from_value(serde_json::json!({ "kind": kind, "result": result })),
+        None => crate::command::CommandResult::from_bare(result),
+    };
+    read.map_err(serde::de::Error::custom)
+}
+
+impl ServerMsg {
+    /// The JSON text of an ack as protocol versions 1 and 2 write it: `{"type":"ack","id":…,
+    /// "result":…}` with the bare value ([`crate::command::CommandResult::to_value`]).
+    #[must_use]
+    pub fn ack_bare(id: u64, result: &crate::command::CommandResult) -> String {
+        serde_json::json!({ "type": "ack", "id": id, "result": result.to_value() }).to_string()
+    }
 }
 
 /// Longest scene or avatar id.

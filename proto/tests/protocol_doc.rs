@@ -95,14 +95,64 @@ fn the_description_example_hash_is_what_a_client_computes() {
         .expect("the example describes a valid rig");
 }
 
+/// Every ack carries `result` (`null` for `done`); version 3 also names the kind. Both read
+/// back.
 #[test]
-fn acks_always_carry_a_result() {
-    let ack = ServerMsg::Ack {
+fn acks_carry_their_result_bare_or_tagged() {
+    use posecast_proto::command::CommandResult;
+    use posecast_proto::msg::AvatarId;
+    assert_eq!(
+        ServerMsg::ack_bare(3, &CommandResult::Done),
+        r#"{"id":3,"result":null,"type":"ack"}"#
+    );
+    let done = ServerMsg::Ack {
         id: 3,
-        result: serde_json::Value::Null,
+        result: CommandResult::Done,
     };
     assert_eq!(
-        serde_json::to_string(&ack).unwrap(),
-        r#"{"type":"ack","id":3,"result":null}"#
+        serde_json::to_string(&done).unwrap(),
+        r#"{"type":"ack","id":3,"kind":"done","result":null}"#
+    );
+    let added = ServerMsg::Ack {
+        id: 4,
+        result: CommandResult::AvatarAdded {
+            avatar: AvatarId("guest".into()),
+        },
+    };
+    let tagged = serde_json::to_string(&added).unwrap();
+    assert_eq!(
+        tagged,
+        r#"{"type":"ack","id":4,"kind":"avatar_added","result":{"avatar":"guest"}}"#
+    );
+    for text in [
+        tagged,
+        ServerMsg::ack_bare(
+            4,
+            &CommandResult::AvatarAdded {
+                avatar: AvatarId("guest".into()),
+            },
+        ),
+    ] {
+        assert_eq!(
+            serde_json::from_str::<ServerMsg>(&text).unwrap(),
+            added,
+            "{text}"
+        );
+    }
+    for text in [
+        r#"{"type":"ack","id":3,"result":null}"#,
+        r#"{"type":"ack","id":3,"kind":"done"}"#,
+        r#"{"type":"ack","id":3,"kind":"done","result":null}"#,
+    ] {
+        assert_eq!(
+            serde_json::from_str::<ServerMsg>(text).unwrap(),
+            done,
+            "{text}"
+        );
+    }
+    // A kind that does not fit its value is not an ack.
+    assert!(
+        serde_json::from_str::<ServerMsg>(r#"{"type":"ack","id":3,"kind":"scenes","result":{}}"#)
+            .is_err()
     );
 }

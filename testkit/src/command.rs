@@ -1,6 +1,7 @@
-//! Typed command results: the wire's `ack.result` is a bare JSON value whose shape depends on
-//! the command ([`CommandResult`] is untagged, so an empty list is ambiguous); knowing the
-//! command sent, [`typed_result`] reads it into the one variant that command answers with.
+//! Typed command results: protocol version 3 tags an `ack`'s result with its kind; versions 1
+//! and 2 (and a REST client reading `result` alone) have only the bare value, whose shape
+//! depends on the command (so an empty list is ambiguous). Knowing the command sent,
+//! [`typed_result`] reads a bare value into the one variant that command answers with.
 
 use crate::KitError;
 use posecast_client::net::ClientError;
@@ -132,10 +133,13 @@ pub fn typed_result(command: &Command, value: Value) -> Result<CommandResult, Ki
 /// refusal as [`KitError::Refused`] (other failures as [`KitError::Client`]).
 pub(crate) fn outcome(
     command: &Command,
-    answer: Result<Value, ClientError>,
+    answer: Result<CommandResult, ClientError>,
 ) -> Result<CommandResult, KitError> {
     match answer {
-        Ok(value) => typed_result(command, value),
+        // Tagged (protocol 3) or read by its shape (1 and 2): either way the variant must be
+        // the one `command` answers with — an empty list read as `scenes` for `list_assets`
+        // is read again as `assets`.
+        Ok(result) => typed_result(command, result.to_value()),
         Err(ClientError::Server(error)) => Err(KitError::Refused {
             op: op(command),
             error,

@@ -80,7 +80,8 @@ async fn a_wrong_control_token_is_refused_and_changes_nothing() {
                 avatar: AvatarId("avatar".into()),
             })
             .await
-            .unwrap();
+            .unwrap()
+            .to_value();
         assert_eq!(state["clip"], "idle", "{state}");
         assert_eq!(errors(&b).await, serde_json::json!([]));
         b.close().await.unwrap();

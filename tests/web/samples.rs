@@ -3,7 +3,8 @@
 use crate::root;
 use glam::Mat4;
 use posecast_proto::command::{
-    AssetInfo, AvatarState, ClipInfo, Command, DofInfo, FadeState, JointInfo, RootMotion, SceneInfo,
+    AssetInfo, AvatarState, ClipInfo, Command, CommandResult, DofInfo, FadeState, JointInfo,
+    RootMotion, SceneInfo,
 };
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::msg::{
@@ -12,7 +13,7 @@ use posecast_proto::msg::{
 };
 use posecast_proto::placement::Placement;
 use posecast_proto::subset::JointSet;
-use serde_json::{Value, json};
+use serde_json::Value;
 use std::fmt::Write as _;
 fn scene(s: &str) -> SceneId {
     SceneId(s.into())
@@ -182,18 +183,18 @@ fn samples() -> Vec<(&'static str, &'static str, Value)> {
         (
             "ack",
             "AckMsg",
-            v!(ServerMsg::Ack {
-                id: 4,
-                result: json!({"avatar": "guest"}),
-            }),
+            serde_json::from_str::<Value>(&ServerMsg::ack_bare(
+                4,
+                &CommandResult::AvatarAdded {
+                    avatar: AvatarId("guest".into()),
+                },
+            ))
+            .unwrap(),
         ),
         (
             "ackNull",
             "AckMsg",
-            v!(ServerMsg::Ack {
-                id: 5,
-                result: Value::Null,
-            }),
+            serde_json::from_str::<Value>(&ServerMsg::ack_bare(5, &CommandResult::Done)).unwrap(),
         ),
         (
             "frame",

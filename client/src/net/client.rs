@@ -3,7 +3,7 @@
 use super::clock::ClockEstimator;
 use super::jitter::JitterBuffer;
 use futures_util::{SinkExt, StreamExt};
-use posecast_proto::command::Command;
+use posecast_proto::command::{Command, CommandResult};
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::{AvatarPose, Frame, FrameDecoder};
 use posecast_proto::frame2::{self, Frame2Decoder};
@@ -56,10 +56,12 @@ pub struct ClientOptions {
     /// Only these joints of every avatar, from every subscription (`None`: all). The joints
     /// left out stay at their rest transforms in the poses this client gives.
     pub joints: Option<JointSet>,
-    /// Protocol version asked for in hello (default 2): 2 gets wire v2 binary frames
+    /// Protocol version asked for in hello (default 3): 2 and 3 get wire v2 binary frames
     /// ([`posecast_proto::frame2`], about half of v1's bytes), 1 the v1 frames
-    /// ([`posecast_proto::frame`]). A server that refuses the version (`unsupported_version`:
-    /// one of before protocol version 2) gets a second hello with version 1.
+    /// ([`posecast_proto::frame`]); 3 also gets command results tagged with their kind (1 and
+    /// 2 bare values, read by their shape: [`CommandResult::from_bare`]). A server that refuses
+    /// the version (`unsupported_version`: one that predates it) gets a hello with the version
+    /// before, down to 1.
     pub version: u32,
 }
 
@@ -78,7 +80,7 @@ impl ClientOptions {
             name: "posecast-client".into(),
             rate: None,
             joints: None,
-            version: 2,
+            version: 3,
         }
     }
 }
@@ -247,7 +249,7 @@ struct Shared {
     scene_nums: HashMap<u32, SceneId>,
     /// Each subscribed scene's joint set, as `subscribed` said.
     joint_sets: HashMap<SceneId, JointSet>,
-    pending: HashMap<u64, oneshot::Sender<Result<serde_json::Value, ProtocolError>>>,
+    pending: HashMap<u64, oneshot::Sender<Result<CommandResult, ProtocolError>>>,
     pings: HashMap<u32, u64>,
     clock: ClockEstimator,
     stats: Stats,
@@ -360,7 +362,7 @@ impl Client {
     ///
     /// # Errors
     /// The server's typed error, a timeout, or a closed client.
-    pub async fn command(&self, command: Command) -> Result<serde_json::Value, ClientError> {
+    pub async fn command(&self, command: Command) -> Result<CommandResult, ClientError> {
         self.command_keyed(command, None).await
     }
 
@@ -377,7 +379,7 @@ impl Client {
         &self,
         command: Command,
         attempts: u32,
-    ) -> Result<serde_json::Value, ClientError> {
+    ) -> Result<CommandResult, ClientError> {
         let key = format!(
             "{}-{}",
             self.nonce,
@@ -413,7 +415,7 @@ impl Client {
         &self,
         command: Command,
         idempotency_key: Option<String>,
-    ) -> Result<serde_json::Value, ClientError> {
+    ) -> Result<CommandResult, ClientError> {
         let id = self.next_id.fetch_add(1, Ordering::Relaxed);
         let (tx, rx) = oneshot::channel();
         lock(&self.shared).pending.insert(id, tx);
@@ -509,8 +511,8 @@ async fn run(
     let mut at = 0usize;
     let mut failures = 0usize;
     let mut backoff = FIRST_BACKOFF;
-    // The version said in hello: the one asked for, or 1 once a server refused it (a server
-    // that predates protocol version 2 speaks only 1).
+    // The version said in hello: the one asked for, or one lower each time a server refused it
+    // (a server that predates a version speaks the ones before).
     let mut version = options.version;
     loop {
         let url = &urls[at % urls.len()];
@@ -543,8 +545,11 @@ async fn run(
             Err(ClientError::Server(e))
                 if e.code == ErrorCode::UnsupportedVersion && version > 1 =>
             {
-                debug!(url, version, "version refused: saying hello with version 1");
-                version = 1;
+                debug!(
+                    url,
+                    version, "version refused: saying hello with the version before"
+                );
+                version -= 1;
                 failures = failures.saturating_sub(1);
                 continue;
             }
@@ -743,7 +748,8 @@ fn on_server_msg(
                 s.stats.last_error = Some(e.clone());
                 Some(Event::Error(e))
             } else if may_downgrade && e.code == ErrorCode::UnsupportedVersion {
-                // A server that predates this version: `run` says hello again with version 1.
+                // A server that predates this version: `run` says hello again with the one
+                // before.
                 return Err(ClientError::Server(e));
             } else {
                 // Refused before the welcome (bad version, bad token): the first connect fails.

@@ -17,7 +17,7 @@
 use super::client::ClientError;
 use futures_util::stream::SplitSink;
 use futures_util::{SinkExt, StreamExt};
-use posecast_proto::command::{Command, DriveInfo, OnRelease};
+use posecast_proto::command::{Command, CommandResult, DriveInfo, OnRelease};
 use posecast_proto::live::BinaryPose;
 use posecast_proto::msg::{
     AvatarId, ClientMsg, Encoding, PROTOCOL_VERSION, ProtocolError, ServerMsg,
@@ -31,7 +31,7 @@ use tokio_tungstenite::tungstenite::Message;
 
 type Ws =
     tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
-type Pending = Arc<Mutex<HashMap<u64, oneshot::Sender<Result<serde_json::Value, ProtocolError>>>>>;
+type Pending = Arc<Mutex<HashMap<u64, oneshot::Sender<Result<CommandResult, ProtocolError>>>>>;
 
 /// How many server errors wait unread before the oldest are dropped.
 const ERROR_BACKLOG: usize = 1024;
@@ -127,7 +127,7 @@ impl Driver {
     ///
     /// # Errors
     /// The server's typed error, a timeout, or a closed connection.
-    pub async fn command(&self, command: Command) -> Result<serde_json::Value, ClientError> {
+    pub async fn command(&self, command: Command) -> Result<CommandResult, ClientError> {
         let id = self.next_id.fetch_add(1, Ordering::Relaxed);
         let (tx, rx) = oneshot::channel();
         lock(&self.pending).insert(id, tx);
@@ -157,14 +157,19 @@ impl Driver {
         source: Option<&str>,
         on_release: Option<OnRelease>,
     ) -> Result<DriveInfo, ClientError> {
-        let value = self
+        let result = self
             .command(Command::Drive {
                 avatar: avatar.clone(),
                 source: source.map(str::to_owned),
                 on_release,
             })
             .await?;
-        serde_json::from_value(value).map_err(send_failed)
+        match result {
+            CommandResult::Drive(info) => Ok(*info),
+            // Read by its shape (this connection's protocol version sends bare results): the
+            // value is the drive's answer whatever variant it read as.
+            other => serde_json::from_value(other.to_value()).map_err(send_failed),
+        }
     }
 
     /// Ends driving `avatar`; it returns to its clip.

@@ -85,8 +85,7 @@ async fn request_drive(
         m.cluster.received(reply.payload.len());
     }
     match serde_json::from_slice::<Reply>(&reply.payload) {
-        Ok(Reply::Ok(value)) => serde_json::from_value(value)
-            .map_err(|e| Error::internal("unreadable answer from the scene's server", &e)),
+        Ok(Reply::Ok(result)) => Ok(result),
         Ok(Reply::Error(wire)) => Err(Error::Remote(wire)),
         Err(e) => Err(Error::internal(
             "unreadable answer from the scene's server",
@@ -191,7 +190,7 @@ pub(super) fn answer_drive(
         .entry(driver)
         .or_insert_with(|| Drives::new(state.new_driver_id()));
     match drives.command(state, &command) {
-        Some(Ok(result)) => Reply::Ok(result.to_value()),
+        Some(Ok(result)) => Reply::Ok(result),
         Some(Err(e)) => Reply::Error(e.into()),
         None => Reply::Error(ProtocolError::new(ErrorCode::BadMessage, "not a drive")),
     }

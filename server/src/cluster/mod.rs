@@ -229,12 +229,18 @@ pub async fn connect(config: &Config, port: u16) -> std::io::Result<Connection> 
     })
 }
 
-/// What a scene's owner answers a forwarded command with.
+/// What a scene's owner answers a forwarded command with: the result tagged with its kind (a
+/// server of before tagged results sent the bare value, read by its shape).
 #[derive(Debug, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 enum Reply {
-    Ok(serde_json::Value),
+    Ok(#[serde(deserialize_with = "tagged_or_bare")] CommandResult),
     Error(ProtocolError),
+}
+
+fn tagged_or_bare<'de, D: serde::Deserializer<'de>>(d: D) -> Result<CommandResult, D::Error> {
+    let value = serde_json::Value::deserialize(d)?;
+    CommandResult::from_tagged_or_bare(value).map_err(serde::de::Error::custom)
 }
 
 /// The cluster as this server sees it.
@@ -676,8 +682,7 @@ impl crate::state::Cluster for Cluster {
                 .request(&id, "command", idempotency_key, Bytes::from(payload))
                 .await?;
             match serde_json::from_slice::<Reply>(&reply) {
-                Ok(Reply::Ok(value)) => serde_json::from_value(value)
-                    .map_err(|e| Error::internal("unreadable answer from the scene's server", &e)),
+                Ok(Reply::Ok(result)) => Ok(result),
                 Ok(Reply::Error(wire)) => Err(Error::Remote(wire)),
                 Err(e) => Err(Error::internal(
                     "unreadable answer from the scene's server",

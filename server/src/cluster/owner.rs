@@ -250,7 +250,7 @@ async fn answer(
                     let reply = match serde_json::from_slice::<Command>(&msg.payload) {
                         Ok(command) => {
                             match control::execute_here(&state, &command, key.as_deref()).await {
-                                Ok(result) => Reply::Ok(result.to_value()),
+                                Ok(result) => Reply::Ok(result),
                                 // Given up meanwhile (another server took the scene over and
                                 // got this request too): that server answers, not this one,
                                 // whose "not applied" could arrive first and be untrue there.

@@ -25,8 +25,15 @@ pub struct RecentCommand {
     pub key: String,
     /// The command's `op` (a key used again for another command is refused, not answered).
     pub op: String,
-    /// The result it was acknowledged with (`CommandResult` as JSON).
-    pub result: serde_json::Value,
+    /// The result it was acknowledged with, tagged with its kind (a snapshot of before tagged
+    /// results holds the bare value, read by its shape).
+    #[serde(deserialize_with = "tagged_or_bare")]
+    pub result: CommandResult,
+}
+
+fn tagged_or_bare<'de, D: serde::Deserializer<'de>>(d: D) -> Result<CommandResult, D::Error> {
+    let value = serde_json::Value::deserialize(d)?;
+    CommandResult::from_tagged_or_bare(value).map_err(serde::de::Error::custom)
 }
 
 /// The answers of a scene's latest keyed commands, oldest first.
@@ -51,10 +58,7 @@ pub fn answered(recent: &Recent, key: &str, op: &str) -> Option<Result<CommandRe
             done.op
         ))));
     }
-    Some(
-        serde_json::from_value(done.result.clone())
-            .map_err(|e| Error::internal("unreadable stored answer", &e)),
-    )
+    Some(Ok(done.result.clone()))
 }
 
 /// Remembers `result` as the answer to `key`, forgetting the oldest past [`RECENT`].
@@ -62,7 +66,7 @@ pub fn remember(recent: &mut Recent, key: &str, op: String, result: &CommandResu
     recent.push_back(RecentCommand {
         key: key.to_owned(),
         op,
-        result: result.to_value(),
+        result: result.clone(),
     });
     while recent.len() > RECENT {
         recent.pop_front();
@@ -105,5 +109,35 @@ mod tests {
         assert!(answered(&recent, "n0", "stop").is_some());
         forget(&mut recent, "n0");
         assert_eq!(answered(&recent, "n0", "stop"), None);
+    }
+
+    /// Answers are stored tagged with their kind, so an empty list stays the list it was; a
+    /// snapshot of before tagged results (bare values) still reads.
+    #[test]
+    fn stored_answers_keep_their_kind_and_old_snapshots_read() {
+        let assets = RecentCommand {
+            key: "k".into(),
+            op: "configure_asset".into(),
+            result: CommandResult::Assets(Vec::new()),
+        };
+        let stored = serde_json::to_value(&assets).unwrap();
+        assert_eq!(stored["result"]["kind"], "assets", "{stored}");
+        let back: RecentCommand = serde_json::from_value(stored).unwrap();
+        assert_eq!(back, assets);
+        let old: RecentCommand = serde_json::from_value(serde_json::json!({
+            "key": "k", "op": "add_avatar", "result": { "avatar": "a1" }
+        }))
+        .unwrap();
+        assert_eq!(
+            old.result,
+            CommandResult::AvatarAdded {
+                avatar: AvatarId("a1".into())
+            }
+        );
+        let done: RecentCommand = serde_json::from_value(serde_json::json!({
+            "key": "k", "op": "stop", "result": null
+        }))
+        .unwrap();
+        assert_eq!(done.result, CommandResult::Done);
     }
 }

@@ -1,6 +1,6 @@
 //! JSON over HTTP: the same commands as the websocket, and read-only listings.
 //!
-//! - `POST /api/commands` with a [`Command`] body → `200 {"result": …}` or a typed error.
+//! - `POST /api/commands` with a [`Command`] body → `200 {"kind": …, "result": …}` (the result tagged with its shape) or a typed error.
 //! - `GET /api/scenes`, `GET /api/assets`: the `list_scenes` / `list_assets` results.
 //!
 //! Every request may carry `Authorization: Bearer <token>` ([`crate::auth`]); refusals are
@@ -18,7 +18,7 @@ use axum::response::{IntoResponse, Response};
 use bytes::Bytes;
 use posecast_proto::command::Command;
 use posecast_proto::msg::{ErrorCode, ProtocolError};
-use serde_json::{Value, json};
+use serde_json::Value;
 use std::sync::Arc;
 
 /// A typed error as an HTTP response: the status follows the code, the body is
@@ -161,7 +161,7 @@ pub async fn command(
     };
     control::audit(caller.name(), &command, &result);
     let result = state.config.access.visible(&caller, result?);
-    Ok(Json(json!({ "result": result })))
+    Ok(Json(result.to_tagged_value()))
 }
 
 /// `DELETE /api/assets/{name}`: the `delete_asset` command.
@@ -206,7 +206,7 @@ async fn run(
         Err(e) => Err(e),
     };
     control::audit(caller.name(), command, &result);
-    Ok(Json(json!({ "result": result? })))
+    Ok(Json(result?.to_tagged_value()))
 }
 
 /// `GET /api/scenes`.

@@ -18,6 +18,7 @@ use axum::extract::ws::{Message, WebSocket, close_code};
 use futures_util::{Sink, Stream, StreamExt};
 use posecast_core::error::Error;
 use posecast_core::quota::{TokenBucket, rate_limited};
+use posecast_proto::command::CommandResult;
 use posecast_proto::msg::{
     ClientMsg, Encoding, ErrorCode, MAX_CLIENT_MESSAGE_BYTES, PROTOCOL_VERSION, ProtocolError,
     SUPPORTED_VERSIONS, SceneId, ServerMsg,
@@ -271,6 +272,19 @@ struct Session {
 impl Session {
     fn send(&self, msg: &ServerMsg) {
         if !self.outbox.push_control(text(msg)) {
+            debug!("outbox full or closed; connection is being closed");
+        }
+    }
+
+    /// A command's ack: its result tagged with its kind from protocol version 3 on, the bare
+    /// value before.
+    fn send_ack(&self, id: u64, result: CommandResult) {
+        let message = if self.version >= 3 {
+            text(&ServerMsg::Ack { id, result })
+        } else {
+            Message::Text(ServerMsg::ack_bare(id, &result).into())
+        };
+        if !self.outbox.push_control(message) {
             debug!("outbox full or closed; connection is being closed");
         }
     }
@@ -640,10 +654,7 @@ impl Session {
                 match result {
                     Ok(result) => {
                         let result = self.state.config.access.visible(&self.caller, result);
-                        self.send(&ServerMsg::Ack {
-                            id,
-                            result: result.to_value(),
-                        });
+                        self.send_ack(id, result);
                     }
                     Err(e) => self.error(e.for_command(id)),
                 }

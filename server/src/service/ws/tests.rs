@@ -224,6 +224,58 @@ async fn bad_input_after_hello_gets_an_error_and_the_session_goes_on() {
     state.shutdown();
 }
 
+/// Version 3 tags an ack's result with its kind; 1 and 2 send the bare value, as before.
+#[tokio::test]
+async fn acks_are_tagged_from_version_3_and_bare_before() {
+    use crate::auth::{Role, Secret, TokenRule};
+    let state = AppState::new(Config {
+        access: crate::auth::AccessConfig {
+            open_view: true,
+            tokens: vec![Arc::new(TokenRule::new(
+                "ops",
+                Secret::new("control-token-1"),
+                Role::Control,
+            ))],
+        },
+        ..Config::default()
+    });
+    state
+        .world
+        .library
+        .insert(posecast_rigs::builtin::rig().expect("built-in rig"));
+    state.readiness.begin(0);
+    state.readiness.finish(Ok(()));
+    let scene = SceneId("s".into());
+    state.world.create_scene(scene.clone()).expect("scene");
+    let avatar = Some(posecast_proto::msg::AvatarId("a".into()));
+    state
+        .world
+        .add_avatar(&scene, posecast_rigs::builtin::BUILTIN_ASSET, avatar)
+        .expect("avatar");
+    for version in [1, 2, 3] {
+        let mut peer = connect(&state);
+        peer.text(&format!(
+            r#"{{"type":"hello","version":{version},"encoding":"json","token":"control-token-1"}}"#
+        ));
+        assert_eq!(peer.next_json().await.unwrap()["type"], "welcome");
+        peer.text(r#"{"type":"command","id":1,"command":{"op":"get_avatar","avatar":"a"}}"#);
+        let ack = peer.next_json().await.unwrap();
+        assert_eq!(ack["result"]["avatar"], "a", "{ack}");
+        peer.text(r#"{"type":"command","id":2,"command":{"op":"place_avatar","avatar":"a","position":[1.0,0.0,0.0],"rotation":[0.0,0.0,0.0,1.0]}}"#);
+        let done = peer.next_json().await.unwrap();
+        assert_eq!(done["id"], 2, "{done}");
+        assert!(done["result"].is_null(), "{done}");
+        if version >= 3 {
+            assert_eq!(ack["kind"], "avatar", "{ack}");
+            assert_eq!(done["kind"], "done", "{done}");
+        } else {
+            assert!(ack.get("kind").is_none(), "{ack}");
+            assert!(done.get("kind").is_none(), "{done}");
+        }
+    }
+    state.shutdown();
+}
+
 #[tokio::test]
 async fn the_client_closing_gets_a_normal_close_and_shutdown_gets_1001() {
     let state = state();
