@@ -149,6 +149,11 @@ async fn the_javascript_client_is_served_to_any_origin_and_revalidated() {
             "application/typescript; charset=utf-8",
             "// Type declarations",
         ),
+        (
+            "/sdk/protocol.d.ts",
+            "application/typescript; charset=utf-8",
+            "// The JSON messages",
+        ),
     ] {
         let origin = [("Origin", "http://elsewhere.example")];
         let (status, head, body) = http_with_headers(server.addr, "GET", path, &origin, b"").await;

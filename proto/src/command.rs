@@ -8,6 +8,7 @@ use serde::{Deserialize, Serialize};
 
 /// Something a dashboard or application asks the server to do.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 #[serde(tag = "op", rename_all = "snake_case", deny_unknown_fields)]
 pub enum Command {
     /// Scenes with their avatars. Result: `[SceneInfo]`.
@@ -278,6 +279,7 @@ pub enum Command {
 
 /// The answer to `stop_recording`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub struct RecordingInfo {
     /// The rig the clip was added to.
     pub asset: String,
@@ -293,6 +295,7 @@ pub struct RecordingInfo {
 
 /// What a clip's root translation does to the avatar (`play`'s `root_motion`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 #[serde(rename_all = "snake_case")]
 pub enum RootMotion {
     /// The root's horizontal (X, Z) motion is removed, its height kept: the avatar walks on
@@ -306,6 +309,7 @@ pub enum RootMotion {
 
 /// What a live-driven avatar does when its driver goes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 #[serde(rename_all = "snake_case")]
 pub enum OnRelease {
     /// Play its clip again (overrides stay).
@@ -317,6 +321,7 @@ pub enum OnRelease {
 
 /// The answer to `drive`: how to address poses.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub struct DriveInfo {
     /// The avatar.
     pub avatar: AvatarId,
@@ -390,6 +395,7 @@ impl Command {
 
 /// A scene as listed.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub struct SceneInfo {
     /// The scene.
     pub scene: SceneId,
@@ -404,6 +410,7 @@ pub struct SceneInfo {
 
 /// A loaded rig as listed.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub struct AssetInfo {
     /// The asset's name (what `add_avatar` and `from_asset` take).
     pub name: String,
@@ -428,6 +435,7 @@ pub struct AssetInfo {
 
 /// One rig in full, as `get_asset` reports it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub struct AssetDetail {
     /// What `list_assets` says about it.
     #[serde(flatten)]
@@ -444,6 +452,7 @@ pub struct AssetDetail {
 
 /// A joint and its H-Anim name.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub struct JointMapping {
     /// The joint's name in the rig.
     pub joint: String,
@@ -455,6 +464,7 @@ pub struct JointMapping {
 
 /// The unit conversion a rig went through.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub struct Units {
     /// Metres per file unit (applied to translations and the mesh).
     pub metres_per_unit: f32,
@@ -466,6 +476,7 @@ pub struct Units {
 
 /// A clip as listed.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub struct ClipInfo {
     /// Its name.
     pub name: String,
@@ -475,6 +486,7 @@ pub struct ClipInfo {
 
 /// One joint as `get_joint` reports it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub struct JointInfo {
     /// The joint's name.
     pub joint: String,
@@ -495,6 +507,7 @@ pub struct JointInfo {
 
 /// One DOF of a joint.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub struct DofInfo {
     /// Current value (radians, or metres for translational DOFs).
     pub value: f32,
@@ -506,6 +519,7 @@ pub struct DofInfo {
 
 /// An avatar's playback state.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub struct AvatarState {
     /// The avatar.
     pub avatar: AvatarId,
@@ -553,6 +567,7 @@ pub struct AvatarState {
 
 /// A cross-fade in progress: the clip fading out and how far the fade is.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub struct FadeState {
     /// The clip fading out.
     pub from: String,
@@ -595,6 +610,7 @@ mod tests {
 /// answers). An `ack` of protocol version 1 or 2 carries the bare value alone
 /// ([`CommandResult::to_value`]), which [`CommandResult::from_bare`] reads back by its shape.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 #[serde(tag = "kind", content = "result", rename_all = "snake_case")]
 pub enum CommandResult {
     /// `list_scenes`.

@@ -14,6 +14,7 @@ use serde::{Deserialize, Serialize};
 /// `j ∈ translated_joints` and from `rest_translations` otherwise, and likewise `S_j` with
 /// `scaled_joints` / `rest_scales`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub struct AvatarDescription {
     /// The avatar.
     pub id: AvatarId,

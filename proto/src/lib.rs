@@ -38,6 +38,8 @@ pub mod subset;
 #[allow(clippy::expect_used)]
 pub mod testing;
 pub mod transform;
+#[cfg(feature = "ts")]
+pub mod ts;
 
 pub use dof::{Dof, JointDofs, JointType};
 pub use placement::Placement;

@@ -26,11 +26,13 @@ pub const MAX_CLIENT_MESSAGE_BYTES: usize = 64 * 1024;
 
 /// A scene's id, chosen by whoever creates the scene (`"default"` for the built-in one).
 #[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 #[serde(transparent)]
 pub struct SceneId(pub String);
 
 /// An avatar's id, unique on the server.
 #[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 #[serde(transparent)]
 pub struct AvatarId(pub String);
 
@@ -48,6 +50,7 @@ impl fmt::Display for AvatarId {
 
 /// How pose frames reach a client.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 #[serde(rename_all = "snake_case")]
 pub enum Encoding {
     /// Binary websocket frames with smallest-three quantised rotations ([`crate::frame`]).
@@ -58,11 +61,13 @@ pub enum Encoding {
 
 /// Everything a client may send.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
 pub enum ClientMsg {
     /// First message of every connection.
     Hello {
-        /// One of [`SUPPORTED_VERSIONS`] (1: binary frames are [`crate::frame`]; 2: [`crate::frame2`]).
+        /// One of [`SUPPORTED_VERSIONS`] (1: binary frames are [`crate::frame`]; 2 and 3:
+        /// [`crate::frame2`]; 3: command results tagged with their kind, [`ServerMsg::Ack`]).
         version: u32,
         /// The encoding of pose frames the client wants.
         encoding: Encoding,
@@ -144,6 +149,7 @@ pub enum ClientMsg {
 
 /// Everything the server may send as a text message.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 #[serde(tag = "type", rename_all = "snake_case")]
 pub enum ServerMsg {
     /// Answer to a valid hello.
@@ -319,6 +325,7 @@ pub fn check_id(kind: &str, id: &str) -> Result<(), ProtocolError> {
 
 /// A typed error: a stable machine-readable code and a human message.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, thiserror::Error)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 #[error("{code:?}: {message}")]
 pub struct ProtocolError {
     /// What kind of error.
@@ -356,6 +363,7 @@ impl ProtocolError {
 /// Stable error codes. New codes may be added in later versions; clients treat an unknown code
 /// as a generic failure.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 #[serde(rename_all = "snake_case")]
 pub enum ErrorCode {
     /// Not valid JSON, or not a known message shape.
@@ -430,6 +438,7 @@ pub enum ErrorCode {
 /// to avatars commands only those avatars; one limited to scenes commands those scenes and
 /// every avatar in them; a token with both limits may do either.
 #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub struct Access {
     /// May subscribe and read (list, get) — within `scenes` when that is set.
     pub view: bool,
@@ -449,6 +458,7 @@ pub struct Access {
 /// A pose frame in the JSON encoding: the same content as a binary keyframe, with float
 /// quaternions `[x, y, z, w]` (unquantised).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub struct FrameJson {
     /// The scene.
     pub scene: SceneId,
@@ -462,6 +472,7 @@ pub struct FrameJson {
 
 /// One avatar's pose in a [`FrameJson`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub struct AvatarPoseJson {
     /// The avatar.
     pub avatar: AvatarId,

@@ -14,10 +14,13 @@ pub const MAX_PLACEMENT_METRES: f32 = 1.0e6;
 
 /// Position and rotation of an avatar in its scene.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub struct Placement {
     /// World position of the avatar's origin, metres `[x, y, z]`.
+    #[cfg_attr(feature = "ts", ts(as = "[f32; 3]"))]
     pub position: Vec3,
     /// World rotation of the avatar `[x, y, z, w]` (unit).
+    #[cfg_attr(feature = "ts", ts(as = "[f32; 4]"))]
     pub rotation: Quat,
 }
 

@@ -20,6 +20,7 @@ pub struct AxisError {
 
 /// A coordinate axis with a sign, as written in a pipeline config: `"+x"` (or `"x"`), `"-z"`, …
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub enum SignedAxis {
     #[serde(rename = "+x", alias = "x")]
     PosX,
@@ -75,6 +76,7 @@ impl SignedAxis {
 
 /// Which neutral pose the pipeline gives a rig.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 #[serde(rename_all = "snake_case")]
 pub enum NeutralPose {
     /// H-Anim when the rig is humanoid (its hips, knees, shoulders and elbows are mapped),
@@ -92,6 +94,7 @@ pub enum NeutralPose {
 /// `{"up_axis": {"up": "+z", "forward": "-y"}, "metres_per_unit": 0.01, "neutral": "keep",
 ///   "name_map": {"Bip01_L_Thigh": "l_hip"}}`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 #[serde(default, deny_unknown_fields)]
 pub struct PipelineOptions {
     /// Simplify bind matrices to translations (default true).
@@ -129,6 +132,7 @@ impl Default for PipelineOptions {
 
 /// The source's orientation, as axes or as a rotation.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 #[serde(default, deny_unknown_fields)]
 pub struct UpAxisOverride {
     /// The source's up axis (default `+y`).
@@ -156,6 +160,7 @@ impl Default for UpAxisOverride {
 
 /// What a re-orientation rotates.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 #[serde(rename_all = "snake_case")]
 pub enum ReorientFrame {
     /// Everything, posed world included (`posecast_server::rig::reorient`): for sources whose world is not Y-up.

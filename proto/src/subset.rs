@@ -19,6 +19,7 @@ pub const MAX_NAMES: usize = 1024;
 
 /// Which joints of every avatar a subscription gets.
 #[derive(Debug, Clone, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]
 pub enum JointSet {
     /// Joints at most this many levels below a root (`0`: the roots only). `{"depth": 3}`.

@@ -37,8 +37,11 @@ import { expandPose, selectJoints } from "./subset.js";
 /** @typedef {import("./posecast.js").Encoding} Encoding */
 /** @typedef {import("./posecast.js").JointSet} JointSet */
 
-/** The protocol version a client asks for unless told otherwise: 2, wire v2 binary frames. */
-export const PROTOCOL_VERSION = 2;
+/**
+ * The protocol version a client asks for unless told otherwise: 3, wire v2 binary frames and
+ * command results tagged with their kind.
+ */
+export const PROTOCOL_VERSION = 3;
 
 /** @returns {number} The wall clock in µs since the Unix epoch. */
 export function nowMicros() {
@@ -71,7 +74,7 @@ export class Client {
     this.url = options.url ?? defaultUrl();
     /** @type {Encoding} */
     this.encoding = options.encoding ?? "binary";
-    /** The protocol version asked for in the hello: 2 (wire v2 frames) or 1 (v1 frames). */
+    /** The protocol version asked for in the hello: 3 or 2 (wire v2 frames) or 1 (v1 frames). */
     this.version = options.version ?? PROTOCOL_VERSION;
     const tokens = options.tokens ?? (options.token ? [{ kind: /** @type {const} */ ("control"), value: options.token }] : []);
     /** @type {() => Token[]} */
@@ -254,8 +257,8 @@ export class Client {
         this.tokenRefused(String(msg.message));
         this.nextToken(this.detail || "no token lets this client watch");
       } else if (msg.type === "error" && msg.code === "unsupported_version" && this.version > 1) {
-        // A server of before protocol version 2: say hello again with version 1.
-        this.version = 1;
+        // A server that predates this version: say hello again with the one before.
+        this.version -= 1;
         this.drop();
         this.open();
       } else if (msg.type === "error") this.refuseHello(String(msg.code), String(msg.message));

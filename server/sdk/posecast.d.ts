@@ -1,7 +1,8 @@
 // Type declarations of posecast's JavaScript client, served at /sdk/posecast.d.ts beside the
 // module it describes (/sdk/posecast.js). This file is the API reference; proto/PROTOCOL.md is
-// the reference of the messages. SDK version 1.1 speaks protocol version 2 (wire v2 binary
-// frames) by default, and version 1 when asked (`ClientOptions.version`).
+// the reference of the messages, protocol.d.ts their types (generated from the server's). SDK
+// version 1.2 speaks protocol version 3 (wire v2 binary frames, results tagged with their kind)
+// by default, and 2 or 1 when asked (`ClientOptions.version`) or refused by an older server.
 //
 //   import { Client } from "/sdk/posecast.js";
 //   const client = new Client({ token: "…" });          // ws(s)://this host/ws, binary frames
@@ -13,80 +14,58 @@
 /** The SDK's version. */
 export declare const SDK_VERSION: string;
 /** The protocol version the SDK speaks (the `hello`'s `version`). */
-export declare const PROTOCOL_VERSION: 2;
+export declare const PROTOCOL_VERSION: 3;
 
 export type Vec3 = [number, number, number];
 /** `[x, y, z, w]`. */
 export type Quat = [number, number, number, number];
 /** 16 floats, column-major (`p' = M p`). */
 export type Mat4 = Float32Array;
-export type Encoding = "binary" | "json";
 
-/** Where an avatar stands: `P = T(position) · R(rotation)` (metres, Y up). */
-export interface Placement {
-  position: Vec3;
-  rotation: Quat;
-}
-
-/** What the hello's token allows (`welcome.access`). */
-export interface Access {
-  view: boolean;
-  control: boolean;
-  /** The token's name, when one was accepted. */
-  name?: string;
-  scenes?: string[];
-  avatars?: string[];
-}
-
-/** An avatar's rig (the `description` message's `avatar`). */
-export interface AvatarDescription {
-  id: string;
-  /** The avatar's number in binary frames. */
-  num: number;
-  name: string;
-  joint_names: string[];
-  /** Parent index per joint (parents before children), -1 for a root. */
-  parents: number[];
-  rest_translations: Vec3[];
-  rest_rotations: Quat[];
-  rest_scales: Vec3[];
-  /** `B⁻¹` per joint, 16 floats column-major. */
-  inverse_binds: number[][];
-  /** Joints whose translation each frame carries, in the order of a pose's `translations`. */
-  translated_joints: number[];
-  /** Joints whose scale each frame carries, in the order of a pose's `scales`. */
-  scaled_joints: number[];
-  mesh_url: string | null;
-  clip?: string;
-  /** 16 hex digits; every frame's pose carries the hash of the rig it was made for. */
-  hash: string;
-}
-
-/** One avatar's pose in a frame: the JSON frame's shape, also for decoded binary frames. */
-export interface FramePose {
-  avatar: string;
-  /** The description hash (16 hex digits) of the rig the pose is for. */
-  hash: string;
-  /** Local rotation of every joint. */
-  rotations: Quat[];
-  /** Local translation of each of the description's `translated_joints`. */
-  translations: Vec3[];
-  /** Local scale of each of the description's `scaled_joints`. */
-  scales: Vec3[];
-  /** The avatar's placement at this tick. */
-  placement: Placement;
-  /**
-   * A JSON frame of a subscription with a joint set lists the joints it carries (the client
-   * hands on whole poses: every joint not sent at rest).
-   */
-  joints?: number[];
-}
+// The wire's JSON types, generated from the server's Rust types (protocol.d.ts, served beside
+// this file): messages, commands, results, error codes, descriptions.
+export type {
+  Access,
+  AssetDetail,
+  AssetInfo,
+  AvatarDescription,
+  AvatarPoseJson,
+  AvatarState,
+  ClientMsg,
+  ClipInfo,
+  Command,
+  CommandResult,
+  DofInfo,
+  DriveInfo,
+  Encoding,
+  FadeState,
+  JointInfo,
+  JointSet,
+  Placement,
+  ProtocolError,
+  RecordingInfo,
+  SceneInfo,
+  ServerMsg,
+} from "./protocol";
+import type {
+  Access,
+  AvatarDescription,
+  AvatarPoseJson,
+  Command,
+  Encoding,
+  ErrorCode as WireErrorCode,
+  JointSet,
+  Placement,
+  ServerMsg,
+} from "./protocol";
 
 /**
- * Which joints of every avatar a subscription gets: joints at most `depth` levels below a
- * root, or the named joints; each with its ancestors, every root always (proto/PROTOCOL.md).
+ * One avatar's pose in a frame: the JSON frame's shape (`rotations` of every joint — of the
+ * subscription's joint set, listed in `joints`, for a JSON frame with one —, `translations` of
+ * the description's `translated_joints`, `scales` of its `scaled_joints`, the placement), also
+ * for decoded binary frames.
  */
-export type JointSet = { depth: number } | { names: string[] };
+export type FramePose = AvatarPoseJson;
 
 /** A decoded pose frame (binary or JSON; both give this shape). */
 export interface Frame {
@@ -121,21 +100,7 @@ export interface ServerMessage {
 }
 
 /** `welcome`: the server's answer to the hello. */
-export interface WelcomeMessage {
-  type: "welcome";
-  version: number;
-  encoding: Encoding;
-  server: string;
-  tick_rate: number;
-  server_time_us: number;
-  access: Access;
-}
-
-/** A command (`op` and its fields, proto/PROTOCOL.md "Commands"). */
-export interface Command {
-  op: string;
-  [field: string]: unknown;
-}
+export type WelcomeMessage = Extract<ServerMsg, { type: "welcome" }>;
 
 /** Any message a client sends. */
 export interface ClientMessage {
@@ -147,13 +112,7 @@ export interface ClientMessage {
  * The protocol's error codes (later servers may add codes), and the SDK's own: `offline` (not
  * connected, or the connection closed before the answer) and `timeout` (no answer in time).
  */
-export type ErrorCode =
-  | "bad_message" | "unexpected_binary" | "message_too_large" | "unsupported_version"
-  | "not_allowed_now" | "unknown_scene" | "unknown_avatar" | "unknown_clip" | "unknown_joint"
-  | "invalid_value" | "unauthorized" | "forbidden" | "conflict" | "import_failed" | "too_large"
-  | "internal" | "unknown_asset" | "quota_exceeded" | "rate_limited" | "timeout" | "unavailable"
-  | "not_humanoid" | "no_mesh" | "offline"
-  | (string & {});
+export type ErrorCode = WireErrorCode | "offline" | (string & {});
 
 /** A refused or failed command (or request): the protocol's error code and message. */
 export declare class PosecastError extends Error {
@@ -202,13 +161,13 @@ export interface ClientOptions {
   /** Frame encoding; default `"binary"` (several times smaller than JSON). */
   encoding?: Encoding;
   /**
-   * Protocol version asked for in the hello: 2 (default; binary frames in wire v2, deltas
-   * against the previous frame, about half the bytes of v1) or 1 (v1 frames). Frames of a
-   * subscription with `joints` are v1 on either; the client decodes both. A server that
-   * refuses 2 (`unsupported_version`: one of before protocol version 2) gets a second hello
-   * with 1, and `Client.version` becomes 1.
+   * Protocol version asked for in the hello: 3 (default) or 2 — binary frames in wire v2,
+   * deltas against the previous frame, about half the bytes of v1; 3 also tags every `ack`'s
+   * result with its `kind` — or 1 (v1 frames). Frames of a subscription with `joints` are v1
+   * on any; the client decodes both. A server that refuses the version (`unsupported_version`:
+   * one that predates it) gets a hello with the version before, and `Client.version` follows.
    */
-  version?: 1 | 2;
+  version?: 1 | 2 | 3;
   /** The `client` name in the hello; default `"posecast-js"`. */
   name?: string;
   /** Reconnect when the connection drops (default true), resubscribing. */
@@ -281,8 +240,8 @@ export declare class Client {
   constructor(options?: ClientOptions);
   readonly url: string;
   readonly encoding: Encoding;
-  /** The protocol version said in the hello (1 after a server refused 2; `welcome.version` says the one in use). */
-  readonly version: 1 | 2;
+  /** The protocol version said in the hello (lower after a server refused one; `welcome.version` says the one in use). */
+  readonly version: 1 | 2 | 3;
   readonly state: ConnectionState;
   /** Why the state is what it is ("connection lost", a refusal's reason…). */
   readonly detail: string;

@@ -83,7 +83,7 @@ function renderAccess(s) {
     $("access").textContent = "";
     return;
   }
-  /** @param {string[] | undefined} v */
+  /** @param {string[] | null | undefined} v */
   const list = (v) => (v == null ? "all" : v.join(", ") || "none");
   $("access").textContent =
     `This connection (${a.name ? `token ${a.name}` : "no token"}) may view: ${a.view ? "yes" : "no"} · ` +

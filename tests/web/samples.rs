@@ -183,18 +183,20 @@ fn samples() -> Vec<(&'static str, &'static str, Value)> {
         (
             "ack",
             "AckMsg",
-            serde_json::from_str::<Value>(&ServerMsg::ack_bare(
-                4,
-                &CommandResult::AvatarAdded {
+            v!(ServerMsg::Ack {
+                id: 4,
+                result: CommandResult::AvatarAdded {
                     avatar: AvatarId("guest".into()),
                 },
-            ))
-            .unwrap(),
+            }),
         ),
         (
             "ackNull",
             "AckMsg",
-            serde_json::from_str::<Value>(&ServerMsg::ack_bare(5, &CommandResult::Done)).unwrap(),
+            v!(ServerMsg::Ack {
+                id: 5,
+                result: CommandResult::Done,
+            }),
         ),
         (
             "frame",

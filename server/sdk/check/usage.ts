@@ -71,7 +71,7 @@ const offset: number = clock.offsetUs();
 const frame = new FrameDecoder().decode(new Uint8Array(32));
 const frame2 = new Frame2Decoder().decode(new Uint8Array([0x51, 1, 0, 0, 1, 0]));
 const v1 = new Client({ version: 1 });
-const asked: 1 | 2 = v1.version;
+const asked: 1 | 2 | 3 = v1.version;
 const q = quatSlerp([0, 0, 0, 1], [0, 1, 0, 0], 0.5);
 
 // @ts-expect-error — a command needs its `op`.
@@ -80,8 +80,8 @@ void client.command({ avatar: "avatar" });
 client.on("frames", () => {});
 // @ts-expect-error — encodings are "binary" or "json".
 void new Client({ encoding: "msgpack" });
-// @ts-expect-error — protocol versions are 1 or 2.
-void new Client({ version: 3 });
+// @ts-expect-error — protocol versions are 1, 2 or 3.
+void new Client({ version: 4 });
 // @ts-expect-error — subscribe takes a scene name.
 client.subscribe(42);
 

@@ -1,7 +1,7 @@
 //! The web dashboard and the JavaScript client it is built on, static files embedded in the
 //! binary: the page at `GET /` and `GET /dashboard/{file}`, the client (`server/sdk/`) at
 //! `GET /sdk/{file}` — `posecast.js`, the ES module a third-party page imports, its modules and
-//! its TypeScript declarations `posecast.d.ts`. The page uses only the public protocol (the
+//! its TypeScript declarations `posecast.d.ts` with the wire's generated `protocol.d.ts`. The page uses only the public protocol (the
 //! websocket at `/ws` through the client, and the REST API).
 //!
 //! Every response carries a strict Content-Security-Policy ([`content_security_policy`]):
@@ -120,7 +120,8 @@ const FILES: &[(&str, &str, &str)] = &[
 ];
 
 /// `(name, content type, contents)` of the JavaScript client's files in `server/sdk/`: the
-/// module `posecast.js` (a page imports only it), the modules it imports, and its declarations.
+/// module `posecast.js` (a page imports only it), the modules it imports, and its declarations
+/// (`posecast.d.ts`, which imports the wire's generated types from `protocol.d.ts`).
 const SDK: &[(&str, &str, &str)] = &[
     ("posecast.js", JS, include_str!("../../sdk/posecast.js")),
     ("client.js", JS, include_str!("../../sdk/client.js")),
@@ -136,6 +137,11 @@ const SDK: &[(&str, &str, &str)] = &[
         "posecast.d.ts",
         "application/typescript; charset=utf-8",
         include_str!("../../sdk/posecast.d.ts"),
+    ),
+    (
+        "protocol.d.ts",
+        "application/typescript; charset=utf-8",
+        include_str!("../../sdk/protocol.d.ts"),
     ),
 ];
 

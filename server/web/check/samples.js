@@ -251,6 +251,7 @@ export const pong = /** @satisfies {import("../protocol.js").PongMsg} */ ({
 
 export const ack = /** @satisfies {import("../protocol.js").AckMsg} */ ({
   "id": 4,
+  "kind": "avatar_added",
   "result": {
     "avatar": "guest"
   },
@@ -259,6 +260,7 @@ export const ack = /** @satisfies {import("../protocol.js").AckMsg} */ ({
 
 export const ackNull = /** @satisfies {import("../protocol.js").AckMsg} */ ({
   "id": 5,
+  "kind": "done",
   "result": null,
   "type": "ack"
 });
