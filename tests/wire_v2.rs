@@ -1,6 +1,7 @@
 //! Wire v2 (protocol version 2) end to end: the scene's feed serving v1 and v2 subscribers
-//! side by side, a slow v2 reader and a half-rate one; and the native client over a real
-//! websocket asking for version 2.
+//! side by side, a slow v2 reader and a half-rate one, and v2 readers of joint subsets
+//! (protocol version 3) slow and at half rate; and the native client over a real websocket
+//! asking for version 2.
 
 #![allow(clippy::unwrap_used)]
 
@@ -12,6 +13,7 @@ use posecast_client::net::Client;
 use posecast_proto::frame::{Frame, FrameDecoder, FrameKind};
 use posecast_proto::frame2::{self, Frame2Decoder, MAX_TRANSLATION_ERROR};
 use posecast_proto::msg::{AvatarId, Encoding, SceneId};
+use posecast_proto::subset::{JointSet, Selection};
 use posecast_server::avatar::Avatar;
 use posecast_server::metrics::Metrics;
 use posecast_server::scene::Scene;
@@ -54,30 +56,58 @@ fn assert_same_pose(v1: &Frame, v2: &Frame) {
     }
 }
 
+/// `frame` with of every avatar only the joints of `selection` (the rig of both avatars).
+fn cut(frame: &Frame, selection: &Selection) -> Frame {
+    let mut frame = frame.clone();
+    for a in &mut frame.avatars {
+        a.rotations = Selection::pick(&a.rotations, selection.joint_indices());
+        a.translations = Selection::pick(&a.translations, selection.translations.iter().copied());
+        a.scales = Selection::pick(&a.scales, selection.scales.iter().copied());
+    }
+    frame
+}
+
 #[tokio::test]
 async fn v1_and_v2_subscribers_decode_the_same_poses_even_when_slow() {
     let metrics = Arc::new(Metrics::new());
     let scene = Scene::new(SceneId("s".into()), 1, metrics, 60.0);
     let rig = Arc::new(posecast_server::builtin::rig().unwrap());
+    let mut description = None;
     for (i, id) in ["a", "b"].into_iter().enumerate() {
-        scene
-            .add_avatar(Avatar::new(AvatarId(id.into()), i as u32 + 1, rig.clone()))
-            .unwrap();
+        let avatar = Avatar::new(AvatarId(id.into()), i as u32 + 1, rig.clone());
+        description = Some(avatar.description.clone());
+        scene.add_avatar(avatar).unwrap();
     }
+    let description = description.unwrap();
+    let sets = [
+        JointSet::Depth(2),
+        JointSet::Names(vec!["l_wrist".into(), "r_ankle".into()]),
+    ];
+    let selections = sets.clone().map(|set| set.select(&description));
+    assert!(
+        selections
+            .iter()
+            .all(|s| !s.is_all() && !s.joints.is_empty())
+    );
     let v1 = Arc::new(Outbox::new());
     let v2 = Arc::new(Outbox::new());
     let slow = Arc::new(Outbox::new());
     let half = Arc::new(Outbox::new());
-    for (conn, outbox, every, version) in [
-        (1, &v1, 1, 1),
-        (2, &v2, 1, 2),
-        (3, &slow, 1, 2),
-        (4, &half, 2, 2),
+    let subset_slow = Arc::new(Outbox::new());
+    let subset_half = Arc::new(Outbox::new());
+    for (conn, outbox, every, version, joints) in [
+        (1, &v1, 1, 1, None),
+        (2, &v2, 1, 2, None),
+        (3, &slow, 1, 2, None),
+        (4, &half, 2, 2, None),
+        (5, &subset_slow, 1, 3, Some(sets[0].clone())),
+        (6, &subset_half, 2, 3, Some(sets[1].clone())),
     ] {
         scene
             .subscribe(
                 Subscriber::new(conn, outbox.clone(), Encoding::Binary, None, every)
-                    .with_version(version),
+                    .with_version(version)
+                    .with_joints(joints),
             )
             .unwrap();
     }
@@ -86,9 +116,11 @@ async fn v1_and_v2_subscribers_decode_the_same_poses_even_when_slow() {
         Frame2Decoder::new(),
         Frame2Decoder::new(),
         Frame2Decoder::new(),
+        Frame2Decoder::new(),
+        Frame2Decoder::new(),
     ];
     let mut by_seq: HashMap<u64, Frame> = HashMap::new();
-    let mut kinds = [[0usize; 2]; 3];
+    let mut kinds = [[0usize; 2]; 5];
     let (mut v1_bytes, mut v2_bytes) = (0usize, 0usize);
     // The slow reader reads at irregular ticks: in between, the outbox replaces its frames.
     let mut rng = 0x2545_f491_4f6c_dd1du64;
@@ -103,8 +135,16 @@ async fn v1_and_v2_subscribers_decode_the_same_poses_even_when_slow() {
         rng ^= rng << 13;
         rng ^= rng >> 7;
         rng ^= rng << 17;
-        let reads = [true, rng.is_multiple_of(5), seq.is_multiple_of(2)];
-        for (k, outbox) in [&v2, &slow, &half].into_iter().enumerate() {
+        let slow_read = rng.is_multiple_of(5);
+        let reads = [
+            true,
+            slow_read,
+            seq.is_multiple_of(2),
+            (rng >> 8).is_multiple_of(3),
+            seq.is_multiple_of(2),
+        ];
+        let readers = [&v2, &slow, &half, &subset_slow, &subset_half];
+        for (k, outbox) in readers.into_iter().enumerate() {
             if !reads[k] {
                 continue;
             }
@@ -118,7 +158,10 @@ async fn v1_and_v2_subscribers_decode_the_same_poses_even_when_slow() {
                     v2_bytes += bytes.len();
                 }
                 let reference = by_seq.get(&f.header.seq).unwrap();
-                assert_same_pose(reference, &f);
+                match k.checked_sub(3) {
+                    None => assert_same_pose(reference, &f),
+                    Some(s) => assert_same_pose(&cut(reference, &selections[s]), &f),
+                }
             }
         }
     }
@@ -129,6 +172,9 @@ async fn v1_and_v2_subscribers_decode_the_same_poses_even_when_slow() {
     assert!(kinds[0][0] <= 2 + ticks as usize / 60, "{kinds:?}");
     assert!(kinds[2][1] >= kinds[2][0] * 5, "{kinds:?}");
     assert!(kinds[1][0] > 0, "{kinds:?}");
+    // The subset readers too: deltas against their own frames, keyframes after the gaps.
+    assert!(kinds[3][0] > 0 && kinds[3][1] > 0, "{kinds:?}");
+    assert!(kinds[4][1] >= kinds[4][0] * 5, "{kinds:?}");
     assert!(
         (v2_bytes as f64) < 0.6 * v1_bytes as f64,
         "v2 {v2_bytes} B vs v1 {v1_bytes} B"

@@ -200,6 +200,23 @@ impl QuantPose {
         }
     }
 
+    /// The levels of the joints `selection` names: their rotations, and of the streamed
+    /// translations and scales the selected ones, in order (what a frame cut to a joint
+    /// subset carries; `proto/PROTOCOL.md`, "Joint subsets"). Indices the pose lacks are
+    /// skipped (the counts then differ from the selection's and a decoder refuses the pose).
+    #[must_use]
+    pub fn select(&self, selection: &crate::subset::Selection) -> Self {
+        Self {
+            rotations: crate::subset::Selection::pick(&self.rotations, selection.joint_indices()),
+            translations: crate::subset::Selection::pick(
+                &self.translations,
+                selection.translations.iter().copied(),
+            ),
+            scales: crate::subset::Selection::pick(&self.scales, selection.scales.iter().copied()),
+            placement: self.placement,
+        }
+    }
+
     fn same_shape(&self, other: &Self) -> bool {
         self.rotations.len() == other.rotations.len()
             && self.translations.len() == other.translations.len()

@@ -17,7 +17,8 @@ pub const PROTOCOL_VERSION: u32 = 1;
 /// The protocol versions a server accepts; a hello with any other is refused with
 /// [`ErrorCode::UnsupportedVersion`]. Version 2 differs from 1 only in binary pose frames
 /// ([`crate::frame2`] instead of [`crate::frame`]); version 3 is version 2 with tagged
-/// command results in `ack` ([`ServerMsg::Ack`]). Every other message is the same.
+/// command results in `ack` ([`ServerMsg::Ack`]) and joint subsets served as v2 frames (v1
+/// frames on version 2). Every other message is the same.
 pub const SUPPORTED_VERSIONS: [u32; 3] = [1, 2, 3];
 
 /// Largest message the server accepts from a client, in bytes (hello, subscribe, commands).

@@ -548,8 +548,8 @@ export class Client {
   onBinary(data, received) {
     let decoded;
     try {
-      // A v2 connection still gets v1 frames for a subscription with a joint subset: the
-      // first byte says which wire a frame is.
+      // The first byte says which wire a frame is (a server of before version 3 sends a v2
+      // connection v1 frames for a subscription with a joint subset).
       const first = data.byteLength > 0 ? new Uint8Array(data, 0, 1)[0] : 0;
       decoded = first === MAGIC2 ? this.decoder2.decode(data) : this.decoder.decode(data);
     } catch {

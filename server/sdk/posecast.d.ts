@@ -163,8 +163,8 @@ export interface ClientOptions {
   /**
    * Protocol version asked for in the hello: 3 (default) or 2 — binary frames in wire v2,
    * deltas against the previous frame, about half the bytes of v1; 3 also tags every `ack`'s
-   * result with its `kind` — or 1 (v1 frames). Frames of a subscription with `joints` are v1
-   * on any; the client decodes both. A server that refuses the version (`unsupported_version`:
+   * result with its `kind` and serves a subscription with `joints` v2 frames cut to them (2
+   * gets those as v1 frames) — or 1 (v1 frames); the client decodes both. A server that refuses the version (`unsupported_version`:
    * one that predates it) gets a hello with the version before, and `Client.version` follows.
    */
   version?: 1 | 2 | 3;

@@ -85,10 +85,12 @@ impl Subscriber {
         self
     }
 
-    /// Whether it gets wire v2 frames. A joint subset is served as v1 frames cut to its
-    /// joints (a v2 client tells the wires apart by the first byte).
+    /// Whether it gets wire v2 frames: a binary subscriber of version 2 or later, with a joint
+    /// subset from version 3 (v2 frames cut to its joints; version 2 got v1 frames cut to them,
+    /// and still does).
     fn v2(&self) -> bool {
-        self.encoding == Encoding::Binary && self.version >= 2 && self.joints.is_none()
+        self.encoding == Encoding::Binary
+            && (self.version >= 3 || (self.version == 2 && self.joints.is_none()))
     }
 
     fn wants(&self, avatar: &AvatarId) -> bool {
@@ -601,6 +603,7 @@ impl Feed {
         sub: &Subscriber,
     ) {
         let filter = sub.filter.as_deref();
+        let joints = sub.joints.as_ref();
         let wanted = described.iter().filter(|d| sub.wants(&d.id));
         let covered = !self.placed
             && self
@@ -612,7 +615,7 @@ impl Feed {
                 return;
             };
             let now = self.ring.record(newest);
-            if let Some(message) = self.ring.message(newest, &now, None, filter) {
+            if let Some(message) = self.ring.message(newest, &now, None, filter, joints) {
                 sub.outbox.push_chained(
                     self.num,
                     OutFrame { message, key: true },
@@ -641,7 +644,7 @@ impl Feed {
             pieces,
         };
         let now = wire2::levels(&fresh);
-        if let Some(message) = self.ring.message(&fresh, &now, None, filter) {
+        if let Some(message) = self.ring.message(&fresh, &now, None, filter, joints) {
             sub.outbox
                 .push_frame(self.num, OutFrame { message, key: true });
         }
@@ -743,14 +746,18 @@ impl Feed {
         let mut bytes_out = 0u64;
         let mut offered = 0u64;
         // Wire v2: the tick's levels, and its frames by the chain they continue (`None`: the
-        // keyframe) and filter — each made at most once.
+        // keyframe), filter and joint set — each made at most once.
         let levels = if self.subscribers.iter().any(Subscriber::v2) {
             Some(self.ring.record(&published))
         } else {
             self.ring.clear();
             None
         };
-        type V2Key<'a> = (Option<Vec<u64>>, Option<&'a [AvatarId]>);
+        type V2Key<'a> = (
+            Option<Vec<u64>>,
+            Option<&'a [AvatarId]>,
+            Option<&'a JointSet>,
+        );
         let mut v2_cache: HashMap<V2Key<'_>, Option<Message>> = HashMap::new();
         for sub in &mut self.subscribers {
             // The connection's adaptive rate may be lower than the subscription's; paced
@@ -777,9 +784,9 @@ impl Feed {
                     .flatten()
                     .and_then(|chain| {
                         v2_cache
-                            .entry((Some(chain.clone()), filter))
+                            .entry((Some(chain.clone()), filter, joints))
                             .or_insert_with(|| {
-                                ring.message(&published, levels, Some(&chain), filter)
+                                ring.message(&published, levels, Some(&chain), filter, joints)
                             })
                             .clone()
                     });
@@ -790,8 +797,10 @@ impl Feed {
                     },
                     None => {
                         let Some(message) = v2_cache
-                            .entry((None, filter))
-                            .or_insert_with(|| ring.message(&published, levels, None, filter))
+                            .entry((None, filter, joints))
+                            .or_insert_with(|| {
+                                ring.message(&published, levels, None, filter, joints)
+                            })
                             .clone()
                         else {
                             continue;

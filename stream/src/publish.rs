@@ -128,6 +128,34 @@ fn pose_json(d: &AvatarDescription, pose: &AvatarPose) -> String {
     pose_json_of(d, pose, None)
 }
 
+/// The pieces `filter` keeps (all when `None`), each with the part of its rig `joints` selects
+/// (`None`: all of it), selected once per rig (its description hash): avatars of one rig
+/// share it.
+pub(super) fn select<'a>(
+    pieces: &'a [Piece],
+    filter: Option<&[AvatarId]>,
+    joints: Option<&JointSet>,
+) -> Vec<(&'a Piece, Option<Arc<Selection>>)> {
+    let mut by_rig: HashMap<&str, Option<Arc<Selection>>> = HashMap::new();
+    pieces
+        .iter()
+        .filter(|p| filter.is_none_or(|f| f.contains(p.id())))
+        .map(|p| {
+            let selection = joints.and_then(|set| {
+                by_rig
+                    .entry(p.description.hash.as_str())
+                    .or_insert_with(|| {
+                        Some(set.select(&p.description))
+                            .filter(|s| !s.is_all())
+                            .map(Arc::new)
+                    })
+                    .clone()
+            });
+            (p, selection)
+        })
+        .collect()
+}
+
 /// The JSON object of `pose`, or of the joints `selection` names (listed in it as `joints`).
 fn pose_json_of(d: &AvatarDescription, pose: &AvatarPose, selection: Option<&Selection>) -> String {
     let mut json = AvatarPoseJson {
@@ -197,28 +225,7 @@ impl Published {
         filter: Option<&[AvatarId]>,
         joints: Option<&JointSet>,
     ) -> Message {
-        let keep = |p: &&Piece| filter.is_none_or(|f| f.contains(p.id()));
-        // Each kept piece with the part of its rig the joint set selects (`None`: all of it),
-        // selected once per rig (its description hash): avatars of one rig share it.
-        let mut by_rig: HashMap<&str, Option<Arc<Selection>>> = HashMap::new();
-        let selected: Vec<(&Piece, Option<Arc<Selection>>)> = self
-            .pieces
-            .iter()
-            .filter(keep)
-            .map(|p| {
-                let selection = joints.and_then(|set| {
-                    by_rig
-                        .entry(p.description.hash.as_str())
-                        .or_insert_with(|| {
-                            Some(set.select(&p.description))
-                                .filter(|s| !s.is_all())
-                                .map(Arc::new)
-                        })
-                        .clone()
-                });
-                (p, selection)
-            })
-            .collect();
+        let selected = select(&self.pieces, filter, joints);
         match encoding {
             Encoding::Binary => {
                 let mut body = Vec::new();

@@ -2,14 +2,17 @@
 //! ([`posecast_proto::frame2`]): each tick's poses as levels, kept for a few ticks, and the
 //! frames made from them — per tick at most one keyframe and one delta per distinct chain of
 //! frames a subscriber holds ([`super::outbox::Outbox::chain`]), shared by every subscriber
-//! holding that chain.
+//! holding that chain (and, for subscribers limited to some joints, per joint set: their
+//! frames are the levels cut to those joints, predicted from frames cut alike).
 
-use super::publish::Published;
+use super::publish::{self, Published};
 use axum::extract::ws::Message;
 use bytes::Bytes;
 use posecast_proto::frame::{FrameHeader, FrameKind};
 use posecast_proto::frame2::{self, QuantPose};
 use posecast_proto::msg::AvatarId;
+use posecast_proto::subset::{JointSet, Selection};
+use std::borrow::Cow;
 use std::collections::{HashMap, VecDeque};
 use std::sync::Arc;
 
@@ -67,40 +70,38 @@ impl Ring {
     }
 
     /// A v2 frame of `published` (whose levels are `now`) for a subscriber holding `chain`
-    /// (`None`: a keyframe), with only the avatars `filter` names. `None` when some avatar
-    /// cannot be coded against the chain (it is new, changed rig, or its frames left the
-    /// ring): the subscriber needs a keyframe.
+    /// (`None`: a keyframe), with only the avatars `filter` names and of each only the joints
+    /// of `joints` (levels and history cut alike, so a subset's deltas predict from the
+    /// subset's own frames). `None` when some avatar cannot be coded against the chain (it is
+    /// new, changed rig, or its frames left the ring): the subscriber needs a keyframe.
     pub(super) fn message(
         &self,
         published: &Published,
         now: &TickLevels,
         chain: Option<&[u64]>,
         filter: Option<&[AvatarId]>,
+        joints: Option<&JointSet>,
     ) -> Option<Message> {
-        let pieces: Vec<_> = published
-            .pieces
-            .iter()
-            .filter(|p| filter.is_none_or(|f| f.contains(p.id())))
-            .collect();
+        let pieces = publish::select(&published.pieces, filter, joints);
         let seq = published.header.seq;
         let mut body = Vec::with_capacity(16 + 8 * pieces.len());
         let ticks = chain.map(|c| self.ticks_of(c)).unwrap_or_default();
-        let mut history: Vec<&QuantPose> = Vec::with_capacity(ticks.len());
-        for p in &pieces {
+        for (p, selection) in &pieces {
             let num = p.pose.avatar_num;
             let (hash, levels) = now.get(&num)?;
+            let selection = selection.as_deref();
+            let levels = cut(levels, selection);
             if chain.is_none() {
-                frame2::encode_key(num, *hash, levels, &mut body);
+                frame2::encode_key(num, *hash, &levels, &mut body);
                 continue;
             }
-            history.clear();
-            history.extend(
-                ticks
-                    .iter()
-                    .map_while(|t| t.get(&num).filter(|(h, _)| h == hash))
-                    .map(|(_, l)| &**l),
-            );
-            if !frame2::encode_delta(num, levels, &history, &mut body) {
+            let history: Vec<Cow<'_, QuantPose>> = ticks
+                .iter()
+                .map_while(|t| t.get(&num).filter(|(h, _)| h == hash))
+                .map(|(_, l)| cut(l, selection))
+                .collect();
+            let history: Vec<&QuantPose> = history.iter().map(|h| &**h).collect();
+            if !frame2::encode_delta(num, &levels, &history, &mut body) {
                 return None;
             }
         }
@@ -117,6 +118,14 @@ impl Ring {
         frame2::write_header(&header, pieces.len(), &mut out);
         out.extend_from_slice(&body);
         Some(Message::Binary(Bytes::from(out)))
+    }
+}
+
+/// `levels`, or of them the joints `selection` names.
+fn cut<'l>(levels: &'l QuantPose, selection: Option<&Selection>) -> Cow<'l, QuantPose> {
+    match selection {
+        None => Cow::Borrowed(levels),
+        Some(sel) => Cow::Owned(levels.select(sel)),
     }
 }
 
