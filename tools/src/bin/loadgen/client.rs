@@ -1,10 +1,12 @@
-//! One lightweight load client: hello, subscribe, then read frames and keep only the header's
-//! `seq` and `server_time_us` (no pose decoding: the point is the server's fan-out, and a full
-//! decode per frame would make this process the bottleneck sooner).
+//! One lightweight load client: hello (in the protocol version the run asks for: 1 gets v1
+//! frames, 2 and 3 wire v2 ones), subscribe, then read frames and keep only the header's `seq`
+//! and `server_time_us` (no pose decoding: the point is the server's fan-out, and a full decode
+//! per frame would make this process the bottleneck sooner).
 
 use anyhow::{Context, Result, bail};
 use futures_util::{SinkExt, StreamExt};
-use posecast_proto::frame::read_header;
+use posecast_proto::frame::{FrameHeader, FrameKind};
+use posecast_proto::frame2;
 use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, SceneId, ServerMsg};
 use std::sync::atomic::{AtomicU8, AtomicUsize, Ordering};
 use tokio::sync::{Semaphore, watch};
@@ -33,6 +35,8 @@ pub struct Shared {
     pub failed: AtomicUsize,
     /// Whether clients keep every frame's arrival (`--link`).
     record_arrivals: bool,
+    /// The protocol version the clients say hello with.
+    version: u32,
 }
 
 impl Shared {
@@ -40,12 +44,20 @@ impl Shared {
     pub fn new(parallel: usize, record_arrivals: bool) -> Self {
         Self {
             record_arrivals,
+            version: PROTOCOL_VERSION,
             phase: AtomicU8::new(Phase::Warmup as u8),
             done: watch::Sender::new(false),
             connecting: Semaphore::new(parallel.max(1)),
             ready: AtomicUsize::new(0),
             failed: AtomicUsize::new(0),
         }
+    }
+
+    /// The same, with clients saying hello in protocol version `version`.
+    #[must_use]
+    pub fn with_version(mut self, version: u32) -> Self {
+        self.version = version;
+        self
     }
 
     /// Moves every client to `phase`.
@@ -121,7 +133,7 @@ pub async fn run(
     let connected = {
         // The permit bounds handshakes in flight (the server's accept backlog is finite).
         let _permit = shared.connecting.acquire().await;
-        connect(index, url, scene, rate).await
+        connect(index, url, scene, rate, shared.version).await
     };
     let mut ws = match connected {
         Ok(ws) => ws,
@@ -141,7 +153,7 @@ pub async fn run(
         match message {
             Some(Ok(Message::Binary(bytes))) => {
                 let now = crate::unix_micros();
-                let Ok((header, _)) = read_header(&bytes) else {
+                let Some(header) = frame_header(&bytes) else {
                     stats.failure = Some("a binary message is not a pose frame".into());
                     break;
                 };
@@ -157,7 +169,7 @@ pub async fn run(
                 if measuring {
                     stats.frames += 1;
                     stats.bytes += bytes.len() as u64;
-                    stats.keys += u64::from(header.base_seq == header.seq);
+                    stats.keys += u64::from(header.kind == FrameKind::Key);
                     let latency = now.saturating_sub(header.server_time_us);
                     stats
                         .latencies_us
@@ -168,7 +180,7 @@ pub async fn run(
                             stamp_us: header.server_time_us,
                             seq: header.seq,
                             base_seq: header.base_seq,
-                            key: header.base_seq == header.seq,
+                            key: header.kind == FrameKind::Key,
                         });
                     }
                 }
@@ -195,17 +207,29 @@ pub async fn run(
     stats
 }
 
+/// The header of a v1 or a v2 frame (told apart by the first byte).
+pub fn frame_header(bytes: &[u8]) -> Option<FrameHeader> {
+    if bytes.first() == Some(&frame2::MAGIC) {
+        frame2::read_header(bytes).ok().map(|(h, _)| h)
+    } else {
+        posecast_proto::frame::read_header(bytes)
+            .ok()
+            .map(|(h, _)| h)
+    }
+}
+
 /// A client websocket.
 pub type Ws =
     tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
 
-/// Opens a websocket and says hello (binary encoding); returns once `welcome` arrived.
-async fn hello(url: &str, name: String, token: Option<&str>) -> Result<Ws> {
+/// Opens a websocket and says hello (binary encoding, protocol `version`); returns once
+/// `welcome` arrived.
+async fn hello(url: &str, name: String, token: Option<&str>, version: u32) -> Result<Ws> {
     let (mut ws, _) = tokio_tungstenite::connect_async(url)
         .await
         .with_context(|| format!("connect to {url}"))?;
     let hello = ClientMsg::Hello {
-        version: PROTOCOL_VERSION,
+        version,
         encoding: Encoding::Binary,
         token: token.map(str::to_owned),
         client: Some(name),
@@ -217,13 +241,19 @@ async fn hello(url: &str, name: String, token: Option<&str>) -> Result<Ws> {
 
 /// A connection for commands (hello with the control token, no subscription).
 pub async fn connect_control(url: &str, token: &str) -> Result<Ws> {
-    hello(url, "loadgen-control".into(), Some(token)).await
+    hello(url, "loadgen-control".into(), Some(token), PROTOCOL_VERSION).await
 }
 
-/// Opens a websocket, says hello and subscribes (at `rate` frames per second, or every tick);
-/// returns once `subscribed` arrived.
-pub async fn connect(index: usize, url: &str, scene: &str, rate: Option<f32>) -> Result<Ws> {
-    let mut ws = hello(url, format!("loadgen-{index}"), None).await?;
+/// Opens a websocket, says hello in protocol `version` and subscribes (at `rate` frames per
+/// second, or every tick); returns once `subscribed` arrived.
+pub async fn connect(
+    index: usize,
+    url: &str,
+    scene: &str,
+    rate: Option<f32>,
+    version: u32,
+) -> Result<Ws> {
+    let mut ws = hello(url, format!("loadgen-{index}"), None, version).await?;
     send(
         &mut ws,
         &ClientMsg::Subscribe {

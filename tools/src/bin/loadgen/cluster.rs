@@ -146,7 +146,9 @@ async fn measure(args: &Args, servers: &[Spawned], token: &str) -> Result<()> {
 
     let shared: Vec<Arc<client::Shared>> = servers
         .iter()
-        .map(|_| Arc::new(client::Shared::new(args.connect_parallel, false)))
+        .map(|_| {
+            Arc::new(client::Shared::new(args.connect_parallel, false).with_version(args.protocol))
+        })
         .collect();
     let connect_began = Instant::now();
     let mut tasks = Vec::new();

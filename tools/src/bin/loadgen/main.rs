@@ -117,6 +117,16 @@ pub struct Args {
     /// 2 Mbit/s shared by every client.
     #[arg(long, conflicts_with = "link")]
     link_suite: bool,
+    /// The protocol version the clients say hello with: 3 (default, what posecast's own
+    /// clients speak) and 2 get wire v2 frames, 1 v1 frames. The reference server sends the
+    /// same wire.
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=3))]
+    protocol: u32,
+    /// Load the machine as a busy host would be: this many busy-loop processes run beside the
+    /// servers for the whole run (e.g. one per core), so both servers are measured under the
+    /// same outside CPU contention.
+    #[arg(long, default_value_t = 0)]
+    busy: usize,
     /// With --spawn-server: this many servers joined through a spawned `nats-server -js`,
     /// `--clients` on each; the first owns the scene, the others relay it.
     #[arg(long, requires = "spawn_server", conflicts_with_all = ["link", "link_suite", "server"])]
@@ -149,7 +159,13 @@ fn authority(url: &str) -> Result<String> {
 fn main() -> Result<()> {
     let args = Args::parse();
     if let Some(listen) = args.serve_reference {
-        return reference::serve(listen, args.avatars, &args.clips, args.tick_rate);
+        return reference::serve(
+            listen,
+            args.avatars,
+            &args.clips,
+            args.tick_rate,
+            args.protocol,
+        );
     }
     let positive = |v: f64| v.is_finite() && v > 0.0;
     if args.clients == 0
@@ -179,6 +195,10 @@ fn main() -> Result<()> {
 }
 
 async fn run(args: Args, fd_limit: u64) -> Result<()> {
+    let _busy = server::Busy::start(args.busy)?;
+    if args.busy > 0 {
+        eprintln!("{} busy-loop processes load the machine", args.busy);
+    }
     if args.link_suite || !args.link.is_empty() {
         return run_links(&args, fd_limit).await;
     }
@@ -200,6 +220,7 @@ async fn run(args: Args, fd_limit: u64) -> Result<()> {
                 args.avatars,
                 &args.clips,
                 args.tick_rate,
+                args.protocol,
             )
             .await?;
             let summary = measure(&args, &child.ws_url(), "default", Some(child.pid())).await;
@@ -332,7 +353,8 @@ async fn measure_stats(
     scene: &str,
     record: bool,
 ) -> Result<(Vec<ClientStats>, f64)> {
-    let shared = Arc::new(client::Shared::new(args.connect_parallel, record));
+    let shared =
+        Arc::new(client::Shared::new(args.connect_parallel, record).with_version(args.protocol));
     let tasks: Vec<_> = (0..args.clients)
         .map(|i| {
             let shared = shared.clone();
@@ -375,7 +397,8 @@ async fn measure_stats(
 }
 
 async fn measure(args: &Args, url: &str, scene: &str, pid: Option<u32>) -> Result<report::Summary> {
-    let shared = Arc::new(client::Shared::new(args.connect_parallel, false));
+    let shared =
+        Arc::new(client::Shared::new(args.connect_parallel, false).with_version(args.protocol));
     let connect_began = Instant::now();
     let tasks: Vec<_> = (0..args.clients)
         .map(|i| {

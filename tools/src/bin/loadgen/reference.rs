@@ -1,19 +1,28 @@
 //! The reference server posecast's fan-out is measured against (`loadgen --server reference`):
-//! the plain design a competent engineer would write first — one `tokio::sync::broadcast`
-//! channel of encoded frames, one task per client that says hello, then forwards every frame
-//! into its tokio-tungstenite websocket (a client that lags skips what it missed).
+//! the plain design done plainly. Frames are recorded up front and replayed at the tick rate
+//! into one `tokio::sync::broadcast`; per client, one task writes every frame into its
+//! tokio-tungstenite websocket (a client that lags skips what it missed) and one reads it
+//! (for the close; tungstenite answers pings as it reads). Nothing else per client: no timers,
+//! no `select!`, no pacing, no encoding.
 //!
-//! Its frames are posecast's own: an in-process posecast scene of the same avatars playing
-//! the same clips, ticked by posecast's ticker and encoded once per tick by its feed, is read
-//! through one outbox and broadcast. So both servers send the same bytes at the same rate and
-//! the comparison is of the fan-out alone: per-client work, wake-ups, syscalls, locking.
+//! Its frames are posecast's own bytes: before serving, an in-process posecast scene of the
+//! same avatars playing the same clips runs for [`RECORD_SECONDS`] and the frames its feed
+//! gives a full-rate binary subscriber of the run's protocol version are kept — wire v1, or
+//! wire v2 (deltas against the previous frame). They are replayed in a loop, each header
+//! restamped (tick, time, base tick), so both servers send the same sizes at the same rate and
+//! the comparison is of the fan-out alone. (A lagging v2 client here gets deltas it could not
+//! decode; loadgen's clients do not decode, and posecast's re-keying of such a client is work
+//! only posecast does.)
+//!
 //! It speaks just enough of the protocol for `loadgen`'s clients: `hello` → `welcome`,
 //! `subscribe` → `subscribed`, then binary frames.
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use bytes::Bytes;
 use futures_util::{SinkExt, StreamExt};
 use posecast_proto::command::Command;
+use posecast_proto::frame::{self, FrameHeader, HEADER_BYTES};
+use posecast_proto::frame2;
 use posecast_proto::msg::{Access, AvatarId, ClientMsg, Encoding, SceneId, ServerMsg};
 use posecast_server::builtin::{BUILTIN_ASSET, rig};
 use posecast_server::metrics::Metrics;
@@ -23,20 +32,36 @@ use posecast_server::stream::outbox::{Next, Outbox};
 use posecast_server::world::{World, command};
 use std::net::SocketAddr;
 use std::sync::Arc;
+use std::time::Duration;
 use tokio::sync::broadcast;
 use tokio_tungstenite::tungstenite::Message;
 
-/// Frames a client may fall behind before it skips to the newest (tokio broadcast's lag).
-const LAG_FRAMES: usize = 4;
+/// Frames a client may fall behind before it skips to the newest (tokio broadcast's lag):
+/// about a second at 60 Hz.
+const LAG_FRAMES: usize = 64;
+
+/// Seconds of posecast's frames replayed (three keyframe intervals), recorded after
+/// [`SETTLE_SECONDS`] (the join keyframe and the clips' first moments are not typical).
+pub const RECORD_SECONDS: f64 = 3.0;
+/// Seconds of frames dropped before recording.
+pub const SETTLE_SECONDS: f64 = 1.0;
 
 /// Serves on `listen` until the process is killed: `avatars` built-in avatars playing `clips`
-/// in turn, ticked at `tick_rate`.
-pub fn serve(listen: SocketAddr, avatars: usize, clips: &[String], tick_rate: f32) -> Result<()> {
+/// in turn, ticked at `tick_rate`, in the frames of protocol `protocol`.
+pub fn serve(
+    listen: SocketAddr,
+    avatars: usize,
+    clips: &[String],
+    tick_rate: f32,
+    protocol: u32,
+) -> Result<()> {
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?;
     runtime.block_on(async move {
-        let frames = frame_source(avatars, clips, tick_rate)?;
+        let recorded = record(avatars, clips, tick_rate, protocol).await?;
+        let (frames, _) = broadcast::channel(LAG_FRAMES);
+        tokio::spawn(replay(recorded, tick_rate, frames.clone()));
         let listener = tokio::net::TcpListener::bind(listen)
             .await
             .with_context(|| format!("bind {listen}"))?;
@@ -51,12 +76,68 @@ pub fn serve(listen: SocketAddr, avatars: usize, clips: &[String], tick_rate: f3
     })
 }
 
-/// posecast's scene, ticking, with its binary frames broadcast (see the module doc).
-fn frame_source(
+/// One recorded frame: its header, and the bytes after it.
+#[derive(Debug, Clone)]
+struct Recorded {
+    header: FrameHeader,
+    avatars: usize,
+    body: Bytes,
+    v2: bool,
+}
+
+impl Recorded {
+    /// A v1 or v2 frame's header and body; `None` for anything else.
+    fn parse(bytes: &Bytes) -> Option<Self> {
+        if bytes.first() == Some(&frame2::MAGIC) {
+            let (header, avatars) = frame2::read_header(bytes).ok()?;
+            // v2 headers are varints: the body starts where the same header, written, ends.
+            let mut head = Vec::new();
+            frame2::write_header(&header, avatars, &mut head);
+            bytes.starts_with(&head).then(|| Self {
+                header,
+                avatars,
+                body: bytes.slice(head.len()..),
+                v2: true,
+            })
+        } else {
+            let (header, avatars) = frame::read_header(bytes).ok()?;
+            Some(Self {
+                header,
+                avatars: usize::from(avatars),
+                body: bytes.slice(HEADER_BYTES..),
+                v2: false,
+            })
+        }
+    }
+
+    /// The frame as tick `seq` at `server_time_us`, referring as far back as it did.
+    fn stamped(&self, seq: u64, server_time_us: u64) -> Bytes {
+        let back = self.header.seq.saturating_sub(self.header.base_seq);
+        let header = FrameHeader {
+            seq,
+            server_time_us,
+            base_seq: seq.saturating_sub(back),
+            ..self.header
+        };
+        let mut out = Vec::with_capacity(HEADER_BYTES + self.body.len());
+        if self.v2 {
+            frame2::write_header(&header, self.avatars, &mut out);
+        } else {
+            let count = u16::try_from(self.avatars).unwrap_or(u16::MAX);
+            frame::write_header(&header, count, &mut out);
+        }
+        out.extend_from_slice(&self.body);
+        Bytes::from(out)
+    }
+}
+
+/// [`RECORD_SECONDS`] of posecast's frames of the scene (see the module doc), in tick order.
+async fn record(
     avatars: usize,
     clips: &[String],
     tick_rate: f32,
-) -> Result<broadcast::Sender<Bytes>> {
+    protocol: u32,
+) -> Result<Vec<Recorded>> {
     let world = World::new(tick_rate, Quotas::default(), Arc::new(Metrics::new()));
     world.library.insert(rig()?);
     let scene = SceneId("default".into());
@@ -81,27 +162,54 @@ fn frame_source(
         }
     }
     let outbox = Arc::new(Outbox::new());
-    handle.subscribe(Subscriber::new(
-        0,
-        outbox.clone(),
-        Encoding::Binary,
-        None,
-        1,
-    ))?;
-    let (frames, _) = broadcast::channel(LAG_FRAMES);
-    let sender = frames.clone();
-    tokio::spawn(async move {
-        // The world lives as long as its only reader: the scene keeps ticking.
-        let _world = world;
-        while let Next::Send(messages) = outbox.next().await {
-            for m in messages {
-                if let axum::extract::ws::Message::Binary(bytes) = m {
-                    sender.send(bytes).ok();
-                }
+    handle.subscribe(
+        Subscriber::new(0, outbox.clone(), Encoding::Binary, None, 1).with_version(protocol),
+    )?;
+    let per_second = f64::from(tick_rate);
+    let wanted = (RECORD_SECONDS * per_second).ceil().max(1.0) as usize;
+    let settle = (SETTLE_SECONDS * per_second).ceil() as usize;
+    // Enough to find a keyframe after settling and a whole run of `wanted` from it.
+    let total = settle + 2 * wanted;
+    let mut recorded: Vec<Recorded> = Vec::with_capacity(total);
+    // Read as the frames come (every tick, in order): a reader this prompt gets every one.
+    let deadline = tokio::time::Instant::now()
+        + Duration::from_secs_f64(4.0 * (SETTLE_SECONDS + 2.0 * RECORD_SECONDS));
+    while recorded.len() < total {
+        let next = tokio::time::timeout_at(deadline, outbox.next()).await;
+        let Ok(Next::Send(messages)) = next else {
+            bail!(
+                "the recording scene gave {} of {wanted} frames",
+                recorded.len()
+            );
+        };
+        for m in messages {
+            if let axum::extract::ws::Message::Binary(bytes) = m
+                && let Some(frame) = Recorded::parse(&bytes)
+            {
+                recorded.push(frame);
             }
         }
-    });
-    Ok(frames)
+    }
+    // Start the loop on the first keyframe after settling, as the scene's own stream does.
+    let first_key = recorded
+        .iter()
+        .skip(settle)
+        .position(|r| r.header.seq == r.header.base_seq)
+        .map_or(settle, |k| settle + k)
+        .min(recorded.len() - wanted);
+    Ok(recorded.drain(first_key..first_key + wanted).collect())
+}
+
+/// Sends the recorded frames in a loop at `tick_rate`, each stamped with its tick and the
+/// time (ticks the process was too late for are skipped).
+async fn replay(recorded: Vec<Recorded>, tick_rate: f32, frames: broadcast::Sender<Bytes>) {
+    let mut ticks = tokio::time::interval(Duration::from_secs_f64(1.0 / f64::from(tick_rate)));
+    ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    for seq in 1u64.. {
+        ticks.tick().await;
+        let frame = &recorded[(seq as usize - 1) % recorded.len()];
+        frames.send(frame.stamped(seq, crate::unix_micros())).ok();
+    }
 }
 
 /// One client: hello, subscribe, then every broadcast frame.
@@ -147,17 +255,20 @@ async fn client(
     // Drop everything queued before the subscription: frames start now.
     frames = frames.resubscribe();
     let (mut sink, mut stream) = ws.split();
+    // The reader: until the client closes (its messages are otherwise ignored).
+    tokio::spawn(async move {
+        while let Some(Ok(message)) = stream.next().await {
+            if matches!(message, Message::Close(_)) {
+                break;
+            }
+        }
+    });
+    // The writer: every frame, until the socket fails.
     loop {
-        tokio::select! {
-            frame = frames.recv() => match frame {
-                Ok(bytes) => sink.send(Message::Binary(bytes)).await?,
-                Err(broadcast::error::RecvError::Lagged(_)) => {}
-                Err(broadcast::error::RecvError::Closed) => return Ok(()),
-            },
-            message = stream.next() => match message {
-                Some(Ok(Message::Close(_)) | Err(_)) | None => return Ok(()),
-                Some(Ok(_)) => {}
-            },
+        match frames.recv().await {
+            Ok(bytes) => sink.send(Message::Binary(bytes)).await?,
+            Err(broadcast::error::RecvError::Lagged(_)) => {}
+            Err(broadcast::error::RecvError::Closed) => return Ok(()),
         }
     }
 }

@@ -10,6 +10,8 @@ pub struct Summary {
     clients: usize,
     avatars: Option<usize>,
     scene: String,
+    /// The protocol version the clients spoke.
+    protocol: u32,
     tick_rate: f64,
     wall: f64,
     connect_s: f64,
@@ -108,6 +110,7 @@ impl Summary {
         };
         Self {
             clients: args.clients,
+            protocol: args.protocol,
             avatars: args.spawn_server.then_some(args.avatars),
             scene: scene.to_owned(),
             // The frames each client should get: every tick, or every n-th at a lower rate.
@@ -143,9 +146,10 @@ impl Summary {
         let [p50, p90, p99, p999, max] = self.latency_ms;
         let pct = |v: Option<f64>| v.map_or_else(|| "n/a".into(), |v| format!("{v:.0} %"));
         println!(
-            "\nscene {} · {} clients{} · {:.1} s measured (connect {:.1} s)",
+            "\nscene {} · {} clients · {}{} · {:.1} s measured (connect {:.1} s)",
             self.scene,
             self.clients,
+            wire_name(self.protocol),
             self.avatars
                 .map_or_else(String::new, |m| format!(" · {m} avatars")),
             self.wall,
@@ -205,17 +209,27 @@ impl Summary {
             );
         }
         println!(
-            "\n| clients N | avatars M | frames/s delivered (expected) | per client | p50 ms | p99 ms | max ms | missed | failures | server CPU | loadgen CPU |"
+            "\n| clients N | wire | avatars M | frames/s delivered (expected) | B/frame | per client | p50 ms | p99 ms | max ms | missed | failures | server CPU | loadgen CPU |"
         );
         println!(
-            "| {} | {} | {fps:.0} ({expected:.0}) | {mean:.1} | {p50:.2} | {p99:.2} | {max:.1} | {:.2} % | {} | {} | {} |",
+            "| {} | {} | {} | {fps:.0} ({expected:.0}) | {:.1} | {mean:.1} | {p50:.2} | {p99:.2} | {max:.1} | {:.2} % | {} | {} | {} |",
             self.clients,
+            wire_name(self.protocol),
             self.avatars.map_or_else(|| "?".into(), |m| m.to_string()),
+            self.bytes as f64 / self.frames.max(1) as f64,
             100.0 * self.missed as f64 / (expected * self.wall),
             self.failures,
             pct(self.server_cpu),
             pct(self.self_cpu),
         );
+    }
+}
+
+/// The frames a protocol version's binary subscribers get.
+pub fn wire_name(protocol: u32) -> String {
+    match protocol {
+        1 => "wire v1 (protocol 1)".into(),
+        p => format!("wire v2 (protocol {p})"),
     }
 }
 

@@ -118,12 +118,13 @@ impl Spawned {
     }
 
     /// Starts this executable as the reference server ([`crate::reference`]) with `avatars`
-    /// avatars playing `clips` at `tick_rate`.
+    /// avatars playing `clips` at `tick_rate`, sending the frames of protocol `protocol`.
     pub async fn start_reference(
         fd_limit: u64,
         avatars: usize,
         clips: &[String],
         tick_rate: f32,
+        protocol: u32,
     ) -> Result<Self> {
         let bin = std::env::current_exe()?;
         Self::launch(&bin, fd_limit, &[], |port| {
@@ -136,6 +137,8 @@ impl Spawned {
                 clips.join(","),
                 "--tick-rate".into(),
                 tick_rate.to_string(),
+                "--protocol".into(),
+                protocol.to_string(),
             ]
         })
         .await
@@ -358,4 +361,38 @@ pub async fn scrape_metrics(authority: &str) -> Result<HashMap<String, f64>> {
             Some((name.to_owned(), value.parse().ok()?))
         })
         .collect())
+}
+
+/// Busy-loop processes (`sh -c 'while :; do :; done'`) that load the machine while they live:
+/// the outside CPU contention of a busy host.
+#[derive(Debug)]
+pub struct Busy(Vec<std::process::Child>);
+
+impl Busy {
+    /// Starts `n` of them.
+    ///
+    /// # Errors
+    /// One could not be started (those started are stopped).
+    pub fn start(n: usize) -> Result<Self> {
+        let mut busy = Self(Vec::with_capacity(n));
+        for _ in 0..n {
+            let child = std::process::Command::new("sh")
+                .args(["-c", "while :; do :; done"])
+                .stdin(Stdio::null())
+                .stdout(Stdio::null())
+                .spawn()
+                .context("start a busy loop")?;
+            busy.0.push(child);
+        }
+        Ok(busy)
+    }
+}
+
+impl Drop for Busy {
+    fn drop(&mut self) {
+        for child in &mut self.0 {
+            child.kill().ok();
+            child.wait().ok();
+        }
+    }
 }
