@@ -321,7 +321,8 @@ async fn bad_poses_get_typed_errors_and_change_nothing() {
         .await
         .unwrap();
     assert_eq!(error_code(&stranger).await, ErrorCode::NotAllowedNow);
-    // Too fast: a burst far past 120 Hz.
+    // Too fast: a burst far past 120 Hz (the driver's pacing off, as a client without it).
+    d.set_pacing(false);
     tokio::time::sleep(Duration::from_millis(200)).await;
     for _ in 0..40 {
         d.send_pose(&avatar(), [("l_elbow".into(), q.to_array())], None, None)
@@ -345,6 +346,47 @@ async fn bad_poses_get_typed_errors_and_change_nothing() {
         l[joint(&server, "r_elbow")].rotation,
         sub_rest(&server, "r_elbow", &l)
     ));
+}
+
+#[tokio::test]
+async fn a_paced_driver_sending_as_fast_as_it_can_is_never_rate_limited() {
+    let server = server(Duration::from_secs(5)).await;
+    let d = driver(&server, ALICE).await;
+    let info = d.drive(&avatar(), None, None).await.unwrap();
+    assert!(info.max_rate_hz > 0.0);
+    // Three times the server's burst, back to back, JSON and binary mixed (one budget).
+    let poses = 40u32;
+    let began = std::time::Instant::now();
+    for i in 0..poses {
+        let q = Quat::from_rotation_z(0.01 * i as f32);
+        if i % 2 == 0 {
+            d.send_pose(&avatar(), [("l_elbow".into(), q.to_array())], None, None)
+                .await
+                .unwrap();
+        } else {
+            d.send_binary_pose(&BinaryPose {
+                avatar_num: info.avatar_num,
+                time_us: None,
+                root_position: None,
+                rotations: vec![(0, q)],
+            })
+            .await
+            .unwrap();
+        }
+    }
+    let spent = began.elapsed();
+    // Spaced at the budget: the last pose left no sooner than (n − 1) intervals after the first.
+    let floor = Duration::from_secs_f64(f64::from(poses - 1) / f64::from(info.max_rate_hz));
+    assert!(
+        spent >= floor,
+        "{poses} poses in {spent:?}, below {floor:?}"
+    );
+    // A command answered after them: any refusal of a pose would have come before its ack.
+    d.command(Command::GetAvatar { avatar: avatar() })
+        .await
+        .unwrap();
+    let refused = d.next_error(Duration::ZERO).await;
+    assert!(refused.is_none(), "a paced pose was refused: {refused:?}");
 }
 
 /// The rotation the avatar had before driving (the driven pose starts from it): whatever it

@@ -13,12 +13,19 @@
 //!
 //! Poses are not acknowledged; the server's errors (bad pose, rate limited, …) arrive on
 //! [`Driver::next_error`].
+//!
+//! **Pacing.** The server takes at most [`DriveInfo::max_rate_hz`] poses a second per driven
+//! avatar (a token bucket with a small burst) and refuses the rest with `rate_limited`. The
+//! driver spaces each avatar's poses at that rate: a pose sent early waits for its turn (the
+//! send returns later) instead of being refused — so a capture loop that bursts to catch up
+//! after a stall, or one simply faster than the server's budget, loses nothing to the limit.
+//! [`Driver::set_pacing`] turns it off.
 
 use super::client::ClientError;
 use futures_util::stream::SplitSink;
 use futures_util::{SinkExt, StreamExt};
 use posecast_proto::command::{Command, CommandResult, DriveInfo, OnRelease};
-use posecast_proto::live::BinaryPose;
+use posecast_proto::live::{BinaryPose, MAX_RATE_HZ};
 use posecast_proto::msg::{
     AvatarId, ClientMsg, Encoding, PROTOCOL_VERSION, ProtocolError, ServerMsg,
 };
@@ -44,6 +51,65 @@ pub struct Driver {
     errors: tokio::sync::Mutex<mpsc::Receiver<ProtocolError>>,
     next_id: AtomicU64,
     reader: tokio::task::JoinHandle<()>,
+    pacing: Mutex<Pacing>,
+}
+
+/// When each avatar's next pose may go ([`Driver`]'s pacing).
+#[derive(Debug)]
+struct Pacing {
+    on: bool,
+    /// Avatar numbers of the avatars driven through [`Driver::drive`] (binary poses name
+    /// avatars by number).
+    nums: HashMap<AvatarId, u32>,
+    /// Per avatar (by number when known, else by id): the interval and the next free slot.
+    slots: HashMap<PaceKey, (Duration, tokio::time::Instant)>,
+    /// The interval of avatars whose budget no drive answer gave.
+    default_interval: Duration,
+}
+
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+enum PaceKey {
+    Num(u32),
+    Id(AvatarId),
+}
+
+impl Pacing {
+    fn new() -> Self {
+        Self {
+            on: true,
+            nums: HashMap::new(),
+            slots: HashMap::new(),
+            default_interval: interval_of(MAX_RATE_HZ),
+        }
+    }
+
+    /// Reserves the avatar's next slot: the time its pose may be sent (now or later).
+    fn reserve(&mut self, key: PaceKey, now: tokio::time::Instant) -> Option<tokio::time::Instant> {
+        if !self.on {
+            return None;
+        }
+        let key = match key {
+            PaceKey::Id(id) => self
+                .nums
+                .get(&id)
+                .map_or(PaceKey::Id(id), |&n| PaceKey::Num(n)),
+            key => key,
+        };
+        let default = self.default_interval;
+        let (interval, next) = self.slots.entry(key).or_insert((default, now));
+        let slot = (*next).max(now);
+        *next = slot + *interval;
+        Some(slot)
+    }
+}
+
+/// The spacing of `rate` poses a second (a non-positive or non-finite rate: none).
+fn interval_of(rate_hz: f32) -> Duration {
+    if rate_hz.is_finite() && rate_hz > 0.0 {
+        Duration::from_secs_f64(1.0 / f64::from(rate_hz))
+    } else {
+        Duration::ZERO
+    }
 }
 
 impl Drop for Driver {
@@ -110,7 +176,22 @@ impl Driver {
             errors: tokio::sync::Mutex::new(errors),
             next_id: AtomicU64::new(1),
             reader,
+            pacing: Mutex::new(Pacing::new()),
         })
+    }
+
+    /// Turns pacing (see the module doc) on (the default) or off: off, every pose goes at
+    /// once and those past the server's budget are refused with `rate_limited`.
+    pub fn set_pacing(&self, on: bool) {
+        lock(&self.pacing).on = on;
+    }
+
+    /// Waits for the avatar's next pose slot.
+    async fn pace(&self, key: PaceKey) {
+        let slot = lock(&self.pacing).reserve(key, tokio::time::Instant::now());
+        if let Some(slot) = slot {
+            tokio::time::sleep_until(slot).await;
+        }
     }
 
     async fn send_text(&self, msg: &ClientMsg) -> Result<(), ClientError> {
@@ -164,12 +245,22 @@ impl Driver {
                 on_release,
             })
             .await?;
-        match result {
-            CommandResult::Drive(info) => Ok(*info),
+        let info: DriveInfo = match result {
+            CommandResult::Drive(info) => *info,
             // Read by its shape (this connection's protocol version sends bare results): the
             // value is the drive's answer whatever variant it read as.
-            other => serde_json::from_value(other.to_value()).map_err(send_failed),
-        }
+            other => serde_json::from_value(other.to_value()).map_err(send_failed)?,
+        };
+        // Its poses are paced at the budget the server gave.
+        let mut pacing = lock(&self.pacing);
+        pacing.nums.insert(info.avatar.clone(), info.avatar_num);
+        let now = tokio::time::Instant::now();
+        pacing.slots.insert(
+            PaceKey::Num(info.avatar_num),
+            (interval_of(info.max_rate_hz), now),
+        );
+        drop(pacing);
+        Ok(info)
     }
 
     /// Ends driving `avatar`; it returns to its clip.
@@ -184,7 +275,8 @@ impl Driver {
         .map(drop)
     }
 
-    /// Sends one pose as JSON: local rotations by source joint name (not acknowledged).
+    /// Sends one pose as JSON: local rotations by source joint name (not acknowledged), once
+    /// the avatar's pace allows (see the module doc).
     ///
     /// # Errors
     /// The connection failed.
@@ -195,6 +287,7 @@ impl Driver {
         root_position: Option<[f32; 3]>,
         time_us: Option<u64>,
     ) -> Result<(), ClientError> {
+        self.pace(PaceKey::Id(avatar.clone())).await;
         self.send_text(&ClientMsg::Pose {
             avatar: avatar.clone(),
             rotations: rotations.into_iter().collect::<BTreeMap<_, _>>(),
@@ -204,11 +297,13 @@ impl Driver {
         .await
     }
 
-    /// Sends one pose in the binary form (joints by index into [`DriveInfo::joints`]).
+    /// Sends one pose in the binary form (joints by index into [`DriveInfo::joints`]), once
+    /// the avatar's pace allows (see the module doc).
     ///
     /// # Errors
     /// The connection failed.
     pub async fn send_binary_pose(&self, pose: &BinaryPose) -> Result<(), ClientError> {
+        self.pace(PaceKey::Num(pose.avatar_num)).await;
         self.sink
             .lock()
             .await
