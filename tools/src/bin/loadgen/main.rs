@@ -124,9 +124,9 @@ pub struct Args {
     protocol: u32,
     /// Load the machine as a busy host would be: this many busy-loop processes run beside the
     /// servers for the whole run (e.g. one per core), so both servers are measured under the
-    /// same outside CPU contention.
-    #[arg(long, default_value_t = 0)]
-    busy: usize,
+    /// same outside CPU contention (at most 64).
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u64).range(0..=64))]
+    busy: u64,
     /// With --spawn-server: this many servers joined through a spawned `nats-server -js`,
     /// `--clients` on each; the first owns the scene, the others relay it.
     #[arg(long, requires = "spawn_server", conflicts_with_all = ["link", "link_suite", "server"])]

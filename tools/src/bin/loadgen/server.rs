@@ -373,8 +373,8 @@ impl Busy {
     ///
     /// # Errors
     /// One could not be started (those started are stopped).
-    pub fn start(n: usize) -> Result<Self> {
-        let mut busy = Self(Vec::with_capacity(n));
+    pub fn start(n: u64) -> Result<Self> {
+        let mut busy = Self(Vec::new());
         for _ in 0..n {
             let child = std::process::Command::new("sh")
                 .args(["-c", "while :; do :; done"])
