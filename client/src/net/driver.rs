@@ -103,10 +103,16 @@ impl Pacing {
     }
 }
 
-/// The spacing of `rate` poses a second (a non-positive or non-finite rate: none).
+/// Longest spacing pacing keeps, whatever budget a server announces (a rate of 1e-30 a second
+/// must not overflow the clock).
+const MAX_INTERVAL: Duration = Duration::from_secs(60);
+
+/// The spacing of `rate` poses a second, at most [`MAX_INTERVAL`] (a non-positive or
+/// non-finite rate: none).
 fn interval_of(rate_hz: f32) -> Duration {
     if rate_hz.is_finite() && rate_hz > 0.0 {
-        Duration::from_secs_f64(1.0 / f64::from(rate_hz))
+        Duration::try_from_secs_f64(1.0 / f64::from(rate_hz))
+            .map_or(MAX_INTERVAL, |d| d.min(MAX_INTERVAL))
     } else {
         Duration::ZERO
     }
@@ -361,4 +367,29 @@ async fn read(
         }
     }
     lock(&pending).clear();
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn any_announced_budget_gives_a_bounded_spacing() {
+        assert_eq!(interval_of(120.0), Duration::from_secs_f64(1.0 / 120.0));
+        assert_eq!(interval_of(1e-30), MAX_INTERVAL);
+        assert_eq!(interval_of(f32::MIN_POSITIVE), MAX_INTERVAL);
+        assert_eq!(interval_of(3e38), Duration::from_secs_f64(1.0 / 3e38));
+        for bad in [0.0, -1.0, f32::NAN, f32::INFINITY] {
+            assert_eq!(interval_of(bad), Duration::ZERO);
+        }
+        // Slots far apart still add up without overflowing the clock.
+        let mut pacing = Pacing::new();
+        let now = tokio::time::Instant::now();
+        pacing
+            .slots
+            .insert(PaceKey::Num(1), (interval_of(1e-30), now));
+        for _ in 0..1000 {
+            pacing.reserve(PaceKey::Num(1), now);
+        }
+    }
 }
