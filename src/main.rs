@@ -23,7 +23,7 @@ use tracing_subscriber::{EnvFilter, Layer};
 
 // jemalloc, built without thread caches and with 1 s decay (.cargo/config.toml), gives the
 // memory of closed connections back to the OS within ~2 s; glibc's malloc and mimalloc kept
-// all of it resident (README "Hardening").
+// all of it resident (`docs/src/reference/hardening.md`).
 #[cfg(feature = "jemalloc")]
 #[global_allocator]
 static GLOBAL: tikv_jemallocator::Jemalloc = tikv_jemallocator::Jemalloc;
@@ -54,7 +54,7 @@ struct Args {
     /// Do not load the built-in avatar and the default scene.
     #[arg(long, env = "POSECAST_NO_BUILTIN")]
     no_builtin: bool,
-    /// TOML file of tokens and their limits (see README, "Access control").
+    /// TOML file of tokens and their limits (see `docs/src/reference/access-control.md`).
     #[arg(long, env = "POSECAST_ACCESS_FILE")]
     access_file: Option<PathBuf>,
     /// Unlimited control token(s). With none here or in the access file, one is generated
@@ -99,7 +99,7 @@ struct Args {
     #[command(flatten)]
     net: NetArgs,
     /// VMC input: a UDP address whose VMC performer (VSeeFace, Warudo, XR Animator, …) drives
-    /// an avatar, ADDR=AVATAR, e.g. 0.0.0.0:39539=avatar (repeatable; README "VMC").
+    /// an avatar, ADDR=AVATAR, e.g. 0.0.0.0:39539=avatar (repeatable; `docs/src/how-to/vmc.md`).
     #[arg(long = "vmc-in", env = "POSECAST_VMC_IN", value_delimiter = ',')]
     vmc_in: Vec<VmcIn>,
     /// VMC output: send an avatar's pose every tick to a VMC receiver, AVATAR=ADDR, e.g.
@@ -107,7 +107,7 @@ struct Args {
     #[arg(long = "vmc-out", env = "POSECAST_VMC_OUT", value_delimiter = ',')]
     vmc_out: Vec<VmcOut>,
     /// NATS server URLs (comma-separated; any one will do): run as one server of a cluster
-    /// that shares scenes through NATS with JetStream (README "Scale-out with NATS").
+    /// that shares scenes through NATS with JetStream (`docs/src/how-to/cluster.md`).
     #[arg(long, env = "POSECAST_NATS", value_delimiter = ',')]
     nats: Vec<String>,
     /// This server's name in the cluster (default: host name and port).
@@ -165,7 +165,7 @@ impl QuotaArgs {
     }
 }
 
-/// Network timeouts and connection caps (`NetLimits`; README "Hardening").
+/// Network timeouts and connection caps (`NetLimits`; `docs/src/reference/hardening.md`).
 #[derive(Debug, clap::Args)]
 struct NetArgs {
     /// Seconds a websocket has to send its hello after the upgrade (then `timeout`, close 1008).

@@ -1,4 +1,4 @@
-//! What an acknowledgement means on a cluster (README, "Scale-out with NATS"): real `posecast`
+//! What an acknowledgement means on a cluster (`docs/src/how-to/cluster.md`): real `posecast`
 //! processes and a `nats-server`. An owner frozen (SIGSTOP) while commands wait in its socket
 //! and woken after another server took its scene over acknowledges none of them falsely —
 //! every `200` is on the final owner and in the stored snapshot, every refusal is a typed

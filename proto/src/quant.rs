@@ -9,7 +9,7 @@
 //! `q` and `−q` are the same rotation, so the quaternion is first negated to make the dropped
 //! component positive; the decoder restores it as `√(1 − a² − b² − c²)`. Step per component
 //! `Δ = √2 / (2¹⁵ − 2) ≈ 4.3e-5`; the measured worst-case angular error over 10⁶ random
-//! rotations is in the test `worst_case_error_over_a_million` (README gives the figure), bounded
+//! rotations is in the test `worst_case_error_over_a_million` (`docs/src/reference/figures.md` gives the figure), bounded
 //! by [`MAX_ERROR_DEGREES`].
 
 use glam::Quat;

@@ -4,7 +4,7 @@
 //! BVH (mocapbank-style names; Bandai-Namco-style names with every joint frame turned) and a
 //! quadruped.
 //!
-//! `cargo bench -p posecast-server --bench rig_figures` prints the table README shows.
+//! `cargo bench -p posecast-rigs --bench rig_figures` prints the table `docs/src/concepts/rigs.md` shows.
 //!
 //! Errors are angles between the same segment of source and target in world space, over every
 //! frame of the baked clip (30 Hz): limbs are upper arm, forearm, thigh and shank on both sides;

@@ -1,7 +1,7 @@
 //! Retargeting CMU 01_01 (BVH) onto CesiumMan, RiggedFigure and the built-in avatar (glTF),
 //! and the wasp's walk onto another CSE169 skeleton: finite poses, feet near the ground, arm
 //! directions within 0.05° of the source's (arms and legs), frame by frame: the figure the
-//! README advertises (0.04°, the resolution of an f32 `acos` near 1).
+//! `docs/src/concepts/rigs.md` advertises (0.04°, the resolution of an f32 `acos` near 1).
 //!
 //! `cargo test -p posecast-server --test rig_retarget -- --nocapture` prints the figures.
 

@@ -421,7 +421,7 @@ fn implausible_humanoids_are_warned_about() {
     );
 }
 
-/// The table README shows: every rig of the shared test files and the variants here, with
+/// The table `docs/src/concepts/rigs.md` shows: every rig of the shared test files and the variants here, with
 /// its classification, confidence, up axis and units as the pipeline decided them.
 #[test]
 fn figures_of_the_shared_rigs() {

@@ -3,7 +3,7 @@
 //! A server listens before it loads anything ([`crate::startup::Server::start`]); rigs and
 //! stored scenes are restored in the background (`restore`). Until then `GET
 //! /healthz` answers 503 with the progress, and every request that reads or changes scenes or
-//! assets waits here (see the README, "Persistence").
+//! assets waits here (see the guide, `docs/src/reference/persistence.md`).
 
 use posecast_core::error::Error;
 use std::sync::atomic::{AtomicUsize, Ordering};

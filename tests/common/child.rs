@@ -24,11 +24,21 @@ impl Posecast {
         server
     }
 
+    /// [`Posecast::start`] with `dir` as the working folder (where the default data folder,
+    /// `./posecast-data`, goes).
+    pub fn start_in(dir: &std::path::Path, args: &[&str], env: &[(&str, &str)]) -> Self {
+        let server = Self::spawn(binary(args, env).current_dir(dir));
+        server.wait_ready(Duration::from_secs(60));
+        server
+    }
+
     /// [`Posecast::start`] up to the URL it prints: listening, maybe still loading.
     pub fn launch(args: &[&str], env: &[(&str, &str)]) -> Self {
-        let mut child = binary(args, env)
-            .spawn()
-            .expect("cannot start the posecast binary");
+        Self::spawn(&mut binary(args, env))
+    }
+
+    fn spawn(command: &mut Command) -> Self {
+        let mut child = command.spawn().expect("cannot start the posecast binary");
         let output = Arc::new(Mutex::new(Vec::new()));
         let (tx, rx) = std::sync::mpsc::channel();
         let out = child.stdout.take().unwrap();

@@ -245,7 +245,7 @@ pub async fn server_with_limited_rig() -> (Server, PathBuf) {
     (server, dir)
 }
 
-/// Writes a screenshot for the README small: RGB without the alpha channel, 6 bits a channel
+/// Writes a screenshot for the README and the guide small: RGB without the alpha channel, 6 bits a channel
 /// (the lowest two bits of the shading's gradients are what compresses worst; invisible),
 /// best compression.
 pub fn write_small_png(png_bytes: &[u8], path: &Path) {

@@ -8,7 +8,7 @@
 //! - `tokens`: a wrong token, and a server restarted with a new token, leave the page watching
 //!   and saying why control is refused; a `#control=…` link opened in the tab restores control;
 //! - `world`: scenes and avatars created, placed, focused, picked and removed from the page
-//!   (and the multi-avatar screenshot, `docs/dashboard.png`);
+//!   (and the multi-avatar screenshot, `docs/src/images/dashboard.png`);
 //! - `timeline`: the time display and scrubber move with the stream, range markers,
 //!   cross-fades shown;
 //! - `layout`: at 1280×800 the controls sit beside the preview, which stays in view; at 400 px
@@ -16,10 +16,10 @@
 //! - `push`: changes made by others show within a second without the page asking (it never
 //!   sends `list_scenes`, and sends no command while idle);
 //! - `sdk`: the JavaScript client `/sdk/posecast.js` from pages on another origin: binary
-//!   frames decoded as a Rust client decodes them, typed command errors, README's example page.
+//!   frames decoded as a Rust client decodes them, typed command errors, the guide's example page (`docs/src/how-to/javascript.md`).
 //!
 //! Needs `/usr/bin/chromium` and `/usr/bin/chromedriver` (`scripts/test` installs them).
-//! Set `POSECAST_UPDATE_SCREENSHOT=1` to also write `docs/dashboard.png` for the README.
+//! Set `POSECAST_UPDATE_SCREENSHOT=1` to also write `docs/src/images/dashboard.png` for the README and the guide.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 

@@ -1,6 +1,6 @@
 //! The JavaScript client (`/sdk/posecast.js`) in headless Chromium, from pages served on
 //! another origin that import only it: its binary decoding against a Rust client's on the same
-//! ticks (all joints, and a joint subset made whole), its typed command errors, and README's
+//! ticks (all joints, and a joint subset made whole), its typed command errors, and the guide's
 //! "Build your own dashboard" page as written.
 
 use crate::browser::*;
@@ -438,17 +438,20 @@ async fn command_promises_reject_with_the_typed_error() {
     assert_eq!(avatar_state(&server, "avatar").await["clip"], "idle");
 }
 
-/// README's example page, exactly as written but for the server's address, served from
+/// The guide's example page (`docs/src/how-to/javascript.md`), exactly as written but for the server's address, served from
 /// another origin: it draws the avatar, its tick advances, its root is where the Rust client
 /// has it, and its button shows the typed refusal.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_readmes_example_page_shows_poses() {
-    let readme =
-        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md")).unwrap();
+async fn the_guides_example_page_shows_poses() {
+    let readme = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/docs/src/how-to/javascript.md"
+    ))
+    .unwrap();
     let section = readme
-        .split("\n## Build your own dashboard")
+        .split("# Build your own dashboard")
         .nth(1)
-        .expect("README has a section \"Build your own dashboard\"");
+        .expect("docs/src/how-to/javascript.md has a section \"Build your own dashboard\"");
     let example = section
         .split("```html\n")
         .nth(1)

@@ -2,7 +2,7 @@
 //! position and facing, all drawn where they stand; one picked by clicking it in the preview,
 //! moved, followed by the camera, given a clip; one removed, the scene deleted. Every effect is
 //! checked on the server (REST), not on the page's own word. Writes the multi-avatar
-//! screenshot (`docs/dashboard.png` with `POSECAST_UPDATE_SCREENSHOT=1`).
+//! screenshot (`docs/src/images/dashboard.png` with `POSECAST_UPDATE_SCREENSHOT=1`).
 
 use crate::browser::*;
 use crate::common::{self, CONTROL, http};
@@ -266,7 +266,7 @@ async fn the_page_manages_scenes_and_avatars() {
     if std::env::var_os("POSECAST_UPDATE_SCREENSHOT").is_some() {
         write_small_png(
             &png_bytes,
-            &Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/dashboard.png"),
+            &Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/src/images/dashboard.png"),
         );
     }
     let runs = column_runs(&png_bytes, rect);

@@ -131,7 +131,7 @@ pub async fn command(
     body: Bytes,
 ) -> Result<Json<Value>, AppError> {
     // A retry after an unknown outcome (a timeout) carries the first try's key and is
-    // applied at most once (README, "Scale-out with NATS").
+    // applied at most once (`docs/src/how-to/cluster.md`).
     let key = match headers.get("idempotency-key").map(|v| v.to_str()) {
         None => None,
         Some(Ok(k)) if !k.is_empty() && k.len() <= MAX_IDEMPOTENCY_KEY => Some(k.to_owned()),

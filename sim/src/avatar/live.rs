@@ -20,7 +20,7 @@ pub const RATE_BURST: f64 = 12.0;
 /// A live driver's pose of an avatar (consulted by [`crate::avatar::Avatar::evaluate`]
 /// between the clip and the joint overrides).
 ///
-/// Sampling at the tick takes the **latest** pose received (see README, "Live driving"): the
+/// Sampling at the tick takes the **latest** pose received (see `docs/src/how-to/live-driving.md`): the
 /// driver's timestamps only order poses (an older one than the last applied is dropped).
 #[derive(Debug)]
 pub struct LivePose {

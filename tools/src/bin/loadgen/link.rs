@@ -144,7 +144,7 @@ pub fn row(link: &str, stats: &[ClientStats], seconds: f64, tick_rate: f32) -> R
     }
 }
 
-/// Prints the table (Markdown, as README has it).
+/// Prints the table (Markdown, as `docs/src/concepts/adaptive-rate.md` has it).
 pub fn print(rows: &[Row]) {
     println!(
         "| link | clients | frames/s per client, min / mean | frame age p50 / p99 | worst freeze | interpolated | held |"

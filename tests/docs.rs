@@ -1,0 +1,278 @@
+//! What the documentation promises, run: the README's five-minute tour, as written, against
+//! the real binaries, and the guide's server-flags page against what `posecast --help` prints.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+mod common;
+
+use common::child::Posecast;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+const ROOT: &str = env!("CARGO_MANIFEST_DIR");
+
+/// The bodies of the ```` ```sh ```` blocks of README's section `heading`.
+fn sh_blocks(readme: &str, heading: &str) -> Vec<String> {
+    let start = readme
+        .find(&format!("\n{heading}\n"))
+        .unwrap_or_else(|| panic!("README has a section {heading:?}"));
+    let section = &readme[start + heading.len() + 2..];
+    let section = &section[..section.find("\n## ").unwrap_or(section.len())];
+    section
+        .split("```sh\n")
+        .skip(1)
+        .map(|block| block[..block.find("\n```").expect("a closed block")].to_owned())
+        .collect()
+}
+
+/// The `posecast-client` binary cargo built beside `posecast` (`cargo test --workspace`
+/// builds every binary of the workspace before it runs a test).
+fn client_binary() -> Option<PathBuf> {
+    let path = Path::new(env!("CARGO_BIN_EXE_posecast")).with_file_name("posecast-client");
+    path.exists().then_some(path)
+}
+
+/// README's tour: the server started with the first block's flags, the second block run by
+/// bash with `cargo run --release -p posecast-client-cli --` standing for the client binary
+/// and the server's address for `127.0.0.1:8080`. Every command must succeed and leave what
+/// the tour says it makes.
+#[test]
+fn the_readmes_tour_runs_as_written() {
+    let readme = std::fs::read_to_string(Path::new(ROOT).join("README.md")).unwrap();
+    let blocks = sh_blocks(&readme, "## A five-minute tour");
+    assert_eq!(
+        blocks.len(),
+        2,
+        "the tour is a server command and a script: {blocks:?}"
+    );
+    let server_args: Vec<&str> = blocks[0]
+        .trim()
+        .strip_prefix("cargo run --release --")
+        .expect("the tour starts the server with `cargo run --release -- FLAGS`")
+        .split_whitespace()
+        .collect();
+    let Some(client) = client_binary() else {
+        posecast_proto::testing::skip(
+            "tests/docs.rs: target/…/posecast-client is not built (run `cargo test --workspace`)",
+        );
+        return;
+    };
+
+    let dir = tempfile::tempdir().unwrap();
+    let server = Posecast::start_in(dir.path(), &server_args, &[]);
+    let addr = server.addr.to_string();
+    let script = blocks[1]
+        .replace(
+            "cargo run --release -p posecast-client-cli --",
+            &client.to_string_lossy(),
+        )
+        .replace("127.0.0.1:8080", &addr);
+    assert!(
+        !script.contains("cargo ") && !script.contains(":8080"),
+        "every command of the tour is one this test knows how to run: {script}"
+    );
+    let out = Command::new("bash")
+        .args(["-euo", "pipefail", "-c", &script])
+        .current_dir(dir.path())
+        .env("POSECAST_URL", format!("ws://{addr}/ws"))
+        .env_remove("RUST_BACKTRACE")
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    if !out.status.success() && stderr.contains("no GPU adapter available") {
+        posecast_proto::testing::skip(
+            "tests/docs.rs: the tour renders, and no GPU adapter is here",
+        );
+        return;
+    }
+    assert!(
+        out.status.success(),
+        "the tour failed: {}\nstdout:\n{stdout}\nstderr:\n{stderr}\nserver:\n{:?}",
+        out.status,
+        server.output()
+    );
+
+    let file = |name: &str| std::fs::read(dir.path().join(name)).unwrap();
+    assert!(
+        file("walk.bvh").starts_with(b"HIERARCHY"),
+        "walk.bvh is a BVH file"
+    );
+    assert!(
+        file("take.glb").starts_with(b"glTF"),
+        "take.glb is a binary glTF file"
+    );
+    assert!(
+        file("scene.png").starts_with(b"\x89PNG\r\n\x1a\n"),
+        "scene.png is a PNG"
+    );
+    // The upload, the new avatar and the take, in the order the tour makes them.
+    let answers: Vec<serde_json::Value> = stdout
+        .lines()
+        .filter(|l| l.starts_with('{'))
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let kinds: Vec<&str> = answers
+        .iter()
+        .map(|a| {
+            a["kind"]
+                .as_str()
+                .or(a["code"].as_str())
+                .unwrap_or("upload")
+        })
+        .collect();
+    assert_eq!(
+        kinds,
+        ["upload", "avatar_added", "done", "recorded"],
+        "{stdout}"
+    );
+    assert_eq!(answers[0]["result"][0]["name"], "walker", "{stdout}");
+    assert_eq!(answers[1]["result"]["avatar"], "walker", "{stdout}");
+    let frames = answers[3]["result"]["frames"].as_u64().unwrap();
+    assert!(
+        frames > 0,
+        "the take has the ticks of two seconds: {stdout}"
+    );
+    assert!(
+        stderr.contains("2 avatars") || stdout.contains("2 avatars"),
+        "the render drew both avatars: {stdout}{stderr}"
+    );
+}
+
+/// The `text` block of `docs/src/reference/server-flags.md` is `posecast --help`, character
+/// for character (`POSECAST_UPDATE_DOCS=1` writes it).
+#[test]
+fn the_server_flags_page_is_what_the_binary_prints() {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_posecast"));
+    command.arg("--help");
+    // clap shows a set variable's value beside its flag: the page shows none.
+    for (key, _) in std::env::vars_os() {
+        if key.to_string_lossy().starts_with("POSECAST_") {
+            command.env_remove(key);
+        }
+    }
+    let out = command.output().unwrap();
+    assert!(out.status.success());
+    let help = String::from_utf8(out.stdout).unwrap();
+
+    let path = Path::new(ROOT).join("docs/src/reference/server-flags.md");
+    let page = std::fs::read_to_string(&path).unwrap();
+    let start = page
+        .find("```text\n")
+        .expect("the page has a ```text block")
+        + 8;
+    let end = start + page[start..].find("```\n").expect("a closed block");
+    if std::env::var_os("POSECAST_UPDATE_DOCS").is_some() {
+        std::fs::write(&path, format!("{}{help}{}", &page[..start], &page[end..])).unwrap();
+        return;
+    }
+    let shown = &page[start..end];
+    if shown != help {
+        let line = shown
+            .lines()
+            .zip(help.lines())
+            .position(|(a, b)| a != b)
+            .map_or_else(|| "the end".to_owned(), |i| format!("line {}", i + 1));
+        panic!(
+            "docs/src/reference/server-flags.md differs from `posecast --help` at {line} of the \
+             block: run `POSECAST_UPDATE_DOCS=1 cargo test --test docs`"
+        );
+    }
+}
+
+/// An example program cargo built (`cargo test --all-targets` builds them), or a skip.
+fn example(name: &str) -> Option<PathBuf> {
+    let path = Path::new(env!("CARGO_BIN_EXE_posecast"))
+        .with_file_name("examples")
+        .join(name);
+    if !path.exists() {
+        posecast_proto::testing::skip(&format!(
+            "tests/docs.rs: examples/{name}.rs is not built (run `cargo test --all-targets`)"
+        ));
+        return None;
+    }
+    Some(path)
+}
+
+/// `examples/watch.rs` prints the built-in avatar's head where an upright avatar's head is,
+/// and `examples/wave.rs` drives the avatar: while it runs, a viewer sees the right upper arm
+/// at the rotation the example sends, within the wire's bound; afterwards it exits cleanly.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_examples_watch_and_drive() {
+    let (Some(watch), Some(wave)) = (example("watch"), example("wave")) else {
+        return;
+    };
+    let server = Posecast::start(&["--no-persist", "--control-token", "examples-secret"], &[]);
+    let url = format!("ws://{}/ws", server.addr);
+
+    let out = Command::new(&watch)
+        .env("POSECAST_URL", &url)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let heights: Vec<f32> = stdout
+        .lines()
+        .filter_map(|l| l.strip_prefix("avatar tick "))
+        .map(|l| {
+            let inner = &l[l.find('(').unwrap() + 1..l.find(')').unwrap()];
+            inner.split(", ").nth(1).unwrap().parse().unwrap()
+        })
+        .collect();
+    assert!(
+        heights.len() >= 20,
+        "a line about ten times a second: {stdout}"
+    );
+    // The built-in avatar is 1.75 m tall; its skull base stands about 1.6 m up.
+    assert!(
+        heights.iter().all(|y| (1.45..1.7).contains(y)),
+        "{heights:?}"
+    );
+
+    let viewer = posecast_client::net::Client::connect(posecast_client::net::ClientOptions::new(
+        url.clone(),
+        "default",
+    ))
+    .await
+    .unwrap();
+    let mut child = Command::new(&wave)
+        .env("POSECAST_URL", &url)
+        .env("POSECAST_TOKEN", "examples-secret")
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let sent = glam::Quat::from_rotation_z(-1.5);
+    let avatar = posecast_proto::msg::AvatarId("avatar".into());
+    let mut events = viewer.events();
+    let seen = loop {
+        let view = viewer.avatar(&avatar).expect("the viewer knows the avatar");
+        let shoulder = view.skeleton.find("r_shoulder").unwrap();
+        if let Some(pose) = &view.latest {
+            let angle =
+                posecast_proto::quant::angle_between_degrees(pose.locals[shoulder].rotation, sent);
+            if angle <= posecast_proto::quant::MAX_ERROR_DEGREES {
+                break angle;
+            }
+        }
+        if let Ok(Some(status)) = child.try_wait() {
+            panic!("wave exited ({status}) before a viewer saw its pose");
+        }
+        // Wait for the next frame, however long a busy machine takes.
+        let _ = events.recv().await;
+    };
+    let out = tokio::task::spawn_blocking(move || child.wait_with_output())
+        .await
+        .unwrap()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "wave failed: {stdout}");
+    assert!(
+        stdout.contains("sent 180 poses; released avatar"),
+        "{stdout}"
+    );
+    assert!(seen <= posecast_proto::quant::MAX_ERROR_DEGREES);
+}
