@@ -180,18 +180,32 @@ fn the_server_flags_page_is_what_the_binary_prints() {
     }
 }
 
-/// An example program cargo built (`cargo test --all-targets` builds them), or a skip.
+/// An example program cargo built (`cargo test --all-targets` builds them, as
+/// `target/…/examples/NAME-HASH`; `cargo build --examples` also as `NAME`): the newest, or a
+/// skip.
 fn example(name: &str) -> Option<PathBuf> {
-    let path = Path::new(env!("CARGO_BIN_EXE_posecast"))
-        .with_file_name("examples")
-        .join(name);
-    if !path.exists() {
+    let dir = Path::new(env!("CARGO_BIN_EXE_posecast")).with_file_name("examples");
+    let newest = std::fs::read_dir(&dir)
+        .into_iter()
+        .flatten()
+        .filter_map(Result::ok)
+        .filter(|entry| {
+            let file = entry.file_name().to_string_lossy().into_owned();
+            let hashed = file
+                .strip_prefix(name)
+                .and_then(|rest| rest.strip_prefix('-'))
+                .is_some_and(|hash| hash.chars().all(|c| c.is_ascii_hexdigit()));
+            file == name || hashed
+        })
+        .filter_map(|entry| Some((entry.metadata().ok()?.modified().ok()?, entry.path())))
+        .max()
+        .map(|(_, path)| path);
+    if newest.is_none() {
         posecast_proto::testing::skip(&format!(
             "tests/docs.rs: examples/{name}.rs is not built (run `cargo test --all-targets`)"
         ));
-        return None;
     }
-    Some(path)
+    newest
 }
 
 /// `examples/watch.rs` prints the built-in avatar's head where an upright avatar's head is,
@@ -249,9 +263,11 @@ async fn the_examples_watch_and_drive() {
     let avatar = posecast_proto::msg::AvatarId("avatar".into());
     let mut events = viewer.events();
     let seen = loop {
-        let view = viewer.avatar(&avatar).expect("the viewer knows the avatar");
-        let shoulder = view.skeleton.find("r_shoulder").unwrap();
-        if let Some(pose) = &view.latest {
+        // Until its description arrives the viewer knows no avatar: wait for events.
+        if let Some(view) = viewer.avatar(&avatar)
+            && let Some(pose) = &view.latest
+        {
+            let shoulder = view.skeleton.find("r_shoulder").unwrap();
             let angle =
                 posecast_proto::quant::angle_between_degrees(pose.locals[shoulder].rotation, sent);
             if angle <= posecast_proto::quant::MAX_ERROR_DEGREES {
