@@ -180,32 +180,20 @@ fn the_server_flags_page_is_what_the_binary_prints() {
     }
 }
 
-/// An example program cargo built (`cargo test --all-targets` builds them, as
-/// `target/…/examples/NAME-HASH`; `cargo build --examples` also as `NAME`): the newest, or a
+/// An example program as `cargo build --examples` leaves it (`target/…/examples/NAME`;
+/// scripts/test builds them first: `cargo test` builds examples only as test harnesses), or a
 /// skip.
 fn example(name: &str) -> Option<PathBuf> {
-    let dir = Path::new(env!("CARGO_BIN_EXE_posecast")).with_file_name("examples");
-    let newest = std::fs::read_dir(&dir)
-        .into_iter()
-        .flatten()
-        .filter_map(Result::ok)
-        .filter(|entry| {
-            let file = entry.file_name().to_string_lossy().into_owned();
-            let hashed = file
-                .strip_prefix(name)
-                .and_then(|rest| rest.strip_prefix('-'))
-                .is_some_and(|hash| hash.chars().all(|c| c.is_ascii_hexdigit()));
-            file == name || hashed
-        })
-        .filter_map(|entry| Some((entry.metadata().ok()?.modified().ok()?, entry.path())))
-        .max()
-        .map(|(_, path)| path);
-    if newest.is_none() {
+    let path = Path::new(env!("CARGO_BIN_EXE_posecast"))
+        .with_file_name("examples")
+        .join(name);
+    if !path.exists() {
         posecast_proto::testing::skip(&format!(
-            "tests/docs.rs: examples/{name}.rs is not built (run `cargo test --all-targets`)"
+            "tests/docs.rs: examples/{name}.rs is not built (run `cargo build -p posecast --examples`)"
         ));
+        return None;
     }
-    newest
+    Some(path)
 }
 
 /// `examples/watch.rs` prints the built-in avatar's head where an upright avatar's head is,
