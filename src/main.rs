@@ -6,13 +6,13 @@ use clap::Parser;
 use posecast_server::auth::{AccessConfig, Role, Secret, TokenRule};
 use posecast_server::config::{
     Config, DEFAULT_MAX_CONNECTIONS, DEFAULT_MAX_CONNECTIONS_PER_ADDRESS, DEFAULT_MAX_UPLOAD_BYTES,
-    DEFAULT_TCP_NOTSENT_LOWAT, NetLimits,
+    DEFAULT_TCP_NOTSENT_LOWAT, NatsSecurity, NetLimits,
 };
 use posecast_server::quota::{CommandRate, Quotas};
 use posecast_server::readiness::Phase;
 use posecast_server::service::limits::raise_nofile_limit;
 use posecast_server::startup::{DEFAULT_SCENE, Server};
-use posecast_server::vmc::{VmcIn, VmcOut};
+use posecast_server::vmc::{VmcInputs, VmcOut};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -98,10 +98,14 @@ struct Args {
     drive_timeout: Duration,
     #[command(flatten)]
     net: NetArgs,
-    /// VMC input: a UDP address whose VMC performer (VSeeFace, Warudo, XR Animator, …) drives
-    /// an avatar, ADDR=AVATAR, e.g. 0.0.0.0:39539=avatar (repeatable; `docs/src/how-to/vmc.md`).
-    #[arg(long = "vmc-in", env = "POSECAST_VMC_IN", value_delimiter = ',')]
-    vmc_in: Vec<VmcIn>,
+    /// VMC input: a UDP port whose VMC performer (VSeeFace, Warudo, XR Animator, …) drives
+    /// an avatar, PORT=AVATAR or ADDR:PORT=AVATAR, then optionally ,from=CIDR,…: a bare port
+    /// listens on loopback only (39539=avatar); with an address, from= lists the senders
+    /// allowed, e.g.
+    /// 0.0.0.0:39539=avatar,from=192.168.1.0/24,10.0.0.7 (others are dropped and counted).
+    /// Repeatable, or several inputs comma-separated; `docs/src/how-to/vmc.md`.
+    #[arg(long = "vmc-in", env = "POSECAST_VMC_IN")]
+    vmc_in: Vec<VmcInputs>,
     /// VMC output: send an avatar's pose every tick to a VMC receiver, AVATAR=ADDR, e.g.
     /// avatar=127.0.0.1:39540 (repeatable). Only from here: no command can add one.
     #[arg(long = "vmc-out", env = "POSECAST_VMC_OUT", value_delimiter = ',')]
@@ -117,6 +121,75 @@ struct Args {
     /// whose owner died is ticked by another server within it.
     #[arg(long, env = "POSECAST_LEASE", default_value = "3", value_parser = seconds)]
     lease: Duration,
+    #[command(flatten)]
+    nats_security: NatsArgs,
+    /// Secret the cluster's servers sign their relay messages with (HMAC-SHA256; the same on
+    /// every server): a client that can publish on NATS cannot speak for a server without it.
+    /// Prefer the environment variable: a flag shows in `ps`.
+    #[arg(long, env = "POSECAST_CLUSTER_SECRET", hide_env_values = true)]
+    cluster_secret: Option<String>,
+}
+
+/// How the server authenticates to NATS and checks it (`docs/src/how-to/cluster.md`,
+/// "Securing NATS"). One way to authenticate at most (these or credentials in a `--nats` URL).
+#[derive(clap::Args)]
+struct NatsArgs {
+    /// NATS credentials file (a user JWT and nkey seed, as `nsc` writes them).
+    #[arg(long, env = "POSECAST_NATS_CREDS", value_name = "FILE")]
+    nats_creds: Option<PathBuf>,
+    /// File holding this server's NATS nkey user seed (SU…, from `nk -gen user`).
+    #[arg(long, env = "POSECAST_NATS_NKEY", value_name = "FILE")]
+    nats_nkey: Option<PathBuf>,
+    /// NATS user name (with --nats-password).
+    #[arg(long, env = "POSECAST_NATS_USER")]
+    nats_user: Option<String>,
+    /// NATS password (prefer the environment variable: a flag shows in `ps`).
+    #[arg(long, env = "POSECAST_NATS_PASSWORD", hide_env_values = true)]
+    nats_password: Option<String>,
+    /// NATS token (prefer the environment variable: a flag shows in `ps`).
+    #[arg(long, env = "POSECAST_NATS_TOKEN", hide_env_values = true)]
+    nats_token: Option<String>,
+    /// CA certificates (PEM) the NATS server's certificate must chain to; requires TLS.
+    #[arg(long, env = "POSECAST_NATS_TLS_CA", value_name = "FILE")]
+    nats_tls_ca: Option<PathBuf>,
+    /// Client certificate (PEM) for NATS servers that verify clients (with --nats-tls-key);
+    /// requires TLS.
+    #[arg(long, env = "POSECAST_NATS_TLS_CERT", value_name = "FILE")]
+    nats_tls_cert: Option<PathBuf>,
+    /// The client certificate's private key (PEM).
+    #[arg(long, env = "POSECAST_NATS_TLS_KEY", value_name = "FILE")]
+    nats_tls_key: Option<PathBuf>,
+}
+
+impl std::fmt::Debug for NatsArgs {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let secret = |s: &Option<String>| s.as_ref().map(|_| "***");
+        f.debug_struct("NatsArgs")
+            .field("nats_creds", &self.nats_creds)
+            .field("nats_nkey", &self.nats_nkey)
+            .field("nats_user", &self.nats_user)
+            .field("nats_password", &secret(&self.nats_password))
+            .field("nats_token", &secret(&self.nats_token))
+            .field("nats_tls_ca", &self.nats_tls_ca)
+            .field("nats_tls_cert", &self.nats_tls_cert)
+            .field("nats_tls_key", &self.nats_tls_key)
+            .finish()
+    }
+}
+
+impl NatsArgs {
+    fn security(self) -> NatsSecurity {
+        NatsSecurity {
+            creds: self.nats_creds,
+            nkey: self.nats_nkey,
+            user: self.nats_user,
+            password: self.nats_password,
+            token: self.nats_token,
+            tls_ca: self.nats_tls_ca,
+            tls_cert: self.nats_tls_cert,
+            tls_key: self.nats_tls_key,
+        }
+    }
 }
 
 /// Quotas and the command rate limit (`posecast_server::quota`).
@@ -321,19 +394,25 @@ fn access(args: &Args) -> anyhow::Result<(AccessConfig, Option<Secret>)> {
     if args.require_view_token {
         access.open_view = false;
     }
-    for (i, t) in args.control_tokens.iter().enumerate() {
-        access.add(TokenRule::new(
-            format!("control-{}", i + 1),
-            Secret::new(t.as_str()),
-            Role::Control,
-        ))?;
-    }
-    for (i, t) in args.view_tokens.iter().enumerate() {
-        access.add(TokenRule::new(
-            format!("view-{}", i + 1),
-            Secret::new(t.as_str()),
-            Role::View,
-        ))?;
+    // The flags' own names in the errors (the rules' names, `control-1`, are internal).
+    for (flag, role, tokens) in [
+        ("control", Role::Control, &args.control_tokens),
+        ("view", Role::View, &args.view_tokens),
+    ] {
+        for (i, t) in tokens.iter().enumerate() {
+            access
+                .add(TokenRule::new(
+                    format!("{flag}-{}", i + 1),
+                    Secret::new(t.as_str()),
+                    role,
+                ))
+                .map_err(|e| match e {
+                    posecast_server::auth::AccessConfigError::Token { message, .. } => {
+                        anyhow::anyhow!("--{flag}-token (number {}): {message}", i + 1)
+                    }
+                    other => other.into(),
+                })?;
+        }
     }
     let generated = if access.has_control_token() {
         None
@@ -378,10 +457,12 @@ async fn main() -> anyhow::Result<()> {
             .map_err(anyhow::Error::msg)?,
         drive_timeout: args.drive_timeout,
         net: args.net.limits(),
-        vmc_in: args.vmc_in,
+        vmc_in: args.vmc_in.into_iter().flat_map(|VmcInputs(i)| i).collect(),
         vmc_out: args.vmc_out,
         nats: args.nats,
         node: args.node,
+        nats_security: args.nats_security.security(),
+        cluster_secret: args.cluster_secret.map(Secret::new),
         lease_ttl: args.lease,
     };
     raise_open_files_limit();
@@ -403,7 +484,16 @@ async fn main() -> anyhow::Result<()> {
         server.http_url()
     );
     for (input, addr) in config_vmc_in.iter().zip(&server.vmc.inputs) {
-        println!("  VMC in:    udp://{addr} drives avatar {}", input.avatar);
+        let from = if input.from.is_empty() {
+            String::new()
+        } else {
+            let list: Vec<String> = input.from.iter().map(ToString::to_string).collect();
+            format!(" (from {})", list.join(", "))
+        };
+        println!(
+            "  VMC in:    udp://{addr} drives avatar {}{from}",
+            input.avatar
+        );
     }
     for out in &config_vmc_out {
         println!("  VMC out:   avatar {} to udp://{}", out.avatar, out.addr);

@@ -235,39 +235,13 @@ async fn the_examples_watch_and_drive() {
         "{heights:?}"
     );
 
-    let viewer = posecast_client::net::Client::connect(posecast_client::net::ClientOptions::new(
-        url.clone(),
-        "default",
-    ))
-    .await
-    .unwrap();
     let mut child = Command::new(&wave)
         .env("POSECAST_URL", &url)
         .env("POSECAST_TOKEN", "examples-secret")
         .stdout(std::process::Stdio::piped())
         .spawn()
         .unwrap();
-    let sent = glam::Quat::from_rotation_z(-1.5);
-    let avatar = posecast_proto::msg::AvatarId("avatar".into());
-    let mut events = viewer.events();
-    let seen = loop {
-        // Until its description arrives the viewer knows no avatar: wait for events.
-        if let Some(view) = viewer.avatar(&avatar)
-            && let Some(pose) = &view.latest
-        {
-            let shoulder = view.skeleton.find("r_shoulder").unwrap();
-            let angle =
-                posecast_proto::quant::angle_between_degrees(pose.locals[shoulder].rotation, sent);
-            if angle <= posecast_proto::quant::MAX_ERROR_DEGREES {
-                break angle;
-            }
-        }
-        if let Ok(Some(status)) = child.try_wait() {
-            panic!("wave exited ({status}) before a viewer saw its pose");
-        }
-        // Wait for the next frame, however long a busy machine takes.
-        let _ = events.recv().await;
-    };
+    let seen = viewer_sees_the_arm(&url, &mut child, glam::Quat::from_rotation_z(-1.5)).await;
     let out = tokio::task::spawn_blocking(move || child.wait_with_output())
         .await
         .unwrap()
@@ -279,4 +253,145 @@ async fn the_examples_watch_and_drive() {
         "{stdout}"
     );
     assert!(seen <= posecast_proto::quant::MAX_ERROR_DEGREES);
+}
+
+/// Waits until a viewer of `url` sees the built-in avatar's right upper arm at `sent` (within
+/// the wire's bound) while `child` runs; panics if it exits first. Returns the angle seen.
+async fn viewer_sees_the_arm(url: &str, child: &mut std::process::Child, sent: glam::Quat) -> f64 {
+    let viewer = posecast_client::net::Client::connect(posecast_client::net::ClientOptions::new(
+        url.to_owned(),
+        "default",
+    ))
+    .await
+    .unwrap();
+    let avatar = posecast_proto::msg::AvatarId("avatar".into());
+    let mut events = viewer.events();
+    loop {
+        if let Some(view) = viewer.avatar(&avatar)
+            && let Some(pose) = &view.latest
+        {
+            let shoulder = view.skeleton.find("r_shoulder").unwrap();
+            let angle =
+                posecast_proto::quant::angle_between_degrees(pose.locals[shoulder].rotation, sent);
+            if angle <= posecast_proto::quant::MAX_ERROR_DEGREES {
+                return angle;
+            }
+        }
+        if let Ok(Some(status)) = child.try_wait() {
+            panic!("the driver exited ({status}) before a viewer saw its pose");
+        }
+        // Wait for the next frame, however long a busy machine takes.
+        let _ = events.recv().await;
+    }
+}
+
+/// `examples/node/drive.mjs` drives the avatar from Node.js with the SDK installed from the
+/// repository as an npm package (`npm install` in examples/node links `posecast` to
+/// server/sdk): a viewer sees the right upper arm at the rotation it sends, and it exits
+/// cleanly having released the avatar.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_node_example_drives_through_the_npm_package() {
+    let dir = Path::new(ROOT).join("examples/node");
+    let npm = Command::new("npm")
+        .args([
+            "install",
+            "--no-audit",
+            "--no-fund",
+            "--no-package-lock",
+            "--silent",
+        ])
+        .current_dir(&dir)
+        .output();
+    let Ok(npm) = npm else {
+        posecast_proto::testing::skip(
+            "tests/docs.rs: npm is missing (scripts/test installs Node.js)",
+        );
+        return;
+    };
+    assert!(
+        npm.status.success(),
+        "npm install in examples/node: {}",
+        String::from_utf8_lossy(&npm.stderr)
+    );
+    assert!(
+        dir.join("node_modules/posecast/package.json").exists(),
+        "the SDK is installed as the package `posecast`"
+    );
+    let server = Posecast::start(&["--no-persist", "--control-token", "examples-secret"], &[]);
+    let url = format!("ws://{}/ws", server.addr);
+    // Node 20 has the WebSocket global behind a flag; 22 and later without it.
+    let mut child = Command::new("node")
+        .args(["--experimental-websocket", "drive.mjs"])
+        .current_dir(&dir)
+        .env("POSECAST_URL", &url)
+        .env("POSECAST_TOKEN", "examples-secret")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let seen = viewer_sees_the_arm(&url, &mut child, glam::Quat::from_rotation_z(-1.5)).await;
+    let out = tokio::task::spawn_blocking(move || child.wait_with_output())
+        .await
+        .unwrap()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "drive.mjs failed: {stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("released avatar"), "{stdout}");
+    assert!(seen <= posecast_proto::quant::MAX_ERROR_DEGREES);
+}
+
+/// `client-cli/examples/drive_bvh.rs` drives the avatar from CMU 01_01: it uploads the file
+/// as a rig named after its contents (CMU's 31 joints), drives for three seconds without a
+/// refused pose and releases; a second run finds the same asset rather than uploading another.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_bvh_example_drives_from_a_motion_capture_file() {
+    let Some(bvh) = posecast_proto::testing::require_testdata("bvh/cmu/01_01.bvh") else {
+        return;
+    };
+    let Some(example) = example("drive_bvh") else {
+        return;
+    };
+    let server = Posecast::start(&["--no-persist", "--control-token", "examples-secret"], &[]);
+    let url = format!("ws://{}/ws", server.addr);
+    for run in 0..2 {
+        let out = Command::new(&example)
+            .arg(&bvh)
+            .env("POSECAST_URL", &url)
+            .env("POSECAST_TOKEN", "examples-secret")
+            .env_remove("RUST_BACKTRACE")
+            .output()
+            .unwrap();
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        assert!(
+            out.status.success(),
+            "run {run}: {stdout}{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert!(
+            stdout.contains("(31 joints)") && stdout.contains("sent 180 poses; released avatar"),
+            "run {run}: {stdout}"
+        );
+    }
+    let (status, _, body) = common::http_with_headers(
+        server.addr,
+        "GET",
+        "/api/assets",
+        &[("Authorization", "Bearer examples-secret")],
+        &[],
+    )
+    .await;
+    assert_eq!(status, 200, "{body}");
+    let assets: Vec<serde_json::Value> = serde_json::from_str(&body).unwrap();
+    let motions = assets
+        .iter()
+        .filter(|a| a["name"].as_str().is_some_and(|n| n.starts_with("motion-")))
+        .count();
+    assert_eq!(
+        motions, 1,
+        "one asset for the file, found again the second time: {body}"
+    );
 }

@@ -329,19 +329,23 @@ async fn over_the_caps_http_gets_503_and_websockets_close_1013() {
         Some(u16::from(CloseCode::Again))
     );
 
-    // Another address has its own share, until the global cap.
-    let _c = connect_from("127.0.0.2", addr).await.unwrap();
-    assert!(common::wait_for(3.0, || net.open() == 3).await);
+    // Another address has its own share, until the global cap; there the oldest silent
+    // connection (`_a`) makes room for the newcomer instead of a refusal (issue 36).
+    let c = connect_from("127.0.0.2", addr).await.unwrap();
+    assert!(common::wait_for(30.0, || net.open() == 3).await);
     let (status, _, body) = get_from("127.0.0.4", addr, "/healthz").await;
-    assert_eq!(status, 503, "{body}");
+    assert_eq!(status, 200, "{body}");
+    let mut a = _a;
     assert!(
-        body.contains("unavailable") && !body.contains("address"),
-        "{body}"
+        closed_after(&mut a, Instant::now(), Duration::from_secs(30))
+            .await
+            .is_some(),
+        "the oldest silent connection was not evicted"
     );
 
     // Closing frees the slots.
-    drop((_a, _b, _c));
-    let freed = common::wait_for(3.0, || net.open() == 0).await;
+    drop((a, _b, c));
+    let freed = common::wait_for(30.0, || net.open() == 0).await;
     assert!(freed, "{} still open", net.open());
     let (status, _, _) = get_from("127.0.0.1", addr, "/healthz").await;
     assert_eq!(status, 200);
@@ -358,8 +362,116 @@ async fn over_the_caps_http_gets_503_and_websockets_close_1013() {
             &metrics,
             "posecast_connections_refused_total{cap=\"global\"}"
         ),
-        1.0
+        0.0
     );
+    assert!(
+        metric(
+            &metrics,
+            "posecast_connections_evicted_total{stage=\"unproven\"}"
+        ) >= 1.0
+    );
+    server.stop().await;
+}
+
+/// Issue 36: silent connections from 45 addresses of 127.0.0.0/8, each under the per-address
+/// cap, fill the global cap and keep coming; a new viewer still connects, says hello and
+/// streams, because at the cap the connection that has said nothing for longest is evicted
+/// for the newcomer instead of the newcomer being refused.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_global_cap_of_silent_sockets_from_many_addresses_evicts_them_for_a_viewer() {
+    const CAP: usize = 200;
+    const PER_ADDRESS: usize = 5;
+    const ADDRESSES: usize = 45;
+    if !enough_descriptors(4_000) {
+        return;
+    }
+    // Timeouts far beyond the test: only eviction can free a slot.
+    let long = Duration::from_secs(300);
+    let server = server_with_limits(NetLimits {
+        header_read_timeout: long,
+        hello_timeout: long,
+        max_connections: CAP,
+        max_connections_per_address: PER_ADDRESS,
+        ..NetLimits::default()
+    })
+    .await;
+    let addr = server.addr;
+    let net = &server.state.metrics.net;
+    let from = |i: usize| format!("127.0.{}.{}", 10 + i / 200, 1 + i % 200);
+    // 225 silent sockets from 45 addresses: the cap is full, with the attack's own newest
+    // already evicting its oldest.
+    let mut held = Vec::new();
+    for i in 0..ADDRESSES * PER_ADDRESS {
+        held.push(connect_from(&from(i % ADDRESSES), addr).await.unwrap());
+    }
+    assert!(
+        common::wait_for(30.0, || net.open() == CAP as u64).await,
+        "{} open",
+        net.open()
+    );
+    // And the attack goes on, a new silent socket every few milliseconds from another 45
+    // addresses, while the viewer connects.
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let attack = tokio::spawn({
+        let stop = stop.clone();
+        async move {
+            let mut more = std::collections::VecDeque::new();
+            let mut opened = 0usize;
+            while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                if let Ok(tcp) = connect_from(&from(ADDRESSES + opened % ADDRESSES), addr).await {
+                    more.push_back(tcp);
+                    opened += 1;
+                }
+                if more.len() > CAP {
+                    more.pop_front();
+                }
+                tokio::time::sleep(Duration::from_millis(2)).await;
+            }
+            opened
+        }
+    });
+    let mut viewer = ws_from("127.0.0.2", addr).await.expect("viewer refused");
+    send_hello(&mut viewer).await;
+    match next_message(&mut viewer).await {
+        Some(posecast_proto::msg::ServerMsg::Welcome { .. }) => {}
+        other => panic!("expected a welcome during the attack, got {other:?}"),
+    }
+    viewer
+        .send(Message::Text(
+            r#"{"type":"subscribe","scene":"default"}"#.into(),
+        ))
+        .await
+        .unwrap();
+    let mut frames = 0;
+    for _ in 0..30 {
+        assert!(
+            gets_a_frame(&mut viewer, Duration::from_secs(30)).await,
+            "the viewer lost its stream during the attack after {frames} frames"
+        );
+        frames += 1;
+    }
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    let opened = attack.await.unwrap();
+    let (_, _, metrics) = get_from("127.0.0.3", addr, "/metrics").await;
+    let evicted = metric(
+        &metrics,
+        "posecast_connections_evicted_total{stage=\"unproven\"}",
+    );
+    let refused = metric(
+        &metrics,
+        "posecast_connections_refused_total{cap=\"global\"}",
+    );
+    eprintln!(
+        "cap {CAP}: {} silent sockets from {} addresses, then {opened} more during the viewer's \
+         {frames} frames; evicted {evicted}, refused for the global cap {refused}; open {}",
+        ADDRESSES * PER_ADDRESS,
+        2 * ADDRESSES,
+        net.open()
+    );
+    assert!(evicted >= (ADDRESSES * PER_ADDRESS - CAP) as f64);
+    assert_eq!(refused, 0.0);
+    assert!(net.open() <= CAP as u64);
+    drop(held);
     server.stop().await;
 }
 
@@ -504,5 +616,60 @@ async fn half_sent_headers_and_slow_bodies_are_cut_off_at_their_deadlines() {
     )
     .await;
     assert_eq!(status, 200, "{body}");
+    server.stop().await;
+}
+
+/// Issue 36: anonymous websockets may hold all of the cap but a twentieth, kept for clients
+/// with a token. Cap 20: 19 anonymous viewers are welcome, the 20th anonymous hello gets
+/// `unavailable` and close 1013, and a client with a token is still welcome.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn anonymous_websockets_leave_headroom_for_clients_with_a_token() {
+    let server = server_with_limits(NetLimits {
+        max_connections: 20,
+        max_connections_per_address: 20,
+        ..NetLimits::default()
+    })
+    .await;
+    let addr = server.addr;
+    let mut anonymous = Vec::new();
+    for i in 0..19 {
+        let mut ws = ws_from("127.0.0.2", addr).await.expect("refused");
+        send_hello(&mut ws).await;
+        match next_message(&mut ws).await {
+            Some(posecast_proto::msg::ServerMsg::Welcome { .. }) => {}
+            other => panic!("anonymous viewer {i}: {other:?}"),
+        }
+        anonymous.push(ws);
+    }
+    let mut late = ws_from("127.0.0.3", addr).await.expect("refused");
+    send_hello(&mut late).await;
+    match next_message(&mut late).await {
+        Some(posecast_proto::msg::ServerMsg::Error(e)) => {
+            assert_eq!(e.code, posecast_proto::msg::ErrorCode::Unavailable, "{e:?}");
+        }
+        other => panic!("the 20th anonymous hello got {other:?}"),
+    }
+    assert_eq!(
+        close_frame(&mut late, Duration::from_secs(30))
+            .await
+            .map(|(c, _)| c),
+        Some(u16::from(CloseCode::Again))
+    );
+    drop(late);
+    let mut with_token = ws_from("127.0.0.4", addr).await.expect("refused");
+    let hello = ClientMsg::Hello {
+        version: PROTOCOL_VERSION,
+        encoding: Encoding::Binary,
+        token: Some(common::CONTROL.into()),
+        client: None,
+    };
+    with_token
+        .send(Message::Text(serde_json::to_string(&hello).unwrap().into()))
+        .await
+        .unwrap();
+    match next_message(&mut with_token).await {
+        Some(posecast_proto::msg::ServerMsg::Welcome { .. }) => {}
+        other => panic!("the client with a token got {other:?}"),
+    }
     server.stop().await;
 }

@@ -302,70 +302,6 @@ async fn upload_answers_carry_the_importers_notes() {
     server.stop().await;
 }
 
-/// The built-in avatar's `.glb` as a VRM 1.0 file: its JSON chunk gains a `VRMC_vrm` humanoid
-/// naming every joint but `sacroiliac` (VRM has no such bone).
-fn builtin_as_vrm() -> Vec<u8> {
-    builtin_with_bone_map("VRMC_vrm", false)
-}
-
-/// The built-in avatar's `.glb` with a VRM 1.0 humanoid bone map in the root extension
-/// `extension`, the clavicles and toes included when `full`.
-fn builtin_with_bone_map(extension: &str, full: bool) -> Vec<u8> {
-    let glb = posecast_server::builtin::AVATAR_GLB;
-    let json_len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
-    let mut doc: Value = serde_json::from_slice(&glb[20..20 + json_len]).unwrap();
-    let bones: serde_json::Map<String, Value> = doc["nodes"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .enumerate()
-        .filter_map(|(i, node)| {
-            let bone = match node["name"].as_str()? {
-                "humanoid_root" => "hips",
-                "vl5" => "spine",
-                "vt10" => "chest",
-                "vt1" => "upperChest",
-                "vc4" => "neck",
-                "skullbase" => "head",
-                "l_shoulder" => "leftUpperArm",
-                "l_elbow" => "leftLowerArm",
-                "l_wrist" => "leftHand",
-                "r_shoulder" => "rightUpperArm",
-                "r_elbow" => "rightLowerArm",
-                "r_wrist" => "rightHand",
-                "l_hip" => "leftUpperLeg",
-                "l_knee" => "leftLowerLeg",
-                "l_ankle" => "leftFoot",
-                "r_hip" => "rightUpperLeg",
-                "r_knee" => "rightLowerLeg",
-                "r_ankle" => "rightFoot",
-                "l_sternoclavicular" if full => "leftShoulder",
-                "r_sternoclavicular" if full => "rightShoulder",
-                "l_midtarsal" if full => "leftToes",
-                "r_midtarsal" if full => "rightToes",
-                _ => return None,
-            };
-            Some((bone.to_owned(), json!({ "node": i })))
-        })
-        .collect();
-    doc["extensionsUsed"] = json!([extension]);
-    doc["extensions"] =
-        json!({extension: {"specVersion": "1.0", "humanoid": {"humanBones": bones}}});
-    let mut json = serde_json::to_vec(&doc).unwrap();
-    while !json.len().is_multiple_of(4) {
-        json.push(b' ');
-    }
-    let bin = &glb[20 + json_len..];
-    let mut out = b"glTF".to_vec();
-    out.extend_from_slice(&2u32.to_le_bytes());
-    out.extend_from_slice(&((12 + 8 + json.len() + bin.len()) as u32).to_le_bytes());
-    out.extend_from_slice(&(json.len() as u32).to_le_bytes());
-    out.extend_from_slice(b"JSON");
-    out.extend_from_slice(&json);
-    out.extend_from_slice(bin);
-    out
-}
-
 /// `.vrm` files upload as multipart parts and raw bodies (issue 18, item 6); the file's
 /// humanoid bones are the mapping (joints it does not name stay unmapped).
 #[tokio::test]
@@ -373,7 +309,7 @@ async fn vrm_uploads_take_the_files_humanoid_bones() {
     let data = tempfile::tempdir().unwrap();
     let server = server(data.path()).await;
     let addr = server.addr;
-    let vrm = builtin_as_vrm();
+    let vrm = common::builtin_as_vrm();
     let (s, b) = upload(addr, "/api/assets/vroid", &[("vroid.vrm", &vrm)], &[]).await;
     assert_eq!(s, 200, "{b}");
     let (s, b) = http_to(
@@ -435,7 +371,7 @@ async fn vrma_uploads_play_on_humanoid_avatars() {
     let data = tempfile::tempdir().unwrap();
     let server = server(data.path()).await;
     let addr = server.addr;
-    let vrma = builtin_with_bone_map("VRMC_vrm_animation", true);
+    let vrma = common::builtin_with_bone_map("VRMC_vrm_animation", true);
     let (s, b) = upload(addr, "/api/assets/moves", &[("moves.vrma", &vrma)], &[]).await;
     assert_eq!(s, 200, "{b}");
     assert_eq!(b["result"][0]["humanoid"], true, "{b}");

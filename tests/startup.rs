@@ -348,3 +348,28 @@ async fn operational_logs_name_connections_commands_and_refusals_as_json() {
     let text = lines.join("\n");
     assert!(!text.contains(common::CONTROL), "a token was logged");
 }
+
+/// A control token under the minimum length stops the start with a message that names the
+/// flag (not the rule's internal name) and the rule, and no backtrace.
+#[test]
+fn a_short_control_token_is_refused_naming_the_flag() {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_posecast"))
+        .args([
+            "--no-persist",
+            "--listen",
+            "127.0.0.1:0",
+            "--control-token",
+            "secret",
+        ])
+        .env_remove("RUST_BACKTRACE")
+        .env_remove("POSECAST_CONTROL_TOKEN")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("--control-token (number 1): shorter than 8 characters"),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("control-1"), "{stderr}");
+}

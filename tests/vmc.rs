@@ -38,6 +38,15 @@ async fn until(
     None
 }
 
+/// `get_avatar`'s answer for avatar `id`, through `client`.
+async fn avatar_state(client: &Client, id: &str) -> serde_json::Value {
+    client
+        .command(Command::GetAvatar { avatar: avatar(id) })
+        .await
+        .unwrap()
+        .to_value()
+}
+
 fn builtin_pairs() -> Vec<(&'static str, &'static str)> {
     BUILTIN_PAIRS.iter().map(|(b, _, j)| (*b, *j)).collect()
 }
@@ -71,13 +80,7 @@ async fn a_vmc_performer_drives_the_builtin_avatar_within_0_05_degrees() {
     assert!(m.poses() >= 6);
     assert_eq!(m.dropped_total(PacketDrop::Malformed), 0);
     // The avatar reports it is driven.
-    let state = sub
-        .command(Command::GetAvatar {
-            avatar: avatar("avatar"),
-        })
-        .await
-        .unwrap()
-        .to_value();
+    let state = avatar_state(&sub, "avatar").await;
     assert_eq!(state["driven"], true, "{state}");
 }
 
@@ -389,14 +392,7 @@ async fn blend_shapes_show_in_get_avatar() {
     udp.send_to(&rosc::encoder::encode(&packet).unwrap(), to)
         .await
         .unwrap();
-    let get = || async {
-        sub.command(Command::GetAvatar {
-            avatar: avatar("avatar"),
-        })
-        .await
-        .unwrap()
-        .to_value()
-    };
+    let get = || async { avatar_state(&sub, "avatar").await };
     let deadline = tokio::time::Instant::now() + Duration::from_secs(3);
     let mut state = get().await;
     while state["blend_shapes"].is_null() && tokio::time::Instant::now() < deadline {
@@ -548,4 +544,183 @@ async fn a_flood_of_bad_datagrams_is_counted_and_other_scenes_keep_ticking() {
     let (status, text) = common::http(&server, "GET", "/metrics", None).await;
     assert_eq!(status, 200);
     assert!(text.contains("posecast_vmc_packets_dropped_total{reason=\"malformed\"}"));
+}
+
+/// An input with `from=127.0.0.1/32`: datagrams from 127.0.0.2 are dropped before decoding and
+/// counted (`reason="sender"`), the avatar keeps its clip; the same frame from 127.0.0.1 drives.
+#[tokio::test]
+async fn datagrams_from_outside_the_allow_list_change_nothing_and_are_counted() {
+    let server = server(30.0, &["avatar,from=127.0.0.1/32"], Vec::new()).await;
+    let to = server.vmc.inputs[0];
+    let sub = common::client(&server, Encoding::Binary).await;
+    let rig = server.state.world.library.get("avatar").unwrap();
+    let bones = test_pose(2);
+    let expected = expected_locals(
+        &rig,
+        &expected_worlds(Quat::IDENTITY, &bones),
+        &builtin_pairs(),
+    );
+    let datagram = frame(0.0, Quat::IDENTITY, &bones);
+    let outsider = tokio::net::UdpSocket::bind("127.0.0.2:0").await.unwrap();
+    const SENT: u64 = 20;
+    for _ in 0..SENT {
+        outsider.send_to(&datagram, to).await.unwrap();
+    }
+    let m = &server.state.metrics.vmc;
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+    while m.dropped_total(PacketDrop::Sender) < SENT {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "{} of {SENT} datagrams counted as from a disallowed sender",
+            m.dropped_total(PacketDrop::Sender)
+        );
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    // Counted before anything else looked at them: nothing decoded, no pose, no driver.
+    assert_eq!(m.poses(), 0);
+    assert_eq!(m.dropped_total(PacketDrop::Malformed), 0);
+    assert_eq!(m.dropped_total(PacketDrop::Flood), 0);
+    let state = avatar_state(&sub, "avatar").await;
+    assert_ne!(state["driven"], true, "{state}");
+    let latest = sub.latest(&avatar("avatar")).unwrap().locals;
+    assert!(
+        worst_degrees(&latest, &expected) > 1.0,
+        "the outsider's pose reached the avatar"
+    );
+    let (status, text) = common::http(&server, "GET", "/metrics", None).await;
+    assert_eq!(status, 200);
+    assert!(
+        text.contains(&format!(
+            "posecast_vmc_packets_dropped_total{{reason=\"sender\"}} {SENT}"
+        )),
+        "{text}"
+    );
+    // The same datagram from the allowed address drives.
+    sender().await.send_to(&datagram, to).await.unwrap();
+    assert!(
+        until(&sub, "avatar", 30.0, |l| worst_degrees(l, &expected)
+            <= 0.05)
+        .await
+        .is_some(),
+        "the allowed sender did not drive"
+    );
+    assert_eq!(m.dropped_total(PacketDrop::Sender), SENT);
+}
+
+/// The `posecast-client` binary cargo built beside `posecast`, or a skip.
+fn client_binary() -> Option<std::path::PathBuf> {
+    let path =
+        std::path::Path::new(env!("CARGO_BIN_EXE_posecast")).with_file_name("posecast-client");
+    if path.exists() {
+        Some(path)
+    } else {
+        posecast_proto::testing::skip(
+            "tests/vmc.rs: target/…/posecast-client is not built (run `cargo test --workspace`)",
+        );
+        None
+    }
+}
+
+/// `posecast-client vmc-relay`: a performer's datagrams sent to the relay on this machine drive
+/// the server's avatar over the websocket within the VMC inputs' bound (0.05°), through the
+/// same decoding and retargeting; without a token, or with a wrong one, the relay refuses to
+/// start and the avatar is not driven.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_relay_drives_an_avatar_over_the_websocket_and_needs_a_token() {
+    let Some(relay) = client_binary() else {
+        return;
+    };
+    let server = server(30.0, &[], Vec::new()).await;
+    let url = format!("ws://{}/ws", server.addr);
+    let url = url.as_str();
+    for token in [None, Some("not-a-token")] {
+        let mut command = std::process::Command::new(&relay);
+        command.args([
+            "vmc-relay",
+            "--url",
+            url,
+            "--listen",
+            "127.0.0.1:0",
+            "--seconds",
+            "30",
+        ]);
+        command
+            .env_remove("POSECAST_TOKEN")
+            .env_remove("RUST_BACKTRACE");
+        if let Some(t) = token {
+            command.args(["--token", t]);
+        }
+        let out = tokio::task::spawn_blocking(move || command.output())
+            .await
+            .unwrap()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr).to_lowercase();
+        assert!(
+            !out.status.success(),
+            "token {token:?}: the relay must refuse: {stderr}"
+        );
+        assert!(
+            stderr.contains("token") || stderr.contains("unauthorized"),
+            "{stderr}"
+        );
+    }
+    let listen = free_udp_addr();
+    let mut child = std::process::Command::new(&relay)
+        .args([
+            "vmc-relay",
+            "--url",
+            url,
+            "--token",
+            common::CONTROL,
+            "--avatar",
+            "avatar",
+        ])
+        .args(["--listen", listen.to_string().as_str(), "--seconds", "120"])
+        .env_remove("RUST_BACKTRACE")
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The relay says it relays once it holds the drive.
+    let stdout = child.stdout.take().unwrap();
+    let first = tokio::task::spawn_blocking(move || {
+        let mut line = String::new();
+        std::io::BufRead::read_line(&mut std::io::BufReader::new(stdout), &mut line).ok();
+        line
+    })
+    .await
+    .unwrap();
+    assert!(first.starts_with("relaying VMC from"), "{first}");
+
+    let sub = common::client(&server, Encoding::Binary).await;
+    let rig = server.state.world.library.get("avatar").unwrap();
+    let udp = sender().await;
+    let mut worst = 0.0f64;
+    for k in 0..4 {
+        let root = Quat::from_rotation_y(0.4 * k as f32 - 0.6);
+        let bones = test_pose(k + 10);
+        let expected = expected_locals(&rig, &expected_worlds(root, &bones), &builtin_pairs());
+        // UDP may drop a datagram: send again until the pose shows (each one is the whole pose).
+        let mut seen = None;
+        for _ in 0..20 {
+            udp.send_to(&frame(k as f32, root, &bones), listen)
+                .await
+                .unwrap();
+            seen = until(&sub, "avatar", 3.0, |l| worst_degrees(l, &expected) <= 0.05).await;
+            if seen.is_some() {
+                break;
+            }
+        }
+        let latest = sub.latest(&avatar("avatar")).unwrap().locals;
+        assert!(
+            seen.is_some(),
+            "pose {k}: off by {:.3}°",
+            worst_degrees(&latest, &expected)
+        );
+        worst = worst.max(worst_degrees(&latest, &expected));
+    }
+    println!("VMC → relay → websocket → built-in avatar: worst joint {worst:.4}° (bound 0.05°)");
+    let state = avatar_state(&sub, "avatar").await;
+    assert_eq!(state["driven"], true, "{state}");
+    child.kill().ok();
+    child.wait().ok();
 }

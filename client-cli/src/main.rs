@@ -1,10 +1,11 @@
 //! `posecast-client`: watch a stream's statistics, render a scene offscreen to PNG, view it
-//! live in a window, or drive an avatar live from a BVH clip. Every flag can also be set by an
-//! environment variable.
+//! live in a window, drive an avatar live from a BVH clip, or relay a VTuber tool's VMC stream
+//! to a server. Every flag can also be set by an environment variable.
 
 mod drive;
 mod render;
 mod view;
+mod vmc_relay;
 mod watch;
 
 use clap::{Args, Parser, Subcommand};
@@ -29,6 +30,9 @@ enum Command {
     /// Drive an avatar live from a BVH clip (uploaded as the source rig, retargeted by the
     /// server).
     Drive(drive::DriveArgs),
+    /// Relay a VTuber tool's VMC stream (UDP, on this machine) to an avatar on a server
+    /// anywhere, over an authenticated websocket.
+    VmcRelay(vmc_relay::VmcRelayArgs),
 }
 
 /// Where to connect; shared by every subcommand.
@@ -84,6 +88,7 @@ fn main() -> anyhow::Result<()> {
         Command::Watch(args) => runtime.block_on(watch::run(args)),
         Command::Render(args) => runtime.block_on(render::run(args)),
         Command::Drive(args) => runtime.block_on(drive::run(args)),
+        Command::VmcRelay(args) => runtime.block_on(vmc_relay::run(args)),
         // winit wants the main thread; the client's tasks run on the runtime's workers.
         Command::View(args) => view::run(args, &runtime),
     }

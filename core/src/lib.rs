@@ -10,5 +10,6 @@
 //! It depends only on `posecast-proto`: the crates above it (`posecast-rigs`,
 //! `posecast-sim`, `posecast-server`) may use it, never the other way round.
 
+#![warn(missing_docs)]
 pub mod error;
 pub mod quota;

@@ -37,6 +37,7 @@
 //! The proxy's socket to the upstream has a small receive buffer, so what it does not read
 //! stays in the sender's socket instead of in loopback's megabyte buffers.
 
+#![warn(missing_docs)]
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use std::fmt;

@@ -198,6 +198,64 @@ pub enum Command {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         joint: Option<String>,
     },
+    // --- inverse kinematics (seed 002) ---
+    /// Set (or replace) the IK goal of a chain named by its end joint: the effector reaches
+    /// `position` (and takes `rotation`) in the scene's space, or in the frame of
+    /// `relative_to`'s joint (then it follows that joint). Solved every tick after the clip and
+    /// the live pose, before overrides and DOF limits. A limb end (`l_wrist`, `r_wrist`,
+    /// `l_ankle`, `r_ankle`) moves its limb, bending toward `pole`; any other joint moves
+    /// `chain` joints up from it (3 by default, itself included).
+    SetIkGoal {
+        /// The avatar.
+        avatar: AvatarId,
+        /// The chain's end joint.
+        effector: String,
+        /// Where it goes `[x, y, z]`, metres (each within ±10⁶).
+        position: [f32; 3],
+        /// Its rotation `[x, y, z, w]` in the same frame (finite, non-zero; normalised).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        rotation: Option<[f32; 4]>,
+        /// How much of the solve applies, 0 to 1 (default 1).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        weight: Option<f32>,
+        /// A point the limb's middle joint (elbow, knee) bends toward, in the same frame.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pole: Option<[f32; 3]>,
+        /// The joint (of this avatar or another of its scene) whose frame the values are in.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        relative_to: Option<JointRef>,
+        /// Joints in the chain, the effector included (2 to 32): solved by FABRIK; absent for a
+        /// limb end, its limb in closed form.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        chain: Option<u8>,
+    },
+    /// Clear one effector's IK goal, or every goal and the gaze when `effector` is absent:
+    /// the goals' weights fall to 0 over `fade` seconds, so the joints return to their clip
+    /// smoothly.
+    ClearIkGoal {
+        /// The avatar.
+        avatar: AvatarId,
+        /// The effector whose goal ends.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        effector: Option<String>,
+        /// Seconds to let go over (finite, ≥ 0; default 0.25, `play`'s default fade; 0: at once).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        fade: Option<f32>,
+    },
+    /// Turn the neck, head and eyes toward `target` (scene space, or `relative_to`'s joint's
+    /// frame: look at another avatar's head); weight 0 lets the gaze go over 0.25 s.
+    LookAt {
+        /// The avatar.
+        avatar: AvatarId,
+        /// The point looked at `[x, y, z]`, metres.
+        target: [f32; 3],
+        /// How much of the turn applies, 0 to 1 (default 1; 0 lets the gaze go).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        weight: Option<f32>,
+        /// The joint whose frame `target` is in.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        relative_to: Option<JointRef>,
+    },
     // --- placement (issue 16) ---
     /// Move an avatar in its scene: to `position` / `rotation`, over `duration` seconds
     /// (position lerped, rotation slerped on the scene's clock; absent or 0: at once).
@@ -370,6 +428,9 @@ impl Command {
             | Self::RotateJointLocal { avatar, .. }
             | Self::RotateJointWorld { avatar, .. }
             | Self::Release { avatar, .. }
+            | Self::SetIkGoal { avatar, .. }
+            | Self::ClearIkGoal { avatar, .. }
+            | Self::LookAt { avatar, .. }
             | Self::PlaceAvatar { avatar, .. } => Some(avatar),
             Self::Drive { avatar, .. } | Self::ReleaseDrive { avatar } => Some(avatar),
             Self::Record { avatar, .. } | Self::StopRecording { avatar } => Some(avatar),
@@ -563,6 +624,22 @@ pub struct AvatarState {
     /// The cross-fade in progress (after `play … fade`), if any.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fade: Option<FadeState>,
+    /// The effectors with an IK goal (`set_ik_goal`), in the order they are solved.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub ik_goals: Vec<String>,
+    /// Whether a gaze (`look_at`) is set.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub looking: bool,
+}
+
+/// A joint of an avatar, whose frame an IK goal is given in.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
+pub struct JointRef {
+    /// The avatar (this one, or another of the same scene).
+    pub avatar: AvatarId,
+    /// The joint's name on its rig.
+    pub joint: String,
 }
 
 /// A cross-fade in progress: the clip fading out and how far the fade is.

@@ -12,7 +12,10 @@ use serde::{Deserialize, Serialize};
 #[serde(tag = "type", rename_all = "snake_case")]
 pub enum JointType {
     /// 1 DOF: rotation by `φ₀` about the unit `axis` (seed 002 `L_Ra`).
-    Hinge { axis: Vec3 },
+    Hinge {
+        /// The rotation axis, in the joint's local space (normalised when used; zero means x).
+        axis: Vec3,
+    },
     /// 2 DOFs: rotation about x by `φ₀`, then about y by `φ₁`: `R = R_y(φ₁) · R_x(φ₀)` (`L_Rxy`).
     Universal,
     /// 3 DOFs: Euler angles applied x, then y, then z: `R = R_z(φ₂) · R_y(φ₁) · R_x(φ₀)` (`L_Rxyz`,
@@ -21,7 +24,10 @@ pub enum JointType {
     /// A free rotation held as a unit quaternion (`L_Q`); no scalar DOFs and no limits.
     BallQuaternion,
     /// 1 DOF: translation by `φ₀` along the unit `axis` (`L_Ta`).
-    Prismatic { axis: Vec3 },
+    Prismatic {
+        /// The sliding axis, in the joint's local space (normalised when used; zero means x).
+        axis: Vec3,
+    },
     /// 3 DOFs: translation by `(φ₀, φ₁, φ₂)` (`L_Txyz`).
     Translational,
 }
@@ -51,8 +57,12 @@ impl JointType {
 /// One degree of freedom: a value kept within `[min, max]`.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Dof {
+    /// The current value, within `[min, max]`: radians for a rotational joint, metres for a
+    /// translational one.
     pub value: f32,
+    /// The lower limit, same units (`-∞` when free).
     pub min: f32,
+    /// The upper limit, same units (`+∞` when free).
     pub max: f32,
 }
 
@@ -68,17 +78,35 @@ impl Dof {
 /// Why a DOF could not be set.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum DofError {
+    /// The DOF index is past the joint's DOFs.
     #[error("DOF {index} does not exist: this joint has {count}")]
-    NoSuchDof { index: usize, count: usize },
+    NoSuchDof {
+        /// The index asked for.
+        index: usize,
+        /// How many DOFs the joint has.
+        count: usize,
+    },
+    /// The value given is NaN or infinite (for [`JointDofs::set_rotation`], a quaternion that is
+    /// not finite or has near-zero length).
     #[error("DOF value {value} is not finite")]
-    NotFinite { value: f32 },
+    NotFinite {
+        /// The value given (for a quaternion, its length).
+        value: f32,
+    },
+    /// The limits have `min > max` or a NaN.
     #[error("limits [{min}, {max}] are empty or not numbers")]
-    BadLimits { min: f32, max: f32 },
+    BadLimits {
+        /// The lower limit given.
+        min: f32,
+        /// The upper limit given.
+        max: f32,
+    },
 }
 
 /// A joint's type, its DOFs and, for [`JointType::BallQuaternion`], its rotation.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct JointDofs {
+    /// How the joint moves; fixes how many DOFs it has.
     pub joint_type: JointType,
     dofs: Vec<Dof>,
     quaternion: Quat,
@@ -101,6 +129,7 @@ impl JointDofs {
         }
     }
 
+    /// The scalar DOFs, [`JointType::dof_count`] of them, in the order the type names them.
     #[must_use]
     pub fn dofs(&self) -> &[Dof] {
         &self.dofs

@@ -46,11 +46,14 @@ pub fn skinning_matrices(skeleton: &Skeleton, world: &[Mat4], skinning: &mut [Ma
 /// Reusable buffers for posing one skeleton: world and skinning matrices.
 #[derive(Clone, Debug)]
 pub struct PoseBuffers {
+    /// World (model-space) matrices `W_j`, one per joint.
     pub world: Vec<Mat4>,
+    /// Skinning matrices `M_j = W_j · B_j⁻¹`, one per joint.
     pub skinning: Vec<Mat4>,
 }
 
 impl PoseBuffers {
+    /// Buffers sized for `skeleton`, every matrix the identity.
     #[must_use]
     pub fn new(skeleton: &Skeleton) -> Self {
         Self {

@@ -18,7 +18,44 @@
 //! - [`rig_options`]: how the server normalises an imported rig (per-asset pipeline options).
 //!
 //! Conventions: column vectors, right-handed, Y up, metres, seconds (see DESIGN.md).
+//!
+//! # Example
+//!
+//! A two-joint arm posed by forward kinematics, and its shoulder's rotation sent through the
+//! wire's 48-bit quantisation:
+//!
+//! ```rust
+//! use glam::{Mat4, Quat, Vec3};
+//! use posecast_proto::fk::forward_kinematics;
+//! use posecast_proto::{Skeleton, Transform, quant};
+//!
+//! // A shoulder at the origin and an elbow 0.3 m along its x axis (bind = rest).
+//! let elbow = Vec3::new(0.3, 0.0, 0.0);
+//! let skeleton = Skeleton::new(
+//!     vec!["shoulder".into(), "elbow".into()],
+//!     vec![None, Some(0)],
+//!     vec![Transform::IDENTITY, Transform::from_translation(elbow)],
+//!     vec![Mat4::IDENTITY, Mat4::from_translation(-elbow)],
+//! )?;
+//!
+//! // Raise the arm: the shoulder turns 90° about +Z, so W_elbow = W_shoulder · D_elbow puts the
+//! // elbow 0.3 m up.
+//! let turn = Quat::from_rotation_z(std::f32::consts::FRAC_PI_2);
+//! let locals = [Transform::from_translation_rotation(Vec3::ZERO, turn), skeleton.rest()[1]];
+//! let mut world = [Mat4::IDENTITY; 2];
+//! forward_kinematics(&skeleton, &locals, &mut world);
+//! assert!(world[1].w_axis.truncate().abs_diff_eq(Vec3::new(0.0, 0.3, 0.0), 1e-6));
+//!
+//! // On the wire the rotation takes 6 bytes and comes back within MAX_ERROR_DEGREES.
+//! let mut bytes = Vec::new();
+//! quant::write(turn, &mut bytes);
+//! assert_eq!(bytes.len(), quant::BYTES);
+//! let decoded = quant::read(bytes[..].try_into()?);
+//! assert!(quant::angle_between_degrees(turn, decoded) <= quant::MAX_ERROR_DEGREES);
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
 
+#![warn(missing_docs)]
 pub mod bind;
 pub mod command;
 pub mod description;

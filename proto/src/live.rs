@@ -35,6 +35,16 @@ pub const ENTRY_BYTES: usize = 2 + quant::BYTES;
 /// The most poses per second the server accepts from one driver.
 pub const MAX_RATE_HZ: f32 = 120.0;
 
+/// Largest root position a live pose may carry, metres from the origin (a typo, not a
+/// performer).
+pub const MAX_ROOT_METRES: f32 = 10_000.0;
+
+/// The `source` of a `drive` that sends VMC poses: the server's VMC performer rig (Unity's
+/// humanoid in its T-pose, normalised, its torso fitted to the avatar), as a `--vmc-in` input
+/// drives with. `posecast-client vmc-relay` drives with it. Not an asset name (those cannot
+/// hold `@`).
+pub const VMC_SOURCE: &str = "@vmc";
+
 /// A binary pose message, decoded.
 #[derive(Debug, Clone, PartialEq)]
 pub struct BinaryPose {

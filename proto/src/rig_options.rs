@@ -22,16 +22,22 @@ pub struct AxisError {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub enum SignedAxis {
+    /// `+x` (also written `x`).
     #[serde(rename = "+x", alias = "x")]
     PosX,
+    /// `-x`.
     #[serde(rename = "-x")]
     NegX,
+    /// `+y` (also written `y`).
     #[serde(rename = "+y", alias = "y")]
     PosY,
+    /// `-y`.
     #[serde(rename = "-y")]
     NegY,
+    /// `+z` (also written `z`).
     #[serde(rename = "+z", alias = "z")]
     PosZ,
+    /// `-z`.
     #[serde(rename = "-z")]
     NegZ,
 }

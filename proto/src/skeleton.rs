@@ -16,46 +16,85 @@ pub const MAX_JOINTS: usize = u16::MAX as usize;
 /// Why a skeleton was refused.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum SkeletonError {
+    /// The skeleton was given no joints.
     #[error("skeleton has no joints")]
     Empty,
+    /// The skeleton has more joints than [`MAX_JOINTS`].
     #[error("skeleton has {count} joints, more than the limit of {MAX_JOINTS}")]
-    TooManyJoints { count: usize },
-    #[error("{what} has {actual} entries, expected one per joint ({expected})")]
-    Length {
-        what: &'static str,
-        expected: usize,
-        actual: usize,
-    },
-    #[error("joint {joint} ({name:?}) has parent {parent}, which does not come before it")]
-    ParentOrder {
-        joint: usize,
-        name: String,
-        parent: usize,
-    },
-    #[error("joint {joint} has parent {parent}, but there are only {count} joints")]
-    ParentOutOfRange {
-        joint: usize,
-        parent: usize,
+    TooManyJoints {
+        /// How many joints it was given.
         count: usize,
     },
+    /// A per-joint list does not have one entry per joint.
+    #[error("{what} has {actual} entries, expected one per joint ({expected})")]
+    Length {
+        /// Which list is wrong (`"parents"`, `"rest transforms"`, `"joint DOFs"`, …).
+        what: &'static str,
+        /// The number of joints (the length the list should have).
+        expected: usize,
+        /// The list's actual length.
+        actual: usize,
+    },
+    /// A joint's parent index is not below its own (joints must come parent first).
+    #[error("joint {joint} ({name:?}) has parent {parent}, which does not come before it")]
+    ParentOrder {
+        /// Index of the joint.
+        joint: usize,
+        /// Name of the joint.
+        name: String,
+        /// Index of its parent, at or after `joint`.
+        parent: usize,
+    },
+    /// A joint's parent index names no joint.
+    #[error("joint {joint} has parent {parent}, but there are only {count} joints")]
+    ParentOutOfRange {
+        /// Index of the joint.
+        joint: usize,
+        /// The parent index it was given.
+        parent: usize,
+        /// The number of joints (valid parents are below it).
+        count: usize,
+    },
+    /// The parent links loop, so no parent-first order exists ([`topological_order`]).
     #[error("the parent links form a cycle through joint {joint}")]
-    Cycle { joint: usize },
+    Cycle {
+        /// Index of a joint on (or below) the cycle.
+        joint: usize,
+    },
+    /// A joint's name is the empty string.
     #[error("joint {joint} has an empty name")]
-    EmptyName { joint: usize },
+    EmptyName {
+        /// Index of the unnamed joint.
+        joint: usize,
+    },
+    /// Two joints share a name.
     #[error("joint name {name:?} is used by joints {first} and {second}")]
     DuplicateName {
+        /// The shared name.
         name: String,
+        /// Index of the first joint with it.
         first: usize,
+        /// Index of the later joint with it.
         second: usize,
     },
+    /// A joint's rest transform or inverse bind matrix has a NaN or infinite entry.
     #[error("joint {joint} ({name:?}) has a non-finite {what}")]
     NotFinite {
+        /// Index of the joint.
         joint: usize,
+        /// Name of the joint.
         name: String,
+        /// Which value is not finite (`"rest transform"` or `"inverse bind"`).
         what: &'static str,
     },
+    /// A joint's inverse bind matrix cannot be inverted (|det| < 1e-12).
     #[error("joint {joint} ({name:?}) has a singular inverse bind matrix")]
-    SingularBind { joint: usize, name: String },
+    SingularBind {
+        /// Index of the joint.
+        joint: usize,
+        /// Name of the joint.
+        name: String,
+    },
 }
 
 /// A joint hierarchy stored parent-before-child, so forward kinematics is one forward loop.
@@ -175,6 +214,7 @@ impl Skeleton {
         self.names.is_empty()
     }
 
+    /// Joint names, unique and non-empty, indexed by joint.
     #[must_use]
     pub fn names(&self) -> &[String] {
         &self.names

@@ -8,34 +8,67 @@ use serde::{Deserialize, Serialize};
 /// Why mesh data was refused.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum MeshError {
+    /// A per-vertex list does not have the length the vertex count asks for.
     #[error("{what} has {actual} entries, expected {expected}")]
     Length {
+        /// Which list is wrong (`"joint indices"`, `"weights"` or `"normals"`).
         what: &'static str,
+        /// The length it should have (vertices, or vertices × influences).
         expected: usize,
+        /// Its actual length.
         actual: usize,
     },
+    /// `influences` was 0: every vertex needs at least one (joint, weight) slot.
     #[error("influences per vertex must be at least 1")]
     NoInfluences,
+    /// A vertex gives a non-zero weight to a joint the skeleton does not have.
     #[error("vertex {vertex} refers to joint {joint}, but the skeleton has {joints} joints")]
     JointOutOfRange {
+        /// Index of the vertex.
         vertex: usize,
+        /// The joint index it names.
         joint: u16,
+        /// The number of joints in the skeleton.
         joints: usize,
     },
+    /// A triangle index names a vertex past the end of the positions.
     #[error("triangle index {index} at position {at} is past the {vertices} vertices")]
     IndexOutOfRange {
+        /// Position of the bad entry in the index list.
         at: usize,
+        /// The vertex index it holds.
         index: u32,
+        /// The number of vertices.
         vertices: usize,
     },
+    /// The index list's length is not a whole number of triangles.
     #[error("index count {count} is not a multiple of 3")]
-    NotTriangles { count: usize },
+    NotTriangles {
+        /// The length of the index list.
+        count: usize,
+    },
+    /// A vertex has a weight that is negative, NaN or infinite.
     #[error("vertex {vertex} has a negative or non-finite weight {weight}")]
-    BadWeight { vertex: usize, weight: f32 },
+    BadWeight {
+        /// Index of the vertex.
+        vertex: usize,
+        /// The offending weight.
+        weight: f32,
+    },
+    /// All of a vertex's weights are zero, so it cannot be renormalised.
     #[error("vertex {vertex}'s weights sum to zero, so no joint moves it")]
-    Unweighted { vertex: usize },
+    Unweighted {
+        /// Index of the vertex.
+        vertex: usize,
+    },
+    /// A vertex's position or normal has a NaN or infinite component.
     #[error("vertex {vertex} has a non-finite {what}")]
-    NotFinite { vertex: usize, what: &'static str },
+    NotFinite {
+        /// Index of the vertex.
+        vertex: usize,
+        /// Which attribute (`"position"` or `"normal"`).
+        what: &'static str,
+    },
 }
 
 /// A triangle mesh bound to a skeleton: `influences` (joint, weight) pairs per vertex, weights
@@ -139,18 +172,22 @@ impl SkinnedMesh {
         })
     }
 
+    /// Number of vertices.
     #[must_use]
     pub fn vertex_count(&self) -> usize {
         self.positions.len()
     }
+    /// Bind-pose vertex positions, model space, metres.
     #[must_use]
     pub fn positions(&self) -> &[Vec3] {
         &self.positions
     }
+    /// Bind-pose vertex normals, model space (given, or computed area-weighted).
     #[must_use]
     pub fn normals(&self) -> &[Vec3] {
         &self.normals
     }
+    /// Triangle list: three vertex indices per triangle.
     #[must_use]
     pub fn indices(&self) -> &[u32] {
         &self.indices
@@ -160,10 +197,14 @@ impl SkinnedMesh {
     pub fn influences(&self) -> usize {
         self.influences
     }
+    /// Joint index of each influence slot, [`Self::influences`] per vertex; a zero-weight
+    /// slot points at joint 0.
     #[must_use]
     pub fn joints(&self) -> &[u16] {
         &self.joints
     }
+    /// Weight of each influence slot, [`Self::influences`] per vertex, each vertex's summing
+    /// to one.
     #[must_use]
     pub fn weights(&self) -> &[f32] {
         &self.weights

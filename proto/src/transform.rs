@@ -26,14 +26,24 @@ impl Default for Transform {
 pub enum DecomposeError {
     /// The linear part has a negative determinant: a mirror, which no rotation can express.
     #[error("matrix is a reflection (determinant {determinant})")]
-    Reflection { determinant: f32 },
+    Reflection {
+        /// The determinant of the linear part (negative).
+        determinant: f32,
+    },
     /// The linear part is singular or not finite.
     #[error("matrix is singular or not finite (determinant {determinant})")]
-    Degenerate { determinant: f32 },
+    Degenerate {
+        /// The determinant of the linear part (near zero, or NaN/infinite).
+        determinant: f32,
+    },
     /// The stretch `S` of `M = Q S` is not diagonal: the matrix shears, or scales along axes
     /// other than the joint's own, which a per-axis scale cannot hold.
     #[error("matrix has shear or off-axis scale (largest off-diagonal stretch {off_diagonal})")]
-    Shear { off_diagonal: f32 },
+    Shear {
+        /// The largest magnitude of an off-diagonal entry of `S` (absolute; more than 1e-4 of
+        /// the largest diagonal entry is refused).
+        off_diagonal: f32,
+    },
 }
 
 /// Result of [`polar_decompose`]: `M = rotation · stretch`.

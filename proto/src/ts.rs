@@ -6,7 +6,8 @@
 
 use crate::command::{
     AssetDetail, AssetInfo, AvatarState, ClipInfo, Command, CommandResult, DofInfo, DriveInfo,
-    FadeState, JointInfo, JointMapping, OnRelease, RecordingInfo, RootMotion, SceneInfo, Units,
+    FadeState, JointInfo, JointMapping, JointRef, OnRelease, RecordingInfo, RootMotion, SceneInfo,
+    Units,
 };
 use crate::description::AvatarDescription;
 use crate::msg::{
@@ -62,6 +63,7 @@ pub fn declarations() -> String {
         SceneInfo,
         AvatarState,
         FadeState,
+        JointRef,
         RootMotion,
         AssetInfo,
         ClipInfo,

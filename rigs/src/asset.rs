@@ -19,6 +19,7 @@ pub struct Asset {
     pub meshes: Vec<AssetMesh>,
     /// Clips with one channel slot per skeleton joint.
     pub clips: Vec<Clip>,
+    /// The format and conventions of the file it came from.
     pub source: SourceInfo,
     /// CSE169 `boxmin`/`boxmax` per joint (course defaults where the file has none).
     pub boxes: Option<Vec<(Vec3, Vec3)>>,
@@ -27,29 +28,37 @@ pub struct Asset {
 /// A named skinned mesh.
 #[derive(Clone, Debug)]
 pub struct AssetMesh {
+    /// The mesh's name from the file (glTF: its name or `mesh<index>`, plus `#<primitive>`
+    /// when it has several; CSE169: the `.skin` file's name).
     pub name: String,
+    /// Its geometry and skin weights, in bind space.
     pub mesh: SkinnedMesh,
 }
 
 /// The format an asset came from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum SourceFormat {
+    /// glTF 2.0 (`.gltf`, `.glb`), including VRM (`.vrm`) and VRM animations (`.vrma`).
     Gltf,
     /// CSE169 `.skel` (+ `.skin`, `.anim`).
     Cse169,
+    /// Biovision hierarchy (`.bvh`).
     Bvh,
 }
 
 /// A coordinate axis named as "up".
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum UpAxis {
+    /// +Y is up (posecast's own convention).
     Y,
+    /// +Z is up (Blender, 3ds Max and other Z-up tools).
     Z,
 }
 
 /// What the importer learned about the source's conventions.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SourceInfo {
+    /// The file format the asset was imported from.
     pub format: SourceFormat,
     /// Up axis of the bind-space data (mesh vertices, inverse binds). glTF files exported from
     /// Z-up tools keep Z-up mesh data under a `Z_UP` node rotating −90° about X; that node is

@@ -36,6 +36,9 @@ import { expandPose, selectJoints } from "./subset.js";
 /** @typedef {import("./posecast.js").ClientEvents} ClientEvents */
 /** @typedef {import("./posecast.js").Encoding} Encoding */
 /** @typedef {import("./posecast.js").JointSet} JointSet */
+/** @typedef {import("./posecast.js").DriveInfo} DriveInfo */
+/** @typedef {import("./posecast.js").Quat} Quat */
+/** @typedef {import("./posecast.js").Vec3} Vec3 */
 
 /**
  * The protocol version a client asks for unless told otherwise: 3, wire v2 binary frames and
@@ -133,6 +136,8 @@ export class Client {
     this.awaitingTokenError = false;
     /** @type {Map<string, Set<(value: any) => void>>} */
     this.listeners = new Map();
+    /** @type {Map<string, {spacingMs: number, lastMs: number, pending: ClientMessage | null, timer: ReturnType<typeof setTimeout> | undefined}>} Paced drives, by avatar. */
+    this.drives = new Map();
   }
 
   /**
@@ -384,6 +389,81 @@ export class Client {
       }, this.commandTimeoutMs);
       this.pending.set(id, { resolve, reject, timer });
     });
+  }
+
+  /**
+   * Takes over an avatar as its live driver (the `drive` command); its poses then go with
+   * `sendPose`, paced at the answer's `max_rate_hz`. The drive ends with `releaseDrive`, the
+   * connection's end, or `timeout` seconds without a pose.
+   * @param {string} avatar
+   * @param {{ source?: string, on_release?: "clip" | "hold" }} [options]
+   * @returns {Promise<DriveInfo>}
+   */
+  async drive(avatar, options = {}) {
+    /** @type {Command} */
+    const command = { op: "drive", avatar };
+    if (options.source !== undefined) command.source = options.source;
+    if (options.on_release !== undefined) command.on_release = options.on_release;
+    const info = /** @type {DriveInfo} */ (await this.command(command));
+    this.endPacing(avatar);
+    const rate = Number.isFinite(info.max_rate_hz) && info.max_rate_hz > 0 ? info.max_rate_hz : 1 / 60;
+    // At most a minute between poses, whatever rate a server announces.
+    this.drives.set(avatar, { spacingMs: Math.min(1000 / rate, 60000), lastMs: -Infinity, pending: null, timer: undefined });
+    return info;
+  }
+
+  /**
+   * Sends a live pose of a driven avatar: local rotations of the drive's source joints by
+   * name, optionally the source root's translation (metres) and the capture time (µs; now by
+   * default). Poses are paced at the drive's `max_rate_hz`: one sent before its slot waits for
+   * it, and a newer pose replaces a waiting one (poses supersede each other), so a driver
+   * sending faster than the server takes is never refused `rate_limited`.
+   * @param {string} avatar
+   * @param {{ rotations: Record<string, Quat>, root_position?: Vec3, time_us?: number }} pose
+   * @returns {"sent" | "queued" | "offline"}
+   */
+  sendPose(avatar, pose) {
+    /** @type {ClientMessage} */
+    const msg = { type: "pose", avatar, rotations: pose.rotations, time_us: pose.time_us ?? nowMicros() };
+    if (pose.root_position) msg.root_position = pose.root_position;
+    const pacing = this.drives.get(avatar);
+    if (!pacing) return this.send(msg) ? "sent" : "offline";
+    const now = performance.now();
+    const wait = pacing.lastMs + pacing.spacingMs - now;
+    if (wait <= 0 && pacing.timer === undefined) {
+      pacing.lastMs = now;
+      return this.send(msg) ? "sent" : "offline";
+    }
+    pacing.pending = msg;
+    if (pacing.timer === undefined) {
+      pacing.timer = setTimeout(() => {
+        pacing.timer = undefined;
+        const next = pacing.pending;
+        pacing.pending = null;
+        if (next) {
+          pacing.lastMs = performance.now();
+          this.send(next);
+        }
+      }, Math.max(wait, 0));
+    }
+    return "queued";
+  }
+
+  /**
+   * Ends a drive this connection holds (`release_drive`); the avatar plays its clip again.
+   * @param {string} avatar
+   * @returns {Promise<unknown>}
+   */
+  releaseDrive(avatar) {
+    this.endPacing(avatar);
+    return this.command({ op: "release_drive", avatar });
+  }
+
+  /** @param {string} avatar */
+  endPacing(avatar) {
+    const pacing = this.drives.get(avatar);
+    if (pacing?.timer !== undefined) clearTimeout(pacing.timer);
+    this.drives.delete(avatar);
   }
 
   /**

@@ -50,6 +50,7 @@ export type {
 import type {
   Access,
   AvatarDescription,
+  DriveInfo,
   AvatarPoseJson,
   Command,
   Encoding,
@@ -279,6 +280,22 @@ export declare class Client {
   send(message: ClientMessage): boolean;
   /** Runs a command: resolves with its `ack`'s result, rejects with a {@link PosecastError}. */
   command(command: Command): Promise<unknown>;
+  /**
+   * Takes over an avatar as its live driver (`drive`); poses then go with {@link sendPose},
+   * paced at the answer's `max_rate_hz`.
+   */
+  drive(avatar: string, options?: { source?: string; on_release?: "clip" | "hold" }): Promise<DriveInfo>;
+  /**
+   * Sends a live pose of a driven avatar (local rotations of the source's joints by name, the
+   * root's translation, the capture time in µs). Paced at the drive's `max_rate_hz`: a pose
+   * before its slot waits for it ("queued"), a newer one replaces a waiting one.
+   */
+  sendPose(
+    avatar: string,
+    pose: { rotations: Record<string, Quat>; root_position?: Vec3; time_us?: number },
+  ): "sent" | "queued" | "offline";
+  /** Ends a drive this connection holds (`release_drive`). */
+  releaseDrive(avatar: string): Promise<unknown>;
   /** An avatar's description and poses. */
   avatar(id: string): AvatarView | undefined;
   /** An avatar's newest decoded pose. */

@@ -19,7 +19,7 @@
 // - fk.js, math.js: forward kinematics and skinning matrices (checked against posecast-proto);
 // - errors.js: PosecastError, with the protocol's error code.
 
-export const SDK_VERSION = "1.2.0";
+export const SDK_VERSION = "1.3.0";
 export { Client, PROTOCOL_VERSION, nowMicros } from "./client.js";
 export { PosecastError } from "./errors.js";
 export { FrameDecoder, decodeQuat } from "./frames.js";

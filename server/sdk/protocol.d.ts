@@ -412,7 +412,68 @@ avatar: AvatarId,
 /**
  * Joint name, or all.
  */
-joint?: string | null, } | { "op": "place_avatar", 
+joint?: string | null, } | { "op": "set_ik_goal", 
+/**
+ * The avatar.
+ */
+avatar: AvatarId, 
+/**
+ * The chain's end joint.
+ */
+effector: string, 
+/**
+ * Where it goes `[x, y, z]`, metres (each within ±10⁶).
+ */
+position: [number, number, number], 
+/**
+ * Its rotation `[x, y, z, w]` in the same frame (finite, non-zero; normalised).
+ */
+rotation?: [number, number, number, number] | null, 
+/**
+ * How much of the solve applies, 0 to 1 (default 1).
+ */
+weight?: number | null, 
+/**
+ * A point the limb's middle joint (elbow, knee) bends toward, in the same frame.
+ */
+pole?: [number, number, number] | null, 
+/**
+ * The joint (of this avatar or another of its scene) whose frame the values are in.
+ */
+relative_to?: JointRef | null, 
+/**
+ * Joints in the chain, the effector included (2 to 32): solved by FABRIK; absent for a
+ * limb end, its limb in closed form.
+ */
+chain?: number | null, } | { "op": "clear_ik_goal", 
+/**
+ * The avatar.
+ */
+avatar: AvatarId, 
+/**
+ * The effector whose goal ends.
+ */
+effector?: string | null, 
+/**
+ * Seconds to let go over (finite, ≥ 0; default 0.25, `play`'s default fade; 0: at once).
+ */
+fade?: number | null, } | { "op": "look_at", 
+/**
+ * The avatar.
+ */
+avatar: AvatarId, 
+/**
+ * The point looked at `[x, y, z]`, metres.
+ */
+target: [number, number, number], 
+/**
+ * How much of the turn applies, 0 to 1 (default 1; 0 lets the gaze go).
+ */
+weight?: number | null, 
+/**
+ * The joint whose frame `target` is in.
+ */
+relative_to?: JointRef | null, } | { "op": "place_avatar", 
 /**
  * The avatar.
  */
@@ -811,7 +872,15 @@ blend_shapes?: { [key in string]: number },
 /**
  * The cross-fade in progress (after `play … fade`), if any.
  */
-fade?: FadeState | null, };
+fade?: FadeState | null, 
+/**
+ * The effectors with an IK goal (`set_ik_goal`), in the order they are solved.
+ */
+ik_goals?: Array<string>, 
+/**
+ * Whether a gaze (`look_at`) is set.
+ */
+looking?: boolean, };
 
 /**
  * A cross-fade in progress: the clip fading out and how far the fade is.
@@ -834,6 +903,19 @@ elapsed: number,
  * The fade's length, seconds.
  */
 duration: number, };
+
+/**
+ * A joint of an avatar, whose frame an IK goal is given in.
+ */
+export type JointRef = { 
+/**
+ * The avatar (this one, or another of the same scene).
+ */
+avatar: AvatarId, 
+/**
+ * The joint's name on its rig.
+ */
+joint: string, };
 
 /**
  * What a clip's root translation does to the avatar (`play`'s `root_motion`).

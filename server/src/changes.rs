@@ -27,8 +27,28 @@ use std::sync::Arc;
 /// What a command may change, noted before it runs.
 #[derive(Debug)]
 pub struct Before {
-    /// The avatar's scene and its overridden joints, for a command about an existing avatar.
-    avatar: Option<(Arc<Scene>, Vec<String>)>,
+    /// The avatar's scene and the parts of its state that commands change often, for a
+    /// command about an existing avatar.
+    avatar: Option<(Arc<Scene>, Often)>,
+}
+
+/// The parts of an avatar's state that commands sent many times a second change (a joint
+/// dragged, a goal followed): such a command is announced only when one of them changes.
+#[derive(Debug, PartialEq)]
+struct Often {
+    /// The overridden joints.
+    overrides: Vec<String>,
+    /// The effectors with IK goals, and whether a gaze is set.
+    goals: (Vec<String>, bool),
+}
+
+impl Often {
+    fn of(state: AvatarState) -> Self {
+        Self {
+            overrides: state.overrides,
+            goals: (state.ik_goals, state.looking),
+        }
+    }
 }
 
 /// Notes what [`after`] compares with. Read-only commands note nothing.
@@ -37,13 +57,13 @@ pub fn before(state: &AppState, command: &Command) -> Before {
     let avatar = match command.avatar() {
         Some(id) if !command.is_read_only() && !matches!(command, Command::AddAvatar { .. }) => {
             state.world.find_avatar(id).ok().and_then(|scene| {
-                let overrides = scene
+                let often = scene
                     .lock()
                     .avatars
                     .iter()
                     .find(|a| &a.id == id)
-                    .map(|a| a.state(&scene.id).overrides)?;
-                Some((scene, overrides))
+                    .map(|a| Often::of(a.state(&scene.id)))?;
+                Some((scene, often))
             })
         }
         _ => None,
@@ -85,11 +105,15 @@ pub fn after(state: &AppState, command: &Command, before: Before, result: &Comma
             state.watchers.push(access, &scene.id, &msg, &told);
         }
         _ => {
-            let (Some(id), Some((scene, overrides))) = (command.avatar(), before.avatar) else {
+            let (Some(id), Some((scene, often))) = (command.avatar(), before.avatar) else {
                 return;
             };
             if overrides_only(command) {
-                announce(state, &scene, id, |now| now.overrides != overrides);
+                announce(state, &scene, id, |now| now.overrides != often.overrides);
+            } else if goals_only(command) {
+                announce(state, &scene, id, |now| {
+                    (&now.ik_goals, now.looking) != (&often.goals.0, often.goals.1)
+                });
             } else {
                 announce(state, &scene, id, |_| true);
             }
@@ -107,6 +131,15 @@ fn overrides_only(command: &Command) -> bool {
             | Command::RotateJointLocal { .. }
             | Command::RotateJointWorld { .. }
             | Command::Release { .. }
+    )
+}
+
+/// Commands that change only IK goals: announced when the set of goals (or the gaze's
+/// presence) changes, not for every new target.
+fn goals_only(command: &Command) -> bool {
+    matches!(
+        command,
+        Command::SetIkGoal { .. } | Command::ClearIkGoal { .. } | Command::LookAt { .. }
     )
 }
 

@@ -1,6 +1,14 @@
 //! How a server runs: [`Config`], built by the `posecast` binary from flags and environment
 //! (or by a test), with the network bounds it carries ([`NetLimits`]).
 
+pub mod cidr;
+mod nats;
+mod vmc;
+
+pub use cidr::{Cidr, CidrError};
+pub use nats::NatsSecurity;
+pub use vmc::{VmcIn, VmcInputs, VmcOut};
+
 use crate::auth::AccessConfig;
 use posecast_proto::msg::AvatarId;
 use std::net::SocketAddr;
@@ -53,6 +61,11 @@ pub struct Config {
     pub nats: Vec<String>,
     /// This server's name in the cluster (`--node`); `None`: host name and port.
     pub node: Option<String>,
+    /// Credentials and TLS for the NATS connection (`--nats-creds`, `--nats-tls-ca`, …).
+    pub nats_security: NatsSecurity,
+    /// The secret relay messages are signed with (`--cluster-secret`, the same on every
+    /// server of the cluster); `None`: they name their node, unsigned.
+    pub cluster_secret: Option<crate::auth::Secret>,
     /// How long a scene's ownership lasts unless its owner renews it (every third of it).
     pub lease_ttl: Duration,
 }
@@ -88,6 +101,8 @@ impl Default for Config {
             vmc_out: Vec::new(),
             nats: Vec::new(),
             node: None,
+            nats_security: NatsSecurity::default(),
+            cluster_secret: None,
             lease_ttl: DEFAULT_LEASE_TTL,
         }
     }
@@ -164,58 +179,8 @@ impl Default for NetLimits {
     }
 }
 
-/// The configuration of one VMC input: `ADDR=AVATAR`.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct VmcIn {
-    /// The UDP address to listen on (VMC's default port is 39539).
-    pub addr: SocketAddr,
-    /// The avatar it drives.
-    pub avatar: AvatarId,
-}
-
-impl std::str::FromStr for VmcIn {
-    type Err = String;
-
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        let (addr, avatar) = s
-            .split_once('=')
-            .ok_or_else(|| format!("{s:?} is not ADDR=AVATAR (e.g. 0.0.0.0:39539=avatar)"))?;
-        Ok(Self {
-            addr: addr
-                .parse()
-                .map_err(|e| format!("{addr:?} is not a socket address: {e}"))?,
-            avatar: avatar_id(avatar)?,
-        })
-    }
-}
-
-/// The configuration of one VMC output: `AVATAR=ADDR`.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct VmcOut {
-    /// The avatar whose pose is sent.
-    pub avatar: AvatarId,
-    /// Where to (VMC's default marionette port is 39539).
-    pub addr: SocketAddr,
-}
-
-impl std::str::FromStr for VmcOut {
-    type Err = String;
-
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        let (avatar, addr) = s
-            .split_once('=')
-            .ok_or_else(|| format!("{s:?} is not AVATAR=ADDR (e.g. avatar=127.0.0.1:39539)"))?;
-        Ok(Self {
-            avatar: avatar_id(avatar)?,
-            addr: addr
-                .parse()
-                .map_err(|e| format!("{addr:?} is not a socket address: {e}"))?,
-        })
-    }
-}
-
 /// An avatar id given on the command line.
-fn avatar_id(s: &str) -> Result<AvatarId, String> {
+pub(crate) fn avatar_id(s: &str) -> Result<AvatarId, String> {
     posecast_proto::msg::check_id("avatar", s).map_err(|e| e.message)?;
     Ok(AvatarId(s.to_owned()))
 }

@@ -30,6 +30,8 @@
 
 // The lower layers are crates of their own (cargo enforces that they never reach up); they
 // are re-exported so that `posecast_server::rig` and the like stay one path for users.
+#![warn(missing_docs)]
+
 pub use posecast_core::{error, quota};
 pub use posecast_rigs::{asset, builtin, clip, export, import, library, rig};
 pub use posecast_sim::{avatar, bake};

@@ -17,6 +17,7 @@
 //! - [`wire2`]: wire v2 frames (protocol version 2), shared by subscribers holding the same
 //!   frames.
 
+#![warn(missing_docs)]
 pub mod feed;
 pub mod outbox;
 pub mod pace;

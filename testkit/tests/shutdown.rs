@@ -20,10 +20,10 @@ async fn a_panicking_test_closes_its_websockets_and_listener() {
     let test = tokio::spawn(async move {
         let server = TestServer::builder()
             .configure(|c| {
-                c.vmc_in = vec![VmcIn {
-                    addr: ([127, 0, 0, 1], 0).into(),
-                    avatar: AvatarId("avatar".into()),
-                }];
+                c.vmc_in = vec![VmcIn::new(
+                    ([127, 0, 0, 1], 0).into(),
+                    AvatarId("avatar".into()),
+                )];
             })
             .start()
             .await

@@ -458,3 +458,72 @@ pub async fn version_1_server() -> (
     });
     (addr, hellos)
 }
+
+/// The built-in avatar's `.glb` as a VRM 1.0 file: its JSON chunk gains a `VRMC_vrm` humanoid
+/// naming every joint but `sacroiliac` (VRM has no such bone).
+pub fn builtin_as_vrm() -> Vec<u8> {
+    builtin_with_bone_map("VRMC_vrm", false)
+}
+
+/// The built-in avatar's `.glb` with a VRM 1.0 humanoid bone map in the root extension
+/// `extension`, the clavicles and toes included when `full`.
+pub fn builtin_with_bone_map(extension: &str, full: bool) -> Vec<u8> {
+    let glb = posecast_server::builtin::AVATAR_GLB;
+    let json_len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
+    let mut doc: serde_json::Value = serde_json::from_slice(&glb[20..20 + json_len]).unwrap();
+    let bones: serde_json::Map<String, serde_json::Value> = doc["nodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .enumerate()
+        .filter_map(|(i, node)| {
+            let bone = match node["name"].as_str()? {
+                "humanoid_root" => "hips",
+                "vl5" => "spine",
+                "vt10" => "chest",
+                "vt1" => "upperChest",
+                "vc4" => "neck",
+                "skullbase" => "head",
+                "l_shoulder" => "leftUpperArm",
+                "l_elbow" => "leftLowerArm",
+                "l_wrist" => "leftHand",
+                "r_shoulder" => "rightUpperArm",
+                "r_elbow" => "rightLowerArm",
+                "r_wrist" => "rightHand",
+                "l_hip" => "leftUpperLeg",
+                "l_knee" => "leftLowerLeg",
+                "l_ankle" => "leftFoot",
+                "r_hip" => "rightUpperLeg",
+                "r_knee" => "rightLowerLeg",
+                "r_ankle" => "rightFoot",
+                "l_sternoclavicular" if full => "leftShoulder",
+                "r_sternoclavicular" if full => "rightShoulder",
+                "l_midtarsal" if full => "leftToes",
+                "r_midtarsal" if full => "rightToes",
+                _ => return None,
+            };
+            Some((bone.to_owned(), serde_json::json!({ "node": i })))
+        })
+        .collect();
+    doc["extensionsUsed"] = serde_json::json!([extension]);
+    let mut root = serde_json::json!({"specVersion": "1.0", "humanoid": {"humanBones": bones}});
+    if extension == "VRMC_vrm" {
+        // What a VRM 1.0 file's meta must hold (three-vrm's loader reads it).
+        root["meta"] = serde_json::json!({"name": "posecast built-in avatar", "authors": ["posecast"],
+            "licenseUrl": "https://vrm.dev/licenses/1.0/"});
+    }
+    doc["extensions"] = serde_json::json!({ extension: root });
+    let mut json = serde_json::to_vec(&doc).unwrap();
+    while !json.len().is_multiple_of(4) {
+        json.push(b' ');
+    }
+    let bin = &glb[20 + json_len..];
+    let mut out = b"glTF".to_vec();
+    out.extend_from_slice(&2u32.to_le_bytes());
+    out.extend_from_slice(&((12 + 8 + json.len() + bin.len()) as u32).to_le_bytes());
+    out.extend_from_slice(&(json.len() as u32).to_le_bytes());
+    out.extend_from_slice(b"JSON");
+    out.extend_from_slice(&json);
+    out.extend_from_slice(bin);
+    out
+}

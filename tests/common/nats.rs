@@ -9,18 +9,27 @@ use std::time::{Duration, Instant};
 pub struct Nats {
     child: Child,
     program: &'static str,
-    /// More arguments (credentials: `--user`/`--pass`, `--auth`).
+    /// More arguments (credentials: `--user`/`--pass`, `--auth`; a configuration file: `-c`).
     extra: Vec<String>,
+    /// Its environment's additions (the variables a configuration file refers to).
+    env: Vec<(String, String)>,
     /// Its client port.
     pub port: u16,
     store: tempfile::TempDir,
 }
 
-fn spawn(program: &str, port: u16, store: &std::path::Path, extra: &[String]) -> Child {
+fn spawn(
+    program: &str,
+    port: u16,
+    store: &std::path::Path,
+    extra: &[String],
+    env: &[(String, String)],
+) -> Child {
     Command::new(program)
         .args(["-js", "-a", "127.0.0.1", "-p", &port.to_string(), "-sd"])
         .arg(store)
         .args(extra)
+        .envs(env.iter().map(|(k, v)| (k, v)))
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
@@ -38,7 +47,23 @@ impl Nats {
     /// [`Nats::start`] with more arguments for `nats-server` (e.g. `--user u --pass p`, or
     /// `--auth TOKEN`: clients must then authenticate).
     pub fn start_with(extra: &[&str]) -> Option<Self> {
+        Self::start_env(extra, &[])
+    }
+
+    /// The repository's sample configuration, `scripts/nats/cluster.conf` (posecast's own
+    /// account, users and subject permissions), with the variables it refers to in `env`.
+    pub fn start_config(env: &[(&str, &str)]) -> Option<Self> {
+        let conf = concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/nats/cluster.conf");
+        Self::start_env(&["-c", conf], env)
+    }
+
+    /// [`Nats::start_with`] with more environment variables.
+    pub fn start_env(extra: &[&str], env: &[(&str, &str)]) -> Option<Self> {
         let extra: Vec<String> = extra.iter().map(|&a| a.to_owned()).collect();
+        let env: Vec<(String, String)> = env
+            .iter()
+            .map(|(k, v)| ((*k).to_owned(), (*v).to_owned()))
+            .collect();
         let program = [
             "nats-server",
             "/usr/sbin/nats-server",
@@ -66,9 +91,10 @@ impl Nats {
             .unwrap()
             .port();
         let nats = Self {
-            child: spawn(program, port, store.path(), &extra),
+            child: spawn(program, port, store.path(), &extra, &env),
             program,
             extra,
+            env,
             port,
             store,
         };
@@ -102,7 +128,13 @@ impl Nats {
     /// Starts it again on the same port with the same store (what JetStream held survives).
     pub fn restart(&mut self) {
         self.stop();
-        self.child = spawn(self.program, self.port, self.store.path(), &self.extra);
+        self.child = spawn(
+            self.program,
+            self.port,
+            self.store.path(),
+            &self.extra,
+            &self.env,
+        );
         self.wait_listening();
     }
 }

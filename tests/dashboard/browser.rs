@@ -11,6 +11,7 @@ use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 /// One browser at a time: the tests measure frames and push delays, which several Chromiums
 /// sharing two cores would blur.
@@ -268,4 +269,61 @@ pub fn write_small_png(png_bytes: &[u8], path: &Path) {
         .unwrap()
         .write_image_data(&rgb)
         .unwrap();
+}
+
+/// Serves `html` at `/` (any other path), the files of `modules` under `/node_modules/` and
+/// `files` at their paths, until the test ends, on another origin than the posecast server's,
+/// as a third party's page, bundle and models would be.
+pub async fn serve_origin(
+    html: String,
+    modules: Option<PathBuf>,
+    files: Vec<(&'static str, Vec<u8>)>,
+) -> String {
+    let files = std::sync::Arc::new(files);
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    tokio::spawn(async move {
+        while let Ok((mut stream, _)) = listener.accept().await {
+            let (html, modules, files) = (html.clone(), modules.clone(), files.clone());
+            tokio::spawn(async move {
+                let mut head = Vec::new();
+                let mut buf = [0u8; 4096];
+                while !head.windows(4).any(|w| w == b"\r\n\r\n") && head.len() < 65536 {
+                    match stream.read(&mut buf).await {
+                        Ok(0) | Err(_) => return,
+                        Ok(n) => head.extend_from_slice(&buf[..n]),
+                    }
+                }
+                let head = String::from_utf8_lossy(&head);
+                let path = head.split_whitespace().nth(1).unwrap_or("/").to_owned();
+                let file = files.iter().find(|(p, _)| *p == path);
+                let (status, content_type, body) = match path.strip_prefix("/node_modules/") {
+                    _ if file.is_some() => (
+                        "200 OK",
+                        "application/octet-stream",
+                        file.map(|(_, b)| b.clone()).unwrap_or_default(),
+                    ),
+                    Some(rest) if !rest.contains("..") => {
+                        match modules.as_ref().map(|m| std::fs::read(m.join(rest))) {
+                            Some(Ok(bytes)) => ("200 OK", "text/javascript; charset=utf-8", bytes),
+                            _ => ("404 Not Found", "text/plain", b"no such file".to_vec()),
+                        }
+                    }
+                    Some(_) => ("404 Not Found", "text/plain", b"no such file".to_vec()),
+                    None => ("200 OK", "text/html; charset=utf-8", html.into_bytes()),
+                };
+                let mut answer = format!(
+                    "HTTP/1.1 {status}\r\nContent-Type: {content_type}\r\n\
+                     Content-Length: {}\r\nConnection: close\r\n\r\n",
+                    body.len()
+                )
+                .into_bytes();
+                answer.extend_from_slice(&body);
+                if stream.write_all(&answer).await.is_ok() {
+                    stream.shutdown().await.ok();
+                }
+            });
+        }
+    });
+    format!("http://{addr}/")
 }

@@ -32,6 +32,7 @@ mod layout;
 mod placement;
 mod push;
 mod sdk;
+mod three;
 mod timeline;
 mod tokens;
 mod world;

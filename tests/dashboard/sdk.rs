@@ -11,37 +11,10 @@ use posecast_proto::quant::{MAX_ERROR_DEGREES, angle_between_degrees};
 use serde_json::{Value, json};
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
-/// Serves `html` at `http://127.0.0.1:PORT/` (any path) until the test ends: the page's origin
-/// differs from the posecast server's, as a third party's page would.
+/// Serves `html` on another origin than the posecast server's ([`serve_origin`]).
 async fn serve_page(html: String) -> String {
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
-    tokio::spawn(async move {
-        while let Ok((mut stream, _)) = listener.accept().await {
-            let html = html.clone();
-            tokio::spawn(async move {
-                let mut head = Vec::new();
-                let mut buf = [0u8; 4096];
-                while !head.windows(4).any(|w| w == b"\r\n\r\n") && head.len() < 65536 {
-                    match stream.read(&mut buf).await {
-                        Ok(0) | Err(_) => return,
-                        Ok(n) => head.extend_from_slice(&buf[..n]),
-                    }
-                }
-                let answer = format!(
-                    "HTTP/1.1 200 OK\r\nContent-Type: text/html; charset=utf-8\r\n\
-                     Content-Length: {}\r\nConnection: close\r\n\r\n{html}",
-                    html.len()
-                );
-                if stream.write_all(answer.as_bytes()).await.is_ok() {
-                    stream.shutdown().await.ok();
-                }
-            });
-        }
-    });
-    format!("http://{addr}/")
+    serve_origin(html, None, Vec::new()).await
 }
 
 /// A page that imports only the client and records, per tick, the decoded rotations and

@@ -51,6 +51,12 @@ fn state(full: bool) -> AvatarState {
             elapsed: 0.1,
             duration: 0.3,
         }),
+        ik_goals: if full {
+            vec!["l_wrist".into()]
+        } else {
+            Vec::new()
+        },
+        looking: full,
     }
 }
 

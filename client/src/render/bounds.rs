@@ -7,7 +7,9 @@ use posecast_proto::SkinnedMesh;
 /// An axis-aligned box, `min ≤ max` component-wise.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Aabb {
+    /// The corner with the smallest coordinates, in the space of the points it bounds.
     pub min: Vec3,
+    /// The corner with the largest coordinates, same space.
     pub max: Vec3,
 }
 
@@ -29,6 +31,7 @@ impl Aabb {
         ))
     }
 
+    /// The smallest box holding both boxes.
     #[must_use]
     pub fn union(self, other: Self) -> Self {
         Self {
@@ -37,6 +40,7 @@ impl Aabb {
         }
     }
 
+    /// The box's centre, `(min + max) / 2`.
     #[must_use]
     pub fn center(&self) -> Vec3 {
         (self.min + self.max) * 0.5

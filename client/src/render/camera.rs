@@ -12,8 +12,9 @@ pub struct Camera {
     pub target: Vec3,
     /// Vertical field of view, radians.
     pub fov_y: f32,
-    /// Near and far clip distances, metres.
+    /// Near clip distance from the eye, metres.
     pub near: f32,
+    /// Far clip distance from the eye, metres.
     pub far: f32,
 }
 

@@ -24,6 +24,8 @@ pub struct SkinningKernel {
 }
 
 impl SkinningKernel {
+    /// Builds the pipeline (the shared `skin()` run by `compute.wgsl`'s `skin_vertices`) and its
+    /// bind group layout on `device`.
     #[must_use]
     pub fn new(device: &wgpu::Device) -> Self {
         let storage = |binding, read_only| wgpu::BindGroupLayoutEntry {
@@ -210,6 +212,7 @@ impl ComputeSkinner {
         self.joints
     }
 
+    /// Number of vertices the uploaded mesh has (and [`ComputeSkinner::skin`] returns).
     #[must_use]
     pub fn vertex_count(&self) -> usize {
         self.vertex_count

@@ -16,25 +16,53 @@ use std::collections::HashMap;
 /// Why a `.glb` gave no mesh.
 #[derive(Debug, thiserror::Error)]
 pub enum GlbMeshError {
+    /// The bytes are not a glTF/GLB document, or its buffers cannot be loaded.
     #[error("not a readable glTF/GLB file: {source}")]
     Parse {
+        /// What the glTF reader reported.
         #[source]
         source: gltf::Error,
     },
+    /// The file has no skin, or no triangle primitive with `JOINTS_0` on a mesh bound to its
+    /// first skin.
     #[error("the file has no skinned triangle mesh")]
     NoSkinnedMesh,
+    /// A primitive lacks an attribute the renderer needs (`POSITION`, `JOINTS_0`, …).
     #[error("mesh {mesh}: {message}")]
-    Accessor { mesh: String, message: String },
+    Accessor {
+        /// The primitive's label (mesh name and primitive index).
+        mesh: String,
+        /// What is missing.
+        message: String,
+    },
+    /// A primitive, or the merged mesh, does not make a valid [`SkinnedMesh`].
     #[error("mesh {mesh}: {source}")]
     Mesh {
+        /// The primitive's label, or `"merged"` for the merged mesh.
         mesh: String,
+        /// Why the mesh was refused.
         #[source]
         source: MeshError,
     },
+    /// A skin joint's name is not among the avatar's joints (or a weighted vertex names a
+    /// skin joint past the skin's list).
     #[error("the mesh's skin joint {joint} ({name:?}) is not a joint of the avatar")]
-    UnknownJoint { joint: usize, name: Option<String> },
+    UnknownJoint {
+        /// Index of the joint in the skin's joint list.
+        joint: usize,
+        /// Its node's name, if it has one.
+        name: Option<String>,
+    },
+    /// The skin's joints are unnamed and more than the avatar has, so they cannot be taken
+    /// in order.
     #[error("the mesh's skin has {mesh} joints without names; the avatar has {avatar}")]
-    JointCount { mesh: usize, avatar: usize },
+    JointCount {
+        /// Joints in the skin.
+        mesh: usize,
+        /// Joints in the avatar.
+        avatar: usize,
+    },
+    /// The glTF reader panicked on malformed input (caught and turned into this error).
     #[error("the glTF reader failed on malformed input")]
     Malformed,
 }

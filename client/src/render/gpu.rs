@@ -6,9 +6,13 @@ use super::error::RenderError;
 /// An adapter, its device and queue. Cheap to clone: wgpu handles are reference counted.
 #[derive(Clone, Debug)]
 pub struct Gpu {
+    /// The wgpu instance the adapter came from (windows make their surfaces with it).
     pub instance: wgpu::Instance,
+    /// The adapter (physical or software GPU) in use.
     pub adapter: wgpu::Adapter,
+    /// The logical device every resource is created on.
     pub device: wgpu::Device,
+    /// The device's queue, for uploads and submissions.
     pub queue: wgpu::Queue,
 }
 

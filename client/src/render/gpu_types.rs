@@ -36,11 +36,17 @@ pub const MAX_JOINTS_PER_AVATAR: usize = 1024;
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 pub struct SkinVertex {
+    /// Bind-pose position, model space, metres.
     pub position: [f32; 3],
+    /// Padding to WGSL's 16-byte `vec3` alignment; always 0.
     pub _pad0: u32,
+    /// Bind-pose unit normal, model space.
     pub normal: [f32; 3],
+    /// Padding to WGSL's 16-byte `vec3` alignment; always 0.
     pub _pad1: u32,
+    /// The four joints that move the vertex, indices into the avatar's skinning matrices.
     pub joints: [u32; 4],
+    /// Their weights, summing to one; an unused slot has weight 0.
     pub weights: [f32; 4],
 }
 
@@ -50,9 +56,13 @@ pub struct SkinVertex {
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
 pub struct SkinnedVertex {
+    /// Skinned position, model space, metres.
     pub position: [f32; 3],
+    /// Padding to WGSL's 16-byte `vec3` alignment.
     pub _pad0: u32,
+    /// Skinned unit normal, model space.
     pub normal: [f32; 3],
+    /// Padding to WGSL's 16-byte `vec3` alignment.
     pub _pad1: u32,
 }
 
@@ -88,7 +98,9 @@ pub struct AvatarUniform {
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 pub struct LineVertex {
+    /// Position, world space, metres.
     pub position: [f32; 3],
+    /// Colour, linear RGB.
     pub color: [f32; 3],
 }
 
@@ -148,11 +160,13 @@ impl SkinnedVertex {
         ],
     };
 
+    /// [`Self::position`] as a vector.
     #[must_use]
     pub fn position(&self) -> Vec3 {
         Vec3::from(self.position)
     }
 
+    /// [`Self::normal`] as a vector.
     #[must_use]
     pub fn normal(&self) -> Vec3 {
         Vec3::from(self.normal)

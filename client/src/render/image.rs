@@ -14,6 +14,8 @@ pub struct RgbaImage {
 }
 
 impl RgbaImage {
+    /// An image of `width × height` pixels from its packed RGBA bytes.
+    ///
     /// # Panics
     /// If `pixels` is not `width × height × 4` bytes (a caller bug).
     #[must_use]
@@ -30,16 +32,19 @@ impl RgbaImage {
         }
     }
 
+    /// Width, pixels.
     #[must_use]
     pub fn width(&self) -> u32 {
         self.width
     }
 
+    /// Height, pixels.
     #[must_use]
     pub fn height(&self) -> u32 {
         self.height
     }
 
+    /// The packed pixels: 4 bytes (R, G, B, A) each, row by row from the top.
     #[must_use]
     pub fn pixels(&self) -> &[u8] {
         &self.pixels

@@ -68,11 +68,13 @@ impl Offscreen {
         })
     }
 
+    /// The colour texture's view, in [`Self::FORMAT`], to render into.
     #[must_use]
     pub fn view(&self) -> &wgpu::TextureView {
         &self.view
     }
 
+    /// `(width, height)` in pixels.
     #[must_use]
     pub fn size(&self) -> (u32, u32) {
         (self.width, self.height)

@@ -30,6 +30,7 @@ pub enum SkinningPath {
 /// How the scene is drawn.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RendererOptions {
+    /// Where meshes are skinned: in the vertex shader or by the compute kernel.
     pub skinning: SkinningPath,
     /// Draw the ground grid at y = 0.
     pub grid: bool,
@@ -78,6 +79,10 @@ const BONE_COLOR: Vec3 = Vec3::new(1.0, 0.85, 0.1);
 /// Direction towards the key light: above, from the front left.
 const LIGHT: Vec3 = Vec3::new(-0.4, 0.8, 0.5);
 
+/// Draws skinned avatars, the ground grid and bone overlays into a colour target of one
+/// format, wgpu-example style: [`Renderer::new`], [`Renderer::resize`], [`Renderer::update`],
+/// [`Renderer::render`]. Avatars are added with their skeleton and mesh and posed with local
+/// transforms; world matrices and skinning are computed here.
 #[derive(Debug)]
 pub struct Renderer {
     device: wgpu::Device,
@@ -156,11 +161,13 @@ impl Renderer {
         self.depth = depth_view(&self.device, self.width, self.height);
     }
 
+    /// `(width, height)` of the targets it draws into, pixels (at least 1 each).
     #[must_use]
     pub fn size(&self) -> (u32, u32) {
         (self.width, self.height)
     }
 
+    /// The options it draws with.
     #[must_use]
     pub fn options(&self) -> &RendererOptions {
         &self.options
@@ -281,6 +288,8 @@ impl Renderer {
         self.avatars.get(&handle.0).and_then(GpuAvatar::bounds)
     }
 
+    /// The camera the next [`Renderer::update`] uses (re-framed there when
+    /// [`RendererOptions::auto_frame`] is on).
     #[must_use]
     pub fn camera(&self) -> &Camera {
         &self.camera

@@ -29,14 +29,25 @@ use winit::window::{Window, WindowId};
 pub enum AvatarUpdate {
     /// A new avatar, or a new rig for an existing id (replaces it).
     Spawn {
+        /// The source's id for the avatar.
         id: u64,
+        /// Its skeleton (joint order of the poses that follow).
         skeleton: Box<Skeleton>,
+        /// Its skinned mesh in bind pose, joint indices into `skeleton`.
         mesh: Box<SkinnedMesh>,
     },
     /// Local joint transforms `D_j`, one per joint of the avatar's skeleton.
-    Pose { id: u64, locals: Vec<Transform> },
+    Pose {
+        /// The source's id for the avatar.
+        id: u64,
+        /// `D_j` per joint, in the parent's space (a root's in world space).
+        locals: Vec<Transform>,
+    },
     /// The avatar left.
-    Despawn { id: u64 },
+    Despawn {
+        /// The source's id for the avatar.
+        id: u64,
+    },
 }
 
 /// Where the viewer gets avatars and poses. Called once per frame on the event-loop thread, so
@@ -54,6 +65,7 @@ pub trait PoseSource {
 /// Window and renderer settings.
 #[derive(Clone, Debug)]
 pub struct ViewerOptions {
+    /// The window's title, before the frame rate and the source's status.
     pub title: String,
     /// Initial inner size, physical pixels.
     pub size: (u32, u32),

@@ -17,26 +17,72 @@ pub const TIMEOUT: Duration = Duration::from_secs(10);
 /// Why a fetch failed.
 #[derive(Debug, thiserror::Error)]
 pub enum FetchError {
+    /// The URL does not parse, has an unknown scheme or no host, or a path does not join it.
     #[error("bad URL {url:?}: {message}")]
-    Url { url: String, message: String },
+    Url {
+        /// The URL (or path) as given.
+        url: String,
+        /// What is wrong with it.
+        message: String,
+    },
+    /// The URL is not plain `http` (this client has no TLS).
     #[error("{url}: only plain http is supported, not {scheme}")]
-    Scheme { url: String, scheme: String },
+    Scheme {
+        /// The URL requested.
+        url: String,
+        /// Its scheme (e.g. `https`).
+        scheme: String,
+    },
+    /// Connecting, writing the request or reading the response failed.
     #[error("{url}: {source}")]
     Io {
+        /// The URL requested.
         url: String,
+        /// What the socket reported.
         #[source]
         source: std::io::Error,
     },
+    /// [`get`] got a status other than 200.
     #[error("{url}: HTTP status {status}")]
-    Status { url: String, status: u16 },
+    Status {
+        /// The URL requested.
+        url: String,
+        /// The response's status code.
+        status: u16,
+    },
+    /// A request header's name or value contains CR or LF, which would smuggle in another
+    /// header.
     #[error("{url}: header {name} holds a line break")]
-    Header { url: String, name: String },
+    Header {
+        /// The URL requested.
+        url: String,
+        /// The header's name.
+        name: String,
+    },
+    /// The response is not valid HTTP/1.1 (status line, headers or chunked body).
     #[error("{url}: malformed response: {message}")]
-    Response { url: String, message: String },
+    Response {
+        /// The URL requested.
+        url: String,
+        /// What is wrong with it.
+        message: String,
+    },
+    /// The response passed [`MAX_RESPONSE_BYTES`] (and 64 KiB more for its headers).
     #[error("{url}: response larger than {limit} bytes")]
-    TooLarge { url: String, limit: usize },
+    TooLarge {
+        /// The URL requested.
+        url: String,
+        /// The limit, bytes ([`MAX_RESPONSE_BYTES`]).
+        limit: usize,
+    },
+    /// The request did not complete within [`TIMEOUT`].
     #[error("{url}: no response within {seconds} s")]
-    Timeout { url: String, seconds: u64 },
+    Timeout {
+        /// The URL requested.
+        url: String,
+        /// The timeout, seconds.
+        seconds: u64,
+    },
 }
 
 /// The HTTP URL of `path` (absolute or relative, e.g. `/api/assets/avatar/mesh.glb`) on the

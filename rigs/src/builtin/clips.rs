@@ -17,6 +17,7 @@ pub const SAMPLE_RATE: f64 = 30.0;
 /// One clip as sampled keys, ready to write.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SampledClip {
+    /// The clip's name (`idle`, `walk` or `wave`).
     pub name: &'static str,
     /// Key times in seconds from 0 to the duration; the last key repeats the first pose.
     pub times: Vec<f32>,
@@ -29,7 +30,10 @@ pub struct SampledClip {
 /// A pose: `Δ_j` per joint and how far `humanoid_root` moved from its bind position.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Pose {
+    /// `Δ_j` per joint, indexed as [`super::JOINTS`]: the joint's turn in the world-aligned frame
+    /// its parent carries (identity at bind).
     pub delta: [DQuat; JOINT_COUNT],
+    /// `humanoid_root`'s offset from its bind position, model space, metres.
     pub root_offset: DVec3,
 }
 
@@ -45,10 +49,13 @@ impl Pose {
 /// A clip as a function of the cycle phase in `[0, 1)`.
 #[derive(Clone, Copy, Debug)]
 pub struct ClipSpec {
+    /// The clip's name.
     pub name: &'static str,
     /// Seconds per cycle.
     pub duration: f64,
+    /// Whether the clip moves `humanoid_root` (writes its translation channel).
     pub animates_root: bool,
+    /// The pose at a cycle phase in `[0, 1)`.
     pub pose: fn(&Rig, f64) -> Pose,
 }
 

@@ -16,11 +16,13 @@ const MIN_WEIGHT: f64 = 1e-3;
 /// The mesh in bind pose (model space, metres).
 #[derive(Clone, Debug, PartialEq)]
 pub struct MeshData {
+    /// Vertex positions, model space, metres.
     pub positions: Vec<Vec3>,
     /// Area-weighted vertex normals, outward.
     pub normals: Vec<Vec3>,
     /// Counter-clockwise triangles seen from outside.
     pub indices: Vec<u16>,
+    /// Per vertex, the indices into [`JOINTS`] of the joints that move it.
     pub joints: Vec<[u16; INFLUENCES]>,
     /// Non-negative, summing to one; unused slots are zero and name joint 0.
     pub weights: Vec<[f32; INFLUENCES]>,

@@ -8,28 +8,51 @@ use glam::{DMat3, DMat4, DQuat, DVec3};
 
 /// Joint indices into [`JOINTS`], which is ordered parent before child.
 pub mod joint {
+    /// `humanoid_root`: the root, at the pelvis; the spine and `sacroiliac` hang from it.
     pub const HUMANOID_ROOT: usize = 0;
+    /// `sacroiliac`: the pelvis, at the root; the legs hang from it.
     pub const SACROILIAC: usize = 1;
+    /// `l_hip`: the left hip (the avatar's left, +X).
     pub const L_HIP: usize = 2;
+    /// `l_knee`: the left knee.
     pub const L_KNEE: usize = 3;
+    /// `l_ankle`: the left ankle.
     pub const L_ANKLE: usize = 4;
+    /// `l_midtarsal`: the left midfoot; its bone runs to the toes.
     pub const L_MIDTARSAL: usize = 5;
+    /// `r_hip`: the right hip (the avatar's right, −X).
     pub const R_HIP: usize = 6;
+    /// `r_knee`: the right knee.
     pub const R_KNEE: usize = 7;
+    /// `r_ankle`: the right ankle.
     pub const R_ANKLE: usize = 8;
+    /// `r_midtarsal`: the right midfoot; its bone runs to the toes.
     pub const R_MIDTARSAL: usize = 9;
+    /// `vl5`: the fifth lumbar vertebra, the bottom of the spine.
     pub const VL5: usize = 10;
+    /// `vt10`: the tenth thoracic vertebra, mid-back.
     pub const VT10: usize = 11;
+    /// `vt1`: the first thoracic vertebra, top of the chest; the arms hang from it.
     pub const VT1: usize = 12;
+    /// `vc4`: the fourth cervical vertebra, the neck.
     pub const VC4: usize = 13;
+    /// `skullbase`: the base of the skull; its bone runs to the top of the head.
     pub const SKULLBASE: usize = 14;
+    /// `l_sternoclavicular`: the left collarbone's inner end.
     pub const L_STERNOCLAVICULAR: usize = 15;
+    /// `l_shoulder`: the left shoulder.
     pub const L_SHOULDER: usize = 16;
+    /// `l_elbow`: the left elbow.
     pub const L_ELBOW: usize = 17;
+    /// `l_wrist`: the left wrist; its bone runs to the fingertips.
     pub const L_WRIST: usize = 18;
+    /// `r_sternoclavicular`: the right collarbone's inner end.
     pub const R_STERNOCLAVICULAR: usize = 19;
+    /// `r_shoulder`: the right shoulder.
     pub const R_SHOULDER: usize = 20;
+    /// `r_elbow`: the right elbow.
     pub const R_ELBOW: usize = 21;
+    /// `r_wrist`: the right wrist; its bone runs to the fingertips.
     pub const R_WRIST: usize = 22;
 }
 

@@ -68,14 +68,19 @@ impl Naming {
 /// Why a variant could not be made (never expected: the built-in avatar is tested).
 #[derive(Debug, thiserror::Error)]
 pub enum VariantError {
+    /// The embedded avatar did not load.
     #[error(transparent)]
     Builtin(#[from] BuiltinError),
+    /// Simplifying or turning the avatar's bind, or renaming its joints, failed.
     #[error(transparent)]
     Rig(#[from] RigError),
+    /// Writing the BVH text failed.
     #[error(transparent)]
     Export(#[from] ExportError),
+    /// The avatar has no clip of this name (its clips are [`super::CLIP_NAMES`]).
     #[error("the built-in avatar has no clip {0}")]
     NoClip(String),
+    /// `turns` does not give one rotation per joint: (rotations given, joints).
     #[error("{0} rotations for {1} joints")]
     Turns(usize, usize),
 }

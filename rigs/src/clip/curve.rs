@@ -35,9 +35,13 @@ pub enum Tangent {
 /// One key as written in a `.anim` file.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Key {
+    /// Key time, seconds.
     pub time: f32,
+    /// The DOF's value at the key (radians for a rotation, file units for a translation).
     pub value: f32,
+    /// The rule for the slope arriving at the key.
     pub tangent_in: Tangent,
+    /// The rule for the slope leaving the key.
     pub tangent_out: Tangent,
 }
 
@@ -160,6 +164,7 @@ impl Curve {
         (&self.slope_in, &self.slope_out)
     }
 
+    /// How the curve continues before its first key and after its last.
     #[must_use]
     pub fn extrapolation(&self) -> (Extrapolation, Extrapolation) {
         (self.before, self.after)

@@ -22,20 +22,39 @@ use posecast_proto::Transform;
 /// Why a clip, track or curve was refused.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum ClipError {
+    /// A track or curve was given no keys.
     #[error("a track or curve has no keys")]
     NoKeys,
+    /// A track's value count does not match its key times.
     #[error("{times} key times but {values} values ({per_key} per key expected)")]
     KeyCount {
+        /// How many key times it has.
         times: usize,
+        /// How many values it has.
         values: usize,
+        /// Values each key needs: 3 for cubic spline (in-tangent, value, out-tangent), else 1.
         per_key: usize,
     },
+    /// Key times do not strictly increase.
     #[error("key {key} has a time that is not after the previous key's")]
-    Unordered { key: usize },
+    Unordered {
+        /// Index of the first key whose time is not after its predecessor's.
+        key: usize,
+    },
+    /// A key's time, value or tangent is NaN or infinite.
     #[error("key {key} has a non-finite time, value or tangent")]
-    NotFinite { key: usize },
+    NotFinite {
+        /// Index of the key.
+        key: usize,
+    },
+    /// The clip's playback range has `start > end` or a bound that is not finite.
     #[error("clip range [{start}, {end}] is empty or not finite")]
-    BadRange { start: f32, end: f32 },
+    BadRange {
+        /// The range's start, seconds.
+        start: f32,
+        /// The range's end, seconds.
+        end: f32,
+    },
 }
 
 /// A rotation channel.
@@ -79,6 +98,7 @@ impl RotationChannel {
 /// A translation or scale channel.
 #[derive(Clone, Debug, PartialEq)]
 pub enum VectorChannel {
+    /// Vector keys (glTF channels, BVH frames).
     Keys(Track<Vec3>),
     /// One CSE169 curve per axis (x, y, z).
     Curves(Box<[Curve; 3]>),
@@ -129,10 +149,16 @@ fn curves_range(c: &[Curve; 3]) -> (f32, f32) {
 /// transform (e.g. glTF's `Z_UP` node) into a root joint.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ChannelMap {
+    /// Rotation multiplied before the sampled rotation (`V_parent(i)` in normalisation).
     pub rot_pre: Quat,
+    /// Rotation multiplied after the sampled rotation (`V_i⁻¹` in normalisation).
     pub rot_post: Quat,
+    /// Rotation applied to the sampled translation (`V_parent(i)` in normalisation).
     pub trans_rot: Quat,
+    /// Factor on the rotated translation: metres per file unit in normalisation.
     pub trans_scale: f32,
+    /// Added to the mapped translation, in the parent's space after the map (metres once
+    /// normalised).
     pub trans_offset: Vec3,
 }
 
@@ -185,9 +211,14 @@ impl ChannelMap {
 /// One joint's channels and the map applied to them.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct JointChannels {
+    /// The local rotation `R` of `D_j`, if animated.
     pub rotation: Option<RotationChannel>,
+    /// The local translation `t` of `D_j`, in the parent's space (file units until the map
+    /// scales them), if animated.
     pub translation: Option<VectorChannel>,
+    /// The local per-axis scale `S` of `D_j`, if animated.
     pub scale: Option<VectorChannel>,
+    /// The map applied to the sampled rotation and translation.
     pub map: ChannelMap,
 }
 
@@ -250,6 +281,7 @@ impl Clip {
         })
     }
 
+    /// The clip's name (from the file, or given on import).
     #[must_use]
     pub fn name(&self) -> &str {
         &self.name
@@ -290,11 +322,13 @@ impl Clip {
         &self.joints
     }
 
+    /// Whether `joint` has a rotation channel (false for a joint past the slots).
     #[must_use]
     pub fn animates_rotation(&self, joint: usize) -> bool {
         self.joints.get(joint).is_some_and(|j| j.rotation.is_some())
     }
 
+    /// Whether `joint` has a translation channel (false for a joint past the slots).
     #[must_use]
     pub fn animates_translation(&self, joint: usize) -> bool {
         self.joints
@@ -302,6 +336,7 @@ impl Clip {
             .is_some_and(|j| j.translation.is_some())
     }
 
+    /// Whether `joint` has a scale channel (false for a joint past the slots).
     #[must_use]
     pub fn animates_scale(&self, joint: usize) -> bool {
         self.joints.get(joint).is_some_and(|j| j.scale.is_some())

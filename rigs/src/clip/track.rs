@@ -211,6 +211,7 @@ impl<T: TrackValue> Track<T> {
         self.times.len() == 1
     }
 
+    /// How values between keys are computed.
     #[must_use]
     pub fn interpolation(&self) -> Interpolation {
         self.interpolation

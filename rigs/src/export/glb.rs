@@ -45,6 +45,7 @@ pub struct Model<'a> {
 pub struct Mesh {
     /// The mesh's and its node's name.
     pub name: String,
+    /// Its parts, each written as one glTF primitive.
     pub primitives: Vec<Primitive>,
 }
 
@@ -61,6 +62,7 @@ pub struct Primitive {
     pub weights: Vec<[f32; 4]>,
     /// Counter-clockwise triangles.
     pub indices: Vec<u32>,
+    /// The primitive's material; `None` leaves it to the reader's default.
     pub material: Option<Material>,
 }
 
@@ -98,17 +100,22 @@ impl Primitive {
 /// A metallic-roughness material with a constant colour.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Material {
+    /// The material's name in the file.
     pub name: String,
     /// Linear RGBA.
     pub base_color: [f32; 4],
+    /// glTF `metallicFactor`, 0 (dielectric) to 1 (metal).
     pub metallic: f32,
+    /// glTF `roughnessFactor`, 0 (mirror) to 1 (fully rough).
     pub roughness: f32,
 }
 
 /// One glTF animation.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Animation {
+    /// The animation's name (the clip's).
     pub name: String,
+    /// Its channels, each one property of one joint.
     pub channels: Vec<Channel>,
 }
 
@@ -130,8 +137,11 @@ pub struct Channel {
 /// quaternions) or scale.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Output {
+    /// Local translations, parent space, metres.
     Translation(Vec<Vec3>),
+    /// Local rotations, unit quaternions.
     Rotation(Vec<Quat>),
+    /// Local per-axis scales.
     Scale(Vec<Vec3>),
 }
 

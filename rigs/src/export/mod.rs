@@ -22,40 +22,73 @@ use posecast_proto::{Skeleton, SkeletonError};
 /// the inconsistency when one does.
 #[derive(Debug, thiserror::Error)]
 pub enum ExportError {
+    /// The clip has more joint slots than the skeleton it is written with has joints.
     #[error("clip {clip} has {clip_joints} joint slots; the rig has {rig_joints} joints")]
     JointCount {
+        /// The clip's name.
         clip: String,
+        /// Its number of joint slots.
         clip_joints: usize,
+        /// The skeleton's number of joints.
         rig_joints: usize,
     },
+    /// The clip has no channel on any joint, and a glTF animation needs at least one.
     #[error("clip {clip} animates nothing: there is no channel to write")]
-    NothingAnimated { clip: String },
+    NothingAnimated {
+        /// The clip's name.
+        clip: String,
+    },
+    /// An animation channel given to the `.glb` writer is inconsistent (joint out of range,
+    /// no keys, bad or unordered times, value count not matching the keys).
     #[error("animation {animation}, channel {channel}: {message}")]
     Channel {
+        /// The animation's name.
         animation: String,
+        /// The channel's index in the animation.
         channel: usize,
+        /// What is wrong with it.
         message: String,
     },
+    /// A mesh primitive given to the `.glb` writer is inconsistent (attribute lengths differ,
+    /// an index out of range, …).
     #[error("mesh {mesh}, primitive {primitive}: {message}")]
     Primitive {
+        /// The mesh's name.
         mesh: String,
+        /// The primitive's index in the mesh.
         primitive: usize,
+        /// What is wrong with it.
         message: String,
     },
+    /// The BVH frame time asked for is zero, negative or not finite.
     #[error("frame time {frame_time} s is not a positive number")]
-    FrameTime { frame_time: f64 },
+    FrameTime {
+        /// The frame time given, seconds.
+        frame_time: f64,
+    },
+    /// The BVH motion would hold more than [`bvh::MAX_VALUES`] numbers.
     #[error("{frames} frames of {channels} channels: more than {max_values} values")]
     TooManyFrames {
+        /// Frames the clip would need.
         frames: usize,
+        /// Channels per frame (6 for a translated joint, 3 for the others).
         channels: usize,
+        /// The limit, [`bvh::MAX_VALUES`].
         max_values: usize,
     },
+    /// The `.glb` would pass the 4 GiB its `u32` lengths can address.
     #[error("the .glb would be {bytes} bytes; the format's lengths stop at 4 GiB")]
-    TooLarge { bytes: usize },
+    TooLarge {
+        /// The size it would have, bytes.
+        bytes: usize,
+    },
+    /// The skeleton the built-in avatar's writer builds was refused ([`crate::builtin::glb::write`]).
     #[error("the skeleton: {0}")]
     Skeleton(#[from] SkeletonError),
+    /// The glTF JSON could not be serialised.
     #[error("serialising the glTF JSON: {0}")]
     Json(#[from] serde_json::Error),
+    /// The GLB container could not be written.
     #[error("writing the GLB container: {0}")]
     Glb(#[from] gltf::Error),
 }

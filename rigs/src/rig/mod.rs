@@ -46,39 +46,62 @@ pub enum RigError {
     /// the mirror into the mesh would turn it inside out, so the asset is refused.
     #[error("joint {joint} ({name:?}) has a mirrored bind matrix (determinant {determinant})")]
     MirroredBind {
+        /// Index of the joint.
         joint: usize,
+        /// Name of the joint.
         name: String,
+        /// The determinant of the bind matrix's linear part (negative).
         determinant: f32,
     },
     /// The bind matrix is singular or not finite.
     #[error("joint {joint} ({name:?}) has a degenerate bind matrix (determinant {determinant})")]
     DegenerateBind {
+        /// Index of the joint.
         joint: usize,
+        /// Name of the joint.
         name: String,
+        /// The determinant of the bind matrix's linear part (near zero, or not finite).
         determinant: f32,
     },
     /// A non-uniform scale that the new joint frame would turn into a shear, which `T·R·S`
     /// cannot hold.
     #[error("joint {joint} ({name:?}) has non-uniform scale {scale} that {step} would shear")]
     NonUniformScale {
+        /// Index of the joint.
         joint: usize,
+        /// Name of the joint.
         name: String,
+        /// The joint's rest scale `S`, per axis of its own frame.
         scale: glam::Vec3,
+        /// The step that turns the frame (`"bind adjustment"` or `"re-orientation"`).
         step: &'static str,
     },
     /// A per-joint list does not have one entry per joint.
     #[error("{what} has {actual} entries, expected one per joint ({expected})")]
     Length {
+        /// Which list is wrong (`"bind adjustment rotations"`, `"neutral pose rotations"`, …).
         what: &'static str,
+        /// The number of joints.
         expected: usize,
+        /// The list's actual length.
         actual: usize,
     },
     /// A rotation, scale or direction given by the caller is not usable.
     #[error("bad {what}: {message}")]
-    BadInput { what: &'static str, message: String },
+    BadInput {
+        /// Which input (`"metres_per_unit"`, `"orientation"`, `"pipeline options"`, …).
+        what: &'static str,
+        /// What is wrong with it.
+        message: String,
+    },
     /// The H-Anim neutral pose or retargeting needs joints the rig has not got.
     #[error("{rig}: no H-Anim joint mapped for {missing:?}")]
-    NotHumanoid { rig: String, missing: Vec<String> },
+    NotHumanoid {
+        /// The rig's name.
+        rig: String,
+        /// The H-Anim names no joint is mapped to.
+        missing: Vec<String>,
+    },
     /// Retargeting between a humanoid and a rig that is not one: their neutral poses do not
     /// correspond, so matching world rotations would, say, make a fox walk upright.
     #[error(
@@ -87,26 +110,42 @@ pub enum RigError {
         humanoid_word(*onto_humanoid)
     )]
     HumanoidMismatch {
+        /// The source rig's name.
         from: String,
+        /// Whether the source rig is a humanoid.
         from_humanoid: bool,
+        /// The target rig's name.
         onto: String,
+        /// Whether the target rig is a humanoid.
         onto_humanoid: bool,
     },
     /// A mapping file names a joint the skeleton does not have.
     #[error("mapping names joint {joint:?}, which {rig} does not have")]
-    UnknownJoint { rig: String, joint: String },
+    UnknownJoint {
+        /// The rig's name.
+        rig: String,
+        /// The joint name the mapping gives.
+        joint: String,
+    },
     /// Two joints map to the same H-Anim name.
     #[error("{rig}: joints {first:?} and {second:?} both map to H-Anim {hanim:?}")]
     DuplicateMapping {
+        /// The rig's name.
         rig: String,
+        /// The H-Anim name mapped twice.
         hanim: String,
+        /// The joint mapped to it first.
         first: String,
+        /// The later joint mapped to it.
         second: String,
     },
+    /// A step's new skeleton was refused.
     #[error("rebuilding the skeleton failed: {0}")]
     Skeleton(#[from] SkeletonError),
+    /// A step's re-posed mesh was refused.
     #[error("rebuilding a mesh failed: {0}")]
     Mesh(#[from] MeshError),
+    /// A step's re-keyed or retargeted clip was refused.
     #[error("building a clip failed: {0}")]
     Clip(#[from] crate::clip::ClipError),
 }

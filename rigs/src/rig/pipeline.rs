@@ -20,6 +20,8 @@ use posecast_proto::command::Units;
 /// A normalised asset and what the pipeline did to it.
 #[derive(Clone, Debug)]
 pub struct Normalised {
+    /// The asset after the steps the options chose (simplified binds, re-oriented to +Y up,
+    /// scaled to metres, neutral pose), its clips mapped to match.
     pub asset: Asset,
     /// One line per step, in order.
     pub steps: Vec<String>,

@@ -33,8 +33,11 @@ pub const UP_GUESS_DEGREES: f32 = 30.0;
 /// One side's limb: its three mapped joints (root end first), the last optional.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Limb {
+    /// The joint at the body: hip or shoulder.
     pub top: usize,
+    /// The joint in the middle: knee or elbow.
     pub middle: usize,
+    /// The far joint, ankle or wrist, if mapped.
     pub end: Option<usize>,
 }
 
@@ -43,6 +46,7 @@ pub struct Limb {
 pub struct RestShape {
     /// Rest-pose world positions of the joints.
     pub world: Vec<Vec3>,
+    /// The joint mapped to `humanoid_root`, if any.
     pub root: Option<usize>,
     /// The nearest joint both arms hang from.
     pub chest: Option<usize>,

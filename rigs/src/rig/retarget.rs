@@ -34,8 +34,11 @@ pub const MAX_KEYS: usize = 108_000;
 /// is a humanoid.
 #[derive(Clone, Copy, Debug)]
 pub struct RigView<'a> {
+    /// The normalised asset (skeleton and rest pose).
     pub asset: &'a Asset,
+    /// Per joint, its H-Anim name, `None` for an unmapped joint.
     pub hanim: &'a [Option<String>],
+    /// Whether the rig counts as a humanoid (retargeting needs both or neither).
     pub humanoid: bool,
 }
 

@@ -87,3 +87,19 @@ client.subscribe(42);
 
 void [tokens, state, version, stop, wave, offset, frame, frame2, asked, q];
 client.close();
+
+// Live driving, paced at the drive's rate.
+async function driveWave(): Promise<void> {
+  const info = await client.drive("avatar", { on_release: "clip" });
+  const rate: number = info.max_rate_hz;
+  const sent: "sent" | "queued" | "offline" = client.sendPose("avatar", {
+    rotations: { l_shoulder: [0, 0, 0.38, 0.92] },
+    root_position: [0, 0.9, 0],
+  });
+  // @ts-expect-error rotations are quaternions by joint name, not a list
+  client.sendPose("avatar", { rotations: [[0, 0, 0, 1]] });
+  await client.releaseDrive("avatar");
+  void rate;
+  void sent;
+}
+void driveWave;

@@ -27,7 +27,7 @@
 //! or on the one that took the scene over — is answered with the first answer and applied
 //! once.
 
-use super::{Cluster, KIND, key, lock, relay_subject, unavailable};
+use super::{Cluster, key, lock, relay_subject, unavailable};
 use crate::scene::answers::{Recent, answered, op_of, remember};
 use crate::state::{AppState, RunError};
 use crate::store::snapshot::{self, SceneFile};
@@ -271,16 +271,25 @@ impl Cluster {
             Err(e) => return Err(not_stored(&e.to_string(), false)),
         }
         let result = run.await.map_err(RunError::into_error);
+        let mut epoch = 0;
         if let Some(o) = lock(&self.owned).remove(id) {
+            epoch = o.epoch;
             o.stop();
         }
         lock(&self.slots).remove(id);
         self.conn.leases.delete(key(id)).await.ok();
-        let mut headers = async_nats::HeaderMap::new();
-        headers.insert(KIND, "deleted");
+        // Named and signed like the scene's other relay messages: relays believe it only from
+        // the lease holder, once the scene is gone from the bucket (`relay.rs`).
+        let claim = super::identity::Claim {
+            kind: "deleted".into(),
+            epoch,
+            node: self.conn.node.clone(),
+        };
+        let subject = relay_subject(id);
+        let headers = self.conn.signer.headers(&subject, &claim, &Bytes::new());
         self.conn
             .client
-            .publish_with_headers(relay_subject(id), headers, Bytes::new())
+            .publish_with_headers(subject, headers, Bytes::new())
             .await
             .map_err(|e| unavailable("cannot tell the cluster", &e))?;
         result

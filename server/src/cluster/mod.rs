@@ -28,6 +28,7 @@ mod assets;
 mod commit;
 mod credentials;
 mod drive;
+pub mod identity;
 mod owner;
 mod relay;
 
@@ -107,6 +108,8 @@ pub struct Connection {
     node: String,
     lease: Duration,
     lost: Arc<AtomicBool>,
+    /// Names and signs this server's relay messages, checks others' ([`identity`]).
+    signer: identity::Signer,
 }
 
 impl Connection {
@@ -155,13 +158,9 @@ pub async fn connect(config: &Config, port: u16) -> std::io::Result<Connection> 
     let (plain, auth) = credentials::take(&config.nats).map_err(fail)?;
     let lost = Arc::new(AtomicBool::new(false));
     let flag = lost.clone();
-    let options = match auth {
-        None => async_nats::ConnectOptions::new(),
-        Some(credentials::Auth::UserPassword(user, password)) => {
-            async_nats::ConnectOptions::with_user_and_password(user, password)
-        }
-        Some(credentials::Auth::Token(token)) => async_nats::ConnectOptions::with_token(token),
-    };
+    let options = credentials::options(auth, &config.nats_security)
+        .await
+        .map_err(fail)?;
     let options = options
         .name(format!("posecast {node}"))
         .connection_timeout(CONNECT_TIMEOUT)
@@ -226,6 +225,7 @@ pub async fn connect(config: &Config, port: u16) -> std::io::Result<Connection> 
         node,
         lease,
         lost,
+        signer: identity::Signer::new(config.cluster_secret.as_ref()),
     })
 }
 
@@ -515,7 +515,7 @@ impl Cluster {
                         // then a scan takes it over from its snapshot.
                         continue;
                     }
-                    self.relay(state, id, owner);
+                    self.relay(state, id, owner, entry.revision);
                 }
                 _ => match self
                     .conn

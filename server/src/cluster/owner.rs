@@ -4,9 +4,8 @@
 //! by other servers, the current descriptions and frames for a server that starts relaying,
 //! the scene's listing.
 
-use super::{
-    Cluster, EPOCH, IDEMPOTENCY_KEY, KIND, Reply, Task, lock, relay_subject, request_subject,
-};
+use super::identity::{Claim, Signer};
+use super::{Cluster, IDEMPOTENCY_KEY, KIND, Reply, Task, lock, relay_subject, request_subject};
 use crate::control;
 use crate::metrics::Metrics;
 use crate::scene::Scene;
@@ -32,6 +31,8 @@ const PUBLISH_QUEUE: usize = 1024;
 /// tasks publishing it and answering for it (stopped when this is dropped).
 #[derive(Debug)]
 pub(super) struct Owned {
+    /// The revision of the lease this server created: the epoch its relay messages carry.
+    pub(super) epoch: u64,
     pub(super) lease_revision: u64,
     /// The revision of the scene's snapshot this server last wrote or restored.
     pub(super) snapshot_revision: u64,
@@ -144,7 +145,7 @@ impl Cluster {
         let publisher = tokio::spawn(publish(
             self.conn.client.clone(),
             relay_subject(&scene.id),
-            revision,
+            (self.conn.signer.clone(), self.conn.node.clone(), revision),
             rx,
             held_until.clone(),
             state.metrics.clone(),
@@ -166,6 +167,7 @@ impl Cluster {
         lock(&self.owned).insert(
             scene.id.clone(),
             Owned {
+                epoch: revision,
                 lease_revision: revision,
                 snapshot_revision: snapshot,
                 unsure: None,
@@ -178,23 +180,27 @@ impl Cluster {
 
 /// Publishes what the tap queued, in order, with the owner's epoch — while the lease is surely
 /// held (`held_until`); past that, what comes is dropped until a renewal (or a giving up).
+/// Every message names this node and its epoch, signed under the cluster secret if any
+/// ([`super::identity`]).
 async fn publish(
     client: async_nats::Client,
     subject: String,
-    epoch: u64,
+    (signer, node, epoch): (Signer, String, u64),
     mut rx: mpsc::Receiver<(&'static str, Bytes)>,
     held_until: Arc<Mutex<Instant>>,
     metrics: Arc<Metrics>,
 ) {
-    let epoch = epoch.to_string();
     while let Some((kind, payload)) = rx.recv().await {
         if Instant::now() > *lock(&held_until) {
             debug!(subject, "lease not renewed in time: not published");
             continue;
         }
-        let mut headers = async_nats::HeaderMap::new();
-        headers.insert(KIND, kind);
-        headers.insert(EPOCH, epoch.as_str());
+        let claim = Claim {
+            kind: kind.to_owned(),
+            epoch,
+            node: node.clone(),
+        };
+        let headers = signer.headers(&subject, &claim, &payload);
         let n = payload.len();
         match client
             .publish_with_headers(subject.clone(), headers, payload)

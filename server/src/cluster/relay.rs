@@ -9,12 +9,23 @@
 //! from the old one (its first frame is a keyframe). A frame naming an avatar not described
 //! here (descriptions lost when the owner's queue to NATS was full) makes the relay ask the
 //! owner for its descriptions again.
+//!
+//! **Who is believed** (issue 36): a message counts only if its MAC holds under the cluster
+//! secret (when one is set), it names the node that holds the scene's lease, and its epoch is
+//! one that lease can have made — not above the lease's revision (an epoch of 2^63 would
+//! otherwise make the relay ignore the real owner for good). When a message fails the check
+//! the lease is read again (at most every [`LEASE_RECHECK`]: an owner that just took over is
+//! believed within that), then it is dropped and counted
+//! (`posecast_cluster_relay_refused_total`). `deleted` is believed from the lease holder only
+//! once the scene's key is gone from the scenes bucket.
 
+use super::identity::{Claim, Refused, Signer};
 use super::owner::{Change, decode_sync};
-use super::{Cluster, EPOCH, KIND, REQUEST_TIMEOUT, Task, lock, relay_subject, request_subject};
+use super::{Cluster, KIND, REQUEST_TIMEOUT, Task, key, lock, relay_subject, request_subject};
 use crate::metrics::Metrics;
 use crate::scene::Scene;
 use crate::state::AppState;
+use async_nats::jetstream::kv;
 use axum::extract::ws::{Message, Utf8Bytes};
 use bytes::Bytes;
 use futures_util::StreamExt;
@@ -31,11 +42,36 @@ use tracing::{debug, warn};
 const SYNC_RETRY: Duration = Duration::from_millis(200);
 /// How often, at most, a relay asks the owner again for descriptions it missed.
 const RESYNC_INTERVAL: Duration = Duration::from_secs(1);
+/// How often, at most, a relay reads a scene's lease again for a message it does not believe.
+const LEASE_RECHECK: Duration = Duration::from_millis(200);
+
+/// The lease of a relayed scene as this server last read it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(super) struct LeaseView {
+    /// The node holding it.
+    pub(super) owner: String,
+    /// Its latest revision (an owner's epoch is the revision it created it at: never more).
+    pub(super) revision: u64,
+}
+
+impl LeaseView {
+    /// Whether `claim` comes from this lease's holder with an epoch it can have made.
+    fn believes(&self, claim: &Claim) -> Result<(), Refused> {
+        if claim.node != self.owner {
+            return Err(Refused::NotOwner);
+        }
+        if claim.epoch > self.revision {
+            return Err(Refused::Epoch);
+        }
+        Ok(())
+    }
+}
 
 /// A scene relayed here: who owns it, and the task relaying it (stopped when dropped).
 #[derive(Debug)]
 pub(super) struct Relayed {
     pub(super) owner: String,
+    view: Arc<std::sync::Mutex<LeaseView>>,
     _task: Task,
 }
 
@@ -47,9 +83,14 @@ impl Relayed {
 impl Cluster {
     /// Relays scene `id`, owned by `owner`, to this server's subscribers (from now on, if it
     /// is not relayed yet).
-    pub(super) fn relay(&self, state: &Arc<AppState>, id: &SceneId, owner: String) {
+    pub(super) fn relay(&self, state: &Arc<AppState>, id: &SceneId, owner: String, revision: u64) {
+        let view = LeaseView {
+            owner: owner.clone(),
+            revision,
+        };
         if let Some(r) = lock(&self.relays).get_mut(id) {
             r.owner = owner;
+            *lock(&r.view) = view;
             return;
         }
         let scene = match state.world.scene(id) {
@@ -72,16 +113,24 @@ impl Cluster {
                 }
             },
         };
+        let view = Arc::new(std::sync::Mutex::new(view));
         let task = tokio::spawn(run(
             self.conn.client.clone(),
             scene,
             state.metrics.clone(),
             Arc::downgrade(state),
+            Trust {
+                signer: self.conn.signer.clone(),
+                view: view.clone(),
+                leases: self.conn.leases.clone(),
+                scenes: self.conn.scenes.clone(),
+            },
         ));
         lock(&self.relays).insert(
             id.clone(),
             Relayed {
                 owner,
+                view,
                 _task: Task(task),
             },
         );
@@ -117,12 +166,47 @@ fn removed(state: &Weak<AppState>, id: &SceneId, gone: Vec<(AvatarId, Vec<u64>)>
     }
 }
 
-fn header(msg: &async_nats::Message, name: &str) -> String {
-    msg.headers
-        .as_ref()
-        .and_then(|h| h.get(name))
-        .map(|v| v.as_str().to_owned())
-        .unwrap_or_default()
+/// What a relay checks its messages against.
+struct Trust {
+    signer: Signer,
+    view: Arc<std::sync::Mutex<LeaseView>>,
+    leases: kv::Store,
+    scenes: kv::Store,
+}
+
+impl Trust {
+    /// The claim of `msg` if it is believed (see the module doc); `last_read` rate-limits
+    /// reading the lease again.
+    async fn check(
+        &self,
+        id: &SceneId,
+        msg: &async_nats::Message,
+        last_read: &mut Option<Instant>,
+    ) -> Result<Claim, Refused> {
+        let claim = self.signer.check(msg)?;
+        if lock(&self.view).believes(&claim).is_err()
+            && last_read.is_none_or(|t| t.elapsed() >= LEASE_RECHECK)
+        {
+            *last_read = Some(Instant::now());
+            if let Ok(Some(entry)) = self.leases.entry(key(id)).await
+                && entry.operation == kv::Operation::Put
+            {
+                *lock(&self.view) = LeaseView {
+                    owner: String::from_utf8_lossy(&entry.value).into_owned(),
+                    revision: entry.revision,
+                };
+            }
+        }
+        lock(&self.view).believes(&claim)?;
+        if claim.kind == "deleted" {
+            match self.scenes.entry(key(id)).await {
+                Ok(None) => {}
+                Ok(Some(entry)) if entry.operation != kv::Operation::Put => {}
+                _ => return Err(Refused::NotDeleted),
+            }
+        }
+        Ok(claim)
+    }
 }
 
 /// Asks the owner for its epoch, descriptions and cached frames.
@@ -148,6 +232,7 @@ async fn run(
     scene: Arc<Scene>,
     metrics: Arc<Metrics>,
     state: Weak<AppState>,
+    trust: Trust,
 ) {
     let mut live = match client.subscribe(relay_subject(&scene.id)).await {
         Ok(s) => s,
@@ -173,9 +258,18 @@ async fn run(
         tokio::time::sleep(SYNC_RETRY).await;
     }
     let mut last_resync: Option<Instant> = None;
+    let mut last_lease_read: Option<Instant> = None;
     while let Some(msg) = live.next().await {
         metrics.cluster.received(msg.payload.len());
-        let kind = header(&msg, KIND);
+        let claim = match trust.check(&scene.id, &msg, &mut last_lease_read).await {
+            Ok(claim) => claim,
+            Err(why) => {
+                metrics.cluster.relay_refused(why.label());
+                debug!(scene = %scene.id, reason = why.label(), "relay message not believed: dropped");
+                continue;
+            }
+        };
+        let kind = claim.kind;
         if kind == "deleted" {
             if let Some(state) = state.upgrade()
                 && state.world.delete_scene(&scene.id).is_ok()
@@ -184,7 +278,7 @@ async fn run(
             }
             return;
         }
-        let e: u64 = header(&msg, EPOCH).parse().unwrap_or(0);
+        let e = claim.epoch;
         if e < epoch {
             // A previous owner's, still in flight: never interleaved with the new one's.
             continue;

@@ -20,15 +20,14 @@ use crate::state::AppState;
 use glam::{Quat, Vec3};
 use posecast_core::quota::{CommandRate, TokenBucket};
 use posecast_proto::command::{Command, CommandResult, DriveInfo, OnRelease};
-use posecast_proto::live::{BinaryPose, MAX_RATE_HZ};
+use posecast_proto::live::{BinaryPose, MAX_RATE_HZ, VMC_SOURCE};
 use posecast_proto::msg::{AvatarId, SceneId};
 use posecast_sim::avatar::live::{LivePose, ValidPose};
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Instant;
 
-/// Largest root position accepted, metres from the origin (a typo, not a performer).
-pub const MAX_ROOT_METRES: f32 = 10_000.0;
+pub use posecast_proto::live::MAX_ROOT_METRES;
 
 /// The avatars one connection drives.
 #[derive(Debug)]
@@ -195,7 +194,15 @@ impl Drives {
         source: Option<&str>,
         on_release: OnRelease,
     ) -> Result<DriveInfo, Error> {
+        let vmc = match source {
+            Some(VMC_SOURCE) => Some(
+                crate::vmc::performer_rig()
+                    .map_err(|e| Error::Internal(format!("the VMC performer rig: {e}")))?,
+            ),
+            _ => None,
+        };
         let source_rig = source
+            .filter(|_| vmc.is_none())
             .map(|name| state.world.library.require(name))
             .transpose()?;
         let scene = state.world.find_avatar(avatar)?;
@@ -203,6 +210,8 @@ impl Drives {
         let a = s
             .avatar_mut(avatar)
             .ok_or_else(|| Error::UnknownAvatar(avatar.clone()))?;
+        // The VMC performer rig fitted to this avatar's torso, as a `--vmc-in` input drives.
+        let source_rig = source_rig.or_else(|| vmc.map(|v| v.for_target(&a.rig)));
         if let Some(driver) = a.live.as_ref().and_then(|l| l.driver)
             && driver != self.conn
         {

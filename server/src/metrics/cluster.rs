@@ -3,7 +3,7 @@
 //! apart (`Metrics::cluster`) like the network and VMC counters; all zero on a server that is
 //! not part of a cluster.
 
-use crate::metrics::{GaugeU64, counter, gauge};
+use crate::metrics::{GaugeU64, counter, gauge, labelled_counters};
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::registry::Registry;
 
@@ -18,6 +18,8 @@ pub struct ClusterCounters {
     received_bytes: Counter,
     publish_dropped: Counter,
     takeovers: Counter,
+    /// Relay messages not believed, by reason (`crate::cluster::RelayRefused::ALL`).
+    relay_refused: [Counter; 4],
 }
 
 impl ClusterCounters {
@@ -49,6 +51,13 @@ impl ClusterCounters {
                 "cluster_takeovers",
                 "Scenes this server took over after their owner's lease lapsed",
             ),
+            relay_refused: labelled_counters(
+                r,
+                "cluster_relay_refused",
+                "Relay messages dropped: a bad signature, not from the lease holder, an epoch the lease cannot have made, or deleted while the scene exists",
+                "reason",
+                ["signature", "not_owner", "epoch", "not_deleted"],
+            ),
         }
     }
 
@@ -62,6 +71,27 @@ impl ClusterCounters {
     pub fn published(&self, bytes: usize) {
         self.published.inc();
         self.published_bytes.inc_by(bytes as u64);
+    }
+
+    /// A relay message was dropped; `reason` is one of `signature`, `not_owner`, `epoch`,
+    /// `not_deleted`.
+    pub fn relay_refused(&self, reason: &str) {
+        if let Some(c) = self.relay_refused_counter(reason) {
+            c.inc();
+        }
+    }
+
+    /// Relay messages dropped so far for `reason`.
+    #[must_use]
+    pub fn relay_refused_total(&self, reason: &str) -> u64 {
+        self.relay_refused_counter(reason).map_or(0, Counter::get)
+    }
+
+    fn relay_refused_counter(&self, reason: &str) -> Option<&Counter> {
+        let i = ["signature", "not_owner", "epoch", "not_deleted"]
+            .iter()
+            .position(|r| *r == reason)?;
+        self.relay_refused.get(i)
     }
 
     /// A message of `bytes` received.

@@ -456,6 +456,8 @@ posecast_tcp_connections_accepted_total 0
 posecast_connections_refused_total{cap="global"} 0
 posecast_connections_refused_total{cap="per_address"} 0
 posecast_connections_unanswered_total 0
+posecast_connections_evicted_total{stage="unproven"} 0
+posecast_connections_evicted_total{stage="anonymous"} 0
 posecast_accept_errors_total 0
 posecast_timeouts_total{kind="hello"} 0
 posecast_timeouts_total{kind="header"} 0
@@ -466,6 +468,7 @@ posecast_vmc_packet_bytes_total 0
 posecast_vmc_packets_dropped_total{reason="malformed"} 0
 posecast_vmc_packets_dropped_total{reason="too_deep"} 0
 posecast_vmc_packets_dropped_total{reason="flood"} 0
+posecast_vmc_packets_dropped_total{reason="sender"} 0
 posecast_vmc_messages_rejected_total{reason="unknown_address"} 0
 posecast_vmc_messages_rejected_total{reason="bad_arguments"} 0
 posecast_vmc_messages_rejected_total{reason="invalid_value"} 0
@@ -502,7 +505,11 @@ posecast_nats_published_bytes_total 0
 posecast_nats_received_total 0
 posecast_nats_received_bytes_total 0
 posecast_nats_publish_dropped_total 0
-posecast_cluster_takeovers_total 0"#;
+posecast_cluster_takeovers_total 0
+posecast_cluster_relay_refused_total{reason="signature"} 0
+posecast_cluster_relay_refused_total{reason="not_owner"} 0
+posecast_cluster_relay_refused_total{reason="epoch"} 0
+posecast_cluster_relay_refused_total{reason="not_deleted"} 0"#;
 
     /// Sample lines with their values parsed, so `0` and `0.0` compare equal.
     fn samples(text: &str) -> BTreeSet<(String, u64)> {

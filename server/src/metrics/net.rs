@@ -40,6 +40,8 @@ pub struct NetCounters {
     refused_global: Counter,
     refused_per_address: Counter,
     unanswered: Counter,
+    /// Unproven, anonymous.
+    evicted: [Counter; 2],
     accept_errors: Counter,
     /// In the order of [`Timeout::ALL`].
     timeouts: [Counter; Timeout::ALL.len()],
@@ -67,6 +69,13 @@ impl NetCounters {
             "connections_unanswered",
             "Refused connections closed without an answer (too many refusals at once)",
         );
+        let evicted = labelled_counters(
+            r,
+            "connections_evicted",
+            "Connections closed at the global cap to admit a newcomer (stage: no hello yet, or an idle anonymous websocket)",
+            "stage",
+            ["unproven", "anonymous"],
+        );
         let accept_errors = counter(
             r,
             "accept_errors",
@@ -85,6 +94,7 @@ impl NetCounters {
             refused_global,
             refused_per_address,
             unanswered,
+            evicted,
             accept_errors,
             timeouts,
         }
@@ -99,6 +109,22 @@ impl NetCounters {
     /// An admitted connection closed.
     pub fn released(&self) {
         self.open.dec();
+    }
+
+    /// A connection was evicted at the global cap; `stage` is `"unproven"` or `"anonymous"`.
+    pub fn evicted(&self, stage: &str) {
+        let i = usize::from(stage == "anonymous");
+        if let Some(c) = self.evicted.get(i) {
+            c.inc();
+        }
+    }
+
+    /// Connections evicted so far at `stage` (`"unproven"` or `"anonymous"`).
+    #[must_use]
+    pub fn evicted_total(&self, stage: &str) -> u64 {
+        self.evicted
+            .get(usize::from(stage == "anonymous"))
+            .map_or(0, Counter::get)
     }
 
     /// A connection was refused for a full cap.

@@ -15,16 +15,19 @@ pub enum PacketDrop {
     /// Over the input's datagram rate ([`crate::vmc::input::MAX_PACKETS_PER_SECOND`]): not
     /// even decoded.
     Flood,
+    /// From a sender outside the input's allow-list (`--vmc-in …,from=CIDR`): not decoded.
+    Sender,
 }
 
 impl PacketDrop {
-    const ALL: [Self; 3] = [Self::Malformed, Self::TooDeep, Self::Flood];
+    const ALL: [Self; 4] = [Self::Malformed, Self::TooDeep, Self::Flood, Self::Sender];
 
     fn label(self) -> &'static str {
         match self {
             Self::Malformed => "malformed",
             Self::TooDeep => "too_deep",
             Self::Flood => "flood",
+            Self::Sender => "sender",
         }
     }
 }
@@ -110,6 +113,12 @@ pub struct VmcCounters {
 }
 
 impl VmcCounters {
+    /// All zero, in a registry of their own (a relay that decodes VMC outside a server).
+    #[must_use]
+    pub fn standalone() -> Self {
+        Self::new(&mut Registry::default())
+    }
+
     /// All zero, registered in `registry`.
     pub(crate) fn new(registry: &mut Registry) -> Self {
         let r = registry;

@@ -233,8 +233,17 @@ impl Scene {
             server_time_us,
         };
         s.clock = clock;
-        for a in &mut s.avatars {
+        // Avatars with goals relative to joints tick after the others, their goals' frames
+        // taken from the poses of this tick (a hand on a walking avatar's shoulder stays on it).
+        let follows = |a: &Avatar| a.goals.references().next().is_some();
+        for a in s.avatars.iter_mut().filter(|a| !follows(a)) {
             a.tick(clock);
+        }
+        if s.avatars.iter().any(follows) {
+            follow_joints(&mut s.avatars);
+            for a in s.avatars.iter_mut().filter(|a| follows(a)) {
+                a.tick(clock);
+            }
         }
         let snapshots: Vec<Snapshot> = s.avatars.iter().map(Snapshot::of).collect();
         let at = s.last;
@@ -314,6 +323,27 @@ impl Scene {
             return;
         }
         notified.await;
+    }
+}
+
+/// Sets every goal frame given relative to a joint to that joint's scene-space matrix now
+/// (`P · W_j` of its avatar). A goal whose avatar or joint is gone keeps its last frame.
+fn follow_joints(avatars: &mut [Avatar]) {
+    let mut frames = Vec::new();
+    for (i, a) in avatars.iter().enumerate() {
+        for (k, r) in a.goals.references() {
+            frames.push((i, k, r.avatar.clone(), r.joint.clone()));
+        }
+    }
+    for (i, k, other, joint) in frames {
+        let Some(o) = avatars.iter().position(|a| a.id == other) else {
+            continue;
+        };
+        let Some(j) = avatars[o].rig.skeleton().find(&joint) else {
+            continue;
+        };
+        let frame = avatars[o].scene_matrix(j);
+        avatars[i].goals.set_frame(k, frame);
     }
 }
 

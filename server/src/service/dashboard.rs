@@ -133,6 +133,17 @@ const SDK: &[(&str, &str, &str)] = &[
     ("fk.js", JS, include_str!("../../sdk/fk.js")),
     ("math.js", JS, include_str!("../../sdk/math.js")),
     ("subset.js", JS, include_str!("../../sdk/subset.js")),
+    ("three.js", JS, include_str!("../../sdk/three.js")),
+    (
+        "three.d.ts",
+        "application/typescript; charset=utf-8",
+        include_str!("../../sdk/three.d.ts"),
+    ),
+    (
+        "package.json",
+        "application/json; charset=utf-8",
+        include_str!("../../sdk/package.json"),
+    ),
     (
         "posecast.d.ts",
         "application/typescript; charset=utf-8",

@@ -28,7 +28,7 @@ use std::future::Future;
 use std::io;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-use tokio::net::{TcpListener, TcpStream};
+use tokio::net::TcpListener;
 use tokio::sync::{Semaphore, watch};
 use tracing::{debug, trace, warn};
 
@@ -142,12 +142,15 @@ pub async fn serve(
         match admission.try_admit(peer.ip()) {
             Ok(permit) => {
                 trace!(%peer, "connection accepted");
+                let greeter = permit.greeter();
                 let conn = Connection {
-                    io: Admitted::new(stream, permit),
-                    // The client's address, for handlers that log it (`ConnectInfo`).
+                    io: Admitted::with_permit(stream, permit),
+                    // The client's address, for handlers that log it (`ConnectInfo`), and
+                    // the slot a websocket's hello is reported to (eviction at the cap).
                     router: router
                         .clone()
-                        .layer(axum::Extension(axum::extract::ConnectInfo(peer))),
+                        .layer(axum::Extension(axum::extract::ConnectInfo(peer)))
+                        .layer(axum::Extension(greeter)),
                     header_read_timeout: limits.header_read_timeout,
                     metrics: metrics.clone(),
                 };
@@ -186,7 +189,7 @@ fn is_connection_error(e: &io::Error) -> bool {
 
 /// One admitted HTTP connection.
 struct Connection {
-    io: Admitted<TcpStream>,
+    io: Admitted,
     router: Router,
     header_read_timeout: Duration,
     metrics: Arc<Metrics>,
@@ -232,11 +235,7 @@ impl Connection {
 /// WebSocket reports only close codes, never an HTTP status, so a dashboard could not tell
 /// "busy" from "down" otherwise. The request is read first so the answer is not lost to a
 /// reset (closing a socket with unread input sends RST, which can discard the response).
-async fn refuse<G: Unpin + Send + 'static>(
-    io: Admitted<TcpStream, G>,
-    why: Refusal,
-    wait: Duration,
-) {
+async fn refuse<G: Unpin + Send + 'static>(io: Admitted<G>, why: Refusal, wait: Duration) {
     let mut builder = http1::Builder::new();
     builder.timer(TokioTimer::new()).header_read_timeout(wait);
     let router = Router::new().fallback(refusal).with_state(why);

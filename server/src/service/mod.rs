@@ -25,6 +25,7 @@ mod dashboard;
 mod head_errors;
 mod health;
 pub mod limits;
+mod linger;
 pub(crate) mod listener;
 
 mod rest;
@@ -186,13 +187,15 @@ async fn ws_upgrade(
     ws: WebSocketUpgrade,
     State(state): State<Arc<AppState>>,
     peer: Option<axum::Extension<axum::extract::ConnectInfo<std::net::SocketAddr>>>,
+    greeter: Option<axum::Extension<admission::Greeter>>,
 ) -> Response {
     let peer = peer.map(|axum::Extension(axum::extract::ConnectInfo(addr))| addr);
+    let greeter = greeter.map(|axum::Extension(g)| g);
     ws.max_message_size(MAX_CLIENT_MESSAGE_BYTES)
         .max_frame_size(MAX_CLIENT_MESSAGE_BYTES)
         .read_buffer_size(ws::READ_BUFFER_BYTES)
         .write_buffer_size(ws::WRITE_BUFFER_BYTES)
-        .on_upgrade(move |socket| ws::serve(socket, state, peer))
+        .on_upgrade(move |socket| ws::serve(socket, state, peer, greeter))
 }
 
 /// `GET /metrics`: readable by whoever may read (anyone with open views; a view or control

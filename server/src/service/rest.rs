@@ -236,7 +236,12 @@ pub async fn mesh(
     let bytes = posecast_rigs::export::mesh_glb(rig.skeleton(), &rig.asset.meshes)
         .map_err(|e| ProtocolError::new(ErrorCode::Internal, format!("rig {name}: {e}")))?;
     Ok((
-        [(axum::http::header::CONTENT_TYPE, "model/gltf-binary")],
+        [
+            (axum::http::header::CONTENT_TYPE, "model/gltf-binary"),
+            // Pages of any origin load it (three.js's GLTFLoader fetches with CORS), as they
+            // load the client from /sdk/; reads that need a token still need it.
+            (axum::http::header::ACCESS_CONTROL_ALLOW_ORIGIN, "*"),
+        ],
         bytes,
     )
         .into_response())

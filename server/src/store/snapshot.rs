@@ -4,7 +4,7 @@
 use crate::scene::Scene;
 use crate::world::World;
 use crate::world::command;
-use posecast_proto::command::{Command, RootMotion};
+use posecast_proto::command::{Command, JointRef, RootMotion};
 use posecast_proto::msg::{AvatarId, SceneId};
 use posecast_proto::placement::Placement;
 use posecast_sim::avatar::Avatar;
@@ -53,6 +53,10 @@ pub struct AvatarRecord {
     /// Where it stands (the end of a move in progress); files without one: the origin.
     #[serde(default)]
     pub placement: Placement,
+    /// Its IK goals and gaze, as the `set_ik_goal` / `look_at` commands that set them (applied
+    /// again once every avatar of the scene is back, so goals relative to others find them).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub goals: Vec<Command>,
 }
 
 /// The current clip of an avatar. A cross-fade in progress is not stored: it restores as the
@@ -122,7 +126,41 @@ fn record(a: &Avatar) -> AvatarRecord {
             .filter_map(|(o, n)| o.map(|q| (n.clone(), q.to_array())))
             .collect(),
         placement: a.placing.target(),
+        goals: goal_commands(a),
     }
+}
+
+/// The commands that set an avatar's goals and gaze as they are.
+fn goal_commands(a: &Avatar) -> Vec<Command> {
+    let names = a.rig.skeleton().names();
+    let joint_ref = |r: &posecast_sim::avatar::goals::JointRef| JointRef {
+        avatar: r.avatar.clone(),
+        joint: r.joint.clone(),
+    };
+    let mut commands: Vec<Command> = a
+        .goals
+        .goals
+        .iter()
+        .map(|g| Command::SetIkGoal {
+            avatar: a.id.clone(),
+            effector: names[g.effector].clone(),
+            position: g.position.to_array(),
+            rotation: g.rotation.map(|q| q.to_array()),
+            weight: Some(g.weight),
+            pole: g.pole.map(|p| p.to_array()),
+            relative_to: g.relative_to.as_ref().map(joint_ref),
+            chain: g.chain.and_then(|n| u8::try_from(n).ok()),
+        })
+        .collect();
+    if let Some(g) = &a.goals.gaze {
+        commands.push(Command::LookAt {
+            avatar: a.id.clone(),
+            target: g.target.to_array(),
+            weight: Some(g.weight),
+            relative_to: g.relative_to.as_ref().map(joint_ref),
+        });
+    }
+    commands
 }
 
 /// Reads a scene file's JSON leniently: one bad value never costs the whole scene. The
@@ -213,12 +251,26 @@ pub fn parse_lenient(value: &serde_json::Value) -> Result<(SceneFile, Vec<String
                 }
             },
         };
+        let mut goals = Vec::new();
+        if let Value::Array(list) = get("goals") {
+            for g in list {
+                match serde_json::from_value::<Command>(g.clone()) {
+                    Ok(c @ (Command::SetIkGoal { .. } | Command::LookAt { .. }))
+                        if c.avatar() == Some(&id) =>
+                    {
+                        goals.push(c);
+                    }
+                    _ => dropped.push(format!("avatar {id}: goal {g} (not a goal of it)")),
+                }
+            }
+        }
         avatars.push(AvatarRecord {
             id,
             asset,
             playback,
             overrides,
             placement,
+            goals,
         });
     }
     // A table that does not parse costs the retries' answers only, never the scene.
@@ -319,6 +371,12 @@ pub fn restore_into(world: &World, file: &SceneFile, now_us: u64) {
         }
         a.evaluate();
     }
+    // Goals once every avatar is back: one relative to another avatar needs it there.
+    for goal in file.avatars.iter().flat_map(|rec| &rec.goals) {
+        if let Some(Err(e)) = crate::world::ik::apply(world, goal) {
+            warn!(scene = %file.scene, avatar = ?goal.avatar(), error = %e, "IK goal not restored");
+        }
+    }
 }
 
 fn restore_playback(world: &World, avatar: &AvatarId, p: &PlaybackRecord, elapsed_s: f64) {
@@ -406,6 +464,16 @@ mod tests {
             r#"{"op":"set_joint_rotation","avatar":"a","joint":"l_knee","rotation":[0.3826834,0,0,0.9238795]}"#,
         );
 
+        // A goal relative to b, which is restored after a; a gaze.
+        cmd(
+            &state,
+            r#"{"op":"set_ik_goal","avatar":"a","effector":"r_wrist","position":[0,0.1,0],"pole":[0,0,-1],"weight":0.75,"relative_to":{"avatar":"b","joint":"l_shoulder"}}"#,
+        );
+        cmd(
+            &state,
+            r#"{"op":"look_at","avatar":"a","target":[1,1.6,2]}"#,
+        );
+
         let scene = state.world.scene(&SceneId("s".into())).unwrap();
         let file = snapshot(&scene, 1_000_000);
         let text = serde_json::to_string_pretty(&file).unwrap();
@@ -446,6 +514,14 @@ mod tests {
             .duration();
         assert!((pa.time - 1.2f32.min(duration)).abs() < 1e-4, "{pa:?}");
         assert_eq!(ra.overrides, a.overrides);
+        assert_eq!(ra.goals, a.goals);
+        assert_eq!(a.goals.len(), 2, "{:?}", a.goals);
+        let restored = fresh.world.scene(&SceneId("s".into())).unwrap();
+        let state_a = restored.lock().avatars[0].state(&restored.id);
+        assert_eq!(
+            (state_a.ik_goals, state_a.looking),
+            (vec!["r_wrist".to_owned()], true)
+        );
         let pb = rb.playback.as_ref().unwrap();
         assert!(pb.paused && (pb.time - 0.7).abs() < 1e-6, "{pb:?}");
         assert_eq!(rb.id, AvatarId("b".into()));

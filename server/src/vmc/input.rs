@@ -260,6 +260,7 @@ pub async fn run(
     let mut next_apply = tokio::time::Instant::now();
     let mut claim: Option<Claim> = None;
     let mut standing = Standing::Idle;
+    let mut warned_sender = false;
     let addr = socket.local_addr().map_or(input.addr, |a| a);
     loop {
         let wait_apply = performer.pending();
@@ -267,6 +268,19 @@ pub async fn run(
             received = socket.recv_from(&mut buf) => match received {
                 Ok((n, peer)) => {
                     metrics.packet(n);
+                    // Before the rate budget: an outsider's flood must not use the
+                    // performer's share.
+                    if !input.allows(peer.ip()) {
+                        metrics.dropped(PacketDrop::Sender);
+                        if !warned_sender {
+                            warn!(%addr, %peer, avatar = %input.avatar,
+                                "VMC datagram from a sender outside the input's from= list dropped \
+                                 (counted as posecast_vmc_packets_dropped_total, reason \"sender\"; \
+                                 logged once)");
+                            warned_sender = true;
+                        }
+                        continue;
+                    }
                     if budget.take_at(Instant::now()).is_err() {
                         metrics.dropped(PacketDrop::Flood);
                         continue;

@@ -60,7 +60,7 @@ use std::sync::Arc;
 use tokio::net::UdpSocket;
 use tokio::task::JoinHandle;
 
-pub use crate::config::{VmcIn, VmcOut};
+pub use crate::config::{Cidr, VmcIn, VmcInputs, VmcOut};
 use rig::VmcRig;
 
 use crate::state::AppState;
@@ -101,6 +101,20 @@ fn bind_input(addr: SocketAddr) -> std::io::Result<UdpSocket> {
     UdpSocket::from_std(socket.into())
 }
 
+/// The VMC performer rig, made once (it is the same for every input, output and relayed
+/// drive: Unity's humanoid in its T-pose, normalised).
+///
+/// # Errors
+/// Never with the built-in bone table: the T-pose rig cannot be normalised.
+pub fn performer_rig() -> Result<Arc<VmcRig>, posecast_rigs::rig::RigError> {
+    static RIG: std::sync::OnceLock<Arc<VmcRig>> = std::sync::OnceLock::new();
+    if let Some(rig) = RIG.get() {
+        return Ok(rig.clone());
+    }
+    let rig = Arc::new(VmcRig::new()?);
+    Ok(RIG.get_or_init(|| rig).clone())
+}
+
 /// Binds every configured VMC input and output socket and starts their tasks.
 ///
 /// # Errors
@@ -112,11 +126,19 @@ pub async fn start(state: &Arc<AppState>) -> std::io::Result<Running> {
     if inputs.is_empty() && outputs.is_empty() {
         return Ok(running);
     }
-    let vmc = Arc::new(VmcRig::new().map_err(std::io::Error::other)?);
+    let vmc = performer_rig().map_err(std::io::Error::other)?;
     for input in inputs {
         let socket = bind_input(input.addr)
             .map_err(|e| std::io::Error::new(e.kind(), format!("--vmc-in {}: {e}", input.addr)))?;
         running.inputs.push(socket.local_addr()?);
+        if input.from.is_empty() && !input.addr.ip().is_loopback() {
+            tracing::warn!(
+                addr = %input.addr,
+                avatar = %input.avatar,
+                "VMC input open to any sender that can reach it (VMC has no authentication); \
+                 limit it with from=CIDR (docs/src/how-to/vmc.md)"
+            );
+        }
         let driver = state.new_driver_id();
         running.tasks.push(tokio::spawn(input::run(
             state.clone(),

@@ -11,8 +11,8 @@ use glam::{Quat, Vec3};
 use rosc::{OscMessage, OscPacket, OscType};
 
 use super::unity::{bone_index, is_human_body_bone};
-use crate::live::MAX_ROOT_METRES;
 use crate::metrics::vmc::{MessageReject, PacketDrop};
+use posecast_proto::live::MAX_ROOT_METRES;
 
 /// Deepest bundle nesting accepted. VMC senders send one bundle of messages; `rosc` decodes
 /// nested bundles recursively, so a datagram of 3,000 nested bundles (20 bytes each) must not
@@ -26,12 +26,17 @@ pub const MAX_BLEND_NAME: usize = 64;
 #[derive(Debug, Clone, PartialEq)]
 pub enum Message {
     /// `/VMC/Ext/OK (int){loaded} …`.
-    Available { loaded: bool },
+    Available {
+        /// Whether the sender has a model loaded (`1`).
+        loaded: bool,
+    },
     /// `/VMC/Ext/T (float){time}`: the sender's clock, seconds.
     Time(f32),
     /// `/VMC/Ext/Root/Pos (string)"root" p.xyz q.xyzw [s.xyz o.xyz]`: the model root's pose.
     Root {
+        /// The root's position, metres, Unity frame.
         position: Vec3,
+        /// The root's rotation, Unity frame.
         rotation: Quat,
         /// The mixed-reality scale (v2.1), when sent.
         scale: Option<Vec3>,
@@ -40,12 +45,20 @@ pub enum Message {
     /// [`super::unity::BONES`]; `None` for a `HumanBodyBones` name posecast does not map (eyes,
     /// jaw).
     Bone {
+        /// The bone's index in [`super::unity::BONES`], if posecast maps it.
         bone: Option<usize>,
+        /// Its local position (relative to its parent), metres, Unity frame.
         position: Vec3,
+        /// Its local rotation relative to the T-pose, Unity frame.
         rotation: Quat,
     },
     /// `/VMC/Ext/Blend/Val (string){name} (float){value}`.
-    BlendValue { name: String, value: f32 },
+    BlendValue {
+        /// The blend shape's name (case-sensitive, as the protocol says).
+        name: String,
+        /// Its weight, 0 to 1.
+        value: f32,
+    },
     /// `/VMC/Ext/Blend/Apply`.
     BlendApply,
 }

@@ -16,7 +16,7 @@ use serde_json::Value;
 
 /// A finite, non-zero quaternion, normalised (in f64, so huge finite components cannot
 /// overflow into a zero or NaN rotation that would then be acknowledged and stored).
-fn quat(q: [f32; 4]) -> Result<Quat, Error> {
+pub(super) fn quat(q: [f32; 4]) -> Result<Quat, Error> {
     posecast_proto::unit_quat(q).ok_or_else(|| {
         Error::invalid(format!(
             "rotation {q:?} is not a finite non-zero quaternion"
@@ -32,7 +32,7 @@ fn finite(name: &str, v: f32) -> Result<f32, Error> {
     }
 }
 
-fn joint_index(avatar: &Avatar, joint: &str) -> Result<usize, Error> {
+pub(super) fn joint_index(avatar: &Avatar, joint: &str) -> Result<usize, Error> {
     avatar
         .rig
         .skeleton()
@@ -428,6 +428,9 @@ pub fn apply(world: &World, command: &Command) -> Result<CommandResult, Error> {
             a.rotate_world(j, q)
                 .map_err(|e| Error::invalid(format!("joint {joint}: {e}")))
         }),
+        ik @ (Command::SetIkGoal { .. } | Command::ClearIkGoal { .. } | Command::LookAt { .. }) => {
+            super::ik::apply(world, ik).unwrap_or_else(|| Err(Error::invalid("not an IK command")))
+        }
         Command::Release { avatar, joint } => with_avatar(world, avatar, |a| {
             let j = joint
                 .as_deref()

@@ -9,6 +9,7 @@
 //! built on it ([`crate::auth`], [`crate::store`], [`crate::state`]).
 
 pub mod command;
+pub mod ik;
 
 use crate::metrics::Metrics;
 use crate::scene::{Scene, ticker};

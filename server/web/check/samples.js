@@ -167,6 +167,10 @@ export const scenes = /** @satisfies {import("../protocol.js").ScenesMsg} */ ({
             "from": "idle",
             "from_asset": "other"
           },
+          "ik_goals": [
+            "l_wrist"
+          ],
+          "looking": true,
           "looping": true,
           "overrides": [
             "l_elbow"

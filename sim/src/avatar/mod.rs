@@ -4,8 +4,10 @@
 //! - [`playback`]: clip clocks and cross-fades.
 //! - [`placement`]: the avatar's world placement, moves, and clip root motion.
 //! - [`live`]: a live driver's pose, retargeted from its source rig.
+//! - [`goals`]: IK goals and a gaze, solved after the clip and the live pose.
 //! - [`recording`]: what the avatar streams, tick by tick, into a clip on its rig.
 
+pub mod goals;
 pub mod live;
 pub mod placement;
 pub mod playback;
@@ -65,6 +67,8 @@ pub struct Avatar {
     pub(super) root_track: RootTrack,
     /// A live driver's pose, applied between the clip and the overrides (the `live` module).
     pub live: Option<LivePose>,
+    /// IK goals and a gaze, solved after the live pose and before the overrides ([`goals`]).
+    pub goals: goals::Goals,
     /// What it streams, being recorded into a clip ([`recording`]).
     pub recording: Option<Recorder>,
 }
@@ -119,6 +123,7 @@ impl Avatar {
             placing: Placing::default(),
             root_track: RootTrack::default(),
             live: None,
+            goals: goals::Goals::default(),
             recording: None,
         }
     }
@@ -143,6 +148,7 @@ impl Avatar {
             self.driver_gone();
         }
         self.evaluate();
+        self.goals.forget_released(clock);
         if let Some(recorder) = &mut self.recording {
             // Only a changed rig or a clock going back can refuse a tick; neither happens to
             // an avatar in a ticking scene, and a refused tick is simply not in the clip.
@@ -151,7 +157,7 @@ impl Avatar {
     }
 
     /// Re-evaluates the pose at the current clock (after a command), without advancing: the
-    /// clip (or rest), a live driver's pose over it, the overrides on top, then every joint with DOF limits clamped to them
+    /// clip (or rest), a live driver's pose over it, IK goals, the overrides on top, then every joint with DOF limits clamped to them
     /// (seed 002: every value set on a DOF, by a clip or a command, is clamped).
     pub fn evaluate(&mut self) {
         self.player
@@ -160,6 +166,13 @@ impl Avatar {
         if let Some(live) = &mut self.live {
             live.apply(&self.rig, &mut self.locals);
         }
+        self.goals.solve(
+            self.rig.skeleton(),
+            self.placing.current().to_mat4(),
+            self.player.clock(),
+            &mut self.locals,
+            &mut self.world,
+        );
         for (local, o) in self.locals.iter_mut().zip(&self.overrides) {
             if let Some(q) = o {
                 local.rotation = *q;
@@ -270,6 +283,14 @@ impl Avatar {
         &self.world
     }
 
+    /// Joint `joint`'s matrix in the scene's space: its world matrix with the avatar's
+    /// placement, `P · W_j` (what a goal relative to the joint is given in).
+    #[must_use]
+    pub fn scene_matrix(&mut self, joint: usize) -> Mat4 {
+        let placement = self.placing.current().to_mat4();
+        placement * self.world()[joint]
+    }
+
     /// The state shown to clients.
     #[must_use]
     pub fn state(&self, scene: &SceneId) -> AvatarState {
@@ -301,6 +322,13 @@ impl Avatar {
                 .map(|l| l.blend_shapes.clone())
                 .unwrap_or_default(),
             fade: self.player.fade(),
+            ik_goals: self
+                .goals
+                .goals
+                .iter()
+                .map(|g| self.rig.skeleton().names()[g.effector].clone())
+                .collect(),
+            looking: self.goals.gaze.is_some(),
         }
     }
 }

@@ -58,25 +58,46 @@ impl Default for RecordLimits {
 /// Why a tick was not recorded, or a recording gave no clip.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum RecordError {
+    /// The pose's description hash is not the recording's: the avatar's rig changed.
     #[error(
         "the pose is of another rig (description hash {got:016x}; the recording's is {expected:016x})"
     )]
-    RigChanged { expected: u64, got: u64 },
+    RigChanged {
+        /// The description hash the recording started with.
+        expected: u64,
+        /// The hash the pose carries.
+        got: u64,
+    },
+    /// The pose's counts do not match the description the recording started with.
     #[error(
         "the pose has {rotations} rotations, {translations} translations and {scales} scales; the description streams {joints}, {translated} and {scaled}"
     )]
     Shape {
+        /// Rotations in the pose.
         rotations: usize,
+        /// Translations in the pose.
         translations: usize,
+        /// Scales in the pose.
         scales: usize,
+        /// Joints in the description (one rotation each).
         joints: usize,
+        /// How many joints the description streams translations of (`translated_joints`).
         translated: usize,
+        /// How many joints the description streams scales of (`scaled_joints`).
         scaled: usize,
     },
+    /// The tick's time is not finite or goes back before the last recorded tick.
     #[error("tick time {time} s is not finite, or before the last recorded tick ({last} s)")]
-    Time { time: f64, last: f64 },
+    Time {
+        /// The tick's scene time, seconds.
+        time: f64,
+        /// The last recorded tick's scene time, seconds.
+        last: f64,
+    },
+    /// [`Recorder::finish`] was called before any tick was recorded.
     #[error("nothing was recorded")]
     Empty,
+    /// The recorded tracks were refused as a clip.
     #[error("the recorded samples do not make a clip: {0}")]
     Clip(#[from] ClipError),
 }

@@ -17,6 +17,7 @@ pub enum Version {
 /// A VRM's humanoid bones: its version and, per bone, the node and the H-Anim name.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Humanoid {
+    /// Which VRM version's extension the bones came from.
     pub version: Version,
     /// `(node index, VRM bone name, H-Anim name)`; bones without an H-Anim counterpart (eyes,
     /// jaw) are left out.

@@ -47,17 +47,25 @@ pub enum VrmaError {
     /// A property is missing or has the wrong JSON type.
     #[error("{EXTENSION}.{path} is not {expected}")]
     Shape {
+        /// The property's path inside the extension (`humanoid.humanBones.hips.node`).
         path: String,
+        /// What it should be (`"an object"`, `"a node index (an integer ≥ 0)"`, …).
         expected: &'static str,
     },
     /// The same bone is a key of `humanBones` twice.
     #[error("{EXTENSION}: humanoid bone {bone:?} is listed twice")]
-    DuplicateBone { bone: String },
+    DuplicateBone {
+        /// The VRM bone name.
+        bone: String,
+    },
     /// Two bones name one node.
     #[error("{EXTENSION}: humanoid bones {first:?} and {second:?} both name node {node}")]
     SharedNode {
+        /// The VRM name of the first bone on the node.
         first: String,
+        /// The VRM name of the second bone on the node.
         second: String,
+        /// The node's index in the document.
         node: usize,
     },
     /// A bone names a node the document does not have.
@@ -66,21 +74,30 @@ pub enum VrmaError {
          has {nodes} nodes)"
     )]
     MissingNode {
+        /// The VRM bone name.
         bone: String,
+        /// The node index it names.
         node: usize,
+        /// How many nodes the document has.
         nodes: usize,
     },
     /// Required bones are not listed (`hips` first when it is one of them).
     #[error("{EXTENSION}: required humanoid bones missing: {}", .bones.join(", "))]
-    MissingBones { bones: Vec<String> },
+    MissingBones {
+        /// The VRM names of the missing bones.
+        bones: Vec<String>,
+    },
     /// A bone's node does not hang from the hips' node.
     #[error(
         "{EXTENSION}: humanoid bone {bone:?} (node {node}) does not hang from the hips (node \
          {hips})"
     )]
     NotUnderHips {
+        /// The VRM bone name.
         bone: String,
+        /// The bone's node index.
         node: usize,
+        /// The hips' node index.
         hips: usize,
     },
     /// A `.vrma` file without the extension.

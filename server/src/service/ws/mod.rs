@@ -4,14 +4,18 @@
 //! is not a valid `hello` (1008), a wrong protocol version (1008), an oversized message (1009),
 //! invalid UTF-8 (1007), a websocket protocol violation (1002), a client that stops reading
 //! (1008), no hello in time or nothing heard for the idle timeout (1008, see
-//! [`super::limits::NetLimits`]) or server shutdown (1001). Nothing a client sends can affect
-//! another connection.
+//! [`super::limits::NetLimits`]), server shutdown (1001) or an anonymous hello when anonymous
+//! connections hold all but the authenticated clients' headroom of the cap (1013,
+//! [`super::admission::Admission::greet`]). Nothing a client sends can affect another
+//! connection.
 
 use crate::auth::Caller;
 use crate::control;
 use crate::live::Drives;
 use crate::metrics::net::Timeout;
 use crate::scene::ticker::unix_micros;
+use crate::service::admission::Greeter;
+use crate::service::listener::CLOSE_TRY_AGAIN_LATER;
 use crate::service::ws_liveness::{Due, Liveness};
 use crate::state::AppState;
 use axum::extract::ws::{Message, WebSocket, close_code};
@@ -50,14 +54,25 @@ pub const READ_BUFFER_BYTES: usize = 4 << 10;
 pub const WRITE_BUFFER_BYTES: usize = 8 << 10;
 
 /// Serves one upgraded websocket from `peer` until either side closes.
-pub async fn serve(socket: WebSocket, state: Arc<AppState>, peer: Option<SocketAddr>) {
-    serve_on(socket, state, peer).await;
+pub async fn serve(
+    socket: WebSocket,
+    state: Arc<AppState>,
+    peer: Option<SocketAddr>,
+    greeter: Option<Greeter>,
+) {
+    serve_on(socket, state, peer, greeter).await;
 }
 
 /// [`serve`] over any websocket-shaped transport: a stream of received messages and a sink for
 /// sent ones (axum's [`WebSocket`] in the server; channels in the unit tests below).
-pub async fn serve_on<S>(socket: S, state: Arc<AppState>, peer: Option<SocketAddr>)
-where
+/// `greeter` is the connection's slot under the caps (none in the unit tests): the hello
+/// tells it whether the client is authenticated, which decides whether it may be evicted.
+pub async fn serve_on<S>(
+    socket: S,
+    state: Arc<AppState>,
+    peer: Option<SocketAddr>,
+    greeter: Option<Greeter>,
+) where
     S: Stream<Item = Result<Message, axum::Error>> + Sink<Message> + Send + 'static,
 {
     let outbox = Arc::new(Outbox::new());
@@ -86,6 +101,7 @@ where
             caller: Caller::Anonymous,
             commands: TokenBucket::new(state.config.command_rate),
             drives: Drives::new(conn),
+            greeter,
         };
         let mut writer_done = false;
         let mut client_closed = false;
@@ -267,6 +283,8 @@ struct Session {
     commands: TokenBucket,
     /// The avatars this connection drives live.
     drives: Drives,
+    /// The connection's slot under the caps, told of the hello.
+    greeter: Option<Greeter>,
 }
 
 impl Session {
@@ -434,6 +452,20 @@ impl Session {
             }
             Err(e) => Some(e),
         };
+        let authenticated = !matches!(self.caller, Caller::Anonymous);
+        if let Some(greeter) = &self.greeter
+            && greeter.greet(authenticated).is_err()
+        {
+            return self.refuse(
+                ProtocolError::new(
+                    ErrorCode::Unavailable,
+                    "the server holds as many anonymous connections as it allows; \
+                     try again later, or with a token",
+                ),
+                CLOSE_TRY_AGAIN_LATER,
+                "try again later",
+            );
+        }
         tracing::Span::current().record("caller", self.caller.name());
         info!(?encoding, token = self.caller.name(), "hello");
         self.send(&ServerMsg::Welcome {

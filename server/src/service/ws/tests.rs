@@ -134,7 +134,7 @@ fn connect(state: &Arc<AppState>) -> Peer {
         outgoing,
         gate: gate.clone(),
     };
-    let session = tokio::spawn(serve_on(socket, state.clone(), None));
+    let session = tokio::spawn(serve_on(socket, state.clone(), None, None));
     Peer {
         send,
         recv,
