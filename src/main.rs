@@ -66,6 +66,12 @@ struct Args {
         hide_env_values = true
     )]
     control_tokens: Vec<String>,
+    /// Key that tokens minted through `POST /api/tokens` are signed with (at least 32
+    /// characters; the same on every server that should accept them). Without it the key is
+    /// derived from --cluster-secret, else kept in DATA/token-key. Prefer the environment
+    /// variable: a flag shows in `ps`.
+    #[arg(long, env = "POSECAST_TOKEN_KEY", hide_env_values = true, value_parser = token_key)]
+    token_key: Option<String>,
     /// View token(s) (needed to watch only with --require-view-token).
     #[arg(
         long = "view-token",
@@ -379,6 +385,15 @@ fn init_logging(format: LogFormat) {
     }
 }
 
+/// `--token-key`: long enough to resist guessing.
+fn token_key(text: &str) -> Result<String, String> {
+    let min = posecast_server::auth::minted::MIN_KEY_CHARS;
+    if text.chars().count() < min {
+        return Err(format!("shorter than {min} characters"));
+    }
+    Ok(text.to_owned())
+}
+
 /// The access rules from the file and flags, and a generated control token when none is
 /// configured (to print once).
 fn access(args: &Args) -> anyhow::Result<(AccessConfig, Option<Secret>)> {
@@ -463,6 +478,7 @@ async fn main() -> anyhow::Result<()> {
         node: args.node,
         nats_security: args.nats_security.security(),
         cluster_secret: args.cluster_secret.map(Secret::new),
+        token_key: args.token_key.map(Secret::new),
         lease_ttl: args.lease,
     };
     raise_open_files_limit();

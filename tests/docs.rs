@@ -344,6 +344,60 @@ async fn the_node_example_drives_through_the_npm_package() {
     assert!(seen <= posecast_proto::quant::MAX_ERROR_DEGREES);
 }
 
+/// `examples/node/mint.mjs` is an app's back end: it mints a drive-only token for one avatar,
+/// connects with it, is refused a pause, revokes the token and sees its connection closed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_node_example_mints_and_revokes_a_users_token() {
+    let dir = Path::new(ROOT).join("examples/node");
+    let npm = Command::new("npm")
+        .args([
+            "install",
+            "--no-audit",
+            "--no-fund",
+            "--no-package-lock",
+            "--silent",
+        ])
+        .current_dir(&dir)
+        .output();
+    let Ok(npm) = npm else {
+        posecast_proto::testing::skip(
+            "tests/docs.rs: npm is missing (scripts/test installs Node.js)",
+        );
+        return;
+    };
+    assert!(
+        npm.status.success(),
+        "{}",
+        String::from_utf8_lossy(&npm.stderr)
+    );
+    let server = Posecast::start(&["--no-persist", "--control-token", "examples-secret"], &[]);
+    let out = tokio::task::spawn_blocking(move || {
+        Command::new("node")
+            .args(["--experimental-websocket", "mint.mjs"])
+            .current_dir(&dir)
+            .env("POSECAST_URL", format!("ws://{}/ws", server.addr))
+            .env("POSECAST_ADMIN_TOKEN", "examples-secret")
+            .output()
+    })
+    .await
+    .unwrap()
+    .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "mint.mjs failed: {stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for line in [
+        "for alice: view, drive until",
+        "alice is online: may view, drive",
+        "pause refused: forbidden",
+        "alice's connection closed: token no longer valid",
+    ] {
+        assert!(stdout.contains(line), "{line:?} missing from:\n{stdout}");
+    }
+}
+
 /// `client-cli/examples/drive_bvh.rs` drives the avatar from CMU 01_01: it uploads the file
 /// as a rig named after its contents (CMU's 31 joints), drives for three seconds without a
 /// refused pose and releases; a second run finds the same asset rather than uploading another.

@@ -74,6 +74,7 @@ pub mod subset;
 #[cfg(any(test, feature = "testing"))]
 #[allow(clippy::expect_used)]
 pub mod testing;
+pub mod tokens;
 pub mod transform;
 #[cfg(feature = "ts")]
 pub mod ts;

@@ -454,6 +454,13 @@ pub struct Access {
     /// Only these avatars.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub avatars: Option<Vec<AvatarId>>,
+    /// Everything the token may do, in detail (empty without a token). `control` above is
+    /// `rights` holding `control`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub rights: Vec<crate::tokens::Right>,
+    /// Unix time (seconds) from which the token is refused: minted tokens only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub expires_at: Option<u64>,
 }
 
 /// A pose frame in the JSON encoding: the same content as a binary keyframe, with float

@@ -17,6 +17,7 @@ use crate::msg::{
 use crate::placement::Placement;
 use crate::rig_options::{NeutralPose, PipelineOptions, ReorientFrame, SignedAxis, UpAxisOverride};
 use crate::subset::JointSet;
+use crate::tokens::{MintRequest, MintedToken, Right, TokenInfo};
 use ts_rs::{Config, TS};
 
 /// The file's first lines.
@@ -53,6 +54,10 @@ pub fn declarations() -> String {
         ErrorCode,
         Encoding,
         Access,
+        Right,
+        MintRequest,
+        TokenInfo,
+        MintedToken,
         SceneId,
         AvatarId,
         Placement,

@@ -268,13 +268,21 @@ export class Client {
         this.open();
       } else if (msg.type === "error") this.refuseHello(String(msg.code), String(msg.message));
     };
-    ws.onclose = () => {
+    ws.onclose = (e) => {
       if (this.ws !== ws) return;
       this.ws = null;
-      this.failPending(new PosecastError("offline", "the connection closed"));
+      // The server's reason when it gave one (e.g. "token no longer valid": revoked, expired).
+      const why = e.reason || "connection lost";
+      this.failPending(new PosecastError("offline", `the connection closed: ${why}`));
       if (this.stopped) return;
-      if (this.reconnect) this.scheduleReconnect("connection lost");
-      else this.setState("closed", "connection lost");
+      if (this.reconnect) this.scheduleReconnect(why);
+      else {
+        // Nothing more will happen on this client (until connect()): no timer keeps a Node
+        // process alive.
+        clearInterval(this.pinger);
+        this.pinger = undefined;
+        this.setState("closed", why);
+      }
     };
     ws.onerror = () => {};
   }

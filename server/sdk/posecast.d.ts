@@ -41,11 +41,15 @@ export type {
   FadeState,
   JointInfo,
   JointSet,
+  MintRequest,
+  MintedToken,
   Placement,
   ProtocolError,
   RecordingInfo,
+  Right,
   SceneInfo,
   ServerMsg,
+  TokenInfo,
 } from "./protocol";
 import type {
   Access,
@@ -56,8 +60,11 @@ import type {
   Encoding,
   ErrorCode as WireErrorCode,
   JointSet,
+  MintRequest,
+  MintedToken,
   Placement,
   ServerMsg,
+  TokenInfo,
 } from "./protocol";
 
 /**
@@ -425,3 +432,18 @@ export declare function quatAngleDegrees(a: ArrayLike<number>, b: ArrayLike<numb
 export declare const DEG: number;
 /** µs since the Unix epoch. */
 export declare function nowMicros(): number;
+
+// Minted tokens (tokens.js), for an app's back end: a token per user, limited to rights,
+// scenes, avatars and a lifetime. `server` is the server's URL, http(s):// or ws(s)://;
+// `adminToken` an unlimited control token from the server's configuration (keep it on the
+// back end). Refusals reject with a PosecastError (`unauthorized`, `forbidden`,
+// `invalid_value`; `offline` when the server cannot be reached).
+
+/** Mints a token (`POST /api/tokens`); hand `token` to the user, keep `info.id` to revoke it. */
+export declare function mintToken(server: string, adminToken: string, request: MintRequest): Promise<MintedToken>;
+/** Revokes a token: refused from now on, and the connections holding it are closed. */
+export declare function revokeToken(server: string, adminToken: string, id: string): Promise<void>;
+/** The tokens the server minted that are neither expired nor revoked. */
+export declare function listTokens(server: string, adminToken: string): Promise<TokenInfo[]>;
+/** The HTTP origin of a server URL of any scheme (`ws://h:p/ws` → `http://h:p`). */
+export declare function httpBase(server: string): string;

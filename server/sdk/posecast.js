@@ -17,11 +17,13 @@
 // - jitter.js, clock.js: playout of the stream and the clock offset, as posecast-client does;
 // - subset.js: joint subsets (a subscription's `joints`), made whole at rest;
 // - fk.js, math.js: forward kinematics and skinning matrices (checked against posecast-proto);
+// - tokens.js: minting and revoking tokens for an app's users (its back end, with an admin token);
 // - errors.js: PosecastError, with the protocol's error code.
 
-export const SDK_VERSION = "1.3.0";
+export const SDK_VERSION = "1.4.0";
 export { Client, PROTOCOL_VERSION, nowMicros } from "./client.js";
 export { PosecastError } from "./errors.js";
+export { mintToken, revokeToken, listTokens, httpBase } from "./tokens.js";
 export { FrameDecoder, decodeQuat } from "./frames.js";
 export { Frame2Decoder } from "./frames2.js";
 export { JitterBuffer } from "./jitter.js";

@@ -626,7 +626,113 @@ scenes?: Array<SceneId> | null,
 /**
  * Only these avatars.
  */
-avatars?: Array<AvatarId> | null, };
+avatars?: Array<AvatarId> | null, 
+/**
+ * Everything the token may do, in detail (empty without a token). `control` above is
+ * `rights` holding `control`.
+ */
+rights?: Array<Right>, 
+/**
+ * Unix time (seconds) from which the token is refused: minted tokens only.
+ */
+expires_at?: number | null, };
+
+/**
+ * One thing a token may do.
+ */
+export type Right = "view" | "control" | "drive" | "upload" | "record";
+
+/**
+ * `POST /api/tokens`: a token for one user of an app. Only an unlimited control token the
+ * operator configured (an *admin* token) may mint; a minted token never mints.
+ */
+export type MintRequest = { 
+/**
+ * Who holds it: logs, presence and the owner of what it uploads or records (tokens
+ * minted with one name share that name's quota). 1–64 characters, none of them control
+ * characters; not the name of a configured token.
+ */
+name: string, 
+/**
+ * What it may do (default: `["view"]`).
+ */
+rights?: Array<Right>, 
+/**
+ * Only these scenes (and every avatar in them).
+ */
+scenes?: Array<SceneId>, 
+/**
+ * Only these avatars.
+ */
+avatars?: Array<AvatarId>, 
+/**
+ * Lifetime in seconds (default 3600; at most `MAX_TTL_S`).
+ */
+ttl_s?: number, 
+/**
+ * Bytes its name may store (uploads and recordings), within the server's own limit.
+ */
+max_bytes?: number, 
+/**
+ * Objects its name may store.
+ */
+max_objects?: number, };
+
+/**
+ * What a minted token says of itself (its claims): the answer to `GET /api/tokens` lists
+ * these, and `POST /api/tokens` returns them with the token.
+ */
+export type TokenInfo = { 
+/**
+ * Its id: `DELETE /api/tokens/{id}` revokes it.
+ */
+id: string, 
+/**
+ * Who holds it.
+ */
+name: string, 
+/**
+ * What it may do.
+ */
+rights: Array<Right>, 
+/**
+ * Only these scenes.
+ */
+scenes?: Array<SceneId>, 
+/**
+ * Only these avatars.
+ */
+avatars?: Array<AvatarId>, 
+/**
+ * Unix time (seconds) it was minted.
+ */
+issued_at: number, 
+/**
+ * Unix time (seconds) from which it is refused.
+ */
+expires_at: number, 
+/**
+ * Bytes its name may store.
+ */
+max_bytes?: number, 
+/**
+ * Objects its name may store.
+ */
+max_objects?: number, };
+
+/**
+ * The answer to `POST /api/tokens` (201).
+ */
+export type MintedToken = { 
+/**
+ * The token to hand to the user (`Authorization: Bearer …`, the websocket `hello`'s
+ * `token`, or the dashboard's `?token=`). Shown once: the server keeps only its claims.
+ */
+token: string, 
+/**
+ * What it allows.
+ */
+info: TokenInfo, };
 
 /**
  * A scene's id, chosen by whoever creates the scene (`"default"` for the built-in one).

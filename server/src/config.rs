@@ -66,6 +66,9 @@ pub struct Config {
     /// The secret relay messages are signed with (`--cluster-secret`, the same on every
     /// server of the cluster); `None`: they name their node, unsigned.
     pub cluster_secret: Option<crate::auth::Secret>,
+    /// The key minted tokens are signed with (`--token-key`); `None`: derived from
+    /// `cluster_secret`, else kept in the data folder ([`crate::auth::minted`]).
+    pub token_key: Option<crate::auth::Secret>,
     /// How long a scene's ownership lasts unless its owner renews it (every third of it).
     pub lease_ttl: Duration,
 }
@@ -103,6 +106,7 @@ impl Default for Config {
             node: None,
             nats_security: NatsSecurity::default(),
             cluster_secret: None,
+            token_key: None,
             lease_ttl: DEFAULT_LEASE_TTL,
         }
     }

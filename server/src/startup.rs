@@ -38,7 +38,13 @@ impl Server {
     ///
     /// # Errors
     /// Binding fails, or the data folder cannot be created or written (the error names it).
-    pub async fn start(config: Config) -> std::io::Result<Self> {
+    pub async fn start(mut config: Config) -> std::io::Result<Self> {
+        // Minted tokens: its key is chosen once the data folder is open (below).
+        let minter = config
+            .access
+            .mint
+            .get_or_insert_with(|| Arc::new(crate::auth::Minter::new()))
+            .clone();
         let state = AppState::new(config.clone());
         // The address first: a busy port is reported as such, and the data folder (maybe
         // another server's) is not touched.
@@ -68,6 +74,18 @@ impl Server {
                 return Err(e);
             }
         };
+        let key = minter.open(
+            config.token_key.as_ref(),
+            config.cluster_secret.as_ref(),
+            state.store.root(),
+        );
+        match key {
+            Ok(source) => tracing::info!(key = ?source, "minted tokens' signing key"),
+            Err(e) => {
+                vmc.abort();
+                return Err(e);
+            }
+        }
         let plan = restore::Plan::new(&state, first_start);
         state.readiness.begin(plan.len());
         let (tx, rx) = oneshot::channel::<()>();

@@ -335,6 +335,7 @@ impl TestServerBuilder {
                 let mut access = AccessConfig {
                     open_view: self.open_view,
                     tokens: Vec::new(),
+                    mint: None,
                 };
                 let control = TokenRule::new(
                     "posecast-testkit",
@@ -461,6 +462,53 @@ impl TestServer {
     #[must_use]
     pub fn control_token(&self) -> &str {
         &self.control_token
+    }
+
+    /// Mints a token as an app's back end does with `POST /api/tokens` and an admin token:
+    /// limited to rights, scenes, avatars and a lifetime (see
+    /// [`posecast_proto::tokens::MintRequest`]). Hand it to a client with
+    /// [`ClientBuilder::token`].
+    ///
+    /// # Errors
+    /// [`KitError::Refused`] for a request outside the limits (`invalid_value`).
+    ///
+    /// ```
+    /// # #[tokio::main(flavor = "current_thread")]
+    /// # async fn main() -> Result<(), posecast_testkit::KitError> {
+    /// use posecast_proto::tokens::{MintRequest, Right};
+    /// let server = posecast_testkit::TestServer::start().await?;
+    /// let minted = server.mint_token(MintRequest {
+    ///     name: "alice".into(),
+    ///     rights: vec![Right::View, Right::Drive],
+    ///     scenes: None,
+    ///     avatars: Some(vec![posecast_proto::msg::AvatarId("avatar".into())]),
+    ///     ttl_s: Some(600),
+    ///     max_bytes: None,
+    ///     max_objects: None,
+    /// })?;
+    /// assert_eq!(minted.info.rights, vec![Right::View, Right::Drive]);
+    /// let alice = server.client_builder().token(Some(&minted.token)).connect().await?;
+    /// alice.first_pose("avatar", std::time::Duration::from_secs(10)).await?;
+    /// # server.stop().await; Ok(()) }
+    /// ```
+    pub fn mint_token(
+        &self,
+        request: posecast_proto::tokens::MintRequest,
+    ) -> Result<posecast_proto::tokens::MintedToken, KitError> {
+        let access = &self.state.config.access;
+        let minter = access.mint.as_ref().ok_or_else(|| KitError::Refused {
+            op: "mint_token".into(),
+            error: posecast_proto::msg::ProtocolError::new(
+                posecast_proto::msg::ErrorCode::Unavailable,
+                "the server has no minter",
+            ),
+        })?;
+        minter
+            .mint(request, |name| access.is_configured_name(name))
+            .map_err(|e| KitError::Refused {
+                op: "mint_token".into(),
+                error: e.into(),
+            })
     }
 
     /// A client subscribed to scene `default`, binary frames, holding the control token.

@@ -13,6 +13,7 @@ use posecast_proto::msg::{
 };
 use posecast_proto::placement::Placement;
 use posecast_proto::subset::JointSet;
+use posecast_proto::tokens::Right;
 use serde_json::Value;
 use std::fmt::Write as _;
 fn scene(s: &str) -> SceneId {
@@ -106,6 +107,8 @@ fn samples() -> Vec<(&'static str, &'static str, Value)> {
                     name: Some("alice".into()),
                     scenes: Some(vec![scene("lobby")]),
                     avatars: Some(vec![avatar("alice")]),
+                    rights: vec![Right::View, Right::Control, Right::Drive],
+                    expires_at: Some(1_763_894_600),
                 },
             }),
         ),

@@ -105,6 +105,7 @@ impl AccessConfig {
         let mut config = Self {
             open_view: file.access.open_view,
             tokens: Vec::new(),
+            mint: None,
         };
         for t in file.tokens {
             let bad = |message: &str| AccessConfigError::Token {
@@ -124,6 +125,7 @@ impl AccessConfig {
                 role: t.role,
                 scenes: t.scenes,
                 avatars: t.avatars,
+                minted: None,
                 quota: super::TokenQuota {
                     max_bytes: t.max_bytes.or(file.access.token_max_bytes),
                     max_objects: t.max_objects.or(file.access.token_max_objects),

@@ -9,20 +9,28 @@
 //!   compared in constant time and never logged: [`Secret`]'s `Debug` prints `***`, and logs
 //!   name a token by its `name`.
 //!
-//! Missing or unknown token: `unauthorized` (HTTP 401). A valid token without the
-//! right: `forbidden` (HTTP 403).
+//! - Minted tokens ([`minted`], `POST /api/tokens` with an admin token — an unlimited control
+//!   token the operator configured) carry their own rights ([`Right`]), limits and expiry,
+//!   signed by the server's key; a configured view token has `view`, a control token every
+//!   right (`upload` only when unlimited).
+//!
+//! Missing, unknown, expired or revoked token: `unauthorized` (HTTP 401). A valid token
+//! without the right: `forbidden` (HTTP 403).
 
 use crate::world::World;
 use posecast_core::error::Error;
 use posecast_proto::command::{Command, CommandResult};
 use posecast_proto::msg::{Access, AvatarId, SceneId};
+use posecast_proto::tokens::{Right, TokenInfo};
 use serde::Deserialize;
 use std::sync::Arc;
 
 mod file;
+pub mod minted;
 mod secret;
 
 pub use file::{AccessConfigError, MIN_TOKEN_LEN};
+pub use minted::{KeySource, Minter};
 pub use secret::Secret;
 
 /// What a token may do.
@@ -50,6 +58,8 @@ pub struct TokenRule {
     pub avatars: Option<Vec<AvatarId>>,
     /// What the uploads and recordings this token makes may hold in all.
     pub quota: TokenQuota,
+    /// A minted token's claims (its rights and expiry); `None` for a configured token.
+    pub minted: Option<TokenInfo>,
 }
 
 /// A token's share of the data folder (issue 37): uploads and recordings it made, counted
@@ -75,7 +85,50 @@ impl TokenRule {
             scenes: None,
             avatars: None,
             quota: TokenQuota::default(),
+            minted: None,
         }
+    }
+
+    /// The rule a minted token's claims make.
+    #[must_use]
+    pub fn from_minted(info: TokenInfo) -> Self {
+        let control = info.rights.contains(&Right::Control);
+        Self {
+            name: info.name.clone(),
+            // Never compared: minted tokens are checked by their signature.
+            secret: Secret::new(String::new()),
+            role: if control { Role::Control } else { Role::View },
+            scenes: info.scenes.clone(),
+            avatars: info.avatars.clone(),
+            quota: TokenQuota {
+                max_bytes: info.max_bytes,
+                max_objects: info.max_objects,
+            },
+            minted: Some(info),
+        }
+    }
+
+    /// Whether the token has `right`. A minted token has what it lists (`control` brings
+    /// `drive`); a configured view token `view`; a configured control token everything, but
+    /// `upload` only when unlimited.
+    #[must_use]
+    pub fn has(&self, right: Right) -> bool {
+        match &self.minted {
+            Some(info) => {
+                info.rights.contains(&right)
+                    || (right == Right::Drive && info.rights.contains(&Right::Control))
+            }
+            None => match self.role {
+                Role::View => right == Right::View,
+                Role::Control => right != Right::Upload || self.unlimited(),
+            },
+        }
+    }
+
+    /// Every right it has, in order.
+    #[must_use]
+    pub fn rights(&self) -> Vec<Right> {
+        Right::ALL.into_iter().filter(|r| self.has(*r)).collect()
     }
 
     /// Whether it is limited to some scenes or avatars.
@@ -118,6 +171,15 @@ impl Caller {
         }
     }
 
+    /// A minted token's claims.
+    #[must_use]
+    pub fn minted(&self) -> Option<&TokenInfo> {
+        match self {
+            Self::Token(t) => t.minted.as_ref(),
+            Self::Anonymous => None,
+        }
+    }
+
     /// The token's name, for logs.
     #[must_use]
     pub fn name(&self) -> &str {
@@ -135,6 +197,9 @@ pub struct AccessConfig {
     pub open_view: bool,
     /// Every accepted token.
     pub tokens: Vec<Arc<TokenRule>>,
+    /// Mints and checks minted tokens; `None`: none are accepted (the server sets one up at
+    /// start, [`crate::startup::Server::start`]).
+    pub mint: Option<Arc<Minter>>,
 }
 
 impl Default for AccessConfig {
@@ -144,6 +209,7 @@ impl Default for AccessConfig {
         Self {
             open_view: true,
             tokens: Vec::new(),
+            mint: None,
         }
     }
 }
@@ -164,6 +230,12 @@ impl AccessConfig {
         let Some(token) = token else {
             return Ok(Caller::Anonymous);
         };
+        if let Some(mint) = &self.mint
+            && token.starts_with(minted::PREFIX)
+        {
+            let info = mint.verify(token)?;
+            return Ok(Caller::Token(Arc::new(TokenRule::from_minted(info))));
+        }
         let mut found = None;
         for t in &self.tokens {
             if t.secret.matches(token) && found.is_none() {
@@ -184,13 +256,52 @@ impl AccessConfig {
                 ..Access::default()
             },
             Caller::Token(t) => Access {
-                view: true,
-                control: t.role == Role::Control,
+                view: self.open_view || t.has(Right::View),
+                control: t.has(Right::Control),
                 name: Some(t.name.clone()),
                 scenes: t.scenes.clone(),
                 avatars: t.avatars.clone(),
+                rights: t.rights(),
+                expires_at: t.minted.as_ref().map(|m| m.expires_at),
             },
         }
+    }
+
+    /// A minted token that expired or was revoked since it was presented is refused from then
+    /// on (every check below starts here).
+    ///
+    /// # Errors
+    /// `unauthorized`, saying which.
+    pub fn still_valid(&self, caller: &Caller) -> Result<(), Error> {
+        match (caller.minted(), &self.mint) {
+            (Some(info), Some(mint)) => mint.check(info),
+            _ => Ok(()),
+        }
+    }
+
+    /// May `caller` mint, list and revoke tokens? Only a configured, unlimited control token
+    /// (an *admin* token): a minted token never mints.
+    ///
+    /// # Errors
+    /// Unauthorized without a token; Forbidden with any other token.
+    pub fn authorize_admin(&self, caller: &Caller) -> Result<(), Error> {
+        match caller {
+            Caller::Anonymous => Err(unauthorized("minting tokens needs an admin token")),
+            Caller::Token(t) if t.minted.is_none() && t.role == Role::Control && t.unlimited() => {
+                Ok(())
+            }
+            Caller::Token(t) => Err(forbidden(format!(
+                "token {} may not mint tokens: that needs an unlimited control token from the \
+                 server's configuration",
+                t.name
+            ))),
+        }
+    }
+
+    /// Whether `name` is a configured token's.
+    #[must_use]
+    pub fn is_configured_name(&self, name: &str) -> bool {
+        self.tokens.iter().any(|t| t.name == name)
     }
 
     /// May `caller` watch `scene` (subscribe, or read it)?
@@ -199,9 +310,13 @@ impl AccessConfig {
     /// Unauthorized without a token when views are not open; Forbidden outside the token's
     /// scenes.
     pub fn authorize_view(&self, caller: &Caller, scene: &SceneId) -> Result<(), Error> {
+        self.still_valid(caller)?;
         match caller {
             Caller::Anonymous if self.open_view => Ok(()),
             Caller::Anonymous => Err(unauthorized("watching needs a view token")),
+            Caller::Token(t) if !self.open_view && !t.has(Right::View) => {
+                Err(forbidden(format!("token {} has no view right", t.name)))
+            }
             Caller::Token(t) => match &t.scenes {
                 Some(s) if !s.contains(scene) && !self.open_view => Err(forbidden(format!(
                     "token {} may not watch scene {scene}",
@@ -233,8 +348,12 @@ impl AccessConfig {
     /// # Errors
     /// Unauthorized without a token when views are not open.
     pub fn authorize_read(&self, caller: &Caller) -> Result<(), Error> {
+        self.still_valid(caller)?;
         match caller {
             Caller::Anonymous if !self.open_view => Err(unauthorized("reading needs a view token")),
+            Caller::Token(t) if !self.open_view && !t.has(Right::View) => {
+                Err(forbidden(format!("token {} has no view right", t.name)))
+            }
             _ => Ok(()),
         }
     }
@@ -244,14 +363,17 @@ impl AccessConfig {
     /// # Errors
     /// Unauthorized without a token, Forbidden with a view or limited token.
     pub fn authorize_upload(&self, caller: &Caller) -> Result<(), Error> {
-        let t = control_token(caller)?;
-        if t.unlimited() {
-            Ok(())
-        } else {
-            Err(forbidden(format!(
-                "token {} is limited to some scenes or avatars; uploads need an unlimited control token",
-                t.name
-            )))
+        self.still_valid(caller)?;
+        match caller {
+            Caller::Token(t) if t.has(Right::Upload) => Ok(()),
+            Caller::Token(t) if t.minted.is_none() && t.role == Role::Control => {
+                Err(forbidden(format!(
+                    "token {} is limited to some scenes or avatars; uploads need an unlimited \
+                     control token or a minted token with the upload right",
+                    t.name
+                )))
+            }
+            _ => token_with(caller, &[Right::Upload], "uploads").map(|_| ()),
         }
     }
 
@@ -261,8 +383,13 @@ impl AccessConfig {
     /// # Errors
     /// Unauthorized without a token, Forbidden with a view token or someone else's object.
     pub fn authorize_delete(&self, caller: &Caller, owner: Option<&str>) -> Result<(), Error> {
-        let t = control_token(caller)?;
-        if t.unlimited() || owner == Some(t.name.as_str()) {
+        self.still_valid(caller)?;
+        let t = token_with(
+            caller,
+            &[Right::Control, Right::Upload, Right::Record],
+            "deletes",
+        )?;
+        if (t.unlimited() && t.minted.is_none()) || owner == Some(t.name.as_str()) {
             Ok(())
         } else {
             Err(forbidden(format!(
@@ -283,6 +410,7 @@ impl AccessConfig {
         world: &World,
         command: &Command,
     ) -> Result<(), Error> {
+        self.still_valid(caller)?;
         if command.is_read_only() {
             return match command.avatar() {
                 Some(a) => match world.find_avatar(a) {
@@ -293,12 +421,13 @@ impl AccessConfig {
                 None => self.authorize_read(caller),
             };
         }
-        let t = control_token(caller)?;
-        if t.unlimited() {
-            return Ok(());
-        }
+        let (needs, what) = needs(command);
+        let t = token_with(caller, needs, what)?;
         if let Command::DeleteClip { .. } | Command::DeleteAsset { .. } = command {
             // Who made the object decides ([`AccessConfig::authorize_delete`], where it runs).
+            return Ok(());
+        }
+        if t.unlimited() {
             return Ok(());
         }
         let scene_ok = match (command.scene(), command.avatar()) {
@@ -347,13 +476,45 @@ fn limited_rig_size(world: &World, command: &Command) -> Result<(), Error> {
     }
 }
 
-fn control_token(caller: &Caller) -> Result<&TokenRule, Error> {
+/// The rights of which a command needs one, and what it is called in errors.
+fn needs(command: &Command) -> (&'static [Right], &'static str) {
+    match command {
+        Command::Drive { .. }
+        | Command::ReleaseDrive { .. }
+        | Command::SetIkGoal { .. }
+        | Command::ClearIkGoal { .. }
+        | Command::LookAt { .. } => (&[Right::Drive], "drive commands"),
+        Command::Record { .. } | Command::StopRecording { .. } => {
+            (&[Right::Record], "recording commands")
+        }
+        Command::DeleteClip { .. } | Command::DeleteAsset { .. } => {
+            (&[Right::Control, Right::Upload, Right::Record], "deletes")
+        }
+        _ => (&[Right::Control], "commands"),
+    }
+}
+
+/// The caller's token if it has one of `rights` (`what` names the action in errors).
+fn token_with<'a>(
+    caller: &'a Caller,
+    rights: &[Right],
+    what: &str,
+) -> Result<&'a TokenRule, Error> {
     match caller {
-        Caller::Anonymous => Err(unauthorized("commands need a control token")),
-        Caller::Token(t) if t.role == Role::Control => Ok(t),
-        Caller::Token(t) => Err(forbidden(format!(
-            "token {} is a view token; commands need a control token",
+        Caller::Anonymous => Err(Error::Unauthorized(format!("{what} need a control token"))),
+        Caller::Token(t) if rights.iter().any(|r| t.has(*r)) => Ok(t),
+        Caller::Token(t) if t.minted.is_none() && t.role == Role::View => Err(forbidden(format!(
+            "token {} is a view token; {what} need a control token",
             t.name
+        ))),
+        Caller::Token(t) => Err(forbidden(format!(
+            "token {} may not do this: {what} need the {} right",
+            t.name,
+            rights
+                .iter()
+                .map(|r| format!("{r:?}").to_lowercase())
+                .collect::<Vec<_>>()
+                .join(" or ")
         ))),
     }
 }
@@ -385,6 +546,7 @@ mod tests {
         let mut c = AccessConfig {
             open_view: false,
             tokens: Vec::new(),
+            mint: None,
         };
         let mut screen = TokenRule::new("screen", Secret::new("view-token-1"), Role::View);
         screen.scenes = Some(vec![SceneId("lobby".into())]);

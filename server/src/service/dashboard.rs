@@ -126,6 +126,7 @@ const SDK: &[(&str, &str, &str)] = &[
     ("posecast.js", JS, include_str!("../../sdk/posecast.js")),
     ("client.js", JS, include_str!("../../sdk/client.js")),
     ("errors.js", JS, include_str!("../../sdk/errors.js")),
+    ("tokens.js", JS, include_str!("../../sdk/tokens.js")),
     ("frames.js", JS, include_str!("../../sdk/frames.js")),
     ("frames2.js", JS, include_str!("../../sdk/frames2.js")),
     ("jitter.js", JS, include_str!("../../sdk/jitter.js")),

@@ -29,6 +29,7 @@ mod linger;
 pub(crate) mod listener;
 
 mod rest;
+mod tokens;
 mod upload;
 mod ws;
 mod ws_liveness;
@@ -56,6 +57,8 @@ pub fn app(state: Arc<AppState>) -> Router {
             "/api/assets/{name}/clips/{file}",
             get(rest::clip_file).delete(rest::delete_clip),
         )
+        .route("/api/tokens", post(tokens::mint).get(tokens::list))
+        .route("/api/tokens/{id}", axum::routing::delete(tokens::revoke))
         .layer(axum::extract::DefaultBodyLimit::max(
             MAX_CLIENT_MESSAGE_BYTES,
         ))

@@ -45,7 +45,7 @@
 //! (`store::Upload`); adding clips reads the files again from `assets/<name>/`.
 
 pub(crate) mod assets;
-mod atomic;
+pub(crate) mod atomic;
 #[cfg(test)]
 mod names_tests;
 pub mod owners;

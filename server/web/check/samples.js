@@ -10,7 +10,13 @@ export const welcome = /** @satisfies {import("../protocol.js").WelcomeMsg} */ (
       "alice"
     ],
     "control": true,
+    "expires_at": 1763894600,
     "name": "alice",
+    "rights": [
+      "view",
+      "control",
+      "drive"
+    ],
     "scenes": [
       "lobby"
     ],

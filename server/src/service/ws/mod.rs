@@ -110,9 +110,24 @@ pub async fn serve_on<S>(
         // The adaptive rate's round-trip probes (only while subscribed: frames flow then).
         let mut probe = tokio::time::interval(PROBE_INTERVAL);
         probe.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        // Resolves when the connection's minted token expires or is revoked.
+        let mut token_end: Option<TokenEnd> = None;
         loop {
+            if token_end.is_none() {
+                token_end = TokenEnd::watch(&session);
+            }
             let message = tokio::select! {
                 m = stream.next() => m,
+                e = async {
+                    match token_end.as_mut() {
+                        Some(end) => end.0.as_mut().await,
+                        None => std::future::pending().await,
+                    }
+                } => {
+                    info!(reason = %e, "token no longer valid; closing");
+                    session.refuse(e, close_code::POLICY, "token no longer valid");
+                    break;
+                }
                 _ = probe.tick(), if !session.scenes.is_empty() => {
                     session.probe();
                     continue;
@@ -268,6 +283,18 @@ fn command_id(text: &str) -> Option<u64> {
         return None;
     }
     value.get("id")?.as_u64()
+}
+
+/// A connection's minted token running out (expired or revoked).
+struct TokenEnd(std::pin::Pin<Box<dyn std::future::Future<Output = Error> + Send>>);
+
+impl TokenEnd {
+    /// Set once the session holds a minted token.
+    fn watch(session: &Session) -> Option<Self> {
+        let info = session.caller.minted()?.clone();
+        let mint = session.state.config.access.mint.clone()?;
+        Some(Self(Box::pin(async move { mint.ended(&info).await })))
+    }
 }
 
 struct Session {

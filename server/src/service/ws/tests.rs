@@ -236,6 +236,7 @@ async fn acks_are_tagged_from_version_3_and_bare_before() {
                 Secret::new("control-token-1"),
                 Role::Control,
             ))],
+            mint: None,
         },
         ..Config::default()
     });
