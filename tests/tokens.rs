@@ -59,7 +59,14 @@ async fn listed(server: &Server) -> Vec<TokenInfo> {
 
 /// A websocket that said hello with `token`: its welcome's access, and the socket.
 async fn hello(server: &Server, token: &str) -> (posecast_proto::msg::Access, common::Ws) {
-    let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{}/ws", server.addr))
+    hello_at(server.addr, token).await
+}
+
+async fn hello_at(
+    addr: std::net::SocketAddr,
+    token: &str,
+) -> (posecast_proto::msg::Access, common::Ws) {
+    let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/ws"))
         .await
         .unwrap();
     let hello = ClientMsg::Hello {
@@ -427,4 +434,91 @@ fn base64_url_matches_rfc_4648() {
     ] {
         assert_eq!(base64_url(plain.as_bytes()), coded);
     }
+}
+
+/// In a cluster whose servers share `--cluster-secret`, a token minted on one server is
+/// accepted by the others, and revoking it on one closes its connections on every server and
+/// refuses it on a server that joins later.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_cluster_accepts_a_minted_token_everywhere_and_revokes_it_everywhere() {
+    let Some(nats) = common::nats::Nats::start() else {
+        return;
+    };
+    let url = nats.url();
+    let node = |name: &str| {
+        common::child::Posecast::start(
+            &[
+                "--nats",
+                &url,
+                "--node",
+                name,
+                "--no-persist",
+                "--control-token",
+                CONTROL,
+            ],
+            &[(
+                "POSECAST_CLUSTER_SECRET",
+                "a-cluster-secret-for-the-tokens-test",
+            )],
+        )
+    };
+    let (a, b) = (node("a"), node("b"));
+    let body = json!({"name": "hana", "rights": ["view", "drive"], "ttl_s": 600}).to_string();
+    let (status, answer) = http_raw(
+        a.addr,
+        Some(CONTROL),
+        "POST",
+        "/api/tokens",
+        "application/json",
+        body.as_bytes(),
+    )
+    .await;
+    assert_eq!(status, 201, "{answer}");
+    let hana: MintedToken = serde_json::from_str(&answer).unwrap();
+
+    // Accepted on the other server, which never saw it minted.
+    let (access, mut on_b) = hello_at(b.addr, &hana.token).await;
+    assert_eq!(access.name.as_deref(), Some("hana"));
+
+    let path = format!("/api/tokens/{}", hana.info.id);
+    assert_eq!(
+        http_raw(
+            a.addr,
+            Some(CONTROL),
+            "DELETE",
+            &path,
+            "application/json",
+            b""
+        )
+        .await
+        .0,
+        204
+    );
+    let (errors, reason) = until_closed(&mut on_b).await;
+    assert!(errors.contains(&ErrorCode::Unauthorized), "{errors:?}");
+    assert_eq!(reason, "token no longer valid");
+    let (status, body) = http_raw(
+        b.addr,
+        Some(&hana.token),
+        "GET",
+        "/api/scenes",
+        "application/json",
+        b"",
+    )
+    .await;
+    assert_eq!(status, 401, "{body}");
+
+    // A server that joins afterwards learns the revocation from the cluster's bucket.
+    let c = node("c");
+    let (status, body) = http_raw(
+        c.addr,
+        Some(&hana.token),
+        "GET",
+        "/api/scenes",
+        "application/json",
+        b"",
+    )
+    .await;
+    assert_eq!(status, 401, "{body}");
+    assert!(body.contains("revoked"), "{body}");
 }

@@ -79,6 +79,10 @@ impl Server {
             config.cluster_secret.as_ref(),
             state.store.root(),
         );
+        let mut cluster = cluster;
+        if let Some(conn) = &mut cluster {
+            conn.apply_revocations(&minter);
+        }
         match key {
             Ok(source) => tracing::info!(key = ?source, "minted tokens' signing key"),
             Err(e) => {

@@ -105,6 +105,13 @@ pub trait Cluster: Send + Sync + std::fmt::Debug {
     fn listing(&self, local: Vec<SceneInfo>) -> BoxFuture<'_, Vec<SceneInfo>>;
     /// Whether the connection to NATS is lost (local scenes are still served).
     fn degraded(&self) -> bool;
+    /// Tells every server of the cluster that minted token `id` is revoked until `until`
+    /// (Unix seconds), before the revocation is acknowledged; each server refuses it from then
+    /// on and closes the connections holding it.
+    ///
+    /// # Errors
+    /// `unavailable` when it could not be stored (it is revoked on this server all the same).
+    fn revoke_token<'a>(&'a self, id: &'a str, until: u64) -> BoxFuture<'a, Result<(), Error>>;
     /// Stores uploaded asset `name` (its files and pipeline options) where every server can
     /// read it, before the upload (or its new clips or options) is acknowledged; every server
     /// imports it from there.

@@ -130,13 +130,21 @@ impl Minter {
             let path = dir.join("tokens.json");
             match std::fs::read(&path) {
                 Ok(bytes) => {
-                    let book: Book = serde_json::from_slice(&bytes).map_err(|e| {
+                    let stored: Book = serde_json::from_slice(&bytes).map_err(|e| {
                         std::io::Error::new(
                             std::io::ErrorKind::InvalidData,
                             format!("{}: not a tokens file: {e}", path.display()),
                         )
                     })?;
-                    *self.book() = book;
+                    // Added to what is known already: a cluster's revocations may have come
+                    // first.
+                    let mut book = self.book();
+                    book.issued.extend(stored.issued);
+                    book.revoked.extend(stored.revoked);
+                    let revoked: Vec<String> = book.revoked.keys().cloned().collect();
+                    for id in revoked {
+                        book.issued.remove(&id);
+                    }
                 }
                 Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
                 Err(e) => {
@@ -294,6 +302,30 @@ impl Minter {
         drop(book);
         self.revoked.send_modify(|n| *n += 1);
         stored.map(|()| known)
+    }
+
+    /// Until when `id` stays revoked (when it would have expired), if it is revoked.
+    #[must_use]
+    pub fn revoked_until(&self, id: &str) -> Option<u64> {
+        self.book().revoked.get(id).copied()
+    }
+
+    /// Revokes `id` until `until` as another server of the cluster did (`crate::cluster`):
+    /// like [`Minter::revoke`], without telling the cluster again.
+    ///
+    /// # Errors
+    /// As [`Minter::revoke`].
+    pub fn revoke_until(&self, id: &str, until: u64) -> Result<(), Error> {
+        let mut book = self.book();
+        if book.revoked.contains_key(id) || until <= now_s() {
+            return Ok(());
+        }
+        book.issued.remove(id);
+        book.revoked.insert(id.to_owned(), until);
+        let stored = self.persist(&mut book);
+        drop(book);
+        self.revoked.send_modify(|n| *n += 1);
+        stored
     }
 
     /// The tokens minted here that are neither expired nor revoked.

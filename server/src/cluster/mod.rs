@@ -57,6 +57,9 @@ use tracing::{info, warn};
 const SCENES_BUCKET: &str = "posecast_scenes";
 /// The bucket of leases (one key per ticked scene; entries expire).
 const LEASES_BUCKET: &str = "posecast_leases";
+/// The bucket of revoked minted tokens (one key per token id, holding when it would have
+/// expired; entries expire after the longest lifetime a token can have).
+const REVOKED_BUCKET: &str = "posecast_revoked";
 /// How long a forwarded command or a request to a scene's owner may take.
 const REQUEST_TIMEOUT: Duration = Duration::from_secs(5);
 /// How long connecting to NATS at start may take before the start fails.
@@ -104,6 +107,10 @@ pub struct Connection {
     client: async_nats::Client,
     scenes: kv::Store,
     leases: kv::Store,
+    revoked: kv::Store,
+    /// The revocations in the bucket when this server connected, and the bucket's revision
+    /// then: applied before the server serves anything, then watched from there on.
+    revocations: (Vec<(String, u64)>, u64),
     assets: assets::Bucket,
     node: String,
     lease: Duration,
@@ -117,6 +124,16 @@ impl Connection {
     #[must_use]
     pub fn node(&self) -> &str {
         &self.node
+    }
+
+    /// Applies the token revocations the cluster had when this server connected, before it
+    /// serves anything (later ones arrive through the watch [`start`] begins).
+    pub fn apply_revocations(&mut self, minter: &crate::auth::Minter) {
+        for (id, until) in std::mem::take(&mut self.revocations.0) {
+            if let Err(e) = minter.revoke_until(&id, until) {
+                warn!(token = %id, error = %e, "cannot store a cluster revocation");
+            }
+        }
     }
 }
 
@@ -215,12 +232,20 @@ pub async fn connect(config: &Config, port: u16) -> std::io::Result<Connection> 
     };
     let scenes = open(SCENES_BUCKET, Duration::ZERO).await?;
     let leases = open(LEASES_BUCKET, lease).await?;
+    let revoked = open(
+        REVOKED_BUCKET,
+        Duration::from_secs(posecast_proto::tokens::MAX_TTL_S + 3600),
+    )
+    .await?;
+    let revocations = read_revocations(&revoked).await.map_err(fail)?;
     let assets = assets::open(&js).await.map_err(fail)?;
     info!(nats = %urls, node = %node, lease_ms = lease.as_millis() as u64, "joined the cluster");
     Ok(Connection {
         client,
         scenes,
         leases,
+        revoked,
+        revocations,
         assets,
         node,
         lease,
@@ -269,6 +294,8 @@ pub struct Cluster {
     /// Poses of this server's drivers for avatars ticked elsewhere, to publish.
     poses: tokio::sync::mpsc::Sender<drive::Outgoing>,
     _pose_publisher: Task,
+    /// Applies the cluster's token revocations here ([`watch_revocations`]).
+    _revocations: Task,
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -296,18 +323,88 @@ fn unavailable(what: &str, e: &dyn std::fmt::Display) -> Error {
     Error::Unavailable(format!("{what}: {e}"))
 }
 
+/// The revocations in the cluster's bucket, and its latest revision.
+async fn read_revocations(bucket: &kv::Store) -> Result<(Vec<(String, u64)>, u64), String> {
+    use futures_util::StreamExt;
+    let fail = |e: &dyn std::fmt::Display| format!("cannot read bucket {REVOKED_BUCKET}: {e}");
+    let mut found = Vec::new();
+    let mut seen = 0;
+    let mut keys = bucket.keys().await.map_err(|e| fail(&e))?;
+    while let Some(key) = keys.next().await {
+        let key = key.map_err(|e| fail(&e))?;
+        if let Some(entry) = bucket.entry(key).await.map_err(|e| fail(&e))? {
+            seen = seen.max(entry.revision);
+            if let Some(until) = revoked_until(&entry) {
+                found.push((entry.key, until));
+            }
+        }
+    }
+    Ok((found, seen))
+}
+
+/// Until when an entry of the revoked bucket revokes its token (`None`: not a revocation).
+fn revoked_until(entry: &kv::Entry) -> Option<u64> {
+    if entry.operation != kv::Operation::Put {
+        return None;
+    }
+    std::str::from_utf8(&entry.value).ok()?.parse().ok()
+}
+
+fn revoke_here(state: &AppState, id: &str, until: u64) {
+    if let Some(minter) = &state.config.access.mint
+        && let Err(e) = minter.revoke_until(id, until)
+    {
+        warn!(token = %id, error = %e, "cannot store a cluster revocation");
+    }
+}
+
+/// Applies the revocations made after revision `seen` of the cluster's bucket until the
+/// server stops (a broken watch is opened again from where it stopped).
+async fn watch_revocations(bucket: kv::Store, mut seen: u64, state: Weak<AppState>) {
+    use futures_util::StreamExt;
+    loop {
+        match bucket.watch_all_from_revision(seen + 1).await {
+            Ok(mut entries) => {
+                while let Some(Ok(entry)) = entries.next().await {
+                    let Some(state) = state.upgrade() else { return };
+                    seen = seen.max(entry.revision);
+                    if let Some(until) = revoked_until(&entry) {
+                        revoke_here(&state, &entry.key, until);
+                    }
+                }
+            }
+            Err(e) => warn!(error = %e, "cannot watch the cluster's revoked tokens"),
+        }
+        if state.strong_count() == 0 {
+            return;
+        }
+        tokio::time::sleep(Duration::from_secs(1)).await;
+    }
+}
+
 /// Joins the cluster once the server is ready (everything loaded): from then on, scenes are
 /// created cluster-wide, commands reach their scene's owner, and scenes are owned and relayed
 /// (the lease loop runs until the server stops).
-pub fn start(state: &Arc<AppState>, conn: Connection) -> Arc<Cluster> {
+pub fn start(state: &Arc<AppState>, mut conn: Connection) -> Arc<Cluster> {
     let (poses, queued) = tokio::sync::mpsc::channel(drive::POSE_QUEUE);
     let publisher = tokio::spawn(drive::publish(
         conn.client.clone(),
         queued,
         state.metrics.clone(),
     ));
+    // Those of the bucket before this server connected are applied already (`startup`).
+    let (known, seen) = std::mem::take(&mut conn.revocations);
+    for (id, until) in known {
+        revoke_here(state, &id, until);
+    }
+    let revocations = tokio::spawn(watch_revocations(
+        conn.revoked.clone(),
+        seen,
+        Arc::downgrade(state),
+    ));
     let cluster = Arc::new(Cluster {
         conn,
+        _revocations: Task(revocations),
         state: Arc::downgrade(state),
         owned: Mutex::new(HashMap::new()),
         relays: Mutex::new(HashMap::new()),
@@ -738,6 +835,17 @@ impl crate::state::Cluster for Cluster {
 
     fn degraded(&self) -> bool {
         self.conn.lost.load(Ordering::SeqCst)
+    }
+
+    fn revoke_token<'a>(&'a self, id: &'a str, until: u64) -> BoxFuture<'a, Result<(), Error>> {
+        Box::pin(async move {
+            self.conn
+                .revoked
+                .put(id, until.to_string().into())
+                .await
+                .map(|_| ())
+                .map_err(|e| unavailable("storing the revocation in the cluster", &e))
+        })
     }
 
     fn share_asset<'a>(

@@ -49,6 +49,7 @@ pub async fn revoke(
     Path(id): Path<String>,
 ) -> Result<StatusCode, AppError> {
     let minter = admin(&state, &caller, "revoke")?;
+    let id = id.to_ascii_lowercase();
     let revoked = minter.revoke(&id);
     tracing::info!(
         target: "posecast::audit",
@@ -63,6 +64,10 @@ pub async fn revoke(
         "token"
     );
     revoked?;
+    // Every server of a cluster refuses it before the revocation is acknowledged.
+    if let (Some(cluster), Some(until)) = (state.cluster(), minter.revoked_until(&id)) {
+        cluster.revoke_token(&id, until).await?;
+    }
     Ok(StatusCode::NO_CONTENT)
 }
 
