@@ -79,9 +79,11 @@ async fn a_vmc_performer_drives_the_builtin_avatar_within_0_05_degrees() {
     let m = &server.state.metrics.vmc;
     assert!(m.poses() >= 6);
     assert_eq!(m.dropped_total(PacketDrop::Malformed), 0);
-    // The avatar reports it is driven.
+    // The avatar reports it is driven, and by which VMC input (presence).
     let state = avatar_state(&sub, "avatar").await;
     assert_eq!(state["driven"], true, "{state}");
+    assert_eq!(state["driver"]["via"], "vmc", "{state}");
+    assert_eq!(state["driver"]["name"], format!("vmc {to}"), "{state}");
 }
 
 /// A partial bone set changes only the bones it names: the others keep what they were sent.

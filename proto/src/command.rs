@@ -467,6 +467,48 @@ pub struct SceneInfo {
     /// The server ticking it, when servers form a cluster (`--nats`); absent otherwise.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub owner: Option<String>,
+    /// Who watches it (presence): its subscribers by token name, the most connections first
+    /// (at most [`MAX_VIEWER_NAMES`] names; the rest count under `name: null` with the
+    /// anonymous ones). Changes follow as `viewers` messages to the scene list's watchers.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub viewers: Vec<Viewer>,
+}
+
+/// Most token names a scene's [`SceneInfo::viewers`] lists.
+pub const MAX_VIEWER_NAMES: usize = 64;
+
+/// Connections watching a scene under one token name.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
+pub struct Viewer {
+    /// The token's name; `null`: anonymous (and the names beyond the list's limit).
+    pub name: Option<String>,
+    /// Its subscribed connections.
+    pub connections: u32,
+}
+
+/// Who drives an avatar live, and how.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
+pub struct Driver {
+    /// The driving connection's token name (`anonymous` without one); for a VMC input
+    /// `vmc ADDRESS` (the UDP address it listens on).
+    pub name: String,
+    /// How the poses arrive.
+    pub via: DriveVia,
+}
+
+/// How a live driver's poses arrive.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
+#[serde(rename_all = "snake_case")]
+pub enum DriveVia {
+    /// A websocket connection of this server (`drive`, then `pose` messages).
+    Websocket,
+    /// A VMC input (`--vmc-in`, or a `posecast-client vmc-relay`).
+    Vmc,
+    /// A websocket connection of another server of the cluster.
+    Cluster,
 }
 
 /// A loaded rig as listed.
@@ -613,6 +655,9 @@ pub struct AvatarState {
     /// Whether a live driver sets its pose (a held pose counts: `drive … on_release hold`).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub driven: bool,
+    /// Who drives it live and how, while a driver is connected (presence).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub driver: Option<Driver>,
     /// The clip being recorded, if any.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub recording: Option<String>,

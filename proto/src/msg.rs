@@ -232,6 +232,14 @@ pub enum ServerMsg {
         /// The avatar's state, as `get_avatar` answers.
         avatar: Box<AvatarState>,
     },
+    /// Who watches a scene changed (presence, to connections watching the scene list; at
+    /// most one a second per scene): its viewers now, as in [`SceneInfo::viewers`].
+    Viewers {
+        /// The scene.
+        scene: SceneId,
+        /// Its subscribers by token name.
+        viewers: Vec<crate::command::Viewer>,
+    },
     /// Answer to a ping.
     Pong {
         /// The ping's id.

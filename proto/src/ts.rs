@@ -6,8 +6,8 @@
 
 use crate::command::{
     AssetDetail, AssetInfo, AvatarState, ClipInfo, Command, CommandResult, DofInfo, DriveInfo,
-    FadeState, JointInfo, JointMapping, JointRef, OnRelease, RecordingInfo, RootMotion, SceneInfo,
-    Units,
+    DriveVia, Driver, FadeState, JointInfo, JointMapping, JointRef, OnRelease, RecordingInfo,
+    RootMotion, SceneInfo, Units, Viewer,
 };
 use crate::description::AvatarDescription;
 use crate::msg::{
@@ -78,6 +78,9 @@ pub fn declarations() -> String {
         JointInfo,
         DofInfo,
         DriveInfo,
+        Driver,
+        DriveVia,
+        Viewer,
         OnRelease,
         RecordingInfo,
         PipelineOptions,

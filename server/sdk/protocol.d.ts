@@ -177,7 +177,15 @@ seq: number,
 /**
  * The avatar's state, as `get_avatar` answers.
  */
-avatar: AvatarState, } | { "type": "pong", 
+avatar: AvatarState, } | { "type": "viewers", 
+/**
+ * The scene.
+ */
+scene: SceneId, 
+/**
+ * Its subscribers by token name.
+ */
+viewers: Array<Viewer>, } | { "type": "pong", 
 /**
  * The ping's id.
  */
@@ -908,7 +916,13 @@ subscribers: number,
 /**
  * The server ticking it, when servers form a cluster (`--nats`); absent otherwise.
  */
-owner?: string | null, };
+owner?: string | null, 
+/**
+ * Who watches it (presence): its subscribers by token name, the most connections first
+ * (at most `MAX_VIEWER_NAMES` names; the rest count under `name: null` with the
+ * anonymous ones). Changes follow as `viewers` messages to the scene list's watchers.
+ */
+viewers?: Array<Viewer>, };
 
 /**
  * An avatar's playback state.
@@ -966,6 +980,10 @@ root_motion?: RootMotion | null,
  * Whether a live driver sets its pose (a held pose counts: `drive … on_release hold`).
  */
 driven?: boolean, 
+/**
+ * Who drives it live and how, while a driver is connected (presence).
+ */
+driver?: Driver | null, 
 /**
  * The clip being recorded, if any.
  */
@@ -1242,6 +1260,38 @@ timeout: number,
  * Most poses per second accepted from the driver.
  */
 max_rate_hz: number, };
+
+/**
+ * Who drives an avatar live, and how.
+ */
+export type Driver = { 
+/**
+ * The driving connection's token name (`anonymous` without one); for a VMC input
+ * `vmc ADDRESS` (the UDP address it listens on).
+ */
+name: string, 
+/**
+ * How the poses arrive.
+ */
+via: DriveVia, };
+
+/**
+ * How a live driver's poses arrive.
+ */
+export type DriveVia = "websocket" | "vmc" | "cluster";
+
+/**
+ * Connections watching a scene under one token name.
+ */
+export type Viewer = { 
+/**
+ * The token's name; `null`: anonymous (and the names beyond the list's limit).
+ */
+name: string | null, 
+/**
+ * Its subscribed connections.
+ */
+connections: number, };
 
 /**
  * What a live-driven avatar does when its driver goes.

@@ -175,3 +175,35 @@ fn announce(
         .watchers
         .push(&state.config.access, &scene.id, &msg, &told);
 }
+
+/// How long viewer changes of one scene are gathered before watchers hear of them.
+pub const VIEWERS_COALESCE: std::time::Duration = std::time::Duration::from_secs(1);
+
+/// A connection subscribed to or left `scene`: its watchers hear who watches it now, in one
+/// `viewers` message per scene and [`VIEWERS_COALESCE`] however many joined or left (a crowd
+/// joining does not make each dashboard a message per viewer).
+pub fn viewers_changed(state: &Arc<AppState>, scene: &Arc<Scene>) {
+    if scene
+        .viewers_pending
+        .swap(true, std::sync::atomic::Ordering::SeqCst)
+    {
+        return;
+    }
+    let (state, scene) = (Arc::downgrade(state), Arc::downgrade(scene));
+    tokio::spawn(async move {
+        tokio::time::sleep(VIEWERS_COALESCE).await;
+        let (Some(state), Some(scene)) = (state.upgrade(), scene.upgrade()) else {
+            return;
+        };
+        scene
+            .viewers_pending
+            .store(false, std::sync::atomic::Ordering::SeqCst);
+        let msg = text(&ServerMsg::Viewers {
+            scene: scene.id.clone(),
+            viewers: scene.feed().viewers(),
+        });
+        state
+            .watchers
+            .push(&state.config.access, &scene.id, &msg, &[]);
+    });
+}

@@ -35,7 +35,8 @@ export function mount(ctx) {
       ["Overrides", a.overrides.length ? a.overrides.join(", ") : "none"],
       ["Placement", `(${x.toFixed(2)}, ${y.toFixed(2)}, ${z.toFixed(2)}) m, facing ${yawDegrees(a.placement.rotation).toFixed(0)}°`],
     ];
-    if (a.driven) rows.push(["Live", "driven by a live source"]);
+    if (a.driver) rows.push(["Live", `driven by ${a.driver.name} (${a.driver.via})`]);
+    else if (a.driven) rows.push(["Live", "holding a live pose"]);
     if (a.recording) rows.push(["Recording", a.recording]);
     for (const [k, v] of rows) dl.append(el("dt", {}, k), el("dd", { dataset: { field: k.toLowerCase() } }, v));
 

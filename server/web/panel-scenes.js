@@ -32,11 +32,26 @@ export function yawDegrees(q) {
 function summary(a) {
   const clip = a.clip ? `${a.clip_asset ? `${a.clip_asset}:` : ""}${a.clip}` : "no clip";
   const flags = [a.paused ? "paused" : "playing", a.looping ? "loop" : "once", `×${a.speed}`];
-  if (a.driven) flags.push("driven live");
+  if (a.driver) flags.push(`driven by ${a.driver.name} (${a.driver.via})`);
+  else if (a.driven) flags.push("holding a live pose");
   if (a.recording) flags.push(`recording ${a.recording}`);
   const [x, , z] = a.placement.position;
   const over = a.overrides.length ? ` · overrides: ${a.overrides.join(", ")}` : "";
   return `${clip} · ${flags.join(" · ")} · at (${x.toFixed(1)}, ${z.toFixed(1)})${over}`;
+}
+
+/**
+ * Who watches a scene, for its heading: "watched by alice ×2, bob, 3 anonymous".
+ * @param {import("./protocol.js").Viewer[]} viewers
+ * @returns {string}
+ */
+export function watchedBy(viewers) {
+  if (!viewers.length) return "nobody watching";
+  const parts = viewers.map((v) => {
+    const who = v.name ?? (v.connections === 1 ? "anonymous viewer" : "anonymous");
+    return v.name ? (v.connections > 1 ? `${who} ×${v.connections}` : who) : `${v.connections} ${who}`;
+  });
+  return `watched by ${parts.join(", ")}`;
 }
 
 /**
@@ -85,7 +100,7 @@ function place(parent, node, index) {
 export function mount(ctx) {
   const { store, run } = ctx;
   const root = $("scene-list");
-  /** @type {Map<string, {box: HTMLElement, list: HTMLUListElement, empty: HTMLElement, name: HTMLButtonElement, avatars: Map<string, {li: HTMLLIElement, pick: HTMLButtonElement, text: HTMLElement, focus: HTMLButtonElement}>}>} */
+  /** @type {Map<string, {box: HTMLElement, list: HTMLUListElement, empty: HTMLElement, name: HTMLButtonElement, viewers: HTMLElement, avatars: Map<string, {li: HTMLLIElement, pick: HTMLButtonElement, text: HTMLElement, focus: HTMLButtonElement}>}>} */
   const shown = new Map();
 
   /** @param {string} scene */
@@ -97,9 +112,10 @@ export function mount(ctx) {
     });
     const list = el("ul", { className: "avatar-list" });
     const empty = el("p", { className: "muted small" }, "no avatars");
+    const viewers = el("p", { className: "muted small viewers", dataset: { viewers: scene } });
     const box = el("div", { className: "scene", dataset: { scene } },
-      el("div", { className: "scene-head" }, name, el("span", { className: "actions control-only" }, del)), list, empty);
-    return { box, list, empty, name, avatars: new Map() };
+      el("div", { className: "scene-head" }, name, el("span", { className: "actions control-only" }, del)), viewers, list, empty);
+    return { box, list, empty, name, viewers, avatars: new Map() };
   };
 
   /** @param {string} avatar */
@@ -120,7 +136,7 @@ export function mount(ctx) {
     return { li, pick, text, focus };
   };
 
-  store.on(["scenes", "selected", "watched", "focus"], (s) => {
+  store.on(["scenes", "selected", "watched", "focus", "viewers"], (s) => {
     if (!s.scenes) return;
     if (!s.scenes.size) root.replaceChildren(el("p", { className: "muted" }, "No scenes."));
     else root.querySelector(":scope > p")?.remove();
@@ -139,6 +155,7 @@ export function mount(ctx) {
       }
       place(root, box.box, sceneIndex++);
       box.name.setAttribute("aria-pressed", String(scene === s.watched));
+      box.viewers.textContent = watchedBy(s.viewers.get(scene) ?? []);
       box.box.classList.toggle("watched", scene === s.watched);
       for (const [id, item] of box.avatars) {
         if (!avatars.has(id)) {

@@ -19,6 +19,8 @@ export {};
 /** @typedef {import("../sdk/protocol").RootMotion} RootMotion */
 /** @typedef {import("../sdk/protocol").AvatarState} AvatarState An avatar as `get_avatar`, `list_scenes` and `avatar_changed` report it. */
 /** @typedef {import("../sdk/protocol").SceneInfo} SceneInfo */
+/** @typedef {import("../sdk/protocol").Viewer} Viewer Connections watching a scene under one token name. */
+/** @typedef {import("../sdk/protocol").Driver} Driver Who drives an avatar live, and how. */
 /** @typedef {import("../sdk/protocol").ClipInfo} ClipInfo */
 /** @typedef {import("../sdk/protocol").AssetInfo} AssetInfo A loaded rig (`list_assets`). */
 /** @typedef {import("../sdk/protocol").DofInfo} DofInfo */
@@ -39,6 +41,7 @@ export {};
 /** @typedef {Extract<ServerMsg, {type: "avatar_removed"}>} AvatarRemovedMsg */
 /** @typedef {Extract<ServerMsg, {type: "scenes"}>} ScenesMsg */
 /** @typedef {Extract<ServerMsg, {type: "scene_created"}>} SceneCreatedMsg */
+/** @typedef {Extract<ServerMsg, {type: "viewers"}>} ViewersMsg */
 /** @typedef {Extract<ServerMsg, {type: "scene_deleted"}>} SceneDeletedMsg */
 /** @typedef {Extract<ServerMsg, {type: "avatar_changed"}>} AvatarChangedMsg */
 /** @typedef {Extract<ServerMsg, {type: "pong"}>} PongMsg */

@@ -9,6 +9,7 @@
 /** @typedef {import("./protocol.js").AvatarDescription} AvatarDescription */
 /** @typedef {import("./protocol.js").AvatarPose} AvatarPose */
 /** @typedef {import("./protocol.js").Access} Access */
+/** @typedef {import("./protocol.js").Viewer} Viewer */
 /** @typedef {import("../sdk/posecast.js").ConnectionState} ConnState */
 /** @typedef {import("../sdk/posecast.js").Refusal} Refusal */
 
@@ -28,6 +29,7 @@
  * @property {Refusal[]} refusals Tokens the server refused, and why.
  * @property {number} tickRate Ticks per second (from the welcome).
  * @property {Map<string, Map<string, AvatarEntry>> | null} scenes Scene → avatar → entry (null until listed).
+ * @property {Map<string, Viewer[]>} viewers Scene → who watches it (presence), by token name.
  * @property {AssetInfo[]} assets
  * @property {Map<string, AvatarDescription>} descriptions Avatar → rig, for the watched scene.
  * @property {Map<string, AvatarPose>} poses Avatar → newest pose (updated without notifying).
@@ -50,6 +52,7 @@ export class Store {
       refusals: [],
       tickRate: 60,
       scenes: null,
+      viewers: new Map(),
       assets: [],
       descriptions: new Map(),
       poses: new Map(),

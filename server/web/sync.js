@@ -88,7 +88,7 @@ export class Sync {
         for (const s of msg.scenes) {
           all.set(s.scene, new Map(s.avatars.map((a) => [a.avatar, { state: a, seq: null }])));
         }
-        store.set({ scenes: all });
+        store.set({ scenes: all, viewers: new Map(msg.scenes.map((s) => [s.scene, s.viewers ?? []])) });
         const watched = store.get().watched;
         if (watched && !all.has(watched)) {
           // Gone while the page was away (a restart without it).
@@ -100,6 +100,12 @@ export class Sync {
         this.early = null;
         for (const m of early) this.onMessage(m);
         this.keepSelection();
+        break;
+      }
+      case "viewers": {
+        const viewers = store.get().viewers;
+        viewers.set(msg.scene, msg.viewers);
+        store.set({ viewers });
         break;
       }
       case "scene_created":

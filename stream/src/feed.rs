@@ -47,6 +47,8 @@ pub struct Subscriber {
     /// The protocol version of its connection: binary subscribers of version 2 get wire v2
     /// frames ([`wire2`]).
     pub version: u32,
+    /// Its connection's token name (presence); `None`: anonymous.
+    pub name: Option<Arc<str>>,
 }
 
 impl Subscriber {
@@ -68,7 +70,15 @@ impl Subscriber {
             joints: None,
             key_sent: None,
             version: 1,
+            name: None,
         }
+    }
+
+    /// The same subscription, made by a connection with token name `name` (presence).
+    #[must_use]
+    pub fn with_name(mut self, name: Option<&str>) -> Self {
+        self.name = name.map(Arc::from);
+        self
     }
 
     /// The same subscription, limited to the joints of `joints` (`None`: every joint).
@@ -378,6 +388,41 @@ impl Feed {
         let key = header.kind == FrameKind::Key;
         self.fan_out(Published { header, pieces }, key);
         Ok(())
+    }
+
+    /// Who is subscribed, by token name (presence): the names with the most connections first,
+    /// at most [`posecast_proto::command::MAX_VIEWER_NAMES`]; anonymous connections and the
+    /// names beyond the limit count under `name: None`, last.
+    #[must_use]
+    pub fn viewers(&self) -> Vec<posecast_proto::command::Viewer> {
+        use posecast_proto::command::{MAX_VIEWER_NAMES, Viewer};
+        let mut by_name: std::collections::BTreeMap<Option<&str>, u32> =
+            std::collections::BTreeMap::new();
+        for s in &self.subscribers {
+            *by_name.entry(s.name.as_deref()).or_default() += 1;
+        }
+        let anonymous = by_name.remove(&None).unwrap_or(0);
+        let mut named: Vec<(&str, u32)> = by_name
+            .into_iter()
+            .filter_map(|(n, c)| n.map(|n| (n, c)))
+            .collect();
+        named.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(b.0)));
+        let rest: u32 = named.iter().skip(MAX_VIEWER_NAMES).map(|(_, c)| c).sum();
+        let mut viewers: Vec<Viewer> = named
+            .into_iter()
+            .take(MAX_VIEWER_NAMES)
+            .map(|(n, c)| Viewer {
+                name: Some(n.to_owned()),
+                connections: c,
+            })
+            .collect();
+        if anonymous + rest > 0 {
+            viewers.push(Viewer {
+                name: None,
+                connections: anonymous + rest,
+            });
+        }
+        viewers
     }
 
     /// Number of subscribers.

@@ -94,3 +94,76 @@ async fn the_server_pushes_changes_and_the_page_never_polls() {
     b.close().await.unwrap();
     server.stop().await;
 }
+
+/// Presence on the page: a user joining with a minted token shows under the scene ("watched
+/// by"), their drive on the avatar ("driven by alice (websocket)"), and both go when they
+/// leave — pushed by the server, the page asking nothing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_page_shows_who_watches_and_who_drives() {
+    use futures_util::SinkExt;
+    let server = common::server(30.0).await;
+    let minter = server.state.config.access.mint.clone().unwrap();
+    let alice = minter
+        .mint(
+            posecast_proto::tokens::MintRequest {
+                name: "alice".into(),
+                rights: vec![
+                    posecast_proto::tokens::Right::View,
+                    posecast_proto::tokens::Right::Drive,
+                ],
+                scenes: None,
+                avatars: None,
+                ttl_s: Some(600),
+                max_bytes: None,
+                max_objects: None,
+            },
+            |_| false,
+        )
+        .unwrap();
+    let (_driver, b) = browser().await;
+    b.goto(&format!("{}/?debug#control={CONTROL}", server.http_url()))
+        .await
+        .unwrap();
+    wait_js(
+        &b,
+        60,
+        "window.posecast.state === 'online' && window.posecast.frames > 5",
+    )
+    .await;
+    let viewers = "document.querySelector('[data-viewers=\"default\"]')?.textContent ?? ''";
+    // The page itself watches the scene (with the control token, named `test`).
+    wait_js(&b, 60, &format!("({viewers}).includes('watched by test')")).await;
+
+    let mut ws = common::raw_as(
+        &server,
+        posecast_proto::msg::Encoding::Json,
+        Some(&alice.token),
+    )
+    .await;
+    let send = |v: Value| tokio_tungstenite::tungstenite::Message::Text(v.to_string().into());
+    ws.send(send(json!({"type": "subscribe", "scene": "default"})))
+        .await
+        .unwrap();
+    wait_js(&b, 60, &format!("({viewers}).includes('alice')")).await;
+    ws.send(send(
+        json!({"type": "command", "id": 1, "command": {"op": "drive", "avatar": "avatar"}}),
+    ))
+    .await
+    .unwrap();
+    let summary = "document.querySelector('#scene-list button[data-avatar=\"avatar\"] .avatar-summary')?.textContent ?? ''";
+    wait_js(
+        &b,
+        60,
+        &format!("({summary}).includes('driven by alice (websocket)')"),
+    )
+    .await;
+
+    ws.close(None).await.unwrap();
+    wait_js(
+        &b,
+        60,
+        &format!("!({summary}).includes('driven by') && !({viewers}).includes('alice')"),
+    )
+    .await;
+    assert_eq!(errors(&b).await, json!([]));
+}

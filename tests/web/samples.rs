@@ -3,8 +3,8 @@
 use crate::root;
 use glam::Mat4;
 use posecast_proto::command::{
-    AssetInfo, AvatarState, ClipInfo, Command, CommandResult, DofInfo, FadeState, JointInfo,
-    RootMotion, SceneInfo,
+    AssetInfo, AvatarState, ClipInfo, Command, CommandResult, DofInfo, DriveVia, Driver, FadeState,
+    JointInfo, RootMotion, SceneInfo, Viewer,
 };
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::msg::{
@@ -40,6 +40,10 @@ fn state(full: bool) -> AvatarState {
         placement: Placement::try_new([2.0, 0.0, -1.0], [0.0, 0.383, 0.0, 0.924]).unwrap(),
         root_motion: full.then_some(RootMotion::Accumulate),
         driven: full,
+        driver: full.then(|| Driver {
+            name: "alice".into(),
+            via: DriveVia::Websocket,
+        }),
         recording: full.then(|| "take".into()),
         blend_shapes: if full {
             [("joy".to_owned(), 0.5)].into_iter().collect()
@@ -154,6 +158,27 @@ fn samples() -> Vec<(&'static str, &'static str, Value)> {
                     avatars: vec![state(true)],
                     subscribers: 3,
                     owner: None,
+                    viewers: vec![
+                        Viewer {
+                            name: Some("alice".into()),
+                            connections: 2,
+                        },
+                        Viewer {
+                            name: None,
+                            connections: 1,
+                        },
+                    ],
+                }],
+            }),
+        ),
+        (
+            "viewers",
+            "ViewersMsg",
+            v!(ServerMsg::Viewers {
+                scene: scene("lobby"),
+                viewers: vec![Viewer {
+                    name: Some("alice".into()),
+                    connections: 1,
                 }],
             }),
         ),

@@ -766,7 +766,8 @@ fn on_server_msg(
         ServerMsg::Scenes { .. }
         | ServerMsg::SceneCreated { .. }
         | ServerMsg::SceneDeleted { .. }
-        | ServerMsg::AvatarChanged { .. } => None,
+        | ServerMsg::AvatarChanged { .. }
+        | ServerMsg::Viewers { .. } => None,
     };
     drop(s);
     if let Some(e) = event {

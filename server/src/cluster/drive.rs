@@ -186,9 +186,15 @@ pub(super) fn answer_drive(
     let mut drivers = lock(drivers);
     // Drivers whose drives all ended (released, timed out, their relay gone) are forgotten.
     drivers.retain(|_, d| d.is_driving());
-    let drives = drivers
-        .entry(driver)
-        .or_insert_with(|| Drives::new(state.new_driver_id()));
+    let drives = drivers.entry(driver.clone()).or_insert_with(|| {
+        let mut drives = Drives::new(state.new_driver_id());
+        // Presence: the driver as the cluster names it (its server and connection).
+        drives.identify(posecast_proto::command::Driver {
+            name: driver,
+            via: posecast_proto::command::DriveVia::Cluster,
+        });
+        drives
+    });
     match drives.command(state, &command) {
         Some(Ok(result)) => Reply::Ok(result),
         Some(Err(e)) => Reply::Error(e.into()),

@@ -19,7 +19,7 @@ use posecast_core::error::Error;
 use crate::state::AppState;
 use glam::{Quat, Vec3};
 use posecast_core::quota::{CommandRate, TokenBucket};
-use posecast_proto::command::{Command, CommandResult, DriveInfo, OnRelease};
+use posecast_proto::command::{Command, CommandResult, DriveInfo, DriveVia, Driver, OnRelease};
 use posecast_proto::live::{BinaryPose, MAX_RATE_HZ, VMC_SOURCE};
 use posecast_proto::msg::{AvatarId, SceneId};
 use posecast_sim::avatar::live::{LivePose, ValidPose};
@@ -37,6 +37,8 @@ pub struct Drives {
     /// Avatars of scenes ticked on other servers of a cluster, driven there for this
     /// connection: poses are checked here and passed on.
     remote: Vec<RemoteDrive>,
+    /// Who drives through this connection.
+    who: Driver,
 }
 
 /// An avatar driven through its scene's owner ([`Drives::command_remote`]).
@@ -81,7 +83,16 @@ impl Drives {
             conn,
             driven: Vec::new(),
             remote: Vec::new(),
+            who: Driver {
+                name: "anonymous".into(),
+                via: DriveVia::Websocket,
+            },
         }
+    }
+
+    /// Says who drives through this connection (presence: `AvatarState::driver`).
+    pub fn identify(&mut self, who: Driver) {
+        self.who = who;
     }
 
     /// Whether it drives an avatar of this server still.
@@ -235,6 +246,9 @@ impl Drives {
             ))
         })?;
         a.live = Some(live);
+        if let Some(l) = a.live.as_mut() {
+            l.by = Some(self.who.clone());
+        }
         a.evaluate();
         let num = a.num();
         drop(s);

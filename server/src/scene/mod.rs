@@ -83,6 +83,8 @@ pub struct Scene {
     pub keyed: tokio::sync::Mutex<()>,
     /// The answers of its latest keyed commands ([`answers`]), in its snapshot.
     answers: Mutex<answers::Recent>,
+    /// A `viewers` message to its watchers is on its way ([`crate::changes::viewers_changed`]).
+    pub viewers_pending: AtomicBool,
 }
 
 impl Scene {
@@ -104,6 +106,7 @@ impl Scene {
             ticker_generation: tokio::sync::watch::Sender::new(0),
             keyed: tokio::sync::Mutex::new(()),
             answers: Mutex::new(answers::Recent::new()),
+            viewers_pending: AtomicBool::new(false),
         }
     }
 
@@ -208,11 +211,15 @@ impl Scene {
     #[must_use]
     pub fn info(&self) -> SceneInfo {
         let s = self.lock();
+        let avatars = s.avatars.iter().map(|a| a.state(&self.id)).collect();
+        // One look at the feed (its lock is not reentrant).
+        let feed = self.feed();
         SceneInfo {
             scene: self.id.clone(),
-            avatars: s.avatars.iter().map(|a| a.state(&self.id)).collect(),
-            subscribers: self.feed().len(),
+            avatars,
+            subscribers: feed.len(),
             owner: None,
+            viewers: feed.viewers(),
         }
     }
 

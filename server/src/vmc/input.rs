@@ -262,6 +262,10 @@ pub async fn run(
     let mut standing = Standing::Idle;
     let mut warned_sender = false;
     let addr = socket.local_addr().map_or(input.addr, |a| a);
+    let who = posecast_proto::command::Driver {
+        name: format!("vmc {addr}"),
+        via: posecast_proto::command::DriveVia::Vmc,
+    };
     loop {
         let wait_apply = performer.pending();
         tokio::select! {
@@ -303,13 +307,26 @@ pub async fn run(
         if performer.pending() && now >= next_apply {
             next_apply = now + interval;
             let update = performer.take_pose();
-            let outcome = apply(&state, &input.avatar, driver, &vmc, &mut claim, update);
+            let outcome = apply(
+                &state,
+                &input.avatar,
+                (driver, &who),
+                &vmc,
+                &mut claim,
+                update,
+            );
             match outcome {
                 Ok(()) => metrics.pose(),
                 Err(why) => metrics.refused(why),
             }
             let now_standing = outcome.map_or_else(Standing::Refused, |()| Standing::Driving);
             if now_standing != standing {
+                if now_standing == Standing::Driving
+                    && let Some(c) = &claim
+                {
+                    // Presence: subscribers and dashboards see who drives it now.
+                    crate::changes::avatar_changed(&state, &c.scene, &input.avatar);
+                }
                 log_standing(addr, &input.avatar, now_standing);
                 standing = now_standing;
             }
@@ -337,7 +354,7 @@ fn log_standing(addr: SocketAddr, avatar: &AvatarId, standing: Standing) {
 fn apply(
     state: &AppState,
     avatar: &AvatarId,
-    driver: u64,
+    (driver, who): (u64, &posecast_proto::command::Driver),
     vmc: &VmcRig,
     claim: &mut Option<Claim>,
     update: Update,
@@ -381,6 +398,9 @@ fn apply(
                 )
                 .map_err(|_| PoseRefusal::NotHumanoid)?;
                 a.live = Some(live);
+                if let Some(l) = a.live.as_mut() {
+                    l.by = Some(who.clone());
+                }
             }
         }
         if let Some(live) = a.live.as_mut() {

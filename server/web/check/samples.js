@@ -167,6 +167,10 @@ export const scenes = /** @satisfies {import("../protocol.js").ScenesMsg} */ ({
           "clip": "walk",
           "clip_asset": "01_01",
           "driven": true,
+          "driver": {
+            "name": "alice",
+            "via": "websocket"
+          },
           "fade": {
             "duration": 0.30000001192092896,
             "elapsed": 0.10000000149011612,
@@ -203,10 +207,31 @@ export const scenes = /** @satisfies {import("../protocol.js").ScenesMsg} */ ({
         }
       ],
       "scene": "lobby",
-      "subscribers": 3
+      "subscribers": 3,
+      "viewers": [
+        {
+          "connections": 2,
+          "name": "alice"
+        },
+        {
+          "connections": 1,
+          "name": null
+        }
+      ]
     }
   ],
   "type": "scenes"
+});
+
+export const viewers = /** @satisfies {import("../protocol.js").ViewersMsg} */ ({
+  "scene": "lobby",
+  "type": "viewers",
+  "viewers": [
+    {
+      "connections": 1,
+      "name": "alice"
+    }
+  ]
 });
 
 export const sceneCreated = /** @satisfies {import("../protocol.js").SceneCreatedMsg} */ ({

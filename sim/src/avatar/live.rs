@@ -52,6 +52,8 @@ pub struct LivePose {
     /// Blend shape (expression) values the driver applied, by name: kept and reported
     /// (`get_avatar`) although rigs have no morph targets yet. VMC input sets them.
     pub blend_shapes: BTreeMap<String, f32>,
+    /// Who drives, as told to clients (presence); `None` until the server says.
+    pub by: Option<posecast_proto::command::Driver>,
 }
 
 /// A source pose, validated: every joint index is in range, every rotation a unit quaternion.
@@ -114,6 +116,7 @@ impl LivePose {
             src_world: vec![Mat4::IDENTITY; n_src],
             tgt_world: vec![Mat4::IDENTITY; n_tgt],
             blend_shapes: BTreeMap::new(),
+            by: None,
             source,
         })
     }

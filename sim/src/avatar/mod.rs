@@ -315,6 +315,11 @@ impl Avatar {
             placement: self.placing.current(),
             root_motion: layer.map(|l| l.root_motion),
             driven: self.live.is_some(),
+            driver: self
+                .live
+                .as_ref()
+                .filter(|l| l.driver.is_some())
+                .and_then(|l| l.by.clone()),
             recording: self.recording.as_ref().map(|r| r.name().to_owned()),
             blend_shapes: self
                 .live

@@ -22,7 +22,7 @@ use axum::extract::ws::{Message, WebSocket, close_code};
 use futures_util::{Sink, Stream, StreamExt};
 use posecast_core::error::Error;
 use posecast_core::quota::{TokenBucket, rate_limited};
-use posecast_proto::command::CommandResult;
+use posecast_proto::command::{CommandResult, DriveVia, Driver};
 use posecast_proto::msg::{
     ClientMsg, Encoding, ErrorCode, MAX_CLIENT_MESSAGE_BYTES, PROTOCOL_VERSION, ProtocolError,
     SUPPORTED_VERSIONS, SceneId, ServerMsg,
@@ -494,6 +494,10 @@ impl Session {
             );
         }
         tracing::Span::current().record("caller", self.caller.name());
+        self.drives.identify(Driver {
+            name: self.caller.name().to_owned(),
+            via: DriveVia::Websocket,
+        });
         info!(?encoding, token = self.caller.name(), "hello");
         self.send(&ServerMsg::Welcome {
             version,
@@ -575,6 +579,7 @@ impl Session {
                     })
                     .and_then(|()| self.state.world.scene(&scene))
                     .and_then(|s| {
+                        crate::changes::viewers_changed(&self.state, &s);
                         s.subscribe(
                             Subscriber::new(
                                 self.conn,
@@ -584,7 +589,8 @@ impl Session {
                                 every_nth_tick(self.state.config.tick_rate, rate),
                             )
                             .with_joints(joints)
-                            .with_version(self.version),
+                            .with_version(self.version)
+                            .with_name(self.caller.owner()),
                         )
                     });
                 match result {
@@ -598,12 +604,13 @@ impl Session {
                 true
             }
             ClientMsg::Unsubscribe { scene } => {
-                let had = self
-                    .state
-                    .world
-                    .scene(&scene)
-                    .map(|s| s.unsubscribe(self.conn))
-                    .unwrap_or(false);
+                let had = self.state.world.scene(&scene).is_ok_and(|s| {
+                    let had = s.unsubscribe(self.conn);
+                    if had {
+                        crate::changes::viewers_changed(&self.state, &s);
+                    }
+                    had
+                });
                 self.scenes.retain(|s| s != &scene);
                 if had {
                     self.send(&ServerMsg::Unsubscribed { scene });
@@ -726,8 +733,10 @@ impl Session {
         self.state.watchers.unwatch(self.conn);
         self.drives.leave(&self.state);
         for scene in self.scenes.drain(..) {
-            if let Ok(s) = self.state.world.scene(&scene) {
-                s.unsubscribe(self.conn);
+            if let Ok(s) = self.state.world.scene(&scene)
+                && s.unsubscribe(self.conn)
+            {
+                crate::changes::viewers_changed(&self.state, &s);
             }
         }
     }
