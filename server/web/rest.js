@@ -27,7 +27,10 @@ export async function errorMessage(response) {
  */
 export async function fetchMesh(url) {
   const token = forRest(false);
-  const r = await fetch(url, { headers: token ? { Authorization: `Bearer ${token}` } : {} });
+  let r = await fetch(url, { headers: token ? { Authorization: `Bearer ${token}` } : {} });
+  // A stale or mistyped token is refused (401) even where anyone may watch: read without it
+  // then (the connection already says why control is refused).
+  if (r.status === 401 && token) r = await fetch(url);
   if (!r.ok) throw new Error(`${r.status} ${await errorMessage(r)}`);
   return parseGlb(await r.arrayBuffer());
 }

@@ -295,6 +295,14 @@ async fn dashboard_controls_avatars_in_a_real_browser() {
     let addr = server.addr;
     server.stop().await;
     wait_js(&b, 60, "document.getElementById('conn-state').textContent.startsWith('offline') && !document.getElementById('offline').hidden").await;
+    // Only the preview's overlay covers anything: the status pill (class `offline` too) stays
+    // a pill in the header, and the page is not painted over.
+    let pill = wait_js(&b, 60, "(() => { const p = getComputedStyle(document.getElementById('conn-state')); return [p.position, document.getElementById('conn-state').getBoundingClientRect().height < 60]; })()").await;
+    assert_eq!(
+        pill,
+        serde_json::json!(["static", true]),
+        "the status pill when offline"
+    );
     phases.push(("offline", started.elapsed()));
 
     // 7. A server back on the same address: the page reconnects, resubscribes and streams.

@@ -211,3 +211,37 @@ async fn after_a_restart_with_a_new_token_the_page_watches_until_the_new_link_is
     b.close().await.unwrap();
     server.stop().await;
 }
+
+/// A stale link (`#control=` with a token the server no longer knows) on a server anyone may
+/// watch: the page watches and draws the skinned mesh, not the skeleton only (the mesh is read
+/// without the refused token).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stale_token_still_shows_the_mesh_where_anyone_may_watch() {
+    let server = common::server(60.0).await;
+    let (_driver, b) = browser().await;
+    b.goto(&format!(
+        "{}/?debug#control=stale-token-0000",
+        server.http_url()
+    ))
+    .await
+    .unwrap();
+    wait_js(
+        &b,
+        60,
+        "window.posecast.state === 'online' && window.posecast.frames > 5 \
+         && document.getElementById('conn-state').textContent === 'watching'",
+    )
+    .await;
+    wait_js(&b, 60, "window.posecast.meshLoaded === true").await;
+    let notices = wait_js(
+        &b,
+        60,
+        "document.querySelector('section.notices').textContent",
+    )
+    .await;
+    assert!(
+        !notices.as_str().unwrap_or("").contains("not shown"),
+        "{notices}"
+    );
+    server.stop().await;
+}
