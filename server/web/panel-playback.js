@@ -15,6 +15,8 @@ export function mount(ctx) {
   const select = $("clip-select", HTMLSelectElement);
   /** @type {{assets: AssetInfo[], asset: string | null} | null} */
   let filled = null;
+  /** The avatar and clip the picker last showed as playing (`[avatar, clip choice]`). */
+  let playing = "";
 
   store.on(["scenes", "selected", "assets"], (s) => {
     const entry = store.selectedAvatar();
@@ -61,10 +63,17 @@ export function mount(ctx) {
       };
       if (own) select.append(group(`${own.name} (own clips)`, own, null));
       for (const x of others) select.append(group(`Retargeted from ${x.name}`, x, x.name));
-      const current = JSON.stringify([a.clip_asset ?? null, a.clip]);
       const offered = [...select.options].map((o) => o.value);
       if (offered.includes(keep)) select.value = keep;
-      else if (offered.includes(current)) select.value = current;
+    }
+    // The picker shows what plays: when another avatar is selected, or its clip changes (a
+    // play from this page or anyone else's), it moves to that clip; a choice not yet played
+    // stays until then.
+    const current = JSON.stringify([a.clip_asset ?? null, a.clip]);
+    const now = JSON.stringify([a.avatar, current]);
+    if (now !== playing && [...select.options].some((o) => o.value === current)) {
+      select.value = current;
+      playing = now;
     }
   });
 

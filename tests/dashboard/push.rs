@@ -72,6 +72,16 @@ async fn the_server_pushes_changes_and_the_page_never_polls() {
         )
         .await,
     );
+    // The clip picker follows what the selected avatar plays, whoever started it.
+    delays.push(
+        shows_within(
+            &b,
+            &server,
+            json!({"op": "play", "avatar": "avatar", "clip": "walk"}),
+            "document.getElementById('clip-select').value === '[null,\"walk\"]'",
+        )
+        .await,
+    );
     delays.push(shows_within(&b, &server,
         json!({"op": "remove_avatar", "avatar": "newcomer"}),
         "document.querySelector('#scene-list [data-avatar=\"newcomer\"]') === null && window.posecast.drawn.length === 1").await);
