@@ -56,6 +56,8 @@ export class Viewer {
     this.showSkeleton = true;
     this.showMesh = true;
     this.framed = false;
+    /** Whether the user aimed the camera (orbit, zoom, pan) since it was last framed. */
+    this.moved = false;
     this.yaw = 0.5;
     this.pitch = 0.2;
     this.distance = 3;
@@ -101,6 +103,7 @@ export class Viewer {
     this.distance = 3;
     this.target = [0, 0.9, 0];
     this.framed = false;
+    this.moved = false;
   }
 
 
@@ -121,6 +124,7 @@ export class Viewer {
       if (Math.hypot(e.clientX - drag.startX, e.clientY - drag.startY) < CLICK_SLOP) return;
       if (drag.pan) {
         this.target[1] += dy * this.distance * 0.002;
+        this.moved = true;
         this.dirty = true;
       } else {
         this.orbit(-dx * 0.01, dy * 0.01);
@@ -191,6 +195,7 @@ export class Viewer {
    */
   orbit(dyaw, dpitch) {
     this.dirty = true;
+    this.moved = true;
     this.yaw += dyaw;
     this.pitch = Math.max(-1.5, Math.min(1.5, this.pitch + dpitch));
   }
@@ -198,6 +203,7 @@ export class Viewer {
   /** @param {number} factor */
   zoom(factor) {
     this.dirty = true;
+    this.moved = true;
     this.distance = Math.max(0.2, Math.min(100, this.distance * factor));
   }
 
@@ -241,6 +247,7 @@ export class Viewer {
   focusOn(id) {
     this.focus = id;
     this.framed = false;
+    this.moved = false;
     this.dirty = true;
   }
 
@@ -262,6 +269,9 @@ export class Viewer {
     const old = this.avatars.get(desc.id);
     const same = old?.desc.hash === desc.hash;
     this.avatars.set(desc.id, { desc, pose: same ? old.pose : null, mesh: same ? old.mesh : null });
+    // An avatar added while the page watches the whole scene: frame the scene again with it,
+    // unless the user has aimed the camera since it was last framed.
+    if (!old && this.focus === null && !this.moved) this.framed = false;
     this.dirty = true;
   }
 

@@ -39,9 +39,22 @@ async fn the_server_pushes_changes_and_the_page_never_polls() {
     );
 
     let mut delays = Vec::new();
+    let before = wait_js(&b, 60, "window.posecast.camera").await;
     delays.push(shows_within(&b, &server,
         json!({"op": "add_avatar", "scene": "default", "asset": "avatar", "avatar": "newcomer", "position": [1.5, 0, 0]}),
         "document.querySelector('#scene-list button[data-avatar=\"newcomer\"]') !== null && window.posecast.drawn.length === 2").await);
+    // The camera frames the scene again with the newcomer (1.5 m to the side): its target
+    // moves toward it.
+    let framed = wait_js(
+        &b,
+        60,
+        "window.posecast.camera.target[0] > 0.5 && window.posecast.camera",
+    )
+    .await;
+    assert!(
+        framed["distance"].as_f64() > before["distance"].as_f64(),
+        "the camera backed off to show both: {before} → {framed}"
+    );
     delays.push(
         shows_within(
             &b,
