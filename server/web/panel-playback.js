@@ -100,6 +100,36 @@ export function mount(ctx) {
       if (entry) run({ op, avatar: entry.state.avatar }).catch(() => {});
     });
   }
+  // Recording: a take of the selected avatar becomes a clip of its rig, downloadable as glTF
+  // or BVH once stopped.
+  $("record").addEventListener("click", () => {
+    const entry = store.selectedAvatar();
+    const clip = $("take-name", HTMLInputElement).value.trim();
+    if (!entry || !clip) return;
+    const avatar = entry.state.avatar;
+    run({ op: "record", avatar, clip }).then(() => notice(`Recording ${clip} of ${avatar}…`), () => {});
+  });
+  $("stop-recording").addEventListener("click", () => {
+    const entry = store.selectedAvatar();
+    if (!entry) return;
+    const { avatar, asset } = entry.state;
+    run({ op: "stop_recording", avatar }).then((result) => {
+      // The ack's `recorded` result: the rig the clip went to and its name.
+      const r = /** @type {{asset?: string, clip?: string}} */ (result ?? {});
+      const clip = r.clip ?? entry.state.recording ?? "";
+      const rig = r.asset ?? asset;
+      const base = `/api/assets/${encodeURIComponent(rig)}/clips/${encodeURIComponent(clip)}`;
+      const links = $("take-links");
+      links.replaceChildren(
+        `Take ${clip}: download `,
+        el("a", { href: `${base}.glb`, download: `${clip}.glb`, dataset: { take: "glb" } }, "glTF"),
+        " · ",
+        el("a", { href: `${base}.bvh`, download: `${clip}.bvh`, dataset: { take: "bvh" } }, "BVH"),
+      );
+      links.hidden = false;
+      notice(`Recorded ${clip} of ${avatar}.`);
+    }, () => {});
+  });
   $("set-speed").addEventListener("click", () => {
     const entry = store.selectedAvatar();
     if (entry) run({ op: "set_speed", avatar: entry.state.avatar, speed: num("speed", 1) }).catch(() => {});

@@ -190,3 +190,47 @@ async fn the_page_shows_who_watches_and_who_drives() {
     .await;
     assert_eq!(errors(&b).await, json!([]));
 }
+
+/// The control room records: Record and Stop recording on the selected avatar make a clip of
+/// its rig, and the page links the take as glTF and BVH, which the server serves.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_page_records_a_take_and_links_its_downloads() {
+    let server = common::server(30.0).await;
+    let (_driver, b) = browser().await;
+    b.goto(&format!("{}/?debug#control={CONTROL}", server.http_url()))
+        .await
+        .unwrap();
+    wait_js(&b, 60, "window.posecast.state === 'online' && window.posecast.selected === 'avatar' && window.posecast.frames > 5").await;
+    let name = find(&b, "#take-name").await;
+    name.clear().await.unwrap();
+    name.send_keys("rehearsal").await.unwrap();
+    find(&b, "#record").await.click().await.unwrap();
+    wait_js(&b, 60, "document.querySelector('#scene-list button[data-avatar=\"avatar\"] .avatar-summary')?.textContent.includes('recording rehearsal')").await;
+    // A few frames into the take (waited for, not slept).
+    let frames = wait_js(&b, 60, "window.posecast.frames")
+        .await
+        .as_u64()
+        .unwrap();
+    wait_js(&b, 60, &format!("window.posecast.frames > {frames} + 10")).await;
+    find(&b, "#stop-recording").await.click().await.unwrap();
+    let href = wait_js(
+        &b,
+        60,
+        "document.querySelector('#take-links a[data-take=\"glb\"]')?.getAttribute('href')",
+    )
+    .await;
+    assert_eq!(href, "/api/assets/avatar/clips/rehearsal.glb");
+    let (status, glb) = common::get_bytes(server.addr, href.as_str().unwrap()).await;
+    assert_eq!(status, 200);
+    assert_eq!(&glb[..4], b"glTF");
+    let bvh = wait_js(
+        &b,
+        60,
+        "document.querySelector('#take-links a[data-take=\"bvh\"]').getAttribute('href')",
+    )
+    .await;
+    let (status, text) = common::get_bytes(server.addr, bvh.as_str().unwrap()).await;
+    assert_eq!(status, 200);
+    assert!(text.starts_with(b"HIERARCHY"));
+    assert_eq!(errors(&b).await, json!([]));
+}
