@@ -245,3 +245,45 @@ async fn a_stale_token_still_shows_the_mesh_where_anyone_may_watch() {
     );
     server.stop().await;
 }
+
+/// The page hands out a link: "control this scene" mints a token for `guest`, limited to the
+/// watched scene for an hour, and the link opened (in this tab) controls that scene as guest.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_page_makes_a_link_with_a_minted_token_for_one_scene() {
+    let server = common::server(60.0).await;
+    let (_driver, b) = browser().await;
+    b.goto(&format!(
+        "{}/?debug#control={}",
+        server.http_url(),
+        common::CONTROL
+    ))
+    .await
+    .unwrap();
+    wait_js(&b, 60, "window.posecast.state === 'online' && window.posecast.watched === 'default' && window.posecast.access?.control === true").await;
+    find(&b, "#share-rights")
+        .await
+        .select_by_value("control")
+        .await
+        .unwrap();
+    find(&b, "#share-make").await.click().await.unwrap();
+    let href = wait_js(
+        &b,
+        60,
+        "document.querySelector('#share-link a')?.getAttribute('href')",
+    )
+    .await;
+    let href = href.as_str().unwrap().to_owned();
+    assert!(href.contains("#control=pc1."), "{href}");
+    b.goto(&href.replacen("/#", "/?debug#", 1)).await.unwrap();
+    let access = wait_js(
+        &b,
+        60,
+        "window.posecast.state === 'online' && window.posecast.access?.name === 'guest' && window.posecast.access",
+    )
+    .await;
+    assert_eq!(access["control"], true, "{access}");
+    assert_eq!(access["scenes"], serde_json::json!(["default"]), "{access}");
+    assert!(access["expires_at"].as_u64().is_some(), "{access}");
+    assert_eq!(errors(&b).await, serde_json::json!([]));
+    server.stop().await;
+}
