@@ -17,6 +17,31 @@ export declare const SDK_VERSION: string;
 export declare const PROTOCOL_VERSION: 3;
 
 export type Vec3 = [number, number, number];
+/** The `result` of an `ack`, by the `kind` the server tags it with (protocol.d.ts). */
+export type ResultOfKind<K extends CommandResult["kind"]> = Extract<CommandResult, { kind: K }> extends { result: infer R } ? R : null;
+
+/** Which result kind each command answers with (proto/PROTOCOL.md, "Typed results"). */
+export interface ResultKinds {
+  list_scenes: "scenes";
+  list_assets: "assets";
+  configure_asset: "assets";
+  get_asset: "asset";
+  get_avatar: "avatar";
+  get_joint: "joint";
+  sample_pose: "pose";
+  drive: "drive";
+  stop_recording: "recorded";
+  create_scene: "scene_created";
+  add_avatar: "avatar_added";
+  set_joint_rotation: "rotation";
+  rotate_joint_local: "rotation";
+  rotate_joint_world: "rotation";
+  set_joint_dofs: "dofs";
+}
+
+/** What `client.command({op, …})` resolves with: the result of that command's kind, `null` for `done`. */
+export type ResultOf<Op extends Command["op"]> = Op extends keyof ResultKinds ? ResultOfKind<ResultKinds[Op]> : null;
+
 /** `[x, y, z, w]`. */
 export type Quat = [number, number, number, number];
 /** 16 floats, column-major (`p' = M p`). */
@@ -54,6 +79,7 @@ export type {
 import type {
   Access,
   AvatarDescription,
+  CommandResult,
   DriveInfo,
   AvatarPoseJson,
   Command,
@@ -285,8 +311,11 @@ export declare class Client {
   forget(scene: string): void;
   /** Sends a message when online; whether it was sent. */
   send(message: ClientMessage): boolean;
-  /** Runs a command: resolves with its `ack`'s result, rejects with a {@link PosecastError}. */
-  command(command: Command): Promise<unknown>;
+  /**
+   * Runs a command: resolves with its `ack`'s result, typed by the command's `op`
+   * ({@link ResultOf}), rejects with a {@link PosecastError}.
+   */
+  command<C extends Command>(command: C): Promise<ResultOf<C["op"]>>;
   /**
    * Takes over an avatar as its live driver (`drive`); poses then go with {@link sendPose},
    * paced at the answer's `max_rate_hz`.

@@ -51,8 +51,17 @@ client.on("removed", ({ scene, avatar }) => console.log(scene, avatar));
 
 async function wave(): Promise<void> {
   try {
-    const result: unknown = await client.command({ op: "play", avatar: "avatar", clip: "wave", fade: 0.3 });
-    void result;
+    // Results are typed by the command's op.
+    const done: null = await client.command({ op: "play", avatar: "avatar", clip: "wave", fade: 0.3 });
+    const scenes = await client.command({ op: "list_scenes" });
+    const watchers: number = scenes[0].viewers?.length ?? 0;
+    const state = await client.command({ op: "get_avatar", avatar: "avatar" });
+    const drivenBy: string | undefined = state.driver?.name;
+    const drive = await client.command({ op: "drive", avatar: "avatar" });
+    const rate: number = drive.max_rate_hz;
+    const take = await client.command({ op: "stop_recording", avatar: "avatar" });
+    const clip: string = take.clip;
+    void [done, watchers, drivenBy, rate, clip];
   } catch (e) {
     if (e instanceof PosecastError) {
       const code: string = e.code;
@@ -76,6 +85,12 @@ const q = quatSlerp([0, 0, 0, 1], [0, 1, 0, 0], 0.5);
 
 // @ts-expect-error — a command needs its `op`.
 void client.command({ avatar: "avatar" });
+async function wrongResult(): Promise<void> {
+  // @ts-expect-error — get_avatar answers an avatar state, not a list.
+  const list: unknown[] = await client.command({ op: "get_avatar", avatar: "avatar" });
+  void list;
+}
+void wrongResult;
 // @ts-expect-error — no such event.
 client.on("frames", () => {});
 // @ts-expect-error — encodings are "binary" or "json".
