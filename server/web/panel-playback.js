@@ -37,6 +37,7 @@ export function mount(ctx) {
       ["Overrides", a.overrides.length ? a.overrides.join(", ") : "none"],
       ["Placement", `(${x.toFixed(2)}, ${y.toFixed(2)}, ${z.toFixed(2)}) m, facing ${yawDegrees(a.placement.rotation).toFixed(0)}°`],
     ];
+    $("release-drive").hidden = !a.driven;
     if (a.driver) rows.push(["Live", `driven by ${a.driver.name} (${a.driver.via})`]);
     else if (a.driven) rows.push(["Live", "holding a live pose"]);
     if (a.recording) rows.push(["Recording", a.recording]);
@@ -129,6 +130,14 @@ export function mount(ctx) {
       links.hidden = false;
       notice(`Recorded ${clip} of ${avatar}.`);
     }, () => {});
+  });
+  // Ends whoever drives the avatar live (a websocket driver, a VMC input, a held pose): it
+  // plays its clip again.
+  $("release-drive").addEventListener("click", () => {
+    const entry = store.selectedAvatar();
+    if (!entry) return;
+    const avatar = entry.state.avatar;
+    run({ op: "release_drive", avatar }).then(() => notice(`${avatar} released: its clip plays again.`), () => {});
   });
   $("set-speed").addEventListener("click", () => {
     const entry = store.selectedAvatar();

@@ -119,8 +119,8 @@ async fn the_server_pushes_changes_and_the_page_never_polls() {
 }
 
 /// Presence on the page: a user joining with a minted token shows under the scene ("watched
-/// by"), their drive on the avatar ("driven by alice (websocket)"), and both go when they
-/// leave — pushed by the server, the page asking nothing.
+/// by"), their drive on the avatar ("driven by alice (websocket)"); the operator ends the
+/// drive from the page; both go when they leave — pushed by the server, the page asking nothing.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_page_shows_who_watches_and_who_drives() {
     use futures_util::SinkExt;
@@ -174,6 +174,28 @@ async fn the_page_shows_who_watches_and_who_drives() {
     .await
     .unwrap();
     let summary = "document.querySelector('#scene-list button[data-avatar=\"avatar\"] .avatar-summary')?.textContent ?? ''";
+    wait_js(
+        &b,
+        60,
+        &format!("({summary}).includes('driven by alice (websocket)')"),
+    )
+    .await;
+
+    // The operator ends the drive from the page; alice may take it again.
+    find(&b, "#release-drive").await.click().await.unwrap();
+    wait_js(
+        &b,
+        60,
+        &format!(
+            "!({summary}).includes('driven by') && document.getElementById('release-drive').hidden"
+        ),
+    )
+    .await;
+    ws.send(send(
+        json!({"type": "command", "id": 2, "command": {"op": "drive", "avatar": "avatar"}}),
+    ))
+    .await
+    .unwrap();
     wait_js(
         &b,
         60,
