@@ -205,6 +205,13 @@ impl Minter {
             max_objects: request.max_objects,
         };
         let token = self.sign(&info)?;
+        if token.len() > MAX_TOKEN_CHARS {
+            return Err(Error::Invalid(format!(
+                "the token would be {} characters, more than the {MAX_TOKEN_CHARS} a server \
+                 accepts: list fewer or shorter scenes and avatars",
+                token.len()
+            )));
+        }
         let mut book = self.book();
         book.issued.insert(info.id.clone(), info.clone());
         if let Err(e) = self.persist(&mut book) {
@@ -525,6 +532,20 @@ mod tests {
             (request(&"x".repeat(65), &[Right::View]), "name"),
             (request("admin", &[Right::View]), "configured"),
             (request("carol", &[]), "rights"),
+            (
+                MintRequest {
+                    scenes: Some(vec![SceneId("s".repeat(100)); MAX_LISTED]),
+                    ..request("carol", &[Right::View])
+                },
+                "characters",
+            ),
+            (
+                MintRequest {
+                    ttl_s: Some(u64::MAX),
+                    ..request("carol", &[Right::View])
+                },
+                "ttl_s",
+            ),
             (
                 MintRequest {
                     ttl_s: Some(0),
