@@ -339,9 +339,13 @@ export class Viewer {
     if (this.framed) return;
     const b = Viewer.bounds(shown.flatMap((s) => s.points));
     if (!b) return;
-    this.target = b.center;
-    this.distance = b.size * 1.9;
-    this.framed = true;
+    if (!this.moved) {
+      this.target = b.center;
+      this.distance = b.size * 1.9;
+    }
+    // Framed for good once every avatar is posed: one whose first frame has not come yet (it
+    // was just added) is framed with the others when it comes.
+    this.framed = this.moved || shown.length >= this.avatars.size;
   }
 
   /** @returns {{target: Vec3, distance: number, focus: string | null}} The camera, for the tests. */
