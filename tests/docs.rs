@@ -285,12 +285,9 @@ async fn viewer_sees_the_arm(url: &str, child: &mut std::process::Child, sent: g
     }
 }
 
-/// `examples/node/drive.mjs` drives the avatar from Node.js with the SDK installed from the
-/// repository as an npm package (`npm install` in examples/node links `posecast` to
-/// server/sdk): a viewer sees the right upper arm at the rotation it sends, and it exits
-/// cleanly having released the avatar.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_node_example_drives_through_the_npm_package() {
+/// `examples/node` with its dependencies installed (`npm install` links `posecast` to
+/// server/sdk), or `None` after [`posecast_proto::testing::skip`] when npm is missing.
+fn node_examples() -> Option<std::path::PathBuf> {
     let dir = Path::new(ROOT).join("examples/node");
     let npm = Command::new("npm")
         .args([
@@ -306,7 +303,7 @@ async fn the_node_example_drives_through_the_npm_package() {
         posecast_proto::testing::skip(
             "tests/docs.rs: npm is missing (scripts/test installs Node.js)",
         );
-        return;
+        return None;
     };
     assert!(
         npm.status.success(),
@@ -317,6 +314,18 @@ async fn the_node_example_drives_through_the_npm_package() {
         dir.join("node_modules/posecast/package.json").exists(),
         "the SDK is installed as the package `posecast`"
     );
+    Some(dir)
+}
+
+/// `examples/node/drive.mjs` drives the avatar from Node.js with the SDK installed from the
+/// repository as an npm package (`npm install` in examples/node links `posecast` to
+/// server/sdk): a viewer sees the right upper arm at the rotation it sends, and it exits
+/// cleanly having released the avatar.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_node_example_drives_through_the_npm_package() {
+    let Some(dir) = node_examples() else {
+        return;
+    };
     let server = Posecast::start(&["--no-persist", "--control-token", "examples-secret"], &[]);
     let url = format!("ws://{}/ws", server.addr);
     // Node 20 has the WebSocket global behind a flag; 22 and later without it.
@@ -348,28 +357,9 @@ async fn the_node_example_drives_through_the_npm_package() {
 /// connects with it, is refused a pause, revokes the token and sees its connection closed.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_node_example_mints_and_revokes_a_users_token() {
-    let dir = Path::new(ROOT).join("examples/node");
-    let npm = Command::new("npm")
-        .args([
-            "install",
-            "--no-audit",
-            "--no-fund",
-            "--no-package-lock",
-            "--silent",
-        ])
-        .current_dir(&dir)
-        .output();
-    let Ok(npm) = npm else {
-        posecast_proto::testing::skip(
-            "tests/docs.rs: npm is missing (scripts/test installs Node.js)",
-        );
+    let Some(dir) = node_examples() else {
         return;
     };
-    assert!(
-        npm.status.success(),
-        "{}",
-        String::from_utf8_lossy(&npm.stderr)
-    );
     let server = Posecast::start(&["--no-persist", "--control-token", "examples-secret"], &[]);
     let out = tokio::task::spawn_blocking(move || {
         Command::new("node")
