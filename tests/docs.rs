@@ -287,29 +287,43 @@ async fn viewer_sees_the_arm(url: &str, child: &mut std::process::Child, sent: g
 
 /// `examples/node` with its dependencies installed (`npm install` links `posecast` to
 /// server/sdk), or `None` after [`posecast_proto::testing::skip`] when npm is missing.
+///
+/// The install runs once per test process: the two Node tests run at once, and two
+/// `npm install`s in one folder race each other (one of them fails renaming `node_modules`).
 fn node_examples() -> Option<std::path::PathBuf> {
+    static INSTALLED: std::sync::OnceLock<Result<(), String>> = std::sync::OnceLock::new();
     let dir = Path::new(ROOT).join("examples/node");
-    let npm = Command::new("npm")
-        .args([
-            "install",
-            "--no-audit",
-            "--no-fund",
-            "--no-package-lock",
-            "--silent",
-        ])
-        .current_dir(&dir)
-        .output();
-    let Ok(npm) = npm else {
-        posecast_proto::testing::skip(
-            "tests/docs.rs: npm is missing (scripts/test installs Node.js)",
-        );
-        return None;
-    };
-    assert!(
-        npm.status.success(),
-        "npm install in examples/node: {}",
-        String::from_utf8_lossy(&npm.stderr)
-    );
+    let installed = INSTALLED.get_or_init(|| {
+        let npm = Command::new("npm")
+            .args([
+                "install",
+                "--no-audit",
+                "--no-fund",
+                "--no-package-lock",
+                "--silent",
+            ])
+            .current_dir(&dir)
+            .output();
+        match npm {
+            Err(_) => Err(String::new()),
+            Ok(npm) if !npm.status.success() => Err(format!(
+                "npm install in examples/node: {}{}",
+                String::from_utf8_lossy(&npm.stdout),
+                String::from_utf8_lossy(&npm.stderr)
+            )),
+            Ok(_) => Ok(()),
+        }
+    });
+    match installed {
+        Err(why) if why.is_empty() => {
+            posecast_proto::testing::skip(
+                "tests/docs.rs: npm is missing (scripts/test installs Node.js)",
+            );
+            return None;
+        }
+        Err(why) => panic!("{why}"),
+        Ok(()) => {}
+    }
     assert!(
         dir.join("node_modules/posecast/package.json").exists(),
         "the SDK is installed as the package `posecast`"
