@@ -140,3 +140,71 @@ async fn watchers_see_who_watches_and_who_drives() {
     assert!(seen.is_some(), "no viewers message without alice");
     server.stop().await;
 }
+
+/// A scene's subscribers hear who watches it too (not only the scene list's watchers), and a
+/// driver that goes silent past `--drive-timeout` while staying connected is announced like
+/// one that leaves: `avatar_changed` with no driver.
+#[tokio::test]
+async fn subscribers_hear_who_watches_and_when_a_silent_drive_ends() {
+    let server = common::kit_builder(30.0)
+        .configure(|c| c.drive_timeout = std::time::Duration::from_secs(1))
+        .start()
+        .await
+        .unwrap()
+        .into_server();
+    let mut viewer = raw_as(&server, Encoding::Json, None).await;
+    send(
+        &mut viewer,
+        json!({"type": "subscribe", "scene": "default"}),
+    )
+    .await;
+    let mut driver = raw_as(&server, Encoding::Json, Some(CONTROL)).await;
+    send(
+        &mut driver,
+        json!({"type": "subscribe", "scene": "default"}),
+    )
+    .await;
+    let both = vec![
+        Viewer {
+            name: Some("test".into()),
+            connections: 1,
+        },
+        Viewer {
+            name: None,
+            connections: 1,
+        },
+    ];
+    let seen = next_where(&mut viewer, |m| match m {
+        ServerMsg::Viewers { scene, viewers } if scene.0 == "default" && viewers == both => {
+            Some(())
+        }
+        _ => None,
+    })
+    .await;
+    assert!(seen.is_some(), "the subscriber was not told who watches");
+
+    // The driver takes the avatar and then sends nothing, its socket open.
+    send(
+        &mut driver,
+        json!({"type": "command", "id": 1, "command": {"op": "drive", "avatar": "avatar"}}),
+    )
+    .await;
+    let driven = next_where(&mut viewer, |m| match m {
+        ServerMsg::AvatarChanged { avatar, .. } if avatar.driven => Some(()),
+        _ => None,
+    })
+    .await;
+    assert!(driven.is_some(), "the drive was not announced");
+    let ended = next_where(&mut viewer, |m| match m {
+        ServerMsg::AvatarChanged { avatar, .. } if !avatar.driven => Some(avatar.driver),
+        _ => None,
+    })
+    .await;
+    assert_eq!(
+        ended,
+        Some(None),
+        "the silent drive's end was not announced"
+    );
+    drop(driver);
+    server.stop().await;
+}

@@ -232,8 +232,9 @@ pub enum ServerMsg {
         /// The avatar's state, as `get_avatar` answers.
         avatar: Box<AvatarState>,
     },
-    /// Who watches a scene changed (presence, to connections watching the scene list; at
-    /// most one a second per scene): its viewers now, as in [`SceneInfo::viewers`].
+    /// Who watches a scene changed (presence, to the scene's subscribers and to connections
+    /// watching the scene list; at most one a second per scene): its viewers now, as in
+    /// [`SceneInfo::viewers`].
     Viewers {
         /// The scene.
         scene: SceneId,

@@ -176,12 +176,29 @@ fn announce(
         .push(&state.config.access, &scene.id, &msg, &told);
 }
 
+/// Announces every drive a tick ends because its driver went silent past `--drive-timeout`
+/// (`avatar_changed`, `driven` false or the pose held with no driver), as a driver that
+/// disconnects is announced; runs until the server's world is gone.
+pub async fn announce_drives_ended(state: std::sync::Weak<AppState>) {
+    let Some(mut ended) = state.upgrade().and_then(|s| s.world.take_drives_ended()) else {
+        return;
+    };
+    while let Some((scene, avatar)) = ended.recv().await {
+        let Some(state) = state.upgrade() else {
+            return;
+        };
+        if let Ok(scene) = state.world.scene(&scene) {
+            avatar_changed(&state, &scene, &avatar);
+        }
+    }
+}
+
 /// How long viewer changes of one scene are gathered before watchers hear of them.
 pub const VIEWERS_COALESCE: std::time::Duration = std::time::Duration::from_secs(1);
 
-/// A connection subscribed to or left `scene`: its watchers hear who watches it now, in one
-/// `viewers` message per scene and [`VIEWERS_COALESCE`] however many joined or left (a crowd
-/// joining does not make each dashboard a message per viewer).
+/// A connection subscribed to or left `scene`: its subscribers and watchers hear who watches
+/// it now, in one `viewers` message per scene and [`VIEWERS_COALESCE`] however many joined or
+/// left (a crowd joining does not make each dashboard a message per viewer).
 pub fn viewers_changed(state: &Arc<AppState>, scene: &Arc<Scene>) {
     if scene
         .viewers_pending
@@ -198,12 +215,16 @@ pub fn viewers_changed(state: &Arc<AppState>, scene: &Arc<Scene>) {
         scene
             .viewers_pending
             .store(false, std::sync::atomic::Ordering::SeqCst);
-        let msg = text(&ServerMsg::Viewers {
-            scene: scene.id.clone(),
-            viewers: scene.feed().viewers(),
-        });
+        let told = {
+            let feed = scene.feed();
+            let msg = text(&ServerMsg::Viewers {
+                scene: scene.id.clone(),
+                viewers: feed.viewers(),
+            });
+            (feed.push_to_all(&msg), msg)
+        };
         state
             .watchers
-            .push(&state.config.access, &scene.id, &msg, &[]);
+            .push(&state.config.access, &scene.id, &told.1, &told.0);
     });
 }

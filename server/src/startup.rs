@@ -46,6 +46,9 @@ impl Server {
             .get_or_insert_with(|| Arc::new(crate::auth::Minter::new()))
             .clone();
         let state = AppState::new(config.clone());
+        tokio::spawn(crate::changes::announce_drives_ended(Arc::downgrade(
+            &state,
+        )));
         // The address first: a busy port is reported as such, and the data folder (maybe
         // another server's) is not touched.
         let listener = tokio::net::TcpListener::bind(config.listen)

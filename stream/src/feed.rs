@@ -490,6 +490,18 @@ impl Feed {
             .collect()
     }
 
+    /// Sends `message` to every subscriber (a change of the whole scene, such as who watches
+    /// it); returns the connections told.
+    pub fn push_to_all(&self, message: &Message) -> Vec<u64> {
+        self.subscribers
+            .iter()
+            .map(|sub| {
+                sub.outbox.push_control(message.clone());
+                sub.conn
+            })
+            .collect()
+    }
+
     /// The connections whose subscription covers `avatar` (the ones [`Feed::avatar_removed`]
     /// and [`Feed::push_change`] reach).
     #[must_use]

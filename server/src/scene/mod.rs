@@ -85,7 +85,14 @@ pub struct Scene {
     answers: Mutex<answers::Recent>,
     /// A `viewers` message to its watchers is on its way ([`crate::changes::viewers_changed`]).
     pub viewers_pending: AtomicBool,
+    /// Where its ticks report drives ended by the driver's silence ([`Scene::report_drives_ended`]).
+    drives_ended: std::sync::OnceLock<DrivesEnded>,
 }
+
+/// Avatars whose live driver went silent past the drive timeout, as a tick found them: the
+/// server announces each (`avatar_changed`, its `driver` gone), as it does for a driver that
+/// disconnects.
+pub type DrivesEnded = tokio::sync::mpsc::UnboundedSender<(SceneId, AvatarId)>;
 
 impl Scene {
     /// An empty scene ticking at `tick_rate` (the rate subscriptions divide).
@@ -107,6 +114,7 @@ impl Scene {
             keyed: tokio::sync::Mutex::new(()),
             answers: Mutex::new(answers::Recent::new()),
             viewers_pending: AtomicBool::new(false),
+            drives_ended: std::sync::OnceLock::new(),
         }
     }
 
@@ -243,13 +251,18 @@ impl Scene {
         // Avatars with goals relative to joints tick after the others, their goals' frames
         // taken from the poses of this tick (a hand on a walking avatar's shoulder stays on it).
         let follows = |a: &Avatar| a.goals.references().next().is_some();
+        let mut drives_ended = Vec::new();
         for a in s.avatars.iter_mut().filter(|a| !follows(a)) {
-            a.tick(clock);
+            if a.tick(clock) {
+                drives_ended.push(a.id.clone());
+            }
         }
         if s.avatars.iter().any(follows) {
             follow_joints(&mut s.avatars);
             for a in s.avatars.iter_mut().filter(|a| follows(a)) {
-                a.tick(clock);
+                if a.tick(clock) {
+                    drives_ended.push(a.id.clone());
+                }
             }
         }
         let snapshots: Vec<Snapshot> = s.avatars.iter().map(Snapshot::of).collect();
@@ -261,7 +274,19 @@ impl Scene {
         feed.publish(snapshots, at, key_interval);
         drop(feed);
         self.ticks.send_replace(seq);
+        if let Some(tell) = self.drives_ended.get() {
+            for avatar in drives_ended {
+                // The receiver lives as long as the server; after it, nobody is left to tell.
+                tell.send((self.id.clone(), avatar)).ok();
+            }
+        }
         held
+    }
+
+    /// Where its ticks report avatars whose live driver went silent past the drive timeout
+    /// (set once, by the world that made it; [`crate::world::World::take_drives_ended`]).
+    pub fn report_drives_ended(&self, to: DrivesEnded) {
+        self.drives_ended.set(to).ok();
     }
 
     /// Ends the scene's tick task (the scene goes on, relayed: [`crate::world::World::demote`]).

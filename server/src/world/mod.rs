@@ -12,7 +12,7 @@ pub mod command;
 pub mod ik;
 
 use crate::metrics::Metrics;
-use crate::scene::{Scene, ticker};
+use crate::scene::{DrivesEnded, Scene, ticker};
 use posecast_core::error::Error;
 use posecast_core::quota::{Quota, Quotas};
 use posecast_proto::msg::{AvatarId, SceneId, check_id};
@@ -44,7 +44,14 @@ pub struct World {
     avatar_ids: Mutex<()>,
     /// Scene and avatar numbers derived from their ids (servers of a cluster agree on them).
     numbers_from_ids: AtomicBool,
+    /// Every scene's ticks report drives ended by silence here ([`World::take_drives_ended`]).
+    drives_ended: DrivesEnded,
+    drives_ended_rx: Mutex<Option<DrivesEndedRx>>,
 }
+
+/// What [`World::take_drives_ended`] hands out: `(scene, avatar)` for each drive a tick ended
+/// because its driver went silent.
+pub type DrivesEndedRx = tokio::sync::mpsc::UnboundedReceiver<(SceneId, AvatarId)>;
 
 /// A number for a binary frame derived from an id: 32-bit FNV-1a, never 0. Servers of a
 /// cluster derive the same numbers for the same scenes and avatars without asking each other,
@@ -63,7 +70,10 @@ impl World {
     /// An empty world whose scenes tick at `tick_rate` Hz, within `quotas`.
     #[must_use]
     pub fn new(tick_rate: f32, quotas: Quotas, metrics: Arc<Metrics>) -> Self {
+        let (drives_ended, rx) = tokio::sync::mpsc::unbounded_channel();
         Self {
+            drives_ended,
+            drives_ended_rx: Mutex::new(Some(rx)),
             library: Library::new(),
             retargets: RetargetCache::default(),
             metrics,
@@ -75,6 +85,16 @@ impl World {
             avatar_ids: Mutex::new(()),
             numbers_from_ids: AtomicBool::new(false),
         }
+    }
+
+    /// The drives that scenes' ticks end because the driver went silent (once: the server's
+    /// announcer takes it at start, [`crate::changes::announce_drives_ended`]; later calls get
+    /// `None`).
+    pub fn take_drives_ended(&self) -> Option<DrivesEndedRx> {
+        self.drives_ended_rx
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .take()
     }
 
     /// From now on scenes and avatars are numbered by [`number_of`] their id (cluster mode);
@@ -224,6 +244,7 @@ impl World {
             self.metrics.clone(),
             self.tick_rate,
         ));
+        scene.report_drives_ended(self.drives_ended.clone());
         if !ticked {
             scene.feed().begin_relay(Vec::new());
         }

@@ -135,16 +135,17 @@ impl Avatar {
     }
 
     /// Moves playback to scene clock `clock` (seconds) and evaluates the pose: clip (or rest),
-    /// then overrides, then DOF limits.
-    pub fn tick(&mut self, clock: f64) {
+    /// then overrides, then DOF limits. Returns whether its live driver went silent past the
+    /// drive timeout in this tick (the drive ended: the server tells subscribers).
+    pub fn tick(&mut self, clock: f64) -> bool {
         let before = self.player.current().map(Layer::time);
         self.player.set_clock(clock);
         self.advance_placement(clock, before);
-        if self
+        let driver_left = self
             .live
             .as_ref()
-            .is_some_and(|l| l.expired(Instant::now()))
-        {
+            .is_some_and(|l| l.expired(Instant::now()));
+        if driver_left {
             self.driver_gone();
         }
         self.evaluate();
@@ -154,6 +155,7 @@ impl Avatar {
             // an avatar in a ticking scene, and a refused tick is simply not in the clip.
             recorder.push(clock, &self.pose).ok();
         }
+        driver_left
     }
 
     /// Re-evaluates the pose at the current clock (after a command), without advancing: the
