@@ -467,7 +467,11 @@ export class Client {
     return this.command({ op: "release_drive", avatar });
   }
 
-  /** @param {string} avatar */
+  /**
+   * Forgets the pacing of an avatar's poses, dropping a pose waiting for its slot: for a drive
+   * that ended elsewhere (released by another client, timed out), so no refused pose follows.
+   * @param {string} avatar
+   */
   endPacing(avatar) {
     const pacing = this.drives.get(avatar);
     if (pacing?.timer !== undefined) clearTimeout(pacing.timer);

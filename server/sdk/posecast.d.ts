@@ -332,6 +332,11 @@ export declare class Client {
   ): "sent" | "queued" | "offline";
   /** Ends a drive this connection holds (`release_drive`). */
   releaseDrive(avatar: string): Promise<unknown>;
+  /**
+   * Forgets the pacing of an avatar's poses, dropping a pose waiting for its slot: for a drive
+   * that ended elsewhere (released by another client, timed out), so no refused pose follows.
+   */
+  endPacing(avatar: string): void;
   /** An avatar's description and poses. */
   avatar(id: string): AvatarView | undefined;
   /** An avatar's newest decoded pose. */

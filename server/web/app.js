@@ -13,6 +13,7 @@ import { Client } from "../sdk/posecast.js";
 import { Viewer } from "./viewer.js";
 import { Store } from "./store.js";
 import { Sync } from "./sync.js";
+import { PageDrive } from "./drive.js";
 import { $, notice, describeError } from "./ui.js";
 import * as tokens from "./tokens.js";
 import * as status from "./panel-status.js";
@@ -43,12 +44,14 @@ const store = new Store();
 const conn = new Client({ tokens: tokens.forHello, encoding: "binary", name: "posecast-dashboard" });
 const viewer = new Viewer($("preview", HTMLCanvasElement), { prefer2d: params.get("renderer") === "2d" });
 const sync = new Sync(store, conn, viewer);
+const drive = new PageDrive(conn);
 
 /** @type {import("./ui.js").Ctx} */
 const ctx = {
   store,
   conn,
   viewer,
+  drive,
   select: (avatar) => sync.select(avatar),
   watch: (scene) => {
     sync.watch(scene);
@@ -67,6 +70,18 @@ const ctx = {
 };
 
 for (const panel of [status, access, scenes, playback, timeline, place, joints, upload]) panel.mount(ctx);
+
+// The page's own drive ends when the server says the avatar is no longer driven (released
+// from elsewhere, removed) or the connection drops (the server ended it then).
+store.on(["scenes", "conn"], (s) => {
+  const avatar = drive.avatar;
+  if (!avatar) return;
+  const entry = store.avatar(avatar);
+  if (s.conn === "online" && entry?.state.driven) return;
+  drive.forget();
+  store.set({ driving: null });
+  notice(`The page no longer drives ${avatar}.`);
+});
 
 // The preview's header, camera focus and display toggles.
 /** @type {string | null} */
@@ -114,6 +129,8 @@ if (params.has("debug")) {
     get camera() { return viewer.camera; },
     get timeline() { return { ...timeline.shownTime }; },
     get selected() { return store.get().selected; },
+    /** The avatar the page drives live and the poses it has sent. */
+    get driving() { return { avatar: drive.avatar, sent: drive.sent }; },
     get watched() { return store.get().watched; },
     get access() { return store.get().access; },
   };

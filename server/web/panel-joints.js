@@ -1,7 +1,8 @@
 // @ts-check
 // The selected avatar's joint tree and the selected joint's controls: DOF sliders within the
 // rig's limits (`set_joint_dofs`), or Euler rotation sliders for rigs without joint types
-// (`set_joint_rotation`); world-space nudges; releasing overrides.
+// (`set_joint_rotation`); world-space nudges; releasing overrides. While the page drives the
+// avatar live (drive.js), the sliders set the joint's rotation in the live pose instead.
 
 import { $, el, num } from "./ui.js";
 import { quatAxisAngle, quatFromEulerXYZ, eulerXYZFromQuat, DEG } from "../sdk/posecast.js";
@@ -126,6 +127,10 @@ export function mount(ctx) {
     $("joint-title").textContent = joint ? `Joint ${joint}` : "No joint selected";
     $("dof-note").textContent = "";
     if (!joint) return;
+    if (driving()) {
+      renderLive(box, joint);
+      return;
+    }
     const info = dofInfo.get(dofKey(joint));
     if (!info) {
       $("dof-note").textContent = "Could not ask the server about this joint.";
@@ -155,6 +160,37 @@ export function mount(ctx) {
     $("dof-note").textContent = byDofs
       ? `${info.count} DOFs (set_joint_dofs); the sliders span the rig's limits, which the server enforces.`
       : "This rig has no joint types: the sliders set the local rotation (Euler X, Y, Z).";
+    showPose();
+  };
+
+  /** Whether the page drives the selected avatar live. */
+  const driving = () => !!store.get().driving && store.get().driving === store.get().selected;
+
+  /**
+   * Rotation sliders (Euler X, Y, Z from the streamed rotation) that set `joint` in the page's
+   * live pose; the rig's DOF limits still apply on the server, after the live pose.
+   * @param {HTMLElement} box
+   * @param {string} joint
+   */
+  const renderLive = (box, joint) => {
+    const q = streamed(joint);
+    const values = q ? eulerXYZFromQuat(q).map((v) => Math.round(v / DEG)) : [0, 0, 0];
+    ["Rotate X (°)", "Rotate Y (°)", "Rotate Z (°)"].forEach((label, i) => {
+      const id = `dof-${i}`;
+      const input = el("input", { id, type: "range", step: "1", className: "dof-input" });
+      input.min = "-180";
+      input.max = "180";
+      input.value = String(values[i]);
+      const out = el("output", { id: `${id}-out`, htmlFor: id }, `${values[i].toFixed(1)}°`);
+      input.addEventListener("input", () => {
+        values[i] = Number(input.value);
+        out.textContent = `${values[i].toFixed(1)}°`;
+        ctx.drive.set(joint, quatFromEulerXYZ(values[0] * DEG, values[1] * DEG, values[2] * DEG));
+      });
+      box.append(el("div", { className: "dof" }, el("label", { htmlFor: id }, label), input, out));
+    });
+    $("dof-note").textContent =
+      "Driving live: the sliders set this joint's local rotation (Euler X, Y, Z) in the page's pose; the rig's DOF limits still apply.";
     showPose();
   };
 
@@ -256,6 +292,7 @@ export function mount(ctx) {
     }
   });
   store.on(["scenes", "joint"], markJoints);
+  store.on(["driving"], renderJoint);
   let frames = 0;
   store.on(["frame"], () => {
     if (frames++ % 4 === 0) showPose(); // 15 Hz is plenty for text

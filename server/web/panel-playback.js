@@ -2,7 +2,7 @@
 // The selected avatar's state and its clip: play (own clips, or another rig's retargeted),
 // pause, resume, stop, speed, cross-fade length, loop.
 
-import { $, el, num, notice } from "./ui.js";
+import { $, el, num, notice, describeError } from "./ui.js";
 import { yawDegrees } from "./panel-scenes.js";
 
 /** @typedef {import("./ui.js").Ctx} Ctx */
@@ -38,6 +38,7 @@ export function mount(ctx) {
       ["Placement", `(${x.toFixed(2)}, ${y.toFixed(2)}, ${z.toFixed(2)}) m, facing ${yawDegrees(a.placement.rotation).toFixed(0)}°`],
     ];
     $("release-drive").hidden = !a.driven;
+    $("drive").hidden = !!a.driven;
     if (a.driver) rows.push(["Live", `driven by ${a.driver.name} (${a.driver.via})`]);
     else if (a.driven) rows.push(["Live", "holding a live pose"]);
     if (a.recording) rows.push(["Recording", a.recording]);
@@ -137,7 +138,35 @@ export function mount(ctx) {
     const entry = store.selectedAvatar();
     if (!entry) return;
     const avatar = entry.state.avatar;
-    run({ op: "release_drive", avatar }).then(() => notice(`${avatar} released: its clip plays again.`), () => {});
+    if (ctx.drive.avatar === avatar) store.set({ driving: null });
+    const released = ctx.drive.avatar === avatar ? ctx.drive.release() : run({ op: "release_drive", avatar });
+    released.then(
+      () => notice(`${avatar} released: its clip plays again.`),
+      (e) => notice(`release_drive failed — ${describeError(e)}`, "error"),
+    );
+  });
+  // The page drives the avatar live: it holds the pose it has now (every joint's streamed
+  // local rotation), and the joint sliders set rotations in that live pose.
+  $("drive").addEventListener("click", async () => {
+    const entry = store.selectedAvatar();
+    const desc = store.get().descriptions.get(store.get().selected ?? "");
+    const pose = store.get().poses.get(store.get().selected ?? "");
+    if (!entry || !desc || !pose) return;
+    const avatar = entry.state.avatar;
+    /** @type {Record<string, import("./protocol.js").Quat>} */
+    const rotations = {};
+    desc.joint_names.forEach((name, j) => {
+      const q = pose.rotations[j];
+      if (q) rotations[name] = q;
+    });
+    try {
+      await ctx.drive.start(avatar, rotations);
+    } catch (e) {
+      notice(`drive failed — ${describeError(e)}`, "error");
+      return;
+    }
+    store.set({ driving: avatar });
+    notice(`The page drives ${avatar}: pick a joint and move its sliders.`);
   });
   $("set-speed").addEventListener("click", () => {
     const entry = store.selectedAvatar();

@@ -38,6 +38,7 @@
  * @property {string | null} selected The avatar the page controls (in the watched scene).
  * @property {string | null} joint The selected joint.
  * @property {string | null} focus The avatar the camera follows (null: the whole scene).
+ * @property {string | null} driving The avatar this page drives live (drive.js).
  */
 
 /** @typedef {keyof State} Key */
@@ -61,6 +62,7 @@ export class Store {
       selected: null,
       joint: null,
       focus: null,
+      driving: null,
     };
     /** @type {{keys: Set<Key>, fn: (s: State) => void}[]} */
     this.listeners = [];

@@ -9,6 +9,7 @@ import { PosecastError } from "../sdk/posecast.js";
  * @property {import("./store.js").Store} store
  * @property {import("../sdk/posecast.js").Client} conn
  * @property {import("./viewer.js").Viewer} viewer
+ * @property {import("./drive.js").PageDrive} drive The page as a live driver of one avatar.
  * @property {(avatar: string | null) => void} select Picks the avatar the page controls (and watches its scene).
  * @property {(scene: string | null) => void} watch Shows a scene in the preview (its first avatar picked).
  * @property {(command: import("./protocol.js").Command) => Promise<unknown>} run Runs a command that changes something; failures are reported, then rethrown.

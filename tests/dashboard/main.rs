@@ -14,7 +14,8 @@
 //! - `layout`: at 1280×800 the controls sit beside the preview, which stays in view; at 400 px
 //!   one column without sideways scrolling;
 //! - `push`: changes made by others show within a second without the page asking (it never
-//!   sends `list_scenes`, and sends no command while idle);
+//!   sends `list_scenes`, and sends no command while idle); who watches and who drives; the
+//!   page as an avatar's live driver (Drive, the sliders, Release drive); a take recorded;
 //! - `sdk`: the JavaScript client `/sdk/posecast.js` from pages on another origin: binary
 //!   frames decoded as a Rust client decodes them, typed command errors, the guide's example page (`docs/src/how-to/javascript.md`).
 //!

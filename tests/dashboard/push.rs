@@ -124,7 +124,14 @@ async fn the_server_pushes_changes_and_the_page_never_polls() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_page_shows_who_watches_and_who_drives() {
     use futures_util::SinkExt;
-    let server = common::server(30.0).await;
+    // Alice's drive sends no pose: it must outlast the test, not the 2 s drive timeout (a
+    // silent drive's end is announced and would take the "driven by" away).
+    let server = common::kit_builder(30.0)
+        .configure(|c| c.drive_timeout = Duration::from_secs(600))
+        .start()
+        .await
+        .unwrap()
+        .into_server();
     let minter = server.state.config.access.mint.clone().unwrap();
     let alice = minter
         .mint(
@@ -254,5 +261,98 @@ async fn the_page_records_a_take_and_links_its_downloads() {
     let (status, text) = common::get_bytes(server.addr, bvh.as_str().unwrap()).await;
     assert_eq!(status, 200);
     assert!(text.starts_with(b"HIERARCHY"));
+    assert_eq!(errors(&b).await, json!([]));
+}
+
+/// The page drives an avatar live (issue 39): "Drive" takes it with the page's own token and
+/// holds its pose; a rotation slider of the right shoulder moves that joint as a Rust viewer
+/// sees it; the page's repeated poses keep the drive through several drive timeouts (1 s
+/// here); "Release drive" ends it and the clip plays again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_page_drives_an_avatar_live_with_the_joint_sliders() {
+    let server = common::kit_builder(30.0)
+        .configure(|c| c.drive_timeout = Duration::from_secs(1))
+        .start()
+        .await
+        .unwrap()
+        .into_server();
+    let mut options = posecast_client::net::ClientOptions::new(server.ws_url(), "default");
+    options.encoding = posecast_proto::msg::Encoding::Json;
+    options.reconnect = false;
+    let viewer = posecast_client::net::Client::connect(options)
+        .await
+        .unwrap();
+    let avatar = posecast_proto::msg::AvatarId("avatar".into());
+    assert!(common::wait_for(60.0, || viewer.latest(&avatar).is_some()).await);
+    let shoulder = viewer
+        .avatar(&avatar)
+        .unwrap()
+        .skeleton
+        .find("r_shoulder")
+        .unwrap();
+
+    let (_driver, b) = browser().await;
+    b.goto(&format!("{}/?debug#control={CONTROL}", server.http_url()))
+        .await
+        .unwrap();
+    wait_js(&b, 60, "window.posecast.state === 'online' && window.posecast.selected === 'avatar' && window.posecast.frames > 5").await;
+    find(&b, "#drive").await.click().await.unwrap();
+    wait_js(&b, 60, "window.posecast.driving.avatar === 'avatar' && !document.getElementById('release-drive').hidden && document.getElementById('drive').hidden").await;
+    let state = avatar_state(&server, "avatar").await;
+    assert_eq!(state["driven"], true, "{state}");
+    assert_eq!(state["driver"], json!({"name": "test", "via": "websocket"}));
+
+    // The shoulder's sliders set its rotation in the live pose: X 0, Y 0, Z −60°.
+    find(&b, r#"#joint-tree button[data-joint="r_shoulder"]"#)
+        .await
+        .click()
+        .await
+        .unwrap();
+    wait_js(&b, 60, "document.getElementById('dof-note').textContent.startsWith('Driving live') && document.getElementById('dof-2') !== null").await;
+    b.execute(
+        "for (const [i, v] of [[0, 0], [1, 0], [2, -60]]) { const s = document.getElementById(`dof-${i}`); s.value = String(v); s.dispatchEvent(new Event('input')); }",
+        vec![],
+    )
+    .await
+    .unwrap();
+    let want = glam::Quat::from_rotation_z(-60f32.to_radians());
+    let angle_now = |viewer: &posecast_client::net::Client| {
+        viewer.latest(&avatar).map_or(f64::MAX, |p| {
+            posecast_proto::quant::angle_between_degrees(p.locals[shoulder].rotation, want)
+        })
+    };
+    assert!(
+        common::wait_for(60.0, || angle_now(&viewer) < 0.1).await,
+        "the viewer never saw the shoulder at −60° about Z: {}° away",
+        angle_now(&viewer)
+    );
+
+    // Three drive timeouts later the page still drives and the shoulder still holds: the
+    // page repeats its pose (a silent drive would have ended after one).
+    let sent = wait_js(&b, 60, "window.posecast.driving.sent").await;
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let state = avatar_state(&server, "avatar").await;
+    assert_eq!(state["driven"], true, "the drive timed out: {state}");
+    assert!(angle_now(&viewer) < 0.1, "{}°", angle_now(&viewer));
+    let resent = wait_js(&b, 60, "window.posecast.driving.sent").await;
+    assert!(
+        resent.as_u64().unwrap() >= sent.as_u64().unwrap() + 3,
+        "{sent} → {resent}"
+    );
+
+    // Released from the page: the clip plays again and the page stops sending.
+    find(&b, "#release-drive").await.click().await.unwrap();
+    wait_js(
+        &b,
+        60,
+        "window.posecast.driving.avatar === null && !document.getElementById('drive').hidden",
+    )
+    .await;
+    let state = avatar_state(&server, "avatar").await;
+    // (`driven` and `driver` are left out of an avatar's state when it is not driven.)
+    assert!(
+        state["driven"] != true && state["driver"].is_null(),
+        "{state}"
+    );
     assert_eq!(errors(&b).await, json!([]));
 }

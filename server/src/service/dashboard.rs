@@ -77,6 +77,7 @@ const FILES: &[(&str, &str, &str)] = &[
     ("draw.js", JS, include_str!("../../web/draw.js")),
     ("draw-gl.js", JS, include_str!("../../web/draw-gl.js")),
     ("glb.js", JS, include_str!("../../web/glb.js")),
+    ("drive.js", JS, include_str!("../../web/drive.js")),
     (
         "panel-status.js",
         JS,
