@@ -1544,14 +1544,15 @@ async fn recordings_reach_every_server_and_survive_the_owner() {
             .and_then(|scenes| scenes.iter().find(|s| s["scene"] == "stage"))
             .cloned()
             .unwrap_or_default();
-        // B lists itself as the owner from the moment it stops relaying, a moment before the
-        // snapshot's avatars are restored into the scene: the avatar is waited for too.
-        let dancer = stage["avatars"]
-            .as_array()
-            .and_then(|avatars| avatars.iter().find(|a| a["avatar"] == "dancer"));
-        if stage["owner"] == "b"
-            && let Some(dancer) = dancer
-        {
+        // B lists itself as the owner only once the snapshot's avatars are restored (never
+        // as the owner of an empty scene in between).
+        if stage["owner"] == "b" {
+            let dancer = stage["avatars"]
+                .as_array()
+                .and_then(|avatars| avatars.iter().find(|a| a["avatar"] == "dancer"));
+            let Some(dancer) = dancer else {
+                panic!("B listed itself as the owner before restoring the avatar: {stage}");
+            };
             assert_eq!(dancer["clip"], "take1", "{stage}");
             break;
         }

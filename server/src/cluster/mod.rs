@@ -676,9 +676,6 @@ impl Cluster {
             return;
         }
         lock(&self.short_of_assets).remove(id);
-        if let Some(r) = lock(&self.relays).remove(id) {
-            r.stop();
-        }
         let now = crate::scene::ticker::unix_micros();
         let scene = if state.world.scene(id).is_ok_and(|s| s.is_relay()) {
             match state.world.promote(id) {
@@ -691,6 +688,13 @@ impl Cluster {
         } else {
             snapshot::restore(&state.world, &file, now).and_then(|()| state.world.scene(id))
         };
+        // The relay is forgotten only now that the avatars are restored: until then the scene
+        // is listed (and commands routed) as the previous owner's, never as ours and empty.
+        // Its task is harmless meanwhile: the feed no longer takes relayed frames, and the
+        // lease (ours) is the only one its messages are believed from.
+        if let Some(r) = lock(&self.relays).remove(id) {
+            r.stop();
+        }
         match scene {
             Ok(scene) => {
                 // Written back before it is ticked here: from now on the previous owner's
