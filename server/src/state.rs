@@ -49,6 +49,8 @@ pub struct AppState {
     pub watchers: Watchers,
     /// Round trips shared by connections from one address (the adaptive rate's base).
     pub paths: Paths,
+    /// The clock every subscribed connection's round-trip probes follow (no timer each).
+    pub probes: std::sync::Arc<posecast_stream::probes::ProbeClock>,
     /// The cluster this server is part of (`--nats`), once joined.
     cluster: OnceLock<Arc<dyn Cluster>>,
 }
@@ -187,6 +189,7 @@ impl AppState {
             readiness: Readiness::default(),
             watchers: Watchers::default(),
             paths: Paths::default(),
+            probes: posecast_stream::probes::ProbeClock::new(),
             cluster: OnceLock::new(),
             config,
         })

@@ -13,6 +13,7 @@
 //! - [`outbox`]: the bounded per-connection queue (newest frame wins).
 //! - [`writer`]: the task that drains an outbox into its websocket.
 //! - [`pace`]: a connection's adaptive frame rate (lowered until its link keeps up).
+//! - [`probes`]: the one clock every connection's round-trip probes follow.
 //! - [`relay`]: a published frame as bytes for another server (scale-out), and back.
 //! - [`wire2`]: wire v2 frames (protocol version 2), shared by subscribers holding the same
 //!   frames.
@@ -21,6 +22,7 @@
 pub mod feed;
 pub mod outbox;
 pub mod pace;
+pub mod probes;
 mod publish;
 pub mod relay;
 pub mod wire2;

@@ -30,7 +30,7 @@ use posecast_proto::msg::{
 use posecast_proto::subset::JointSet;
 use posecast_stream::feed::{Subscriber, text};
 use posecast_stream::outbox::Outbox;
-use posecast_stream::pace::{Change, PROBE_INTERVAL};
+use posecast_stream::pace::Change;
 use posecast_stream::writer::run_writer;
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -107,9 +107,9 @@ pub async fn serve_on<S>(
         let mut client_closed = false;
         let mut liveness = Liveness::new(&state.config.net);
         state.metrics.pace.opened();
-        // The adaptive rate's round-trip probes (only while subscribed: frames flow then).
-        let mut probe = tokio::time::interval(PROBE_INTERVAL);
-        probe.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        // The adaptive rate's round-trip probes (only while subscribed: frames flow then),
+        // every `PROBE_INTERVAL` on the server's one probe clock.
+        let mut probe = state.probes.subscribe(conn);
         // Resolves when the connection's minted token expires or is revoked.
         let mut token_end: Option<TokenEnd> = None;
         loop {
@@ -128,7 +128,7 @@ pub async fn serve_on<S>(
                     session.refuse(e, close_code::POLICY, "token no longer valid");
                     break;
                 }
-                _ = probe.tick(), if !session.scenes.is_empty() => {
+                Ok(()) = probe.changed(), if !session.scenes.is_empty() => {
                     session.probe();
                     continue;
                 }
