@@ -56,6 +56,7 @@ fn fill_recorder(server: &Server, avatar: &str, clip: &str) -> anyhow::Result<us
             translations: vec![glam::Vec3::ZERO; d.translated_joints.len()],
             scales: vec![glam::Vec3::ONE; d.scaled_joints.len()],
             placement: posecast_proto::placement::Placement::IDENTITY,
+            weights: Vec::new(),
         };
         rec.push(k as f64 / 60.0, &pose)?;
         k += 1;

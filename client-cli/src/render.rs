@@ -7,7 +7,7 @@ use anyhow::{Context as _, bail};
 use clap::Args;
 use posecast_client::render::glb_mesh::GlbMesh;
 use posecast_client::render::{Gpu, Offscreen, Renderer, RendererOptions, RgbaImage, SkinningPath};
-use posecast_client::view_source::{fresh_pose, resolve_mesh, wait_for_avatars};
+use posecast_client::view_source::{fresh_pose, resolve_mesh, target_weights, wait_for_avatars};
 use posecast_proto::Transform;
 use posecast_proto::command::{Command, CommandResult};
 use posecast_proto::msg::{AvatarId, AvatarPoseJson};
@@ -74,7 +74,7 @@ pub async fn run(args: RenderArgs) -> anyhow::Result<()> {
     };
     // `--clip`/`--seek` render a private copy of each target (`sample_pose`, read-only): what
     // other viewers see does not change, and a view token is enough.
-    let mut sampled: HashMap<AvatarId, (Vec<Transform>, Placement)> = HashMap::new();
+    let mut sampled: HashMap<AvatarId, (Vec<Transform>, Placement, Vec<f32>)> = HashMap::new();
     if args.clip.is_some() || args.seek.is_some() {
         for avatar in &targets {
             let command = Command::SamplePose {
@@ -98,7 +98,13 @@ pub async fn run(args: RenderArgs) -> anyhow::Result<()> {
             let locals = view
                 .locals_of(&pose)
                 .with_context(|| format!("the pose of {avatar} does not fit its description"))?;
-            sampled.insert(avatar.clone(), (locals, pose.placement));
+            let weights = view
+                .description
+                .morph_targets
+                .iter()
+                .map(|c| pose.weights.get(c).copied().unwrap_or(0.0))
+                .collect();
+            sampled.insert(avatar.clone(), (locals, pose.placement, weights));
         }
     }
     let mut renderer = Renderer::new(
@@ -118,8 +124,10 @@ pub async fn run(args: RenderArgs) -> anyhow::Result<()> {
     let target = Offscreen::new(&gpu, args.width, args.height)?;
     for view in &views {
         let id = &view.description.id;
-        let (locals, placement, what) = match sampled.remove(id) {
-            Some((locals, placement)) => (locals, placement, "sampled privately".to_owned()),
+        let (locals, placement, weights, what) = match sampled.remove(id) {
+            Some((locals, placement, weights)) => {
+                (locals, placement, weights, "sampled privately".to_owned())
+            }
             None => {
                 let seen = client.latest(id).map_or(0, |s| s.seq);
                 let pose = fresh_pose(&client, id, seen, WAIT)
@@ -128,6 +136,7 @@ pub async fn run(args: RenderArgs) -> anyhow::Result<()> {
                 (
                     pose.locals,
                     pose.placement,
+                    pose.weights,
                     format!("pose of tick {}", pose.seq),
                 )
             }
@@ -140,6 +149,8 @@ pub async fn run(args: RenderArgs) -> anyhow::Result<()> {
         );
         let handle = renderer.add_avatar(&view.skeleton, &mesh)?;
         renderer.set_placed_pose(handle, &placement, &locals)?;
+        let channels = &view.description.morph_targets;
+        renderer.set_morph_weights(handle, &target_weights(&mesh, channels, &weights))?;
     }
     let (image, first, steady) = timed_render(&gpu, &target, &mut renderer, args.timed_frames)?;
     image

@@ -1,6 +1,8 @@
 //! Skinning throughput on this machine's adapter: a ~100k-vertex mesh with four influences on a
 //! ~60-joint rig, skinned by the compute kernel, by the vertex shader (an offscreen draw), and by
-//! the CPU reference `skin_cpu`; plus the frame time of a full 1280×720 offscreen render.
+//! the CPU reference `skin_cpu`; morph targets (blend shapes) on the same mesh: the cost per
+//! vertex per active target of the compute kernel's `morph()` and of the CPU reference
+//! `morph_cpu`; plus the frame time of a full 1280×720 offscreen render.
 //!
 //! `cargo bench -p posecast-client --bench skinning` (prints figures; no criterion harness).
 
@@ -10,9 +12,10 @@ use posecast_client::render::gpu_types::{
 };
 use posecast_client::render::procedural::{TubeOptions, tube_mesh};
 use posecast_client::render::{
-    Gpu, Offscreen, RenderError, Renderer, RendererOptions, SkinningKernel, SkinningPath,
+    Gpu, GpuMorph, Offscreen, RenderError, Renderer, RendererOptions, SkinningKernel, SkinningPath,
 };
 use posecast_proto::fk::PoseBuffers;
+use posecast_proto::morph::{MorphTarget, morph_cpu};
 use posecast_proto::skinning::skin_cpu;
 use posecast_proto::testing::skeleton_bound_at_rest;
 use posecast_proto::{Skeleton, SkinnedMesh, Transform};
@@ -21,6 +24,9 @@ use wgpu::util::DeviceExt;
 
 const CHAINS: usize = 5;
 const CHAIN_LENGTH: usize = 12;
+/// Morph targets of the morph measurement (ARKit's 52 are the most a face streams; a frame of
+/// speech moves about ten of them).
+const TARGETS: usize = 10;
 
 /// A root with five chains of twelve joints (61 joints, 60 bones), spreading out like a star.
 fn rig() -> Skeleton {
@@ -139,38 +145,83 @@ fn main() -> Result<(), RenderError> {
         mapped_at_creation: false,
     });
     let kernel = SkinningKernel::new(device);
+    let targets: Vec<MorphTarget> = (0..TARGETS)
+        .map(|k| MorphTarget {
+            name: format!("target{k}"),
+            positions: (0..n)
+                .map(|v| Vec3::splat(0.001 * ((v * (k + 1)) as f32).sin()))
+                .collect(),
+            normals: (0..n)
+                .map(|v| Vec3::splat(0.01 * ((v + k) as f32).cos()))
+                .collect(),
+        })
+        .collect();
+    let morph_mesh = mesh
+        .clone()
+        .with_targets(targets)
+        .map_err(|e| RenderError::Gpu {
+            during: "building the morph targets",
+            reason: e.to_string(),
+        })?;
+    let mut morph = GpuMorph::new(device, "bench", &morph_mesh)?;
     let bind_group = kernel.bind_group(
         device,
         "bench bind group",
         &vertex_buffer,
         &joint_buffer,
         &output,
+        &morph,
     );
-    let mut failure = None;
-    let dispatch = time(10, min_time, || {
-        gpu.queue
-            .write_buffer(&joint_buffer, 0, bytemuck::cast_slice(&matrices));
-        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some("bench compute encoder"),
-        });
-        {
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("bench compute pass"),
-                timestamp_writes: None,
+    let dispatch_time = |min_runs| {
+        let mut failure = None;
+        let seconds = time(min_runs, min_time, || {
+            gpu.queue
+                .write_buffer(&joint_buffer, 0, bytemuck::cast_slice(&matrices));
+            let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("bench compute encoder"),
             });
-            kernel.encode(&mut pass, &bind_group, n);
-        }
-        gpu.queue.submit([encoder.finish()]);
-        if let Err(e) = gpu.wait_idle() {
-            failure = Some(e);
-        }
-    });
-    if let Some(e) = failure.take() {
-        return Err(e);
-    }
+            {
+                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("bench compute pass"),
+                    timestamp_writes: None,
+                });
+                kernel.encode(&mut pass, &bind_group, n);
+            }
+            gpu.queue.submit([encoder.finish()]);
+            if let Err(e) = gpu.wait_idle() {
+                failure = Some(e);
+            }
+        });
+        failure.map_or(Ok(seconds), Err)
+    };
+    let dispatch = dispatch_time(10)?;
     report("GPU compute (dispatch + wait)", n, dispatch);
+    morph.set_weights(&gpu.queue, &[0.5; TARGETS])?;
+    let morphed = dispatch_time(10)?;
+    report(
+        &format!("GPU compute, {TARGETS} morph targets active"),
+        n,
+        morphed,
+    );
+    println!(
+        "GPU morph: {:.2} ns per vertex per active target (compute kernel, {} vertices)",
+        (morphed - dispatch) / (n * TARGETS) as f64 * 1e9,
+        n
+    );
+    let mut mp = vec![Vec3::ZERO; n];
+    let mut mn = vec![Vec3::ZERO; n];
+    let weights = [0.5; TARGETS];
+    let cpu_morph = time(5, min_time, || {
+        morph_cpu(&morph_mesh, &weights, &mut mp, &mut mn);
+    });
+    println!(
+        "CPU morph: {:.2} ns per vertex per active target (morph_cpu, 1 thread, copy and \
+         renormalise included)",
+        cpu_morph / (n * TARGETS) as f64 * 1e9
+    );
 
     // Compute with read-back to the CPU, as the tests use it.
+    let mut failure = None;
     let mut skinner = posecast_client::render::ComputeSkinner::new(&gpu, &mesh)?;
     let readback = time(5, min_time, || {
         if let Err(e) = skinner.skin(&skinning) {

@@ -31,6 +31,17 @@ pub enum Error {
         /// The joint asked for (a name, or an index).
         joint: String,
     },
+    /// An avatar has no morph target or standard expression of that name, or no morph
+    /// targets at all.
+    #[error("{owner} has no morph target or expression {name}{}", if *.has_targets { "" } else { " (it has no morph targets)" })]
+    UnknownExpression {
+        /// Whose: "avatar a".
+        owner: String,
+        /// The name asked for.
+        name: String,
+        /// Whether the avatar has any morph targets.
+        has_targets: bool,
+    },
     /// A rig has no such clip.
     #[error("rig {rig} has no clip {clip}")]
     UnknownClip {
@@ -119,6 +130,7 @@ impl Error {
             Self::UnknownScene(_) => ErrorCode::UnknownScene,
             Self::UnknownAvatar(_) | Self::NotInScene { .. } => ErrorCode::UnknownAvatar,
             Self::UnknownJoint { .. } => ErrorCode::UnknownJoint,
+            Self::UnknownExpression { .. } => ErrorCode::UnknownExpression,
             Self::UnknownClip { .. } => ErrorCode::UnknownClip,
             Self::UnknownAsset(_) => ErrorCode::UnknownAsset,
             Self::Invalid(_) => ErrorCode::InvalidValue,

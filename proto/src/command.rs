@@ -256,6 +256,31 @@ pub enum Command {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         relative_to: Option<JointRef>,
     },
+    // --- faces (issue 30) ---
+    /// Set morph weights by name: a morph channel of the avatar's (its description's
+    /// `morph_targets`) or a standard expression its `expressions` map (ARKit, VRM 1.0 or 0.x
+    /// preset, `viseme_*`). Each weight in `[0, 1]`; `reset` sets every other channel to 0
+    /// first. All names and values are checked before anything changes.
+    SetMorphWeights {
+        /// The avatar.
+        avatar: AvatarId,
+        /// Name → weight.
+        weights: std::collections::BTreeMap<String, f32>,
+        /// Every channel not named goes to 0 first (default: they keep their weights).
+        #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+        reset: bool,
+    },
+    /// Show one expression: `set_morph_weights` of one name, weight 1 unless given.
+    SetExpression {
+        /// The avatar.
+        avatar: AvatarId,
+        /// A standard expression (`happy`, `blink`, `aa`, `jawOpen`, `viseme_PP`, …) or one of
+        /// the avatar's morph channels.
+        expression: String,
+        /// How much, 0 to 1 (default 1).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        weight: Option<f32>,
+    },
     // --- placement (issue 16) ---
     /// Move an avatar in its scene: to `position` / `rotation`, over `duration` seconds
     /// (position lerped, rotation slerped on the scene's clock; absent or 0: at once).
@@ -431,6 +456,8 @@ impl Command {
             | Self::SetIkGoal { avatar, .. }
             | Self::ClearIkGoal { avatar, .. }
             | Self::LookAt { avatar, .. }
+            | Self::SetMorphWeights { avatar, .. }
+            | Self::SetExpression { avatar, .. }
             | Self::PlaceAvatar { avatar, .. } => Some(avatar),
             Self::Drive { avatar, .. } | Self::ReleaseDrive { avatar } => Some(avatar),
             Self::Record { avatar, .. } | Self::StopRecording { avatar } => Some(avatar),
@@ -663,9 +690,13 @@ pub struct AvatarState {
     pub recording: Option<String>,
     // --- VMC (issue 17) ---
     /// Blend shape (expression) values its live driver applied, by name (VMC
-    /// `/VMC/Ext/Blend/Val` + `Apply`); rigs have no morph targets yet, so they only show here.
+    /// `/VMC/Ext/Blend/Val` + `Apply`), as sent; those naming a morph channel or a standard
+    /// expression of the avatar also set `morph_weights`.
     #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
     pub blend_shapes: std::collections::BTreeMap<String, f32>,
+    /// Morph weights by channel name, those above 0 (issue 30); absent when all are 0.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub morph_weights: std::collections::BTreeMap<String, f32>,
     /// The cross-fade in progress (after `play … fade`), if any.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fade: Option<FadeState>,

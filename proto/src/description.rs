@@ -6,6 +6,7 @@ use crate::skeleton::{Skeleton, SkeletonError};
 use crate::transform::Transform;
 use glam::{Mat4, Quat, Vec3};
 use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
 
 /// An avatar's normalised rig, sent once per subscription.
 ///
@@ -41,6 +42,15 @@ pub struct AvatarDescription {
     pub scaled_joints: Vec<u16>,
     /// Where to fetch the skinned mesh (a .glb), relative to the server's HTTP root.
     pub mesh_url: Option<String>,
+    /// Morph channels: the distinct morph target names over the avatar's meshes (every mesh
+    /// target of that name follows one weight), in the order weights are streamed. Absent for
+    /// a rig without morph targets.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub morph_targets: Vec<String>,
+    /// Standard expression names (ARKit's 52, VRM presets, Oculus visemes: see
+    /// `crate::expressions`) → the morph channel that plays each, found by name.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub expressions: BTreeMap<String, String>,
     /// The name of the clip playing when the description was sent, for display only.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub clip: Option<String>,
@@ -153,11 +163,26 @@ impl AvatarDescription {
             translated_joints: flagged(translated, true),
             scaled_joints: flagged(scaled, false),
             mesh_url,
+            morph_targets: Vec::new(),
+            expressions: BTreeMap::new(),
             clip: None,
             hash: String::new(),
         };
         d.hash = format!("{:016x}", d.compute_hash());
         d
+    }
+
+    /// The same description with these morph channels and expression map, its hash updated.
+    #[must_use]
+    pub fn with_morphs(
+        mut self,
+        morph_targets: Vec<String>,
+        expressions: BTreeMap<String, String>,
+    ) -> Self {
+        self.morph_targets = morph_targets;
+        self.expressions = expressions;
+        self.hash = format!("{:016x}", self.compute_hash());
+        self
     }
 
     /// Number of joints.
@@ -179,8 +204,9 @@ impl AvatarDescription {
     }
 
     /// 64-bit FNV-1a over a canonical byte serialisation of every rig field (id, num, name,
-    /// names, parents, rest TRS, inverse binds, streamed joint lists, mesh URL). Floats are
-    /// hashed by their bit patterns, so any change to the rig changes the hash.
+    /// names, parents, rest TRS, inverse binds, streamed joint lists, mesh URL, and the morph
+    /// channels and expression map when there are any). Floats are hashed by their bit
+    /// patterns, so any change to the rig changes the hash.
     #[must_use]
     pub fn compute_hash(&self) -> u64 {
         let mut h = Fnv1a::new();
@@ -209,6 +235,18 @@ impl AvatarDescription {
             h.bytes(&j.to_le_bytes());
         }
         h.str(self.mesh_url.as_deref().unwrap_or(""));
+        // Only when present, so the hash of a rig without morph targets is what it was.
+        if !self.morph_targets.is_empty() || !self.expressions.is_empty() {
+            h.bytes(&(self.morph_targets.len() as u64).to_le_bytes());
+            for n in &self.morph_targets {
+                h.str(n);
+            }
+            h.bytes(&(self.expressions.len() as u64).to_le_bytes());
+            for (k, v) in &self.expressions {
+                h.str(k);
+                h.str(v);
+            }
+        }
         h.finish()
     }
 
@@ -353,6 +391,28 @@ mod tests {
             changed.to_skeleton(),
             Err(DescriptionError::Hash { .. })
         ));
+        // Morph channels and the expression map are covered once present; absent, the hash
+        // is the joints-only one.
+        let plain = d.compute_hash();
+        let faced = d.clone().with_morphs(
+            vec!["mouthOpen".into(), "blink".into()],
+            BTreeMap::from([("aa".to_owned(), "mouthOpen".to_owned())]),
+        );
+        assert_ne!(faced.hash_u64(), plain);
+        let text = serde_json::to_string(&faced).unwrap();
+        assert!(
+            text.contains(r#""morph_targets":["mouthOpen","blink"]"#),
+            "{text}"
+        );
+        let back: AvatarDescription = serde_json::from_str(&text).unwrap();
+        back.to_skeleton().unwrap();
+        let mut remapped = faced.clone();
+        remapped.expressions.insert("aa".into(), "blink".into());
+        assert_ne!(remapped.compute_hash(), faced.compute_hash());
+        let mut renamed = faced.clone();
+        renamed.morph_targets[1] = "blinks".into();
+        assert_ne!(renamed.compute_hash(), faced.compute_hash());
+        assert!(!serde_json::to_string(&d).unwrap().contains("morph_targets"));
         let mut bad = d.clone();
         bad.parents[1] = 7;
         bad.hash = format!("{:016x}", bad.compute_hash());

@@ -90,6 +90,9 @@ pub struct AvatarPose {
     pub scales: Vec<Vec3>,
     /// The avatar's world placement at this tick (clients draw `placement · root`).
     pub placement: Placement,
+    /// Morph weights, one per channel of the description's `morph_targets` (empty for a rig
+    /// without any), each a multiple of 1/1023 in `[0, 1]` ([`crate::morph`]).
+    pub weights: Vec<f32>,
 }
 
 /// A decoded frame.
@@ -576,6 +579,7 @@ impl FrameDecoder {
                 translations: Vec::with_capacity(translations.min(bytes.len() / 12)),
                 scales: Vec::with_capacity(scales.min(bytes.len() / 12)),
                 placement,
+                weights: Vec::new(),
             };
             for _ in 0..translations {
                 pose.translations.push(r.vec3()?);
@@ -641,6 +645,7 @@ mod tests {
             translations: vec![Vec3::new(1.0, 2.0, 3.0)],
             scales: vec![],
             placement: Placement::IDENTITY,
+            weights: Vec::new(),
         }
     }
 

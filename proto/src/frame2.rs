@@ -67,6 +67,10 @@ pub const MAX_COUNT: usize = 1 << 16;
 const FLAG_PLACEMENT: u8 = 1;
 const FLAG_SCALES: u8 = 2;
 const FLAG_ESCAPES: u8 = 4;
+/// Chunk flag (key and delta, protocol version 4): morph weights follow the placement.
+const FLAG_WEIGHTS: u8 = 8;
+/// Bits of a streamed morph weight level ([`crate::morph::WEIGHT_LEVELS`] = 2¹⁰ − 1).
+pub const WEIGHT_BITS: u32 = 10;
 const LEVEL_MAX: i64 = (1 << 15) - 2;
 const LEVEL_MASK: u64 = (1 << 15) - 1;
 
@@ -147,6 +151,9 @@ pub struct QuantPose {
     pub scales: Vec<Vec3>,
     /// World placement.
     pub placement: Placement,
+    /// Morph weight levels, one per channel ([`crate::morph::weight_level`]); empty for a rig
+    /// without morph targets, or a receiver that does not take them.
+    pub weights: Vec<u16>,
 }
 
 /// The level of a translation component: `round(x / TRANSLATION_STEP)`, clamped to i32;
@@ -180,6 +187,11 @@ impl QuantPose {
                 .collect(),
             scales: pose.scales.clone(),
             placement: pose.placement,
+            weights: pose
+                .weights
+                .iter()
+                .map(|&w| crate::morph::weight_level(w))
+                .collect(),
         }
     }
 
@@ -197,6 +209,20 @@ impl QuantPose {
                 .collect(),
             scales: self.scales.clone(),
             placement: self.placement,
+            weights: self
+                .weights
+                .iter()
+                .map(|&l| crate::morph::weight_value(l))
+                .collect(),
+        }
+    }
+
+    /// The same levels without morph weights (for a receiver of protocol version 2 or 3).
+    #[must_use]
+    pub fn without_weights(&self) -> Self {
+        Self {
+            weights: Vec::new(),
+            ..self.clone()
         }
     }
 
@@ -214,6 +240,7 @@ impl QuantPose {
             ),
             scales: crate::subset::Selection::pick(&self.scales, selection.scales.iter().copied()),
             placement: self.placement,
+            weights: self.weights.clone(),
         }
     }
 
@@ -221,6 +248,7 @@ impl QuantPose {
         self.rotations.len() == other.rotations.len()
             && self.translations.len() == other.translations.len()
             && self.scales.len() == other.scales.len()
+            && self.weights.len() == other.weights.len()
     }
 }
 
@@ -264,7 +292,15 @@ pub fn encode_key(avatar_num: u32, hash: u64, pose: &QuantPose, out: &mut Vec<u8
     varint(pose.translations.len() as u64, out);
     varint(pose.scales.len() as u64, out);
     let placement = !pose.placement.is_identity();
-    out.push(if placement { FLAG_PLACEMENT } else { 0 });
+    let weights = !pose.weights.is_empty();
+    let mut flags = 0;
+    if placement {
+        flags |= FLAG_PLACEMENT;
+    }
+    if weights {
+        flags |= FLAG_WEIGHTS;
+    }
+    out.push(flags);
     for bits in &pose.rotations {
         out.extend_from_slice(&bits.to_le_bytes()[..quant::BYTES]);
     }
@@ -274,6 +310,14 @@ pub fn encode_key(avatar_num: u32, hash: u64, pose: &QuantPose, out: &mut Vec<u8
         }
     }
     write_scales_placement(pose, true, placement, out);
+    if weights {
+        varint(pose.weights.len() as u64, out);
+        let mut w = BitWriter::new(out);
+        for &l in &pose.weights {
+            w.put(u64::from(l), WEIGHT_BITS);
+        }
+        w.finish();
+    }
 }
 
 fn write_scales_placement(pose: &QuantPose, scales: bool, placement: bool, out: &mut Vec<u8>) {
@@ -328,11 +372,13 @@ pub fn encode_delta(
         .any(|(a, b)| index(*a) != index(*b));
     let scales = pose.scales != base.scales;
     let placement = pose.placement != base.placement;
+    let weights = pose.weights != base.weights;
     let mut flags = ((depth - 1) as u8) << 4;
     for (set, bit) in [
         (placement, FLAG_PLACEMENT),
         (scales, FLAG_SCALES),
         (escapes, FLAG_ESCAPES),
+        (weights, FLAG_WEIGHTS),
     ] {
         if set {
             flags |= bit;
@@ -375,6 +421,19 @@ pub fn encode_delta(
     }
     w.finish();
     write_scales_placement(pose, scales, placement, out);
+    if weights {
+        // A change mask over the channels, then the new level of each changed one.
+        let mut w = BitWriter::new(out);
+        for (a, b) in pose.weights.iter().zip(&base.weights) {
+            w.put(u64::from(a != b), 1);
+        }
+        for (a, b) in pose.weights.iter().zip(&base.weights) {
+            if a != b {
+                w.put(u64::from(*a), WEIGHT_BITS);
+            }
+        }
+        w.finish();
+    }
     true
 }
 
@@ -740,9 +799,6 @@ impl Frame2Decoder {
     ) -> Result<DecodedAvatar, Frame2Error> {
         let avatar = r.varint_u32()?;
         let flags = r.u8()?;
-        if flags & 8 != 0 {
-            return Err(Frame2Error::Flags { avatar, flags });
-        }
         let depth = usize::from(flags >> 4) + 1;
         let missing = Frame2Error::MissingBase {
             avatar,
@@ -768,7 +824,11 @@ impl Frame2Decoder {
             translations: Vec::with_capacity(base.translations.len()),
             scales: base.scales.clone(),
             placement: base.placement,
+            weights: base.weights.clone(),
         };
+        if flags & FLAG_WEIGHTS != 0 && base.weights.is_empty() {
+            return Err(Frame2Error::Flags { avatar, flags });
+        }
         let mut b = BitReader { r, acc: 0, bits: 0 };
         let joints = base.rotations.len();
         let mut escaped = vec![false; joints];
@@ -822,11 +882,30 @@ impl Frame2Decoder {
         if flags & FLAG_PLACEMENT != 0 {
             pose.placement = r.placement()?;
         }
+        if flags & FLAG_WEIGHTS != 0 {
+            let mut b = BitReader { r, acc: 0, bits: 0 };
+            let mut changed = vec![false; pose.weights.len()];
+            for c in &mut changed {
+                *c = b.get(1)? == 1;
+            }
+            for (w, _) in pose.weights.iter_mut().zip(&changed).filter(|(_, c)| **c) {
+                *w = weight(&mut b)?;
+            }
+        }
         Ok(DecodedAvatar {
             avatar_num: avatar,
             hash: held.hash,
             levels: Arc::new(pose),
         })
+    }
+}
+
+/// One weight level from the bit stream, checked against [`crate::morph::WEIGHT_LEVELS`].
+fn weight(b: &mut BitReader<'_, '_>) -> Result<u16, Frame2Error> {
+    let at = b.r.at;
+    match u16::try_from(b.get(WEIGHT_BITS)?) {
+        Ok(l) if l <= crate::morph::WEIGHT_LEVELS => Ok(l),
+        _ => Err(Frame2Error::Number { at }),
     }
 }
 
@@ -837,7 +916,7 @@ fn key_chunk(r: &mut Reader<'_>) -> Result<DecodedAvatar, Frame2Error> {
     let translations = r.count(avatar)?;
     let scales = r.count(avatar)?;
     let flags = r.u8()?;
-    if flags & !FLAG_PLACEMENT != 0 {
+    if flags & !(FLAG_PLACEMENT | FLAG_WEIGHTS) != 0 {
         return Err(Frame2Error::Flags { avatar, flags });
     }
     // Check the bytes are there before allocating for them.
@@ -850,6 +929,7 @@ fn key_chunk(r: &mut Reader<'_>) -> Result<DecodedAvatar, Frame2Error> {
         translations: Vec::with_capacity(translations),
         scales: Vec::with_capacity(scales),
         placement: Placement::IDENTITY,
+        weights: Vec::new(),
     };
     for _ in 0..joints {
         let mut b = [0u8; 8];
@@ -869,6 +949,16 @@ fn key_chunk(r: &mut Reader<'_>) -> Result<DecodedAvatar, Frame2Error> {
     }
     if flags & FLAG_PLACEMENT != 0 {
         pose.placement = r.placement()?;
+    }
+    if flags & FLAG_WEIGHTS != 0 {
+        let count = r.count(avatar)?;
+        if (r.bytes.len() - r.at) * 8 < count * WEIGHT_BITS as usize {
+            return Err(Frame2Error::Truncated { at: r.bytes.len() });
+        }
+        let mut b = BitReader { r, acc: 0, bits: 0 };
+        pose.weights = (0..count)
+            .map(|_| weight(&mut b))
+            .collect::<Result<_, _>>()?;
     }
     Ok(DecodedAvatar {
         avatar_num: avatar,

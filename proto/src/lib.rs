@@ -3,6 +3,8 @@
 //! - [`transform`]: translation · rotation · scale, and polar decomposition of affine matrices.
 //! - [`skeleton`]: a validated joint tree with rest transforms and inverse bind matrices.
 //! - [`fk`]: forward kinematics `W_j = W_parent(j) · D_j` and skinning matrices `M_j = W_j · B_j⁻¹`.
+//! - [`expressions`]: the standard expression names (ARKit, VRM presets, visemes) and finding them on a rig.
+//! - [`morph`]: morph targets (blend shapes) and the CPU morphing reference.
 //! - [`skinning`]: the CPU linear-blend-skinning reference every GPU path is tested against.
 //! - [`bind`]: seed 001's world-space increment of a joint, `D'_j = W_parent(j)⁻¹ · U · W_j`.
 //! - [`dof`]: joint types, degrees of freedom and their limits (seed 002).
@@ -60,10 +62,12 @@ pub mod bind;
 pub mod command;
 pub mod description;
 pub mod dof;
+pub mod expressions;
 pub mod fk;
 pub mod frame;
 pub mod frame2;
 pub mod live;
+pub mod morph;
 pub mod msg;
 pub mod placement;
 pub mod quant;

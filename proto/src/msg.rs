@@ -18,8 +18,9 @@ pub const PROTOCOL_VERSION: u32 = 1;
 /// [`ErrorCode::UnsupportedVersion`]. Version 2 differs from 1 only in binary pose frames
 /// ([`crate::frame2`] instead of [`crate::frame`]); version 3 is version 2 with tagged
 /// command results in `ack` ([`ServerMsg::Ack`]) and joint subsets served as v2 frames (v1
-/// frames on version 2). Every other message is the same.
-pub const SUPPORTED_VERSIONS: [u32; 3] = [1, 2, 3];
+/// frames on version 2); version 4 is version 3 with morph weights in v2 frames (chunk flag
+/// 8, `proto/PROTOCOL.md`). Every other message is the same.
+pub const SUPPORTED_VERSIONS: [u32; 4] = [1, 2, 3, 4];
 
 /// Largest message the server accepts from a client, in bytes (hello, subscribe, commands).
 /// Uploads of assets go through HTTP, not the websocket.
@@ -145,6 +146,11 @@ pub enum ClientMsg {
         /// The driver's clock when the pose was captured, µs (any epoch).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         time_us: Option<u64>,
+        /// Morph weights by name (a morph channel of the driven avatar or a standard
+        /// expression name, as `set_morph_weights` takes them), each in `[0, 1]`; channels not
+        /// named keep their weights.
+        #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+        weights: std::collections::BTreeMap<String, f32>,
     },
 }
 
@@ -440,6 +446,9 @@ pub enum ErrorCode {
     /// answered and may have landed. Retry with the same idempotency key: it applies at most
     /// once. (`unavailable`, by contrast, means not applied.)
     OutcomeUnknown,
+    /// The avatar has no morph target or expression of that name (or no morph targets at
+    /// all): `set_morph_weights`, `set_expression` (HTTP 404).
+    UnknownExpression,
 }
 
 /// What a connection (or a REST request) may do, as decided from its token.
@@ -510,6 +519,11 @@ pub struct AvatarPoseJson {
     /// translations and scales are then those of these joints only. Absent: every joint.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub joints: Option<Vec<u16>>,
+    /// Morph weights by channel name (every channel of the description's `morph_targets`,
+    /// zeros included), each within 1/2046 of the weight set; absent for a rig without
+    /// morph targets.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub weights: std::collections::BTreeMap<String, f32>,
 }
 
 #[cfg(test)]

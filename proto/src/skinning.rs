@@ -5,6 +5,8 @@
 use glam::{Mat3, Mat4, Vec3};
 use serde::{Deserialize, Serialize};
 
+use crate::morph::MorphTarget;
+
 /// Why mesh data was refused.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum MeshError {
@@ -81,6 +83,9 @@ pub struct SkinnedMesh {
     influences: usize,
     joints: Vec<u16>,
     weights: Vec<f32>,
+    /// Morph targets in glTF order (none for most meshes).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    targets: Vec<MorphTarget>,
 }
 
 impl SkinnedMesh {
@@ -169,7 +174,33 @@ impl SkinnedMesh {
             influences,
             joints,
             weights,
+            targets: Vec::new(),
         })
+    }
+
+    /// The same mesh with these morph targets (replacing any it had).
+    ///
+    /// # Errors
+    /// A target whose lists do not have one entry per vertex, or with a non-finite entry.
+    pub fn with_targets(mut self, targets: Vec<MorphTarget>) -> Result<Self, MeshError> {
+        for t in &targets {
+            t.check(self.vertex_count())?;
+        }
+        self.targets = targets;
+        Ok(self)
+    }
+
+    /// The same mesh without morph targets.
+    #[must_use]
+    pub fn without_targets(mut self) -> Self {
+        self.targets = Vec::new();
+        self
+    }
+
+    /// Morph targets, in the file's order.
+    #[must_use]
+    pub fn targets(&self) -> &[MorphTarget] {
+        &self.targets
     }
 
     /// Number of vertices.
@@ -241,8 +272,22 @@ impl SkinnedMesh {
     }
 
     /// Applies `f` to positions and `g` to normals, e.g. to re-orient or rescale the mesh.
+    /// Morph displacements follow: `Δp' = f(p + Δp) − f(p)`, `Δn' = g(n + Δn) − g(n)`.
     #[must_use]
     pub fn map_vertices(&self, f: impl Fn(Vec3) -> Vec3, g: impl Fn(Vec3) -> Vec3) -> Self {
+        let targets = self
+            .targets
+            .iter()
+            .map(|t| MorphTarget {
+                name: t.name.clone(),
+                positions: (self.positions.iter().zip(&t.positions))
+                    .map(|(&p, &d)| f(p + d) - f(p))
+                    .collect(),
+                normals: (self.normals.iter().zip(&t.normals))
+                    .map(|(&n, &d)| g(n + d) - g(n))
+                    .collect(),
+            })
+            .collect();
         Self {
             positions: self.positions.iter().map(|&p| f(p)).collect(),
             normals: self
@@ -250,6 +295,7 @@ impl SkinnedMesh {
                 .iter()
                 .map(|&n| g(n).normalize_or_zero())
                 .collect(),
+            targets,
             ..self.clone()
         }
     }

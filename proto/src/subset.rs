@@ -209,6 +209,8 @@ mod tests {
             translated_joints: vec![],
             scaled_joints: vec![],
             mesh_url: None,
+            morph_targets: vec![],
+            expressions: std::collections::BTreeMap::new(),
             clip: None,
             hash: String::new(),
         }

@@ -374,3 +374,80 @@ fn bytes_api_refuses_external_buffers_but_reads_embedded() {
         1
     );
 }
+
+/// Ready Player Me's face, eyes and teeth keep their five named morph targets, and each target
+/// moves every vertex where the file says: at rest, the imported displacement skinned by the
+/// imported rig equals the file's displacement (read by the `gltf` crate) skinned by the file's
+/// own `Σ wₖ · G(jₖ) · IBMₖ`.
+#[test]
+fn ready_player_me_targets_reproduce_the_files_displacements() {
+    use posecast_proto::skinning::blend_matrix;
+    let rel = "gltf/ReadyPlayerMe/PreviewMesh.glb";
+    let Some(assets) = load(rel) else { return };
+    let a = &assets[0];
+    let r = Reference::new(rel);
+    let b = rest_buffers(a);
+    let names = [
+        "mouthOpen",
+        "mouthSmile",
+        "eyesClosed",
+        "eyesLookUp",
+        "eyesLookDown",
+    ];
+    let (mut checked, mut moved) = (0, 0);
+    for node in r.doc.nodes() {
+        let (Some(skin), Some(mesh)) = (node.skin(), node.mesh()) else {
+            continue;
+        };
+        let ibms: Vec<Mat4> = skin
+            .reader(|b| Some(&r.buffers[b.index()]))
+            .read_inverse_bind_matrices()
+            .unwrap()
+            .map(|m| Mat4::from_cols_array_2d(&m))
+            .collect();
+        let joint_world: Vec<Mat4> = skin
+            .joints()
+            .zip(&ibms)
+            .map(|(j, ibm)| r.global(j.index()) * *ibm)
+            .collect();
+        for prim in mesh.primitives() {
+            let reader = prim.reader(|b| Some(&r.buffers[b.index()]));
+            let targets: Vec<Vec<Vec3>> = reader
+                .read_morph_targets()
+                .map(|(p, _, _)| p.unwrap().map(Vec3::from).collect())
+                .collect();
+            if targets.is_empty() {
+                continue;
+            }
+            let ours = &a
+                .meshes
+                .iter()
+                .find(|m| m.name == mesh.name().unwrap())
+                .unwrap()
+                .mesh;
+            let got: Vec<&str> = ours.targets().iter().map(|t| t.name.as_str()).collect();
+            assert_eq!(got, names, "{:?}", mesh.name());
+            let joints: Vec<[u16; 4]> = reader.read_joints(0).unwrap().into_u16().collect();
+            let weights: Vec<[f32; 4]> = reader.read_weights(0).unwrap().into_f32().collect();
+            for (k, target) in targets.iter().enumerate() {
+                for (v, d) in target.iter().enumerate() {
+                    let blend: Mat4 = (0..4)
+                        .map(|i| joint_world[joints[v][i] as usize] * weights[v][i])
+                        .fold(Mat4::ZERO, |s, m| s + m);
+                    let want = blend.transform_vector3(*d);
+                    let ours_d = ours.targets()[k].positions[v];
+                    let have = blend_matrix(ours, &b.skinning, v).transform_vector3(ours_d);
+                    assert!(
+                        (want - have).length() < 1e-6,
+                        "{:?} target {k} vertex {v}: {have} vs {want}",
+                        mesh.name()
+                    );
+                    checked += 1;
+                    moved += usize::from(want.length() > 1e-4);
+                }
+            }
+        }
+    }
+    println!("{checked} displacements checked, {moved} of them move a vertex > 0.1 mm");
+    assert!(moved > 1000, "{moved}");
+}

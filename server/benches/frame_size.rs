@@ -103,6 +103,7 @@ fn measure_v2(rig: &Rig, clip: &Clip, key_every: Option<usize>) -> Result<V2Meas
                 .map(|&j| locals[usize::from(j)].scale)
                 .collect(),
             placement: Default::default(),
+            weights: Vec::new(),
         };
         let key = key_every.map_or(i == 0, |k| i % k == 0);
         let seq = i as u64 + 1;
@@ -202,6 +203,7 @@ fn measure(name: &str, rig: &Rig, clip: &Clip) -> Result<Row> {
             translations: pick(&description.translated_joints, |l| l.translation),
             scales: pick(&description.scaled_joints, |l| l.scale),
             placement: Default::default(),
+            weights: Vec::new(),
         };
         let seq = i as u64 + 1;
         let age = i % KEY_INTERVAL;
@@ -265,6 +267,7 @@ fn measure(name: &str, rig: &Rig, clip: &Clip) -> Result<Row> {
             scales: pose.scales.iter().map(|v| v.to_array()).collect(),
             placement: pose.placement,
             joints: None,
+            weights: Default::default(),
         };
         row.json_object.push(serde_json::to_string(&object)?.len());
         let message = ServerMsg::Frame(FrameJson {

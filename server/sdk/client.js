@@ -41,10 +41,11 @@ import { expandPose, selectJoints } from "./subset.js";
 /** @typedef {import("./posecast.js").Vec3} Vec3 */
 
 /**
- * The protocol version a client asks for unless told otherwise: 3, wire v2 binary frames and
- * command results tagged with their kind.
+ * The protocol version a client asks for unless told otherwise: 4, wire v2 binary frames with
+ * morph weights (each pose's `weights`, by channel name) and command results tagged with their
+ * kind. A server that predates it is asked again with the version before.
  */
-export const PROTOCOL_VERSION = 3;
+export const PROTOCOL_VERSION = 4;
 
 /** @returns {number} The wall clock in µs since the Unix epoch. */
 export function nowMicros() {
@@ -77,7 +78,7 @@ export class Client {
     this.url = options.url ?? defaultUrl();
     /** @type {Encoding} */
     this.encoding = options.encoding ?? "binary";
-    /** The protocol version asked for in the hello: 3 or 2 (wire v2 frames) or 1 (v1 frames). */
+    /** The protocol version asked for in the hello: 4 (wire v2 frames with morph weights), 3 or 2 (wire v2 frames) or 1 (v1 frames). */
     this.version = options.version ?? PROTOCOL_VERSION;
     const tokens = options.tokens ?? (options.token ? [{ kind: /** @type {const} */ ("control"), value: options.token }] : []);
     /** @type {() => Token[]} */
@@ -661,7 +662,14 @@ export class Client {
     for (const a of decoded.avatars) {
       const avatar = ids.get(a.num);
       if (avatar === undefined) continue; // not described (yet): nothing to pose
-      avatars.push({ avatar, hash: a.hash, rotations: a.rotations, translations: a.translations, scales: a.scales, placement: a.placement });
+      /** @type {FramePose} */
+      const pose = { avatar, hash: a.hash, rotations: a.rotations, translations: a.translations, scales: a.scales, placement: a.placement };
+      // Morph weights (protocol version 4) by channel name, as a JSON frame gives them.
+      const channels = this.avatars.get(avatar)?.description.morph_targets ?? [];
+      if (a.weights.length > 0 && a.weights.length === channels.length) {
+        pose.weights = Object.fromEntries(channels.map((name, c) => [name, a.weights[c]]));
+      }
+      avatars.push(pose);
     }
     this.onFrame({
       type: "frame",
@@ -698,7 +706,7 @@ export class Client {
           this.stats.undecodable++;
           continue;
         }
-        pose = { avatar: pose.avatar, hash: pose.hash, placement: pose.placement, ...whole };
+        pose = { avatar: pose.avatar, hash: pose.hash, placement: pose.placement, weights: pose.weights, ...whole };
       }
       view.latest = { ...pose, seq: frame.seq, server_time_us: frame.server_time_us, received_us: frame.received_us };
       view.jitter.push(frame.server_time_us, frame.received_us, pose);

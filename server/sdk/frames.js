@@ -206,7 +206,7 @@ export class FrameDecoder {
         placement = { position: r.vec3(), rotation: [r.f32(), r.f32(), r.f32(), r.f32()] };
       }
       if (key) newKeys.push([slot, { seq, bits, placement }]);
-      avatars.push({ num, hash, rotations: bits.map(decodeQuat), translations: ts, scales: ss, placement });
+      avatars.push({ num, hash, rotations: bits.map(decodeQuat), translations: ts, scales: ss, placement, weights: [] });
     }
     if (r.at !== view.byteLength) {
       throw new PosecastError("bad_message", `binary frame has ${view.byteLength - r.at} bytes after its last chunk`);

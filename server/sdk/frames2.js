@@ -3,7 +3,9 @@
 // `frame2.rs`, `Frame2Decoder`): magic 0x51, varint header; keyframe chunks carry 48-bit
 // smallest-three rotations and zigzag-varint translation levels (1/8192 m); delta chunks refer
 // to the receiver's last ≤ 8 decoded frames of the avatar and carry Rice-coded residuals of
-// predicted levels (or a joint's 47 bits in full, flagged in an escape mask).
+// predicted levels (or a joint's 47 bits in full, flagged in an escape mask). Protocol version
+// 4 adds morph weights (chunk flag bit 3): a keyframe lists every channel's 10-bit level, a
+// delta a change mask and the new levels of the changed channels.
 //
 // Numbers: rotations (≤ 48 bits), levels and Rice sums (< 2⁴⁴) are exact JS numbers. Varints
 // are read as BigInt (up to 64 bits, as the Rust reader); the header's seq and server time must
@@ -31,6 +33,11 @@ const MAX_COUNT = 1 << 16;
 const FLAG_PLACEMENT = 1;
 const FLAG_SCALES = 2;
 const FLAG_ESCAPES = 4;
+/** Chunk flag (key and delta, protocol version 4): morph weights follow the placement. */
+const FLAG_WEIGHTS = 8;
+/** Bits of a streamed morph weight level; levels run 0…WEIGHT_LEVELS (weight = level / 1023). */
+const WEIGHT_BITS = 10;
+export const WEIGHT_LEVELS = 1023;
 const LEVEL_MAX = 2 ** 15 - 2;
 const LEVEL_MASK = 2 ** 15 - 1;
 const CAP = 2 ** 40;
@@ -44,7 +51,7 @@ const SAFE = BigInt(Number.MAX_SAFE_INTEGER);
 
 /**
  * One avatar's pose as levels: what v2 codes losslessly (`frame2::QuantPose`).
- * @typedef {{rotations: number[], translations: [number, number, number][], scales: Vec3[], placement: Placement}} QuantPose
+ * @typedef {{rotations: number[], translations: [number, number, number][], scales: Vec3[], placement: Placement, weights: number[]}} QuantPose
  */
 
 /** @param {string} message */
@@ -222,12 +229,29 @@ class BitReader {
  * @param {QuantPose} b
  */
 function sameShape(a, b) {
-  return a.rotations.length === b.rotations.length && a.translations.length === b.translations.length && a.scales.length === b.scales.length;
+  return (
+    a.rotations.length === b.rotations.length &&
+    a.translations.length === b.translations.length &&
+    a.scales.length === b.scales.length &&
+    a.weights.length === b.weights.length
+  );
 }
 
 /** @returns {Placement} */
 function identityPlacement() {
   return { position: [0, 0, 0], rotation: [0, 0, 0, 1] };
+}
+
+/**
+ * One morph weight level, checked against {@link WEIGHT_LEVELS}.
+ * @param {BitReader} b
+ * @param {number} num
+ */
+function weightLevel(b, num) {
+  const at = b.r.at;
+  const l = b.get(WEIGHT_BITS);
+  if (l > WEIGHT_LEVELS) throw bad(`avatar ${num}: morph weight level ${l} out of range at byte ${at}`);
+  return l;
 }
 
 /**
@@ -242,10 +266,10 @@ function keyChunk(r) {
   const translations = r.count(num);
   const scales = r.count(num);
   const flags = r.u8();
-  if (flags & ~FLAG_PLACEMENT) throw bad(`avatar ${num}: invalid chunk flags ${flags}`);
+  if (flags & ~(FLAG_PLACEMENT | FLAG_WEIGHTS)) throw bad(`avatar ${num}: invalid chunk flags ${flags}`);
   if (r.view.byteLength - r.at < joints * 6 + translations * 3 + scales * 12) throw bad(`truncated at byte ${r.view.byteLength}`);
   /** @type {QuantPose} */
-  const levels = { rotations: [], translations: [], scales: [], placement: identityPlacement() };
+  const levels = { rotations: [], translations: [], scales: [], placement: identityPlacement(), weights: [] };
   for (let j = 0; j < joints; j++) {
     const at = r.need(6);
     levels.rotations.push(r.view.getUint16(at + 4, true) * TWO_32 + r.view.getUint32(at, true));
@@ -264,6 +288,12 @@ function keyChunk(r) {
   }
   for (let s = 0; s < scales; s++) levels.scales.push(r.vec3());
   if (flags & FLAG_PLACEMENT) levels.placement = r.placement();
+  if (flags & FLAG_WEIGHTS) {
+    const count = r.count(num);
+    if ((r.view.byteLength - r.at) * 8 < count * WEIGHT_BITS) throw bad(`truncated at byte ${r.view.byteLength}`);
+    const b = new BitReader(r);
+    for (let c = 0; c < count; c++) levels.weights.push(weightLevel(b, num));
+  }
   return { num, hash, levels };
 }
 
@@ -336,6 +366,7 @@ export class Frame2Decoder {
         translations: levels.translations.map((t) => /** @type {Vec3} */ (t.map((l) => Math.fround(l * TRANSLATION_STEP)))),
         scales: levels.scales.map((s) => /** @type {Vec3} */ ([...s])),
         placement: { position: [...levels.placement.position], rotation: [...levels.placement.rotation] },
+        weights: levels.weights.map((l) => Math.fround(l / WEIGHT_LEVELS)),
       })),
     };
   }
@@ -358,7 +389,6 @@ export class Frame2Decoder {
   deltaChunk(r, sceneNum, baseSeq) {
     const num = r.varintU32();
     const flags = r.u8();
-    if (flags & 8) throw bad(`avatar ${num}: invalid chunk flags ${flags}`);
     const depth = (flags >> 4) + 1;
     const held = this.history.get(`${sceneNum}:${num}`);
     const missing = () => bad(`avatar ${num}: delta against frame ${baseSeq} (depth ${depth}), which this decoder does not hold`);
@@ -366,8 +396,9 @@ export class Frame2Decoder {
     const history = held.frames.slice(0, depth).map((f) => f.levels);
     const base = history[0];
     if (history.some((h) => !sameShape(h, base))) throw missing();
+    if (flags & FLAG_WEIGHTS && base.weights.length === 0) throw bad(`avatar ${num}: invalid chunk flags ${flags}`);
     /** @type {QuantPose} */
-    const pose = { rotations: [], translations: [], scales: base.scales, placement: base.placement };
+    const pose = { rotations: [], translations: [], scales: base.scales, placement: base.placement, weights: base.weights };
     const b = new BitReader(r);
     const joints = base.rotations.length;
     const escaped = new Array(joints).fill(false);
@@ -406,6 +437,12 @@ export class Frame2Decoder {
     }
     if (flags & FLAG_SCALES) pose.scales = base.scales.map(() => r.vec3());
     if (flags & FLAG_PLACEMENT) pose.placement = r.placement();
+    if (flags & FLAG_WEIGHTS) {
+      // A change mask over the channels, then the new level of each changed one.
+      const w = new BitReader(r);
+      const changed = base.weights.map(() => w.get(1) === 1);
+      pose.weights = base.weights.map((l, c) => (changed[c] ? weightLevel(w, num) : l));
+    }
     return { num, hash: held.hash, levels: pose };
   }
 }

@@ -43,7 +43,8 @@ function lerp3(a, b, w) {
 
 /**
  * `a` blended towards `b` by `w` (0: a, 1: b; beyond 1 extrapolates): rotations by shortest-arc
- * slerp, translations, scales and position by lerp — `Transform::blend`, joint by joint. Poses
+ * slerp, translations, scales and position by lerp — `Transform::blend`, joint by joint; morph
+ * weights by lerp, kept in [0, 1]. Poses
  * of different shapes (a rig changed between them) give `b`.
  * @param {FramePose} a
  * @param {FramePose} b
@@ -64,7 +65,27 @@ export function blendPoses(a, b, w) {
       position: lerp3(a.placement.position, b.placement.position, w),
       rotation: quatSlerp(a.placement.rotation, b.placement.rotation, w),
     },
+    weights: blendWeights(a.weights, b.weights, w),
   };
+}
+
+/**
+ * Morph weights blended linearly channel by channel and kept in [0, 1] (an extrapolated blend
+ * cannot leave the range weights have); a channel only `b` has takes `b`'s weight.
+ * @param {Record<string, number> | undefined} a
+ * @param {Record<string, number> | undefined} b
+ * @param {number} w
+ * @returns {Record<string, number> | undefined}
+ */
+function blendWeights(a, b, w) {
+  if (!a || !b) return b;
+  /** @type {Record<string, number>} */
+  const out = {};
+  for (const [name, to] of Object.entries(b)) {
+    const from = a[name] ?? to;
+    out[name] = Math.min(1, Math.max(0, from + (to - from) * w));
+  }
+  return out;
 }
 
 export class JitterBuffer {

@@ -1,8 +1,9 @@
 // Type declarations of posecast's JavaScript client, served at /sdk/posecast.d.ts beside the
 // module it describes (/sdk/posecast.js). This file is the API reference; proto/PROTOCOL.md is
 // the reference of the messages, protocol.d.ts their types (generated from the server's). SDK
-// version 1.2 speaks protocol version 3 (wire v2 binary frames, results tagged with their kind)
-// by default, and 2 or 1 when asked (`ClientOptions.version`) or refused by an older server.
+// version 1.5 speaks protocol version 4 (wire v2 binary frames with morph weights, results
+// tagged with their kind) by default, and 3, 2 or 1 when asked (`ClientOptions.version`) or
+// refused by an older server.
 //
 //   import { Client } from "/sdk/posecast.js";
 //   const client = new Client({ token: "…" });          // ws(s)://this host/ws, binary frames
@@ -14,7 +15,7 @@
 /** The SDK's version. */
 export declare const SDK_VERSION: string;
 /** The protocol version the SDK speaks (the `hello`'s `version`). */
-export declare const PROTOCOL_VERSION: 3;
+export declare const PROTOCOL_VERSION: 4;
 
 export type Vec3 = [number, number, number];
 /** The `result` of an `ack`, by the `kind` the server tags it with (protocol.d.ts). */
@@ -195,13 +196,14 @@ export interface ClientOptions {
   /** Frame encoding; default `"binary"` (several times smaller than JSON). */
   encoding?: Encoding;
   /**
-   * Protocol version asked for in the hello: 3 (default) or 2 — binary frames in wire v2,
+   * Protocol version asked for in the hello: 4 (default: 3 with each pose's morph `weights` in
+   * binary frames too), 3 or 2 — binary frames in wire v2,
    * deltas against the previous frame, about half the bytes of v1; 3 also tags every `ack`'s
    * result with its `kind` and serves a subscription with `joints` v2 frames cut to them (2
    * gets those as v1 frames) — or 1 (v1 frames); the client decodes both. A server that refuses the version (`unsupported_version`:
    * one that predates it) gets a hello with the version before, and `Client.version` follows.
    */
-  version?: 1 | 2 | 3;
+  version?: 1 | 2 | 3 | 4;
   /** The `client` name in the hello; default `"posecast-js"`. */
   name?: string;
   /** Reconnect when the connection drops (default true), resubscribing. */
@@ -402,7 +404,8 @@ export interface BinaryFrame {
   seq: number;
   server_time_us: number;
   base_seq: number;
-  avatars: { num: number; hash: string; rotations: Quat[]; translations: Vec3[]; scales: Vec3[]; placement: Placement }[];
+  /** `weights`: morph weight per channel of the avatar's `morph_targets`, in [0, 1] (level / 1023; protocol version 4; empty when the chunk carries none). */
+  avatars: { num: number; hash: string; rotations: Quat[]; translations: Vec3[]; scales: Vec3[]; placement: Placement; weights: number[] }[];
 }
 /**
  * Decodes wire v2 frames (first byte 0x51; proto/PROTOCOL.md "Pose frames, wire v2"), keeping

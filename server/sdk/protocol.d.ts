@@ -86,7 +86,13 @@ root_position?: [number, number, number] | null,
 /**
  * The driver's clock when the pose was captured, µs (any epoch).
  */
-time_us?: number | null, };
+time_us?: number | null, 
+/**
+ * Morph weights by name (a morph channel of the driven avatar or a standard
+ * expression name, as `set_morph_weights` takes them), each in `[0, 1]`; channels not
+ * named keep their weights.
+ */
+weights?: { [key in string]: number }, };
 
 /**
  * Everything the server may send as a text message.
@@ -481,7 +487,32 @@ weight?: number | null,
 /**
  * The joint whose frame `target` is in.
  */
-relative_to?: JointRef | null, } | { "op": "place_avatar", 
+relative_to?: JointRef | null, } | { "op": "set_morph_weights", 
+/**
+ * The avatar.
+ */
+avatar: AvatarId, 
+/**
+ * Name → weight.
+ */
+weights: { [key in string]: number }, 
+/**
+ * Every channel not named goes to 0 first (default: they keep their weights).
+ */
+reset?: boolean, } | { "op": "set_expression", 
+/**
+ * The avatar.
+ */
+avatar: AvatarId, 
+/**
+ * A standard expression (`happy`, `blink`, `aa`, `jawOpen`, `viseme_PP`, …) or one of
+ * the avatar's morph channels.
+ */
+expression: string, 
+/**
+ * How much, 0 to 1 (default 1).
+ */
+weight?: number | null, } | { "op": "place_avatar", 
 /**
  * The avatar.
  */
@@ -600,7 +631,7 @@ retry_after_ms?: number | null, };
  * Stable error codes. New codes may be added in later versions; clients treat an unknown code
  * as a generic failure.
  */
-export type ErrorCode = "bad_message" | "unexpected_binary" | "message_too_large" | "unsupported_version" | "not_allowed_now" | "unknown_scene" | "unknown_avatar" | "unknown_clip" | "unknown_joint" | "invalid_value" | "unauthorized" | "forbidden" | "conflict" | "import_failed" | "too_large" | "internal" | "unknown_asset" | "quota_exceeded" | "rate_limited" | "method_not_allowed" | "not_found" | "timeout" | "unavailable" | "not_humanoid" | "no_mesh" | "storage_full" | "outcome_unknown";
+export type ErrorCode = "bad_message" | "unexpected_binary" | "message_too_large" | "unsupported_version" | "not_allowed_now" | "unknown_scene" | "unknown_avatar" | "unknown_clip" | "unknown_joint" | "invalid_value" | "unauthorized" | "forbidden" | "conflict" | "import_failed" | "too_large" | "internal" | "unknown_asset" | "quota_exceeded" | "rate_limited" | "method_not_allowed" | "not_found" | "timeout" | "unavailable" | "not_humanoid" | "no_mesh" | "storage_full" | "outcome_unknown" | "unknown_expression";
 
 /**
  * How pose frames reach a client.
@@ -829,6 +860,17 @@ scaled_joints: Array<number>,
  */
 mesh_url: string | null, 
 /**
+ * Morph channels: the distinct morph target names over the avatar's meshes (every mesh
+ * target of that name follows one weight), in the order weights are streamed. Absent for
+ * a rig without morph targets.
+ */
+morph_targets?: Array<string>, 
+/**
+ * Standard expression names (ARKit's 52, VRM presets, Oculus visemes: see
+ * `crate::expressions`) → the morph channel that plays each, found by name.
+ */
+expressions?: { [key in string]: string }, 
+/**
  * The name of the clip playing when the description was sent, for display only.
  */
 clip?: string | null, 
@@ -895,7 +937,13 @@ placement: Placement,
  * With a joint subset (`crate::subset`): the joints `rotations` are of, ascending; the
  * translations and scales are then those of these joints only. Absent: every joint.
  */
-joints?: Array<number> | null, };
+joints?: Array<number> | null, 
+/**
+ * Morph weights by channel name (every channel of the description's `morph_targets`,
+ * zeros included), each within 1/2046 of the weight set; absent for a rig without
+ * morph targets.
+ */
+weights?: { [key in string]: number }, };
 
 /**
  * A scene as listed.
@@ -990,9 +1038,14 @@ driver?: Driver | null,
 recording?: string | null, 
 /**
  * Blend shape (expression) values its live driver applied, by name (VMC
- * `/VMC/Ext/Blend/Val` + `Apply`); rigs have no morph targets yet, so they only show here.
+ * `/VMC/Ext/Blend/Val` + `Apply`), as sent; those naming a morph channel or a standard
+ * expression of the avatar also set `morph_weights`.
  */
 blend_shapes?: { [key in string]: number }, 
+/**
+ * Morph weights by channel name, those above 0 (issue 30); absent when all are 0.
+ */
+morph_weights?: { [key in string]: number }, 
 /**
  * The cross-fade in progress (after `play … fade`), if any.
  */

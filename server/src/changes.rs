@@ -40,6 +40,9 @@ struct Often {
     overrides: Vec<String>,
     /// The effectors with IK goals, and whether a gaze is set.
     goals: (Vec<String>, bool),
+    /// The morph channels above 0 (a face's weights change every frame; which channels are
+    /// in use, rarely).
+    morphs: Vec<String>,
 }
 
 impl Often {
@@ -47,6 +50,7 @@ impl Often {
         Self {
             overrides: state.overrides,
             goals: (state.ik_goals, state.looking),
+            morphs: state.morph_weights.into_keys().collect(),
         }
     }
 }
@@ -114,6 +118,10 @@ pub fn after(state: &AppState, command: &Command, before: Before, result: &Comma
                 announce(state, &scene, id, |now| {
                     (&now.ik_goals, now.looking) != (&often.goals.0, often.goals.1)
                 });
+            } else if faces_only(command) {
+                announce(state, &scene, id, |now| {
+                    !now.morph_weights.keys().eq(often.morphs.iter())
+                });
             } else {
                 announce(state, &scene, id, |_| true);
             }
@@ -131,6 +139,15 @@ fn overrides_only(command: &Command) -> bool {
             | Command::RotateJointLocal { .. }
             | Command::RotateJointWorld { .. }
             | Command::Release { .. }
+    )
+}
+
+/// Commands that change only morph weights: announced when the set of channels above 0
+/// changes, not for every new weight (the stream carries the weights).
+fn faces_only(command: &Command) -> bool {
+    matches!(
+        command,
+        Command::SetMorphWeights { .. } | Command::SetExpression { .. }
     )
 }
 

@@ -137,7 +137,76 @@ fn exports_pass_the_khronos_validator_and_reimport_to_the_same_poses() {
         assert_reimports_as("wasp_walk", &wasp, &clip, &bytes, false);
         files.push(("wasp_walk", bytes));
     }
+    if let Some(rpm) = testdata_rig("gltf/ReadyPlayerMe/PreviewMesh.glb") {
+        let bytes = export::mesh_glb(rpm.skeleton(), &rpm.asset.meshes).unwrap();
+        assert_morph_targets_as(&rpm, &bytes);
+        let rpm = std::sync::Arc::new(rpm);
+        // The avatar's description lists the channels and the standard names found on them.
+        let avatar = posecast_server::avatar::Avatar::new(AvatarId("rpm".into()), 1, rpm);
+        let d = &avatar.description;
+        assert_eq!(d.morph_targets.len(), 5);
+        for (standard, own) in [
+            ("blink", "eyesClosed"),
+            ("aa", "mouthOpen"),
+            ("jawOpen", "mouthOpen"),
+            ("happy", "mouthSmile"),
+            ("lookUp", "eyesLookUp"),
+            ("lookDown", "eyesLookDown"),
+        ] {
+            assert_eq!(d.expressions.get(standard).map(String::as_str), Some(own));
+        }
+        d.to_skeleton().unwrap();
+        files.push(("ReadyPlayerMe-mesh", bytes));
+    }
     assert_valid_gltf(&files);
+}
+
+/// A served `mesh.glb` read with the `gltf` crate: one morph target per channel on every
+/// primitive (zeros where a part lacks the channel), named in `mesh.extras.targetNames`, each
+/// the normalised rig's own displacements.
+fn assert_morph_targets_as(rig: &Rig, bytes: &[u8]) {
+    let channels = posecast_proto::morph::channels(rig.asset.meshes.iter().map(|m| &m.mesh));
+    assert_eq!(
+        channels,
+        [
+            "mouthOpen",
+            "mouthSmile",
+            "eyesClosed",
+            "eyesLookUp",
+            "eyesLookDown"
+        ]
+    );
+    let (doc, buffers, _) = gltf::import_slice(bytes).unwrap();
+    let mesh = doc.meshes().next().unwrap();
+    let extras: serde_json::Value =
+        serde_json::from_str(mesh.extras().as_ref().unwrap().get()).unwrap();
+    assert_eq!(extras["targetNames"], serde_json::json!(channels));
+    assert_eq!(mesh.weights(), Some(&[0.0; 5][..]));
+    let mut moving = std::collections::BTreeSet::new();
+    for (prim, ours) in mesh.primitives().zip(&rig.asset.meshes) {
+        let reader = prim.reader(|b| Some(&buffers[b.index()]));
+        let targets: Vec<Vec<Vec3>> = reader
+            .read_morph_targets()
+            .map(|(p, _, _)| p.unwrap().map(Vec3::from).collect())
+            .collect();
+        assert_eq!(targets.len(), channels.len(), "{}", ours.name);
+        for (name, file) in channels.iter().zip(&targets) {
+            match ours.mesh.targets().iter().find(|t| t.name == *name) {
+                Some(t) => {
+                    assert_eq!(*file, t.positions, "{} {name}", ours.name);
+                    if !t.is_empty() {
+                        moving.insert(name.clone());
+                    }
+                }
+                None => assert!(file.iter().all(|d| *d == Vec3::ZERO), "{}", ours.name),
+            }
+        }
+    }
+    assert_eq!(
+        moving.len(),
+        channels.len(),
+        "every channel moves some part: {moving:?}"
+    );
 }
 
 /// What `Avatar::evaluate` streams when the avatar shows `locals`.
@@ -157,6 +226,7 @@ fn streamed(d: &AvatarDescription, locals: &[Transform], placement: Placement) -
             .map(|&j| locals[usize::from(j)].scale)
             .collect(),
         placement,
+        weights: Vec::new(),
     }
 }
 

@@ -9,7 +9,7 @@
 // and one module per panel. `?debug` exposes `window.posecast` (errors seen, frame and render
 // counters, commands sent, where each avatar was drawn, the camera, the timeline) for the tests.
 
-import { Client } from "../sdk/posecast.js";
+import { Client, forwardKinematics, jointPositions } from "../sdk/posecast.js";
 import { Viewer } from "./viewer.js";
 import { Store } from "./store.js";
 import { Sync } from "./sync.js";
@@ -23,6 +23,7 @@ import * as playback from "./panel-playback.js";
 import * as timeline from "./panel-timeline.js";
 import * as place from "./panel-place.js";
 import * as joints from "./panel-joints.js";
+import * as face from "./panel-face.js";
 import * as upload from "./panel-upload.js";
 
 const params = new URLSearchParams(location.search);
@@ -69,7 +70,7 @@ const ctx = {
   refreshAssets: () => sync.refreshAssets(),
 };
 
-for (const panel of [status, access, scenes, playback, timeline, place, joints, upload]) panel.mount(ctx);
+for (const panel of [status, access, scenes, playback, timeline, place, joints, face, upload]) panel.mount(ctx);
 
 // The page's own drive ends when the server says the avatar is no longer driven (released
 // from elsewhere, removed) or the connection drops (the server ended it then).
@@ -129,6 +130,20 @@ if (params.has("debug")) {
     get camera() { return viewer.camera; },
     get timeline() { return { ...timeline.shownTime }; },
     get selected() { return store.get().selected; },
+    /**
+     * Aims the camera at one joint of a shown avatar from `distance` metres in front (+Z), as
+     * if the user had (for close-ups in tests); false when the avatar is not posed yet.
+     */
+    aimAtJoint(/** @type {string} */ id, /** @type {string} */ joint, /** @type {number} */ distance) {
+      const a = viewer.avatars.get(id);
+      const j = a?.desc.joint_names.indexOf(joint) ?? -1;
+      if (!a?.pose || j < 0) return false;
+      const p = jointPositions(forwardKinematics(a.desc, a.pose))[j];
+      Object.assign(viewer, { focus: null, target: [...p], distance, yaw: 0, pitch: 0, moved: true, framed: true, dirty: true });
+      return true;
+    },
+    /** An avatar's morph weights in its newest streamed frame (protocol version 4), by channel. */
+    weights(/** @type {string} */ id) { return conn.latest(id)?.weights ?? null; },
     /** The avatar the page drives live and the poses it has sent. */
     get driving() { return { avatar: drive.avatar, sent: drive.sent }; },
     get watched() { return store.get().watched; },

@@ -1,7 +1,9 @@
 // @ts-check
-// The preview's WebGL2 renderer: each rig's mesh uploaded once, skinned in the vertex shader
-// with joint matrices M_j = W_j · B_j⁻¹ from a float texture; grid and skeletons as lines, the
-// skeletons over every mesh.
+// The preview's WebGL2 renderer: each rig's mesh uploaded once, morphed and skinned in the
+// vertex shader — morph targets (v' = v + Σ w_k Δv_k, normals too, before skinning) from a float
+// texture of displacements and the avatar's active weights, then joint matrices
+// M_j = W_j · B_j⁻¹ from a float texture; grid and skeletons as lines, the skeletons over every
+// mesh.
 
 import { skinningMatrices } from "../sdk/posecast.js";
 import { BACKGROUND, JOINT_COLOR, MESH_COLOR, SELECTED_MESH_COLOR, gridLines, boneLines } from "./draw.js";
@@ -11,7 +13,15 @@ import { BACKGROUND, JOINT_COLOR, MESH_COLOR, SELECTED_MESH_COLOR, gridLines, bo
 /** @typedef {import("./draw.js").Shown} Shown */
 /** @typedef {import("./draw.js").Style} Style */
 /** @typedef {import("./glb.js").Mesh} Mesh */
-/** @typedef {{vao: WebGLVertexArrayObject, indexed: boolean, count: number}} GpuPrimitive */
+/**
+ * @typedef {{vao: WebGLVertexArrayObject, indexed: boolean, count: number, vertices: number, targets: string[], morph: WebGLTexture | null}} GpuPrimitive
+ * `targets`: the names of the morph targets in `morph` (its slots), none when `morph` is null.
+ */
+
+/** Texels per row of a morph displacement texture (WebGL2 guarantees 2048). */
+const MORPH_WIDTH = 2048;
+/** Most morph targets a draw applies: the heaviest weights when more are set. */
+const MAX_ACTIVE_TARGETS = 64;
 
 const LINE_VS = `#version 300 es
 layout(location = 0) in vec3 aPos;
@@ -36,17 +46,35 @@ layout(location = 2) in uvec4 aJoints;
 layout(location = 3) in vec4 aWeights;
 uniform mat4 uViewProj;
 uniform highp sampler2D uJoints;
+// Morph targets: displacements of target s, vertex v at texels 2(s·V + v) (position) and + 1
+// (normal), MORPH_WIDTH to a row; the active targets' slots and weights.
+uniform highp sampler2D uMorph;
+uniform int uMorphCount;
+uniform int uMorphVertices;
+uniform int uMorphSlots[${MAX_ACTIVE_TARGETS}];
+uniform float uMorphWeights[${MAX_ACTIVE_TARGETS}];
 out vec3 vNormal;
+vec4 morphTexel(int i) {
+  return texelFetch(uMorph, ivec2(i % ${MORPH_WIDTH}, i / ${MORPH_WIDTH}), 0);
+}
 mat4 jointMatrix(uint j) {
   int x = int(j) * 4;
   return mat4(texelFetch(uJoints, ivec2(x, 0), 0), texelFetch(uJoints, ivec2(x + 1, 0), 0),
               texelFetch(uJoints, ivec2(x + 2, 0), 0), texelFetch(uJoints, ivec2(x + 3, 0), 0));
 }
 void main() {
+  vec3 pos = aPos;
+  vec3 normal = aNormal;
+  for (int k = 0; k < ${MAX_ACTIVE_TARGETS}; k++) {
+    if (k >= uMorphCount) break;
+    int base = 2 * (uMorphSlots[k] * uMorphVertices + gl_VertexID);
+    pos += uMorphWeights[k] * morphTexel(base).xyz;
+    normal += uMorphWeights[k] * morphTexel(base + 1).xyz;
+  }
   mat4 m = aWeights.x * jointMatrix(aJoints.x) + aWeights.y * jointMatrix(aJoints.y)
          + aWeights.z * jointMatrix(aJoints.z) + aWeights.w * jointMatrix(aJoints.w);
-  vNormal = mat3(m) * aNormal;
-  gl_Position = uViewProj * (m * vec4(aPos, 1.0));
+  vNormal = mat3(m) * normal;
+  gl_Position = uViewProj * (m * vec4(pos, 1.0));
 }`;
 const SKIN_FS = `#version 300 es
 precision mediump float;
@@ -105,10 +133,12 @@ export class GlRenderer {
     gl.enableVertexAttribArray(1);
     gl.vertexAttribPointer(1, 3, gl.FLOAT, false, 24, 12);
     gl.bindVertexArray(null);
-    this.jointTexture = gl.createTexture();
-    gl.bindTexture(gl.TEXTURE_2D, this.jointTexture);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
-    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+    this.jointTexture = floatTexture(gl);
+    // Bound as the morph texture of a primitive without targets (never read: no active ones).
+    this.noMorph = floatTexture(gl);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, 1, 1, 0, gl.RGBA, gl.FLOAT, new Float32Array(4));
+    this.morphSlots = new Int32Array(MAX_ACTIVE_TARGETS);
+    this.morphWeights = new Float32Array(MAX_ACTIVE_TARGETS);
     canvas.addEventListener("webglcontextlost", (e) => e.preventDefault());
   }
 
@@ -221,8 +251,66 @@ export class GlRenderer {
         indexCount = p.indices.length;
       }
       gl.bindVertexArray(null);
-      return { vao, indexed: !!p.indices, count: indexCount };
+      const moving = p.targets.filter((t) => t.positions.some((v) => v !== 0) || t.normals?.some((v) => v !== 0));
+      return { vao, indexed: !!p.indices, count: indexCount, vertices: count, ...this.uploadTargets(moving, count) };
     });
+  }
+
+  /**
+   * A primitive's morph targets as one float texture (see SKIN_VS), or none when it has none
+   * or they exceed the texture size this WebGL allows (then the face does not move).
+   * @param {import("./glb.js").MorphTarget[]} targets
+   * @param {number} vertices
+   * @returns {{targets: string[], morph: WebGLTexture | null}}
+   */
+  uploadTargets(targets, vertices) {
+    const gl = this.gl;
+    const texels = targets.length * vertices * 2;
+    const rows = Math.ceil(texels / MORPH_WIDTH);
+    if (texels === 0 || rows > gl.getParameter(gl.MAX_TEXTURE_SIZE)) return { targets: [], morph: null };
+    const data = new Float32Array(rows * MORPH_WIDTH * 4);
+    targets.forEach((t, slot) => {
+      for (let v = 0; v < vertices; v++) {
+        const at = 8 * (slot * vertices + v);
+        data.set(t.positions.subarray(3 * v, 3 * v + 3), at);
+        if (t.normals) data.set(t.normals.subarray(3 * v, 3 * v + 3), at + 4);
+      }
+    });
+    const morph = floatTexture(gl);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, MORPH_WIDTH, rows, 0, gl.RGBA, gl.FLOAT, data);
+    return { targets: targets.map((t) => t.name), morph };
+  }
+
+  /**
+   * Sets the morph uniforms of one primitive from the avatar's weights (by channel name): the
+   * non-zero ones, heaviest first, at most MAX_ACTIVE_TARGETS.
+   * @param {WebGLProgram} program
+   * @param {GpuPrimitive} p
+   * @param {Record<string, number> | undefined} weights
+   */
+  bindMorph(program, p, weights) {
+    const gl = this.gl;
+    /** @type {[number, number][]} slot, weight */
+    const active = [];
+    if (weights && p.morph) {
+      p.targets.forEach((name, slot) => {
+        const w = weights[name];
+        if (typeof w === "number" && Number.isFinite(w) && w !== 0) active.push([slot, w]);
+      });
+      active.sort((a, b) => Math.abs(b[1]) - Math.abs(a[1]));
+      active.length = Math.min(active.length, MAX_ACTIVE_TARGETS);
+    }
+    active.forEach(([slot, w], k) => {
+      this.morphSlots[k] = slot;
+      this.morphWeights[k] = w;
+    });
+    gl.activeTexture(gl.TEXTURE1);
+    gl.bindTexture(gl.TEXTURE_2D, p.morph ?? this.noMorph);
+    gl.uniform1i(gl.getUniformLocation(program, "uMorph"), 1);
+    gl.uniform1i(gl.getUniformLocation(program, "uMorphCount"), active.length);
+    gl.uniform1i(gl.getUniformLocation(program, "uMorphVertices"), p.vertices);
+    gl.uniform1iv(gl.getUniformLocation(program, "uMorphSlots"), this.morphSlots);
+    gl.uniform1fv(gl.getUniformLocation(program, "uMorphWeights"), this.morphWeights);
   }
 
   /**
@@ -248,12 +336,27 @@ export class GlRenderer {
     gl.uniform1i(gl.getUniformLocation(program, "uJoints"), 0);
     gl.uniform3fv(gl.getUniformLocation(program, "uBase"), selected ? SELECTED_MESH_COLOR : MESH_COLOR);
     for (const p of primitives) {
+      this.bindMorph(program, p, avatar.pose?.weights);
       gl.bindVertexArray(p.vao);
       if (p.indexed) gl.drawElements(gl.TRIANGLES, p.count, gl.UNSIGNED_INT, 0);
       else gl.drawArrays(gl.TRIANGLES, 0, p.count);
     }
     gl.bindVertexArray(null);
   }}
+
+/**
+ * A texture for exact float texels (no filtering), bound on TEXTURE_2D.
+ * @param {WebGL2RenderingContext} gl
+ * @returns {WebGLTexture}
+ */
+function floatTexture(gl) {
+  const t = gl.createTexture();
+  if (!t) throw new Error("no WebGL texture");
+  gl.bindTexture(gl.TEXTURE_2D, t);
+  gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+  gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+  return t;
+}
 
 /**
  * @param {number} count

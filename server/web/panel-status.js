@@ -9,7 +9,7 @@ import { $ } from "./ui.js";
 /** @typedef {import("./store.js").State} State */
 
 /** Fieldsets that change the world: enabled only with control. */
-const CONTROLS = ["playback-controls", "joint-controls", "place-controls", "add-controls", "scene-controls"];
+const CONTROLS = ["playback-controls", "joint-controls", "place-controls", "face-controls", "add-controls", "scene-controls"];
 
 /**
  * @param {State} s

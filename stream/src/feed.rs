@@ -103,6 +103,11 @@ impl Subscriber {
             && (self.version >= 3 || (self.version == 2 && self.joints.is_none()))
     }
 
+    /// Whether its v2 frames carry morph weights: protocol version 4 and later.
+    fn weights(&self) -> bool {
+        self.version >= 4
+    }
+
     fn wants(&self, avatar: &AvatarId) -> bool {
         self.filter.as_ref().is_none_or(|f| f.contains(avatar))
     }
@@ -672,7 +677,10 @@ impl Feed {
                 return;
             };
             let now = self.ring.record(newest);
-            if let Some(message) = self.ring.message(newest, &now, None, filter, joints) {
+            if let Some(message) =
+                self.ring
+                    .message(newest, &now, None, filter, joints, sub.weights())
+            {
                 sub.outbox.push_chained(
                     self.num,
                     OutFrame { message, key: true },
@@ -701,7 +709,10 @@ impl Feed {
             pieces,
         };
         let now = wire2::levels(&fresh);
-        if let Some(message) = self.ring.message(&fresh, &now, None, filter, joints) {
+        if let Some(message) = self
+            .ring
+            .message(&fresh, &now, None, filter, joints, sub.weights())
+        {
             sub.outbox
                 .push_frame(self.num, OutFrame { message, key: true });
         }
@@ -810,10 +821,12 @@ impl Feed {
             self.ring.clear();
             None
         };
+        // (chain, avatar filter, joint subset, with morph weights)
         type V2Key<'a> = (
             Option<Vec<u64>>,
             Option<&'a [AvatarId]>,
             Option<&'a JointSet>,
+            bool,
         );
         let mut v2_cache: HashMap<V2Key<'_>, Option<Message>> = HashMap::new();
         for sub in &mut self.subscribers {
@@ -830,6 +843,7 @@ impl Feed {
             }
             let filter = sub.filter.as_deref();
             let joints = sub.joints.as_ref();
+            let weights = sub.weights();
             if sub.v2() {
                 let Some(levels) = &levels else { continue };
                 let ring = &self.ring;
@@ -841,9 +855,16 @@ impl Feed {
                     .flatten()
                     .and_then(|chain| {
                         v2_cache
-                            .entry((Some(chain.clone()), filter, joints))
+                            .entry((Some(chain.clone()), filter, joints, weights))
                             .or_insert_with(|| {
-                                ring.message(&published, levels, Some(&chain), filter, joints)
+                                ring.message(
+                                    &published,
+                                    levels,
+                                    Some(&chain),
+                                    filter,
+                                    joints,
+                                    weights,
+                                )
                             })
                             .clone()
                     });
@@ -854,9 +875,9 @@ impl Feed {
                     },
                     None => {
                         let Some(message) = v2_cache
-                            .entry((None, filter, joints))
+                            .entry((None, filter, joints, weights))
                             .or_insert_with(|| {
-                                ring.message(&published, levels, None, filter, joints)
+                                ring.message(&published, levels, None, filter, joints, weights)
                             })
                             .clone()
                         else {

@@ -166,6 +166,12 @@ fn pose_json_of(d: &AvatarDescription, pose: &AvatarPose, selection: Option<&Sel
         scales: pose.scales.iter().map(|t| t.to_array()).collect(),
         placement: pose.placement,
         joints: None,
+        weights: d
+            .morph_targets
+            .iter()
+            .cloned()
+            .zip(pose.weights.iter().copied())
+            .collect(),
     };
     if let Some(sel) = selection {
         json.rotations = Selection::pick(&json.rotations, sel.joint_indices());

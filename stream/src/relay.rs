@@ -10,7 +10,8 @@
 //! server time µs (u64), base seq (u64), piece count (u32); per piece: id length (u16) and
 //! UTF-8 id, chunk length (u32) and chunk, avatar number (u32), description hash (u64),
 //! rotations (u32 count, 4 f32 each), translations (u32 count, 3 f32 each), scales (u32 count,
-//! 3 f32 each), placement (3 + 4 f32).
+//! 3 f32 each), placement (3 + 4 f32), morph weights (u32 count, f32 each). `PCR1` (before
+//! morph weights) is refused: servers of one cluster run one version.
 
 use super::publish::Published;
 use bytes::Bytes;
@@ -19,7 +20,7 @@ use posecast_proto::frame::{AvatarPose, FrameHeader, FrameKind};
 use posecast_proto::msg::AvatarId;
 use posecast_proto::placement::Placement;
 
-const MAGIC: &[u8; 4] = b"PCR1";
+const MAGIC: &[u8; 4] = b"PCR2";
 
 /// A relayed frame that cannot be read.
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
@@ -108,6 +109,8 @@ pub(super) fn encode(frame: &Published) -> Bytes {
         }
         f32s(&mut out, &pose.placement.position.to_array());
         f32s(&mut out, &pose.placement.rotation.to_array());
+        out.extend_from_slice(&(pose.weights.len() as u32).to_le_bytes());
+        f32s(&mut out, &pose.weights);
     }
     Bytes::from(out)
 }
@@ -221,6 +224,8 @@ pub fn decode(bytes: &[u8]) -> Result<RelayFrame, RelayError> {
         let scales = (0..n).map(|_| r.vec3()).collect::<Result<_, _>>()?;
         let position = r.vec3()?;
         let rotation = r.quat()?;
+        let n = r.count(4)?;
+        let weights = (0..n).map(|_| r.f32()).collect::<Result<_, _>>()?;
         pieces.push(RelayPiece {
             avatar: AvatarId(id.to_owned()),
             chunk,
@@ -231,6 +236,7 @@ pub fn decode(bytes: &[u8]) -> Result<RelayFrame, RelayError> {
                 translations,
                 scales,
                 placement: Placement { position, rotation },
+                weights,
             },
         });
     }

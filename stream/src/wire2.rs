@@ -81,6 +81,7 @@ impl Ring {
         chain: Option<&[u64]>,
         filter: Option<&[AvatarId]>,
         joints: Option<&JointSet>,
+        weights: bool,
     ) -> Option<Message> {
         let pieces = publish::select(&published.pieces, filter, joints);
         let seq = published.header.seq;
@@ -90,7 +91,7 @@ impl Ring {
             let num = p.pose.avatar_num;
             let (hash, levels) = now.get(&num)?;
             let selection = selection.as_deref();
-            let levels = cut(levels, selection);
+            let levels = cut(levels, selection, weights);
             if chain.is_none() {
                 frame2::encode_key(num, *hash, &levels, &mut body);
                 continue;
@@ -98,7 +99,7 @@ impl Ring {
             let history: Vec<Cow<'_, QuantPose>> = ticks
                 .iter()
                 .map_while(|t| t.get(&num).filter(|(h, _)| h == hash))
-                .map(|(_, l)| cut(l, selection))
+                .map(|(_, l)| cut(l, selection, weights))
                 .collect();
             let history: Vec<&QuantPose> = history.iter().map(|h| &**h).collect();
             if !frame2::encode_delta(num, &levels, &history, &mut body) {
@@ -121,11 +122,19 @@ impl Ring {
     }
 }
 
-/// `levels`, or of them the joints `selection` names.
-fn cut<'l>(levels: &'l QuantPose, selection: Option<&Selection>) -> Cow<'l, QuantPose> {
-    match selection {
-        None => Cow::Borrowed(levels),
-        Some(sel) => Cow::Owned(levels.select(sel)),
+/// `levels`, or of them the joints `selection` names; without morph weights unless
+/// `weights` (a receiver of protocol version 2 or 3, whose decoder knows none).
+fn cut<'l>(
+    levels: &'l QuantPose,
+    selection: Option<&Selection>,
+    weights: bool,
+) -> Cow<'l, QuantPose> {
+    let strip = !weights && !levels.weights.is_empty();
+    match (selection, strip) {
+        (None, false) => Cow::Borrowed(levels),
+        (None, true) => Cow::Owned(levels.without_weights()),
+        (Some(sel), false) => Cow::Owned(levels.select(sel)),
+        (Some(sel), true) => Cow::Owned(levels.select(sel).without_weights()),
     }
 }
 

@@ -250,6 +250,7 @@ pub fn example_pose() -> StreamedPose {
             received_us: 0,
             locals,
             placement: Default::default(),
+            weights: Vec::new(),
         },
         skeleton: Arc::new(skeleton),
     }

@@ -16,6 +16,8 @@
 //! - `push`: changes made by others show within a second without the page asking (it never
 //!   sends `list_scenes`, and sends no command while idle); who watches and who drives; the
 //!   page as an avatar's live driver (Drive, the sliders, Release drive); a take recorded;
+//! - `faces`: the Face panel shows an expression and moves a morph channel; the stream carries
+//!   the weights to the page and the WebGL preview morphs the mesh;
 //! - `sdk`: the JavaScript client `/sdk/posecast.js` from pages on another origin: binary
 //!   frames decoded as a Rust client decodes them, typed command errors, the guide's example page (`docs/src/how-to/javascript.md`).
 //!
@@ -29,6 +31,7 @@ mod common;
 
 mod browser;
 mod controls;
+mod faces;
 mod layout;
 mod placement;
 mod push;

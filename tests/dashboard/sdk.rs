@@ -307,7 +307,7 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
     let (binary_bytes, json_bytes) = (sizes[0].as_f64().unwrap(), sizes[1].as_f64().unwrap());
     let (arm_bytes, v1_bytes) = (sizes[2].as_f64().unwrap(), sizes[4].as_f64().unwrap());
     assert_eq!(sizes[3], json!(0), "arm-only frames all decoded");
-    assert_eq!(sizes[5], json!([3, 1, 3]), "protocol versions welcomed");
+    assert_eq!(sizes[5], json!([4, 1, 4]), "protocol versions welcomed");
     assert_eq!(sizes[6], json!(0), "v2 frames all decoded");
     assert_eq!(sizes[7], json!(0), "v1 frames all decoded");
     // The arm's chain comes as v2 frames cut to it: smaller than v2 frames of every joint.
@@ -556,9 +556,9 @@ window.client = client;
     server.stop().await;
 }
 
-/// Against a server of before protocol version 2 (it refuses `hello {version: 3}` and
-/// `{version: 2}` with `unsupported_version`), the client — asking for 3 by default — says hello
-/// again with the version before until it comes online with 1.
+/// Against a server of before protocol version 2 (it refuses `hello {version: 4}`, `3` and
+/// `2` with `unsupported_version`), the client — asking for 4 by default — says hello again
+/// with the version before until it comes online with 1.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_client_falls_back_to_version_1_for_an_older_server() {
     // The posecast server only serves the SDK's files; the client talks to the old one.
@@ -584,6 +584,6 @@ client.connect();
          && window.client.welcome.version === 1",
     )
     .await;
-    assert_eq!(*hellos.lock().unwrap(), vec![3, 2, 1]);
+    assert_eq!(*hellos.lock().unwrap(), vec![4, 3, 2, 1]);
     server.stop().await;
 }

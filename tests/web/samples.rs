@@ -50,6 +50,11 @@ fn state(full: bool) -> AvatarState {
         } else {
             Default::default()
         },
+        morph_weights: if full {
+            [("mouthOpen".to_owned(), 0.25)].into_iter().collect()
+        } else {
+            Default::default()
+        },
         fade: full.then(|| FadeState {
             from: "idle".into(),
             from_asset: Some("other".into()),
@@ -85,6 +90,11 @@ fn samples() -> Vec<(&'static str, &'static str, Value)> {
         translated_joints: vec![0],
         scaled_joints: vec![1],
         mesh_url: Some("/api/assets/avatar/mesh.glb".into()),
+        morph_targets: vec!["mouthOpen".into(), "eyesClosed".into()],
+        expressions: [("aa", "mouthOpen"), ("blink", "eyesClosed")]
+            .into_iter()
+            .map(|(k, v)| (k.to_owned(), v.to_owned()))
+            .collect(),
         clip: Some("walk".into()),
         hash: "0123456789abcdef".into(),
     };
@@ -247,6 +257,12 @@ fn samples() -> Vec<(&'static str, &'static str, Value)> {
                     scales: vec![[1.0, 1.0, 1.0]],
                     placement: Placement::IDENTITY,
                     joints: Some(vec![0, 1]),
+                    weights: [
+                        ("mouthOpen".to_owned(), 0.25),
+                        ("eyesClosed".to_owned(), 0.0)
+                    ]
+                    .into_iter()
+                    .collect(),
                 }],
             })),
         ),

@@ -84,6 +84,7 @@ fn pose_json(p: &AvatarPose) -> Value {
             "position": p.placement.position.to_array(),
             "rotation": p.placement.rotation.to_array(),
         },
+        "weights": p.weights,
     })
 }
 
@@ -105,6 +106,7 @@ fn frame_vectors(rng: &mut Lcg) -> Vec<Value> {
                 vec![]
             },
             placement: Placement::IDENTITY,
+            weights: Vec::new(),
         })
         .collect();
     let mut encoders = vec![ChunkEncoder::new(); poses.len()];
@@ -286,6 +288,12 @@ fn frame2_vectors(rng: &mut Lcg) -> Value {
                 vec![]
             },
             placement: Placement::IDENTITY,
+            // The second avatar has a face: seven morph channels (protocol version 4).
+            weights: if i == 1 {
+                (0..7).map(|_| rng.next()).collect()
+            } else {
+                Vec::new()
+            },
         })
         .collect();
     let spin: Vec<Vec<Vec3>> = poses
@@ -320,6 +328,15 @@ fn frame2_vectors(rng: &mut Lcg) -> Value {
             if rng.next() < 0.1 {
                 for s in &mut pose.scales {
                     *s = rng.vec3();
+                }
+            }
+            // Speech: a channel or two moves most ticks; now and then all rest at 0 or 1.
+            for w in &mut pose.weights {
+                let r = rng.next();
+                if r < 0.25 {
+                    *w = rng.next();
+                } else if r < 0.28 {
+                    *w = if r < 0.265 { 0.0 } else { 1.0 };
                 }
             }
         }
@@ -400,6 +417,7 @@ fn frame2_odd_vectors(rng: &mut Lcg) -> Vec<Value> {
         translations: vec![rng.vec3()],
         scales: vec![Vec3::ONE],
         placement: Placement::IDENTITY,
+        weights: Vec::new(),
     };
     let header = |kind, count: usize, seq: u64, base_seq: u64| {
         let mut out = Vec::new();
@@ -629,6 +647,8 @@ fn subset_vectors(rng: &mut Lcg) -> Value {
             translated_joints: translated,
             scaled_joints: scaled,
             mesh_url: None,
+            morph_targets: vec![],
+            expressions: std::collections::BTreeMap::new(),
             clip: None,
             hash: String::new(),
         };

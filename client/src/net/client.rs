@@ -56,10 +56,11 @@ pub struct ClientOptions {
     /// Only these joints of every avatar, from every subscription (`None`: all). The joints
     /// left out stay at their rest transforms in the poses this client gives.
     pub joints: Option<JointSet>,
-    /// Protocol version asked for in hello (default 3): 2 and 3 get wire v2 binary frames
+    /// Protocol version asked for in hello (default 4): 2 to 4 get wire v2 binary frames
     /// ([`posecast_proto::frame2`], about half of v1's bytes), 1 the v1 frames
-    /// ([`posecast_proto::frame`]); 3 also gets command results tagged with their kind (1 and
-    /// 2 bare values, read by their shape: [`CommandResult::from_bare`]). A server that refuses
+    /// ([`posecast_proto::frame`]); 3 and 4 also get command results tagged with their kind (1
+    /// and 2 bare values, read by their shape: [`CommandResult::from_bare`]); 4 also gets
+    /// morph weights in frames. A server that refuses
     /// the version (`unsupported_version`: one that predates it) gets a hello with the version
     /// before, down to 1.
     pub version: u32,
@@ -80,7 +81,7 @@ impl ClientOptions {
             name: "posecast-client".into(),
             rate: None,
             joints: None,
-            version: 3,
+            version: 4,
         }
     }
 }
@@ -121,6 +122,9 @@ pub struct PoseSample {
     pub locals: Vec<Transform>,
     /// The avatar's world placement at this tick.
     pub placement: Placement,
+    /// Morph weights, one per channel of the description's `morph_targets` (empty when the
+    /// rig has none, or the connection's protocol version is below 4 and frames are binary).
+    pub weights: Vec<f32>,
 }
 
 impl PoseSample {
@@ -474,6 +478,17 @@ impl Client {
             .and_then(|a| a.jitter.playout(unix_micros()))
     }
 
+    /// The avatar's morph weights to draw now, one per channel of its description's
+    /// `morph_targets`: those of the newest frame (weights are not interpolated; a face
+    /// changes at speech rate, far slower than the jitter buffer's delay).
+    #[must_use]
+    pub fn weights_now(&self, id: &AvatarId) -> Option<Vec<f32>> {
+        lock(&self.shared)
+            .avatars
+            .get(id)
+            .and_then(|a| a.latest.as_ref().map(|l| l.weights.clone()))
+    }
+
     /// Totals so far.
     #[must_use]
     pub fn stats(&self) -> Stats {
@@ -776,15 +791,8 @@ fn on_server_msg(
     Ok(())
 }
 
-fn record(
-    s: &mut Shared,
-    id: &AvatarId,
-    seq: u64,
-    server_time_us: u64,
-    received: u64,
-    locals: Vec<Transform>,
-    placement: Placement,
-) {
+fn record(s: &mut Shared, id: &AvatarId, sample: PoseSample) {
+    let (server_time_us, received) = (sample.server_time_us, sample.received_us);
     // Latency needs the clock offset: frames that arrive before the first pong are not
     // counted (they would mix two clocks). An avatar's first pose is the join keyframe, which
     // the server may have made up to a second ago: its age is reported on its own.
@@ -800,13 +808,6 @@ fn record(
         }
     }
     if let Some(a) = s.avatars.get_mut(id) {
-        let sample = PoseSample {
-            seq,
-            server_time_us,
-            received_us: received,
-            locals,
-            placement,
-        };
         // The jitter buffer interpolates placed poses: placement and pose of the same tick.
         a.jitter
             .push(server_time_us, received, sample.placed_locals(&a.skeleton));
@@ -926,6 +927,7 @@ fn on_binary(
         translations,
         scales,
         placement,
+        weights,
     } in &frame.avatars
     {
         let Some(id) = s.by_num.get(avatar_num).cloned() else {
@@ -945,15 +947,15 @@ fn on_binary(
             translations,
             scales,
         ) {
-            record(
-                &mut s,
-                &id,
-                frame.header.seq,
-                frame.header.server_time_us,
-                received,
+            let sample = PoseSample {
+                seq: frame.header.seq,
+                server_time_us: frame.header.server_time_us,
+                received_us: received,
                 locals,
-                *placement,
-            );
+                placement: *placement,
+                weights: weights.clone(),
+            };
+            record(&mut s, &id, sample);
         } else {
             s.stats.undecodable += 1;
         }
@@ -1005,15 +1007,21 @@ fn on_json_frame(s: &mut Shared, frame: FrameJson, len: usize, received: u64) ->
             continue;
         }
         if let Some(locals) = locals_from(view, listed.as_ref(), &q, &t, &sc) {
-            record(
-                s,
-                &pose.avatar,
-                frame.seq,
-                frame.server_time_us,
-                received,
+            let weights = view
+                .description
+                .morph_targets
+                .iter()
+                .map(|c| pose.weights.get(c).copied().unwrap_or(0.0))
+                .collect();
+            let sample = PoseSample {
+                seq: frame.seq,
+                server_time_us: frame.server_time_us,
+                received_us: received,
                 locals,
-                pose.placement,
-            );
+                placement: pose.placement,
+                weights,
+            };
+            record(s, &pose.avatar, sample);
         } else {
             s.stats.undecodable += 1;
         }

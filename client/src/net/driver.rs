@@ -299,6 +299,7 @@ impl Driver {
             rotations: rotations.into_iter().collect::<BTreeMap<_, _>>(),
             root_position,
             time_us,
+            weights: BTreeMap::new(),
         })
         .await
     }

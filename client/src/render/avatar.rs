@@ -1,5 +1,6 @@
-//! One avatar's GPU resources: its mesh (uploaded once), its joint-matrix buffer (rewritten on
-//! every pose) and, for the compute path, a buffer of skinned vertices.
+//! One avatar's GPU resources: its mesh and morph targets (uploaded once), its joint-matrix
+//! buffer (rewritten on every pose), its active morph weights and, for the compute path, a
+//! buffer of skinned vertices.
 
 use super::bounds::{Aabb, JointBounds};
 use super::compute::{SkinningKernel, check_mesh, nonempty};
@@ -8,6 +9,7 @@ use super::gpu_types::{
     AvatarUniform, JointMatrix, LineVertex, SkinnedVertex, gpu_mesh, pack_matrices, pack_vertices,
     rgba,
 };
+use super::morph::GpuMorph;
 use glam::Vec3;
 use posecast_proto::fk::PoseBuffers;
 use posecast_proto::{Skeleton, SkinnedMesh, Transform};
@@ -33,6 +35,7 @@ pub(crate) struct GpuAvatar {
     vertex_count: usize,
     joints: wgpu::Buffer,
     uniform: wgpu::Buffer,
+    morph: GpuMorph,
     pub(crate) bind_group: wgpu::BindGroup,
     compute: Option<ComputeOutput>,
     label: String,
@@ -66,6 +69,14 @@ impl GpuAvatar {
             });
         }
         let mesh = gpu_mesh(mesh);
+        let morph = match GpuMorph::new(device, &label, &mesh) {
+            Ok(morph) => morph,
+            Err(error) => {
+                // The body still draws; the face just does not move.
+                tracing::warn!(avatar = %label, %error, "morph targets not shown");
+                GpuMorph::new(device, &label, &mesh.as_ref().clone().without_targets())?
+            }
+        };
         let packed = pack_vertices(&mesh);
         let vertices = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some(&format!("{label} bind-pose vertices")),
@@ -105,6 +116,14 @@ impl GpuAvatar {
                     binding: 1,
                     resource: uniform.as_entire_binding(),
                 },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: morph.deltas().as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 3,
+                    resource: morph.state().as_entire_binding(),
+                },
             ],
         });
         let mut avatar = Self {
@@ -118,6 +137,7 @@ impl GpuAvatar {
             vertex_count: mesh.vertex_count(),
             joints,
             uniform,
+            morph,
             bind_group,
             compute: None,
             label,
@@ -144,6 +164,20 @@ impl GpuAvatar {
         pack_matrices(&self.pose.skinning, &mut self.staging);
         queue.write_buffer(&self.joints, 0, bytemuck::cast_slice(&self.staging));
         Ok(())
+    }
+
+    /// Sets the weights of the mesh's morph targets (mesh order, missing entries 0).
+    pub(crate) fn set_morph_weights(
+        &mut self,
+        queue: &wgpu::Queue,
+        weights: &[f32],
+    ) -> Result<(), RenderError> {
+        self.morph.set_weights(queue, weights)
+    }
+
+    /// The mesh's morph targets (what [`GpuAvatar::set_morph_weights`] indexes).
+    pub(crate) fn morph_targets(&self) -> usize {
+        self.morph.targets()
     }
 
     pub(crate) fn set_color(&self, queue: &wgpu::Queue, color: Vec3) {
@@ -193,6 +227,7 @@ impl GpuAvatar {
             &self.vertices,
             &self.joints,
             &skinned,
+            &self.morph,
         );
         self.compute = Some(ComputeOutput {
             skinned,

@@ -1,5 +1,6 @@
-//! Compute skinning: the mesh is uploaded once, each call uploads only the skinning matrices
-//! `M_j = W_j · B_j⁻¹`, runs the shared `skin()` over every vertex, and (for [`ComputeSkinner`])
+//! Compute skinning: the mesh (and its morph targets) is uploaded once, each call uploads only
+//! the skinning matrices `M_j = W_j · B_j⁻¹` (and the active morph weights), runs the shared
+//! `morph()` and `skin()` over every vertex, and (for [`ComputeSkinner`])
 //! reads the skinned positions and normals back. The renderer uses [`SkinningKernel`] directly
 //! to skin into a vertex buffer it then draws.
 
@@ -9,6 +10,7 @@ use super::gpu_types::{
     JointMatrix, MAX_JOINTS_PER_AVATAR, SkinVertex, SkinnedVertex, gpu_mesh, joints_used,
     pack_matrices, pack_vertices,
 };
+use super::morph::GpuMorph;
 use super::shader;
 use glam::{Mat4, Vec3};
 use posecast_proto::SkinnedMesh;
@@ -24,7 +26,8 @@ pub struct SkinningKernel {
 }
 
 impl SkinningKernel {
-    /// Builds the pipeline (the shared `skin()` run by `compute.wgsl`'s `skin_vertices`) and its
+    /// Builds the pipeline (the shared `morph()` and `skin()` run by `compute.wgsl`'s
+    /// `skin_vertices`) and its
     /// bind group layout on `device`.
     #[must_use]
     pub fn new(device: &wgpu::Device) -> Self {
@@ -40,7 +43,13 @@ impl SkinningKernel {
         };
         let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("compute skinning bind group layout"),
-            entries: &[storage(0, true), storage(1, true), storage(2, false)],
+            entries: &[
+                storage(0, true),
+                storage(1, true),
+                storage(2, false),
+                storage(3, true),
+                storage(4, true),
+            ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("compute skinning pipeline layout"),
@@ -50,7 +59,11 @@ impl SkinningKernel {
         let module = shader::module(
             device,
             "compute skinning shader",
-            &[shader::SKINNING_WGSL, include_str!("compute.wgsl")],
+            &[
+                shader::SKINNING_WGSL,
+                shader::MORPH_WGSL,
+                include_str!("compute.wgsl"),
+            ],
         );
         let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some("compute skinning pipeline"),
@@ -75,8 +88,8 @@ impl SkinningKernel {
         by_binding.min(by_dispatch)
     }
 
-    /// Binds bind-pose `vertices` ([`SkinVertex`]), `joints` ([`JointMatrix`]) and `output`
-    /// ([`SkinnedVertex`], one per vertex).
+    /// Binds bind-pose `vertices` ([`SkinVertex`]), `joints` ([`JointMatrix`]), `output`
+    /// ([`SkinnedVertex`], one per vertex) and the mesh's `morph` targets.
     #[must_use]
     pub fn bind_group(
         &self,
@@ -85,6 +98,7 @@ impl SkinningKernel {
         vertices: &wgpu::Buffer,
         joints: &wgpu::Buffer,
         output: &wgpu::Buffer,
+        morph: &GpuMorph,
     ) -> wgpu::BindGroup {
         device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some(label),
@@ -101,6 +115,14 @@ impl SkinningKernel {
                 wgpu::BindGroupEntry {
                     binding: 2,
                     resource: output.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 3,
+                    resource: morph.deltas().as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 4,
+                    resource: morph.state().as_entire_binding(),
                 },
             ],
         })
@@ -136,8 +158,9 @@ pub(crate) fn check_mesh(device: &wgpu::Device, mesh: &SkinnedMesh) -> Result<us
     Ok(joints)
 }
 
-/// Skins one mesh on the GPU with a compute shader and reads the result back: the path tests
-/// compare with `posecast_proto::skinning::skin_cpu`.
+/// Morphs and skins one mesh on the GPU with a compute shader and reads the result back: the
+/// path tests compare with `posecast_proto::morph::morph_cpu` then
+/// `posecast_proto::skinning::skin_cpu`.
 #[derive(Debug)]
 pub struct ComputeSkinner {
     gpu: Gpu,
@@ -149,6 +172,7 @@ pub struct ComputeSkinner {
     readback: wgpu::Buffer,
     bind_group: wgpu::BindGroup,
     staging: Vec<JointMatrix>,
+    morph: GpuMorph,
 }
 
 impl ComputeSkinner {
@@ -184,6 +208,7 @@ impl ComputeSkinner {
                 usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
                 mapped_at_creation: false,
             });
+            let morph = GpuMorph::new(device, "compute skinning", &mesh)?;
             let kernel = SkinningKernel::new(device);
             let bind_group = kernel.bind_group(
                 device,
@@ -191,6 +216,7 @@ impl ComputeSkinner {
                 &vertex_buffer,
                 &joint_buffer,
                 &output,
+                &morph,
             );
             Ok(Self {
                 gpu: gpu.clone(),
@@ -202,6 +228,7 @@ impl ComputeSkinner {
                 readback,
                 bind_group,
                 staging: Vec::with_capacity(joints),
+                morph,
             })
         })
     }
@@ -216,6 +243,15 @@ impl ComputeSkinner {
     #[must_use]
     pub fn vertex_count(&self) -> usize {
         self.vertex_count
+    }
+
+    /// Sets the weights of the mesh's morph targets for the next [`ComputeSkinner::skin`]
+    /// (mesh order, missing entries 0; see [`GpuMorph::set_weights`]).
+    ///
+    /// # Errors
+    /// More weights than the mesh has targets.
+    pub fn set_morph_weights(&mut self, weights: &[f32]) -> Result<(), RenderError> {
+        self.morph.set_weights(&self.gpu.queue, weights)
     }
 
     /// Skins the mesh with `skinning[j] = M_j = W_j · B_j⁻¹` (model space) and returns the

@@ -60,6 +60,21 @@ pub enum RenderError {
         /// The most vertices this device can skin in one binding and dispatch.
         limit: usize,
     },
+    /// A mesh's morph-target displacements do not fit one storage binding of this device.
+    #[error(
+        "{targets} morph targets over {vertices} vertices need {bytes} bytes, more than the \
+         {limit} this device binds at once"
+    )]
+    MorphTooLarge {
+        /// Targets that displace anything.
+        targets: usize,
+        /// The mesh's vertex count.
+        vertices: usize,
+        /// Bytes the displacements need.
+        bytes: u64,
+        /// The device's storage binding limit.
+        limit: u64,
+    },
     /// The mesh's joint indices reach past the skeleton's joints.
     #[error("mesh refers to joint {joint}, but the skeleton has {joints} joints")]
     MeshJointOutOfRange {

@@ -3,13 +3,17 @@
 //! and of `--mesh` files given to the CLI.
 //!
 //! Only what the renderer draws is read: `POSITION`, `NORMAL` (computed when absent),
-//! `JOINTS_0`/`WEIGHTS_0` and the indices of every triangle primitive of the meshes bound to
-//! the file's first skin, merged into one [`SkinnedMesh`]. Vertices stay in mesh space (the
+//! `JOINTS_0`/`WEIGHTS_0`, the indices and the morph targets (`POSITION`/`NORMAL`
+//! displacements, named by `mesh.extras.targetNames`, else `target<k>`) of every triangle
+//! primitive of the meshes bound to the file's first skin, merged into one [`SkinnedMesh`]:
+//! targets of the same name on several primitives become one target (zero on the vertices of
+//! primitives without it), as the server's morph channels are. Vertices stay in mesh space (the
 //! skinned node's own transform is ignored, as the glTF spec requires). Joint indices in the
 //! file refer to the skin's joint list; [`GlbMesh::for_joints`] maps them onto a description's
 //! joint order by name. This is not an importer: skeletons and clips come from the server.
 
 use glam::Vec3;
+use posecast_proto::morph::MorphTarget;
 use posecast_proto::{MeshError, SkinnedMesh};
 use std::collections::HashMap;
 
@@ -150,6 +154,7 @@ impl GlbMesh {
             mesh.weights().to_vec(),
             joints.len(),
         )
+        .and_then(|m| m.with_targets(mesh.targets().to_vec()))
         .map_err(|source| GlbMeshError::Mesh {
             mesh: "merged".into(),
             source,
@@ -183,7 +188,8 @@ fn read_document(
             }
             let label = format!("{}#{}", mesh.name().unwrap_or("mesh"), prim.index());
             let part = read_primitive(&prim, buffers, &label, joint_names.len())?;
-            merged.append(&part);
+            let targets = read_targets(&mesh, &prim, buffers, &label, part.vertex_count())?;
+            merged.append(&part, targets);
         }
     }
     if merged.positions.is_empty() {
@@ -198,6 +204,7 @@ fn read_document(
         merged.weights,
         joint_names.len(),
     )
+    .and_then(|m| m.with_targets(merged.targets))
     .map_err(|source| GlbMeshError::Mesh {
         mesh: "merged".into(),
         source,
@@ -212,17 +219,113 @@ struct Merged {
     indices: Vec<u32>,
     joints: Vec<u16>,
     weights: Vec<f32>,
+    targets: Vec<MorphTarget>,
 }
 
 impl Merged {
-    fn append(&mut self, part: &SkinnedMesh) {
-        let base = self.positions.len() as u32;
+    /// Appends a primitive and its targets: a target name seen before continues that target,
+    /// a new one starts with zeros for the vertices already merged; targets this primitive
+    /// lacks get zeros for its vertices.
+    fn append(&mut self, part: &SkinnedMesh, targets: Vec<MorphTarget>) {
+        let before = self.positions.len();
+        let after = before + part.vertex_count();
+        for target in targets {
+            let index = match self.targets.iter().position(|t| t.name == target.name) {
+                Some(i) => i,
+                None => {
+                    self.targets.push(MorphTarget {
+                        name: target.name.clone(),
+                        positions: vec![Vec3::ZERO; before],
+                        normals: vec![Vec3::ZERO; before],
+                    });
+                    self.targets.len() - 1
+                }
+            };
+            let merged = &mut self.targets[index];
+            if merged.positions.len() == before {
+                merged.positions.extend_from_slice(&target.positions);
+                if target.normals.is_empty() {
+                    merged.normals.resize(after, Vec3::ZERO);
+                } else {
+                    merged.normals.extend_from_slice(&target.normals);
+                }
+            }
+        }
+        for merged in &mut self.targets {
+            merged.positions.resize(after, Vec3::ZERO);
+            merged.normals.resize(after, Vec3::ZERO);
+        }
+        let base = before as u32;
         self.positions.extend_from_slice(part.positions());
         self.normals.extend_from_slice(part.normals());
         self.indices.extend(part.indices().iter().map(|i| i + base));
         self.joints.extend_from_slice(part.joints());
         self.weights.extend_from_slice(part.weights());
     }
+}
+
+/// A primitive's morph targets, one per entry of `primitive.targets` (a target without
+/// `POSITION` displaces no position, one without `NORMAL` no normal).
+fn read_targets(
+    mesh: &gltf::Mesh<'_>,
+    prim: &gltf::Primitive<'_>,
+    buffers: &[gltf::buffer::Data],
+    label: &str,
+    vertices: usize,
+) -> Result<Vec<MorphTarget>, GlbMeshError> {
+    let names = target_names(mesh);
+    let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
+    let mut out = Vec::new();
+    for (k, (positions, normals, _tangents)) in reader.read_morph_targets().enumerate() {
+        let read = |list: Option<gltf::accessor::Iter<'_, [f32; 3]>>, what: &str| {
+            let list: Vec<Vec3> = list
+                .map(|it| it.map(Vec3::from).collect())
+                .unwrap_or_default();
+            if list.is_empty() || list.len() == vertices {
+                Ok(list)
+            } else {
+                Err(GlbMeshError::Accessor {
+                    mesh: label.to_owned(),
+                    message: format!(
+                        "morph target {k} {what} has {} entries for {vertices} vertices",
+                        list.len()
+                    ),
+                })
+            }
+        };
+        let mut positions = read(positions, "POSITION")?;
+        positions.resize(vertices, Vec3::ZERO);
+        let normals = read(normals, "NORMAL")?;
+        out.push(MorphTarget {
+            name: names
+                .get(k)
+                .filter(|n| !n.is_empty())
+                .cloned()
+                .unwrap_or_else(|| format!("target{k}")),
+            positions,
+            normals,
+        });
+    }
+    Ok(out)
+}
+
+/// `mesh.extras.targetNames` (the de-facto convention for morph target names), when present.
+fn target_names(mesh: &gltf::Mesh<'_>) -> Vec<String> {
+    let extras = mesh
+        .extras()
+        .as_ref()
+        .and_then(|raw| serde_json::from_str::<serde_json::Value>(raw.get()).ok());
+    extras
+        .as_ref()
+        .and_then(|e| e.get("targetNames"))
+        .and_then(serde_json::Value::as_array)
+        .map(|names| {
+            names
+                .iter()
+                .map(|v| v.as_str().unwrap_or_default().to_owned())
+                .collect()
+        })
+        .unwrap_or_default()
 }
 
 /// One primitive as a mesh of its own (normals computed when absent), four influences.

@@ -1,5 +1,5 @@
-// Avatar meshes: vertex-shader skinning (vs_skinned, appended to skinning.wgsl so it runs the
-// same skin() as the compute kernel), already-skinned vertices (vs_preskinned, for the compute
+// Avatar meshes: vertex-shader morphing and skinning (vs_skinned, appended to skinning.wgsl and
+// morph.wgsl so it runs the same morph() and skin() as the compute kernel), already-skinned vertices (vs_preskinned, for the compute
 // path), and one lit fragment shader. Built after camera.wgsl (`camera`, group 0) and
 // skinning.wgsl. Bindings match `Pipelines` in renderer.rs.
 
@@ -9,6 +9,8 @@ struct Avatar {
 
 @group(1) @binding(0) var<storage, read> joint_matrices: array<mat4x4<f32>>;
 @group(1) @binding(1) var<uniform> avatar: Avatar;
+@group(1) @binding(2) var<storage, read> morph_deltas: array<vec4<f32>>;
+@group(1) @binding(3) var<storage, read> morph_state: MorphState;
 
 struct VertexOut {
     @builtin(position) clip: vec4<f32>,
@@ -30,8 +32,10 @@ fn vs_skinned(
     @location(1) normal: vec3<f32>,
     @location(2) joints: vec4<u32>,
     @location(3) weights: vec4<f32>,
+    // With an index buffer this is the index read, i.e. the mesh's own vertex number.
+    @builtin(vertex_index) vertex: u32,
 ) -> VertexOut {
-    let v = SkinVertex(position, normal, joints, weights);
+    let v = morph(SkinVertex(position, normal, joints, weights), vertex);
     return to_clip(skin(
         v,
         joint_matrices[joints.x],

@@ -5,7 +5,9 @@
 //!   exists.
 //! - [`gpu_types`]: every struct the GPU reads, the influence count and the per-avatar joint
 //!   limit.
-//! - `skinning.wgsl`: the one skinning function, shared by [`compute`] and the vertex shader.
+//! - `skinning.wgsl`: the one skinning function, shared by [`compute`] and the vertex shader;
+//!   `morph.wgsl` likewise the one morph-target function, run before it ([`morph`] holds its
+//!   buffers).
 //! - `camera.wgsl`: the camera uniform, the prelude of every render pipeline's shader.
 //! - [`compute`]: compute skinning ([`ComputeSkinner`]), the path tested against the CPU
 //!   reference `posecast_proto::skinning::skin_cpu`.
@@ -26,6 +28,7 @@ pub mod glb_mesh;
 pub mod gpu;
 pub mod gpu_types;
 pub mod image;
+pub mod morph;
 pub mod offscreen;
 pub mod orbit;
 mod pipelines;
@@ -41,6 +44,7 @@ pub use error::RenderError;
 pub use gpu::Gpu;
 pub use gpu_types::{GPU_INFLUENCES, MAX_JOINTS_PER_AVATAR};
 pub use image::{RgbaImage, Tolerance};
+pub use morph::GpuMorph;
 pub use offscreen::Offscreen;
 pub use renderer::{AvatarHandle, Renderer, RendererOptions, SkinningPath};
 pub use viewer::{AvatarUpdate, PoseSource, ViewerOptions, run_viewer};

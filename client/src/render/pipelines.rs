@@ -34,6 +34,16 @@ impl Pipelines {
             count: None,
         };
         let both = wgpu::ShaderStages::VERTEX_FRAGMENT;
+        let storage_in_vertex = |binding| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::VERTEX,
+            ty: wgpu::BindingType::Buffer {
+                ty: wgpu::BufferBindingType::Storage { read_only: true },
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
+            count: None,
+        };
         let camera_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("camera bind group layout"),
             entries: &[uniform(0, both)],
@@ -41,17 +51,10 @@ impl Pipelines {
         let avatar_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("avatar bind group layout"),
             entries: &[
-                wgpu::BindGroupLayoutEntry {
-                    binding: 0,
-                    visibility: wgpu::ShaderStages::VERTEX,
-                    ty: wgpu::BindingType::Buffer {
-                        ty: wgpu::BufferBindingType::Storage { read_only: true },
-                        has_dynamic_offset: false,
-                        min_binding_size: None,
-                    },
-                    count: None,
-                },
+                storage_in_vertex(0),
                 uniform(1, both),
+                storage_in_vertex(2),
+                storage_in_vertex(3),
             ],
         });
         let mesh_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -68,7 +71,12 @@ impl Pipelines {
         let mesh_module = shader::module(
             device,
             "mesh shader",
-            &[camera, skinning, include_str!("mesh.wgsl")],
+            &[
+                camera,
+                skinning,
+                shader::MORPH_WGSL,
+                include_str!("mesh.wgsl"),
+            ],
         );
         let ground_module = shader::module(
             device,

@@ -247,6 +247,32 @@ impl Renderer {
         avatar.set_pose(&self.queue, &placed)
     }
 
+    /// Sets an avatar's morph-target weights, one per target of the mesh it was added with
+    /// (that mesh's `targets()` order; missing entries are 0). The GPU morphs before skinning,
+    /// `v' = v + Σₖ wₖ·Δvₖ` (normals likewise), on both skinning paths; only non-zero weights
+    /// cost anything. A mesh without targets accepts an empty list.
+    ///
+    /// # Errors
+    /// An unknown handle, or more weights than the mesh has targets.
+    pub fn set_morph_weights(
+        &mut self,
+        handle: AvatarHandle,
+        weights: &[f32],
+    ) -> Result<(), RenderError> {
+        let queue = self.queue.clone();
+        self.avatar_mut(handle)?.set_morph_weights(&queue, weights)
+    }
+
+    /// How many morph targets an avatar's mesh has (the length
+    /// [`Renderer::set_morph_weights`] takes at most); 0 when its targets could not be
+    /// uploaded (a warning says why).
+    pub fn morph_targets(&self, handle: AvatarHandle) -> Result<usize, RenderError> {
+        self.avatars
+            .get(&handle.0)
+            .map(GpuAvatar::morph_targets)
+            .ok_or(RenderError::UnknownAvatar { handle: handle.0 })
+    }
+
     /// Changes an avatar's base colour (linear RGB).
     pub fn set_avatar_color(
         &mut self,

@@ -42,6 +42,9 @@ pub enum AvatarUpdate {
         id: u64,
         /// `D_j` per joint, in the parent's space (a root's in world space).
         locals: Vec<Transform>,
+        /// Morph weights, one per target of the spawned mesh (its `targets()` order; missing
+        /// entries are 0, so a mesh without targets takes an empty list).
+        weights: Vec<f32>,
     },
     /// The avatar left.
     Despawn {
@@ -396,12 +399,19 @@ impl WindowState {
                 }
                 self.framed = None;
             }
-            AvatarUpdate::Pose { id, locals } => {
+            AvatarUpdate::Pose {
+                id,
+                locals,
+                weights,
+            } => {
                 let Some(&handle) = self.handles.get(&id) else {
                     return;
                 };
                 if let Err(error) = self.renderer.set_pose(handle, &locals) {
                     tracing::warn!(id, %error, "pose ignored");
+                }
+                if let Err(error) = self.renderer.set_morph_weights(handle, &weights) {
+                    tracing::warn!(id, %error, "morph weights ignored");
                 }
             }
             AvatarUpdate::Despawn { id } => {

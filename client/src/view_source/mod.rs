@@ -12,6 +12,7 @@ use crate::render::glb_mesh::GlbMesh;
 use crate::render::procedural::{TubeOptions, tube_mesh};
 use crate::render::{AvatarUpdate, PoseSource};
 use posecast_proto::SkinnedMesh;
+use posecast_proto::morph::target_channels;
 use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError};
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -38,6 +39,17 @@ impl std::fmt::Display for MeshOrigin {
             Self::Tubes => f.write_str("tubes around the bones (no mesh available)"),
         }
     }
+}
+
+/// The weights of `mesh`'s morph targets (what the renderer takes) from the weights of an
+/// avatar's `channels` (its description's `morph_targets`, what the stream carries): each
+/// target takes the weight of the channel of its name, 0 when none names it.
+#[must_use]
+pub fn target_weights(mesh: &SkinnedMesh, channels: &[String], weights: &[f32]) -> Vec<f32> {
+    target_channels(mesh, channels)
+        .into_iter()
+        .map(|c| c.and_then(|c| weights.get(c).copied()).unwrap_or(0.0))
+        .collect()
 }
 
 /// The mesh to draw an avatar with, in order of preference: the description's `mesh_url`
@@ -188,6 +200,8 @@ struct Resolved {
     avatar: AvatarId,
     hash: String,
     skeleton: Arc<posecast_proto::Skeleton>,
+    /// For each of the mesh's morph targets, the description's channel that drives it.
+    target_channels: Vec<Option<usize>>,
     mesh: SkinnedMesh,
 }
 
@@ -196,6 +210,8 @@ struct Shown {
     id: u64,
     hash: String,
     spawned: bool,
+    /// For each of the spawned mesh's morph targets, the channel whose weight it takes.
+    target_channels: Vec<Option<usize>>,
 }
 
 /// The viewer's [`PoseSource`] over a [`Client`]: spawns avatars as their descriptions arrive
@@ -254,6 +270,7 @@ impl ClientSource {
                 avatar: view.description.id.clone(),
                 hash: view.description.hash.clone(),
                 skeleton: view.skeleton.clone(),
+                target_channels: target_channels(&mesh, &view.description.morph_targets),
                 mesh,
             };
             if tx.send(resolved).await.is_err() {
@@ -301,6 +318,7 @@ impl PoseSource for ClientSource {
             // A newer description may have arrived while this mesh was on its way.
             if shown.hash == resolved.hash {
                 shown.spawned = true;
+                shown.target_channels = resolved.target_channels;
                 updates.push(AvatarUpdate::Spawn {
                     id: shown.id,
                     skeleton: Box::new((*resolved.skeleton).clone()),
@@ -329,6 +347,7 @@ impl PoseSource for ClientSource {
                         id: numeric,
                         hash: view.description.hash.clone(),
                         spawned: false,
+                        target_channels: Vec::new(),
                     },
                 );
                 self.start_resolving(view.clone());
@@ -346,9 +365,16 @@ impl PoseSource for ClientSource {
                 continue;
             }
             if let Some(locals) = self.client.pose_now(avatar) {
+                let channels = self.client.weights_now(avatar).unwrap_or_default();
+                let weights = shown
+                    .target_channels
+                    .iter()
+                    .map(|c| c.and_then(|c| channels.get(c).copied()).unwrap_or(0.0))
+                    .collect();
                 updates.push(AvatarUpdate::Pose {
                     id: shown.id,
                     locals,
+                    weights,
                 });
             }
         }

@@ -1,11 +1,12 @@
 //! Shared by the `render_*` tests: one GPU per test binary, and the CPU-reference comparison a
 //! mesh source (random rigs, procedural figures, later the glTF importers) plugs into.
-#![allow(dead_code)]
+#![allow(dead_code, clippy::expect_used)]
 
 use glam::{Mat3, Mat4, Vec3};
 use posecast_client::render::gpu_types::gpu_mesh;
 use posecast_client::render::{ComputeSkinner, Gpu, RenderError};
 use posecast_proto::fk::PoseBuffers;
+use posecast_proto::morph::morph_cpu;
 use posecast_proto::skinning::{blend_matrix, skin_cpu};
 use posecast_proto::{Skeleton, SkinnedMesh, Transform};
 use std::path::PathBuf;
@@ -86,8 +87,25 @@ pub fn check_compute_matches_cpu(
     mesh: &SkinnedMesh,
     poses: &[Vec<Transform>],
 ) -> Result<Agreement, String> {
-    let mesh = gpu_mesh(mesh);
-    let mut skinner = ComputeSkinner::new(gpu, &mesh).map_err(|e| e.to_string())?;
+    check_morphed_compute_matches_cpu(gpu, skeleton, mesh, &[], poses)
+}
+
+/// As [`check_compute_matches_cpu`] with the mesh's morph targets at `weights` (mesh order):
+/// the GPU morphs and skins the mesh; the reference is `morph_cpu`'s vertices skinned by
+/// `skin_cpu`.
+pub fn check_morphed_compute_matches_cpu(
+    gpu: &Gpu,
+    skeleton: &Skeleton,
+    mesh: &SkinnedMesh,
+    weights: &[f32],
+    poses: &[Vec<Transform>],
+) -> Result<Agreement, String> {
+    let mut skinner = ComputeSkinner::new(gpu, &gpu_mesh(mesh)).map_err(|e| e.to_string())?;
+    skinner
+        .set_morph_weights(weights)
+        .map_err(|e| e.to_string())?;
+    let morphed = morphed(mesh, weights);
+    let mesh = gpu_mesh(&morphed);
     let mut buffers = PoseBuffers::new(skeleton);
     let n = mesh.vertex_count();
     let mut cpu_p = vec![Vec3::ZERO; n];
@@ -133,6 +151,28 @@ pub fn check_compute_matches_cpu(
         }
     }
     Ok(agreement)
+}
+
+/// The mesh's bind-pose vertices morphed by `morph_cpu` at `weights`, as a mesh without
+/// targets (what the GPU must draw when it morphs the original).
+pub fn morphed(mesh: &SkinnedMesh, weights: &[f32]) -> SkinnedMesh {
+    let n = mesh.vertex_count();
+    let (mut p, mut normals) = (vec![Vec3::ZERO; n], vec![Vec3::ZERO; n]);
+    morph_cpu(mesh, weights, &mut p, &mut normals);
+    SkinnedMesh::new(
+        p,
+        normals,
+        mesh.indices().to_vec(),
+        mesh.influences(),
+        mesh.joints().to_vec(),
+        mesh.weights().to_vec(),
+        mesh.joints()
+            .iter()
+            .map(|&j| usize::from(j) + 1)
+            .max()
+            .unwrap_or(1),
+    )
+    .expect("a morphed mesh is a mesh")
 }
 
 /// Skinning matrices of a pose.

@@ -10,6 +10,7 @@ fn pose(num: u32, rotations: Vec<Quat>, translations: Vec<Vec3>, scales: Vec<Vec
         translations,
         scales,
         placement: Placement::IDENTITY,
+        weights: Vec::new(),
     }
 }
 
@@ -368,4 +369,92 @@ fn a_forgotten_avatar_or_scene_needs_a_keyframe_again() {
     let mut left = decoder();
     left.forget_scene(4);
     assert!(left.decode(&only_a).is_err());
+}
+
+/// Morph weights (protocol version 4): a keyframe carries every level, a delta only the
+/// changed ones behind a change mask; both decode to the levels sent. 52 ARKit weights with 10
+/// changed cost at most 26 bytes a frame (issue 30's budget): 52 mask bits and 10 × 10-bit
+/// levels, 19 bytes.
+#[test]
+fn weights_ride_keyframes_and_deltas_within_the_budget() {
+    let rotations = vec![quant::encode(Quat::IDENTITY); 3];
+    let mut key = QuantPose {
+        rotations,
+        weights: (0..52).map(|i| (i * 19) % 1024).collect(),
+        ..QuantPose::default()
+    };
+    key.weights[0] = crate::morph::WEIGHT_LEVELS;
+    let mut bare = Vec::new();
+    encode_key(9, 77, &key.without_weights(), &mut bare);
+    let mut with = Vec::new();
+    encode_key(9, 77, &key, &mut with);
+    // 52 levels of 10 bits = 65 bytes, plus the count's varint.
+    assert_eq!(with.len() - bare.len(), 1 + 65);
+    let mut dec = Frame2Decoder::new();
+    let got = dec
+        .decode_levels(&frame_bytes(FrameKind::Key, 10, 10, &with, 1))
+        .unwrap();
+    assert_eq!(got.avatars[0].levels.weights, key.weights);
+    let poses = got.to_frame();
+    assert_eq!(poses.avatars[0].weights.len(), 52);
+    assert!((poses.avatars[0].weights[0] - 1.0).abs() < 1e-6);
+
+    let mut next = key.clone();
+    for i in (0..52).step_by(5).take(10) {
+        next.weights[i] = (next.weights[i] + 37) % 1024;
+    }
+    let mut still = Vec::new();
+    assert!(encode_delta(9, &next, &[&next], &mut still));
+    let mut delta = Vec::new();
+    assert!(encode_delta(9, &next, &[&key], &mut delta));
+    let cost = delta.len() - still.len();
+    assert_eq!(cost, (52 + 10 * 10usize).div_ceil(8));
+    assert!(cost <= 26, "{cost} bytes");
+    let got = dec
+        .decode_levels(&frame_bytes(FrameKind::Delta, 11, 10, &delta, 1))
+        .unwrap();
+    assert_eq!(got.avatars[0].levels.weights, next.weights);
+    // Unchanged weights: no flag, no bytes.
+    let got = dec
+        .decode_levels(&frame_bytes(FrameKind::Delta, 12, 11, &still, 1))
+        .unwrap();
+    assert_eq!(got.avatars[0].levels.weights, next.weights);
+}
+
+/// A weights block shorter than its count, or a weights flag on a delta whose base has none,
+/// is refused and
+/// changes nothing.
+#[test]
+fn malformed_weights_are_refused() {
+    let key = QuantPose {
+        rotations: vec![quant::encode(Quat::IDENTITY)],
+        weights: vec![5],
+        ..QuantPose::default()
+    };
+    let mut bytes = Vec::new();
+    encode_key(1, 2, &key, &mut bytes);
+    // Count, then the 10-bit level in two bytes: a count of 2 reads past the data.
+    let mut dec = Frame2Decoder::new();
+    let n = bytes.len();
+    bytes[n - 3] = 2;
+    assert!(
+        dec.decode_levels(&frame_bytes(FrameKind::Key, 1, 1, &bytes, 1))
+            .is_err()
+    );
+    let plain = QuantPose {
+        rotations: vec![quant::encode(Quat::IDENTITY)],
+        ..QuantPose::default()
+    };
+    let mut k = Vec::new();
+    encode_key(1, 2, &plain, &mut k);
+    dec.decode_levels(&frame_bytes(FrameKind::Key, 1, 1, &k, 1))
+        .unwrap();
+    let mut d = Vec::new();
+    assert!(encode_delta(1, &plain, &[&plain], &mut d));
+    d[1] |= 8;
+    d.extend_from_slice(&[1, 0]);
+    assert!(matches!(
+        dec.decode_levels(&frame_bytes(FrameKind::Delta, 2, 1, &d, 1)),
+        Err(Frame2Error::Flags { .. })
+    ));
 }

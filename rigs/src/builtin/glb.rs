@@ -49,7 +49,9 @@ pub fn write(rig: &Rig, mesh: &MeshData, clips: &[SampledClip]) -> Result<Vec<u8
                 metallic: 0.0,
                 roughness: 0.8,
             }),
+            targets: Vec::new(),
         }],
+        target_names: Vec::new(),
     };
     let animations: Vec<Animation> = clips.iter().map(animation).collect();
     crate::export::glb::write(&Model {

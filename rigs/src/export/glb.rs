@@ -47,6 +47,19 @@ pub struct Mesh {
     pub name: String,
     /// Its parts, each written as one glTF primitive.
     pub primitives: Vec<Primitive>,
+    /// Morph target names, written as `mesh.extras.targetNames`; every primitive has one
+    /// target per name, in this order (glTF: all primitives of a mesh have the same targets),
+    /// and the mesh's default weights are zeros.
+    pub target_names: Vec<String>,
+}
+
+/// One morph target of a primitive: displacements per vertex.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Target {
+    /// Position displacements, one per vertex.
+    pub positions: Vec<Vec3>,
+    /// Normal displacements, one per vertex, or empty.
+    pub normals: Vec<Vec3>,
 }
 
 /// One triangle list with four joint influences per vertex.
@@ -64,13 +77,31 @@ pub struct Primitive {
     pub indices: Vec<u32>,
     /// The primitive's material; `None` leaves it to the reader's default.
     pub material: Option<Material>,
+    /// Morph targets, one per [`Mesh::target_names`] entry.
+    pub targets: Vec<Target>,
 }
 
 impl Primitive {
     /// A [`SkinnedMesh`] as a primitive: more than four influences keep the four heaviest,
-    /// renormalised; fewer are padded with zero weights on joint 0.
+    /// renormalised; fewer are padded with zero weights on joint 0. Its morph targets follow
+    /// `channels`: the mesh's target of each name, or zero displacements where it has none.
     #[must_use]
-    pub fn from_skinned(mesh: &SkinnedMesh) -> Self {
+    pub fn from_skinned(mesh: &SkinnedMesh, channels: &[String]) -> Self {
+        let targets = channels
+            .iter()
+            .map(
+                |name| match mesh.targets().iter().find(|t| t.name == *name) {
+                    Some(t) => Target {
+                        positions: t.positions.clone(),
+                        normals: t.normals.clone(),
+                    },
+                    None => Target {
+                        positions: vec![Vec3::ZERO; mesh.vertex_count()],
+                        normals: Vec::new(),
+                    },
+                },
+            )
+            .collect();
         let mesh = if mesh.influences() == 4 {
             Cow::Borrowed(mesh)
         } else {
@@ -93,6 +124,7 @@ impl Primitive {
             weights,
             indices: mesh.indices().to_vec(),
             material: None,
+            targets,
         }
     }
 }
@@ -315,6 +347,19 @@ fn write_mesh(
             (Valid(json::mesh::Semantic::Joints(0)), joint_ids),
             (Valid(json::mesh::Semantic::Weights(0)), weights),
         ]);
+        let targets: Vec<json::mesh::MorphTarget> = prim
+            .targets
+            .iter()
+            .map(|t| {
+                let positions: Vec<[f32; 3]> = t.positions.iter().map(|v| v.to_array()).collect();
+                let normals: Vec<[f32; 3]> = t.normals.iter().map(|v| v.to_array()).collect();
+                json::mesh::MorphTarget {
+                    positions: Some(b.f32s(&positions, array, true)),
+                    normals: (!normals.is_empty()).then(|| b.f32s(&normals, array, false)),
+                    tangents: None,
+                }
+            })
+            .collect();
         primitives.push(json::mesh::Primitive {
             attributes,
             extensions: None,
@@ -322,15 +367,23 @@ fn write_mesh(
             indices: Some(indices),
             material,
             mode: Valid(json::mesh::Mode::Triangles),
-            targets: None,
+            targets: (!targets.is_empty()).then_some(targets),
         });
     }
+    let names = &mesh.target_names;
+    let extras = if names.is_empty() {
+        Default::default()
+    } else {
+        Some(serde_json::value::to_raw_value(
+            &json!({ "targetNames": names }),
+        )?)
+    };
     let index = b.root.push(json::Mesh {
         extensions: None,
-        extras: Default::default(),
+        extras,
         name: Some(mesh.name.clone()),
         primitives,
-        weights: None,
+        weights: (!names.is_empty()).then(|| vec![0.0; names.len()]),
     });
     Ok((index, mesh.name.clone()))
 }
@@ -361,6 +414,22 @@ fn check_primitive(
             "{} indices do not make triangles",
             prim.indices.len()
         )));
+    }
+    if prim.targets.len() != mesh.target_names.len() {
+        return Err(fail(format!(
+            "{} morph targets, the mesh names {}",
+            prim.targets.len(),
+            mesh.target_names.len()
+        )));
+    }
+    for (k, t) in prim.targets.iter().enumerate() {
+        let normals_ok = t.normals.is_empty() || t.normals.len() == n;
+        if t.positions.len() != n || !normals_ok {
+            return Err(fail(format!("morph target {k} does not have {n} vertices")));
+        }
+        if !t.positions.iter().chain(&t.normals).all(|v| v.is_finite()) {
+            return Err(fail(format!("morph target {k} is not finite")));
+        }
     }
     if let Some(i) = prim.indices.iter().find(|&&i| i as usize >= n) {
         return Err(fail(format!("index {i} with {n} vertices")));

@@ -158,12 +158,14 @@ fn write_glb(
     meshes: &[AssetMesh],
     animations: &[glb::Animation],
 ) -> Result<Vec<u8>, ExportError> {
+    let channels = posecast_proto::morph::channels(meshes.iter().map(|m| &m.mesh));
     let mesh = (!meshes.is_empty()).then(|| glb::Mesh {
         name: "mesh".into(),
         primitives: meshes
             .iter()
-            .map(|m| glb::Primitive::from_skinned(&m.mesh))
+            .map(|m| glb::Primitive::from_skinned(&m.mesh, &channels))
             .collect(),
+        target_names: channels.clone(),
     });
     glb::write(&glb::Model {
         generator: GENERATOR,

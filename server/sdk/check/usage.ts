@@ -95,8 +95,8 @@ void wrongResult;
 client.on("frames", () => {});
 // @ts-expect-error — encodings are "binary" or "json".
 void new Client({ encoding: "msgpack" });
-// @ts-expect-error — protocol versions are 1, 2 or 3.
-void new Client({ version: 4 });
+// @ts-expect-error — protocol versions are 1 to 4.
+void new Client({ version: 5 });
 // @ts-expect-error — subscribe takes a scene name.
 client.subscribe(42);
 

@@ -483,7 +483,9 @@ fn needs(command: &Command) -> (&'static [Right], &'static str) {
         | Command::ReleaseDrive { .. }
         | Command::SetIkGoal { .. }
         | Command::ClearIkGoal { .. }
-        | Command::LookAt { .. } => (&[Right::Drive], "drive commands"),
+        | Command::LookAt { .. }
+        | Command::SetMorphWeights { .. }
+        | Command::SetExpression { .. } => (&[Right::Drive], "drive commands"),
         Command::Record { .. } | Command::StopRecording { .. } => {
             (&[Right::Record], "recording commands")
         }

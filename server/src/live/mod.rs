@@ -278,11 +278,21 @@ impl Drives {
         &mut self,
         state: &AppState,
         avatar: &AvatarId,
-        rotations: &BTreeMap<String, [f32; 4]>,
-        root_position: Option<[f32; 3]>,
-        time_us: Option<u64>,
+        pose: &JsonPose<'_>,
     ) -> Result<(), Error> {
+        let JsonPose {
+            rotations,
+            root_position,
+            time_us,
+            weights,
+        } = *pose;
         if let Some(r) = self.remote.iter_mut().find(|r| &r.avatar == avatar) {
+            if !weights.is_empty() {
+                return Err(Error::invalid(format!(
+                    "avatar {avatar} is ticked by another server: live poses carry morph \
+                     weights only to avatars of this server's scenes (use set_morph_weights)"
+                )));
+            }
             let mut pose = BinaryPose {
                 avatar_num: r.num,
                 time_us,
@@ -308,7 +318,7 @@ impl Drives {
             .iter()
             .find(|(id, _, _)| id == avatar)
             .ok_or_else(|| not_driving(avatar))?;
-        self.with_live(scene, avatar, |live| {
+        self.with_live(scene, avatar, weights, |live| {
             let skeleton = live.source.skeleton();
             let mut pose = ValidPose {
                 rotations: Vec::with_capacity(rotations.len()),
@@ -340,7 +350,7 @@ impl Drives {
             .iter()
             .find(|(_, num, _)| *num == msg.avatar_num)
             .ok_or_else(|| not_driving(format!("number {}", msg.avatar_num)))?;
-        self.with_live(scene, avatar, |live| {
+        self.with_live(scene, avatar, &BTreeMap::new(), |live| {
             let n = live.source.skeleton().len();
             let mut pose = ValidPose {
                 rotations: Vec::with_capacity(msg.rotations.len()),
@@ -366,18 +376,28 @@ impl Drives {
         &self,
         scene: &Scene,
         avatar: &AvatarId,
+        weights: &BTreeMap<String, f32>,
         validate: impl FnOnce(&LivePose) -> Result<ValidPose, Error>,
     ) -> Result<(), Error> {
         let now = Instant::now();
         let mut s = scene.lock();
-        let live = s
+        let a = s
             .avatar_mut(avatar)
-            .and_then(|a| a.live.as_mut())
-            .filter(|l| l.driver == Some(self.conn))
+            .filter(|a| a.live.as_ref().is_some_and(|l| l.driver == Some(self.conn)))
             .ok_or_else(|| not_driving(avatar))?;
+        let Some(live) = a.live.as_mut() else {
+            return Err(not_driving(avatar));
+        };
         live.take_rate(now).map_err(rate_limited)?;
         let pose = validate(live)?;
-        live.store(pose, now);
+        // Weights resolved and checked before anything is stored: a bad one changes nothing.
+        let morph =
+            crate::world::morph::resolve_weights(a, weights.iter().map(|(n, w)| (n.as_str(), *w)))?;
+        // A pose older than the last applied is dropped, and its weights with it; a stored
+        // one's weights apply with it at the next tick's evaluation.
+        if a.live.as_mut().is_some_and(|live| live.store(pose, now)) {
+            a.store_morph(&morph);
+        }
         Ok(())
     }
 
@@ -403,6 +423,19 @@ impl Drives {
             }
         }
     }
+}
+
+/// The fields of a JSON `pose` message ([`posecast_proto::msg::ClientMsg::Pose`]).
+#[derive(Clone, Copy, Debug)]
+pub struct JsonPose<'a> {
+    /// Local rotations of the source rig's joints by name.
+    pub rotations: &'a BTreeMap<String, [f32; 4]>,
+    /// The source root's local translation.
+    pub root_position: Option<[f32; 3]>,
+    /// The driver's clock, µs.
+    pub time_us: Option<u64>,
+    /// Morph weights by name.
+    pub weights: &'a BTreeMap<String, f32>,
 }
 
 fn rotation(joint: &str, q: [f32; 4]) -> Result<Quat, Error> {

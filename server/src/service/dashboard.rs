@@ -113,6 +113,7 @@ const FILES: &[(&str, &str, &str)] = &[
         JS,
         include_str!("../../web/panel-joints.js"),
     ),
+    ("panel-face.js", JS, include_str!("../../web/panel-face.js")),
     (
         "panel-upload.js",
         JS,

@@ -45,6 +45,7 @@ impl IntoResponse for AppError {
             | ErrorCode::UnknownAvatar
             | ErrorCode::UnknownClip
             | ErrorCode::UnknownJoint
+            | ErrorCode::UnknownExpression
             | ErrorCode::UnknownAsset
             | ErrorCode::NoMesh => StatusCode::NOT_FOUND,
             ErrorCode::Unauthorized => StatusCode::UNAUTHORIZED,

@@ -57,6 +57,9 @@ pub struct AvatarRecord {
     /// again once every avatar of the scene is back, so goals relative to others find them).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub goals: Vec<Command>,
+    /// Morph weights above 0 by channel name (issue 30); files without: all 0.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub morph_weights: BTreeMap<String, f32>,
 }
 
 /// The current clip of an avatar. A cross-fade in progress is not stored: it restores as the
@@ -127,6 +130,7 @@ fn record(a: &Avatar) -> AvatarRecord {
             .collect(),
         placement: a.placing.target(),
         goals: goal_commands(a),
+        morph_weights: a.morph_weights(),
     }
 }
 
@@ -264,6 +268,23 @@ pub fn parse_lenient(value: &serde_json::Value) -> Result<(SceneFile, Vec<String
                 }
             }
         }
+        // Weights: each finite one in [0, 1] of a channel name kept; anything else dropped
+        // alone (and a channel the rig lost is dropped on restore).
+        let mut morph_weights = BTreeMap::new();
+        if let Value::Object(map) = get("morph_weights") {
+            for (name, w) in map {
+                match w
+                    .as_f64()
+                    .map(|w| w as f32)
+                    .filter(|w| (0.0..=1.0).contains(w))
+                {
+                    Some(w) => {
+                        morph_weights.insert(name, w);
+                    }
+                    None => dropped.push(format!("avatar {id}: morph weight {name} ({w})")),
+                }
+            }
+        }
         avatars.push(AvatarRecord {
             id,
             asset,
@@ -271,6 +292,7 @@ pub fn parse_lenient(value: &serde_json::Value) -> Result<(SceneFile, Vec<String
             overrides,
             placement,
             goals,
+            morph_weights,
         });
     }
     // A table that does not parse costs the retries' answers only, never the scene.
@@ -369,6 +391,19 @@ pub fn restore_into(world: &World, file: &SceneFile, now_us: u64) {
                 }
             }
         }
+        let channels = &a.description.morph_targets;
+        let weights: Vec<(usize, f32)> = rec
+            .morph_weights
+            .iter()
+            .filter_map(|(name, w)| match channels.iter().position(|c| c == name) {
+                Some(c) => Some((c, *w)),
+                None => {
+                    warn!(scene = %file.scene, avatar = %id, name, "morph weight not restored: no such channel");
+                    None
+                }
+            })
+            .collect();
+        a.set_morph(&weights, true);
         a.evaluate();
     }
     // Goals once every avatar is back: one relative to another avatar needs it there.

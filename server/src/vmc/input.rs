@@ -403,11 +403,21 @@ fn apply(
                 }
             }
         }
+        // Blend shapes by VRM name drive the avatar's morph channels (`A` → `aa`, `Joy` →
+        // `happy`, or its own names); names it lacks are kept in `blend_shapes` only.
+        let morph: Option<Vec<(usize, f32)>> = update.blend_shapes.as_ref().map(|b| {
+            b.iter()
+                .filter_map(|(name, w)| Some((a.morph_channel(name)?, *w)))
+                .collect()
+        });
         if let Some(live) = a.live.as_mut() {
             live.store(update.pose, Instant::now());
             if let Some(b) = update.blend_shapes {
                 live.blend_shapes = b;
             }
+        }
+        if let Some(weights) = morph.filter(|w| !w.is_empty()) {
+            a.store_morph(&weights);
         }
         return Ok(());
     }

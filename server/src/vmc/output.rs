@@ -10,8 +10,12 @@
 //!
 //! The bundle: `/VMC/Ext/OK 1`, `/VMC/Ext/T seconds`, `/VMC/Ext/Root/Pos "root" p q`, one
 //! `/VMC/Ext/Bone/Pos name p q` per Unity bone mapped onto the avatar (position: the T-pose
-//! rig's offset; the hips: their position), and, when the avatar has blend shape values,
-//! `/VMC/Ext/Blend/Val name value` for each and `/VMC/Ext/Blend/Apply`.
+//! rig's offset; the hips: their position), and blend shapes ([`blend_values`]):
+//! `/VMC/Ext/Blend/Val name value` for each and `/VMC/Ext/Blend/Apply`. An avatar with morph
+//! channels sends every channel by its own name (an ARKit rig's are ARKit's, what "perfect
+//! sync" receivers read) and every VRM 0.x clip name its expressions map onto a channel
+//! (`Joy`, `A`, `Blink_L`: the names VMC receivers compare, case-sensitively); one without
+//! passes on the values a VMC performer sent it.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -30,6 +34,42 @@ use crate::state::AppState;
 use posecast_rigs::rig::Rig;
 use posecast_rigs::rig::retarget::{PoseRetargeter, PoseScratch};
 use posecast_sim::avatar::Avatar;
+
+/// The blend shape values VMC out sends for `avatar`: with morph channels, each channel's
+/// weight by the channel's own name, then by every VRM 0.x clip name (exact case) whose VRM
+/// 1.0 preset the avatar's expressions map onto a channel (unless a channel has that name);
+/// without channels, the values a VMC performer sent (passed on unchanged).
+#[must_use]
+pub fn blend_values(avatar: &Avatar) -> Vec<(String, f32)> {
+    let d = &avatar.description;
+    if d.morph_targets.is_empty() {
+        return avatar
+            .live
+            .as_ref()
+            .map(|l| l.blend_shapes.clone().into_iter().collect())
+            .unwrap_or_default();
+    }
+    let weight = |c: usize| avatar.morph.get(c).copied().unwrap_or(0.0);
+    let mut out: Vec<(String, f32)> = d
+        .morph_targets
+        .iter()
+        .enumerate()
+        .map(|(c, name)| (name.clone(), weight(c)))
+        .collect();
+    for (vmc_name, preset) in posecast_proto::expressions::vmc_blend_names() {
+        if d.morph_targets.iter().any(|n| n == vmc_name) {
+            continue;
+        }
+        let channel = d
+            .expressions
+            .get(preset)
+            .and_then(|own| d.morph_targets.iter().position(|n| n == own));
+        if let Some(c) = channel {
+            out.push((vmc_name.to_owned(), weight(c)));
+        }
+    }
+    out
+}
 
 /// Turns poses of avatars of one rig into VMC bundles.
 #[derive(Debug)]
@@ -126,13 +166,12 @@ impl Encoder {
                 mirror_rotation(r),
             ));
         }
-        if let Some(live) = &avatar.live
-            && !live.blend_shapes.is_empty()
-        {
-            for (name, value) in &live.blend_shapes {
+        let blends = blend_values(avatar);
+        if !blends.is_empty() {
+            for (name, value) in blends {
                 content.push(message(
                     "/VMC/Ext/Blend/Val",
-                    vec![OscType::String(name.clone()), OscType::Float(*value)],
+                    vec![OscType::String(name), OscType::Float(value)],
                 ));
             }
             content.push(message("/VMC/Ext/Blend/Apply", Vec::new()));

@@ -44,7 +44,7 @@ pub(super) fn joint_index(avatar: &Avatar, joint: &str) -> Result<usize, Error> 
 }
 
 /// Runs `f` on an avatar under its scene's lock.
-fn with_avatar<T>(
+pub(super) fn with_avatar<T>(
     world: &World,
     id: &AvatarId,
     f: impl FnOnce(&mut Avatar) -> Result<T, Error>,
@@ -196,6 +196,13 @@ fn sample_pose(
             scales: pose.scales.iter().map(|s| s.to_array()).collect(),
             placement,
             joints: None,
+            weights: copy
+                .description
+                .morph_targets
+                .iter()
+                .cloned()
+                .zip(copy.pose().weights.iter().copied())
+                .collect(),
         },
     )))
 }
@@ -430,6 +437,10 @@ pub fn apply(world: &World, command: &Command) -> Result<CommandResult, Error> {
         }),
         ik @ (Command::SetIkGoal { .. } | Command::ClearIkGoal { .. } | Command::LookAt { .. }) => {
             super::ik::apply(world, ik).unwrap_or_else(|| Err(Error::invalid("not an IK command")))
+        }
+        face @ (Command::SetMorphWeights { .. } | Command::SetExpression { .. }) => {
+            super::morph::apply(world, face)
+                .unwrap_or_else(|| Err(Error::invalid("not a face command")))
         }
         Command::Release { avatar, joint } => with_avatar(world, avatar, |a| {
             let j = joint

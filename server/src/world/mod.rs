@@ -10,6 +10,7 @@
 
 pub mod command;
 pub mod ik;
+pub mod morph;
 
 use crate::metrics::Metrics;
 use crate::scene::{DrivesEnded, Scene, ticker};

@@ -48,6 +48,10 @@ export const unsubscribed = /** @satisfies {import("../protocol.js").Unsubscribe
 export const description = /** @satisfies {import("../protocol.js").DescriptionMsg} */ ({
   "avatar": {
     "clip": "walk",
+    "expressions": {
+      "aa": "mouthOpen",
+      "blink": "eyesClosed"
+    },
     "hash": "0123456789abcdef",
     "id": "guest",
     "inverse_binds": [
@@ -93,6 +97,10 @@ export const description = /** @satisfies {import("../protocol.js").DescriptionM
       "spine"
     ],
     "mesh_url": "/api/assets/avatar/mesh.glb",
+    "morph_targets": [
+      "mouthOpen",
+      "eyesClosed"
+    ],
     "name": "avatar",
     "num": 7,
     "parents": [
@@ -182,6 +190,9 @@ export const scenes = /** @satisfies {import("../protocol.js").ScenesMsg} */ ({
           ],
           "looking": true,
           "looping": true,
+          "morph_weights": {
+            "mouthOpen": 0.25
+          },
           "overrides": [
             "l_elbow"
           ],
@@ -349,7 +360,11 @@ export const frame = /** @satisfies {import("../protocol.js").FrameMsg} */ ({
           0.8999999761581421,
           0.0
         ]
-      ]
+      ],
+      "weights": {
+        "eyesClosed": 0.0,
+        "mouthOpen": 0.25
+      }
     }
   ],
   "scene": "lobby",

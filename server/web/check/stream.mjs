@@ -101,6 +101,7 @@ function check(decoder, f, label) {
     numbers(a.scales, w.scales, `${what} scales`, 0);
     numbers(a.placement.position, w.placement.position, `${what} placement`, 0);
     numbers(a.placement.rotation, w.placement.rotation, `${what} placement`, 0);
+    numbers(a.weights, w.weights ?? [], `${what} morph weights`, 0);
   });
   return failures.length === before ? "frame" : "failed";
 }

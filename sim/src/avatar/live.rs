@@ -49,8 +49,8 @@ pub struct LivePose {
     /// Scratch for root positions: source and target world matrices.
     src_world: Vec<Mat4>,
     tgt_world: Vec<Mat4>,
-    /// Blend shape (expression) values the driver applied, by name: kept and reported
-    /// (`get_avatar`) although rigs have no morph targets yet. VMC input sets them.
+    /// Blend shape (expression) values the driver applied, by name, as sent: kept and reported
+    /// (`get_avatar`); VMC input sets them (and the avatar's morph weights they name).
     pub blend_shapes: BTreeMap<String, f32>,
     /// Who drives, as told to clients (presence); `None` until the server says.
     pub by: Option<posecast_proto::command::Driver>,

@@ -22,6 +22,7 @@ use posecast_proto::command::{AvatarState, OnRelease};
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::fk::forward_kinematics;
 use posecast_proto::frame::AvatarPose;
+use posecast_proto::morph;
 use posecast_proto::msg::{AvatarId, SceneId};
 use posecast_proto::{DecomposeError, Transform};
 use posecast_rigs::rig::Rig;
@@ -71,6 +72,9 @@ pub struct Avatar {
     pub goals: goals::Goals,
     /// What it streams, being recorded into a clip ([`recording`]).
     pub recording: Option<Recorder>,
+    /// Morph weights, one per channel of the description's `morph_targets` (issue 30), set by
+    /// `set_morph_weights`, `set_expression`, a live driver and VMC blend shapes.
+    pub morph: Vec<f32>,
 }
 
 impl Avatar {
@@ -105,6 +109,10 @@ impl Avatar {
             &rig.scaled,
             mesh_url,
         );
+        let channels = posecast_proto::morph::channels(rig.asset.meshes.iter().map(|m| &m.mesh));
+        let expressions = posecast_proto::expressions::auto_map(&channels);
+        let morph = vec![0.0; channels.len()];
+        let description = description.with_morphs(channels, expressions);
         let locals = skeleton.rest().to_vec();
         let pose = AvatarPose {
             avatar_num: num,
@@ -125,6 +133,7 @@ impl Avatar {
             live: None,
             goals: goals::Goals::default(),
             recording: None,
+            morph,
         }
     }
 
@@ -202,6 +211,55 @@ impl Avatar {
                 .iter()
                 .map(|&j| self.locals[usize::from(j)].scale),
         );
+        // As streamed: quantised, so JSON and binary subscribers see the same weights.
+        self.pose.weights.clear();
+        self.pose.weights.extend(
+            self.morph
+                .iter()
+                .map(|&w| morph::weight_value(morph::weight_level(w))),
+        );
+    }
+
+    /// The channel a morph weight's `name` sets: one of the avatar's morph channels, or a
+    /// standard expression name its description maps onto one (`proto::expressions`).
+    #[must_use]
+    pub fn morph_channel(&self, name: &str) -> Option<usize> {
+        let d = &self.description;
+        posecast_proto::expressions::resolve(name, &d.morph_targets, &d.expressions)
+    }
+
+    /// Sets morph weights by channel (`reset`: every other channel to 0 first) and
+    /// re-evaluates the pose. Indices past the channels are ignored; weights are clamped to
+    /// `[0, 1]` (callers check them first: `morph::check_weight`).
+    pub fn set_morph(&mut self, weights: &[(usize, f32)], reset: bool) {
+        if reset {
+            self.morph.iter_mut().for_each(|w| *w = 0.0);
+        }
+        self.store_morph(weights);
+        self.evaluate();
+    }
+
+    /// Sets morph weights by channel without evaluating the pose (the next tick does): for
+    /// live drivers and VMC, whose packets come faster than ticks. Clamped like
+    /// [`Avatar::set_morph`].
+    pub fn store_morph(&mut self, weights: &[(usize, f32)]) {
+        for &(c, w) in weights {
+            if let Some(slot) = self.morph.get_mut(c) {
+                *slot = if w.is_nan() { 0.0 } else { w.clamp(0.0, 1.0) };
+            }
+        }
+    }
+
+    /// Morph weights above 0 by channel name (for `get_avatar`).
+    #[must_use]
+    pub fn morph_weights(&self) -> std::collections::BTreeMap<String, f32> {
+        self.description
+            .morph_targets
+            .iter()
+            .zip(&self.pose.weights)
+            .filter(|(_, w)| **w > 0.0)
+            .map(|(n, w)| (n.clone(), *w))
+            .collect()
     }
 
     /// The pose to stream.
@@ -336,6 +394,7 @@ impl Avatar {
                 .map(|g| self.rig.skeleton().names()[g.effector].clone())
                 .collect(),
             looking: self.goals.gaze.is_some(),
+            morph_weights: self.morph_weights(),
         }
     }
 }

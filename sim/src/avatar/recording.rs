@@ -405,6 +405,7 @@ mod tests {
                 .map(|&j| locals[usize::from(j)].scale)
                 .collect(),
             placement,
+            weights: Vec::new(),
         }
     }
 

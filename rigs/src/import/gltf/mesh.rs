@@ -7,6 +7,7 @@ use glam::{Mat4, Vec3};
 use gltf::accessor::Dimensions;
 use gltf::mesh::{Mode, Semantic};
 use posecast_proto::SkinnedMesh;
+use posecast_proto::morph::MorphTarget;
 
 use super::Context;
 use crate::asset::AssetMesh;
@@ -44,6 +45,8 @@ impl Context<'_> {
                 else {
                     continue;
                 };
+                let targets =
+                    self.morph_targets(&mesh, &prim, &label, (positions.len(), &normals), bake)?;
                 let (positions, normals) = if bake == Mat4::IDENTITY {
                     (positions, normals)
                 } else {
@@ -120,6 +123,7 @@ impl Context<'_> {
                 }
                 let mesh =
                     SkinnedMesh::new(positions, normals, indices, influences, js, ws, joint_count)
+                        .and_then(|m| m.with_targets(targets))
                         .map_err(|source| ImportError::Mesh {
                             file: self.file.to_owned(),
                             mesh: label.clone(),
@@ -241,6 +245,7 @@ impl Context<'_> {
                     continue;
                 };
                 let n = positions.len();
+                let targets = self.morph_targets(&mesh, &prim, &label, (n, &normals), to_bind)?;
                 let positions = positions
                     .iter()
                     .map(|p| to_bind.transform_point3(*p))
@@ -259,6 +264,7 @@ impl Context<'_> {
                     vec![1.0; n],
                     inverse_bind.len(),
                 )
+                .and_then(|m| m.with_targets(targets))
                 .map_err(|source| ImportError::Mesh {
                     file: self.file.to_owned(),
                     mesh: label.clone(),
@@ -272,6 +278,104 @@ impl Context<'_> {
         }
         Ok(out)
     }
+}
+
+impl Context<'_> {
+    /// A primitive's morph targets, displacements taken through `to_bind`'s linear part `L`
+    /// (positions: `L·Δp`), named by `mesh.extras.targetNames` (else `target<k>`). Normals are
+    /// stored normalised after `N = L⁻ᵀ` (`n' = N·n / |N·n|`), so a normal displacement
+    /// becomes `N·Δn / |N·n|`: `n' + Δn'` then points where `N·(n + Δn)` does, whatever
+    /// `to_bind`'s scale (a 0.01 armature). `vertices` is the primitive's vertex count,
+    /// `normals` its own normals (unit, file space; empty: none given). Dense and sparse accessors alike (the accessor reader
+    /// expands sparse ones).
+    fn morph_targets(
+        &self,
+        mesh: &gltf::Mesh<'_>,
+        prim: &gltf::Primitive<'_>,
+        label: &str,
+        (vertices, normals): (usize, &[Vec3]),
+        to_bind: Mat4,
+    ) -> Result<Vec<MorphTarget>, ImportError> {
+        let names = target_names(mesh);
+        let linear = glam::Mat3::from_mat4(to_bind);
+        let normal_matrix = linear.inverse().transpose();
+        let mut out = Vec::new();
+        for (k, target) in prim.morph_targets().enumerate() {
+            let read = |a: Option<gltf::Accessor<'_>>,
+                        what: &str|
+             -> Result<Vec<Vec3>, ImportError> {
+                let Some(a) = a else {
+                    return Ok(Vec::new());
+                };
+                let v: Vec<Vec3> = self
+                    .buffers
+                    .read_as(&a, Dimensions::Vec3, what)?
+                    .chunks_exact(3)
+                    .map(Vec3::from_slice)
+                    .collect();
+                if v.len() == vertices {
+                    Ok(v)
+                } else {
+                    Err(ImportError::Accessor {
+                        file: self.file.to_owned(),
+                        accessor: a.index(),
+                        message: format!(
+                            "{label}: morph target {k} {what} has {} entries for {vertices} vertices",
+                            v.len()
+                        ),
+                    })
+                }
+            };
+            let mut positions = read(target.positions(), "POSITION")?;
+            if positions.is_empty() {
+                positions = vec![Vec3::ZERO; vertices];
+            }
+            let normal_deltas = read(target.normals(), "NORMAL")?;
+            let normal_deltas = normal_deltas
+                .iter()
+                .enumerate()
+                .map(|(v, d)| {
+                    let scale = normals
+                        .get(v)
+                        .map(|n| (normal_matrix * *n).length())
+                        .filter(|l| l.is_finite() && *l > f32::MIN_POSITIVE)
+                        .map_or(1.0, |l| 1.0 / l);
+                    let d = normal_matrix * *d * scale;
+                    if d.is_finite() { d } else { Vec3::ZERO }
+                })
+                .collect();
+            out.push(MorphTarget {
+                name: names
+                    .get(k)
+                    .filter(|n| !n.is_empty())
+                    .cloned()
+                    .unwrap_or_else(|| format!("target{k}")),
+                positions: positions.iter().map(|d| linear * *d).collect(),
+                normals: normal_deltas,
+            });
+        }
+        Ok(out)
+    }
+}
+
+/// `mesh.extras.targetNames` (the de-facto convention for morph target names), when present.
+fn target_names(mesh: &gltf::Mesh<'_>) -> Vec<String> {
+    let Some(raw) = mesh.extras() else {
+        return Vec::new();
+    };
+    #[derive(serde::Deserialize)]
+    struct Extras {
+        #[serde(rename = "targetNames", default)]
+        target_names: Vec<serde_json::Value>,
+    }
+    serde_json::from_str::<Extras>(raw.get())
+        .map(|e| {
+            e.target_names
+                .into_iter()
+                .map(|v| v.as_str().unwrap_or_default().to_owned())
+                .collect()
+        })
+        .unwrap_or_default()
 }
 
 /// A primitive's positions, normals and triangle indices.

@@ -464,8 +464,9 @@ impl Context<'_> {
         };
         let mut materials = std::collections::BTreeSet::new();
         let mut loose = Vec::new();
-        // (targets, primitives, mesh names) of the morph targets on this skin's meshes.
-        let mut morphs = (0usize, 0usize, std::collections::BTreeSet::new());
+        // (targets, primitives, mesh names, targets with tangents) of the morph targets on
+        // this skin's meshes.
+        let mut morphs = (0usize, 0usize, std::collections::BTreeSet::new(), 0usize);
         for node in self.doc.nodes() {
             let Some(mesh) = node.mesh() else { continue };
             let ours = match node.skin() {
@@ -481,6 +482,10 @@ impl Context<'_> {
                     if targets > 0 {
                         morphs.0 += targets;
                         morphs.1 += 1;
+                        morphs.3 += prim
+                            .morph_targets()
+                            .filter(|t| t.tangents().is_some())
+                            .count();
                         morphs.2.insert(
                             mesh.name()
                                 .map_or(format!("mesh{}", mesh.index()), str::to_owned),
@@ -505,10 +510,17 @@ impl Context<'_> {
         if morphs.0 > 0 {
             let list: Vec<String> = morphs.2.into_iter().collect();
             notes.push(format!(
-                "{} morph targets on {} primitives not imported yet (the base shape is): {}",
+                "{} morph targets on {} primitives imported (positions and normals): {}",
                 morphs.0,
                 morphs.1,
                 listed(&list)
+            ));
+        }
+        if morphs.3 > 0 {
+            notes.push(format!(
+                "{} morph targets' TANGENT displacements not imported (posecast serves no \
+                 tangents)",
+                morphs.3
             ));
         }
         if !loose.is_empty() {

@@ -11,7 +11,7 @@
 
 use crate::auth::Caller;
 use crate::control;
-use crate::live::Drives;
+use crate::live::{Drives, JsonPose};
 use crate::metrics::net::Timeout;
 use crate::scene::ticker::unix_micros;
 use crate::service::admission::Greeter;
@@ -666,12 +666,16 @@ impl Session {
                 rotations,
                 root_position,
                 time_us,
+                weights,
             } => {
                 // Not acknowledged (up to 120 a second): errors only.
-                if let Err(e) =
-                    self.drives
-                        .json_pose(&self.state, &avatar, &rotations, root_position, time_us)
-                {
+                let pose = JsonPose {
+                    rotations: &rotations,
+                    root_position,
+                    time_us,
+                    weights: &weights,
+                };
+                if let Err(e) = self.drives.json_pose(&self.state, &avatar, &pose) {
                     self.error(e);
                 }
                 true

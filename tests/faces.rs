@@ -1,0 +1,497 @@
+//! Faces end to end (issue 30): a Ready Player Me avatar's morph weights set by
+//! `set_morph_weights` / `set_expression` (by its own channel names and by standard names),
+//! as viewers decode them — binary frames of protocol version 4, JSON frames, and version 3
+//! frames that leave them out — through `get_avatar`, and across a SIGKILL. The reference is
+//! the weight each command gave, within the wire's stated bound (half of 1/1023).
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+mod common;
+
+use common::child::Posecast;
+use common::{command_to, testdata_bytes, upload_files};
+use posecast_client::net::{Client, ClientOptions};
+use posecast_proto::morph::MAX_WEIGHT_ERROR;
+use posecast_proto::msg::Encoding;
+use serde_json::{Value, json};
+use std::net::SocketAddr;
+
+const RPM: &str = "gltf/ReadyPlayerMe/PreviewMesh.glb";
+
+async fn ok(addr: SocketAddr, body: Value) -> Value {
+    let (status, answer) = command_to(addr, &body.to_string()).await;
+    assert_eq!(status, 200, "{body} → {answer}");
+    answer["result"].clone()
+}
+
+async fn refused(addr: SocketAddr, body: Value) -> (u16, String, String) {
+    let (status, answer) = command_to(addr, &body.to_string()).await;
+    assert_ne!(status, 200, "{body} must be refused: {answer}");
+    (
+        status,
+        answer["code"].as_str().unwrap_or_default().to_owned(),
+        answer["message"].as_str().unwrap_or_default().to_owned(),
+    )
+}
+
+/// Uploads Ready Player Me's avatar as asset `rpm` and adds avatar `face` of it to `default`.
+/// `false` (a failure under `CI=true`) without the shared test data.
+async fn add_face(addr: SocketAddr) -> bool {
+    let Some(bytes) = testdata_bytes(RPM) else {
+        return false;
+    };
+    let (status, body) = upload_files(addr, "/api/assets/rpm", &[("rpm.glb", &bytes)]).await;
+    assert_eq!(status, 200, "{body}");
+    ok(
+        addr,
+        json!({"op": "add_avatar", "scene": "default", "asset": "rpm", "avatar": "face"}),
+    )
+    .await;
+    true
+}
+
+async fn viewer(addr: SocketAddr, encoding: Encoding, version: u32) -> Client {
+    let mut options = ClientOptions::new(format!("ws://{addr}/ws"), "default");
+    options.reconnect = false;
+    options.encoding = encoding;
+    options.version = version;
+    Client::connect(options).await.unwrap()
+}
+
+/// The face's latest decoded weights by channel name, once they are `want` (within the wire's
+/// bound); fails the test when they never are.
+async fn weights_become(client: &Client, want: &[(&str, f32)]) -> Vec<(String, f32)> {
+    let read = || {
+        client
+            .avatars()
+            .into_iter()
+            .find(|a| a.description.id.0 == "face")
+            .and_then(|a| {
+                let w = a.latest?.weights;
+                Some(
+                    a.description
+                        .morph_targets
+                        .iter()
+                        .cloned()
+                        .zip(w)
+                        .collect::<Vec<_>>(),
+                )
+            })
+            .unwrap_or_default()
+    };
+    let matches = |got: &[(String, f32)]| {
+        !got.is_empty()
+            && got.iter().all(|(name, w)| {
+                let expected = want
+                    .iter()
+                    .find(|(n, _)| n == name)
+                    .map_or(0.0, |(_, w)| *w);
+                (w - expected).abs() <= MAX_WEIGHT_ERROR
+            })
+    };
+    assert!(
+        common::wait_for(120.0, || matches(&read())).await,
+        "weights never became {want:?}: {:?}",
+        read()
+    );
+    read()
+}
+
+#[tokio::test]
+async fn weights_set_by_name_reach_every_viewer_within_the_bound() {
+    let server = common::server(30.0).await;
+    let addr = server.addr;
+    if !add_face(addr).await {
+        return;
+    }
+    let v4 = viewer(addr, Encoding::Binary, 4).await;
+    let json_viewer = viewer(addr, Encoding::Json, 3).await;
+    let v3 = viewer(addr, Encoding::Binary, 3).await;
+
+    // Its own channel names and standard ones (VRM `blink` → eyesClosed) alike.
+    ok(
+        addr,
+        json!({"op": "set_morph_weights", "avatar": "face",
+               "weights": {"mouthOpen": 0.5, "blink": 0.3}}),
+    )
+    .await;
+    let want = [("mouthOpen", 0.5), ("eyesClosed", 0.3)];
+    for (label, client) in [("v4 binary", &v4), ("JSON", &json_viewer)] {
+        let got = weights_become(client, &want).await;
+        for (name, w) in &want {
+            let have = got.iter().find(|(n, _)| n == name).map(|(_, w)| *w);
+            let have = have.unwrap_or_else(|| panic!("{label}: no {name} in {got:?}"));
+            assert!(
+                (have - w).abs() <= MAX_WEIGHT_ERROR,
+                "{label} {name}: {have}"
+            );
+        }
+        assert!(
+            got.iter().filter(|(_, w)| *w > 0.0).count() == 2,
+            "{label}: {got:?}"
+        );
+    }
+    // Version 3 frames leave weights out and still decode: its poses keep arriving.
+    let seen = v3.stats().frames;
+    assert!(common::wait_for(120.0, || v3.stats().frames > seen + 3).await);
+    let face = v3
+        .avatars()
+        .into_iter()
+        .find(|a| a.description.id.0 == "face")
+        .unwrap();
+    assert!(face.latest.unwrap().weights.is_empty());
+    assert_eq!(v3.stats().undecodable, 0);
+
+    // get_avatar lists the weights above 0 by channel.
+    let state = ok(addr, json!({"op": "get_avatar", "avatar": "face"})).await;
+    let listed = &state["morph_weights"];
+    assert!(
+        (listed["mouthOpen"].as_f64().unwrap() - 0.5).abs() < 1e-3,
+        "{state}"
+    );
+    assert!(
+        (listed["eyesClosed"].as_f64().unwrap() - 0.3).abs() < 1e-3,
+        "{state}"
+    );
+
+    // set_expression (ARKit's jawOpen is mouthOpen here), weight 1 by default; reset clears.
+    ok(
+        addr,
+        json!({"op": "set_expression", "avatar": "face", "expression": "happy"}),
+    )
+    .await;
+    weights_become(
+        &v4,
+        &[("mouthOpen", 0.5), ("eyesClosed", 0.3), ("mouthSmile", 1.0)],
+    )
+    .await;
+    ok(
+        addr,
+        json!({"op": "set_morph_weights", "avatar": "face", "weights": {"jawOpen": 0.25},
+               "reset": true}),
+    )
+    .await;
+    let got = weights_become(&v4, &[("mouthOpen", 0.25)]).await;
+    let nonzero: Vec<_> = got.iter().filter(|(_, w)| *w > 0.0).collect();
+    assert_eq!(nonzero.len(), 1, "{got:?}");
+    assert!((nonzero[0].1 - 0.25).abs() <= MAX_WEIGHT_ERROR, "{got:?}");
+}
+
+#[tokio::test]
+async fn bad_weights_are_refused_and_change_nothing() {
+    let server = common::server(30.0).await;
+    let addr = server.addr;
+    if !add_face(addr).await {
+        return;
+    }
+    ok(
+        addr,
+        json!({"op": "set_morph_weights", "avatar": "face", "weights": {"mouthSmile": 0.75}}),
+    )
+    .await;
+    let before = ok(addr, json!({"op": "get_avatar", "avatar": "face"})).await;
+    for (weights, code) in [
+        (
+            json!({"mouthOpen": 0.5, "noSuchShape": 0.5}),
+            "unknown_expression",
+        ),
+        (json!({"mouthOpen": 1.5}), "invalid_value"),
+        (json!({"mouthOpen": -0.01}), "invalid_value"),
+        (json!({"mouthOpen": 1e38, "blink": 0.5}), "invalid_value"),
+    ] {
+        let body = json!({"op": "set_morph_weights", "avatar": "face", "weights": weights,
+                          "reset": true});
+        let (status, got, message) = refused(addr, body).await;
+        assert_eq!(got, code, "{weights}: {message}");
+        assert!(status == 404 || status == 400, "{status}");
+        let after = ok(addr, json!({"op": "get_avatar", "avatar": "face"})).await;
+        assert_eq!(after["morph_weights"], before["morph_weights"], "{weights}");
+    }
+    // NaN is not JSON; a weight that is not a number is a bad message.
+    let (_, code, _) = refused(
+        addr,
+        json!({"op": "set_morph_weights", "avatar": "face", "weights": {"mouthOpen": "NaN"}}),
+    )
+    .await;
+    assert_eq!(code, "bad_message");
+    // The built-in avatar has no morph targets: the error says so.
+    let (status, code, message) = refused(
+        addr,
+        json!({"op": "set_expression", "avatar": "avatar", "expression": "blink"}),
+    )
+    .await;
+    assert_eq!((status, code.as_str()), (404, "unknown_expression"));
+    assert!(message.contains("no morph targets"), "{message}");
+}
+
+/// An acknowledged `set_morph_weights` survives SIGKILL: the restarted server streams and
+/// lists the same weights.
+#[tokio::test]
+async fn weights_survive_a_sigkill() {
+    let data = tempfile::tempdir().unwrap();
+    let dir = data.path().to_str().unwrap().to_owned();
+    let start = || {
+        Posecast::start(
+            &["--tick-rate", "30", "--data", &dir],
+            &[("POSECAST_CONTROL_TOKEN", common::CONTROL)],
+        )
+    };
+    let server = start();
+    if !add_face(server.addr).await {
+        return;
+    }
+    ok(
+        server.addr,
+        json!({"op": "set_morph_weights", "avatar": "face",
+               "weights": {"eyesLookUp": 0.6, "aa": 0.2}}),
+    )
+    .await;
+    server.kill();
+    let server = start();
+    let state = ok(server.addr, json!({"op": "get_avatar", "avatar": "face"})).await;
+    let listed = state["morph_weights"].as_object().unwrap();
+    assert_eq!(listed.len(), 2, "{state}");
+    assert!(
+        (listed["eyesLookUp"].as_f64().unwrap() - 0.6).abs() < 1e-3,
+        "{state}"
+    );
+    assert!(
+        (listed["mouthOpen"].as_f64().unwrap() - 0.2).abs() < 1e-3,
+        "{state}"
+    );
+    let v4 = viewer(server.addr, Encoding::Binary, 4).await;
+    weights_become(&v4, &[("eyesLookUp", 0.6), ("mouthOpen", 0.2)]).await;
+    server.kill();
+}
+
+/// A VMC performer's blend shapes (`/VMC/Ext/Blend/Val` + `Apply`, VRM 0.x names as VSeeFace
+/// sends them) drive the face's morph channels: `Joy` → happy → mouthSmile, `A` → aa →
+/// mouthOpen, `Blink` → blink → eyesClosed; a name the face lacks is kept in `blend_shapes`
+/// only, and a NaN is refused as before.
+#[tokio::test]
+async fn vmc_blend_shapes_drive_the_morph_channels() {
+    use common::vmc::{bundle, message, sender};
+    use rosc::OscType;
+    let server = common::vmc::server(30.0, &["face"], Vec::new()).await;
+    let addr = server.addr;
+    if !add_face(addr).await {
+        return;
+    }
+    let val = |name: &str, v: f32| {
+        message(
+            "/VMC/Ext/Blend/Val",
+            vec![OscType::String(name.into()), OscType::Float(v)],
+        )
+    };
+    let packet = bundle(vec![
+        val("Joy", 0.75),
+        val("A", 0.25),
+        val("Blink", 1.0),
+        val("Fun", 0.5),
+        val("Blink_L", f32::NAN),
+        message("/VMC/Ext/Blend/Apply", vec![]),
+    ]);
+    let udp = sender().await;
+    let v4 = viewer(addr, Encoding::Binary, 4).await;
+    let want = [
+        ("mouthSmile", 0.75),
+        ("mouthOpen", 0.25),
+        ("eyesClosed", 1.0),
+    ];
+    let to = server.vmc.inputs[0];
+    let bytes = rosc::encoder::encode(&packet).unwrap();
+    // The same packet three times: one datagram lost on loopback changes nothing.
+    for _ in 0..3 {
+        udp.send_to(&bytes, to).await.unwrap();
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    let got = weights_become(&v4, &want).await;
+    for (name, w) in want {
+        let have = got.iter().find(|(n, _)| n == name).map(|(_, w)| *w);
+        assert!(
+            have.is_some_and(|h| (h - w).abs() <= MAX_WEIGHT_ERROR),
+            "{name}: {got:?}"
+        );
+    }
+    let state = ok(addr, json!({"op": "get_avatar", "avatar": "face"})).await;
+    assert_eq!(state["blend_shapes"]["Fun"], 0.5, "{state}");
+    assert_eq!(
+        state["morph_weights"].as_object().unwrap().len(),
+        3,
+        "{state}"
+    );
+}
+
+/// VMC out sends the face's weights in every bundle: each channel by its own name, and the
+/// VRM 0.x clip names VMC receivers compare (exact case) that the face's expressions map onto
+/// a channel — `Blink` (blink → eyesClosed), `Joy` (happy → mouthSmile), `A` (aa → mouthOpen)
+/// — then `/VMC/Ext/Blend/Apply`.
+#[tokio::test]
+async fn vmc_out_sends_the_faces_weights_by_channel_and_vrm_names() {
+    use rosc::{OscPacket, OscType};
+    use std::collections::BTreeMap;
+    let listener = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let out = posecast_server::vmc::VmcOut {
+        avatar: posecast_proto::msg::AvatarId("face".into()),
+        addr: listener.local_addr().unwrap(),
+    };
+    let server = common::vmc::server(30.0, &[], vec![out]).await;
+    if !add_face(server.addr).await {
+        return;
+    }
+    ok(
+        server.addr,
+        json!({"op": "set_morph_weights", "avatar": "face",
+               "weights": {"blink": 1.0, "mouthSmile": 0.5}}),
+    )
+    .await;
+    /// A bundle's blend shape values and whether `Apply` follows the last of them.
+    fn blends(packet: &OscPacket) -> (BTreeMap<String, f32>, bool) {
+        let mut values = BTreeMap::new();
+        let mut applied = false;
+        if let OscPacket::Bundle(b) = packet {
+            for p in &b.content {
+                let OscPacket::Message(m) = p else { continue };
+                match (m.addr.as_str(), m.args.as_slice()) {
+                    ("/VMC/Ext/Blend/Val", [OscType::String(n), OscType::Float(v)]) => {
+                        applied = false;
+                        values.insert(n.clone(), *v);
+                    }
+                    ("/VMC/Ext/Blend/Apply", []) => applied = true,
+                    _ => {}
+                }
+            }
+        }
+        (values, applied)
+    }
+    let mut buf = vec![0u8; 65_536];
+    let (values, applied) = tokio::time::timeout(std::time::Duration::from_secs(120), async {
+        loop {
+            let (n, _) = listener.recv_from(&mut buf).await.unwrap();
+            let (_, packet) = rosc::decoder::decode_udp(&buf[..n]).unwrap();
+            let (values, applied) = blends(&packet);
+            if values.get("eyesClosed") == Some(&1.0) && values.get("mouthSmile") == Some(&0.5) {
+                return (values, applied);
+            }
+        }
+    })
+    .await
+    .expect("VMC out never sent the weights");
+    assert!(
+        applied,
+        "no /VMC/Ext/Blend/Apply after the values: {values:?}"
+    );
+    for channel in [
+        "mouthOpen",
+        "mouthSmile",
+        "eyesClosed",
+        "eyesLookUp",
+        "eyesLookDown",
+    ] {
+        assert!(
+            values.contains_key(channel),
+            "{channel} missing: {values:?}"
+        );
+    }
+    assert_eq!(values.get("Blink"), Some(&1.0), "{values:?}");
+    assert_eq!(values.get("Joy"), Some(&0.5), "{values:?}");
+    assert_eq!(values.get("A"), Some(&0.0), "{values:?}");
+    // VMC names are case-sensitive: only the VRM 0.x spelling is sent.
+    assert!(
+        !values.contains_key("blink") && !values.contains_key("joy"),
+        "{values:?}"
+    );
+}
+
+/// A live driver's JSON `pose` messages carry weights by name (standard or the rig's own);
+/// a bad one is refused with a typed error and changes neither the pose nor the weights.
+#[tokio::test]
+async fn live_poses_carry_weights() {
+    use futures_util::SinkExt;
+    use posecast_proto::msg::ServerMsg;
+    use tokio_tungstenite::tungstenite::Message;
+    let server = common::server(30.0).await;
+    let addr = server.addr;
+    if !add_face(addr).await {
+        return;
+    }
+    let mut ws = common::raw(&server, Encoding::Json).await;
+    let send = |msg: Value| Message::Text(msg.to_string().into());
+    ws.send(send(json!({"type": "command", "id": 1,
+                        "command": {"op": "drive", "avatar": "face"}})))
+        .await
+        .unwrap();
+    loop {
+        match common::next_text(&mut ws).await.expect("drive answered") {
+            ServerMsg::Ack { id: 1, .. } => break,
+            ServerMsg::Error(e) => panic!("drive: {e:?}"),
+            _ => {}
+        }
+    }
+    let pose = |time_us: u64, weights: Value| {
+        send(
+            json!({"type": "pose", "avatar": "face", "rotations": {}, "time_us": time_us,
+                    "weights": weights}),
+        )
+    };
+    ws.send(pose(1000, json!({"blink": 0.8, "mouthSmile": 0.4})))
+        .await
+        .unwrap();
+    let weight_of = |state: &Value, name: &str| state["morph_weights"][name].as_f64();
+    let deadline = tokio::time::Instant::now() + std::time::Duration::from_secs(120);
+    let mut state = Value::Null;
+    while tokio::time::Instant::now() < deadline {
+        state = ok(addr, json!({"op": "get_avatar", "avatar": "face"})).await;
+        if weight_of(&state, "eyesClosed").is_some() {
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    assert!(
+        (weight_of(&state, "eyesClosed").unwrap() - 0.8).abs() < 1e-3,
+        "{state}"
+    );
+    assert!(
+        (weight_of(&state, "mouthSmile").unwrap() - 0.4).abs() < 1e-3,
+        "{state}"
+    );
+    // A pose older than the last applied is dropped with its weights: after a newer one shows,
+    // the older one's blink never did.
+    ws.send(pose(500, json!({"blink": 0.1}))).await.unwrap();
+    ws.send(pose(2000, json!({"mouthOpen": 0.3})))
+        .await
+        .unwrap();
+    while tokio::time::Instant::now() < deadline {
+        state = ok(addr, json!({"op": "get_avatar", "avatar": "face"})).await;
+        if weight_of(&state, "mouthOpen").is_some() {
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    assert!(
+        (weight_of(&state, "mouthOpen").unwrap() - 0.3).abs() < 1e-3,
+        "{state}"
+    );
+    assert!(
+        (weight_of(&state, "eyesClosed").unwrap() - 0.8).abs() < 1e-3,
+        "{state}"
+    );
+    // An unknown name and an out-of-range weight: typed errors, nothing changed.
+    for (weights, code) in [
+        (
+            json!({"blink": 0.1, "noSuchShape": 1.0}),
+            "unknown_expression",
+        ),
+        (json!({"blink": 2.0}), "invalid_value"),
+    ] {
+        ws.send(pose(3000, weights.clone())).await.unwrap();
+        loop {
+            if let ServerMsg::Error(e) = common::next_text(&mut ws).await.expect("an error") {
+                assert_eq!(serde_json::to_value(e.code).unwrap(), code, "{weights}");
+                break;
+            }
+        }
+    }
+    let after = ok(addr, json!({"op": "get_avatar", "avatar": "face"})).await;
+    assert_eq!(after["morph_weights"], state["morph_weights"]);
+}
