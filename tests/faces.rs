@@ -403,6 +403,85 @@ async fn vmc_out_sends_the_faces_weights_by_channel_and_vrm_names() {
     );
 }
 
+/// Weights survive recording, export and replay: a take of the face while its weights are
+/// set (eyes closed 0.8, then the mouth opened 0.6 too) holds a morph track per channel that
+/// moved; its glTF passes the Khronos validator (a `weights` channel on the mesh node) and
+/// imports back with those weights at its start and end; played back on the face once its set
+/// weights are reset, the stream carries the recorded weights (the clip's end, held).
+#[tokio::test]
+async fn weights_are_recorded_exported_and_replayed() {
+    use posecast_proto::morph::{weight_level, weight_value};
+    let server = common::server(30.0).await;
+    let addr = server.addr;
+    if !add_face(addr).await {
+        return;
+    }
+    let v4 = viewer(addr, Encoding::Binary, 4).await;
+    let set =
+        |weights: Value| json!({"op": "set_morph_weights", "avatar": "face", "weights": weights});
+    ok(addr, set(json!({"eyesClosed": 0.8}))).await;
+    weights_become(&v4, &[("eyesClosed", 0.8)]).await;
+    ok(
+        addr,
+        json!({"op": "record", "avatar": "face", "clip": "take"}),
+    )
+    .await;
+    tokio::time::sleep(std::time::Duration::from_millis(400)).await;
+    ok(addr, set(json!({"mouthOpen": 0.6}))).await;
+    weights_become(&v4, &[("eyesClosed", 0.8), ("mouthOpen", 0.6)]).await;
+    tokio::time::sleep(std::time::Duration::from_millis(400)).await;
+    let info = ok(addr, json!({"op": "stop_recording", "avatar": "face"})).await;
+    assert_eq!(info["clip"], "take", "{info}");
+
+    let (status, glb) = common::get_bytes(addr, "/api/assets/rpm/clips/take.glb").await;
+    assert_eq!(status, 200, "{}", String::from_utf8_lossy(&glb));
+    posecast_proto::testing::assert_valid_gltf(&[("face-take-weights", glb.clone())]);
+    let back = posecast_server::import::gltf::from_slice("take.glb", &glb)
+        .unwrap()
+        .remove(0);
+    let clip = back.clips.iter().find(|c| c.name() == "take").unwrap();
+    let track = |name: &str| {
+        clip.morphs()
+            .iter()
+            .find(|m| m.channel == name)
+            .unwrap_or_else(|| panic!("no {name} track in {:?}", clip.morphs()))
+    };
+    // As streamed: quantised to 10 bits.
+    let q = |w: f32| weight_value(weight_level(w));
+    let (start, end) = (clip.start(), clip.end());
+    assert!((track("eyesClosed").sample(start) - q(0.8)).abs() < 1e-6);
+    assert!((track("eyesClosed").sample(end) - q(0.8)).abs() < 1e-6);
+    assert_eq!(track("mouthOpen").sample(start), 0.0);
+    assert!((track("mouthOpen").sample(end) - q(0.6)).abs() < 1e-6);
+    // glTF's weights channel covers every target: the others come back held at 0.
+    for m in clip.morphs() {
+        if m.channel != "eyesClosed" && m.channel != "mouthOpen" {
+            assert!(m.track.is_constant() && m.sample(start) == 0.0, "{m:?}");
+        }
+    }
+
+    // Replayed: the set weights back to 0, the take held at its end.
+    ok(
+        addr,
+        json!({"op": "set_morph_weights", "avatar": "face", "weights": {}, "reset": true}),
+    )
+    .await;
+    weights_become(&v4, &[]).await;
+    ok(
+        addr,
+        json!({"op": "play", "avatar": "face", "clip": "take", "looping": false, "fade": 0}),
+    )
+    .await;
+    weights_become(&v4, &[("eyesClosed", 0.8), ("mouthOpen", 0.6)]).await;
+    // The state shows them too (the larger of set and clip weights, per channel).
+    let state = ok(addr, json!({"op": "get_avatar", "avatar": "face"})).await;
+    assert_eq!(
+        state["morph_weights"]["eyesClosed"],
+        f64::from(q(0.8)),
+        "{state}"
+    );
+}
+
 /// A live driver's JSON `pose` messages carry weights by name (standard or the rig's own);
 /// a bad one is refused with a typed error and changes neither the pose nor the weights.
 #[tokio::test]

@@ -694,7 +694,9 @@ pub struct AvatarState {
     /// expression of the avatar also set `morph_weights`.
     #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
     pub blend_shapes: std::collections::BTreeMap<String, f32>,
-    /// Morph weights by channel name, those above 0 (issue 30); absent when all are 0.
+    /// Morph weights by channel name as shown (streamed), those above 0 (issue 30): per
+    /// channel the larger of the weight set (`set_morph_weights`, a live driver, VMC) and the
+    /// playing clip's; absent when all are 0.
     #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
     pub morph_weights: std::collections::BTreeMap<String, f32>,
     /// The cross-fade in progress (after `play … fade`), if any.

@@ -164,3 +164,79 @@ fn a_scaled_mesh_keeps_its_targets_in_proportion() {
     }
     assert!(face.mesh.normals()[0].abs_diff_eq(Vec3::Z, 1e-6));
 }
+
+/// The triangle with two `weights` animations of its mesh node: `talk` LINEAR over three keys
+/// (output key by key: open, smile), `wink` CUBICSPLINE (in-tangents, values, out-tangents of
+/// both targets per key). They import as one morph track per target, named after it; the
+/// weights at and between keys are the ones derived by hand; the clip lasts the keys' range.
+#[test]
+fn weight_animations_import_as_morph_tracks() {
+    let (mut doc, bin_bytes) = file(Some(json!(["open", "smile"])));
+    let mut bin = gltf_support::Bin::from_document(&doc, bin_bytes);
+    let times = bin.floats(&[0.0, 1.0, 2.0], "SCALAR");
+    let linear = bin.floats(&[0.0, 0.0, 1.0, 0.5, 0.0, 1.0], "SCALAR");
+    let cubic_times = bin.floats(&[0.0, 2.0], "SCALAR");
+    // Key 0: in (0, 0), value (0.2, 0.4), out (0.3, 0); key 1: in (0, 0), value (1, 0), out (0, 0).
+    let cubic = bin.floats(
+        &[0.0, 0.0, 0.2, 0.4, 0.3, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
+        "SCALAR",
+    );
+    doc["animations"] = json!([
+        {"name": "talk",
+         "samplers": [{"input": times, "output": linear, "interpolation": "LINEAR"}],
+         "channels": [{"sampler": 0, "target": {"node": 1, "path": "weights"}}]},
+        {"name": "wink",
+         "samplers": [{"input": cubic_times, "output": cubic, "interpolation": "CUBICSPLINE"}],
+         "channels": [{"sampler": 0, "target": {"node": 1, "path": "weights"}}]}
+    ]);
+    bin.finish(&mut doc);
+    let a = gltf::from_slice("face.glb", &glb(&doc, &bin.bytes))
+        .unwrap()
+        .remove(0);
+    let talk = a.clips.iter().find(|c| c.name() == "talk").unwrap();
+    assert_eq!((talk.start(), talk.end()), (0.0, 2.0));
+    let m = talk.morphs();
+    assert_eq!(m.len(), 2);
+    assert_eq!(
+        (m[0].channel.as_str(), m[1].channel.as_str()),
+        ("open", "smile")
+    );
+    for (t, open, smile) in [
+        (0.0, 0.0, 0.0),
+        (0.5, 0.5, 0.25),
+        (1.0, 1.0, 0.5),
+        (1.5, 0.5, 0.75),
+    ] {
+        assert!(
+            (m[0].sample(t) - open).abs() < 1e-6,
+            "open at {t}: {}",
+            m[0].sample(t)
+        );
+        assert!(
+            (m[1].sample(t) - smile).abs() < 1e-6,
+            "smile at {t}: {}",
+            m[1].sample(t)
+        );
+    }
+    let wink = a.clips.iter().find(|c| c.name() == "wink").unwrap();
+    let m = wink.morphs();
+    // Hermite at u = 1/2 over dt = 2: h00 = h01 = 1/2, h10 = 1/8, h11 = −1/8 (tangents × dt).
+    // open: 0.5·0.2 + 0.125·2·0.3 + 0.5·1 = 0.675; smile: 0.5·0.4 = 0.2.
+    assert!(
+        (m[0].sample(1.0) - 0.675).abs() < 1e-6,
+        "{}",
+        m[0].sample(1.0)
+    );
+    assert!(
+        (m[1].sample(1.0) - 0.2).abs() < 1e-6,
+        "{}",
+        m[1].sample(1.0)
+    );
+    let notes = &a.source.notes;
+    assert!(
+        notes
+            .iter()
+            .any(|n| n.contains("(talk): 2 morph channel(s) animated")),
+        "{notes:?}"
+    );
+}

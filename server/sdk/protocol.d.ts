@@ -1043,7 +1043,9 @@ recording?: string | null,
  */
 blend_shapes?: { [key in string]: number }, 
 /**
- * Morph weights by channel name, those above 0 (issue 30); absent when all are 0.
+ * Morph weights by channel name as shown (streamed), those above 0 (issue 30): per
+ * channel the larger of the weight set (`set_morph_weights`, a live driver, VMC) and the
+ * playing clip's; absent when all are 0.
  */
 morph_weights?: { [key in string]: number }, 
 /**

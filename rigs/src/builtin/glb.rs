@@ -85,5 +85,6 @@ fn animation(clip: &SampledClip) -> Animation {
     Animation {
         name: clip.name.into(),
         channels: translation.into_iter().chain(rotations).collect(),
+        weights: None,
     }
 }

@@ -240,13 +240,38 @@ pub enum Wrap {
     Loop,
 }
 
-/// An animation clip over a fixed joint list (one channel slot per skeleton joint).
+/// One morph channel's weight over time: a glTF `weights` animation split per target, named
+/// by the target (the rig's morph channel of that name follows it, on every mesh that has it).
+#[derive(Clone, Debug, PartialEq)]
+pub struct MorphTrack {
+    /// The morph channel (target name) it drives.
+    pub channel: String,
+    /// The weight over clip time (kept in `[0, 1]` when sampled).
+    pub track: Track<f32>,
+}
+
+impl MorphTrack {
+    /// The weight at clip time `time`, clamped to `[0, 1]` (a cubic spline may overshoot).
+    #[must_use]
+    pub fn sample(&self, time: f32) -> f32 {
+        let w = self.track.sample(time);
+        if w.is_finite() {
+            w.clamp(0.0, 1.0)
+        } else {
+            0.0
+        }
+    }
+}
+
+/// An animation clip over a fixed joint list (one channel slot per skeleton joint), and the
+/// morph channels it animates.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Clip {
     name: String,
     start: f32,
     end: f32,
     joints: Vec<JointChannels>,
+    morphs: Vec<MorphTrack>,
 }
 
 impl Clip {
@@ -278,7 +303,28 @@ impl Clip {
             start,
             end,
             joints,
+            morphs: Vec::new(),
         })
+    }
+
+    /// The same clip animating these morph channels too (replacing any it had; one track per
+    /// channel: a later track of a channel already listed is dropped).
+    #[must_use]
+    pub fn with_morphs(mut self, morphs: Vec<MorphTrack>) -> Self {
+        let mut kept: Vec<MorphTrack> = Vec::with_capacity(morphs.len());
+        for m in morphs {
+            if !kept.iter().any(|k| k.channel == m.channel) {
+                kept.push(m);
+            }
+        }
+        self.morphs = kept;
+        self
+    }
+
+    /// The morph channels the clip animates.
+    #[must_use]
+    pub fn morphs(&self) -> &[MorphTrack] {
+        &self.morphs
     }
 
     /// The clip's name (from the file, or given on import).
@@ -422,6 +468,7 @@ impl Clip {
             start: self.start,
             end: self.end,
             joints,
+            morphs: self.morphs.clone(),
         }
     }
 

@@ -65,6 +65,25 @@ impl TrackValue for Vec3 {
     }
 }
 
+impl TrackValue for f32 {
+    fn interpolate(a: Self, b: Self, u: f32) -> Self {
+        a + (b - a) * u
+    }
+    fn hermite(p0: Self, m0: Self, p1: Self, m1: Self, u: f32, dt: f32) -> Self {
+        let [h00, h10, h01, h11] = hermite_basis(u);
+        p0 * h00 + m0 * (h10 * dt) + p1 * h01 + m1 * (h11 * dt)
+    }
+    fn finite(&self) -> bool {
+        self.is_finite()
+    }
+    fn same(a: Self, b: Self) -> bool {
+        a == b
+    }
+    fn is_zero(&self) -> bool {
+        *self == 0.0
+    }
+}
+
 /// Shortest-path slerp: `b` is negated when `a · b < 0`, and nearly parallel rotations fall
 /// back to normalised lerp (where slerp's `sin θ` denominator loses precision).
 #[must_use]

@@ -27,7 +27,7 @@
 //! rotation), so readers that do not take the shortest path still play the same motion.
 
 use super::ExportError;
-use super::glb::{Animation, Channel, Output};
+use super::glb::{Animation, Channel, Output, Weights};
 use crate::clip::{
     Clip, Interpolation, JointChannels, RotationChannel, Track, VectorChannel, sample_joint,
 };
@@ -41,12 +41,13 @@ pub const RESAMPLE_RATE: f64 = 60.0;
 const MIN_KEY_GAP: f32 = 1e-5;
 
 /// `clip` as one glTF animation of a skeleton with `joints` joints (channel `j` targets node
-/// `j`), named after the clip.
+/// `j`), named after the clip; its morph tracks as a `weights` channel over the mesh's
+/// `targets` (morph channel names, the mesh's target order) — see [`weights`].
 ///
 /// # Errors
 /// The clip has more joint slots than `joints` ([`ExportError::JointCount`]) or no channel at
 /// all ([`ExportError::NothingAnimated`]).
-pub fn animation(clip: &Clip, joints: usize) -> Result<Animation, ExportError> {
+pub fn animation(clip: &Clip, joints: usize, targets: &[String]) -> Result<Animation, ExportError> {
     if clip.joint_count() > joints {
         return Err(ExportError::JointCount {
             clip: clip.name().to_owned(),
@@ -66,7 +67,8 @@ pub fn animation(clip: &Clip, joints: usize) -> Result<Animation, ExportError> {
             channels.push(vector_channel(clip, joint, ch, s, Component::Scale));
         }
     }
-    if channels.is_empty() {
+    let weights = weights(clip, targets);
+    if channels.is_empty() && weights.is_none() {
         return Err(ExportError::NothingAnimated {
             clip: clip.name().to_owned(),
         });
@@ -74,6 +76,44 @@ pub fn animation(clip: &Clip, joints: usize) -> Result<Animation, ExportError> {
     Ok(Animation {
         name: clip.name().to_owned(),
         channels,
+        weights,
+    })
+}
+
+/// The clip's morph tracks as one linear `weights` channel over `targets`: keys at the
+/// clip's start and end and at every morph key between, each target's weight sampled there
+/// (0 for a target the clip does not animate). Exact for step-free linear tracks (a recorded
+/// take's); step and cubic tracks are read at their keys and joined linearly. `None` when no
+/// track drives one of `targets`.
+#[must_use]
+pub fn weights(clip: &Clip, targets: &[String]) -> Option<Weights> {
+    let tracks: Vec<Option<&crate::clip::MorphTrack>> = targets
+        .iter()
+        .map(|t| clip.morphs().iter().find(|m| m.channel == *t))
+        .collect();
+    if tracks.iter().all(Option::is_none) {
+        return None;
+    }
+    let (start, end) = (clip.start(), clip.end());
+    let mut times = vec![start, end];
+    for m in tracks.iter().flatten() {
+        times.extend(
+            m.track
+                .times()
+                .iter()
+                .copied()
+                .filter(|&t| t > start && t < end),
+        );
+    }
+    times.sort_by(f32::total_cmp);
+    times.dedup_by(|a, b| (*a - *b).abs() < MIN_KEY_GAP);
+    let values = times
+        .iter()
+        .flat_map(|&t| tracks.iter().map(move |m| m.map_or(0.0, |m| m.sample(t))))
+        .collect();
+    Some(Weights {
+        times: times.iter().map(|&t| t - start).collect(),
+        values,
     })
 }
 
@@ -469,7 +509,7 @@ mod tests {
 
     #[test]
     fn channels_keep_their_interpolation_where_gltf_can() {
-        let a = animation(&mixed_clip(), 4).unwrap();
+        let a = animation(&mixed_clip(), 4, &[]).unwrap();
         let kinds: Vec<(usize, Interpolation, &str)> = a
             .channels
             .iter()
@@ -510,7 +550,7 @@ mod tests {
     fn the_written_animation_imports_back_as_the_clip() {
         let clip = mixed_clip();
         let skeleton = skeleton();
-        let a = animation(&clip, skeleton.len()).unwrap();
+        let a = animation(&clip, skeleton.len(), &[]).unwrap();
         let bytes = write(&Model {
             generator: "test",
             name: Some("t"),
@@ -573,11 +613,11 @@ mod tests {
     fn a_clip_without_channels_or_with_too_many_joints_is_refused() {
         let empty = Clip::new("e", vec![JointChannels::default(); 2], Some((0.0, 1.0))).unwrap();
         assert!(matches!(
-            animation(&empty, 2),
+            animation(&empty, 2, &[]),
             Err(ExportError::NothingAnimated { .. })
         ));
         assert!(matches!(
-            animation(&mixed_clip(), 3),
+            animation(&mixed_clip(), 3, &[]),
             Err(ExportError::JointCount { .. })
         ));
     }

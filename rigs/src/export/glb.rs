@@ -149,6 +149,18 @@ pub struct Animation {
     pub name: String,
     /// Its channels, each one property of one joint.
     pub channels: Vec<Channel>,
+    /// Morph target weights of the mesh node (a `weights` channel), if the clip animates any.
+    pub weights: Option<Weights>,
+}
+
+/// A linear `weights` channel: at each key, one weight per morph target of the mesh (the
+/// [`Mesh::target_names`] order).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Weights {
+    /// Key times in seconds, strictly increasing, the first ≥ 0.
+    pub times: Vec<f32>,
+    /// `times.len() × targets` weights, key by key.
+    pub values: Vec<f32>,
 }
 
 /// One animated property of one joint.
@@ -274,7 +286,7 @@ pub fn write(model: &Model<'_>) -> Result<Vec<u8>, ExportError> {
     b.root.scene = Some(scene);
 
     for animation in model.animations {
-        write_animation(&mut b, animation, n)?;
+        write_animation(&mut b, animation, n, mesh_node)?;
     }
     b.finish()
 }
@@ -445,7 +457,12 @@ fn check_primitive(
     Ok(())
 }
 
-fn write_animation(b: &mut Builder, a: &Animation, joints: usize) -> Result<(), ExportError> {
+fn write_animation(
+    b: &mut Builder,
+    a: &Animation,
+    joints: usize,
+    mesh_node: Option<Index<json::Node>>,
+) -> Result<(), ExportError> {
     let mut channels = Vec::with_capacity(a.channels.len());
     let mut samplers = Vec::with_capacity(a.channels.len());
     // Key times already written in this animation, and their accessor.
@@ -490,6 +507,48 @@ fn write_animation(b: &mut Builder, a: &Animation, joints: usize) -> Result<(), 
                 extras: Default::default(),
                 node: node_index(ch.joint),
                 path: Valid(property),
+            },
+            extensions: None,
+            extras: Default::default(),
+        });
+    }
+    if let (Some(w), Some(node)) = (&a.weights, mesh_node) {
+        let fail = |message: String| ExportError::Channel {
+            animation: a.name.clone(),
+            channel: channels.len(),
+            message,
+        };
+        let increasing = w.times.windows(2).all(|p| p[0] < p[1]);
+        if w.times.is_empty()
+            || !increasing
+            || !w.times.iter().all(|t| t.is_finite() && *t >= 0.0)
+            || !w.values.len().is_multiple_of(w.times.len())
+            || !w.values.iter().all(|v| v.is_finite())
+        {
+            return Err(fail(format!(
+                "weights: {} times, {} values",
+                w.times.len(),
+                w.values.len()
+            )));
+        }
+        let times: Vec<[f32; 1]> = w.times.iter().map(|&t| [t]).collect();
+        let input = b.f32s(&times, None, true);
+        let values: Vec<[f32; 1]> = w.values.iter().map(|&v| [v]).collect();
+        let output = b.f32s(&values, None, false);
+        samplers.push(json::animation::Sampler {
+            extensions: None,
+            extras: Default::default(),
+            input,
+            interpolation: Valid(json::animation::Interpolation::Linear),
+            output,
+        });
+        channels.push(json::animation::Channel {
+            sampler: Index::new((samplers.len() - 1) as u32),
+            target: json::animation::Target {
+                extensions: None,
+                extras: Default::default(),
+                node,
+                path: Valid(json::animation::Property::MorphTargetWeights),
             },
             extensions: None,
             extras: Default::default(),

@@ -145,9 +145,10 @@ pub fn rig_glb(
     meshes: &[AssetMesh],
     clips: &[Clip],
 ) -> Result<Vec<u8>, ExportError> {
+    let targets = posecast_proto::morph::channels(meshes.iter().map(|m| &m.mesh));
     let animations = clips
         .iter()
-        .map(|clip| animation::animation(clip, skeleton.len()))
+        .map(|clip| animation::animation(clip, skeleton.len(), &targets))
         .collect::<Result<Vec<_>, _>>()?;
     write_glb(name, skeleton, meshes, &animations)
 }

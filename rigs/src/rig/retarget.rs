@@ -171,7 +171,9 @@ pub fn retarget_at_rate(
         ),
         joints,
         Some((clip.start(), clip.end())),
-    )?)
+    )?
+    // Morph weights are by channel name: they carry over as they are.
+    .with_morphs(clip.morphs().to_vec()))
 }
 
 /// One source pose to target local rotations, the per-pose step of world-space retargeting.

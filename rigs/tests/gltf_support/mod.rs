@@ -67,6 +67,17 @@ impl Bin {
         self.accessors.len() - 1
     }
 
+    /// The buffer of a finished document, to append to (its views and accessors as written,
+    /// edits included).
+    pub fn from_document(doc: &Value, bytes: Vec<u8>) -> Self {
+        let list = |key: &str| doc[key].as_array().cloned().unwrap_or_default();
+        Self {
+            bytes,
+            views: list("bufferViews"),
+            accessors: list("accessors"),
+        }
+    }
+
     /// Puts the buffer, views and accessors into `doc`.
     pub fn finish(&self, doc: &mut Value) {
         doc["buffers"] = json!([{"byteLength": self.bytes.len()}]);

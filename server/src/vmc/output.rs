@@ -49,7 +49,7 @@ pub fn blend_values(avatar: &Avatar) -> Vec<(String, f32)> {
             .map(|l| l.blend_shapes.clone().into_iter().collect())
             .unwrap_or_default();
     }
-    let weight = |c: usize| avatar.morph.get(c).copied().unwrap_or(0.0);
+    let weight = |c: usize| avatar.morph_shown.get(c).copied().unwrap_or(0.0);
     let mut out: Vec<(String, f32)> = d
         .morph_targets
         .iter()

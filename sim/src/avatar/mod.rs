@@ -75,6 +75,12 @@ pub struct Avatar {
     /// Morph weights, one per channel of the description's `morph_targets` (issue 30), set by
     /// `set_morph_weights`, `set_expression`, a live driver and VMC blend shapes.
     pub morph: Vec<f32>,
+    /// The weights the playing clips animate (cross-faded as the pose is), per channel.
+    pub morph_clip: Vec<f32>,
+    /// The weights shown (streamed, sent over VMC): per channel the larger of the set weight
+    /// and the clip's, so an expression set by a command or a tracker shows over a talking
+    /// clip, and setting 0 gives the face back to the clip.
+    pub morph_shown: Vec<f32>,
 }
 
 impl Avatar {
@@ -112,6 +118,8 @@ impl Avatar {
         let channels = posecast_proto::morph::channels(rig.asset.meshes.iter().map(|m| &m.mesh));
         let expressions = posecast_proto::expressions::auto_map(&channels);
         let morph = vec![0.0; channels.len()];
+        let mut player = Player::new();
+        player.set_morph_channels(channels.clone());
         let description = description.with_morphs(channels, expressions);
         let locals = skeleton.rest().to_vec();
         let pose = AvatarPose {
@@ -122,7 +130,7 @@ impl Avatar {
         Self {
             id,
             description: Arc::new(description),
-            player: Player::new(),
+            player,
             overrides: vec![None; n],
             world: vec![Mat4::IDENTITY; n],
             locals,
@@ -133,6 +141,8 @@ impl Avatar {
             live: None,
             goals: goals::Goals::default(),
             recording: None,
+            morph_clip: morph.clone(),
+            morph_shown: morph.clone(),
             morph,
         }
     }
@@ -211,10 +221,19 @@ impl Avatar {
                 .iter()
                 .map(|&j| self.locals[usize::from(j)].scale),
         );
+        self.player.sample_weights(&mut self.morph_clip);
+        for ((shown, set), clip) in self
+            .morph_shown
+            .iter_mut()
+            .zip(&self.morph)
+            .zip(&self.morph_clip)
+        {
+            *shown = set.max(*clip);
+        }
         // As streamed: quantised, so JSON and binary subscribers see the same weights.
         self.pose.weights.clear();
         self.pose.weights.extend(
-            self.morph
+            self.morph_shown
                 .iter()
                 .map(|&w| morph::weight_value(morph::weight_level(w))),
         );

@@ -1,5 +1,5 @@
 //! Clip playback on one avatar: a clock per clip (speed, loop, pause, seek) and a cross-fade
-//! from the previous clip to the next.
+//! from the previous clip to the next, of the pose and of the morph weights the clips animate.
 
 use posecast_proto::Transform;
 use posecast_proto::command::{FadeState, RootMotion};
@@ -36,6 +36,9 @@ pub struct Layer {
     /// The scene clock at the last tick or command.
     clock: f64,
     sampler: Sampler,
+    /// For each of the clip's morph tracks, the avatar's channel it drives (resolved on first
+    /// use: a layer stays on one avatar).
+    morph_slots: Option<Vec<Option<usize>>>,
 }
 
 impl Layer {
@@ -61,6 +64,7 @@ impl Layer {
             anchor_clock: 0.0,
             clock: 0.0,
             sampler,
+            morph_slots: None,
         }
     }
 
@@ -147,6 +151,27 @@ impl Layer {
         let t = self.clip.start() + self.clip_time();
         self.sampler.sample(&self.clip, t, rest, out);
     }
+
+    /// Writes the weight of every channel the clip animates into `out` (one entry per channel
+    /// of `channels`); the others are left as they are.
+    fn sample_weights(&mut self, channels: &[String], out: &mut [f32]) {
+        let clip = &self.clip;
+        if clip.morphs().is_empty() {
+            return;
+        }
+        let t = clip.start() + self.clip_time();
+        let slots = self.morph_slots.get_or_insert_with(|| {
+            clip.morphs()
+                .iter()
+                .map(|m| channels.iter().position(|c| *c == m.channel))
+                .collect()
+        });
+        for (m, slot) in clip.morphs().iter().zip(slots.iter()) {
+            if let Some(o) = slot.and_then(|c| out.get_mut(c)) {
+                *o = m.sample(t);
+            }
+        }
+    }
 }
 
 /// Fades kept at most under the current layer: a `play` beyond that many overlapping fades
@@ -172,6 +197,10 @@ pub struct Player {
     /// The scene clock (seconds) at the last tick.
     clock: f64,
     scratch: Vec<Transform>,
+    /// The avatar's morph channels (its description's `morph_targets`), which the clips'
+    /// morph tracks are matched to by name.
+    channels: Vec<String>,
+    weight_scratch: Vec<f32>,
 }
 
 /// What a layer fades in over.
@@ -179,9 +208,14 @@ pub struct Player {
 enum Under {
     /// A clip that keeps playing while it fades out.
     Layer(Layer),
-    /// A still pose: the bottom of a stack that grew past [`MAX_FADES`], frozen at the tick it
-    /// was collapsed (`name`: the clip it showed most of, for [`FadeState::from`]).
-    Frozen { pose: Vec<Transform>, name: String },
+    /// A still pose and morph weights: the bottom of a stack that grew past [`MAX_FADES`],
+    /// frozen at the tick it was collapsed (`name`: the clip it showed most of, for
+    /// [`FadeState::from`]).
+    Frozen {
+        pose: Vec<Transform>,
+        weights: Vec<f32>,
+        name: String,
+    },
 }
 
 impl Under {
@@ -202,6 +236,17 @@ impl Under {
     fn set_clock(&mut self, clock: f64) {
         if let Under::Layer(layer) = self {
             layer.set_clock(clock);
+        }
+    }
+
+    fn sample_weights(&mut self, channels: &[String], out: &mut [f32]) {
+        match self {
+            Under::Layer(layer) => layer.sample_weights(channels, out),
+            Under::Frozen { weights, .. } => {
+                for (o, w) in out.iter_mut().zip(weights.iter()) {
+                    *o = *w;
+                }
+            }
         }
     }
 
@@ -307,6 +352,45 @@ impl Player {
         }
     }
 
+    /// The avatar's morph channels, which [`Player::sample_weights`] fills.
+    pub fn set_morph_channels(&mut self, channels: Vec<String>) {
+        self.channels = channels;
+    }
+
+    /// Writes the morph weights the clips animate into `out` (one per channel set with
+    /// [`Player::set_morph_channels`]): the fade stack evaluated bottom up like the pose, each
+    /// layer's weights blended linearly over those below by its fade's weight; a channel a clip
+    /// does not animate is 0 in it (so fading to a clip without a face relaxes the face). No
+    /// layer: all 0.
+    pub fn sample_weights(&mut self, out: &mut [f32]) {
+        out.fill(0.0);
+        if self.channels.is_empty() {
+            return;
+        }
+        let channels = &self.channels;
+        let Some(current) = &mut self.current else {
+            return;
+        };
+        let Some((first, _)) = self.fading.split_first_mut() else {
+            current.sample_weights(channels, out);
+            return;
+        };
+        first.from.sample_weights(channels, out);
+        self.weight_scratch.resize(out.len(), 0.0);
+        let clock = self.clock;
+        for i in 0..self.fading.len() {
+            let w = self.fading[i].weight(clock);
+            self.weight_scratch.fill(0.0);
+            match self.fading.get_mut(i + 1) {
+                Some(next) => next.from.sample_weights(channels, &mut self.weight_scratch),
+                None => current.sample_weights(channels, &mut self.weight_scratch),
+            }
+            for (o, s) in out.iter_mut().zip(&self.weight_scratch) {
+                *o += (s - *o) * w;
+            }
+        }
+    }
+
     /// Writes the pose into `out` (one transform per joint): the fade stack evaluated bottom
     /// up, each layer blended over the pose below it by its fade's `w = elapsed / duration`
     /// (slerp of rotations, lerp of translations and scales, so each fade is continuous at both
@@ -364,8 +448,23 @@ impl Player {
         for (p, a) in pose.iter_mut().zip(&above) {
             *p = p.blend(a, w);
         }
+        let mut weights = vec![0.0; self.channels.len()];
+        let mut weights_above = vec![0.0; self.channels.len()];
+        self.fading[0]
+            .from
+            .sample_weights(&self.channels, &mut weights);
+        self.fading[1]
+            .from
+            .sample_weights(&self.channels, &mut weights_above);
+        for (o, a) in weights.iter_mut().zip(&weights_above) {
+            *o += (a - *o) * w;
+        }
         self.fading.remove(0);
-        self.fading[0].from = Under::Frozen { pose, name };
+        self.fading[0].from = Under::Frozen {
+            pose,
+            weights,
+            name,
+        };
     }
 }
 
@@ -446,6 +545,62 @@ mod tests {
     }
 
     /// A one-joint clip holding a rotation of `deg` about Y.
+    /// Morph weights cross-fade as the pose does: a clip holding `smile` at 1, faded over 1 s
+    /// into one that animates no face, gives `1 − w`; tracks find their channel by name; nothing
+    /// playing, and channels no clip animates, give 0; a stack collapsed past [`MAX_FADES`]
+    /// keeps the weights it showed.
+    #[test]
+    fn morph_weights_cross_fade_with_the_clips() {
+        let face = |w: f32| {
+            let clip = Clip::new("face", vec![JointChannels::default()], Some((0.0, 1.0)))
+                .unwrap()
+                .with_morphs(vec![posecast_rigs::clip::MorphTrack {
+                    channel: "smile".into(),
+                    track: Track::constant(w),
+                }]);
+            Arc::new(clip)
+        };
+        let mut player = Player::new();
+        player.set_morph_channels(vec!["blink".into(), "smile".into()]);
+        let mut out = vec![9.0; 2];
+        player.sample_weights(&mut out);
+        assert_eq!(out, [0.0, 0.0]);
+        player.play(Layer::new(face(1.0), None, 0.0, 1.0, true), 0.0);
+        player.set_clock(0.1);
+        player.sample_weights(&mut out);
+        assert_eq!(out, [0.0, 1.0]);
+        player.play(Layer::new(still("b", 10.0), None, 0.0, 1.0, true), 1.0);
+        player.set_clock(0.35);
+        player.sample_weights(&mut out);
+        assert!((out[1] - 0.75).abs() < 1e-6, "{out:?}");
+        assert_eq!(out[0], 0.0);
+        player.set_clock(1.2);
+        player.sample_weights(&mut out);
+        assert_eq!(out, [0.0, 0.0]);
+        // Many overlapping fades (the bottom collapses into a frozen pose and weights): the
+        // weights stay continuous across the collapse.
+        let mut before = vec![0.0; 2];
+        let mut clock = 1.2;
+        for k in 0..(MAX_FADES + 3) {
+            let clip = if k % 2 == 0 {
+                face(0.8)
+            } else {
+                still("b", 5.0)
+            };
+            player.play(Layer::new(clip, None, 0.0, 1.0, true), 1.0);
+            player.sample_weights(&mut before);
+            clock += 0.01;
+            player.set_clock(clock);
+            let mut pose = vec![Transform::IDENTITY; 1];
+            player.sample(&[Transform::IDENTITY], &mut pose);
+            player.sample_weights(&mut out);
+            assert!(
+                (out[1] - before[1]).abs() < 0.05,
+                "fade {k}: {before:?} → {out:?}"
+            );
+        }
+    }
+
     fn still(name: &str, deg: f32) -> Arc<Clip> {
         let q = Quat::from_rotation_y(deg.to_radians());
         let track = Track::new(Interpolation::Step, vec![0.0], vec![q]).unwrap();

@@ -21,13 +21,16 @@
 //! [`Recorder::finish`] gives a [`Clip`] over the avatar's joints (its description's order
 //! and names): a linear rotation track per joint (slerp between ticks, as the tick stream is
 //! best read), linear translation and scale tracks for the streamed ones, time from 0 at
-//! the first tick to the last; tracks that never changed are stored once.
+//! the first tick to the last; tracks that never changed are stored once; a linear weight
+//! track per morph channel that was ever away from 0 (the weights streamed, quantised).
 
 use glam::{Quat, Vec3};
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::AvatarPose;
 use posecast_proto::placement::Placement;
-use posecast_rigs::clip::{Clip, ClipError, Interpolation, JointChannels, RotationChannel, Track};
+use posecast_rigs::clip::{
+    Clip, ClipError, Interpolation, JointChannels, MorphTrack, RotationChannel, Track,
+};
 use posecast_rigs::clip::{TrackValue, VectorChannel};
 
 /// How much one recording may hold.
@@ -136,6 +139,10 @@ pub struct Recorder {
     translations: Vec<Vec3>,
     /// `scaled.len()` per tick.
     scales: Vec<Vec3>,
+    /// The description's morph channels.
+    channels: Vec<String>,
+    /// `channels.len()` morph weights per tick.
+    weights: Vec<f32>,
     full: bool,
     dropped: u64,
 }
@@ -163,7 +170,9 @@ impl Recorder {
             .filter(|&j| description.parents.get(j).is_none_or(|&p| p < 0))
             .map(|j| (j, translated.iter().position(|&t| t == j)))
             .collect();
-        let per_frame = 4 + 16 * joints + 12 * (translated.len() + scaled.len());
+        let channels = description.morph_targets.clone();
+        let per_frame =
+            4 + 16 * joints + 12 * (translated.len() + scaled.len()) + 4 * channels.len();
         Self {
             name: name.into(),
             hash: description.hash_u64(),
@@ -179,6 +188,8 @@ impl Recorder {
             rotations: Vec::new(),
             translations: Vec::new(),
             scales: Vec::new(),
+            weights: Vec::new(),
+            channels,
             full: false,
             dropped: 0,
         }
@@ -231,6 +242,7 @@ impl Recorder {
             self.rotations.truncate(n * self.joints);
             self.translations.truncate(n * self.translated.len());
             self.scales.truncate(n * self.scaled.len());
+            self.weights.truncate(n * self.channels.len());
             if n == 0 {
                 // The first tick again: its placement is the origin.
                 self.origin = Some((t0, pose.placement));
@@ -249,6 +261,12 @@ impl Recorder {
         append_bounded(&mut self.rotations, &pose.rotations, max);
         append_bounded(&mut self.translations, &pose.translations, max);
         append_bounded(&mut self.scales, &pose.scales, max);
+        // One weight per channel (a pose without weights: all 0).
+        if pose.weights.len() == self.channels.len() {
+            append_bounded(&mut self.weights, &pose.weights, max);
+        } else {
+            append_bounded(&mut self.weights, &vec![0.0; self.channels.len()], max);
+        }
         let p0 = self.origin.map_or(pose.placement, |(_, p)| p);
         // P_0⁻¹ · P_t, applied to every root: D' = (r, p) · D.
         if pose.placement != p0 {
@@ -328,8 +346,19 @@ impl Recorder {
                 ch.scale = Some(VectorChannel::Keys(self.track(keys)?));
             }
         }
+        // A morph channel that moved during the take (one never away from 0 is left out).
+        let mut morphs = Vec::new();
+        for (c, channel) in self.channels.iter().enumerate() {
+            let keys = column(&self.weights, self.channels.len(), c);
+            if keys.iter().any(|&w| w != 0.0) {
+                morphs.push(MorphTrack {
+                    channel: channel.clone(),
+                    track: self.track(keys)?,
+                });
+            }
+        }
         let end = self.duration();
-        Ok(Clip::new(self.name, channels, Some((0.0, end)))?)
+        Ok(Clip::new(self.name, channels, Some((0.0, end)))?.with_morphs(morphs))
     }
 
     fn track<T: TrackValue>(&self, keys: Vec<T>) -> Result<Track<T>, ClipError> {

@@ -359,7 +359,7 @@ impl Context<'_> {
 }
 
 /// `mesh.extras.targetNames` (the de-facto convention for morph target names), when present.
-fn target_names(mesh: &gltf::Mesh<'_>) -> Vec<String> {
+pub(super) fn target_names(mesh: &gltf::Mesh<'_>) -> Vec<String> {
     let Some(raw) = mesh.extras() else {
         return Vec::new();
     };
