@@ -294,6 +294,7 @@ async fn scene_tokens_view_tokens_and_private_views() {
         avatars: None,
         rate: None,
         joints: None,
+        morph_weights: None,
     };
     let text = serde_json::to_string(&subscribe).unwrap();
     ws.send(Message::Text(text.clone().into())).await.unwrap();
@@ -336,6 +337,7 @@ async fn scene_tokens_view_tokens_and_private_views() {
         avatars: None,
         rate: None,
         joints: None,
+        morph_weights: None,
     };
     lobby
         .send(Message::Text(serde_json::to_string(&own).unwrap().into()))

@@ -482,6 +482,78 @@ async fn weights_are_recorded_exported_and_replayed() {
     );
 }
 
+/// A subscription can leave the weights out (`morph_weights: false`): its v4 binary frames
+/// carry none (the same bytes a version-3 viewer gets) and its JSON frames no `weights`, while
+/// a viewer of the same scene that wants them still gets them.
+#[tokio::test]
+async fn a_subscription_can_leave_the_weights_out() {
+    use futures_util::{SinkExt, StreamExt};
+    use posecast_proto::msg::{ClientMsg, SceneId};
+    use tokio_tungstenite::tungstenite::Message;
+    let server = common::server(30.0).await;
+    let addr = server.addr;
+    if !add_face(addr).await {
+        return;
+    }
+    ok(
+        addr,
+        json!({"op": "set_morph_weights", "avatar": "face", "weights": {"mouthOpen": 0.7}}),
+    )
+    .await;
+    let with = viewer(addr, Encoding::Binary, 4).await;
+    let mut options = ClientOptions::new(format!("ws://{addr}/ws"), "default");
+    options.reconnect = false;
+    options.morph_weights = false;
+    let without = Client::connect(options).await.unwrap();
+    weights_become(&with, &[("mouthOpen", 0.7)]).await;
+    let face = posecast_proto::msg::AvatarId("face".into());
+    assert!(
+        common::wait_for(120.0, || without.latest(&face).is_some()).await,
+        "the viewer without weights never got a pose"
+    );
+    let sample = without.latest(&face).unwrap();
+    assert!(sample.weights.is_empty(), "{:?}", sample.weights);
+
+    // JSON: the frames' avatar objects have no `weights`.
+    let mut ws = common::raw(&server, Encoding::Json).await;
+    let subscribe = ClientMsg::Subscribe {
+        scene: SceneId("default".into()),
+        avatars: None,
+        rate: None,
+        joints: None,
+        morph_weights: Some(false),
+    };
+    ws.send(Message::text(serde_json::to_string(&subscribe).unwrap()))
+        .await
+        .unwrap();
+    let frame = tokio::time::timeout(std::time::Duration::from_secs(120), async {
+        loop {
+            let t = match ws.next().await {
+                Some(Ok(Message::Text(t))) => t,
+                Some(Ok(_)) => continue,
+                other => panic!("connection closed: {other:?}"),
+            };
+            let v: Value = serde_json::from_str(&t).unwrap();
+            if v["type"] == "frame" && v["avatars"].as_array().is_some_and(|a| !a.is_empty()) {
+                return v;
+            }
+        }
+    })
+    .await
+    .expect("no JSON frame");
+    let pose = frame["avatars"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|a| a["avatar"] == "face")
+        .expect("the face in the frame");
+    assert!(pose.get("weights").is_none(), "{pose}");
+    assert!(
+        pose["rotations"].as_array().is_some_and(|r| !r.is_empty()),
+        "{pose}"
+    );
+}
+
 /// A live driver's JSON `pose` messages carry weights by name (standard or the rig's own);
 /// a bad one is refused with a typed error and changes neither the pose nor the weights.
 #[tokio::test]

@@ -241,6 +241,7 @@ async fn a_malformed_joint_set_is_refused_and_subscribes_nothing() {
             avatars: None,
             rate: None,
             joints: Some(JointSet::Names(vec![])),
+            morph_weights: None,
         })
         .await
         .unwrap();

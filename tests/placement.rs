@@ -54,6 +54,7 @@ async fn first_frame(
             avatars: None,
             rate: None,
             joints: None,
+            morph_weights: None,
         },
     ] {
         let text = serde_json::to_string(&msg).unwrap();

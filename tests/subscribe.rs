@@ -118,6 +118,7 @@ impl Watcher {
             avatars,
             rate: None,
             joints: None,
+            morph_weights: None,
         };
         ws.send(Message::Text(serde_json::to_string(&sub).unwrap().into()))
             .await

@@ -57,6 +57,7 @@ async fn stale_frames_after_a_stall(lowat: u32) -> (usize, usize) {
             avatars: None,
             rate: None,
             joints: None,
+            morph_weights: None,
         },
     ] {
         ws.send(Message::text(serde_json::to_string(&msg).unwrap()))

@@ -97,6 +97,11 @@ pub enum ClientMsg {
         /// `{"names": […]}`, with their ancestors); absent: all of them.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         joints: Option<crate::subset::JointSet>,
+        /// Morph weights in the frames (binary frames from protocol version 4, and JSON);
+        /// `false` leaves them out, for a view that shows no faces (a distant or body-only
+        /// one). Default `true`.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        morph_weights: Option<bool>,
     },
     /// Stop receiving a scene.
     Unsubscribe {

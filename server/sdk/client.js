@@ -498,6 +498,7 @@ export class Client {
     if (options.avatars) msg.avatars = options.avatars;
     if (options.rate !== undefined) msg.rate = options.rate;
     if (options.joints !== undefined) msg.joints = options.joints;
+    if (options.morphWeights === false) msg.morph_weights = false;
     this.send(msg);
   }
 

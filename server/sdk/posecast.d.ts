@@ -225,6 +225,8 @@ export interface SubscribeOptions {
   rate?: number;
   /** Only these joints of every avatar (fewer bytes for distant or small avatars). */
   joints?: JointSet;
+  /** `false`: no morph weights in the frames (a view that draws no faces); default true. */
+  morphWeights?: boolean;
 }
 
 /** What the client knows of one subscribed avatar. */

@@ -42,7 +42,13 @@ rate?: number | null,
  * Only these joints of every avatar (`crate::subset`: `{"depth": 3}` or
  * `{"names": […]}`, with their ancestors); absent: all of them.
  */
-joints?: JointSet | null, } | { "type": "unsubscribe", 
+joints?: JointSet | null, 
+/**
+ * Morph weights in the frames (binary frames from protocol version 4, and JSON);
+ * `false` leaves them out, for a view that shows no faces (a distant or body-only
+ * one). Default `true`.
+ */
+morph_weights?: boolean | null, } | { "type": "unsubscribe", 
 /**
  * The scene.
  */

@@ -49,6 +49,8 @@ pub struct Subscriber {
     pub version: u32,
     /// Its connection's token name (presence); `None`: anonymous.
     pub name: Option<Arc<str>>,
+    /// Whether it wants morph weights in its frames (`subscribe`'s `morph_weights`).
+    pub morph_weights: bool,
 }
 
 impl Subscriber {
@@ -71,7 +73,15 @@ impl Subscriber {
             key_sent: None,
             version: 1,
             name: None,
+            morph_weights: true,
         }
+    }
+
+    /// The same subscription with or without morph weights in its frames.
+    #[must_use]
+    pub fn with_morph_weights(mut self, wanted: bool) -> Self {
+        self.morph_weights = wanted;
+        self
     }
 
     /// The same subscription, made by a connection with token name `name` (presence).
@@ -103,9 +113,10 @@ impl Subscriber {
             && (self.version >= 3 || (self.version == 2 && self.joints.is_none()))
     }
 
-    /// Whether its v2 frames carry morph weights: protocol version 4 and later.
+    /// Whether its frames carry morph weights: v2 frames from protocol version 4, JSON ones
+    /// always — unless the subscription left them out.
     fn weights(&self) -> bool {
-        self.version >= 4
+        self.morph_weights && (self.encoding == Encoding::Json || self.version >= 4)
     }
 
     fn wants(&self, avatar: &AvatarId) -> bool {
@@ -173,7 +184,8 @@ pub enum RelayRefused {
 }
 
 /// What a frame message is made for: an encoding, an avatar filter and a joint set.
-type Cut<'a> = (Encoding, Option<&'a [AvatarId]>, Option<&'a JointSet>);
+/// (encoding, avatar filter, joint subset, with morph weights)
+type Cut<'a> = (Encoding, Option<&'a [AvatarId]>, Option<&'a JointSet>, bool);
 
 /// One scene's subscribers and the frame state they share (kept under the scene's lock, next
 /// to the avatars, so a joiner's first frames and the next tick are in order).
@@ -600,11 +612,12 @@ impl Feed {
                 made += self.last_delta.as_mut().map_or(0, Published::ensure_json);
                 self.metrics.json_encoded(made);
             }
-            let message = key.message(&self.scene, sub.encoding, filter, joints);
+            let message = key.message(&self.scene, sub.encoding, filter, joints, sub.weights());
             sub.outbox
                 .push_frame(self.num, OutFrame { message, key: true });
             if let Some(delta) = &self.last_delta {
-                let message = delta.message(&self.scene, sub.encoding, filter, joints);
+                let message =
+                    delta.message(&self.scene, sub.encoding, filter, joints, sub.weights());
                 sub.outbox.push_frame(
                     self.num,
                     OutFrame {
@@ -645,7 +658,7 @@ impl Feed {
             },
             pieces,
         };
-        let message = fresh.message(&self.scene, sub.encoding, filter, joints);
+        let message = fresh.message(&self.scene, sub.encoding, filter, joints, sub.weights());
         sub.outbox
             .push_frame(self.num, OutFrame { message, key: true });
         // A keyframe of its own: the scene's next deltas do not refer to it (and a full-rate
@@ -899,8 +912,10 @@ impl Feed {
                     self.metrics.json_encoded(last_key.ensure_json());
                 }
                 let message = key_cache
-                    .entry((sub.encoding, filter, joints))
-                    .or_insert_with(|| last_key.message(&self.scene, sub.encoding, filter, joints))
+                    .entry((sub.encoding, filter, joints, weights))
+                    .or_insert_with(|| {
+                        last_key.message(&self.scene, sub.encoding, filter, joints, weights)
+                    })
                     .clone();
                 bytes_out += message_len(&message) as u64;
                 sub.outbox
@@ -908,8 +923,10 @@ impl Feed {
                 sub.key_sent = self.last_key_seq;
             }
             let message = cache
-                .entry((sub.encoding, filter, joints))
-                .or_insert_with(|| published.message(&self.scene, sub.encoding, filter, joints))
+                .entry((sub.encoding, filter, joints, weights))
+                .or_insert_with(|| {
+                    published.message(&self.scene, sub.encoding, filter, joints, weights)
+                })
                 .clone();
             bytes_out += message_len(&message) as u64;
             sub.outbox.push_frame(self.num, OutFrame { message, key });

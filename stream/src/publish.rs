@@ -125,7 +125,7 @@ impl Piece {
 }
 
 fn pose_json(d: &AvatarDescription, pose: &AvatarPose) -> String {
-    pose_json_of(d, pose, None)
+    pose_json_of(d, pose, None, true)
 }
 
 /// The pieces `filter` keeps (all when `None`), each with the part of its rig `joints` selects
@@ -156,8 +156,14 @@ pub(super) fn select<'a>(
         .collect()
 }
 
-/// The JSON object of `pose`, or of the joints `selection` names (listed in it as `joints`).
-fn pose_json_of(d: &AvatarDescription, pose: &AvatarPose, selection: Option<&Selection>) -> String {
+/// The JSON object of `pose`, or of the joints `selection` names (listed in it as `joints`),
+/// with its morph weights by channel name or (`weights` false) without.
+fn pose_json_of(
+    d: &AvatarDescription,
+    pose: &AvatarPose,
+    selection: Option<&Selection>,
+    weights: bool,
+) -> String {
     let mut json = AvatarPoseJson {
         avatar: d.id.clone(),
         hash: d.hash.clone(),
@@ -166,12 +172,15 @@ fn pose_json_of(d: &AvatarDescription, pose: &AvatarPose, selection: Option<&Sel
         scales: pose.scales.iter().map(|t| t.to_array()).collect(),
         placement: pose.placement,
         joints: None,
-        weights: d
-            .morph_targets
-            .iter()
-            .cloned()
-            .zip(pose.weights.iter().copied())
-            .collect(),
+        weights: if weights {
+            d.morph_targets
+                .iter()
+                .cloned()
+                .zip(pose.weights.iter().copied())
+                .collect()
+        } else {
+            Default::default()
+        },
     };
     if let Some(sel) = selection {
         json.rotations = Selection::pick(&json.rotations, sel.joint_indices());
@@ -230,6 +239,7 @@ impl Published {
         encoding: Encoding,
         filter: Option<&[AvatarId]>,
         joints: Option<&JointSet>,
+        weights: bool,
     ) -> Message {
         let selected = select(&self.pieces, filter, joints);
         match encoding {
@@ -271,11 +281,16 @@ impl Published {
                     if i > 0 {
                         out.push(',');
                     }
+                    // Without weights only where there are any to leave out.
+                    let bare = !weights && !p.pose.weights.is_empty();
                     match selection {
-                        None => out.push_str(&p.json()),
-                        Some(sel) => {
-                            out.push_str(&pose_json_of(&p.description, &p.pose, Some(sel)))
-                        }
+                        None if !bare => out.push_str(&p.json()),
+                        _ => out.push_str(&pose_json_of(
+                            &p.description,
+                            &p.pose,
+                            selection.as_deref(),
+                            weights,
+                        )),
                     }
                 }
                 out.push_str("]}");

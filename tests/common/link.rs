@@ -125,6 +125,7 @@ async fn view(addr: SocketAddr, encoding: Encoding, seen: &Mutex<Seen>) -> Resul
             avatars: None,
             rate: None,
             joints: None,
+            morph_weights: None,
         },
     ] {
         ws.send(Message::text(serde_json::to_string(&msg).unwrap()))

@@ -326,6 +326,7 @@ fn samples() -> Vec<(&'static str, &'static str, Value)> {
                 avatars: Some(vec![avatar("guest")]),
                 rate: Some(20.0),
                 joints: Some(JointSet::Names(vec!["Head".into()])),
+                morph_weights: Some(false),
             }),
         ),
         ("watchScenes", "ClientMsg", v!(ClientMsg::WatchScenes)),

@@ -56,6 +56,9 @@ pub struct ClientOptions {
     /// Only these joints of every avatar, from every subscription (`None`: all). The joints
     /// left out stay at their rest transforms in the poses this client gives.
     pub joints: Option<JointSet>,
+    /// Morph weights in every subscription's frames (default `true`; `false`: a view that
+    /// draws no faces saves their bytes).
+    pub morph_weights: bool,
     /// Protocol version asked for in hello (default 4): 2 to 4 get wire v2 binary frames
     /// ([`posecast_proto::frame2`], about half of v1's bytes), 1 the v1 frames
     /// ([`posecast_proto::frame`]); 3 and 4 also get command results tagged with their kind (1
@@ -81,6 +84,7 @@ impl ClientOptions {
             name: "posecast-client".into(),
             rate: None,
             joints: None,
+            morph_weights: true,
             version: 4,
         }
     }
@@ -625,6 +629,7 @@ async fn session(
             avatars: avatars.clone(),
             rate: options.rate,
             joints: options.joints.clone(),
+            morph_weights: (!options.morph_weights).then_some(false),
         };
         sink.send(to_text(&sub))
             .await

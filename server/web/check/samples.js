@@ -439,6 +439,7 @@ export const subscribe = /** @satisfies {import("../protocol.js").ClientMsg} */ 
       "Head"
     ]
   },
+  "morph_weights": false,
   "rate": 20.0,
   "scene": "lobby",
   "type": "subscribe"

@@ -553,6 +553,7 @@ impl Session {
                 avatars,
                 rate,
                 joints,
+                morph_weights,
             } => {
                 // A subscription costs the scene work under its lock (descriptions, a
                 // keyframe): it is charged to the same rate limit as commands.
@@ -589,6 +590,7 @@ impl Session {
                                 every_nth_tick(self.state.config.tick_rate, rate),
                             )
                             .with_joints(joints)
+                            .with_morph_weights(morph_weights.unwrap_or(true))
                             .with_version(self.version)
                             .with_name(self.caller.owner()),
                         )

@@ -261,6 +261,7 @@ pub async fn connect(
             avatars: None,
             rate,
             joints: None,
+            morph_weights: None,
         },
     )
     .await?;
