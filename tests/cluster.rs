@@ -1280,7 +1280,8 @@ async fn next_of(ws: &mut common::Ws, kind: &str) -> serde_json::Value {
 
 /// A driver connected to B drives an avatar ticked by A: `drive` is acknowledged through B,
 /// its JSON and binary poses show in A's frames (the rotations sent), a pose naming an
-/// unknown joint is refused at B, and when the driver leaves the avatar goes back to its clip.
+/// unknown joint or carrying morph weights is refused at B, and when the driver leaves the
+/// avatar goes back to its clip.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_driver_on_a_relay_drives_the_owners_avatar() {
     let Some(nats) = Nats::start() else { return };
@@ -1346,6 +1347,7 @@ async fn a_driver_on_a_relay_drives_the_owners_avatar() {
         time_us: None,
         root_position: None,
         rotations: vec![(u16::try_from(knee).unwrap(), r)],
+        weights: Vec::new(),
     };
     let sent = Instant::now();
     driver
@@ -1365,6 +1367,16 @@ async fn a_driver_on_a_relay_drives_the_owners_avatar() {
         .unwrap();
     let error = next_of(&mut driver, "error").await;
     assert_eq!(error["code"], "unknown_joint", "{error}");
+
+    // Weights for an avatar another server ticks are refused where the driver is, for now.
+    driver
+        .send(Message::Text(
+            r#"{"type":"pose","avatar":"dancer","rotations":{},"weights":{"blink":1.0}}"#.into(),
+        ))
+        .await
+        .unwrap();
+    let error = next_of(&mut driver, "error").await;
+    assert_eq!(error["code"], "invalid_value", "{error}");
 
     // The driver leaves: the walk takes the elbow again.
     drop(driver);

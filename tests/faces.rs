@@ -554,6 +554,92 @@ async fn a_subscription_can_leave_the_weights_out() {
     );
 }
 
+/// Binary live poses carry weights (flag bit 2: channel index into the `drive` answer's
+/// `morph_targets`, 10-bit level): they reach the stream within the wire's bound; a channel
+/// past the list is refused with a typed error and changes nothing.
+#[tokio::test]
+async fn binary_live_poses_carry_weights() {
+    use futures_util::SinkExt;
+    use posecast_proto::command::CommandResult;
+    use posecast_proto::live::BinaryPose;
+    use posecast_proto::morph::weight_level;
+    use posecast_proto::msg::{ErrorCode, ServerMsg};
+    use tokio_tungstenite::tungstenite::Message;
+    let server = common::server(30.0).await;
+    let addr = server.addr;
+    if !add_face(addr).await {
+        return;
+    }
+    let v4 = viewer(addr, Encoding::Binary, 4).await;
+    let mut ws = common::raw(&server, Encoding::Json).await;
+    ws.send(Message::text(
+        json!({"type": "command", "id": 1, "command": {"op": "drive", "avatar": "face"}})
+            .to_string(),
+    ))
+    .await
+    .unwrap();
+    let info = loop {
+        match common::next_text(&mut ws).await.expect("drive answered") {
+            ServerMsg::Ack {
+                id: 1,
+                result: CommandResult::Drive(info),
+                ..
+            } => break info,
+            ServerMsg::Error(e) => panic!("drive: {e:?}"),
+            _ => {}
+        }
+    };
+    assert_eq!(
+        info.morph_targets,
+        [
+            "mouthOpen",
+            "mouthSmile",
+            "eyesClosed",
+            "eyesLookUp",
+            "eyesLookDown"
+        ]
+    );
+    assert_eq!(
+        info.expressions.get("blink").map(String::as_str),
+        Some("eyesClosed")
+    );
+    let channel = |name: &str| info.morph_targets.iter().position(|n| n == name).unwrap() as u16;
+    let pose = |time_us: u64, weights: Vec<(u16, u16)>| {
+        let p = BinaryPose {
+            avatar_num: info.avatar_num,
+            time_us: Some(time_us),
+            root_position: None,
+            rotations: Vec::new(),
+            weights,
+        };
+        Message::binary(p.encode())
+    };
+    ws.send(pose(
+        1000,
+        vec![
+            (channel("eyesClosed"), weight_level(0.9)),
+            (channel("mouthOpen"), weight_level(0.35)),
+        ],
+    ))
+    .await
+    .unwrap();
+    weights_become(&v4, &[("eyesClosed", 0.9), ("mouthOpen", 0.35)]).await;
+    // Channel 5 of 5: refused, and the weights stay.
+    ws.send(pose(2000, vec![(0, 0), (5, 1023)])).await.unwrap();
+    loop {
+        let msg = common::next_text(&mut ws).await;
+        if let ServerMsg::Error(e) = msg.expect("the bad pose answered") {
+            assert_eq!(e.code, ErrorCode::UnknownExpression, "{e:?}");
+            break;
+        }
+    }
+    let state = ok(addr, json!({"op": "get_avatar", "avatar": "face"})).await;
+    assert!(
+        state["morph_weights"]["mouthOpen"].as_f64().is_some(),
+        "{state}"
+    );
+}
+
 /// A live driver's JSON `pose` messages carry weights by name (standard or the rig's own);
 /// a bad one is refused with a typed error and changes neither the pose nor the weights.
 #[tokio::test]

@@ -107,6 +107,7 @@ pub async fn run(args: VmcRelayArgs) -> anyhow::Result<()> {
                     time_us: Some(now_us()),
                     root_position: update.pose.root_position,
                     rotations,
+                    weights: Vec::new(),
                 })
                 .await
                 .context("sending a pose")?;

@@ -420,6 +420,14 @@ pub struct DriveInfo {
     pub timeout: f32,
     /// Most poses per second accepted from the driver.
     pub max_rate_hz: f32,
+    /// The avatar's morph channels (its description's `morph_targets`): binary pose messages
+    /// give weights by index into this list. Absent for a rig without morph targets.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub morph_targets: Vec<String>,
+    /// Standard expression names → channel (its description's `expressions`), which JSON
+    /// poses may name weights by.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub expressions: std::collections::BTreeMap<String, String>,
 }
 
 impl Command {

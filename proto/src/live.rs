@@ -10,12 +10,15 @@
 //!
 //! ```text
 //!  0  u8   magic 0x44 ('D')
-//!  1  u8   flags: bit 0 root position present, bit 1 time present (other bits zero)
+//!  1  u8   flags: bit 0 root position present, bit 1 time present, bit 2 morph weights
+//!          present (other bits zero)
 //!  2  u16  rotation count N
 //!  4  u32  avatar number (the description's `num`)
 //!  8  u64  driver time, µs (any epoch; 0 when bit 1 is clear)
 //! 16  3×f32 root position (only when bit 0 is set)
 //!     N × (u16 joint index, 6 bytes smallest-three rotation)
+//!     only when bit 2 is set: u16 weight count M, then M × (u16 morph channel index into the
+//!     avatar's `morph_targets`, u16 level 0…1023: weight = level / 1023)
 //! ```
 
 use crate::quant;
@@ -27,6 +30,10 @@ pub const MAGIC: u8 = 0x44;
 pub const FLAG_ROOT: u8 = 1;
 /// Flag: the time field is set.
 pub const FLAG_TIME: u8 = 2;
+/// Flag: morph weights follow the rotations.
+pub const FLAG_WEIGHTS: u8 = 4;
+/// Bytes per morph weight entry (channel index + level).
+pub const WEIGHT_ENTRY_BYTES: usize = 4;
 /// Bytes before the optional root position.
 pub const HEADER_BYTES: usize = 16;
 /// Bytes per rotation entry (joint index + smallest-three).
@@ -56,6 +63,8 @@ pub struct BinaryPose {
     pub root_position: Option<Vec3>,
     /// `(joint index, local rotation)`.
     pub rotations: Vec<(u16, Quat)>,
+    /// `(morph channel index, weight level 0…1023)` ([`crate::morph::weight_level`]).
+    pub weights: Vec<(u16, u16)>,
 }
 
 /// Why bytes are not a binary pose message.
@@ -75,6 +84,9 @@ pub enum PoseDecodeError {
         /// Bytes received.
         actual: usize,
     },
+    /// A morph weight level above [`crate::morph::WEIGHT_LEVELS`].
+    #[error("morph weight level {0} is above 1023")]
+    WeightLevel(u16),
 }
 
 impl BinaryPose {
@@ -87,6 +99,9 @@ impl BinaryPose {
         }
         if self.time_us.is_some() {
             flags |= FLAG_TIME;
+        }
+        if !self.weights.is_empty() {
+            flags |= FLAG_WEIGHTS;
         }
         let count = u16::try_from(self.rotations.len()).unwrap_or(u16::MAX);
         let mut out = Vec::with_capacity(HEADER_BYTES + 12 + usize::from(count) * ENTRY_BYTES);
@@ -104,13 +119,22 @@ impl BinaryPose {
             out.extend_from_slice(&j.to_le_bytes());
             quant::write(q, &mut out);
         }
+        if !self.weights.is_empty() {
+            let m = u16::try_from(self.weights.len()).unwrap_or(u16::MAX);
+            out.extend_from_slice(&m.to_le_bytes());
+            for &(c, level) in self.weights.iter().take(usize::from(m)) {
+                out.extend_from_slice(&c.to_le_bytes());
+                out.extend_from_slice(&level.to_le_bytes());
+            }
+        }
         out
     }
 
     /// Decodes a message.
     ///
     /// # Errors
-    /// A wrong magic byte, unknown flags, or a length that does not match the header.
+    /// A wrong magic byte, unknown flags, a length that does not match the header, or a
+    /// weight level above 1023.
     pub fn decode(bytes: &[u8]) -> Result<Self, PoseDecodeError> {
         let short = |expected| PoseDecodeError::Length {
             expected,
@@ -121,7 +145,7 @@ impl BinaryPose {
             return Err(PoseDecodeError::Magic(header[0]));
         }
         let flags = header[1];
-        if flags & !(FLAG_ROOT | FLAG_TIME) != 0 {
+        if flags & !(FLAG_ROOT | FLAG_TIME | FLAG_WEIGHTS) != 0 {
             return Err(PoseDecodeError::Flags(flags));
         }
         let count = usize::from(u16::from_le_bytes([header[2], header[3]]));
@@ -129,7 +153,20 @@ impl BinaryPose {
         let mut time = [0u8; 8];
         time.copy_from_slice(&header[8..16]);
         let root_bytes = if flags & FLAG_ROOT != 0 { 12 } else { 0 };
-        let expected = HEADER_BYTES + root_bytes + count * ENTRY_BYTES;
+        let rotations_end = HEADER_BYTES + root_bytes + count * ENTRY_BYTES;
+        let weights_count = if flags & FLAG_WEIGHTS != 0 {
+            let m = bytes
+                .get(rotations_end..rotations_end + 2)
+                .ok_or(short(rotations_end + 2))?;
+            usize::from(u16::from_le_bytes([m[0], m[1]]))
+        } else {
+            0
+        };
+        let expected = if flags & FLAG_WEIGHTS != 0 {
+            rotations_end + 2 + weights_count * WEIGHT_ENTRY_BYTES
+        } else {
+            rotations_end
+        };
         if bytes.len() != expected {
             return Err(short(expected));
         }
@@ -142,7 +179,20 @@ impl BinaryPose {
                 f32_at(HEADER_BYTES + 8),
             )
         });
-        let rotations = bytes[HEADER_BYTES + root_bytes..]
+        let weights = bytes
+            .get(rotations_end + 2..)
+            .unwrap_or_default()
+            .chunks_exact(WEIGHT_ENTRY_BYTES)
+            .map(|e| {
+                let level = u16::from_le_bytes([e[2], e[3]]);
+                if level > crate::morph::WEIGHT_LEVELS {
+                    Err(PoseDecodeError::WeightLevel(level))
+                } else {
+                    Ok((u16::from_le_bytes([e[0], e[1]]), level))
+                }
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        let rotations = bytes[HEADER_BYTES + root_bytes..rotations_end]
             .chunks_exact(ENTRY_BYTES)
             .map(|e| {
                 let mut q = [0u8; quant::BYTES];
@@ -155,6 +205,7 @@ impl BinaryPose {
             time_us: (flags & FLAG_TIME != 0).then(|| u64::from_le_bytes(time)),
             root_position,
             rotations,
+            weights,
         })
     }
 }
@@ -174,6 +225,7 @@ mod tests {
                 (3, Quat::from_rotation_x(0.7)),
                 (513, Quat::from_euler(glam::EulerRot::XYZ, 0.3, -1.2, 2.0)),
             ],
+            weights: Vec::new(),
         };
         let bytes = pose.encode();
         assert_eq!(bytes.len(), HEADER_BYTES + 12 + 3 * ENTRY_BYTES);
@@ -194,6 +246,7 @@ mod tests {
             time_us: None,
             root_position: None,
             rotations: vec![(0, Quat::IDENTITY)],
+            weights: Vec::new(),
         }
         .encode();
         assert!(BinaryPose::decode(&bytes).unwrap().time_us.is_none());
@@ -214,5 +267,40 @@ mod tests {
             Err(PoseDecodeError::Flags(0x80))
         );
         assert!(BinaryPose::decode(&[]).is_err());
+    }
+
+    /// Weights (flag bit 2): after the rotations, a count and (channel, level) pairs, exactly
+    /// as sent; a level above 1023, a count beyond the bytes and a missing count are refused.
+    #[test]
+    fn binary_poses_carry_morph_weights() {
+        let pose = BinaryPose {
+            avatar_num: 3,
+            time_us: None,
+            root_position: None,
+            rotations: vec![(1, Quat::from_rotation_y(0.4))],
+            weights: vec![(0, 1023), (4, 512), (2, 0)],
+        };
+        let bytes = pose.encode();
+        // By hand: 16 header + 8 rotation + 2 count + 3 × 4.
+        assert_eq!(bytes.len(), 16 + 8 + 2 + 12);
+        assert_eq!(bytes[1], FLAG_WEIGHTS);
+        let back = BinaryPose::decode(&bytes).unwrap();
+        assert_eq!(back.weights, pose.weights);
+        assert_eq!(back.rotations.len(), 1);
+        let mut over = bytes.clone();
+        let n = over.len();
+        over[n - 2..].copy_from_slice(&1024u16.to_le_bytes());
+        assert_eq!(
+            BinaryPose::decode(&over),
+            Err(PoseDecodeError::WeightLevel(1024))
+        );
+        assert!(matches!(
+            BinaryPose::decode(&bytes[..n - 1]),
+            Err(PoseDecodeError::Length { .. })
+        ));
+        assert!(matches!(
+            BinaryPose::decode(&bytes[..16 + 8 + 1]),
+            Err(PoseDecodeError::Length { .. })
+        ));
     }
 }

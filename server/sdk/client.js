@@ -707,7 +707,11 @@ export class Client {
           this.stats.undecodable++;
           continue;
         }
-        pose = { avatar: pose.avatar, hash: pose.hash, placement: pose.placement, weights: pose.weights, ...whole };
+        /** @type {FramePose} */
+        const expanded = { avatar: pose.avatar, hash: pose.hash, placement: pose.placement, ...whole };
+        // No `weights` key at all when there are none (not one holding undefined).
+        if (pose.weights) expanded.weights = pose.weights;
+        pose = expanded;
       }
       view.latest = { ...pose, seq: frame.seq, server_time_us: frame.server_time_us, received_us: frame.received_us };
       view.jitter.push(frame.server_time_us, frame.received_us, pose);

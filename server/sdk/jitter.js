@@ -55,7 +55,8 @@ export function blendPoses(a, b, w) {
   if (a.rotations.length !== b.rotations.length || a.translations.length !== b.translations.length || a.scales.length !== b.scales.length) {
     return b;
   }
-  return {
+  /** @type {FramePose} */
+  const blended = {
     avatar: b.avatar,
     hash: b.hash,
     rotations: a.rotations.map((q, j) => quatSlerp(q, b.rotations[j], w)),
@@ -65,8 +66,11 @@ export function blendPoses(a, b, w) {
       position: lerp3(a.placement.position, b.placement.position, w),
       rotation: quatSlerp(a.placement.rotation, b.placement.rotation, w),
     },
-    weights: blendWeights(a.weights, b.weights, w),
   };
+  // No `weights` key at all for a pose without them.
+  const weights = blendWeights(a.weights, b.weights, w);
+  if (weights) blended.weights = weights;
+  return blended;
 }
 
 /**

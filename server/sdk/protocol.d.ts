@@ -1320,7 +1320,17 @@ timeout: number,
 /**
  * Most poses per second accepted from the driver.
  */
-max_rate_hz: number, };
+max_rate_hz: number, 
+/**
+ * The avatar's morph channels (its description's `morph_targets`): binary pose messages
+ * give weights by index into this list. Absent for a rig without morph targets.
+ */
+morph_targets?: Array<string>, 
+/**
+ * Standard expression names → channel (its description's `expressions`), which JSON
+ * poses may name weights by.
+ */
+expressions?: { [key in string]: string }, };
 
 /**
  * Who drives an avatar live, and how.

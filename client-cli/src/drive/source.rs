@@ -129,6 +129,7 @@ impl JointMap {
                 .zip(locals)
                 .map(|(&i, t)| (i, t.rotation.normalize()))
                 .collect::<Vec<(u16, Quat)>>(),
+            weights: Vec::new(),
         }
     }
 }

@@ -22,6 +22,7 @@ use posecast_core::quota::{CommandRate, TokenBucket};
 use posecast_proto::command::{Command, CommandResult, DriveInfo, DriveVia, Driver, OnRelease};
 use posecast_proto::live::{BinaryPose, MAX_RATE_HZ, VMC_SOURCE};
 use posecast_proto::msg::{AvatarId, SceneId};
+use posecast_sim::avatar::Avatar;
 use posecast_sim::avatar::live::{LivePose, ValidPose};
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -159,6 +160,13 @@ impl Drives {
             }
             rotation(&format!("index {j}"), q.to_array())?;
         }
+        if !pose.weights.is_empty() {
+            return Err(Error::invalid(format!(
+                "avatar {} is ticked by another server: live poses carry morph weights only \
+                 to avatars of this server's scenes (use set_morph_weights)",
+                r.avatar
+            )));
+        }
         let cluster = state
             .cluster()
             .ok_or_else(|| Error::Unavailable("not in a cluster".into()))?;
@@ -251,6 +259,8 @@ impl Drives {
         }
         a.evaluate();
         let num = a.num();
+        let morph_targets = a.description.morph_targets.clone();
+        let expressions = a.description.expressions.clone();
         drop(s);
         self.driven.retain(|(id, _, _)| id != avatar);
         self.driven.push((avatar.clone(), num, scene.clone()));
@@ -267,6 +277,8 @@ impl Drives {
                 .unwrap_or_default(),
             timeout: state.config.drive_timeout.as_secs_f32(),
             max_rate_hz: MAX_RATE_HZ,
+            morph_targets,
+            expressions,
         })
     }
 
@@ -298,6 +310,7 @@ impl Drives {
                 time_us,
                 root_position: root_position.map(Vec3::from_array),
                 rotations: Vec::with_capacity(rotations.len()),
+                weights: Vec::new(),
             };
             for (name, q) in rotations {
                 let j = r
@@ -318,7 +331,10 @@ impl Drives {
             .iter()
             .find(|(id, _, _)| id == avatar)
             .ok_or_else(|| not_driving(avatar))?;
-        self.with_live(scene, avatar, weights, |live| {
+        let named = |a: &Avatar| {
+            crate::world::morph::resolve_weights(a, weights.iter().map(|(n, w)| (n.as_str(), *w)))
+        };
+        self.with_live(scene, avatar, named, |live| {
             let skeleton = live.source.skeleton();
             let mut pose = ValidPose {
                 rotations: Vec::with_capacity(rotations.len()),
@@ -350,7 +366,24 @@ impl Drives {
             .iter()
             .find(|(_, num, _)| *num == msg.avatar_num)
             .ok_or_else(|| not_driving(format!("number {}", msg.avatar_num)))?;
-        self.with_live(scene, avatar, &BTreeMap::new(), |live| {
+        let by_channel = |a: &Avatar| {
+            msg.weights
+                .iter()
+                .map(|&(c, level)| {
+                    let channels = a.description.morph_targets.len();
+                    if usize::from(c) < channels {
+                        Ok((usize::from(c), posecast_proto::morph::weight_value(level)))
+                    } else {
+                        Err(Error::UnknownExpression {
+                            owner: format!("avatar {} (of {channels} morph channels)", a.id),
+                            name: format!("channel {c}"),
+                            has_targets: channels > 0,
+                        })
+                    }
+                })
+                .collect::<Result<Vec<_>, Error>>()
+        };
+        self.with_live(scene, avatar, by_channel, |live| {
             let n = live.source.skeleton().len();
             let mut pose = ValidPose {
                 rotations: Vec::with_capacity(msg.rotations.len()),
@@ -376,7 +409,7 @@ impl Drives {
         &self,
         scene: &Scene,
         avatar: &AvatarId,
-        weights: &BTreeMap<String, f32>,
+        weights: impl FnOnce(&Avatar) -> Result<Vec<(usize, f32)>, Error>,
         validate: impl FnOnce(&LivePose) -> Result<ValidPose, Error>,
     ) -> Result<(), Error> {
         let now = Instant::now();
@@ -391,8 +424,7 @@ impl Drives {
         live.take_rate(now).map_err(rate_limited)?;
         let pose = validate(live)?;
         // Weights resolved and checked before anything is stored: a bad one changes nothing.
-        let morph =
-            crate::world::morph::resolve_weights(a, weights.iter().map(|(n, w)| (n.as_str(), *w)))?;
+        let morph = weights(a)?;
         // A pose older than the last applied is dropped, and its weights with it; a stored
         // one's weights apply with it at the next tick's evaluation.
         if a.live.as_mut().is_some_and(|live| live.store(pose, now)) {
