@@ -125,7 +125,8 @@ fn compute_morphing_matches_cpu() {
 }
 
 /// Bad weights: more than the mesh has are refused; non-finite ones count as 0 (no NaN
-/// vertex); a mesh without targets takes an empty list.
+/// vertex); targets that could not be uploaded take weights that change nothing; a mesh
+/// without targets takes an empty list.
 #[test]
 fn weights_the_mesh_cannot_take() {
     let Some((asset, mesh)) = rpm() else { return };
@@ -146,6 +147,11 @@ fn weights_the_mesh_cannot_take() {
     let skinning = skinning_of(&asset.skeleton, asset.skeleton.rest());
     let (p, _) = skinner.skin(&skinning).unwrap();
     assert!(p.iter().all(|v| v.is_finite()));
+    // Targets a device cannot hold (too large for one binding) are drawn without: their
+    // weights are still taken, and change nothing.
+    let mut ignored = posecast_client::render::GpuMorph::ignoring(&gpu.device, "big", &mesh);
+    assert_eq!(ignored.targets(), 5);
+    ignored.set_weights(&gpu.queue, &[1.0; 5]).unwrap();
     let bare = mesh.clone().without_targets();
     let mut renderer = renderer(gpu, SkinningPath::VertexShader);
     let handle = renderer.add_avatar(&asset.skeleton, &bare).unwrap();

@@ -72,9 +72,9 @@ impl GpuAvatar {
         let morph = match GpuMorph::new(device, &label, &mesh) {
             Ok(morph) => morph,
             Err(error) => {
-                // The body still draws; the face just does not move.
+                // The body still draws and weights are accepted; the face just does not move.
                 tracing::warn!(avatar = %label, %error, "morph targets not shown");
-                GpuMorph::new(device, &label, &mesh.as_ref().clone().without_targets())?
+                GpuMorph::ignoring(device, &label, &mesh)
             }
         };
         let packed = pack_vertices(&mesh);

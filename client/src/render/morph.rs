@@ -97,28 +97,9 @@ impl GpuMorph {
         if packed.is_empty() {
             packed.push([0.0; 4]);
         }
-        let deltas = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(&format!("{label} morph displacements")),
-            contents: bytemuck::cast_slice(&packed),
-            usage: wgpu::BufferUsages::STORAGE,
-        });
         let vertices = u32::try_from(vertices).unwrap_or(u32::MAX);
-        let header = MorphHeader {
-            count: 0,
-            vertices,
-            _pad: [0; 2],
-        };
         let capacity = uploaded.max(1) as usize;
-        let mut initial = bytemuck::bytes_of(&header).to_vec();
-        initial.resize(
-            initial.len() + capacity * std::mem::size_of::<ActiveTarget>(),
-            0,
-        );
-        let state = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(&format!("{label} morph weights")),
-            contents: &initial,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
-        });
+        let (deltas, state) = buffers(device, label, &packed, vertices, capacity);
         Ok(Self {
             deltas,
             state,
@@ -127,6 +108,22 @@ impl GpuMorph {
             staging: Vec::with_capacity(capacity),
             any_active: false,
         })
+    }
+
+    /// Placeholder buffers for `mesh`'s targets when they cannot be uploaded
+    /// ([`RenderError::MorphTooLarge`]): weights for them are accepted and change nothing.
+    #[must_use]
+    pub fn ignoring(device: &wgpu::Device, label: &str, mesh: &SkinnedMesh) -> Self {
+        let vertices = u32::try_from(mesh.vertex_count()).unwrap_or(u32::MAX);
+        let (deltas, state) = buffers(device, label, &[[0.0; 4]], vertices, 1);
+        Self {
+            deltas,
+            state,
+            slots: vec![None; mesh.targets().len()],
+            vertices,
+            staging: Vec::new(),
+            any_active: false,
+        }
     }
 
     /// The mesh's targets, uploaded or not: the length [`GpuMorph::set_weights`] accepts.
@@ -189,4 +186,36 @@ impl GpuMorph {
     pub fn state(&self) -> &wgpu::Buffer {
         &self.state
     }
+}
+
+/// The displacement buffer holding `packed` and the active-target buffer (a header with no
+/// active target, room for `capacity` entries).
+fn buffers(
+    device: &wgpu::Device,
+    label: &str,
+    packed: &[[f32; 4]],
+    vertices: u32,
+    capacity: usize,
+) -> (wgpu::Buffer, wgpu::Buffer) {
+    let deltas = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some(&format!("{label} morph displacements")),
+        contents: bytemuck::cast_slice(packed),
+        usage: wgpu::BufferUsages::STORAGE,
+    });
+    let header = MorphHeader {
+        count: 0,
+        vertices,
+        _pad: [0; 2],
+    };
+    let mut initial = bytemuck::bytes_of(&header).to_vec();
+    initial.resize(
+        initial.len() + capacity.max(1) * std::mem::size_of::<ActiveTarget>(),
+        0,
+    );
+    let state = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some(&format!("{label} morph weights")),
+        contents: &initial,
+        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+    });
+    (deltas, state)
 }

@@ -264,8 +264,8 @@ impl Renderer {
     }
 
     /// How many morph targets an avatar's mesh has (the length
-    /// [`Renderer::set_morph_weights`] takes at most); 0 when its targets could not be
-    /// uploaded (a warning says why).
+    /// [`Renderer::set_morph_weights`] takes at most). Targets too large for this device
+    /// are not drawn (a warning says why) and their weights change nothing.
     pub fn morph_targets(&self, handle: AvatarHandle) -> Result<usize, RenderError> {
         self.avatars
             .get(&handle.0)
