@@ -732,3 +732,299 @@ async fn live_poses_carry_weights() {
     let after = ok(addr, json!({"op": "get_avatar", "avatar": "face"})).await;
     assert_eq!(after["morph_weights"], state["morph_weights"]);
 }
+
+/// Ready Player Me's avatar as a VRM 1.0 file whose `expressions` bind its morph targets with
+/// weights and overrides (the file's own JSON, edited in memory; its buffers unchanged):
+/// `aa` moves `mouthOpen` (head and teeth) by 0.8; `blink` moves `eyesClosed`; `happy` moves
+/// `mouthSmile` by 1 and `eyesClosed` by 0.3, blocks the blink group and blends the mouth
+/// group; custom `smirk` is binary and moves `mouthSmile` by 0.5; `happy` has a material
+/// bind, which is not imported.
+fn rpm_as_vrm(rpm: &[u8]) -> Vec<u8> {
+    common::edit_glb_json(rpm, |doc| {
+        let node = |name: &str| {
+            doc["nodes"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .position(|n| n["name"] == name)
+                .unwrap()
+        };
+        let (head, teeth) = (node("Wolf3D_Head"), node("Wolf3D_Teeth"));
+        let target = |name: &str| {
+            let names = doc["meshes"][doc["nodes"][head]["mesh"].as_u64().unwrap() as usize]
+                ["extras"]["targetNames"]
+                .as_array()
+                .unwrap();
+            names.iter().position(|n| n == name).unwrap()
+        };
+        let (open, smile, closed) = (
+            target("mouthOpen"),
+            target("mouthSmile"),
+            target("eyesClosed"),
+        );
+        doc["extensionsUsed"] = json!(["VRMC_vrm"]);
+        doc["extensions"] = json!({"VRMC_vrm": {"specVersion": "1.0", "expressions": {
+            "preset": {
+                "aa": {"morphTargetBinds": [{"node": head, "index": open, "weight": 0.8},
+                                            {"node": teeth, "index": open, "weight": 0.8}]},
+                "blink": {"morphTargetBinds": [{"node": head, "index": closed, "weight": 1.0}]},
+                "happy": {"morphTargetBinds": [{"node": head, "index": smile, "weight": 1.0},
+                                               {"node": head, "index": closed, "weight": 0.3}],
+                          "overrideBlink": "block", "overrideMouth": "blend",
+                          "materialColorBinds": [{"material": 0, "type": "color",
+                                                  "targetValue": [1, 0, 0, 1]}]}
+            },
+            "custom": {
+                "smirk": {"isBinary": true,
+                          "morphTargetBinds": [{"node": head, "index": smile, "weight": 0.5}]}
+            }
+        }}});
+    })
+}
+
+/// A VRM's expressions (issue 30 goal 1): imported with weighted binds, `isBinary` and
+/// overrides; set by name (and VRM 0.x name); streamed as the channel weights the VRM 1.0
+/// specification's evaluation gives (values derived by hand below).
+#[tokio::test]
+async fn vrm_expressions_drive_weighted_channels_with_overrides() {
+    let server = common::server(30.0).await;
+    let addr = server.addr;
+    let Some(rpm) = testdata_bytes(RPM) else {
+        return;
+    };
+    let (status, body) = upload_files(
+        addr,
+        "/api/assets/vrmface",
+        &[("vrmface.vrm", &rpm_as_vrm(&rpm))],
+    )
+    .await;
+    assert_eq!(status, 200, "{body}");
+    let notes = body.to_string();
+    assert!(
+        notes.contains("VRM 1.0 expressions: 4 kept (aa, blink, happy, smirk)"),
+        "{notes}"
+    );
+    assert!(
+        notes.contains("1 material/texture bind(s) not imported"),
+        "{notes}"
+    );
+    ok(
+        addr,
+        json!({"op": "add_avatar", "scene": "default", "asset": "vrmface", "avatar": "face"}),
+    )
+    .await;
+    let v = viewer(addr, Encoding::Binary, 4).await;
+    assert!(
+        common::wait_for(120.0, || v
+            .avatars()
+            .iter()
+            .any(|a| a.description.id.0 == "face"))
+        .await
+    );
+    let d = v
+        .avatars()
+        .into_iter()
+        .find(|a| a.description.id.0 == "face")
+        .unwrap()
+        .description;
+    let names: Vec<&str> = d.expression_binds.iter().map(|e| e.name.as_str()).collect();
+    assert_eq!(names, ["aa", "blink", "happy", "smirk"]);
+    // The file's names are not guessed again: `blink` is the file's, not `eyesClosed` alone.
+    assert!(!d.expressions.contains_key("blink") && !d.expressions.contains_key("happy"));
+
+    let set = |expression: &str, weight: f32| {
+        json!({"op": "set_expression", "avatar": "face", "expression": expression,
+               "weight": weight})
+    };
+    // aa 0.5: mouthOpen = 0.8 × 0.5 (head and teeth are one channel).
+    ok(addr, set("aa", 0.5)).await;
+    weights_become(&v, &[("mouthOpen", 0.4)]).await;
+    ok(addr, set("blink", 1.0)).await;
+    weights_become(&v, &[("mouthOpen", 0.4), ("eyesClosed", 1.0)]).await;
+    // happy 0.5 blocks blink (0) and blends the mouth (aa × (1 − 0.5)): mouthOpen 0.2,
+    // mouthSmile 0.5, eyesClosed only happy's own 0.3 × 0.5.
+    ok(addr, set("happy", 0.5)).await;
+    weights_become(
+        &v,
+        &[
+            ("mouthOpen", 0.2),
+            ("mouthSmile", 0.5),
+            ("eyesClosed", 0.15),
+        ],
+    )
+    .await;
+    // smirk is binary: 0.4 shows nothing, 0.6 shows it whole (+0.5 on mouthSmile).
+    ok(addr, set("smirk", 0.4)).await;
+    ok(addr, set("aa", 0.5)).await; // a later command, so the 0.4 has been applied
+    weights_become(
+        &v,
+        &[
+            ("mouthOpen", 0.2),
+            ("mouthSmile", 0.5),
+            ("eyesClosed", 0.15),
+        ],
+    )
+    .await;
+    ok(addr, set("smirk", 0.6)).await;
+    weights_become(
+        &v,
+        &[
+            ("mouthOpen", 0.2),
+            ("mouthSmile", 1.0),
+            ("eyesClosed", 0.15),
+        ],
+    )
+    .await;
+    // A VRM 0.x name reaches the same expression: Joy 0 releases blink and the mouth.
+    ok(addr, set("Joy", 0.0)).await;
+    weights_become(
+        &v,
+        &[("mouthOpen", 0.4), ("mouthSmile", 0.5), ("eyesClosed", 1.0)],
+    )
+    .await;
+}
+
+/// The expression map is correctable like the joint map (issue 30 goal 2): upload options and
+/// `configure_asset` replace guesses, `""` unmaps, and a wrong name or target is refused with
+/// a message, changing nothing.
+#[tokio::test]
+async fn the_expression_map_is_correctable() {
+    let data = tempfile::tempdir().unwrap();
+    let server = common::kit_builder(30.0)
+        .data_dir(data.path())
+        .start()
+        .await
+        .unwrap()
+        .into_server();
+    let addr = server.addr;
+    let Some(rpm) = testdata_bytes(RPM) else {
+        return;
+    };
+    let (ct, body) = common::multipart_with_fields(
+        &[("rpm.glb", &rpm)],
+        &[(
+            "expression_map",
+            r#"{"jawOpen": "mouthSmile", "blink": ""}"#,
+        )],
+    );
+    let (status, answer) = common::http_to(addr, "POST", "/api/assets/rpm", &ct, &body).await;
+    assert_eq!(status, 200, "{answer}");
+    ok(
+        addr,
+        json!({"op": "add_avatar", "scene": "default", "asset": "rpm", "avatar": "face"}),
+    )
+    .await;
+    let state = ok(addr, json!({"op": "get_avatar", "avatar": "face"})).await;
+    let described = ok(addr, json!({"op": "get_asset", "asset": "rpm"})).await;
+    assert_eq!(
+        described["options"]["expression_map"],
+        json!({"jawOpen": "mouthSmile", "blink": ""}),
+        "{described}"
+    );
+    let v = viewer(addr, Encoding::Json, 4).await;
+    ok(
+        addr,
+        json!({"op": "set_expression", "avatar": "face", "expression": "jawOpen", "weight": 0.5}),
+    )
+    .await;
+    weights_become(&v, &[("mouthSmile", 0.5)]).await;
+    let (_, code, message) = refused(
+        addr,
+        json!({"op": "set_expression", "avatar": "face", "expression": "blink"}),
+    )
+    .await;
+    assert_eq!(code, "unknown_expression", "{message} ({state})");
+
+    // configure_asset: new avatars take the new map.
+    ok(
+        addr,
+        json!({"op": "configure_asset", "asset": "rpm",
+               "options": {"expression_map": {"happy": "mouthOpen"}}}),
+    )
+    .await;
+    ok(
+        addr,
+        json!({"op": "add_avatar", "scene": "default", "asset": "rpm", "avatar": "face2"}),
+    )
+    .await;
+    ok(
+        addr,
+        json!({"op": "set_expression", "avatar": "face2", "expression": "happy", "weight": 0.25}),
+    )
+    .await;
+    let got = ok(addr, json!({"op": "get_avatar", "avatar": "face2"})).await;
+    assert!(
+        (got["morph_weights"]["mouthOpen"].as_f64().unwrap() - 0.25).abs() < 1e-3,
+        "{got}"
+    );
+    // Refused, with the reason; the stored options stay.
+    for (map, why) in [
+        (
+            json!({"notAName": "mouthOpen"}),
+            "not a standard expression name",
+        ),
+        (
+            json!({"jawOpen": "noSuchTarget"}),
+            "not one of the rig's morph targets",
+        ),
+    ] {
+        let (_, _, message) = refused(
+            addr,
+            json!({"op": "configure_asset", "asset": "rpm", "options": {"expression_map": map}}),
+        )
+        .await;
+        assert!(message.contains(why), "{message}");
+    }
+    let described = ok(addr, json!({"op": "get_asset", "asset": "rpm"})).await;
+    assert_eq!(
+        described["options"]["expression_map"],
+        json!({"happy": "mouthOpen"}),
+        "{described}"
+    );
+}
+
+/// A VRM's expression weights are stored as expression weights, not flattened into channels:
+/// after a SIGKILL, `happy` still blocks `blink`, and letting `happy` go shows the blink again.
+#[tokio::test]
+async fn vrm_expression_weights_survive_a_sigkill() {
+    let data = tempfile::tempdir().unwrap();
+    let dir = data.path().to_str().unwrap().to_owned();
+    let start = || {
+        Posecast::start(
+            &["--tick-rate", "30", "--data", &dir],
+            &[("POSECAST_CONTROL_TOKEN", common::CONTROL)],
+        )
+    };
+    let Some(rpm) = testdata_bytes(RPM) else {
+        return;
+    };
+    let server = start();
+    let (status, body) = upload_files(
+        server.addr,
+        "/api/assets/vrmface",
+        &[("vrmface.vrm", &rpm_as_vrm(&rpm))],
+    )
+    .await;
+    assert_eq!(status, 200, "{body}");
+    ok(
+        server.addr,
+        json!({"op": "add_avatar", "scene": "default", "asset": "vrmface", "avatar": "face"}),
+    )
+    .await;
+    ok(
+        server.addr,
+        json!({"op": "set_morph_weights", "avatar": "face", "weights": {"blink": 1.0, "happy": 0.5}}),
+    )
+    .await;
+    server.kill();
+    let server = start();
+    let v = viewer(server.addr, Encoding::Binary, 4).await;
+    weights_become(&v, &[("mouthSmile", 0.5), ("eyesClosed", 0.15)]).await;
+    ok(
+        server.addr,
+        json!({"op": "set_expression", "avatar": "face", "expression": "happy", "weight": 0.0}),
+    )
+    .await;
+    weights_become(&v, &[("eyesClosed", 1.0)]).await;
+    server.kill();
+}

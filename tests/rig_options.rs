@@ -27,39 +27,13 @@ async fn server(data: &std::path::Path) -> Server {
     server
 }
 
-/// A multipart body of file parts and text fields.
-fn multipart(files: &[(&str, &[u8])], fields: &[(&str, &str)]) -> (String, Vec<u8>) {
-    let boundary = "posecast-options-boundary-31c9";
-    let mut body = Vec::new();
-    for (name, bytes) in files {
-        body.extend_from_slice(
-            format!(
-                "--{boundary}\r\nContent-Disposition: form-data; name=\"file\"; filename=\"{name}\"\r\n\r\n"
-            )
-            .as_bytes(),
-        );
-        body.extend_from_slice(bytes);
-        body.extend_from_slice(b"\r\n");
-    }
-    for (name, text) in fields {
-        body.extend_from_slice(
-            format!(
-                "--{boundary}\r\nContent-Disposition: form-data; name=\"{name}\"\r\n\r\n{text}\r\n"
-            )
-            .as_bytes(),
-        );
-    }
-    body.extend_from_slice(format!("--{boundary}--\r\n").as_bytes());
-    (format!("multipart/form-data; boundary={boundary}"), body)
-}
-
 async fn upload(
     addr: SocketAddr,
     path: &str,
     files: &[(&str, &[u8])],
     fields: &[(&str, &str)],
 ) -> (u16, Value) {
-    let (content_type, body) = multipart(files, fields);
+    let (content_type, body) = common::multipart_with_fields(files, fields);
     let (s, b) = http_to(addr, "POST", path, &content_type, &body).await;
     (s, serde_json::from_str(&b).unwrap_or(Value::Null))
 }

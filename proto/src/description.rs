@@ -51,6 +51,12 @@ pub struct AvatarDescription {
     /// `crate::expressions`) → the morph channel that plays each, found by name.
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub expressions: BTreeMap<String, String>,
+    /// Expressions the file defines (VRM 0.x `blendShapeMaster`, VRM 1.0 `expressions`): each
+    /// moves weighted channels together and may hold back the blink, look-at and mouth
+    /// expressions while it shows (`crate::expressions::Expression`). A name set by a client
+    /// resolves to one of these before `morph_targets` and `expressions`. Absent for other rigs.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub expression_binds: Vec<crate::expressions::Expression>,
     /// The name of the clip playing when the description was sent, for display only.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub clip: Option<String>,
@@ -165,6 +171,7 @@ impl AvatarDescription {
             mesh_url,
             morph_targets: Vec::new(),
             expressions: BTreeMap::new(),
+            expression_binds: Vec::new(),
             clip: None,
             hash: String::new(),
         };
@@ -181,6 +188,14 @@ impl AvatarDescription {
     ) -> Self {
         self.morph_targets = morph_targets;
         self.expressions = expressions;
+        self.hash = format!("{:016x}", self.compute_hash());
+        self
+    }
+
+    /// The same description with these file-defined expressions, its hash updated.
+    #[must_use]
+    pub fn with_expression_binds(mut self, defs: Vec<crate::expressions::Expression>) -> Self {
+        self.expression_binds = defs;
         self.hash = format!("{:016x}", self.compute_hash());
         self
     }
@@ -245,6 +260,23 @@ impl AvatarDescription {
             for (k, v) in &self.expressions {
                 h.str(k);
                 h.str(v);
+            }
+        }
+        if !self.expression_binds.is_empty() {
+            h.bytes(&(self.expression_binds.len() as u64).to_le_bytes());
+            for e in &self.expression_binds {
+                h.str(&e.name);
+                h.bytes(&[
+                    u8::from(e.is_binary),
+                    e.override_blink as u8,
+                    e.override_look_at as u8,
+                    e.override_mouth as u8,
+                ]);
+                h.bytes(&(e.binds.len() as u64).to_le_bytes());
+                for b in &e.binds {
+                    h.str(&b.channel);
+                    h.bytes(&b.weight.to_bits().to_le_bytes());
+                }
             }
         }
         h.finish()

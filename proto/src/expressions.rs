@@ -325,6 +325,189 @@ pub fn resolve(name: &str, targets: &[String], map: &BTreeMap<String, String>) -
         .or_else(|| vrm0_preset(name).and_then(|v1| map.get(v1)).and_then(index))
 }
 
+/// How an expression holds back a group of others while it shows (VRM 1.0 `overrideBlink`,
+/// `overrideLookAt`, `overrideMouth`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
+#[serde(rename_all = "snake_case")]
+pub enum Override {
+    /// No effect on the group.
+    #[default]
+    None,
+    /// The group is held at 0 while this expression's weight is above 0.
+    Block,
+    /// The group is scaled by `1 − weight` of this expression.
+    Blend,
+}
+
+impl Override {
+    /// Whether this is [`Override::None`] (for `skip_serializing_if`).
+    #[must_use]
+    pub fn is_none(&self) -> bool {
+        *self == Self::None
+    }
+
+    /// How much of its group this override takes away at an expression's output weight `w`
+    /// (three-vrm's `overrideBlinkAmount`): `block` all of it once `w > 0`, `blend` `w`.
+    #[must_use]
+    pub fn amount(self, w: f32) -> f32 {
+        match self {
+            Self::None => 0.0,
+            Self::Block => f32::from(w > 0.0),
+            Self::Blend => w,
+        }
+    }
+}
+
+/// One morph channel an expression moves, and how far at expression weight 1.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
+pub struct ExpressionBind {
+    /// The morph channel (one of the description's `morph_targets`).
+    pub channel: String,
+    /// The channel's weight when the expression's weight is 1 (VRM 0.x `weight / 100`).
+    pub weight: f32,
+}
+
+/// An expression a file defines (VRM 0.x `blendShapeMaster.blendShapeGroups`, VRM 1.0
+/// `expressions.preset` and `expressions.custom`): weighted morph channels shown together, and
+/// how it holds back the blink, look-at and mouth expressions while it shows.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
+pub struct Expression {
+    /// Its name: the VRM 1.0 preset (`happy`, `aa`, `blinkLeft`, …; a VRM 0.x preset converted
+    /// with [`vrm0_preset`]) or the file's custom name.
+    pub name: String,
+    /// The channels it moves.
+    pub binds: Vec<ExpressionBind>,
+    /// Shown only fully or not at all (weight > 0.5 is 1, else 0).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub is_binary: bool,
+    /// Its effect on `blink`, `blinkLeft`, `blinkRight`.
+    #[serde(default, skip_serializing_if = "Override::is_none")]
+    pub override_blink: Override,
+    /// Its effect on `lookUp`, `lookDown`, `lookLeft`, `lookRight`.
+    #[serde(default, skip_serializing_if = "Override::is_none")]
+    pub override_look_at: Override,
+    /// Its effect on `aa`, `ih`, `ou`, `ee`, `oh`.
+    #[serde(default, skip_serializing_if = "Override::is_none")]
+    pub override_mouth: Override,
+}
+
+impl Expression {
+    /// An expression of `name` moving `binds`, with no overrides.
+    #[must_use]
+    pub fn new(name: impl Into<String>, binds: Vec<ExpressionBind>) -> Self {
+        Self {
+            name: name.into(),
+            binds,
+            is_binary: false,
+            override_blink: Override::None,
+            override_look_at: Override::None,
+            override_mouth: Override::None,
+        }
+    }
+
+    /// The weight it shows at `w` before overrides: `w`, or for a binary one 1 above 0.5 and
+    /// 0 otherwise.
+    #[must_use]
+    pub fn output_weight(&self, w: f32) -> f32 {
+        if self.is_binary {
+            f32::from(w > 0.5)
+        } else {
+            w
+        }
+    }
+}
+
+/// The override groups of VRM 1.0: blink, look-at and mouth presets.
+const BLINK_GROUP: [&str; 3] = ["blink", "blinkLeft", "blinkRight"];
+const LOOK_AT_GROUP: [&str; 4] = ["lookUp", "lookDown", "lookLeft", "lookRight"];
+const MOUTH_GROUP: [&str; 5] = ["aa", "ih", "ou", "ee", "oh"];
+
+/// The weight each expression of `defs` shows when they are set to `weights` (one per def,
+/// missing ones 0), as the VRM 1.0 specification and its reference implementation (three-vrm's
+/// `VRMExpressionManager`) evaluate them: binary expressions snap; each group (blink, look-at,
+/// mouth) is scaled by `max(0, 1 − Σ amount)` over every expression's override of it
+/// ([`Override::amount`]); a binary expression scaled below 1 shows 0. A channel then moves by
+/// `Σ shown × bind weight` over the binds that name it.
+#[must_use]
+pub fn shown_weights(defs: &[Expression], weights: &[f32]) -> Vec<f32> {
+    let output: Vec<f32> = defs
+        .iter()
+        .enumerate()
+        .map(|(i, d)| d.output_weight(weights.get(i).copied().unwrap_or(0.0)))
+        .collect();
+    let (mut blink, mut look_at, mut mouth) = (1.0f32, 1.0f32, 1.0f32);
+    for (d, &w) in defs.iter().zip(&output) {
+        blink -= d.override_blink.amount(w);
+        look_at -= d.override_look_at.amount(w);
+        mouth -= d.override_mouth.amount(w);
+    }
+    defs.iter()
+        .zip(output)
+        .map(|(d, w)| {
+            let name = d.name.as_str();
+            let mut m = 1.0f32;
+            if BLINK_GROUP.contains(&name) {
+                m *= blink.max(0.0);
+            }
+            if LOOK_AT_GROUP.contains(&name) {
+                m *= look_at.max(0.0);
+            }
+            if MOUTH_GROUP.contains(&name) {
+                m *= mouth.max(0.0);
+            }
+            let shown = w * m;
+            if d.is_binary && shown < 1.0 {
+                0.0
+            } else {
+                shown
+            }
+        })
+        .collect()
+}
+
+/// `map` (from [`auto_map`]) with a user's corrections applied: each entry of `corrections`
+/// replaces the guess for its standard name, or removes it when the target is `""`.
+///
+/// # Errors
+/// The first correction whose name is not a standard one (`"… is not a standard expression
+/// name"`) or whose target is not one of `targets`.
+pub fn corrected(
+    mut map: BTreeMap<String, String>,
+    corrections: &BTreeMap<String, String>,
+    targets: &[String],
+) -> Result<BTreeMap<String, String>, String> {
+    for (name, target) in corrections {
+        if vocabulary_of(name).is_none() {
+            return Err(format!(
+                "{name:?} is not a standard expression name (ARKit, VRM 1.0 preset or viseme_*)"
+            ));
+        }
+        if target.is_empty() {
+            map.remove(name);
+        } else if targets.contains(target) {
+            map.insert(name.clone(), target.clone());
+        } else {
+            return Err(format!(
+                "{name:?} maps to {target:?}, which is not one of the rig's morph targets"
+            ));
+        }
+    }
+    Ok(map)
+}
+
+/// The index in `defs` of the expression a client names `name`: its exact name, else the VRM
+/// 1.0 preset of a VRM 0.x name (`Joy` → `happy`).
+#[must_use]
+pub fn find_expression(defs: &[Expression], name: &str) -> Option<usize> {
+    defs.iter().position(|d| d.name == name).or_else(|| {
+        let v1 = vrm0_preset(name)?;
+        defs.iter().position(|d| d.name == v1)
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -517,5 +700,95 @@ mod tests {
         for name in odd {
             assert_eq!(resolve(name, &[], &map), None);
         }
+    }
+
+    fn expr(name: &str, binary: bool, blink: Override, mouth: Override) -> Expression {
+        let mut e = Expression::new(name, Vec::new());
+        e.is_binary = binary;
+        e.override_blink = blink;
+        e.override_mouth = mouth;
+        e
+    }
+
+    fn assert_close(got: &[f32], want: &[f32]) {
+        assert_eq!(got.len(), want.len(), "{got:?} against {want:?}");
+        assert!(
+            got.iter().zip(want).all(|(g, w)| (g - w).abs() < 1e-6),
+            "{got:?} against {want:?}"
+        );
+    }
+
+    /// The VRM 1.0 evaluation, values derived by hand from the specification's rules.
+    #[test]
+    fn shown_weights_follow_vrm_overrides_and_binary() {
+        use Override::{Blend, Block, None as Free};
+        let defs = [
+            expr("blink", false, Free, Free),
+            expr("aa", false, Free, Free),
+            expr("happy", false, Block, Blend),
+            expr("angry", true, Free, Blend),
+        ];
+        // Nothing overriding: every weight as set.
+        assert_close(
+            &shown_weights(&defs, &[0.7, 0.6, 0.0, 0.0]),
+            &[0.7, 0.6, 0.0, 0.0],
+        );
+        // happy 0.25 blocks blink whole and blends the mouth by 1 − 0.25.
+        assert_close(
+            &shown_weights(&defs, &[0.7, 0.6, 0.25]),
+            &[0.0, 0.45, 0.25, 0.0],
+        );
+        // angry is binary: 0.5 is off (its blend takes nothing), 0.51 is on and takes the
+        // rest of the mouth with happy's 0.25 (1 − 0.25 − 1 < 0 → 0).
+        assert_close(
+            &shown_weights(&defs, &[0.0, 0.6, 0.25, 0.5]),
+            &[0.0, 0.45, 0.25, 0.0],
+        );
+        assert_close(
+            &shown_weights(&defs, &[0.0, 0.6, 0.25, 0.51]),
+            &[0.0, 0.0, 0.25, 1.0],
+        );
+        // A binary expression held back below 1 shows nothing.
+        let held = [
+            expr("blink", true, Free, Free),
+            expr("sad", false, Blend, Free),
+        ];
+        assert_close(&shown_weights(&held, &[1.0, 0.1]), &[0.0, 0.1]);
+        assert_close(&shown_weights(&held, &[1.0, 0.0]), &[1.0, 0.0]);
+    }
+
+    #[test]
+    fn expressions_are_found_by_name_and_vrm0_name() {
+        let defs = [expr("happy", false, Override::None, Override::None)];
+        assert_eq!(find_expression(&defs, "happy"), Some(0));
+        assert_eq!(find_expression(&defs, "Joy"), Some(0));
+        assert_eq!(find_expression(&defs, "joy"), Some(0));
+        assert_eq!(find_expression(&defs, "Happy"), None);
+    }
+
+    #[test]
+    fn corrections_replace_unmap_and_refuse() {
+        let targets = strings(&["mouthOpen", "eyesClosed", "smile"]);
+        let map = auto_map(&targets);
+        assert_eq!(get(&map, "jawOpen"), Some("mouthOpen"));
+        let fix = |pairs: &[(&str, &str)]| -> BTreeMap<String, String> {
+            pairs
+                .iter()
+                .map(|(k, v)| ((*k).to_owned(), (*v).to_owned()))
+                .collect()
+        };
+        let c = corrected(
+            map.clone(),
+            &fix(&[("jawOpen", "smile"), ("blink", "")]),
+            &targets,
+        )
+        .unwrap();
+        assert_eq!(get(&c, "jawOpen"), Some("smile"));
+        assert_eq!(get(&c, "blink"), None);
+        assert_eq!(get(&c, "aa"), get(&map, "aa"));
+        let e = corrected(map.clone(), &fix(&[("grin", "smile")]), &targets).unwrap_err();
+        assert!(e.contains("not a standard expression name"), "{e}");
+        let e = corrected(map, &fix(&[("jawOpen", "nope")]), &targets).unwrap_err();
+        assert!(e.contains("not one of the rig's morph targets"), "{e}");
     }
 }

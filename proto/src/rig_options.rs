@@ -121,6 +121,11 @@ pub struct PipelineOptions {
     /// neutral pose and cannot take humanoid clips.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub humanoid: Option<bool>,
+    /// Standard expression name (ARKit, VRM preset, `viseme_*`: `crate::expressions`) → the
+    /// rig's morph target that plays it, replacing the guess for the names it lists (`""`
+    /// unmaps). Each name must be a standard one and each target one of the rig's.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub expression_map: Option<BTreeMap<String, String>>,
 }
 
 impl Default for PipelineOptions {
@@ -132,6 +137,7 @@ impl Default for PipelineOptions {
             neutral: NeutralPose::Auto,
             name_map: None,
             humanoid: None,
+            expression_map: None,
         }
     }
 }

@@ -211,6 +211,7 @@ mod tests {
             mesh_url: None,
             morph_targets: vec![],
             expressions: std::collections::BTreeMap::new(),
+            expression_binds: Vec::new(),
             clip: None,
             hash: String::new(),
         }

@@ -10,6 +10,7 @@ use crate::command::{
     RootMotion, SceneInfo, Units, Viewer,
 };
 use crate::description::AvatarDescription;
+use crate::expressions::{Expression, ExpressionBind, Override};
 use crate::msg::{
     Access, AvatarId, AvatarPoseJson, ClientMsg, Encoding, ErrorCode, FrameJson, ProtocolError,
     SceneId, ServerMsg,
@@ -63,6 +64,9 @@ pub fn declarations() -> String {
         Placement,
         JointSet,
         AvatarDescription,
+        Expression,
+        ExpressionBind,
+        Override,
         FrameJson,
         AvatarPoseJson,
         SceneInfo,

@@ -23,6 +23,9 @@ pub struct Asset {
     pub source: SourceInfo,
     /// CSE169 `boxmin`/`boxmax` per joint (course defaults where the file has none).
     pub boxes: Option<Vec<(Vec3, Vec3)>>,
+    /// Expressions the file defines over its morph targets (VRM 0.x `blendShapeMaster`, VRM
+    /// 1.0 `expressions`); empty for other files.
+    pub expressions: Vec<posecast_proto::expressions::Expression>,
 }
 
 /// A named skinned mesh.

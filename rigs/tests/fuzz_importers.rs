@@ -11,7 +11,7 @@ use std::panic::{AssertUnwindSafe, catch_unwind};
 use posecast_proto::Transform;
 use posecast_proto::testing::require_testdata;
 use posecast_rigs::asset::Asset;
-use posecast_rigs::import::{anim, bvh, gltf, skel, skin};
+use posecast_rigs::import::{anim, bvh, files, gltf, skel, skin};
 
 const CASES: usize = 300;
 
@@ -262,6 +262,62 @@ fn skin_mutants() {
         skin::parse("f.skin", &text(b)?, &one.skeleton).ok()?;
         Some(vec![])
     });
+}
+
+#[test]
+fn morph_mutants() {
+    // No course .morph ships with the test data: targets written here over its skins, one
+    // sparse positions block with dense normals, one dense positions block with sparse normals.
+    let (Some(tube_skel), Some(tube_skin)) = (
+        read_text("cse169/tube.skel"),
+        read_text("cse169/tube_smooth.skin"),
+    ) else {
+        return;
+    };
+    let mut bulge = String::from("positions 12 {\n");
+    for i in 0..12 {
+        bulge.push_str(&format!("{} 0.{i} -0.5 0.25\n", i * 20));
+    }
+    bulge.push_str("}\nnormals 240 {\n");
+    for i in 0..240 {
+        bulge.push_str(&format!("0 {} 0.5\n", i % 3));
+    }
+    bulge.push_str("}\n");
+    fuzz_bytes(
+        "tube_bulge.morph",
+        bulge.as_bytes(),
+        0x3090_0001,
+        false,
+        &|b| {
+            files::skel_with_morphs(
+                "tube.skel",
+                &tube_skel,
+                Some(("tube.skin".into(), tube_skin.clone())),
+                vec![],
+                vec![("tube_bulge.morph".into(), text(b)?)],
+            )
+            .ok()
+            .map(|a| vec![a])
+        },
+    );
+    let Some(triangle) = read_text("cse169/triangle.skin") else {
+        return;
+    };
+    let one = skel::parse("one.skel", "balljoint a { }").unwrap();
+    let mesh = skin::parse("triangle.skin", &triangle, &one.skeleton)
+        .unwrap()
+        .mesh;
+    let dense = "positions 3 {\n0 0 1\n1 0 0\n0 2 0\n}\nnormals 2 {\n2 0 0 1\n0 0 0 1\n}\n";
+    fuzz_bytes(
+        "triangle_up.morph",
+        dense.as_bytes(),
+        0x3090_0002,
+        false,
+        &|b| {
+            let t = posecast_rigs::import::morph::parse("f.morph", &text(b)?, &mesh).ok()?;
+            mesh.clone().with_targets(vec![t]).ok().map(|_| vec![])
+        },
+    );
 }
 
 #[test]

@@ -201,6 +201,7 @@ fn derive(raw: &Asset) -> Asset {
             ..SourceInfo::new(SourceFormat::Bvh)
         },
         boxes: None,
+        expressions: Vec::new(),
     }
 }
 

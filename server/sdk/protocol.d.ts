@@ -877,6 +877,13 @@ morph_targets?: Array<string>,
  */
 expressions?: { [key in string]: string }, 
 /**
+ * Expressions the file defines (VRM 0.x `blendShapeMaster`, VRM 1.0 `expressions`): each
+ * moves weighted channels together and may hold back the blink, look-at and mouth
+ * expressions while it shows (`crate::expressions::Expression`). A name set by a client
+ * resolves to one of these before `morph_targets` and `expressions`. Absent for other rigs.
+ */
+expression_binds?: Array<Expression>, 
+/**
  * The name of the clip playing when the description was sent, for display only.
  */
 clip?: string | null, 
@@ -886,6 +893,57 @@ clip?: string | null,
  * holding a stale rig.
  */
 hash: string, };
+
+/**
+ * An expression a file defines (VRM 0.x `blendShapeMaster.blendShapeGroups`, VRM 1.0
+ * `expressions.preset` and `expressions.custom`): weighted morph channels shown together, and
+ * how it holds back the blink, look-at and mouth expressions while it shows.
+ */
+export type Expression = { 
+/**
+ * Its name: the VRM 1.0 preset (`happy`, `aa`, `blinkLeft`, …; a VRM 0.x preset converted
+ * with `vrm0_preset`) or the file's custom name.
+ */
+name: string, 
+/**
+ * The channels it moves.
+ */
+binds: Array<ExpressionBind>, 
+/**
+ * Shown only fully or not at all (weight > 0.5 is 1, else 0).
+ */
+is_binary?: boolean, 
+/**
+ * Its effect on `blink`, `blinkLeft`, `blinkRight`.
+ */
+override_blink?: Override, 
+/**
+ * Its effect on `lookUp`, `lookDown`, `lookLeft`, `lookRight`.
+ */
+override_look_at?: Override, 
+/**
+ * Its effect on `aa`, `ih`, `ou`, `ee`, `oh`.
+ */
+override_mouth?: Override, };
+
+/**
+ * One morph channel an expression moves, and how far at expression weight 1.
+ */
+export type ExpressionBind = { 
+/**
+ * The morph channel (one of the description's `morph_targets`).
+ */
+channel: string, 
+/**
+ * The channel's weight when the expression's weight is 1 (VRM 0.x `weight / 100`).
+ */
+weight: number, };
+
+/**
+ * How an expression holds back a group of others while it shows (VRM 1.0 `overrideBlink`,
+ * `overrideLookAt`, `overrideMouth`).
+ */
+export type Override = "none" | "block" | "blend";
 
 /**
  * A pose frame in the JSON encoding: the same content as a binary keyframe, with float
@@ -1429,7 +1487,13 @@ name_map: { [key in string]: string } | null,
  * the H-Anim core chain and its legs hang away from its spine). A non-humanoid keeps its
  * neutral pose and cannot take humanoid clips.
  */
-humanoid: boolean | null, };
+humanoid: boolean | null, 
+/**
+ * Standard expression name (ARKit, VRM preset, `viseme_*`: `crate::expressions`) → the
+ * rig's morph target that plays it, replacing the guess for the names it lists (`""`
+ * unmaps). Each name must be a standard one and each target one of the rig's.
+ */
+expression_map: { [key in string]: string } | null, };
 
 /**
  * Which neutral pose the pipeline gives a rig.

@@ -33,7 +33,7 @@ export function mount(ctx) {
       ? ""
       : channels.length === 0
         ? `${desc.id}'s rig has no morph targets: it shows no expressions.`
-        : `${channels.length} morph channels; ${Object.keys(desc.expressions ?? {}).length} standard names map onto them.`;
+        : `${channels.length} morph channels; ${(desc.expression_binds ?? []).length} expressions from the file; ${Object.keys(desc.expressions ?? {}).length} standard names map onto them.`;
     for (const channel of channels) {
       const input = el("input", { type: "range", min: "0", max: "1", step: "0.01", value: "0", id: `face-${channel}` });
       const slider = /** @type {HTMLInputElement} */ (input);
@@ -46,6 +46,12 @@ export function mount(ctx) {
       });
       inputs.set(channel, slider);
       sliders.append(el("div", { className: "row" }, el("label", { htmlFor: slider.id }, channel), slider));
+    }
+    // The file's own expressions (a VRM's: weighted channels, overrides) first, then the
+    // standard names found among the channels.
+    for (const e of desc?.expression_binds ?? []) {
+      const binds = e.binds.map((b) => (b.weight === 1 ? b.channel : `${b.channel}×${b.weight}`)).join(" + ");
+      picker.append(el("option", { value: e.name }, `${e.name} → ${binds}${e.is_binary ? " (binary)" : ""}`));
     }
     for (const [name, channel] of Object.entries(desc?.expressions ?? {}).sort(([a], [b]) => a.localeCompare(b))) {
       picker.append(el("option", { value: name }, `${name} → ${channel}`));

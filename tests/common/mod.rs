@@ -235,6 +235,14 @@ pub async fn http_raw(
 /// A `multipart/form-data` body with one file part per `(file name, bytes)`; returns the
 /// content type (with its boundary) and the body.
 pub fn multipart(files: &[(&str, &[u8])]) -> (String, Vec<u8>) {
+    multipart_with_fields(files, &[])
+}
+
+/// A multipart body of file parts and then text fields (upload options such as `name_map`).
+pub fn multipart_with_fields(
+    files: &[(&str, &[u8])],
+    fields: &[(&str, &str)],
+) -> (String, Vec<u8>) {
     let boundary = "posecast-test-boundary-7d1f0c";
     let mut body = Vec::new();
     for (name, bytes) in files {
@@ -246,6 +254,14 @@ pub fn multipart(files: &[(&str, &[u8])]) -> (String, Vec<u8>) {
         );
         body.extend_from_slice(bytes);
         body.extend_from_slice(b"\r\n");
+    }
+    for (name, text) in fields {
+        body.extend_from_slice(
+            format!(
+                "--{boundary}\r\nContent-Disposition: form-data; name=\"{name}\"\r\n\r\n{text}\r\n"
+            )
+            .as_bytes(),
+        );
     }
     body.extend_from_slice(format!("--{boundary}--\r\n").as_bytes());
     (format!("multipart/form-data; boundary={boundary}"), body)
@@ -468,9 +484,33 @@ pub fn builtin_as_vrm() -> Vec<u8> {
 /// The built-in avatar's `.glb` with a VRM 1.0 humanoid bone map in the root extension
 /// `extension`, the clavicles and toes included when `full`.
 pub fn builtin_with_bone_map(extension: &str, full: bool) -> Vec<u8> {
-    let glb = posecast_server::builtin::AVATAR_GLB;
+    edit_glb_json(posecast_server::builtin::AVATAR_GLB, |doc| {
+        add_bone_map(doc, extension, full);
+    })
+}
+
+/// `glb` (a binary glTF with a JSON chunk and a BIN chunk) with its JSON edited by `edit`,
+/// the BIN chunk unchanged.
+pub fn edit_glb_json(glb: &[u8], edit: impl FnOnce(&mut serde_json::Value)) -> Vec<u8> {
     let json_len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
     let mut doc: serde_json::Value = serde_json::from_slice(&glb[20..20 + json_len]).unwrap();
+    edit(&mut doc);
+    let mut json = serde_json::to_vec(&doc).unwrap();
+    while !json.len().is_multiple_of(4) {
+        json.push(b' ');
+    }
+    let bin = &glb[20 + json_len..];
+    let mut out = b"glTF".to_vec();
+    out.extend_from_slice(&2u32.to_le_bytes());
+    out.extend_from_slice(&((12 + 8 + json.len() + bin.len()) as u32).to_le_bytes());
+    out.extend_from_slice(&(json.len() as u32).to_le_bytes());
+    out.extend_from_slice(b"JSON");
+    out.extend_from_slice(&json);
+    out.extend_from_slice(bin);
+    out
+}
+
+fn add_bone_map(doc: &mut serde_json::Value, extension: &str, full: bool) {
     let bones: serde_json::Map<String, serde_json::Value> = doc["nodes"]
         .as_array()
         .unwrap()
@@ -513,17 +553,4 @@ pub fn builtin_with_bone_map(extension: &str, full: bool) -> Vec<u8> {
             "licenseUrl": "https://vrm.dev/licenses/1.0/"});
     }
     doc["extensions"] = serde_json::json!({ extension: root });
-    let mut json = serde_json::to_vec(&doc).unwrap();
-    while !json.len().is_multiple_of(4) {
-        json.push(b' ');
-    }
-    let bin = &glb[20 + json_len..];
-    let mut out = b"glTF".to_vec();
-    out.extend_from_slice(&2u32.to_le_bytes());
-    out.extend_from_slice(&((12 + 8 + json.len() + bin.len()) as u32).to_le_bytes());
-    out.extend_from_slice(&(json.len() as u32).to_le_bytes());
-    out.extend_from_slice(b"JSON");
-    out.extend_from_slice(&json);
-    out.extend_from_slice(bin);
-    out
 }

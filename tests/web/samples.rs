@@ -95,6 +95,7 @@ fn samples() -> Vec<(&'static str, &'static str, Value)> {
             .into_iter()
             .map(|(k, v)| (k.to_owned(), v.to_owned()))
             .collect(),
+        expression_binds: Vec::new(),
         clip: Some("walk".into()),
         hash: "0123456789abcdef".into(),
     };

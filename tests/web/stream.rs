@@ -649,6 +649,7 @@ fn subset_vectors(rng: &mut Lcg) -> Value {
             mesh_url: None,
             morph_targets: vec![],
             expressions: std::collections::BTreeMap::new(),
+            expression_binds: Vec::new(),
             clip: None,
             hash: String::new(),
         };

@@ -272,6 +272,7 @@ pub fn parse(name: &str, text: &str) -> Result<Asset, ImportError> {
         clips,
         source,
         boxes: None,
+        expressions: Vec::new(),
     })
 }
 

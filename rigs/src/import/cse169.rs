@@ -73,5 +73,6 @@ pub fn assemble(
         clips,
         source,
         boxes: Some(skel.boxes),
+        expressions: Vec::new(),
     })
 }

@@ -21,7 +21,7 @@ pub enum ImportError {
     },
     /// The file's extension names no format an importer reads.
     #[error(
-        "{path}: unknown file type (expected .gltf, .glb, .vrm, .vrma, .skel, .skin, .anim or .bvh)"
+        "{path}: unknown file type (expected .gltf, .glb, .vrm, .vrma, .skel, .skin, .anim, .morph or .bvh)"
     )]
     UnknownFormat {
         /// The path as given.

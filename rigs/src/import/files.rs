@@ -6,17 +6,27 @@
 //! - one `.glb` (or `.vrm`, or `.vrma`, which are GLBs), or one `.gltf` plus the `.bin` (and image) files
 //!   its buffer URIs name;
 //! - one `.bvh`;
-//! - one `.skel`, at most one `.skin` (its mesh) and any number of `.anim` files (its clips,
-//!   named by file stem, in name order). Unlike a folder, an upload belongs together, so the
-//!   `.skin` and `.anim` names need not share the `.skel`'s stem.
+//! - one `.skel`, at most one `.skin` (its mesh), any number of `.anim` files (its clips,
+//!   named by file stem, in name order) and any number of `.morph` files (morph targets of the
+//!   `.skin`, named by file stem, in name order; a `.morph` without a `.skin` is refused).
+//!   Unlike a folder, an upload belongs together, so the `.skin`, `.anim` and `.morph` names
+//!   need not share the `.skel`'s stem.
 
 use std::collections::BTreeMap;
 
-use super::{ImportError, anim, bvh, cse169, gltf, skel, skin};
+use posecast_proto::morph::MorphTarget;
+
+use super::gltf::listed;
+use super::{ImportError, anim, bvh, cse169, gltf, morph, skel, skin};
 use crate::asset::Asset;
 
 /// Longest file name in a set.
 pub const MAX_FILE_NAME: usize = 128;
+
+/// Most displacement vectors the `.morph` files of one `.skin` may make, counting two per
+/// vertex per target (positions and normals): a sparse `.morph` of a few bytes makes a full
+/// list per target, so file sizes alone do not bound the memory (2²⁴ vectors: 192 MiB).
+pub const MAX_MORPH_VECTORS: usize = 1 << 24;
 
 /// Files by name (a plain file name: no folders).
 #[derive(Debug, Default, Clone)]
@@ -108,8 +118,8 @@ impl FileSet {
     /// The main file (`.glb`, `.gltf`, `.bvh` or `.skel`).
     ///
     /// # Errors
-    /// No main file (a `.skin` or `.anim` alone is refused: it needs its `.skel`), more than
-    /// one, or a file the main file's format does not use.
+    /// No main file (a `.skin`, `.anim` or `.morph` alone is refused: it needs its `.skel`),
+    /// more than one, or a file the main file's format does not use.
     pub fn main_file(&self) -> Result<&str, ImportError> {
         let mains: Vec<&str> = self
             .files
@@ -127,7 +137,7 @@ impl FileSet {
             [] => {
                 let first = self.files.keys().next().cloned().unwrap_or_default();
                 let ext = extension(&first);
-                let message = if matches!(ext.as_str(), "skin" | "anim") {
+                let message = if matches!(ext.as_str(), "skin" | "anim" | "morph") {
                     format!("a .{ext} file needs its .skel: upload the .skel with it")
                 } else {
                     "no .glb, .gltf, .vrm, .vrma, .bvh or .skel file".to_owned()
@@ -148,8 +158,8 @@ impl FileSet {
         for name in self.files.keys().filter(|n| n.as_str() != main) {
             let ext = extension(name);
             let fits = match main_ext.as_str() {
-                "gltf" => !matches!(ext.as_str(), "skin" | "anim"),
-                "skel" => matches!(ext.as_str(), "skin" | "anim"),
+                "gltf" => !matches!(ext.as_str(), "skin" | "anim" | "morph"),
+                "skel" => matches!(ext.as_str(), "skin" | "anim" | "morph"),
                 _ => false,
             };
             if !fits {
@@ -196,16 +206,18 @@ pub fn import_set(set: &FileSet) -> Result<Vec<Asset>, ImportError> {
                     message: "a .skel takes at most one .skin".to_owned(),
                 });
             }
-            let anims = set
-                .iter()
-                .filter(|(n, _)| extension(n) == "anim")
-                .map(|(n, b)| Ok((n.to_owned(), text(n, b)?.to_owned())))
-                .collect::<Result<Vec<_>, ImportError>>()?;
-            Ok(vec![skel_with_companions(
+            let with_ext = |ext: &str| {
+                set.iter()
+                    .filter(|(n, _)| extension(n) == ext)
+                    .map(|(n, b)| Ok((n.to_owned(), text(n, b)?.to_owned())))
+                    .collect::<Result<Vec<_>, ImportError>>()
+            };
+            Ok(vec![skel_with_morphs(
                 main,
                 text(main, bytes)?,
                 skin.into_iter().next(),
-                anims,
+                with_ext("anim")?,
+                with_ext("morph")?,
             )?])
         }
     }
@@ -222,10 +234,44 @@ pub fn skel_with_companions(
     skin: Option<(String, String)>,
     anims: Vec<(String, String)>,
 ) -> Result<Asset, ImportError> {
+    skel_with_morphs(skel_name, skel_text, skin, anims, Vec::new())
+}
+
+/// [`skel_with_companions`] with `.morph` files, each `(file name, text)`: morph targets of the
+/// `.skin`'s mesh ([`morph::parse`]), named by file stem, in the order given (callers give name
+/// order). The asset's notes say how many were kept and their names.
+///
+/// # Errors
+/// Any file refused by its importer; a `.morph` without a `.skin`; two `.morph` files with one
+/// stem (`a.morph`, `a.MORPH`), which would be one channel twice; more targets than
+/// [`MAX_MORPH_VECTORS`] allows for the skin's vertex count.
+pub fn skel_with_morphs(
+    skel_name: &str,
+    skel_text: &str,
+    skin: Option<(String, String)>,
+    anims: Vec<(String, String)>,
+    morphs: Vec<(String, String)>,
+) -> Result<Asset, ImportError> {
     let skel = skel::parse(skel_name, skel_text)?;
     let skin = skin
-        .map(|(name, text)| skin::parse(&name, &text, &skel.skeleton))
+        .map(|(name, text)| skin::parse(&name, &text, &skel.skeleton).map(|s| (name, s)))
         .transpose()?;
+    let (skin, morph_note) = match (skin, morphs.first()) {
+        (None, Some((first, _))) => {
+            return Err(ImportError::Unsupported {
+                file: first.clone(),
+                message: format!(
+                    "a .morph moves the vertices of a .skin, and {skel_name} has none: add \
+                     its .skin"
+                ),
+            });
+        }
+        (Some((skin_name, skin)), Some(_)) => {
+            let (skin, note) = with_targets(&skin_name, skin, &morphs)?;
+            (Some(skin), Some(note))
+        }
+        (skin, None) => (skin.map(|(_, s)| s), None),
+    };
     let mut clips = Vec::with_capacity(anims.len());
     let mut notes = Vec::new();
     for (name, text) in anims {
@@ -236,7 +282,57 @@ pub fn skel_with_companions(
     }
     let mut asset = cse169::assemble(stem(skel_name), skel, skin, clips)?;
     asset.source.notes.extend(notes);
+    asset.source.notes.extend(morph_note);
     Ok(asset)
+}
+
+/// `skin` with the targets of `morphs` (in their order), and the note that lists them.
+fn with_targets(
+    skin_name: &str,
+    mut skin: skin::Skin,
+    morphs: &[(String, String)],
+) -> Result<(skin::Skin, String), ImportError> {
+    let vertices = skin.mesh.vertex_count();
+    let allowed = MAX_MORPH_VECTORS / vertices.saturating_mul(2).max(1);
+    if let Some((name, _)) = morphs.get(allowed) {
+        return Err(ImportError::Unsupported {
+            file: name.clone(),
+            message: format!(
+                "{} .morph files over {skin_name} ({vertices} vertices): at most {allowed} \
+                 (every target holds a displacement per vertex, {MAX_MORPH_VECTORS} in all)",
+                morphs.len()
+            ),
+        });
+    }
+    let mut targets: Vec<MorphTarget> = Vec::with_capacity(morphs.len());
+    for (name, text) in morphs {
+        let target = morph::parse(name, text, &skin.mesh)?;
+        if targets.iter().any(|t| t.name == target.name) {
+            return Err(ImportError::Unsupported {
+                file: name.clone(),
+                message: format!(
+                    "a second .morph named {:?}: one name is one channel",
+                    target.name
+                ),
+            });
+        }
+        targets.push(target);
+    }
+    let names: Vec<String> = targets.iter().map(|t| t.name.clone()).collect();
+    skin.mesh = skin
+        .mesh
+        .with_targets(targets)
+        .map_err(|source| ImportError::Mesh {
+            file: skin_name.to_owned(),
+            mesh: skin_name.to_owned(),
+            source,
+        })?;
+    let note = format!(
+        "{} morph target(s) from .morph: {}",
+        names.len(),
+        listed(&names)
+    );
+    Ok((skin, note))
 }
 
 fn text<'a>(name: &str, bytes: &'a [u8]) -> Result<&'a str, ImportError> {

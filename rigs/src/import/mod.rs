@@ -2,7 +2,8 @@
 //!
 //! - [`gltf`]: glTF 2.0 (`.gltf` with embedded or external buffers, `.glb`), VRM (`.vrm`) and
 //!   VRM animations (`.vrma`).
-//! - [`skel`], [`skin`], [`anim`], assembled by [`cse169`]: the UCSD CSE169 course formats.
+//! - [`skel`], [`skin`], [`anim`], [`morph`], assembled by [`cse169`] and
+//!   [`files::skel_with_morphs`]: the UCSD CSE169 course formats.
 //! - [`bvh`]: Biovision hierarchy motion capture.
 //!
 //! Every importer works on bytes or text so the server can import uploads; [`load_path`]
@@ -17,6 +18,7 @@ pub mod cse169;
 mod error;
 pub mod files;
 pub mod gltf;
+pub mod morph;
 pub mod skel;
 pub mod skin;
 mod text;
@@ -35,12 +37,14 @@ pub const MAX_FILE_BYTES: u64 = 1 << 30;
 ///   read relative to the file's folder.
 /// - `.vrm`: a GLB, as `.glb`; `.vrma` (a VRM animation): one skeleton-only asset with clips
 ///   ([`gltf::vrma`]).
-/// - `.skel`: one asset. A `.skin` with the same stem in the same folder is its mesh, and
+/// - `.skel`: one asset. A `.skin` with the same stem in the same folder is its mesh,
 ///   `<stem>.anim` and `<stem>_*.anim` there are its clips (e.g. `wasp.skel`, `wasp.skin`,
-///   `wasp_walk.anim`), in name order.
+///   `wasp_walk.anim`), and `<stem>.morph` and `<stem>_*.morph` there are morph targets of
+///   its mesh (`wasp_smile.morph`: target `wasp_smile`), each in name order. A `.morph` beside
+///   a `.skel` without a `.skin` is an error.
 /// - `.bvh`: one asset with one clip.
 ///
-/// A `.skin` or `.anim` alone is refused: it needs its `.skel`.
+/// A `.skin`, `.anim` or `.morph` alone is refused: it needs its `.skel`.
 pub fn load_path(path: &Path) -> Result<Vec<Asset>, ImportError> {
     let ext = path
         .extension()
@@ -68,18 +72,21 @@ pub fn load_path(path: &Path) -> Result<Vec<Asset>, ImportError> {
             } else {
                 None
             };
-            let anims = sibling_anims(path, &stem)
-                .iter()
-                .map(|p| Ok((file_name(p), read_text(p)?)))
-                .collect::<Result<Vec<_>, ImportError>>()?;
-            Ok(vec![files::skel_with_companions(
+            let companions = |ext: &str| {
+                siblings(path, &stem, ext)
+                    .iter()
+                    .map(|p| Ok((file_name(p), read_text(p)?)))
+                    .collect::<Result<Vec<_>, ImportError>>()
+            };
+            Ok(vec![files::skel_with_morphs(
                 &name,
                 &read_text(path)?,
                 skin,
-                anims,
+                companions("anim")?,
+                companions("morph")?,
             )?])
         }
-        "skin" | "anim" => Err(ImportError::Unsupported {
+        "skin" | "anim" | "morph" => Err(ImportError::Unsupported {
             file: name,
             message: format!("a .{ext} file needs its .skel: load the .skel instead"),
         }),
@@ -96,7 +103,8 @@ fn file_name(path: &Path) -> String {
     )
 }
 
-fn sibling_anims(skel: &Path, stem: &str) -> Vec<PathBuf> {
+/// `<stem>.<ext>` and `<stem>_*.<ext>` (extension in any case) beside `skel`, in name order.
+fn siblings(skel: &Path, stem: &str, ext: &str) -> Vec<PathBuf> {
     let dir = skel.parent().unwrap_or(Path::new("."));
     let Ok(entries) = std::fs::read_dir(dir) else {
         return Vec::new();
@@ -106,12 +114,12 @@ fn sibling_anims(skel: &Path, stem: &str) -> Vec<PathBuf> {
         .filter_map(Result::ok)
         .map(|e| e.path())
         .filter(|p| {
-            let is_anim = p
+            let has_ext = p
                 .extension()
                 .and_then(|e| e.to_str())
-                .is_some_and(|e| e.eq_ignore_ascii_case("anim"));
+                .is_some_and(|e| e.eq_ignore_ascii_case(ext));
             let s = p.file_stem().and_then(|s| s.to_str()).unwrap_or("");
-            is_anim && (s == stem || s.starts_with(&prefix))
+            has_ext && (s == stem || s.starts_with(&prefix))
         })
         .collect();
     found.sort();

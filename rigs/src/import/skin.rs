@@ -1,6 +1,10 @@
 //! CSE169 `.skin` meshes: `positions`, `normals`, optional `texcoords`, `skinweights`,
 //! optional `material`, `triangles` and `bindings` (world-space bind matrices `B`, one per
 //! joint in `.skel` order, each written as three axis rows then the translation row).
+//!
+//! Normals are directions: they are normalised on import (course files write them unnormalised,
+//! `triangle.skin`'s `-1 -1 1`), so a `.morph`'s normal displacements are taken against unit
+//! normals and stay right through normalisation, which renormalises rest normals only.
 
 use glam::{Mat4, Vec2, Vec3, Vec4};
 use posecast_proto::{Skeleton, SkinnedMesh};
@@ -11,8 +15,9 @@ use super::text::Tokens;
 /// A parsed `.skin`.
 #[derive(Clone, Debug)]
 pub struct Skin {
-    /// Positions in bind (model) space; at most as many influences per vertex as the file's
-    /// largest `skinweights` entry, zero-weight attachments kept as zero weights.
+    /// Positions in bind (model) space, normals normalised (a zero normal stays zero); at
+    /// most as many influences per vertex as the file's largest `skinweights` entry,
+    /// zero-weight attachments kept as zero weights.
     pub mesh: SkinnedMesh,
     /// World bind matrices `B_j` (the file's `bindings`), one per skeleton joint.
     pub bind: Vec<Mat4>,
@@ -37,7 +42,12 @@ pub fn parse(name: &str, text: &str, skeleton: &Skeleton) -> Result<Skin, Import
     while let Ok(t) = tokens.next_token("a section") {
         match t.text.to_ascii_lowercase().as_str() {
             "positions" => positions = vec3_section(&mut tokens, "positions")?,
-            "normals" => normals = vec3_section(&mut tokens, "normals")?,
+            "normals" => {
+                normals = vec3_section(&mut tokens, "normals")?
+                    .into_iter()
+                    .map(Vec3::normalize_or_zero)
+                    .collect();
+            }
             "texcoords" => {
                 let (n, line) = tokens.count("texcoord count")?;
                 tokens.check_count("texcoords", n, 2, line)?;

@@ -42,6 +42,15 @@ use crate::clip::ChannelMap;
 /// Why a rig could not be normalised or a clip retargeted.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum RigError {
+    /// The configured `expression_map` names a non-standard expression or a morph target the
+    /// rig lacks.
+    #[error("expression_map of {asset:?}: {message}")]
+    ExpressionMap {
+        /// The asset.
+        asset: String,
+        /// What is wrong with which entry.
+        message: String,
+    },
     /// The bind matrix mirrors (negative determinant): no rotation can express it, and folding
     /// the mirror into the mesh would turn it inside out, so the asset is refused.
     #[error("joint {joint} ({name:?}) has a mirrored bind matrix (determinant {determinant})")]

@@ -49,6 +49,18 @@ pub struct Normalised {
 pub fn normalise(asset: Asset, options: &PipelineOptions) -> Result<Normalised, RigError> {
     let n = asset.skeleton.len();
     let mut steps = Vec::new();
+    if let Some(corrections) = &options.expression_map {
+        let channels = posecast_proto::morph::channels(asset.meshes.iter().map(|m| &m.mesh));
+        posecast_proto::expressions::corrected(Default::default(), corrections, &channels)
+            .map_err(|message| RigError::ExpressionMap {
+                asset: asset.name.clone(),
+                message,
+            })?;
+        steps.push(format!(
+            "expressions: {} standard name(s) mapped by the configuration",
+            corrections.len()
+        ));
+    }
     let mut maps: JointMaps = vec![ChannelMap::IDENTITY; n];
     // A mapping the file gives (a VRM humanoid) is authoritative; the user's wins over it.
     let mut overrides = asset.source.bone_map.clone();

@@ -283,6 +283,7 @@ fn build_asset(
         clips: vec![clip],
         source: SourceInfo::new(SourceFormat::Gltf),
         boxes: None,
+        expressions: Vec::new(),
     }
 }
 

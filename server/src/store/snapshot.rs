@@ -60,6 +60,9 @@ pub struct AvatarRecord {
     /// Morph weights above 0 by channel name (issue 30); files without: all 0.
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub morph_weights: BTreeMap<String, f32>,
+    /// Weights above 0 of the file's own expressions (a VRM's), by name; files without: all 0.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub expression_weights: BTreeMap<String, f32>,
 }
 
 /// The current clip of an avatar. A cross-fade in progress is not stored: it restores as the
@@ -130,7 +133,8 @@ fn record(a: &Avatar) -> AvatarRecord {
             .collect(),
         placement: a.placing.target(),
         goals: goal_commands(a),
-        morph_weights: a.morph_weights(),
+        morph_weights: a.set_channel_weights(),
+        expression_weights: a.set_expression_weights(),
     }
 }
 
@@ -270,21 +274,26 @@ pub fn parse_lenient(value: &serde_json::Value) -> Result<(SceneFile, Vec<String
         }
         // Weights: each finite one in [0, 1] of a channel name kept; anything else dropped
         // alone (and a channel the rig lost is dropped on restore).
-        let mut morph_weights = BTreeMap::new();
-        if let Value::Object(map) = get("morph_weights") {
-            for (name, w) in map {
-                match w
-                    .as_f64()
-                    .map(|w| w as f32)
-                    .filter(|w| (0.0..=1.0).contains(w))
-                {
-                    Some(w) => {
-                        morph_weights.insert(name, w);
+        let mut weights = |field: &str, what: &str| {
+            let mut out = BTreeMap::new();
+            if let Value::Object(map) = get(field) {
+                for (name, w) in map {
+                    match w
+                        .as_f64()
+                        .map(|w| w as f32)
+                        .filter(|w| (0.0..=1.0).contains(w))
+                    {
+                        Some(w) => {
+                            out.insert(name, w);
+                        }
+                        None => dropped.push(format!("avatar {id}: {what} {name} ({w})")),
                     }
-                    None => dropped.push(format!("avatar {id}: morph weight {name} ({w})")),
                 }
             }
-        }
+            out
+        };
+        let morph_weights = weights("morph_weights", "morph weight");
+        let expression_weights = weights("expression_weights", "expression weight");
         avatars.push(AvatarRecord {
             id,
             asset,
@@ -293,6 +302,7 @@ pub fn parse_lenient(value: &serde_json::Value) -> Result<(SceneFile, Vec<String
             placement,
             goals,
             morph_weights,
+            expression_weights,
         });
     }
     // A table that does not parse costs the retries' answers only, never the scene.
@@ -403,7 +413,22 @@ pub fn restore_into(world: &World, file: &SceneFile, now_us: u64) {
                 }
             })
             .collect();
+        let channels = channels.len();
+        let expressions: Vec<(usize, f32)> = rec
+            .expression_weights
+            .iter()
+            .filter_map(|(name, w)| {
+                match a.description.expression_binds.iter().position(|e| e.name == *name) {
+                    Some(k) => Some((channels + k, *w)),
+                    None => {
+                        warn!(scene = %file.scene, avatar = %id, name, "expression weight not restored: the rig has no such expression");
+                        None
+                    }
+                }
+            })
+            .collect();
         a.set_morph(&weights, true);
+        a.set_morph(&expressions, false);
         a.evaluate();
     }
     // Goals once every avatar is back: one relative to another avatar needs it there.

@@ -37,7 +37,8 @@ use posecast_sim::avatar::Avatar;
 
 /// The blend shape values VMC out sends for `avatar`: with morph channels, each channel's
 /// weight by the channel's own name, then by every VRM 0.x clip name (exact case) whose VRM
-/// 1.0 preset the avatar's expressions map onto a channel (unless a channel has that name);
+/// 1.0 preset the avatar's file defines (its set weight) or its expressions map onto a channel
+/// (unless a channel has that name);
 /// without channels, the values a VMC performer sent (passed on unchanged).
 #[must_use]
 pub fn blend_values(avatar: &Avatar) -> Vec<(String, f32)> {
@@ -58,6 +59,13 @@ pub fn blend_values(avatar: &Avatar) -> Vec<(String, f32)> {
         .collect();
     for (vmc_name, preset) in posecast_proto::expressions::vmc_blend_names() {
         if d.morph_targets.iter().any(|n| n == vmc_name) {
+            continue;
+        }
+        // The file's own expression of that preset (a VRM's) sends its set weight; else the
+        // channel the expression map gives.
+        if let Some(k) = d.expression_binds.iter().position(|e| e.name == preset) {
+            let w = avatar.expression_weights.get(k).copied().unwrap_or(0.0);
+            out.push((vmc_name.to_owned(), w));
             continue;
         }
         let channel = d

@@ -57,6 +57,7 @@ impl VmcRig {
             clips: Vec::new(),
             source: SourceInfo::new(SourceFormat::Gltf),
             boxes: None,
+            expressions: Vec::new(),
         };
         let name_map: BTreeMap<String, String> = BONES
             .iter()

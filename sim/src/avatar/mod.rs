@@ -81,6 +81,11 @@ pub struct Avatar {
     /// and the clip's, so an expression set by a command or a tracker shows over a talking
     /// clip, and setting 0 gives the face back to the clip.
     pub morph_shown: Vec<f32>,
+    /// Weights of the file's expressions (the description's `expression_binds`), one each,
+    /// set like [`Avatar::morph`] through their slots ([`Avatar::morph_channel`]).
+    pub expression_weights: Vec<f32>,
+    /// Each file expression's binds as `(channel, weight)`.
+    expression_binds: Vec<Vec<(usize, f32)>>,
 }
 
 impl Avatar {
@@ -116,11 +121,31 @@ impl Avatar {
             mesh_url,
         );
         let channels = posecast_proto::morph::channels(rig.asset.meshes.iter().map(|m| &m.mesh));
-        let expressions = posecast_proto::expressions::auto_map(&channels);
+        let mut defs = rig.asset.expressions.clone();
+        // A configured mapping replaces the file's expression of that name (as the user's
+        // joint map wins over a VRM humanoid's).
+        if let Some(c) = &rig.options.expression_map {
+            defs.retain(|d| !c.contains_key(&d.name));
+        }
+        let expressions = expression_map(&channels, &defs, rig.options.expression_map.as_ref());
         let morph = vec![0.0; channels.len()];
+        let expression_binds: Vec<Vec<(usize, f32)>> = defs
+            .iter()
+            .map(|e| {
+                e.binds
+                    .iter()
+                    .filter_map(|b| {
+                        Some((channels.iter().position(|c| *c == b.channel)?, b.weight))
+                    })
+                    .collect()
+            })
+            .collect();
         let mut player = Player::new();
         player.set_morph_channels(channels.clone());
-        let description = description.with_morphs(channels, expressions);
+        let expression_weights = vec![0.0; defs.len()];
+        let description = description
+            .with_morphs(channels, expressions)
+            .with_expression_binds(defs);
         let locals = skeleton.rest().to_vec();
         let pose = AvatarPose {
             avatar_num: num,
@@ -144,6 +169,8 @@ impl Avatar {
             morph_clip: morph.clone(),
             morph_shown: morph.clone(),
             morph,
+            expression_weights,
+            expression_binds,
         }
     }
 
@@ -222,13 +249,22 @@ impl Avatar {
                 .map(|&j| self.locals[usize::from(j)].scale),
         );
         self.player.sample_weights(&mut self.morph_clip);
-        for ((shown, set), clip) in self
-            .morph_shown
-            .iter_mut()
-            .zip(&self.morph)
-            .zip(&self.morph_clip)
-        {
-            *shown = set.max(*clip);
+        self.morph_shown.copy_from_slice(&self.morph);
+        if self.expression_weights.iter().any(|&w| w > 0.0) {
+            let shown = posecast_proto::expressions::shown_weights(
+                &self.description.expression_binds,
+                &self.expression_weights,
+            );
+            for (binds, e) in self.expression_binds.iter().zip(shown) {
+                for &(c, w) in binds {
+                    if let Some(slot) = self.morph_shown.get_mut(c) {
+                        *slot += e * w;
+                    }
+                }
+            }
+        }
+        for (shown, clip) in self.morph_shown.iter_mut().zip(&self.morph_clip) {
+            *shown = shown.min(1.0).max(*clip);
         }
         // As streamed: quantised, so JSON and binary subscribers see the same weights.
         self.pose.weights.clear();
@@ -239,31 +275,45 @@ impl Avatar {
         );
     }
 
-    /// The channel a morph weight's `name` sets: one of the avatar's morph channels, or a
-    /// standard expression name its description maps onto one (`proto::expressions`).
+    /// The slot a morph weight's `name` sets: an expression the file defines (its
+    /// description's `expression_binds`, by name or VRM 0.x preset name: slot
+    /// `channels + k` for the `k`th), else one of the avatar's morph channels (its index), else
+    /// a standard expression name its description maps onto one (`proto::expressions`).
     #[must_use]
     pub fn morph_channel(&self, name: &str) -> Option<usize> {
         let d = &self.description;
-        posecast_proto::expressions::resolve(name, &d.morph_targets, &d.expressions)
+        posecast_proto::expressions::find_expression(&d.expression_binds, name)
+            .map(|k| d.morph_targets.len() + k)
+            .or_else(|| {
+                posecast_proto::expressions::resolve(name, &d.morph_targets, &d.expressions)
+            })
     }
 
-    /// Sets morph weights by channel (`reset`: every other channel to 0 first) and
-    /// re-evaluates the pose. Indices past the channels are ignored; weights are clamped to
-    /// `[0, 1]` (callers check them first: `morph::check_weight`).
+    /// Sets morph weights by slot ([`Avatar::morph_channel`]; `reset`: every other channel
+    /// and expression to 0 first) and re-evaluates the pose. Slots past the channels and
+    /// expressions are ignored; weights are clamped to `[0, 1]` (callers check them first:
+    /// `morph::check_weight`).
     pub fn set_morph(&mut self, weights: &[(usize, f32)], reset: bool) {
         if reset {
             self.morph.iter_mut().for_each(|w| *w = 0.0);
+            self.expression_weights.iter_mut().for_each(|w| *w = 0.0);
         }
         self.store_morph(weights);
         self.evaluate();
     }
 
-    /// Sets morph weights by channel without evaluating the pose (the next tick does): for
+    /// Sets morph weights by slot without evaluating the pose (the next tick does): for
     /// live drivers and VMC, whose packets come faster than ticks. Clamped like
     /// [`Avatar::set_morph`].
     pub fn store_morph(&mut self, weights: &[(usize, f32)]) {
+        let channels = self.morph.len();
         for &(c, w) in weights {
-            if let Some(slot) = self.morph.get_mut(c) {
+            let slot = if c < channels {
+                self.morph.get_mut(c)
+            } else {
+                self.expression_weights.get_mut(c - channels)
+            };
+            if let Some(slot) = slot {
                 *slot = if w.is_nan() { 0.0 } else { w.clamp(0.0, 1.0) };
             }
         }
@@ -278,6 +328,31 @@ impl Avatar {
             .zip(&self.pose.weights)
             .filter(|(_, w)| **w > 0.0)
             .map(|(n, w)| (n.clone(), *w))
+            .collect()
+    }
+
+    /// The weights set on channels (not the clip's, not the expressions'), above 0, by
+    /// channel name: what a snapshot keeps.
+    #[must_use]
+    pub fn set_channel_weights(&self) -> std::collections::BTreeMap<String, f32> {
+        self.description
+            .morph_targets
+            .iter()
+            .zip(&self.morph)
+            .filter(|(_, w)| **w > 0.0)
+            .map(|(n, w)| (n.clone(), *w))
+            .collect()
+    }
+
+    /// The weights set on the file's expressions, above 0, by expression name.
+    #[must_use]
+    pub fn set_expression_weights(&self) -> std::collections::BTreeMap<String, f32> {
+        self.description
+            .expression_binds
+            .iter()
+            .zip(&self.expression_weights)
+            .filter(|(_, w)| **w > 0.0)
+            .map(|(e, w)| (e.name.clone(), *w))
             .collect()
     }
 
@@ -416,4 +491,24 @@ impl Avatar {
             morph_weights: self.morph_weights(),
         }
     }
+}
+
+/// The description's standard-name map: found by name ([`auto_map`]), the configured
+/// corrections applied, and the names the file's own expressions define left out (those
+/// resolve to the file's expressions first).
+///
+/// [`auto_map`]: posecast_proto::expressions::auto_map
+fn expression_map(
+    channels: &[String],
+    defs: &[posecast_proto::expressions::Expression],
+    corrections: Option<&std::collections::BTreeMap<String, String>>,
+) -> std::collections::BTreeMap<String, String> {
+    use posecast_proto::expressions::{auto_map, corrected, find_expression};
+    let mut map = auto_map(channels);
+    if let Some(c) = corrections {
+        // Checked when the rig was normalised; a stale option keeps the guesses.
+        map = corrected(map.clone(), c, channels).unwrap_or(map);
+    }
+    map.retain(|name, _| find_expression(defs, name).is_none());
+    map
 }

@@ -34,6 +34,7 @@ mod clips;
 mod mesh;
 mod skins;
 pub mod vrm;
+pub mod vrm_expressions;
 pub mod vrma;
 mod vrma_rig;
 
@@ -99,6 +100,9 @@ fn import_slice(
     // gap in that validation must not take the server down, so a panic in it becomes an
     // error here (the explicit checks above and in `accessor` cover every case we know of).
     let vrm = vrm::humanoid(bytes);
+    let expressions = vrm::json_chunk(bytes)
+        .and_then(|j| serde_json::from_slice::<serde_json::Value>(j).ok())
+        .and_then(|doc| vrm_expressions::read(&doc));
     let vrma_err = |source| ImportError::VrmAnimation {
         file: name.to_owned(),
         source,
@@ -113,6 +117,7 @@ fn import_slice(
     }
     let source = Source {
         vrm: vrm.as_ref(),
+        expressions: expressions.as_ref(),
         // A `.vrma` is always read as one; another glTF with the extension when it has no
         // skin (with one, it is a skinned rig and the extension is not its business).
         animation: animation
@@ -191,6 +196,8 @@ fn check_channel_targets(file: &str, doc: &gltf::Document) -> Result<(), ImportE
 struct Source<'a> {
     /// A VRM's humanoid bone map.
     vrm: Option<&'a vrm::Humanoid>,
+    /// A VRM's expressions.
+    expressions: Option<&'a vrm_expressions::Defined>,
     /// A VRM animation's extension: the file is read as one ([`vrma`]).
     animation: Option<&'a vrma::VrmAnimation>,
 }
@@ -233,6 +240,7 @@ fn import_document(
         nodes: &nodes,
         animated: &animated,
         vrm: source.vrm,
+        expressions: source.expressions,
         with_meshes,
     };
     if let Some(animation) = source.animation {
@@ -428,6 +436,7 @@ struct Context<'a> {
     nodes: &'a Nodes,
     animated: &'a [bool],
     vrm: Option<&'a vrm::Humanoid>,
+    expressions: Option<&'a vrm_expressions::Defined>,
     /// Whether to read the meshes ([`skeletons_and_clips`] does not).
     with_meshes: bool,
 }
@@ -744,6 +753,7 @@ impl Context<'_> {
                 source.bone_map = Some(map);
             }
         }
+        let expressions = self.expressions_of(&meshes, &mut notes);
         source.helper_joints = helpers;
         source.notes = notes;
         // The frame the joints hang in: a Z-up authoring frame maps +Z to +Y.
@@ -769,6 +779,64 @@ impl Context<'_> {
             clips,
             source,
             boxes: None,
+            expressions,
         })
+    }
+
+    /// The file's VRM expressions over this rig's morph channels: binds to channels the rig's
+    /// meshes lack (another rig's meshes, or meshes not read) dropped, expressions left with
+    /// no bind dropped, each with a note.
+    fn expressions_of(
+        &self,
+        meshes: &[crate::asset::AssetMesh],
+        notes: &mut Vec<String>,
+    ) -> Vec<posecast_proto::expressions::Expression> {
+        let Some(defined) = self.expressions else {
+            return Vec::new();
+        };
+        notes.extend(defined.notes.iter().cloned());
+        let channels = posecast_proto::morph::channels(meshes.iter().map(|m| &m.mesh));
+        let mut elsewhere = 0;
+        let mut empty = Vec::new();
+        let kept: Vec<_> = defined
+            .expressions
+            .iter()
+            .cloned()
+            .filter_map(|mut e| {
+                let before = e.binds.len();
+                e.binds.retain(|b| channels.contains(&b.channel));
+                elsewhere += before - e.binds.len();
+                if e.binds.is_empty() {
+                    empty.push(e.name);
+                    None
+                } else {
+                    Some(e)
+                }
+            })
+            .collect();
+        if !kept.is_empty() {
+            let names: Vec<String> = kept.iter().map(|e| e.name.clone()).collect();
+            notes.push(format!(
+                "VRM {} expressions: {} kept ({})",
+                defined.version,
+                kept.len(),
+                listed(&names)
+            ));
+        }
+        if elsewhere > 0 {
+            notes.push(format!(
+                "VRM {} expressions: {elsewhere} morph bind(s) to targets outside this rig's \
+                 meshes dropped",
+                defined.version
+            ));
+        }
+        if !empty.is_empty() {
+            notes.push(format!(
+                "VRM {} expressions without a morph bind dropped: {}",
+                defined.version,
+                listed(&empty)
+            ));
+        }
+        kept
     }
 }

@@ -2,8 +2,8 @@
 //!
 //! - `POST /api/assets/{name}`: a new asset from a `multipart/form-data` body whose file
 //!   parts' names give the format (one `.glb`, `.vrm` or `.vrma`; one `.gltf` with its `.bin`/image files; one
-//!   `.bvh`; one `.skel` with an optional `.skin` and `.anim` clips), or from a raw body of one
-//!   file: `Content-Type: model/gltf-binary`, or any type with `?format=glb|gltf|vrm|vrma|bvh|skel`.
+//!   `.bvh`; one `.skel` with an optional `.skin`, `.anim` clips and `.morph` targets of the
+//!   `.skin`), or from a raw body of one file: `Content-Type: model/gltf-binary`, or any type with `?format=glb|gltf|vrm|vrma|bvh|skel`.
 //!   → `200 {"result": [AssetInfo, …]}` (several for a multi-skin glTF).
 //! - `POST /api/assets/{name}/clips`: `.anim` clips (multipart) added to an uploaded `.skel`
 //!   asset. → `200 {"result": AssetInfo}`.
@@ -89,13 +89,14 @@ fn options_from_fields(fields: &[(String, String)]) -> Result<PipelineOptions, P
                 };
                 object.insert(name.clone(), v);
             }
-            "name_map" | "metres_per_unit" | "humanoid" | "neutral" | "simplify" => {
+            "name_map" | "expression_map" | "metres_per_unit" | "humanoid" | "neutral"
+            | "simplify" => {
                 object.insert(name.clone(), parse(name, text)?);
             }
             other => {
                 return Err(bad(format!(
                     "unknown field {other:?}: send files (with a filename), options, name_map, \
-                     metres_per_unit, up_axis, humanoid, neutral or simplify"
+                     expression_map, metres_per_unit, up_axis, humanoid, neutral or simplify"
                 )));
             }
         }
