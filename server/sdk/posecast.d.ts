@@ -1,7 +1,7 @@
 // Type declarations of posecast's JavaScript client, served at /sdk/posecast.d.ts beside the
 // module it describes (/sdk/posecast.js). This file is the API reference; proto/PROTOCOL.md is
 // the reference of the messages, protocol.d.ts their types (generated from the server's). SDK
-// version 1.5 speaks protocol version 4 (wire v2 binary frames with morph weights, results
+// version 1.6 (1.5 with faces on three.js models) speaks protocol version 4 (wire v2 binary frames with morph weights, results
 // tagged with their kind) by default, and 3, 2 or 1 when asked (`ClientOptions.version`) or
 // refused by an older server.
 //

@@ -40,11 +40,28 @@ export declare class SkeletonBinding {
   readonly desc: AvatarDescription;
   /** Joint names the model has no node for. */
   readonly missing: string[];
-  /** Poses the model from a pose. */
+  /** The model's meshes with morph targets, which `apply` sets the streamed weights on. */
+  readonly morphMeshes: MorphMeshLike[];
+  /** Poses the model from a pose, its face from the pose's morph `weights` (by target name). */
   apply(pose: FramePose): void;
   /** Applies the client's played-out pose of the avatar; the pose, or `null` when none yet. */
   update(client: PoseSource, nowUs?: number): FramePose | null;
 }
+
+/** What the face needs of a three.js mesh with morph targets. */
+export interface MorphMeshLike {
+  morphTargetDictionary: Record<string, number>;
+  morphTargetInfluences: number[];
+}
+
+/** The meshes under `root` with morph targets. */
+export declare function morphMeshes(root: Object3DLike): MorphMeshLike[];
+
+/**
+ * Sets streamed morph weights (channel name → weight) on every mesh target of that name. For a
+ * three-vrm `VRM`, call it after `vrm.update()`, which resets the targets its expressions bind.
+ */
+export declare function applyMorphWeights(meshes: MorphMeshLike[], weights: Record<string, number>): void;
 
 /** VRM 1.0 humanoid bones, parents first, each with its humanoid parent. */
 export declare const VRM_HUMAN_BONES: [string, string | null][];

@@ -17,11 +17,14 @@
 //
 // - `SkeletonBinding`: the server's `mesh.glb` (joints as nodes named as the description's
 //   joints, at their rest transforms), or any model whose bones carry those names: every
-//   joint's local rotation, translation and scale from the stream, the placement on the root.
+//   joint's local rotation, translation and scale from the stream, the placement on the root,
+//   and the face: each streamed morph weight on the mesh targets of its name.
 // - `VRMBinding`: a three-vrm `VRM` (or a `VRMHumanoid`) through its normalised humanoid bones,
 //   so any VRM follows a posecast avatar whatever its own joint frames: each humanoid bone is
 //   given the rotation the avatar's joint has turned through from its bind pose (the rotation
-//   of its skinning matrix W_j · B_j⁻¹), and the hips their position.
+//   of its skinning matrix W_j · B_j⁻¹), and the hips their position. Faces: three-vrm's
+//   `vrm.update()` resets the morph targets its expressions bind, so a page sets the streamed
+//   weights after it (`applyMorphWeights(morphMeshes(vrm.scene), pose.weights)`).
 // - `poseAtBind`, `vrmHumanBones`: put a posecast mesh in its bind pose and name its humanoid
 //   bones, to build a `VRMHumanoid` for a model that is not a VRM file.
 
@@ -115,6 +118,8 @@ export class SkeletonBinding {
     this.missing = desc.joint_names.filter((_, j) => this.bones[j] === null);
     this.translated = new Map(desc.translated_joints.map((j, i) => [j, i]));
     this.scaled = new Map(desc.scaled_joints.map((j, i) => [j, i]));
+    /** The model's meshes with morph targets (three's `morphTargetDictionary`). */
+    this.morphMeshes = morphMeshes(root);
   }
 
   /**
@@ -138,6 +143,7 @@ export class SkeletonBinding {
       bone.scale.set(s[0], s[1], s[2]);
     }
     place(this.placementTarget, pose, [0, 0, 0, 1]);
+    if (pose.weights) applyMorphWeights(this.morphMeshes, pose.weights);
   }
 
   /**
@@ -150,6 +156,44 @@ export class SkeletonBinding {
     const pose = client.pose(this.desc.id, nowUs);
     if (pose) this.apply(pose);
     return pose;
+  }
+}
+
+/**
+ * What the face needs of a three.js mesh with morph targets.
+ * @typedef {object} MorphMeshLike
+ * @property {Record<string, number>} morphTargetDictionary target name → index
+ * @property {number[]} morphTargetInfluences weight per target
+ */
+
+/**
+ * The meshes under `root` that have morph targets (three's GLTFLoader names them from
+ * `mesh.extras.targetNames`; the server's `mesh.glb` carries one target per morph channel).
+ * @param {Object3DLike} root
+ * @returns {MorphMeshLike[]}
+ */
+export function morphMeshes(root) {
+  /** @type {MorphMeshLike[]} */
+  const out = [];
+  root.traverse((o) => {
+    if (o.morphTargetDictionary && Array.isArray(o.morphTargetInfluences)) out.push(o);
+  });
+  return out;
+}
+
+/**
+ * Sets the streamed morph weights (a pose's `weights`: channel name → weight, what the server
+ * evaluated, VRM expressions included) on every mesh target of that name. A three-vrm `VRM`
+ * resets the targets its expressions bind in `vrm.update()`: call this after it.
+ * @param {MorphMeshLike[]} meshes from {@link morphMeshes}
+ * @param {Record<string, number>} weights
+ */
+export function applyMorphWeights(meshes, weights) {
+  for (const mesh of meshes) {
+    for (const [name, w] of Object.entries(weights)) {
+      const k = mesh.morphTargetDictionary[name];
+      if (k !== undefined) mesh.morphTargetInfluences[k] = w;
+    }
   }
 }
 
