@@ -153,6 +153,56 @@ pub enum Command {
         /// The avatar.
         avatar: AvatarId,
     },
+    // --- clip layers (issue 29 goal 4) ---
+    /// Play a clip on a named layer over the avatar's clip: on the joints of `mask` only
+    /// (absent: every joint), replacing their rotations (blended by `weight`) or, `additive`,
+    /// adding on top the rotation the clip turns each joint through from the rig's rest pose.
+    /// Playing on an existing layer cross-fades to the new clip there (its mask, mode and
+    /// weight change at once); a new layer fades in over `fade` seconds. Layers apply after the
+    /// clip and its root motion and before a live driver, IK goals, overrides and DOF limits,
+    /// in the order they were first played; at most [`MAX_LAYERS`] per avatar.
+    PlayLayer {
+        /// The avatar.
+        avatar: AvatarId,
+        /// The layer's name (e.g. `upper`, `breathing`).
+        layer: String,
+        /// The clip's name.
+        clip: String,
+        /// Take the clip from another loaded rig and retarget it; absent: the avatar's own rig.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        from_asset: Option<String>,
+        /// The joints the layer owns; absent: all.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        mask: Option<JointMask>,
+        /// Add the clip's rotations (away from the rest pose) on top instead of replacing.
+        #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+        additive: bool,
+        /// How much of the layer shows, 0 to 1 (default 1).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        weight: Option<f32>,
+        /// Playback speed (default 1).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        speed: Option<f32>,
+        /// Loop (default) or hold the last pose.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        looping: Option<bool>,
+        /// Start offset into the clip, seconds. Default 0.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        start: Option<f32>,
+        /// Fade-in (or cross-fade) seconds. Default 0.25.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        fade: Option<f32>,
+    },
+    /// Fade a layer out over `fade` seconds (default 0.25) and remove it.
+    StopLayer {
+        /// The avatar.
+        avatar: AvatarId,
+        /// The layer's name.
+        layer: String,
+        /// Fade-out seconds. Default 0.25.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        fade: Option<f32>,
+    },
     /// Override a joint's local rotation (layered over the clip until released).
     SetJointRotation {
         /// The avatar.
@@ -451,6 +501,8 @@ impl Command {
             | Self::SamplePose { avatar, .. }
             | Self::RemoveAvatar { avatar }
             | Self::Play { avatar, .. }
+            | Self::PlayLayer { avatar, .. }
+            | Self::StopLayer { avatar, .. }
             | Self::Pause { avatar }
             | Self::Resume { avatar }
             | Self::Seek { avatar, .. }
@@ -655,6 +707,41 @@ pub struct DofInfo {
     pub max: Option<f32>,
 }
 
+/// Most clip layers an avatar plays at once (`play_layer`).
+pub const MAX_LAYERS: usize = 8;
+
+/// The joints a clip layer owns: each joint of `joints` and everything below it, less each
+/// joint of `except` and everything below it. Names are the rig's own or H-Anim names
+/// (`{"joints": ["vl5"], "except": ["l_sternoclavicular"]}`: the upper body but the left arm).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
+#[serde(deny_unknown_fields)]
+pub struct JointMask {
+    /// Subtrees the layer owns.
+    pub joints: Vec<String>,
+    /// Subtrees taken out of them.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub except: Vec<String>,
+}
+
+/// A clip layer as `get_avatar` reports it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
+pub struct LayerState {
+    /// The layer's name.
+    pub layer: String,
+    /// The clip it plays.
+    pub clip: String,
+    /// Clip time, seconds.
+    pub time: f32,
+    /// Whether it adds to the pose below rather than replacing it.
+    pub additive: bool,
+    /// The weight it shows now (fades included).
+    pub weight: f32,
+    /// How many joints it owns.
+    pub joints: usize,
+}
+
 /// An avatar's playback state.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[cfg_attr(feature = "ts", derive(ts_rs::TS))]
@@ -716,6 +803,9 @@ pub struct AvatarState {
     /// Whether a gaze (`look_at`) is set.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub looking: bool,
+    /// Clip layers over the clip (`play_layer`), in the order they apply.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub layers: Vec<LayerState>,
 }
 
 /// A joint of an avatar, whose frame an IK goal is given in.

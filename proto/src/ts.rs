@@ -6,8 +6,8 @@
 
 use crate::command::{
     AssetDetail, AssetInfo, AvatarState, ClipInfo, Command, CommandResult, DofInfo, DriveInfo,
-    DriveVia, Driver, FadeState, JointInfo, JointMapping, JointRef, OnRelease, RecordingInfo,
-    RootMotion, SceneInfo, Units, Viewer,
+    DriveVia, Driver, FadeState, JointInfo, JointMapping, JointMask, JointRef, LayerState,
+    OnRelease, RecordingInfo, RootMotion, SceneInfo, Units, Viewer,
 };
 use crate::description::AvatarDescription;
 use crate::expressions::{Expression, ExpressionBind, Override};
@@ -72,6 +72,8 @@ pub fn declarations() -> String {
         SceneInfo,
         AvatarState,
         FadeState,
+        JointMask,
+        LayerState,
         JointRef,
         RootMotion,
         AssetInfo,

@@ -376,7 +376,63 @@ speed: number, } | { "op": "stop",
 /**
  * The avatar.
  */
-avatar: AvatarId, } | { "op": "set_joint_rotation", 
+avatar: AvatarId, } | { "op": "play_layer", 
+/**
+ * The avatar.
+ */
+avatar: AvatarId, 
+/**
+ * The layer's name (e.g. `upper`, `breathing`).
+ */
+layer: string, 
+/**
+ * The clip's name.
+ */
+clip: string, 
+/**
+ * Take the clip from another loaded rig and retarget it; absent: the avatar's own rig.
+ */
+from_asset?: string | null, 
+/**
+ * The joints the layer owns; absent: all.
+ */
+mask?: JointMask | null, 
+/**
+ * Add the clip's rotations (away from the rest pose) on top instead of replacing.
+ */
+additive?: boolean, 
+/**
+ * How much of the layer shows, 0 to 1 (default 1).
+ */
+weight?: number | null, 
+/**
+ * Playback speed (default 1).
+ */
+speed?: number | null, 
+/**
+ * Loop (default) or hold the last pose.
+ */
+looping?: boolean | null, 
+/**
+ * Start offset into the clip, seconds. Default 0.
+ */
+start?: number | null, 
+/**
+ * Fade-in (or cross-fade) seconds. Default 0.25.
+ */
+fade?: number | null, } | { "op": "stop_layer", 
+/**
+ * The avatar.
+ */
+avatar: AvatarId, 
+/**
+ * The layer's name.
+ */
+layer: string, 
+/**
+ * Fade-out seconds. Default 0.25.
+ */
+fade?: number | null, } | { "op": "set_joint_rotation", 
 /**
  * The avatar.
  */
@@ -1123,7 +1179,11 @@ ik_goals?: Array<string>,
 /**
  * Whether a gaze (`look_at`) is set.
  */
-looking?: boolean, };
+looking?: boolean, 
+/**
+ * Clip layers over the clip (`play_layer`), in the order they apply.
+ */
+layers?: Array<LayerState>, };
 
 /**
  * A cross-fade in progress: the clip fading out and how far the fade is.
@@ -1146,6 +1206,50 @@ elapsed: number,
  * The fade's length, seconds.
  */
 duration: number, };
+
+/**
+ * The joints a clip layer owns: each joint of `joints` and everything below it, less each
+ * joint of `except` and everything below it. Names are the rig's own or H-Anim names
+ * (`{"joints": ["vl5"], "except": ["l_sternoclavicular"]}`: the upper body but the left arm).
+ */
+export type JointMask = { 
+/**
+ * Subtrees the layer owns.
+ */
+joints: Array<string>, 
+/**
+ * Subtrees taken out of them.
+ */
+except?: Array<string>, };
+
+/**
+ * A clip layer as `get_avatar` reports it.
+ */
+export type LayerState = { 
+/**
+ * The layer's name.
+ */
+layer: string, 
+/**
+ * The clip it plays.
+ */
+clip: string, 
+/**
+ * Clip time, seconds.
+ */
+time: number, 
+/**
+ * Whether it adds to the pose below rather than replacing it.
+ */
+additive: boolean, 
+/**
+ * The weight it shows now (fades included).
+ */
+weight: number, 
+/**
+ * How many joints it owns.
+ */
+joints: number, };
 
 /**
  * A joint of an avatar, whose frame an IK goal is given in.

@@ -4,7 +4,7 @@ use crate::root;
 use glam::Mat4;
 use posecast_proto::command::{
     AssetInfo, AvatarState, ClipInfo, Command, CommandResult, DofInfo, DriveVia, Driver, FadeState,
-    JointInfo, RootMotion, SceneInfo, Viewer,
+    JointInfo, LayerState, RootMotion, SceneInfo, Viewer,
 };
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::msg::{
@@ -67,6 +67,18 @@ fn state(full: bool) -> AvatarState {
             Vec::new()
         },
         looking: full,
+        layers: if full {
+            vec![LayerState {
+                layer: "upper".into(),
+                clip: "wave".into(),
+                time: 0.75,
+                additive: false,
+                weight: 1.0,
+                joints: 12,
+            }]
+        } else {
+            Vec::new()
+        },
     }
 }
 

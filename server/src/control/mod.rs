@@ -303,6 +303,12 @@ async fn prepare(state: &AppState, command: &Command) -> Result<(), Error> {
             from_asset: Some(source),
             ..
         }
+        | Command::PlayLayer {
+            avatar,
+            clip,
+            from_asset: Some(source),
+            ..
+        }
         | Command::SamplePose {
             avatar,
             clip: Some(clip),

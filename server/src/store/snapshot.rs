@@ -57,6 +57,10 @@ pub struct AvatarRecord {
     /// again once every avatar of the scene is back, so goals relative to others find them).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub goals: Vec<Command>,
+    /// Its clip layers, as the `play_layer` commands that start them again at the clip time
+    /// they had (applied after the avatar is back).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub layers: Vec<Command>,
     /// Morph weights above 0 by channel name (issue 30); files without: all 0.
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub morph_weights: BTreeMap<String, f32>,
@@ -133,9 +137,35 @@ fn record(a: &Avatar) -> AvatarRecord {
             .collect(),
         placement: a.placing.target(),
         goals: goal_commands(a),
+        layers: layer_commands(a),
         morph_weights: a.set_channel_weights(),
         expression_weights: a.set_expression_weights(),
     }
+}
+
+/// The `play_layer` commands that start an avatar's layers again as they are (a layer fading
+/// out is not kept).
+fn layer_commands(a: &Avatar) -> Vec<Command> {
+    a.layers
+        .iter()
+        .filter(|l| !l.stopping())
+        .filter_map(|l| {
+            let clip = l.player.current()?;
+            Some(Command::PlayLayer {
+                avatar: a.id.clone(),
+                layer: l.name.clone(),
+                clip: clip.clip.name().to_string(),
+                from_asset: clip.source_asset.clone(),
+                mask: l.mask.clone(),
+                additive: l.additive,
+                weight: Some(l.weight),
+                speed: Some(clip.speed()),
+                looping: Some(clip.looping),
+                start: Some(clip.clip_time()),
+                fade: Some(0.0),
+            })
+        })
+        .collect()
 }
 
 /// The commands that set an avatar's goals and gaze as they are.
@@ -272,6 +302,15 @@ pub fn parse_lenient(value: &serde_json::Value) -> Result<(SceneFile, Vec<String
                 }
             }
         }
+        let mut layers = Vec::new();
+        if let Value::Array(list) = get("layers") {
+            for l in list {
+                match serde_json::from_value::<Command>(l.clone()) {
+                    Ok(c @ Command::PlayLayer { .. }) if c.avatar() == Some(&id) => layers.push(c),
+                    _ => dropped.push(format!("avatar {id}: layer {l} (not a layer of it)")),
+                }
+            }
+        }
         // Weights: each finite one in [0, 1] of a channel name kept; anything else dropped
         // alone (and a channel the rig lost is dropped on restore).
         let mut weights = |field: &str, what: &str| {
@@ -301,6 +340,7 @@ pub fn parse_lenient(value: &serde_json::Value) -> Result<(SceneFile, Vec<String
             overrides,
             placement,
             goals,
+            layers,
             morph_weights,
             expression_weights,
         });
@@ -435,6 +475,11 @@ pub fn restore_into(world: &World, file: &SceneFile, now_us: u64) {
     for goal in file.avatars.iter().flat_map(|rec| &rec.goals) {
         if let Some(Err(e)) = crate::world::ik::apply(world, goal) {
             warn!(scene = %file.scene, avatar = ?goal.avatar(), error = %e, "IK goal not restored");
+        }
+    }
+    for layer in file.avatars.iter().flat_map(|rec| &rec.layers) {
+        if let Some(Err(e)) = crate::world::layers::apply(world, layer) {
+            warn!(scene = %file.scene, avatar = ?layer.avatar(), error = %e, "clip layer not restored");
         }
     }
 }

@@ -24,7 +24,7 @@ pub(super) fn quat(q: [f32; 4]) -> Result<Quat, Error> {
     })
 }
 
-fn finite(name: &str, v: f32) -> Result<f32, Error> {
+pub(super) fn finite(name: &str, v: f32) -> Result<f32, Error> {
     if v.is_finite() {
         Ok(v)
     } else {
@@ -311,25 +311,7 @@ pub fn apply(world: &World, command: &Command) -> Result<CommandResult, Error> {
                 None => None,
             };
             with_avatar(world, avatar, |a| {
-                let clip = match &source {
-                    // Normally baked already (execute_durable bakes off the lock first);
-                    // only start-up restore and in-memory callers bake here.
-                    Some(src) if src.name != a.rig.name => {
-                        world.retargets.bake_blocking(src, clip, &a.rig)?
-                    }
-                    _ => a
-                        .rig
-                        .clip(clip)
-                        .cloned()
-                        .ok_or_else(|| Error::UnknownClip {
-                            rig: a.rig.name.clone(),
-                            clip: clip.clone(),
-                        })?,
-                };
-                let source_asset = source
-                    .as_ref()
-                    .map(|s| s.name.clone())
-                    .filter(|n| n != &a.rig.name);
+                let (clip, source_asset) = clip_for(world, a, clip, source.as_ref())?;
                 let mut layer =
                     Layer::new(clip, source_asset, start, speed, looping.unwrap_or(true));
                 if let Some(mode) = root_motion {
@@ -338,6 +320,10 @@ pub fn apply(world: &World, command: &Command) -> Result<CommandResult, Error> {
                 a.play(layer, fade);
                 Ok(CommandResult::Done)
             })
+        }
+        layer @ (Command::PlayLayer { .. } | Command::StopLayer { .. }) => {
+            super::layers::apply(world, layer)
+                .unwrap_or_else(|| Err(Error::invalid("not a layer command")))
         }
         Command::Pause { avatar } | Command::Resume { avatar } => {
             let paused = matches!(command, Command::Pause { .. });
@@ -574,4 +560,28 @@ pub fn finish_recording(
 /// A validated placement, or `invalid_value` naming what is wrong.
 fn placement(position: [f32; 3], rotation: [f32; 4]) -> Result<Placement, Error> {
     Placement::try_new(position, rotation).map_err(|e| Error::invalid(e.to_string()))
+}
+
+/// The clip `clip` for avatar `a`: its rig's own, or `source`'s retargeted onto it (normally
+/// baked already: `execute_durable` bakes off the lock first; only start-up restore and
+/// in-memory callers bake here), with the source's name when it is another rig.
+pub(super) fn clip_for(
+    world: &World,
+    a: &Avatar,
+    clip: &str,
+    source: Option<&std::sync::Arc<posecast_rigs::rig::Rig>>,
+) -> Result<(std::sync::Arc<posecast_rigs::clip::Clip>, Option<String>), Error> {
+    let baked = match source {
+        Some(src) if src.name != a.rig.name => world.retargets.bake_blocking(src, clip, &a.rig)?,
+        _ => a
+            .rig
+            .clip(clip)
+            .cloned()
+            .ok_or_else(|| Error::UnknownClip {
+                rig: a.rig.name.clone(),
+                clip: clip.to_owned(),
+            })?,
+    };
+    let source_asset = source.map(|s| s.name.clone()).filter(|n| n != &a.rig.name);
+    Ok((baked, source_asset))
 }

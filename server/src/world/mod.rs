@@ -10,6 +10,7 @@
 
 pub mod command;
 pub mod ik;
+pub mod layers;
 pub mod morph;
 
 use crate::metrics::Metrics;

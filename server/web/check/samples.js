@@ -188,6 +188,16 @@ export const scenes = /** @satisfies {import("../protocol.js").ScenesMsg} */ ({
           "ik_goals": [
             "l_wrist"
           ],
+          "layers": [
+            {
+              "additive": false,
+              "clip": "wave",
+              "joints": 12,
+              "layer": "upper",
+              "time": 0.75,
+              "weight": 1.0
+            }
+          ],
           "looking": true,
           "looping": true,
           "morph_weights": {

@@ -8,6 +8,7 @@
 //! - [`recording`]: what the avatar streams, tick by tick, into a clip on its rig.
 
 pub mod goals;
+pub mod layers;
 pub mod live;
 pub mod placement;
 pub mod playback;
@@ -86,6 +87,10 @@ pub struct Avatar {
     pub expression_weights: Vec<f32>,
     /// Each file expression's binds as `(channel, weight)`.
     expression_binds: Vec<Vec<(usize, f32)>>,
+    /// Clip layers over the clip, in the order they apply ([`layers`]).
+    pub layers: Vec<layers::ClipLayer>,
+    /// Which joints are roots (a layer leaves their translation alone).
+    roots: Vec<bool>,
 }
 
 impl Avatar {
@@ -147,6 +152,7 @@ impl Avatar {
             .with_morphs(channels, expressions)
             .with_expression_binds(defs);
         let locals = skeleton.rest().to_vec();
+        let roots = skeleton.parents().iter().map(Option::is_none).collect();
         let pose = AvatarPose {
             avatar_num: num,
             hash: description.hash_u64(),
@@ -171,6 +177,8 @@ impl Avatar {
             morph,
             expression_weights,
             expression_binds,
+            layers: Vec::new(),
+            roots,
         }
     }
 
@@ -186,6 +194,10 @@ impl Avatar {
     pub fn tick(&mut self, clock: f64) -> bool {
         let before = self.player.current().map(Layer::time);
         self.player.set_clock(clock);
+        for layer in &mut self.layers {
+            layer.player.set_clock(clock);
+        }
+        self.layers.retain(|l| !l.finished());
         self.advance_placement(clock, before);
         let driver_left = self
             .live
@@ -211,6 +223,10 @@ impl Avatar {
         self.player
             .sample(self.rig.skeleton().rest(), &mut self.locals);
         self.apply_root_motion();
+        let rest = self.rig.skeleton().rest();
+        for layer in &mut self.layers {
+            layer.apply(rest, &self.roots, &mut self.locals);
+        }
         if let Some(live) = &mut self.live {
             live.apply(&self.rig, &mut self.locals);
         }
@@ -489,6 +505,7 @@ impl Avatar {
                 .collect(),
             looking: self.goals.gaze.is_some(),
             morph_weights: self.morph_weights(),
+            layers: self.layers.iter().map(layers::ClipLayer::state).collect(),
         }
     }
 }
