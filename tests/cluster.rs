@@ -1261,9 +1261,9 @@ async fn relayed_scenes_count_toward_max_scenes() {
     ok(b.addr, r#"{"op":"create_scene","scene":"third"}"#).await;
 }
 
-/// Reads text messages until one of type `kind` (at most 10 s).
+/// Reads text messages until one of type `kind` (at most 120 s: an event, not a timing).
 async fn next_of(ws: &mut common::Ws, kind: &str) -> serde_json::Value {
-    let deadline = Instant::now() + Duration::from_secs(10);
+    let deadline = Instant::now() + Duration::from_secs(120);
     loop {
         match tokio::time::timeout_at(deadline.into(), ws.next()).await {
             Ok(Some(Ok(Message::Text(t)))) => {
@@ -1278,9 +1278,27 @@ async fn next_of(ws: &mut common::Ws, kind: &str) -> serde_json::Value {
     }
 }
 
+/// A JSON connection to `addr` holding the control token that sent `drive` for `avatar` (as
+/// command `id`), and the `drive` command's ack.
+async fn driving(
+    addr: std::net::SocketAddr,
+    avatar: &str,
+    id: u64,
+) -> (common::Ws, serde_json::Value) {
+    let mut driver = raw_at(addr, Encoding::Json, Some(CONTROL)).await;
+    let command = serde_json::json!({"type": "command", "id": id,
+        "command": {"op": "drive", "avatar": avatar}});
+    driver
+        .send(Message::Text(command.to_string().into()))
+        .await
+        .unwrap();
+    let ack = next_of(&mut driver, "ack").await;
+    (driver, ack)
+}
+
 /// A driver connected to B drives an avatar ticked by A: `drive` is acknowledged through B,
 /// its JSON and binary poses show in A's frames (the rotations sent), a pose naming an
-/// unknown joint or carrying morph weights is refused at B, and when the driver leaves the
+/// unknown joint or a weight the avatar lacks is refused at B, and when the driver leaves the
 /// avatar goes back to its clip.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_driver_on_a_relay_drives_the_owners_avatar() {
@@ -1298,14 +1316,7 @@ async fn a_driver_on_a_relay_drives_the_owners_avatar() {
         joint_index(&description, "r_knee"),
     );
 
-    let mut driver = raw_at(b.addr, Encoding::Json, Some(CONTROL)).await;
-    driver
-        .send(Message::Text(
-            r#"{"type":"command","id":7,"command":{"op":"drive","avatar":"dancer"}}"#.into(),
-        ))
-        .await
-        .unwrap();
-    let ack = next_of(&mut driver, "ack").await;
+    let (mut driver, ack) = driving(b.addr, "dancer", 7).await;
     assert_eq!(ack["id"], 7, "{ack}");
     let num = ack["result"]["avatar_num"].as_u64().unwrap();
     assert!(
@@ -1368,7 +1379,8 @@ async fn a_driver_on_a_relay_drives_the_owners_avatar() {
     let error = next_of(&mut driver, "error").await;
     assert_eq!(error["code"], "unknown_joint", "{error}");
 
-    // Weights for an avatar another server ticks are refused where the driver is, for now.
+    // A weight for an avatar without morph targets, refused where the driver is as on the
+    // owner (the weights that arrive: `live_weights_through_a_relay_reach_every_viewer`).
     driver
         .send(Message::Text(
             r#"{"type":"pose","avatar":"dancer","rotations":{},"weights":{"blink":1.0}}"#.into(),
@@ -1376,7 +1388,7 @@ async fn a_driver_on_a_relay_drives_the_owners_avatar() {
         .await
         .unwrap();
     let error = next_of(&mut driver, "error").await;
-    assert_eq!(error["code"], "invalid_value", "{error}");
+    assert_eq!(error["code"], "unknown_expression", "{error}");
 
     // The driver leaves: the walk takes the elbow again.
     drop(driver);
@@ -1392,6 +1404,118 @@ async fn a_driver_on_a_relay_drives_the_owners_avatar() {
         .await,
         "the avatar stayed driven after its driver left"
     );
+}
+
+/// Ready Player Me's avatar `face` of scene `stage`, ticked by A, driven through B: a binary
+/// pose's channel weights and a JSON pose's weight by a standard name (ARKit's `jawOpen`, which
+/// this rig plays with its `mouthOpen`) reach viewers on A and on B as sent (levels of 1/1023;
+/// within the wire's bound); a name the avatar lacks and a channel past its list are refused
+/// at B with `unknown_expression` as on the owner, and the refused pose changes nothing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn live_weights_through_a_relay_reach_every_viewer() {
+    use posecast_client::net::{Client, ClientOptions};
+    use posecast_proto::morph::WEIGHT_LEVELS;
+    let Some(nats) = Nats::start() else { return };
+    let Some(rpm) = common::testdata_bytes("gltf/ReadyPlayerMe/PreviewMesh.glb") else {
+        return;
+    };
+    let a = node_with(&nats, "a", "1", RATE, &["--drive-timeout", "60"]);
+    let b = node(&nats, "b", "1");
+    ok(a.addr, r#"{"op":"create_scene","scene":"stage"}"#).await;
+    let (status, body) =
+        common::upload_files(a.addr, "/api/assets/rpm", &[("rpm.glb", &rpm)]).await;
+    assert_eq!(status, 200, "{body}");
+    ok(
+        a.addr,
+        r#"{"op":"add_avatar","scene":"stage","asset":"rpm","avatar":"face"}"#,
+    )
+    .await;
+    assert_eq!(owner_seen_by(b.addr, "stage").await, "a");
+    let viewer = |addr: SocketAddr| async move {
+        let mut options = ClientOptions::new(format!("ws://{addr}/ws"), "stage");
+        options.reconnect = false;
+        Client::connect(options).await.unwrap()
+    };
+    let (on_a, on_b) = (viewer(a.addr).await, viewer(b.addr).await);
+    // B drives only an avatar whose relayed description it has.
+    assert!(
+        common::wait_for(120.0, || on_b
+            .avatars()
+            .iter()
+            .any(|v| v.description.id.0 == "face"))
+        .await,
+        "B never described the face"
+    );
+
+    let (mut driver, ack) = driving(b.addr, "face", 1).await;
+    let num = u32::try_from(ack["result"]["avatar_num"].as_u64().unwrap()).unwrap();
+    let channels: Vec<String> =
+        serde_json::from_value(ack["result"]["morph_targets"].clone()).unwrap();
+    assert_eq!(
+        ack["result"]["expressions"]["jawOpen"], "mouthOpen",
+        "{ack}"
+    );
+    let channel = |name: &str| {
+        let c = channels.iter().position(|c| c == name);
+        u16::try_from(c.unwrap_or_else(|| panic!("no {name} in {channels:?}"))).unwrap()
+    };
+    let binary = |weights: Vec<(u16, u16)>| {
+        let pose = posecast_proto::live::BinaryPose {
+            avatar_num: num,
+            time_us: None,
+            root_position: None,
+            rotations: Vec::new(),
+            weights,
+        };
+        Message::Binary(pose.encode().into())
+    };
+    let level = |l: u16| f32::from(l) / f32::from(WEIGHT_LEVELS);
+
+    // (a) Binary, by channel index into the drive answer's list.
+    driver
+        .send(binary(vec![
+            (channel("mouthSmile"), 767),
+            (channel("eyesClosed"), 256),
+        ]))
+        .await
+        .unwrap();
+    let mut want = vec![("mouthSmile", level(767)), ("eyesClosed", level(256))];
+    common::weights_become(&on_a, "face", "the viewer on A", &want).await;
+    common::weights_become(&on_b, "face", "the viewer on B", &want).await;
+
+    // (b) JSON, by a standard name B resolves; channels not named keep their weights.
+    driver
+        .send(Message::Text(
+            r#"{"type":"pose","avatar":"face","rotations":{},"weights":{"jawOpen":0.25}}"#.into(),
+        ))
+        .await
+        .unwrap();
+    want.push(("mouthOpen", 0.25));
+    common::weights_become(&on_a, "face", "the viewer on A", &want).await;
+    common::weights_become(&on_b, "face", "the viewer on B", &want).await;
+
+    // Refused at B, whole: a name the avatar lacks (beside a good one), a channel past the list.
+    driver
+        .send(Message::Text(
+            r#"{"type":"pose","avatar":"face","rotations":{},"weights":{"mouthOpen":0.9,"noSuchShape":0.5}}"#
+                .into(),
+        ))
+        .await
+        .unwrap();
+    let error = next_of(&mut driver, "error").await;
+    assert_eq!(error["code"], "unknown_expression", "{error}");
+    let past = u16::try_from(channels.len()).unwrap();
+    driver.send(binary(vec![(past, 1023)])).await.unwrap();
+    let error = next_of(&mut driver, "error").await;
+    assert_eq!(error["code"], "unknown_expression", "{error}");
+    // Poses pass on in order: once this one shows, mouthOpen is still 0.25, not 0.9.
+    driver
+        .send(binary(vec![(channel("eyesClosed"), 0)]))
+        .await
+        .unwrap();
+    want.retain(|(n, _)| *n != "eyesClosed");
+    common::weights_become(&on_a, "face", "the viewer on A", &want).await;
+    common::weights_become(&on_b, "face", "the viewer on B", &want).await;
 }
 
 /// The owner of a scene whose avatar is driven through B is SIGKILLed; the driver goes on
@@ -1435,14 +1559,7 @@ async fn driving_survives_a_takeover(through_another: bool) {
         .await;
     }
     assert_eq!(owner_seen_by(b.addr, "stage").await, "a");
-    let mut driver = raw_at(b.addr, Encoding::Json, Some(CONTROL)).await;
-    driver
-        .send(Message::Text(
-            r#"{"type":"command","id":1,"command":{"op":"drive","avatar":"dancer"}}"#.into(),
-        ))
-        .await
-        .unwrap();
-    let ack = next_of(&mut driver, "ack").await;
+    let (mut driver, ack) = driving(b.addr, "dancer", 1).await;
     assert!(ack["result"]["avatar_num"].is_u64(), "{ack}");
     a.kill();
     let killed = Instant::now();

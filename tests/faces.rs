@@ -61,40 +61,7 @@ async fn viewer(addr: SocketAddr, encoding: Encoding, version: u32) -> Client {
 /// The face's latest decoded weights by channel name, once they are `want` (within the wire's
 /// bound); fails the test when they never are.
 async fn weights_become(client: &Client, want: &[(&str, f32)]) -> Vec<(String, f32)> {
-    let read = || {
-        client
-            .avatars()
-            .into_iter()
-            .find(|a| a.description.id.0 == "face")
-            .and_then(|a| {
-                let w = a.latest?.weights;
-                Some(
-                    a.description
-                        .morph_targets
-                        .iter()
-                        .cloned()
-                        .zip(w)
-                        .collect::<Vec<_>>(),
-                )
-            })
-            .unwrap_or_default()
-    };
-    let matches = |got: &[(String, f32)]| {
-        !got.is_empty()
-            && got.iter().all(|(name, w)| {
-                let expected = want
-                    .iter()
-                    .find(|(n, _)| n == name)
-                    .map_or(0.0, |(_, w)| *w);
-                (w - expected).abs() <= MAX_WEIGHT_ERROR
-            })
-    };
-    assert!(
-        common::wait_for(120.0, || matches(&read())).await,
-        "weights never became {want:?}: {:?}",
-        read()
-    );
-    read()
+    common::weights_become(client, "face", "viewer", want).await
 }
 
 #[tokio::test]

@@ -554,3 +554,49 @@ fn add_bone_map(doc: &mut serde_json::Value, extension: &str, full: bool) {
     }
     doc["extensions"] = serde_json::json!({ extension: root });
 }
+
+/// Avatar `avatar`'s latest morph weights by channel name as `client` decodes them, once every
+/// channel is at its weight in `want` (0 for those not named) within the wire's bound; fails
+/// the test (naming `label`) when they never are.
+#[allow(dead_code)]
+pub async fn weights_become(
+    client: &Client,
+    avatar: &str,
+    label: &str,
+    want: &[(&str, f32)],
+) -> Vec<(String, f32)> {
+    let read = || {
+        client
+            .avatars()
+            .into_iter()
+            .find(|a| a.description.id.0 == avatar)
+            .and_then(|a| {
+                let weights = a.latest?.weights;
+                Some(
+                    a.description
+                        .morph_targets
+                        .iter()
+                        .cloned()
+                        .zip(weights)
+                        .collect::<Vec<_>>(),
+                )
+            })
+            .unwrap_or_default()
+    };
+    let matches = |got: &[(String, f32)]| {
+        !got.is_empty()
+            && got.iter().all(|(name, w)| {
+                let expected = want
+                    .iter()
+                    .find(|(n, _)| n == name)
+                    .map_or(0.0, |(_, w)| *w);
+                (w - expected).abs() <= posecast_proto::morph::MAX_WEIGHT_ERROR
+            })
+    };
+    assert!(
+        wait_for(120.0, || matches(&read())).await,
+        "{label}: weights of {avatar} never became {want:?}: {:?}",
+        read()
+    );
+    read()
+}

@@ -5,11 +5,15 @@
 //! request subject, header `Posecast-Driver: <node>/<connection>`); the owner runs it for a
 //! driver of its own standing for that connection ([`Drives`]) and answers as for a command.
 //! The relaying server then checks each pose of the connection itself (driver, rate, joints,
-//! values: errors go back to the client at once) and passes it on as a binary pose on
-//! `posecast.scene.<hex>.pose`, in order through one bounded queue; the owner applies it as a
-//! pose of that driver. `leave` on the same subject (the connection closed) releases the
-//! avatars as the `drive` asked (back to the clip, or holding the last pose); a relaying
-//! server that dies without saying so leaves them to the drive timeout.
+//! values, morph weights: errors go back to the client at once) and passes it on as a binary
+//! pose on `posecast.scene.<hex>.pose`, in order through one bounded queue; the owner applies
+//! it as a pose of that driver ([`Drives::relayed_pose`]: checked again, a refusal dropped and
+//! logged, as the client has its answer already). Its weights are slots as
+//! `Avatar::morph_channel` numbers them: morph channels, then the expressions the avatar's
+//! file defines, to which the relaying server resolved a JSON pose's names (`live::remote`).
+//! `leave` on the same subject (the connection closed) releases the avatars as the `drive`
+//! asked (back to the clip, or holding the last pose); a relaying server that dies without
+//! saying so leaves them to the drive timeout.
 //!
 //! When the scene changes owner, the relaying server sends the `drive` again to the new
 //! owner before its next pose (poses in between are dropped); when it takes the scene over
@@ -145,8 +149,9 @@ pub(super) async fn serve_poses(
                     continue;
                 };
                 // Checked where the client is; a pose refused here (the drive ended, a rate
-                // seen differently) is dropped.
-                if let Err(e) = drives.binary_pose(&state, &msg.payload) {
+                // seen differently, a weight's slot the avatar no longer has) is dropped: the
+                // driver's connection is elsewhere and goes on.
+                if let Err(e) = drives.relayed_pose(&msg.payload) {
                     debug!(scene = %id, driver, error = %e, "remote pose not applied");
                 }
             }
@@ -266,7 +271,7 @@ impl Cluster {
                 drivers = lock(&self.drivers);
             }
             if let Some(drives) = drivers.get_mut(&driver)
-                && let Err(e) = drives.binary_pose(&state, &pose)
+                && let Err(e) = drives.relayed_pose(&pose)
             {
                 debug!(scene = %scene, driver, error = %e, "pose not applied");
             }

@@ -6,6 +6,8 @@
 //!   into a clip on its rig.
 //! - this module: the connection's side — `drive` / `release_drive`, validating pose messages
 //!   (JSON and binary), and releasing what it drives when it leaves.
+//! - `remote`: an avatar of a scene another server of the cluster ticks, driven through that
+//!   server: poses checked here (morph weights' names resolved here too) and passed on.
 //!
 //! A pose passes, in order: the sender drives the avatar (`not_allowed_now`), the driver's rate
 //! budget ([`posecast_proto::live::MAX_RATE_HZ`], `rate_limited`), every joint known
@@ -24,9 +26,12 @@ use posecast_proto::live::{BinaryPose, MAX_RATE_HZ, VMC_SOURCE};
 use posecast_proto::msg::{AvatarId, SceneId};
 use posecast_sim::avatar::Avatar;
 use posecast_sim::avatar::live::{LivePose, ValidPose};
+use remote::RemoteDrive;
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Instant;
+
+mod remote;
 
 pub use posecast_proto::live::MAX_ROOT_METRES;
 
@@ -40,17 +45,6 @@ pub struct Drives {
     remote: Vec<RemoteDrive>,
     /// Who drives through this connection.
     who: Driver,
-}
-
-/// An avatar driven through its scene's owner ([`Drives::command_remote`]).
-#[derive(Debug)]
-struct RemoteDrive {
-    avatar: AvatarId,
-    num: u32,
-    scene: SceneId,
-    /// The source rig's joints, as the owner's `drive` answer listed them.
-    joints: Vec<String>,
-    rate: TokenBucket,
 }
 
 fn pose_rate() -> TokenBucket {
@@ -131,47 +125,9 @@ impl Drives {
         if let Ok(CommandResult::Drive(info)) = &result {
             self.driven.retain(|(id, _, _)| id != avatar);
             self.remote.retain(|r| &r.avatar != avatar);
-            self.remote.push(RemoteDrive {
-                avatar: avatar.clone(),
-                num: info.avatar_num,
-                scene: scene.id.clone(),
-                joints: info.joints.clone(),
-                rate: pose_rate(),
-            });
+            self.remote.push(RemoteDrive::new(info, &scene));
         }
         Some(result)
-    }
-
-    /// Checks a pose for an avatar driven through its owner and passes it on.
-    fn remote_pose(
-        state: &AppState,
-        conn: u64,
-        r: &mut RemoteDrive,
-        pose: BinaryPose,
-    ) -> Result<(), Error> {
-        r.rate.take_at(Instant::now()).map_err(rate_limited)?;
-        root(pose.root_position)?;
-        for &(j, q) in &pose.rotations {
-            if usize::from(j) >= r.joints.len() {
-                return Err(Error::UnknownJoint {
-                    owner: format!("the driven rig (of {} joints)", r.joints.len()),
-                    joint: format!("index {j}"),
-                });
-            }
-            rotation(&format!("index {j}"), q.to_array())?;
-        }
-        if !pose.weights.is_empty() {
-            return Err(Error::invalid(format!(
-                "avatar {} is ticked by another server: live poses carry morph weights only \
-                 to avatars of this server's scenes (use set_morph_weights)",
-                r.avatar
-            )));
-        }
-        let cluster = state
-            .cluster()
-            .ok_or_else(|| Error::Unavailable("not in a cluster".into()))?;
-        cluster.pose(&r.scene, conn, pose.encode());
-        Ok(())
     }
 
     /// Runs `drive` (this connection becomes the driver) — the one command that needs the
@@ -292,40 +248,15 @@ impl Drives {
         avatar: &AvatarId,
         pose: &JsonPose<'_>,
     ) -> Result<(), Error> {
+        if let Some(r) = self.remote.iter_mut().find(|r| &r.avatar == avatar) {
+            return r.json_pose(state, self.conn, pose);
+        }
         let JsonPose {
             rotations,
             root_position,
             time_us,
             weights,
         } = *pose;
-        if let Some(r) = self.remote.iter_mut().find(|r| &r.avatar == avatar) {
-            if !weights.is_empty() {
-                return Err(Error::invalid(format!(
-                    "avatar {avatar} is ticked by another server: live poses carry morph \
-                     weights only to avatars of this server's scenes (use set_morph_weights)"
-                )));
-            }
-            let mut pose = BinaryPose {
-                avatar_num: r.num,
-                time_us,
-                root_position: root_position.map(Vec3::from_array),
-                rotations: Vec::with_capacity(rotations.len()),
-                weights: Vec::new(),
-            };
-            for (name, q) in rotations {
-                let j = r
-                    .joints
-                    .iter()
-                    .position(|n| n == name)
-                    .and_then(|j| u16::try_from(j).ok())
-                    .ok_or_else(|| Error::UnknownJoint {
-                        owner: format!("the rig driving {avatar}"),
-                        joint: name.clone(),
-                    })?;
-                pose.rotations.push((j, rotation(name, *q)?));
-            }
-            return Self::remote_pose(state, self.conn, r, pose);
-        }
         let (_, _, scene) = self
             .driven
             .iter()
@@ -359,23 +290,53 @@ impl Drives {
     pub fn binary_pose(&mut self, state: &AppState, bytes: &[u8]) -> Result<(), Error> {
         let msg = BinaryPose::decode(bytes).map_err(|e| Error::UnexpectedBinary(e.to_string()))?;
         if let Some(r) = self.remote.iter_mut().find(|r| r.num == msg.avatar_num) {
-            return Self::remote_pose(state, self.conn, r, msg);
+            return r.binary_pose(state, self.conn, msg);
         }
+        self.apply_binary(&msg, false)
+    }
+
+    /// A pose another server of the cluster relays for the connection this driver stands for
+    /// (`cluster::drive`), checked again here as a [`Drives::binary_pose`] (the avatar or its
+    /// driver may have changed since the relaying server checked it), except that its weights
+    /// may also set the expressions the avatar's file defines: slots past the channels, as
+    /// `Avatar::morph_channel` numbers them, to which the relaying server resolved a JSON
+    /// pose's names (`live::remote`).
+    ///
+    /// # Errors
+    /// As [`Drives::binary_pose`].
+    pub fn relayed_pose(&self, bytes: &[u8]) -> Result<(), Error> {
+        let msg = BinaryPose::decode(bytes).map_err(|e| Error::UnexpectedBinary(e.to_string()))?;
+        self.apply_binary(&msg, true)
+    }
+
+    /// Applies a binary pose to an avatar this connection drives here; `expressions`: its
+    /// weights may set file-defined expressions' slots too.
+    fn apply_binary(&self, msg: &BinaryPose, expressions: bool) -> Result<(), Error> {
         let (avatar, _, scene) = self
             .driven
             .iter()
             .find(|(_, num, _)| *num == msg.avatar_num)
             .ok_or_else(|| not_driving(format!("number {}", msg.avatar_num)))?;
-        let by_channel = |a: &Avatar| {
+        let by_slot = |a: &Avatar| {
+            let channels = a.description.morph_targets.len();
+            let defined = if expressions {
+                a.description.expression_binds.len()
+            } else {
+                0
+            };
             msg.weights
                 .iter()
                 .map(|&(c, level)| {
-                    let channels = a.description.morph_targets.len();
-                    if usize::from(c) < channels {
+                    if usize::from(c) < channels + defined {
                         Ok((usize::from(c), posecast_proto::morph::weight_value(level)))
                     } else {
+                        let and = if defined > 0 {
+                            format!(" and {defined} expressions")
+                        } else {
+                            String::new()
+                        };
                         Err(Error::UnknownExpression {
-                            owner: format!("avatar {} (of {channels} morph channels)", a.id),
+                            owner: format!("avatar {} (of {channels} morph channels{and})", a.id),
                             name: format!("channel {c}"),
                             has_targets: channels > 0,
                         })
@@ -383,7 +344,7 @@ impl Drives {
                 })
                 .collect::<Result<Vec<_>, Error>>()
         };
-        self.with_live(scene, avatar, by_channel, |live| {
+        self.with_live(scene, avatar, by_slot, |live| {
             let n = live.source.skeleton().len();
             let mut pose = ValidPose {
                 rotations: Vec::with_capacity(msg.rotations.len()),
