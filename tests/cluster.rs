@@ -1261,23 +1261,6 @@ async fn relayed_scenes_count_toward_max_scenes() {
     ok(b.addr, r#"{"op":"create_scene","scene":"third"}"#).await;
 }
 
-/// Reads text messages until one of type `kind` (at most 120 s: an event, not a timing).
-async fn next_of(ws: &mut common::Ws, kind: &str) -> serde_json::Value {
-    let deadline = Instant::now() + Duration::from_secs(120);
-    loop {
-        match tokio::time::timeout_at(deadline.into(), ws.next()).await {
-            Ok(Some(Ok(Message::Text(t)))) => {
-                let v: serde_json::Value = serde_json::from_str(&t).unwrap();
-                if v["type"] == kind {
-                    return v;
-                }
-            }
-            Ok(Some(Ok(_))) => {}
-            other => panic!("no {kind}: {other:?}"),
-        }
-    }
-}
-
 /// A JSON connection to `addr` holding the control token that sent `drive` for `avatar` (as
 /// command `id`), and the `drive` command's ack.
 async fn driving(
@@ -1292,7 +1275,7 @@ async fn driving(
         .send(Message::Text(command.to_string().into()))
         .await
         .unwrap();
-    let ack = next_of(&mut driver, "ack").await;
+    let ack = common::next_of_type(&mut driver, "ack").await;
     (driver, ack)
 }
 
@@ -1376,7 +1359,7 @@ async fn a_driver_on_a_relay_drives_the_owners_avatar() {
         ))
         .await
         .unwrap();
-    let error = next_of(&mut driver, "error").await;
+    let error = common::next_of_type(&mut driver, "error").await;
     assert_eq!(error["code"], "unknown_joint", "{error}");
 
     // A weight for an avatar without morph targets, refused where the driver is as on the
@@ -1387,7 +1370,7 @@ async fn a_driver_on_a_relay_drives_the_owners_avatar() {
         ))
         .await
         .unwrap();
-    let error = next_of(&mut driver, "error").await;
+    let error = common::next_of_type(&mut driver, "error").await;
     assert_eq!(error["code"], "unknown_expression", "{error}");
 
     // The driver leaves: the walk takes the elbow again.
@@ -1502,11 +1485,11 @@ async fn live_weights_through_a_relay_reach_every_viewer() {
         ))
         .await
         .unwrap();
-    let error = next_of(&mut driver, "error").await;
+    let error = common::next_of_type(&mut driver, "error").await;
     assert_eq!(error["code"], "unknown_expression", "{error}");
     let past = u16::try_from(channels.len()).unwrap();
     driver.send(binary(vec![(past, 1023)])).await.unwrap();
-    let error = next_of(&mut driver, "error").await;
+    let error = common::next_of_type(&mut driver, "error").await;
     assert_eq!(error["code"], "unknown_expression", "{error}");
     // Poses pass on in order: once this one shows, mouthOpen is still 0.25, not 0.9.
     driver

@@ -229,3 +229,91 @@ async fn layers_survive_a_sigkill() {
     );
     server.kill();
 }
+
+/// A live driver may own some joints (`drive … joints`) while the clip and its layers keep the
+/// rest: the driver's right arm over the clip held still, a nod layer still on the head; a
+/// mask naming no joint of the rig is refused.
+#[tokio::test]
+async fn a_driver_owns_its_joints_and_the_clip_keeps_the_rest() {
+    use futures_util::SinkExt;
+    use tokio_tungstenite::tungstenite::Message;
+    let server = common::server(30.0).await;
+    let addr = server.addr;
+    let rig = server.state.world.library.get("avatar").unwrap();
+    let skeleton = rig.skeleton();
+    let names = skeleton.names().to_vec();
+    let viewer = common::client(&server, Encoding::Json).await;
+    ok(
+        addr,
+        json!({"op": "play", "avatar": "avatar", "clip": "walk", "speed": 0, "start": 0.3, "fade": 0}),
+    )
+    .await;
+    let base = sample(&rig, "walk", 0.3);
+
+    let mut driver = common::raw_at(addr, Encoding::Json, Some(common::CONTROL)).await;
+    let send = |v: Value| Message::Text(v.to_string().into());
+    driver
+        .send(send(
+            json!({"type": "command", "id": 1, "command": {"op": "drive",
+            "avatar": "avatar", "joints": {"joints": ["nowhere"]}}}),
+        ))
+        .await
+        .unwrap();
+    let refused = common::next_of_type(&mut driver, "error").await;
+    assert_eq!(refused["type"], "error", "{refused}");
+    assert!(
+        refused["message"].as_str().unwrap().contains("nowhere"),
+        "{refused}"
+    );
+    driver
+        .send(send(
+            json!({"type": "command", "id": 2, "command": {"op": "drive",
+            "avatar": "avatar", "joints": {"joints": ["r_shoulder"]}}}),
+        ))
+        .await
+        .unwrap();
+    // The driver sends every joint at a quarter turn about X; only its arm takes them.
+    let turn = Quat::from_rotation_x(std::f32::consts::FRAC_PI_2);
+    let rotations: serde_json::Map<String, Value> = names
+        .iter()
+        .map(|n| (n.clone(), json!(turn.to_array())))
+        .collect();
+    let under = |j: usize, top: &str| {
+        std::iter::successors(Some(j), |&k| skeleton.parents()[k]).any(|k| names[k] == top)
+    };
+    let want: Vec<Quat> = (0..names.len())
+        .map(|j| {
+            if under(j, "r_shoulder") {
+                turn
+            } else {
+                base[j].rotation
+            }
+        })
+        .collect();
+    let pose = json!({"type": "pose", "avatar": "avatar", "rotations": rotations});
+    let id = AvatarId("avatar".into());
+    let worst = || {
+        viewer.latest(&id).map_or(f32::INFINITY, |p| {
+            p.locals
+                .iter()
+                .zip(&want)
+                .map(|(l, w)| angle(l.rotation, *w))
+                .fold(0.0, f32::max)
+        })
+    };
+    // Poses keep coming (a drive ends when its driver goes silent) until the viewer sees them.
+    let mut reached = false;
+    for _ in 0..1200 {
+        driver.send(send(pose.clone())).await.unwrap();
+        if worst() <= 0.01 {
+            reached = true;
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+    }
+    assert!(
+        reached,
+        "the arm is the driver's, the rest the clip's: {}°",
+        worst()
+    );
+}

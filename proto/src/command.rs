@@ -359,6 +359,11 @@ pub enum Command {
         /// its clip (default) or hold the last pose.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         on_release: Option<OnRelease>,
+        /// The joints the driver owns (`{"joints": ["r_sternoclavicular"]}`: the right arm):
+        /// its poses set only these, and the avatar's clip and layers keep the rest; absent:
+        /// every joint. The root's translation follows the driver only when it owns the root.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        joints: Option<JointMask>,
     },
     /// End live driving of the avatar (also clears a held pose); it returns to its clip.
     #[serde(alias = "undrive")]

@@ -603,7 +603,13 @@ source?: string | null,
  * What the avatar does when the driver leaves, goes silent or releases: return to
  * its clip (default) or hold the last pose.
  */
-on_release?: OnRelease | null, } | { "op": "release_drive", 
+on_release?: OnRelease | null, 
+/**
+ * The joints the driver owns (`{"joints": ["r_sternoclavicular"]}`: the right arm):
+ * its poses set only these, and the avatar's clip and layers keep the rest; absent:
+ * every joint. The root's translation follows the driver only when it owns the root.
+ */
+joints?: JointMask | null, } | { "op": "release_drive", 
 /**
  * The avatar.
  */

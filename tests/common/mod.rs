@@ -600,3 +600,22 @@ pub async fn weights_become(
     );
     read()
 }
+
+/// Reads `ws` until a text message of type `kind` (others skipped), as JSON; fails after
+/// 120 s (an event, not a timing).
+#[allow(dead_code)]
+pub async fn next_of_type(ws: &mut Ws, kind: &str) -> serde_json::Value {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(120);
+    loop {
+        match tokio::time::timeout_at(deadline, ws.next()).await {
+            Ok(Some(Ok(tokio_tungstenite::tungstenite::Message::Text(t)))) => {
+                let v: serde_json::Value = serde_json::from_str(&t).unwrap();
+                if v["type"] == kind {
+                    return v;
+                }
+            }
+            Ok(Some(Ok(_))) => {}
+            other => panic!("no {kind}: {other:?}"),
+        }
+    }
+}

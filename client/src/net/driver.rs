@@ -249,6 +249,7 @@ impl Driver {
                 avatar: avatar.clone(),
                 source: source.map(str::to_owned),
                 on_release,
+                joints: None,
             })
             .await?;
         let info: DriveInfo = match result {

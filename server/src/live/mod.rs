@@ -142,6 +142,7 @@ impl Drives {
             avatar,
             source,
             on_release,
+            joints,
         } = command
         else {
             return None;
@@ -153,6 +154,7 @@ impl Drives {
                 avatar,
                 source.as_deref(),
                 on_release.unwrap_or_default(),
+                joints.as_ref(),
             )
             .map(|info| CommandResult::Drive(Box::new(info)));
         state.metrics.command(result.is_ok());
@@ -168,6 +170,7 @@ impl Drives {
         avatar: &AvatarId,
         source: Option<&str>,
         on_release: OnRelease,
+        joints: Option<&posecast_proto::command::JointMask>,
     ) -> Result<DriveInfo, Error> {
         let vmc = match source {
             Some(VMC_SOURCE) => Some(
@@ -195,7 +198,11 @@ impl Drives {
             )));
         }
         let source = source_rig.unwrap_or_else(|| a.rig.clone());
-        let live = LivePose::new(
+        let owned = joints
+            .map(|mask| posecast_sim::avatar::layers::owned_joints(&a.rig, Some(mask)))
+            .transpose()
+            .map_err(|e| Error::invalid(format!("joints: {e}")))?;
+        let mut live = LivePose::new(
             self.conn,
             on_release,
             source.clone(),
@@ -209,6 +216,7 @@ impl Drives {
                 source.name, a.rig.name
             ))
         })?;
+        live.owned = owned;
         a.live = Some(live);
         if let Some(l) = a.live.as_mut() {
             l.by = Some(self.who.clone());

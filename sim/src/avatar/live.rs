@@ -54,6 +54,8 @@ pub struct LivePose {
     pub blend_shapes: BTreeMap<String, f32>,
     /// Who drives, as told to clients (presence); `None` until the server says.
     pub by: Option<posecast_proto::command::Driver>,
+    /// The avatar's joints the driver owns (`drive … joints`); `None`: all of them.
+    pub owned: Option<Vec<bool>>,
 }
 
 /// A source pose, validated: every joint index is in range, every rotation a unit quaternion.
@@ -117,6 +119,7 @@ impl LivePose {
             tgt_world: vec![Mat4::IDENTITY; n_tgt],
             blend_shapes: BTreeMap::new(),
             by: None,
+            owned: None,
             source,
         })
     }
@@ -204,14 +207,23 @@ impl LivePose {
         self.out_root = Some((map.tgt_root, local));
     }
 
-    /// Writes the live pose over `locals` (the clip's pose): every joint's rotation, and the
-    /// root translation once the driver sent one.
+    /// Writes the live pose over `locals` (the clip's pose): every joint's rotation it owns
+    /// ([`LivePose::owned`]; all without one), and the root translation once the driver sent
+    /// one (when it owns the root).
     pub fn apply(&mut self, target: &Rig, locals: &mut [Transform]) {
         self.solve(target);
-        for (l, q) in locals.iter_mut().zip(&self.out_rot) {
-            l.rotation = *q;
+        let owns = |j: usize| {
+            self.owned
+                .as_ref()
+                .is_none_or(|o| o.get(j).copied().unwrap_or(false))
+        };
+        for (j, (l, q)) in locals.iter_mut().zip(&self.out_rot).enumerate() {
+            if owns(j) {
+                l.rotation = *q;
+            }
         }
         if let Some((j, t)) = self.out_root
+            && owns(j)
             && let Some(l) = locals.get_mut(j)
         {
             l.translation = t;
