@@ -42,6 +42,12 @@ export function mount(ctx) {
     if (a.driver) rows.push(["Live", `driven by ${a.driver.name} (${a.driver.via})`]);
     else if (a.driven) rows.push(["Live", "holding a live pose"]);
     if (a.recording) rows.push(["Recording", a.recording]);
+    if (a.layers?.length) {
+      const shown = a.layers.map(
+        (l) => `${l.layer}: ${l.clip}${l.additive ? " (additive)" : ""}, weight ${l.weight.toFixed(2)}, ${l.joints} joints`,
+      );
+      rows.push(["Layers", shown.join("; ")]);
+    }
     for (const [k, v] of rows) dl.append(el("dt", {}, k), el("dd", { dataset: { field: k.toLowerCase() } }, v));
 
     // The clip list changes with the rig or the assets, not with every state change.
@@ -95,6 +101,45 @@ export function mount(ctx) {
     };
     if (from) command.from_asset = from;
     run(command).then(() => notice(`Playing ${from ? `${from}:` : ""}${clip} on ${avatar}`), () => {});
+  });
+  // Clip layers: the chosen clip over the avatar's clip, on the joints named (each joint's
+  // subtree; `-name` takes a subtree out), replacing or additive.
+  $("play-layer").addEventListener("click", () => {
+    const entry = store.selectedAvatar();
+    const layer = $("layer-name", HTMLInputElement).value.trim();
+    if (!entry || !select.value || !layer) return;
+    const [from, clip] = /** @type {[string | null, string]} */ (JSON.parse(select.value));
+    const avatar = entry.state.avatar;
+    const names = $("layer-mask", HTMLInputElement)
+      .value.split(/[\s,]+/)
+      .filter((n) => n.length > 0);
+    const joints = names.filter((n) => !n.startsWith("-"));
+    const except = names.filter((n) => n.startsWith("-")).map((n) => n.slice(1));
+    /** @type {import("./protocol.js").Command} */
+    const command = {
+      op: "play_layer",
+      avatar,
+      layer,
+      clip,
+      additive: $("layer-additive", HTMLInputElement).checked,
+      weight: Math.min(1, Math.max(0, num("layer-weight", 1))),
+      speed: num("speed", 1),
+      looping: $("looping", HTMLInputElement).checked,
+      fade: num("fade", 0.25),
+    };
+    if (joints.length) command.mask = except.length ? { joints, except } : { joints };
+    if (from) command.from_asset = from;
+    run(command).then(() => notice(`${avatar} plays ${clip} on layer ${layer}.`), () => {});
+  });
+  $("stop-layer").addEventListener("click", () => {
+    const entry = store.selectedAvatar();
+    const layer = $("layer-name", HTMLInputElement).value.trim();
+    if (!entry || !layer) return;
+    const avatar = entry.state.avatar;
+    run({ op: "stop_layer", avatar, layer, fade: num("fade", 0.25) }).then(
+      () => notice(`Layer ${layer} of ${avatar} fades out.`),
+      () => {},
+    );
   });
   for (const op of /** @type {const} */ (["pause", "resume", "stop"])) {
     $(op).addEventListener("click", () => {

@@ -16,6 +16,7 @@
 //! - `push`: changes made by others show within a second without the page asking (it never
 //!   sends `list_scenes`, and sends no command while idle); who watches and who drives; the
 //!   page as an avatar's live driver (Drive, the sliders, Release drive); a take recorded;
+//! - `layers`: the Playback panel plays a clip on a masked or additive layer and stops it;
 //! - `faces`: the Face panel shows an expression and moves a morph channel; the stream carries
 //!   the weights to the page and the WebGL preview morphs the mesh;
 //! - `sdk`: the JavaScript client `/sdk/posecast.js` from pages on another origin: binary
@@ -32,6 +33,7 @@ mod common;
 mod browser;
 mod controls;
 mod faces;
+mod layers;
 mod layout;
 mod placement;
 mod push;
