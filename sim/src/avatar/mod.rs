@@ -134,14 +134,17 @@ impl Avatar {
         }
         let expressions = expression_map(&channels, &defs, rig.options.expression_map.as_ref());
         let morph = vec![0.0; channels.len()];
+        let index: std::collections::HashMap<&str, usize> = channels
+            .iter()
+            .enumerate()
+            .map(|(i, c)| (c.as_str(), i))
+            .collect();
         let expression_binds: Vec<Vec<(usize, f32)>> = defs
             .iter()
             .map(|e| {
                 e.binds
                     .iter()
-                    .filter_map(|b| {
-                        Some((channels.iter().position(|c| *c == b.channel)?, b.weight))
-                    })
+                    .filter_map(|b| Some((*index.get(b.channel.as_str())?, b.weight)))
                     .collect()
             })
             .collect();

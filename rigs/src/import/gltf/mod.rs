@@ -795,7 +795,10 @@ impl Context<'_> {
             return Vec::new();
         };
         notes.extend(defined.notes.iter().cloned());
-        let channels = posecast_proto::morph::channels(meshes.iter().map(|m| &m.mesh));
+        let channels: std::collections::HashSet<String> =
+            posecast_proto::morph::channels(meshes.iter().map(|m| &m.mesh))
+                .into_iter()
+                .collect();
         let mut elsewhere = 0;
         let mut empty = Vec::new();
         let kept: Vec<_> = defined

@@ -39,12 +39,20 @@ pub fn read(doc: &Value) -> Option<Defined> {
     }
 }
 
+/// Most expressions read from one file (VRM 1.0 has 18 presets; avatars carry tens of custom
+/// ones): every description carries them, so a file of thousands is cut here.
+pub const MAX_EXPRESSIONS: usize = 256;
+
+/// Most morph binds one expression keeps.
+pub const MAX_BINDS: usize = 256;
+
 /// Counts what [`read`] dropped, for one note each.
 #[derive(Default)]
 struct Dropped {
     material_binds: usize,
     bad_binds: usize,
     clamped: usize,
+    over_limits: usize,
     duplicates: Vec<String>,
 }
 
@@ -69,6 +77,13 @@ impl Dropped {
             notes.push(format!(
                 "VRM {version} expressions: {} bind weight(s) outside the format's range clamped",
                 self.clamped
+            ));
+        }
+        if self.over_limits > 0 {
+            notes.push(format!(
+                "VRM {version} expressions: {} expression(s) or bind(s) past the limits \
+                 ({MAX_EXPRESSIONS} expressions, {MAX_BINDS} binds each) dropped",
+                self.over_limits
             ));
         }
         if !self.duplicates.is_empty() {
@@ -125,10 +140,13 @@ fn weight(v: Option<&Value>, default: f64, scale: f64, dropped: &mut Dropped) ->
 }
 
 /// Adds a bind; a second bind of the same channel keeps the larger weight (several meshes may
-/// carry a target of one name, e.g. face and teeth `Fcl_MTH_A`; they are one channel).
-fn bind(binds: &mut Vec<ExpressionBind>, channel: String, weight: f32) {
+/// carry a target of one name, e.g. face and teeth `Fcl_MTH_A`; they are one channel). A new
+/// channel past [`MAX_BINDS`] is counted as dropped.
+fn bind(binds: &mut Vec<ExpressionBind>, channel: String, weight: f32, dropped: &mut Dropped) {
     if let Some(b) = binds.iter_mut().find(|b| b.channel == channel) {
         b.weight = b.weight.max(weight);
+    } else if binds.len() >= MAX_BINDS {
+        dropped.over_limits += 1;
     } else {
         binds.push(ExpressionBind { channel, weight });
     }
@@ -136,7 +154,11 @@ fn bind(binds: &mut Vec<ExpressionBind>, channel: String, weight: f32) {
 
 fn push(out: &mut Vec<Expression>, e: Expression, dropped: &mut Dropped) {
     if out.iter().any(|d| d.name == e.name) {
-        dropped.duplicates.push(format!("{:?}", e.name));
+        if dropped.duplicates.len() < 16 {
+            dropped.duplicates.push(format!("{:?}", e.name));
+        }
+    } else if out.len() >= MAX_EXPRESSIONS {
+        dropped.over_limits += 1;
     } else {
         out.push(e);
     }
@@ -172,7 +194,7 @@ fn read_v0(doc: &Value, groups: &[Value]) -> Defined {
                 .zip(index(b.get("index")))
                 .and_then(|(m, k)| target_name(doc, m, k));
             match (channel, weight(b.get("weight"), 100.0, 100.0, &mut dropped)) {
-                (Some(c), Some(w)) => bind(&mut binds, c, w),
+                (Some(c), Some(w)) => bind(&mut binds, c, w, &mut dropped),
                 _ => dropped.bad_binds += 1,
             }
         }
@@ -218,7 +240,7 @@ fn read_v1(doc: &Value, block: &Value) -> Defined {
                     .zip(index(b.get("index")))
                     .and_then(|(m, k)| target_name(doc, m, k));
                 match (channel, weight(b.get("weight"), 1.0, 1.0, &mut dropped)) {
-                    (Some(c), Some(w)) => bind(&mut binds, c, w),
+                    (Some(c), Some(w)) => bind(&mut binds, c, w, &mut dropped),
                     _ => dropped.bad_binds += 1,
                 }
             }
@@ -336,6 +358,47 @@ mod tests {
         let notes = d.notes.join("\n");
         assert!(notes.contains("3 material/texture"), "{notes}");
         assert!(notes.contains("1 morph bind(s)"), "{notes}");
+    }
+
+    #[test]
+    fn huge_files_are_cut_to_the_limits_with_a_note() {
+        let binds: Vec<Value> = (0..400)
+            .map(|k| json!({"mesh": 0, "index": k % 3, "weight": 50}))
+            .collect();
+        let groups: Vec<Value> = (0..300)
+            .map(|g| json!({"name": format!("g{g}"), "binds": binds}))
+            .collect();
+        let d = read(&doc(
+            json!({"VRM": {"blendShapeMaster": {"blendShapeGroups": groups}}}),
+        ))
+        .unwrap();
+        assert_eq!(d.expressions.len(), MAX_EXPRESSIONS);
+        // Binds of one channel merge: three channels, three binds.
+        assert!(d.expressions.iter().all(|e| e.binds.len() == 3));
+        assert!(
+            d.notes
+                .join("\n")
+                .contains("44 expression(s) or bind(s) past the limits"),
+            "{:?}",
+            d.notes
+        );
+        // One expression binding 300 distinct targets keeps the first MAX_BINDS.
+        let targets: Vec<Value> = (0..300).map(|_| json!({})).collect();
+        let wide_binds: Vec<Value> = (0..300)
+            .map(|k| json!({"mesh": 0, "index": k, "weight": 100}))
+            .collect();
+        let wide = json!({
+            "meshes": [{"primitives": [{"targets": targets}]}],
+            "extensions": {"VRM": {"blendShapeMaster": {"blendShapeGroups": [
+                {"name": "wide", "binds": wide_binds}]}}}
+        });
+        let d = read(&wide).unwrap();
+        assert_eq!(d.expressions[0].binds.len(), MAX_BINDS);
+        assert!(
+            d.notes.join("\n").contains("44 expression(s) or bind(s)"),
+            "{:?}",
+            d.notes
+        );
     }
 
     #[test]
