@@ -174,9 +174,14 @@ pub enum Command {
         /// The joints the layer owns; absent: all.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         mask: Option<JointMask>,
-        /// Add the clip's rotations (away from the rest pose) on top instead of replacing.
+        /// Add the clip's rotations (away from the reference pose) on top instead of replacing.
         #[serde(default, skip_serializing_if = "std::ops::Not::not")]
         additive: bool,
+        /// What an additive layer's rotations are taken away from: the rig's rest pose
+        /// (default) or the clip's first frame (a clip authored as whole poses, such as an
+        /// idle, then adds only its motion).
+        #[serde(default, skip_serializing_if = "AdditiveReference::is_rest")]
+        reference: AdditiveReference,
         /// How much of the layer shows, 0 to 1 (default 1).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         weight: Option<f32>,
@@ -710,6 +715,26 @@ pub struct DofInfo {
     pub min: Option<f32>,
     /// Upper limit, if any.
     pub max: Option<f32>,
+}
+
+/// What an additive clip layer's rotations are measured from.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
+#[serde(rename_all = "snake_case")]
+pub enum AdditiveReference {
+    /// The rig's rest (neutral) pose.
+    #[default]
+    Rest,
+    /// The clip's first frame.
+    FirstFrame,
+}
+
+impl AdditiveReference {
+    /// Whether this is the default, [`AdditiveReference::Rest`] (for `skip_serializing_if`).
+    #[must_use]
+    pub fn is_rest(&self) -> bool {
+        *self == Self::Rest
+    }
 }
 
 /// Most clip layers an avatar plays at once (`play_layer`).

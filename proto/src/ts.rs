@@ -5,9 +5,9 @@
 //! (`tools/tests/ts_types.rs`) fails when it is out of date.
 
 use crate::command::{
-    AssetDetail, AssetInfo, AvatarState, ClipInfo, Command, CommandResult, DofInfo, DriveInfo,
-    DriveVia, Driver, FadeState, JointInfo, JointMapping, JointMask, JointRef, LayerState,
-    OnRelease, RecordingInfo, RootMotion, SceneInfo, Units, Viewer,
+    AdditiveReference, AssetDetail, AssetInfo, AvatarState, ClipInfo, Command, CommandResult,
+    DofInfo, DriveInfo, DriveVia, Driver, FadeState, JointInfo, JointMapping, JointMask, JointRef,
+    LayerState, OnRelease, RecordingInfo, RootMotion, SceneInfo, Units, Viewer,
 };
 use crate::description::AvatarDescription;
 use crate::expressions::{Expression, ExpressionBind, Override};
@@ -74,6 +74,7 @@ pub fn declarations() -> String {
         FadeState,
         JointMask,
         LayerState,
+        AdditiveReference,
         JointRef,
         RootMotion,
         AssetInfo,

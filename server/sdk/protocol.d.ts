@@ -398,9 +398,15 @@ from_asset?: string | null,
  */
 mask?: JointMask | null, 
 /**
- * Add the clip's rotations (away from the rest pose) on top instead of replacing.
+ * Add the clip's rotations (away from the reference pose) on top instead of replacing.
  */
 additive?: boolean, 
+/**
+ * What an additive layer's rotations are taken away from: the rig's rest pose
+ * (default) or the clip's first frame (a clip authored as whole poses, such as an
+ * idle, then adds only its motion).
+ */
+reference?: AdditiveReference, 
 /**
  * How much of the layer shows, 0 to 1 (default 1).
  */
@@ -1256,6 +1262,11 @@ weight: number,
  * How many joints it owns.
  */
 joints: number, };
+
+/**
+ * What an additive clip layer's rotations are measured from.
+ */
+export type AdditiveReference = "rest" | "first_frame";
 
 /**
  * A joint of an avatar, whose frame an IK goal is given in.

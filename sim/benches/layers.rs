@@ -8,7 +8,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, missing_docs)]
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use posecast_proto::command::JointMask;
+use posecast_proto::command::{AdditiveReference, JointMask};
 use posecast_proto::msg::AvatarId;
 use posecast_sim::avatar::Avatar;
 use posecast_sim::avatar::layers::{ClipLayer, LayerSpec, owned_joints};
@@ -30,6 +30,7 @@ fn layers(c: &mut Criterion) {
                 owned: owned_joints(&a.rig, mask.as_ref()).unwrap(),
                 mask,
                 additive,
+                reference: AdditiveReference::Rest,
                 weight: if additive { 0.5 } else { 1.0 },
             };
             let played = Layer::new(clip(clip_name), None, 0.0, 1.0, true);

@@ -158,6 +158,7 @@ fn layer_commands(a: &Avatar) -> Vec<Command> {
                 from_asset: clip.source_asset.clone(),
                 mask: l.mask.clone(),
                 additive: l.additive,
+                reference: l.reference,
                 weight: Some(l.weight),
                 speed: Some(clip.speed()),
                 looping: Some(clip.looping),

@@ -20,6 +20,7 @@ pub fn apply(world: &World, command: &Command) -> Option<Result<CommandResult, E
             from_asset,
             mask,
             additive,
+            reference,
             weight,
             speed,
             looping,
@@ -47,6 +48,7 @@ pub fn apply(world: &World, command: &Command) -> Option<Result<CommandResult, E
                     owned,
                     mask: mask.clone(),
                     additive: *additive,
+                    reference: *reference,
                     weight,
                 };
                 if let Some(l) = a.layers.iter_mut().find(|l| l.name == *layer) {

@@ -8,16 +8,18 @@
 //! each joint `j` it owns, with `L_j` the layer clip's local rotation and `Q_j` the pose below:
 //!
 //! - replacing: `Q_j ← slerp(Q_j, L_j, w)` (and a non-root joint's translation lerped);
-//! - additive: `Q_j ← Q_j · slerp(1, R_j⁻¹ · L_j, w)` with `R_j` the rig's rest rotation: the
-//!   rotation the clip turns the joint through from the rest pose (on an H-Anim neutral rig
-//!   the clip's own local rotation), added on top of what is there.
+//! - additive: `Q_j ← Q_j · slerp(1, R_j⁻¹ · L_j, w)` with `R_j` the reference rotation — the
+//!   rig's rest rotation by default, or the clip's first frame
+//!   ([`AdditiveReference::FirstFrame`]): the rotation the clip turns the joint through from
+//!   it (on an H-Anim neutral rig with the rest reference, the clip's own local rotation),
+//!   added on top of what is there.
 //!
 //! Root motion is the avatar's clip's; a layer's clip moves no root.
 
 use super::playback::{DEFAULT_FADE, Layer, Player};
 use glam::Quat;
 use posecast_proto::Transform;
-use posecast_proto::command::{JointMask, LayerState};
+use posecast_proto::command::{AdditiveReference, JointMask, LayerState};
 use posecast_rigs::rig::Rig;
 
 /// One clip layer of an avatar.
@@ -33,6 +35,11 @@ pub struct ClipLayer {
     owned: Vec<bool>,
     /// Adds to the pose below instead of replacing it.
     pub additive: bool,
+    /// What an additive layer's rotations are measured from.
+    pub reference: AdditiveReference,
+    /// The current clip's first frame (its reference pose when
+    /// [`AdditiveReference::FirstFrame`]), sampled on first use.
+    first_frame: Option<Vec<Transform>>,
     /// Its weight at full strength, 0 to 1.
     pub weight: f32,
     /// Scene clock and duration of its fade-in.
@@ -99,6 +106,8 @@ pub struct LayerSpec {
     pub mask: Option<JointMask>,
     /// Adds to the pose below instead of replacing it.
     pub additive: bool,
+    /// What an additive layer's rotations are measured from.
+    pub reference: AdditiveReference,
     /// Its weight at full strength (clamped to 0–1).
     pub weight: f32,
 }
@@ -117,6 +126,8 @@ impl ClipLayer {
             mask: spec.mask,
             owned: spec.owned,
             additive: spec.additive,
+            reference: spec.reference,
+            first_frame: None,
             weight: spec.weight.clamp(0.0, 1.0),
             fade_in: (clock, fade.max(0.0)),
             fade_out: None,
@@ -127,10 +138,12 @@ impl ClipLayer {
     /// Plays `clip` on the layer, cross-fading from what it played over `fade` seconds; the
     /// mask, mode and weight change at once, and a layer fading out comes back.
     pub fn replace(&mut self, clip: Layer, spec: LayerSpec, fade: f32) {
+        self.first_frame = None;
         self.player.play(clip, fade);
         self.owned = spec.owned;
         self.mask = spec.mask;
         self.additive = spec.additive;
+        self.reference = spec.reference;
         self.weight = spec.weight.clamp(0.0, 1.0);
         if self.fade_out.take().is_some() {
             self.fade_in = (self.player.clock(), fade.max(0.0));
@@ -176,16 +189,34 @@ impl ClipLayer {
         }
         self.scratch.resize(rest.len(), Transform::IDENTITY);
         self.player.sample(rest, &mut self.scratch);
+        if self.additive
+            && self.reference == AdditiveReference::FirstFrame
+            && self.first_frame.is_none()
+        {
+            let mut first = rest.to_vec();
+            if let Some(layer) = self.player.current() {
+                layer.clip.sample(layer.clip.start(), rest, &mut first);
+            }
+            self.first_frame = Some(first);
+        }
         for (j, local) in locals.iter_mut().enumerate() {
             if !self.owned.get(j).copied().unwrap_or(false) {
                 continue;
             }
             let clip = self.scratch[j];
             if self.additive {
-                let delta = rest[j].rotation.inverse() * clip.rotation;
+                let reference = match self.reference {
+                    AdditiveReference::Rest => rest[j],
+                    AdditiveReference::FirstFrame => self
+                        .first_frame
+                        .as_ref()
+                        .and_then(|f| f.get(j).copied())
+                        .unwrap_or(rest[j]),
+                };
+                let delta = reference.rotation.inverse() * clip.rotation;
                 local.rotation = (local.rotation * Quat::IDENTITY.slerp(delta, w)).normalize();
                 if !roots[j] {
-                    local.translation += w * (clip.translation - rest[j].translation);
+                    local.translation += w * (clip.translation - reference.translation);
                 }
             } else {
                 local.rotation = local.rotation.slerp(clip.rotation, w).normalize();
@@ -264,6 +295,7 @@ mod tests {
                 owned: vec![false, true],
                 mask: None,
                 additive,
+                reference: AdditiveReference::Rest,
                 weight: 0.5,
             };
             let mut l = ClipLayer::new("l".into(), holding(clip_q), spec, 0.0, 0.0);
@@ -291,12 +323,58 @@ mod tests {
         );
     }
 
+    /// A first-frame reference adds only the clip's motion: at clip time 1 of a clip turning
+    /// joint 1 from `q0` to `q1`, the joint gets `below · q0⁻¹ · q1`.
+    #[test]
+    fn a_first_frame_reference_adds_only_the_motion() {
+        use posecast_rigs::clip::Interpolation;
+        let (q0, q1) = (
+            Quat::from_rotation_x(1.0),
+            Quat::from_rotation_x(1.0) * Quat::from_rotation_z(0.3),
+        );
+        let track = Track::new(Interpolation::Linear, vec![0.0, 1.0], vec![q0, q1]).unwrap();
+        let channels = vec![
+            JointChannels::default(),
+            JointChannels {
+                rotation: Some(RotationChannel::Keys(track)),
+                ..Default::default()
+            },
+        ];
+        let clip = Arc::new(Clip::new("turn", channels, None).unwrap());
+        let rest = [Transform::IDENTITY; 2];
+        let below = Quat::from_rotation_y(0.2);
+        let run = |reference| {
+            let spec = LayerSpec {
+                owned: vec![false, true],
+                mask: None,
+                additive: true,
+                reference,
+                weight: 1.0,
+            };
+            let played = Layer::new(clip.clone(), None, 1.0, 0.0, false);
+            let mut l = ClipLayer::new("l".into(), played, spec, 0.0, 0.0);
+            let mut locals = rest;
+            locals[1].rotation = below;
+            l.apply(&rest, &[true, false], &mut locals);
+            locals[1].rotation
+        };
+        let close = |a: Quat, b: Quat| a.dot(b).abs() > 1.0 - 1e-6;
+        let first = run(AdditiveReference::FirstFrame);
+        assert!(
+            close(first, below * Quat::from_rotation_z(0.3)),
+            "{first:?}"
+        );
+        let from_rest = run(AdditiveReference::Rest);
+        assert!(close(from_rest, below * q1), "{from_rest:?}");
+    }
+
     #[test]
     fn fades_ramp_the_weight_in_and_out() {
         let spec = LayerSpec {
             owned: vec![true, true],
             mask: None,
             additive: false,
+            reference: AdditiveReference::Rest,
             weight: 0.8,
         };
         let mut l = ClipLayer::new("l".into(), holding(Quat::IDENTITY), spec, 10.0, 0.5);
