@@ -196,13 +196,7 @@ async fn bad_weights_are_refused_and_change_nothing() {
 #[tokio::test]
 async fn weights_survive_a_sigkill() {
     let data = tempfile::tempdir().unwrap();
-    let dir = data.path().to_str().unwrap().to_owned();
-    let start = || {
-        Posecast::start(
-            &["--tick-rate", "30", "--data", &dir],
-            &[("POSECAST_CONTROL_TOKEN", common::CONTROL)],
-        )
-    };
+    let start = || Posecast::on_data(data.path());
     let server = start();
     if !add_face(server.addr).await {
         return;
@@ -955,13 +949,7 @@ async fn the_expression_map_is_correctable() {
 #[tokio::test]
 async fn vrm_expression_weights_survive_a_sigkill() {
     let data = tempfile::tempdir().unwrap();
-    let dir = data.path().to_str().unwrap().to_owned();
-    let start = || {
-        Posecast::start(
-            &["--tick-rate", "30", "--data", &dir],
-            &[("POSECAST_CONTROL_TOKEN", common::CONTROL)],
-        )
-    };
+    let start = || Posecast::on_data(data.path());
     let Some(rpm) = testdata_bytes(RPM) else {
         return;
     };

@@ -202,13 +202,7 @@ async fn layers_replace_on_their_mask_add_on_top_and_fade_out() {
 #[tokio::test]
 async fn layers_survive_a_sigkill() {
     let data = tempfile::tempdir().unwrap();
-    let dir = data.path().to_str().unwrap().to_owned();
-    let start = || {
-        Posecast::start(
-            &["--tick-rate", "30", "--data", &dir],
-            &[("POSECAST_CONTROL_TOKEN", common::CONTROL)],
-        )
-    };
+    let start = || Posecast::on_data(data.path());
     let server = start();
     ok(
         server.addr,

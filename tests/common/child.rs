@@ -15,6 +15,17 @@ pub struct Posecast {
 }
 
 impl Posecast {
+    /// The binary at 30 Hz on data folder `data`, holding the tests' control token (for
+    /// tests that kill it and start it again on the same folder).
+    #[allow(dead_code)]
+    pub fn on_data(data: &std::path::Path) -> Self {
+        let dir = data.to_str().expect("a UTF-8 temporary path");
+        Self::start(
+            &["--tick-rate", "30", "--data", dir],
+            &[("POSECAST_CONTROL_TOKEN", super::CONTROL)],
+        )
+    }
+
     /// Starts the binary on `127.0.0.1:0` with `args` and `env` (which may override the
     /// defaults `RUST_LOG=info`, `NO_COLOR=1`), and waits until it is ready: every stored
     /// scene restored (`/healthz` answers 200).
