@@ -79,6 +79,7 @@ pub mod subset;
 #[allow(clippy::expect_used)]
 pub mod testing;
 pub mod tokens;
+pub mod trackers;
 pub mod transform;
 #[cfg(feature = "ts")]
 pub mod ts;

@@ -1,6 +1,7 @@
 //! One live-driven avatar's driver state: the latest source pose, its retargeting onto the
 //! avatar's rig, and when the driver counts as gone.
 
+use crate::avatar::trackers::{TrackerSample, Trackers};
 use glam::{Mat4, Quat, Vec3};
 use posecast_core::quota::{CommandRate, TokenBucket};
 use posecast_proto::Transform;
@@ -56,6 +57,11 @@ pub struct LivePose {
     pub by: Option<posecast_proto::command::Driver>,
     /// The avatar's joints the driver owns (`drive … joints`); `None`: all of them.
     pub owned: Option<Vec<bool>>,
+    /// A tracker drive (`drive … trackers`): the body is solved from these each evaluation
+    /// instead of taking the driver's rotations.
+    pub trackers: Option<Trackers>,
+    /// When the drive began (the trackers' clock when poses carry no time).
+    started: Instant,
 }
 
 /// A source pose, validated: every joint index is in range, every rotation a unit quaternion.
@@ -120,6 +126,8 @@ impl LivePose {
             blend_shapes: BTreeMap::new(),
             by: None,
             owned: None,
+            trackers: None,
+            started: Instant::now(),
             source,
         })
     }
@@ -151,6 +159,33 @@ impl LivePose {
         self.last_time_us = pose.time_us.or(self.last_time_us);
         self.last_pose = now;
         self.dirty = true;
+        true
+    }
+
+    /// Stores tracker samples (a tracker drive's pose), taken at driver time `time_us` (else
+    /// when they arrived). A pose older than the last one stored is dropped; returns whether it
+    /// was stored. Nothing is stored on a drive without trackers.
+    pub fn store_trackers(
+        &mut self,
+        samples: &[(usize, TrackerSample)],
+        time_us: Option<u64>,
+        now: Instant,
+    ) -> bool {
+        if let (Some(t), Some(last)) = (time_us, self.last_time_us)
+            && t < last
+        {
+            return false;
+        }
+        let Some(trackers) = self.trackers.as_mut() else {
+            return false;
+        };
+        let time = time_us.map_or_else(
+            || now.saturating_duration_since(self.started).as_secs_f64(),
+            |t| t as f64 / 1e6,
+        );
+        trackers.store(samples, time);
+        self.last_time_us = time_us.or(self.last_time_us);
+        self.last_pose = now;
         true
     }
 
@@ -210,7 +245,30 @@ impl LivePose {
     /// Writes the live pose over `locals` (the clip's pose): every joint's rotation it owns
     /// ([`LivePose::owned`]; all without one), and the root translation once the driver sent
     /// one (when it owns the root).
-    pub fn apply(&mut self, target: &Rig, locals: &mut [Transform]) {
+    ///
+    /// A tracker drive solves the body instead ([`Trackers::solve`]), the avatar placed at
+    /// `placement` at scene clock `clock`, `world` scratch; joints it does not own keep what
+    /// `locals` had.
+    pub fn apply(
+        &mut self,
+        target: &Rig,
+        placement: Mat4,
+        clock: f64,
+        locals: &mut [Transform],
+        world: &mut [Mat4],
+    ) {
+        if let Some(trackers) = self.trackers.as_mut() {
+            let before = self.owned.as_ref().map(|_| locals.to_vec());
+            trackers.solve(target, placement, clock, locals, world);
+            if let (Some(owned), Some(before)) = (&self.owned, before) {
+                for (j, (l, b)) in locals.iter_mut().zip(before).enumerate() {
+                    if !owned.get(j).copied().unwrap_or(false) {
+                        *l = b;
+                    }
+                }
+            }
+            return;
+        }
         self.solve(target);
         let owns = |j: usize| {
             self.owned

@@ -4,6 +4,8 @@
 //! - [`playback`]: clip clocks and cross-fades.
 //! - [`placement`]: the avatar's world placement, moves, and clip root motion.
 //! - [`live`]: a live driver's pose, retargeted from its source rig.
+//! - [`trackers`]: a tracker drive: the whole body solved from a headset, controllers and
+//!   optional hip and foot trackers.
 //! - [`goals`]: IK goals and a gaze, solved after the clip and the live pose.
 //! - [`recording`]: what the avatar streams, tick by tick, into a clip on its rig.
 
@@ -13,6 +15,7 @@ pub mod live;
 pub mod placement;
 pub mod playback;
 pub mod recording;
+pub mod trackers;
 
 use crate::avatar::live::LivePose;
 use glam::{Mat4, Quat};
@@ -231,7 +234,13 @@ impl Avatar {
             layer.apply(rest, &self.roots, &mut self.locals);
         }
         if let Some(live) = &mut self.live {
-            live.apply(&self.rig, &mut self.locals);
+            live.apply(
+                &self.rig,
+                self.placing.current().to_mat4(),
+                self.player.clock(),
+                &mut self.locals,
+                &mut self.world,
+            );
         }
         self.goals.solve(
             self.rig.skeleton(),

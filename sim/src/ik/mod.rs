@@ -43,12 +43,12 @@ pub fn update_world(skeleton: &Skeleton, locals: &[Transform], world: &mut [Mat4
     }
 }
 
-fn position(world: &[Mat4], j: usize) -> Vec3 {
+pub(crate) fn position(world: &[Mat4], j: usize) -> Vec3 {
     world[j].w_axis.truncate()
 }
 
 /// The model-space rotation of a world matrix (its scale taken out).
-fn rotation(world: &[Mat4], j: usize) -> Quat {
+pub(crate) fn rotation(world: &[Mat4], j: usize) -> Quat {
     let (_, r, _) = world[j].to_scale_rotation_translation();
     r.normalize()
 }
@@ -62,7 +62,7 @@ fn turn(locals: &mut [Transform], world: &[Mat4], j: usize, r: Quat) {
 
 /// `v`'s direction, also for vectors whose squared length overflows (a goal 10²⁰ m away);
 /// `None` for a zero or non-finite vector.
-fn direction(v: Vec3) -> Option<Vec3> {
+pub(crate) fn direction(v: Vec3) -> Option<Vec3> {
     let largest = v.abs().max_element();
     if !(largest.is_finite() && largest > 0.0) {
         return None;
