@@ -62,6 +62,11 @@ pub const ROTATION_FILTER: (f32, f32) = (1.5, 1.0);
 const SPEED_CUTOFF: f32 = 1.0;
 /// The forward curve each spine joint starts each solve with, radians (2°).
 const SPINE_CURVE: f32 = 2.0 * PI / 180.0;
+/// How far an elbow's swivel moves each solve from where it bent last toward the natural one.
+const ELBOW_EASE: f32 = 0.1;
+/// An ankle's height above the floor, as a share of the leg's length, for a rig whose ankles
+/// are its lowest joints.
+const ANKLE_CLEARANCE: f32 = 0.08;
 /// Smallest and largest calibrated scale (a user a quarter or four times the avatar's size).
 pub const SCALE_RANGE: (f32, f32) = (0.25, 4.0);
 
@@ -286,6 +291,24 @@ impl Body {
             .map(|[a, b, c]| neutral[*a].distance(neutral[*b]) + neutral[*b].distance(neutral[*c]))
             .fold(0.0, f32::max)
             .max(1e-3);
+        // Heights count from the floor, y = 0 in model space. A neutral pose reaching below it
+        // (a BVH's, its hips at the origin and its height in its clips' root translation) is
+        // lifted onto it: its lowest joint on the floor, or a sole's clearance above it when
+        // that is an ankle (a rig without toes).
+        let (lowest, floor) = neutral
+            .iter()
+            .enumerate()
+            .map(|(j, p)| (j, p.y))
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+            .unwrap_or((root, 0.0));
+        let sole = if legs.iter().flatten().any(|l| l[2] == lowest) {
+            ANKLE_CLEARANCE * leg_length
+        } else {
+            0.0
+        };
+        // A neutral pose standing on y = 0 or above is taken as it is.
+        let lift = if floor < 0.0 { sole - floor } else { 0.0 };
+        let neutral: Vec<Vec3> = neutral.into_iter().map(|p| p + Vec3::Y * lift).collect();
         let clavicles = [("l_sternoclavicular", 0), ("r_sternoclavicular", 1)].map(|(n, side)| {
             let c = hanim(rig, n)?;
             let [shoulder, _, _] = arms[side]?;
@@ -295,9 +318,10 @@ impl Body {
             .windows(2)
             .map(|w| neutral[w[0]].distance(neutral[w[1]]))
             .sum();
+        // The clavicles keep the pose's (clip or rest): the solve only turns them further
+        // when a hand is out of reach.
         let mut reset = vec![root];
         reset.extend(&spine);
-        reset.extend(clavicles.iter().flatten());
         reset.extend(arms.iter().flatten().flatten());
         let skeleton_root = std::iter::successors(Some(root), |&j| parents[j])
             .last()
@@ -359,6 +383,10 @@ pub struct Trackers {
     heading: Option<f32>,
     feet: [Option<Foot>; 2],
     last_clock: f64,
+    /// Where each elbow bent last tick: from the middle of shoulder and hand, body frame.
+    elbows: [Option<Vec3>; 2],
+    /// The spine's solved positions last tick, relative to its first joint (FABRIK's start).
+    spine_seed: Vec<Vec3>,
 }
 
 /// The yaw (about +Y, 0 facing +Z) a rotation faces: its forward axis flattened, or, when
@@ -498,6 +526,8 @@ impl Trackers {
             heading: None,
             feet: [None; 2],
             last_clock: f64::NEG_INFINITY,
+            spine_seed: Vec::new(),
+            elbows: [None; 2],
         })
     }
 
@@ -872,7 +902,7 @@ impl Trackers {
             // than staying on its line (FABRIK keeps collinear joints collinear); one at its
             // length stays straight.
             let base = ik::position(world, b.spine[0]);
-            if head_p.distance(base) < 0.999 * b.spine_length {
+            if self.spine_seed.is_empty() && head_p.distance(base) < 0.999 * b.spine_length {
                 for &j in &b.spine[..b.spine.len() - 1] {
                     locals[j].rotation = Quat::from_rotation_x(SPINE_CURVE);
                 }
@@ -884,7 +914,7 @@ impl Trackers {
                 rotation: Some(head_q),
                 weight: 1.0,
             };
-            ik::chain(skeleton, locals, world, &goal);
+            ik::chain_seeded(skeleton, locals, world, &goal, &mut self.spine_seed);
         } else {
             ik::set_model_rotation(skeleton, locals, world, b.skull, head_q);
         }
@@ -898,7 +928,13 @@ impl Trackers {
                 + b.neutral[arm[1]].distance(b.neutral[arm[2]]);
             let out = if side == 0 { 1.0 } else { -1.0 };
             let rise = ((p.y - shoulder.y) / length.max(1e-3)).clamp(0.0, 1.0);
-            let toward = Vec3::new(out * (0.4 + rise), rise - 1.0, -0.4);
+            // The natural swivel, eased toward from where the elbow was last tick (in the
+            // body's frame), so an elbow does not jump from one side to the other.
+            let natural = Vec3::new(out * (0.4 + rise), rise - 1.0, -0.4).normalize();
+            let toward = match self.elbows[side] {
+                Some(last) => turn * last.lerp(natural, ELBOW_EASE).normalize_or(natural),
+                None => turn * natural,
+            };
             if let Some(clavicle) = b.clavicles[side] {
                 shrug(skeleton, locals, world, clavicle, arm[0], p, length);
             }
@@ -906,10 +942,12 @@ impl Trackers {
             let goal = LimbGoal {
                 target: p,
                 rotation: Some(q),
-                pole: Some(shoulder + turn * toward * length),
+                pole: Some(shoulder + toward * length),
                 weight: 1.0,
             };
             ik::two_bone(skeleton, locals, world, arm, &goal);
+            let bend = ik::position(world, arm[1]) - (shoulder + p) / 2.0;
+            self.elbows[side] = ik::direction(turn.inverse() * bend).or(self.elbows[side]);
         }
 
         for (side, foot) in feet.into_iter().enumerate() {

@@ -235,12 +235,27 @@ pub struct ChainGoal {
 /// put back and each joint pulled from the previous, until the end is within
 /// [`CHAIN_TOLERANCE`] or after [`CHAIN_ITERATIONS`] passes), then each joint from the root on
 /// turned by the shortest arc taking its child onto its solved position. Returns the end's
-/// distance to the goal. An unreachable goal leaves the chain straight toward it.
+/// distance to the goal. An unreachable goal (or one within [`CHAIN_TOLERANCE`] of the chain's
+/// reach, where FABRIK converges slowest) leaves the chain straight toward it.
 pub fn chain(
     skeleton: &Skeleton,
     locals: &mut [Transform],
     world: &mut [Mat4],
     goal: &ChainGoal,
+) -> f32 {
+    chain_seeded(skeleton, locals, world, goal, &mut Vec::new())
+}
+
+/// [`chain`], FABRIK started from `seed` when it holds one position per joint (each relative to
+/// the chain's root, e.g. the last tick's answer: a goal that moved a little is met in a pass
+/// or two) instead of the pose's positions; `seed` is then set to this solve's positions. The
+/// joints are still turned from the pose they had, so nothing accumulates from tick to tick.
+pub fn chain_seeded(
+    skeleton: &Skeleton,
+    locals: &mut [Transform],
+    world: &mut [Mat4],
+    goal: &ChainGoal,
+    seed: &mut Vec<Vec3>,
 ) -> f32 {
     let joints = &goal.chain;
     let (Some(&root), Some(&end)) = (joints.first(), joints.last()) else {
@@ -252,10 +267,15 @@ pub fn chain(
     let span: f32 = lengths.iter().sum();
     let base = p[0];
     let k = p.len() - 1;
+    if seed.len() == p.len() && seed.iter().all(|s| s.is_finite()) {
+        for (p, s) in p.iter_mut().zip(seed.iter()).skip(1) {
+            *p = base + *s;
+        }
+    }
     let toward = |from: Vec3, to: Vec3, length: f32, fallback: Vec3| {
         from + length * direction(to - from).unwrap_or(fallback)
     };
-    if !goal.target.is_finite() || goal.target.distance(base) >= span {
+    if !goal.target.is_finite() || goal.target.distance(base) >= span - CHAIN_TOLERANCE {
         // Out of reach: straight at the goal.
         let n = direction(goal.target - base).unwrap_or(Vec3::Y);
         for i in 1..=k {
@@ -286,6 +306,8 @@ pub fn chain(
         );
         update_world(skeleton, locals, world, joints[i]);
     }
+    seed.clear();
+    seed.extend(p.iter().map(|q| *q - base));
     if let Some(r) = goal.rotation {
         set_model_rotation(skeleton, locals, world, end, r);
     }

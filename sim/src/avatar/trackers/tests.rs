@@ -91,8 +91,9 @@ fn read(rig: &Rig, world: &[Mat4], list: &[&str]) -> Vec<(usize, TrackerSample)>
         .collect()
 }
 
+/// Solves over the neutral pose (what a clip would have given: the clavicles keep it).
 fn solved(rig: &Rig, trackers: &mut Trackers, clock: f64) -> Vec<Mat4> {
-    let mut locals = rig.skeleton().rest().to_vec();
+    let mut locals = neutral(rig);
     let mut world = vec![Mat4::IDENTITY; locals.len()];
     trackers.solve(rig, Mat4::IDENTITY, clock, &mut locals, &mut world);
     assert!(locals.iter().all(Transform::is_finite));
