@@ -31,15 +31,39 @@ pub const CHAIN_TOLERANCE: f32 = 1e-4;
 /// plane, and the next tick's solve would have to guess one.
 const REACH_MARGIN: f32 = 1e-5;
 
-/// World (model-space) matrices of `locals`, recomputed from joint `from` on (parents precede
-/// children, so every joint after `from` is recomputed from an up-to-date parent).
+/// World (model-space) matrices of `locals`, recomputed for joint `from` and everything below
+/// it (parents precede children, so each is recomputed from an up-to-date parent); `from` 0
+/// recomputes every joint. Joints after `from` in other subtrees are skipped: a solve turning
+/// an elbow does not pay for the legs.
 pub fn update_world(skeleton: &Skeleton, locals: &[Transform], world: &mut [Mat4], from: usize) {
-    for j in from..skeleton.len() {
+    /// Joints after `from` a subtree walk tracks on the stack; more recompute everything.
+    const WORDS: usize = 16;
+    let parents = skeleton.parents();
+    let n = skeleton.len();
+    let at = |j: usize, world: &mut [Mat4]| {
         let local = locals[j].to_mat4();
-        world[j] = match skeleton.parents()[j] {
+        world[j] = match parents[j] {
             Some(p) => world[p] * local,
             None => local,
         };
+    };
+    if from == 0 || n - from > WORDS * 64 {
+        for j in from..n {
+            at(j, world);
+        }
+        return;
+    }
+    let mut moved = [0u64; WORDS];
+    for (j, parent) in parents.iter().enumerate().skip(from) {
+        let below = j == from
+            || parent.is_some_and(|p| {
+                p >= from && (moved[(p - from) / 64] >> ((p - from) % 64)) & 1 == 1
+            });
+        if below {
+            let k = j - from;
+            moved[k / 64] |= 1 << (k % 64);
+            at(j, world);
+        }
     }
 }
 
