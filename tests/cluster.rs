@@ -1342,6 +1342,7 @@ async fn a_driver_on_a_relay_drives_the_owners_avatar() {
         root_position: None,
         rotations: vec![(u16::try_from(knee).unwrap(), r)],
         weights: Vec::new(),
+        trackers: Vec::new(),
     };
     let sent = Instant::now();
     driver
@@ -1449,6 +1450,7 @@ async fn live_weights_through_a_relay_reach_every_viewer() {
             root_position: None,
             rotations: Vec::new(),
             weights,
+            trackers: Vec::new(),
         };
         Message::Binary(pose.encode().into())
     };

@@ -119,6 +119,7 @@ async fn a_driven_pose_reaches_every_subscriber_in_the_next_tick() {
         root_position: None,
         rotations: vec![(u16::try_from(knee).unwrap(), r)],
         weights: Vec::new(),
+        trackers: Vec::new(),
     })
     .await
     .unwrap();
@@ -312,6 +313,7 @@ async fn bad_poses_get_typed_errors_and_change_nothing() {
         root_position: None,
         rotations: vec![(0, Quat::from_array(other)), (9999, Quat::IDENTITY)],
         weights: Vec::new(),
+        trackers: Vec::new(),
     })
     .await
     .unwrap();
@@ -372,6 +374,7 @@ async fn a_paced_driver_sending_as_fast_as_it_can_is_never_rate_limited() {
                 root_position: None,
                 rotations: vec![(0, q)],
                 weights: Vec::new(),
+                trackers: Vec::new(),
             })
             .await
             .unwrap();

@@ -572,6 +572,7 @@ async fn binary_live_poses_carry_weights() {
             root_position: None,
             rotations: Vec::new(),
             weights,
+            trackers: Vec::new(),
         };
         Message::binary(p.encode())
     };

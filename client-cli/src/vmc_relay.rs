@@ -108,6 +108,7 @@ pub async fn run(args: VmcRelayArgs) -> anyhow::Result<()> {
                     root_position: update.pose.root_position,
                     rotations,
                     weights: Vec::new(),
+                    trackers: Vec::new(),
                 })
                 .await
                 .context("sending a pose")?;

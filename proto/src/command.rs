@@ -369,6 +369,30 @@ pub enum Command {
         /// every joint. The root's translation follows the driver only when it owns the root.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         joints: Option<JointMask>,
+        /// Tracker driving: the trackers this driver's poses give, in the order binary poses
+        /// index them — `head`, `l_hand` and `r_hand` always; `hips`, `l_foot`, `r_foot` and
+        /// joints of the avatar's rig (by its own or H-Anim name) optionally; at most
+        /// [`crate::trackers::MAX_TRACKERS`], no name twice. Poses then carry tracker
+        /// transforms in the scene's space (`trackers`), not rotations, and the server solves
+        /// the avatar's whole body from them every tick. Only on the avatar's own rig (no
+        /// `source`). Absent: poses carry local rotations.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        trackers: Option<Vec<String>>,
+        /// With `trackers`: what moves the legs (default `planted`: feet stand where they are
+        /// planted and step when the hips move away, or follow foot trackers).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        legs: Option<crate::trackers::Legs>,
+    },
+    /// Measure a tracker-driven avatar's user (`drive … trackers`) from their trackers'
+    /// latest transforms while they stand in `pose`: their height (and with a T-pose their arm
+    /// span) scales their trackers to the avatar, and each tracker's offset from the joint it
+    /// stands for is kept. Result: [`crate::trackers::CalibrationInfo`].
+    CalibrateTrackers {
+        /// The avatar.
+        avatar: AvatarId,
+        /// The pose the user holds (default `neutral`: standing, arms at the sides).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pose: Option<crate::trackers::CalibrationPose>,
     },
     /// End live driving of the avatar (also clears a held pose); it returns to its clip.
     #[serde(alias = "undrive")]
@@ -488,6 +512,10 @@ pub struct DriveInfo {
     /// poses may name weights by.
     #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
     pub expressions: std::collections::BTreeMap<String, String>,
+    /// A tracker drive's trackers (`drive … trackers`), in order: binary poses index this
+    /// list. Absent for a drive by rotations.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub trackers: Vec<String>,
 }
 
 impl Command {
@@ -529,7 +557,9 @@ impl Command {
             | Self::SetMorphWeights { avatar, .. }
             | Self::SetExpression { avatar, .. }
             | Self::PlaceAvatar { avatar, .. } => Some(avatar),
-            Self::Drive { avatar, .. } | Self::ReleaseDrive { avatar } => Some(avatar),
+            Self::Drive { avatar, .. }
+            | Self::CalibrateTrackers { avatar, .. }
+            | Self::ReleaseDrive { avatar } => Some(avatar),
             Self::Record { avatar, .. } | Self::StopRecording { avatar } => Some(avatar),
             Self::AddAvatar { avatar, .. } => avatar.as_ref(),
             _ => None,
@@ -884,6 +914,50 @@ mod tests {
         assert!(serde_json::from_str::<Command>(r#"{"op":"fly"}"#).is_err());
         assert!(c.avatar().is_some() && !c.is_read_only());
     }
+
+    /// A tracker drive names its trackers and legs; a drive without them writes neither, and
+    /// `calibrate_trackers` is tagged in snake case with an optional pose.
+    #[test]
+    fn tracker_drives_and_calibration_read_and_write() {
+        let drive: Command = serde_json::from_str(
+            r#"{"op":"drive","avatar":"a","trackers":["head","l_hand","r_hand"],"legs":"animated"}"#,
+        )
+        .unwrap();
+        let Command::Drive { trackers, legs, .. } = &drive else {
+            panic!("{drive:?}");
+        };
+        assert_eq!(trackers.as_deref().map(<[String]>::len), Some(3));
+        assert_eq!(*legs, Some(crate::trackers::Legs::Animated));
+        let plain = Command::Drive {
+            avatar: AvatarId("a".into()),
+            source: None,
+            on_release: None,
+            joints: None,
+            trackers: None,
+            legs: None,
+        };
+        assert_eq!(
+            serde_json::to_string(&plain).unwrap(),
+            r#"{"op":"drive","avatar":"a"}"#
+        );
+        let calibrate: Command =
+            serde_json::from_str(r#"{"op":"calibrate_trackers","avatar":"a","pose":"t_pose"}"#)
+                .unwrap();
+        assert_eq!(
+            calibrate,
+            Command::CalibrateTrackers {
+                avatar: AvatarId("a".into()),
+                pose: Some(crate::trackers::CalibrationPose::TPose),
+            }
+        );
+        assert!(calibrate.avatar().is_some() && !calibrate.is_read_only());
+        assert!(
+            serde_json::from_str::<Command>(
+                r#"{"op":"calibrate_trackers","avatar":"a","pose":"x"}"#
+            )
+            .is_err()
+        );
+    }
 }
 
 /// What a successful command returns, one variant per shape. Tagged: `kind` names the shape
@@ -912,6 +986,8 @@ pub enum CommandResult {
     Asset(Box<AssetDetail>),
     /// `sample_pose`.
     Pose(Box<crate::msg::AvatarPoseJson>),
+    /// `calibrate_trackers`.
+    Calibration(Box<crate::trackers::CalibrationInfo>),
     /// `create_scene`.
     SceneCreated {
         /// The new scene.
@@ -952,6 +1028,7 @@ impl CommandResult {
             Self::Recorded(_) => "recorded",
             Self::Asset(_) => "asset",
             Self::Pose(_) => "pose",
+            Self::Calibration(_) => "calibration",
             Self::SceneCreated { .. } => "scene_created",
             Self::AvatarAdded { .. } => "avatar_added",
             Self::Dofs { .. } => "dofs",
@@ -999,6 +1076,8 @@ impl CommandResult {
             Recorded(Box<RecordingInfo>),
             Asset(Box<AssetDetail>),
             Pose(Box<crate::msg::AvatarPoseJson>),
+            // Before `avatar_added`, which would read its `avatar` alone.
+            Calibration(Box<crate::trackers::CalibrationInfo>),
             SceneCreated {
                 scene: SceneId,
             },
@@ -1023,6 +1102,7 @@ impl CommandResult {
             Bare::Recorded(v) => Self::Recorded(v),
             Bare::Asset(v) => Self::Asset(v),
             Bare::Pose(v) => Self::Pose(v),
+            Bare::Calibration(v) => Self::Calibration(v),
             Bare::SceneCreated { scene } => Self::SceneCreated { scene },
             Bare::AvatarAdded { avatar } => Self::AvatarAdded { avatar },
             Bare::Dofs { rotation, values } => Self::Dofs { rotation, values },
@@ -1087,6 +1167,13 @@ mod result_tests {
                 rotation: [0.0, 0.0, 0.0, 1.0],
                 values: vec![0.5],
             },
+            CommandResult::Calibration(Box::new(crate::trackers::CalibrationInfo {
+                avatar: AvatarId("a".into()),
+                user_height: 1.8,
+                scale: 0.9,
+                arm_scale: 0.9,
+                trackers: vec!["head".into()],
+            })),
         ] {
             let tagged = serde_json::to_value(&r).unwrap();
             assert_eq!(tagged["kind"], r.kind(), "{tagged}");

@@ -4,14 +4,16 @@
 //! compact binary websocket messages ([`BinaryPose`], joints by index into the `joints` list
 //! of the `drive` answer, rotations smallest-three quantised as in pose frames). Both carry
 //! local rotations of the source rig (normalised, as the server streams that rig), an optional
-//! root position and an optional driver timestamp.
+//! root position and an optional driver timestamp — or, for a tracker drive
+//! ([`crate::trackers`]), tracker transforms in the scene's space (by index into the `drive`
+//! answer's `trackers` in binary).
 //!
 //! Binary layout, little-endian:
 //!
 //! ```text
 //!  0  u8   magic 0x44 ('D')
 //!  1  u8   flags: bit 0 root position present, bit 1 time present, bit 2 morph weights
-//!          present (other bits zero)
+//!          present, bit 3 trackers present (other bits zero)
 //!  2  u16  rotation count N
 //!  4  u32  avatar number (the description's `num`)
 //!  8  u64  driver time, µs (any epoch; 0 when bit 1 is clear)
@@ -19,6 +21,9 @@
 //!     N × (u16 joint index, 6 bytes smallest-three rotation)
 //!     only when bit 2 is set: u16 weight count M, then M × (u16 morph channel index into the
 //!     avatar's `morph_targets`, u16 level 0…1023: weight = level / 1023)
+//!     only when bit 3 is set: u8 tracker count K, then K × (u8 tracker index into the `drive`
+//!     answer's `trackers`, 3×f32 position in the scene's space (metres), 6 bytes
+//!     smallest-three rotation in the scene's space)
 //! ```
 
 use crate::quant;
@@ -32,6 +37,10 @@ pub const FLAG_ROOT: u8 = 1;
 pub const FLAG_TIME: u8 = 2;
 /// Flag: morph weights follow the rotations.
 pub const FLAG_WEIGHTS: u8 = 4;
+/// Flag: tracker transforms follow the weights (or the rotations when there are none).
+pub const FLAG_TRACKERS: u8 = 8;
+/// Bytes per tracker entry (tracker index + position + smallest-three rotation).
+pub const TRACKER_ENTRY_BYTES: usize = 1 + 12 + quant::BYTES;
 /// Bytes per morph weight entry (channel index + level).
 pub const WEIGHT_ENTRY_BYTES: usize = 4;
 /// Bytes before the optional root position.
@@ -65,6 +74,9 @@ pub struct BinaryPose {
     pub rotations: Vec<(u16, Quat)>,
     /// `(morph channel index, weight level 0…1023)` ([`crate::morph::weight_level`]).
     pub weights: Vec<(u16, u16)>,
+    /// `(tracker index, position, rotation)` in the scene's space, for a tracker drive: the
+    /// index is into the `drive` answer's `trackers` (at most 255 are sent).
+    pub trackers: Vec<(u8, Vec3, Quat)>,
 }
 
 /// Why bytes are not a binary pose message.
@@ -103,6 +115,9 @@ impl BinaryPose {
         if !self.weights.is_empty() {
             flags |= FLAG_WEIGHTS;
         }
+        if !self.trackers.is_empty() {
+            flags |= FLAG_TRACKERS;
+        }
         let count = u16::try_from(self.rotations.len()).unwrap_or(u16::MAX);
         let mut out = Vec::with_capacity(HEADER_BYTES + 12 + usize::from(count) * ENTRY_BYTES);
         out.push(MAGIC);
@@ -127,14 +142,25 @@ impl BinaryPose {
                 out.extend_from_slice(&level.to_le_bytes());
             }
         }
+        if !self.trackers.is_empty() {
+            let k = u8::try_from(self.trackers.len()).unwrap_or(u8::MAX);
+            out.push(k);
+            for &(t, p, q) in self.trackers.iter().take(usize::from(k)) {
+                out.push(t);
+                for c in p.to_array() {
+                    out.extend_from_slice(&c.to_le_bytes());
+                }
+                quant::write(q, &mut out);
+            }
+        }
         out
     }
 
     /// Decodes a message.
     ///
     /// # Errors
-    /// A wrong magic byte, unknown flags, a length that does not match the header, or a
-    /// weight level above 1023.
+    /// A wrong magic byte, unknown flags, a length that does not match the header (and the
+    /// counts of weights and trackers), or a weight level above 1023.
     pub fn decode(bytes: &[u8]) -> Result<Self, PoseDecodeError> {
         let short = |expected| PoseDecodeError::Length {
             expected,
@@ -145,7 +171,7 @@ impl BinaryPose {
             return Err(PoseDecodeError::Magic(header[0]));
         }
         let flags = header[1];
-        if flags & !(FLAG_ROOT | FLAG_TIME | FLAG_WEIGHTS) != 0 {
+        if flags & !(FLAG_ROOT | FLAG_TIME | FLAG_WEIGHTS | FLAG_TRACKERS) != 0 {
             return Err(PoseDecodeError::Flags(flags));
         }
         let count = usize::from(u16::from_le_bytes([header[2], header[3]]));
@@ -162,10 +188,16 @@ impl BinaryPose {
         } else {
             0
         };
-        let expected = if flags & FLAG_WEIGHTS != 0 {
+        let weights_end = if flags & FLAG_WEIGHTS != 0 {
             rotations_end + 2 + weights_count * WEIGHT_ENTRY_BYTES
         } else {
             rotations_end
+        };
+        let expected = if flags & FLAG_TRACKERS != 0 {
+            let k = bytes.get(weights_end).ok_or(short(weights_end + 1))?;
+            weights_end + 1 + usize::from(*k) * TRACKER_ENTRY_BYTES
+        } else {
+            weights_end
         };
         if bytes.len() != expected {
             return Err(short(expected));
@@ -180,7 +212,7 @@ impl BinaryPose {
             )
         });
         let weights = bytes
-            .get(rotations_end + 2..)
+            .get(rotations_end + 2..weights_end)
             .unwrap_or_default()
             .chunks_exact(WEIGHT_ENTRY_BYTES)
             .map(|e| {
@@ -200,12 +232,25 @@ impl BinaryPose {
                 (u16::from_le_bytes([e[0], e[1]]), quant::read(q))
             })
             .collect();
+        let trackers = bytes
+            .get(weights_end + 1..)
+            .filter(|_| flags & FLAG_TRACKERS != 0)
+            .unwrap_or_default()
+            .chunks_exact(TRACKER_ENTRY_BYTES)
+            .map(|e| {
+                let c = |i: usize| f32::from_le_bytes([e[i], e[i + 1], e[i + 2], e[i + 3]]);
+                let mut q = [0u8; quant::BYTES];
+                q.copy_from_slice(&e[13..]);
+                (e[0], Vec3::new(c(1), c(5), c(9)), quant::read(q))
+            })
+            .collect();
         Ok(Self {
             avatar_num,
             time_us: (flags & FLAG_TIME != 0).then(|| u64::from_le_bytes(time)),
             root_position,
             rotations,
             weights,
+            trackers,
         })
     }
 }
@@ -226,6 +271,7 @@ mod tests {
                 (513, Quat::from_euler(glam::EulerRot::XYZ, 0.3, -1.2, 2.0)),
             ],
             weights: Vec::new(),
+            trackers: Vec::new(),
         };
         let bytes = pose.encode();
         assert_eq!(bytes.len(), HEADER_BYTES + 12 + 3 * ENTRY_BYTES);
@@ -247,6 +293,7 @@ mod tests {
             root_position: None,
             rotations: vec![(0, Quat::IDENTITY)],
             weights: Vec::new(),
+            trackers: Vec::new(),
         }
         .encode();
         assert!(BinaryPose::decode(&bytes).unwrap().time_us.is_none());
@@ -279,6 +326,7 @@ mod tests {
             root_position: None,
             rotations: vec![(1, Quat::from_rotation_y(0.4))],
             weights: vec![(0, 1023), (4, 512), (2, 0)],
+            trackers: Vec::new(),
         };
         let bytes = pose.encode();
         // By hand: 16 header + 8 rotation + 2 count + 3 × 4.
@@ -302,5 +350,88 @@ mod tests {
             BinaryPose::decode(&bytes[..16 + 8 + 1]),
             Err(PoseDecodeError::Length { .. })
         ));
+    }
+
+    /// Trackers (flag bit 3): after the weights (or the rotations), a u8 count and (index,
+    /// position, rotation) entries: positions exact, rotations within the quantisation bound;
+    /// a truncated block, a count beyond the bytes and bytes beyond the count are refused.
+    #[test]
+    fn binary_poses_carry_trackers() {
+        let trackers = vec![
+            (0, Vec3::new(0.1, 1.62, -0.05), Quat::from_rotation_y(0.3)),
+            (1, Vec3::new(-0.3, 1.1, 0.25), Quat::from_rotation_x(-1.2)),
+            (2, Vec3::new(0.3, 1.05, 0.2), Quat::IDENTITY),
+        ];
+        for weights in [Vec::new(), vec![(1, 700)]] {
+            let pose = BinaryPose {
+                avatar_num: 9,
+                time_us: Some(77),
+                root_position: None,
+                rotations: Vec::new(),
+                weights: weights.clone(),
+                trackers: trackers.clone(),
+            };
+            let bytes = pose.encode();
+            let weight_bytes = if weights.is_empty() { 0 } else { 2 + 4 };
+            // By hand: 16 header + weights + 1 count + 3 × (1 + 12 + 6).
+            assert_eq!(bytes.len(), 16 + weight_bytes + 1 + 3 * 19);
+            assert_eq!(bytes[1] & FLAG_TRACKERS, FLAG_TRACKERS);
+            assert_eq!(bytes[16 + weight_bytes], 3);
+            let back = BinaryPose::decode(&bytes).unwrap();
+            assert_eq!(back.weights, weights);
+            assert!(back.rotations.is_empty());
+            assert_eq!(back.trackers.len(), 3);
+            for ((i, p, q), (j, r, s)) in trackers.iter().zip(&back.trackers) {
+                assert_eq!((i, p), (j, r));
+                assert!(quant::angle_between_degrees(*q, *s) <= quant::MAX_ERROR_DEGREES);
+            }
+            let n = bytes.len();
+            for cut in [n - 1, n - 19, 16 + weight_bytes] {
+                assert!(
+                    matches!(
+                        BinaryPose::decode(&bytes[..cut]),
+                        Err(PoseDecodeError::Length { .. })
+                    ),
+                    "cut at {cut}"
+                );
+            }
+            let mut longer = bytes.clone();
+            longer.push(0);
+            assert!(matches!(
+                BinaryPose::decode(&longer),
+                Err(PoseDecodeError::Length { .. })
+            ));
+            let mut more = bytes.clone();
+            more[16 + weight_bytes] = 4;
+            assert_eq!(
+                BinaryPose::decode(&more),
+                Err(PoseDecodeError::Length {
+                    expected: n + 19,
+                    actual: n
+                })
+            );
+            // Without the flag the tracker block is bytes too many.
+            let mut unflagged = bytes;
+            unflagged[1] &= !FLAG_TRACKERS;
+            assert!(matches!(
+                BinaryPose::decode(&unflagged),
+                Err(PoseDecodeError::Length { .. })
+            ));
+        }
+        // Unknown flags are still refused.
+        let mut bits = BinaryPose {
+            avatar_num: 1,
+            time_us: None,
+            root_position: None,
+            rotations: Vec::new(),
+            weights: Vec::new(),
+            trackers: trackers[..1].to_vec(),
+        }
+        .encode();
+        bits[1] |= 0x10;
+        assert_eq!(
+            BinaryPose::decode(&bits),
+            Err(PoseDecodeError::Flags(FLAG_TRACKERS | 0x10))
+        );
     }
 }

@@ -143,7 +143,12 @@ pub enum ClientMsg {
         /// The driven avatar.
         avatar: AvatarId,
         /// Local rotations `[x, y, z, w]` of the source rig's joints, by joint name; joints not
-        /// listed keep their last value.
+        /// listed keep their last value. Absent (or empty) for a tracker drive.
+        #[serde(default)]
+        #[cfg_attr(
+            feature = "ts",
+            ts(as = "Option<std::collections::BTreeMap<String, [f32; 4]>>", optional)
+        )]
         rotations: std::collections::BTreeMap<String, [f32; 4]>,
         /// The source root joint's local translation, metres.
         #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -156,6 +161,10 @@ pub enum ClientMsg {
         /// named keep their weights.
         #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
         weights: std::collections::BTreeMap<String, f32>,
+        /// A tracker drive's tracker transforms in the scene's space, by tracker name (of the
+        /// `drive`'s `trackers`); trackers not named keep their last transform.
+        #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+        trackers: std::collections::BTreeMap<String, crate::trackers::TrackerTransform>,
     },
 }
 

@@ -76,6 +76,8 @@ pub enum CalibrationPose {
     /// Standing straight, looking ahead, arms straight out to the sides, palms down: also
     /// measures the arm span.
     TPose,
+    /// As the T-pose with the arms 45° below horizontal: also measures the arm span.
+    APose,
 }
 
 /// What `calibrate_trackers` measured.
@@ -89,7 +91,7 @@ pub struct CalibrationInfo {
     /// The avatar's over the user's size: tracker positions are scaled by it about the user's
     /// place on the floor.
     pub scale: f32,
-    /// The same for the arms (from a T-pose's span; `scale` otherwise).
+    /// The same for the arms (from a T- or A-pose's hand span; `scale` otherwise).
     pub arm_scale: f32,
     /// The trackers whose offsets were measured.
     pub trackers: Vec<String>,

@@ -19,6 +19,7 @@ use crate::placement::Placement;
 use crate::rig_options::{NeutralPose, PipelineOptions, ReorientFrame, SignedAxis, UpAxisOverride};
 use crate::subset::JointSet;
 use crate::tokens::{MintRequest, MintedToken, Right, TokenInfo};
+use crate::trackers::{CalibrationInfo, CalibrationPose, Legs, TrackerTransform};
 use ts_rs::{Config, TS};
 
 /// The file's first lines.
@@ -89,6 +90,10 @@ pub fn declarations() -> String {
         DriveVia,
         Viewer,
         OnRelease,
+        TrackerTransform,
+        Legs,
+        CalibrationPose,
+        CalibrationInfo,
         RecordingInfo,
         PipelineOptions,
         NeutralPose,

@@ -403,9 +403,11 @@ export class Client {
   /**
    * Takes over an avatar as its live driver (the `drive` command); its poses then go with
    * `sendPose`, paced at the answer's `max_rate_hz`. The drive ends with `releaseDrive`, the
-   * connection's end, or `timeout` seconds without a pose.
+   * connection's end, or `timeout` seconds without a pose. With `trackers` (`head`, `l_hand`,
+   * `r_hand`, optionally `hips`, `l_foot`, `r_foot` or joint names) its poses carry tracker
+   * transforms in the scene's space and the server solves the body from them.
    * @param {string} avatar
-   * @param {{ source?: string, on_release?: "clip" | "hold" }} [options]
+   * @param {{ source?: string, on_release?: "clip" | "hold", trackers?: string[], legs?: "planted" | "animated" }} [options]
    * @returns {Promise<DriveInfo>}
    */
   async drive(avatar, options = {}) {
@@ -413,6 +415,8 @@ export class Client {
     const command = { op: "drive", avatar };
     if (options.source !== undefined) command.source = options.source;
     if (options.on_release !== undefined) command.on_release = options.on_release;
+    if (options.trackers !== undefined) command.trackers = options.trackers;
+    if (options.legs !== undefined) command.legs = options.legs;
     const info = /** @type {DriveInfo} */ (await this.command(command));
     this.endPacing(avatar);
     const rate = Number.isFinite(info.max_rate_hz) && info.max_rate_hz > 0 ? info.max_rate_hz : 1 / 60;
@@ -424,17 +428,19 @@ export class Client {
   /**
    * Sends a live pose of a driven avatar: local rotations of the drive's source joints by
    * name, optionally the source root's translation (metres) and the capture time (µs; now by
-   * default). Poses are paced at the drive's `max_rate_hz`: one sent before its slot waits for
+   * default) — or, for a tracker drive, tracker transforms in the scene's space by name. Poses are paced at the drive's `max_rate_hz`: one sent before its slot waits for
    * it, and a newer pose replaces a waiting one (poses supersede each other), so a driver
    * sending faster than the server takes is never refused `rate_limited`.
    * @param {string} avatar
-   * @param {{ rotations: Record<string, Quat>, root_position?: Vec3, time_us?: number }} pose
+   * @param {{ rotations?: Record<string, Quat>, root_position?: Vec3, time_us?: number, trackers?: Record<string, { position: Vec3, rotation: Quat }> }} pose
    * @returns {"sent" | "queued" | "offline"}
    */
   sendPose(avatar, pose) {
     /** @type {ClientMessage} */
-    const msg = { type: "pose", avatar, rotations: pose.rotations, time_us: pose.time_us ?? nowMicros() };
+    const msg = { type: "pose", avatar, time_us: pose.time_us ?? nowMicros() };
+    if (pose.rotations) msg.rotations = pose.rotations;
     if (pose.root_position) msg.root_position = pose.root_position;
+    if (pose.trackers) msg.trackers = pose.trackers;
     const pacing = this.drives.get(avatar);
     if (!pacing) return this.send(msg) ? "sent" : "offline";
     const now = performance.now();

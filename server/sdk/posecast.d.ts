@@ -31,6 +31,7 @@ export interface ResultKinds {
   get_joint: "joint";
   sample_pose: "pose";
   drive: "drive";
+  calibrate_trackers: "calibration";
   stop_recording: "recorded";
   create_scene: "scene_created";
   add_avatar: "avatar_added";
@@ -57,6 +58,8 @@ export type {
   AvatarDescription,
   AvatarPoseJson,
   AvatarState,
+  CalibrationInfo,
+  CalibrationPose,
   ClientMsg,
   ClipInfo,
   Command,
@@ -67,6 +70,7 @@ export type {
   FadeState,
   JointInfo,
   JointSet,
+  Legs,
   MintRequest,
   MintedToken,
   Placement,
@@ -76,6 +80,7 @@ export type {
   SceneInfo,
   ServerMsg,
   TokenInfo,
+  TrackerTransform,
 } from "./protocol";
 import type {
   Access,
@@ -87,11 +92,13 @@ import type {
   Encoding,
   ErrorCode as WireErrorCode,
   JointSet,
+  Legs,
   MintRequest,
   MintedToken,
   Placement,
   ServerMsg,
   TokenInfo,
+  TrackerTransform,
 } from "./protocol";
 
 /**
@@ -322,17 +329,27 @@ export declare class Client {
   command<C extends Command>(command: C): Promise<ResultOf<C["op"]>>;
   /**
    * Takes over an avatar as its live driver (`drive`); poses then go with {@link sendPose},
-   * paced at the answer's `max_rate_hz`.
+   * paced at the answer's `max_rate_hz`. With `trackers` the poses carry tracker transforms
+   * and the server solves the body from them.
    */
-  drive(avatar: string, options?: { source?: string; on_release?: "clip" | "hold" }): Promise<DriveInfo>;
+  drive(
+    avatar: string,
+    options?: { source?: string; on_release?: "clip" | "hold"; trackers?: string[]; legs?: Legs },
+  ): Promise<DriveInfo>;
   /**
    * Sends a live pose of a driven avatar (local rotations of the source's joints by name, the
-   * root's translation, the capture time in µs). Paced at the drive's `max_rate_hz`: a pose
-   * before its slot waits for it ("queued"), a newer one replaces a waiting one.
+   * root's translation, the capture time in µs; or, for a tracker drive, tracker transforms in
+   * the scene's space by name). Paced at the drive's `max_rate_hz`: a pose before its slot
+   * waits for it ("queued"), a newer one replaces a waiting one.
    */
   sendPose(
     avatar: string,
-    pose: { rotations: Record<string, Quat>; root_position?: Vec3; time_us?: number },
+    pose: {
+      rotations?: Record<string, Quat>;
+      root_position?: Vec3;
+      time_us?: number;
+      trackers?: Record<string, TrackerTransform>;
+    },
   ): "sent" | "queued" | "offline";
   /** Ends a drive this connection holds (`release_drive`). */
   releaseDrive(avatar: string): Promise<unknown>;

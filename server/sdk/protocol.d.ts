@@ -82,9 +82,9 @@ idempotency_key?: string | null, } | { "type": "watch_scenes" } | { "type": "unw
 avatar: AvatarId, 
 /**
  * Local rotations `[x, y, z, w]` of the source rig's joints, by joint name; joints not
- * listed keep their last value.
+ * listed keep their last value. Absent (or empty) for a tracker drive.
  */
-rotations: { [key in string]: [number, number, number, number] }, 
+rotations?: { [key in string]: [number, number, number, number] }, 
 /**
  * The source root joint's local translation, metres.
  */
@@ -98,7 +98,12 @@ time_us?: number | null,
  * expression name, as `set_morph_weights` takes them), each in `[0, 1]`; channels not
  * named keep their weights.
  */
-weights?: { [key in string]: number }, };
+weights?: { [key in string]: number }, 
+/**
+ * A tracker drive's tracker transforms in the scene's space, by tracker name (of the
+ * `drive`'s `trackers`); trackers not named keep their last transform.
+ */
+trackers?: { [key in string]: TrackerTransform }, };
 
 /**
  * Everything the server may send as a text message.
@@ -213,7 +218,7 @@ server_time_us: number, } | { "type": "ack",
 /**
  * The command's id.
  */
-id: number, } & ({ "kind": "scenes", "result": Array<SceneInfo> } | { "kind": "assets", "result": Array<AssetInfo> } | { "kind": "avatar", "result": AvatarState } | { "kind": "joint", "result": JointInfo } | { "kind": "drive", "result": DriveInfo } | { "kind": "recorded", "result": RecordingInfo } | { "kind": "asset", "result": AssetDetail } | { "kind": "pose", "result": AvatarPoseJson } | { "kind": "scene_created", "result": { 
+id: number, } & ({ "kind": "scenes", "result": Array<SceneInfo> } | { "kind": "assets", "result": Array<AssetInfo> } | { "kind": "avatar", "result": AvatarState } | { "kind": "joint", "result": JointInfo } | { "kind": "drive", "result": DriveInfo } | { "kind": "recorded", "result": RecordingInfo } | { "kind": "asset", "result": AssetDetail } | { "kind": "pose", "result": AvatarPoseJson } | { "kind": "calibration", "result": CalibrationInfo } | { "kind": "scene_created", "result": { 
 /**
  * The new scene.
  */
@@ -615,7 +620,30 @@ on_release?: OnRelease | null,
  * its poses set only these, and the avatar's clip and layers keep the rest; absent:
  * every joint. The root's translation follows the driver only when it owns the root.
  */
-joints?: JointMask | null, } | { "op": "release_drive", 
+joints?: JointMask | null, 
+/**
+ * Tracker driving: the trackers this driver's poses give, in the order binary poses
+ * index them — `head`, `l_hand` and `r_hand` always; `hips`, `l_foot`, `r_foot` and
+ * joints of the avatar's rig (by its own or H-Anim name) optionally; at most
+ * `crate::trackers::MAX_TRACKERS`, no name twice. Poses then carry tracker
+ * transforms in the scene's space (`trackers`), not rotations, and the server solves
+ * the avatar's whole body from them every tick. Only on the avatar's own rig (no
+ * `source`). Absent: poses carry local rotations.
+ */
+trackers?: Array<string> | null, 
+/**
+ * With `trackers`: what moves the legs (default `planted`: feet stand where they are
+ * planted and step when the hips move away, or follow foot trackers).
+ */
+legs?: Legs | null, } | { "op": "calibrate_trackers", 
+/**
+ * The avatar.
+ */
+avatar: AvatarId, 
+/**
+ * The pose the user holds (default `neutral`: standing, arms at the sides).
+ */
+pose?: CalibrationPose | null, } | { "op": "release_drive", 
 /**
  * The avatar.
  */
@@ -658,7 +686,7 @@ asset: string, };
  * answers). An `ack` of protocol version 1 or 2 carries the bare value alone
  * (`CommandResult::to_value`), which `CommandResult::from_bare` reads back by its shape.
  */
-export type CommandResult = { "kind": "scenes", "result": Array<SceneInfo> } | { "kind": "assets", "result": Array<AssetInfo> } | { "kind": "avatar", "result": AvatarState } | { "kind": "joint", "result": JointInfo } | { "kind": "drive", "result": DriveInfo } | { "kind": "recorded", "result": RecordingInfo } | { "kind": "asset", "result": AssetDetail } | { "kind": "pose", "result": AvatarPoseJson } | { "kind": "scene_created", "result": { 
+export type CommandResult = { "kind": "scenes", "result": Array<SceneInfo> } | { "kind": "assets", "result": Array<AssetInfo> } | { "kind": "avatar", "result": AvatarState } | { "kind": "joint", "result": JointInfo } | { "kind": "drive", "result": DriveInfo } | { "kind": "recorded", "result": RecordingInfo } | { "kind": "asset", "result": AssetDetail } | { "kind": "pose", "result": AvatarPoseJson } | { "kind": "calibration", "result": CalibrationInfo } | { "kind": "scene_created", "result": { 
 /**
  * The new scene.
  */
@@ -1509,7 +1537,12 @@ morph_targets?: Array<string>,
  * Standard expression names → channel (its description's `expressions`), which JSON
  * poses may name weights by.
  */
-expressions?: { [key in string]: string }, };
+expressions?: { [key in string]: string }, 
+/**
+ * A tracker drive's trackers (`drive … trackers`), in order: binary poses index this
+ * list. Absent for a drive by rotations.
+ */
+trackers?: Array<string>, };
 
 /**
  * Who drives an avatar live, and how.
@@ -1547,6 +1580,55 @@ connections: number, };
  * What a live-driven avatar does when its driver goes.
  */
 export type OnRelease = "clip" | "hold";
+
+/**
+ * One tracker's transform in a JSON `pose` message.
+ */
+export type TrackerTransform = { 
+/**
+ * Position `[x, y, z]` in the scene's space, metres.
+ */
+position: [number, number, number], 
+/**
+ * Rotation `[x, y, z, w]` in the scene's space (normalised; finite and non-zero).
+ */
+rotation: [number, number, number, number], };
+
+/**
+ * What moves a tracker-driven avatar's legs.
+ */
+export type Legs = "planted" | "animated";
+
+/**
+ * The pose the user holds while `calibrate_trackers` measures them.
+ */
+export type CalibrationPose = "neutral" | "t_pose" | "a_pose";
+
+/**
+ * What `calibrate_trackers` measured.
+ */
+export type CalibrationInfo = { 
+/**
+ * The avatar.
+ */
+avatar: AvatarId, 
+/**
+ * The user's head (tracker) height above the scene's floor, metres.
+ */
+user_height: number, 
+/**
+ * The avatar's over the user's size: tracker positions are scaled by it about the user's
+ * place on the floor.
+ */
+scale: number, 
+/**
+ * The same for the arms (from a T- or A-pose's hand span; `scale` otherwise).
+ */
+arm_scale: number, 
+/**
+ * The trackers whose offsets were measured.
+ */
+trackers: Array<string>, };
 
 /**
  * The answer to `stop_recording`.

@@ -96,6 +96,13 @@ pub fn typed_result(command: &Command, value: Value) -> Result<CommandResult, Ki
         Command::Drive { .. } => {
             CommandResult::Drive(read::<Box<DriveInfo>>(command, value, "drive info")?)
         }
+        Command::CalibrateTrackers { .. } => {
+            CommandResult::Calibration(read::<Box<posecast_proto::trackers::CalibrationInfo>>(
+                command,
+                value,
+                "calibration",
+            )?)
+        }
         Command::StopRecording { .. } => {
             CommandResult::Recorded(read::<Box<RecordingInfo>>(command, value, "recording")?)
         }

@@ -130,6 +130,7 @@ impl JointMap {
                 .map(|(&i, t)| (i, t.rotation.normalize()))
                 .collect::<Vec<(u16, Quat)>>(),
             weights: Vec::new(),
+            trackers: Vec::new(),
         }
     }
 }

@@ -250,6 +250,8 @@ impl Driver {
                 source: source.map(str::to_owned),
                 on_release,
                 joints: None,
+                trackers: None,
+                legs: None,
             })
             .await?;
         let info: DriveInfo = match result {
@@ -301,6 +303,7 @@ impl Driver {
             root_position,
             time_us,
             weights: BTreeMap::new(),
+            trackers: BTreeMap::new(),
         })
         .await
     }

@@ -118,3 +118,22 @@ async function driveWave(): Promise<void> {
   void sent;
 }
 void driveWave;
+
+// Tracker driving: a headset and two controllers, then a calibration.
+async function driveTrackers(): Promise<void> {
+  const info = await client.drive("avatar", { trackers: ["head", "l_hand", "r_hand"], legs: "planted" });
+  const order: string[] = info.trackers ?? [];
+  client.sendPose("avatar", {
+    trackers: {
+      head: { position: [0, 1.6, 0], rotation: [0, 0, 0, 1] },
+      l_hand: { position: [0.3, 1.1, 0.2], rotation: [0, 0, 0, 1] },
+    },
+  });
+  const measured = await client.command({ op: "calibrate_trackers", avatar: "avatar", pose: "t_pose" });
+  const scale: number = measured.scale;
+  // @ts-expect-error legs are "planted" or "animated"
+  await client.drive("avatar", { trackers: ["head"], legs: "running" });
+  void order;
+  void scale;
+}
+void driveTrackers;

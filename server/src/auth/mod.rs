@@ -480,6 +480,7 @@ fn limited_rig_size(world: &World, command: &Command) -> Result<(), Error> {
 fn needs(command: &Command) -> (&'static [Right], &'static str) {
     match command {
         Command::Drive { .. }
+        | Command::CalibrateTrackers { .. }
         | Command::ReleaseDrive { .. }
         | Command::SetIkGoal { .. }
         | Command::ClearIkGoal { .. }

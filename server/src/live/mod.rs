@@ -7,12 +7,16 @@
 //! - this module: the connection's side — `drive` / `release_drive`, validating pose messages
 //!   (JSON and binary), and releasing what it drives when it leaves.
 //! - `remote`: an avatar of a scene another server of the cluster ticks, driven through that
-//!   server: poses checked here (morph weights' names resolved here too) and passed on.
+//!   server: poses checked here (morph weights' names and trackers' names resolved here too)
+//!   and passed on.
 //!
 //! A pose passes, in order: the sender drives the avatar (`not_allowed_now`), the driver's rate
-//! budget ([`posecast_proto::live::MAX_RATE_HZ`], `rate_limited`), every joint known
-//! (`unknown_joint`), every rotation a finite non-zero quaternion and the root position finite
-//! and within [`MAX_ROOT_METRES`] (`invalid_value`). A pose failing any check changes nothing.
+//! budget ([`posecast_proto::live::MAX_RATE_HZ`], `rate_limited`), the pose's kind matches the
+//! drive's — rotations (and a root position) for a drive by rotations, trackers for a tracker
+//! drive (`drive … trackers`; `invalid_value`) — every joint or tracker known
+//! (`unknown_joint`), every rotation a finite non-zero quaternion and the root and tracker
+//! positions finite and within [`MAX_ROOT_METRES`] (`invalid_value`). A pose failing any check
+//! changes nothing.
 
 use crate::changes;
 use crate::scene::Scene;
@@ -24,8 +28,10 @@ use posecast_core::quota::{CommandRate, TokenBucket};
 use posecast_proto::command::{Command, CommandResult, DriveInfo, DriveVia, Driver, OnRelease};
 use posecast_proto::live::{BinaryPose, MAX_RATE_HZ, VMC_SOURCE};
 use posecast_proto::msg::{AvatarId, SceneId};
+use posecast_proto::trackers::{Legs, TrackerTransform};
 use posecast_sim::avatar::Avatar;
 use posecast_sim::avatar::live::{LivePose, ValidPose};
+use posecast_sim::avatar::trackers::{TrackerSample, Trackers};
 use remote::RemoteDrive;
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -143,20 +149,30 @@ impl Drives {
             source,
             on_release,
             joints,
+            trackers,
+            legs,
         } = command
         else {
             return None;
         };
         let before = changes::before(state, command);
-        let result = self
-            .drive(
+        let result = if legs.is_some() && trackers.is_none() {
+            Err(Error::invalid(
+                "legs is for a tracker drive: name its trackers too",
+            ))
+        } else {
+            self.drive(
                 state,
                 avatar,
                 source.as_deref(),
                 on_release.unwrap_or_default(),
                 joints.as_ref(),
+                trackers
+                    .as_deref()
+                    .map(|names| (names, legs.unwrap_or_default())),
             )
-            .map(|info| CommandResult::Drive(Box::new(info)));
+        }
+        .map(|info| CommandResult::Drive(Box::new(info)));
         state.metrics.command(result.is_ok());
         if let Ok(r) = &result {
             changes::after(state, command, before, r);
@@ -171,7 +187,13 @@ impl Drives {
         source: Option<&str>,
         on_release: OnRelease,
         joints: Option<&posecast_proto::command::JointMask>,
+        trackers: Option<(&[String], Legs)>,
     ) -> Result<DriveInfo, Error> {
+        if trackers.is_some() && source.is_some() {
+            return Err(Error::invalid(
+                "a tracker drive solves the avatar's own rig: give trackers or source, not both",
+            ));
+        }
         let vmc = match source {
             Some(VMC_SOURCE) => Some(
                 crate::vmc::performer_rig()
@@ -217,6 +239,17 @@ impl Drives {
             ))
         })?;
         live.owned = owned;
+        live.trackers = trackers
+            .map(|(names, legs)| Trackers::new(&a.rig, names, legs))
+            .transpose()
+            .map_err(|e| {
+                Error::invalid(format!("cannot drive avatar {avatar} by trackers: {e}"))
+            })?;
+        let tracker_names = live
+            .trackers
+            .as_ref()
+            .map(|t| t.names().to_vec())
+            .unwrap_or_default();
         a.live = Some(live);
         if let Some(l) = a.live.as_mut() {
             l.by = Some(self.who.clone());
@@ -243,6 +276,7 @@ impl Drives {
             max_rate_hz: MAX_RATE_HZ,
             morph_targets,
             expressions,
+            trackers: tracker_names,
         })
     }
 
@@ -264,6 +298,7 @@ impl Drives {
             root_position,
             time_us,
             weights,
+            trackers,
         } = *pose;
         let (_, _, scene) = self
             .driven
@@ -274,6 +309,23 @@ impl Drives {
             crate::world::morph::resolve_weights(a, weights.iter().map(|(n, w)| (n.as_str(), *w)))
         };
         self.with_live(scene, avatar, named, |live| {
+            if let Some(names) = live.trackers.as_ref().map(Trackers::names) {
+                if !rotations.is_empty() || root_position.is_some() {
+                    return Err(rotations_to_trackers(avatar));
+                }
+                let mut samples = Vec::with_capacity(trackers.len());
+                for (name, t) in trackers {
+                    let i = names
+                        .iter()
+                        .position(|n| n == name)
+                        .ok_or_else(|| unknown_tracker(avatar, names, name))?;
+                    samples.push((i, tracker_sample(name, t.position, t.rotation)?));
+                }
+                return Ok(Valid::Trackers { samples, time_us });
+            }
+            if !trackers.is_empty() {
+                return Err(trackers_to_rotations(avatar));
+            }
             let skeleton = live.source.skeleton();
             let mut pose = ValidPose {
                 rotations: Vec::with_capacity(rotations.len()),
@@ -287,7 +339,7 @@ impl Drives {
                 })?;
                 pose.rotations.push((j, rotation(name, *q)?));
             }
-            Ok(pose)
+            Ok(Valid::Rotations(pose))
         })
     }
 
@@ -353,6 +405,27 @@ impl Drives {
                 .collect::<Result<Vec<_>, Error>>()
         };
         self.with_live(scene, avatar, by_slot, |live| {
+            if let Some(names) = live.trackers.as_ref().map(Trackers::names) {
+                if !msg.rotations.is_empty() || msg.root_position.is_some() {
+                    return Err(rotations_to_trackers(avatar));
+                }
+                let mut samples = Vec::with_capacity(msg.trackers.len());
+                for &(i, p, q) in &msg.trackers {
+                    let label = format!("index {i}");
+                    let i = usize::from(i);
+                    if i >= names.len() {
+                        return Err(unknown_tracker(avatar, names, &label));
+                    }
+                    samples.push((i, tracker_sample(&names[i], p.to_array(), q.to_array())?));
+                }
+                return Ok(Valid::Trackers {
+                    samples,
+                    time_us: msg.time_us,
+                });
+            }
+            if !msg.trackers.is_empty() {
+                return Err(trackers_to_rotations(avatar));
+            }
             let n = live.source.skeleton().len();
             let mut pose = ValidPose {
                 rotations: Vec::with_capacity(msg.rotations.len()),
@@ -369,7 +442,7 @@ impl Drives {
                 }
                 pose.rotations.push((j, q));
             }
-            Ok(pose)
+            Ok(Valid::Rotations(pose))
         })
     }
 
@@ -379,7 +452,7 @@ impl Drives {
         scene: &Scene,
         avatar: &AvatarId,
         weights: impl FnOnce(&Avatar) -> Result<Vec<(usize, f32)>, Error>,
-        validate: impl FnOnce(&LivePose) -> Result<ValidPose, Error>,
+        validate: impl FnOnce(&LivePose) -> Result<Valid, Error>,
     ) -> Result<(), Error> {
         let now = Instant::now();
         let mut s = scene.lock();
@@ -396,7 +469,11 @@ impl Drives {
         let morph = weights(a)?;
         // A pose older than the last applied is dropped, and its weights with it; a stored
         // one's weights apply with it at the next tick's evaluation.
-        if a.live.as_mut().is_some_and(|live| live.store(pose, now)) {
+        let stored = a.live.as_mut().is_some_and(|live| match pose {
+            Valid::Rotations(pose) => live.store(pose, now),
+            Valid::Trackers { samples, time_us } => live.store_trackers(&samples, time_us, now),
+        });
+        if stored {
             a.store_morph(&morph);
         }
         Ok(())
@@ -426,6 +503,17 @@ impl Drives {
     }
 }
 
+/// A pose checked against its drive, ready to store.
+enum Valid {
+    /// Local rotations of the source rig (a drive by rotations).
+    Rotations(ValidPose),
+    /// Tracker transforms (a tracker drive): `(tracker index, sample)`.
+    Trackers {
+        samples: Vec<(usize, TrackerSample)>,
+        time_us: Option<u64>,
+    },
+}
+
 /// The fields of a JSON `pose` message ([`posecast_proto::msg::ClientMsg::Pose`]).
 #[derive(Clone, Copy, Debug)]
 pub struct JsonPose<'a> {
@@ -437,6 +525,55 @@ pub struct JsonPose<'a> {
     pub time_us: Option<u64>,
     /// Morph weights by name.
     pub weights: &'a BTreeMap<String, f32>,
+    /// Tracker transforms by tracker name (a tracker drive).
+    pub trackers: &'a BTreeMap<String, TrackerTransform>,
+}
+
+/// A tracker's transform, checked: the position finite and within [`MAX_ROOT_METRES`], the
+/// rotation a finite non-zero quaternion (normalised).
+fn tracker_sample(name: &str, position: [f32; 3], q: [f32; 4]) -> Result<TrackerSample, Error> {
+    let p = Vec3::from_array(position);
+    if !(p.is_finite() && p.length() <= MAX_ROOT_METRES) {
+        return Err(Error::invalid(format!(
+            "tracker {name}: position {position:?} must be finite and within {MAX_ROOT_METRES} m"
+        )));
+    }
+    let rotation = posecast_proto::unit_quat(q).ok_or_else(|| {
+        Error::invalid(format!(
+            "tracker {name}: rotation {q:?} is not a finite non-zero quaternion"
+        ))
+    })?;
+    Ok(TrackerSample {
+        position: p,
+        rotation,
+    })
+}
+
+/// A tracker (a name, or `index N`) the drive of `avatar` (trackers `names`) does not have.
+fn unknown_tracker(avatar: impl std::fmt::Display, names: &[String], tracker: &str) -> Error {
+    Error::UnknownJoint {
+        owner: format!(
+            "the tracker drive of avatar {avatar} (trackers {})",
+            names.join(", ")
+        ),
+        joint: format!("for tracker {tracker}"),
+    }
+}
+
+/// Rotations or a root position sent to a tracker drive.
+fn rotations_to_trackers(avatar: impl std::fmt::Display) -> Error {
+    Error::invalid(format!(
+        "avatar {avatar} is driven by trackers: its poses carry trackers, not rotations or \
+         root_position (drive it again without trackers to send rotations)"
+    ))
+}
+
+/// Trackers sent to a drive by rotations.
+fn trackers_to_rotations(avatar: impl std::fmt::Display) -> Error {
+    Error::invalid(format!(
+        "avatar {avatar} is driven by rotations: its drive named no trackers (drive it with \
+         trackers to send them)"
+    ))
 }
 
 fn rotation(joint: &str, q: [f32; 4]) -> Result<Quat, Error> {

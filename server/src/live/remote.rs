@@ -10,8 +10,16 @@
 //! names are resolved here to slots, so the owner applies them as its own driver's
 //! ([`super::Drives::relayed_pose`]). Weights cross as levels of 1/1023, the precision every
 //! frame carries them at.
+//!
+//! A tracker drive's trackers travel as the binary pose's `(index, position, rotation)`
+//! entries, indexes into the `drive` answer's `trackers`: a JSON pose's names are resolved
+//! here, and every index and value checked, before the pose goes on. Positions cross exactly,
+//! rotations smallest-three quantised (at most 0.0075° off), as in a binary pose.
 
-use super::{JsonPose, pose_rate, rate_limited, root, rotation};
+use super::{
+    JsonPose, pose_rate, rate_limited, root, rotation, rotations_to_trackers, tracker_sample,
+    trackers_to_rotations, unknown_tracker,
+};
 use crate::scene::Scene;
 use crate::state::AppState;
 use glam::Vec3;
@@ -37,6 +45,8 @@ pub(super) struct RemoteDrive {
     morph_targets: Vec<String>,
     /// Standard expression names → channel, as the `drive` answer listed them.
     expressions: BTreeMap<String, String>,
+    /// A tracker drive's trackers, as the `drive` answer listed them (empty: by rotations).
+    trackers: Vec<String>,
     /// The expressions the avatar's file defines (slots past the channels), from the
     /// description the owner relays to this server's subscribers.
     expression_binds: Vec<Expression>,
@@ -60,6 +70,7 @@ impl RemoteDrive {
             joints: info.joints.clone(),
             morph_targets: info.morph_targets.clone(),
             expressions: info.expressions.clone(),
+            trackers: info.trackers.clone(),
             expression_binds,
             rate: pose_rate(),
         }
@@ -89,21 +100,50 @@ impl RemoteDrive {
         self.send(state, conn, &pose)
     }
 
-    /// A JSON pose: joints and weights resolved by name ([`RemoteDrive::slot`]), checked and
-    /// passed on.
+    /// A JSON pose: joints, trackers and weights resolved by name ([`RemoteDrive::resolve`]),
+    /// checked and passed on.
     pub(super) fn json_pose(
         &mut self,
         state: &AppState,
         conn: u64,
         pose: &JsonPose<'_>,
     ) -> Result<(), Error> {
+        let out = self.resolve(pose)?;
+        self.rate.take_at(Instant::now()).map_err(rate_limited)?;
+        self.check_joints(&out)?;
+        self.send(state, conn, &out)
+    }
+
+    /// A JSON pose as the binary pose the owner is sent: joints and trackers by index into the
+    /// `drive` answer's lists, weights by slot ([`RemoteDrive::slot`]); tracker values checked.
+    fn resolve(&self, pose: &JsonPose<'_>) -> Result<BinaryPose, Error> {
         let mut out = BinaryPose {
             avatar_num: self.num,
             time_us: pose.time_us,
             root_position: pose.root_position.map(Vec3::from_array),
             rotations: Vec::with_capacity(pose.rotations.len()),
             weights: Vec::with_capacity(pose.weights.len()),
+            trackers: Vec::with_capacity(pose.trackers.len()),
         };
+        if !self.trackers.is_empty() && (!pose.rotations.is_empty() || pose.root_position.is_some())
+        {
+            return Err(rotations_to_trackers(&self.avatar));
+        }
+        if !self.trackers.is_empty() {
+            // Names resolved and values checked here (the check below sees indexes only).
+            for (name, t) in pose.trackers {
+                let i = self
+                    .trackers
+                    .iter()
+                    .position(|n| n == name)
+                    .and_then(|i| u8::try_from(i).ok())
+                    .ok_or_else(|| unknown_tracker(&self.avatar, &self.trackers, name))?;
+                let s = tracker_sample(name, t.position, t.rotation)?;
+                out.trackers.push((i, s.position, s.rotation));
+            }
+        } else if !pose.trackers.is_empty() {
+            return Err(trackers_to_rotations(&self.avatar));
+        }
         for (name, q) in pose.rotations {
             let j = self
                 .joints
@@ -126,9 +166,7 @@ impl RemoteDrive {
             let w = morph::check_weight(name, w).map_err(|e| Error::invalid(e.to_string()))?;
             out.weights.push((slot, morph::weight_level(w)));
         }
-        self.rate.take_at(Instant::now()).map_err(rate_limited)?;
-        self.check_joints(&out)?;
-        self.send(state, conn, &out)
+        Ok(out)
     }
 
     /// The slot weight `name` sets, resolved as `Avatar::morph_channel` does on the owner: an
@@ -141,8 +179,24 @@ impl RemoteDrive {
             .and_then(|slot| u16::try_from(slot).ok())
     }
 
-    /// Every joint index in the source rig's, every value finite and in range.
+    /// Every joint (or tracker) index in the source rig's (or the drive's trackers), every
+    /// value finite and in range, and the pose's kind the drive's (rotations or trackers).
     fn check_joints(&self, pose: &BinaryPose) -> Result<(), Error> {
+        if self.trackers.is_empty() {
+            if !pose.trackers.is_empty() {
+                return Err(trackers_to_rotations(&self.avatar));
+            }
+        } else {
+            if !pose.rotations.is_empty() || pose.root_position.is_some() {
+                return Err(rotations_to_trackers(&self.avatar));
+            }
+            for &(i, p, q) in &pose.trackers {
+                let name = self.trackers.get(usize::from(i)).ok_or_else(|| {
+                    unknown_tracker(&self.avatar, &self.trackers, &format!("index {i}"))
+                })?;
+                tracker_sample(name, p.to_array(), q.to_array())?;
+            }
+        }
         root(pose.root_position)?;
         for &(j, q) in &pose.rotations {
             if usize::from(j) >= self.joints.len() {
@@ -181,9 +235,75 @@ mod tests {
             joints: vec!["hips".into()],
             morph_targets: vec!["mouthOpen".into(), "mouthSmile".into()],
             expressions: BTreeMap::from([("jawOpen".into(), "mouthOpen".into())]),
+            trackers: Vec::new(),
             expression_binds: vec![happy],
             rate: pose_rate(),
         }
+    }
+
+    /// A tracker drive's JSON trackers become indexes into the drive's list, in its order,
+    /// their values kept; a name the drive lacks, a bad value, rotations to a tracker drive and
+    /// trackers to a drive by rotations are refused here, as on the owner; binary trackers are
+    /// checked by index.
+    #[test]
+    fn trackers_resolve_to_the_drives_indexes() {
+        use posecast_proto::trackers::TrackerTransform;
+        let mut r = drive();
+        r.trackers = vec!["r_hand".into(), "head".into(), "l_hand".into()];
+        let at = |x: f32| TrackerTransform {
+            position: [x, 1.0, 0.0],
+            rotation: [0.0, 0.0, 0.0, 2.0],
+        };
+        let rotations = BTreeMap::new();
+        let weights = BTreeMap::new();
+        let pose = |trackers| JsonPose {
+            rotations: &rotations,
+            root_position: None,
+            time_us: Some(5),
+            weights: &weights,
+            trackers,
+        };
+        let named = BTreeMap::from([
+            ("head".to_owned(), at(0.5)),
+            ("l_hand".to_owned(), at(0.25)),
+        ]);
+        let out = r.resolve(&pose(&named)).unwrap();
+        // By name (a map: `head` before `l_hand`), each at its index in the drive's list.
+        assert_eq!(
+            out.trackers,
+            vec![
+                (1, Vec3::new(0.5, 1.0, 0.0), glam::Quat::IDENTITY),
+                (2, Vec3::new(0.25, 1.0, 0.0), glam::Quat::IDENTITY)
+            ]
+        );
+        r.check_joints(&out).unwrap();
+        let unknown = BTreeMap::from([("l_foot".to_owned(), at(0.0))]);
+        let e = r.resolve(&pose(&unknown)).unwrap_err();
+        assert!(
+            matches!(&e, Error::UnknownJoint { joint, .. } if joint.contains("l_foot")),
+            "{e}"
+        );
+        let far = BTreeMap::from([("head".to_owned(), at(1e30))]);
+        assert!(matches!(r.resolve(&pose(&far)), Err(Error::Invalid(_))));
+        let mut past = out.clone();
+        past.trackers.push((3, Vec3::ZERO, glam::Quat::IDENTITY));
+        assert!(matches!(
+            r.check_joints(&past),
+            Err(Error::UnknownJoint { .. })
+        ));
+        let mut nan = out.clone();
+        nan.trackers[0].1.x = f32::NAN;
+        assert!(matches!(r.check_joints(&nan), Err(Error::Invalid(_))));
+        let mut rotated = out.clone();
+        rotated.rotations.push((0, glam::Quat::IDENTITY));
+        assert!(matches!(r.check_joints(&rotated), Err(Error::Invalid(_))));
+        // A drive by rotations takes no trackers.
+        let plain = drive();
+        assert!(matches!(
+            plain.resolve(&pose(&named)),
+            Err(Error::Invalid(_))
+        ));
+        assert!(matches!(plain.check_joints(&out), Err(Error::Invalid(_))));
     }
 
     /// Names resolve in the owner's order: file-defined expressions, channels, standard names.

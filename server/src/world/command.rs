@@ -9,9 +9,11 @@ use posecast_core::error::Error;
 use posecast_proto::command::{Command, CommandResult, DofInfo, JointInfo, RecordingInfo};
 use posecast_proto::msg::{AvatarId, check_id};
 use posecast_proto::placement::Placement;
+use posecast_proto::trackers::CalibrationInfo;
 use posecast_sim::avatar::Avatar;
 use posecast_sim::avatar::playback::{DEFAULT_FADE, Layer};
 use posecast_sim::avatar::recording::{RecordLimits, Recorder};
+use posecast_sim::avatar::trackers::TrackerError;
 use serde_json::Value;
 
 /// A finite, non-zero quaternion, normalised (in f64, so huge finite components cannot
@@ -508,6 +510,37 @@ pub fn apply(world: &World, command: &Command) -> Result<CommandResult, Error> {
             "delete_asset runs through the store (uploads are files)".into(),
         )),
 
+        Command::CalibrateTrackers { avatar, pose } => with_avatar(world, avatar, |a| {
+            let placement = a.placing.current().to_mat4();
+            let trackers = a
+                .live
+                .as_mut()
+                .and_then(|l| l.trackers.as_mut())
+                .ok_or_else(|| {
+                    Error::NotAllowedNow(format!(
+                        "avatar {avatar} is not driven by trackers: drive it with trackers \
+                         (drive … trackers) and send their poses first"
+                    ))
+                })?;
+            let measured = trackers
+                .calibrate(pose.unwrap_or_default(), placement)
+                .map_err(|e| match e {
+                    TrackerError::NoSample(_) => Error::NotAllowedNow(format!(
+                        "cannot calibrate avatar {avatar}'s trackers: {e}"
+                    )),
+                    _ => {
+                        Error::invalid(format!("cannot calibrate avatar {avatar}'s trackers: {e}"))
+                    }
+                })?;
+            a.evaluate();
+            Ok(CommandResult::Calibration(Box::new(CalibrationInfo {
+                avatar: avatar.clone(),
+                user_height: measured.user_height,
+                scale: measured.scale,
+                arm_scale: measured.arm_scale,
+                trackers: measured.trackers,
+            })))
+        }),
         Command::ReleaseDrive { avatar } => with_avatar(world, avatar, |a| {
             a.release_drive();
             Ok(CommandResult::Done)

@@ -8,10 +8,11 @@
 //! solves from the filtered values, so trackers at 72–120 Hz, jittery or clumped, give one
 //! smooth pose per tick. A tracker that goes quiet holds its last transform.
 //!
-//! **Calibration** ([`Trackers::calibrate`]): the user stands in the neutral pose (or a T-pose);
+//! **Calibration** ([`Trackers::calibrate`]): the user stands in the neutral pose (or a T- or
+//! A-pose);
 //! the head tracker's height against the avatar's head height gives the scale the user's
 //! positions are shrunk or grown by (about the user's place on the floor, so walking is not
-//! scaled), a T-pose's hand span the arms' own scale, and each tracker's offset to the joint it
+//! scaled), a T- or A-pose's hand span the arms' own scale, and each tracker's offset to the joint it
 //! stands for is measured (a controller held in the hand is not the wrist). Uncalibrated, a
 //! tracker *is* its joint (`proto::trackers`).
 //!
@@ -113,8 +114,8 @@ pub enum TrackerError {
     /// The head is too low (or below the floor) to measure a height from.
     #[error("the head tracker is {0:.3} m above the floor: too low to measure the user's height")]
     TooLow(f32),
-    /// The hands are too close for a T-pose.
-    #[error("the hand trackers are {0:.3} m apart: not a T-pose")]
+    /// The hands are too close for a T- or A-pose.
+    #[error("the hand trackers are {0:.3} m apart: not a T- or A-pose")]
     NotTPose(f32),
 }
 
@@ -633,11 +634,25 @@ impl Trackers {
 
     /// Calibrates from the latest samples, the user standing in `pose` on the floor of an
     /// avatar placed at `placement` (its scene-space matrix): the scale, the arms' scale (a
-    /// T-pose) and every tracker's offset to its joint. Resets the feet and the heading.
+    /// T- or A-pose) and every tracker's offset to its joint. Resets the feet and the heading.
     ///
     /// # Errors
-    /// A tracker without a sample, a head too low, hands too close for a T-pose.
+    /// A tracker without a sample, a head too low, hands too close for a T- or A-pose.
     pub fn calibrate(
+        &mut self,
+        pose: CalibrationPose,
+        placement: Mat4,
+    ) -> Result<Calibration, TrackerError> {
+        // Measured uncalibrated; a refused calibration keeps the last one.
+        let kept = (self.scale, self.arm_scale);
+        let measured = self.measure(pose, placement);
+        if measured.is_err() {
+            (self.scale, self.arm_scale) = kept;
+        }
+        measured
+    }
+
+    fn measure(
         &mut self,
         pose: CalibrationPose,
         placement: Mat4,
@@ -646,7 +661,6 @@ impl Trackers {
             return Err(TrackerError::NoSample(self.names[i].clone()));
         }
         let to_model = placement.inverse();
-        // Measured uncalibrated.
         self.scale = 1.0;
         self.arm_scale = 1.0;
         let raw = self.mapped(to_model, None);
@@ -665,7 +679,7 @@ impl Trackers {
         let skeleton_rest = self.body_pose(pose);
         let arm_scale = match pose {
             CalibrationPose::Neutral => scale,
-            CalibrationPose::TPose => {
+            CalibrationPose::TPose | CalibrationPose::APose => {
                 let (l, _) = at(&|s| matches!(s, Slot::Hand(0)))?;
                 let (r, _) = at(&|s| matches!(s, Slot::Hand(1)))?;
                 let span = l.distance(r);
@@ -723,12 +737,17 @@ impl Trackers {
     }
 
     /// The avatar's model-space matrices in a calibration pose: neutral, the upper arms
-    /// turned out to the sides (palms down) for a T-pose.
+    /// turned out to the sides (palms down) for a T-pose, half as far for an A-pose.
     fn body_pose(&self, pose: CalibrationPose) -> Vec<Mat4> {
         let b = &self.body;
         let mut locals = b.neutral_locals.clone();
-        if pose == CalibrationPose::TPose {
-            for (side, angle) in [(0, PI / 2.0), (1, -PI / 2.0)] {
+        let raised = match pose {
+            CalibrationPose::Neutral => 0.0,
+            CalibrationPose::TPose => PI / 2.0,
+            CalibrationPose::APose => PI / 4.0,
+        };
+        if raised > 0.0 {
+            for (side, angle) in [(0, raised), (1, -raised)] {
                 if let Some([shoulder, _, _]) = b.arms[side] {
                     // Parents are at neutral (identity rotations): local = model rotation.
                     locals[shoulder].rotation = Quat::from_rotation_z(angle);

@@ -669,6 +669,7 @@ impl Session {
                 root_position,
                 time_us,
                 weights,
+                trackers,
             } => {
                 // Not acknowledged (up to 120 a second): errors only.
                 let pose = JsonPose {
@@ -676,6 +677,7 @@ impl Session {
                     root_position,
                     time_us,
                     weights: &weights,
+                    trackers: &trackers,
                 };
                 if let Err(e) = self.drives.json_pose(&self.state, &avatar, &pose) {
                     self.error(e);

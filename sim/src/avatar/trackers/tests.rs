@@ -306,6 +306,41 @@ fn calibration_scales_a_taller_user_to_the_avatar() {
         "arm scale {}",
         c.arm_scale
     );
+    // A refused calibration (the head on the floor) keeps the last one.
+    let mut low = samples.clone();
+    low[0].1.position.y = 0.05;
+    t.store(&low, 1.5);
+    assert_eq!(
+        t.calibrate(CalibrationPose::Neutral, Mat4::IDENTITY),
+        Err(TrackerError::TooLow(0.05))
+    );
+    assert_eq!((t.scale, t.arm_scale), (c.scale, c.arm_scale));
+    // An A-pose (arms 45° down) of a user 10 % larger in every way: both scales 1/1.1.
+    let mut apose = neutral(&rig);
+    apose[joint(&rig, "l_shoulder")].rotation = Quat::from_rotation_z(PI / 4.0);
+    apose[joint(&rig, "r_shoulder")].rotation = Quat::from_rotation_z(-PI / 4.0);
+    let aw = world_of(&rig, &apose);
+    let mut samples = read(&rig, &aw, &THREE);
+    for (_, x) in &mut samples {
+        x.position *= 1.1;
+    }
+    t.store(&samples, 2.0);
+    let c = t.calibrate(CalibrationPose::APose, Mat4::IDENTITY).unwrap();
+    assert!((c.scale - 1.0 / 1.1).abs() < 1e-4, "scale {}", c.scale);
+    assert!(
+        (c.arm_scale - 1.0 / 1.1).abs() < 1e-3,
+        "arm scale {}",
+        c.arm_scale
+    );
+    // Solved in that pose, the avatar holds its own A-pose.
+    let got = solved(&rig, &mut t, 2.0);
+    for name in ["l_wrist", "r_wrist"] {
+        let j = joint(&rig, name);
+        let d = transform(&got, j)
+            .position
+            .distance(transform(&aw, j).position);
+        assert!(d < 1e-3, "{name} {d} m from the avatar's A-pose");
+    }
 }
 
 #[test]
