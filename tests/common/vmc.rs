@@ -218,3 +218,76 @@ pub fn free_udp_addr() -> SocketAddr {
 pub fn avatar(id: &str) -> AvatarId {
     AvatarId(id.into())
 }
+
+/// `/VMC/Ext/Hmd/Pos`: a headset's pose.
+pub const HMD: &str = "/VMC/Ext/Hmd/Pos";
+/// `/VMC/Ext/Con/Pos`: a controller's pose.
+pub const CONTROLLER: &str = "/VMC/Ext/Con/Pos";
+/// `/VMC/Ext/Tra/Pos`: a generic tracker's pose.
+pub const TRACKER: &str = "/VMC/Ext/Tra/Pos";
+
+/// glTF → Unity position: mirror X (its own inverse).
+pub fn mirror_position(p: Vec3) -> Vec3 {
+    Vec3::new(-p.x, p.y, p.z)
+}
+
+/// One tracked device as a VR tool sends it: `(address, serial, position, rotation)` with the
+/// pose given in glTF's frame (posecast's) and written in Unity's by the helpers below.
+pub type DeviceSent<'a> = (&'a str, &'a str, Vec3, Quat);
+
+/// A datagram of devices as VR tools send them: OK, the sender's time (when given), then one
+/// `/VMC/Ext/{Hmd,Con,Tra}/Pos` per device in the order given, each mirrored into Unity's
+/// frame (position `(−x, y, z)`, rotation `(x, −y, −z, w)`).
+pub fn devices_frame(time: Option<f32>, devices: &[DeviceSent<'_>]) -> Vec<u8> {
+    let mut content = vec![message("/VMC/Ext/OK", vec![OscType::Int(1)])];
+    if let Some(t) = time {
+        content.push(message("/VMC/Ext/T", vec![OscType::Float(t)]));
+    }
+    for (addr, serial, p, q) in devices {
+        content.push(pose_message(addr, serial, mirror_position(*p), mirror(*q)));
+    }
+    rosc::encoder::encode(&bundle(content)).unwrap()
+}
+
+/// A pose of `rig` in its model space: every joint at its rest translation with an identity
+/// rotation (the H-Anim neutral pose), then `rotations` (by joint name) and the humanoid root
+/// moved by `root_offset` and turned by `root_turn` (about its rest position).
+pub fn model_pose(
+    rig: &posecast_server::rig::Rig,
+    root_offset: Vec3,
+    root_turn: Quat,
+    rotations: &[(&str, Quat)],
+) -> Vec<Transform> {
+    let sk = rig.skeleton();
+    let mut locals: Vec<Transform> = sk.rest().to_vec();
+    for l in &mut locals {
+        l.rotation = Quat::IDENTITY;
+    }
+    for (name, q) in rotations {
+        let j = sk.find(name).unwrap_or_else(|| panic!("no joint {name}"));
+        locals[j].rotation = *q;
+    }
+    let root = sk.find("humanoid_root").unwrap();
+    // The root's parent is at neutral (identity rotations), so a model-space turn and offset
+    // are local ones too.
+    locals[root].rotation = root_turn * locals[root].rotation;
+    locals[root].translation += root_offset;
+    locals
+}
+
+/// Model-space world matrices of `locals` on `rig`.
+pub fn model_worlds(rig: &posecast_server::rig::Rig, locals: &[Transform]) -> Vec<glam::Mat4> {
+    let mut world = vec![glam::Mat4::IDENTITY; locals.len()];
+    posecast_proto::fk::forward_kinematics(rig.skeleton(), locals, &mut world);
+    world
+}
+
+/// Joint `name`'s model-space position and rotation in `world`.
+pub fn joint_at(rig: &posecast_server::rig::Rig, world: &[glam::Mat4], name: &str) -> (Vec3, Quat) {
+    let j = rig
+        .skeleton()
+        .find(name)
+        .unwrap_or_else(|| panic!("no joint {name}"));
+    let (_, q, p) = world[j].to_scale_rotation_translation();
+    (p, q.normalize())
+}

@@ -474,6 +474,7 @@ posecast_vmc_messages_rejected_total{reason="bad_arguments"} 0
 posecast_vmc_messages_rejected_total{reason="invalid_value"} 0
 posecast_vmc_messages_rejected_total{reason="unknown_bone"} 0
 posecast_vmc_messages_rejected_total{reason="blend_shape_limit"} 0
+posecast_vmc_messages_rejected_total{reason="device_limit"} 0
 posecast_vmc_poses_total 0
 posecast_vmc_poses_refused_total{reason="busy"} 0
 posecast_vmc_poses_refused_total{reason="no_avatar"} 0

@@ -39,22 +39,26 @@ pub enum MessageReject {
     UnknownAddress,
     /// Too few arguments or ones of the wrong type.
     BadArguments,
-    /// NaN or infinity, a zero quaternion, a position beyond 10 km, a scale outside
-    /// [0.001, 1000].
+    /// NaN or infinity, a zero quaternion, a position beyond 10 km (bones, root, devices), a
+    /// scale outside [0.001, 1000].
     InvalidValue,
     /// A bone name that is not one of Unity's `HumanBodyBones`.
     UnknownBone,
     /// A blend shape past the input's limit of names, or a name too long.
     BlendShapeLimit,
+    /// A tracked device (`/VMC/Ext/{Hmd,Con,Tra}/Pos`) past the input's limit of serials
+    /// ([`crate::vmc::input::MAX_DEVICES`]), or a serial too long.
+    DeviceLimit,
 }
 
 impl MessageReject {
-    const ALL: [Self; 5] = [
+    const ALL: [Self; 6] = [
         Self::UnknownAddress,
         Self::BadArguments,
         Self::InvalidValue,
         Self::UnknownBone,
         Self::BlendShapeLimit,
+        Self::DeviceLimit,
     ];
 
     fn label(self) -> &'static str {
@@ -64,6 +68,7 @@ impl MessageReject {
             Self::InvalidValue => "invalid_value",
             Self::UnknownBone => "unknown_bone",
             Self::BlendShapeLimit => "blend_shape_limit",
+            Self::DeviceLimit => "device_limit",
         }
     }
 }
@@ -75,7 +80,8 @@ pub enum PoseRefusal {
     Busy,
     /// No avatar of that id (yet): the input waits.
     NoAvatar,
-    /// The avatar's rig cannot be retargeted from a humanoid (no `humanoid_root`).
+    /// The avatar's rig cannot be retargeted from a humanoid (no `humanoid_root`), or, for a
+    /// sender of tracked devices only, lacks the joints the tracker solve needs.
     NotHumanoid,
 }
 

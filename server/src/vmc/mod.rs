@@ -8,7 +8,9 @@
 //! - [`rig`]: that T-pose as a normalised source rig, and the maps between VMC's T-pose-relative
 //!   rotations and it.
 //! - [`packet`]: one datagram decoded (OSC by `rosc`) and checked.
-//! - [`input`]: `--vmc-in ADDR=AVATAR`, a performer driving an avatar.
+//! - [`input`]: `--vmc-in ADDR=AVATAR`, a performer driving an avatar: by its bones, or, when
+//!   it sends only tracked devices (`/VMC/Ext/{Hmd,Con,Tra}/Pos`, a VR tool), by the tracker
+//!   solve (`posecast_sim::avatar::trackers`).
 //! - [`output`]: `--vmc-out AVATAR=ADDR`, an avatar's pose sent every tick.
 //!
 //! # The maths

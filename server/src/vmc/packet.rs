@@ -22,6 +22,20 @@ pub const MAX_BUNDLE_DEPTH: usize = 8;
 /// Longest blend shape name accepted, bytes.
 pub const MAX_BLEND_NAME: usize = 64;
 
+/// Longest device serial accepted, bytes (SteamVR serials are about a dozen characters).
+pub const MAX_SERIAL: usize = 64;
+
+/// What kind of tracked device a `/VMC/Ext/{Hmd,Con,Tra}/Pos` message is about.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum DeviceKind {
+    /// `/VMC/Ext/Hmd/Pos`: a headset.
+    Hmd,
+    /// `/VMC/Ext/Con/Pos`: a hand controller.
+    Controller,
+    /// `/VMC/Ext/Tra/Pos`: a generic tracker (waist, feet, …).
+    Tracker,
+}
+
 /// A message VMC input uses, with Unity-frame values.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Message {
@@ -61,6 +75,19 @@ pub enum Message {
     },
     /// `/VMC/Ext/Blend/Apply`.
     BlendApply,
+    /// `/VMC/Ext/Hmd/Pos`, `/VMC/Ext/Con/Pos` or `/VMC/Ext/Tra/Pos`
+    /// `(string){serial} p.xyz q.xyzw`: a tracked device's pose in the sender's world
+    /// (tracking) space. The `/Local` variants (VMC 2.3, relative to the avatar) are not used.
+    Device {
+        /// Headset, controller or generic tracker.
+        kind: DeviceKind,
+        /// The device's serial (at most [`MAX_SERIAL`] bytes), as the sender names it.
+        serial: String,
+        /// Its position, metres, Unity frame.
+        position: Vec3,
+        /// Its rotation, Unity frame.
+        rotation: Quat,
+    },
 }
 
 /// Decodes `bytes`, calling `each` for every usable message in order and `reject` for every
@@ -166,10 +193,29 @@ fn message(m: &OscMessage) -> Result<Option<Message>, MessageReject> {
             }
         }
         "/VMC/Ext/Blend/Apply" => Message::BlendApply,
-        // The rest of the protocol (cameras, devices, MIDI, settings) is not pose data.
+        "/VMC/Ext/Hmd/Pos" => device(DeviceKind::Hmd, &args)?,
+        "/VMC/Ext/Con/Pos" => device(DeviceKind::Controller, &args)?,
+        "/VMC/Ext/Tra/Pos" => device(DeviceKind::Tracker, &args)?,
+        // The rest of the protocol (cameras, devices' `/Local` poses, MIDI, settings) is not
+        // used.
         a if a.starts_with("/VMC/") => return Ok(None),
         _ => return Err(MessageReject::UnknownAddress),
     }))
+}
+
+/// A device pose message's arguments: `(string){serial} p.xyz q.xyzw`.
+fn device(kind: DeviceKind, args: &Args<'_>) -> Result<Message, MessageReject> {
+    let serial = args.string(0)?;
+    let (position, rotation) = (args.vec3(1)?, args.quat(4)?);
+    if serial.len() > MAX_SERIAL {
+        return Err(MessageReject::DeviceLimit);
+    }
+    Ok(Message::Device {
+        kind,
+        serial: serial.to_owned(),
+        position: self::position(position)?,
+        rotation: self::rotation(rotation)?,
+    })
 }
 
 fn finite(v: f32) -> Result<f32, MessageReject> {
@@ -374,5 +420,76 @@ mod tests {
         // Huge finite quaternions are rotations (normalised in f64); a root 1e19 m away is not.
         assert_eq!(ok.len(), 2);
         assert_eq!(bad, [MessageReject::InvalidValue]);
+    }
+
+    fn device(addr: &str, serial: &str, floats: &[f32]) -> OscPacket {
+        let mut args = vec![OscType::String(serial.into())];
+        args.extend(floats.iter().copied().map(OscType::Float));
+        msg(addr, args)
+    }
+
+    #[test]
+    fn device_poses_decode_and_bad_ones_stand_alone() {
+        let pose = [0.1, 1.6, -0.2, 0.0, 0.0, 0.0, 1.0];
+        let long = "S".repeat(MAX_SERIAL + 1);
+        let p = bundle(vec![
+            device("/VMC/Ext/Hmd/Pos", "LHR-1", &pose),
+            device("/VMC/Ext/Con/Pos", "LHR-2", &pose),
+            device("/VMC/Ext/Tra/Pos", "LHR-3", &pose),
+            // VMC 2.3's local poses: not used, not counted.
+            device("/VMC/Ext/Tra/Pos/Local", "LHR-3", &pose),
+            device(
+                "/VMC/Ext/Con/Pos",
+                "nan",
+                &[f32::NAN, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+            ),
+            device(
+                "/VMC/Ext/Con/Pos",
+                "zero",
+                &[0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+            ),
+            device(
+                "/VMC/Ext/Con/Pos",
+                "far",
+                &[2e4, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+            ),
+            device("/VMC/Ext/Con/Pos", "short", &pose[..6]),
+            msg(
+                "/VMC/Ext/Hmd/Pos",
+                [OscType::Int(1)]
+                    .into_iter()
+                    .chain(pose.map(OscType::Float))
+                    .collect(),
+            ),
+            device("/VMC/Ext/Tra/Pos", &long, &pose),
+        ]);
+        let bytes = rosc::encoder::encode(&p).unwrap();
+        let (r, ok, bad) = run(&bytes);
+        assert_eq!(r, Ok(()));
+        assert_eq!(
+            ok,
+            [
+                (DeviceKind::Hmd, "LHR-1"),
+                (DeviceKind::Controller, "LHR-2"),
+                (DeviceKind::Tracker, "LHR-3")
+            ]
+            .map(|(kind, serial)| Message::Device {
+                kind,
+                serial: serial.into(),
+                position: Vec3::new(0.1, 1.6, -0.2),
+                rotation: Quat::IDENTITY,
+            })
+        );
+        assert_eq!(
+            bad,
+            [
+                MessageReject::InvalidValue,
+                MessageReject::InvalidValue,
+                MessageReject::InvalidValue,
+                MessageReject::BadArguments,
+                MessageReject::BadArguments,
+                MessageReject::DeviceLimit,
+            ]
+        );
     }
 }
