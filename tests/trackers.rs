@@ -871,3 +871,99 @@ async fn tracker_poses_through_a_relay_reach_every_viewer() {
     assert_eq!(answer["kind"], "calibration", "{answer}");
     assert_eq!(answer["result"]["trackers"], json!(trackers), "{answer}");
 }
+
+/// `legs: "locomotion"`: a user walking plays the walk clip on the legs at the matching rate,
+/// standing plays idle; the `@locomotion` layer shows in `get_avatar`; locomotion lists that
+/// cannot be played are refused and drive nothing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn locomotion_legs_follow_the_hips_speed() {
+    let server = server().await;
+    let addr = server.addr;
+    let rig = server.rig(AVATAR).unwrap();
+    let mut ws = common::raw_at(addr, Encoding::Json, Some(common::CONTROL)).await;
+    let three = ["head", "l_hand", "r_hand"];
+    let refused = [
+        json!({"legs": "locomotion"}),
+        json!({"legs": "locomotion", "locomotion": [{"clip": "moonwalk", "speed": 1.0}]}),
+        json!({"legs": "locomotion", "locomotion": [{"clip": "walk", "speed": -1.0}]}),
+        json!({"legs": "planted", "locomotion": [{"clip": "walk", "speed": 1.0}]}),
+    ];
+    for (id, extra) in (30..).zip(refused) {
+        let mut drive = json!({"op": "drive", "avatar": AVATAR, "trackers": three});
+        for (k, v) in extra.as_object().unwrap() {
+            drive[k] = v.clone();
+        }
+        let (code, m) = command(&mut ws, id, drive.clone()).await.unwrap_err();
+        assert_eq!(code, "invalid_value", "{drive}: {m}");
+        assert!(m.contains("locomotion"), "{drive}: {m}");
+    }
+    let state = ok(addr, json!({"op": "get_avatar", "avatar": AVATAR})).await;
+    assert!(state.get("driven").is_none(), "{state}");
+
+    let drive = json!({"op": "drive", "avatar": AVATAR, "trackers": three, "legs": "locomotion",
+        "locomotion": [{"clip": "idle", "speed": 0.0}, {"clip": "walk", "speed": 1.2}]});
+    command(&mut ws, 40, drive).await.unwrap();
+    let standing = tracker_targets(&rig, &three, &[], 0.0);
+    // Where the trackers are `t` seconds into the walk (1.5 m/s forward along the scene's
+    // +Z, then still after `stop` seconds).
+    let at = |t: f32, stop: f32| -> BTreeMap<String, Target> {
+        let walked = Vec3::Z * 1.5 * t.min(stop);
+        standing
+            .iter()
+            .map(|(n, (p, q))| (n.clone(), (*p + walked, *q)))
+            .collect()
+    };
+    let started = std::time::Instant::now();
+    let locomotion = |state: &Value| -> Option<(String, f64)> {
+        let layer = state["layers"]
+            .as_array()?
+            .iter()
+            .find(|l| l["layer"] == "@locomotion" && l["weight"].as_f64() > Some(0.99))?;
+        Some((layer["clip"].as_str()?.to_owned(), layer["speed"].as_f64()?))
+    };
+    // Walking: the walk clip at 1.5 / 1.2 = 1.25 its rate. Poses follow the wall clock (the
+    // scene's clock runs with it), so a stall of the test changes only how far the user got.
+    let mut walking = None;
+    let mut stopped_at = None;
+    let mut idle = false;
+    let deadline = started + Duration::from_secs(120);
+    while std::time::Instant::now() < deadline && !idle {
+        let t = started.elapsed().as_secs_f32();
+        let stop = stopped_at.unwrap_or(f32::INFINITY);
+        let time_us = started.elapsed().as_micros() as u64;
+        ws.send(json_pose(time_us, &at(t, stop))).await.unwrap();
+        tokio::time::sleep(Duration::from_millis(16)).await;
+        let state = ok(addr, json!({"op": "get_avatar", "avatar": AVATAR})).await;
+        match (locomotion(&state), stopped_at) {
+            (Some((clip, speed)), None) if clip == "walk" && (speed - 1.25).abs() < 0.1 => {
+                walking = Some(speed);
+                stopped_at = Some(t);
+            }
+            (Some((clip, _)), Some(_)) if clip == "idle" => idle = true,
+            _ => {}
+        }
+    }
+    assert!(
+        walking.is_some(),
+        "the walk clip never played at 1.25× its rate"
+    );
+    assert!(idle, "standing still never went back to idle");
+    // Released: the layer fades out and goes; the avatar's own clip plays the legs again.
+    command(
+        &mut ws,
+        41,
+        json!({"op": "release_drive", "avatar": AVATAR}),
+    )
+    .await
+    .unwrap();
+    let deadline = std::time::Instant::now() + Duration::from_secs(120);
+    let mut gone = false;
+    while !gone && std::time::Instant::now() < deadline {
+        let state = ok(addr, json!({"op": "get_avatar", "avatar": AVATAR})).await;
+        gone = state["layers"]
+            .as_array()
+            .is_none_or(|l| l.iter().all(|l| l["layer"] != "@locomotion"));
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert!(gone, "the locomotion layer outlived its drive");
+}

@@ -382,6 +382,11 @@ pub enum Command {
         /// planted and step when the hips move away, or follow foot trackers).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         legs: Option<crate::trackers::Legs>,
+        /// With `legs: "locomotion"`: the avatar's clips the legs play, each with the speed
+        /// (m/s) its walk covers; the server picks the one nearest the hips' speed and plays it
+        /// at the matching rate on a `@locomotion` layer over the legs.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        locomotion: Option<Vec<crate::trackers::LocomotionClip>>,
     },
     /// Measure a tracker-driven avatar's user (`drive … trackers`) from their trackers'
     /// latest transforms while they stand in `pose`: their height (and with a T-pose their arm
@@ -784,6 +789,10 @@ pub struct JointMask {
     pub except: Vec<String>,
 }
 
+fn one() -> f32 {
+    1.0
+}
+
 /// A clip layer as `get_avatar` reports it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[cfg_attr(feature = "ts", derive(ts_rs::TS))]
@@ -794,6 +803,10 @@ pub struct LayerState {
     pub clip: String,
     /// Clip time, seconds.
     pub time: f32,
+    /// Clip seconds per second (what `play_layer … speed` set, or a tracker drive's
+    /// locomotion rate).
+    #[serde(default = "one")]
+    pub speed: f32,
     /// Whether it adds to the pose below rather than replacing it.
     pub additive: bool,
     /// The weight it shows now (fades included).
@@ -935,6 +948,7 @@ mod tests {
             joints: None,
             trackers: None,
             legs: None,
+            locomotion: None,
         };
         assert_eq!(
             serde_json::to_string(&plain).unwrap(),

@@ -63,6 +63,24 @@ pub enum Legs {
     /// The legs keep what the avatar's clip and clip layers give them (a walk cycle on a
     /// `legs` layer, say); the trackers place the hips.
     Animated,
+    /// The legs play a locomotion clip (the drive's `locomotion` list) picked by how fast the
+    /// hips move, at the rate that matches it, cross-faded as the speed changes.
+    Locomotion,
+}
+
+/// Most clips a `locomotion` list may name.
+pub const MAX_LOCOMOTION_CLIPS: usize = 8;
+
+/// A clip the legs of a tracker drive may play (`drive … legs: "locomotion"`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
+#[serde(deny_unknown_fields)]
+pub struct LocomotionClip {
+    /// One of the avatar's clips (`idle`, `walk`, …).
+    pub clip: String,
+    /// How fast its walk covers ground played at rate 1, m/s (0 for standing still; finite,
+    /// 0 to 20).
+    pub speed: f32,
 }
 
 /// The pose the user holds while `calibrate_trackers` measures them.

@@ -19,7 +19,7 @@ use crate::placement::Placement;
 use crate::rig_options::{NeutralPose, PipelineOptions, ReorientFrame, SignedAxis, UpAxisOverride};
 use crate::subset::JointSet;
 use crate::tokens::{MintRequest, MintedToken, Right, TokenInfo};
-use crate::trackers::{CalibrationInfo, CalibrationPose, Legs, TrackerTransform};
+use crate::trackers::{CalibrationInfo, CalibrationPose, Legs, LocomotionClip, TrackerTransform};
 use ts_rs::{Config, TS};
 
 /// The file's first lines.
@@ -94,6 +94,7 @@ pub fn declarations() -> String {
         Legs,
         CalibrationPose,
         CalibrationInfo,
+        LocomotionClip,
         RecordingInfo,
         PipelineOptions,
         NeutralPose,

@@ -407,7 +407,7 @@ export class Client {
    * `r_hand`, optionally `hips`, `l_foot`, `r_foot` or joint names) its poses carry tracker
    * transforms in the scene's space and the server solves the body from them.
    * @param {string} avatar
-   * @param {{ source?: string, on_release?: "clip" | "hold", trackers?: string[], legs?: "planted" | "animated" }} [options]
+   * @param {{ source?: string, on_release?: "clip" | "hold", trackers?: string[], legs?: "planted" | "animated" | "locomotion", locomotion?: { clip: string, speed: number }[] }} [options]
    * @returns {Promise<DriveInfo>}
    */
   async drive(avatar, options = {}) {
@@ -417,6 +417,7 @@ export class Client {
     if (options.on_release !== undefined) command.on_release = options.on_release;
     if (options.trackers !== undefined) command.trackers = options.trackers;
     if (options.legs !== undefined) command.legs = options.legs;
+    if (options.locomotion !== undefined) command.locomotion = options.locomotion;
     const info = /** @type {DriveInfo} */ (await this.command(command));
     this.endPacing(avatar);
     const rate = Number.isFinite(info.max_rate_hz) && info.max_rate_hz > 0 ? info.max_rate_hz : 1 / 60;

@@ -71,6 +71,7 @@ export type {
   JointInfo,
   JointSet,
   Legs,
+  LocomotionClip,
   MintRequest,
   MintedToken,
   Placement,
@@ -93,6 +94,7 @@ import type {
   ErrorCode as WireErrorCode,
   JointSet,
   Legs,
+  LocomotionClip,
   MintRequest,
   MintedToken,
   Placement,
@@ -334,7 +336,13 @@ export declare class Client {
    */
   drive(
     avatar: string,
-    options?: { source?: string; on_release?: "clip" | "hold"; trackers?: string[]; legs?: Legs },
+    options?: {
+      source?: string;
+      on_release?: "clip" | "hold";
+      trackers?: string[];
+      legs?: Legs;
+      locomotion?: LocomotionClip[];
+    },
   ): Promise<DriveInfo>;
   /**
    * Sends a live pose of a driven avatar (local rotations of the source's joints by name, the

@@ -635,7 +635,13 @@ trackers?: Array<string> | null,
  * With `trackers`: what moves the legs (default `planted`: feet stand where they are
  * planted and step when the hips move away, or follow foot trackers).
  */
-legs?: Legs | null, } | { "op": "calibrate_trackers", 
+legs?: Legs | null, 
+/**
+ * With `legs: "locomotion"`: the avatar's clips the legs play, each with the speed
+ * (m/s) its walk covers; the server picks the one nearest the hips' speed and plays it
+ * at the matching rate on a `@locomotion` layer over the legs.
+ */
+locomotion?: Array<LocomotionClip> | null, } | { "op": "calibrate_trackers", 
 /**
  * The avatar.
  */
@@ -1279,6 +1285,11 @@ clip: string,
  */
 time: number, 
 /**
+ * Clip seconds per second (what `play_layer … speed` set, or a tracker drive's
+ * locomotion rate).
+ */
+speed: number, 
+/**
  * Whether it adds to the pose below rather than replacing it.
  */
 additive: boolean, 
@@ -1597,7 +1608,7 @@ rotation: [number, number, number, number], };
 /**
  * What moves a tracker-driven avatar's legs.
  */
-export type Legs = "planted" | "animated";
+export type Legs = "planted" | "animated" | "locomotion";
 
 /**
  * The pose the user holds while `calibrate_trackers` measures them.
@@ -1629,6 +1640,20 @@ arm_scale: number,
  * The trackers whose offsets were measured.
  */
 trackers: Array<string>, };
+
+/**
+ * A clip the legs of a tracker drive may play (`drive … legs: "locomotion"`).
+ */
+export type LocomotionClip = { 
+/**
+ * One of the avatar's clips (`idle`, `walk`, …).
+ */
+clip: string, 
+/**
+ * How fast its walk covers ground played at rate 1, m/s (0 for standing still; finite,
+ * 0 to 20).
+ */
+speed: number, };
 
 /**
  * The answer to `stop_recording`.

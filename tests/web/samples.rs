@@ -72,6 +72,7 @@ fn state(full: bool) -> AvatarState {
                 layer: "upper".into(),
                 clip: "wave".into(),
                 time: 0.75,
+                speed: 1.0,
                 additive: false,
                 weight: 1.0,
                 joints: 12,

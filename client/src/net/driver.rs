@@ -252,6 +252,7 @@ impl Driver {
                 joints: None,
                 trackers: None,
                 legs: None,
+                locomotion: None,
             })
             .await?;
         let info: DriveInfo = match result {

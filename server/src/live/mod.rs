@@ -28,7 +28,7 @@ use posecast_core::quota::{CommandRate, TokenBucket};
 use posecast_proto::command::{Command, CommandResult, DriveInfo, DriveVia, Driver, OnRelease};
 use posecast_proto::live::{BinaryPose, MAX_RATE_HZ, VMC_SOURCE};
 use posecast_proto::msg::{AvatarId, SceneId};
-use posecast_proto::trackers::{Legs, TrackerTransform};
+use posecast_proto::trackers::{Legs, LocomotionClip, TrackerTransform};
 use posecast_sim::avatar::Avatar;
 use posecast_sim::avatar::live::{LivePose, ValidPose};
 use posecast_sim::avatar::trackers::{TrackerSample, Trackers};
@@ -151,6 +151,7 @@ impl Drives {
             joints,
             trackers,
             legs,
+            locomotion,
         } = command
         else {
             return None;
@@ -160,6 +161,10 @@ impl Drives {
             Err(Error::invalid(
                 "legs is for a tracker drive: name its trackers too",
             ))
+        } else if locomotion.is_some() != (*legs == Some(Legs::Locomotion)) {
+            Err(Error::invalid(
+                "locomotion (the clips the legs play) goes with legs \"locomotion\", and that needs it",
+            ))
         } else {
             self.drive(
                 state,
@@ -167,9 +172,13 @@ impl Drives {
                 source.as_deref(),
                 on_release.unwrap_or_default(),
                 joints.as_ref(),
-                trackers
-                    .as_deref()
-                    .map(|names| (names, legs.unwrap_or_default())),
+                trackers.as_deref().map(|names| {
+                    (
+                        names,
+                        legs.unwrap_or_default(),
+                        locomotion.as_deref().unwrap_or_default(),
+                    )
+                }),
             )
         }
         .map(|info| CommandResult::Drive(Box::new(info)));
@@ -187,7 +196,7 @@ impl Drives {
         source: Option<&str>,
         on_release: OnRelease,
         joints: Option<&posecast_proto::command::JointMask>,
-        trackers: Option<(&[String], Legs)>,
+        trackers: Option<(&[String], Legs, &[LocomotionClip])>,
     ) -> Result<DriveInfo, Error> {
         if trackers.is_some() && source.is_some() {
             return Err(Error::invalid(
@@ -240,7 +249,13 @@ impl Drives {
         })?;
         live.owned = owned;
         live.trackers = trackers
-            .map(|(names, legs)| Trackers::new(&a.rig, names, legs))
+            .map(|(names, legs, clips)| {
+                let mut t = Trackers::new(&a.rig, names, legs)?;
+                if legs == Legs::Locomotion {
+                    t.set_locomotion(&a.rig, clips)?;
+                }
+                Ok::<_, posecast_sim::avatar::trackers::TrackerError>(t)
+            })
             .transpose()
             .map_err(|e| {
                 Error::invalid(format!("cannot drive avatar {avatar} by trackers: {e}"))

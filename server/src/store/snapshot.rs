@@ -148,7 +148,8 @@ fn record(a: &Avatar) -> AvatarRecord {
 fn layer_commands(a: &Avatar) -> Vec<Command> {
     a.layers
         .iter()
-        .filter(|l| !l.stopping())
+        // The locomotion layer belongs to its tracker drive, which a restart does not keep.
+        .filter(|l| !l.stopping() && l.name != posecast_sim::avatar::LOCOMOTION_LAYER)
         .filter_map(|l| {
             let clip = l.player.current()?;
             Some(Command::PlayLayer {
@@ -655,6 +656,51 @@ mod tests {
         assert_eq!(info.avatars.len(), 1);
         assert_eq!(info.avatars[0].clip, None);
         assert_eq!(info.avatars[0].overrides, vec!["l_knee".to_string()]);
+    }
+
+    /// A tracker drive's locomotion layer belongs to the drive (a restart does not keep
+    /// drives): a snapshot keeps the avatar's own layers, not it.
+    #[tokio::test]
+    async fn snapshots_leave_out_the_locomotion_layer() {
+        let state = AppState::new(Config::default());
+        state
+            .world
+            .library
+            .insert(posecast_rigs::builtin::rig().unwrap());
+        cmd(&state, r#"{"op":"create_scene","scene":"s"}"#);
+        cmd(
+            &state,
+            &format!(r#"{{"op":"add_avatar","scene":"s","asset":"{BUILTIN_ASSET}","avatar":"a"}}"#),
+        );
+        cmd(
+            &state,
+            r#"{"op":"play_layer","avatar":"a","layer":"wave","clip":"wave","mask":{"joints":["r_shoulder"]}}"#,
+        );
+        let scene = state.world.scene(&SceneId("s".into())).unwrap();
+        {
+            let mut s = scene.lock();
+            let a = s.avatar_mut(&AvatarId("a".into())).unwrap();
+            let clip = a.rig.clips[0].clone();
+            let spec = posecast_sim::avatar::layers::LayerSpec {
+                owned: vec![true; a.rig.skeleton().len()],
+                mask: None,
+                additive: false,
+                reference: posecast_proto::command::AdditiveReference::Rest,
+                weight: 1.0,
+            };
+            let played = posecast_sim::avatar::playback::Layer::new(clip, None, 0.0, 1.0, true);
+            a.layers.push(posecast_sim::avatar::layers::ClipLayer::new(
+                posecast_sim::avatar::LOCOMOTION_LAYER.into(),
+                played,
+                spec,
+                0.0,
+                0.0,
+            ));
+        }
+        let file = snapshot(&scene, 1_000_000);
+        let names: Vec<&Command> = file.avatars[0].layers.iter().collect();
+        assert_eq!(names.len(), 1, "{names:?}");
+        assert!(matches!(names[0], Command::PlayLayer { layer, .. } if layer == "wave"));
     }
 
     #[test]

@@ -194,6 +194,7 @@ export const scenes = /** @satisfies {import("../protocol.js").ScenesMsg} */ ({
               "clip": "wave",
               "joints": 12,
               "layer": "upper",
+              "speed": 1.0,
               "time": 0.75,
               "weight": 1.0
             }

@@ -235,6 +235,7 @@ impl ClipLayer {
             layer: self.name.clone(),
             clip: clip.map(|c| c.clip.name().to_string()).unwrap_or_default(),
             time: clip.map_or(0.0, Layer::clip_time),
+            speed: clip.map_or(1.0, Layer::speed),
             additive: self.additive,
             weight: self.current_weight(),
             joints: self.owned.iter().filter(|&&o| o).count(),

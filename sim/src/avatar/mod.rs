@@ -22,7 +22,7 @@ use glam::{Mat4, Quat};
 use placement::{Placing, RootTrack};
 use playback::{Layer, Player};
 use posecast_proto::bind::{rotation_about, world_increment_local};
-use posecast_proto::command::{AvatarState, OnRelease};
+use posecast_proto::command::{AdditiveReference, AvatarState, JointMask, OnRelease};
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::fk::forward_kinematics;
 use posecast_proto::frame::AvatarPose;
@@ -49,6 +49,12 @@ pub enum RotateError {
     #[error(transparent)]
     Decompose(#[from] DecomposeError),
 }
+
+/// The clip layer a tracker drive's `legs: locomotion` plays on (`@` keeps it apart from the
+/// names `play_layer` takes).
+pub const LOCOMOTION_LAYER: &str = "@locomotion";
+/// How long a locomotion clip takes to cross-fade to another, seconds.
+const LOCOMOTION_FADE: f32 = 0.25;
 
 /// An avatar.
 #[derive(Debug)]
@@ -213,6 +219,7 @@ impl Avatar {
             self.driver_gone();
         }
         self.evaluate();
+        self.follow_gait();
         self.goals.forget_released(clock);
         if let Some(recorder) = &mut self.recording {
             // Only a changed rig or a clock going back can refuse a tick; neither happens to
@@ -220,6 +227,66 @@ impl Avatar {
             recorder.push(clock, &self.pose).ok();
         }
         driver_left
+    }
+
+    /// A tracker drive's `legs: locomotion`: plays the clip its solve picked
+    /// ([`trackers::Trackers::gait`]) on the [`LOCOMOTION_LAYER`] over the legs, at its rate,
+    /// cross-fading when the pick changes; fades the layer out once nothing picks.
+    fn follow_gait(&mut self) {
+        let gait = self
+            .live
+            .as_ref()
+            .and_then(|l| l.trackers.as_ref())
+            .and_then(trackers::Trackers::gait);
+        let at = self
+            .layers
+            .iter()
+            .position(|l| l.name == LOCOMOTION_LAYER && !l.stopping());
+        let Some((clip, rate)) = gait else {
+            if let Some(i) = at {
+                self.layers[i].stop(Some(LOCOMOTION_FADE));
+            }
+            return;
+        };
+        let Some(clip) = self.rig.clips.get(clip).cloned() else {
+            return;
+        };
+        if let Some(i) = at
+            && let Some(playing) = self.layers[i].player.current_mut()
+            && playing.clip.name() == clip.name()
+        {
+            playing.set_speed(rate);
+            return;
+        }
+        let mask = JointMask {
+            joints: vec!["l_hip".into(), "r_hip".into()],
+            except: Vec::new(),
+        };
+        let Ok(owned) = layers::owned_joints(&self.rig, Some(&mask)) else {
+            return;
+        };
+        let spec = layers::LayerSpec {
+            owned,
+            mask: Some(mask),
+            additive: false,
+            reference: AdditiveReference::Rest,
+            weight: 1.0,
+        };
+        let played = Layer::new(clip, None, 0.0, rate, true);
+        match at {
+            Some(i) => self.layers[i].replace(played, spec, LOCOMOTION_FADE),
+            None => {
+                // A layer fading out under the name gives way to the new one.
+                self.layers.retain(|l| l.name != LOCOMOTION_LAYER);
+                self.layers.push(layers::ClipLayer::new(
+                    LOCOMOTION_LAYER.into(),
+                    played,
+                    spec,
+                    self.player.clock(),
+                    LOCOMOTION_FADE,
+                ));
+            }
+        }
     }
 
     /// Re-evaluates the pose at the current clock (after a command), without advancing: the

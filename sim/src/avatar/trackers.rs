@@ -29,7 +29,9 @@
 //!    hand rises above the shoulder;
 //! 5. legs: to the foot trackers; else **planted**: each foot stays where it was put and steps
 //!    ([`STEP_SECONDS`], a lifted arc) when the hips move or turn away from it, one foot at a
-//!    time; or **animated**: the legs keep what the clip and layers gave them;
+//!    time; or **animated**: the legs keep what the clip and layers gave them; or
+//!    **locomotion**: the legs play the drive's locomotion clip nearest the hips' speed, at the
+//!    rate matching it ([`Trackers::gait`]; the avatar plays it on a `@locomotion` layer);
 //! 6. trackers on other joints, as IK goals (a limb end with its limb, else a 3-joint chain).
 
 use crate::avatar::goals::{self, Solver};
@@ -37,8 +39,8 @@ use crate::ik::{self, ChainGoal, LimbGoal};
 use glam::{Mat4, Quat, Vec3};
 use posecast_proto::fk::forward_kinematics;
 use posecast_proto::trackers::{
-    CalibrationPose, HEAD, HIPS, LEFT_FOOT, LEFT_HAND, Legs, MAX_TRACKERS, REQUIRED, RIGHT_FOOT,
-    RIGHT_HAND,
+    CalibrationPose, HEAD, HIPS, LEFT_FOOT, LEFT_HAND, Legs, LocomotionClip, MAX_LOCOMOTION_CLIPS,
+    MAX_TRACKERS, REQUIRED, RIGHT_FOOT, RIGHT_HAND,
 };
 use posecast_proto::{Skeleton, Transform};
 use posecast_rigs::rig::Rig;
@@ -65,6 +67,12 @@ const SPEED_CUTOFF: f32 = 1.0;
 const SPINE_CURVE: f32 = 2.0 * PI / 180.0;
 /// How far an elbow's swivel moves each solve from where it bent last toward the natural one.
 const ELBOW_EASE: f32 = 0.1;
+/// The fastest a locomotion clip may walk, m/s.
+pub const MAX_LOCOMOTION_SPEED: f32 = 20.0;
+/// The time constant the hips' speed is smoothed with, seconds.
+const SPEED_SMOOTHING: f32 = 0.25;
+/// How much nearer (in log speed ratio) another locomotion clip must be to be switched to.
+const GAIT_HYSTERESIS: f32 = 0.15;
 /// An ankle's height above the floor, as a share of the leg's length, for a rig whose ankles
 /// are its lowest joints.
 const ANKLE_CLEARANCE: f32 = 0.08;
@@ -114,6 +122,9 @@ pub enum TrackerError {
     /// The head is too low (or below the floor) to measure a height from.
     #[error("the head tracker is {0:.3} m above the floor: too low to measure the user's height")]
     TooLow(f32),
+    /// A `locomotion` list that cannot be played.
+    #[error("locomotion: {0}")]
+    Locomotion(String),
     /// The hands are too close for a T- or A-pose.
     #[error("the hand trackers are {0:.3} m apart: not a T- or A-pose")]
     NotTPose(f32),
@@ -386,6 +397,13 @@ pub struct Trackers {
     last_clock: f64,
     /// Where each elbow bent last tick: from the middle of shoulder and hand, body frame.
     elbows: [Option<Vec3>; 2],
+    /// `legs: locomotion`: the clips the legs may play (index into the rig's clips, the speed
+    /// its walk covers, m/s), the hips' smoothed horizontal speed (m/s), where the hips were at
+    /// which clock, and the clip picked (index into `locomotion`).
+    locomotion: Vec<(usize, f32)>,
+    speed: f32,
+    last_hips: Option<(Vec3, f64)>,
+    gait: Option<usize>,
     /// The spine's solved positions last tick, relative to its first joint (FABRIK's start).
     spine_seed: Vec<Vec3>,
 }
@@ -529,6 +547,10 @@ impl Trackers {
             last_clock: f64::NEG_INFINITY,
             spine_seed: Vec::new(),
             elbows: [None; 2],
+            locomotion: Vec::new(),
+            speed: 0.0,
+            last_hips: None,
+            gait: None,
         })
     }
 
@@ -547,6 +569,98 @@ impl Trackers {
     /// Turns the input filter on (the default) or off (samples taken as they are).
     pub fn set_smoothing(&mut self, on: bool) {
         self.smooth = on;
+    }
+
+    /// The clips a `legs: locomotion` drive's legs play (see [`Trackers::gait`]).
+    ///
+    /// # Errors
+    /// The legs are not [`Legs::Locomotion`], the list is empty or longer than
+    /// [`MAX_LOCOMOTION_CLIPS`], a clip is not one of the rig's, a speed is not within 0–20 m/s.
+    pub fn set_locomotion(
+        &mut self,
+        rig: &Rig,
+        clips: &[LocomotionClip],
+    ) -> Result<(), TrackerError> {
+        let bad = |why: String| Err(TrackerError::Locomotion(why));
+        if self.legs != Legs::Locomotion {
+            return bad("give it with legs \"locomotion\"".into());
+        }
+        if clips.is_empty() || clips.len() > MAX_LOCOMOTION_CLIPS {
+            return bad(format!(
+                "{} clips: name 1 to {MAX_LOCOMOTION_CLIPS}",
+                clips.len()
+            ));
+        }
+        let mut resolved = Vec::with_capacity(clips.len());
+        for c in clips {
+            let Some(i) = rig.clips.iter().position(|k| k.name() == c.clip) else {
+                return bad(format!("the avatar's rig has no clip {:?}", c.clip));
+            };
+            if !(c.speed.is_finite() && (0.0..=MAX_LOCOMOTION_SPEED).contains(&c.speed)) {
+                return bad(format!(
+                    "clip {:?}: speed {} is not within 0 to {MAX_LOCOMOTION_SPEED} m/s",
+                    c.clip, c.speed
+                ));
+            }
+            resolved.push((i, c.speed));
+        }
+        self.locomotion = resolved;
+        self.gait = None;
+        Ok(())
+    }
+
+    /// The locomotion clip the legs play now (an index into the rig's clips) and its rate:
+    /// the clip whose speed is nearest the hips' (by ratio), switched only when another is
+    /// clearly nearer, played at the hips' speed over its own (within 0.25–3; rate 1 for a
+    /// clip of speed 0). `None` without `legs: locomotion` or before the first solve.
+    #[must_use]
+    pub fn gait(&self) -> Option<(usize, f32)> {
+        let &(clip, speed) = self.locomotion.get(self.gait?)?;
+        let rate = if speed > 0.0 {
+            (self.speed / speed).clamp(0.25, 3.0)
+        } else {
+            1.0
+        };
+        Some((clip, rate))
+    }
+
+    /// The hips' smoothed horizontal speed, m/s (kept for `legs: locomotion`).
+    #[must_use]
+    pub fn hips_speed(&self) -> f32 {
+        self.speed
+    }
+
+    /// Follows the hips' speed and picks the locomotion clip for it.
+    fn walk(&mut self, hips: Vec3, clock: f64) {
+        if self.locomotion.is_empty() {
+            return;
+        }
+        match self.last_hips {
+            Some((p, t)) if clock > t => {
+                let dt = (clock - t) as f32;
+                let v = Vec3::new(hips.x - p.x, 0.0, hips.z - p.z).length() / dt.max(1e-4);
+                let a = dt / (dt + SPEED_SMOOTHING);
+                self.speed += a * (v.min(100.0) - self.speed);
+                self.last_hips = Some((hips, clock));
+            }
+            Some((_, t)) if clock == t => {}
+            _ => {
+                self.last_hips = Some((hips, clock));
+                self.speed = 0.0;
+            }
+        }
+        let score = |s: f32| ((self.speed + 0.1) / (s + 0.1)).ln().abs();
+        let best = (0..self.locomotion.len())
+            .min_by(|&a, &b| score(self.locomotion[a].1).total_cmp(&score(self.locomotion[b].1)));
+        self.gait = match (self.gait, best) {
+            (Some(now), Some(best))
+                if score(self.locomotion[best].1)
+                    > score(self.locomotion[now].1) - GAIT_HYSTERESIS =>
+            {
+                Some(now)
+            }
+            (_, best) => best,
+        };
     }
 
     /// Stores samples (`(tracker index, transform in scene space)`, indices checked by the
@@ -884,6 +998,7 @@ impl Trackers {
             p.y = p.y.min(b.neutral[b.root].y);
             (p, turn)
         });
+        self.walk(hips_p, clock);
         let feet_tracked = [
             self.index(|s| matches!(s, Slot::Foot(0)))
                 .and_then(|i| targets[i]),

@@ -2,6 +2,7 @@
 //! poses made by hand, its joints' world transforms given as trackers.
 
 use super::*;
+use posecast_proto::trackers::LocomotionClip;
 use posecast_rigs::rig::Rig;
 
 fn rig() -> Rig {
@@ -431,4 +432,117 @@ fn bad_tracker_lists_are_refused() {
         t.calibrate(CalibrationPose::Neutral, Mat4::IDENTITY),
         Err(TrackerError::NoSample("head".into()))
     );
+}
+
+#[test]
+fn locomotion_legs_play_the_clip_the_hips_speed_picks() {
+    use crate::avatar::live::LivePose;
+    use crate::avatar::{Avatar, LOCOMOTION_LAYER};
+    use posecast_proto::command::OnRelease;
+    use posecast_proto::msg::AvatarId;
+    use std::sync::Arc;
+    use std::time::{Duration, Instant};
+
+    let rig = Arc::new(rig());
+    let mut a = Avatar::new(AvatarId("a".into()), 1, rig.clone());
+    let mut live = LivePose::new(
+        1,
+        OnRelease::Clip,
+        rig.clone(),
+        &rig,
+        &a.locals,
+        Duration::from_secs(3600),
+    )
+    .unwrap();
+    let mut t = Trackers::new(&rig, &names(&THREE), Legs::Locomotion).unwrap();
+    let clips = [
+        LocomotionClip {
+            clip: "idle".into(),
+            speed: 0.0,
+        },
+        LocomotionClip {
+            clip: "walk".into(),
+            speed: 1.2,
+        },
+    ];
+    t.set_locomotion(&rig, &clips).unwrap();
+    live.trackers = Some(t);
+    a.live = Some(live);
+    let rest = world_of(&rig, &neutral(&rig));
+    let l_knee = joint(&rig, "l_knee");
+    // The user walks forward at 1.5 m/s for 3 s, then stands for 2 s; 60 ticks a second.
+    let mut walking_at_3s = None;
+    for tick in 0..=300u32 {
+        let clock = f64::from(tick) / 60.0;
+        let walked = 1.5 * clock.min(3.0) as f32;
+        let mut s = read(&rig, &rest, &THREE);
+        for (_, x) in &mut s {
+            x.position.z += walked;
+        }
+        let time_us = Some((clock * 1e6) as u64);
+        let live = a.live.as_mut().unwrap();
+        assert!(live.store_trackers(&s, time_us, Instant::now()));
+        a.tick(clock);
+        if tick == 180 {
+            let layer = a.layers.iter().find(|l| l.name == LOCOMOTION_LAYER);
+            let playing = layer
+                .and_then(|l| l.player.current())
+                .expect("a locomotion layer");
+            walking_at_3s = Some((playing.clip.name().to_owned(), playing.speed()));
+            // The legs are the walk clip's at the layer's time (faded in long ago).
+            let mut sample = rig.skeleton().rest().to_vec();
+            let time = playing.clip.start() + playing.clip_time();
+            playing
+                .clip
+                .sample(time, rig.skeleton().rest(), &mut sample);
+            let angle = a.locals[l_knee]
+                .rotation
+                .angle_between(sample[l_knee].rotation)
+                .to_degrees();
+            assert!(angle < 0.01, "the knee is {angle}° off the walk clip's");
+        }
+    }
+    let (clip, rate) = walking_at_3s.unwrap();
+    assert_eq!(clip, "walk");
+    assert!(
+        (rate - 1.25).abs() < 0.05,
+        "walk (1.2 m/s) played at {rate} for 1.5 m/s"
+    );
+    let playing = a
+        .layers
+        .iter()
+        .find(|l| l.name == LOCOMOTION_LAYER && !l.stopping())
+        .and_then(|l| l.player.current())
+        .unwrap();
+    assert_eq!(playing.clip.name(), "idle", "standing still for 2 s");
+    // The drive ends: the layer fades out and goes.
+    a.release_drive();
+    for tick in 301..=340u32 {
+        a.tick(f64::from(tick) / 60.0);
+    }
+    assert!(a.layers.iter().all(|l| l.name != LOCOMOTION_LAYER));
+}
+
+#[test]
+fn locomotion_lists_are_checked() {
+    let rig = rig();
+    let clip = |name: &str, speed: f32| LocomotionClip {
+        clip: name.into(),
+        speed,
+    };
+    let mut planted = Trackers::new(&rig, &names(&THREE), Legs::Planted).unwrap();
+    assert!(planted.set_locomotion(&rig, &[clip("walk", 1.0)]).is_err());
+    let mut t = Trackers::new(&rig, &names(&THREE), Legs::Locomotion).unwrap();
+    for bad in [
+        vec![],
+        vec![clip("moonwalk", 1.0)],
+        vec![clip("walk", f32::NAN)],
+        vec![clip("walk", -1.0)],
+        vec![clip("walk", 1e9)],
+        vec![clip("walk", 1.0); 9],
+    ] {
+        let err = t.set_locomotion(&rig, &bad).unwrap_err();
+        assert!(matches!(err, TrackerError::Locomotion(_)), "{err:?}");
+    }
+    assert!(t.gait().is_none());
 }
