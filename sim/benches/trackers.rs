@@ -30,7 +30,9 @@ fn main() {
         eprintln!("no humanoid BVH clip under ../shared/testdata/bvh: built-in clips only");
     }
     let builtin = if full {
-        quality::builtin_subjects()
+        let mut more = quality::gltf_subjects();
+        more.extend(quality::builtin_subjects());
+        more
     } else {
         Vec::new()
     };
@@ -50,7 +52,10 @@ fn main() {
     let mut truths = Vec::new();
     for (i, subject) in mocap.iter().chain(&builtin).enumerate() {
         if i == mocap.len() && !mocap.is_empty() {
-            println!("-- supplementary: the built-in avatar's authored clips (not motion capture)");
+            println!(
+                "-- supplementary: authored clips of glTF samples and the built-in avatar (not \
+                 motion capture)"
+            );
         }
         let truth = quality::truth(subject, 1, limit);
         let planted = truth.planted.iter().flatten().filter(|&&p| p).count();

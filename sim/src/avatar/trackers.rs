@@ -247,6 +247,18 @@ fn hanim(rig: &Rig, name: &str) -> Option<usize> {
         .or_else(|| rig.skeleton().find(name))
 }
 
+/// The joint a rig's H-Anim (or own) joint name stands for in a tracker drive: the joint
+/// itself, except that a rig with no head joint (`skullbase`; CesiumMan's skeleton ends at its
+/// neck) takes its topmost neck joint (`vc1` … `vc7`, the lowest number mapped) for the head.
+#[must_use]
+pub fn tracker_joint(rig: &Rig, name: &str) -> Option<usize> {
+    hanim(rig, name).or_else(|| {
+        (name == "skullbase")
+            .then(|| (1..=7).find_map(|k| hanim(rig, &format!("vc{k}"))))
+            .flatten()
+    })
+}
+
 fn is_ancestor(parents: &[Option<usize>], a: usize, of: usize) -> bool {
     std::iter::successors(parents[of], |&p| parents[p]).any(|p| p == a)
 }
@@ -259,7 +271,10 @@ impl Body {
             hanim(rig, joint).ok_or(TrackerError::MissingJoint { joint, what })
         };
         let root = need("humanoid_root", "placing the hips")?;
-        let skull = need("skullbase", "the head tracker")?;
+        let skull = tracker_joint(rig, "skullbase").ok_or(TrackerError::MissingJoint {
+            joint: "skullbase",
+            what: "the head tracker (or a neck joint, vc1 to vc7, for it)",
+        })?;
         if !is_ancestor(parents, root, skull) {
             return Err(TrackerError::MissingJoint {
                 joint: "skullbase",
@@ -1088,8 +1103,11 @@ impl Trackers {
             let (Some(leg), Some((p, q))) = (b.legs[side], foot) else {
                 continue;
             };
+            // Knees bend toward the body's front: a foot tracker's own yaw carries the twist
+            // of whatever the ankle's frame is (on CesiumMan's walk it bent 62 % of the knees
+            // backwards), the body's heading does not.
             let hip = ik::position(world, leg[0]);
-            let knee_forward = yaw(yaw_of(q)) * Vec3::Z * b.leg_length;
+            let knee_forward = turn * Vec3::Z * b.leg_length;
             let goal = LimbGoal {
                 target: p,
                 rotation: Some(q),

@@ -163,6 +163,42 @@ pub fn mocap_subjects() -> Option<Vec<Subject>> {
     Some(out)
 }
 
+/// Every humanoid glTF under `../shared/testdata/gltf` with animations whose rig maps the
+/// tracker joints (CesiumMan's walk; the rigged figure's), imported and normalised like an
+/// upload: authored, not motion capture, but other skeletons. Empty without the folder.
+pub fn gltf_subjects() -> Vec<Subject> {
+    let Some(dir) = posecast_proto::testing::require_testdata("gltf") else {
+        return Vec::new();
+    };
+    let mut files = Vec::new();
+    collect_ext(&dir, "glb", &mut files);
+    files.sort();
+    let mut out = Vec::new();
+    for path in files {
+        let Ok(assets) = posecast_rigs::import::load_path(&path) else {
+            continue;
+        };
+        let stem = path
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        for asset in assets {
+            let Ok(rig) = Rig::from_asset(asset, &PipelineOptions::default()) else {
+                continue;
+            };
+            let rig = Arc::new(rig);
+            if !rig.humanoid || !tracker_joints_mapped(&rig) {
+                continue;
+            }
+            for clip in rig.clips.clone() {
+                let label = format!("gltf/{stem}/{}", clip.name());
+                out.push(Subject::new(label, false, rig.clone(), clip));
+            }
+        }
+    }
+    out
+}
+
 /// The built-in avatar's authored clips (`idle`, `walk`, `wave`, 30 Hz): not motion capture,
 /// but another skeleton (23 joints) and a walk whose feet plant.
 pub fn builtin_subjects() -> Vec<Subject> {
@@ -175,21 +211,27 @@ pub fn builtin_subjects() -> Vec<Subject> {
 }
 
 fn collect_bvh(dir: &Path, out: &mut Vec<std::path::PathBuf>) {
+    collect_ext(dir, "bvh", out);
+}
+
+fn collect_ext(dir: &Path, ext: &str, out: &mut Vec<std::path::PathBuf>) {
     let Ok(entries) = std::fs::read_dir(dir) else {
         return;
     };
     for e in entries.flatten() {
         let p = e.path();
         if p.is_dir() {
-            collect_bvh(&p, out);
-        } else if p.extension().is_some_and(|x| x.eq_ignore_ascii_case("bvh")) {
+            collect_ext(&p, ext, out);
+        } else if p.extension().is_some_and(|x| x.eq_ignore_ascii_case(ext)) {
             out.push(p);
         }
     }
 }
 
+/// The joint a tracker stands for on `rig`, as the solver takes it (a rig without a head
+/// joint uses its topmost neck joint for the head).
 fn hanim_joint(rig: &Rig, name: &str) -> Option<usize> {
-    rig.hanim.iter().position(|h| h.as_deref() == Some(name))
+    posecast_sim::avatar::trackers::tracker_joint(rig, name)
 }
 
 fn tracker_joints_mapped(rig: &Rig) -> bool {
