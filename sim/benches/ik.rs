@@ -17,7 +17,7 @@ use std::hint::black_box;
 use std::sync::Arc;
 
 fn goal(avatar: &Avatar, effector: &str, chain: Option<usize>, position: Vec3) -> IkGoal {
-    let (effector, solver) = goals::solver(avatar.rig.skeleton(), effector, chain).unwrap();
+    let (effector, solver) = goals::solver(&avatar.rig, effector, chain).unwrap();
     IkGoal {
         effector,
         solver,
@@ -53,7 +53,7 @@ fn ik(c: &mut Criterion) {
         .goals
         .set(goal(&three, "r_wrist", None, Vec3::new(-0.3, 1.2, 0.3)));
     three.goals.gaze = Some(GazeGoal {
-        joints: goals::gaze(three.rig.skeleton()).unwrap(),
+        joints: goals::gaze(&three.rig).unwrap(),
         target: Vec3::new(1.0, 1.7, 2.0),
         weight: 1.0,
         relative_to: None,

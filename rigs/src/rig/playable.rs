@@ -264,6 +264,24 @@ impl Rig {
         &self.asset.skeleton
     }
 
+    /// A joint by the rig's own name, else by the H-Anim name it is mapped to (`l_wrist` on
+    /// a Mixamo rig is its `mixamorig:LeftHand`).
+    #[must_use]
+    pub fn joint(&self, name: &str) -> Option<usize> {
+        self.skeleton()
+            .find(name)
+            .or_else(|| self.hanim.iter().position(|h| h.as_deref() == Some(name)))
+    }
+
+    /// A joint by the H-Anim name it is mapped to, else by the rig's own name.
+    #[must_use]
+    pub fn hanim_joint(&self, name: &str) -> Option<usize> {
+        self.hanim
+            .iter()
+            .position(|h| h.as_deref() == Some(name))
+            .or_else(|| self.skeleton().find(name))
+    }
+
     /// A clip by name.
     #[must_use]
     pub fn clip(&self, name: &str) -> Option<&Arc<Clip>> {

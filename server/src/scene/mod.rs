@@ -371,7 +371,7 @@ fn follow_joints(avatars: &mut [Avatar]) {
         let Some(o) = avatars.iter().position(|a| a.id == other) else {
             continue;
         };
-        let Some(j) = avatars[o].rig.skeleton().find(&joint) else {
+        let Some(j) = avatars[o].rig.joint(&joint) else {
             continue;
         };
         let frame = avatars[o].scene_matrix(j);

@@ -35,14 +35,10 @@ pub(super) fn finite(name: &str, v: f32) -> Result<f32, Error> {
 }
 
 pub(super) fn joint_index(avatar: &Avatar, joint: &str) -> Result<usize, Error> {
-    avatar
-        .rig
-        .skeleton()
-        .find(joint)
-        .ok_or_else(|| Error::UnknownJoint {
-            owner: format!("avatar {}", avatar.id),
-            joint: joint.to_owned(),
-        })
+    avatar.rig.joint(joint).ok_or_else(|| Error::UnknownJoint {
+        owner: format!("avatar {}", avatar.id),
+        joint: joint.to_owned(),
+    })
 }
 
 /// Runs `f` on an avatar under its scene's lock.

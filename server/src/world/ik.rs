@@ -30,9 +30,8 @@ pub fn apply(world: &World, command: &Command) -> Option<Result<CommandResult, E
             world,
             avatar,
             |a| {
-                let (end, solver) =
-                    goals::solver(a.rig.skeleton(), effector, chain.map(usize::from))
-                        .map_err(|e| error(a, e))?;
+                let (end, solver) = goals::solver(&a.rig, effector, chain.map(usize::from))
+                    .map_err(|e| error(a, e))?;
                 Ok(Pending::Goal(IkGoal {
                     effector: end,
                     solver,
@@ -65,7 +64,7 @@ pub fn apply(world: &World, command: &Command) -> Option<Result<CommandResult, E
                     return Ok(Pending::EndGaze);
                 }
                 Ok(Pending::Gaze(GazeGoal {
-                    joints: goals::gaze(a.rig.skeleton()).map_err(|e| error(a, e))?,
+                    joints: goals::gaze(&a.rig).map_err(|e| error(a, e))?,
                     target,
                     weight,
                     relative_to: relative_to.clone().map(joint_ref),

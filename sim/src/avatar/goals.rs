@@ -18,6 +18,7 @@ use crate::ik::{self, ChainGoal, Gaze, LimbGoal};
 use glam::{Mat4, Quat, Vec3};
 use posecast_proto::msg::AvatarId;
 use posecast_proto::{Skeleton, Transform};
+use posecast_rigs::rig::Rig;
 
 /// Largest coordinate a goal position or pole may have, metres (as a placement's).
 pub const MAX_COORDINATE: f32 = 1e6;
@@ -131,19 +132,21 @@ pub fn weight(w: Option<f32>) -> Result<f32, GoalError> {
     }
 }
 
-/// The solver of a goal on `effector`: its limb when it is a limb end, else `chain` joints
-/// (default [`DEFAULT_CHAIN`]) up from it.
+/// The solver of a goal on `effector` (a joint by the rig's own name, else by its H-Anim
+/// name): its limb when it is a limb end (H-Anim `l_wrist`, `r_wrist`, `l_ankle`, `r_ankle`,
+/// whatever the rig calls them), else `chain` joints (default [`DEFAULT_CHAIN`]) up from it.
 ///
 /// # Errors
 /// An unknown joint, a root effector, a chain longer than the joint's ancestry allows or than
 /// [`MAX_CHAIN`], or shorter than 2.
 pub fn solver(
-    skeleton: &Skeleton,
+    rig: &Rig,
     effector: &str,
     chain: Option<usize>,
 ) -> Result<(usize, Solver), GoalError> {
-    let end = skeleton
-        .find(effector)
+    let skeleton = rig.skeleton();
+    let end = rig
+        .joint(effector)
         .ok_or_else(|| GoalError::UnknownJoint(effector.to_owned()))?;
     let parents = skeleton.parents();
     if parents[end].is_none() {
@@ -152,15 +155,15 @@ pub fn solver(
     let is_ancestor =
         |a: usize, of: usize| std::iter::successors(parents[of], |&p| parents[p]).any(|p| p == a);
     if chain.is_none() {
-        let limb = match effector {
-            "l_wrist" => Some(("l_shoulder", "l_elbow")),
-            "r_wrist" => Some(("r_shoulder", "r_elbow")),
-            "l_ankle" => Some(("l_hip", "l_knee")),
-            "r_ankle" => Some(("r_hip", "r_knee")),
+        let limb = match rig.hanim.get(end).and_then(Option::as_deref) {
+            Some("l_wrist") => Some(("l_shoulder", "l_elbow")),
+            Some("r_wrist") => Some(("r_shoulder", "r_elbow")),
+            Some("l_ankle") => Some(("l_hip", "l_knee")),
+            Some("r_ankle") => Some(("r_hip", "r_knee")),
             _ => None,
         };
         if let Some((root, middle)) = limb
-            && let (Some(a), Some(b)) = (skeleton.find(root), skeleton.find(middle))
+            && let (Some(a), Some(b)) = (rig.hanim_joint(root), rig.hanim_joint(middle))
             && is_ancestor(b, end)
             && is_ancestor(a, b)
         {
@@ -191,20 +194,22 @@ pub fn solver(
     Ok((end, Solver::Chain(joints)))
 }
 
-/// The gaze joints of a rig: neck `vc4` (the lowest `vc*` joint present), head `skullbase`,
-/// eyes `l_eyeball_joint`/`r_eyeball_joint`.
+/// The gaze joints of a rig, by H-Anim name: head `skullbase` (a rig without one: its topmost
+/// neck joint, `vc1` … `vc7`), neck the lowest `vc*` joint below the head, eyes
+/// `l_eyeball_joint`/`r_eyeball_joint`.
 ///
 /// # Errors
-/// [`GoalError::UnknownJoint`] when the rig has no head.
-pub fn gaze(skeleton: &Skeleton) -> Result<Gaze, GoalError> {
-    let head = skeleton
-        .find("skullbase")
+/// [`GoalError::UnknownJoint`] when the rig has neither a head nor a neck.
+pub fn gaze(rig: &Rig) -> Result<Gaze, GoalError> {
+    let skeleton = rig.skeleton();
+    let head = rig
+        .hanim_joint("skullbase")
+        .or_else(|| (1..=7).find_map(|k| rig.hanim_joint(&format!("vc{k}"))))
         .ok_or_else(|| GoalError::UnknownJoint("skullbase (a head to look with)".into()))?;
     let neck = (1..=7)
         .rev()
-        .map(|k| format!("vc{k}"))
-        .find_map(|n| skeleton.find(&n))
-        .filter(|&n| {
+        .filter_map(|k| rig.hanim_joint(&format!("vc{k}")))
+        .find(|&n| {
             std::iter::successors(skeleton.parents()[head], |&p| skeleton.parents()[p])
                 .any(|p| p == n)
         });
@@ -212,8 +217,8 @@ pub fn gaze(skeleton: &Skeleton) -> Result<Gaze, GoalError> {
         neck,
         head: Some(head),
         eyes: [
-            skeleton.find("l_eyeball_joint"),
-            skeleton.find("r_eyeball_joint"),
+            rig.hanim_joint("l_eyeball_joint"),
+            rig.hanim_joint("r_eyeball_joint"),
         ],
     })
 }
@@ -441,4 +446,39 @@ fn turn_gaze(
 ) {
     let target = (to_model * g.frame).transform_point3(g.target);
     ik::look_at(skeleton, locals, world, &g.joints, target, weight);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use posecast_rigs::rig::PipelineOptions;
+
+    /// CesiumMan keeps its own joint names (`Skeleton_arm_joint_L__2_`) and has no head joint:
+    /// a goal named by H-Anim or by the rig's name is solved as the limb it is, and a gaze
+    /// turns its topmost neck joint.
+    #[test]
+    fn goals_find_limbs_and_heads_by_h_anim_names_on_any_rig() {
+        let Some(dir) = posecast_proto::testing::require_testdata("gltf") else {
+            return;
+        };
+        let path = dir.join("CesiumMan/glTF-Binary/CesiumMan.glb");
+        let asset = posecast_rigs::import::load_path(&path).unwrap().remove(0);
+        let rig = Rig::from_asset(asset, &PipelineOptions::default()).unwrap();
+        let wrist = rig.hanim_joint("l_wrist").unwrap();
+        let own = rig.skeleton().names()[wrist].clone();
+        assert_ne!(own, "l_wrist");
+        for name in ["l_wrist", own.as_str()] {
+            let (end, solver) = solver(&rig, name, None).unwrap();
+            assert_eq!(end, wrist);
+            let limb = ["l_shoulder", "l_elbow"].map(|n| rig.hanim_joint(n).unwrap());
+            assert_eq!(solver, Solver::Limb([limb[0], limb[1], wrist]), "{name}");
+        }
+        let g = gaze(&rig).unwrap();
+        assert_eq!(g.head, rig.hanim_joint("vc4"), "the topmost neck joint");
+        assert_eq!(g.neck, rig.hanim_joint("vc7"));
+        assert_eq!(
+            solver(&rig, "tail", None),
+            Err(GoalError::UnknownJoint("tail".into()))
+        );
+    }
 }

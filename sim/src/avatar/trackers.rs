@@ -241,10 +241,7 @@ struct Body {
 }
 
 fn hanim(rig: &Rig, name: &str) -> Option<usize> {
-    rig.hanim
-        .iter()
-        .position(|h| h.as_deref() == Some(name))
-        .or_else(|| rig.skeleton().find(name))
+    rig.hanim_joint(name)
 }
 
 /// The joint a rig's H-Anim (or own) joint name stands for in a tracker drive: the joint
@@ -537,11 +534,10 @@ impl Trackers {
                 other => {
                     let j = hanim(rig, other).ok_or_else(|| TrackerError::Unknown(other.into()))?;
                     let joint = &skeleton.names()[j];
-                    let (end, solver) =
-                        goals::solver(skeleton, joint, None).map_err(|e| match e {
-                            goals::GoalError::NoChain(_) => TrackerError::NoChain(other.into()),
-                            _ => TrackerError::Unknown(other.into()),
-                        })?;
+                    let (end, solver) = goals::solver(rig, joint, None).map_err(|e| match e {
+                        goals::GoalError::NoChain(_) => TrackerError::NoChain(other.into()),
+                        _ => TrackerError::Unknown(other.into()),
+                    })?;
                     Slot::Joint(end, solver)
                 }
             };
