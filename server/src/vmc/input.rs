@@ -125,16 +125,7 @@ pub struct Devices {
 /// yaw is the forward (+Z) axis flattened or, looking straight up or down, the up axis (the
 /// tracker solve's rule).
 fn head_left(q: Quat) -> Vec3 {
-    let f = q * Vec3::Z;
-    let up = q * Vec3::Y;
-    let h = if f.x.hypot(f.z) > 0.3 {
-        f
-    } else if f.y < 0.0 {
-        up
-    } else {
-        -up
-    };
-    Quat::from_rotation_y(h.x.atan2(h.z)) * Vec3::X
+    Quat::from_rotation_y(posecast_sim::avatar::trackers::yaw_of(q)) * Vec3::X
 }
 
 /// The sender's clock (`/VMC/Ext/T`, seconds) as driver time in µs that never goes back: after

@@ -423,7 +423,8 @@ pub struct Trackers {
 /// The yaw (about +Y, 0 facing +Z) a rotation faces: its forward axis flattened, or, when
 /// that points straight up or down, its up axis (looking down, the top of the head faces
 /// forward).
-fn yaw_of(q: Quat) -> f32 {
+#[must_use]
+pub fn yaw_of(q: Quat) -> f32 {
     let f = q * Vec3::Z;
     let up = q * Vec3::Y;
     let h = if f.x.hypot(f.z) > 0.3 {
