@@ -5,16 +5,35 @@
 //! frames and the joints they carried. Nothing is modelled: these are the bytes the websocket
 //! delivered.
 //!
+//! Clients of protocol version 5 ask for a precision each (`subscribe … precision`): a worst
+//! angle, or a world-space bound at 3 cm from every joint. A second table gives, for each
+//! precision and the same served rig and clip, what the coding costs in accuracy and time:
+//! the clip sampled at 60 Hz for a minute as the server samples it, coded and decoded with the
+//! wire's own `StreamEncoder` / `Frame2Decoder` at that precision's steps, against the source
+//! poses — the worst angle of any joint, the world-space error of ACL's metric (virtual
+//! vertices 3 cm from every joint along its three axes; worst and 99th percentile), and the
+//! encode time per avatar-frame.
+//!
 //! `cargo bench -p posecast --bench subscriber_bytes` — rows: the built-in avatar walking
 //! (one avatar; ten at staggered times), and CMU 01_01 loaded as the server loads an asset
 //! folder's BVH (`../shared/testdata`; absent, the row says so, and under `CI=true` the bench
 //! fails).
 
+use glam::{Mat4, Vec3};
+use posecast_proto::Transform;
 use posecast_proto::command::Command;
+use posecast_proto::description::AvatarDescription;
+use posecast_proto::fk::forward_kinematics;
+use posecast_proto::frame::AvatarPose;
+use posecast_proto::frame2::{Frame2Decoder, StreamEncoder};
 use posecast_proto::msg::{AvatarId, SceneId};
+use posecast_proto::precision::Precision;
+use posecast_proto::quant;
 use posecast_proto::subset::JointSet;
+use posecast_server::rig::Rig;
 use posecast_testkit::{TestClient, TestServer};
-use std::time::Duration;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 /// Seconds measured per row, after the clients' first frames and a second of settling.
 const SECONDS: f64 = 6.0;
@@ -29,14 +48,41 @@ struct Case<'a> {
     stagger: f32,
 }
 
-/// The clients of one row: (label, protocol version, joint set).
-const CLIENTS: [(&str, u32, Option<u16>); 3] = [
-    ("v1", 1, None),
-    ("v2", 3, None),
-    ("v2, depth ≤ 3", 3, Some(3)),
-];
+/// The clients of one row: (label, protocol version, joint set, precision).
+fn subscriptions() -> Vec<(String, u32, Option<u16>, Option<Precision>)> {
+    let mut out = vec![
+        ("v1".to_owned(), 1, None, None),
+        ("v2".to_owned(), 3, None, None),
+        ("v2, depth ≤ 3".to_owned(), 3, Some(3), None),
+    ];
+    for (label, p) in precisions().into_iter().skip(1) {
+        out.push((format!("v2 at {label}"), 5, None, Some(p)));
+    }
+    out
+}
 
-async fn measure(server: &TestServer, case: &Case<'_>) -> anyhow::Result<()> {
+/// The precisions measured: (label, precision), the finest first.
+fn precisions() -> Vec<(&'static str, Precision)> {
+    let deg = |d: f32| Precision {
+        degrees: Some(d),
+        ..Precision::FINEST
+    };
+    let mm = |m: f32| Precision {
+        millimetres: Some(m),
+        ..Precision::FINEST
+    };
+    vec![
+        ("finest (0.0087°)", Precision::FINEST),
+        ("0.05°", deg(0.05)),
+        ("0.1°", deg(0.1)),
+        ("0.25°", deg(0.25)),
+        ("1 mm at 3 cm", mm(1.0)),
+        ("5 mm at 3 cm", mm(5.0)),
+    ]
+}
+
+/// Prints the row's byte figures; returns its rows of the accuracy table.
+async fn measure(server: &TestServer, case: &Case<'_>) -> anyhow::Result<Vec<String>> {
     let scene = format!("bytes-{}-{}", case.asset, case.avatars);
     let id = |i: usize| AvatarId(format!("{}-{}-{i}", case.asset, case.avatars));
     server
@@ -71,21 +117,24 @@ async fn measure(server: &TestServer, case: &Case<'_>) -> anyhow::Result<()> {
     }
     let rig = server.rig(case.asset)?;
     let joints = rig.skeleton().len();
-    let mut clients: Vec<(&str, TestClient, usize)> = Vec::new();
-    for (label, version, depth) in CLIENTS {
+    let mut clients: Vec<(String, TestClient, usize)> = Vec::new();
+    let mut description = None;
+    for (label, version, depth, precision) in subscriptions() {
         let client = server
             .client_builder()
             .subscribe(&scene)
             .options(|o| {
                 o.version = version;
                 o.joints = depth.map(JointSet::Depth);
+                o.precision = precision;
             })
             .connect()
             .await?;
         client.first_pose(&id(0).0, Duration::from_secs(30)).await?;
         // The joints its frames carry (the subset the server and the client derive alike).
-        let carried = client
-            .avatar(&id(0))
+        let view = client.avatar(&id(0));
+        description = description.or_else(|| view.as_ref().map(|v| v.description.clone()));
+        let carried = view
             .and_then(|v| v.selection)
             .map_or(joints, |s| s.joints.len());
         clients.push((label, client, carried));
@@ -106,7 +155,108 @@ async fn measure(server: &TestServer, case: &Case<'_>) -> anyhow::Result<()> {
             after.undecodable - before.undecodable,
         );
     }
-    Ok(())
+    if case.avatars > 1 {
+        return Ok(Vec::new());
+    }
+    let description = description.ok_or_else(|| anyhow::anyhow!("no description"))?;
+    errors(case, &rig, &description)
+}
+
+/// The second table's rows for one rig and clip: every precision's accuracy and encode time
+/// on a minute of the clip as the server samples it (see the module docs).
+fn errors(
+    case: &Case<'_>,
+    rig: &Rig,
+    description: &Arc<AvatarDescription>,
+) -> anyhow::Result<Vec<String>> {
+    let mut rows = Vec::new();
+    const RATE: f32 = 60.0;
+    const SHELL: f32 = 0.03;
+    let clip = rig
+        .clips
+        .iter()
+        .find(|c| c.name() == case.clip)
+        .ok_or_else(|| anyhow::anyhow!("no clip {}", case.clip))?;
+    let skeleton = rig.skeleton();
+    let rest = skeleton.rest();
+    let n = skeleton.len();
+    let frames = (60.0 * RATE) as usize;
+    let duration = clip.duration().max(1e-3);
+    for (label, precision) in precisions() {
+        let steps = Arc::new(precision.resolve(description));
+        let mut encoder = StreamEncoder::new();
+        encoder.set_steps(0, steps.clone());
+        let mut decoder = Frame2Decoder::new();
+        let mut locals: Vec<Transform> = rest.to_vec();
+        let mut decoded_locals: Vec<Transform> = rest.to_vec();
+        let (mut world, mut decoded_world) = (vec![Mat4::IDENTITY; n], vec![Mat4::IDENTITY; n]);
+        let (mut worst_angle, mut bytes, mut encode_ns) = (0f64, 0usize, 0u128);
+        let mut vertex_errors: Vec<f32> = Vec::with_capacity(frames * n * 3);
+        for i in 0..frames {
+            let t = clip.start() + (i as f32 / RATE) % duration;
+            clip.sample(t.min(clip.end()), rest, &mut locals);
+            let pose = AvatarPose {
+                avatar_num: 0,
+                hash: description.hash_u64(),
+                rotations: locals.iter().map(|l| l.rotation).collect(),
+                translations: rig
+                    .translated
+                    .iter()
+                    .map(|&j| locals[usize::from(j)].translation)
+                    .collect(),
+                scales: rig
+                    .scaled
+                    .iter()
+                    .map(|&j| locals[usize::from(j)].scale)
+                    .collect(),
+                placement: Default::default(),
+                weights: Vec::new(),
+            };
+            let seq = i as u64 + 1;
+            let started = Instant::now();
+            let (out, _) = encoder.encode(
+                1,
+                seq,
+                seq * 16_667,
+                std::slice::from_ref(&pose),
+                i % 60 == 0,
+            );
+            encode_ns += started.elapsed().as_nanos();
+            bytes += out.len();
+            let got = decoder.decode(&out)?;
+            let back = &got.avatars[0];
+            for (j, (x, y)) in pose.rotations.iter().zip(&back.rotations).enumerate() {
+                worst_angle = worst_angle.max(quant::angle_between_degrees(*x, *y));
+                decoded_locals[j] = Transform {
+                    rotation: *y,
+                    ..locals[j]
+                };
+            }
+            for (k, &j) in rig.translated.iter().enumerate() {
+                decoded_locals[usize::from(j)].translation = back.translations[k];
+            }
+            forward_kinematics(skeleton, &locals, &mut world);
+            forward_kinematics(skeleton, &decoded_locals, &mut decoded_world);
+            for (w, d) in world.iter().zip(&decoded_world) {
+                for axis in [Vec3::X, Vec3::Y, Vec3::Z] {
+                    let v = axis * SHELL;
+                    vertex_errors.push(w.transform_point3(v).distance(d.transform_point3(v)));
+                }
+            }
+        }
+        vertex_errors.sort_by(f32::total_cmp);
+        let worst_mm = vertex_errors.last().copied().unwrap_or(0.0) * 1000.0;
+        let p99_mm = vertex_errors[vertex_errors.len() * 99 / 100] * 1000.0;
+        let coarsest = steps.rotations.iter().max().copied().unwrap_or(1);
+        rows.push(format!(
+            "| {} | {label} | {}–{coarsest} | {:.2} | {worst_angle:.4}° | {worst_mm:.3} | {p99_mm:.3} | {:.2} |",
+            case.name,
+            steps.rotations.iter().min().copied().unwrap_or(1),
+            bytes as f64 / frames as f64 / n as f64,
+            encode_ns as f64 / frames as f64 / 1000.0,
+        ));
+    }
+    Ok(rows)
 }
 
 #[tokio::main]
@@ -177,9 +327,20 @@ async fn main() -> anyhow::Result<()> {
     } else {
         println!("(CMU 01_01 absent: {} is missing)", bvh.display());
     }
+    let mut accuracy = Vec::new();
     for case in &cases {
         // One scene per row: the built-in rig's two rows use distinct scenes too.
-        measure(&server, case).await?;
+        accuracy.extend(measure(&server, case).await?);
+    }
+    println!(
+        "\nAccuracy and encode time per precision: the served rig's clip, 60 s at 60 Hz, one avatar, keyframe every second, coded and decoded by the wire's StreamEncoder / Frame2Decoder\n"
+    );
+    println!(
+        "| clip | precision | rotation steps | B/joint/frame (one stream) | worst angle | worst error at 3 cm, mm | p99, mm | encode µs/avatar-frame |"
+    );
+    println!("|---|---|---|---:|---:|---:|---:|---:|");
+    for row in accuracy {
+        println!("{row}");
     }
     server.stop().await;
     Ok(())

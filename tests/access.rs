@@ -295,6 +295,7 @@ async fn scene_tokens_view_tokens_and_private_views() {
         rate: None,
         joints: None,
         morph_weights: None,
+        precision: None,
     };
     let text = serde_json::to_string(&subscribe).unwrap();
     ws.send(Message::Text(text.clone().into())).await.unwrap();
@@ -338,6 +339,7 @@ async fn scene_tokens_view_tokens_and_private_views() {
         rate: None,
         joints: None,
         morph_weights: None,
+        precision: None,
     };
     lobby
         .send(Message::Text(serde_json::to_string(&own).unwrap().into()))

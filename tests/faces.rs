@@ -483,6 +483,7 @@ async fn a_subscription_can_leave_the_weights_out() {
         rate: None,
         joints: None,
         morph_weights: Some(false),
+        precision: None,
     };
     ws.send(Message::text(serde_json::to_string(&subscribe).unwrap()))
         .await

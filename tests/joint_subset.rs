@@ -242,6 +242,7 @@ async fn a_malformed_joint_set_is_refused_and_subscribes_nothing() {
             rate: None,
             joints: Some(JointSet::Names(vec![])),
             morph_weights: None,
+            precision: None,
         })
         .await
         .unwrap();

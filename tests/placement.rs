@@ -55,6 +55,7 @@ async fn first_frame(
             rate: None,
             joints: None,
             morph_weights: None,
+            precision: None,
         },
     ] {
         let text = serde_json::to_string(&msg).unwrap();

@@ -85,6 +85,7 @@ async fn a_recording_holds_what_was_streamed_exports_and_survives_a_restart() {
         rate: None,
         joints: None,
         morph_weights: None,
+        precision: None,
     };
     ws.send(Message::Text(
         serde_json::to_string(&subscribe).unwrap().into(),

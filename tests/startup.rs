@@ -151,6 +151,7 @@ async fn a_restart_with_200_stored_assets_listens_at_once_then_restores_them_all
         rate: None,
         joints: None,
         morph_weights: None,
+        precision: None,
     };
     ws.send(Message::Text(
         serde_json::to_string(&subscribe).unwrap().into(),

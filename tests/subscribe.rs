@@ -119,6 +119,7 @@ impl Watcher {
             rate: None,
             joints: None,
             morph_weights: None,
+            precision: None,
         };
         ws.send(Message::Text(serde_json::to_string(&sub).unwrap().into()))
             .await

@@ -58,6 +58,7 @@ async fn stale_frames_after_a_stall(lowat: u32) -> (usize, usize) {
             rate: None,
             joints: None,
             morph_weights: None,
+            precision: None,
         },
     ] {
         ws.send(Message::text(serde_json::to_string(&msg).unwrap()))

@@ -238,9 +238,8 @@ async fn the_native_client_speaks_v2_and_sees_what_a_v1_client_sees() {
     );
 }
 
-/// A server of before protocol version 2 refuses `hello {version: 4}`, `{version: 3}` and
-/// `{version: 2}` with `unsupported_version` and closes: the native client, asking for 4 by
-/// default, says hello
+/// A server of before protocol version 2 refuses `hello {version: 5}`, … `{version: 2}` with
+/// `unsupported_version` and closes: the native client, asking for 5 by default, says hello
 /// again with the version before until it is welcomed with 1 — it works with the old server
 /// out of the box.
 #[tokio::test]
@@ -253,8 +252,8 @@ async fn the_native_client_falls_back_to_version_1_for_an_older_server() {
         .await
         .expect("welcomed after falling back");
     assert!(client.is_connected());
-    assert_eq!(*hellos.lock().unwrap(), vec![4, 3, 2, 1]);
-    assert_eq!(SUPPORTED_VERSIONS, [1, 2, 3, 4]);
+    assert_eq!(*hellos.lock().unwrap(), vec![5, 4, 3, 2, 1]);
+    assert_eq!(SUPPORTED_VERSIONS, [1, 2, 3, 4, 5]);
     // Any refused version above 1 falls back the same way.
     let mut options = posecast_client::net::ClientOptions::new(format!("ws://{addr}/ws"), "x");
     options.version = 2;
@@ -264,5 +263,5 @@ async fn the_native_client_falls_back_to_version_1_for_an_older_server() {
         refused.is_ok(),
         "2 is refused, then 1 welcomed: {refused:?}"
     );
-    assert_eq!(*hellos.lock().unwrap(), vec![4, 3, 2, 1, 2, 1]);
+    assert_eq!(*hellos.lock().unwrap(), vec![5, 4, 3, 2, 1, 2, 1]);
 }

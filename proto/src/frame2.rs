@@ -42,6 +42,7 @@
 
 use crate::frame::{AvatarPose, Frame, FrameHeader, FrameKind};
 use crate::placement::Placement;
+use crate::precision::{self, Steps};
 use crate::quant;
 use glam::{Quat, Vec3};
 use std::collections::{HashMap, VecDeque};
@@ -69,6 +70,9 @@ const FLAG_SCALES: u8 = 2;
 const FLAG_ESCAPES: u8 = 4;
 /// Chunk flag (key and delta, protocol version 4): morph weights follow the placement.
 const FLAG_WEIGHTS: u8 = 8;
+/// Keyframe chunk flag (protocol version 5): the grid steps follow the flags byte
+/// ([`crate::precision`]); the chunk's levels and the deltas after it are on that grid.
+const FLAG_STEPS: u8 = 16;
 /// Bits of a streamed morph weight level ([`crate::morph::WEIGHT_LEVELS`] = 2¹⁰ − 1).
 pub const WEIGHT_BITS: u32 = 10;
 const LEVEL_MAX: i64 = (1 << 15) - 2;
@@ -154,6 +158,10 @@ pub struct QuantPose {
     /// Morph weight levels, one per channel ([`crate::morph::weight_level`]); empty for a rig
     /// without morph targets, or a receiver that does not take them.
     pub weights: Vec<u16>,
+    /// The grid these levels are on ([`crate::precision`]): `None`, the finest (rotation
+    /// levels as [`quant::encode`] gives them, translations in [`TRANSLATION_STEP`]s); else
+    /// grid values of these steps, which [`QuantPose::to_pose`] turns back into levels.
+    pub steps: Option<Arc<Steps>>,
 }
 
 /// The level of a translation component: `round(x / TRANSLATION_STEP)`, clamped to i32;
@@ -192,6 +200,75 @@ impl QuantPose {
                 .iter()
                 .map(|&w| crate::morph::weight_level(w))
                 .collect(),
+            steps: None,
+        }
+    }
+
+    /// The same levels on the grid of `steps` (one rotation step per joint of this pose),
+    /// or unchanged when every step is 1. Levels already on a grid are returned as they are.
+    #[must_use]
+    pub fn coarsen(&self, steps: &Arc<Steps>) -> Self {
+        if self.steps.is_some() || steps.is_finest() {
+            return self.clone();
+        }
+        let rotations = self
+            .rotations
+            .iter()
+            .zip(steps.rotations.iter().chain(std::iter::repeat(&1)))
+            .map(|(&bits, &m)| {
+                let mut out = bits & !((1u64 << 45) - 1);
+                for c in 0..3 {
+                    let l = precision::coarse_rotation_level(level(bits, c), m);
+                    out |= (l as u64) << (15 * (2 - c));
+                }
+                out
+            })
+            .collect();
+        let translations = self
+            .translations
+            .iter()
+            .map(|t| t.map(|l| precision::coarse_translation_level(l, steps.translation)))
+            .collect();
+        Self {
+            rotations,
+            translations,
+            steps: Some(steps.clone()),
+            ..self.clone()
+        }
+    }
+
+    /// Joint `j`'s rotation bits on the finest grid (as [`quant::encode`] gives them).
+    #[must_use]
+    pub fn fine_rotation(&self, j: usize) -> u64 {
+        let bits = self.rotations[j];
+        let Some(m) = self
+            .steps
+            .as_ref()
+            .and_then(|s| s.rotations.get(j))
+            .copied()
+        else {
+            return bits;
+        };
+        if m == 1 {
+            return bits;
+        }
+        let mut out = bits & !((1u64 << 45) - 1);
+        for c in 0..3 {
+            let l = precision::fine_rotation_level(level(bits, c), m);
+            out |= (l as u64) << (15 * (2 - c));
+        }
+        out
+    }
+
+    /// Translation `t`'s levels on the finest grid (see [`QuantPose::fine_rotation`]).
+    #[must_use]
+    pub fn fine_translation(&self, t: usize) -> [i32; 3] {
+        let l = self.translations[t];
+        match &self.steps {
+            Some(s) if s.translation != 1 => {
+                l.map(|c| precision::fine_translation_level(c, s.translation))
+            }
+            _ => l,
         }
     }
 
@@ -201,11 +278,11 @@ impl QuantPose {
         AvatarPose {
             avatar_num,
             hash,
-            rotations: self.rotations.iter().map(|&b| quant::decode(b)).collect(),
-            translations: self
-                .translations
-                .iter()
-                .map(|l| Vec3::from_array(l.map(translation_value)))
+            rotations: (0..self.rotations.len())
+                .map(|j| quant::decode(self.fine_rotation(j)))
+                .collect(),
+            translations: (0..self.translations.len())
+                .map(|t| Vec3::from_array(self.fine_translation(t).map(translation_value)))
                 .collect(),
             scales: self.scales.clone(),
             placement: self.placement,
@@ -241,6 +318,15 @@ impl QuantPose {
             scales: crate::subset::Selection::pick(&self.scales, selection.scales.iter().copied()),
             placement: self.placement,
             weights: self.weights.clone(),
+            steps: self.steps.as_ref().map(|s| {
+                Arc::new(Steps {
+                    rotations: crate::subset::Selection::pick(
+                        &s.rotations,
+                        selection.joint_indices(),
+                    ),
+                    translation: s.translation,
+                })
+            }),
         }
     }
 
@@ -249,6 +335,7 @@ impl QuantPose {
             && self.translations.len() == other.translations.len()
             && self.scales.len() == other.scales.len()
             && self.weights.len() == other.weights.len()
+            && self.steps == other.steps
     }
 }
 
@@ -300,7 +387,15 @@ pub fn encode_key(avatar_num: u32, hash: u64, pose: &QuantPose, out: &mut Vec<u8
     if weights {
         flags |= FLAG_WEIGHTS;
     }
+    let steps = pose.steps.as_ref().filter(|s| !s.is_finest());
+    if steps.is_some() {
+        flags |= FLAG_STEPS;
+    }
     out.push(flags);
+    if let Some(steps) = steps {
+        varint(u64::from(steps.translation), out);
+        out.extend((0..pose.rotations.len()).map(|j| steps.rotations.get(j).copied().unwrap_or(1)));
+    }
     for bits in &pose.rotations {
         out.extend_from_slice(&bits.to_le_bytes()[..quant::BYTES]);
     }
@@ -825,6 +920,7 @@ impl Frame2Decoder {
             scales: base.scales.clone(),
             placement: base.placement,
             weights: base.weights.clone(),
+            steps: base.steps.clone(),
         };
         if flags & FLAG_WEIGHTS != 0 && base.weights.is_empty() {
             return Err(Frame2Error::Flags { avatar, flags });
@@ -916,9 +1012,27 @@ fn key_chunk(r: &mut Reader<'_>) -> Result<DecodedAvatar, Frame2Error> {
     let translations = r.count(avatar)?;
     let scales = r.count(avatar)?;
     let flags = r.u8()?;
-    if flags & !(FLAG_PLACEMENT | FLAG_WEIGHTS) != 0 {
+    if flags & !(FLAG_PLACEMENT | FLAG_WEIGHTS | FLAG_STEPS) != 0 {
         return Err(Frame2Error::Flags { avatar, flags });
     }
+    let steps = if flags & FLAG_STEPS != 0 {
+        let at = r.at;
+        let translation = u16::try_from(r.varint()?)
+            .ok()
+            .filter(|&t| t >= 1)
+            .ok_or(Frame2Error::Number { at })?;
+        let at = r.at;
+        let rotations = r.take(joints)?.to_vec();
+        if rotations.contains(&0) {
+            return Err(Frame2Error::Number { at });
+        }
+        Some(Arc::new(Steps {
+            rotations,
+            translation,
+        }))
+    } else {
+        None
+    };
     // Check the bytes are there before allocating for them.
     let needed = joints * quant::BYTES + translations * 3 + scales * 12;
     if r.bytes.len() - r.at < needed {
@@ -930,6 +1044,7 @@ fn key_chunk(r: &mut Reader<'_>) -> Result<DecodedAvatar, Frame2Error> {
         scales: Vec::with_capacity(scales),
         placement: Placement::IDENTITY,
         weights: Vec::new(),
+        steps,
     };
     for _ in 0..joints {
         let mut b = [0u8; 8];
@@ -974,6 +1089,8 @@ fn key_chunk(r: &mut Reader<'_>) -> Result<DecodedAvatar, Frame2Error> {
 pub struct StreamEncoder {
     history: HashMap<u32, VecDeque<Arc<QuantPose>>>,
     last_seq: Option<u64>,
+    /// Grid steps by avatar number (a subscription's precision), else the finest.
+    steps: HashMap<u32, Arc<Steps>>,
 }
 
 impl StreamEncoder {
@@ -981,6 +1098,12 @@ impl StreamEncoder {
     #[must_use]
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// Codes avatar `avatar_num` on the grid of `steps` from now on (its next frame should be
+    /// a keyframe: pass `key`).
+    pub fn set_steps(&mut self, avatar_num: u32, steps: Arc<Steps>) {
+        self.steps.insert(avatar_num, steps);
     }
 
     /// Encodes `poses` as tick `seq`: a keyframe when `key` or when some avatar has no
@@ -996,7 +1119,13 @@ impl StreamEncoder {
     ) -> (Vec<u8>, FrameKind) {
         let quantised: Vec<Arc<QuantPose>> = poses
             .iter()
-            .map(|p| Arc::new(QuantPose::from_pose(p)))
+            .map(|p| {
+                let q = QuantPose::from_pose(p);
+                Arc::new(match self.steps.get(&p.avatar_num) {
+                    Some(steps) => q.coarsen(steps),
+                    None => q,
+                })
+            })
             .collect();
         let mut body = Vec::new();
         let mut kind = FrameKind::Key;

@@ -17,6 +17,7 @@
 //! - [`placement`]: an avatar's world placement (position, rotation).
 //! - [`live`]: the pose messages of a live driver (binary encoding).
 //! - [`subset`]: joint subsets a subscription may ask for (by depth or by name).
+//! - [`precision`]: how finely a subscription's frames code each joint (angle, world-space or translation bounds).
 //! - [`rig_options`]: how the server normalises an imported rig (per-asset pipeline options).
 //!
 //! Conventions: column vectors, right-handed, Y up, metres, seconds (see DESIGN.md).
@@ -70,6 +71,7 @@ pub mod live;
 pub mod morph;
 pub mod msg;
 pub mod placement;
+pub mod precision;
 pub mod quant;
 pub mod rig_options;
 pub mod skeleton;

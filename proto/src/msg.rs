@@ -19,8 +19,10 @@ pub const PROTOCOL_VERSION: u32 = 1;
 /// ([`crate::frame2`] instead of [`crate::frame`]); version 3 is version 2 with tagged
 /// command results in `ack` ([`ServerMsg::Ack`]) and joint subsets served as v2 frames (v1
 /// frames on version 2); version 4 is version 3 with morph weights in v2 frames (chunk flag
-/// 8, `proto/PROTOCOL.md`). Every other message is the same.
-pub const SUPPORTED_VERSIONS: [u32; 4] = [1, 2, 3, 4];
+/// 8, `proto/PROTOCOL.md`); version 5 is version 4 with precision per subscription
+/// (`subscribe`'s `precision`, keyframe chunk flag 16: [`crate::precision`]). Every other
+/// message is the same.
+pub const SUPPORTED_VERSIONS: [u32; 5] = [1, 2, 3, 4, 5];
 
 /// Largest message the server accepts from a client, in bytes (hello, subscribe, commands).
 /// Uploads of assets go through HTTP, not the websocket.
@@ -102,6 +104,11 @@ pub enum ClientMsg {
         /// one). Default `true`.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         morph_weights: Option<bool>,
+        /// How finely binary frames code each joint (protocol version 5;
+        /// [`crate::precision`]): a worst angle, a world-space bound, a translation bound —
+        /// so a distant view, a crowd or a thin link pays less. Absent: the finest.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        precision: Option<crate::precision::Precision>,
     },
     /// Stop receiving a scene.
     Unsubscribe {
@@ -201,6 +208,9 @@ pub enum ServerMsg {
         /// The joint set its frames carry (as subscribed; absent: every joint).
         #[serde(default, skip_serializing_if = "Option::is_none")]
         joints: Option<crate::subset::JointSet>,
+        /// The precision its frames are coded at (as subscribed; absent: the finest).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        precision: Option<crate::precision::Precision>,
     },
     /// Subscription ended (on request or because the scene was deleted).
     Unsubscribed {

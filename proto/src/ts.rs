@@ -16,6 +16,7 @@ use crate::msg::{
     SceneId, ServerMsg,
 };
 use crate::placement::Placement;
+use crate::precision::Precision;
 use crate::rig_options::{NeutralPose, PipelineOptions, ReorientFrame, SignedAxis, UpAxisOverride};
 use crate::subset::JointSet;
 use crate::tokens::{MintRequest, MintedToken, Right, TokenInfo};
@@ -24,7 +25,7 @@ use ts_rs::{Config, TS};
 
 /// The file's first lines.
 const HEADER: &str = "\
-// The JSON messages of the posecast websocket protocol (version 3) and of its REST answers, as
+// The JSON messages of the posecast websocket protocol (version 5) and of its REST answers, as
 // TypeScript types. GENERATED from the Rust types of posecast-proto (`proto/src/ts.rs`): do not
 // edit; run `cargo run -p posecast-tools --bin gen-ts` after changing them. proto/PROTOCOL.md
 // explains every message. Served at /sdk/protocol.d.ts; the SDK's posecast.d.ts builds on it.
@@ -55,6 +56,7 @@ pub fn declarations() -> String {
         ProtocolError,
         ErrorCode,
         Encoding,
+        Precision,
         Access,
         Right,
         MintRequest,

@@ -41,11 +41,12 @@ import { expandPose, selectJoints } from "./subset.js";
 /** @typedef {import("./posecast.js").Vec3} Vec3 */
 
 /**
- * The protocol version a client asks for unless told otherwise: 4, wire v2 binary frames with
- * morph weights (each pose's `weights`, by channel name) and command results tagged with their
- * kind. A server that predates it is asked again with the version before.
+ * The protocol version a client asks for unless told otherwise: 5, wire v2 binary frames with
+ * morph weights (each pose's `weights`, by channel name), a precision per subscription, and
+ * command results tagged with their kind. A server that predates it is asked again with the
+ * version before.
  */
-export const PROTOCOL_VERSION = 4;
+export const PROTOCOL_VERSION = 5;
 
 /** @returns {number} The wall clock in µs since the Unix epoch. */
 export function nowMicros() {
@@ -78,7 +79,7 @@ export class Client {
     this.url = options.url ?? defaultUrl();
     /** @type {Encoding} */
     this.encoding = options.encoding ?? "binary";
-    /** The protocol version asked for in the hello: 4 (wire v2 frames with morph weights), 3 or 2 (wire v2 frames) or 1 (v1 frames). */
+    /** The protocol version asked for in the hello: 5 (wire v2 frames with morph weights and a precision per subscription), 4 (with morph weights), 3 or 2 (wire v2 frames) or 1 (v1 frames). */
     this.version = options.version ?? PROTOCOL_VERSION;
     const tokens = options.tokens ?? (options.token ? [{ kind: /** @type {const} */ ("control"), value: options.token }] : []);
     /** @type {() => Token[]} */
@@ -506,6 +507,9 @@ export class Client {
     if (options.rate !== undefined) msg.rate = options.rate;
     if (options.joints !== undefined) msg.joints = options.joints;
     if (options.morphWeights === false) msg.morph_weights = false;
+    // A precision is for binary frames of protocol version 5 (a server that predates it, or
+    // JSON frames, get the finest).
+    if (options.precision && this.version >= 5 && this.encoding === "binary") msg.precision = options.precision;
     this.send(msg);
   }
 

@@ -5,7 +5,10 @@
 // to the receiver's last ≤ 8 decoded frames of the avatar and carry Rice-coded residuals of
 // predicted levels (or a joint's 47 bits in full, flagged in an escape mask). Protocol version
 // 4 adds morph weights (chunk flag bit 3): a keyframe lists every channel's 10-bit level, a
-// delta a change mask and the new levels of the changed channels.
+// delta a change mask and the new levels of the changed channels. Protocol version 5 adds
+// precision per subscription (keyframe chunk flag bit 4): grid steps per joint and for the
+// translations follow the flags, and the chunk's levels (and the deltas after it) are grid
+// values that integer arithmetic turns back into levels (Rust: `posecast_proto::precision`).
 //
 // Numbers: rotations (≤ 48 bits), levels and Rice sums (< 2⁴⁴) are exact JS numbers. Varints
 // are read as BigInt (up to 64 bits, as the Rust reader); the header's seq and server time must
@@ -35,6 +38,10 @@ const FLAG_SCALES = 2;
 const FLAG_ESCAPES = 4;
 /** Chunk flag (key and delta, protocol version 4): morph weights follow the placement. */
 const FLAG_WEIGHTS = 8;
+/** Keyframe chunk flag (protocol version 5): grid steps follow the flags byte. */
+const FLAG_STEPS = 16;
+/** The level of a zero rotation component. */
+const ZERO_LEVEL = 16383;
 /** Bits of a streamed morph weight level; levels run 0…WEIGHT_LEVELS (weight = level / 1023). */
 const WEIGHT_BITS = 10;
 export const WEIGHT_LEVELS = 1023;
@@ -51,8 +58,49 @@ const SAFE = BigInt(Number.MAX_SAFE_INTEGER);
 
 /**
  * One avatar's pose as levels: what v2 codes losslessly (`frame2::QuantPose`).
- * @typedef {{rotations: number[], translations: [number, number, number][], scales: Vec3[], placement: Placement, weights: number[]}} QuantPose
+ * @typedef {{rotations: number[], translations: [number, number, number][], scales: Vec3[], placement: Placement, weights: number[], steps: Steps | null}} QuantPose
  */
+
+/**
+ * Grid steps of a subscription's precision (`precision::Steps`): levels per grid step of each
+ * joint's rotation components, and of the translations.
+ * @typedef {{rotations: number[], translation: number}} Steps
+ */
+
+/**
+ * Joint `j`'s rotation bits on the finest grid.
+ * @param {QuantPose} levels
+ * @param {number} j
+ */
+function fineRotation(levels, j) {
+  const bits = levels.rotations[j];
+  const m = levels.steps ? levels.steps.rotations[j] : 1;
+  if (m === 1) return bits;
+  const zm = Math.floor((ZERO_LEVEL + m - 1) / m);
+  let out = Math.floor(bits / TWO_45);
+  for (let c = 0; c < 3; c++) {
+    const fine = Math.min(Math.max(ZERO_LEVEL + (level(bits, c) - zm) * m, 0), 2 * ZERO_LEVEL);
+    out = out * TWO_15 + fine;
+  }
+  return out;
+}
+
+/**
+ * A translation level on the finest grid (clamped to i32, as the Rust decoder does).
+ * @param {QuantPose} levels
+ * @param {number} l
+ */
+function fineTranslation(levels, l) {
+  const m = levels.steps ? levels.steps.translation : 1;
+  return m === 1 ? l : Math.min(Math.max(l * m, I32_MIN), I32_MAX);
+}
+
+/** @param {Steps | null} a @param {Steps | null} b */
+function sameSteps(a, b) {
+  if (a === b) return true;
+  if (!a || !b) return false;
+  return a.translation === b.translation && a.rotations.length === b.rotations.length && a.rotations.every((m, j) => m === b.rotations[j]);
+}
 
 /** @param {string} message */
 function bad(message) {
@@ -233,7 +281,8 @@ function sameShape(a, b) {
     a.rotations.length === b.rotations.length &&
     a.translations.length === b.translations.length &&
     a.scales.length === b.scales.length &&
-    a.weights.length === b.weights.length
+    a.weights.length === b.weights.length &&
+    sameSteps(a.steps, b.steps)
   );
 }
 
@@ -266,10 +315,24 @@ function keyChunk(r) {
   const translations = r.count(num);
   const scales = r.count(num);
   const flags = r.u8();
-  if (flags & ~(FLAG_PLACEMENT | FLAG_WEIGHTS)) throw bad(`avatar ${num}: invalid chunk flags ${flags}`);
+  if (flags & ~(FLAG_PLACEMENT | FLAG_WEIGHTS | FLAG_STEPS)) throw bad(`avatar ${num}: invalid chunk flags ${flags}`);
+  /** @type {Steps | null} */
+  let steps = null;
+  if (flags & FLAG_STEPS) {
+    const at = r.at;
+    const translation = r.varint();
+    if (translation < 1n || translation > 65535n) throw bad(`number out of range at byte ${at}`);
+    const rotations = [];
+    for (let j = 0; j < joints; j++) {
+      const m = r.u8();
+      if (m === 0) throw bad(`number out of range at byte ${r.at - 1}`);
+      rotations.push(m);
+    }
+    steps = { rotations, translation: Number(translation) };
+  }
   if (r.view.byteLength - r.at < joints * 6 + translations * 3 + scales * 12) throw bad(`truncated at byte ${r.view.byteLength}`);
   /** @type {QuantPose} */
-  const levels = { rotations: [], translations: [], scales: [], placement: identityPlacement(), weights: [] };
+  const levels = { rotations: [], translations: [], scales: [], placement: identityPlacement(), weights: [], steps };
   for (let j = 0; j < joints; j++) {
     const at = r.need(6);
     levels.rotations.push(r.view.getUint16(at + 4, true) * TWO_32 + r.view.getUint32(at, true));
@@ -362,8 +425,10 @@ export class Frame2Decoder {
       avatars: decoded.map(({ num, hash, levels }) => ({
         num,
         hash,
-        rotations: levels.rotations.map(decodeQuat),
-        translations: levels.translations.map((t) => /** @type {Vec3} */ (t.map((l) => Math.fround(l * TRANSLATION_STEP)))),
+        rotations: levels.rotations.map((_, j) => decodeQuat(fineRotation(levels, j))),
+        translations: levels.translations.map(
+          (t) => /** @type {Vec3} */ (t.map((l) => Math.fround(fineTranslation(levels, l) * TRANSLATION_STEP))),
+        ),
         scales: levels.scales.map((s) => /** @type {Vec3} */ ([...s])),
         placement: { position: [...levels.placement.position], rotation: [...levels.placement.rotation] },
         weights: levels.weights.map((l) => Math.fround(l / WEIGHT_LEVELS)),
@@ -398,7 +463,7 @@ export class Frame2Decoder {
     if (history.some((h) => !sameShape(h, base))) throw missing();
     if (flags & FLAG_WEIGHTS && base.weights.length === 0) throw bad(`avatar ${num}: invalid chunk flags ${flags}`);
     /** @type {QuantPose} */
-    const pose = { rotations: [], translations: [], scales: base.scales, placement: base.placement, weights: base.weights };
+    const pose = { rotations: [], translations: [], scales: base.scales, placement: base.placement, weights: base.weights, steps: base.steps };
     const b = new BitReader(r);
     const joints = base.rotations.length;
     const escaped = new Array(joints).fill(false);

@@ -1,4 +1,4 @@
-// The JSON messages of the posecast websocket protocol (version 3) and of its REST answers, as
+// The JSON messages of the posecast websocket protocol (version 5) and of its REST answers, as
 // TypeScript types. GENERATED from the Rust types of posecast-proto (`proto/src/ts.rs`): do not
 // edit; run `cargo run -p posecast-tools --bin gen-ts` after changing them. proto/PROTOCOL.md
 // explains every message. Served at /sdk/protocol.d.ts; the SDK's posecast.d.ts builds on it.
@@ -48,7 +48,13 @@ joints?: JointSet | null,
  * `false` leaves them out, for a view that shows no faces (a distant or body-only
  * one). Default `true`.
  */
-morph_weights?: boolean | null, } | { "type": "unsubscribe", 
+morph_weights?: boolean | null, 
+/**
+ * How finely binary frames code each joint (protocol version 5;
+ * `crate::precision`): a worst angle, a world-space bound, a translation bound —
+ * so a distant view, a crowd or a thin link pays less. Absent: the finest.
+ */
+precision?: Precision | null, } | { "type": "unsubscribe", 
 /**
  * The scene.
  */
@@ -148,7 +154,11 @@ rate?: number | null,
 /**
  * The joint set its frames carry (as subscribed; absent: every joint).
  */
-joints?: JointSet | null, } | { "type": "unsubscribed", 
+joints?: JointSet | null, 
+/**
+ * The precision its frames are coded at (as subscribed; absent: the finest).
+ */
+precision?: Precision | null, } | { "type": "unsubscribed", 
 /**
  * The scene.
  */
@@ -745,6 +755,31 @@ export type ErrorCode = "bad_message" | "unexpected_binary" | "message_too_large
  * How pose frames reach a client.
  */
 export type Encoding = "binary" | "json";
+
+/**
+ * What precision a subscription asks for (`subscribe`'s `precision`). Absent fields take the
+ * finest precision (what a subscription without `precision` gets).
+ */
+export type Precision = { 
+/**
+ * Worst angle of any joint's rotation, degrees (at least `finest_degrees`, at most
+ * 45). Absent: the finest, unless `millimetres` is given.
+ */
+degrees?: number, 
+/**
+ * Worst world-space movement, millimetres, of a point `shell` metres from any joint
+ * caused by the rotations' coding (0.01–10,000).
+ */
+millimetres?: number, 
+/**
+ * The shell distance of `millimetres`, metres (0–10; default 0.03).
+ */
+shell?: number, 
+/**
+ * Worst error of a streamed translation, metres (at least half of
+ * `TRANSLATION_STEP`, at most 1).
+ */
+translation?: number, };
 
 /**
  * What a connection (or a REST request) may do, as decided from its token.

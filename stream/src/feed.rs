@@ -20,6 +20,7 @@ use posecast_core::error::Error;
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::{ChunkEncoder, FrameHeader, FrameKind};
 use posecast_proto::msg::{AvatarId, Encoding, SceneId, ServerMsg};
+use posecast_proto::precision::{Precision, PrecisionKey};
 use posecast_proto::subset::JointSet;
 use posecast_sim::avatar::Avatar;
 use std::collections::HashMap;
@@ -51,6 +52,8 @@ pub struct Subscriber {
     pub name: Option<Arc<str>>,
     /// Whether it wants morph weights in its frames (`subscribe`'s `morph_weights`).
     pub morph_weights: bool,
+    /// The precision its wire v2 frames are coded at (`None`: the finest).
+    pub precision: Option<Precision>,
 }
 
 impl Subscriber {
@@ -74,7 +77,16 @@ impl Subscriber {
             version: 1,
             name: None,
             morph_weights: true,
+            precision: None,
         }
+    }
+
+    /// The same subscription with its wire v2 frames coded at `precision` (`None`, or one
+    /// no coarser than the finest: the finest).
+    #[must_use]
+    pub fn with_precision(mut self, precision: Option<Precision>) -> Self {
+        self.precision = precision.filter(|p| !p.is_finest());
+        self
     }
 
     /// The same subscription with or without morph weights in its frames.
@@ -575,6 +587,7 @@ impl Feed {
             scene_num: self.num,
             rate: Some(self.tick_rate / sub.every as f32),
             joints: sub.joints.clone(),
+            precision: sub.precision,
         }));
         // Exempt from the outbox's stall bound: a scene of many avatars is not a slow client.
         let descriptions: Vec<Message> = described
@@ -690,10 +703,15 @@ impl Feed {
                 return;
             };
             let now = self.ring.record(newest);
-            if let Some(message) =
-                self.ring
-                    .message(newest, &now, None, filter, joints, sub.weights())
-            {
+            if let Some(message) = self.ring.message(
+                newest,
+                &now,
+                None,
+                filter,
+                joints,
+                sub.weights(),
+                sub.precision.as_ref(),
+            ) {
                 sub.outbox.push_chained(
                     self.num,
                     OutFrame { message, key: true },
@@ -722,10 +740,15 @@ impl Feed {
             pieces,
         };
         let now = wire2::levels(&fresh);
-        if let Some(message) = self
-            .ring
-            .message(&fresh, &now, None, filter, joints, sub.weights())
-        {
+        if let Some(message) = self.ring.message(
+            &fresh,
+            &now,
+            None,
+            filter,
+            joints,
+            sub.weights(),
+            sub.precision.as_ref(),
+        ) {
             sub.outbox
                 .push_frame(self.num, OutFrame { message, key: true });
         }
@@ -834,12 +857,13 @@ impl Feed {
             self.ring.clear();
             None
         };
-        // (chain, avatar filter, joint subset, with morph weights)
+        // (chain, avatar filter, joint subset, with morph weights, precision)
         type V2Key<'a> = (
             Option<Vec<u64>>,
             Option<&'a [AvatarId]>,
             Option<&'a JointSet>,
             bool,
+            Option<PrecisionKey>,
         );
         let mut v2_cache: HashMap<V2Key<'_>, Option<Message>> = HashMap::new();
         for sub in &mut self.subscribers {
@@ -858,6 +882,8 @@ impl Feed {
             let joints = sub.joints.as_ref();
             let weights = sub.weights();
             if sub.v2() {
+                let precision = sub.precision.as_ref();
+                let grid = precision.map(Precision::key);
                 let Some(levels) = &levels else { continue };
                 let ring = &self.ring;
                 // A delta continues the frames the subscriber will hold; none (a frame was
@@ -868,7 +894,7 @@ impl Feed {
                     .flatten()
                     .and_then(|chain| {
                         v2_cache
-                            .entry((Some(chain.clone()), filter, joints, weights))
+                            .entry((Some(chain.clone()), filter, joints, weights, grid))
                             .or_insert_with(|| {
                                 ring.message(
                                     &published,
@@ -877,6 +903,7 @@ impl Feed {
                                     filter,
                                     joints,
                                     weights,
+                                    precision,
                                 )
                             })
                             .clone()
@@ -888,9 +915,11 @@ impl Feed {
                     },
                     None => {
                         let Some(message) = v2_cache
-                            .entry((None, filter, joints, weights))
+                            .entry((None, filter, joints, weights, grid))
                             .or_insert_with(|| {
-                                ring.message(&published, levels, None, filter, joints, weights)
+                                ring.message(
+                                    &published, levels, None, filter, joints, weights, precision,
+                                )
                             })
                             .clone()
                         else {

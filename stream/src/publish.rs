@@ -116,6 +116,11 @@ impl Piece {
         &self.description.id
     }
 
+    /// The rig the pose belongs to.
+    pub(super) fn description(&self) -> &Arc<AvatarDescription> {
+        &self.description
+    }
+
     fn json(&self) -> Cow<'_, str> {
         match &self.json {
             Some(s) => Cow::Borrowed(s),

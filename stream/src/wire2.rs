@@ -3,18 +3,22 @@
 //! frames made from them — per tick at most one keyframe and one delta per distinct chain of
 //! frames a subscriber holds ([`super::outbox::Outbox::chain`]), shared by every subscriber
 //! holding that chain (and, for subscribers limited to some joints, per joint set: their
-//! frames are the levels cut to those joints, predicted from frames cut alike).
+//! frames are the levels cut to those joints, predicted from frames cut alike; and for
+//! subscribers asking for a precision, per precision: their frames code the levels on that
+//! precision's grid, [`posecast_proto::precision`], predicted from frames coded alike).
 
 use super::publish::{self, Published};
 use axum::extract::ws::Message;
 use bytes::Bytes;
+use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::{FrameHeader, FrameKind};
 use posecast_proto::frame2::{self, QuantPose};
 use posecast_proto::msg::AvatarId;
+use posecast_proto::precision::{Precision, PrecisionKey, Steps};
 use posecast_proto::subset::{JointSet, Selection};
 use std::borrow::Cow;
 use std::collections::{HashMap, VecDeque};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, PoisonError};
 
 /// Ticks of levels kept: deltas may refer to this far back (a subscriber at 10 Hz of a 60 Hz
 /// scene refers to 6 ticks per frame, [`frame2::MAX_DEPTH`] frames deep). A subscriber whose
@@ -27,16 +31,64 @@ type Levels = (u64, Arc<QuantPose>);
 /// Every avatar's levels at one tick, by avatar number.
 pub(super) type TickLevels = HashMap<u32, Levels>;
 
+/// Most rigs × precisions whose steps are kept (a bound on what many distinct subscriptions
+/// can make the ring hold; past it the cache starts again).
+const MAX_STEPS_CACHED: usize = 4096;
+
 /// The scene's recent ticks as levels, newest first.
 #[derive(Debug, Default)]
 pub(super) struct Ring {
     ticks: VecDeque<(u64, Arc<TickLevels>)>,
+    /// Levels on a precision's grid, made once per (tick, avatar number, precision) for every
+    /// subscriber holding that precision. Only ticks still in the ring.
+    coarse: Mutex<HashMap<(u64, u32, PrecisionKey), Arc<QuantPose>>>,
+    /// Grid steps by (description hash, precision).
+    steps: Mutex<HashMap<(u64, PrecisionKey), Arc<Steps>>>,
 }
 
 impl Ring {
     /// Forgets everything (a new source of frames, or no v2 subscriber left).
     pub(super) fn clear(&mut self) {
         self.ticks.clear();
+        self.coarse
+            .get_mut()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clear();
+    }
+
+    /// The steps of rig `d` (of description hash `hash`) at `precision` (`None`: the finest, frames coded as without one).
+    fn steps_of(
+        &self,
+        d: &AvatarDescription,
+        hash: u64,
+        precision: &Precision,
+    ) -> Option<Arc<Steps>> {
+        let key = (hash, precision.key());
+        let mut cache = self.steps.lock().unwrap_or_else(PoisonError::into_inner);
+        if cache.len() >= MAX_STEPS_CACHED && !cache.contains_key(&key) {
+            cache.clear();
+        }
+        let steps = cache
+            .entry(key)
+            .or_insert_with(|| Arc::new(precision.resolve(d)))
+            .clone();
+        (!steps.is_finest()).then_some(steps)
+    }
+
+    /// `levels` of avatar `num` at tick `seq` on the grid of `steps` (made once, then shared).
+    fn coarse_of(
+        &self,
+        seq: u64,
+        num: u32,
+        levels: &Arc<QuantPose>,
+        steps: &Arc<Steps>,
+        key: PrecisionKey,
+    ) -> Arc<QuantPose> {
+        let mut cache = self.coarse.lock().unwrap_or_else(PoisonError::into_inner);
+        cache
+            .entry((seq, num, key))
+            .or_insert_with(|| Arc::new(levels.coarsen(steps)))
+            .clone()
     }
 
     /// The levels of `published`, recorded as its tick's when that tick is newer than every
@@ -51,12 +103,20 @@ impl Ring {
         if self.ticks.front().is_none_or(|(s, _)| *s < seq) {
             self.ticks.push_front((seq, levels.clone()));
             self.ticks.truncate(RING_TICKS);
+            let oldest = self.ticks.back().map_or(seq, |(s, _)| *s);
+            let coarse = self
+                .coarse
+                .get_mut()
+                .unwrap_or_else(PoisonError::into_inner);
+            if !coarse.is_empty() {
+                coarse.retain(|(s, _, _), _| *s >= oldest);
+            }
         }
         levels
     }
 
     /// The recorded ticks of `chain` (newest first), up to the first one no longer kept.
-    fn ticks_of(&self, chain: &[u64]) -> Vec<&TickLevels> {
+    fn ticks_of(&self, chain: &[u64]) -> Vec<(u64, &TickLevels)> {
         chain
             .iter()
             .take(frame2::MAX_DEPTH)
@@ -64,7 +124,7 @@ impl Ring {
                 self.ticks
                     .iter()
                     .find(|(s, _)| *s == seq)
-                    .map(|(_, l)| &**l)
+                    .map(|(_, l)| (seq, &**l))
             })
             .collect()
     }
@@ -74,6 +134,8 @@ impl Ring {
     /// of `joints` (levels and history cut alike, so a subset's deltas predict from the
     /// subset's own frames). `None` when some avatar cannot be coded against the chain (it is
     /// new, changed rig, or its frames left the ring): the subscriber needs a keyframe.
+    /// With a `precision`, every avatar's levels (now and in the chain) are on its grid.
+    #[allow(clippy::too_many_arguments)]
     pub(super) fn message(
         &self,
         published: &Published,
@@ -82,6 +144,7 @@ impl Ring {
         filter: Option<&[AvatarId]>,
         joints: Option<&JointSet>,
         weights: bool,
+        precision: Option<&Precision>,
     ) -> Option<Message> {
         let pieces = publish::select(&published.pieces, filter, joints);
         let seq = published.header.seq;
@@ -91,16 +154,28 @@ impl Ring {
             let num = p.pose.avatar_num;
             let (hash, levels) = now.get(&num)?;
             let selection = selection.as_deref();
-            let levels = cut(levels, selection, weights);
+            let grid = precision
+                .and_then(|pr| Some((self.steps_of(p.description(), *hash, pr)?, pr.key())));
+            let on_grid = |tick: u64, levels: &Arc<QuantPose>| match &grid {
+                Some((steps, key)) => self.coarse_of(tick, num, levels, steps, *key),
+                None => levels.clone(),
+            };
+            let levels = on_grid(seq, levels);
+            let levels = cut(&levels, selection, weights);
             if chain.is_none() {
                 frame2::encode_key(num, *hash, &levels, &mut body);
                 continue;
             }
-            let history: Vec<Cow<'_, QuantPose>> = ticks
+            let history: Vec<Arc<QuantPose>> = ticks
                 .iter()
-                .map_while(|t| t.get(&num).filter(|(h, _)| h == hash))
-                .map(|(_, l)| cut(l, selection, weights))
+                .map_while(|(tick, t)| {
+                    t.get(&num)
+                        .filter(|(h, _)| h == hash)
+                        .map(|(_, l)| on_grid(*tick, l))
+                })
                 .collect();
+            let history: Vec<Cow<'_, QuantPose>> =
+                history.iter().map(|l| cut(l, selection, weights)).collect();
             let history: Vec<&QuantPose> = history.iter().map(|h| &**h).collect();
             if !frame2::encode_delta(num, &levels, &history, &mut body) {
                 return None;

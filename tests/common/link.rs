@@ -126,6 +126,7 @@ async fn view(addr: SocketAddr, encoding: Encoding, seen: &Mutex<Seen>) -> Resul
             rate: None,
             joints: None,
             morph_weights: None,
+            precision: None,
         },
     ] {
         ws.send(Message::text(serde_json::to_string(&msg).unwrap()))

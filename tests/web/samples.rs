@@ -148,6 +148,7 @@ fn samples() -> Vec<(&'static str, &'static str, Value)> {
                 scene_num: 2,
                 rate: Some(20.0),
                 joints: Some(JointSet::Depth(3)),
+                precision: None,
             }),
         ),
         (
@@ -341,6 +342,12 @@ fn samples() -> Vec<(&'static str, &'static str, Value)> {
                 rate: Some(20.0),
                 joints: Some(JointSet::Names(vec!["Head".into()])),
                 morph_weights: Some(false),
+                precision: Some(posecast_proto::precision::Precision {
+                    degrees: Some(0.1),
+                    millimetres: Some(2.0),
+                    shell: None,
+                    translation: Some(0.001),
+                }),
             }),
         ),
         ("watchScenes", "ClientMsg", v!(ClientMsg::WatchScenes)),

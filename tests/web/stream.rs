@@ -270,7 +270,8 @@ fn v2_refused(bytes: &[u8], decoder: &mut Frame2Decoder, rng: &mut Lcg) -> Vec<V
 /// ticks) and (`slow`) for one that misses frames and, after a gap, gets a keyframe or a delta
 /// against the last frame it decoded — and the fast stream's deltas whose base it lacks.
 /// Joints mostly turn a little (predicted, Rice-coded), some jump (escapes), the first avatar
-/// now and then teleports (Rice escapes); placements and scales change. Malformed frames
+/// now and then teleports (Rice escapes); placements and scales change; the fast stream codes
+/// the second avatar on a precision's grid (version 5). Malformed frames
 /// between the good ones: `null`, and they change nothing.
 fn frame2_vectors(rng: &mut Lcg) -> Value {
     let joints = [9usize, 23];
@@ -302,6 +303,24 @@ fn frame2_vectors(rng: &mut Lcg) -> Value {
         .collect();
     let velocity = rng.vec3() * 0.02;
     let mut stream = StreamEncoder::new();
+    // The fast stream codes the second avatar at a subscription's precision (protocol version
+    // 5): grid steps from the finest to the coarsest per joint, and a coarse translation step.
+    let steps = (0..joints[1])
+        .map(|j| {
+            if j % 4 == 0 {
+                1
+            } else {
+                (rng.next() * 254.0) as u8 + 1
+            }
+        })
+        .collect();
+    stream.set_steps(
+        2,
+        std::sync::Arc::new(posecast_proto::precision::Steps {
+            rotations: steps,
+            translation: 37,
+        }),
+    );
     let (mut fast, mut slow) = (Frame2Decoder::new(), Frame2Decoder::new());
     let (mut fast_out, mut slow_out) = (Vec::new(), Vec::new());
     let mut ring: Vec<Vec<QuantPose>> = Vec::new();

@@ -59,11 +59,16 @@ pub struct ClientOptions {
     /// Morph weights in every subscription's frames (default `true`; `false`: a view that
     /// draws no faces saves their bytes).
     pub morph_weights: bool,
-    /// Protocol version asked for in hello (default 4): 2 to 4 get wire v2 binary frames
+    /// How finely every subscription's binary frames code each joint (protocol version 5;
+    /// [`posecast_proto::precision`]): a worst angle, a world-space bound or a translation
+    /// bound. `None`: the finest. JSON frames, and a connection that stepped down below
+    /// version 5, do not ask for it (their frames are then the finest).
+    pub precision: Option<posecast_proto::precision::Precision>,
+    /// Protocol version asked for in hello (default 5): 2 to 5 get wire v2 binary frames
     /// ([`posecast_proto::frame2`], about half of v1's bytes), 1 the v1 frames
-    /// ([`posecast_proto::frame`]); 3 and 4 also get command results tagged with their kind (1
-    /// and 2 bare values, read by their shape: [`CommandResult::from_bare`]); 4 also gets
-    /// morph weights in frames. A server that refuses
+    /// ([`posecast_proto::frame`]); 3 and later also get command results tagged with their
+    /// kind (1 and 2 bare values, read by their shape: [`CommandResult::from_bare`]); 4 and
+    /// later also get morph weights in frames; 5 may ask for a `precision`. A server that refuses
     /// the version (`unsupported_version`: one that predates it) gets a hello with the version
     /// before, down to 1.
     pub version: u32,
@@ -85,7 +90,8 @@ impl ClientOptions {
             rate: None,
             joints: None,
             morph_weights: true,
-            version: 4,
+            precision: None,
+            version: 5,
         }
     }
 }
@@ -630,6 +636,9 @@ async fn session(
             rate: options.rate,
             joints: options.joints.clone(),
             morph_weights: (!options.morph_weights).then_some(false),
+            precision: options
+                .precision
+                .filter(|_| version >= 5 && options.encoding == Encoding::Binary),
         };
         sink.send(to_text(&sub))
             .await

@@ -253,6 +253,45 @@ proptest! {
         }
     }
 
+    /// A stream coded on a coarser grid (random steps per joint and for translations, as a
+    /// subscription's precision gives): the reader decodes exactly the encoder's grid values,
+    /// and every rotation is within its joint's bound of the source, every translation within
+    /// the translation step's.
+    #[test]
+    fn coarse_streams_decode_within_each_joints_bound(
+        a in arb_motion(),
+        rotation_steps in prop::collection::vec(1u8..=255, 40),
+        translation_step in prop_oneof![Just(1u16), 1u16..=2000],
+    ) {
+        let joints = a.start.len();
+        let steps = Arc::new(Steps {
+            rotations: rotation_steps[..joints].to_vec(),
+            translation: translation_step,
+        });
+        let mut stream = StreamEncoder::new();
+        stream.set_steps(3, steps.clone());
+        let mut reader = Frame2Decoder::new();
+        for tick in 0..60usize {
+            let p = a.at(tick, 3);
+            let (bytes, _) = stream.encode(4, tick as u64 + 1, 7, std::slice::from_ref(&p), tick == 0);
+            let got = reader.decode_levels(&bytes).unwrap();
+            let g = &got.avatars[0];
+            prop_assert_eq!(&*g.levels, &QuantPose::from_pose(&p).coarsen(&steps));
+            let decoded = g.levels.to_pose(3, p.hash);
+            for (j, (x, y)) in p.rotations.iter().zip(&decoded.rotations).enumerate() {
+                let angle = quant::angle_between_degrees(*x, *y);
+                prop_assert!(angle <= precision::rotation_bound_degrees(steps.rotations[j]),
+                    "joint {} step {}: {}°", j, steps.rotations[j], angle);
+            }
+            for (x, y) in p.translations.iter().zip(&decoded.translations) {
+                for c in 0..3 {
+                    prop_assert!(f64::from((x[c] - y[c]).abs())
+                        <= precision::translation_bound(translation_step) + 1e-6);
+                }
+            }
+        }
+    }
+
     #[test]
     fn garbage_never_panics(bytes in prop::collection::vec(any::<u8>(), 0..400)) {
         let mut dec = Frame2Decoder::new();

@@ -451,6 +451,11 @@ export const subscribe = /** @satisfies {import("../protocol.js").ClientMsg} */ 
     ]
   },
   "morph_weights": false,
+  "precision": {
+    "degrees": 0.10000000149011612,
+    "millimetres": 2.0,
+    "translation": 0.0010000000474974513
+  },
   "rate": 20.0,
   "scene": "lobby",
   "type": "subscribe"

@@ -252,6 +252,29 @@ fn read_failure(e: axum::Error) -> Option<(ProtocolError, u16, &'static str)> {
     }
 }
 
+/// A subscription's `precision`: in range, and asked by a connection whose frames can carry
+/// it (binary, protocol version 5 or later: wire v2 keyframes with grid steps).
+fn check_precision(
+    precision: Option<&posecast_proto::precision::Precision>,
+    encoding: Encoding,
+    version: u32,
+) -> Result<(), Error> {
+    let Some(p) = precision else {
+        return Ok(());
+    };
+    p.validate().map_err(|e| Error::invalid(e.to_string()))?;
+    if p.is_finest() {
+        return Ok(());
+    }
+    if encoding != Encoding::Binary || version < 5 {
+        return Err(Error::invalid(format!(
+            "precision applies to binary frames of protocol version 5 or later; this \
+             connection speaks {encoding:?} frames of version {version}"
+        )));
+    }
+    Ok(())
+}
+
 /// Which ticks a subscription asking for `rate` frames per second gets: every
 /// `round(tick_rate / rate)`-th, at least every one (a rate that is not finite and positive, or
 /// above the tick rate, gets every tick).
@@ -554,6 +577,7 @@ impl Session {
                 rate,
                 joints,
                 morph_weights,
+                precision,
             } => {
                 // A subscription costs the scene work under its lock (descriptions, a
                 // keyframe): it is charged to the same rate limit as commands.
@@ -572,6 +596,7 @@ impl Session {
                     .as_ref()
                     .map_or(Ok(()), JointSet::validate)
                     .map_err(|e| Error::invalid(e.to_string()))
+                    .and_then(|()| check_precision(precision.as_ref(), encoding, self.version))
                     .and_then(|()| {
                         self.state
                             .config
@@ -591,6 +616,7 @@ impl Session {
                             )
                             .with_joints(joints)
                             .with_morph_weights(morph_weights.unwrap_or(true))
+                            .with_precision(precision)
                             .with_version(self.version)
                             .with_name(self.caller.owner()),
                         )

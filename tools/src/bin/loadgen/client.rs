@@ -262,6 +262,7 @@ pub async fn connect(
             rate,
             joints: None,
             morph_weights: None,
+            precision: None,
         },
     )
     .await?;

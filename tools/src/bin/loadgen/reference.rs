@@ -245,6 +245,7 @@ async fn client(
                     scene_num: 1,
                     rate: Some(tick_rate),
                     joints: None,
+                    precision: None,
                 })?)
                 .await?;
                 break;
