@@ -62,6 +62,34 @@ fn constant_velocity_costs_one_bit_a_component() {
     assert_eq!(out.len(), 4);
 }
 
+/// The 32-bit rotation predictor gives what the reference one (`predict`, in i64) gives, on
+/// random histories of every depth and at the ends of the level range.
+#[test]
+fn the_rotation_predictor_matches_the_reference() {
+    let mut seed = 0x2545_f491_4f6c_dd1du64;
+    let mut next = move || {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        seed
+    };
+    for case in 0..200_000 {
+        let n = (case % MAX_DEPTH) + 1;
+        let spread = [1u64, 4, 64, 4096, 32768][case % 5];
+        let centre = (next() % 32768) as i64;
+        let h: Vec<i64> = (0..n)
+            .map(|_| match next() % 9 {
+                0 => 0,
+                1 => LEVEL_MASK as i64,
+                _ => (centre + (next() % spread) as i64 - spread as i64 / 2)
+                    .clamp(0, LEVEL_MASK as i64),
+            })
+            .collect();
+        let small: Vec<i32> = h.iter().map(|&v| v as i32).collect();
+        assert_eq!(predict_rotation(&small), predict(&h, true), "{h:?}");
+    }
+}
+
 #[test]
 fn predict_picks_still_for_noise_and_velocity_for_motion() {
     assert_eq!(predict(&[7], true), (7, K_WITHOUT_HISTORY));

@@ -1,0 +1,118 @@
+//! Wire v2's cost per avatar-frame: quantising a pose into levels, coding a delta against the
+//! receiver's last 8 frames, and decoding it — for a 31-joint rig (CMU 01_01's size) moving
+//! like motion capture (every joint turning at a slowly wandering angular velocity, the root
+//! walking), at the finest precision and on a 0.1° grid.
+//!
+//! `cargo bench -p posecast-proto --bench frame2_encode`
+
+use criterion::{Criterion, black_box, criterion_group, criterion_main};
+use glam::{Quat, Vec3};
+use posecast_proto::frame::AvatarPose;
+use posecast_proto::frame2::{self, Frame2Decoder, QuantPose, StreamEncoder};
+use posecast_proto::placement::Placement;
+use posecast_proto::precision::{self, Steps};
+use std::sync::Arc;
+
+const JOINTS: usize = 31;
+
+/// `frames` poses of a rig of [`JOINTS`] joints moving smoothly (seeded, deterministic).
+fn motion(frames: usize) -> Vec<AvatarPose> {
+    let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+    let mut rnd = move || {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        (seed >> 11) as f32 / (1u64 << 53) as f32 * 2.0 - 1.0
+    };
+    let mut rotations: Vec<Quat> = (0..JOINTS)
+        .map(|_| Quat::from_scaled_axis(Vec3::new(rnd(), rnd(), rnd())))
+        .collect();
+    let mut spin: Vec<Vec3> = (0..JOINTS).map(|_| Vec3::ZERO).collect();
+    let mut root = Vec3::new(0.0, 0.9, 0.0);
+    (0..frames)
+        .map(|_| {
+            for (q, w) in rotations.iter_mut().zip(&mut spin) {
+                *w = (*w + Vec3::new(rnd(), rnd(), rnd()) * 0.004).clamp_length_max(0.05);
+                *q = (Quat::from_scaled_axis(*w) * *q).normalize();
+            }
+            root += Vec3::new(0.02, 0.001 * rnd(), 0.0);
+            AvatarPose {
+                avatar_num: 1,
+                hash: 7,
+                rotations: rotations.clone(),
+                translations: vec![root],
+                scales: Vec::new(),
+                placement: Placement::IDENTITY,
+                weights: Vec::new(),
+            }
+        })
+        .collect()
+}
+
+fn bench(c: &mut Criterion) {
+    let poses = motion(600);
+    let levels: Vec<QuantPose> = poses.iter().map(QuantPose::from_pose).collect();
+    c.bench_function("quantise a 31-joint pose (QuantPose::from_pose)", |b| {
+        let mut i = 0;
+        b.iter(|| {
+            i = (i + 1) % poses.len();
+            black_box(QuantPose::from_pose(black_box(&poses[i])))
+        })
+    });
+    let mut out = Vec::with_capacity(256);
+    for (label, steps) in [
+        ("finest", None),
+        (
+            "0.1°",
+            Some(Arc::new(Steps {
+                rotations: vec![precision::rotation_step_for(0.1); JOINTS],
+                translation: 1,
+            })),
+        ),
+    ] {
+        let levels: Vec<QuantPose> = match &steps {
+            Some(s) => levels.iter().map(|l| l.coarsen(s)).collect(),
+            None => levels.clone(),
+        };
+        c.bench_function(&format!("delta of depth 8, 31 joints, {label}"), |b| {
+            let mut i = 8;
+            b.iter(|| {
+                i = if i + 1 >= levels.len() { 8 } else { i + 1 };
+                let history: [&QuantPose; 8] = std::array::from_fn(|k| &levels[i - 1 - k]);
+                out.clear();
+                frame2::encode_delta(1, black_box(&levels[i]), &history, &mut out);
+                black_box(out.len())
+            })
+        });
+        let mut encoder = StreamEncoder::new();
+        if let Some(s) = &steps {
+            encoder.set_steps(1, s.clone());
+        }
+        let frames: Vec<Vec<u8>> = poses
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                encoder
+                    .encode(1, i as u64 + 1, 0, std::slice::from_ref(p), i % 60 == 0)
+                    .0
+            })
+            .collect();
+        let bytes: usize = frames.iter().map(Vec::len).sum();
+        println!(
+            "{label}: {:.2} B/joint/frame over {} frames (keyframe a second)",
+            bytes as f64 / frames.len() as f64 / JOINTS as f64,
+            frames.len()
+        );
+        c.bench_function(&format!("decode 600 frames, 31 joints, {label}"), |b| {
+            b.iter(|| {
+                let mut d = Frame2Decoder::new();
+                for f in &frames {
+                    black_box(d.decode_levels(f).is_ok());
+                }
+            })
+        });
+    }
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);
