@@ -265,3 +265,64 @@ async fn the_native_client_falls_back_to_version_1_for_an_older_server() {
     );
     assert_eq!(*hellos.lock().unwrap(), vec![5, 4, 3, 2, 1, 2, 1]);
 }
+
+/// A v2 reader that falls behind — its writer takes what is pending only every fifth tick, so
+/// pending deltas pile up to the outbox's bound — keeps getting deltas: each new one takes the
+/// place of the newest pending delta, coded against the frames below it, instead of breaking
+/// the chain into a keyframe a tick. It decodes every frame to the poses a v1 reader of the same
+/// ticks gets, and gets no more keyframes than the scene makes.
+#[tokio::test]
+async fn a_reader_that_falls_behind_gets_deltas_not_a_keyframe_a_tick() {
+    let scene = Scene::new(SceneId("s".into()), 1, Arc::new(Metrics::new()), 60.0);
+    let rig = Arc::new(posecast_server::builtin::rig().unwrap());
+    let mut avatar = Avatar::new(AvatarId("a".into()), 1, rig.clone());
+    let walk = rig.clip("walk").unwrap().clone();
+    avatar.play(
+        posecast_server::avatar::playback::Layer::new(walk, None, 0.0, 1.0, true),
+        0.0,
+    );
+    scene.add_avatar(avatar).unwrap();
+    let v1 = Arc::new(Outbox::new());
+    let behind = Arc::new(Outbox::new());
+    for (conn, outbox, version) in [(1, &v1, 1), (2, &behind, 3)] {
+        scene
+            .subscribe(
+                Subscriber::new(conn, outbox.clone(), Encoding::Binary, None, 1)
+                    .with_version(version),
+            )
+            .unwrap();
+    }
+    let (mut d1, mut d2) = (FrameDecoder::new(), Frame2Decoder::new());
+    let mut by_seq: HashMap<u64, Frame> = HashMap::new();
+    let (mut keys, mut deltas) = (0usize, 0usize);
+    let ticks = 600u64;
+    for seq in 1..=ticks {
+        scene.tick(seq, seq as f64 / 60.0, seq * 16_667, 60);
+        for bytes in drain(&v1).await {
+            let f = d1.decode(&bytes).unwrap();
+            by_seq.insert(f.header.seq, f);
+        }
+        if !seq.is_multiple_of(5) {
+            continue;
+        }
+        for bytes in drain(&behind).await {
+            let f = d2
+                .decode(&bytes)
+                .unwrap_or_else(|e| panic!("tick {seq}: {e}"));
+            assert_same_pose(&by_seq[&f.header.seq], &f);
+            match f.header.kind {
+                FrameKind::Key => keys += 1,
+                FrameKind::Delta => deltas += 1,
+            }
+        }
+    }
+    // The scene's keyframes (one a second) and the first: no keyframe for falling behind.
+    assert!(
+        keys <= 2 + ticks as usize / 60,
+        "{keys} keyframes, {deltas} deltas"
+    );
+    assert!(
+        deltas >= 2 * (ticks as usize / 5) - keys,
+        "{keys} keyframes, {deltas} deltas"
+    );
+}

@@ -716,6 +716,7 @@ impl Feed {
                     self.num,
                     OutFrame { message, key: true },
                     newest.header.seq,
+                    None,
                 );
             }
             return;
@@ -886,33 +887,36 @@ impl Feed {
                 let grid = precision.map(Precision::key);
                 let Some(levels) = &levels else { continue };
                 let ring = &self.ring;
-                // A delta continues the frames the subscriber will hold; none (a frame was
-                // replaced unsent, it just joined, the rate changed the ticks it got: anything
-                // not in the ring) or a keyframe tick: the tick's shared keyframe.
-                let delta = (!key)
-                    .then(|| sub.outbox.chain(self.num))
-                    .flatten()
-                    .and_then(|chain| {
-                        v2_cache
-                            .entry((Some(chain.clone()), filter, joints, weights, grid))
-                            .or_insert_with(|| {
-                                ring.message(
-                                    &published,
-                                    levels,
-                                    Some(&chain),
-                                    filter,
-                                    joints,
-                                    weights,
-                                    precision,
-                                )
-                            })
-                            .clone()
-                    });
-                let frame = match delta {
-                    Some(message) => OutFrame {
-                        message,
-                        key: false,
-                    },
+                // A delta continues the frames the subscriber will hold (without the pending
+                // delta it replaces, for a client that does not keep up); none (it just
+                // joined, the rate changed the ticks it got: anything not in the ring) or a
+                // keyframe tick: the tick's shared keyframe.
+                let chain = (!key).then(|| sub.outbox.chain(self.num)).flatten();
+                let replacing = chain.as_ref().and_then(|c| c.replacing);
+                let delta = chain.and_then(|chain| {
+                    v2_cache
+                        .entry((Some(chain.ticks.clone()), filter, joints, weights, grid))
+                        .or_insert_with(|| {
+                            ring.message(
+                                &published,
+                                levels,
+                                Some(&chain.ticks),
+                                filter,
+                                joints,
+                                weights,
+                                precision,
+                            )
+                        })
+                        .clone()
+                });
+                let (frame, replacing) = match delta {
+                    Some(message) => (
+                        OutFrame {
+                            message,
+                            key: false,
+                        },
+                        replacing,
+                    ),
                     None => {
                         let Some(message) = v2_cache
                             .entry((None, filter, joints, weights, grid))
@@ -925,11 +929,11 @@ impl Feed {
                         else {
                             continue;
                         };
-                        OutFrame { message, key: true }
+                        (OutFrame { message, key: true }, None)
                     }
                 };
                 bytes_out += message_len(&frame.message) as u64;
-                sub.outbox.push_chained(self.num, frame, at.seq);
+                sub.outbox.push_chained(self.num, frame, at.seq, replacing);
                 offered += 1;
                 continue;
             }

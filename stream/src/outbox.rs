@@ -47,6 +47,15 @@ pub struct OutFrame {
 /// that does not keep up gets at most two ticks of backlog, never more.
 pub const MAX_PENDING_DELTAS: usize = 2;
 
+/// What a wire v2 delta pushed now may refer to ([`Outbox::chain`]).
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+pub struct Chain {
+    /// The ticks of the frames the client will hold, newest first.
+    pub ticks: Vec<u64>,
+    /// The tick of the pending delta the frame will replace (not in `ticks`), if any.
+    pub replacing: Option<u64>,
+}
+
 #[derive(Debug, Default)]
 struct Slot {
     key: Option<OutFrame>,
@@ -231,32 +240,63 @@ impl Outbox {
 
     /// Wire v2: the ticks a delta pushed now may refer to — the frames the client will have
     /// decoded once everything pending is sent, newest first (at most
-    /// [`posecast_proto::frame2::MAX_DEPTH`]). `None` when there is no such chain (no v2
-    /// keyframe yet, or the scene was cleared) or when a delta pushed now would replace a
-    /// pending frame (the chain would break): the subscriber needs a keyframe then.
+    /// [`posecast_proto::frame2::MAX_DEPTH`]). When [`MAX_PENDING_DELTAS`] deltas are already
+    /// waiting (a client that does not keep up), the newest of them will be replaced, so the
+    /// chain is the one without it, and [`Chain::replacing`] names it. `None` when there is
+    /// no chain (no v2 keyframe yet, the scene was cleared, or nothing below the frame to be
+    /// replaced): the subscriber needs a keyframe then.
     #[must_use]
-    pub fn chain(&self, scene_num: u32) -> Option<Vec<u64>> {
+    pub fn chain(&self, scene_num: u32) -> Option<Chain> {
         let s = self.lock();
         let slot = s.frames.get(&scene_num)?;
-        (!slot.chain.is_empty() && slot.deltas.len() < MAX_PENDING_DELTAS)
-            .then(|| slot.chain.clone())
+        if slot.chain.is_empty() {
+            return None;
+        }
+        if slot.deltas.len() < MAX_PENDING_DELTAS {
+            return Some(Chain {
+                ticks: slot.chain.clone(),
+                replacing: None,
+            });
+        }
+        (slot.chain.len() >= 2).then(|| Chain {
+            ticks: slot.chain[1..].to_vec(),
+            replacing: Some(slot.chain[0]),
+        })
     }
 
     /// Wire v2: offers scene `scene_num`'s frame of tick `seq`, as [`Outbox::push_frame`]
     /// does, and records it in the scene's chain ([`Outbox::chain`]): a keyframe starts a new
-    /// chain, a delta extends it — unless it replaced a pending frame, which breaks the chain
-    /// (the next frame must be a keyframe).
-    pub fn push_chained(&self, scene_num: u32, frame: OutFrame, seq: u64) {
+    /// chain, a delta extends it. A delta coded against a chain that was `replacing` the
+    /// newest pending delta takes that delta's place — unless the writer sent it meanwhile,
+    /// and then the frame refers to a chain the client no longer ends with: it is dropped
+    /// (the next tick's delta follows what was sent). A delta that would otherwise replace a
+    /// pending frame breaks the chain (the next frame must be a keyframe).
+    pub fn push_chained(&self, scene_num: u32, frame: OutFrame, seq: u64, replacing: Option<u64>) {
         let mut s = self.lock();
         if s.closed {
             return;
         }
         let slot = s.frames.entry(scene_num).or_default();
         let key = frame.key;
-        let broke = !key && slot.deltas.len() >= MAX_PENDING_DELTAS;
         if key {
             slot.chain.clear();
+        } else if let Some(newest) = replacing {
+            let pending =
+                slot.deltas.len() >= MAX_PENDING_DELTAS && slot.chain.first() == Some(&newest);
+            if !pending {
+                return;
+            }
+            slot.deltas.pop_back();
+            slot.chain.remove(0);
+            slot.deltas.push_back(frame);
+            slot.chain.insert(0, seq);
+            slot.chain.truncate(posecast_proto::frame2::MAX_DEPTH);
+            drop(s);
+            self.dropped.fetch_add(1, Ordering::Relaxed);
+            self.notify.notify_one();
+            return;
         }
+        let broke = !key && slot.deltas.len() >= MAX_PENDING_DELTAS;
         if broke {
             slot.chain.clear();
         } else {
