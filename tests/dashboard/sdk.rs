@@ -71,6 +71,16 @@ arm.on("frame", (f) => {{
 }});
 arm.subscribe("default", {{ joints: {{ names: ["l_wrist"] }} }});
 arm.connect();
+// Binary (v2) frames at a precision of 0.1° (protocol version 5): coarser, smaller.
+const coarse = new sdk.Client({{ url: window.url }});
+window.coarseClient = coarse;
+window.coarse = {{}};
+coarse.on("frame", (f) => {{
+  const p = f.avatars.find((a) => a.avatar === "avatar");
+  if (p && Object.keys(window.coarse).length < 600) window.coarse[f.seq] = {{ key: f.key, rotations: p.rotations }};
+}});
+coarse.subscribe("default", {{ precision: {{ degrees: 0.1 }} }});
+coarse.connect();
 </script>"#
     )
 }
@@ -162,7 +172,8 @@ const SAME_BITS_DEGREES: f64 = 5e-4;
 /// client's float rotations are within the quantisation bound of them — keyframes and deltas
 /// (the avatar walks while it is moved, so deltas carry small and full rotation changes and
 /// placements). v2 frames are smaller than v1 frames, which are several times smaller than
-/// JSON; the joint-subset client, on a version-2 connection, decodes its v1 frames.
+/// JSON; the joint-subset client, on a version-2 connection, decodes its v1 frames; a client
+/// asking for 0.1° (protocol version 5) decodes smaller frames within that bound.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
     let server = common::server(60.0).await;
@@ -289,6 +300,46 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
         arm_ticks >= 60,
         "only {arm_ticks} ticks of the arm-only client"
     );
+    // The 0.1° client: every rotation within the grid's bound (step 11) of the finest
+    // stream's, which is itself within the finest bound of the server's.
+    let coarse_frames = wait_js(
+        &b,
+        60,
+        "Object.keys(window.coarse).length > 60 && window.coarse",
+    )
+    .await;
+    let bound = posecast_proto::precision::rotation_bound_degrees(11)
+        + posecast_proto::precision::rotation_bound_degrees(1);
+    let (mut coarse_ticks, mut coarse_worst) = (0, 0.0f64);
+    for (seq, (want, _)) in &rust_ticks {
+        let Some(got) = coarse_frames.get(seq.to_string()) else {
+            continue;
+        };
+        coarse_ticks += 1;
+        for (j, (g, w)) in got["rotations"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .zip(want)
+            .enumerate()
+        {
+            let angle = angle_between_degrees(quat(g), *w);
+            coarse_worst = coarse_worst.max(angle);
+            assert!(
+                angle <= bound,
+                "tick {seq} joint {j}: 0.1° page client {angle}° off"
+            );
+        }
+    }
+    assert!(
+        coarse_ticks >= 60,
+        "only {coarse_ticks} ticks of the 0.1° client"
+    );
+    // Coarser than the finest (not the same frames under another name).
+    assert!(
+        coarse_worst > 0.01,
+        "the 0.1° client's worst is {coarse_worst}°"
+    );
     // Binary is what browsers should get: several times smaller than JSON, and v2 (the
     // default) smaller than v1 (bytes per frame, keyframes included).
     let sizes = b
@@ -299,7 +350,9 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
                      armClient.stats.undecodable, \
                      v1Client.stats.frameBytes / v1Client.stats.frames, \
                      [client, v1Client, armClient].map((c) => c.welcome.version), \
-                     client.stats.undecodable, v1Client.stats.undecodable];",
+                     client.stats.undecodable, v1Client.stats.undecodable, \
+                     coarseClient.stats.frameBytes / coarseClient.stats.frames, \
+                     coarseClient.stats.undecodable];",
             vec![],
         )
         .await
@@ -307,7 +360,13 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
     let (binary_bytes, json_bytes) = (sizes[0].as_f64().unwrap(), sizes[1].as_f64().unwrap());
     let (arm_bytes, v1_bytes) = (sizes[2].as_f64().unwrap(), sizes[4].as_f64().unwrap());
     assert_eq!(sizes[3], json!(0), "arm-only frames all decoded");
-    assert_eq!(sizes[5], json!([4, 1, 4]), "protocol versions welcomed");
+    assert_eq!(sizes[5], json!([5, 1, 5]), "protocol versions welcomed");
+    assert_eq!(sizes[9], json!(0), "0.1° frames all decoded");
+    let coarse_bytes = sizes[8].as_f64().unwrap();
+    assert!(
+        coarse_bytes < binary_bytes,
+        "0.1° frames {coarse_bytes} B against {binary_bytes} B at the finest"
+    );
     assert_eq!(sizes[6], json!(0), "v2 frames all decoded");
     assert_eq!(sizes[7], json!(0), "v1 frames all decoded");
     // The arm's chain comes as v2 frames cut to it: smaller than v2 frames of every joint.
@@ -556,8 +615,8 @@ window.client = client;
     server.stop().await;
 }
 
-/// Against a server of before protocol version 2 (it refuses `hello {version: 4}`, `3` and
-/// `2` with `unsupported_version`), the client — asking for 4 by default — says hello again
+/// Against a server of before protocol version 2 (it refuses `hello {version: 5}` down to `2`
+/// with `unsupported_version`), the client — asking for 5 by default — says hello again
 /// with the version before until it comes online with 1.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_client_falls_back_to_version_1_for_an_older_server() {
@@ -584,6 +643,6 @@ client.connect();
          && window.client.welcome.version === 1",
     )
     .await;
-    assert_eq!(*hellos.lock().unwrap(), vec![4, 3, 2, 1]);
+    assert_eq!(*hellos.lock().unwrap(), vec![5, 4, 3, 2, 1]);
     server.stop().await;
 }
