@@ -174,6 +174,8 @@ pub struct ChunkEncoder {
     key: Vec<u64>,
     key_placement: Placement,
     scratch: Vec<u64>,
+    /// Whether the last chunk encoded was a keyframe (its rotations are then in `key`).
+    last_key: bool,
 }
 
 impl ChunkEncoder {
@@ -181,6 +183,17 @@ impl ChunkEncoder {
     #[must_use]
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// The quantised rotations ([`quant::encode`]) of the chunk encoded last, so other
+    /// encodings of the same pose (wire v2's levels) need not quantise it again.
+    #[must_use]
+    pub fn rotation_bits(&self) -> &[u64] {
+        if self.last_key {
+            &self.key
+        } else {
+            &self.scratch
+        }
     }
 
     /// Whether a delta can be encoded: a keyframe with this joint count was encoded before.
@@ -219,8 +232,10 @@ impl ChunkEncoder {
                     out.extend_from_slice(&bits.to_le_bytes()[..quant::BYTES]);
                 }
                 std::mem::swap(&mut self.key, &mut self.scratch);
+                self.last_key = true;
             }
             FrameKind::Delta => {
+                self.last_key = false;
                 let tags_at = out.len();
                 out.resize(tags_at + joints.div_ceil(4), 0);
                 for (j, &bits) in self.scratch.iter().enumerate() {

@@ -186,8 +186,20 @@ impl QuantPose {
     /// Quantises a pose.
     #[must_use]
     pub fn from_pose(pose: &AvatarPose) -> Self {
+        Self::from_pose_with(pose, None)
+    }
+
+    /// Quantises a pose whose rotations were already quantised ([`quant::encode`] of each, in
+    /// order: e.g. by the v1 [`crate::frame::ChunkEncoder`]); `None`, or bits of another
+    /// length, quantises them here.
+    #[must_use]
+    pub fn from_pose_with(pose: &AvatarPose, rotation_bits: Option<&[u64]>) -> Self {
+        let rotations = match rotation_bits {
+            Some(bits) if bits.len() == pose.rotations.len() => bits.to_vec(),
+            _ => pose.rotations.iter().map(|&q| quant::encode(q)).collect(),
+        };
         Self {
-            rotations: pose.rotations.iter().map(|&q| quant::encode(q)).collect(),
+            rotations,
             translations: pose
                 .translations
                 .iter()

@@ -35,7 +35,7 @@ pub const MAX_ERROR_DEGREES: f64 = 0.01;
 pub fn encode(q: Quat) -> u64 {
     let len = q.length();
     let q = if len.is_finite() && len > 1e-12 {
-        q / len
+        q * len.recip()
     } else {
         Quat::IDENTITY
     };
@@ -52,8 +52,10 @@ pub fn encode(q: Quat) -> u64 {
         if i == largest {
             continue;
         }
-        let unit = ((v * sign + RANGE) / (2.0 * RANGE)).clamp(0.0, 1.0);
-        let level = (unit * LEVELS).round() as u64;
+        let unit = ((v * sign + RANGE) * (0.5 / RANGE)).clamp(0.0, 1.0);
+        // Round to nearest (`unit · LEVELS` is not negative: adding ½ and truncating rounds
+        // without a call to the C library's `roundf`).
+        let level = (unit * LEVELS + 0.5) as u64;
         bits = (bits << COMPONENT_BITS) | level;
     }
     bits

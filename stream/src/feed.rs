@@ -819,11 +819,12 @@ impl Feed {
             .iter()
             .any(|sub| sub.encoding == Encoding::Json);
         self.tap_avatars(snapshots.iter().map(|a| &a.description));
+        let v2 = self.subscribers.iter().any(Subscriber::v2);
         let pieces: Vec<Piece> = snapshots
             .into_iter()
             .map(|a| {
                 let encoder = self.encoders.entry(a.num()).or_default();
-                Piece::encode(a, encoder, kind, json)
+                Piece::encode(a, encoder, kind, json, v2)
             })
             .collect();
         if json {

@@ -57,6 +57,9 @@ pub(super) struct Piece {
     pub(super) chunk: Bytes,
     /// The pose the chunk encodes (what its JSON is written from, and what a relay carries).
     pub(super) pose: AvatarPose,
+    /// The pose's rotations as the chunk quantised them, when kept for wire v2's levels
+    /// (empty: quantise again if needed).
+    pub(super) rotation_bits: Vec<u64>,
     /// The pose as JSON, once somebody needed it.
     json: Option<String>,
 }
@@ -64,20 +67,27 @@ pub(super) struct Piece {
 impl Piece {
     /// The avatar's chunk for the frame being ticked, through its own `encoder` (which keeps a
     /// keyframe chunk as the reference for the deltas after it), and its JSON object if `json`.
+    /// With `keep_bits` (a wire v2 subscriber will want the tick's levels) the quantised
+    /// rotations are kept, so they are not quantised twice.
     pub(super) fn encode(
         snapshot: Snapshot,
         encoder: &mut ChunkEncoder,
         kind: FrameKind,
         json: bool,
+        keep_bits: bool,
     ) -> Self {
         let mut chunk = Vec::with_capacity(32 + 6 * snapshot.pose.rotations.len());
         encoder.encode(&snapshot.pose, kind, &mut chunk);
-        Self::relayed(
+        let mut piece = Self::relayed(
             snapshot.description,
             Bytes::from(chunk),
             snapshot.pose,
             json,
-        )
+        );
+        if keep_bits {
+            piece.rotation_bits = encoder.rotation_bits().to_vec();
+        }
+        piece
     }
 
     /// A keyframe chunk of the avatar's current pose for one joiner. A fresh encoder, so the
@@ -92,6 +102,7 @@ impl Piece {
             &mut ChunkEncoder::new(),
             FrameKind::Key,
             json,
+            false,
         )
     }
 
@@ -108,6 +119,7 @@ impl Piece {
             description,
             chunk,
             pose,
+            rotation_bits: Vec::new(),
             json,
         }
     }

@@ -273,6 +273,7 @@ mod tests {
                     &mut ChunkEncoder::new(),
                     FrameKind::Key,
                     false,
+                    false,
                 )
             })
             .collect();

@@ -18,6 +18,7 @@ use posecast_proto::precision::{Precision, PrecisionKey, Steps};
 use posecast_proto::subset::{JointSet, Selection};
 use std::borrow::Cow;
 use std::collections::{HashMap, VecDeque};
+use std::hash::{BuildHasherDefault, Hasher};
 use std::sync::{Arc, Mutex, PoisonError};
 
 /// Ticks of levels kept: deltas may refer to this far back (a subscriber at 10 Hz of a 60 Hz
@@ -29,7 +30,29 @@ pub const RING_TICKS: usize = 6 * frame2::MAX_DEPTH;
 type Levels = (u64, Arc<QuantPose>);
 
 /// Every avatar's levels at one tick, by avatar number.
-pub(super) type TickLevels = HashMap<u32, Levels>;
+pub(super) type TickLevels = HashMap<u32, Levels, BuildHasherDefault<NumHasher>>;
+
+/// Hashes an avatar number with one multiplication (Fibonacci hashing): the tick's levels are
+/// looked up once per avatar and frame of history for every distinct chain, where SipHash's
+/// cost showed in the tick's profile. Avatar numbers are the server's own, not an attacker's.
+#[derive(Debug, Default, Clone, Copy)]
+pub(super) struct NumHasher(u64);
+
+impl Hasher for NumHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 = (self.0.rotate_left(8) ^ u64::from(b)).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+        }
+    }
+
+    fn write_u32(&mut self, n: u32) {
+        self.0 = (u64::from(n) ^ self.0).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    }
+}
 
 /// Most rigs × precisions whose steps are kept (a bound on what many distinct subscriptions
 /// can make the ring hold; past it the cache starts again).
@@ -221,7 +244,15 @@ pub(super) fn levels(published: &Published) -> TickLevels {
         .map(|p| {
             (
                 p.pose.avatar_num,
-                (p.pose.hash, Arc::new(QuantPose::from_pose(&p.pose))),
+                (
+                    p.pose.hash,
+                    Arc::new(QuantPose::from_pose_with(
+                        &p.pose,
+                        Some(&p.rotation_bits)
+                            .filter(|b| !b.is_empty())
+                            .map(|b| &b[..]),
+                    )),
+                ),
             )
         })
         .collect()
