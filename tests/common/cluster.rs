@@ -125,10 +125,11 @@ pub async fn stored_avatars(nats: &Nats) -> BTreeSet<String> {
         .collect()
 }
 
-/// Waits (at most 60 s) until every server names the same owner of `stage` and that owner
-/// lists it; returns the owner's index in `nodes` and its avatars.
+/// Waits (at most 120 s: an event, on a busy machine too) until every server names the same
+/// owner of `stage` and that owner lists it; returns the owner's index in `nodes` and its
+/// avatars.
 pub async fn settled(nodes: &[&Posecast], names: &[&str]) -> (usize, BTreeSet<String>) {
-    let deadline = Instant::now() + Duration::from_secs(60);
+    let deadline = Instant::now() + Duration::from_secs(120);
     loop {
         let mut seen = Vec::new();
         for n in nodes {
@@ -147,9 +148,9 @@ pub async fn settled(nodes: &[&Posecast], names: &[&str]) -> (usize, BTreeSet<St
     }
 }
 
-/// `/healthz` of `addr` until it says `needle` (at most 60 s).
+/// `/healthz` of `addr` until it says `needle` (at most 120 s).
 pub async fn health_says(addr: SocketAddr, needle: &str) {
-    let deadline = Instant::now() + Duration::from_secs(60);
+    let deadline = Instant::now() + Duration::from_secs(120);
     loop {
         let said = tokio::task::spawn_blocking(move || super::child::health(addr))
             .await
