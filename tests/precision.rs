@@ -8,7 +8,6 @@
 
 mod common;
 
-use axum::extract::ws::Message as AxumMessage;
 use common::{CONTROL, Ws, server};
 use futures_util::{SinkExt, StreamExt};
 use glam::{Mat4, Vec3};
@@ -20,29 +19,14 @@ use posecast_proto::msg::{AvatarId, ClientMsg, Encoding, ErrorCode, SceneId, Ser
 use posecast_proto::precision::{Precision, rotation_bound_degrees, translation_bound};
 use posecast_proto::quant;
 use posecast_proto::subset::JointSet;
-use posecast_server::avatar::Avatar;
-use posecast_server::avatar::playback::Layer;
 use posecast_server::metrics::Metrics;
 use posecast_server::scene::Scene;
 use posecast_server::stream::feed::Subscriber;
-use posecast_server::stream::outbox::{Next, Outbox};
+use posecast_server::stream::outbox::Outbox;
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio_tungstenite::tungstenite::Message;
-
-async fn drain(outbox: &Outbox) -> Vec<Vec<u8>> {
-    match tokio::time::timeout(Duration::from_secs(120), outbox.next()).await {
-        Ok(Next::Send(messages)) => messages
-            .into_iter()
-            .filter_map(|m| match m {
-                AxumMessage::Binary(b) => Some(b.to_vec()),
-                _ => None,
-            })
-            .collect(),
-        other => panic!("outbox gave {other:?}"),
-    }
-}
 
 fn degrees(d: f32) -> Precision {
     Precision {
@@ -93,9 +77,7 @@ async fn subscribers_at_different_precisions_each_decode_within_their_bound() {
     let ids = [AvatarId("a".into()), AvatarId("b".into())];
     let mut description = None;
     for (i, id) in ids.iter().enumerate() {
-        let mut avatar = Avatar::new(id.clone(), i as u32 + 1, rig.clone());
-        let walk = rig.clip("walk").unwrap().clone();
-        avatar.play(Layer::new(walk, None, i as f32 * 0.37, 1.0, true), 0.0);
+        let avatar = common::feed::walking(&rig, &id.0, i as u32 + 1, i as f32 * 0.37);
         description = Some(avatar.description.clone());
         scene.add_avatar(avatar).unwrap();
     }
@@ -185,7 +167,7 @@ async fn subscribers_at_different_precisions_each_decode_within_their_bound() {
             if !reads[k] {
                 continue;
             }
-            for b in drain(outbox).await {
+            for b in common::feed::binary_frames(outbox).await {
                 let f: Frame = decoders[k]
                     .decode(&b)
                     .unwrap_or_else(|e| panic!("reader {k}, tick {seq}: {e}"));

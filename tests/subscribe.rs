@@ -591,13 +591,9 @@ async fn lower_rate_subscribers_get_every_nth_tick_decodable_and_equal() {
     let metrics = Arc::new(Metrics::new());
     let scene = Scene::new(SceneId("s".into()), 1, metrics, 60.0);
     let rig = Arc::new(posecast_server::builtin::rig().unwrap());
-    let mut avatar = Avatar::new(AvatarId("a".into()), 1, rig.clone());
-    let walk = rig.clip("walk").unwrap().clone();
-    avatar.play(
-        posecast_server::avatar::playback::Layer::new(walk, None, 0.0, 1.0, true),
-        0.0,
-    );
-    scene.add_avatar(avatar).unwrap();
+    scene
+        .add_avatar(common::feed::walking(&rig, "a", 1, 0.0))
+        .unwrap();
     let outboxes: Vec<(u32, Arc<Outbox>)> = [1, 3, 4]
         .into_iter()
         .map(|every| (every, Arc::new(Outbox::new())))

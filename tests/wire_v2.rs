@@ -7,7 +7,6 @@
 
 mod common;
 
-use axum::extract::ws::Message as AxumMessage;
 use common::{CONTROL, server, wait_for};
 use posecast_client::net::Client;
 use posecast_proto::frame::{Frame, FrameDecoder, FrameKind};
@@ -18,26 +17,11 @@ use posecast_server::avatar::Avatar;
 use posecast_server::metrics::Metrics;
 use posecast_server::scene::Scene;
 use posecast_server::stream::feed::Subscriber;
-use posecast_server::stream::outbox::{Next, Outbox};
+use posecast_server::stream::outbox::Outbox;
 use posecast_testkit::ClientBuilder;
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Duration;
-
-/// Everything binary the outbox holds now (it always holds something after a tick for a due
-/// subscriber; an empty outbox would block, hence the timeout).
-async fn drain(outbox: &Outbox) -> Vec<Vec<u8>> {
-    match tokio::time::timeout(Duration::from_secs(5), outbox.next()).await {
-        Ok(Next::Send(messages)) => messages
-            .into_iter()
-            .filter_map(|m| match m {
-                AxumMessage::Binary(b) => Some(b.to_vec()),
-                _ => None,
-            })
-            .collect(),
-        other => panic!("outbox gave {other:?}"),
-    }
-}
 
 fn assert_same_pose(v1: &Frame, v2: &Frame) {
     assert_eq!(v1.header.seq, v2.header.seq);
@@ -127,7 +111,7 @@ async fn v1_and_v2_subscribers_decode_the_same_poses_even_when_slow() {
     let ticks = 360u64;
     for seq in 1..=ticks {
         scene.tick(seq, seq as f64 / 60.0, seq * 16_667, 60);
-        for bytes in drain(&v1).await {
+        for bytes in common::feed::binary_frames(&v1).await {
             let f = d1.decode(&bytes).unwrap();
             v1_bytes += bytes.len();
             by_seq.insert(f.header.seq, f);
@@ -148,7 +132,7 @@ async fn v1_and_v2_subscribers_decode_the_same_poses_even_when_slow() {
             if !reads[k] {
                 continue;
             }
-            for bytes in drain(outbox).await {
+            for bytes in common::feed::binary_frames(outbox).await {
                 assert_eq!(bytes[0], frame2::MAGIC);
                 let f = decoders[k]
                     .decode(&bytes)
@@ -275,13 +259,9 @@ async fn the_native_client_falls_back_to_version_1_for_an_older_server() {
 async fn a_reader_that_falls_behind_gets_deltas_not_a_keyframe_a_tick() {
     let scene = Scene::new(SceneId("s".into()), 1, Arc::new(Metrics::new()), 60.0);
     let rig = Arc::new(posecast_server::builtin::rig().unwrap());
-    let mut avatar = Avatar::new(AvatarId("a".into()), 1, rig.clone());
-    let walk = rig.clip("walk").unwrap().clone();
-    avatar.play(
-        posecast_server::avatar::playback::Layer::new(walk, None, 0.0, 1.0, true),
-        0.0,
-    );
-    scene.add_avatar(avatar).unwrap();
+    scene
+        .add_avatar(common::feed::walking(&rig, "a", 1, 0.0))
+        .unwrap();
     let v1 = Arc::new(Outbox::new());
     let behind = Arc::new(Outbox::new());
     for (conn, outbox, version) in [(1, &v1, 1), (2, &behind, 3)] {
@@ -298,14 +278,14 @@ async fn a_reader_that_falls_behind_gets_deltas_not_a_keyframe_a_tick() {
     let ticks = 600u64;
     for seq in 1..=ticks {
         scene.tick(seq, seq as f64 / 60.0, seq * 16_667, 60);
-        for bytes in drain(&v1).await {
+        for bytes in common::feed::binary_frames(&v1).await {
             let f = d1.decode(&bytes).unwrap();
             by_seq.insert(f.header.seq, f);
         }
         if !seq.is_multiple_of(5) {
             continue;
         }
-        for bytes in drain(&behind).await {
+        for bytes in common::feed::binary_frames(&behind).await {
             let f = d2
                 .decode(&bytes)
                 .unwrap_or_else(|e| panic!("tick {seq}: {e}"));

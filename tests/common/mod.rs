@@ -7,6 +7,7 @@
 
 pub mod child;
 pub mod cluster;
+pub mod feed;
 pub mod link;
 pub mod nats;
 pub mod vmc;
