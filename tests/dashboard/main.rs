@@ -20,7 +20,9 @@
 //! - `faces`: the Face panel shows an expression and moves a morph channel; the stream carries
 //!   the weights to the page and the WebGL preview morphs the mesh;
 //! - `sdk`: the JavaScript client `/sdk/posecast.js` from pages on another origin: binary
-//!   frames decoded as a Rust client decodes them, typed command errors, the guide's example page (`docs/src/how-to/javascript.md`).
+//!   frames decoded as a Rust client decodes them, typed command errors, the guide's example page (`docs/src/how-to/javascript.md`);
+//! - `determinism`: ten minutes of random motion with random drop patterns decoded by the
+//!   page's `frames2.js` and by `Frame2Decoder` to the same values, frame by frame.
 //!
 //! Needs `/usr/bin/chromium` and `/usr/bin/chromedriver` (`scripts/test` installs them).
 //! Set `POSECAST_UPDATE_SCREENSHOT=1` to also write `docs/src/images/dashboard.png` for the README and the guide.
@@ -32,6 +34,7 @@ mod common;
 
 mod browser;
 mod controls;
+mod determinism;
 mod faces;
 mod layers;
 mod layout;
