@@ -29,6 +29,24 @@
 //!   after the welcome, before a subscription's descriptions, so the base is known early;
 //! - *frames superseded in the outbox* (the writer could not hand them to the socket in time).
 //!
+//! **What the reader can read** (issue 28). A reader starved of CPU (a client on a loaded
+//! machine) answers pings when it runs: hundreds of milliseconds late with no queue anywhere —
+//! it reads all that came each time. Round trips alone take that for a queue and cut it to the
+//! last step. So on Linux every probe also reads the socket's kernel figures
+//! ([`SocketFigures`], `TCP_INFO`), which a reader's lateness cannot fake (its kernel
+//! acknowledges at once), and they change how the signals are read ([`Pace::socket`]):
+//! - the queues that *stand* are the kernel's to show: unsent bytes that stood through the
+//!   last [`SOCKET_WINDOW`] (the reader's receive window closed: it does not keep up; or the
+//!   congestion window is full), in seconds at the pace it acknowledged, or the kernel's own
+//!   round trip above its smallest (a queue in the network). Either above [`QUEUE_TARGET`]
+//!   cuts as queueing does;
+//! - round trips then show the queues that *grow* past the socket (a reader's receive buffer
+//!   filling, a proxy's queue): they are judged against the smallest of the last
+//!   [`TREND_WINDOW`] instead of [`BASE_WINDOW`], the jitter allowance may reach [`FAR_BEHIND`]
+//!   (a late reader answers anywhere in its spread) and an unanswered ping counts past it.
+//!
+//! Without the figures (not Linux, or the kernel refuses) round trips decide as below.
+//!
 //! **Control** (AIMD on discrete steps, with hysteresis): queueing above [`QUEUE_TARGET`] or
 //! superseded frames cut the rate to the step at or below ¾ of it (½ past a quarter of
 //! [`FAR_BEHIND`], ¼ past it), at most once per [`HOLD`] so the queue can drain; a rate held
@@ -115,6 +133,38 @@ pub const UNKNOWN_BASE: Duration = Duration::from_millis(200);
 /// The wait before raising by one frame per second.
 const PROBE_WAIT: Duration = Duration::from_secs(1);
 
+/// With the socket's kernel figures ([`SocketFigures`]) round trips are judged against the
+/// smallest of the last this long (the connection's own), not of [`BASE_WINDOW`]: a queue
+/// *growing* past the socket (in a bottleneck's buffer, in the reader's receive buffer) raises
+/// them within it, while a reader late by its own scheduling answers about as late throughout.
+/// Queues that *stand* are the kernel's to show: unsent bytes, its own round trip.
+pub const TREND_WINDOW: Duration = Duration::from_secs(3);
+
+/// How far back the socket's figures are judged: a backlog that stood through all of it is
+/// standing, and what the reader acknowledged over it is its pace.
+pub const SOCKET_WINDOW: Duration = Duration::from_secs(1);
+
+/// Socket readings a judgement needs (one per probe: 0.8 s of them).
+const SOCKET_SAMPLES: usize = 4;
+
+/// The kernel's figures of a connection's socket (Linux: `getsockopt(TCP_INFO)` on the
+/// accepted socket), read every probe beside the ping ([`Pace::socket`]). They show the queues
+/// that stand, which a reader's lateness cannot fake: a reader starved of CPU answers pings
+/// late without any queue, but its kernel still acknowledges at once.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct SocketFigures {
+    /// Bytes the peer acknowledged since the connection opened (`tcpi_bytes_acked`).
+    pub acked: u64,
+    /// Bytes written to the socket and not sent yet (`tcpi_notsent_bytes`): they stand when
+    /// the reader's receive window is closed (it does not keep up) or the congestion window
+    /// is full (the path does not).
+    pub unsent: u64,
+    /// The kernel's smoothed round trip (`tcpi_rtt`): the network's queues, not the reader's.
+    pub rtt: Duration,
+    /// The smallest round trip the kernel saw (`tcpi_min_rtt`).
+    pub min_rtt: Duration,
+}
+
 /// Frames per second at step `level` when the scene ticks at 60 Hz (the steps' unit).
 fn hz(level: usize) -> f64 {
     f64::from(STEPS[level.min(STEPS.len() - 1)])
@@ -145,6 +195,8 @@ pub struct Path {
     floor: Mutex<VecDeque<(Instant, Duration, u32)>>,
     /// The last cut of the path: when, and by what factor.
     congestion: Mutex<Option<(Instant, f64)>>,
+    /// The smallest round trip of each [`FLOOR_BUCKET`] over the last [`TREND_WINDOW`].
+    recent: Mutex<VecDeque<(Instant, Duration)>>,
 }
 
 impl Path {
@@ -153,6 +205,7 @@ impl Path {
             windows: Mutex::new((Instant::now(), None, None)),
             floor: Mutex::new(VecDeque::new()),
             congestion: Mutex::new(None),
+            recent: Mutex::new(VecDeque::new()),
         }
     }
 
@@ -232,6 +285,22 @@ impl Path {
             Self::roll(&mut w, now);
             w.1 = Some(w.1.map_or(rtt, |m| m.min(rtt)));
         }
+        {
+            let mut recent = self
+                .recent
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
+            match recent.back_mut() {
+                Some((at, m)) if now - *at < FLOOR_BUCKET => *m = (*m).min(rtt),
+                _ => recent.push_back((now, rtt)),
+            }
+            while recent
+                .front()
+                .is_some_and(|(at, _)| now - *at > TREND_WINDOW)
+            {
+                recent.pop_front();
+            }
+        }
         let mut floor = self.floor_lock();
         match floor.back_mut() {
             Some((at, m, n)) if now - *at < FLOOR_BUCKET => {
@@ -240,6 +309,17 @@ impl Path {
             }
             _ => floor.push_back((now, rtt, 1)),
         }
+    }
+
+    /// The smallest round trip of the path over the last [`TREND_WINDOW`].
+    fn recent_base(&self, now: Instant) -> Option<Duration> {
+        self.recent
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .iter()
+            .filter(|(at, _)| now - *at <= TREND_WINDOW)
+            .map(|(_, m)| *m)
+            .min()
     }
 
     fn base(&self, now: Instant) -> Option<Duration> {
@@ -297,6 +377,8 @@ struct Control {
     recent: VecDeque<Duration>,
     /// RFC 3550's jitter over consecutive round trips, and the last round trip.
     jitter: Duration,
+    /// Differences the jitter estimate took in.
+    jitter_samples: u32,
     last_rtt: Option<Duration>,
     /// The outbox's superseded-frame count at the last sample.
     superseded: u64,
@@ -312,6 +394,9 @@ struct Control {
     path: Option<Arc<Path>>,
     /// The newest congestion event of the path acted on.
     seen_event: Option<Instant>,
+    /// The socket's kernel figures over the last [`SOCKET_WINDOW`] (and one before it); once
+    /// any came, round trips are judged by their trend ([`TREND_WINDOW`]).
+    socket: VecDeque<(Instant, SocketFigures)>,
 }
 
 impl Control {
@@ -322,6 +407,7 @@ impl Control {
             rtts: VecDeque::new(),
             recent: VecDeque::new(),
             jitter: Duration::ZERO,
+            jitter_samples: 0,
             last_rtt: None,
             superseded: 0,
             last_lowered: None,
@@ -331,9 +417,37 @@ impl Control {
             seed: seed | 1,
             path: None,
             seen_event: None,
+            socket: VecDeque::new(),
         };
         c.rejitter();
         c
+    }
+
+    /// The queue the socket's figures show over the last [`SOCKET_WINDOW`] (once they span
+    /// most of it): the unsent bytes that stood through it, in seconds of what the reader
+    /// acknowledged meanwhile, or the kernel's round trip above its smallest, whichever is
+    /// more; both the least of the window (a queue that stood, not a burst).
+    fn socket_queueing(&self) -> Option<Duration> {
+        let ((first_at, first), (last_at, last)) = (*self.socket.front()?, *self.socket.back()?);
+        let span = last_at - first_at;
+        if self.socket.len() < SOCKET_SAMPLES + 1 || span * 5 < SOCKET_WINDOW * 4 {
+            return None;
+        }
+        let readings = self.socket.iter().skip(1).map(|(_, f)| f);
+        let unsent = readings.clone().map(|f| f.unsent).min()?;
+        let acked = last.acked.saturating_sub(first.acked) as f64 / span.as_secs_f64();
+        let backlog = if unsent == 0 {
+            Duration::ZERO
+        } else if acked <= 0.0 {
+            FAR_BEHIND
+        } else {
+            Duration::from_secs_f64((unsent as f64 / acked).min(FAR_BEHIND.as_secs_f64() * 4.0))
+        };
+        let network = readings
+            .map(|f| f.rtt.saturating_sub(f.min_rtt))
+            .min()
+            .unwrap_or_default();
+        Some(backlog.max(network))
     }
 
     /// A new jittered wait: the probing wait × 0.75–1.25.
@@ -347,6 +461,15 @@ impl Control {
     }
 
     fn base(&self, now: Instant) -> Option<Duration> {
+        if !self.socket.is_empty() {
+            // The kernel shows the queues that stand: round trips show those that grow.
+            return self
+                .rtts
+                .iter()
+                .filter(|(at, _)| now - *at <= TREND_WINDOW)
+                .map(|(_, r)| *r)
+                .min();
+        }
         let own = self.rtts.iter().map(|(_, r)| *r).min();
         match (own, self.path.as_ref().and_then(|p| p.base(now))) {
             (Some(a), Some(b)) => Some(a.min(b)),
@@ -362,14 +485,18 @@ impl Control {
         self.recent.iter().copied().min()
     }
 
-    /// Takes in a round trip: the jitter estimate `J += (|D| − J) / 16` (RFC 3550 §6.4.1).
+    /// Takes in a round trip: the jitter estimate `J += (|D| − J) / 16` (RFC 3550 §6.4.1),
+    /// the mean of the `|D|` so far for the first 16 (from zero, the estimator takes seconds
+    /// to reach a spread it sees from the start).
     fn sample(&mut self, rtt: Duration) {
         if let Some(last) = self.last_rtt {
             let d = rtt.abs_diff(last);
+            let n = self.jitter_samples.min(15) + 1;
+            self.jitter_samples = self.jitter_samples.saturating_add(1);
             self.jitter = if d >= self.jitter {
-                self.jitter + (d - self.jitter) / 16
+                self.jitter + (d - self.jitter) / n
             } else {
-                self.jitter - (self.jitter - d) / 16
+                self.jitter - (self.jitter - d) / n
             };
         }
         self.last_rtt = Some(rtt);
@@ -381,8 +508,16 @@ impl Control {
 
     /// How far above the base the floor of a jittery path lands without any queue: 2 `J`, at
     /// most [`QUEUE_TARGET`] (so a standing queue of twice the target still cuts).
+    ///
+    /// With the socket's figures, up to [`FAR_BEHIND`]: a reader late by its scheduling
+    /// answers anywhere in its spread, and the queues that stand are the kernel's to show.
     fn allowance(&self) -> Duration {
-        (self.jitter * 2).min(QUEUE_TARGET)
+        let most = if self.socket.is_empty() {
+            QUEUE_TARGET
+        } else {
+            FAR_BEHIND
+        };
+        (self.jitter * 2).min(most)
     }
 
     /// Cuts the rate to the step at or below `factor` of it.
@@ -528,7 +663,13 @@ impl Pace {
                 // Before the first answer the path's round trip is unknown: take it as
                 // UNKNOWN_BASE (a long path), so a first ping stuck behind a queue still counts.
                 let base = c.base(now).unwrap_or(UNKNOWN_BASE);
-                let queueing = Some(age.saturating_sub(base));
+                // With the socket's figures, less the reader's spread (its scheduling).
+                let spread = if c.socket.is_empty() {
+                    Duration::ZERO
+                } else {
+                    c.allowance()
+                };
+                let queueing = Some(age.saturating_sub(base).saturating_sub(spread));
                 // Past a retransmission stall: one lost segment (TCP's 200 ms minimum RTO)
                 // is not a queue.
                 let late = queueing.filter(|q| *q > UNANSWERED_LATE);
@@ -543,6 +684,28 @@ impl Pace {
         }
     }
 
+    /// The kernel's figures of the connection's socket at `now` (every probe, with the
+    /// ping): a backlog of unsent bytes that stood through the last [`SOCKET_WINDOW`], or a
+    /// kernel round trip standing above its smallest, is a queue of that many seconds at the
+    /// pace the reader acknowledged — cut as round trips' queueing is. From the first figures
+    /// on, round trips are judged by their trend ([`TREND_WINDOW`]).
+    pub fn socket(&self, now: Instant, figures: SocketFigures) -> Option<Change> {
+        let mut c = self.lock();
+        c.socket.push_back((now, figures));
+        // Keep one reading at or before the window's start: rates are measured from it.
+        while c.socket.len() > 2 && now - c.socket[1].0 >= SOCKET_WINDOW {
+            c.socket.pop_front();
+        }
+        let queueing = c.socket_queueing()?;
+        let change = if queueing > QUEUE_TARGET {
+            c.decide(now, Some(queueing), 0)
+        } else {
+            None
+        };
+        drop(c);
+        self.apply(change)
+    }
+
     /// A pong arrived at `now` for a ping sent `rtt` ago.
     pub fn answered(&self, now: Instant, rtt: Duration) -> Option<Change> {
         let mut c = self.lock();
@@ -553,8 +716,16 @@ impl Pace {
         }
         c.sample(rtt);
         let mut allowance = c.allowance();
+        let kernel = !c.socket.is_empty();
         if let (Some(path), Some(base)) = (c.path.clone(), c.base(now)) {
             path.observe(now, rtt);
+            // With the kernel's figures, the path's floor against its own recent smallest:
+            // a shared queue growing (every connection's round trips rise together).
+            let base = if kernel {
+                path.recent_base(now).unwrap_or(base)
+            } else {
+                base
+            };
             // Spread on a rising floor is a queue's, not jitter: no allowance then.
             if path
                 .floor_above(now, base)
@@ -791,5 +962,111 @@ mod tests {
         assert!(!send, "one ping in flight at a time");
         assert_eq!(change, Some(Change { from: 0, to: 2 }));
         assert_eq!(pace.rate(), 30);
+    }
+
+    /// [`run`] with the socket's figures every probe: `socket(t)` gives the unsent bytes and
+    /// the kernel's round trip above its smallest; the reader acknowledges 50 KB a second.
+    fn run_with_socket(
+        pace: &Pace,
+        start: Instant,
+        from_s: f64,
+        to_s: f64,
+        rtt: impl Fn(f64) -> Duration,
+        socket: impl Fn(f64) -> (u64, Duration),
+    ) {
+        let mut t = from_s;
+        while t < to_s {
+            let now = start + Duration::from_secs_f64(t);
+            let (unsent, queued) = socket(t);
+            pace.socket(
+                now,
+                SocketFigures {
+                    acked: (t * 50_000.0) as u64,
+                    unsent,
+                    rtt: MS + queued,
+                    min_rtt: MS,
+                },
+            );
+            let (send, _) = pace.probe(now, 0);
+            if send {
+                let r = rtt(t);
+                pace.answered(now + r, r);
+            }
+            t += 0.2;
+        }
+    }
+
+    /// Round trips of a reader that runs every 300 ms: 0–300 ms late, whatever the rate.
+    fn late_reader(seed: u64) -> impl Fn(f64) -> Duration {
+        move |t| {
+            let mut d = ((t * 5.0).round() as u64 ^ seed).wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
+            MS + Duration::from_secs_f64(0.3 * unit(&mut d))
+        }
+    }
+
+    #[test]
+    fn a_late_reader_with_an_empty_socket_keeps_its_rate_and_without_the_figures_is_cut() {
+        let start = Instant::now();
+        let with = Pace::new(7);
+        run_with_socket(&with, start, 0.0, 30.0, late_reader(7), |_| {
+            (0, Duration::ZERO)
+        });
+        let without = Pace::new(7);
+        run(&without, start, 0.0, 30.0, late_reader(7));
+        assert_eq!(with.rate(), 60);
+        assert!(without.rate() <= 30, "{}", without.rate());
+    }
+
+    #[test]
+    fn a_backlog_standing_in_the_socket_or_a_kernel_queue_lowers_the_rate() {
+        let start = Instant::now();
+        // Prompt round trips, but 20 KB stand unsent (0.4 s at what the reader takes).
+        let backlog = Pace::new(8);
+        run_with_socket(
+            &backlog,
+            start,
+            0.0,
+            3.0,
+            |_| 2 * MS,
+            |_| (20_000, Duration::ZERO),
+        );
+        assert!(backlog.rate() <= 30, "{}", backlog.rate());
+        // A burst (unsent at one reading, gone at the next) is not a backlog.
+        let burst = Pace::new(9);
+        run_with_socket(
+            &burst,
+            start,
+            0.0,
+            3.0,
+            |_| 2 * MS,
+            |t| {
+                (
+                    if ((t * 5.0).round() as u64).is_multiple_of(2) {
+                        20_000
+                    } else {
+                        0
+                    },
+                    Duration::ZERO,
+                )
+            },
+        );
+        assert_eq!(burst.rate(), 60);
+        // The kernel's round trip 150 ms above its smallest: a queue in the network.
+        let network = Pace::new(10);
+        run_with_socket(&network, start, 0.0, 3.0, |_| 2 * MS, |_| (0, 150 * MS));
+        assert!(network.rate() <= 30, "{}", network.rate());
+    }
+
+    #[test]
+    fn with_the_figures_a_growing_queue_past_the_socket_still_lowers_the_rate() {
+        // A queue the kernel cannot see (a receive buffer filling, a proxy): round trips grow
+        // by 100 ms a second from 5 s on.
+        let pace = Pace::new(11);
+        let start = Instant::now();
+        let growing = |t: f64| MS * 20 + Duration::from_secs_f64((t - 5.0).max(0.0) * 0.1);
+        run_with_socket(&pace, start, 0.0, 5.0, growing, |_| (0, Duration::ZERO));
+        assert_eq!(pace.rate(), 60);
+        run_with_socket(&pace, start, 5.0, 8.0, growing, |_| (0, Duration::ZERO));
+        assert!(pace.rate() <= 45, "{}", pace.rate());
     }
 }

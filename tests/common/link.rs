@@ -85,13 +85,31 @@ impl Drop for Viewer {
     }
 }
 
+/// How a viewer reads its socket.
+#[derive(Debug, Clone, Copy)]
+pub enum Reading {
+    /// Every message as it comes.
+    Prompt,
+    /// A reader that gets the CPU now and then (a client on a loaded machine): it reads what
+    /// came for about a millisecond, then does not run for the pause. It keeps up (it reads
+    /// everything each time it runs) but answers pings up to the pause late.
+    InBursts(Duration),
+    /// A reader that can take at most this many messages a second.
+    AtMost(u32),
+}
+
 impl Viewer {
     /// Connects and keeps reading until dropped.
     pub fn spawn(addr: SocketAddr, encoding: Encoding) -> Self {
+        Self::spawn_reading(addr, encoding, Reading::Prompt)
+    }
+
+    /// Connects and keeps reading as `reading` says until dropped.
+    pub fn spawn_reading(addr: SocketAddr, encoding: Encoding, reading: Reading) -> Self {
         let seen = Arc::new(Mutex::new(Seen::default()));
         let s = seen.clone();
         let task = tokio::spawn(async move {
-            if let Err(e) = view(addr, encoding, &s).await {
+            if let Err(e) = view(addr, encoding, reading, &s).await {
                 s.lock().unwrap().failure = Some(e);
             }
         });
@@ -104,7 +122,12 @@ impl Viewer {
     }
 }
 
-async fn view(addr: SocketAddr, encoding: Encoding, seen: &Mutex<Seen>) -> Result<(), String> {
+async fn view(
+    addr: SocketAddr,
+    encoding: Encoding,
+    reading: Reading,
+    seen: &Mutex<Seen>,
+) -> Result<(), String> {
     let began = tokio::time::Instant::now();
     let stream = tokio::net::TcpStream::connect(addr)
         .await
@@ -134,7 +157,20 @@ async fn view(addr: SocketAddr, encoding: Encoding, seen: &Mutex<Seen>) -> Resul
             .map_err(|e| e.to_string())?;
     }
     let mut last_key: Option<u64> = None;
+    let mut awake = tokio::time::Instant::now();
     while let Some(m) = ws.next().await {
+        match reading {
+            Reading::Prompt => {}
+            Reading::InBursts(pause) => {
+                if awake.elapsed() >= Duration::from_millis(1) {
+                    tokio::time::sleep(pause).await;
+                    awake = tokio::time::Instant::now();
+                }
+            }
+            Reading::AtMost(per_second) => {
+                tokio::time::sleep(Duration::from_secs(1) / per_second).await;
+            }
+        }
         let m = m.map_err(|e| e.to_string())?;
         let arrival = unix_micros();
         let stamp = match &m {

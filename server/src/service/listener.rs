@@ -143,14 +143,18 @@ pub async fn serve(
             Ok(permit) => {
                 trace!(%peer, "connection accepted");
                 let greeter = permit.greeter();
+                let socket_info = SocketInfo::of(&stream);
                 let conn = Connection {
                     io: Admitted::with_permit(stream, permit),
                     // The client's address, for handlers that log it (`ConnectInfo`), and
                     // the slot a websocket's hello is reported to (eviction at the cap).
+                    // The socket's descriptor too, for the kernel's figures of the connection
+                    // (the adaptive rate's, `SocketInfo`).
                     router: router
                         .clone()
                         .layer(axum::Extension(axum::extract::ConnectInfo(peer)))
-                        .layer(axum::Extension(greeter)),
+                        .layer(axum::Extension(greeter))
+                        .layer(axum::Extension(socket_info)),
                     header_read_timeout: limits.header_read_timeout,
                     metrics: metrics.clone(),
                 };
@@ -176,6 +180,95 @@ pub async fn serve(
     drop(done_rx);
     done_tx.closed().await;
     Ok(())
+}
+
+/// An accepted socket, for the kernel's figures of its connection (Linux: `TCP_INFO`), which
+/// the adaptive rate follows ([`posecast_stream::pace::SocketFigures`]).
+///
+/// It holds the descriptor's number, not the descriptor: read it only while the connection's
+/// websocket (which owns the socket) is alive — the websocket's reader loop does. A stale
+/// number could name another socket by then; reading it is harmless to memory (the kernel
+/// fills a buffer of the size given, or fails) but would give that socket's figures.
+#[derive(Debug, Clone, Copy)]
+pub struct SocketInfo {
+    #[cfg(target_os = "linux")]
+    fd: std::os::fd::RawFd,
+}
+
+impl SocketInfo {
+    /// The accepted `stream`'s.
+    #[must_use]
+    pub fn of(stream: &tokio::net::TcpStream) -> Self {
+        #[cfg(target_os = "linux")]
+        {
+            use std::os::fd::AsRawFd;
+            Self {
+                fd: stream.as_raw_fd(),
+            }
+        }
+        #[cfg(not(target_os = "linux"))]
+        {
+            let _ = stream;
+            Self {}
+        }
+    }
+
+    /// The kernel's figures now, or `None` (not Linux, or the kernel refused): the adaptive
+    /// rate then goes by round trips.
+    #[must_use]
+    pub fn figures(&self) -> Option<posecast_stream::pace::SocketFigures> {
+        #[cfg(target_os = "linux")]
+        {
+            tcp_info::figures(self.fd)
+        }
+        #[cfg(not(target_os = "linux"))]
+        {
+            None
+        }
+    }
+}
+
+/// `getsockopt(TCP_INFO)`: the only unsafe code of the server (no safe wrapper of it in the
+/// tree: socket2 and rustix have none), a plain read into a buffer of the struct's size.
+#[cfg(target_os = "linux")]
+#[allow(unsafe_code)]
+mod tcp_info {
+    use posecast_stream::pace::SocketFigures;
+    use std::mem::{MaybeUninit, offset_of, size_of};
+
+    pub(super) fn figures(fd: std::os::fd::RawFd) -> Option<SocketFigures> {
+        // SAFETY: `tcp_info` is plain integers: all zeroes is a valid value.
+        let mut info: libc::tcp_info = unsafe { MaybeUninit::zeroed().assume_init() };
+        let mut len = size_of::<libc::tcp_info>() as libc::socklen_t;
+        // SAFETY: the kernel writes at most `len` bytes to `info`, which holds that many, and
+        // sets `len` to what it wrote. A descriptor that is not a TCP socket fails (no write).
+        let rc = unsafe {
+            libc::getsockopt(
+                fd,
+                libc::SOL_TCP,
+                libc::TCP_INFO,
+                (&raw mut info).cast(),
+                &raw mut len,
+            )
+        };
+        // Older kernels fill less of the struct: each field only if it was written.
+        let has = |offset: usize, size: usize| rc == 0 && len as usize >= offset + size;
+        if !has(offset_of!(libc::tcp_info, tcpi_notsent_bytes), 4) {
+            return None;
+        }
+        let micros = |us: u32| std::time::Duration::from_micros(u64::from(us));
+        let min_rtt = if has(offset_of!(libc::tcp_info, tcpi_min_rtt), 4) {
+            micros(info.tcpi_min_rtt)
+        } else {
+            micros(info.tcpi_rtt)
+        };
+        Some(SocketFigures {
+            acked: info.tcpi_bytes_acked,
+            unsent: u64::from(info.tcpi_notsent_bytes),
+            rtt: micros(info.tcpi_rtt),
+            min_rtt,
+        })
+    }
 }
 
 fn is_connection_error(e: &io::Error) -> bool {

@@ -191,14 +191,16 @@ async fn ws_upgrade(
     State(state): State<Arc<AppState>>,
     peer: Option<axum::Extension<axum::extract::ConnectInfo<std::net::SocketAddr>>>,
     greeter: Option<axum::Extension<admission::Greeter>>,
+    socket: Option<axum::Extension<listener::SocketInfo>>,
 ) -> Response {
     let peer = peer.map(|axum::Extension(axum::extract::ConnectInfo(addr))| addr);
     let greeter = greeter.map(|axum::Extension(g)| g);
+    let socket = socket.map(|axum::Extension(s)| s);
     ws.max_message_size(MAX_CLIENT_MESSAGE_BYTES)
         .max_frame_size(MAX_CLIENT_MESSAGE_BYTES)
         .read_buffer_size(ws::READ_BUFFER_BYTES)
         .write_buffer_size(ws::WRITE_BUFFER_BYTES)
-        .on_upgrade(move |socket| ws::serve(socket, state, peer, greeter))
+        .on_upgrade(move |ws| ws::serve(ws, state, peer, greeter, socket))
 }
 
 /// `GET /metrics`: readable by whoever may read (anyone with open views; a view or control

@@ -15,7 +15,7 @@ use crate::live::{Drives, JsonPose};
 use crate::metrics::net::Timeout;
 use crate::scene::ticker::unix_micros;
 use crate::service::admission::Greeter;
-use crate::service::listener::CLOSE_TRY_AGAIN_LATER;
+use crate::service::listener::{CLOSE_TRY_AGAIN_LATER, SocketInfo};
 use crate::service::ws_liveness::{Due, Liveness};
 use crate::state::AppState;
 use axum::extract::ws::{Message, WebSocket, close_code};
@@ -53,25 +53,42 @@ pub const READ_BUFFER_BYTES: usize = 4 << 10;
 /// fewer writes; the buffer grows to hold one message when a message is larger.
 pub const WRITE_BUFFER_BYTES: usize = 8 << 10;
 
-/// Serves one upgraded websocket from `peer` until either side closes.
+/// Serves one upgraded websocket from `peer` until either side closes; `tcp` is its accepted
+/// socket, whose kernel figures the adaptive rate reads with the round trips (`None`: round
+/// trips alone).
 pub async fn serve(
     socket: WebSocket,
     state: Arc<AppState>,
     peer: Option<SocketAddr>,
     greeter: Option<Greeter>,
+    tcp: Option<SocketInfo>,
 ) {
-    serve_on(socket, state, peer, greeter).await;
+    serve_paced(socket, state, peer, greeter, tcp).await;
 }
 
 /// [`serve`] over any websocket-shaped transport: a stream of received messages and a sink for
 /// sent ones (axum's [`WebSocket`] in the server; channels in the unit tests below).
 /// `greeter` is the connection's slot under the caps (none in the unit tests): the hello
 /// tells it whether the client is authenticated, which decides whether it may be evicted.
+#[cfg(test)]
 pub async fn serve_on<S>(
     socket: S,
     state: Arc<AppState>,
     peer: Option<SocketAddr>,
     greeter: Option<Greeter>,
+) where
+    S: Stream<Item = Result<Message, axum::Error>> + Sink<Message> + Send + 'static,
+{
+    serve_paced(socket, state, peer, greeter, None).await;
+}
+
+/// [`serve_on`], with the accepted socket whose kernel figures pace the frames, if known.
+async fn serve_paced<S>(
+    socket: S,
+    state: Arc<AppState>,
+    peer: Option<SocketAddr>,
+    greeter: Option<Greeter>,
+    tcp: Option<SocketInfo>,
 ) where
     S: Stream<Item = Result<Message, axum::Error>> + Sink<Message> + Send + 'static,
 {
@@ -102,13 +119,16 @@ pub async fn serve_on<S>(
             commands: TokenBucket::new(state.config.command_rate),
             drives: Drives::new(conn),
             greeter,
+            tcp,
         };
         let mut writer_done = false;
         let mut client_closed = false;
         let mut liveness = Liveness::new(&state.config.net);
         state.metrics.pace.opened();
-        // The adaptive rate's round-trip probes (only while subscribed: frames flow then),
-        // every `PROBE_INTERVAL` on the server's one probe clock.
+        // The adaptive rate's probes (only while subscribed: frames flow then), every
+        // `PROBE_INTERVAL` on the server's one probe clock: a reading of the socket's kernel
+        // figures and a round-trip ping. They run inside this loop, while `stream` holds the
+        // websocket and so the socket `tcp` names.
         let mut probe = state.probes.subscribe(conn);
         // Resolves when the connection's minted token expires or is revoked.
         let mut token_end: Option<TokenEnd> = None;
@@ -335,6 +355,8 @@ struct Session {
     drives: Drives,
     /// The connection's slot under the caps, told of the hello.
     greeter: Option<Greeter>,
+    /// The accepted socket, for the kernel's figures (the adaptive rate's signals).
+    tcp: Option<SocketInfo>,
 }
 
 impl Session {
@@ -375,10 +397,18 @@ impl Session {
         false
     }
 
-    /// Samples the round trip for the adaptive rate: a ping carrying the server's time (as
-    /// the liveness pings do), unless one is unanswered — which counts as late by its age.
+    /// Samples the connection for the adaptive rate: the socket's kernel figures (unsent
+    /// bytes, bytes acknowledged, the kernel's round trip: the queues that stand), then the
+    /// round trip: a ping carrying the server's time (as the liveness pings do), unless one is
+    /// unanswered — which counts as late by its age. With the figures, round trips are judged
+    /// by their trend, so a reader that is only late to answer is not cut
+    /// (`posecast_stream::pace`).
     fn probe(&self) {
         let pace = self.outbox.pace();
+        if let Some(figures) = self.tcp.as_ref().and_then(SocketInfo::figures) {
+            let change = pace.socket(Instant::now(), figures);
+            self.rate_changed(change);
+        }
         let (send, change) = pace.probe(Instant::now(), self.outbox.dropped_frames());
         self.rate_changed(change);
         if send {
