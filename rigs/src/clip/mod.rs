@@ -481,6 +481,7 @@ impl Clip {
 }
 
 /// One joint's local transform at `time`.
+#[inline]
 pub(crate) fn sample_joint(
     ch: &JointChannels,
     time: f32,

@@ -263,6 +263,7 @@ impl<T: TrackValue> Track<T> {
 
     /// The value at `time`, starting the key search at `cursor` and leaving it on the segment
     /// used, so forward playback finds its key in O(1). Any cursor gives the same value.
+    #[inline]
     pub fn sample_from(&self, time: f32, cursor: &mut usize) -> T {
         let n = self.times.len();
         let last = n - 1;
@@ -310,7 +311,10 @@ pub(crate) fn check_times(times: &[f32]) -> Result<(), ClipError> {
 }
 
 /// The `k` with `times[k] ≤ time < times[k + 1]`, for `times[0] < time < times[last]`.
-/// Tries the cursor's segment and the next one before a binary search.
+/// Tries the cursor's segment and the next one; past them, gallops forwards from the cursor
+/// (playback at a lower rate than the keys skips a few per call) and binary-searches the
+/// bracket found; before the cursor, binary-searches all keys. Every path finds the same `k`.
+#[inline]
 pub(crate) fn find_segment(times: &[f32], time: f32, cursor: &mut usize) -> usize {
     let n = times.len();
     let within = |k: usize| k + 1 < n && times[k] <= time && time < times[k + 1];
@@ -319,6 +323,17 @@ pub(crate) fn find_segment(times: &[f32], time: f32, cursor: &mut usize) -> usiz
         c
     } else if within(c + 1) {
         c + 1
+    } else if c + 1 < n && times[c] <= time {
+        // times[lo] ≤ time; the first key after `time` is in (lo, hi], or there is none.
+        let (mut lo, mut step) = (c, 1);
+        let mut hi = c + 1;
+        while hi < n && times[hi] <= time {
+            lo = hi;
+            step *= 2;
+            hi = lo + step;
+        }
+        let hi = hi.min(n);
+        (lo + times[lo + 1..hi].partition_point(|&t| t <= time)).min(n.saturating_sub(2))
     } else {
         // First index whose time is > `time`, minus one.
         times
@@ -416,6 +431,25 @@ mod tests {
         assert_eq!(e, Err(ClipError::NoKeys));
         let e = Track::new(Interpolation::Linear, vec![0.0], vec![Vec3::NAN]);
         assert!(matches!(e, Err(ClipError::NotFinite { .. })));
+    }
+
+    #[test]
+    fn galloping_forwards_finds_the_binary_search_segment() {
+        // Keys at 120 Hz read at 60 Hz and slower: the cursor skips 2 to 40 keys per call.
+        let times: Vec<f32> = (0..500).map(|i| i as f32 / 120.0).collect();
+        for skip in [2.0f32, 2.7, 5.0, 17.3, 40.0] {
+            let mut cursor = 0;
+            let mut t = 0.001;
+            while t < times[times.len() - 1] {
+                let expected = times.partition_point(|&x| x <= t) - 1;
+                assert_eq!(
+                    find_segment(&times, t, &mut cursor),
+                    expected,
+                    "t = {t}, skip {skip}"
+                );
+                t += skip / 120.0;
+            }
+        }
     }
 
     #[test]
