@@ -479,7 +479,10 @@ pub fn encode_delta(
         .any(|(a, b)| index(*a) != index(*b));
     let scales = pose.scales != base.scales;
     let placement = pose.placement != base.placement;
-    let weights = pose.weights != base.weights;
+    // Compared element by element: equal slices of `u16` compile to a call of `memcmp`, whose
+    // cost showed in the tick's profile although most rigs have no weights.
+    let weights = pose.weights.len() != base.weights.len()
+        || pose.weights.iter().zip(&base.weights).any(|(a, b)| a != b);
     let mut flags = ((depth - 1) as u8) << 4;
     for (set, bit) in [
         (placement, FLAG_PLACEMENT),
@@ -499,28 +502,19 @@ pub fn encode_delta(
         }
     }
     let mut h = [0i64; MAX_DEPTH];
-    // The joint's history, newest first, while its dropped component is the same: each
-    // component's levels.
-    let mut small = [[0i32; MAX_DEPTH]; 3];
-    for (j, &bits) in pose.rotations.iter().enumerate() {
+    // Every history frame has the base's joint count (`same_shape`): cut to it once, so the
+    // joint loop indexes without a check per frame.
+    let joints = base.rotations.len();
+    let frames: [&[u64]; MAX_DEPTH] =
+        std::array::from_fn(|f| history.get(f).map_or(&[][..], |h| &h.rotations[..joints]));
+    for (j, (&bits, &base_bits)) in pose.rotations.iter().zip(&base.rotations).enumerate() {
         let i = index(bits);
-        if i != index(base.rotations[j]) {
+        if i != index(base_bits) {
             w.put(bits & ((1 << 47) - 1), 47);
             continue;
         }
-        let mut n = 0;
-        for f in history {
-            let b = f.rotations[j];
-            if index(b) != i {
-                break;
-            }
-            for (c, comps) in small.iter_mut().enumerate() {
-                comps[n] = level(b, c) as i32;
-            }
-            n += 1;
-        }
-        for (c, comps) in small.iter().enumerate() {
-            let (pred, k) = predict_rotation(&comps[..n]);
+        let (h, n) = joint_history(&frames[..depth], j, i);
+        for (c, (pred, k)) in predict_rotation(&h, n).into_iter().enumerate() {
             w.rice(zigzag(level(bits, c) - pred), k);
         }
     }
@@ -585,28 +579,84 @@ fn predict(h: &[i64], rotation: bool) -> (i64, u32) {
     (pred, (mean + 1).ilog2())
 }
 
-/// [`predict`] of a rotation component (levels 0…32767), in 32-bit arithmetic: the same
-/// prediction and parameter (every sum stays below 2²¹), at a fraction of the cost.
+/// Joint `j`'s history in `frames` (newest first) while its dropped component is `i`: per
+/// frame its three levels (lane 3 unused), and how many frames that is (at least 1 when
+/// `frames[0]`'s is `i`). Lanes from the count on are zero.
 #[inline]
-fn predict_rotation(h: &[i32]) -> (i64, u32) {
-    let n = h.len();
+fn joint_history(frames: &[&[u64]], j: usize, i: u64) -> ([[i32; 4]; MAX_DEPTH], usize) {
+    let mut h = [[0i32; 4]; MAX_DEPTH];
+    let mut n = 0;
+    for (f, slot) in frames.iter().zip(&mut h) {
+        let b = f[j];
+        if index(b) != i {
+            break;
+        }
+        *slot = [
+            level(b, 0) as i32,
+            level(b, 1) as i32,
+            level(b, 2) as i32,
+            0,
+        ];
+        n += 1;
+    }
+    (h, n)
+}
+
+/// [`predict`] of a joint's three rotation components (levels 0…32767) at once, from the
+/// first `n` (1…[`MAX_DEPTH`]) frames of `h` (newest first; lanes 0–2 the components), in
+/// 32-bit arithmetic: the same predictions and parameters (every sum stays below 2²¹), at a
+/// fraction of the cost. The sums run over every frame and lane and mask off frames from `n`
+/// on (which may hold any level), so they compile to a few vector operations rather than
+/// three loops of unknown length.
+#[inline]
+fn predict_rotation(h: &[[i32; 4]; MAX_DEPTH], n: usize) -> [(i64, u32); 3] {
     if n < 2 {
-        return (i64::from(h[0]), K_WITHOUT_HISTORY);
+        return [0, 1, 2].map(|c| (i64::from(h[0][c]), K_WITHOUT_HISTORY));
     }
     let zz = |r: i32| ((r << 1) ^ (r >> 31)) as u32;
-    let still: u32 = (0..n - 1).map(|i| zz(h[i] - h[i + 1])).sum();
-    let velocity: u32 = (0..n.saturating_sub(2))
-        .map(|i| zz(h[i] - 2 * h[i + 1] + h[i + 2]))
-        .sum();
-    let (pred, mean) = if n >= 3 && velocity * (n as u32 - 1) < still * (n as u32 - 2) {
+    let mut still = [0u32; 4];
+    for i in 0..MAX_DEPTH - 1 {
+        let keep = if i + 1 < n { u32::MAX } else { 0 };
+        for c in 0..4 {
+            still[c] += zz(h[i][c] - h[i + 1][c]) & keep;
+        }
+    }
+    let mut velocity = [0u32; 4];
+    for i in 0..MAX_DEPTH - 2 {
+        let keep = if i + 2 < n { u32::MAX } else { 0 };
+        for c in 0..4 {
+            velocity[c] += zz(h[i][c] - 2 * h[i + 1][c] + h[i + 2][c]) & keep;
+        }
+    }
+    let n = n as u32;
+    [0, 1, 2].map(|c| {
+        let (pred, sum, d) = if n >= 3 && velocity[c] * (n - 1) < still[c] * (n - 2) {
+            (2 * h[0][c] - h[1][c], velocity[c], n - 2)
+        } else {
+            (h[0][c], still[c], n - 1)
+        };
         (
-            2 * h[0] - h[1],
-            div_small(u64::from(velocity), n as u64 - 2),
+            i64::from(pred).clamp(0, LEVEL_MAX),
+            (div_small_u32(sum, d) + 1).ilog2(),
         )
-    } else {
-        (h[0], div_small(u64::from(still), n as u64 - 1))
+    })
+}
+
+/// `x / d` for `x < 2²¹` and `1 ≤ d <` [`MAX_DEPTH`] as a multiplication by `⌈2³² / d⌉`: exact
+/// there (the product overshoots `x / d` by less than `x / 2³² < 1/d`, too little to reach the
+/// next integer), without a branch on `d`.
+#[inline]
+fn div_small_u32(x: u32, d: u32) -> u32 {
+    const RECIPROCALS: [u64; MAX_DEPTH] = {
+        let mut r = [0u64; MAX_DEPTH];
+        let mut d = 1;
+        while d < MAX_DEPTH {
+            r[d] = (1u64 << 32).div_ceil(d as u64);
+            d += 1;
+        }
+        r
     };
-    (i64::from(pred).clamp(0, LEVEL_MAX), (mean + 1).ilog2())
+    ((u64::from(x) * RECIPROCALS[d as usize % MAX_DEPTH]) >> 32) as u32
 }
 
 /// `x / d` for a divisor below [`MAX_DEPTH`]: each arm divides by a constant, which compiles
@@ -640,6 +690,7 @@ impl<'a> BitWriter<'a> {
     }
 
     /// Appends the low `n` bits of `v` (`n ≤ 32`).
+    #[inline]
     fn put(&mut self, v: u64, n: u32) {
         if n > 32 {
             self.put(v, 32);
@@ -662,11 +713,21 @@ impl<'a> BitWriter<'a> {
         }
     }
 
+    #[inline]
     fn rice(&mut self, u: u64, k: u32) {
         let q = u >> k;
         if q < RICE_ESCAPE {
-            self.put((1 << q) - 1, q as u32 + 1);
-            self.put(u, k);
+            // The unary quotient, its zero and the low `k` bits as one value: the same bits
+            // as writing them one after the other.
+            let low = u & ((1u64 << k) - 1);
+            let len = q as u32 + 1 + k;
+            let code = ((1u64 << q) - 1) | (low << (q + 1));
+            if len <= 32 {
+                self.put(code, len);
+            } else {
+                self.put(code, 32);
+                self.put(code >> 32, len - 32);
+            }
         } else {
             self.put((1 << RICE_ESCAPE) - 1, RICE_ESCAPE as u32);
             let n = (64 - u.leading_zeros()).max(1);
@@ -994,29 +1055,16 @@ impl Frame2Decoder {
             }
         }
         let mut h = [0i64; MAX_DEPTH];
-        let mut joint_history = [0u64; MAX_DEPTH];
-        let mut small = [0i32; MAX_DEPTH];
+        let frames: Vec<&[u64]> = history.iter().map(|f| &f.rotations[..]).collect();
         for (j, &esc) in escaped.iter().enumerate() {
             if esc {
                 pose.rotations.push(b.get(47)?);
                 continue;
             }
             let i = index(base.rotations[j]);
-            let mut n = 0;
-            for f in &history {
-                let held_bits = f.rotations[j];
-                if index(held_bits) != i {
-                    break;
-                }
-                joint_history[n] = held_bits;
-                n += 1;
-            }
+            let (h, n) = joint_history(&frames, j, i);
             let mut bits = i;
-            for c in 0..3 {
-                for (slot, &hb) in small.iter_mut().zip(&joint_history[..n]) {
-                    *slot = level(hb, c) as i32;
-                }
-                let (pred, k) = predict_rotation(&small[..n]);
+            for (pred, k) in predict_rotation(&h, n) {
                 let value = pred + unzigzag(b.rice(k)?);
                 if !(0..=LEVEL_MASK as i64).contains(&value) {
                     return Err(Frame2Error::Number { at: b.r.at });

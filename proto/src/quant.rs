@@ -40,26 +40,31 @@ pub fn encode(q: Quat) -> u64 {
         Quat::IDENTITY
     };
     let c = q.to_array();
+    // The first component of the largest magnitude, found with selects rather than branches
+    // (which component wins varies from joint to joint: branches on it mispredict).
     let mut largest = 0;
-    for i in 1..4 {
-        if c[i].abs() > c[largest].abs() {
-            largest = i;
-        }
+    let mut top = c[0].abs();
+    for (i, &v) in c.iter().enumerate().skip(1) {
+        let bigger = v.abs() > top;
+        largest = if bigger { i } else { largest };
+        top = if bigger { v.abs() } else { top };
     }
-    let sign = if c[largest] < 0.0 { -1.0 } else { 1.0 };
+    // −1 when the largest is negative, else 1, from its comparison's bit (no branch either).
+    let sign = f32::from_bits(1f32.to_bits() | u32::from(c[largest] < 0.0) << 31);
     let mut bits = largest as u64;
-    for (i, &v) in c.iter().enumerate() {
-        if i == largest {
-            continue;
-        }
-        let unit = ((v * sign + RANGE) * (0.5 / RANGE)).clamp(0.0, 1.0);
+    for i in KEPT[largest] {
+        let unit = ((c[i] * sign + RANGE) * (0.5 / RANGE)).clamp(0.0, 1.0);
         // Round to nearest (`unit · LEVELS` is not negative: adding ½ and truncating rounds
-        // without a call to the C library's `roundf`).
-        let level = (unit * LEVELS + 0.5) as u64;
-        bits = (bits << COMPONENT_BITS) | level;
+        // without a call to the C library's `roundf`). Below 2¹⁵, so converting to `u32`
+        // truncates as to `u64` would, without the branches of a conversion to 64 bits.
+        let level = (unit * LEVELS + 0.5) as u32;
+        bits = (bits << COMPONENT_BITS) | u64::from(level);
     }
     bits
 }
+
+/// The components kept, in order, when component `i` is dropped.
+const KEPT: [[usize; 3]; 4] = [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]];
 
 /// Decodes 48 bits from [`encode`] into a unit quaternion with a non-negative largest component.
 /// Any 48-bit value decodes to a valid unit quaternion (the spare bits are ignored).
@@ -158,6 +163,55 @@ mod tests {
             "worst error {worst}° exceeds {MAX_ERROR_DEGREES}°"
         );
         assert!(worst > 0.0);
+    }
+
+    /// The encoding written the plain way (a loop over the components, branches on which is
+    /// largest and its sign, the level converted to 64 bits): [`encode`] must give exactly these bits (v1 and v2 frames carry
+    /// them; decoders and the test vectors depend on them).
+    fn reference_encode(q: Quat) -> u64 {
+        let len = q.length();
+        let q = if len.is_finite() && len > 1e-12 {
+            q * len.recip()
+        } else {
+            Quat::IDENTITY
+        };
+        let c = q.to_array();
+        let mut largest = 0;
+        for i in 1..4 {
+            if c[i].abs() > c[largest].abs() {
+                largest = i;
+            }
+        }
+        let sign = if c[largest] < 0.0 { -1.0 } else { 1.0 };
+        let mut bits = largest as u64;
+        for (i, &v) in c.iter().enumerate() {
+            if i != largest {
+                let unit = ((v * sign + RANGE) * (0.5 / RANGE)).clamp(0.0, 1.0);
+                bits = (bits << COMPONENT_BITS) | (unit * LEVELS + 0.5) as u64;
+            }
+        }
+        bits
+    }
+
+    #[test]
+    fn bits_are_the_reference_bits() {
+        for (k, q) in random_rotations(300_000, 0xb175).enumerate() {
+            // Negated, scaled, and with components zeroed or tied in magnitude.
+            let tied = Quat::from_array(q.to_array().map(|v| (v * 4.0).round() / 4.0));
+            for q in [q, -q, q * (1.0 + k as f32 * 1e-5), tied] {
+                assert_eq!(encode(q), reference_encode(q), "{q:?}");
+            }
+        }
+        for q in [
+            Quat::IDENTITY,
+            -Quat::IDENTITY,
+            Quat::from_xyzw(0.0, 0.0, 0.0, 0.0),
+            Quat::from_xyzw(0.5, -0.5, 0.5, -0.5),
+            Quat::from_xyzw(-0.5, 0.5, -0.5, 0.5),
+            Quat::from_xyzw(f32::INFINITY, 0.0, 0.0, 1.0),
+        ] {
+            assert_eq!(encode(q), reference_encode(q), "{q:?}");
+        }
     }
 
     #[test]

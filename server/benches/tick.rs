@@ -12,7 +12,8 @@
 //!
 //! Times are this thread's CPU time (`CLOCK_THREAD_CPUTIME_ID`), so other work on the shared
 //! cores does not inflate them. Run: `cargo bench -p posecast-server --bench tick`. Prints a
-//! table; asserts nothing.
+//! table; asserts nothing. Arguments after `--` keep only the rows whose clip, avatar count
+//! and subscribers (e.g. `walk 4000 binary v2`) contain one of them — for profiling one row.
 //!
 //! The last two columns are wall time per tick: the whole tick, which is how long the scene
 //! lock was held before the tick published outside it (every command on the scene waited for
@@ -162,6 +163,11 @@ fn main() -> Result<()> {
     } else {
         eprintln!("skipping CMU 01_01: {} is absent", path.display());
     }
+    // Row filters: what follows `--` on the command line, less the harness's own flags.
+    let only: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with("--"))
+        .collect();
     println!(
         "| clip | joints | avatars | subscribers | tick | per avatar | per joint | ticks/s on one core | whole tick (wall; the lock before) | scene lock held (wall) |"
     );
@@ -171,6 +177,10 @@ fn main() -> Result<()> {
         let v1 = (Encoding::Binary, 1);
         let v2 = (Encoding::Binary, 2);
         let json = (Encoding::Json, 1);
+        let label = |(e, v): &Sub| match (e, v) {
+            (Encoding::Binary, 2) => "binary v2".to_owned(),
+            (e, _) => format!("{e:?}").to_lowercase(),
+        };
         for (n, subs) in [
             (1, vec![v1]),
             (100, vec![v1]),
@@ -181,19 +191,20 @@ fn main() -> Result<()> {
             (100, vec![v1; 500]),
             (100, vec![v2; 500]),
         ] {
-            let (scene, outboxes) = scene(rig, clip, n, &subs)?;
-            let times = time_ticks(&scene, &outboxes, Duration::from_secs(2));
-            let tick = times.cpu;
-            let per_avatar = tick.as_secs_f64() * 1e6 / n as f64;
-            let label = |(e, v): &Sub| match (e, v) {
-                (Encoding::Binary, 2) => "binary v2".to_owned(),
-                (e, _) => format!("{e:?}").to_lowercase(),
-            };
-            let subs = if subs.len() > 2 {
+            let subs_label = if subs.len() > 2 {
                 format!("{} × {}", subs.len(), label(&subs[0]))
             } else {
                 subs.iter().map(label).collect::<Vec<_>>().join(" + ")
             };
+            let row = format!("{name} {n} {subs_label}");
+            if !only.is_empty() && !only.iter().any(|o| row.contains(o.as_str())) {
+                continue;
+            }
+            let (scene, outboxes) = scene(rig, clip, n, &subs)?;
+            let times = time_ticks(&scene, &outboxes, Duration::from_secs(2));
+            let tick = times.cpu;
+            let per_avatar = tick.as_secs_f64() * 1e6 / n as f64;
+            let subs = subs_label;
             println!(
                 "| {name} | {joints} | {n} | {subs} | {:.3} ms | {per_avatar:.2} µs | {:.0} ns | {:.0} | {:.3} ms | {:.3} ms |",
                 tick.as_secs_f64() * 1e3,

@@ -19,18 +19,46 @@ use posecast_proto::subset::{JointSet, Selection};
 use std::borrow::Cow;
 use std::collections::{HashMap, VecDeque};
 use std::hash::{BuildHasherDefault, Hasher};
-use std::sync::{Arc, Mutex, PoisonError};
+use std::ops::Deref;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 
 /// Ticks of levels kept: deltas may refer to this far back (a subscriber at 10 Hz of a 60 Hz
 /// scene refers to 6 ticks per frame, [`frame2::MAX_DEPTH`] frames deep). A subscriber whose
 /// frames are older gets a keyframe.
 pub const RING_TICKS: usize = 6 * frame2::MAX_DEPTH;
 
-/// One avatar's levels at a tick, with the description hash they belong to.
-type Levels = (u64, Arc<QuantPose>);
+/// One avatar's levels at a tick: its number, the description hash they belong to, and the
+/// levels.
+#[derive(Debug)]
+pub(super) struct AvatarLevels {
+    num: u32,
+    hash: u64,
+    levels: QuantPose,
+}
 
-/// Every avatar's levels at one tick, by avatar number.
-pub(super) type TickLevels = HashMap<u32, Levels, BuildHasherDefault<NumHasher>>;
+/// Every avatar's levels at one tick, in the order of the tick's pieces (scene order), and
+/// where each avatar number is. Frames look an avatar up at the position it had in the last
+/// tick looked at (avatars rarely change places between ticks), so a delta's history is read
+/// in order from each tick, not through a hash lookup per avatar and tick.
+#[derive(Debug, Default)]
+pub(super) struct TickLevels {
+    avatars: Vec<AvatarLevels>,
+    by_num: HashMap<u32, usize, BuildHasherDefault<NumHasher>>,
+}
+
+impl TickLevels {
+    /// Avatar `num`'s levels and their position, looked for at `at` first.
+    fn find(&self, num: u32, at: usize) -> Option<(usize, &AvatarLevels)> {
+        match self.avatars.get(at) {
+            Some(a) if a.num == num => Some((at, a)),
+            _ => {
+                let at = *self.by_num.get(&num)?;
+                Some((at, self.avatars.get(at)?))
+            }
+        }
+    }
+}
 
 /// Hashes an avatar number with one multiplication (Fibonacci hashing): the tick's levels are
 /// looked up once per avatar and frame of history for every distinct chain, where SipHash's
@@ -54,6 +82,12 @@ impl Hasher for NumHasher {
     }
 }
 
+/// A map keyed by small numbers the server makes, hashed with [`NumHasher`].
+type NumMap<K, V> = HashMap<K, V, BuildHasherDefault<NumHasher>>;
+
+/// Levels on a precision's grid by (tick, avatar number, precision).
+type CoarseCache = NumMap<(u64, u32, PrecisionKey), Arc<QuantPose>>;
+
 /// Most rigs × precisions whose steps are kept (a bound on what many distinct subscriptions
 /// can make the ring hold; past it the cache starts again).
 const MAX_STEPS_CACHED: usize = 4096;
@@ -64,9 +98,28 @@ pub(super) struct Ring {
     ticks: VecDeque<(u64, Arc<TickLevels>)>,
     /// Levels on a precision's grid, made once per (tick, avatar number, precision) for every
     /// subscriber holding that precision. Only ticks still in the ring.
-    coarse: Mutex<HashMap<(u64, u32, PrecisionKey), Arc<QuantPose>>>,
+    coarse: Mutex<CoarseCache>,
     /// Grid steps by (description hash, precision).
     steps: Mutex<HashMap<(u64, PrecisionKey), Arc<Steps>>>,
+    /// The length of the last frame made, to allocate the next one at once.
+    last_len: AtomicUsize,
+}
+
+/// Levels a frame is made from: the ring's own, or made for a precision (and shared).
+enum Held<'a> {
+    Ring(&'a QuantPose),
+    Coarse(Arc<QuantPose>),
+}
+
+impl Deref for Held<'_> {
+    type Target = QuantPose;
+
+    fn deref(&self) -> &QuantPose {
+        match self {
+            Held::Ring(l) => l,
+            Held::Coarse(l) => l,
+        }
+    }
 }
 
 impl Ring {
@@ -98,20 +151,24 @@ impl Ring {
         (!steps.is_finest()).then_some(steps)
     }
 
-    /// `levels` of avatar `num` at tick `seq` on the grid of `steps` (made once, then shared).
-    fn coarse_of(
-        &self,
+    /// `levels` of avatar `num` at tick `seq` on the grid of `steps` (made once, then shared),
+    /// or as they are without a grid. `cache` is the locked [`Ring::coarse`], when there is a grid.
+    fn on_grid<'l>(
+        cache: &mut Option<MutexGuard<'_, CoarseCache>>,
+        grid: Option<&(Arc<Steps>, PrecisionKey)>,
         seq: u64,
         num: u32,
-        levels: &Arc<QuantPose>,
-        steps: &Arc<Steps>,
-        key: PrecisionKey,
-    ) -> Arc<QuantPose> {
-        let mut cache = self.coarse.lock().unwrap_or_else(PoisonError::into_inner);
-        cache
-            .entry((seq, num, key))
-            .or_insert_with(|| Arc::new(levels.coarsen(steps)))
-            .clone()
+        levels: &'l QuantPose,
+    ) -> Held<'l> {
+        match (grid, cache) {
+            (Some((steps, key)), Some(cache)) => Held::Coarse(
+                cache
+                    .entry((seq, num, *key))
+                    .or_insert_with(|| Arc::new(levels.coarsen(steps)))
+                    .clone(),
+            ),
+            _ => Held::Ring(levels),
+        }
     }
 
     /// The levels of `published`, recorded as its tick's when that tick is newer than every
@@ -171,39 +228,6 @@ impl Ring {
     ) -> Option<Message> {
         let pieces = publish::select(&published.pieces, filter, joints);
         let seq = published.header.seq;
-        let mut body = Vec::with_capacity(16 + 8 * pieces.len());
-        let ticks = chain.map(|c| self.ticks_of(c)).unwrap_or_default();
-        for (p, selection) in &pieces {
-            let num = p.pose.avatar_num;
-            let (hash, levels) = now.get(&num)?;
-            let selection = selection.as_deref();
-            let grid = precision
-                .and_then(|pr| Some((self.steps_of(p.description(), *hash, pr)?, pr.key())));
-            let on_grid = |tick: u64, levels: &Arc<QuantPose>| match &grid {
-                Some((steps, key)) => self.coarse_of(tick, num, levels, steps, *key),
-                None => levels.clone(),
-            };
-            let levels = on_grid(seq, levels);
-            let levels = cut(&levels, selection, weights);
-            if chain.is_none() {
-                frame2::encode_key(num, *hash, &levels, &mut body);
-                continue;
-            }
-            let history: Vec<Arc<QuantPose>> = ticks
-                .iter()
-                .map_while(|(tick, t)| {
-                    t.get(&num)
-                        .filter(|(h, _)| h == hash)
-                        .map(|(_, l)| on_grid(*tick, l))
-                })
-                .collect();
-            let history: Vec<Cow<'_, QuantPose>> =
-                history.iter().map(|l| cut(l, selection, weights)).collect();
-            let history: Vec<&QuantPose> = history.iter().map(|h| &**h).collect();
-            if !frame2::encode_delta(num, &levels, &history, &mut body) {
-                return None;
-            }
-        }
         let header = FrameHeader {
             kind: if chain.is_some() {
                 FrameKind::Delta
@@ -213,9 +237,85 @@ impl Ring {
             base_seq: chain.and_then(|c| c.first().copied()).unwrap_or(seq),
             ..published.header
         };
-        let mut out = Vec::with_capacity(24 + body.len());
+        // The header first and the chunks after it, in the message's own buffer.
+        let mut out = Vec::with_capacity(self.last_len.load(Ordering::Relaxed).max(64));
         frame2::write_header(&header, pieces.len(), &mut out);
-        out.extend_from_slice(&body);
+        let ticks = chain.map(|c| self.ticks_of(c)).unwrap_or_default();
+        // Locked once for the frame rather than once per avatar and tick.
+        let mut coarse =
+            precision.map(|_| self.coarse.lock().unwrap_or_else(PoisonError::into_inner));
+        // The steps of the last rig seen (a scene's avatars mostly share a few rigs).
+        let mut rig_steps: Option<(u64, Option<Arc<Steps>>)> = None;
+        let empty = QuantPose::default();
+        let mut at = 0;
+        for (p, selection) in &pieces {
+            let num = p.pose.avatar_num;
+            let (pos, a) = now.find(num, at)?;
+            at = pos + 1;
+            let hash = a.hash;
+            let selection = selection.as_deref();
+            let grid = match precision {
+                Some(pr) => {
+                    let steps = match &rig_steps {
+                        Some((h, steps)) if *h == hash => steps.clone(),
+                        _ => {
+                            let steps = self.steps_of(p.description(), hash, pr);
+                            rig_steps = Some((hash, steps.clone()));
+                            steps
+                        }
+                    };
+                    steps.map(|s| (s, pr.key()))
+                }
+                None => None,
+            };
+            let grid = grid.as_ref();
+            // Most frames take every joint of the ring's own levels, as they are: the history
+            // is references into the ring, on the stack (this runs for every avatar of every
+            // frame made).
+            if chain.is_some() && grid.is_none() && selection.is_none() {
+                let mut history: [&QuantPose; frame2::MAX_DEPTH] = [&empty; frame2::MAX_DEPTH];
+                let mut depth = 0;
+                let mut plain = weights || a.levels.weights.is_empty();
+                for (slot, (_, t)) in history.iter_mut().zip(&ticks) {
+                    match t.find(num, pos) {
+                        Some((_, h)) if h.hash == hash => {
+                            plain &= weights || h.levels.weights.is_empty();
+                            *slot = &h.levels;
+                            depth += 1;
+                        }
+                        _ => break,
+                    }
+                }
+                if plain {
+                    if !frame2::encode_delta(num, &a.levels, &history[..depth], &mut out) {
+                        return None;
+                    }
+                    continue;
+                }
+            }
+            let levels = Self::on_grid(&mut coarse, grid, seq, num, &a.levels);
+            let levels = cut(&levels, selection, weights);
+            if chain.is_none() {
+                frame2::encode_key(num, hash, &levels, &mut out);
+                continue;
+            }
+            // The avatar's frames in the chain, newest first, while they are of its rig.
+            let held: Vec<Held<'_>> = ticks
+                .iter()
+                .map_while(|(tick, t)| {
+                    t.find(num, pos)
+                        .filter(|(_, h)| h.hash == hash)
+                        .map(|(_, h)| Self::on_grid(&mut coarse, grid, *tick, num, &h.levels))
+                })
+                .collect();
+            let history: Vec<Cow<'_, QuantPose>> =
+                held.iter().map(|h| cut(h, selection, weights)).collect();
+            let history: Vec<&QuantPose> = history.iter().map(|h| &**h).collect();
+            if !frame2::encode_delta(num, &levels, &history, &mut out) {
+                return None;
+            }
+        }
+        self.last_len.store(out.len(), Ordering::Relaxed);
         Some(Message::Binary(Bytes::from(out)))
     }
 }
@@ -236,24 +336,118 @@ fn cut<'l>(
     }
 }
 
-/// Every avatar's levels in `published`, by avatar number.
+/// Every avatar's levels in `published`, in its order.
 pub(super) fn levels(published: &Published) -> TickLevels {
-    published
+    let avatars: Vec<AvatarLevels> = published
         .pieces
         .iter()
-        .map(|p| {
-            (
-                p.pose.avatar_num,
-                (
-                    p.pose.hash,
-                    Arc::new(QuantPose::from_pose_with(
-                        &p.pose,
-                        Some(&p.rotation_bits)
-                            .filter(|b| !b.is_empty())
-                            .map(|b| &b[..]),
-                    )),
-                ),
-            )
+        .map(|p| AvatarLevels {
+            num: p.pose.avatar_num,
+            hash: p.pose.hash,
+            levels: QuantPose::from_pose_with(
+                &p.pose,
+                Some(&p.rotation_bits)
+                    .filter(|b| !b.is_empty())
+                    .map(|b| &b[..]),
+            ),
         })
-        .collect()
+        .collect();
+    let by_num = avatars
+        .iter()
+        .enumerate()
+        .map(|(i, a)| (a.num, i))
+        .collect();
+    TickLevels { avatars, by_num }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::publish::{Piece, Snapshot};
+    use posecast_proto::frame::ChunkEncoder;
+    use posecast_proto::frame2::Frame2Decoder;
+    use posecast_sim::avatar::Avatar;
+    use posecast_sim::avatar::playback::Layer;
+
+    fn walkers(ids: &[(&str, u32)]) -> Vec<Avatar> {
+        let rig = Arc::new(posecast_rigs::builtin::rig().unwrap());
+        let walk = rig.clip("walk").cloned().unwrap();
+        ids.iter()
+            .map(|&(id, num)| {
+                let mut a = Avatar::new(AvatarId(id.into()), num, rig.clone());
+                a.play(
+                    Layer::new(walk.clone(), None, num as f32 * 0.3, 1.0, true),
+                    0.0,
+                );
+                a
+            })
+            .collect()
+    }
+
+    fn published(avatars: &[&Avatar], seq: u64, kind: FrameKind) -> Published {
+        Published {
+            header: FrameHeader {
+                kind,
+                scene_num: 3,
+                seq,
+                server_time_us: 1_764_000_000_000_000 + seq,
+                base_seq: seq,
+            },
+            pieces: avatars
+                .iter()
+                .map(|a| {
+                    let snapshot = Snapshot::of(a);
+                    Piece::encode(snapshot, &mut ChunkEncoder::new(), kind, false, true)
+                })
+                .collect(),
+        }
+    }
+
+    /// Deltas stay right when avatars change places between ticks (one leaves, the others
+    /// move up, the order changes): each avatar's history is its own, so a decoder that got
+    /// every frame reads exactly each pose's levels, quantised here independently.
+    #[test]
+    fn deltas_follow_avatars_that_change_places() {
+        let mut avatars = walkers(&[("a", 7), ("b", 8), ("c", 9)]);
+        let mut ring = Ring::default();
+        let mut decoder = Frame2Decoder::new();
+        let mut chain: Vec<u64> = Vec::new();
+        for seq in 1..=30u64 {
+            for a in &mut avatars {
+                a.tick(seq as f64 / 60.0);
+            }
+            // Scene order, then a reordering, then "a" gone.
+            let order: Vec<&Avatar> = match seq {
+                ..=10 => avatars.iter().collect(),
+                11..=20 => [2, 0, 1].iter().map(|&i| &avatars[i]).collect(),
+                _ => [2, 1].iter().map(|&i| &avatars[i]).collect(),
+            };
+            let kind = if chain.is_empty() {
+                FrameKind::Key
+            } else {
+                FrameKind::Delta
+            };
+            let p = published(&order, seq, kind);
+            let now = ring.record(&p);
+            let held = (!chain.is_empty()).then_some(&chain[..]);
+            let Some(Message::Binary(bytes)) = ring.message(&p, &now, held, None, None, true, None)
+            else {
+                panic!("no frame at tick {seq}");
+            };
+            let got = decoder.decode_levels(&bytes).unwrap();
+            assert_eq!(got.header.kind, kind, "tick {seq}");
+            assert_eq!(got.avatars.len(), order.len());
+            for (a, g) in order.iter().zip(&got.avatars) {
+                assert_eq!(g.avatar_num, a.description.num);
+                assert_eq!(
+                    *g.levels,
+                    QuantPose::from_pose(a.pose()),
+                    "avatar {} at tick {seq}",
+                    a.description.num
+                );
+            }
+            chain.insert(0, seq);
+            chain.truncate(frame2::MAX_DEPTH);
+        }
+    }
 }

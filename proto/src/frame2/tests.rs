@@ -63,7 +63,8 @@ fn constant_velocity_costs_one_bit_a_component() {
 }
 
 /// The 32-bit rotation predictor gives what the reference one (`predict`, in i64) gives, on
-/// random histories of every depth and at the ends of the level range.
+/// random histories of every depth and at the ends of the level range, whatever the lanes
+/// past the history hold.
 #[test]
 fn the_rotation_predictor_matches_the_reference() {
     let mut seed = 0x2545_f491_4f6c_dd1du64;
@@ -85,8 +86,43 @@ fn the_rotation_predictor_matches_the_reference() {
                     .clamp(0, LEVEL_MASK as i64),
             })
             .collect();
-        let small: Vec<i32> = h.iter().map(|&v| v as i32).collect();
-        assert_eq!(predict_rotation(&small), predict(&h, true), "{h:?}");
+        // Component 1 is this history, 0 and 2 are it reversed and negated; frames past the
+        // history hold any levels.
+        let mut lanes = [[0i32; 4]; MAX_DEPTH];
+        for (i, slot) in lanes.iter_mut().enumerate() {
+            let mut any = || (next() % 32768) as i32;
+            *slot = match h.get(i) {
+                Some(&v) => [
+                    h[n - 1 - i] as i32,
+                    v as i32,
+                    LEVEL_MASK as i32 - v as i32,
+                    any(),
+                ],
+                None => [any(), any(), any(), any()],
+            };
+        }
+        let reversed: Vec<i64> = h.iter().rev().copied().collect();
+        let negated: Vec<i64> = h.iter().map(|v| LEVEL_MASK as i64 - v).collect();
+        assert_eq!(
+            predict_rotation(&lanes, n),
+            [
+                predict(&reversed, true),
+                predict(&h, true),
+                predict(&negated, true)
+            ],
+            "{h:?}"
+        );
+    }
+}
+
+/// The reciprocal division is exact for every sum a rotation component can reach (below 2²¹)
+/// and every divisor the predictor uses.
+#[test]
+fn the_small_division_is_exact() {
+    for d in 1..MAX_DEPTH as u32 {
+        for x in 0..1u32 << 21 {
+            assert_eq!(div_small_u32(x, d), x / d, "{x} / {d}");
+        }
     }
 }
 
@@ -524,4 +560,148 @@ fn malformed_weights_are_refused() {
         dec.decode_levels(&frame_bytes(FrameKind::Delta, 2, 1, &d, 1)),
         Err(Frame2Error::Flags { .. })
     ));
+}
+
+/// A delta chunk written straight from the module docs, one bit at a time, with the i64
+/// reference predictor: what [`encode_delta`] must write byte for byte (decoders in Rust and
+/// JavaScript read these bytes; the encoder's shortcuts must not change one of them).
+fn reference_delta(avatar_num: u32, pose: &QuantPose, history: &[&QuantPose]) -> Option<Vec<u8>> {
+    let base = *history.first()?;
+    if !pose.same_shape(base) {
+        return None;
+    }
+    let history: Vec<&QuantPose> = history
+        .iter()
+        .take(MAX_DEPTH)
+        .take_while(|h| h.same_shape(base))
+        .copied()
+        .collect();
+    let mut out = Vec::new();
+    varint(u64::from(avatar_num), &mut out);
+    let escaped: Vec<bool> = (0..pose.rotations.len())
+        .map(|j| pose.rotations[j] >> 45 & 3 != base.rotations[j] >> 45 & 3)
+        .collect();
+    let escapes = escaped.contains(&true);
+    let scales = pose.scales != base.scales;
+    let placement = pose.placement != base.placement;
+    let weights = pose.weights != base.weights;
+    out.push(
+        ((history.len() - 1) as u8) << 4
+            | u8::from(placement)
+            | u8::from(scales) << 1
+            | u8::from(escapes) << 2
+            | u8::from(weights) << 3,
+    );
+    // The bit stream, LSB first.
+    let mut bits: Vec<bool> = Vec::new();
+    let put = |bits: &mut Vec<bool>, v: u64, n: u32| bits.extend((0..n).map(|b| v >> b & 1 == 1));
+    let rice = |bits: &mut Vec<bool>, u: u64, k: u32| {
+        let q = u >> k;
+        if q < RICE_ESCAPE {
+            bits.extend((0..q).map(|_| true));
+            bits.push(false);
+            put(bits, u, k);
+        } else {
+            bits.extend((0..RICE_ESCAPE).map(|_| true));
+            let n = (64 - u.leading_zeros()).max(1);
+            put(bits, u64::from(n - 1), 6);
+            put(bits, u, n);
+        }
+    };
+    let flush = |bits: &mut Vec<bool>, out: &mut Vec<u8>| {
+        for byte in bits.chunks(8) {
+            out.push(
+                byte.iter()
+                    .rev()
+                    .fold(0u8, |b, &bit| b << 1 | u8::from(bit)),
+            );
+        }
+        bits.clear();
+    };
+    if escapes {
+        for &e in &escaped {
+            put(&mut bits, u64::from(e), 1);
+        }
+    }
+    for (j, &now) in pose.rotations.iter().enumerate() {
+        if escaped[j] {
+            put(&mut bits, now, 47);
+            continue;
+        }
+        let same: Vec<u64> = history
+            .iter()
+            .map(|f| f.rotations[j])
+            .take_while(|b| b >> 45 & 3 == now >> 45 & 3)
+            .collect();
+        for c in 0..3 {
+            let h: Vec<i64> = same.iter().map(|&b| level(b, c)).collect();
+            let (pred, k) = predict(&h, true);
+            rice(&mut bits, zigzag(level(now, c) - pred), k);
+        }
+    }
+    for (t, now) in pose.translations.iter().enumerate() {
+        for (c, &value) in now.iter().enumerate() {
+            let h: Vec<i64> = history
+                .iter()
+                .map(|f| i64::from(f.translations[t][c]))
+                .collect();
+            let (pred, k) = predict(&h, false);
+            rice(&mut bits, zigzag(i64::from(value) - pred), k);
+        }
+    }
+    flush(&mut bits, &mut out);
+    write_scales_placement(pose, scales, placement, &mut out);
+    if weights {
+        for (a, b) in pose.weights.iter().zip(&base.weights) {
+            put(&mut bits, u64::from(a != b), 1);
+        }
+        for (a, b) in pose.weights.iter().zip(&base.weights) {
+            if a != b {
+                put(&mut bits, u64::from(*a), WEIGHT_BITS);
+            }
+        }
+        flush(&mut bits, &mut out);
+    }
+    Some(out)
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(96))]
+
+    /// [`encode_delta`] writes exactly the reference's bytes: streams with noise, jumps that
+    /// change a joint's dropped component (escapes, and histories cut short), on the finest
+    /// grid and on coarse ones, against histories of every depth with frames skipped.
+    #[test]
+    fn deltas_are_the_reference_bytes(
+        a in arb_motion(),
+        skips in prop::collection::vec(0usize..3, 70),
+        rotation_step in prop_oneof![Just(1u8), 1u8..=40],
+        weights in 0usize..5,
+    ) {
+        let steps = Arc::new(Steps {
+            rotations: vec![rotation_step; a.start.len()],
+            translation: u16::from(rotation_step),
+        });
+        let mut levels: Vec<QuantPose> = Vec::new();
+        for tick in 0..70usize {
+            let mut q = QuantPose::from_pose(&a.at(tick, 2)).coarsen(&steps);
+            q.weights = (0..weights).map(|w| ((tick / (w + 1)) * 37 % 1024) as u16).collect();
+            levels.push(q);
+        }
+        for (now, skip) in levels.iter().enumerate().skip(1).zip(&skips) {
+            // Newest first, every `skip + 1`-th frame before `now`.
+            let history: Vec<&QuantPose> = levels[..now.0]
+                .iter()
+                .rev()
+                .step_by(skip + 1)
+                .take(MAX_DEPTH + 1)
+                .collect();
+            let mut out = vec![0xAA];
+            let written = encode_delta(2, now.1, &history, &mut out);
+            let expected = reference_delta(2, now.1, &history);
+            prop_assert_eq!(written, expected.is_some());
+            let expected = expected.unwrap_or_default();
+            prop_assert_eq!(&out[1..], expected.as_slice());
+        }
+    }
 }
