@@ -333,6 +333,26 @@ async fn precisions_are_checked_and_served_over_a_websocket() {
         ServerMsg::Subscribed { precision, .. } => assert_eq!(precision, Some(degrees(0.1))),
         other => panic!("{other:?}"),
     }
+    // A precision a hair from a series value is rounded towards finer to it (subscriptions
+    // that ask for nearly the same share their frames), and echoed so.
+    let asked = Precision {
+        degrees: Some(0.1234),
+        millimetres: Some(2.2),
+        shell: Some(0.028),
+        translation: Some(0.0011),
+    };
+    match ask(5, Encoding::Binary, asked).await {
+        ServerMsg::Subscribed { precision, .. } => assert_eq!(
+            precision,
+            Some(Precision {
+                degrees: Some(0.1),
+                millimetres: Some(2.0),
+                shell: Some(0.0315),
+                translation: Some(0.001),
+            })
+        ),
+        other => panic!("{other:?}"),
+    }
     // The native client at 0.1°, beside one at the finest: the same ticks within the bound.
     let connect = |precision: Option<Precision>| {
         posecast_testkit::ClientBuilder::new(server.ws_url())

@@ -106,6 +106,47 @@ pub struct PrecisionError {
     pub why: String,
 }
 
+/// The R10 series' mantissas (ISO 3 preferred numbers, ten a decade).
+const R10: [f64; 10] = [1.0, 1.25, 1.6, 2.0, 2.5, 3.15, 4.0, 5.0, 6.3, 8.0];
+
+/// `v`'s decade and mantissa in `[1, 10)`, with a relative margin of 1e-6 so that an `f32`
+/// near a series value (0.1 is 0.100000001…) counts as it.
+fn decade(v: f64) -> (f64, f64) {
+    let scale = 10f64.powf(v.log10().floor());
+    let mantissa = v / scale;
+    if mantissa >= 10.0 * (1.0 - 1e-6) {
+        (scale * 10.0, mantissa / 10.0)
+    } else {
+        (scale, mantissa)
+    }
+}
+
+/// The largest R10 value at or below `v` (0 and what is not finite and positive unchanged).
+fn r10_at_or_below(v: f64) -> f64 {
+    if !(v.is_finite() && v > 0.0) {
+        return v;
+    }
+    let (scale, m) = decade(v);
+    let r = R10
+        .iter()
+        .rev()
+        .find(|&&r| r <= m * (1.0 + 1e-6))
+        .copied()
+        .unwrap_or(1.0);
+    r * scale
+}
+
+/// The smallest R10 value at or above `v` (0 and what is not finite and positive unchanged).
+fn r10_at_or_above(v: f64) -> f64 {
+    if !(v.is_finite() && v > 0.0) {
+        return v;
+    }
+    let (scale, m) = decade(v);
+    R10.iter()
+        .find(|&&r| r >= m * (1.0 - 1e-6))
+        .map_or(10.0 * scale, |r| r * scale)
+}
+
 /// The step of one rotation level, `√2 / 32766` (see [`crate::quant`]).
 fn level_step() -> f64 {
     std::f64::consts::SQRT_2 / 32766.0
@@ -222,6 +263,27 @@ impl Precision {
                 .is_none_or(|t| translation_step_for(f64::from(t)) == 1)
     }
 
+    /// This precision with every field rounded towards finer to the R10 series (ten values a
+    /// decade: 1, 1.25, 1.6, 2, 2.5, 3.15, 4, 5, 6.3, 8 × 10ᵏ; `shell` up, the bounds down;
+    /// no finer than the finest), so subscriptions that ask for nearly the same share the
+    /// frames made for it — a value per client (0.1, 0.1001, 0.0999…) would each cost an
+    /// encode a tick — and there are at most about 40 values a field. The guarantee asked for
+    /// still holds (each bound is at or below what was asked); the server echoes the rounded
+    /// values in `subscribed`. Of a valid precision, valid, and its own canonical form.
+    #[must_use]
+    pub fn canonical(&self) -> Self {
+        let down =
+            |v: Option<f32>, least: f64| v.map(|v| r10_at_or_below(f64::from(v)).max(least) as f32);
+        Self {
+            degrees: down(self.degrees, finest_degrees()),
+            millimetres: down(self.millimetres, 0.01),
+            shell: self
+                .shell
+                .map(|v| r10_at_or_above(f64::from(v)).min(10.0) as f32),
+            translation: down(self.translation, translation_bound(1)),
+        }
+    }
+
     /// Checks every field's range.
     ///
     /// # Errors
@@ -240,7 +302,7 @@ impl Precision {
         // The smallest values are the finest bounds, less a rounding margin (a client may
         // send the figure it was told, rounded).
         check("degrees", self.degrees, finest_degrees() * 0.999, 45.0)?;
-        check("millimetres", self.millimetres, 0.01, 10_000.0)?;
+        check("millimetres", self.millimetres, 0.01 * 0.999, 10_000.0)?;
         check("shell", self.shell, 0.0, 10.0)?;
         check(
             "translation",
@@ -546,5 +608,55 @@ mod tests {
         let json: Precision = serde_json::from_str(r#"{"degrees":0.1}"#).unwrap();
         assert_eq!(json.degrees, Some(0.1));
         assert!(serde_json::from_str::<Precision>(r#"{"degree":0.1}"#).is_err());
+    }
+
+    #[test]
+    fn canonical_precisions_are_finer_within_one_step_few_and_stable() {
+        let mut seed = 0x5eed_u64;
+        let mut next = || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let mut degrees = std::collections::BTreeSet::new();
+        for _ in 0..20_000 {
+            // Log-uniform over each field's range.
+            let log = |lo: f64, hi: f64, u: f64| (lo.ln() + (hi.ln() - lo.ln()) * u).exp() as f32;
+            let p = Precision {
+                degrees: Some(log(finest_degrees(), 45.0, next())),
+                millimetres: Some(log(0.01, 10_000.0, next())),
+                shell: Some(log(0.001, 10.0, next())),
+                translation: Some(log(translation_bound(1), 1.0, next())),
+            };
+            assert!(p.validate().is_ok(), "{p:?}");
+            let c = p.canonical();
+            assert!(c.validate().is_ok(), "{p:?} → {c:?}");
+            assert_eq!(c.canonical(), c, "{p:?}");
+            // Towards finer, by less than one step of the series (1.28× at most: 1.25 → 1.6).
+            for (asked, got, finer_is_smaller) in [
+                (p.degrees, c.degrees, true),
+                (p.millimetres, c.millimetres, true),
+                (p.shell, c.shell, false),
+                (p.translation, c.translation, true),
+            ] {
+                let (a, g) = (f64::from(asked.unwrap()), f64::from(got.unwrap()));
+                let ratio = if finer_is_smaller { a / g } else { g / a };
+                assert!((1.0 - 1e-6..1.29).contains(&ratio), "{asked:?} → {got:?}");
+            }
+            degrees.insert(c.degrees.unwrap().to_bits());
+        }
+        // 0.0087–45 degrees: about 37 values of the series and the finest.
+        assert!((30..=40).contains(&degrees.len()), "{}", degrees.len());
+        // Series values stay as they are (clients send what they were told).
+        for d in [0.01f32, 0.05, 0.1, 0.25, 1.0, 2.5, 40.0] {
+            let c = Precision {
+                degrees: Some(d),
+                ..Precision::FINEST
+            }
+            .canonical();
+            assert_eq!(c.degrees, Some(d), "{d}");
+        }
+        assert_eq!(Precision::FINEST.canonical(), Precision::FINEST);
     }
 }

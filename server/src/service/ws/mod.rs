@@ -616,6 +616,16 @@ impl Session {
                     self.error(rate_limited(wait));
                     return true;
                 }
+                // Precisions that differ by a hair share their frames: rounded (towards finer)
+                // to the R10 series, and echoed so in `subscribed`.
+                // (Only a valid one: an invalid one is refused as asked, below.)
+                let precision = precision.map(|p| {
+                    if p.validate().is_ok() {
+                        p.canonical()
+                    } else {
+                        p
+                    }
+                });
                 // Each filter entry is checked against the scene every tick: no repeats.
                 let avatars = avatars.map(|mut ids| {
                     ids.sort();
