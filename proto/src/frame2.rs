@@ -502,20 +502,23 @@ pub fn encode_delta(
         }
     }
     let mut h = [0i64; MAX_DEPTH];
-    // Every history frame has the base's joint count (`same_shape`): cut to it once, so the
-    // joint loop indexes without a check per frame.
-    let joints = base.rotations.len();
     let frames: [&[u64]; MAX_DEPTH] =
-        std::array::from_fn(|f| history.get(f).map_or(&[][..], |h| &h.rotations[..joints]));
-    for (j, (&bits, &base_bits)) in pose.rotations.iter().zip(&base.rotations).enumerate() {
-        let i = index(bits);
-        if i != index(base_bits) {
-            w.put(bits & ((1 << 47) - 1), 47);
-            continue;
-        }
-        let (h, n) = joint_history(&frames[..depth], j, i);
-        for (c, (pred, k)) in predict_rotation(&h, n).into_iter().enumerate() {
-            w.rice(zigzag(level(bits, c) - pred), k);
+        std::array::from_fn(|f| history.get(f).map_or(&[][..], |h| &h.rotations[..]));
+    for (block, (now, was)) in pose
+        .rotations
+        .chunks(LANES)
+        .zip(base.rotations.chunks(LANES))
+        .enumerate()
+    {
+        let p = predict_rotations(&frames[..depth], block * LANES);
+        for (l, (&bits, &base_bits)) in now.iter().zip(was).enumerate() {
+            if index(bits) != index(base_bits) {
+                w.put(bits & ((1 << 47) - 1), 47);
+                continue;
+            }
+            for c in 0..3 {
+                w.rice(zigzag(level(bits, c) - i64::from(p.pred[c][l])), p.k[c][l]);
+            }
         }
     }
     for (t, now) in pose.translations.iter().enumerate() {
@@ -579,84 +582,122 @@ fn predict(h: &[i64], rotation: bool) -> (i64, u32) {
     (pred, (mean + 1).ilog2())
 }
 
-/// Joint `j`'s history in `frames` (newest first) while its dropped component is `i`: per
-/// frame its three levels (lane 3 unused), and how many frames that is (at least 1 when
-/// `frames[0]`'s is `i`). Lanes from the count on are zero.
-#[inline]
-fn joint_history(frames: &[&[u64]], j: usize, i: u64) -> ([[i32; 4]; MAX_DEPTH], usize) {
-    let mut h = [[0i32; 4]; MAX_DEPTH];
-    let mut n = 0;
-    for (f, slot) in frames.iter().zip(&mut h) {
-        let b = f[j];
-        if index(b) != i {
-            break;
-        }
-        *slot = [
-            level(b, 0) as i32,
-            level(b, 1) as i32,
-            level(b, 2) as i32,
-            0,
-        ];
-        n += 1;
-    }
-    (h, n)
+/// Joints whose rotations [`predict_rotations`] predicts at once.
+const LANES: usize = 8;
+
+/// What [`predict_rotations`] gives for a block of [`LANES`] joints, `[component][lane]`.
+struct RotationPredictions {
+    /// The predicted levels (clamped to the level range).
+    pred: [[i32; LANES]; 3],
+    /// The Rice parameters.
+    k: [[u32; LANES]; 3],
 }
 
-/// [`predict`] of a joint's three rotation components (levels 0…32767) at once, from the
-/// first `n` (1…[`MAX_DEPTH`]) frames of `h` (newest first; lanes 0–2 the components), in
-/// 32-bit arithmetic: the same predictions and parameters (every sum stays below 2²¹), at a
-/// fraction of the cost. The sums run over every frame and lane and mask off frames from `n`
-/// on (which may hold any level), so they compile to a few vector operations rather than
-/// three loops of unknown length.
+/// [`predict`] of the three rotation components of joints `j0 … j0 + LANES − 1` (lanes past
+/// the joint count are zero), from `frames` (the history's rotations, newest first, 1…
+/// [`MAX_DEPTH`] of them, each of the same length). A joint's history runs while its dropped
+/// component is `frames[0]`'s; lanes of a joint sent escaped are meaningless.
+///
+/// The same predictions and parameters as [`predict`], in 32-bit lanes laid out
+/// `[component][frame][joint]`: each sum runs over every frame and masks off the frames past
+/// a joint's history, so the loops have fixed lengths and no branches and compile to vector
+/// operations across joints. The choice `mean zigzag(v) < mean zigzag(s)` is tested as
+/// `Σv · (n − 1) < Σs · (n − 2)`, in f32 (exact: both products are below 2²⁴), which is false
+/// by itself for `n < 3` (the right side is ≤ 0); the parameter is [`rice_parameter`].
 #[inline]
-fn predict_rotation(h: &[[i32; 4]; MAX_DEPTH], n: usize) -> [(i64, u32); 3] {
-    if n < 2 {
-        return [0, 1, 2].map(|c| (i64::from(h[0][c]), K_WITHOUT_HISTORY));
-    }
-    let zz = |r: i32| ((r << 1) ^ (r >> 31)) as u32;
-    let mut still = [0u32; 4];
-    for i in 0..MAX_DEPTH - 1 {
-        let keep = if i + 1 < n { u32::MAX } else { 0 };
-        for c in 0..4 {
-            still[c] += zz(h[i][c] - h[i + 1][c]) & keep;
-        }
-    }
-    let mut velocity = [0u32; 4];
-    for i in 0..MAX_DEPTH - 2 {
-        let keep = if i + 2 < n { u32::MAX } else { 0 };
-        for c in 0..4 {
-            velocity[c] += zz(h[i][c] - 2 * h[i + 1][c] + h[i + 2][c]) & keep;
-        }
-    }
-    let n = n as u32;
-    [0, 1, 2].map(|c| {
-        let (pred, sum, d) = if n >= 3 && velocity[c] * (n - 1) < still[c] * (n - 2) {
-            (2 * h[0][c] - h[1][c], velocity[c], n - 2)
-        } else {
-            (h[0][c], still[c], n - 1)
+fn predict_rotations(frames: &[&[u64]], j0: usize) -> RotationPredictions {
+    // The joints' levels (per component and frame) and dropped components (per frame), split
+    // from each rotation's two 32-bit halves (index in bits 13–14 of the high half, level 0 across both).
+    let mut h = [[[0i32; LANES]; MAX_DEPTH]; 3];
+    let mut dropped = [[0i32; LANES]; MAX_DEPTH];
+    for (f, (dropped, src)) in dropped.iter_mut().zip(frames).enumerate() {
+        let src = src.get(j0..).unwrap_or_default();
+        let row = match src.first_chunk::<LANES>() {
+            Some(full) => *full,
+            None => {
+                let mut row = [0u64; LANES];
+                for (slot, &b) in row.iter_mut().zip(src) {
+                    *slot = b;
+                }
+                row
+            }
         };
-        (
-            i64::from(pred).clamp(0, LEVEL_MAX),
-            (div_small_u32(sum, d) + 1).ilog2(),
-        )
-    })
+        for l in 0..LANES {
+            let (lo, hi) = (row[l] as u32, (row[l] >> 32) as u32);
+            h[0][f][l] = ((lo >> 30) | ((hi & 0x1fff) << 2)) as i32;
+            h[1][f][l] = ((lo >> 15) & 0x7fff) as i32;
+            h[2][f][l] = (lo & 0x7fff) as i32;
+            dropped[l] = ((hi >> 13) & 3) as i32;
+        }
+    }
+    // Per frame −1 while the joint's history runs (its dropped component that of frame 0, in
+    // every frame from 0 to this one, and the frame within the depth), else 0.
+    let mut keep = [[0i32; LANES]; MAX_DEPTH];
+    let mut run = [-1i32; LANES];
+    for (f, kept) in keep.iter_mut().enumerate().take(frames.len()) {
+        for l in 0..LANES {
+            run[l] &= -i32::from(dropped[f][l] == dropped[0][l]);
+        }
+        *kept = run;
+    }
+    let mut n = [0i32; LANES];
+    for kept in &keep {
+        for l in 0..LANES {
+            n[l] -= kept[l];
+        }
+    }
+    // Levels are 0…32767: residuals fit i32 and their zigzags are non-negative.
+    let zz = |r: i32| (r << 1) ^ (r >> 31);
+    let mut out = RotationPredictions {
+        pred: [[0; LANES]; 3],
+        k: [[0; LANES]; 3],
+    };
+    for ((h, pred_out), k_out) in h.iter().zip(&mut out.pred).zip(&mut out.k) {
+        // Still residuals `hᵢ − hᵢ₊₁`, and velocity residuals as differences of two of them.
+        let mut diff = [[0i32; LANES]; MAX_DEPTH - 1];
+        for (i, d) in diff.iter_mut().enumerate() {
+            for l in 0..LANES {
+                d[l] = h[i][l] - h[i + 1][l];
+            }
+        }
+        let mut still = [0i32; LANES];
+        for i in 0..MAX_DEPTH - 1 {
+            for l in 0..LANES {
+                still[l] += zz(diff[i][l]) & keep[i + 1][l];
+            }
+        }
+        let mut velocity = [0i32; LANES];
+        for i in 0..MAX_DEPTH - 2 {
+            for l in 0..LANES {
+                velocity[l] += zz(diff[i][l] - diff[i + 1][l]) & keep[i + 2][l];
+            }
+        }
+        // Per lane, without branches (so as vector operations): masks of −1 or 0 select.
+        for l in 0..LANES {
+            let nf = n[l] as f32;
+            let moving =
+                -i32::from((velocity[l] as f32) * (nf - 1.0) < (still[l] as f32) * (nf - 2.0));
+            let based = -i32::from(n[l] < 2);
+            let (h0, h1) = (h[0][l], h[1][l]);
+            let pred = (h0 + (moving & (h0 - h1))).clamp(0, LEVEL_MAX as i32);
+            pred_out[l] = (based & h0) | (!based & pred);
+            let sum = still[l] ^ ((still[l] ^ velocity[l]) & moving);
+            let k = rice_parameter(sum, n[l] - 1 + moving) as i32;
+            k_out[l] = ((based & K_WITHOUT_HISTORY as i32) | (!based & k)) as u32;
+        }
+    }
+    out
 }
 
-/// `x / d` for `x < 2²¹` and `1 ≤ d <` [`MAX_DEPTH`] as a multiplication by `⌈2³² / d⌉`: exact
-/// there (the product overshoots `x / d` by less than `x / 2³² < 1/d`, too little to reach the
-/// next integer), without a branch on `d`.
+/// `⌊log₂(⌊sum / d⌋ + 1)⌋` for `0 ≤ sum < 2²¹` and `1 ≤ d <` [`MAX_DEPTH`] (a rotation
+/// component's sums; other `d` give any value), in f32: the exponent of `(sum + d) / d`.
+/// `⌊sum / d⌋ + 1 ≥ 2ᵐ` exactly when `(sum + d) / d ≥ 2ᵐ`, and a quotient below a power of two
+/// is below it by at least `1/d ≥ 1/7`, more than f32's rounding error up to 2²¹ (`1/16`), so
+/// the rounded quotient has the exponent of the exact one. Vector operations, without an
+/// integer division, a float-to-integer conversion or a bit scan per lane.
 #[inline]
-fn div_small_u32(x: u32, d: u32) -> u32 {
-    const RECIPROCALS: [u64; MAX_DEPTH] = {
-        let mut r = [0u64; MAX_DEPTH];
-        let mut d = 1;
-        while d < MAX_DEPTH {
-            r[d] = (1u64 << 32).div_ceil(d as u64);
-            d += 1;
-        }
-        r
-    };
-    ((u64::from(x) * RECIPROCALS[d as usize % MAX_DEPTH]) >> 32) as u32
+fn rice_parameter(sum: i32, d: i32) -> u32 {
+    ((((sum + d) as f32 / d as f32).to_bits() >> 23) & 0xff).wrapping_sub(127)
 }
 
 /// `x / d` for a divisor below [`MAX_DEPTH`]: each arm divides by a constant, which compiles
@@ -713,21 +754,38 @@ impl<'a> BitWriter<'a> {
         }
     }
 
+    /// Appends the Rice code of `u` with parameter `k` (module docs, "Residuals").
     #[inline]
     fn rice(&mut self, u: u64, k: u32) {
         let q = u >> k;
+        if q < RICE_ESCAPE && q as u32 + 1 + k <= 32 {
+            // The unary quotient, its zero and the low `k` bits as one value below 2^len
+            // (the same bits as writing them one after the other), straight into the
+            // accumulator: the common case, small enough to inline where residuals are coded.
+            let low = u & ((1u64 << k) - 1);
+            self.acc |= (((1u64 << q) - 1) | (low << (q + 1))) << self.bits;
+            self.bits += q as u32 + 1 + k;
+            if self.bits >= 32 {
+                self.out.extend_from_slice(&(self.acc as u32).to_le_bytes());
+                self.acc >>= 32;
+                self.bits -= 32;
+            }
+        } else {
+            self.rice_long(u, k);
+        }
+    }
+
+    /// [`BitWriter::rice`] of a code longer than 32 bits or escaped.
+    #[cold]
+    #[inline(never)]
+    fn rice_long(&mut self, u: u64, k: u32) {
+        let q = u >> k;
         if q < RICE_ESCAPE {
-            // The unary quotient, its zero and the low `k` bits as one value: the same bits
-            // as writing them one after the other.
             let low = u & ((1u64 << k) - 1);
             let len = q as u32 + 1 + k;
             let code = ((1u64 << q) - 1) | (low << (q + 1));
-            if len <= 32 {
-                self.put(code, len);
-            } else {
-                self.put(code, 32);
-                self.put(code >> 32, len - 32);
-            }
+            self.put(code, 32);
+            self.put(code >> 32, len - 32);
         } else {
             self.put((1 << RICE_ESCAPE) - 1, RICE_ESCAPE as u32);
             let n = (64 - u.leading_zeros()).max(1);
@@ -1056,16 +1114,19 @@ impl Frame2Decoder {
         }
         let mut h = [0i64; MAX_DEPTH];
         let frames: Vec<&[u64]> = history.iter().map(|f| &f.rotations[..]).collect();
+        let mut p = predict_rotations(&frames, 0);
         for (j, &esc) in escaped.iter().enumerate() {
+            let l = j % LANES;
+            if l == 0 && j > 0 {
+                p = predict_rotations(&frames, j);
+            }
             if esc {
                 pose.rotations.push(b.get(47)?);
                 continue;
             }
-            let i = index(base.rotations[j]);
-            let (h, n) = joint_history(&frames, j, i);
-            let mut bits = i;
-            for (pred, k) in predict_rotation(&h, n) {
-                let value = pred + unzigzag(b.rice(k)?);
+            let mut bits = index(base.rotations[j]);
+            for c in 0..3 {
+                let value = i64::from(p.pred[c][l]) + unzigzag(b.rice(p.k[c][l])?);
                 if !(0..=LEVEL_MASK as i64).contains(&value) {
                     return Err(Frame2Error::Number { at: b.r.at });
                 }

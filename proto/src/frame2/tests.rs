@@ -62,9 +62,10 @@ fn constant_velocity_costs_one_bit_a_component() {
     assert_eq!(out.len(), 4);
 }
 
-/// The 32-bit rotation predictor gives what the reference one (`predict`, in i64) gives, on
-/// random histories of every depth and at the ends of the level range, whatever the lanes
-/// past the history hold.
+/// The block rotation predictor gives what the reference one (`predict`, in i64) gives for
+/// each joint of each block, on random histories of every depth whose dropped components
+/// change at random frames (cutting a joint's history short), at the ends of the level range,
+/// and in a last block only partly filled with joints.
 #[test]
 fn the_rotation_predictor_matches_the_reference() {
     let mut seed = 0x2545_f491_4f6c_dd1du64;
@@ -74,54 +75,58 @@ fn the_rotation_predictor_matches_the_reference() {
         seed ^= seed << 17;
         seed
     };
-    for case in 0..200_000 {
-        let n = (case % MAX_DEPTH) + 1;
+    let joints = 2 * LANES + 3;
+    for case in 0..20_000 {
+        let depth = (case % MAX_DEPTH) + 1;
         let spread = [1u64, 4, 64, 4096, 32768][case % 5];
-        let centre = (next() % 32768) as i64;
-        let h: Vec<i64> = (0..n)
-            .map(|_| match next() % 9 {
-                0 => 0,
-                1 => LEVEL_MASK as i64,
-                _ => (centre + (next() % spread) as i64 - spread as i64 / 2)
-                    .clamp(0, LEVEL_MASK as i64),
-            })
-            .collect();
-        // Component 1 is this history, 0 and 2 are it reversed and negated; frames past the
-        // history hold any levels.
-        let mut lanes = [[0i32; 4]; MAX_DEPTH];
-        for (i, slot) in lanes.iter_mut().enumerate() {
-            let mut any = || (next() % 32768) as i32;
-            *slot = match h.get(i) {
-                Some(&v) => [
-                    h[n - 1 - i] as i32,
-                    v as i32,
-                    LEVEL_MASK as i32 - v as i32,
-                    any(),
-                ],
-                None => [any(), any(), any(), any()],
-            };
+        let mut frames = vec![vec![0u64; joints]; depth];
+        for j in 0..joints {
+            let index = next() % 4;
+            let centre = (next() % 32768) as i64;
+            for frame in &mut frames {
+                let index = if next() % 6 == 0 { next() % 4 } else { index };
+                let mut bits = index;
+                for _ in 0..3 {
+                    let level = match next() % 9 {
+                        0 => 0,
+                        1 => LEVEL_MASK as i64,
+                        _ => (centre + (next() % spread) as i64 - spread as i64 / 2)
+                            .clamp(0, LEVEL_MASK as i64),
+                    };
+                    bits = bits << 15 | level as u64;
+                }
+                frame[j] = bits;
+            }
         }
-        let reversed: Vec<i64> = h.iter().rev().copied().collect();
-        let negated: Vec<i64> = h.iter().map(|v| LEVEL_MASK as i64 - v).collect();
-        assert_eq!(
-            predict_rotation(&lanes, n),
-            [
-                predict(&reversed, true),
-                predict(&h, true),
-                predict(&negated, true)
-            ],
-            "{h:?}"
-        );
+        let slices: Vec<&[u64]> = frames.iter().map(|f| &f[..]).collect();
+        for j0 in (0..joints).step_by(LANES) {
+            let p = predict_rotations(&slices, j0);
+            for l in 0..LANES.min(joints - j0) {
+                let same: Vec<u64> = frames
+                    .iter()
+                    .map(|f| f[j0 + l])
+                    .take_while(|&b| index(b) == index(frames[0][j0 + l]))
+                    .collect();
+                for c in 0..3 {
+                    let h: Vec<i64> = same.iter().map(|&b| level(b, c)).collect();
+                    assert_eq!(
+                        (i64::from(p.pred[c][l]), p.k[c][l]),
+                        predict(&h, true),
+                        "{h:?}"
+                    );
+                }
+            }
+        }
     }
 }
 
-/// The reciprocal division is exact for every sum a rotation component can reach (below 2²¹)
+/// The f32 Rice parameter is exact for every sum a rotation component can reach (below 2²¹)
 /// and every divisor the predictor uses.
 #[test]
-fn the_small_division_is_exact() {
-    for d in 1..MAX_DEPTH as u32 {
-        for x in 0..1u32 << 21 {
-            assert_eq!(div_small_u32(x, d), x / d, "{x} / {d}");
+fn the_rice_parameter_is_exact() {
+    for d in 1..MAX_DEPTH as i32 {
+        for x in 0..1i32 << 21 {
+            assert_eq!(rice_parameter(x, d), (x / d + 1).ilog2(), "{x} / {d}");
         }
     }
 }
