@@ -50,6 +50,9 @@ pub enum Error {
         /// The clip asked for.
         clip: String,
     },
+    /// No take (`record_scene`) of that name, or none that can be read.
+    #[error("{0}")]
+    UnknownTake(String),
     /// No rig (asset) of that name is loaded.
     #[error("no rig (asset) named {0}")]
     UnknownAsset(String),
@@ -133,6 +136,7 @@ impl Error {
             Self::UnknownExpression { .. } => ErrorCode::UnknownExpression,
             Self::UnknownClip { .. } => ErrorCode::UnknownClip,
             Self::UnknownAsset(_) => ErrorCode::UnknownAsset,
+            Self::UnknownTake(_) => ErrorCode::UnknownTake,
             Self::Invalid(_) => ErrorCode::InvalidValue,
             Self::Conflict(_) => ErrorCode::Conflict,
             Self::NotAllowedNow(_) => ErrorCode::NotAllowedNow,

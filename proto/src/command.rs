@@ -447,6 +447,129 @@ pub enum Command {
         /// The upload's name.
         asset: String,
     },
+
+    // --- Takes of a whole scene (issue 32) ---
+    /// Start recording everything the scene streams — every avatar's poses and morph weights,
+    /// placements, avatars added and removed — as the frames already encoded for its binary
+    /// subscribers, into take `take`: a file of the data folder written as the scene ticks (a
+    /// crash loses at most its last second), or memory on a server without one. Until
+    /// `stop_recording_scene`, `max_seconds` of scene time (default and most: the server's
+    /// limit) or the data quota, whichever comes first. Result: [`TakeInfo`].
+    RecordScene {
+        /// The scene.
+        scene: SceneId,
+        /// The take's name (an id: 1–64 letters, digits, `-`, `_`, `.`), not yet a take.
+        take: String,
+        /// Longest take, seconds of scene time.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        max_seconds: Option<f32>,
+    },
+    /// Stop recording the scene: the take is complete and synced before the answer. Result:
+    /// [`TakeInfo`].
+    StopRecordingScene {
+        /// The scene.
+        scene: SceneId,
+    },
+    /// The takes, oldest first. Result: `[TakeInfo]`.
+    ListTakes,
+    /// One take. Result: [`TakeInfo`].
+    GetTake {
+        /// The take.
+        take: String,
+    },
+    /// Delete a take (not while it is recorded or replayed), freeing its bytes.
+    DeleteTake {
+        /// The take.
+        take: String,
+    },
+    /// Replay a take as a new scene `scene`, which viewers subscribe to like any other: its
+    /// avatars (made of the rigs the take names, which must still be loaded) move as
+    /// recorded, each frame what the recorded scene's subscribers received. A replayed avatar
+    /// taken over by `play` or `drive` leaves the replay; the others go on. Deleting the scene
+    /// ends the replay. Replays are not stored: a restart ends them. Result: [`ReplayState`].
+    Replay {
+        /// The take.
+        take: String,
+        /// The new scene's id.
+        scene: SceneId,
+        /// Take seconds per scene second (default 1; 0.01–100).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        speed: Option<f32>,
+        /// Start again at the beginning after the end (default: hold the last frame).
+        #[serde(rename = "loop", default, skip_serializing_if = "Option::is_none")]
+        looping: Option<bool>,
+        /// Where to start, seconds into the take (default 0).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        from: Option<f32>,
+    },
+    /// Seek, pause or resume, change the speed or looping of a replay; absent fields stay.
+    /// Result: [`ReplayState`].
+    ControlReplay {
+        /// The replay's scene.
+        scene: SceneId,
+        /// Seek to this time, seconds into the take (clamped to it).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        time: Option<f32>,
+        /// Pause (`true`) or resume (`false`).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        paused: Option<bool>,
+        /// Take seconds per scene second (0.01–100).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        speed: Option<f32>,
+        /// Loop at the end.
+        #[serde(rename = "loop", default, skip_serializing_if = "Option::is_none")]
+        looping: Option<bool>,
+    },
+}
+
+/// A take of a whole scene (`record_scene`), as listed.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
+pub struct TakeInfo {
+    /// Its name.
+    pub take: String,
+    /// The scene it recorded.
+    pub scene: SceneId,
+    /// Seconds from its first frame to its last.
+    pub duration: f64,
+    /// Frames (ticks) it holds.
+    pub frames: usize,
+    /// Every avatar that appears in it, in order of appearance.
+    pub avatars: Vec<AvatarId>,
+    /// Its size in bytes.
+    pub bytes: u64,
+    /// When recording started, µs since the Unix epoch.
+    pub started_us: u64,
+    /// Whether it is being recorded now.
+    pub recording: bool,
+    /// Bytes after its last complete frame that a crash cut short (ignored when read).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub torn_bytes: u64,
+}
+
+fn is_zero(n: &u64) -> bool {
+    *n == 0
+}
+
+/// Where a replay (`replay`, `control_replay`) is.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
+pub struct ReplayState {
+    /// The replay's scene.
+    pub scene: SceneId,
+    /// The take it replays.
+    pub take: String,
+    /// Seconds into the take.
+    pub time: f64,
+    /// The take's duration, seconds.
+    pub duration: f64,
+    /// Whether it is paused.
+    pub paused: bool,
+    /// Take seconds per scene second.
+    pub speed: f32,
+    /// Whether it loops.
+    #[serde(rename = "loop")]
+    pub looping: bool,
 }
 
 /// The answer to `stop_recording`.
@@ -530,7 +653,11 @@ impl Command {
         match self {
             Self::CreateScene { scene }
             | Self::DeleteScene { scene }
-            | Self::AddAvatar { scene, .. } => Some(scene),
+            | Self::AddAvatar { scene, .. }
+            | Self::RecordScene { scene, .. }
+            | Self::StopRecordingScene { scene }
+            | Self::Replay { scene, .. }
+            | Self::ControlReplay { scene, .. } => Some(scene),
             _ => None,
         }
     }
@@ -582,6 +709,8 @@ impl Command {
                 | Self::GetAvatar { .. }
                 | Self::GetJoint { .. }
                 | Self::SamplePose { .. }
+                | Self::ListTakes
+                | Self::GetTake { .. }
         )
     }
 }
@@ -1002,6 +1131,12 @@ pub enum CommandResult {
     Pose(Box<crate::msg::AvatarPoseJson>),
     /// `calibrate_trackers`.
     Calibration(Box<crate::trackers::CalibrationInfo>),
+    /// `list_takes`.
+    Takes(Vec<TakeInfo>),
+    /// `record_scene`, `stop_recording_scene`, `get_take`.
+    Take(Box<TakeInfo>),
+    /// `replay`, `control_replay`.
+    Replay(Box<ReplayState>),
     /// `create_scene`.
     SceneCreated {
         /// The new scene.
@@ -1043,6 +1178,9 @@ impl CommandResult {
             Self::Asset(_) => "asset",
             Self::Pose(_) => "pose",
             Self::Calibration(_) => "calibration",
+            Self::Takes(_) => "takes",
+            Self::Take(_) => "take",
+            Self::Replay(_) => "replay",
             Self::SceneCreated { .. } => "scene_created",
             Self::AvatarAdded { .. } => "avatar_added",
             Self::Dofs { .. } => "dofs",
@@ -1084,6 +1222,7 @@ impl CommandResult {
         enum Bare {
             Scenes(Vec<SceneInfo>),
             Assets(Vec<AssetInfo>),
+            Takes(Vec<TakeInfo>),
             Avatar(Box<AvatarState>),
             Joint(Box<JointInfo>),
             Drive(Box<DriveInfo>),
@@ -1092,6 +1231,8 @@ impl CommandResult {
             Pose(Box<crate::msg::AvatarPoseJson>),
             // Before `avatar_added`, which would read its `avatar` alone.
             Calibration(Box<crate::trackers::CalibrationInfo>),
+            Take(Box<TakeInfo>),
+            Replay(Box<ReplayState>),
             SceneCreated {
                 scene: SceneId,
             },
@@ -1110,6 +1251,7 @@ impl CommandResult {
         Ok(match serde_json::from_value(value)? {
             Bare::Scenes(v) => Self::Scenes(v),
             Bare::Assets(v) => Self::Assets(v),
+            Bare::Takes(v) => Self::Takes(v),
             Bare::Avatar(v) => Self::Avatar(v),
             Bare::Joint(v) => Self::Joint(v),
             Bare::Drive(v) => Self::Drive(v),
@@ -1117,6 +1259,8 @@ impl CommandResult {
             Bare::Asset(v) => Self::Asset(v),
             Bare::Pose(v) => Self::Pose(v),
             Bare::Calibration(v) => Self::Calibration(v),
+            Bare::Take(v) => Self::Take(v),
+            Bare::Replay(v) => Self::Replay(v),
             Bare::SceneCreated { scene } => Self::SceneCreated { scene },
             Bare::AvatarAdded { avatar } => Self::AvatarAdded { avatar },
             Bare::Dofs { rotation, values } => Self::Dofs { rotation, values },

@@ -473,6 +473,9 @@ pub enum ErrorCode {
     /// The avatar has no morph target or expression of that name (or no morph targets at
     /// all): `set_morph_weights`, `set_expression` (HTTP 404).
     UnknownExpression,
+    /// No take of that name (`get_take`, `replay`, `delete_take`, the take exports; HTTP 404),
+    /// or a take file that cannot be read (the message says why).
+    UnknownTake,
 }
 
 /// What a connection (or a REST request) may do, as decided from its token.

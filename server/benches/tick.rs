@@ -8,7 +8,9 @@
 //! it (`Scene::tick`: a keyframe every 60 ticks, deltas between), on this thread. Also with a
 //! JSON subscriber added, which costs the JSON encoding the binary-only scene does not do; and
 //! with one wire-v2 subscriber (protocol version 2) instead, whose frames are coded against the
-//! previous frame (its outbox emptied every tick, as a writer keeping up would).
+//! previous frame (its outbox emptied every tick, as a writer keeping up would); and while a
+//! take of the scene is recorded (`+ take`: each frame's bytes handed to the take's writer
+//! thread, whose own time is not the tick's).
 //!
 //! Times are this thread's CPU time (`CLOCK_THREAD_CPUTIME_ID`), so other work on the shared
 //! cores does not inflate them. Run: `cargo bench -p posecast-server --bench tick`. Prints a
@@ -181,26 +183,41 @@ fn main() -> Result<()> {
             (Encoding::Binary, 2) => "binary v2".to_owned(),
             (e, _) => format!("{e:?}").to_lowercase(),
         };
-        for (n, subs) in [
-            (1, vec![v1]),
-            (100, vec![v1]),
-            (4000, vec![v1]),
-            (100, vec![v1, json]),
-            (100, vec![v2]),
-            (4000, vec![v2]),
-            (100, vec![v1; 500]),
-            (100, vec![v2; 500]),
+        for (n, subs, take) in [
+            (1, vec![v1], false),
+            (100, vec![v1], false),
+            (100, vec![v1], true),
+            (4000, vec![v1], false),
+            (100, vec![v1, json], false),
+            (100, vec![v2], false),
+            (4000, vec![v2], false),
+            (100, vec![v1; 500], false),
+            (100, vec![v2; 500], false),
         ] {
-            let subs_label = if subs.len() > 2 {
+            let mut subs_label = if subs.len() > 2 {
                 format!("{} × {}", subs.len(), label(&subs[0]))
             } else {
                 subs.iter().map(label).collect::<Vec<_>>().join(" + ")
             };
+            if take {
+                subs_label.push_str(" + take");
+            }
             let row = format!("{name} {n} {subs_label}");
             if !only.is_empty() && !only.iter().any(|o| row.contains(o.as_str())) {
                 continue;
             }
             let (scene, outboxes) = scene(rig, clip, n, &subs)?;
+            // Recording a take of the scene (`record_scene`): its frames go to a writer thread
+            // (memory here), whose time is not the tick's.
+            let takes = posecast_server::takes::Takes::new(None);
+            if take {
+                let limits = posecast_server::takes::TakeLimits {
+                    max_frames: u64::MAX,
+                    max_bytes: u64::MAX,
+                };
+                let sink = takes.begin(&scene.id, "bench", RATE as f32, limits)?;
+                scene.feed().record(Some(Box::new(sink)));
+            }
             let times = time_ticks(&scene, &outboxes, Duration::from_secs(2));
             let tick = times.cpu;
             let per_avatar = tick.as_secs_f64() * 1e6 / n as f64;

@@ -228,7 +228,7 @@ server_time_us: number, } | { "type": "ack",
 /**
  * The command's id.
  */
-id: number, } & ({ "kind": "scenes", "result": Array<SceneInfo> } | { "kind": "assets", "result": Array<AssetInfo> } | { "kind": "avatar", "result": AvatarState } | { "kind": "joint", "result": JointInfo } | { "kind": "drive", "result": DriveInfo } | { "kind": "recorded", "result": RecordingInfo } | { "kind": "asset", "result": AssetDetail } | { "kind": "pose", "result": AvatarPoseJson } | { "kind": "calibration", "result": CalibrationInfo } | { "kind": "scene_created", "result": { 
+id: number, } & ({ "kind": "scenes", "result": Array<SceneInfo> } | { "kind": "assets", "result": Array<AssetInfo> } | { "kind": "avatar", "result": AvatarState } | { "kind": "joint", "result": JointInfo } | { "kind": "drive", "result": DriveInfo } | { "kind": "recorded", "result": RecordingInfo } | { "kind": "asset", "result": AssetDetail } | { "kind": "pose", "result": AvatarPoseJson } | { "kind": "calibration", "result": CalibrationInfo } | { "kind": "takes", "result": Array<TakeInfo> } | { "kind": "take", "result": TakeInfo } | { "kind": "replay", "result": ReplayState } | { "kind": "scene_created", "result": { 
 /**
  * The new scene.
  */
@@ -692,7 +692,71 @@ clip: string, } | { "op": "delete_asset",
 /**
  * The upload's name.
  */
-asset: string, };
+asset: string, } | { "op": "record_scene", 
+/**
+ * The scene.
+ */
+scene: SceneId, 
+/**
+ * The take's name (an id: 1–64 letters, digits, `-`, `_`, `.`), not yet a take.
+ */
+take: string, 
+/**
+ * Longest take, seconds of scene time.
+ */
+max_seconds?: number | null, } | { "op": "stop_recording_scene", 
+/**
+ * The scene.
+ */
+scene: SceneId, } | { "op": "list_takes" } | { "op": "get_take", 
+/**
+ * The take.
+ */
+take: string, } | { "op": "delete_take", 
+/**
+ * The take.
+ */
+take: string, } | { "op": "replay", 
+/**
+ * The take.
+ */
+take: string, 
+/**
+ * The new scene's id.
+ */
+scene: SceneId, 
+/**
+ * Take seconds per scene second (default 1; 0.01–100).
+ */
+speed?: number | null, 
+/**
+ * Start again at the beginning after the end (default: hold the last frame).
+ */
+loop?: boolean | null, 
+/**
+ * Where to start, seconds into the take (default 0).
+ */
+from?: number | null, } | { "op": "control_replay", 
+/**
+ * The replay's scene.
+ */
+scene: SceneId, 
+/**
+ * Seek to this time, seconds into the take (clamped to it).
+ */
+time?: number | null, 
+/**
+ * Pause (`true`) or resume (`false`).
+ */
+paused?: boolean | null, 
+/**
+ * Take seconds per scene second (0.01–100).
+ */
+speed?: number | null, 
+/**
+ * Loop at the end.
+ */
+loop?: boolean | null, };
 
 /**
  * What a successful command returns, one variant per shape. Tagged: `kind` names the shape
@@ -702,7 +766,7 @@ asset: string, };
  * answers). An `ack` of protocol version 1 or 2 carries the bare value alone
  * (`CommandResult::to_value`), which `CommandResult::from_bare` reads back by its shape.
  */
-export type CommandResult = { "kind": "scenes", "result": Array<SceneInfo> } | { "kind": "assets", "result": Array<AssetInfo> } | { "kind": "avatar", "result": AvatarState } | { "kind": "joint", "result": JointInfo } | { "kind": "drive", "result": DriveInfo } | { "kind": "recorded", "result": RecordingInfo } | { "kind": "asset", "result": AssetDetail } | { "kind": "pose", "result": AvatarPoseJson } | { "kind": "calibration", "result": CalibrationInfo } | { "kind": "scene_created", "result": { 
+export type CommandResult = { "kind": "scenes", "result": Array<SceneInfo> } | { "kind": "assets", "result": Array<AssetInfo> } | { "kind": "avatar", "result": AvatarState } | { "kind": "joint", "result": JointInfo } | { "kind": "drive", "result": DriveInfo } | { "kind": "recorded", "result": RecordingInfo } | { "kind": "asset", "result": AssetDetail } | { "kind": "pose", "result": AvatarPoseJson } | { "kind": "calibration", "result": CalibrationInfo } | { "kind": "takes", "result": Array<TakeInfo> } | { "kind": "take", "result": TakeInfo } | { "kind": "replay", "result": ReplayState } | { "kind": "scene_created", "result": { 
 /**
  * The new scene.
  */
@@ -749,7 +813,7 @@ retry_after_ms?: number | null, };
  * Stable error codes. New codes may be added in later versions; clients treat an unknown code
  * as a generic failure.
  */
-export type ErrorCode = "bad_message" | "unexpected_binary" | "message_too_large" | "unsupported_version" | "not_allowed_now" | "unknown_scene" | "unknown_avatar" | "unknown_clip" | "unknown_joint" | "invalid_value" | "unauthorized" | "forbidden" | "conflict" | "import_failed" | "too_large" | "internal" | "unknown_asset" | "quota_exceeded" | "rate_limited" | "method_not_allowed" | "not_found" | "timeout" | "unavailable" | "not_humanoid" | "no_mesh" | "storage_full" | "outcome_unknown" | "unknown_expression";
+export type ErrorCode = "bad_message" | "unexpected_binary" | "message_too_large" | "unsupported_version" | "not_allowed_now" | "unknown_scene" | "unknown_avatar" | "unknown_clip" | "unknown_joint" | "invalid_value" | "unauthorized" | "forbidden" | "conflict" | "import_failed" | "too_large" | "internal" | "unknown_asset" | "quota_exceeded" | "rate_limited" | "method_not_allowed" | "not_found" | "timeout" | "unavailable" | "not_humanoid" | "no_mesh" | "storage_full" | "outcome_unknown" | "unknown_expression" | "unknown_take";
 
 /**
  * How pose frames reach a client.

@@ -79,7 +79,7 @@ pub fn before(state: &AppState, command: &Command) -> Before {
 pub fn after(state: &AppState, command: &Command, before: Before, result: &CommandResult) {
     let access = &state.config.access;
     match (command, result) {
-        (Command::CreateScene { scene }, _) => {
+        (Command::CreateScene { scene } | Command::Replay { scene, .. }, _) => {
             let msg = text(&ServerMsg::SceneCreated {
                 scene: scene.clone(),
             });

@@ -66,7 +66,7 @@ fn check_asset_bytes(state: &AppState, name: &str, bytes: u64) -> Result<(), Err
 /// the assets lock, so concurrent uploads cannot overshoot together).
 fn check_total_bytes(state: &AppState, name: &str, more: u64) -> Result<(), Error> {
     let max = state.config.quotas.max_upload_total_bytes;
-    let now = state.store.upload_bytes();
+    let now = state.store.upload_bytes() + state.takes.held_bytes();
     if now.saturating_add(more) > max {
         return Err(state.metrics.refuse_quota(
             posecast_core::quota::Quota::UploadTotalBytes,
@@ -93,7 +93,7 @@ pub fn check_room(
     if now.saturating_add(bytes) > max {
         return Err(state.metrics.refuse_quota(
             posecast_core::quota::Quota::UploadTotalBytes,
-            format!("uploads and recordings hold {now} bytes and {what} adds {bytes}"),
+            format!("uploads, recordings and takes hold {now} bytes and {what} adds {bytes}"),
             max,
         ));
     }

@@ -20,7 +20,8 @@
 //!    connection, the VMC gateway ([`vmc`]: UDP performers as live drivers, avatars sent to
 //!    VMC receivers), start-up loading ([`readiness`]), scale-out through NATS ([`cluster`]:
 //!    scene ownership by lease, frames relayed between servers, commands forwarded to a
-//!    scene's owner).
+//!    scene's owner), takes of whole scenes ([`takes`]: recorded as the scene streams,
+//!    replayed as scenes, exported).
 //! 3. **Transport** — [`service`]: the axum router, accept loop and limits, websocket
 //!    sessions, REST, uploads, dashboard, health.
 //! 4. **Entry** — [`startup`]: [`startup::Server`] listens at once, restores in the
@@ -52,5 +53,6 @@ pub mod service;
 pub mod startup;
 pub mod state;
 pub mod store;
+pub mod takes;
 pub mod vmc;
 pub mod world;

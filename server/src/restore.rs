@@ -119,6 +119,7 @@ fn run(state: &AppState, plan: Plan) -> std::io::Result<()> {
         return Ok(());
     }
     state.store.restore_recordings(&state.world);
+    state.takes.restore();
     // In a cluster (`--nats`) scenes live in NATS, where every server reads them
     // (`crate::cluster`), not in this server's folder.
     let clustered = !state.config.nats.is_empty();

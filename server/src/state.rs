@@ -43,6 +43,8 @@ pub struct AppState {
     connection_closed: Notify,
     /// The data folder (or none) and the lock ordering writes to it.
     pub store: Store,
+    /// Takes of whole scenes, stored and being recorded ([`crate::takes`]).
+    pub takes: Arc<crate::takes::Takes>,
     /// Whether what is loaded at start is loaded yet ([`crate::readiness`]).
     pub readiness: Readiness,
     /// The connections watching the scene list ([`crate::changes`]).
@@ -186,6 +188,7 @@ impl AppState {
             connections: Mutex::new(Connections::default()),
             connection_closed: Notify::new(),
             store: Store::new(config.data_dir.clone()),
+            takes: Arc::new(crate::takes::Takes::new(config.data_dir.as_deref())),
             readiness: Readiness::default(),
             watchers: Watchers::default(),
             paths: Paths::default(),

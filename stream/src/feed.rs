@@ -12,6 +12,7 @@ use super::outbox::{OutFrame, Outbox, message_len};
 use super::pace;
 use super::publish::{Piece, Published, Snapshot};
 use super::relay::{self, RelayError, RelayFrame};
+use super::take;
 use super::wire2::{self, Ring};
 use crate::Counters;
 use axum::extract::ws::{Message, Utf8Bytes};
@@ -227,6 +228,72 @@ pub struct Feed {
     relay: Option<Vec<Arc<AvatarDescription>>>,
     /// Recent ticks as levels, while some subscriber gets wire v2.
     ring: Ring,
+    /// The take being recorded, if any ([`Feed::record`]).
+    take: Option<TakeRecording>,
+}
+
+/// Where a take of the scene (`record_scene`) gets its records: each frame as the feed encoded
+/// it for binary subscribers, and the avatars' descriptions when they change, already framed
+/// as take records ([`crate::take`]). Called under the feed's lock: it must not block (hand
+/// the bytes to a writer).
+pub trait TakeSink: Send + std::fmt::Debug {
+    /// The records of tick `seq`'s frame (after an avatars record when `avatars`, the scene's
+    /// avatars now, changed). `false`: stop recording (a limit was reached, or the writer
+    /// failed); the feed drops the sink.
+    fn append(
+        &mut self,
+        records: Vec<u8>,
+        seq: u64,
+        avatars: Option<&[Arc<AvatarDescription>]>,
+    ) -> bool;
+}
+
+#[derive(Debug)]
+struct TakeRecording {
+    sink: Box<dyn TakeSink>,
+    /// The descriptions last written to it.
+    avatars: Vec<Arc<AvatarDescription>>,
+}
+
+impl TakeRecording {
+    /// Appends `frame` (after the avatars' descriptions, if they changed). Whether to go on.
+    fn frame(&mut self, frame: &Published) -> bool {
+        let mut records = Vec::with_capacity(
+            64 + frame
+                .pieces
+                .iter()
+                .map(|p| 16 + p.chunk.len() + 2 * p.pose.weights.len())
+                .sum::<usize>(),
+        );
+        let same = self.avatars.len() == frame.pieces.len()
+            && self
+                .avatars
+                .iter()
+                .zip(&frame.pieces)
+                .all(|(a, p)| Arc::ptr_eq(a, p.description()));
+        if !same {
+            self.avatars = frame
+                .pieces
+                .iter()
+                .map(|p| p.description().clone())
+                .collect();
+            let list: Vec<&AvatarDescription> = self.avatars.iter().map(|a| &**a).collect();
+            take::write_avatars(&list, &mut records);
+        }
+        let changed = (!same).then_some(self.avatars.as_slice());
+        take::write_frame(
+            &frame.header,
+            frame.pieces.iter().map(|p| {
+                (
+                    p.pose.avatar_num,
+                    p.chunk.as_ref(),
+                    p.pose.weights.as_slice(),
+                )
+            }),
+            &mut records,
+        );
+        self.sink.append(records, frame.header.seq, changed)
+    }
 }
 
 impl Feed {
@@ -251,7 +318,29 @@ impl Feed {
             tapped: Vec::new(),
             relay: None,
             ring: Ring::default(),
+            take: None,
         }
+    }
+
+    /// Starts recording a take into `sink` (`None`: stops, dropping the sink). Its first
+    /// frame is a keyframe, so the take decodes from its start. Returns the sink recording
+    /// until now, if any.
+    pub fn record(&mut self, sink: Option<Box<dyn TakeSink>>) -> Option<Box<dyn TakeSink>> {
+        if sink.is_some() {
+            self.force_key = true;
+        }
+        let before = self.take.take().map(|t| t.sink);
+        self.take = sink.map(|sink| TakeRecording {
+            sink,
+            avatars: Vec::new(),
+        });
+        before
+    }
+
+    /// Whether a take is being recorded.
+    #[must_use]
+    pub fn is_recording(&self) -> bool {
+        self.take.is_some()
     }
 
     /// Hands every tick's frame, and the avatars' descriptions when they change, to `tap`
@@ -831,6 +920,11 @@ impl Feed {
             self.metrics.json_encoded(pieces.len() as u64);
         }
         let published = Published { header, pieces };
+        if let Some(take) = &mut self.take
+            && !take.frame(&published)
+        {
+            self.take = None;
+        }
         if let Some(tap) = &self.tap {
             (tap.0)(Relayed::Frame(relay::encode(&published)));
         }

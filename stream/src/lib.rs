@@ -15,6 +15,8 @@
 //! - [`pace`]: a connection's adaptive frame rate (lowered until its link keeps up).
 //! - [`probes`]: the one clock every connection's round-trip probes follow.
 //! - [`relay`]: a published frame as bytes for another server (scale-out), and back.
+//! - [`take`]: the file format of a scene's take (its encoded frames and avatar lists,
+//!   append-only and readable up to the last whole record after a crash).
 //! - [`wire2`]: wire v2 frames (protocol version 2), shared by subscribers holding the same
 //!   frames.
 
@@ -25,6 +27,7 @@ pub mod pace;
 pub mod probes;
 mod publish;
 pub mod relay;
+pub mod take;
 pub mod wire2;
 pub mod writer;
 

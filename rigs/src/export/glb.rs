@@ -1,18 +1,26 @@
 //! The one binary glTF 2.0 writer (typed `gltf::json`): a skeleton as nodes, optionally a
-//! skinned mesh, one skin, and animations. It writes the built-in avatar
-//! (`make-avatar`), a rig's mesh for render clients (`mesh.glb`) and clip exports.
+//! skinned mesh, one skin, and animations ([`Model`], [`write()`]) — or several such figures and
+//! animations moving any of them ([`Scene`], [`write_scene`]). It writes the built-in avatar
+//! (`make-avatar`), a rig's mesh for render clients (`mesh.glb`), clip exports and takes of
+//! several avatars.
 //!
-//! Layout, the same for every caller:
-//! - nodes `0..n` are the joints in skeleton order (a skin joint index is its node index),
-//!   named, at their rest TRS (scale only when not 1); then the skinned mesh node, if any;
-//!   then, for a skeleton with several roots, a plain `skeleton` node parenting them (a skin's
-//!   joints must share one root);
-//! - accessors in file order: per primitive POSITION (with bounds), NORMAL, JOINTS_0 (u16),
-//!   WEIGHTS_0, indices (u16 when every index fits below the primitive-restart value 65535,
-//!   else u32); the inverse bind matrices; then per animation, per channel, its key times
-//!   (shared by channels with equal times, with bounds) and its output;
-//! - one buffer view per accessor, 4-byte aligned; vertex and index views carry their
-//!   buffer target, inverse binds and animation data none.
+//! Layout, the same for every caller; figure by figure, in order (a [`Model`] is one figure):
+//! - accessors: per primitive POSITION (with bounds), NORMAL, JOINTS_0 (u16), WEIGHTS_0,
+//!   indices (u16 when every index fits below the primitive-restart value 65535, else u32);
+//!   then the figure's inverse bind matrices;
+//! - nodes: its joints in skeleton order from the figure's node offset (the node count before
+//!   it; a skin joint index is its node index minus the offset), named, at their rest TRS
+//!   (scale only when not 1); then the skinned mesh node, if any; then the figure's root node
+//!   parenting the skeleton's roots when the figure is named, or else, for a skeleton with
+//!   several roots, a plain `skeleton` node parenting them (a skin's joints must share one
+//!   root);
+//! - skin `f` for figure `f`; the scene's roots are each figure's top node and mesh node
+//!   (a skinned mesh node stays a scene root: parent transforms do not move skinned meshes);
+//! - then per animation, per part, per channel, its key times (shared by channels with equal
+//!   times, with bounds) and its output, then the part's morph weights.
+//!
+//! One buffer view per accessor, 4-byte aligned; vertex and index views carry their buffer
+//! target, inverse binds and animation data none.
 
 use super::ExportError;
 use crate::clip::Interpolation;
@@ -37,6 +45,55 @@ pub struct Model<'a> {
     pub mesh: Option<&'a Mesh>,
     /// Animations of the skeleton's joints.
     pub animations: &'a [Animation],
+}
+
+/// What a `.glb` of several skeletons holds ([`write_scene`]): figures, each with its own
+/// joint nodes, optional skinned mesh and skin, and animations that may move any of them.
+/// A [`Model`] is a scene of one unnamed figure.
+#[derive(Clone, Copy, Debug)]
+pub struct Scene<'a> {
+    /// `asset.generator`.
+    pub generator: &'a str,
+    /// The scene's name (unnamed when `None`).
+    pub name: Option<&'a str>,
+    /// The figures, written in this order; figure `f` has skin `f`.
+    pub figures: &'a [Figure<'a>],
+    /// The animations, each of any figures.
+    pub animations: &'a [SceneAnimation<'a>],
+}
+
+/// One skeleton of a [`Scene`] with its skin and optionally its skinned mesh.
+#[derive(Clone, Copy, Debug)]
+pub struct Figure<'a> {
+    /// The name of a plain node parenting the skeleton's roots (the figure's root node, a root
+    /// of the scene). `None`: the skeleton's root is itself a scene root, or, with several
+    /// roots, a plain node named `skeleton` parents them.
+    pub name: Option<&'a str>,
+    /// The skin's name (unnamed when `None`).
+    pub skin: Option<&'a str>,
+    /// Joint names, parents, rest transforms (local, parent space) and inverse binds.
+    pub skeleton: &'a Skeleton,
+    /// The skinned mesh, in bind space.
+    pub mesh: Option<&'a Mesh>,
+}
+
+/// One glTF animation of a [`Scene`]: the channels of its parts, part by part.
+#[derive(Clone, Debug)]
+pub struct SceneAnimation<'a> {
+    /// The animation's name.
+    pub name: &'a str,
+    /// What it does to each figure it moves.
+    pub parts: Vec<Part<'a>>,
+}
+
+/// The motion of one figure within a [`SceneAnimation`].
+#[derive(Clone, Copy, Debug)]
+pub struct Part<'a> {
+    /// The figure's index in [`Scene::figures`].
+    pub figure: usize,
+    /// Its channels ([`Channel::joint`] a joint of that figure's skeleton) and morph weights
+    /// (of that figure's mesh node); the animation's own name is not used.
+    pub animation: &'a Animation,
 }
 
 /// A skinned mesh: one glTF mesh, one primitive per part (readers such as the dashboard take
@@ -166,7 +223,8 @@ pub struct Weights {
 /// One animated property of one joint.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Channel {
-    /// The skeleton joint (= node) it moves.
+    /// The skeleton joint it moves: node `joint` of a [`Model`], the figure's node offset plus
+    /// `joint` in a [`Scene`].
     pub joint: usize,
     /// glTF `STEP`, `LINEAR` (slerp for rotations) or `CUBICSPLINE`.
     pub interpolation: Interpolation,
@@ -205,7 +263,8 @@ impl Output {
     }
 }
 
-/// Writes `model` as `.glb` bytes.
+/// Writes `model` as `.glb` bytes: [`write_scene`] of its one unnamed figure, each animation
+/// moving that figure.
 ///
 /// # Errors
 /// A channel names a joint the skeleton does not have, has no keys, times that are negative,
@@ -214,13 +273,44 @@ impl Output {
 /// range ([`ExportError::Primitive`]); the file would pass GLB's 4 GiB
 /// ([`ExportError::TooLarge`]).
 pub fn write(model: &Model<'_>) -> Result<Vec<u8>, ExportError> {
+    let figure = Figure {
+        name: None,
+        skin: model.name,
+        skeleton: model.skeleton,
+        mesh: model.mesh,
+    };
+    let animations: Vec<SceneAnimation<'_>> = model
+        .animations
+        .iter()
+        .map(|animation| SceneAnimation {
+            name: &animation.name,
+            parts: vec![Part {
+                figure: 0,
+                animation,
+            }],
+        })
+        .collect();
+    write_scene(&Scene {
+        generator: model.generator,
+        name: model.name,
+        figures: std::slice::from_ref(&figure),
+        animations: &animations,
+    })
+}
+
+/// Writes `scene` as `.glb` bytes: its figures one after the other (see the module's layout),
+/// then its animations.
+///
+/// # Errors
+/// As [`write()`]; also a part naming a figure the scene does not have ([`ExportError::Channel`]).
+pub fn write_scene(scene: &Scene<'_>) -> Result<Vec<u8>, ExportError> {
     let mut b = Builder {
         root: json::Root {
             asset: json::Asset {
                 copyright: None,
                 extensions: None,
                 extras: Default::default(),
-                generator: Some(model.generator.into()),
+                generator: Some(scene.generator.into()),
                 min_version: None,
                 version: "2.0".into(),
             },
@@ -228,10 +318,47 @@ pub fn write(model: &Model<'_>) -> Result<Vec<u8>, ExportError> {
         },
         bin: Vec::new(),
     };
-    let skeleton = model.skeleton;
+    let mut placed = Vec::with_capacity(scene.figures.len());
+    let mut scene_nodes = Vec::new();
+    for (f, figure) in scene.figures.iter().enumerate() {
+        let p = write_figure(&mut b, figure, f)?;
+        scene_nodes.push(p.top);
+        scene_nodes.extend(p.mesh_node);
+        placed.push(p);
+    }
+    let root_scene = b.root.push(json::Scene {
+        extensions: None,
+        extras: Default::default(),
+        name: scene.name.map(Into::into),
+        nodes: scene_nodes,
+    });
+    b.root.scene = Some(root_scene);
+
+    for animation in scene.animations {
+        write_animation(&mut b, animation, &placed)?;
+    }
+    b.finish()
+}
+
+/// Where a written figure's nodes are.
+struct Placed {
+    /// Node index of its joint 0; joint `j` is node `offset + j`.
+    offset: usize,
+    /// Its number of joints.
+    joints: usize,
+    /// The node parenting its joints (its root joint when unnamed with one root).
+    top: Index<json::Node>,
+    /// Its skinned mesh node, if it has a mesh.
+    mesh_node: Option<Index<json::Node>>,
+}
+
+/// Writes figure `f` (the `f`-th skin): its mesh's accessors, its inverse binds, its joint
+/// nodes, mesh node, root node and skin.
+fn write_figure(b: &mut Builder, figure: &Figure<'_>, f: usize) -> Result<Placed, ExportError> {
+    let skeleton = figure.skeleton;
     let n = skeleton.len();
-    let mesh = match model.mesh {
-        Some(mesh) => Some(write_mesh(&mut b, mesh, n)?),
+    let mesh = match figure.mesh {
+        Some(mesh) => Some(write_mesh(b, mesh, n)?),
         None => None,
     };
     let inverse_binds: Vec<[f32; 16]> = skeleton
@@ -241,8 +368,10 @@ pub fn write(model: &Model<'_>) -> Result<Vec<u8>, ExportError> {
         .collect();
     let inverse_binds = b.f32s(&inverse_binds, None, false);
 
+    let offset = b.root.nodes.len();
+    let node = |j: usize| node_index(offset + j);
     for (j, (name, rest)) in skeleton.names().iter().zip(skeleton.rest()).enumerate() {
-        let children: Vec<Index<json::Node>> = skeleton.children(j).map(node_index).collect();
+        let children: Vec<Index<json::Node>> = skeleton.children(j).map(node).collect();
         b.root.push(json::Node {
             name: Some(name.clone()),
             translation: Some(rest.translation.to_array()),
@@ -252,19 +381,19 @@ pub fn write(model: &Model<'_>) -> Result<Vec<u8>, ExportError> {
             ..Default::default()
         });
     }
-    let roots: Vec<Index<json::Node>> = skeleton.roots().map(node_index).collect();
+    let roots: Vec<Index<json::Node>> = skeleton.roots().map(node).collect();
     let mesh_node = mesh.map(|(mesh, name)| {
         b.root.push(json::Node {
             name: Some(name),
             mesh: Some(mesh),
-            skin: Some(Index::new(0)),
+            skin: Some(Index::new(f as u32)),
             ..Default::default()
         })
     });
-    let top = match roots.as_slice() {
-        [root] => *root,
-        _ => b.root.push(json::Node {
-            name: Some("skeleton".into()),
+    let top = match (figure.name, roots.as_slice()) {
+        (None, [root]) => *root,
+        (name, _) => b.root.push(json::Node {
+            name: Some(name.unwrap_or("skeleton").into()),
             children: Some(roots),
             ..Default::default()
         }),
@@ -273,22 +402,16 @@ pub fn write(model: &Model<'_>) -> Result<Vec<u8>, ExportError> {
         extensions: None,
         extras: Default::default(),
         inverse_bind_matrices: Some(inverse_binds),
-        joints: (0..n).map(node_index).collect(),
-        name: model.name.map(Into::into),
+        joints: (0..n).map(node).collect(),
+        name: figure.skin.map(Into::into),
         skeleton: Some(top),
     });
-    let scene = b.root.push(json::Scene {
-        extensions: None,
-        extras: Default::default(),
-        name: model.name.map(Into::into),
-        nodes: std::iter::once(top).chain(mesh_node).collect(),
-    });
-    b.root.scene = Some(scene);
-
-    for animation in model.animations {
-        write_animation(&mut b, animation, n, mesh_node)?;
-    }
-    b.finish()
+    Ok(Placed {
+        offset,
+        joints: n,
+        top,
+        mesh_node,
+    })
 }
 
 /// The mesh and its node's name.
@@ -459,114 +582,139 @@ fn check_primitive(
 
 fn write_animation(
     b: &mut Builder,
-    a: &Animation,
-    joints: usize,
-    mesh_node: Option<Index<json::Node>>,
+    a: &SceneAnimation<'_>,
+    figures: &[Placed],
 ) -> Result<(), ExportError> {
-    let mut channels = Vec::with_capacity(a.channels.len());
-    let mut samplers = Vec::with_capacity(a.channels.len());
+    let capacity = a.parts.iter().map(|p| p.animation.channels.len() + 1).sum();
+    let mut channels = Vec::with_capacity(capacity);
+    let mut samplers = Vec::with_capacity(capacity);
     // Key times already written in this animation, and their accessor.
     let mut inputs: Vec<(&[f32], Index<json::Accessor>)> = Vec::new();
-    for (c, ch) in a.channels.iter().enumerate() {
-        check_channel(a, c, ch, joints)?;
-        let input = match inputs.iter().find(|(t, _)| *t == ch.times.as_slice()) {
-            Some(&(_, input)) => input,
-            None => {
-                let times: Vec<[f32; 1]> = ch.times.iter().map(|&t| [t]).collect();
-                let input = b.f32s(&times, None, true);
-                inputs.push((&ch.times, input));
-                input
-            }
+    for part in &a.parts {
+        let Some(figure) = figures.get(part.figure) else {
+            return Err(ExportError::Channel {
+                animation: a.name.into(),
+                channel: channels.len(),
+                message: format!("moves figure {} of {}", part.figure, figures.len()),
+            });
         };
-        let (output, property) = match &ch.output {
-            Output::Translation(v) => (b.vec3s(v), json::animation::Property::Translation),
-            Output::Scale(v) => (b.vec3s(v), json::animation::Property::Scale),
-            Output::Rotation(q) => {
-                let values: Vec<[f32; 4]> = q.iter().map(|q| q.to_array()).collect();
-                (
-                    b.f32s(&values, None, false),
-                    json::animation::Property::Rotation,
-                )
-            }
-        };
-        samplers.push(json::animation::Sampler {
-            extensions: None,
-            extras: Default::default(),
-            input,
-            interpolation: Valid(match ch.interpolation {
+        for ch in &part.animation.channels {
+            check_channel(a.name, channels.len(), ch, figure.joints)?;
+            let input = match inputs.iter().find(|(t, _)| *t == ch.times.as_slice()) {
+                Some(&(_, input)) => input,
+                None => {
+                    let times: Vec<[f32; 1]> = ch.times.iter().map(|&t| [t]).collect();
+                    let input = b.f32s(&times, None, true);
+                    inputs.push((&ch.times, input));
+                    input
+                }
+            };
+            let (output, property) = match &ch.output {
+                Output::Translation(v) => (b.vec3s(v), json::animation::Property::Translation),
+                Output::Scale(v) => (b.vec3s(v), json::animation::Property::Scale),
+                Output::Rotation(q) => {
+                    let values: Vec<[f32; 4]> = q.iter().map(|q| q.to_array()).collect();
+                    (
+                        b.f32s(&values, None, false),
+                        json::animation::Property::Rotation,
+                    )
+                }
+            };
+            let interpolation = match ch.interpolation {
                 Interpolation::Step => json::animation::Interpolation::Step,
                 Interpolation::Linear => json::animation::Interpolation::Linear,
                 Interpolation::CubicSpline => json::animation::Interpolation::CubicSpline,
-            }),
-            output,
-        });
-        channels.push(json::animation::Channel {
-            sampler: Index::new(c as u32),
-            target: json::animation::Target {
-                extensions: None,
-                extras: Default::default(),
-                node: node_index(ch.joint),
-                path: Valid(property),
-            },
-            extensions: None,
-            extras: Default::default(),
-        });
-    }
-    if let (Some(w), Some(node)) = (&a.weights, mesh_node) {
-        let fail = |message: String| ExportError::Channel {
-            animation: a.name.clone(),
-            channel: channels.len(),
-            message,
-        };
-        let increasing = w.times.windows(2).all(|p| p[0] < p[1]);
-        if w.times.is_empty()
-            || !increasing
-            || !w.times.iter().all(|t| t.is_finite() && *t >= 0.0)
-            || !w.values.len().is_multiple_of(w.times.len())
-            || !w.values.iter().all(|v| v.is_finite())
-        {
-            return Err(fail(format!(
-                "weights: {} times, {} values",
-                w.times.len(),
-                w.values.len()
-            )));
+            };
+            push_channel(
+                &mut channels,
+                &mut samplers,
+                (input, interpolation, output),
+                node_index(figure.offset + ch.joint),
+                property,
+            );
         }
-        let times: Vec<[f32; 1]> = w.times.iter().map(|&t| [t]).collect();
-        let input = b.f32s(&times, None, true);
-        let values: Vec<[f32; 1]> = w.values.iter().map(|&v| [v]).collect();
-        let output = b.f32s(&values, None, false);
-        samplers.push(json::animation::Sampler {
-            extensions: None,
-            extras: Default::default(),
-            input,
-            interpolation: Valid(json::animation::Interpolation::Linear),
-            output,
-        });
-        channels.push(json::animation::Channel {
-            sampler: Index::new((samplers.len() - 1) as u32),
-            target: json::animation::Target {
-                extensions: None,
-                extras: Default::default(),
+        if let (Some(w), Some(node)) = (&part.animation.weights, figure.mesh_node) {
+            let increasing = w.times.windows(2).all(|p| p[0] < p[1]);
+            if w.times.is_empty()
+                || !increasing
+                || !w.times.iter().all(|t| t.is_finite() && *t >= 0.0)
+                || !w.values.len().is_multiple_of(w.times.len())
+                || !w.values.iter().all(|v| v.is_finite())
+            {
+                return Err(ExportError::Channel {
+                    animation: a.name.into(),
+                    channel: channels.len(),
+                    message: format!(
+                        "weights: {} times, {} values",
+                        w.times.len(),
+                        w.values.len()
+                    ),
+                });
+            }
+            let times: Vec<[f32; 1]> = w.times.iter().map(|&t| [t]).collect();
+            let input = b.f32s(&times, None, true);
+            let values: Vec<[f32; 1]> = w.values.iter().map(|&v| [v]).collect();
+            let output = b.f32s(&values, None, false);
+            push_channel(
+                &mut channels,
+                &mut samplers,
+                (input, json::animation::Interpolation::Linear, output),
                 node,
-                path: Valid(json::animation::Property::MorphTargetWeights),
-            },
-            extensions: None,
-            extras: Default::default(),
-        });
+                json::animation::Property::MorphTargetWeights,
+            );
+        }
     }
     b.root.push(json::Animation {
         extensions: None,
         extras: Default::default(),
         channels,
-        name: Some(a.name.clone()),
+        name: Some(a.name.into()),
         samplers,
     });
     Ok(())
 }
 
-fn check_channel(a: &Animation, c: usize, ch: &Channel, joints: usize) -> Result<(), ExportError> {
+/// Appends a sampler (`input`, interpolation, `output`) and the channel that applies it to
+/// `path` of `node`.
+fn push_channel(
+    channels: &mut Vec<json::animation::Channel>,
+    samplers: &mut Vec<json::animation::Sampler>,
+    (input, interpolation, output): (
+        Index<json::Accessor>,
+        json::animation::Interpolation,
+        Index<json::Accessor>,
+    ),
+    node: Index<json::Node>,
+    path: json::animation::Property,
+) {
+    channels.push(json::animation::Channel {
+        sampler: Index::new(samplers.len() as u32),
+        target: json::animation::Target {
+            extensions: None,
+            extras: Default::default(),
+            node,
+            path: Valid(path),
+        },
+        extensions: None,
+        extras: Default::default(),
+    });
+    samplers.push(json::animation::Sampler {
+        extensions: None,
+        extras: Default::default(),
+        input,
+        interpolation: Valid(interpolation),
+        output,
+    });
+}
+
+fn check_channel(
+    animation: &str,
+    c: usize,
+    ch: &Channel,
+    joints: usize,
+) -> Result<(), ExportError> {
     let fail = |message: String| ExportError::Channel {
-        animation: a.name.clone(),
+        animation: animation.into(),
         channel: c,
         message,
     };

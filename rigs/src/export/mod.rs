@@ -5,13 +5,18 @@
 //!   writes the built-in avatar (`make-avatar`), the mesh endpoint's file and clip exports.
 //! - [`animation`]: a [`Clip`] as glTF animation channels.
 //! - [`bvh`]: a clip on its rig as BVH text.
+//! - [`take`]: several avatars, each its own rig, and one animation of them all as `.glb`.
 //!
 //! The functions below are what the HTTP routes call: [`mesh_glb`] for
-//! `GET /api/assets/{name}/mesh.glb`, [`clip_glb`] and [`clip_bvh`] for a clip's exports.
+//! `GET /api/assets/{name}/mesh.glb`, [`clip_glb`] and [`clip_bvh`] for a clip's exports;
+//! [`take_glb`] writes a take of several avatars.
 
 pub mod animation;
 pub mod bvh;
 pub mod glb;
+pub mod take;
+
+pub use take::{TakeAvatar, take_glb};
 
 use crate::asset::AssetMesh;
 use crate::clip::Clip;
@@ -76,6 +81,9 @@ pub enum ExportError {
         /// The limit, [`bvh::MAX_VALUES`].
         max_values: usize,
     },
+    /// A take export was given no avatar ([`take_glb`]).
+    #[error("a take export needs at least one avatar")]
+    NoAvatars,
     /// The `.glb` would pass the 4 GiB its `u32` lengths can address.
     #[error("the .glb would be {bytes} bytes; the format's lengths stop at 4 GiB")]
     TooLarge {
@@ -160,20 +168,26 @@ fn write_glb(
     animations: &[glb::Animation],
 ) -> Result<Vec<u8>, ExportError> {
     let channels = posecast_proto::morph::channels(meshes.iter().map(|m| &m.mesh));
-    let mesh = (!meshes.is_empty()).then(|| glb::Mesh {
-        name: "mesh".into(),
-        primitives: meshes
-            .iter()
-            .map(|m| glb::Primitive::from_skinned(&m.mesh, &channels))
-            .collect(),
-        target_names: channels.clone(),
-    });
+    let mesh = skinned_mesh("mesh".into(), meshes, &channels);
     glb::write(&glb::Model {
         generator: GENERATOR,
         name,
         skeleton,
         mesh: mesh.as_ref(),
         animations,
+    })
+}
+
+/// A rig's meshes as one skinned glTF mesh named `name`, one primitive per mesh with morph
+/// targets after `channels` (the meshes' morph channels); `None` without meshes.
+fn skinned_mesh(name: String, meshes: &[AssetMesh], channels: &[String]) -> Option<glb::Mesh> {
+    (!meshes.is_empty()).then(|| glb::Mesh {
+        name,
+        primitives: meshes
+            .iter()
+            .map(|m| glb::Primitive::from_skinned(&m.mesh, channels))
+            .collect(),
+        target_names: channels.to_vec(),
     })
 }
 

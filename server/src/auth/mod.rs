@@ -487,10 +487,11 @@ fn needs(command: &Command) -> (&'static [Right], &'static str) {
         | Command::LookAt { .. }
         | Command::SetMorphWeights { .. }
         | Command::SetExpression { .. } => (&[Right::Drive], "drive commands"),
-        Command::Record { .. } | Command::StopRecording { .. } => {
-            (&[Right::Record], "recording commands")
-        }
-        Command::DeleteClip { .. } | Command::DeleteAsset { .. } => {
+        Command::Record { .. }
+        | Command::StopRecording { .. }
+        | Command::RecordScene { .. }
+        | Command::StopRecordingScene { .. } => (&[Right::Record], "recording commands"),
+        Command::DeleteClip { .. } | Command::DeleteAsset { .. } | Command::DeleteTake { .. } => {
             (&[Right::Control, Right::Upload, Right::Record], "deletes")
         }
         _ => (&[Right::Control], "commands"),

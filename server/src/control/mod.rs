@@ -4,6 +4,7 @@
 //! folder — acknowledged only once stored.
 
 mod objects;
+pub mod takes;
 
 use crate::auth::Caller;
 use crate::changes;
@@ -143,6 +144,13 @@ async fn execute_unkeyed(
             return result.map(|()| CommandResult::Done);
         }
         _ => {}
+    }
+    if let Some(result) = takes::run(state, caller, command).await {
+        if let Ok(r) = &result {
+            // Take commands name no avatar: noting what comes before costs nothing.
+            changes::after(state, command, changes::before(state, command), r);
+        }
+        return result;
     }
     if let Command::ConfigureAsset { asset, options } = command {
         // Stored (meta.json) before the answer, like an upload.

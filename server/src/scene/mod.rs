@@ -8,6 +8,7 @@
 //! - [`answers`]: the answers of its latest commands that carried an idempotency key.
 
 pub mod answers;
+pub mod replay;
 pub(crate) mod ticker;
 
 // Two locks, always taken in this order: the scene's (`Scene::lock`: avatars, clock), then the
@@ -40,6 +41,8 @@ pub struct SceneState {
     last: TickStamp,
     /// The scene clock (seconds) at the last tick; avatars added later start on it.
     clock: f64,
+    /// The take it replays, if it is a replay ([`replay`]).
+    pub replay: Option<replay::Replay>,
 }
 
 impl SceneState {
@@ -103,6 +106,7 @@ impl Scene {
                 avatars: Vec::new(),
                 last: TickStamp::default(),
                 clock: 0.0,
+                replay: None,
             }),
             feed: Mutex::new(Feed::new(id.clone(), num, metrics, tick_rate)),
             id,
@@ -147,6 +151,7 @@ impl Scene {
     pub fn has_avatar(&self, id: &AvatarId) -> bool {
         let s = self.lock();
         s.avatars.iter().any(|a| &a.id == id)
+            || s.replay.as_ref().is_some_and(|r| r.has_offstage(id))
             || self.feed().relayed_avatars().iter().any(|d| &d.id == id)
     }
 
@@ -248,6 +253,10 @@ impl Scene {
             server_time_us,
         };
         s.clock = clock;
+        let state = &mut *s;
+        if let Some(replay) = &mut state.replay {
+            replay.step(clock, &mut state.avatars, &mut feed);
+        }
         // Avatars with goals relative to joints tick after the others, their goals' frames
         // taken from the poses of this tick (a hand on a walking avatar's shoulder stays on it).
         let follows = |a: &Avatar| a.goals.references().next().is_some();

@@ -57,6 +57,12 @@ pub fn app(state: Arc<AppState>) -> Router {
             "/api/assets/{name}/clips/{file}",
             get(rest::clip_file).delete(rest::delete_clip),
         )
+        .route("/api/takes", get(rest::takes))
+        .route(
+            "/api/takes/{take}",
+            get(rest::take).delete(rest::delete_take),
+        )
+        .route("/api/takes/{take}/{file}", get(rest::take_avatar))
         .route("/api/tokens", post(tokens::mint).get(tokens::list))
         .route("/api/tokens/{id}", axum::routing::delete(tokens::revoke))
         .layer(axum::extract::DefaultBodyLimit::max(

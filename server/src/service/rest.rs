@@ -1,7 +1,10 @@
 //! JSON over HTTP: the same commands as the websocket, and read-only listings.
 //!
 //! - `POST /api/commands` with a [`Command`] body → `200 {"kind": …, "result": …}` (the result tagged with its shape) or a typed error.
-//! - `GET /api/scenes`, `GET /api/assets`: the `list_scenes` / `list_assets` results.
+//! - `GET /api/scenes`, `GET /api/assets`, `GET /api/takes`: the `list_scenes` /
+//!   `list_assets` / `list_takes` results; `GET /api/takes/{take}` (`get_take`),
+//!   `GET /api/takes/{take}.glb` and `GET /api/takes/{take}/{avatar}.bvh` (exports, with
+//!   `?from=&to=` seconds), `DELETE /api/takes/{take}` (`delete_take`).
 //!
 //! Every request may carry `Authorization: Bearer <token>` ([`crate::auth`]); refusals are
 //! 401 (with `WWW-Authenticate: Bearer`) or 403 with the typed error as body.
@@ -11,7 +14,7 @@ use crate::control;
 use crate::state::AppState;
 use axum::Json;
 use axum::extract::FromRequestParts;
-use axum::extract::{Path, State};
+use axum::extract::{Path, Query, State};
 use axum::http::request::Parts;
 use axum::http::{StatusCode, header};
 use axum::response::{IntoResponse, Response};
@@ -46,6 +49,7 @@ impl IntoResponse for AppError {
             | ErrorCode::UnknownClip
             | ErrorCode::UnknownJoint
             | ErrorCode::UnknownExpression
+            | ErrorCode::UnknownTake
             | ErrorCode::UnknownAsset
             | ErrorCode::NoMesh => StatusCode::NOT_FOUND,
             ErrorCode::Unauthorized => StatusCode::UNAUTHORIZED,
@@ -304,6 +308,126 @@ pub async fn clip_file(
         bytes,
     )
         .into_response())
+}
+
+/// `GET /api/takes`: the `list_takes` result.
+pub async fn takes(
+    State(state): State<Arc<AppState>>,
+    caller: Caller,
+) -> Result<Json<Value>, AppError> {
+    state.config.access.authorize_read(&caller)?;
+    Ok(Json(
+        control::execute_as(&state, &caller, &Command::ListTakes, None)
+            .await?
+            .to_value(),
+    ))
+}
+
+/// `GET /api/takes/{take}`: the `get_take` result; `GET /api/takes/{take}.glb?from=&to=`: the
+/// take (or the range, seconds) as one glTF, every avatar's mesh and skin and one animation
+/// moving them all ([`crate::takes::export`]).
+pub async fn take(
+    State(state): State<Arc<AppState>>,
+    caller: Caller,
+    Path(name): Path<String>,
+    Query(range): Query<crate::takes::export::Range>,
+) -> Result<Response, AppError> {
+    state.config.access.authorize_read(&caller)?;
+    let Some(take) = name.strip_suffix(".glb") else {
+        let info =
+            control::execute_as(&state, &caller, &Command::GetTake { take: name }, None).await?;
+        return Ok(Json(info.to_value()).into_response());
+    };
+    let file = name.clone();
+    let take = take.to_owned();
+    let (takes, world) = (state.takes.clone(), state.clone());
+    let bytes = tokio::task::spawn_blocking(move || {
+        let index = takes.index(&take)?;
+        let source = takes.source(&take)?;
+        let avatars =
+            crate::takes::export::clips(&take, index, source, &world.world.library, range, None)?;
+        let figures: Vec<posecast_rigs::export::TakeAvatar<'_>> = avatars
+            .iter()
+            .map(|a| posecast_rigs::export::TakeAvatar {
+                name: &a.description.id.0,
+                rig: &a.rig,
+                clip: &a.clip,
+            })
+            .collect();
+        posecast_rigs::export::take_glb(&figures, &take)
+            .map_err(|e| posecast_core::error::Error::internal(&format!("exporting {take}"), &e))
+    })
+    .await
+    .map_err(|e| posecast_core::error::Error::internal("export task failed", &e))??;
+    Ok(attachment("model/gltf-binary", &file, bytes))
+}
+
+/// `GET /api/takes/{take}/{avatar}.bvh?from=&to=`: one avatar of a take (or of the range,
+/// seconds) as BVH motion of its rig, its root in scene space.
+pub async fn take_avatar(
+    State(state): State<Arc<AppState>>,
+    caller: Caller,
+    Path((take, file)): Path<(String, String)>,
+    Query(range): Query<crate::takes::export::Range>,
+) -> Result<Response, AppError> {
+    state.config.access.authorize_read(&caller)?;
+    let avatar = file.strip_suffix(".bvh").ok_or_else(|| {
+        ProtocolError::new(
+            ErrorCode::NotFound,
+            format!("{file}: an avatar of a take is exported as <avatar>.bvh"),
+        )
+    })?;
+    let avatar = posecast_proto::msg::AvatarId(avatar.to_owned());
+    let (takes, world, name) = (state.takes.clone(), state.clone(), take.clone());
+    let bytes = tokio::task::spawn_blocking(move || {
+        let index = takes.index(&name)?;
+        let source = takes.source(&name)?;
+        let exported = crate::takes::export::clips(
+            &name,
+            index,
+            source,
+            &world.world.library,
+            range,
+            Some(&avatar),
+        )?;
+        let one = exported
+            .first()
+            .ok_or_else(|| posecast_core::error::Error::UnknownAvatar(avatar.clone()))?;
+        posecast_rigs::export::clip_bvh(&one.rig, &one.clip)
+            .map(String::into_bytes)
+            .map_err(|e| posecast_core::error::Error::internal(&format!("exporting {avatar}"), &e))
+    })
+    .await
+    .map_err(|e| posecast_core::error::Error::internal("export task failed", &e))??;
+    Ok(attachment(
+        "text/plain; charset=utf-8",
+        &format!("{take}.{file}"),
+        bytes,
+    ))
+}
+
+/// `DELETE /api/takes/{take}`: the `delete_take` command.
+pub async fn delete_take(
+    State(state): State<Arc<AppState>>,
+    caller: Caller,
+    Path(take): Path<String>,
+) -> Result<Json<Value>, AppError> {
+    run(&state, &caller, &Command::DeleteTake { take }).await
+}
+
+/// A download named `file`.
+fn attachment(content_type: &str, file: &str, bytes: Vec<u8>) -> Response {
+    (
+        [
+            (header::CONTENT_TYPE, content_type.to_owned()),
+            (
+                header::CONTENT_DISPOSITION,
+                format!("attachment; filename=\"{file}\""),
+            ),
+        ],
+        bytes,
+    )
+        .into_response()
 }
 
 /// `GET /api/assets`.

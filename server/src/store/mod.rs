@@ -407,6 +407,8 @@ impl Store {
     /// What to do to make scene `id`'s file match memory: its snapshot, or `None` to delete.
     fn scene_bytes(world: &World, id: &SceneId) -> io::Result<Option<Vec<u8>>> {
         match world.scene(id) {
+            // Replays are not stored: a restart ends them.
+            Ok(scene) if scene.lock().replay.is_some() => Ok(None),
             Ok(scene) => {
                 let file = snapshot::snapshot(&scene, unix_micros());
                 serde_json::to_vec_pretty(&file)

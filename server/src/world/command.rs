@@ -505,6 +505,23 @@ pub fn apply(world: &World, command: &Command) -> Result<CommandResult, Error> {
         Command::DeleteAsset { .. } => Err(Error::NotAllowedNow(
             "delete_asset runs through the store (uploads are files)".into(),
         )),
+        Command::RecordScene { .. }
+        | Command::StopRecordingScene { .. }
+        | Command::ListTakes
+        | Command::GetTake { .. }
+        | Command::DeleteTake { .. }
+        | Command::Replay { .. } => Err(Error::NotAllowedNow(
+            "takes run through the server's takes service (they are files)".into(),
+        )),
+        Command::ControlReplay {
+            scene,
+            time,
+            paused,
+            speed,
+            looping,
+        } => world
+            .control_replay(scene, time.map(f64::from), *paused, *speed, *looping)
+            .map(|r| CommandResult::Replay(Box::new(r))),
 
         Command::CalibrateTrackers { avatar, pose } => with_avatar(world, avatar, |a| {
             let placement = a.placing.current().to_mat4();

@@ -12,6 +12,7 @@ pub mod command;
 pub mod ik;
 pub mod layers;
 pub mod morph;
+pub mod replays;
 
 use crate::metrics::Metrics;
 use crate::scene::{DrivesEnded, Scene, ticker};

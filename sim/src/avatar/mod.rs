@@ -98,6 +98,10 @@ pub struct Avatar {
     expression_binds: Vec<Vec<(usize, f32)>>,
     /// Clip layers over the clip, in the order they apply ([`layers`]).
     pub layers: Vec<layers::ClipLayer>,
+    /// A replayed take's pose for this avatar (set by the replay before every tick), which
+    /// takes the clip's place: layers, a live driver, goals and overrides still apply over
+    /// it. `None` for an avatar that is not replayed, or was taken over by a clip.
+    pub replayed: Option<AvatarPose>,
     /// Which joints are roots (a layer leaves their translation alone).
     roots: Vec<bool>,
 }
@@ -190,6 +194,7 @@ impl Avatar {
             expression_weights,
             expression_binds,
             layers: Vec::new(),
+            replayed: None,
             roots,
         }
     }
@@ -293,9 +298,13 @@ impl Avatar {
     /// clip (or rest), a live driver's pose over it, IK goals, the overrides on top, then every joint with DOF limits clamped to them
     /// (seed 002: every value set on a DOF, by a clip or a command, is clamped).
     pub fn evaluate(&mut self) {
-        self.player
-            .sample(self.rig.skeleton().rest(), &mut self.locals);
-        self.apply_root_motion();
+        if self.replayed.is_some() {
+            self.apply_replayed();
+        } else {
+            self.player
+                .sample(self.rig.skeleton().rest(), &mut self.locals);
+            self.apply_root_motion();
+        }
         let rest = self.rig.skeleton().rest();
         for layer in &mut self.layers {
             layer.apply(rest, &self.roots, &mut self.locals);
@@ -321,8 +330,16 @@ impl Avatar {
                 local.rotation = *q;
             }
         }
+        // A replayed pose was clamped when it was recorded; clamping its quantised rotations
+        // again could move them off what was streamed. What goes over it is clamped.
+        let clamp = self.replayed.is_none()
+            || self.live.is_some()
+            || !self.layers.is_empty()
+            || !self.goals.is_empty();
         for (local, limits) in self.locals.iter_mut().zip(&self.rig.limits) {
-            if let Some(limits) = limits {
+            if let Some(limits) = limits
+                && clamp
+            {
                 local.rotation = limits.clamp(local.rotation);
             }
         }
@@ -343,7 +360,12 @@ impl Avatar {
                 .iter()
                 .map(|&j| self.locals[usize::from(j)].scale),
         );
-        self.player.sample_weights(&mut self.morph_clip);
+        match &self.replayed {
+            Some(p) if p.weights.len() == self.morph_clip.len() => {
+                self.morph_clip.copy_from_slice(&p.weights);
+            }
+            _ => self.player.sample_weights(&mut self.morph_clip),
+        }
         self.morph_shown.copy_from_slice(&self.morph);
         if self.expression_weights.iter().any(|&w| w > 0.0) {
             let shown = posecast_proto::expressions::shown_weights(
@@ -368,6 +390,30 @@ impl Avatar {
                 .iter()
                 .map(|&w| morph::weight_value(morph::weight_level(w))),
         );
+    }
+
+    /// The replayed pose ([`Avatar::replayed`]) as the locals: every rotation, the streamed
+    /// translations and scales (the others at rest), and its placement.
+    fn apply_replayed(&mut self) {
+        let Some(p) = &self.replayed else { return };
+        let rest = self.rig.skeleton().rest();
+        self.locals.copy_from_slice(rest);
+        for (local, q) in self.locals.iter_mut().zip(&p.rotations) {
+            local.rotation = *q;
+        }
+        let d = &self.description;
+        for (&j, t) in d.translated_joints.iter().zip(&p.translations) {
+            if let Some(local) = self.locals.get_mut(usize::from(j)) {
+                local.translation = *t;
+            }
+        }
+        for (&j, s) in d.scaled_joints.iter().zip(&p.scales) {
+            if let Some(local) = self.locals.get_mut(usize::from(j)) {
+                local.scale = *s;
+            }
+        }
+        self.placing = Placing::new(p.placement);
+        self.pose.placement = p.placement;
     }
 
     /// The slot a morph weight's `name` sets: an expression the file defines (its
@@ -457,8 +503,9 @@ impl Avatar {
         &self.pose
     }
 
-    /// Starts a clip.
+    /// Starts a clip (an avatar being replayed leaves the replay: the clip takes over).
     pub fn play(&mut self, layer: Layer, fade: f32) {
+        self.replayed = None;
         self.player.play(layer, fade);
         self.evaluate();
     }

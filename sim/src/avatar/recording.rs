@@ -130,6 +130,9 @@ pub struct Recorder {
     max_frames: usize,
     /// Scene time and placement of the first tick.
     origin: Option<(f64, Placement)>,
+    /// Root motion in scene space ([`Recorder::in_scene_space`]): the origin's placement is
+    /// the identity rather than the first tick's.
+    scene_space: bool,
     /// Scene time of the last tick kept.
     last: f64,
     times: Vec<f32>,
@@ -183,6 +186,7 @@ impl Recorder {
             translated,
             scaled,
             origin: None,
+            scene_space: false,
             last: f64::NEG_INFINITY,
             times: Vec::new(),
             rotations: Vec::new(),
@@ -193,6 +197,16 @@ impl Recorder {
             full: false,
             dropped: 0,
         }
+    }
+
+    /// Records the roots in scene space: every placement, the first one included, moves
+    /// them (by default the clip starts where the avatar stood at its first tick, so it plays
+    /// from wherever the avatar playing it stands). For exports of a whole scene, where every
+    /// avatar keeps its place.
+    #[must_use]
+    pub fn in_scene_space(mut self) -> Self {
+        self.scene_space = true;
+        self
     }
 
     /// The clip's name.
@@ -233,7 +247,12 @@ impl Recorder {
                 last: self.last,
             });
         }
-        let (t0, _) = *self.origin.get_or_insert((time, pose.placement));
+        let start = if self.scene_space {
+            Placement::IDENTITY
+        } else {
+            pose.placement
+        };
+        let (t0, _) = *self.origin.get_or_insert((time, start));
         let since = time - t0;
         let key = since as f32;
         let replace = self.times.last() == Some(&key);
@@ -245,7 +264,7 @@ impl Recorder {
             self.weights.truncate(n * self.channels.len());
             if n == 0 {
                 // The first tick again: its placement is the origin.
-                self.origin = Some((t0, pose.placement));
+                self.origin = Some((t0, start));
             }
         } else if self.full || since > self.limits.max_seconds || self.frames() >= self.max_frames {
             self.full = true;

@@ -1,0 +1,165 @@
+//! The take commands (issue 32): `record_scene`, `stop_recording_scene`, `list_takes`,
+//! `get_take`, `delete_take`, `replay` ([`crate::takes`] keeps the takes; `control_replay`
+//! is the world's, [`crate::world::replays`]). Whatever touches files runs on the blocking
+//! pool; the scene's feed only gains or loses its sink under its lock.
+
+use crate::auth::Caller;
+use crate::state::AppState;
+use crate::takes::{TakeLimits, Takes};
+use crate::world::replays::ReplayStart;
+use posecast_core::error::Error;
+use posecast_proto::command::{Command, CommandResult};
+use posecast_proto::msg::SceneId;
+
+/// The longest take, seconds of scene time (`record_scene`'s `max_seconds` at most).
+pub const MAX_TAKE_SECONDS: f32 = 4.0 * 3600.0;
+
+/// Runs a take command; `None` for any other command.
+pub(super) async fn run(
+    state: &AppState,
+    caller: &Caller,
+    command: &Command,
+) -> Option<Result<CommandResult, Error>> {
+    let result = match command {
+        Command::RecordScene {
+            scene,
+            take,
+            max_seconds,
+        } => record_scene(state, caller, scene, take, *max_seconds).await,
+        Command::StopRecordingScene { scene } => stop_recording_scene(state, scene).await,
+        Command::ListTakes => blocking(state, |s| Ok(CommandResult::Takes(s.list()))).await,
+        Command::GetTake { take } => {
+            let take = take.clone();
+            blocking(state, move |s| {
+                s.describe(&take).map(|t| CommandResult::Take(Box::new(t)))
+            })
+            .await
+        }
+        Command::DeleteTake { take } => delete_take(state, take).await,
+        Command::Replay {
+            take,
+            scene,
+            speed,
+            looping,
+            from,
+        } => {
+            let start = ReplayStart {
+                from: f64::from(from.unwrap_or(0.0)),
+                speed: speed.unwrap_or(1.0),
+                looping: looping.unwrap_or(false),
+            };
+            replay(state, take, scene, start).await
+        }
+        _ => return None,
+    };
+    state.metrics.command(result.is_ok());
+    Some(result)
+}
+
+/// Runs `f` with the takes on the blocking pool (it reads or writes files).
+async fn blocking<T: Send + 'static>(
+    state: &AppState,
+    f: impl FnOnce(&Takes) -> Result<T, Error> + Send + 'static,
+) -> Result<T, Error> {
+    let takes = state.takes.clone();
+    tokio::task::spawn_blocking(move || f(&takes))
+        .await
+        .map_err(|e| Error::internal("take task failed", &e))?
+}
+
+async fn record_scene(
+    state: &AppState,
+    caller: &Caller,
+    scene: &SceneId,
+    take: &str,
+    max_seconds: Option<f32>,
+) -> Result<CommandResult, Error> {
+    let s = state.world.scene(scene)?;
+    if s.is_relay() {
+        return Err(Error::Unavailable(format!(
+            "scene {scene} is ticked by another server now: try again"
+        )));
+    }
+    let seconds = match max_seconds {
+        None => MAX_TAKE_SECONDS,
+        Some(m) if m.is_finite() && m > 0.0 => m.min(MAX_TAKE_SECONDS),
+        Some(m) => {
+            return Err(Error::invalid(format!(
+                "max_seconds {m} is not a positive number of seconds"
+            )));
+        }
+    };
+    let rate = state.config.tick_rate;
+    // Room for at least the take's first records; what it may grow to is the quota's rest.
+    crate::ingest::check_room(state, caller, &format!("take {take}"), 4096)?;
+    let max = state.config.quotas.max_upload_total_bytes;
+    let used = state.store.upload_bytes() + state.takes.held_bytes();
+    let limits = TakeLimits {
+        max_frames: (f64::from(seconds) * f64::from(rate)).ceil() as u64,
+        max_bytes: max.saturating_sub(used),
+    };
+    let (scene_id, take_name) = (scene.clone(), take.to_owned());
+    let sink = blocking(state, move |s| s.begin(&scene_id, &take_name, rate, limits)).await?;
+    s.feed().record(Some(Box::new(sink)));
+    let take = take.to_owned();
+    blocking(state, move |s| s.describe(&take))
+        .await
+        .map(|t| CommandResult::Take(Box::new(t)))
+}
+
+async fn stop_recording_scene(state: &AppState, scene: &SceneId) -> Result<CommandResult, Error> {
+    let s = state.world.scene(scene)?;
+    if state.takes.recording_of(scene).is_none() {
+        return Err(Error::NotAllowedNow(format!(
+            "scene {scene} is not being recorded"
+        )));
+    }
+    // The sink leaves the feed: the writer gets what was queued, syncs and ends.
+    drop(s.feed().record(None));
+    let scene = scene.clone();
+    blocking(state, move |s| {
+        let (take, why) = s.finish(&scene)?;
+        if let Some(why) = why {
+            tracing::info!(%take, why, "the take had ended by itself");
+        }
+        s.describe(&take)
+    })
+    .await
+    .map(|t| CommandResult::Take(Box::new(t)))
+}
+
+async fn delete_take(state: &AppState, take: &str) -> Result<CommandResult, Error> {
+    if state.world.replayed_takes().iter().any(|t| t == take) {
+        return Err(Error::Conflict(format!(
+            "take {take} is being replayed: delete its replay scenes first"
+        )));
+    }
+    let take = take.to_owned();
+    blocking(state, move |s| s.delete(&take))
+        .await
+        .map(|_| CommandResult::Done)
+}
+
+async fn replay(
+    state: &AppState,
+    take: &str,
+    scene: &SceneId,
+    start: ReplayStart,
+) -> Result<CommandResult, Error> {
+    let take_name = take.to_owned();
+    let (index, source) = blocking(state, move |s| {
+        let index = s.index(&take_name)?;
+        let source = s.source(&take_name)?;
+        Ok((index, source))
+    })
+    .await?;
+    if index.frames.is_empty() {
+        return Err(Error::NotAllowedNow(format!(
+            "take {take} has no frames to replay"
+        )));
+    }
+    let (_, replay) = state
+        .world
+        .start_replay(scene, take, index, source, start)?;
+    Ok(CommandResult::Replay(Box::new(replay)))
+}

@@ -1,0 +1,624 @@
+//! Takes of whole scenes (issue 32) end to end: a replay streams, frame for frame, what the
+//! recorded scene's live subscribers received; it seeks, pauses and loops; an avatar taken
+//! over leaves it while the others go on; a take survives a SIGKILL of the server mid-take;
+//! damaged take files get typed errors.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+mod common;
+
+use common::child::Posecast;
+use common::command_to;
+use futures_util::{SinkExt, StreamExt};
+use posecast_proto::frame::{AvatarPose, FrameDecoder};
+use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, SceneId, ServerMsg};
+use serde_json::Value;
+use std::collections::{BTreeMap, HashMap};
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio_tungstenite::tungstenite::Message;
+
+/// Bound on every wait (a busy machine): the tests wait for events, never for a duration.
+const PATIENCE: Duration = Duration::from_secs(120);
+
+async fn ok(addr: SocketAddr, json: &str) -> Value {
+    let (status, body) = command_to(addr, json).await;
+    assert_eq!(status, 200, "{json} → {body}");
+    body["result"].clone()
+}
+
+/// One decoded frame as a subscriber saw it: its tick, and each avatar's pose by id.
+#[derive(Debug, Clone)]
+struct Seen {
+    seq: u64,
+    poses: BTreeMap<String, AvatarPose>,
+}
+
+/// A binary (v1) subscriber of a scene, keeping every frame it decodes.
+struct Watcher {
+    frames: Arc<Mutex<Vec<Seen>>>,
+    task: tokio::task::JoinHandle<()>,
+}
+
+impl Watcher {
+    async fn start(addr: SocketAddr, scene: &str) -> Self {
+        let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/ws"))
+            .await
+            .unwrap();
+        for msg in [
+            ClientMsg::Hello {
+                version: PROTOCOL_VERSION,
+                encoding: Encoding::Binary,
+                token: None,
+                client: None,
+            },
+            ClientMsg::Subscribe {
+                scene: SceneId(scene.into()),
+                avatars: None,
+                rate: None,
+                joints: None,
+                morph_weights: None,
+                precision: None,
+            },
+        ] {
+            let text = serde_json::to_string(&msg).unwrap();
+            ws.send(Message::Text(text.into())).await.unwrap();
+        }
+        let frames = Arc::new(Mutex::new(Vec::new()));
+        let out = frames.clone();
+        let task = tokio::spawn(async move {
+            let mut ids: HashMap<u32, String> = HashMap::new();
+            let mut decoder = FrameDecoder::new();
+            while let Some(Ok(msg)) = ws.next().await {
+                match msg {
+                    Message::Binary(bytes) => {
+                        let frame = decoder.decode(&bytes).unwrap();
+                        let poses = frame
+                            .avatars
+                            .into_iter()
+                            .map(|p| (ids[&p.avatar_num].clone(), p))
+                            .collect();
+                        out.lock().unwrap().push(Seen {
+                            seq: frame.header.seq,
+                            poses,
+                        });
+                    }
+                    Message::Text(t) => {
+                        if let Ok(ServerMsg::Description { avatar, .. }) =
+                            serde_json::from_str::<ServerMsg>(t.as_str())
+                        {
+                            ids.insert(avatar.num, avatar.id.0.clone());
+                        }
+                    }
+                    _ => {}
+                }
+            }
+        });
+        Self { frames, task }
+    }
+
+    fn frames(&self) -> Vec<Seen> {
+        self.frames.lock().unwrap().clone()
+    }
+
+    /// Waits until `done` holds for the frames seen.
+    async fn until(&self, what: &str, done: impl Fn(&[Seen]) -> bool) {
+        let waited = tokio::time::timeout(PATIENCE, async {
+            loop {
+                if done(&self.frames()) {
+                    return;
+                }
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        })
+        .await;
+        assert!(waited.is_ok(), "waited {PATIENCE:?} for {what}");
+    }
+}
+
+impl Drop for Watcher {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
+
+/// `poses` with the replay's avatar ids (`<scene>.<id>`) back to the take's.
+fn unprefixed(poses: &BTreeMap<String, AvatarPose>, scene: &str) -> BTreeMap<String, AvatarPose> {
+    poses
+        .iter()
+        .map(|(id, p)| {
+            let id = id
+                .strip_prefix(&format!("{scene}."))
+                .unwrap_or_else(|| panic!("replay avatar {id} is not named after scene {scene}"));
+            (id.to_owned(), p.clone())
+        })
+        .collect()
+}
+
+/// The same poses, avatar for avatar: rotations, translations, scales and placement bit for
+/// bit (what the frames carried), numbers and hashes aside (the replay's avatars are its own).
+fn same(a: &BTreeMap<String, AvatarPose>, b: &BTreeMap<String, AvatarPose>) -> bool {
+    a.len() == b.len()
+        && a.iter().zip(b).all(|((ia, pa), (ib, pb))| {
+            ia == ib
+                && pa.rotations == pb.rotations
+                && pa.translations == pb.translations
+                && pa.scales == pb.scales
+                && pa.placement == pb.placement
+                && pa.weights == pb.weights
+        })
+}
+
+/// Where in `live` (from `from` on) the poses `poses` are, if they are.
+fn find(live: &[Seen], from: usize, poses: &BTreeMap<String, AvatarPose>) -> Option<usize> {
+    (from..live.len()).find(|&i| same(&live[i].poses, poses))
+}
+
+/// Records the built-in scene while avatars come and go and move, replays the take, and
+/// checks that every frame of the replay is a frame the live subscriber received, in order,
+/// with nothing the take had skipped. Then seeks, pauses, and takes one avatar over.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_replay_streams_what_live_subscribers_received() {
+    let server = common::server(30.0).await;
+    let addr = server.addr;
+    ok(
+        addr,
+        r#"{"op":"add_avatar","scene":"default","asset":"avatar","avatar":"b"}"#,
+    )
+    .await;
+    ok(
+        addr,
+        r#"{"op":"play","avatar":"b","clip":"wave","speed":0.7}"#,
+    )
+    .await;
+    let live = Watcher::start(addr, "default").await;
+    live.until("live frames", |f| f.len() >= 3).await;
+    let started = ok(
+        addr,
+        r#"{"op":"record_scene","scene":"default","take":"rehearsal"}"#,
+    )
+    .await;
+    assert_eq!(started["recording"], true, "{started}");
+    let first = live.frames().len();
+    live.until("20 frames recorded", |f| f.len() >= first + 20)
+        .await;
+    ok(
+        addr,
+        r#"{"op":"place_avatar","avatar":"avatar","position":[1.5,0,-2],"rotation":[0,0.3826834,0,0.9238795],"duration":0.5}"#,
+    )
+    .await;
+    ok(
+        addr,
+        r#"{"op":"add_avatar","scene":"default","asset":"avatar","avatar":"c"}"#,
+    )
+    .await;
+    live.until("c on stage", |f| {
+        f.last().is_some_and(|s| s.poses.contains_key("c"))
+    })
+    .await;
+    let at = live.frames().len();
+    live.until("20 more frames", |f| f.len() >= at + 20).await;
+    ok(addr, r#"{"op":"remove_avatar","avatar":"b"}"#).await;
+    live.until("b gone", |f| {
+        f.last().is_some_and(|s| !s.poses.contains_key("b"))
+    })
+    .await;
+    let at = live.frames().len();
+    live.until("20 frames after", |f| f.len() >= at + 20).await;
+    let take = ok(addr, r#"{"op":"stop_recording_scene","scene":"default"}"#).await;
+    assert_eq!(take["recording"], false, "{take}");
+    let frames = take["frames"].as_u64().unwrap() as usize;
+    assert!(frames >= 60, "{take}");
+    assert_eq!(take["avatars"], serde_json::json!(["avatar", "b", "c"]));
+    let listed = ok(addr, r#"{"op":"list_takes"}"#).await;
+    assert_eq!(listed[0]["take"], "rehearsal", "{listed}");
+    live.task.abort();
+    let live = live.frames();
+
+    // The replay, at the recorded speed: every frame it streams is one the live subscriber
+    // got, in the order it got them.
+    let replay = ok(addr, r#"{"op":"replay","take":"rehearsal","scene":"r"}"#).await;
+    assert_eq!(replay["take"], "rehearsal", "{replay}");
+    let duration = replay["duration"].as_f64().unwrap();
+    assert!(
+        (duration - (frames - 1) as f64 / 30.0).abs() < 0.5,
+        "{replay}"
+    );
+    let watcher = Watcher::start(addr, "r").await;
+    // To the end (it holds the last frame when not looping), and a few frames more.
+    let ended = tokio::time::timeout(PATIENCE, async {
+        loop {
+            let state = ok(addr, r#"{"op":"control_replay","scene":"r"}"#).await;
+            if state["time"].as_f64().unwrap() >= duration {
+                return;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await;
+    assert!(ended.is_ok(), "the replay reaches its end");
+    let n = watcher.frames().len();
+    watcher
+        .until("frames at the end", |f| f.len() >= n + 3)
+        .await;
+    let replayed = watcher.frames();
+    let last = live
+        .iter()
+        .rev()
+        .find(|s| same(&s.poses, &unprefixed(&replayed.last().unwrap().poses, "r")));
+    assert!(last.is_some(), "the replay's last frame is a live one");
+    let mut at = 0;
+    let mut matched = 0;
+    for (k, s) in replayed.iter().enumerate() {
+        let poses = unprefixed(&s.poses, "r");
+        match find(&live, at, &poses) {
+            Some(i) => {
+                at = i;
+                matched += 1;
+            }
+            None => panic!(
+                "replay frame {k} (tick {}) with avatars {:?} is no live frame from {at} on",
+                s.seq,
+                poses.keys().collect::<Vec<_>>()
+            ),
+        }
+    }
+    assert!(matched >= replayed.len() / 2 && matched > 30, "{matched}");
+    // The avatars came and went with the take.
+    let casts: Vec<Vec<String>> = replayed
+        .iter()
+        .map(|s| s.poses.keys().cloned().collect())
+        .collect();
+    assert!(
+        casts
+            .iter()
+            .any(|c| c.contains(&"r.b".to_owned()) && !c.contains(&"r.c".to_owned()))
+    );
+    assert!(
+        casts
+            .iter()
+            .any(|c| c.contains(&"r.c".to_owned()) && !c.contains(&"r.b".to_owned()))
+    );
+
+    // Seek and pause: the frame shown is the take's at that time, and stays.
+    let seek = ok(
+        addr,
+        r#"{"op":"control_replay","scene":"r","time":0.5,"paused":true}"#,
+    )
+    .await;
+    assert_eq!(seek["paused"], true, "{seek}");
+    assert!(
+        (seek["time"].as_f64().unwrap() - 0.5).abs() < 1e-9,
+        "{seek}"
+    );
+    let n = watcher.frames().len();
+    watcher
+        .until("frames while paused", |f| f.len() >= n + 10)
+        .await;
+    let paused = watcher.frames();
+    let held = unprefixed(&paused.last().unwrap().poses, "r");
+    for s in &paused[paused.len() - 5..] {
+        assert!(
+            same(&unprefixed(&s.poses, "r"), &held),
+            "paused frames stay"
+        );
+    }
+    // Half a second into the take: the live frame 15 ticks after the first recorded one.
+    let first_seq = live
+        .iter()
+        .position(|s| same(&s.poses, &unprefixed(&replayed[0].poses, "r")))
+        .unwrap();
+    let expected = &live[first_seq..]
+        .iter()
+        .find(|s| s.seq >= live[first_seq].seq + 15)
+        .unwrap()
+        .poses;
+    assert!(same(&held, expected), "the frame at 0.5 s");
+
+    // Take one avatar over with a clip: it leaves the replay, the other keeps replaying.
+    ok(
+        addr,
+        r#"{"op":"control_replay","scene":"r","paused":false,"loop":true}"#,
+    )
+    .await;
+    ok(addr, r#"{"op":"play","avatar":"r.avatar","clip":"wave"}"#).await;
+    let n = watcher.frames().len();
+    watcher
+        .until("frames after the take-over", |f| f.len() >= n + 20)
+        .await;
+    let after = watcher.frames();
+    let mut free = 0;
+    for s in &after[n + 5..] {
+        let poses = unprefixed(&s.poses, "r");
+        let b = poses.get("b").or(poses.get("c")).unwrap();
+        let a = &poses["avatar"];
+        let live_has = |id: &str, p: &AvatarPose| {
+            live.iter().any(|l| {
+                l.poses
+                    .get(id)
+                    .is_some_and(|q| q.rotations == p.rotations && q.placement == p.placement)
+            })
+        };
+        let other = if poses.contains_key("b") { "b" } else { "c" };
+        assert!(
+            live_has(other, b),
+            "the avatar not taken over still replays"
+        );
+        if !live_has("avatar", a) {
+            free += 1;
+        }
+    }
+    assert!(
+        free > 5,
+        "the avatar taken over plays its clip, not the take"
+    );
+    drop(watcher);
+    // Deleting a replayed take is refused; after the replay's scene goes it is not.
+    let (status, body) = command_to(addr, r#"{"op":"delete_take","take":"rehearsal"}"#).await;
+    assert_eq!(status, 409, "{body}");
+    ok(addr, r#"{"op":"delete_scene","scene":"r"}"#).await;
+    ok(addr, r#"{"op":"delete_take","take":"rehearsal"}"#).await;
+    let (status, body) = command_to(addr, r#"{"op":"get_take","take":"rehearsal"}"#).await;
+    assert_eq!(
+        (status, body["code"].as_str()),
+        (404, Some("unknown_take")),
+        "{body}"
+    );
+}
+
+/// A server killed while it records keeps the take up to its last complete frame: after the
+/// restart it is listed, not recording, and replays.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_take_survives_a_sigkill_mid_take() {
+    let data = tempfile::tempdir().unwrap();
+    let server = Posecast::on_data(data.path());
+    let addr = server.addr;
+    ok(
+        addr,
+        r#"{"op":"record_scene","scene":"default","take":"killed"}"#,
+    )
+    .await;
+    let path = data.path().join("takes").join("killed.take");
+    // Until the file holds a few seconds of frames (the writer appends as the scene ticks).
+    let grew = tokio::time::timeout(PATIENCE, async {
+        loop {
+            if std::fs::metadata(&path).is_ok_and(|m| m.len() > 20_000) {
+                return;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await;
+    assert!(grew.is_ok(), "the take grows on disk while recording");
+    server.kill();
+    let size = std::fs::metadata(&path).unwrap().len();
+    // Beside it, a file that is no take and a take damaged in the middle.
+    let bytes = std::fs::read(&path).unwrap();
+    let mut broken = bytes.clone();
+    broken[bytes.len() / 2] ^= 0x5a;
+    std::fs::write(data.path().join("takes/broken.take"), &broken).unwrap();
+    std::fs::write(data.path().join("takes/junk.take"), b"not a take at all").unwrap();
+    let again = Posecast::on_data(data.path());
+    let addr = again.addr;
+    let listed = ok(addr, r#"{"op":"list_takes"}"#).await;
+    let names: Vec<&str> = listed
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|t| t["take"].as_str())
+        .collect();
+    assert_eq!(names, ["killed"], "unreadable takes are left out: {listed}");
+    for json in [
+        r#"{"op":"get_take","take":"junk"}"#,
+        r#"{"op":"get_take","take":"broken"}"#,
+        r#"{"op":"replay","take":"broken","scene":"b"}"#,
+        r#"{"op":"replay","take":"nothing","scene":"b"}"#,
+    ] {
+        let (status, body) = command_to(addr, json).await;
+        assert_eq!(
+            (status, body["code"].as_str()),
+            (404, Some("unknown_take")),
+            "{json}: {body}"
+        );
+    }
+    let (_, body) = command_to(addr, r#"{"op":"get_take","take":"broken"}"#).await;
+    assert!(
+        body["message"].as_str().unwrap().contains("corrupt")
+            || body["message"].as_str().unwrap().contains("damaged"),
+        "{body}"
+    );
+    let info = ok(addr, r#"{"op":"get_take","take":"killed"}"#).await;
+    assert_eq!(info["recording"], false, "{info}");
+    assert_eq!(info["bytes"].as_u64(), Some(size), "{info}");
+    assert!(info["frames"].as_u64().unwrap() > 10, "{info}");
+    ok(addr, r#"{"op":"replay","take":"killed","scene":"again"}"#).await;
+    let watcher = Watcher::start(addr, "again").await;
+    watcher
+        .until("replayed frames", |f| {
+            f.len() >= 5
+                && f.last()
+                    .is_some_and(|s| s.poses.contains_key("again.avatar"))
+        })
+        .await;
+}
+
+/// Radians between two rotations, precise near zero.
+fn angle(a: glam::Quat, b: glam::Quat) -> f32 {
+    let d = a.conjugate() * b;
+    2.0 * glam::Vec3::new(d.x, d.y, d.z).length().min(1.0).asin()
+}
+
+/// The take's own frames as the reference for its exports: each avatar's pose at each frame
+/// time (seconds from the take's first frame), decoded from the take.
+fn take_frames(
+    server: &posecast_server::startup::Server,
+    take: &str,
+) -> Vec<(f64, BTreeMap<String, AvatarPose>)> {
+    let index = server.state.takes.index(take).unwrap();
+    let source = server.state.takes.source(take).unwrap();
+    let first = index.first_seq().unwrap();
+    let rate = f64::from(index.header.tick_rate);
+    let mut reader = posecast_server::stream::take::TakeReader::new(source, index.clone());
+    (0..index.frames.len())
+        .map(|i| {
+            let poses = reader.poses(i).unwrap();
+            let t = (index.frames[i].seq - first) as f64 / rate;
+            let poses = poses
+                .iter()
+                .map(|p| (p.description.id.0.clone(), p.pose.clone()))
+                .collect();
+            (t, poses)
+        })
+        .collect()
+}
+
+/// Records two avatars (one moving across the scene) and exports one as BVH: imported back,
+/// every frame's local rotations are the take's within the BVH text's precision, and its
+/// root carries the placement (scene space). A range exports only its frames.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_take_exports_an_avatar_as_bvh_in_scene_space() {
+    let server = common::server(30.0).await;
+    let addr = server.addr;
+    ok(
+        addr,
+        r#"{"op":"add_avatar","scene":"default","asset":"avatar","avatar":"b"}"#,
+    )
+    .await;
+    ok(addr, r#"{"op":"play","avatar":"b","clip":"wave"}"#).await;
+    let scene = server
+        .state
+        .world
+        .scene(&SceneId("default".into()))
+        .unwrap();
+    let mut ticks = scene.ticks();
+    ok(
+        addr,
+        r#"{"op":"record_scene","scene":"default","take":"t"}"#,
+    )
+    .await;
+    ok(
+        addr,
+        r#"{"op":"place_avatar","avatar":"avatar","position":[2,0,-1],"rotation":[0,0.7071068,0,0.7071068],"duration":1}"#,
+    )
+    .await;
+    for _ in 0..60 {
+        ticks.changed().await.unwrap();
+    }
+    ok(addr, r#"{"op":"stop_recording_scene","scene":"default"}"#).await;
+    let frames = take_frames(&server, "t");
+    assert!(frames.len() >= 50, "{}", frames.len());
+
+    let (status, bvh) = common::get_bytes(addr, "/api/takes/t/avatar.bvh").await;
+    assert_eq!(status, 200, "{}", String::from_utf8_lossy(&bvh));
+    let text = String::from_utf8(bvh).unwrap();
+    let back = posecast_server::import::bvh::parse("t.bvh", &text).unwrap();
+    let rig = server.state.world.library.get("avatar").unwrap();
+    let names = rig.skeleton().names();
+    let d = &server
+        .state
+        .world
+        .scene(&SceneId("default".into()))
+        .unwrap()
+        .lock()
+        .avatars[0]
+        .description
+        .clone();
+    let clip = &back.clips[0];
+    let mut got = back.skeleton.rest().to_vec();
+    let (mut worst, mut worst_root, mut moved) = (0.0f32, 0.0f32, 0.0f32);
+    for (t, poses) in &frames {
+        let want = &poses["avatar"];
+        clip.sample(*t as f32, back.skeleton.rest(), &mut got);
+        for (j, name) in names.iter().enumerate() {
+            let k = back.skeleton.find(name).unwrap();
+            let parent_is_root = d.parents[j] < 0;
+            let w = if parent_is_root {
+                want.placement.rotation * want.rotations[j]
+            } else {
+                want.rotations[j]
+            };
+            let a = angle(w, got[k].rotation).to_degrees();
+            if parent_is_root {
+                worst_root = worst_root.max(a);
+                let at = d
+                    .translated_joints
+                    .iter()
+                    .position(|&tj| usize::from(tj) == j);
+                if let Some(at) = at {
+                    let p =
+                        want.placement.position + want.placement.rotation * want.translations[at];
+                    // The BVH holds centimetres; its raw import keeps them.
+                    let cm = posecast_server::export::bvh::CENTIMETRES_PER_METRE;
+                    let back = got[k].translation / cm;
+                    assert!(
+                        (p - back).length() < 1e-4,
+                        "root at {t}: {p} against {back}"
+                    );
+                    moved = moved.max(want.placement.position.length());
+                }
+            } else {
+                worst = worst.max(a);
+            }
+        }
+    }
+    eprintln!("BVH against the take: worst {worst:.4}° (joints), {worst_root:.4}° (root)");
+    assert!(worst < 0.01 && worst_root < 0.01, "{worst} {worst_root}");
+    assert!(moved > 1.0, "the placement moved the root in scene space");
+
+    // The whole take as glTF: valid, every avatar a skin of its own, and the one animation
+    // moving each as the take does.
+    let (status, glb) = common::get_bytes(addr, "/api/takes/t.glb").await;
+    assert_eq!(status, 200, "{}", String::from_utf8_lossy(&glb));
+    posecast_proto::testing::assert_valid_gltf(&[("take", glb.clone())]);
+    let assets = posecast_server::import::gltf::from_slice("t.glb", &glb).unwrap();
+    assert_eq!(assets.len(), 2, "one rig per avatar");
+    let mut checked = 0;
+    for asset in &assets {
+        let id = ["avatar", "b"]
+            .into_iter()
+            .find(|id| asset.name.ends_with(&format!("#{id}")) || asset.name == *id)
+            .unwrap_or_else(|| panic!("asset {} is named after no avatar", asset.name));
+        let clip = &asset.clips[0];
+        let mut got = asset.skeleton.rest().to_vec();
+        let mut worst = 0.0f32;
+        for (t, poses) in &frames {
+            let want = &poses[id];
+            clip.sample(*t as f32, asset.skeleton.rest(), &mut got);
+            for (j, name) in names.iter().enumerate() {
+                let k = asset.skeleton.find(name).unwrap();
+                let w = if d.parents[j] < 0 {
+                    want.placement.rotation * want.rotations[j]
+                } else {
+                    want.rotations[j]
+                };
+                worst = worst.max(angle(w, got[k].rotation).to_degrees());
+            }
+        }
+        eprintln!("glTF against the take, {id}: worst {worst:.6}°");
+        assert!(worst < 1e-3, "{id}: {worst}°");
+        checked += 1;
+    }
+    assert_eq!(checked, 2);
+
+    // A range: only its frames.
+    let (status, part) = common::get_bytes(addr, "/api/takes/t/avatar.bvh?from=0.5&to=1").await;
+    assert_eq!(status, 200);
+    let part = String::from_utf8(part).unwrap();
+    let n: usize = part
+        .lines()
+        .find_map(|l| l.strip_prefix("Frames: "))
+        .unwrap()
+        .trim()
+        .parse()
+        .unwrap();
+    assert!((14..=17).contains(&n), "half a second at 30 Hz: {n} frames");
+    for (path, code) in [
+        ("/api/takes/t/nobody.bvh", 404),
+        ("/api/takes/none/avatar.bvh", 404),
+        ("/api/takes/t/avatar.bvh?from=2&to=1", 400),
+    ] {
+        let (status, body) = common::get_bytes(addr, path).await;
+        assert_eq!(status, code, "{path}: {}", String::from_utf8_lossy(&body));
+    }
+}
