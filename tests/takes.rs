@@ -622,3 +622,66 @@ async fn a_take_exports_an_avatar_as_bvh_in_scene_space() {
         assert_eq!(status, code, "{path}: {}", String::from_utf8_lossy(&body));
     }
 }
+
+/// A take's bytes count toward the data quota: with room for only a few seconds it ends by
+/// itself, its bytes within the quota, and an upload after it is refused for the bytes it holds;
+/// deleting it gives them back.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_take_ends_at_the_data_quota_and_holds_its_bytes() {
+    const QUOTA: u64 = 100_000;
+    let data = tempfile::tempdir().unwrap();
+    let server = common::kit_builder(60.0)
+        .data_dir(data.path())
+        .configure(|c| c.quotas.max_upload_total_bytes = QUOTA)
+        .start()
+        .await
+        .unwrap()
+        .into_server();
+    let addr = server.addr;
+    let started = ok(
+        addr,
+        r#"{"op":"record_scene","scene":"default","take":"big"}"#,
+    )
+    .await;
+    assert_eq!(started["recording"], true);
+    let ended = tokio::time::timeout(PATIENCE, async {
+        loop {
+            let info = ok(addr, r#"{"op":"get_take","take":"big"}"#).await;
+            if info["recording"] == false {
+                return info;
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+    })
+    .await
+    .expect("the take ends by itself at the quota");
+    let bytes = ended["bytes"].as_u64().unwrap();
+    assert!(bytes <= QUOTA && bytes > QUOTA / 2, "{ended}");
+    let info = ok(addr, r#"{"op":"stop_recording_scene","scene":"default"}"#).await;
+    assert_eq!(info["bytes"].as_u64(), Some(bytes), "{info}");
+    let file = data.path().join("takes/big.take");
+    assert_eq!(std::fs::metadata(&file).unwrap().len(), bytes);
+    assert_eq!(
+        server.state.takes.held_bytes(),
+        bytes,
+        "the take holds its bytes"
+    );
+    // A second take has no room left.
+    let (status, body) = command_to(
+        addr,
+        r#"{"op":"record_scene","scene":"default","take":"more"}"#,
+    )
+    .await;
+    assert_eq!(
+        (status, body["code"].as_str()),
+        (429, Some("quota_exceeded")),
+        "{body}"
+    );
+    ok(addr, r#"{"op":"delete_take","take":"big"}"#).await;
+    assert!(!file.exists());
+    ok(
+        addr,
+        r#"{"op":"record_scene","scene":"default","take":"more"}"#,
+    )
+    .await;
+}

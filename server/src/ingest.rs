@@ -70,7 +70,7 @@ fn check_total_bytes(state: &AppState, name: &str, more: u64) -> Result<(), Erro
     if now.saturating_add(more) > max {
         return Err(state.metrics.refuse_quota(
             posecast_core::quota::Quota::UploadTotalBytes,
-            format!("uploads hold {now} bytes and {name} adds {more}"),
+            format!("uploads, recordings and takes hold {now} bytes and {name} adds {more}"),
             max,
         ));
     }
@@ -89,7 +89,7 @@ pub fn check_room(
     bytes: u64,
 ) -> Result<(), Error> {
     let max = state.config.quotas.max_upload_total_bytes;
-    let now = state.store.upload_bytes();
+    let now = state.store.upload_bytes() + state.takes.held_bytes();
     if now.saturating_add(bytes) > max {
         return Err(state.metrics.refuse_quota(
             posecast_core::quota::Quota::UploadTotalBytes,

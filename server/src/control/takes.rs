@@ -11,6 +11,10 @@ use posecast_core::error::Error;
 use posecast_proto::command::{Command, CommandResult};
 use posecast_proto::msg::SceneId;
 
+/// The room `record_scene` needs left in the data quota (about 8 s of 10 avatars at 60 Hz):
+/// less would make a take that ends before it starts.
+pub const MIN_ROOM: u64 = 64 << 10;
+
 /// The longest take, seconds of scene time (`record_scene`'s `max_seconds` at most).
 pub const MAX_TAKE_SECONDS: f32 = 4.0 * 3600.0;
 
@@ -20,6 +24,23 @@ pub(super) async fn run(
     caller: &Caller,
     command: &Command,
 ) -> Option<Result<CommandResult, Error>> {
+    let takes = matches!(
+        command,
+        Command::RecordScene { .. }
+            | Command::StopRecordingScene { .. }
+            | Command::ListTakes
+            | Command::GetTake { .. }
+            | Command::DeleteTake { .. }
+            | Command::Replay { .. }
+    );
+    if takes && state.cluster().is_some() {
+        state.metrics.command(false);
+        return Some(Err(Error::NotAllowedNow(
+            "takes are not available on servers of a cluster yet (they would live on one \
+             server only)"
+                .into(),
+        )));
+    }
     let result = match command {
         Command::RecordScene {
             scene,
@@ -90,8 +111,8 @@ async fn record_scene(
         }
     };
     let rate = state.config.tick_rate;
-    // Room for at least the take's first records; what it may grow to is the quota's rest.
-    crate::ingest::check_room(state, caller, &format!("take {take}"), 4096)?;
+    // Room for a useful take at least; what it may grow to is the quota's rest.
+    crate::ingest::check_room(state, caller, &format!("take {take}"), MIN_ROOM)?;
     let max = state.config.quotas.max_upload_total_bytes;
     let used = state.store.upload_bytes() + state.takes.held_bytes();
     let limits = TakeLimits {
