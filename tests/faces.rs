@@ -985,3 +985,66 @@ async fn vrm_expression_weights_survive_a_sigkill() {
     weights_become(&v, &[("eyesClosed", 1.0)]).await;
     server.kill();
 }
+
+/// A take of the whole scene keeps the face: replayed, the replay's face shows the weights
+/// the scene showed at that time of the take (the end, then the start after a seek).
+#[tokio::test]
+async fn a_scene_take_replays_the_face() {
+    let server = common::server(30.0).await;
+    let addr = server.addr;
+    if !add_face(addr).await {
+        return;
+    }
+    let v4 = viewer(addr, Encoding::Binary, 4).await;
+    let set =
+        |weights: Value| json!({"op": "set_morph_weights", "avatar": "face", "weights": weights});
+    ok(addr, set(json!({"eyesClosed": 0.8}))).await;
+    weights_become(&v4, &[("eyesClosed", 0.8)]).await;
+    let scene = server
+        .state
+        .world
+        .scene(&posecast_proto::msg::SceneId("default".into()))
+        .unwrap();
+    let mut ticks = scene.ticks();
+    ok(
+        addr,
+        json!({"op": "record_scene", "scene": "default", "take": "faces"}),
+    )
+    .await;
+    for _ in 0..15 {
+        ticks.changed().await.unwrap();
+    }
+    ok(addr, set(json!({"mouthOpen": 0.6}))).await;
+    weights_become(&v4, &[("eyesClosed", 0.8), ("mouthOpen", 0.6)]).await;
+    for _ in 0..15 {
+        ticks.changed().await.unwrap();
+    }
+    ok(
+        addr,
+        json!({"op": "stop_recording_scene", "scene": "default"}),
+    )
+    .await;
+    ok(
+        addr,
+        json!({"op": "replay", "take": "faces", "scene": "fr", "speed": 4}),
+    )
+    .await;
+    let mut options = ClientOptions::new(format!("ws://{addr}/ws"), "fr");
+    options.reconnect = false;
+    options.version = 4;
+    let replay = Client::connect(options).await.unwrap();
+    // At 4× the take ends within a second and holds its last frame.
+    common::weights_become(
+        &replay,
+        "fr.face",
+        "replay viewer",
+        &[("eyesClosed", 0.8), ("mouthOpen", 0.6)],
+    )
+    .await;
+    ok(
+        addr,
+        json!({"op": "control_replay", "scene": "fr", "time": 0, "paused": true}),
+    )
+    .await;
+    common::weights_become(&replay, "fr.face", "replay viewer", &[("eyesClosed", 0.8)]).await;
+}

@@ -7,7 +7,8 @@
 use crate::command::{
     AdditiveReference, AssetDetail, AssetInfo, AvatarState, ClipInfo, Command, CommandResult,
     DofInfo, DriveInfo, DriveVia, Driver, FadeState, JointInfo, JointMapping, JointMask, JointRef,
-    LayerState, OnRelease, RecordingInfo, RootMotion, SceneInfo, Units, Viewer,
+    LayerState, OnRelease, RecordingInfo, ReplayState, RootMotion, SceneInfo, TakeInfo, Units,
+    Viewer,
 };
 use crate::description::AvatarDescription;
 use crate::expressions::{Expression, ExpressionBind, Override};
@@ -98,6 +99,8 @@ pub fn declarations() -> String {
         CalibrationInfo,
         LocomotionClip,
         RecordingInfo,
+        TakeInfo,
+        ReplayState,
         PipelineOptions,
         NeutralPose,
         UpAxisOverride,

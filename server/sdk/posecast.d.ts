@@ -33,6 +33,12 @@ export interface ResultKinds {
   drive: "drive";
   calibrate_trackers: "calibration";
   stop_recording: "recorded";
+  record_scene: "take";
+  stop_recording_scene: "take";
+  get_take: "take";
+  list_takes: "takes";
+  replay: "replay";
+  control_replay: "replay";
   create_scene: "scene_created";
   add_avatar: "avatar_added";
   set_joint_rotation: "rotation";

@@ -1780,6 +1780,80 @@ frames: number,
 dropped: number, };
 
 /**
+ * A take of a whole scene (`record_scene`), as listed.
+ */
+export type TakeInfo = { 
+/**
+ * Its name.
+ */
+take: string, 
+/**
+ * The scene it recorded.
+ */
+scene: SceneId, 
+/**
+ * Seconds from its first frame to its last.
+ */
+duration: number, 
+/**
+ * Frames (ticks) it holds.
+ */
+frames: number, 
+/**
+ * Every avatar that appears in it, in order of appearance.
+ */
+avatars: Array<AvatarId>, 
+/**
+ * Its size in bytes.
+ */
+bytes: number, 
+/**
+ * When recording started, µs since the Unix epoch.
+ */
+started_us: number, 
+/**
+ * Whether it is being recorded now.
+ */
+recording: boolean, 
+/**
+ * Bytes after its last complete frame that a crash cut short (ignored when read).
+ */
+torn_bytes?: number, };
+
+/**
+ * Where a replay (`replay`, `control_replay`) is.
+ */
+export type ReplayState = { 
+/**
+ * The replay's scene.
+ */
+scene: SceneId, 
+/**
+ * The take it replays.
+ */
+take: string, 
+/**
+ * Seconds into the take.
+ */
+time: number, 
+/**
+ * The take's duration, seconds.
+ */
+duration: number, 
+/**
+ * Whether it is paused.
+ */
+paused: boolean, 
+/**
+ * Take seconds per scene second.
+ */
+speed: number, 
+/**
+ * Whether it loops.
+ */
+loop: boolean, };
+
+/**
  * Per-asset pipeline configuration; `Default` is the default pipeline. Deserialises from JSON
  * with every field optional, e.g.
  * `{"up_axis": {"up": "+z", "forward": "-y"}, "metres_per_unit": 0.01, "neutral": "keep",

@@ -84,6 +84,14 @@ pub fn after(state: &AppState, command: &Command, before: Before, result: &Comma
                 scene: scene.clone(),
             });
             state.watchers.push(access, scene, &msg, &[]);
+            // A replay starts with the avatars of the take's first frame on stage.
+            if let Ok(scene) = state.world.scene(scene) {
+                let ids: Vec<AvatarId> =
+                    scene.lock().avatars.iter().map(|a| a.id.clone()).collect();
+                for id in ids {
+                    announce(state, &scene, &id, |_| true);
+                }
+            }
         }
         (Command::DeleteScene { scene }, _) => {
             let msg = text(&ServerMsg::SceneDeleted {

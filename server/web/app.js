@@ -25,6 +25,7 @@ import * as place from "./panel-place.js";
 import * as joints from "./panel-joints.js";
 import * as face from "./panel-face.js";
 import * as upload from "./panel-upload.js";
+import * as takes from "./panel-takes.js";
 
 const params = new URLSearchParams(location.search);
 /** @type {string[]} */
@@ -70,7 +71,7 @@ const ctx = {
   refreshAssets: () => sync.refreshAssets(),
 };
 
-for (const panel of [status, access, scenes, playback, timeline, place, joints, face, upload]) panel.mount(ctx);
+for (const panel of [status, access, scenes, playback, timeline, place, joints, face, upload, takes]) panel.mount(ctx);
 
 // The page's own drive ends when the server says the avatar is no longer driven (released
 // from elsewhere, removed) or the connection drops (the server ended it then).
@@ -129,6 +130,8 @@ if (params.has("debug")) {
     get sent() { return { ...conn.stats.commands }; },
     get camera() { return viewer.camera; },
     get timeline() { return { ...timeline.shownTime }; },
+    /** The Takes panel: `{list, replay, shownTime, recording, renders}` (panel-takes.js). */
+    get takes() { return { ...takes.view }; },
     get selected() { return store.get().selected; },
     /**
      * Aims the camera at one joint of a shown avatar from `distance` metres in front (+Z), as

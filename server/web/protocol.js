@@ -48,3 +48,6 @@ export {};
 /** @typedef {Extract<ServerMsg, {type: "ack"}>} AckMsg An `ack` of protocol version 3: the result tagged with its `kind`. */
 /** @typedef {Extract<ServerMsg, {type: "frame"}>} FrameMsg */
 /** @typedef {Extract<ServerMsg, {type: "error"}>} ErrorMsg */
+
+/** @typedef {import("../sdk/protocol").TakeInfo} TakeInfo A take of a whole scene (`record_scene`, `list_takes`, `get_take`). */
+/** @typedef {import("../sdk/protocol").ReplayState} ReplayState Where a replay is (`replay`, `control_replay`). */

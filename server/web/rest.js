@@ -1,5 +1,5 @@
 // @ts-check
-// The REST side of the dashboard: the rig's mesh (`mesh_url`) and uploads.
+// The REST side of the dashboard: the rig's mesh (`mesh_url`), uploads, JSON reads (the takes).
 
 import { parseGlb } from "./glb.js";
 import { forRest } from "./tokens.js";
@@ -33,6 +33,20 @@ export async function fetchMesh(url) {
   if (r.status === 401 && token) r = await fetch(url);
   if (!r.ok) throw new Error(`${r.status} ${await errorMessage(r)}`);
   return parseGlb(await r.arrayBuffer());
+}
+
+/**
+ * Reads a JSON answer of the REST API (`GET /api/takes`: the `list_takes` result), with the
+ * view token — without it when that is refused, as for meshes.
+ * @param {string} path
+ * @returns {Promise<unknown>}
+ */
+export async function getJson(path) {
+  const token = forRest(false);
+  let r = await fetch(path, { headers: token ? { Authorization: `Bearer ${token}` } : {} });
+  if (r.status === 401 && token) r = await fetch(path);
+  if (!r.ok) throw new Error(`${r.status} ${await errorMessage(r)}`);
+  return r.json();
 }
 
 /**

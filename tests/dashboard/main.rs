@@ -41,6 +41,7 @@ mod layout;
 mod placement;
 mod push;
 mod sdk;
+mod takes;
 mod three;
 mod timeline;
 mod tokens;

@@ -119,6 +119,11 @@ const FILES: &[(&str, &str, &str)] = &[
         JS,
         include_str!("../../web/panel-upload.js"),
     ),
+    (
+        "panel-takes.js",
+        JS,
+        include_str!("../../web/panel-takes.js"),
+    ),
 ];
 
 /// `(name, content type, contents)` of the JavaScript client's files in `server/sdk/`: the

@@ -117,6 +117,12 @@ impl World {
             .map(|replay| {
                 let state = replay.state(scene, clock);
                 s.replay = Some(replay);
+                // Its first frame's avatars on stage now, so the answer's announcements
+                // (`changes`) and the first subscribers find them.
+                let s = &mut *s;
+                if let Some(replay) = &mut s.replay {
+                    replay.step(clock, &mut s.avatars, &mut created.feed());
+                }
                 state
             })
         };
