@@ -473,11 +473,12 @@ fn take_frames(
         .collect()
 }
 
-/// Records two avatars (one moving across the scene) and exports one as BVH: imported back,
-/// every frame's local rotations are the take's within the BVH text's precision, and its
-/// root carries the placement (scene space). A range exports only its frames.
+/// Records two avatars (one moving across the scene, the other driven live for a while): the
+/// take names its driver. Exported as BVH and glTF, every frame's local rotations are the
+/// take's within the formats' precision, the roots carrying the placement (scene space); a
+/// range exports only its frames. Replayed, an avatar can be driven live over the replay.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_take_exports_an_avatar_as_bvh_in_scene_space() {
+async fn a_take_notes_its_drivers_and_exports_in_scene_space() {
     let server = common::server(30.0).await;
     let addr = server.addr;
     ok(
@@ -502,10 +503,33 @@ async fn a_take_exports_an_avatar_as_bvh_in_scene_space() {
         r#"{"op":"place_avatar","avatar":"avatar","position":[2,0,-1],"rotation":[0,0.7071068,0,0.7071068],"duration":1}"#,
     )
     .await;
-    for _ in 0..60 {
+    // Avatar b driven live for a while: the take notes who drove it.
+    let driver = posecast_client::net::Driver::connect(
+        &format!("ws://{addr}/ws"),
+        Some(common::CONTROL.to_owned()),
+    )
+    .await
+    .unwrap();
+    let b = posecast_proto::msg::AvatarId("b".into());
+    driver.drive(&b, None, None).await.unwrap();
+    for k in 0..20u64 {
+        let q = glam::Quat::from_rotation_x(0.02 * k as f32);
+        driver
+            .send_pose(&b, [("l_elbow".into(), q.to_array())], None, Some(k))
+            .await
+            .unwrap();
         ticks.changed().await.unwrap();
     }
-    ok(addr, r#"{"op":"stop_recording_scene","scene":"default"}"#).await;
+    drop(driver);
+    for _ in 0..40 {
+        ticks.changed().await.unwrap();
+    }
+    let info = ok(addr, r#"{"op":"stop_recording_scene","scene":"default"}"#).await;
+    assert_eq!(
+        info["drivers"],
+        serde_json::json!([{"avatar": "b", "name": "test", "via": "websocket"}]),
+        "{info}"
+    );
     let frames = take_frames(&server, "t");
     assert!(frames.len() >= 50, "{}", frames.len());
 
@@ -613,6 +637,61 @@ async fn a_take_exports_an_avatar_as_bvh_in_scene_space() {
         .parse()
         .unwrap();
     assert!((14..=17).contains(&n), "half a second at 30 Hz: {n} frames");
+    // A replayed avatar driven live: the driver's pose over the replay, the other avatar
+    // still replaying the take.
+    ok(
+        addr,
+        r#"{"op":"replay","take":"t","scene":"rr","loop":true}"#,
+    )
+    .await;
+    let watcher = Watcher::start(addr, "rr").await;
+    let driver = posecast_client::net::Driver::connect(
+        &format!("ws://{addr}/ws"),
+        Some(common::CONTROL.to_owned()),
+    )
+    .await
+    .unwrap();
+    let rb = posecast_proto::msg::AvatarId("rr.b".into());
+    driver.drive(&rb, None, None).await.unwrap();
+    let elbow = rig.skeleton().find("l_elbow").unwrap();
+    let q = glam::Quat::from_rotation_z(1.0);
+    let mut rr_ticks = server
+        .state
+        .world
+        .scene(&SceneId("rr".into()))
+        .unwrap()
+        .ticks();
+    let mut k = 0u64;
+    let driven = tokio::time::timeout(PATIENCE, async {
+        loop {
+            driver
+                .send_pose(&rb, [("l_elbow".into(), q.to_array())], None, Some(k))
+                .await
+                .unwrap();
+            k += 1;
+            rr_ticks.changed().await.unwrap();
+            let seen = watcher.frames();
+            let driven = seen.iter().rev().take(3).any(|s| {
+                s.poses
+                    .get("rr.b")
+                    .is_some_and(|p| angle(p.rotations[elbow], q).to_degrees() < 0.01)
+            });
+            if driven {
+                return seen;
+            }
+        }
+    })
+    .await
+    .expect("the driver's pose shows on the replayed avatar");
+    let last = driven.last().unwrap();
+    let replaying = frames.iter().any(|(_, poses)| {
+        let (want, got) = (&poses["avatar"], &last.poses["rr.avatar"]);
+        want.rotations == got.rotations && want.placement == got.placement
+    });
+    assert!(replaying, "the avatar not driven still replays the take");
+    drop(driver);
+    drop(watcher);
+
     for (path, code) in [
         ("/api/takes/t/nobody.bvh", 404),
         ("/api/takes/none/avatar.bvh", 404),

@@ -545,6 +545,22 @@ pub struct TakeInfo {
     /// Bytes after its last complete frame that a crash cut short (ignored when read).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub torn_bytes: u64,
+    /// Who drove which avatar live during the take, each pair once, in order of first drive
+    /// (listed once the take is stopped).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub drivers: Vec<TakeDriver>,
+}
+
+/// A live driver of an avatar during a take ([`TakeInfo::drivers`]).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
+pub struct TakeDriver {
+    /// The avatar (its id in the take).
+    pub avatar: AvatarId,
+    /// The driver's name, as the scene list shows it ([`Driver::name`]).
+    pub name: String,
+    /// How its poses arrived.
+    pub via: DriveVia,
 }
 
 fn is_zero(n: &u64) -> bool {

@@ -7,8 +7,8 @@
 use crate::command::{
     AdditiveReference, AssetDetail, AssetInfo, AvatarState, ClipInfo, Command, CommandResult,
     DofInfo, DriveInfo, DriveVia, Driver, FadeState, JointInfo, JointMapping, JointMask, JointRef,
-    LayerState, OnRelease, RecordingInfo, ReplayState, RootMotion, SceneInfo, TakeInfo, Units,
-    Viewer,
+    LayerState, OnRelease, RecordingInfo, ReplayState, RootMotion, SceneInfo, TakeDriver, TakeInfo,
+    Units, Viewer,
 };
 use crate::description::AvatarDescription;
 use crate::expressions::{Expression, ExpressionBind, Override};
@@ -100,6 +100,7 @@ pub fn declarations() -> String {
         LocomotionClip,
         RecordingInfo,
         TakeInfo,
+        TakeDriver,
         ReplayState,
         PipelineOptions,
         NeutralPose,

@@ -1818,7 +1818,29 @@ recording: boolean,
 /**
  * Bytes after its last complete frame that a crash cut short (ignored when read).
  */
-torn_bytes?: number, };
+torn_bytes?: number, 
+/**
+ * Who drove which avatar live during the take, each pair once, in order of first drive
+ * (listed once the take is stopped).
+ */
+drivers?: Array<TakeDriver>, };
+
+/**
+ * A live driver of an avatar during a take (`TakeInfo::drivers`).
+ */
+export type TakeDriver = { 
+/**
+ * The avatar (its id in the take).
+ */
+avatar: AvatarId, 
+/**
+ * The driver's name, as the scene list shows it (`Driver::name`).
+ */
+name: string, 
+/**
+ * How its poses arrived.
+ */
+via: DriveVia, };
 
 /**
  * Where a replay (`replay`, `control_replay`) is.

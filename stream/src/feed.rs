@@ -246,13 +246,22 @@ pub trait TakeSink: Send + std::fmt::Debug {
         seq: u64,
         avatars: Option<&[Arc<AvatarDescription>]>,
     ) -> bool;
+
+    /// An event record (who drives which avatar changed), before the next frame's records.
+    /// `false`: stop recording, as for [`TakeSink::append`].
+    fn append_event(&mut self, record: Vec<u8>) -> bool;
 }
+
+/// Who drives an avatar live, as a take notes it: the driver's name and how it drives.
+pub type DriverNote = (AvatarId, posecast_proto::command::Driver);
 
 #[derive(Debug)]
 struct TakeRecording {
     sink: Box<dyn TakeSink>,
     /// The descriptions last written to it.
     avatars: Vec<Arc<AvatarDescription>>,
+    /// The drivers last written to it.
+    drivers: Vec<DriverNote>,
 }
 
 impl TakeRecording {
@@ -333,8 +342,31 @@ impl Feed {
         self.take = sink.map(|sink| TakeRecording {
             sink,
             avatars: Vec::new(),
+            drivers: Vec::new(),
         });
         before
+    }
+
+    /// While a take is recorded: who drives which avatar now (scene order). When that changed
+    /// since the take last noted it, the take gets an event
+    /// `{"drivers": [{"avatar", "name", "via"}, …]}` before the next frame.
+    pub fn note_drivers(&mut self, drivers: Vec<DriverNote>) {
+        let Some(take) = &mut self.take else { return };
+        if take.drivers == drivers {
+            return;
+        }
+        let list: Vec<serde_json::Value> = drivers
+            .iter()
+            .map(
+                |(avatar, d)| serde_json::json!({ "avatar": avatar, "name": d.name, "via": d.via }),
+            )
+            .collect();
+        let mut record = Vec::new();
+        take::write_event(&serde_json::json!({ "drivers": list }), &mut record);
+        take.drivers = drivers;
+        if !take.sink.append_event(record) {
+            self.take = None;
+        }
     }
 
     /// Whether a take is being recorded.

@@ -3,7 +3,9 @@
 //! through an import map): the server's `mesh.glb` loaded with three's `GLTFLoader` and bound
 //! with `SkeletonBinding`, and the same mesh made a three-vrm `VRMHumanoid` and bound with
 //! `VRMBinding`. The page reports the pose it applied and three's own world matrices; the
-//! reference is posecast-proto's forward kinematics of that pose in Rust.
+//! reference is posecast-proto's forward kinematics of that pose in Rust. A take of the whole
+//! scene (`/api/takes/{take}.glb`) played by three's `AnimationMixer` is checked against the
+//! take's own frames the same way, in scene space.
 
 use crate::browser::*;
 use crate::common;
@@ -673,6 +675,333 @@ async fn three_js_draws_the_face_posecast_computes() {
     assert!(
         worst <= 1e-5,
         "three.js's face is {worst:e} of the size from posecast's"
+    );
+    b.close().await.ok();
+}
+
+/// One avatar at one frame of a take: its description then and its decoded pose.
+type TakeAvatar = (
+    std::sync::Arc<posecast_proto::description::AvatarDescription>,
+    posecast_proto::frame::AvatarPose,
+);
+
+/// The take's own frames (as `tests/takes.rs` reads them for its exports): each frame's time,
+/// seconds from the take's first frame, and every avatar's description and decoded pose.
+fn take_frames(
+    server: &posecast_server::startup::Server,
+    take: &str,
+) -> Vec<(f64, std::collections::BTreeMap<String, TakeAvatar>)> {
+    let index = server.state.takes.index(take).unwrap();
+    let source = server.state.takes.source(take).unwrap();
+    let first = index.first_seq().unwrap();
+    let rate = f64::from(index.header.tick_rate);
+    let mut reader = posecast_server::stream::take::TakeReader::new(source, index.clone());
+    (0..index.frames.len())
+        .map(|i| {
+            let t = (index.frames[i].seq - first) as f64 / rate;
+            let poses = reader
+                .poses(i)
+                .unwrap()
+                .iter()
+                .map(|p| {
+                    (
+                        p.description.id.0.clone(),
+                        (p.description.clone(), p.pose.clone()),
+                    )
+                })
+                .collect();
+            (t, poses)
+        })
+        .collect()
+}
+
+/// Every joint's world matrix in scene space as the take has it: the description's rest, the
+/// frame's rotations, translations and scales, forward kinematics, then the placement
+/// (`P · FK`, the way a client draws a placed avatar; the export folds `P` into the roots).
+fn take_world(
+    d: &posecast_proto::description::AvatarDescription,
+    pose: &posecast_proto::frame::AvatarPose,
+) -> Vec<glam::Mat4> {
+    let skeleton = d.to_skeleton().unwrap();
+    let mut locals = skeleton.rest().to_vec();
+    for (l, q) in locals.iter_mut().zip(&pose.rotations) {
+        l.rotation = *q;
+    }
+    for (&j, t) in d.translated_joints.iter().zip(&pose.translations) {
+        locals[usize::from(j)].translation = *t;
+    }
+    for (&j, s) in d.scaled_joints.iter().zip(&pose.scales) {
+        locals[usize::from(j)].scale = *s;
+    }
+    let mut world = vec![glam::Mat4::IDENTITY; skeleton.len()];
+    forward_kinematics(&skeleton, &locals, &mut world);
+    let placement = pose.placement.to_mat4();
+    world.iter().map(|m| placement * *m).collect()
+}
+
+/// The take page: `load()` fetches `/take.glb`, parses it with three's `GLTFLoader` and plays
+/// its first animation on an `AnimationMixer` of the scene (once, clamped at its end, so the
+/// last frame is reachable); `sample(t)` sets the mixer's time and reports, per avatar (its
+/// root node found by name, its joints as its skin lists them), every joint's local quaternion
+/// and world position. Errors and warnings logged by three are kept.
+const TAKE_PAGE: &str = r#"<!doctype html>
+<script type="importmap">
+{"imports": {
+  "three": "/node_modules/three/build/three.module.js",
+  "three/addons/": "/node_modules/three/examples/jsm/"
+}}
+</script>
+<script type="module">
+import * as THREE from "three";
+import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
+
+window.errors = [];
+window.warnings = [];
+window.addEventListener("error", (e) => window.errors.push(String(e.message)));
+window.addEventListener("unhandledrejection", (e) => window.errors.push(String(e.reason)));
+const logError = console.error.bind(console), logWarn = console.warn.bind(console);
+console.error = (...a) => { window.errors.push(a.map(String).join(" ")); logError(...a); };
+console.warn = (...a) => { window.warnings.push(a.map(String).join(" ")); logWarn(...a); };
+
+let gltf, mixer, action;
+const figures = new Map();
+window.load = async (ids) => {
+  const bytes = await (await fetch("/take.glb")).arrayBuffer();
+  gltf = await new Promise((resolve, reject) => new GLTFLoader().parse(bytes, "", resolve, reject));
+  const json = gltf.parser.json;
+  const byNode = new Map();
+  gltf.scene.traverse((o) => {
+    const a = gltf.parser.associations.get(o);
+    if (a && a.nodes !== undefined && !byNode.has(a.nodes)) byNode.set(a.nodes, o);
+  });
+  const found = {};
+  for (const id of ids) {
+    const rootIndex = json.nodes.findIndex((n) => n.name === id);
+    const skin = (json.skins || []).find((s) => s.name === id);
+    const root = byNode.get(rootIndex);
+    const joints = skin ? skin.joints.map((n) => byNode.get(n)) : [];
+    let skinned = 0;
+    gltf.scene.traverse((o) => {
+      if (o.isSkinnedMesh && joints.length && o.skeleton.bones[0] === joints[0]) skinned += 1;
+    });
+    found[id] = {
+      root: root ? root.name : null,
+      rootIsSceneChild: !!root && root.parent === gltf.scene,
+      joints: joints.map((o) => (o ? o.name : null)),
+      bones: joints.filter((o) => o && o.isBone).length,
+      under: joints.filter((o) => { for (let p = o; p; p = p.parent) if (p === root) return true; return false; }).length,
+      skinned,
+    };
+    figures.set(id, { root, joints });
+  }
+  mixer = new THREE.AnimationMixer(gltf.scene);
+  const clip = gltf.animations[0];
+  action = mixer.clipAction(clip);
+  action.setLoop(THREE.LoopOnce, 1);
+  action.clampWhenFinished = true;
+  action.play();
+  return { found, animations: gltf.animations.length, name: clip.name, duration: clip.duration, tracks: clip.tracks.length };
+};
+
+const position = (o) => o.getWorldPosition(new THREE.Vector3()).toArray();
+window.sample = (t) => {
+  action.reset().play();
+  mixer.setTime(t);
+  gltf.scene.updateMatrixWorld(true);
+  const out = {};
+  for (const [id, { root, joints }] of figures) {
+    out[id] = {
+      root: { p: position(root), q: root.getWorldQuaternion(new THREE.Quaternion()).toArray() },
+      joints: joints.map((o) => ({ q: o.quaternion.toArray(), p: position(o) })),
+    };
+  }
+  return out;
+};
+window.ready = true;
+</script>
+"#;
+
+/// A take of the scene (issue 32) loaded and played by three.js: the built-in avatar placed,
+/// rotated and moved during the take, and a second avatar waving, recorded; the take's `.glb`
+/// parsed by three's `GLTFLoader` and its one animation played by an `AnimationMixer`. At the
+/// first, middle and last recorded frames every joint's local rotation is the take's (roots:
+/// the placement's rotation folded in) within 1e-4 rad, and every joint stands where forward
+/// kinematics of the take's frame, placed in the scene, puts it within 1e-4 m; the animation
+/// lasts as long as the take, both avatars' roots are named after them and hold their joints.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn three_js_plays_a_take_of_the_scene_where_it_was_recorded() {
+    let Some(modules) = node_modules() else {
+        return;
+    };
+    let server = common::server(30.0).await;
+    for body in [
+        serde_json::json!({"op": "add_avatar", "scene": "default", "asset": "avatar", "avatar": "b",
+            "position": [-1.0, 0.0, 0.5]}),
+        serde_json::json!({"op": "play", "avatar": "b", "clip": "wave"}),
+        serde_json::json!({"op": "place_avatar", "avatar": "avatar", "position": [1.5, 0.0, -0.75],
+            "rotation": [0.0, 0.5, 0.0, 0.8660254]}),
+    ] {
+        let (status, answer) = command(&server, body.clone()).await;
+        assert_eq!(status, 200, "{body} → {answer}");
+    }
+    let scene = server
+        .state
+        .world
+        .scene(&posecast_proto::msg::SceneId("default".into()))
+        .unwrap();
+    let mut ticks = scene.ticks();
+    let (status, answer) = command(
+        &server,
+        serde_json::json!({"op": "record_scene", "scene": "default", "take": "t"}),
+    )
+    .await;
+    assert_eq!(status, 200, "{answer}");
+    // Moved and turned further while recorded: the placement changes from frame to frame.
+    let (status, answer) = command(
+        &server,
+        serde_json::json!({"op": "place_avatar", "avatar": "avatar", "position": [2.5, 0.0, 0.5],
+            "rotation": [0.0, 0.8660254, 0.0, 0.5], "duration": 1}),
+    )
+    .await;
+    assert_eq!(status, 200, "{answer}");
+    for _ in 0..40 {
+        ticks.changed().await.unwrap();
+    }
+    let (status, answer) = command(
+        &server,
+        serde_json::json!({"op": "stop_recording_scene", "scene": "default"}),
+    )
+    .await;
+    assert_eq!(status, 200, "{answer}");
+    let frames = take_frames(&server, "t");
+    assert!(frames.len() >= 30, "{} frames", frames.len());
+    let (status, glb) = common::get_bytes(server.addr, "/api/takes/t.glb").await;
+    assert_eq!(status, 200, "{}", String::from_utf8_lossy(&glb));
+
+    let ids = ["avatar", "b"];
+    let names = server
+        .state
+        .world
+        .library
+        .get("avatar")
+        .unwrap()
+        .skeleton()
+        .names()
+        .to_vec();
+    let url = serve_origin(
+        TAKE_PAGE.to_owned(),
+        Some(modules),
+        vec![("/take.glb", glb)],
+    )
+    .await;
+    let (_driver, b) = browser().await;
+    b.goto(&url).await.unwrap();
+    wait_js(&b, 60, "window.ready === true").await;
+    let loaded = b
+        .execute(
+            "return await window.load(arguments[0]);",
+            vec![serde_json::json!(ids)],
+        )
+        .await
+        .unwrap();
+    assert_eq!(loaded["animations"], 1, "{loaded}");
+    assert_eq!(loaded["name"], "t", "the animation is named after the take");
+    let take_duration = frames.last().unwrap().0;
+    let duration = loaded["duration"].as_f64().unwrap();
+    assert!(
+        (duration - take_duration).abs() <= 1e-3,
+        "the animation lasts {duration} s, the take {take_duration} s"
+    );
+    for id in ids {
+        let found = &loaded["found"][id];
+        assert_eq!(found["root"], id, "a root node named after {id}: {loaded}");
+        assert_eq!(found["rootIsSceneChild"], true, "{id}: {found}");
+        let joints = found["joints"].as_array().unwrap();
+        assert_eq!(joints.len(), names.len(), "{id}: {found}");
+        assert_eq!(found["bones"], names.len(), "{id}: every joint a bone");
+        assert_eq!(
+            found["under"],
+            names.len(),
+            "{id}: the joints under its root"
+        );
+        assert!(
+            found["skinned"].as_u64().unwrap() > 0,
+            "{id}: a skinned mesh: {found}"
+        );
+    }
+
+    let (mut worst_angle, mut worst_root_angle, mut worst_position, mut moved) =
+        (0.0f64, 0.0f64, 0.0f32, 0.0f32);
+    let last = frames.len() - 1;
+    for i in [0, last / 3, last / 2, last] {
+        let (t, poses) = &frames[i];
+        // The key's own time as the file holds it (f32).
+        let t = f64::from(*t as f32);
+        let report = b
+            .execute(
+                "return window.sample(arguments[0]);",
+                vec![serde_json::json!(t)],
+            )
+            .await
+            .unwrap();
+        for id in ids {
+            let (d, pose) = &poses[id];
+            let world = take_world(d, pose);
+            let root = &report[id]["root"];
+            assert!(
+                vec3(&root["p"]).length() < 1e-6
+                    && quat(&root["q"]).angle_between(glam::Quat::IDENTITY) < 1e-6,
+                "{id}: its root node stays at the origin: {root}"
+            );
+            for (j, m) in world.iter().enumerate() {
+                let joint = &report[id]["joints"][j];
+                let expected = if d.parents[j] < 0 {
+                    pose.placement.rotation * pose.rotations[j]
+                } else {
+                    pose.rotations[j]
+                };
+                let got = quat(&joint["q"]);
+                let dq = expected.as_dquat().inverse() * got.as_dquat();
+                let angle = 2.0 * dq.xyz().length().atan2(dq.w.abs());
+                if d.parents[j] < 0 {
+                    worst_root_angle = worst_root_angle.max(angle);
+                } else {
+                    worst_angle = worst_angle.max(angle);
+                }
+                let e = vec3(&joint["p"]).distance(m.w_axis.truncate());
+                assert!(
+                    e <= 1e-4,
+                    "{id} {} at {t} s: three puts it at {}, the take at {} ({e} m)",
+                    names[j],
+                    joint["p"],
+                    m.w_axis.truncate()
+                );
+                worst_position = worst_position.max(e);
+            }
+            moved = moved.max(pose.placement.position.length());
+        }
+    }
+    let errors = b.execute("return window.errors;", vec![]).await.unwrap();
+    assert_eq!(errors, serde_json::json!([]), "page errors");
+    let warnings = b.execute("return window.warnings;", vec![]).await.unwrap();
+    assert_eq!(warnings, serde_json::json!([]), "three's warnings");
+    println!(
+        "take in three.js: {} frames, {duration:.4} s (take {take_duration:.4} s); local rotations \
+         within {worst_angle:.2e} rad (roots {worst_root_angle:.2e} rad), world positions within \
+         {worst_position:.2e} m",
+        frames.len()
+    );
+    assert!(
+        worst_angle <= 1e-4,
+        "local rotations off by {worst_angle} rad"
+    );
+    assert!(
+        worst_root_angle <= 1e-4,
+        "root rotations off by {worst_root_angle} rad"
+    );
+    assert!(
+        moved > 1.0,
+        "the placement moved the avatar away from the origin ({moved} m)"
     );
     b.close().await.ok();
 }

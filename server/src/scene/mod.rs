@@ -274,6 +274,17 @@ impl Scene {
                 }
             }
         }
+        if feed.is_recording() {
+            feed.note_drivers(
+                s.avatars
+                    .iter()
+                    .filter_map(|a| {
+                        let live = a.live.as_ref().filter(|l| l.driver.is_some())?;
+                        Some((a.id.clone(), live.by.clone()?))
+                    })
+                    .collect(),
+            );
+        }
         let snapshots: Vec<Snapshot> = s.avatars.iter().map(Snapshot::of).collect();
         let at = s.last;
         // The feed's lock was taken before the poses moved, so nothing that needs both locks

@@ -17,7 +17,7 @@
 pub mod export;
 
 use posecast_core::error::Error;
-use posecast_proto::command::TakeInfo;
+use posecast_proto::command::{TakeDriver, TakeInfo};
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::msg::{AvatarId, SceneId, check_id};
 use posecast_stream::feed::TakeSink;
@@ -162,10 +162,33 @@ impl TakeSink for Sink {
             }
         }
         p.frames.fetch_add(1, Ordering::Relaxed);
-        p.bytes.fetch_add(n, Ordering::Relaxed);
+        self.queue(records)
+    }
+
+    fn append_event(&mut self, record: Vec<u8>) -> bool {
+        let p = &self.progress;
+        if p.ended.load(Ordering::SeqCst) {
+            return false;
+        }
+        if p.bytes.load(Ordering::Relaxed) + record.len() as u64 > self.limits.max_bytes {
+            p.end(format!(
+                "the data quota was reached ({} bytes for this take)",
+                self.limits.max_bytes
+            ));
+            return false;
+        }
+        self.queue(record)
+    }
+}
+
+impl Sink {
+    /// Hands `records` to the writer, counting their bytes. Whether to go on.
+    fn queue(&mut self, records: Vec<u8>) -> bool {
+        let n = records.len() as u64;
+        self.progress.bytes.fetch_add(n, Ordering::Relaxed);
         self.held.fetch_add(n, Ordering::Relaxed);
         if self.queue.send(records).is_err() {
-            p.end("its writer stopped".into());
+            self.progress.end("its writer stopped".into());
             return false;
         }
         true
@@ -462,6 +485,7 @@ impl Takes {
             started_us: a.header.started_us,
             recording: a.writing() && !p.ended.load(Ordering::SeqCst),
             torn_bytes: 0,
+            drivers: Vec::new(),
         }
     }
 
@@ -559,6 +583,7 @@ impl Takes {
             started_us: index.header.started_us,
             recording: false,
             torn_bytes: index.torn_tail,
+            drivers: drivers(&index),
         })
     }
 
@@ -628,4 +653,23 @@ impl Takes {
             })
             .ok();
     }
+}
+
+/// Who drove which avatar, from the take's driver events
+/// ([`posecast_stream::feed::Feed::note_drivers`]): each pair once, in order of first drive.
+fn drivers(index: &TakeIndex) -> Vec<TakeDriver> {
+    let mut seen: Vec<TakeDriver> = Vec::new();
+    for (_, event) in &index.events {
+        let Some(list) = event.get("drivers").and_then(|d| d.as_array()) else {
+            continue;
+        };
+        for d in list {
+            if let Ok(d) = serde_json::from_value::<TakeDriver>(d.clone())
+                && !seen.contains(&d)
+            {
+                seen.push(d);
+            }
+        }
+    }
+    seen
 }
