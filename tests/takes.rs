@@ -764,3 +764,75 @@ async fn a_take_ends_at_the_data_quota_and_holds_its_bytes() {
     )
     .await;
 }
+
+/// A take shows the scene it recorded: with private views, a token limited to another scene
+/// neither lists it, reads it, replays it nor exports it; the control token does all four.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_take_shows_only_to_who_may_watch_its_scene() {
+    use posecast_server::auth::{Role, Secret, TokenRule};
+    const LOBBY: &str = "lobby-control-token";
+    let mut access = common::test_access();
+    access.open_view = false;
+    let mut lobby = TokenRule::new("lobby", Secret::new(LOBBY), Role::Control);
+    lobby.scenes = Some(vec![SceneId("lobby".into())]);
+    access.add(lobby).unwrap();
+    let server = common::server_with(30.0, access).await;
+    let addr = server.addr;
+    let scene = server
+        .state
+        .world
+        .scene(&SceneId("default".into()))
+        .unwrap();
+    let mut ticks = scene.ticks();
+    ok(
+        addr,
+        r#"{"op":"record_scene","scene":"default","take":"private"}"#,
+    )
+    .await;
+    for _ in 0..5 {
+        ticks.changed().await.unwrap();
+    }
+    ok(addr, r#"{"op":"stop_recording_scene","scene":"default"}"#).await;
+    let as_lobby = |method: &'static str, path: String, body: Option<&'static str>| async move {
+        let (status, body) = common::http_raw(
+            addr,
+            Some(LOBBY),
+            method,
+            &path,
+            "application/json",
+            body.unwrap_or("").as_bytes(),
+        )
+        .await;
+        (status, body)
+    };
+    let (status, body) = as_lobby(
+        "POST",
+        "/api/commands".into(),
+        Some(r#"{"op":"list_takes"}"#),
+    )
+    .await;
+    assert_eq!(status, 200, "{body}");
+    assert!(!body.contains("private"), "{body}");
+    for (method, path, command) in [
+        (
+            "POST",
+            "/api/commands",
+            Some(r#"{"op":"get_take","take":"private"}"#),
+        ),
+        (
+            "POST",
+            "/api/commands",
+            Some(r#"{"op":"replay","take":"private","scene":"lobby"}"#),
+        ),
+        ("GET", "/api/takes/private", None),
+        ("GET", "/api/takes/private.glb", None),
+        ("GET", "/api/takes/private/avatar.bvh", None),
+    ] {
+        let (status, body) = as_lobby(method, path.to_owned(), command).await;
+        assert_eq!(status, 403, "{path} {command:?}: {body}");
+    }
+    let listed = ok(addr, r#"{"op":"list_takes"}"#).await;
+    assert_eq!(listed[0]["take"], "private", "{listed}");
+    let (status, _) = common::get_bytes(addr, "/api/takes/private/avatar.bvh").await;
+    assert_eq!(status, 200);
+}

@@ -48,14 +48,19 @@ pub(super) async fn run(
             max_seconds,
         } => record_scene(state, caller, scene, take, *max_seconds).await,
         Command::StopRecordingScene { scene } => stop_recording_scene(state, scene).await,
-        Command::ListTakes => blocking(state, |s| Ok(CommandResult::Takes(s.list()))).await,
-        Command::GetTake { take } => {
-            let take = take.clone();
-            blocking(state, move |s| {
-                s.describe(&take).map(|t| CommandResult::Take(Box::new(t)))
-            })
+        Command::ListTakes => blocking(state, |s| Ok(s.list())).await.map(|takes| {
+            // A token limited to some scenes sees the takes of those.
+            let access = &state.config.access;
+            CommandResult::Takes(
+                takes
+                    .into_iter()
+                    .filter(|t| access.authorize_view(caller, &t.scene).is_ok())
+                    .collect(),
+            )
+        }),
+        Command::GetTake { take } => describe(state, caller, take)
             .await
-        }
+            .map(|t| CommandResult::Take(Box::new(t))),
         Command::DeleteTake { take } => delete_take(state, take).await,
         Command::Replay {
             take,
@@ -69,7 +74,10 @@ pub(super) async fn run(
                 speed: speed.unwrap_or(1.0),
                 looping: looping.unwrap_or(false),
             };
-            replay(state, take, scene, start).await
+            match describe(state, caller, take).await {
+                Ok(_) => replay(state, take, scene, start).await,
+                Err(e) => Err(e),
+            }
         }
         _ => return None,
     };
@@ -86,6 +94,22 @@ async fn blocking<T: Send + 'static>(
     tokio::task::spawn_blocking(move || f(&takes))
         .await
         .map_err(|e| Error::internal("take task failed", &e))?
+}
+
+/// Take `take` described, if `caller` may watch the scene it recorded (a take shows that
+/// scene).
+///
+/// # Errors
+/// `unknown_take`; `forbidden`/`unauthorized` as for watching its scene.
+pub async fn describe(
+    state: &AppState,
+    caller: &Caller,
+    take: &str,
+) -> Result<posecast_proto::command::TakeInfo, Error> {
+    let name = take.to_owned();
+    let info = blocking(state, move |s| s.describe(&name)).await?;
+    state.config.access.authorize_view(caller, &info.scene)?;
+    Ok(info)
 }
 
 async fn record_scene(

@@ -338,6 +338,8 @@ pub async fn take(
             control::execute_as(&state, &caller, &Command::GetTake { take: name }, None).await?;
         return Ok(Json(info.to_value()).into_response());
     };
+    // The take shows its scene: only to who may watch it.
+    control::takes::describe(&state, &caller, take).await?;
     let file = name.clone();
     let take = take.to_owned();
     let (takes, world) = (state.takes.clone(), state.clone());
@@ -378,6 +380,7 @@ pub async fn take_avatar(
         )
     })?;
     let avatar = posecast_proto::msg::AvatarId(avatar.to_owned());
+    control::takes::describe(&state, &caller, &take).await?;
     let (takes, world, name) = (state.takes.clone(), state.clone(), take.clone());
     let bytes = tokio::task::spawn_blocking(move || {
         let index = takes.index(&name)?;
