@@ -281,6 +281,28 @@ async fn a_replay_streams_what_live_subscribers_received() {
             .any(|c| c.contains(&"r.c".to_owned()) && !c.contains(&"r.b".to_owned()))
     );
 
+    // A second replay of the same take at once, at twice the speed: its frames are the
+    // take's too, and the first replay goes on.
+    ok(
+        addr,
+        r#"{"op":"replay","take":"rehearsal","scene":"r2","speed":2}"#,
+    )
+    .await;
+    let second = Watcher::start(addr, "r2").await;
+    second
+        .until("frames of the second replay", |f| f.len() >= 10)
+        .await;
+    for s in second.frames() {
+        let poses = unprefixed(&s.poses, "r2");
+        assert!(
+            find(&live, 0, &poses).is_some(),
+            "the second replay's tick {} is a live frame",
+            s.seq
+        );
+    }
+    drop(second);
+    ok(addr, r#"{"op":"delete_scene","scene":"r2"}"#).await;
+
     // Seek and pause: the frame shown is the take's at that time, and stays.
     let seek = ok(
         addr,
