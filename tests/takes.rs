@@ -123,6 +123,48 @@ impl Drop for Watcher {
     }
 }
 
+/// A connection watching the scene list: the `(type, scene, avatar)` of every avatar change it
+/// hears.
+async fn watch_scene_list(addr: SocketAddr) -> Arc<Mutex<Vec<(String, String, String)>>> {
+    let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/ws"))
+        .await
+        .unwrap();
+    for msg in [
+        ClientMsg::Hello {
+            version: PROTOCOL_VERSION,
+            encoding: Encoding::Json,
+            token: None,
+            client: None,
+        },
+        ClientMsg::WatchScenes,
+    ] {
+        let text = serde_json::to_string(&msg).unwrap();
+        ws.send(Message::Text(text.into())).await.unwrap();
+    }
+    let heard = Arc::new(Mutex::new(Vec::new()));
+    let out = heard.clone();
+    tokio::spawn(async move {
+        while let Some(Ok(msg)) = ws.next().await {
+            let Message::Text(t) = msg else { continue };
+            let Ok(v) = serde_json::from_str::<Value>(t.as_str()) else {
+                continue;
+            };
+            let kind = v["type"].as_str().unwrap_or_default().to_owned();
+            let avatar = match kind.as_str() {
+                "avatar_changed" => v["avatar"]["avatar"].as_str(),
+                "avatar_removed" => v["avatar"].as_str(),
+                _ => None,
+            };
+            if let (Some(avatar), Some(scene)) = (avatar, v["scene"].as_str()) {
+                out.lock()
+                    .unwrap()
+                    .push((kind, scene.to_owned(), avatar.to_owned()));
+            }
+        }
+    });
+    heard
+}
+
 /// `poses` with the replay's avatar ids (`<scene>.<id>`) back to the take's.
 fn unprefixed(poses: &BTreeMap<String, AvatarPose>, scene: &str) -> BTreeMap<String, AvatarPose> {
     poses
@@ -218,6 +260,7 @@ async fn a_replay_streams_what_live_subscribers_received() {
 
     // The replay, at the recorded speed: every frame it streams is one the live subscriber
     // got, in the order it got them.
+    let list = watch_scene_list(addr).await;
     let replay = ok(addr, r#"{"op":"replay","take":"rehearsal","scene":"r"}"#).await;
     assert_eq!(replay["take"], "rehearsal", "{replay}");
     let duration = replay["duration"].as_f64().unwrap();
@@ -280,6 +323,16 @@ async fn a_replay_streams_what_live_subscribers_received() {
             .iter()
             .any(|c| c.contains(&"r.c".to_owned()) && !c.contains(&"r.b".to_owned()))
     );
+    // The scene list's watchers heard them come and go too.
+    let heard = list.lock().unwrap().clone();
+    let heard_of = |kind: &str, avatar: &str| {
+        heard
+            .iter()
+            .any(|(k, s, a)| k == kind && s == "r" && a == avatar)
+    };
+    assert!(heard_of("avatar_changed", "r.avatar"), "{heard:?}");
+    assert!(heard_of("avatar_changed", "r.c"), "{heard:?}");
+    assert!(heard_of("avatar_removed", "r.b"), "{heard:?}");
 
     // A second replay of the same take at once, at twice the speed: its frames are the
     // take's too, and the first replay goes on.

@@ -201,19 +201,34 @@ fn announce(
         .push(&state.config.access, &scene.id, &msg, &told);
 }
 
-/// Announces every drive a tick ends because its driver went silent past `--drive-timeout`
-/// (`avatar_changed`, `driven` false or the pose held with no driver), as a driver that
-/// disconnects is announced; runs until the server's world is gone.
-pub async fn announce_drives_ended(state: std::sync::Weak<AppState>) {
-    let Some(mut ended) = state.upgrade().and_then(|s| s.world.take_drives_ended()) else {
+/// Announces what ticks changed by themselves ([`crate::scene::TickChanges`]): a drive a tick
+/// ends because its driver went silent past `--drive-timeout` (`avatar_changed`, `driven`
+/// false or the pose held with no driver), as a driver that disconnects is announced; a
+/// replay's avatar that came on stage (`avatar_changed`) or went off (`avatar_removed` to the
+/// watchers; the feed told the subscribers). Runs until the server's world is gone.
+pub async fn announce_tick_changes(state: std::sync::Weak<AppState>) {
+    let Some(mut changes) = state.upgrade().and_then(|s| s.world.take_tick_changes()) else {
         return;
     };
-    while let Some((scene, avatar)) = ended.recv().await {
+    while let Some((scene, avatar)) = changes.recv().await {
         let Some(state) = state.upgrade() else {
             return;
         };
-        if let Ok(scene) = state.world.scene(&scene) {
+        let Ok(scene) = state.world.scene(&scene) else {
+            continue;
+        };
+        let on_stage = scene.lock().avatars.iter().any(|a| a.id == avatar);
+        if on_stage {
             avatar_changed(&state, &scene, &avatar);
+        } else {
+            let told = scene.feed().covering(&avatar);
+            let msg = text(&ServerMsg::AvatarRemoved {
+                scene: scene.id.clone(),
+                avatar,
+            });
+            state
+                .watchers
+                .push(&state.config.access, &scene.id, &msg, &told);
         }
     }
 }

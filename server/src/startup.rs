@@ -46,7 +46,7 @@ impl Server {
             .get_or_insert_with(|| Arc::new(crate::auth::Minter::new()))
             .clone();
         let state = AppState::new(config.clone());
-        tokio::spawn(crate::changes::announce_drives_ended(Arc::downgrade(
+        tokio::spawn(crate::changes::announce_tick_changes(Arc::downgrade(
             &state,
         )));
         // The address first: a busy port is reported as such, and the data folder (maybe

@@ -88,14 +88,15 @@ pub struct Scene {
     answers: Mutex<answers::Recent>,
     /// A `viewers` message to its watchers is on its way ([`crate::changes::viewers_changed`]).
     pub viewers_pending: AtomicBool,
-    /// Where its ticks report drives ended by the driver's silence ([`Scene::report_drives_ended`]).
-    drives_ended: std::sync::OnceLock<DrivesEnded>,
+    /// Where its ticks report avatars they changed by themselves ([`Scene::report_tick_changes`]).
+    tick_changes: std::sync::OnceLock<TickChanges>,
 }
 
-/// Avatars whose live driver went silent past the drive timeout, as a tick found them: the
-/// server announces each (`avatar_changed`, its `driver` gone), as it does for a driver that
-/// disconnects.
-pub type DrivesEnded = tokio::sync::mpsc::UnboundedSender<(SceneId, AvatarId)>;
+/// Avatars a tick changed by itself, which the server announces (`avatar_changed`, or
+/// `avatar_removed` for one no longer in the scene): a live driver gone silent past the drive
+/// timeout (its `driver` gone, as for a driver that disconnects), and a replay's avatars coming
+/// on or going off stage with its take ([`replay`]).
+pub type TickChanges = tokio::sync::mpsc::UnboundedSender<(SceneId, AvatarId)>;
 
 impl Scene {
     /// An empty scene ticking at `tick_rate` (the rate subscriptions divide).
@@ -118,7 +119,7 @@ impl Scene {
             keyed: tokio::sync::Mutex::new(()),
             answers: Mutex::new(answers::Recent::new()),
             viewers_pending: AtomicBool::new(false),
-            drives_ended: std::sync::OnceLock::new(),
+            tick_changes: std::sync::OnceLock::new(),
         }
     }
 
@@ -254,23 +255,23 @@ impl Scene {
         };
         s.clock = clock;
         let state = &mut *s;
+        let mut changed = Vec::new();
         if let Some(replay) = &mut state.replay {
-            replay.step(clock, &mut state.avatars, &mut feed);
+            replay.step(clock, &mut state.avatars, &mut feed, &mut changed);
         }
         // Avatars with goals relative to joints tick after the others, their goals' frames
         // taken from the poses of this tick (a hand on a walking avatar's shoulder stays on it).
         let follows = |a: &Avatar| a.goals.references().next().is_some();
-        let mut drives_ended = Vec::new();
         for a in s.avatars.iter_mut().filter(|a| !follows(a)) {
             if a.tick(clock) {
-                drives_ended.push(a.id.clone());
+                changed.push(a.id.clone());
             }
         }
         if s.avatars.iter().any(follows) {
             follow_joints(&mut s.avatars);
             for a in s.avatars.iter_mut().filter(|a| follows(a)) {
                 if a.tick(clock) {
-                    drives_ended.push(a.id.clone());
+                    changed.push(a.id.clone());
                 }
             }
         }
@@ -294,8 +295,8 @@ impl Scene {
         feed.publish(snapshots, at, key_interval);
         drop(feed);
         self.ticks.send_replace(seq);
-        if let Some(tell) = self.drives_ended.get() {
-            for avatar in drives_ended {
+        if let Some(tell) = self.tick_changes.get() {
+            for avatar in changed {
                 // The receiver lives as long as the server; after it, nobody is left to tell.
                 tell.send((self.id.clone(), avatar)).ok();
             }
@@ -303,10 +304,10 @@ impl Scene {
         held
     }
 
-    /// Where its ticks report avatars whose live driver went silent past the drive timeout
-    /// (set once, by the world that made it; [`crate::world::World::take_drives_ended`]).
-    pub fn report_drives_ended(&self, to: DrivesEnded) {
-        self.drives_ended.set(to).ok();
+    /// Where its ticks report the avatars they changed by themselves ([`TickChanges`])
+    /// (set once, by the world that made it; [`crate::world::World::take_tick_changes`]).
+    pub fn report_tick_changes(&self, to: TickChanges) {
+        self.tick_changes.set(to).ok();
     }
 
     /// Ends the scene's tick task (the scene goes on, relayed: [`crate::world::World::demote`]).

@@ -219,9 +219,16 @@ impl Replay {
 
     /// Before the avatars tick at scene clock `clock`: the take's frame at the replay's time
     /// becomes the replayed avatars' pose; avatars the frame has come on stage, those it has
-    /// not go off (subscribers are told through `feed`). Avatars taken over stay where they
+    /// not go off (subscribers are told through `feed`; the ids of those that came or went are
+    /// added to `moved`, for the scene list's watchers). Avatars taken over stay where they
     /// are. A frame that cannot be read stops the replay where it is (logged once).
-    pub fn step(&mut self, clock: f64, avatars: &mut Vec<Avatar>, feed: &mut Feed) {
+    pub fn step(
+        &mut self,
+        clock: f64,
+        avatars: &mut Vec<Avatar>,
+        feed: &mut Feed,
+        moved: &mut Vec<AvatarId>,
+    ) {
         if self.failed.is_some() {
             return;
         }
@@ -231,7 +238,7 @@ impl Replay {
         if self.shown == Some(i) {
             return;
         }
-        if let Err(e) = self.show(i, clock, avatars, feed) {
+        if let Err(e) = self.show(i, clock, avatars, feed, moved) {
             tracing::warn!(take = %self.take, error = %e, "replay stopped: the take cannot be read on");
             self.failed = Some(e.to_string());
         }
@@ -243,6 +250,7 @@ impl Replay {
         clock: f64,
         avatars: &mut Vec<Avatar>,
         feed: &mut Feed,
+        moved: &mut Vec<AvatarId>,
     ) -> Result<(), TakeError> {
         let poses = self.reader.poses(i)?;
         self.shown = Some(i);
@@ -258,6 +266,7 @@ impl Replay {
             if ours && a.replayed.is_some() && !on.contains(&&a.id) {
                 let a = avatars.remove(k);
                 feed.avatar_removed(&a);
+                moved.push(a.id.clone());
                 self.offstage.push(a);
             } else {
                 k += 1;
@@ -273,6 +282,7 @@ impl Replay {
                 a.replayed = Some(p.pose.clone());
                 a.evaluate();
                 feed.avatar_added(&a);
+                moved.push(a.id.clone());
                 avatars.push(a);
             } else if let Some(a) = avatars.iter_mut().find(|a| &a.id == id)
                 && let Some(replayed) = &mut a.replayed

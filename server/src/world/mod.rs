@@ -15,7 +15,7 @@ pub mod morph;
 pub mod replays;
 
 use crate::metrics::Metrics;
-use crate::scene::{DrivesEnded, Scene, ticker};
+use crate::scene::{Scene, TickChanges, ticker};
 use posecast_core::error::Error;
 use posecast_core::quota::{Quota, Quotas};
 use posecast_proto::msg::{AvatarId, SceneId, check_id};
@@ -47,14 +47,15 @@ pub struct World {
     avatar_ids: Mutex<()>,
     /// Scene and avatar numbers derived from their ids (servers of a cluster agree on them).
     numbers_from_ids: AtomicBool,
-    /// Every scene's ticks report drives ended by silence here ([`World::take_drives_ended`]).
-    drives_ended: DrivesEnded,
-    drives_ended_rx: Mutex<Option<DrivesEndedRx>>,
+    /// Every scene's ticks report the avatars they changed by themselves here
+    /// ([`World::take_tick_changes`]).
+    tick_changes: TickChanges,
+    tick_changes_rx: Mutex<Option<TickChangesRx>>,
 }
 
-/// What [`World::take_drives_ended`] hands out: `(scene, avatar)` for each drive a tick ended
-/// because its driver went silent.
-pub type DrivesEndedRx = tokio::sync::mpsc::UnboundedReceiver<(SceneId, AvatarId)>;
+/// What [`World::take_tick_changes`] hands out: `(scene, avatar)` for each avatar a tick
+/// changed by itself ([`crate::scene::TickChanges`]).
+pub type TickChangesRx = tokio::sync::mpsc::UnboundedReceiver<(SceneId, AvatarId)>;
 
 /// A number for a binary frame derived from an id: 32-bit FNV-1a, never 0. Servers of a
 /// cluster derive the same numbers for the same scenes and avatars without asking each other,
@@ -73,10 +74,10 @@ impl World {
     /// An empty world whose scenes tick at `tick_rate` Hz, within `quotas`.
     #[must_use]
     pub fn new(tick_rate: f32, quotas: Quotas, metrics: Arc<Metrics>) -> Self {
-        let (drives_ended, rx) = tokio::sync::mpsc::unbounded_channel();
+        let (tick_changes, rx) = tokio::sync::mpsc::unbounded_channel();
         Self {
-            drives_ended,
-            drives_ended_rx: Mutex::new(Some(rx)),
+            tick_changes,
+            tick_changes_rx: Mutex::new(Some(rx)),
             library: Library::new(),
             retargets: RetargetCache::default(),
             metrics,
@@ -90,11 +91,11 @@ impl World {
         }
     }
 
-    /// The drives that scenes' ticks end because the driver went silent (once: the server's
-    /// announcer takes it at start, [`crate::changes::announce_drives_ended`]; later calls get
+    /// The avatars scenes' ticks change by themselves (once: the server's
+    /// announcer takes it at start, [`crate::changes::announce_tick_changes`]; later calls get
     /// `None`).
-    pub fn take_drives_ended(&self) -> Option<DrivesEndedRx> {
-        self.drives_ended_rx
+    pub fn take_tick_changes(&self) -> Option<TickChangesRx> {
+        self.tick_changes_rx
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
             .take()
@@ -247,7 +248,7 @@ impl World {
             self.metrics.clone(),
             self.tick_rate,
         ));
-        scene.report_drives_ended(self.drives_ended.clone());
+        scene.report_tick_changes(self.tick_changes.clone());
         if !ticked {
             scene.feed().begin_relay(Vec::new());
         }

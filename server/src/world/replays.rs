@@ -121,7 +121,8 @@ impl World {
                 // (`changes`) and the first subscribers find them.
                 let s = &mut *s;
                 if let Some(replay) = &mut s.replay {
-                    replay.step(clock, &mut s.avatars, &mut created.feed());
+                    // Announced with the answer (`changes`), not as tick changes.
+                    replay.step(clock, &mut s.avatars, &mut created.feed(), &mut Vec::new());
                 }
                 state
             })
