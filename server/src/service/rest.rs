@@ -342,6 +342,7 @@ pub async fn take(
     control::takes::describe(&state, &caller, take).await?;
     let file = name.clone();
     let take = take.to_owned();
+    let _turn = crate::takes::export::turn().await;
     let (takes, world) = (state.takes.clone(), state.clone());
     let bytes = tokio::task::spawn_blocking(move || {
         let index = takes.index(&take)?;
@@ -381,6 +382,7 @@ pub async fn take_avatar(
     })?;
     let avatar = posecast_proto::msg::AvatarId(avatar.to_owned());
     control::takes::describe(&state, &caller, &take).await?;
+    let _turn = crate::takes::export::turn().await;
     let (takes, world, name) = (state.takes.clone(), state.clone(), take.clone());
     let bytes = tokio::task::spawn_blocking(move || {
         let index = takes.index(&name)?;
