@@ -389,12 +389,16 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
         rust_ticks.len(),
         recorded.len()
     );
-    // The avatar moved: the compared poses are not one pose repeated.
+    // The avatar moved: the compared poses are not one pose repeated. (Over every tick: the
+    // first, middle and last alone can fall on the same phase of the walk cycle.)
     let moved = rust_ticks.values().map(|(r, _)| r[1]).collect::<Vec<_>>();
+    let farthest = moved
+        .iter()
+        .map(|q| angle_between_degrees(moved[0], *q))
+        .fold(0.0f64, f64::max);
     assert!(
-        angle_between_degrees(moved[0], moved[moved.len() / 2]) > 0.5
-            || angle_between_degrees(moved[0], moved[moved.len() - 1]) > 0.5,
-        "the avatar did not move"
+        farthest > 0.5,
+        "the avatar did not move: joint 1 at most {farthest}° from its first pose"
     );
     println!(
         "posecast.js vs posecast_client: {ticks} ticks ({deltas} deltas), {rotations} rotations, \
