@@ -151,6 +151,33 @@ pub trait Cluster: Send + Sync + std::fmt::Debug {
     /// Removes recorded clip `clip` of rig `rig` from the cluster's store (`delete_clip`),
     /// best effort: a server restoring it later finds it gone.
     fn unshare_recording<'a>(&'a self, rig: &'a str, clip: &'a str) -> BoxFuture<'a, ()>;
+    /// The takes in the cluster's store, described as they were put.
+    ///
+    /// # Errors
+    /// `unavailable` when NATS cannot be read.
+    fn shared_takes(&self) -> BoxFuture<'_, Result<Vec<posecast_proto::command::TakeInfo>, Error>>;
+    /// Whether the cluster's store has take `take`.
+    ///
+    /// # Errors
+    /// `unavailable` when NATS cannot be read.
+    fn has_take<'a>(&'a self, take: &'a str) -> BoxFuture<'a, Result<bool, Error>>;
+    /// Puts take `take`, ended here, into the cluster's store (before `stop_recording_scene`
+    /// answers; the lease loop retries what fails).
+    ///
+    /// # Errors
+    /// `unavailable` when it could not be stored.
+    fn share_take<'a>(&'a self, take: &'a str) -> BoxFuture<'a, Result<(), Error>>;
+    /// Makes this server's copy of take `take` the cluster's current one (read, or deleted
+    /// when the cluster no longer has it); returns whether the cluster has it.
+    ///
+    /// # Errors
+    /// `unavailable` (NATS), `quota_exceeded` (no room here for the copy).
+    fn fetch_take<'a>(&'a self, take: &'a str) -> BoxFuture<'a, Result<bool, Error>>;
+    /// Removes take `take` from the cluster's store; returns whether it was there.
+    ///
+    /// # Errors
+    /// `unavailable` when NATS cannot be reached.
+    fn delete_take<'a>(&'a self, take: &'a str) -> BoxFuture<'a, Result<bool, Error>>;
     /// Sends `drive` (`command`) for an avatar of scene `scene`, ticked elsewhere, to the
     /// scene's owner, which drives the avatar for connection `conn` of this server; answers
     /// with the owner's answer.

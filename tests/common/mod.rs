@@ -11,6 +11,7 @@ pub mod feed;
 pub mod link;
 pub mod nats;
 pub mod vmc;
+pub mod watch;
 
 use futures_util::{SinkExt, StreamExt};
 use posecast_client::net::Client;

@@ -123,16 +123,17 @@ fn decode(bytes: &[u8]) -> Result<(String, FileSet, PipelineOptions), String> {
     Ok((header.name, set, header.options.unwrap_or_default()))
 }
 
-/// Opens the bucket, creating its stream on the first start (by hand, as the key-value ones:
-/// the client's `create_object_store` asks for account information servers before 2.10 do
-/// not give). The layout is the object-store one: chunks and metadata subjects, rollup.
-pub(super) async fn open(js: &async_nats::jetstream::Context) -> Result<Bucket, String> {
+/// Opens object store `name`, creating its stream on the first start (by hand, as the
+/// key-value buckets: the client's `create_object_store` asks for account information servers
+/// before 2.10 do not give). The layout is the object-store one: chunks and metadata
+/// subjects, rollup.
+pub(super) async fn open(
+    js: &async_nats::jetstream::Context,
+    name: &'static str,
+) -> Result<Bucket, String> {
     let config = async_nats::jetstream::stream::Config {
-        name: format!("OBJ_{ASSETS_BUCKET}"),
-        subjects: vec![
-            format!("$O.{ASSETS_BUCKET}.C.>"),
-            format!("$O.{ASSETS_BUCKET}.M.>"),
-        ],
+        name: format!("OBJ_{name}"),
+        subjects: vec![format!("$O.{name}.C.>"), format!("$O.{name}.M.>")],
         discard: async_nats::jetstream::stream::DiscardPolicy::New,
         allow_rollup: true,
         allow_direct: true,
@@ -140,24 +141,25 @@ pub(super) async fn open(js: &async_nats::jetstream::Context) -> Result<Bucket, 
         ..Default::default()
     };
     let stream = js.get_or_create_stream(config).await.map_err(|e| {
-        format!("cannot create object store {ASSETS_BUCKET} ({e}): is JetStream enabled (nats-server -js)?")
+        format!("cannot create object store {name} ({e}): is JetStream enabled (nats-server -js)?")
     })?;
-    js.get_object_store(ASSETS_BUCKET)
+    js.get_object_store(name)
         .await
-        .map(|store| Bucket(store, stream))
-        .map_err(|e| format!("cannot open object store {ASSETS_BUCKET}: {e}"))
+        .map(|store| Bucket(store, stream, name))
+        .map_err(|e| format!("cannot open object store {name}: {e}"))
 }
 
-/// The bucket (the client's handle has no `Debug`), and its stream, whose last sequence
-/// number tells whether anything was put since the last look.
+/// An object store (the client's handle has no `Debug`), its stream, whose last sequence
+/// number tells whether anything was put since the last look, and its name.
 pub(super) struct Bucket(
     pub(super) object_store::ObjectStore,
-    async_nats::jetstream::stream::Stream,
+    pub(super) async_nats::jetstream::stream::Stream,
+    &'static str,
 );
 
 impl std::fmt::Debug for Bucket {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(ASSETS_BUCKET)
+        f.write_str(self.2)
     }
 }
 

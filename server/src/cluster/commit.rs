@@ -145,11 +145,20 @@ impl Cluster {
         let slot = self.slot(id);
         let mut recent = slot.lock().await;
         let op = op_of(command);
-        if let Command::CreateScene { .. } = command {
+        if let Command::CreateScene { .. } | Command::Replay { .. } = command {
             if let Some(again) = key.and_then(|k| answered(&recent, k, &op)) {
                 return again;
             }
-            return self.create(state, id, key, op, run, &mut recent).await;
+            let result = self.create(state, id, key, op, run, &mut recent).await?;
+            if let Command::Replay { .. } = command {
+                // The claim stored the empty scene: now the replay and its avatars, so a
+                // server taking the scene over resumes it.
+                if let Written::Failed { error, .. } = self.write_snapshot(state, id, &recent).await
+                {
+                    warn!(scene = %id, %error, "the new replay's snapshot is not stored yet: the next change stores it");
+                }
+            }
+            return Ok(result);
         }
         let Some(expected) = lock(&self.owned).get(id).map(|o| o.snapshot_revision) else {
             return Err(not_here(id));
@@ -307,6 +316,7 @@ impl Cluster {
             saved_us: crate::scene::ticker::unix_micros(),
             avatars: Vec::new(),
             recent: recent.iter().cloned().collect(),
+            replay: None,
         };
         let bytes = serde_json::to_vec(&empty)
             .map_err(|e| Error::internal("cannot serialise the scene", &e))?;

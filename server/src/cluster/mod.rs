@@ -9,6 +9,8 @@
 //!   commands and joiners' requests answered.
 //! - `assets`: uploaded assets in object store `posecast_assets`, imported by every server.
 //! - `drive`: live driving of an avatar through its scene's owner.
+//! - `takes`: takes of scenes (`record_scene`) in object store `posecast_takes`, replayed by
+//!   any server.
 //! - `relay`: a scene ticked elsewhere — its frames fanned out here to this server's
 //!   subscribers, as the same bytes.
 //!
@@ -31,6 +33,7 @@ mod drive;
 pub mod identity;
 mod owner;
 mod relay;
+mod takes;
 
 use crate::config::Config;
 use crate::control;
@@ -112,6 +115,7 @@ pub struct Connection {
     /// then: applied before the server serves anything, then watched from there on.
     revocations: (Vec<(String, u64)>, u64),
     assets: assets::Bucket,
+    takes: assets::Bucket,
     node: String,
     lease: Duration,
     lost: Arc<AtomicBool>,
@@ -238,7 +242,10 @@ pub async fn connect(config: &Config, port: u16) -> std::io::Result<Connection> 
     )
     .await?;
     let revocations = read_revocations(&revoked).await.map_err(fail)?;
-    let assets = assets::open(&js).await.map_err(fail)?;
+    let assets = assets::open(&js, assets::ASSETS_BUCKET)
+        .await
+        .map_err(fail)?;
+    let takes = assets::open(&js, takes::TAKES_BUCKET).await.map_err(fail)?;
     info!(nats = %urls, node = %node, lease_ms = lease.as_millis() as u64, "joined the cluster");
     Ok(Connection {
         client,
@@ -247,6 +254,7 @@ pub async fn connect(config: &Config, port: u16) -> std::io::Result<Connection> 
         revoked,
         revocations,
         assets,
+        takes,
         node,
         lease,
         lost,
@@ -420,12 +428,22 @@ pub fn start(state: &Arc<AppState>, mut conn: Connection) -> Arc<Cluster> {
     });
     state.join_cluster(cluster.clone());
     let running = cluster.clone();
+    let state_for_takes = state.clone();
     let state = state.clone();
     tokio::spawn(async move {
         if state.readiness.wait().await.is_err() {
             return;
         }
         running.run().await;
+    });
+    // Takes are shared by a loop of their own: putting a long take must never hold up the
+    // lease renewals.
+    let sharing = cluster.clone();
+    tokio::spawn(async move {
+        if state_for_takes.readiness.wait().await.is_err() {
+            return;
+        }
+        sharing.share_takes().await;
     });
     cluster
 }
@@ -651,7 +669,7 @@ impl Cluster {
             Ok(_) => Err("no snapshot".into()),
             Err(e) => Err(e.to_string()),
         };
-        let file = match file {
+        let mut file = match file {
             Ok((file, dropped)) => {
                 for d in dropped {
                     warn!(scene = %id, "{d}");
@@ -675,6 +693,15 @@ impl Cluster {
             self.conn.leases.delete(key(id)).await.ok();
             return;
         }
+        // A replay's take is read here first (its rigs must be here too).
+        let resumable = match self.prepare_resume(state, &mut file).await {
+            Ok(r) => r,
+            Err(e) => {
+                warn!(scene = %id, error = %e, "not taking the replay scene over yet");
+                self.conn.leases.delete(key(id)).await.ok();
+                return;
+            }
+        };
         lock(&self.short_of_assets).remove(id);
         let now = crate::scene::ticker::unix_micros();
         let scene = if state.world.scene(id).is_ok_and(|s| s.is_relay()) {
@@ -694,6 +721,9 @@ impl Cluster {
         // lease (ours) is the only one its messages are believed from.
         if let Some(r) = lock(&self.relays).remove(id) {
             r.stop();
+        }
+        if let (Ok(scene), Some(r)) = (&scene, resumable) {
+            self.resume(state, scene, r, file.saved_us).await;
         }
         match scene {
             Ok(scene) => {
@@ -883,6 +913,45 @@ impl crate::state::Cluster for Cluster {
         glb: Vec<u8>,
     ) -> BoxFuture<'a, Result<(), Error>> {
         Box::pin(self.put_recording(rig, clip, glb))
+    }
+
+    fn shared_takes(&self) -> BoxFuture<'_, Result<Vec<posecast_proto::command::TakeInfo>, Error>> {
+        Box::pin(async move {
+            let mut takes: Vec<_> = self
+                .bucket_takes()
+                .await?
+                .into_values()
+                .map(|(t, _)| t)
+                .collect();
+            takes.sort_by_key(|t| (t.started_us, t.take.clone()));
+            Ok(takes)
+        })
+    }
+
+    fn has_take<'a>(&'a self, take: &'a str) -> BoxFuture<'a, Result<bool, Error>> {
+        Box::pin(async move { Ok(self.take_object(take).await?.is_some()) })
+    }
+
+    fn share_take<'a>(&'a self, take: &'a str) -> BoxFuture<'a, Result<(), Error>> {
+        Box::pin(async move {
+            let Some(state) = self.state() else {
+                return Err(Error::Unavailable("the server is stopping".into()));
+            };
+            self.put_take(&state, take).await
+        })
+    }
+
+    fn fetch_take<'a>(&'a self, take: &'a str) -> BoxFuture<'a, Result<bool, Error>> {
+        Box::pin(async move {
+            let Some(state) = self.state() else {
+                return Err(Error::Unavailable("the server is stopping".into()));
+            };
+            self.fetch_take(&state, take).await
+        })
+    }
+
+    fn delete_take<'a>(&'a self, take: &'a str) -> BoxFuture<'a, Result<bool, Error>> {
+        Box::pin(self.delete_take(take))
     }
 
     fn drive<'a>(

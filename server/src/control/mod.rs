@@ -145,7 +145,7 @@ async fn execute_unkeyed(
         }
         _ => {}
     }
-    if let Some(result) = takes::run(state, caller, command).await {
+    if let Some(result) = takes::run(state, caller, command, key).await {
         if let Ok(r) = &result {
             // Take commands name no avatar: noting what comes before costs nothing.
             changes::after(state, command, changes::before(state, command), r);

@@ -4,11 +4,11 @@
 //! pool; the scene's feed only gains or loses its sink under its lock.
 
 use crate::auth::Caller;
-use crate::state::AppState;
+use crate::state::{AppState, RunError};
 use crate::takes::{TakeLimits, Takes};
 use crate::world::replays::ReplayStart;
 use posecast_core::error::Error;
-use posecast_proto::command::{Command, CommandResult};
+use posecast_proto::command::{Command, CommandResult, TakeInfo};
 use posecast_proto::msg::SceneId;
 
 /// The room `record_scene` needs left in the data quota (about 8 s of 10 avatars at 60 Hz):
@@ -18,29 +18,14 @@ pub const MIN_ROOM: u64 = 64 << 10;
 /// The longest take, seconds of scene time (`record_scene`'s `max_seconds` at most).
 pub const MAX_TAKE_SECONDS: f32 = 4.0 * 3600.0;
 
-/// Runs a take command; `None` for any other command.
+/// Runs a take command; `None` for any other command. `key`: the command's idempotency key
+/// (a replay in a cluster is answered again from it, as `create_scene` is).
 pub(super) async fn run(
     state: &AppState,
     caller: &Caller,
     command: &Command,
+    key: Option<&str>,
 ) -> Option<Result<CommandResult, Error>> {
-    let takes = matches!(
-        command,
-        Command::RecordScene { .. }
-            | Command::StopRecordingScene { .. }
-            | Command::ListTakes
-            | Command::GetTake { .. }
-            | Command::DeleteTake { .. }
-            | Command::Replay { .. }
-    );
-    if takes && state.cluster().is_some() {
-        state.metrics.command(false);
-        return Some(Err(Error::NotAllowedNow(
-            "takes are not available on servers of a cluster yet (they would live on one \
-             server only)"
-                .into(),
-        )));
-    }
     let result = match command {
         Command::RecordScene {
             scene,
@@ -48,7 +33,7 @@ pub(super) async fn run(
             max_seconds,
         } => record_scene(state, caller, scene, take, *max_seconds).await,
         Command::StopRecordingScene { scene } => stop_recording_scene(state, scene).await,
-        Command::ListTakes => blocking(state, |s| Ok(s.list())).await.map(|takes| {
+        Command::ListTakes => list_takes(state).await.map(|takes| {
             // A token limited to some scenes sees the takes of those.
             let access = &state.config.access;
             CommandResult::Takes(
@@ -75,7 +60,19 @@ pub(super) async fn run(
                 looping: looping.unwrap_or(false),
             };
             match describe(state, caller, take).await {
-                Ok(_) => replay(state, take, scene, start).await,
+                Ok(_) => match state.cluster() {
+                    // Claimed cluster-wide like a new scene, and stored with its replay: every
+                    // server serves it, and one taking it over resumes it.
+                    Some(cluster) => {
+                        let run = Box::pin(async move {
+                            replay(state, take, scene, start)
+                                .await
+                                .map_err(RunError::Refused)
+                        });
+                        cluster.commit(command, scene, key, run).await
+                    }
+                    None => replay(state, take, scene, start).await,
+                },
                 Err(e) => Err(e),
             }
         }
@@ -83,6 +80,30 @@ pub(super) async fn run(
     };
     state.metrics.command(result.is_ok());
     Some(result)
+}
+
+/// The takes: on a server of a cluster the cluster's, with those being recorded (or not yet
+/// shared) here.
+async fn list_takes(state: &AppState) -> Result<Vec<TakeInfo>, Error> {
+    let Some(cluster) = state.cluster() else {
+        return blocking(state, |s| Ok(s.list())).await;
+    };
+    let mut takes = cluster.shared_takes().await?;
+    let here = blocking(state, |s| {
+        Ok(s.names()
+            .into_iter()
+            .filter(|n| s.shared_as(n).is_none())
+            .filter_map(|n| s.describe(&n).ok())
+            .collect::<Vec<_>>())
+    })
+    .await?;
+    for t in here {
+        if !takes.iter().any(|c| c.take == t.take) {
+            takes.push(t);
+        }
+    }
+    takes.sort_by_key(|t| (t.started_us, t.take.clone()));
+    Ok(takes)
 }
 
 /// Runs `f` with the takes on the blocking pool (it reads or writes files).
@@ -106,6 +127,10 @@ pub async fn describe(
     caller: &Caller,
     take: &str,
 ) -> Result<posecast_proto::command::TakeInfo, Error> {
+    if let Some(cluster) = state.cluster() {
+        // The cluster's take, read here first (once per version).
+        cluster.fetch_take(take).await?;
+    }
     let name = take.to_owned();
     let info = blocking(state, move |s| s.describe(&name)).await?;
     state.config.access.authorize_view(caller, &info.scene)?;
@@ -134,6 +159,11 @@ async fn record_scene(
             )));
         }
     };
+    if let Some(cluster) = state.cluster()
+        && cluster.has_take(take).await?
+    {
+        return Err(Error::Conflict(format!("take {take} exists")));
+    }
     let rate = state.config.tick_rate;
     // Room for a useful take at least; what it may grow to is the quota's rest.
     crate::ingest::check_room(state, caller, &format!("take {take}"), MIN_ROOM)?;
@@ -162,15 +192,22 @@ async fn stop_recording_scene(state: &AppState, scene: &SceneId) -> Result<Comma
     // The sink leaves the feed: the writer gets what was queued, syncs and ends.
     drop(s.feed().record(None));
     let scene = scene.clone();
-    blocking(state, move |s| {
+    let info = blocking(state, move |s| {
         let (take, why) = s.finish(&scene)?;
         if let Some(why) = why {
             tracing::info!(%take, why, "the take had ended by itself");
         }
         s.describe(&take)
     })
-    .await
-    .map(|t| CommandResult::Take(Box::new(t)))
+    .await?;
+    if let Some(cluster) = state.cluster()
+        && let Err(e) = cluster.share_take(&info.take).await
+    {
+        // Kept here meanwhile (listed by this server) and shared at the lease loop's next
+        // look that NATS answers.
+        tracing::warn!(take = %info.take, error = %e, "the take is not shared with the cluster yet");
+    }
+    Ok(CommandResult::Take(Box::new(info)))
 }
 
 async fn delete_take(state: &AppState, take: &str) -> Result<CommandResult, Error> {
@@ -179,10 +216,18 @@ async fn delete_take(state: &AppState, take: &str) -> Result<CommandResult, Erro
             "take {take} is being replayed: delete its replay scenes first"
         )));
     }
+    // In a cluster the cluster's copy goes first; the one here (if any) after it, and other
+    // servers' copies at their next look.
+    let shared = match state.cluster() {
+        Some(cluster) => cluster.delete_take(take).await?,
+        None => false,
+    };
     let take = take.to_owned();
-    blocking(state, move |s| s.delete(&take))
-        .await
-        .map(|_| CommandResult::Done)
+    match blocking(state, move |s| s.delete(&take)).await {
+        Ok(_) => Ok(CommandResult::Done),
+        Err(Error::UnknownTake(_)) if shared => Ok(CommandResult::Done),
+        Err(e) => Err(e),
+    }
 }
 
 async fn replay(

@@ -135,6 +135,12 @@ impl Replay {
         &self.take
     }
 
+    /// Whether avatar `id` is one the replay moves (on stage or off).
+    #[must_use]
+    pub fn casts(&self, id: &AvatarId) -> bool {
+        self.cast.values().any(|c| c == id)
+    }
+
     /// Whether avatar `id` of the replay is off stage now.
     #[must_use]
     pub fn has_offstage(&self, id: &AvatarId) -> bool {

@@ -34,9 +34,33 @@ pub struct SceneFile {
     /// cluster, is answered without applying the command again; files without: none.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub recent: Vec<RecentCommand>,
+    /// The take the scene replays, when it is a replay (`replay`). Written in a cluster only,
+    /// where a server taking the scene over resumes it; a server on its own does not store
+    /// replays (a restart ends them).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub replay: Option<ReplayRecord>,
 }
 
 pub use crate::scene::answers::RecentCommand;
+
+/// Where a replay was when its scene's snapshot was taken.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ReplayRecord {
+    /// The take.
+    pub take: String,
+    /// Seconds into the take at `saved_us`.
+    pub time: f64,
+    /// Take seconds per scene second.
+    pub speed: f32,
+    /// Whether it is paused.
+    pub paused: bool,
+    /// Whether it loops.
+    pub looping: bool,
+    /// The avatars on stage it moves (the scene's other avatars were taken over by a clip, or
+    /// added).
+    pub replayed: Vec<AvatarId>,
+}
 
 /// One avatar.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -95,12 +119,29 @@ pub struct PlaybackRecord {
 #[must_use]
 pub fn snapshot(scene: &Scene, now_us: u64) -> SceneFile {
     let s = scene.lock();
+    let replay = s.replay.as_ref().map(|r| {
+        let state = r.state(&scene.id, s.clock());
+        ReplayRecord {
+            take: state.take,
+            time: state.time,
+            speed: state.speed,
+            paused: state.paused,
+            looping: state.looping,
+            replayed: s
+                .avatars
+                .iter()
+                .filter(|a| a.replayed.is_some() && r.casts(&a.id))
+                .map(|a| a.id.clone())
+                .collect(),
+        }
+    });
     SceneFile {
         format: SCENE_FORMAT,
         scene: scene.id.clone(),
         saved_us: now_us,
         avatars: s.avatars.iter().map(record).collect(),
         recent: scene.answers().iter().cloned().collect(),
+        replay,
     }
 }
 
@@ -355,6 +396,12 @@ pub fn parse_lenient(value: &serde_json::Value) -> Result<(SceneFile, Vec<String
             Vec::new()
         }),
     };
+    let replay = match field("replay") {
+        Value::Null => None,
+        r => serde_json::from_value::<ReplayRecord>(r)
+            .map_err(|e| dropped.push(format!("the replay ({e})")))
+            .ok(),
+    };
     Ok((
         SceneFile {
             format,
@@ -362,6 +409,7 @@ pub fn parse_lenient(value: &serde_json::Value) -> Result<(SceneFile, Vec<String
             saved_us,
             avatars,
             recent,
+            replay,
         },
         dropped,
     ))

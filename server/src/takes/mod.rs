@@ -36,6 +36,8 @@ pub const MAX_QUEUED_BYTES: u64 = 64 << 20;
 pub const SYNC_INTERVAL: Duration = Duration::from_secs(1);
 /// The extension of take files.
 const EXTENSION: &str = "take";
+/// The extension of the file naming the cluster's copy a take file is.
+const SHARED: &str = "shared";
 
 /// Takes, stored and being recorded.
 #[derive(Debug)]
@@ -55,6 +57,11 @@ struct Inner {
     recording: HashMap<SceneId, Active>,
     /// Each stored take's description and index, with the size it was read at.
     read: HashMap<String, (u64, Arc<TakeIndex>)>,
+    /// On a server of a cluster: the takes kept here that are the cluster's copy (recorded
+    /// here and shared, or fetched), by name → the object's id in the cluster's store
+    /// (`<name>.shared` beside the take file holds it). A take not here was recorded here and
+    /// is not shared yet.
+    shared: HashMap<String, String>,
 }
 
 /// What a take being recorded has so far (shared by its sink and its writer).
@@ -275,10 +282,17 @@ impl Takes {
         self.held.load(Ordering::Relaxed)
     }
 
-    /// Counts the takes found in the data folder at start (blocking: lists it).
+    /// Counts the takes found in the data folder at start, and which of them are the
+    /// cluster's copies (blocking: lists it).
     pub fn restore(&self) {
         let n = self.stored_bytes();
         self.held.store(n, Ordering::Relaxed);
+        for name in self.names() {
+            let Some(path) = self.path(&name) else { break };
+            if let Ok(nuid) = std::fs::read_to_string(path.with_extension(SHARED)) {
+                self.lock().shared.insert(name, nuid.trim().to_owned());
+            }
+        }
         if n > 0 {
             tracing::info!(takes = self.names().len(), bytes = n, "takes found");
         }
@@ -562,7 +576,11 @@ impl Takes {
     pub fn describe(&self, take: &str) -> Result<TakeInfo, Error> {
         {
             let inner = self.lock();
-            if let Some(a) = inner.recording.values().find(|a| a.take == take) {
+            if let Some(a) = inner
+                .recording
+                .values()
+                .find(|a| a.take == take && a.writing())
+            {
                 return Ok(self.describe_active(a));
             }
         }
@@ -620,11 +638,14 @@ impl Takes {
         let mut inner = self.lock();
         inner.read.remove(take);
         inner.recording.retain(|_, a| a.take != take);
+        inner.shared.remove(take);
         match self.path(take) {
             Some(p) => {
                 let bytes = std::fs::metadata(&p)
                     .map_err(|_| Error::UnknownTake(format!("no take {take}")))?
                     .len();
+                // The mark first: a take file without one is a take to share.
+                std::fs::remove_file(p.with_extension(SHARED)).ok();
                 crate::store::atomic::remove_durable(&p)
                     .map_err(|e| Error::storing(&format!("cannot delete take {take}"), &e))?;
                 self.release(bytes);
@@ -644,6 +665,115 @@ impl Takes {
                 Ok(bytes)
             }
         }
+    }
+
+    /// The id of the cluster's copy take `take` is (`None`: recorded here and not shared
+    /// yet, or not here).
+    #[must_use]
+    pub fn shared_as(&self, take: &str) -> Option<String> {
+        self.lock().shared.get(take).cloned()
+    }
+
+    /// Marks take `take` as the cluster's copy `nuid` (blocking: writes its mark).
+    ///
+    /// # Errors
+    /// `internal`/`storage_full` when the mark cannot be written.
+    pub fn mark_shared(&self, take: &str, nuid: &str) -> Result<(), Error> {
+        if let Some(p) = self.path(take) {
+            crate::store::atomic::write_atomic(&p.with_extension(SHARED), nuid.as_bytes())
+                .map_err(|e| Error::storing(&format!("cannot mark take {take} shared"), &e))?;
+        }
+        self.lock().shared.insert(take.to_owned(), nuid.to_owned());
+        Ok(())
+    }
+
+    /// Takes recorded here that ended and are not the cluster's yet (blocking: lists them).
+    #[must_use]
+    pub fn unshared(&self) -> Vec<String> {
+        let names = self.names();
+        let inner = self.lock();
+        names
+            .into_iter()
+            .filter(|n| !inner.shared.contains_key(n))
+            .filter(|n| {
+                !inner
+                    .recording
+                    .values()
+                    .any(|a| &a.take == n && a.writing())
+            })
+            .collect()
+    }
+
+    /// Take `take`'s file, when takes are kept in a data folder.
+    #[must_use]
+    pub fn file(&self, take: &str) -> Option<PathBuf> {
+        check_id("take", take).ok()?;
+        self.path(take)
+    }
+
+    /// Take `take`'s bytes, whole (blocking: reads its file).
+    ///
+    /// # Errors
+    /// `unknown_take`.
+    pub fn bytes(&self, take: &str) -> Result<Vec<u8>, Error> {
+        let unknown = || Error::UnknownTake(format!("no take {take}"));
+        check_id("take", take).map_err(|_| unknown())?;
+        match self.path(take) {
+            Some(p) => std::fs::read(p).map_err(|_| unknown()),
+            None => {
+                let m = self.lock().memory.get(take).cloned().ok_or_else(unknown)?;
+                let bytes = m
+                    .lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner)
+                    .clone();
+                Ok(bytes)
+            }
+        }
+    }
+
+    /// Keeps `bytes`, the cluster's copy `nuid` of take `take`, here (in place of an older
+    /// copy). Blocking.
+    ///
+    /// # Errors
+    /// `invalid_value` (a bad name), `conflict` (a take of that name is recorded here),
+    /// `internal`/`storage_full`.
+    pub fn install(&self, take: &str, nuid: &str, bytes: &[u8]) -> Result<(), Error> {
+        check_id("take", take).map_err(|e| Error::invalid(e.message))?;
+        if self.is_recording(take) {
+            return Err(Error::Conflict(format!(
+                "take {take} is being recorded on this server"
+            )));
+        }
+        let old = match self.path(take) {
+            Some(p) => {
+                let old = std::fs::metadata(&p).map(|m| m.len()).unwrap_or(0);
+                let dir = p.parent().unwrap_or(Path::new("."));
+                std::fs::create_dir_all(dir)
+                    .map_err(|e| Error::storing("cannot make the takes folder", &e))?;
+                // Marked as a copy of no object first: a crash before the real mark leaves
+                // a copy that is fetched again at its next use, never one shared as this
+                // server's own (which could bring back a take deleted meanwhile).
+                self.mark_shared(take, "")?;
+                crate::store::atomic::write_atomic(&p, bytes)
+                    .map_err(|e| Error::storing(&format!("cannot keep take {take}"), &e))?;
+                old
+            }
+            None => {
+                let mut inner = self.lock();
+                let old = inner
+                    .memory
+                    .insert(take.to_owned(), Arc::new(Mutex::new(bytes.to_vec())));
+                old.map_or(0, |m| {
+                    m.lock()
+                        .unwrap_or_else(std::sync::PoisonError::into_inner)
+                        .len() as u64
+                })
+            }
+        };
+        self.release(old);
+        self.held.fetch_add(bytes.len() as u64, Ordering::Relaxed);
+        self.lock().read.remove(take);
+        self.mark_shared(take, nuid)
     }
 
     fn release(&self, bytes: u64) {
@@ -672,4 +802,59 @@ fn drivers(index: &TakeIndex) -> Vec<TakeDriver> {
         }
     }
     seen
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn limits() -> TakeLimits {
+        TakeLimits {
+            max_frames: 1000,
+            max_bytes: 1 << 20,
+        }
+    }
+
+    /// A take recorded here is to be shared until marked; a copy of the cluster's never is,
+    /// even one whose install was cut short; the marks survive a restart.
+    #[test]
+    fn only_takes_recorded_here_are_shared_and_marks_survive_a_restart() {
+        let data = tempfile::tempdir().unwrap();
+        let takes = Takes::new(Some(data.path()));
+        let scene = SceneId("stage".into());
+        let sink = takes.begin(&scene, "ours", 30.0, limits()).unwrap();
+        assert!(takes.unshared().is_empty(), "shared while it records");
+        drop(sink);
+        takes.finish(&scene).unwrap();
+        assert_eq!(takes.unshared(), vec!["ours".to_owned()]);
+        takes.mark_shared("ours", "N1").unwrap();
+        assert!(takes.unshared().is_empty());
+
+        // A copy of another server's take.
+        let bytes = takes.bytes("ours").unwrap();
+        takes.install("theirs", "N2", &bytes).unwrap();
+        assert_eq!(takes.shared_as("theirs").as_deref(), Some("N2"));
+        assert!(takes.unshared().is_empty());
+        assert_eq!(takes.describe("theirs").unwrap().frames, 0);
+        assert_eq!(takes.held_bytes(), 2 * bytes.len() as u64);
+        // A newer version replaces it, and the quota counts it once.
+        takes.install("theirs", "N3", &bytes).unwrap();
+        assert_eq!(takes.held_bytes(), 2 * bytes.len() as u64);
+
+        // An install cut short between its mark and its bytes: a copy of no object.
+        let path = data.path().join("takes");
+        std::fs::write(path.join("cut.take"), &bytes).unwrap();
+        std::fs::write(path.join("cut.shared"), "").unwrap();
+
+        let again = Takes::new(Some(data.path()));
+        again.restore();
+        assert_eq!(again.shared_as("ours").as_deref(), Some("N1"));
+        assert_eq!(again.shared_as("theirs").as_deref(), Some("N3"));
+        assert_eq!(again.shared_as("cut").as_deref(), Some(""));
+        assert!(again.unshared().is_empty(), "{:?}", again.unshared());
+        // Deleting a copy takes its mark.
+        again.delete("theirs").unwrap();
+        assert!(!path.join("theirs.shared").exists());
+        assert_eq!(again.shared_as("theirs"), None);
+    }
 }

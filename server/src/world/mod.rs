@@ -203,6 +203,10 @@ impl World {
             }
             let described = s.avatars.iter().map(|a| a.description.clone()).collect();
             s.avatars.clear();
+            // A take of it ends here (it is shared as it is); a replay goes on where the
+            // scene's new server resumes it.
+            drop(feed.record(None));
+            s.replay = None;
             feed.begin_relay(described);
         }
         scene.stop_ticking();

@@ -40,6 +40,62 @@ impl World {
         source: TakeSource,
         start: ReplayStart,
     ) -> Result<(Arc<crate::scene::Scene>, ReplayState), Error> {
+        let cast = self.cast_of(scene, take, &index, |_| false)?;
+        // Ids are unique across scenes: checked and taken under the lock adds hold.
+        let _adding = self
+            .avatar_ids
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if let Some(c) = cast.iter().find(|c| self.find_avatar(&c.avatar.id).is_ok()) {
+            return Err(Error::Conflict(format!("avatar {} exists", c.avatar.id)));
+        }
+        let created = self.create_scene(scene.clone())?;
+        match attach(&created, take, index, source, cast, start, false) {
+            Ok(state) => Ok((created, state)),
+            Err(e) => {
+                self.delete_scene(scene).ok();
+                Err(e)
+            }
+        }
+    }
+
+    /// A replay resumed in scene `scene`, which exists (a server of a cluster taking a replay
+    /// scene over, its avatars restored from its snapshot but for the replayed ones): every
+    /// avatar of the take the scene does not have joins the cast; those it has (taken over by
+    /// a clip) stay as they are.
+    ///
+    /// # Errors
+    /// As [`Self::start_replay`].
+    pub fn resume_replay(
+        &self,
+        scene: &Arc<crate::scene::Scene>,
+        take: &str,
+        index: Arc<TakeIndex>,
+        source: TakeSource,
+        start: ReplayStart,
+        paused: bool,
+    ) -> Result<ReplayState, Error> {
+        let here = |id: &AvatarId| scene.lock().avatars.iter().any(|a| &a.id == id);
+        let cast = self.cast_of(&scene.id, take, &index, here)?;
+        let _adding = self
+            .avatar_ids
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if let Some(c) = cast.iter().find(|c| self.find_avatar(&c.avatar.id).is_ok()) {
+            return Err(Error::Conflict(format!("avatar {} exists", c.avatar.id)));
+        }
+        attach(scene, take, index, source, cast, start, paused)
+    }
+
+    /// The cast of a replay of `take` in scene `scene`: an avatar of the same rig for every
+    /// avatar of the take but those `skip` names (by their id in the replay).
+    fn cast_of(
+        &self,
+        scene: &SceneId,
+        take: &str,
+        index: &TakeIndex,
+        skip: impl Fn(&AvatarId) -> bool,
+    ) -> Result<Vec<CastMember>, Error> {
         let mut recorded: Vec<&posecast_proto::description::AvatarDescription> = Vec::new();
         for list in &index.avatar_lists {
             for d in list {
@@ -59,13 +115,16 @@ impl World {
         let mut cast = Vec::with_capacity(recorded.len());
         let by_id = self.numbers_from_ids.load(Ordering::SeqCst);
         for d in &recorded {
+            let id = AvatarId(format!("{scene}.{}", d.id));
+            if skip(&id) {
+                continue;
+            }
             let rig = self.library.get(&d.name).ok_or_else(|| {
                 Error::UnknownAsset(format!(
                     "{} (avatar {} of take {take} was made of it)",
                     d.name, d.id
                 ))
             })?;
-            let id = AvatarId(format!("{scene}.{}", d.id));
             check_id("avatar", &id.0).map_err(|e| {
                 Error::invalid(format!(
                     "replay avatar {id}: {} (choose a shorter scene id)",
@@ -92,48 +151,7 @@ impl World {
                 avatar,
             });
         }
-        // Ids are unique across scenes: checked and taken under the lock adds hold.
-        let _adding = self
-            .avatar_ids
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        if let Some(c) = cast.iter().find(|c| self.find_avatar(&c.avatar.id).is_ok()) {
-            return Err(Error::Conflict(format!("avatar {} exists", c.avatar.id)));
-        }
-        let created = self.create_scene(scene.clone())?;
-        let started = {
-            let mut s = created.lock();
-            let clock = s.clock();
-            Replay::new(
-                take.to_owned(),
-                index,
-                source,
-                cast,
-                clock,
-                start.from,
-                start.speed,
-                start.looping,
-            )
-            .map(|replay| {
-                let state = replay.state(scene, clock);
-                s.replay = Some(replay);
-                // Its first frame's avatars on stage now, so the answer's announcements
-                // (`changes`) and the first subscribers find them.
-                let s = &mut *s;
-                if let Some(replay) = &mut s.replay {
-                    // Announced with the answer (`changes`), not as tick changes.
-                    replay.step(clock, &mut s.avatars, &mut created.feed(), &mut Vec::new());
-                }
-                state
-            })
-        };
-        match started {
-            Ok(state) => Ok((created, state)),
-            Err(e) => {
-                self.delete_scene(scene).ok();
-                Err(e)
-            }
-        }
+        Ok(cast)
     }
 
     /// `control_replay` on scene `scene`.
@@ -167,4 +185,38 @@ impl World {
             .filter_map(|s| s.lock().replay.as_ref().map(|r| r.take().to_owned()))
             .collect()
     }
+}
+
+/// Starts a replay in `scene` with `cast`; its first frame's avatars come on stage at once,
+/// so the answer's announcements (`changes`) and the first subscribers find them.
+fn attach(
+    scene: &Arc<crate::scene::Scene>,
+    take: &str,
+    index: Arc<TakeIndex>,
+    source: TakeSource,
+    cast: Vec<CastMember>,
+    start: ReplayStart,
+    paused: bool,
+) -> Result<ReplayState, Error> {
+    let mut s = scene.lock();
+    let clock = s.clock();
+    let mut replay = Replay::new(
+        take.to_owned(),
+        index,
+        source,
+        cast,
+        clock,
+        start.from,
+        start.speed,
+        start.looping,
+    )?;
+    if paused {
+        replay.control(clock, None, Some(true), None, None)?;
+    }
+    let state = replay.state(&scene.id, clock);
+    let s = &mut *s;
+    // Announced with the answer (`changes`), not as tick changes.
+    replay.step(clock, &mut s.avatars, &mut scene.feed(), &mut Vec::new());
+    s.replay = Some(replay);
+    Ok(state)
 }
