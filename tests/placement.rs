@@ -7,10 +7,10 @@ mod common;
 
 use common::child::Posecast;
 use common::{command_to, wait_for};
-use futures_util::{SinkExt, StreamExt};
+use futures_util::StreamExt;
 use glam::{Quat, Vec3};
 use posecast_proto::frame::FrameDecoder;
-use posecast_proto::msg::{AvatarId, ClientMsg, Encoding, PROTOCOL_VERSION, SceneId, ServerMsg};
+use posecast_proto::msg::{AvatarId, Encoding, SceneId, ServerMsg};
 use posecast_proto::placement::Placement;
 use serde_json::Value;
 use std::collections::HashMap;
@@ -42,31 +42,14 @@ async fn first_frame(
     let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/ws"))
         .await
         .unwrap();
-    for msg in [
-        ClientMsg::Hello {
-            version: PROTOCOL_VERSION,
-            encoding,
-            token: None,
-            client: None,
-        },
-        ClientMsg::Subscribe {
-            scene: SceneId(scene.into()),
-            avatars: None,
-            rate: None,
-            joints: None,
-            morph_weights: None,
-            precision: None,
-        },
-    ] {
-        let text = serde_json::to_string(&msg).unwrap();
-        ws.send(Message::Text(text.into())).await.unwrap();
-    }
+    common::hello_and_subscribe(&mut ws, encoding, scene, None).await;
     let mut nums: HashMap<u32, AvatarId> = HashMap::new();
     let mut decoder = FrameDecoder::new();
     loop {
-        let msg = tokio::time::timeout(Duration::from_secs(5), ws.next())
+        // Bounded for a busy machine: the frame comes at the next tick.
+        let msg = tokio::time::timeout(Duration::from_secs(120), ws.next())
             .await
-            .expect("a message within 5 s")
+            .expect("a message within 120 s")
             .unwrap()
             .unwrap();
         match msg {

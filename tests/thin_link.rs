@@ -10,9 +10,9 @@
 
 mod common;
 
-use futures_util::{SinkExt, StreamExt};
+use futures_util::StreamExt;
 use posecast_proto::frame::read_header;
-use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, SceneId};
+use posecast_proto::msg::Encoding;
 use posecast_server::config::{Config, NetLimits};
 use posecast_server::startup::Server;
 use std::time::Duration;
@@ -45,26 +45,7 @@ async fn stale_frames_after_a_stall(lowat: u32) -> (usize, usize) {
     let (mut ws, _) = tokio_tungstenite::client_async(server.ws_url(), stream)
         .await
         .unwrap();
-    for msg in [
-        ClientMsg::Hello {
-            version: PROTOCOL_VERSION,
-            encoding: Encoding::Binary,
-            token: None,
-            client: Some("thin".into()),
-        },
-        ClientMsg::Subscribe {
-            scene: SceneId("default".into()),
-            avatars: None,
-            rate: None,
-            joints: None,
-            morph_weights: None,
-            precision: None,
-        },
-    ] {
-        ws.send(Message::text(serde_json::to_string(&msg).unwrap()))
-            .await
-            .unwrap();
-    }
+    common::hello_and_subscribe(&mut ws, Encoding::Binary, "default", Some("thin")).await;
     // Read for a moment, then stop reading for 2 s while the server keeps ticking.
     let until = tokio::time::Instant::now() + Duration::from_millis(500);
     while tokio::time::timeout_at(until, ws.next()).await.is_ok() {}

@@ -25,6 +25,38 @@ use tokio_tungstenite::tungstenite::Message;
 pub type Ws =
     tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
 
+/// Sends `hello` (this protocol version, `encoding`, no token, client name `client`) and
+/// `subscribe` to every avatar and joint of `scene` at the full rate.
+pub async fn hello_and_subscribe<S>(
+    ws: &mut S,
+    encoding: Encoding,
+    scene: &str,
+    client: Option<&str>,
+) where
+    S: futures_util::Sink<Message> + Unpin,
+    S::Error: std::fmt::Debug,
+{
+    for msg in [
+        ClientMsg::Hello {
+            version: PROTOCOL_VERSION,
+            encoding,
+            token: None,
+            client: client.map(str::to_owned),
+        },
+        ClientMsg::Subscribe {
+            scene: posecast_proto::msg::SceneId(scene.into()),
+            avatars: None,
+            rate: None,
+            joints: None,
+            morph_weights: None,
+            precision: None,
+        },
+    ] {
+        let text = serde_json::to_string(&msg).unwrap();
+        ws.send(Message::Text(text.into())).await.unwrap();
+    }
+}
+
 /// The unlimited control token of [`server`]'s servers.
 pub const CONTROL: &str = "test-control-token";
 

@@ -1,9 +1,9 @@
 //! A binary (v1) subscriber that keeps every frame it decodes, by avatar id, and comparisons
 //! of the poses it saw (the take suites: a replay against what live subscribers received).
 
-use futures_util::{SinkExt, StreamExt};
+use futures_util::StreamExt;
 use posecast_proto::frame::{AvatarPose, FrameDecoder};
-use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, SceneId, ServerMsg};
+use posecast_proto::msg::{Encoding, ServerMsg};
 use std::collections::{BTreeMap, HashMap};
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
@@ -31,25 +31,7 @@ impl Watcher {
         let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/ws"))
             .await
             .unwrap();
-        for msg in [
-            ClientMsg::Hello {
-                version: PROTOCOL_VERSION,
-                encoding: Encoding::Binary,
-                token: None,
-                client: None,
-            },
-            ClientMsg::Subscribe {
-                scene: SceneId(scene.into()),
-                avatars: None,
-                rate: None,
-                joints: None,
-                morph_weights: None,
-                precision: None,
-            },
-        ] {
-            let text = serde_json::to_string(&msg).unwrap();
-            ws.send(Message::Text(text.into())).await.unwrap();
-        }
+        super::hello_and_subscribe(&mut ws, Encoding::Binary, scene, None).await;
         let frames = Arc::new(Mutex::new(Vec::new()));
         let out = frames.clone();
         let task = tokio::spawn(async move {
