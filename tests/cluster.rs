@@ -10,7 +10,7 @@ mod common;
 
 use common::child::Posecast;
 use common::nats::Nats;
-use common::{CONTROL, Ws, command_to, raw_at};
+use common::{CONTROL, Ws, command_to, metric, raw_at};
 use futures_util::{SinkExt, StreamExt};
 use posecast_proto::frame::{FrameDecoder, FrameKind, read_header};
 use posecast_proto::msg::Encoding;
@@ -141,16 +141,6 @@ impl Recorder {
             })
             .collect()
     }
-}
-
-/// The value of metric `name` (a line `name value`) in `addr`'s `/metrics`.
-async fn metric(addr: SocketAddr, name: &str) -> f64 {
-    let (status, text) =
-        common::http_raw(addr, Some(CONTROL), "GET", "/metrics", "text/plain", b"").await;
-    assert_eq!(status, 200);
-    text.lines()
-        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.trim().parse().ok())
-        .unwrap_or_else(|| panic!("no {name} in {text}"))
 }
 
 /// A scene `stage` created on `owner` with avatar `dancer` walking.

@@ -170,6 +170,16 @@ async fn any_server_lists_exports_and_replays_a_take_and_a_replay_survives_its_o
     )
     .await;
     assert_eq!(replay["take"], "t1", "{replay}");
+    assert_eq!(common::metric(b.addr, "posecast_replays").await, 1.0);
+    // A put both takes into the cluster's store; B read t1 from it (once: it was not changed).
+    assert_eq!(
+        common::metric(a.addr, "posecast_cluster_takes_shared_total").await,
+        2.0
+    );
+    assert_eq!(
+        common::metric(b.addr, "posecast_cluster_takes_fetched_total").await,
+        1.0
+    );
     assert_eq!(owner(a.addr, "again").await, "b");
     let replayed = Watcher::start(a.addr, "again").await;
     replayed

@@ -670,6 +670,7 @@ async fn a_take_ends_at_the_data_quota_and_holds_its_bytes() {
     )
     .await;
     assert_eq!(started["recording"], true);
+    assert_eq!(common::metric(addr, "posecast_takes_recording").await, 1.0);
     let ended = tokio::time::timeout(PATIENCE, async {
         loop {
             let info = ok(addr, r#"{"op":"get_take","take":"big"}"#).await;
@@ -683,6 +684,11 @@ async fn a_take_ends_at_the_data_quota_and_holds_its_bytes() {
     .expect("the take ends by itself at the quota");
     let bytes = ended["bytes"].as_u64().unwrap();
     assert!(bytes <= QUOTA && bytes > QUOTA / 2, "{ended}");
+    assert_eq!(
+        common::metric(addr, "posecast_takes_ended_by_themselves_total").await,
+        1.0
+    );
+    assert_eq!(common::metric(addr, "posecast_takes_recording").await, 0.0);
     let info = ok(addr, r#"{"op":"stop_recording_scene","scene":"default"}"#).await;
     assert_eq!(info["bytes"].as_u64(), Some(bytes), "{info}");
     let file = data.path().join("takes/big.take");
@@ -692,6 +698,12 @@ async fn a_take_ends_at_the_data_quota_and_holds_its_bytes() {
         bytes,
         "the take holds its bytes"
     );
+    for name in [
+        "posecast_takes_held_bytes",
+        "posecast_take_bytes_written_total",
+    ] {
+        assert_eq!(common::metric(addr, name).await, bytes as f64, "{name}");
+    }
     // A second take has no room left.
     let (status, body) = command_to(
         addr,
@@ -705,6 +717,7 @@ async fn a_take_ends_at_the_data_quota_and_holds_its_bytes() {
     );
     ok(addr, r#"{"op":"delete_take","take":"big"}"#).await;
     assert!(!file.exists());
+    assert_eq!(common::metric(addr, "posecast_takes_held_bytes").await, 0.0);
     ok(
         addr,
         r#"{"op":"record_scene","scene":"default","take":"more"}"#,

@@ -208,6 +208,10 @@ impl AppState {
     #[must_use]
     pub fn new(config: Config) -> Arc<Self> {
         let metrics = Arc::new(Metrics::new());
+        let takes = Arc::new(
+            crate::takes::Takes::new(config.data_dir.as_deref())
+                .counting(metrics.takes.written(), metrics.takes.ended()),
+        );
         Arc::new(Self {
             world: World::new(config.tick_rate, config.quotas.clone(), metrics.clone()),
             metrics,
@@ -215,7 +219,7 @@ impl AppState {
             connections: Mutex::new(Connections::default()),
             connection_closed: Notify::new(),
             store: Store::new(config.data_dir.clone()),
-            takes: Arc::new(crate::takes::Takes::new(config.data_dir.as_deref())),
+            takes,
             readiness: Readiness::default(),
             watchers: Watchers::default(),
             paths: Paths::default(),

@@ -57,6 +57,16 @@ pub async fn hello_and_subscribe<S>(
     }
 }
 
+/// The value of metric `name` (a line `name value`) in `addr`'s `/metrics`, read with the
+/// control token.
+pub async fn metric(addr: std::net::SocketAddr, name: &str) -> f64 {
+    let (status, text) = http_raw(addr, Some(CONTROL), "GET", "/metrics", "text/plain", b"").await;
+    assert_eq!(status, 200);
+    text.lines()
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no {name} in {text}"))
+}
+
 /// The unlimited control token of [`server`]'s servers.
 pub const CONTROL: &str = "test-control-token";
 

@@ -107,6 +107,7 @@ impl Cluster {
         }
         .map_err(|e| unavailable("cannot store the take in NATS", &e))?;
         state.metrics.cluster.published(put.size);
+        state.metrics.takes.shared();
         let (takes, name) = (state.takes.clone(), take.to_owned());
         tokio::task::spawn_blocking(move || takes.mark_shared(&name, &put.nuid))
             .await
@@ -171,6 +172,7 @@ impl Cluster {
         tokio::task::spawn_blocking(move || takes.install(&name, &nuid, &bytes))
             .await
             .map_err(|e| Error::internal("take task failed", &e))??;
+        state.metrics.takes.fetched();
         Ok(true)
     }
 

@@ -16,11 +16,13 @@ use posecast_core::quota::Quota;
 pub mod cluster;
 pub mod net;
 pub mod pace;
+pub mod takes;
 pub mod vmc;
 
 use cluster::ClusterCounters;
 use net::NetCounters;
 use pace::PaceCounters;
+use takes::TakeCounters;
 use vmc::VmcCounters;
 
 /// The `Content-Type` of [`Metrics::render`]'s text.
@@ -78,6 +80,8 @@ pub struct Metrics {
     // --- scale-out (issue 15) ---
     /// Scenes owned and relayed, NATS bytes ([`ClusterCounters`]).
     pub cluster: ClusterCounters,
+    /// Takes of whole scenes ([`TakeCounters`]).
+    pub takes: TakeCounters,
 }
 
 impl Default for Metrics {
@@ -164,6 +168,7 @@ impl Metrics {
         let vmc = VmcCounters::new(r);
         let pace = PaceCounters::new(r);
         let cluster = ClusterCounters::new(r);
+        let takes = TakeCounters::new(r);
         Self {
             registry,
             connections_open,
@@ -190,6 +195,7 @@ impl Metrics {
             vmc,
             pace,
             cluster,
+            takes,
         }
     }
 
@@ -510,7 +516,14 @@ posecast_cluster_takeovers_total 0
 posecast_cluster_relay_refused_total{reason="signature"} 0
 posecast_cluster_relay_refused_total{reason="not_owner"} 0
 posecast_cluster_relay_refused_total{reason="epoch"} 0
-posecast_cluster_relay_refused_total{reason="not_deleted"} 0"#;
+posecast_cluster_relay_refused_total{reason="not_deleted"} 0
+posecast_takes_recording 0
+posecast_replays 0
+posecast_takes_held_bytes 0
+posecast_take_bytes_written_total 0
+posecast_takes_ended_by_themselves_total 0
+posecast_cluster_takes_shared_total 0
+posecast_cluster_takes_fetched_total 0"#;
 
     /// Sample lines with their values parsed, so `0` and `0.0` compare equal.
     fn samples(text: &str) -> BTreeSet<(String, u64)> {

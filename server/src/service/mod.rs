@@ -228,6 +228,11 @@ async fn metrics(
             .map(|s| (s.id.0.clone(), s.subscriber_count()))
             .collect(),
     };
+    let replays = state.world.replayed_takes().len() as u64;
+    state
+        .metrics
+        .takes
+        .now(state.takes.recording(), replays, state.takes.held_bytes());
     let text = state.metrics.render(&subscribers, total).map_err(|e| {
         AppError(ProtocolError::new(
             ErrorCode::Internal,

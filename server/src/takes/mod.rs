@@ -29,6 +29,8 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, mpsc};
 use std::time::{Duration, Instant};
 
+use prometheus_client::metrics::counter::Counter;
+
 /// Most bytes a take may have queued for its writer before it ends (the disk is not keeping
 /// up with the scene).
 pub const MAX_QUEUED_BYTES: u64 = 64 << 20;
@@ -47,6 +49,9 @@ pub struct Takes {
     inner: Mutex<Inner>,
     /// Bytes the takes hold (stored, in memory, being written): part of the data quota.
     held: Arc<AtomicU64>,
+    /// Bytes written to takes, and takes that ended by themselves (`/metrics`).
+    written: Counter,
+    ended: Counter,
 }
 
 #[derive(Debug, Default)]
@@ -78,11 +83,15 @@ struct Progress {
     ended: AtomicBool,
     why: Mutex<Option<String>>,
     avatars: Mutex<Vec<AvatarId>>,
+    /// Counts the take in `/metrics` when it ends by itself.
+    ended_counter: Counter,
 }
 
 impl Progress {
     fn end(&self, why: String) {
-        self.ended.store(true, Ordering::SeqCst);
+        if !self.ended.swap(true, Ordering::SeqCst) {
+            self.ended_counter.inc();
+        }
         let mut w = self
             .why
             .lock()
@@ -231,7 +240,12 @@ impl Target {
 
 /// The writer thread: appends what the sink queues, syncs at least every
 /// [`SYNC_INTERVAL`], and once more when the sink is dropped.
-fn write(mut target: Target, queue: mpsc::Receiver<Vec<u8>>, progress: Arc<Progress>) {
+fn write(
+    mut target: Target,
+    queue: mpsc::Receiver<Vec<u8>>,
+    progress: Arc<Progress>,
+    written: Counter,
+) {
     let mut synced = Instant::now();
     let mut dirty = false;
     loop {
@@ -245,6 +259,7 @@ fn write(mut target: Target, queue: mpsc::Receiver<Vec<u8>>, progress: Arc<Progr
                 progress
                     .written
                     .fetch_add(records.len() as u64, Ordering::Relaxed);
+                written.inc_by(records.len() as u64);
                 dirty = true;
                 false
             }
@@ -273,7 +288,28 @@ impl Takes {
             dir: data.map(|d| d.join("takes")),
             inner: Mutex::new(Inner::default()),
             held: Arc::new(AtomicU64::new(0)),
+            written: Counter::default(),
+            ended: Counter::default(),
         }
+    }
+
+    /// The same, counting bytes written and takes that ended by themselves into `written`
+    /// and `ended` (`/metrics`).
+    #[must_use]
+    pub fn counting(mut self, written: Counter, ended: Counter) -> Self {
+        self.written = written;
+        self.ended = ended;
+        self
+    }
+
+    /// Scenes being recorded now.
+    #[must_use]
+    pub fn recording(&self) -> u64 {
+        self.lock()
+            .recording
+            .values()
+            .filter(|a| a.writing() && !a.progress.ended.load(Ordering::SeqCst))
+            .count() as u64
     }
 
     /// Bytes the takes hold now, of the data quota.
@@ -406,17 +442,21 @@ impl Takes {
                 Target::Memory(bytes)
             }
         };
-        let progress = Arc::new(Progress::default());
+        let progress = Arc::new(Progress {
+            ended_counter: self.ended.clone(),
+            ..Progress::default()
+        });
+        self.written.inc_by(start.len() as u64);
         progress.bytes.store(start.len() as u64, Ordering::Relaxed);
         self.held.fetch_add(start.len() as u64, Ordering::Relaxed);
         progress
             .written
             .store(start.len() as u64, Ordering::Relaxed);
         let (queue, rx) = mpsc::channel();
-        let p = progress.clone();
+        let (p, written) = (progress.clone(), self.written.clone());
         let writer = std::thread::Builder::new()
             .name(format!("take-{take}"))
-            .spawn(move || write(target, rx, p))
+            .spawn(move || write(target, rx, p, written))
             .map_err(|e| Error::internal("cannot start the take's writer", &e))?;
         inner.recording.insert(
             scene.clone(),
