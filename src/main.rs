@@ -45,6 +45,19 @@ struct Args {
     /// Address to listen on.
     #[arg(long, env = "POSECAST_LISTEN", default_value = "127.0.0.1:8080")]
     listen: SocketAddr,
+    /// WebTransport (HTTP/3 over QUIC) on this UDP address, beside the websocket: the same
+    /// protocol, frames as datagrams (no head-of-line stalls on a lossy link). Off without it.
+    /// `GET /api/quic` tells clients the port and the certificate's hash;
+    /// `docs/src/how-to/webtransport.md`.
+    #[arg(long, env = "POSECAST_QUIC_LISTEN")]
+    quic_listen: Option<SocketAddr>,
+    /// The WebTransport endpoint's certificate chain (PEM), with --quic-key. Without both, a
+    /// self-signed certificate valid 14 days is made at start (browsers accept it by its hash).
+    #[arg(long, env = "POSECAST_QUIC_CERT", requires = "quic_key")]
+    quic_cert: Option<PathBuf>,
+    /// The WebTransport certificate's private key (PEM), with --quic-cert.
+    #[arg(long, env = "POSECAST_QUIC_KEY", requires = "quic_cert")]
+    quic_key: Option<PathBuf>,
     /// Folders whose assets (.glb, .vrm, .gltf, .bvh, .skel) are loaded at start (repeatable).
     #[arg(long = "assets", env = "POSECAST_ASSETS", value_delimiter = ',')]
     assets: Vec<PathBuf>,
@@ -480,6 +493,8 @@ async fn main() -> anyhow::Result<()> {
         cluster_secret: args.cluster_secret.map(Secret::new),
         token_key: args.token_key.map(Secret::new),
         lease_ttl: args.lease,
+        quic_listen: args.quic_listen,
+        quic_identity: args.quic_cert.zip(args.quic_key),
     };
     raise_open_files_limit();
     // Registered before the server listens: a SIGTERM that arrives during start-up (as soon as

@@ -73,6 +73,7 @@ pub mod msg;
 pub mod placement;
 pub mod precision;
 pub mod quant;
+pub mod quic;
 pub mod rig_options;
 pub mod skeleton;
 pub mod skinning;

@@ -71,6 +71,14 @@ pub struct Config {
     pub token_key: Option<crate::auth::Secret>,
     /// How long a scene's ownership lasts unless its owner renews it (every third of it).
     pub lease_ttl: Duration,
+
+    // --- WebTransport (issue 31) ---
+    /// The UDP address of the WebTransport endpoint (`--quic-listen`); `None`: websocket only.
+    pub quic_listen: Option<SocketAddr>,
+    /// Its certificate chain and private key, PEM files (`--quic-cert`, `--quic-key`); `None`:
+    /// a self-signed certificate made at start, valid 14 days (what browsers accept by hash),
+    /// whose SHA-256 `GET /api/quic` publishes.
+    pub quic_identity: Option<(PathBuf, PathBuf)>,
 }
 
 /// Default [`Config::lease_ttl`]: 3 s (a scene whose owner died is ticked again within it).
@@ -108,6 +116,8 @@ impl Default for Config {
             cluster_secret: None,
             token_key: None,
             lease_ttl: DEFAULT_LEASE_TTL,
+            quic_listen: None,
+            quic_identity: None,
         }
     }
 }

@@ -25,6 +25,8 @@ pub struct Server {
     task: JoinHandle<std::io::Result<()>>,
     /// The VMC inputs and outputs ([`crate::vmc`]).
     pub vmc: crate::vmc::Running,
+    /// The WebTransport endpoint's accept loop (`--quic-listen`).
+    quic: Option<JoinHandle<()>>,
 }
 
 impl Server {
@@ -70,10 +72,23 @@ impl Server {
             Some(crate::cluster::connect(&config, addr.port()).await?)
         };
         let vmc = crate::vmc::start(&state).await?;
+        let quic = match crate::service::quic::start(&state).await {
+            Ok(q) => q,
+            Err(e) => {
+                vmc.abort();
+                return Err(e);
+            }
+        };
+        let abort_quic = || {
+            if let Some(q) = &quic {
+                q.abort();
+            }
+        };
         let first_start = match open_data_folder(&state) {
             Ok(first) => first,
             Err(e) => {
                 vmc.abort();
+                abort_quic();
                 return Err(e);
             }
         };
@@ -90,6 +105,7 @@ impl Server {
             Ok(source) => tracing::info!(key = ?source, "minted tokens' signing key"),
             Err(e) => {
                 vmc.abort();
+                abort_quic();
                 return Err(e);
             }
         }
@@ -101,6 +117,7 @@ impl Server {
         if let Err(e) = restore::spawn(state.clone(), plan) {
             task.abort();
             vmc.abort();
+            abort_quic();
             return Err(e);
         }
         if let Some(conn) = cluster {
@@ -112,6 +129,7 @@ impl Server {
             shutdown: Some(tx),
             task,
             vmc,
+            quic,
         })
     }
 
@@ -143,6 +161,9 @@ impl Server {
     /// Gracefully stops: scenes end, websockets get close frames, the listener closes.
     pub async fn stop(mut self) {
         self.vmc.abort();
+        if let Some(q) = self.quic.take() {
+            q.abort();
+        }
         if let Some(tx) = self.shutdown.take() {
             tx.send(()).ok();
         }

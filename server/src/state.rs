@@ -55,6 +55,20 @@ pub struct AppState {
     pub probes: std::sync::Arc<posecast_stream::probes::ProbeClock>,
     /// The cluster this server is part of (`--nats`), once joined.
     cluster: OnceLock<Arc<dyn Cluster>>,
+    /// The WebTransport endpoint (`--quic-listen`), once bound: what `GET /api/quic` tells.
+    pub quic: OnceLock<QuicInfo>,
+}
+
+/// Where the WebTransport endpoint listens and how a client trusts it.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+pub struct QuicInfo {
+    /// Its UDP port (on the HTTP server's host).
+    pub port: u16,
+    /// The SHA-256 of its certificate (hex): a browser given it as `serverCertificateHashes`
+    /// trusts the self-signed certificate.
+    pub cert_sha256: String,
+    /// Whether the certificate is the self-signed one made at start (else `--quic-cert`).
+    pub self_signed: bool,
 }
 
 /// How a command [`Cluster::commit`] runs failed.
@@ -225,6 +239,7 @@ impl AppState {
             paths: Paths::default(),
             probes: posecast_stream::probes::ProbeClock::new(),
             cluster: OnceLock::new(),
+            quic: OnceLock::new(),
             config,
         })
     }

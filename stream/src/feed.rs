@@ -123,7 +123,18 @@ impl Subscriber {
     /// and still does).
     fn v2(&self) -> bool {
         self.encoding == Encoding::Binary
+            && !self.outbox.datagrams()
             && (self.version >= 3 || (self.version == 2 && self.joints.is_none()))
+    }
+
+    /// The keyframe tick its deltas may refer to: the last one sent, or over datagrams the
+    /// last one the client acknowledged.
+    fn key_held(&self, scene_num: u32) -> Option<u64> {
+        if self.outbox.datagrams() {
+            self.outbox.key_acked(scene_num)
+        } else {
+            self.key_sent
+        }
     }
 
     /// Whether its frames carry morph weights: v2 frames from protocol version 4, JSON ones
@@ -1064,7 +1075,7 @@ impl Feed {
                 offered += 1;
                 continue;
             }
-            if !key && sub.key_sent != self.last_key_seq {
+            if !key && sub.key_held(self.num) != self.last_key_seq {
                 let Some(last_key) = &mut self.last_key else {
                     continue;
                 };

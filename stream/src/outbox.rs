@@ -109,6 +109,13 @@ pub struct Outbox {
     dropped: AtomicU64,
     /// The connection's adaptive frame rate (its subscriptions' frames follow it).
     pace: Pace,
+    /// Frames go out as datagrams, which may be lost (a WebTransport session): the feed then
+    /// counts a keyframe as the client's only once the client acknowledged it
+    /// ([`Outbox::key_acked`]), and sends wire v1 frames (whose deltas refer to the keyframe,
+    /// never to the frame before, so a lost delta costs its own tick only).
+    datagrams: std::sync::atomic::AtomicBool,
+    /// The newest keyframe tick the client acknowledged, by scene number.
+    acked_keys: Mutex<std::collections::HashMap<u32, u64>>,
 }
 
 /// What the writer should do next.
@@ -139,6 +146,43 @@ impl Outbox {
     #[must_use]
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// An outbox whose frames go out as datagrams (see [`Outbox::key_acked`]).
+    #[must_use]
+    pub fn for_datagrams() -> Self {
+        let outbox = Self::default();
+        outbox
+            .datagrams
+            .store(true, std::sync::atomic::Ordering::Relaxed);
+        outbox
+    }
+
+    /// Whether frames go out as datagrams.
+    #[must_use]
+    pub fn datagrams(&self) -> bool {
+        self.datagrams.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// The client acknowledged the keyframe of tick `seq` of scene number `scene` (it
+    /// decoded it). A late acknowledgement of an older keyframe changes nothing.
+    pub fn ack_key(&self, scene: u32, seq: u64) {
+        let mut acked = self
+            .acked_keys
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let newest = acked.entry(scene).or_insert(seq);
+        *newest = (*newest).max(seq);
+    }
+
+    /// The newest keyframe tick of scene number `scene` the client acknowledged, if any.
+    #[must_use]
+    pub fn key_acked(&self, scene: u32) -> Option<u64> {
+        self.acked_keys
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .get(&scene)
+            .copied()
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, State> {

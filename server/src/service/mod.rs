@@ -28,6 +28,7 @@ pub mod limits;
 mod linger;
 pub(crate) mod listener;
 
+pub(crate) mod quic;
 mod rest;
 mod tokens;
 mod upload;
@@ -63,6 +64,7 @@ pub fn app(state: Arc<AppState>) -> Router {
             get(rest::take).delete(rest::delete_take),
         )
         .route("/api/takes/{take}/{file}", get(rest::take_avatar))
+        .route("/api/quic", get(quic_info))
         .route("/api/tokens", post(tokens::mint).get(tokens::list))
         .route("/api/tokens/{id}", axum::routing::delete(tokens::revoke))
         .layer(axum::extract::DefaultBodyLimit::max(
@@ -207,6 +209,22 @@ async fn ws_upgrade(
         .read_buffer_size(ws::READ_BUFFER_BYTES)
         .write_buffer_size(ws::WRITE_BUFFER_BYTES)
         .on_upgrade(move |ws| ws::serve(ws, state, peer, greeter, socket))
+}
+
+/// `GET /api/quic`: the WebTransport endpoint, if this server has one (`--quic-listen`):
+/// `{available, port, cert_sha256, self_signed}` — a page connects to
+/// `https://<this host>:<port>/` with `serverCertificateHashes` set to `cert_sha256` when
+/// `self_signed`. Public, like the websocket's address.
+async fn quic_info(State(state): State<Arc<AppState>>) -> axum::Json<serde_json::Value> {
+    axum::Json(match state.quic.get() {
+        Some(q) => serde_json::json!({
+            "available": true,
+            "port": q.port,
+            "cert_sha256": q.cert_sha256,
+            "self_signed": q.self_signed,
+        }),
+        None => serde_json::json!({ "available": false }),
+    })
 }
 
 /// `GET /metrics`: readable by whoever may read (anyone with open views; a view or control

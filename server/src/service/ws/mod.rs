@@ -92,7 +92,34 @@ async fn serve_paced<S>(
 ) where
     S: Stream<Item = Result<Message, axum::Error>> + Sink<Message> + Send + 'static,
 {
-    let outbox = Arc::new(Outbox::new());
+    let (sink, stream) = socket.split();
+    serve_parts(
+        sink,
+        stream,
+        Arc::new(Outbox::new()),
+        state,
+        peer,
+        greeter,
+        tcp,
+    )
+    .await;
+}
+
+/// A session of the protocol over a sink of sent messages and a stream of received ones
+/// (halves of a websocket, or a WebTransport session's stream and datagrams: `super::quic`),
+/// whose writer drains `outbox`.
+pub(super) async fn serve_parts<Si, St>(
+    sink: Si,
+    mut stream: St,
+    outbox: Arc<Outbox>,
+    state: Arc<AppState>,
+    peer: Option<SocketAddr>,
+    greeter: Option<Greeter>,
+    tcp: Option<SocketInfo>,
+) where
+    Si: Sink<Message> + Unpin + Send + 'static,
+    St: Stream<Item = Result<Message, axum::Error>> + Unpin + Send,
+{
     outbox
         .pace()
         .set_path(state.paths.join(peer.map(|p| p.ip())));
@@ -102,7 +129,6 @@ async fn serve_paced<S>(
     async move {
         state.metrics.connection_opened();
         info!("websocket opened");
-        let (sink, mut stream) = socket.split();
         let mut writer = {
             let outbox = outbox.clone();
             let metrics = state.metrics.clone();

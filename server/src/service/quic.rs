@@ -1,0 +1,218 @@
+//! WebTransport (HTTP/3 over QUIC) beside the websocket (`--quic-listen`, issue 31): the same
+//! protocol, with frames as datagrams ([`posecast_proto::quic`] has the framing).
+//!
+//! - **The endpoint** listens on one UDP port with the certificate of `--quic-cert` and
+//!   `--quic-key`, or a self-signed one made at start and valid 14 days — what browsers accept
+//!   by its hash (`serverCertificateHashes`) — whose SHA-256 `GET /api/quic` publishes.
+//! - **A session** is a websocket session ([`super::ws::serve_parts`]) over the client's first
+//!   bidirectional stream: every message framed as kind, length and payload, in order. Its
+//!   outbox is a datagram one: frames are wire v1, each in one datagram (a larger one goes on
+//!   the stream), and a delta goes out only against a keyframe the client acknowledged with a
+//!   datagram; until then the newest keyframe goes again before each delta. A lost datagram
+//!   costs its own tick, and QUIC's congestion control paces what is sent.
+
+use super::ws;
+use crate::state::{AppState, QuicInfo};
+use axum::extract::ws::Message;
+use axum_tungstenite::error::{CapacityError, Error as WsError, ProtocolError as WsProtocol};
+use futures_util::{Sink, Stream, StreamExt};
+use posecast_proto::msg::MAX_CLIENT_MESSAGE_BYTES;
+use posecast_proto::quic as wire;
+use posecast_stream::outbox::Outbox;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::task::JoinHandle;
+use tracing::{debug, info};
+use wtransport::endpoint::IncomingSession;
+use wtransport::tls::Sha256DigestFmt;
+use wtransport::{Connection, Endpoint, Identity, RecvStream, SendStream, ServerConfig};
+
+/// How long a client may take to complete the QUIC and WebTransport handshakes.
+const HANDSHAKE: Duration = Duration::from_secs(10);
+
+/// Days the self-signed certificate is valid: browsers accept a certificate by its hash only
+/// when it is valid for at most 14 days.
+const SELF_SIGNED_DAYS: u32 = 14;
+
+fn io_error(what: String) -> std::io::Error {
+    std::io::Error::other(what)
+}
+
+/// Binds the endpoint of `--quic-listen` (none: `Ok(None)`) and starts accepting sessions;
+/// returns the accept loop's task.
+///
+/// # Errors
+/// The certificate files cannot be read, or the UDP address cannot be bound.
+pub async fn start(state: &Arc<AppState>) -> std::io::Result<Option<JoinHandle<()>>> {
+    let Some(addr) = state.config.quic_listen else {
+        return Ok(None);
+    };
+    let (identity, self_signed) = match &state.config.quic_identity {
+        Some((cert, key)) => {
+            let identity = Identity::load_pemfiles(cert, key).await.map_err(|e| {
+                io_error(format!(
+                    "cannot read --quic-cert {} / --quic-key {}: {e}",
+                    cert.display(),
+                    key.display()
+                ))
+            })?;
+            (identity, false)
+        }
+        None => {
+            let mut names = vec![
+                "localhost".to_owned(),
+                "127.0.0.1".to_owned(),
+                "::1".to_owned(),
+            ];
+            if !addr.ip().is_unspecified() && !addr.ip().is_loopback() {
+                names.push(addr.ip().to_string());
+            }
+            let identity = Identity::self_signed_builder()
+                .subject_alt_names(names)
+                .from_now_utc()
+                .validity_days(SELF_SIGNED_DAYS)
+                .build()
+                .map_err(|e| io_error(format!("cannot make a certificate: {e}")))?;
+            (identity, true)
+        }
+    };
+    let hash = identity
+        .certificate_chain()
+        .as_slice()
+        .first()
+        .map(|c| c.hash().fmt(Sha256DigestFmt::DottedHex).replace(':', ""))
+        .ok_or_else(|| io_error("the certificate chain is empty".into()))?;
+    let config = ServerConfig::builder()
+        .with_bind_address(addr)
+        .with_identity(identity)
+        .keep_alive_interval(Some(Duration::from_secs(3)))
+        .max_idle_timeout(Some(state.config.net.ws_idle_timeout))
+        .map_err(|e| io_error(format!("idle timeout: {e}")))?
+        .build();
+    let endpoint = Endpoint::server(config)
+        .map_err(|e| io_error(format!("cannot listen on UDP {addr}: {e}")))?;
+    let bound = endpoint.local_addr()?;
+    info!(udp = %bound, cert_sha256 = %hash, self_signed, "WebTransport listening");
+    state
+        .quic
+        .set(QuicInfo {
+            port: bound.port(),
+            cert_sha256: hash,
+            self_signed,
+        })
+        .ok();
+    let state = state.clone();
+    Ok(Some(tokio::spawn(async move {
+        loop {
+            let incoming = endpoint.accept().await;
+            tokio::spawn(session(state.clone(), incoming));
+        }
+    })))
+}
+
+/// One WebTransport session, from its handshake to its end.
+async fn session(state: Arc<AppState>, incoming: IncomingSession) {
+    let Ok(Ok(request)) = tokio::time::timeout(HANDSHAKE, incoming).await else {
+        debug!("a QUIC handshake failed or timed out");
+        return;
+    };
+    let peer = request.remote_address();
+    let Ok(Ok(conn)) = tokio::time::timeout(HANDSHAKE, request.accept()).await else {
+        debug!(%peer, "a WebTransport session was not established");
+        return;
+    };
+    // The client opens its stream at once, as a websocket client says hello.
+    let opened = tokio::time::timeout(state.config.net.hello_timeout, conn.accept_bi()).await;
+    let Ok(Ok((send, recv))) = opened else {
+        conn.close(1u32.into(), b"no stream opened");
+        return;
+    };
+    let outbox = Arc::new(Outbox::for_datagrams());
+    let acks = tokio::spawn(read_acks(conn.clone(), outbox.clone()));
+    // Fused: the session reads on after the end (its closing linger).
+    let stream = Box::pin(received(recv).fuse());
+    let sink = Box::pin(sent(conn.clone(), send));
+    ws::serve_parts(sink, stream, outbox, state, Some(peer), None, None).await;
+    acks.abort();
+    conn.close(0u32.into(), b"");
+}
+
+/// Keyframe acknowledgements the client sends as datagrams; anything else is ignored.
+async fn read_acks(conn: Connection, outbox: Arc<Outbox>) {
+    while let Ok(datagram) = conn.receive_datagram().await {
+        if let Some((scene, seq)) = wire::read_key_ack(&datagram.payload()) {
+            outbox.ack_key(scene, seq);
+        }
+    }
+}
+
+/// The messages of the client's stream, until it ends. A message that breaks the framing
+/// ends it with the error a websocket would give (too large, not UTF-8, an unknown kind).
+fn received(recv: RecvStream) -> impl Stream<Item = Result<Message, axum::Error>> + Send {
+    futures_util::stream::unfold(Some(recv), |recv| async move {
+        let mut recv = recv?;
+        let mut header = [0u8; wire::STREAM_HEADER];
+        recv.read_exact(&mut header).await.ok()?;
+        let (kind, len) = wire::read_header(header);
+        let fail = |e: WsError| Some((Err(axum::Error::new(e)), None));
+        if len > MAX_CLIENT_MESSAGE_BYTES {
+            return fail(WsError::Capacity(CapacityError::MessageTooLong {
+                size: len,
+                max_size: MAX_CLIENT_MESSAGE_BYTES,
+            }));
+        }
+        let mut payload = vec![0u8; len];
+        recv.read_exact(&mut payload).await.ok()?;
+        let message = match kind {
+            wire::TEXT => match String::from_utf8(payload) {
+                Ok(text) => Message::Text(text.into()),
+                Err(e) => return fail(WsError::Utf8(e.to_string())),
+            },
+            wire::BINARY => Message::Binary(payload.into()),
+            wire::PING => Message::Ping(payload.into()),
+            wire::PONG => Message::Pong(payload.into()),
+            wire::CLOSE => Message::Close(None),
+            other => return fail(WsError::Protocol(WsProtocol::InvalidOpcode(other))),
+        };
+        Some((Ok(message), Some(recv)))
+    })
+}
+
+/// Sends the session's messages: frames as datagrams when they fit, everything else (and a
+/// frame that does not fit) on the stream, in order.
+fn sent(conn: Connection, send: SendStream) -> impl Sink<Message> + Send {
+    futures_util::sink::unfold(
+        (conn, send),
+        |(conn, mut send), message: Message| async move {
+            let (kind, payload): (u8, Vec<u8>) = match message {
+                Message::Binary(frame) => {
+                    let fits = conn
+                        .max_datagram_size()
+                        .is_some_and(|max| frame.len() <= max);
+                    if fits && conn.send_datagram(&frame).is_ok() {
+                        return Ok((conn, send));
+                    }
+                    (wire::BINARY, frame.to_vec())
+                }
+                Message::Text(text) => (wire::TEXT, text.as_bytes().to_vec()),
+                Message::Ping(p) => (wire::PING, p.to_vec()),
+                Message::Pong(p) => (wire::PONG, p.to_vec()),
+                Message::Close(frame) => {
+                    let mut payload = Vec::new();
+                    if let Some(f) = frame {
+                        payload.extend_from_slice(&f.code.to_le_bytes());
+                        payload.extend_from_slice(f.reason.as_bytes());
+                    }
+                    (wire::CLOSE, payload)
+                }
+            };
+            send.write_all(&wire::frame_message(kind, &payload))
+                .await
+                .map_err(|e| axum::Error::new(e.to_string()))?;
+            if kind == wire::CLOSE {
+                send.finish().await.ok();
+            }
+            Ok::<_, axum::Error>((conn, send))
+        },
+    )
+}

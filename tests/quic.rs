@@ -1,0 +1,345 @@
+//! WebTransport beside the websocket (issue 31): a client trusting the self-signed certificate
+//! by the hash `/api/quic` publishes speaks the protocol on a stream and gets frames as
+//! datagrams — the same poses a websocket subscriber of the scene gets, tick for tick — and
+//! with datagrams dropped (every 10th, and bursts of 5) nothing but the lost ticks is missing:
+//! deltas refer to keyframes the client acknowledged, never to a lost one.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+mod common;
+
+use common::watch::{Watcher, same};
+
+const PATIENCE: std::time::Duration = std::time::Duration::from_secs(15);
+use posecast_proto::frame::{AvatarPose, FrameDecoder, FrameKind};
+use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, SceneId, ServerMsg};
+use posecast_proto::quic as wire;
+use std::collections::{BTreeMap, HashMap};
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+use wtransport::tls::Sha256Digest;
+use wtransport::{ClientConfig, Connection, Endpoint, RecvStream, SendStream};
+
+/// A WebTransport client of `addr`'s endpoint (from `/api/quic`), its stream opened.
+async fn connect(addr: SocketAddr) -> (Connection, SendStream, RecvStream) {
+    let (status, body) = common::get_bytes(addr, "/api/quic").await;
+    assert_eq!(status, 200);
+    let info: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(info["available"], true, "{info}");
+    assert_eq!(info["self_signed"], true, "{info}");
+    let hex = info["cert_sha256"].as_str().unwrap();
+    let hash: Vec<u8> = (0..hex.len())
+        .step_by(2)
+        .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap())
+        .collect();
+    let config = ClientConfig::builder()
+        .with_bind_default()
+        .with_server_certificate_hashes([Sha256Digest::new(hash.try_into().unwrap())])
+        .build();
+    let endpoint = Endpoint::client(config).unwrap();
+    let port = info["port"].as_u64().unwrap();
+    let conn = endpoint
+        .connect(format!("https://127.0.0.1:{port}/"))
+        .await
+        .unwrap();
+    let (send, recv) = conn.open_bi().await.unwrap().await.unwrap();
+    (conn, send, recv)
+}
+
+async fn send_text(send: &mut SendStream, msg: &ClientMsg) {
+    let text = serde_json::to_string(msg).unwrap();
+    send.write_all(&wire::frame_message(wire::TEXT, text.as_bytes()))
+        .await
+        .unwrap();
+}
+
+/// What a QUIC subscriber saw: each decoded frame's tick and poses by avatar id, the ticks it
+/// dropped on purpose, and the frames it could not decode.
+#[derive(Default)]
+struct Seen {
+    /// Poses by avatar number (descriptions come on the stream, frames as datagrams: either
+    /// may come first).
+    frames: Vec<(u64, BTreeMap<u32, AvatarPose>)>,
+    names: HashMap<u32, String>,
+    dropped: Vec<u64>,
+    undecodable: usize,
+    keys: usize,
+}
+
+/// Subscribes to `scene` over WebTransport and decodes what comes, dropping datagram `i`
+/// when `drop(i)`; acknowledges every keyframe it decodes.
+async fn subscribe(
+    addr: SocketAddr,
+    scene: &str,
+    drop: impl Fn(usize) -> bool + Send + 'static,
+) -> Arc<Mutex<Seen>> {
+    let (conn, mut send, mut recv) = connect(addr).await;
+    send_text(
+        &mut send,
+        &ClientMsg::Hello {
+            version: PROTOCOL_VERSION,
+            encoding: Encoding::Binary,
+            token: None,
+            client: Some("quic test".into()),
+        },
+    )
+    .await;
+    send_text(
+        &mut send,
+        &ClientMsg::Subscribe {
+            scene: SceneId(scene.into()),
+            avatars: None,
+            rate: None,
+            joints: None,
+            morph_weights: None,
+            precision: None,
+        },
+    )
+    .await;
+    let seen: Arc<Mutex<Seen>> = Arc::default();
+    // The stream: descriptions (avatar numbers → ids).
+    let names = seen.clone();
+    tokio::spawn(async move {
+        let mut send = send;
+        loop {
+            let mut header = [0u8; wire::STREAM_HEADER];
+            if recv.read_exact(&mut header).await.is_err() {
+                return;
+            }
+            let (kind, len) = wire::read_header(header);
+            let mut payload = vec![0u8; len];
+            recv.read_exact(&mut payload).await.unwrap();
+            assert_ne!(kind, wire::BINARY, "a one-avatar frame fits a datagram");
+            // Pings measure the round trip for the adaptive rate: answered as a websocket
+            // client's library does.
+            if kind == wire::PING
+                && send
+                    .write_all(&wire::frame_message(wire::PONG, &payload))
+                    .await
+                    .is_err()
+            {
+                return;
+            }
+            if kind == wire::TEXT
+                && let Ok(ServerMsg::Description { avatar, .. }) =
+                    serde_json::from_slice::<ServerMsg>(&payload)
+            {
+                names
+                    .lock()
+                    .unwrap()
+                    .names
+                    .insert(avatar.num, avatar.id.0.clone());
+            }
+        }
+    });
+    // The datagrams: frames, decoded in order of arrival.
+    let out = seen.clone();
+    tokio::spawn(async move {
+        let mut decoder = FrameDecoder::new();
+        let mut i = 0;
+        while let Ok(datagram) = conn.receive_datagram().await {
+            let bytes = datagram.payload();
+            i += 1;
+            if drop(i) {
+                if let Ok((h, _)) = posecast_proto::frame::read_header(&bytes) {
+                    out.lock().unwrap().dropped.push(h.seq);
+                }
+                continue;
+            }
+            let Ok(frame) = decoder.decode(&bytes) else {
+                out.lock().unwrap().undecodable += 1;
+                continue;
+            };
+            if frame.header.kind == FrameKind::Key {
+                conn.send_datagram(wire::key_ack(frame.header.scene_num, frame.header.seq))
+                    .unwrap();
+                out.lock().unwrap().keys += 1;
+            }
+            let poses = frame
+                .avatars
+                .into_iter()
+                .map(|p| (p.avatar_num, p))
+                .collect();
+            out.lock().unwrap().frames.push((frame.header.seq, poses));
+        }
+    });
+    seen
+}
+
+/// Waits until `seen` holds `n` decoded frames.
+async fn frames(seen: &Arc<Mutex<Seen>>, n: usize) {
+    let start = Instant::now();
+    while seen.lock().unwrap().frames.len() < n {
+        if start.elapsed() > PATIENCE {
+            let s = seen.lock().unwrap();
+            panic!(
+                "waited {PATIENCE:?} for {n} frames: {} decoded, {} undecodable, {} dropped, \
+                 {} keys, {} described",
+                s.frames.len(),
+                s.undecodable,
+                s.dropped.len(),
+                s.keys,
+                s.names.len()
+            );
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn datagram_frames_are_the_websocket_poses_and_a_lost_one_costs_its_tick_only() {
+    let server = common::kit_builder(60.0)
+        .configure(|c| c.quic_listen = Some("127.0.0.1:0".parse().unwrap()))
+        .start()
+        .await
+        .unwrap()
+        .into_server();
+    let live = Watcher::start(server.addr, "default").await;
+    // Every datagram, and one losing its first (the joiner's keyframe), every 10th and five
+    // in a row from the 50th.
+    let whole = subscribe(server.addr, "default", |_| false).await;
+    let lossy = subscribe(server.addr, "default", |i| {
+        i == 1 || i % 10 == 0 || (50..55).contains(&i)
+    })
+    .await;
+    frames(&whole, 240).await;
+    frames(&lossy, 240).await;
+    live.stop();
+    let on_ws: HashMap<u64, BTreeMap<String, AvatarPose>> = live
+        .frames()
+        .into_iter()
+        .map(|s| (s.seq, s.poses))
+        .collect();
+
+    for (name, seen) in [("whole", &whole), ("lossy", &lossy)] {
+        let seen = seen.lock().unwrap();
+        assert_eq!(
+            seen.undecodable, 0,
+            "{name}: a delta referred to a lost keyframe"
+        );
+        assert!(seen.keys >= 1, "{name}");
+        // Tick for tick the websocket subscriber's poses (ticks both saw).
+        let mut compared = 0;
+        for (seq, poses) in &seen.frames {
+            let poses: BTreeMap<String, AvatarPose> = poses
+                .iter()
+                .map(|(num, p)| (seen.names[num].clone(), p.clone()))
+                .collect();
+            if let Some(ws) = on_ws.get(seq) {
+                assert!(same(&poses, ws), "{name}: tick {seq} differs");
+                compared += 1;
+            }
+        }
+        assert!(compared >= 200, "{name}: only {compared} ticks in common");
+        // Nothing but the dropped ticks is missing: from the first tick to the last, every
+        // tick was decoded or dropped.
+        let got: std::collections::BTreeSet<u64> = seen.frames.iter().map(|f| f.0).collect();
+        let (first, last) = (*got.first().unwrap(), *got.last().unwrap());
+        let missing: Vec<u64> = (first..=last)
+            .filter(|s| !got.contains(s) && !seen.dropped.contains(s))
+            .collect();
+        assert!(missing.is_empty(), "{name}: ticks missing {missing:?}");
+        if name == "lossy" {
+            assert!(
+                seen.dropped.len() >= 25,
+                "{name}: {} dropped",
+                seen.dropped.len()
+            );
+        }
+    }
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn without_quic_listen_the_server_says_so() {
+    let server = common::server(30.0).await;
+    let (status, body) = common::get_bytes(server.addr, "/api/quic").await;
+    assert_eq!(status, 200);
+    let info: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(info["available"], false, "{info}");
+    server.stop().await;
+}
+
+/// The next message of the stream: its kind and payload (`None`: the stream ended).
+async fn next_message(recv: &mut RecvStream) -> Option<(u8, Vec<u8>)> {
+    let mut header = [0u8; wire::STREAM_HEADER];
+    recv.read_exact(&mut header).await.ok()?;
+    let (kind, len) = wire::read_header(header);
+    let mut payload = vec![0u8; len];
+    recv.read_exact(&mut payload).await.ok()?;
+    Some((kind, payload))
+}
+
+/// A stream that breaks the framing gets the error a websocket would (a typed error, then a
+/// close with the websocket's code) and ends; the server goes on serving.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_broken_stream_gets_a_typed_error_and_a_close() {
+    let server = common::kit_builder(30.0)
+        .configure(|c| c.quic_listen = Some("127.0.0.1:0".parse().unwrap()))
+        .start()
+        .await
+        .unwrap()
+        .into_server();
+    let too_long = {
+        let mut m = vec![wire::TEXT];
+        m.extend_from_slice(&u32::MAX.to_le_bytes());
+        m
+    };
+    let cases: [(&str, Vec<u8>, &str, u16); 3] = [
+        (
+            "unknown kind",
+            wire::frame_message(9, b"x"),
+            "bad_message",
+            1002,
+        ),
+        (
+            "not UTF-8",
+            wire::frame_message(wire::TEXT, &[0xff, 0xfe]),
+            "bad_message",
+            1007,
+        ),
+        ("too long", too_long, "message_too_large", 1009),
+    ];
+    for (what, bytes, code, close) in cases {
+        let (_conn, mut send, mut recv) = connect(server.addr).await;
+        send_text(
+            &mut send,
+            &ClientMsg::Hello {
+                version: PROTOCOL_VERSION,
+                encoding: Encoding::Binary,
+                token: None,
+                client: None,
+            },
+        )
+        .await;
+        send.write_all(&bytes).await.unwrap();
+        let mut error = None;
+        let mut closed = None;
+        let waited = tokio::time::timeout(PATIENCE, async {
+            while let Some((kind, payload)) = next_message(&mut recv).await {
+                match kind {
+                    wire::TEXT => {
+                        let v: serde_json::Value = serde_json::from_slice(&payload).unwrap();
+                        if v["type"] == "error" {
+                            error = v["code"].as_str().map(str::to_owned);
+                        }
+                    }
+                    wire::CLOSE => {
+                        closed = Some(u16::from_le_bytes([payload[0], payload[1]]));
+                        return;
+                    }
+                    _ => {}
+                }
+            }
+        })
+        .await;
+        assert!(waited.is_ok(), "{what}: no close");
+        assert_eq!(error.as_deref(), Some(code), "{what}");
+        assert_eq!(closed, Some(close), "{what}");
+    }
+    // Still serving.
+    let seen = subscribe(server.addr, "default", |_| false).await;
+    frames(&seen, 10).await;
+    server.stop().await;
+}
