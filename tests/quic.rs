@@ -212,6 +212,24 @@ async fn datagram_frames_are_the_websocket_poses_and_a_lost_one_costs_its_tick_o
         .map(|s| (s.seq, s.poses))
         .collect();
 
+    // Counted: two sessions, their frames as datagrams, the keyframes they acknowledged.
+    let addr = server.addr;
+    assert_eq!(
+        common::metric(addr, "posecast_quic_sessions_total").await,
+        2.0
+    );
+    let datagrams = common::metric(addr, r#"posecast_quic_frames_total{via="datagram"}"#).await;
+    assert!(datagrams >= 480.0, "{datagrams}");
+    assert_eq!(
+        common::metric(addr, r#"posecast_quic_frames_total{via="stream"}"#).await,
+        0.0
+    );
+    let acks = common::metric(addr, "posecast_quic_key_acks_total").await;
+    let keys = (whole.lock().unwrap().keys + lossy.lock().unwrap().keys) as f64;
+    assert!(
+        acks >= 2.0 && acks <= keys,
+        "{acks} acks of {keys} keyframes"
+    );
     for (name, seen) in [("whole", &whole), ("lossy", &lossy)] {
         let seen = seen.lock().unwrap();
         assert_eq!(

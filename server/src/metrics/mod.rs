@@ -16,12 +16,14 @@ use posecast_core::quota::Quota;
 pub mod cluster;
 pub mod net;
 pub mod pace;
+pub mod quic;
 pub mod takes;
 pub mod vmc;
 
 use cluster::ClusterCounters;
 use net::NetCounters;
 use pace::PaceCounters;
+use quic::QuicCounters;
 use takes::TakeCounters;
 use vmc::VmcCounters;
 
@@ -82,6 +84,8 @@ pub struct Metrics {
     pub cluster: ClusterCounters,
     /// Takes of whole scenes ([`TakeCounters`]).
     pub takes: TakeCounters,
+    /// The WebTransport endpoint ([`QuicCounters`]).
+    pub quic: QuicCounters,
 }
 
 impl Default for Metrics {
@@ -169,6 +173,7 @@ impl Metrics {
         let pace = PaceCounters::new(r);
         let cluster = ClusterCounters::new(r);
         let takes = TakeCounters::new(r);
+        let quic = QuicCounters::new(r);
         Self {
             registry,
             connections_open,
@@ -196,6 +201,7 @@ impl Metrics {
             pace,
             cluster,
             takes,
+            quic,
         }
     }
 
@@ -523,7 +529,13 @@ posecast_takes_held_bytes 0
 posecast_take_bytes_written_total 0
 posecast_takes_ended_by_themselves_total 0
 posecast_cluster_takes_shared_total 0
-posecast_cluster_takes_fetched_total 0"#;
+posecast_cluster_takes_fetched_total 0
+posecast_quic_sessions_total 0
+posecast_quic_frames_total{via="datagram"} 0
+posecast_quic_frames_total{via="stream"} 0
+posecast_quic_datagram_bytes_total 0
+posecast_quic_key_acks_total 0
+posecast_quic_datagrams_ignored_total 0"#;
 
     /// Sample lines with their values parsed, so `0` and `0.0` compare equal.
     fn samples(text: &str) -> BTreeSet<(String, u64)> {

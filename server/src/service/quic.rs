@@ -12,6 +12,7 @@
 //!   costs its own tick, and QUIC's congestion control paces what is sent.
 
 use super::ws;
+use crate::metrics::Metrics;
 use crate::state::{AppState, QuicInfo};
 use axum::extract::ws::Message;
 use axum_tungstenite::error::{CapacityError, Error as WsError, ProtocolError as WsProtocol};
@@ -127,21 +128,30 @@ async fn session(state: Arc<AppState>, incoming: IncomingSession) {
         conn.close(1u32.into(), b"no stream opened");
         return;
     };
+    state.metrics.quic.session();
     let outbox = Arc::new(Outbox::for_datagrams());
-    let acks = tokio::spawn(read_acks(conn.clone(), outbox.clone()));
+    let acks = tokio::spawn(read_acks(
+        conn.clone(),
+        outbox.clone(),
+        state.metrics.clone(),
+    ));
     // Fused: the session reads on after the end (its closing linger).
     let stream = Box::pin(received(recv).fuse());
-    let sink = Box::pin(sent(conn.clone(), send));
+    let sink = Box::pin(sent(conn.clone(), send, state.metrics.clone()));
     ws::serve_parts(sink, stream, outbox, state, Some(peer), None, None).await;
     acks.abort();
     conn.close(0u32.into(), b"");
 }
 
 /// Keyframe acknowledgements the client sends as datagrams; anything else is ignored.
-async fn read_acks(conn: Connection, outbox: Arc<Outbox>) {
+async fn read_acks(conn: Connection, outbox: Arc<Outbox>, metrics: Arc<Metrics>) {
     while let Ok(datagram) = conn.receive_datagram().await {
-        if let Some((scene, seq)) = wire::read_key_ack(&datagram.payload()) {
-            outbox.ack_key(scene, seq);
+        match wire::read_key_ack(&datagram.payload()) {
+            Some((scene, seq)) => {
+                metrics.quic.key_ack();
+                outbox.ack_key(scene, seq);
+            }
+            None => metrics.quic.ignored(),
         }
     }
 }
@@ -180,18 +190,20 @@ fn received(recv: RecvStream) -> impl Stream<Item = Result<Message, axum::Error>
 
 /// Sends the session's messages: frames as datagrams when they fit, everything else (and a
 /// frame that does not fit) on the stream, in order.
-fn sent(conn: Connection, send: SendStream) -> impl Sink<Message> + Send {
+fn sent(conn: Connection, send: SendStream, metrics: Arc<Metrics>) -> impl Sink<Message> + Send {
     futures_util::sink::unfold(
-        (conn, send),
-        |(conn, mut send), message: Message| async move {
+        (conn, send, metrics),
+        |(conn, mut send, metrics), message: Message| async move {
             let (kind, payload): (u8, Vec<u8>) = match message {
                 Message::Binary(frame) => {
                     let fits = conn
                         .max_datagram_size()
                         .is_some_and(|max| frame.len() <= max);
                     if fits && conn.send_datagram(&frame).is_ok() {
-                        return Ok((conn, send));
+                        metrics.quic.datagram(frame.len());
+                        return Ok((conn, send, metrics));
                     }
+                    metrics.quic.on_stream();
                     (wire::BINARY, frame.to_vec())
                 }
                 Message::Text(text) => (wire::TEXT, text.as_bytes().to_vec()),
@@ -212,7 +224,7 @@ fn sent(conn: Connection, send: SendStream) -> impl Sink<Message> + Send {
             if kind == wire::CLOSE {
                 send.finish().await.ok();
             }
-            Ok::<_, axum::Error>((conn, send))
+            Ok::<_, axum::Error>((conn, send, metrics))
         },
     )
 }

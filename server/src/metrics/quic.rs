@@ -1,0 +1,77 @@
+//! Counters of the WebTransport endpoint (`crate::service::quic`): sessions, frames sent as
+//! datagrams and on the stream, keyframe acknowledgements. Kept apart (`Metrics::quic`) like
+//! the cluster and VMC counters; all zero without `--quic-listen`.
+
+use crate::metrics::{counter, labelled_counters};
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::registry::Registry;
+
+/// The WebTransport counters. Relaxed atomics: exact totals, no ordering.
+#[derive(Debug)]
+pub struct QuicCounters {
+    sessions: Counter,
+    /// Frames sent, by how: `datagram`, `stream` (larger than a datagram).
+    frames: [Counter; 2],
+    datagram_bytes: Counter,
+    key_acks: Counter,
+    /// Datagrams from clients that are not keyframe acknowledgements.
+    junk: Counter,
+}
+
+impl QuicCounters {
+    /// All zero, registered in `registry`.
+    pub(crate) fn new(registry: &mut Registry) -> Self {
+        let r = registry;
+        Self {
+            sessions: counter(r, "quic_sessions", "WebTransport sessions established"),
+            frames: labelled_counters(
+                r,
+                "quic_frames",
+                "Frames sent over WebTransport: as datagrams, or on the stream (too large for one)",
+                "via",
+                ["datagram", "stream"],
+            ),
+            datagram_bytes: counter(
+                r,
+                "quic_datagram_bytes",
+                "Bytes of frames sent as datagrams",
+            ),
+            key_acks: counter(
+                r,
+                "quic_key_acks",
+                "Keyframe acknowledgements received from WebTransport clients",
+            ),
+            junk: counter(
+                r,
+                "quic_datagrams_ignored",
+                "Datagrams from WebTransport clients that are not keyframe acknowledgements",
+            ),
+        }
+    }
+
+    /// A session established.
+    pub fn session(&self) {
+        self.sessions.inc();
+    }
+
+    /// A frame of `bytes` sent as a datagram.
+    pub fn datagram(&self, bytes: usize) {
+        self.frames[0].inc();
+        self.datagram_bytes.inc_by(bytes as u64);
+    }
+
+    /// A frame sent on the stream.
+    pub fn on_stream(&self) {
+        self.frames[1].inc();
+    }
+
+    /// A keyframe acknowledgement received.
+    pub fn key_ack(&self) {
+        self.key_acks.inc();
+    }
+
+    /// A datagram that is not one.
+    pub fn ignored(&self) {
+        self.junk.inc();
+    }
+}
