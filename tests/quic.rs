@@ -23,6 +23,13 @@ use wtransport::{ClientConfig, Connection, Endpoint, RecvStream, SendStream};
 
 /// A WebTransport client of `addr`'s endpoint (from `/api/quic`), its stream opened.
 async fn connect(addr: SocketAddr) -> (Connection, SendStream, RecvStream) {
+    let conn = try_connect(addr).await.unwrap();
+    let (send, recv) = conn.open_bi().await.unwrap().await.unwrap();
+    (conn, send, recv)
+}
+
+/// A WebTransport session with `addr`'s endpoint, or why there is none.
+async fn try_connect(addr: SocketAddr) -> Result<Connection, wtransport::error::ConnectingError> {
     let (status, body) = common::get_bytes(addr, "/api/quic").await;
     assert_eq!(status, 200);
     let info: serde_json::Value = serde_json::from_slice(&body).unwrap();
@@ -39,12 +46,7 @@ async fn connect(addr: SocketAddr) -> (Connection, SendStream, RecvStream) {
         .build();
     let endpoint = Endpoint::client(config).unwrap();
     let port = info["port"].as_u64().unwrap();
-    let conn = endpoint
-        .connect(format!("https://127.0.0.1:{port}/"))
-        .await
-        .unwrap();
-    let (send, recv) = conn.open_bi().await.unwrap().await.unwrap();
-    (conn, send, recv)
+    endpoint.connect(format!("https://127.0.0.1:{port}/")).await
 }
 
 async fn send_text(send: &mut SendStream, msg: &ClientMsg) {
@@ -359,5 +361,45 @@ async fn a_broken_stream_gets_a_typed_error_and_a_close() {
     // Still serving.
     let seen = subscribe(server.addr, "default", |_| false).await;
     frames(&seen, 10).await;
+    server.stop().await;
+}
+
+/// Sessions count under the connection caps: past `--max-connections-per-address` a session
+/// is refused (429) before it is established, and one that ends gives its place back.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sessions_past_the_per_address_cap_are_refused() {
+    let server = common::kit_builder(30.0)
+        .configure(|c| {
+            c.quic_listen = Some("127.0.0.1:0".parse().unwrap());
+            c.net.max_connections_per_address = 2;
+        })
+        .start()
+        .await
+        .unwrap()
+        .into_server();
+    let first = try_connect(server.addr).await.unwrap();
+    let _second = try_connect(server.addr).await.unwrap();
+    let third = try_connect(server.addr).await;
+    assert!(
+        third.is_err(),
+        "a third session from one address was accepted"
+    );
+    assert_eq!(
+        common::metric(server.addr, "posecast_quic_refused_total").await,
+        1.0
+    );
+    first.close(0u32.into(), b"bye");
+    // Its place comes back once the server has seen it end.
+    let start = Instant::now();
+    loop {
+        if try_connect(server.addr).await.is_ok() {
+            break;
+        }
+        assert!(
+            start.elapsed() < PATIENCE,
+            "the closed session's place never came back"
+        );
+        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+    }
     server.stop().await;
 }

@@ -535,7 +535,8 @@ posecast_quic_frames_total{via="datagram"} 0
 posecast_quic_frames_total{via="stream"} 0
 posecast_quic_datagram_bytes_total 0
 posecast_quic_key_acks_total 0
-posecast_quic_datagrams_ignored_total 0"#;
+posecast_quic_datagrams_ignored_total 0
+posecast_quic_refused_total 0"#;
 
     /// Sample lines with their values parsed, so `0` and `0.0` compare equal.
     fn samples(text: &str) -> BTreeSet<(String, u64)> {

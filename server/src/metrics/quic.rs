@@ -16,6 +16,7 @@ pub struct QuicCounters {
     key_acks: Counter,
     /// Datagrams from clients that are not keyframe acknowledgements.
     junk: Counter,
+    refused: Counter,
 }
 
 impl QuicCounters {
@@ -46,6 +47,11 @@ impl QuicCounters {
                 "quic_datagrams_ignored",
                 "Datagrams from WebTransport clients that are not keyframe acknowledgements",
             ),
+            refused: counter(
+                r,
+                "quic_refused",
+                "WebTransport sessions refused over a connection cap (429)",
+            ),
         }
     }
 
@@ -68,6 +74,11 @@ impl QuicCounters {
     /// A keyframe acknowledgement received.
     pub fn key_ack(&self) {
         self.key_acks.inc();
+    }
+
+    /// A session refused over a cap.
+    pub fn refused(&self) {
+        self.refused.inc();
     }
 
     /// A datagram that is not one.

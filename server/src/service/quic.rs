@@ -35,6 +35,54 @@ const HANDSHAKE: Duration = Duration::from_secs(10);
 /// when it is valid for at most 14 days.
 const SELF_SIGNED_DAYS: u32 = 14;
 
+/// Sessions held, in all and per address, under the websocket's caps (`--max-connections`,
+/// `--max-connections-per-address`), counted apart from the websockets: a session over a cap
+/// is answered `429 Too Many Requests` before it is established.
+#[derive(Debug, Default)]
+struct Caps {
+    held: std::sync::Mutex<(usize, std::collections::HashMap<std::net::IpAddr, usize>)>,
+}
+
+/// A session's place under the caps, given back on drop.
+struct Held<'a> {
+    caps: &'a Caps,
+    ip: std::net::IpAddr,
+}
+
+impl Caps {
+    fn take(&self, ip: std::net::IpAddr, total: usize, per_address: usize) -> Option<Held<'_>> {
+        let ip = super::admission::address_key(ip);
+        let mut held = self
+            .held
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let here = held.1.get(&ip).copied().unwrap_or(0);
+        if held.0 >= total || here >= per_address {
+            return None;
+        }
+        held.0 += 1;
+        *held.1.entry(ip).or_default() += 1;
+        Some(Held { caps: self, ip })
+    }
+}
+
+impl Drop for Held<'_> {
+    fn drop(&mut self) {
+        let mut held = self
+            .caps
+            .held
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        held.0 = held.0.saturating_sub(1);
+        if let Some(n) = held.1.get_mut(&self.ip) {
+            *n -= 1;
+            if *n == 0 {
+                held.1.remove(&self.ip);
+            }
+        }
+    }
+}
+
 fn io_error(what: String) -> std::io::Error {
     std::io::Error::other(what)
 }
@@ -103,21 +151,33 @@ pub async fn start(state: &Arc<AppState>) -> std::io::Result<Option<JoinHandle<(
         })
         .ok();
     let state = state.clone();
+    let caps = Arc::new(Caps::default());
     Ok(Some(tokio::spawn(async move {
         loop {
             let incoming = endpoint.accept().await;
-            tokio::spawn(session(state.clone(), incoming));
+            tokio::spawn(session(state.clone(), caps.clone(), incoming));
         }
     })))
 }
 
 /// One WebTransport session, from its handshake to its end.
-async fn session(state: Arc<AppState>, incoming: IncomingSession) {
+async fn session(state: Arc<AppState>, caps: Arc<Caps>, incoming: IncomingSession) {
     let Ok(Ok(request)) = tokio::time::timeout(HANDSHAKE, incoming).await else {
         debug!("a QUIC handshake failed or timed out");
         return;
     };
     let peer = request.remote_address();
+    let net = &state.config.net;
+    let Some(_held) = caps.take(
+        peer.ip(),
+        net.max_connections,
+        net.max_connections_per_address,
+    ) else {
+        state.metrics.quic.refused();
+        debug!(%peer, "a WebTransport session over a connection cap: refused");
+        request.too_many_requests().await;
+        return;
+    };
     let Ok(Ok(conn)) = tokio::time::timeout(HANDSHAKE, request.accept()).await else {
         debug!(%peer, "a WebTransport session was not established");
         return;
