@@ -21,6 +21,22 @@ use std::time::Instant;
 use wtransport::tls::Sha256Digest;
 use wtransport::{ClientConfig, Connection, Endpoint, RecvStream, SendStream};
 
+/// A server at `rate` ticks a second with a WebTransport endpoint, `configure`d further.
+async fn quic_server(
+    rate: f32,
+    configure: impl FnOnce(&mut posecast_server::config::Config),
+) -> posecast_server::startup::Server {
+    common::kit_builder(rate)
+        .configure(move |c| {
+            c.quic_listen = Some("127.0.0.1:0".parse().unwrap());
+            configure(c);
+        })
+        .start()
+        .await
+        .unwrap()
+        .into_server()
+}
+
 /// A WebTransport client of `addr`'s endpoint (from `/api/quic`), its stream opened.
 async fn connect(addr: SocketAddr) -> (Connection, SendStream, RecvStream) {
     let conn = try_connect(addr).await.unwrap();
@@ -191,12 +207,7 @@ async fn frames(seen: &Arc<Mutex<Seen>>, n: usize) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn datagram_frames_are_the_websocket_poses_and_a_lost_one_costs_its_tick_only() {
-    let server = common::kit_builder(60.0)
-        .configure(|c| c.quic_listen = Some("127.0.0.1:0".parse().unwrap()))
-        .start()
-        .await
-        .unwrap()
-        .into_server();
+    let server = quic_server(60.0, |_| {}).await;
     let live = Watcher::start(server.addr, "default").await;
     // Every datagram, and one losing its first (the joiner's keyframe), every 10th and five
     // in a row from the 50th.
@@ -295,12 +306,7 @@ async fn next_message(recv: &mut RecvStream) -> Option<(u8, Vec<u8>)> {
 /// close with the websocket's code) and ends; the server goes on serving.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_broken_stream_gets_a_typed_error_and_a_close() {
-    let server = common::kit_builder(30.0)
-        .configure(|c| c.quic_listen = Some("127.0.0.1:0".parse().unwrap()))
-        .start()
-        .await
-        .unwrap()
-        .into_server();
+    let server = quic_server(30.0, |_| {}).await;
     let too_long = {
         let mut m = vec![wire::TEXT];
         m.extend_from_slice(&u32::MAX.to_le_bytes());
@@ -368,15 +374,7 @@ async fn a_broken_stream_gets_a_typed_error_and_a_close() {
 /// is refused (429) before it is established, and one that ends gives its place back.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sessions_past_the_per_address_cap_are_refused() {
-    let server = common::kit_builder(30.0)
-        .configure(|c| {
-            c.quic_listen = Some("127.0.0.1:0".parse().unwrap());
-            c.net.max_connections_per_address = 2;
-        })
-        .start()
-        .await
-        .unwrap()
-        .into_server();
+    let server = quic_server(30.0, |c| c.net.max_connections_per_address = 2).await;
     let first = try_connect(server.addr).await.unwrap();
     let _second = try_connect(server.addr).await.unwrap();
     let third = try_connect(server.addr).await;

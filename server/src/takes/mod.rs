@@ -340,6 +340,16 @@ impl Takes {
             .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 
+    /// A copy of take `take`'s bytes, when it is kept in memory.
+    fn memory_copy(&self, take: &str) -> Option<Vec<u8>> {
+        let m = self.lock().memory.get(take).cloned()?;
+        let bytes = m
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clone();
+        Some(bytes)
+    }
+
     fn path(&self, take: &str) -> Option<PathBuf> {
         self.dir
             .as_ref()
@@ -554,11 +564,7 @@ impl Takes {
             Some(p) => std::fs::metadata(&p).map_err(|_| unknown())?.len(),
             None => {
                 let m = self.lock().memory.get(take).cloned().ok_or_else(unknown)?;
-                let n = m
-                    .lock()
-                    .unwrap_or_else(std::sync::PoisonError::into_inner)
-                    .len();
-                n as u64
+                memory_len(&m)
             }
         };
         if let Some((at, index)) = self.lock().read.get(take)
@@ -572,11 +578,7 @@ impl Takes {
                 TakeIndex::scan(std::io::BufReader::with_capacity(1 << 20, f))
             }
             None => {
-                let m = self.lock().memory.get(take).cloned().ok_or_else(unknown)?;
-                let bytes = m
-                    .lock()
-                    .unwrap_or_else(std::sync::PoisonError::into_inner)
-                    .clone();
+                let bytes = self.memory_copy(take).ok_or_else(unknown)?;
                 TakeIndex::from_bytes(&bytes)
             }
         }
@@ -599,11 +601,7 @@ impl Takes {
                 .map(crate::scene::replay::TakeSource::File)
                 .map_err(|_| unknown()),
             None => {
-                let m = self.lock().memory.get(take).cloned().ok_or_else(unknown)?;
-                let bytes = m
-                    .lock()
-                    .unwrap_or_else(std::sync::PoisonError::into_inner)
-                    .clone();
+                let bytes = self.memory_copy(take).ok_or_else(unknown)?;
                 Ok(crate::scene::replay::TakeSource::Memory(bytes.into()))
             }
         }
@@ -695,11 +693,7 @@ impl Takes {
                 let bytes = inner
                     .memory
                     .remove(take)
-                    .map(|m| {
-                        m.lock()
-                            .unwrap_or_else(std::sync::PoisonError::into_inner)
-                            .len() as u64
-                    })
+                    .map(|m| memory_len(&m))
                     .ok_or_else(|| Error::UnknownTake(format!("no take {take}")))?;
                 self.release(bytes);
                 Ok(bytes)
@@ -760,14 +754,7 @@ impl Takes {
         check_id("take", take).map_err(|_| unknown())?;
         match self.path(take) {
             Some(p) => std::fs::read(p).map_err(|_| unknown()),
-            None => {
-                let m = self.lock().memory.get(take).cloned().ok_or_else(unknown)?;
-                let bytes = m
-                    .lock()
-                    .unwrap_or_else(std::sync::PoisonError::into_inner)
-                    .clone();
-                Ok(bytes)
-            }
+            None => self.memory_copy(take).ok_or_else(unknown),
         }
     }
 
@@ -803,11 +790,7 @@ impl Takes {
                 let old = inner
                     .memory
                     .insert(take.to_owned(), Arc::new(Mutex::new(bytes.to_vec())));
-                old.map_or(0, |m| {
-                    m.lock()
-                        .unwrap_or_else(std::sync::PoisonError::into_inner)
-                        .len() as u64
-                })
+                old.map_or(0, |m| memory_len(&m))
             }
         };
         self.release(old);
@@ -823,6 +806,13 @@ impl Takes {
             })
             .ok();
     }
+}
+
+/// The length of a take kept in memory.
+fn memory_len(m: &Mutex<Vec<u8>>) -> u64 {
+    m.lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+        .len() as u64
 }
 
 /// Who drove which avatar, from the take's driver events
