@@ -72,6 +72,20 @@ async fn send_text(send: &mut SendStream, msg: &ClientMsg) {
         .unwrap();
 }
 
+/// Says hello: this protocol version, binary frames.
+async fn hello(send: &mut SendStream) {
+    send_text(
+        send,
+        &ClientMsg::Hello {
+            version: PROTOCOL_VERSION,
+            encoding: Encoding::Binary,
+            token: None,
+            client: Some("quic test".into()),
+        },
+    )
+    .await;
+}
+
 /// What a QUIC subscriber saw: each decoded frame's tick and poses by avatar id, the ticks it
 /// dropped on purpose, and the frames it could not decode.
 #[derive(Default)]
@@ -93,16 +107,7 @@ async fn subscribe(
     drop: impl Fn(usize) -> bool + Send + 'static,
 ) -> Arc<Mutex<Seen>> {
     let (conn, mut send, mut recv) = connect(addr).await;
-    send_text(
-        &mut send,
-        &ClientMsg::Hello {
-            version: PROTOCOL_VERSION,
-            encoding: Encoding::Binary,
-            token: None,
-            client: Some("quic test".into()),
-        },
-    )
-    .await;
+    hello(&mut send).await;
     send_text(
         &mut send,
         &ClientMsg::Subscribe {
@@ -329,16 +334,7 @@ async fn a_broken_stream_gets_a_typed_error_and_a_close() {
     ];
     for (what, bytes, code, close) in cases {
         let (_conn, mut send, mut recv) = connect(server.addr).await;
-        send_text(
-            &mut send,
-            &ClientMsg::Hello {
-                version: PROTOCOL_VERSION,
-                encoding: Encoding::Binary,
-                token: None,
-                client: None,
-            },
-        )
-        .await;
+        hello(&mut send).await;
         send.write_all(&bytes).await.unwrap();
         let mut error = None;
         let mut closed = None;

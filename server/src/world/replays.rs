@@ -41,14 +41,7 @@ impl World {
         start: ReplayStart,
     ) -> Result<(Arc<crate::scene::Scene>, ReplayState), Error> {
         let cast = self.cast_of(scene, take, &index, |_| false)?;
-        // Ids are unique across scenes: checked and taken under the lock adds hold.
-        let _adding = self
-            .avatar_ids
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        if let Some(c) = cast.iter().find(|c| self.find_avatar(&c.avatar.id).is_ok()) {
-            return Err(Error::Conflict(format!("avatar {} exists", c.avatar.id)));
-        }
+        let _adding = self.ids_free(&cast)?;
         let created = self.create_scene(scene.clone())?;
         match attach(&created, take, index, source, cast, start, false) {
             Ok(state) => Ok((created, state)),
@@ -77,14 +70,24 @@ impl World {
     ) -> Result<ReplayState, Error> {
         let here = |id: &AvatarId| scene.lock().avatars.iter().any(|a| &a.id == id);
         let cast = self.cast_of(&scene.id, take, &index, here)?;
-        let _adding = self
+        let _adding = self.ids_free(&cast)?;
+        attach(scene, take, index, source, cast, start, paused)
+    }
+
+    /// Checks that no avatar has an id of `cast`, and returns the lock avatar adds hold (ids
+    /// are unique across scenes: checked and taken under it).
+    ///
+    /// # Errors
+    /// `conflict` naming the avatar that exists.
+    fn ids_free(&self, cast: &[CastMember]) -> Result<std::sync::MutexGuard<'_, ()>, Error> {
+        let adding = self
             .avatar_ids
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner);
         if let Some(c) = cast.iter().find(|c| self.find_avatar(&c.avatar.id).is_ok()) {
             return Err(Error::Conflict(format!("avatar {} exists", c.avatar.id)));
         }
-        attach(scene, take, index, source, cast, start, paused)
+        Ok(adding)
     }
 
     /// The cast of a replay of `take` in scene `scene`: an avatar of the same rig for every
