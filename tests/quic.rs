@@ -9,6 +9,8 @@
 mod common;
 
 use common::watch::{Watcher, same};
+use posecast_client::net::{Client, ClientOptions, Event, Transport, TransportChoice};
+use posecast_proto::msg::AvatarId;
 
 const PATIENCE: std::time::Duration = std::time::Duration::from_secs(15);
 use posecast_proto::frame::{AvatarPose, FrameDecoder, FrameKind};
@@ -396,4 +398,105 @@ async fn sessions_past_the_per_address_cap_are_refused() {
         tokio::time::sleep(std::time::Duration::from_millis(50)).await;
     }
     server.stop().await;
+}
+
+/// Every pose a [`Client`] keeps as its newest, by tick, for the avatar `avatar`, until it
+/// holds `n` ticks.
+async fn client_poses(client: &Client, avatar: &str, n: usize) -> BTreeMap<u64, Vec<glam::Quat>> {
+    let id = AvatarId(avatar.into());
+    let mut events = client.events();
+    let mut poses = BTreeMap::new();
+    let waited = tokio::time::timeout(common::watch::PATIENCE, async {
+        while poses.len() < n {
+            match events.recv().await {
+                Ok(Event::Frame { .. }) => {
+                    if let Some(p) = client.latest(&id) {
+                        poses
+                            .entry(p.seq)
+                            .or_insert_with(|| p.locals.iter().map(|l| l.rotation).collect());
+                    }
+                }
+                Ok(_) | Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => {}
+                Err(e) => panic!("{e}"),
+            }
+        }
+    })
+    .await;
+    assert!(waited.is_ok(), "{} of {n} ticks", poses.len());
+    poses
+}
+
+/// The Rust client asks `/api/quic`, connects over WebTransport, answers pings, acknowledges
+/// keyframes, and decodes from the datagrams the poses a websocket subscriber of the same
+/// scene decodes, tick for tick.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_rust_client_prefers_webtransport_and_gets_the_websockets_poses() {
+    let server = quic_server(60.0, |_| {}).await;
+    let url = format!("ws://{}/ws", server.addr);
+    let mut options = ClientOptions::new(&url, "default");
+    // A busy machine's handshake is not a blocked path.
+    options.quic_timeout = common::watch::PATIENCE;
+    let client = Client::connect(options).await.unwrap();
+    assert_eq!(client.transport(), Some(Transport::WebTransport));
+    let live = Watcher::start(server.addr, "default").await;
+    let over_quic = client_poses(&client, "avatar", 120).await;
+    live.stop();
+    let stats = client.stats();
+    assert_eq!(stats.webtransport_failure, None);
+    assert!(stats.keyframes >= 1 && stats.key_acks >= stats.keyframes.min(1));
+    let acks = common::metric(server.addr, "posecast_quic_key_acks_total").await;
+    assert!(acks >= 1.0, "{acks} acknowledgements");
+    let datagrams =
+        common::metric(server.addr, r#"posecast_quic_frames_total{via="datagram"}"#).await;
+    assert!(datagrams >= 120.0, "{datagrams} datagrams");
+    let mut compared = 0;
+    for seen in live.frames() {
+        if let Some(quic) = over_quic.get(&seen.seq) {
+            let ws: Vec<glam::Quat> = seen.poses["avatar"].rotations.clone();
+            assert_eq!(quic, &ws, "tick {} differs", seen.seq);
+            compared += 1;
+        }
+    }
+    assert!(compared >= 60, "only {compared} ticks in common");
+    // The client pings over the stream: the clock has a round trip.
+    let waited = tokio::time::timeout(common::watch::PATIENCE, async {
+        while client.clock().1.is_none() {
+            tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+        }
+    })
+    .await;
+    assert!(waited.is_ok(), "no pong over WebTransport");
+    server.stop().await;
+}
+
+/// With the server's UDP port out of the client's reach (the endpoint listens on another
+/// address than the one the client reached the server at, as behind a firewall that passes
+/// TCP only), the client falls back to the websocket and says why; asked for WebTransport
+/// only, it fails to connect; a server without the endpoint gets the websocket at once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_rust_client_falls_back_to_the_websocket_when_udp_is_blocked() {
+    let server = quic_server(30.0, |c| {
+        c.quic_listen = Some("127.0.0.2:0".parse().unwrap());
+    })
+    .await;
+    let url = format!("ws://{}/ws", server.addr);
+    let mut options = ClientOptions::new(&url, "default");
+    options.quic_timeout = std::time::Duration::from_secs(1);
+    let client = Client::connect(options.clone()).await.unwrap();
+    assert_eq!(client.transport(), Some(Transport::WebSocket));
+    let why = client.stats().webtransport_failure.unwrap();
+    assert!(why.contains("https://127.0.0.1:"), "{why}");
+    client_poses(&client, "avatar", 10).await;
+    options.transport = TransportChoice::WebTransport;
+    options.reconnect = false;
+    let refused = Client::connect(options).await.unwrap_err();
+    assert!(refused.to_string().contains("UDP blocked?"), "{refused}");
+    server.stop().await;
+
+    let plain = common::server(30.0).await;
+    let options = ClientOptions::new(format!("ws://{}/ws", plain.addr), "default");
+    let client = Client::connect(options).await.unwrap();
+    assert_eq!(client.transport(), Some(Transport::WebSocket));
+    assert_eq!(client.stats().webtransport_failure, None);
+    plain.stop().await;
 }

@@ -9,7 +9,7 @@ mod vmc_relay;
 mod watch;
 
 use clap::{Args, Parser, Subcommand};
-use posecast_client::net::{Client, ClientOptions};
+use posecast_client::net::{Client, ClientOptions, TransportChoice};
 use posecast_proto::msg::Encoding;
 
 #[derive(Debug, Parser)]
@@ -54,6 +54,22 @@ struct Connection {
     /// Receive JSON text frames instead of binary ones.
     #[arg(long, env = "POSECAST_JSON_FRAMES")]
     json_frames: bool,
+    /// The transport: `auto` tries WebTransport (frames as datagrams) when the server offers
+    /// it (`--quic-listen`) and falls back to the websocket; `websocket` or `webtransport`
+    /// use that one only.
+    #[arg(long, env = "POSECAST_TRANSPORT", default_value = "auto", value_parser = transport_choice)]
+    transport: TransportChoice,
+}
+
+fn transport_choice(s: &str) -> Result<TransportChoice, String> {
+    match s {
+        "auto" => Ok(TransportChoice::Auto),
+        "websocket" | "ws" => Ok(TransportChoice::WebSocket),
+        "webtransport" | "quic" => Ok(TransportChoice::WebTransport),
+        other => Err(format!(
+            "{other}: the transport is auto, websocket or webtransport"
+        )),
+    }
 }
 
 impl Connection {
@@ -62,12 +78,21 @@ impl Connection {
         options.fallback_urls = self.fallback_url.clone();
         options.token = self.token.clone();
         options.reconnect = reconnect;
+        options.transport = self.transport;
         if self.json_frames {
             options.encoding = Encoding::Json;
         }
-        Client::connect(options)
+        let client = Client::connect(options)
             .await
-            .map_err(|e| anyhow::anyhow!("cannot connect to {}: {e}", self.url))
+            .map_err(|e| anyhow::anyhow!("cannot connect to {}: {e}", self.url))?;
+        let stats = client.stats();
+        if let Some(transport) = stats.transport {
+            match stats.webtransport_failure {
+                Some(why) => eprintln!("connected over {transport} (WebTransport offered: {why})"),
+                None => eprintln!("connected over {transport}"),
+            }
+        }
+        Ok(client)
     }
 }
 

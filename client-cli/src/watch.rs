@@ -83,6 +83,7 @@ struct Line {
     offset_ms: f64,
     avatars: usize,
     connected: bool,
+    transport: Option<posecast_client::net::Transport>,
 }
 
 impl Line {
@@ -102,6 +103,7 @@ impl Line {
             offset_ms: offset / 1000.0,
             avatars: client.avatars().len(),
             connected: client.is_connected(),
+            transport: now.transport,
         }
     }
 
@@ -109,7 +111,7 @@ impl Line {
         let ms = |v: Option<f64>| v.map_or("-".to_owned(), |v| format!("{v:.2} ms"));
         format!(
             "{:5.1} frames/s  {} keyframes  {:8.0} B/s  latency mean {} max {:.2} ms  join age {}  \
-             rtt {}  offset {:+.2} ms  {} avatars{}",
+             rtt {}  offset {:+.2} ms  {} avatars  {}{}",
             self.frames_per_s,
             self.keyframes,
             self.bytes_per_s,
@@ -119,6 +121,7 @@ impl Line {
             ms(self.rtt_ms),
             self.offset_ms,
             self.avatars,
+            self.transport.map_or("-".to_owned(), |t| t.to_string()),
             if self.connected {
                 ""
             } else {
@@ -140,6 +143,7 @@ impl Line {
             "clock_offset_ms": self.offset_ms,
             "avatars": self.avatars,
             "connected": self.connected,
+            "transport": self.transport.map(|t| t.to_string()),
         })
     }
 }

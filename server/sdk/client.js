@@ -16,6 +16,7 @@ import { Frame2Decoder, MAGIC2 } from "./frames2.js";
 import { JitterBuffer } from "./jitter.js";
 import { ClockEstimator } from "./clock.js";
 import { expandPose, selectJoints } from "./subset.js";
+import { WebTransportSocket, discoverWebTransport } from "./webtransport.js";
 
 /** @typedef {import("./posecast.js").ClientOptions} ClientOptions */
 /** @typedef {import("./posecast.js").SubscribeOptions} SubscribeOptions */
@@ -90,6 +91,14 @@ export class Client {
     this.maxBackoffMs = options.maxBackoffMs ?? 5000;
     this.commandTimeoutMs = options.commandTimeoutMs ?? 8000;
     this.pingIntervalMs = options.pingIntervalMs ?? 1000;
+    /** @type {"auto" | "websocket" | "webtransport"} Which transport to try: WebTransport first when the server offers it (`auto`), or one only. */
+    this.transportChoice = options.transport ?? "auto";
+    /** How long asking for the WebTransport endpoint, and then its handshake, may each take before the websocket is used instead. */
+    this.quicTimeoutMs = options.quicTimeoutMs ?? 5000;
+    /** @type {"websocket" | "webtransport" | null} The transport of the connection (the newest one while reconnecting). */
+    this.transport = null;
+    /** @type {string | null} Why the newest connection did not use the WebTransport the server offered (UDP blocked on the way?). */
+    this.webtransportFailure = null;
 
     /** @type {ConnectionState} */
     this.state = "closed";
@@ -132,8 +141,10 @@ export class Client {
     this.timer = undefined;
     /** @type {ReturnType<typeof setInterval> | undefined} */
     this.pinger = undefined;
-    /** @type {WebSocket | null} */
+    /** @type {WebSocket | WebTransportSocket | null} */
     this.ws = null;
+    /** Counts connection attempts: a socket that opens after a newer attempt began is closed. */
+    this.attempt = 0;
     /** Set between a welcome that ignored the token and the `unauthorized` error naming it. */
     this.awaitingTokenError = false;
     /** @type {Map<string, Set<(value: any) => void>>} */
@@ -200,6 +211,7 @@ export class Client {
   /** Forgets the current socket without reconnecting from its close. */
   drop() {
     clearTimeout(this.timer);
+    this.attempt++;
     const ws = this.ws;
     this.ws = null;
     if (ws) {
@@ -227,14 +239,58 @@ export class Client {
     this.access = null;
     this.awaitingTokenError = false;
     this.setState("connecting");
-    /** @type {WebSocket} */
-    let ws;
-    try {
-      ws = new WebSocket(this.url);
-    } catch (e) {
-      this.scheduleReconnect(String(e));
-      return;
+    const attempt = ++this.attempt;
+    this.openSocket().then(
+      (ws) => {
+        if (attempt !== this.attempt) ws.close();
+        else this.attach(ws, token);
+      },
+      (e) => {
+        if (attempt === this.attempt) this.scheduleReconnect(String(e?.message ?? e));
+      },
+    );
+  }
+
+  /**
+   * A socket to the server: over WebTransport when the transport choice allows it, the browser
+   * has it and the server offers it (`/api/quic`), and its handshake completes in time; a
+   * websocket otherwise. `transport` and `webtransportFailure` say which, and why.
+   * @returns {Promise<WebSocket | WebTransportSocket>}
+   */
+  async openSocket() {
+    let failure = null;
+    if (this.transportChoice !== "websocket" && typeof WebTransport !== "undefined") {
+      /** @type {{url: string, certSha256: Uint8Array | null} | null} */
+      let offer = null;
+      try {
+        offer = await discoverWebTransport(this.url, this.quicTimeoutMs);
+      } catch {
+        // A server that cannot be asked: the websocket says why.
+      }
+      if (offer) {
+        try {
+          const socket = await WebTransportSocket.open(offer.url, offer.certSha256, this.quicTimeoutMs);
+          this.transport = "webtransport";
+          this.webtransportFailure = null;
+          return socket;
+        } catch (e) {
+          failure = `${offer.url}: ${/** @type {Error} */ (e)?.message ?? e}`;
+        }
+      }
     }
+    if (this.transportChoice === "webtransport") throw new Error(failure ?? "WebTransport is not offered (or this browser has none)");
+    const ws = new WebSocket(this.url);
+    this.transport = "websocket";
+    this.webtransportFailure = failure;
+    return ws;
+  }
+
+  /**
+   * Speaks the protocol on a socket just made.
+   * @param {WebSocket | WebTransportSocket} ws
+   * @param {Token | null} token
+   */
+  attach(ws, token) {
     ws.binaryType = "arraybuffer";
     this.ws = ws;
     ws.onopen = () => {
@@ -243,7 +299,9 @@ export class Client {
       if (token) hello.token = token.value;
       ws.send(JSON.stringify(hello));
     };
-    ws.onmessage = (e) => {
+    // A WebTransport socket is open when it is made.
+    if (ws instanceof WebTransportSocket) queueMicrotask(() => ws.onopen?.());
+    ws.onmessage = (/** @type {{data: string | ArrayBuffer}} */ e) => {
       const received = nowMicros();
       if (typeof e.data !== "string") {
         if (this.welcome) this.onBinary(/** @type {ArrayBuffer} */ (e.data), received);
@@ -270,7 +328,7 @@ export class Client {
         this.open();
       } else if (msg.type === "error") this.refuseHello(String(msg.code), String(msg.message));
     };
-    ws.onclose = (e) => {
+    ws.onclose = (/** @type {{code: number, reason: string}} */ e) => {
       if (this.ws !== ws) return;
       this.ws = null;
       // The server's reason when it gave one (e.g. "token no longer valid": revoked, expired).
@@ -374,7 +432,7 @@ export class Client {
    * @returns {boolean}
    */
   send(msg) {
-    if (this.ws && this.ws.readyState === WebSocket.OPEN && this.state === "online") {
+    if (this.ws && this.ws.readyState === 1 && this.state === "online") {
       this.ws.send(JSON.stringify(msg));
       return true;
     }
@@ -661,6 +719,8 @@ export class Client {
       this.stats.undecodable++;
       return;
     }
+    // Over WebTransport, the server codes deltas only against keyframes acknowledged.
+    if (decoded.key && this.ws instanceof WebTransportSocket) this.ws.ackKey(decoded.scene_num, decoded.seq);
     const scene = this.sceneNames.get(decoded.scene_num);
     if (scene === undefined) {
       this.stats.undecodable++;

@@ -233,7 +233,20 @@ export interface ClientOptions {
   commandTimeoutMs?: number;
   /** Ping interval for the clock offset and round trip, ms (default 1000; 0: never). */
   pingIntervalMs?: number;
+  /**
+   * The transport: `"auto"` (default) asks the server's `/api/quic` and connects over
+   * WebTransport when it is offered and the browser has it — frames then come as datagrams, so a
+   * lost packet costs its own tick and never stalls the ones after it — and over the websocket
+   * otherwise, or when the QUIC handshake does not complete (UDP blocked on the way);
+   * `"websocket"` or `"webtransport"` use that one only.
+   */
+  transport?: Transport;
+  /** How long asking for the WebTransport endpoint, and then its handshake, may each take before the websocket is used, ms (default 5000). */
+  quicTimeoutMs?: number;
 }
+
+/** A client's transport choice (`ClientOptions.transport`). */
+export type Transport = "auto" | "websocket" | "webtransport";
 
 export interface SubscribeOptions {
   /** Only these avatars of the scene. */
@@ -320,6 +333,10 @@ export declare class Client {
   readonly tickRate: number;
   /** Round trip of the newest ping, ms (null before the first pong). */
   readonly rttMs: number | null;
+  /** The transport of the connection (the newest one while reconnecting); null before the first. */
+  readonly transport: "websocket" | "webtransport" | null;
+  /** Why the newest connection did not use the WebTransport the server offered (the handshake failed or timed out: UDP blocked?); null when it did, or none was offered. */
+  readonly webtransportFailure: string | null;
   readonly clock: ClockEstimator;
   readonly stats: Stats;
   /** Subscriptions kept across reconnects. */

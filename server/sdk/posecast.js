@@ -11,6 +11,8 @@
 //
 // - client.js: the connection (hello/welcome, token fallback, subscriptions, commands as
 //   promises, ping/pong, reconnect with back-off);
+// - webtransport.js: the protocol over WebTransport (frames as datagrams, keyframes
+//   acknowledged), tried first when the server offers it (`/api/quic`);
 // - frames.js: the binary frame decoder (keyframes, deltas, smallest-three rotations);
 // - frames2.js: the wire v2 decoder (protocol version 2: deltas against the previous frame,
 //   predicted levels, Rice-coded residuals);
@@ -20,9 +22,10 @@
 // - tokens.js: minting and revoking tokens for an app's users (its back end, with an admin token);
 // - errors.js: PosecastError, with the protocol's error code.
 
-export const SDK_VERSION = "1.7.0";
+export const SDK_VERSION = "1.8.0";
 export { Client, PROTOCOL_VERSION, nowMicros } from "./client.js";
 export { PosecastError } from "./errors.js";
+export { WebTransportSocket, discoverWebTransport } from "./webtransport.js";
 export { mintToken, revokeToken, listTokens, httpBase } from "./tokens.js";
 export { FrameDecoder, decodeQuat } from "./frames.js";
 export { Frame2Decoder } from "./frames2.js";

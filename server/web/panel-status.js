@@ -68,6 +68,17 @@ export function mount(ctx) {
     document.body.classList.toggle("can-control", control);
   });
 
+  store.on(["conn", "transport", "transportNote"], (s) => {
+    const el = $("transport");
+    el.textContent = s.conn !== "online" || !s.transport ? "–" : s.transport === "webtransport" ? "WebTransport" : "WebSocket";
+    el.dataset.transport = s.transport ?? "";
+    el.title = s.transport === "webtransport"
+      ? "WebTransport (QUIC): frames as datagrams, a lost packet costs its own tick only"
+      : s.transportNote
+        ? `WebSocket: the server offers WebTransport, but ${s.transportNote}`
+        : "WebSocket (TCP)";
+  });
+
   let lastFrames = 0;
   setInterval(() => {
     $("fps").textContent = `${conn.stats.frames - lastFrames} frames/s`;

@@ -25,6 +25,8 @@
  * @typedef {object} State
  * @property {ConnState} conn
  * @property {string} connDetail
+ * @property {"websocket" | "webtransport" | null} transport The connection's transport.
+ * @property {string | null} transportNote Why WebTransport was not used although offered.
  * @property {Access | null} access What the connection may do (null before a welcome).
  * @property {Refusal[]} refusals Tokens the server refused, and why.
  * @property {number} tickRate Ticks per second (from the welcome).
@@ -49,6 +51,8 @@ export class Store {
     this.state = {
       conn: "connecting",
       connDetail: "",
+      transport: null,
+      transportNote: null,
       access: null,
       refusals: [],
       tickRate: 60,

@@ -44,6 +44,8 @@ export class Sync {
     this.store.set({
       conn: c.state,
       connDetail: c.detail,
+      transport: c.transport,
+      transportNote: c.webtransportFailure,
       access: c.access,
       refusals: [...c.refusals],
       tickRate: c.welcome?.tick_rate ?? this.store.get().tickRate,

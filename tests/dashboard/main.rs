@@ -21,6 +21,9 @@
 //!   the weights to the page and the WebGL preview morphs the mesh;
 //! - `sdk`: the JavaScript client `/sdk/posecast.js` from pages on another origin: binary
 //!   frames decoded as a Rust client decodes them, typed command errors, the guide's example page (`docs/src/how-to/javascript.md`);
+//! - `webtransport`: the JavaScript client over WebTransport (frames as datagrams, keyframes
+//!   acknowledged) decodes the websocket's poses; with UDP out of reach it falls back to the
+//!   websocket; the dashboard shows the transport;
 //! - `determinism`: ten minutes of random motion with random drop patterns decoded by the
 //!   page's `frames2.js` and by `Frame2Decoder` to the same values, frame by frame.
 //!
@@ -45,4 +48,5 @@ mod takes;
 mod three;
 mod timeline;
 mod tokens;
+mod webtransport;
 mod world;

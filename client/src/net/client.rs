@@ -2,6 +2,7 @@
 
 use super::clock::ClockEstimator;
 use super::jitter::JitterBuffer;
+use super::transport::{self, Link, Transport, TransportChoice};
 use futures_util::{SinkExt, StreamExt};
 use posecast_proto::command::{Command, CommandResult};
 use posecast_proto::description::AvatarDescription;
@@ -72,6 +73,14 @@ pub struct ClientOptions {
     /// the version (`unsupported_version`: one that predates it) gets a hello with the version
     /// before, down to 1.
     pub version: u32,
+    /// The transport to use (default [`TransportChoice::Auto`]: WebTransport when the server
+    /// offers it and it can be reached, the websocket otherwise; [`Client::transport`] says
+    /// which).
+    pub transport: TransportChoice,
+    /// How long asking the server for its WebTransport endpoint, and then the QUIC handshake,
+    /// may each take before the client falls back to the websocket (default 5 s): UDP blocked
+    /// on the way looks like a handshake that never completes.
+    pub quic_timeout: Duration,
 }
 
 impl ClientOptions {
@@ -92,6 +101,8 @@ impl ClientOptions {
             morph_weights: true,
             precision: None,
             version: 5,
+            transport: TransportChoice::Auto,
+            quic_timeout: Duration::from_secs(5),
         }
     }
 }
@@ -252,6 +263,13 @@ pub struct Stats {
     /// Age of the newest join pose (an avatar's first pose after its description: the
     /// scene's cached keyframe, up to a second old), µs — kept out of the latencies.
     pub join_age_us: Option<f64>,
+    /// The transport of the newest connection.
+    pub transport: Option<Transport>,
+    /// Why the newest connection did not use WebTransport although the server offered it
+    /// (the QUIC handshake failed or timed out: UDP blocked on the way?).
+    pub webtransport_failure: Option<String>,
+    /// Keyframes acknowledged to the server (WebTransport).
+    pub key_acks: u64,
 }
 
 #[derive(Default)]
@@ -329,6 +347,12 @@ impl Client {
         let (events, _) = broadcast::channel(1024);
         let mut first = events.subscribe();
         let (ready_tx, ready_rx) = oneshot::channel();
+        // The welcome may come after asking for WebTransport and trying it.
+        let patience = Duration::from_secs(10)
+            + match options.transport {
+                TransportChoice::WebSocket => Duration::ZERO,
+                _ => options.quic_timeout * 2,
+            };
         let task = tokio::spawn(run(
             options,
             shared.clone(),
@@ -344,7 +368,7 @@ impl Client {
             nonce: nonce(),
             task,
         };
-        match tokio::time::timeout(Duration::from_secs(10), ready_rx).await {
+        match tokio::time::timeout(patience, ready_rx).await {
             Ok(Ok(Ok(()))) => {}
             Ok(Ok(Err(e))) => return Err(e),
             Ok(Err(_)) => return Err(ClientError::Closed),
@@ -512,6 +536,13 @@ impl Client {
         (s.clock.offset_us(), s.clock.rtt_us())
     }
 
+    /// The transport of the connection (the newest one while reconnecting): WebTransport
+    /// or the websocket ([`TransportChoice`]).
+    #[must_use]
+    pub fn transport(&self) -> Option<Transport> {
+        lock(&self.shared).stats.transport
+    }
+
     /// Tick rate announced by the server.
     #[must_use]
     pub fn tick_rate(&self) -> f32 {
@@ -614,10 +645,7 @@ async fn session(
         url: url.to_owned(),
         message: e.to_string(),
     };
-    let (ws, _) = tokio_tungstenite::connect_async(url)
-        .await
-        .map_err(|e| connect_err(&e))?;
-    let (mut sink, mut stream) = ws.split();
+    let mut link = connect(options, url, shared).await?;
     let to_text =
         |m: &ClientMsg| Message::Text(serde_json::to_string(m).unwrap_or_default().into());
     let hello = ClientMsg::Hello {
@@ -626,7 +654,8 @@ async fn session(
         token: options.token.clone(),
         client: Some(options.name.clone()),
     };
-    sink.send(to_text(&hello))
+    link.sink
+        .send(to_text(&hello))
         .await
         .map_err(|e| connect_err(&e))?;
     for (scene, avatars) in &options.subscriptions {
@@ -640,7 +669,8 @@ async fn session(
                 .precision
                 .filter(|_| version >= 5 && options.encoding == Encoding::Binary),
         };
-        sink.send(to_text(&sub))
+        link.sink
+            .send(to_text(&sub))
             .await
             .map_err(|e| connect_err(&e))?;
     }
@@ -649,12 +679,19 @@ async fn session(
     let mut ping_id = 0u32;
     loop {
         tokio::select! {
-            msg = stream.next() => {
+            msg = link.stream.next() => {
                 let Some(msg) = msg else { return Ok(()) };
                 let msg = msg.map_err(|e| connect_err(&e))?;
                 let received = unix_micros();
                 match msg {
-                    Message::Binary(bytes) => on_binary(shared, events, &mut decoder, &bytes, received),
+                    Message::Binary(bytes) => {
+                        if let Some((scene_num, seq)) = on_binary(shared, events, &mut decoder, &bytes, received) {
+                            link.acknowledge_key(scene_num, seq);
+                            if link.transport == Transport::WebTransport {
+                                lock(shared).stats.key_acks += 1;
+                            }
+                        }
+                    }
                     Message::Text(text) => {
                         match serde_json::from_str::<ServerMsg>(text.as_str()) {
                             Ok(m) => {
@@ -665,12 +702,15 @@ async fn session(
                         }
                     }
                     Message::Close(_) => return Ok(()),
+                    Message::Ping(payload) if link.answers_pings() => {
+                        link.sink.send(Message::Pong(payload)).await.map_err(|e| connect_err(&e))?;
+                    }
                     _ => {}
                 }
             }
             out = outgoing.recv() => {
                 let Some(out) = out else { return Ok(()) };
-                sink.send(to_text(&out)).await.map_err(|e| connect_err(&e))?;
+                link.sink.send(to_text(&out)).await.map_err(|e| connect_err(&e))?;
             }
             _ = ping.tick() => {
                 ping_id = ping_id.wrapping_add(1);
@@ -680,10 +720,78 @@ async fn session(
                     if s.pings.len() > 64 { s.pings.clear(); }
                     s.pings.insert(ping_id, now);
                 }
-                sink.send(to_text(&ClientMsg::Ping { id: ping_id, client_time_us: now })).await.map_err(|e| connect_err(&e))?;
+                link.sink.send(to_text(&ClientMsg::Ping { id: ping_id, client_time_us: now })).await.map_err(|e| connect_err(&e))?;
             }
         }
     }
+}
+
+/// The link of one connection to `url`: WebTransport first when `options` allow it and the
+/// server offers it, the websocket otherwise (or when WebTransport cannot be reached); the
+/// transport, and why WebTransport was not used, go into the stats.
+async fn connect(
+    options: &ClientOptions,
+    url: &str,
+    shared: &Mutex<Shared>,
+) -> Result<Link, ClientError> {
+    let connect_err = |message: String| ClientError::Connect {
+        url: url.to_owned(),
+        message,
+    };
+    // Why WebTransport was not used although the server offered it.
+    let mut failure = None;
+    if options.transport != TransportChoice::WebSocket {
+        let offer = match transport::discover(url, options.quic_timeout).await {
+            Ok(Some(offer)) => Some(offer),
+            Ok(None) => None,
+            // A server that cannot be asked: the websocket says why below.
+            Err(e) => {
+                debug!(url, error = %e, "cannot ask for WebTransport");
+                None
+            }
+        };
+        let tried = match &offer {
+            Some(offer) => Some(
+                tokio::time::timeout(options.quic_timeout, Link::webtransport(offer))
+                    .await
+                    .map_err(|_| {
+                        format!(
+                            "no QUIC handshake with {} within {:?} (UDP blocked?)",
+                            offer.url, options.quic_timeout
+                        )
+                    })
+                    .and_then(|link| link.map_err(|e| format!("{}: {e}", offer.url))),
+            ),
+            None => None,
+        };
+        match tried {
+            Some(Ok(link)) => {
+                let mut s = lock(shared);
+                s.stats.transport = Some(Transport::WebTransport);
+                s.stats.webtransport_failure = None;
+                debug!(url, "connected over WebTransport");
+                return Ok(link);
+            }
+            Some(Err(e)) => {
+                if options.transport == TransportChoice::WebTransport {
+                    return Err(connect_err(e));
+                }
+                warn!(url, error = %e, "WebTransport offered but not reached: the websocket instead");
+                failure = Some(e);
+            }
+            None if options.transport == TransportChoice::WebTransport => {
+                return Err(connect_err(
+                    "the server does not offer WebTransport".to_owned(),
+                ));
+            }
+            None => {}
+        }
+    }
+    let link = Link::websocket(url).await.map_err(connect_err)?;
+    let mut s = lock(shared);
+    s.stats.transport = Some(Transport::WebSocket);
+    s.stats.webtransport_failure = failure;
+    Ok(link)
 }
 
 fn on_server_msg(
@@ -914,20 +1022,22 @@ impl Decoders {
     }
 }
 
+/// Decodes a binary frame into the avatars' poses; returns its scene number and tick when it
+/// was a keyframe (which a WebTransport link acknowledges).
 fn on_binary(
     shared: &Arc<Mutex<Shared>>,
     events: &broadcast::Sender<Event>,
     decoder: &mut Decoders,
     bytes: &[u8],
     received: u64,
-) {
+) -> Option<(u32, u64)> {
     let mut s = lock(shared);
     let frame = match decoder.decode(bytes) {
         Ok(f) => f,
         Err(e) => {
             debug!(error = %e, "undecodable frame");
             s.stats.undecodable += 1;
-            return;
+            return None;
         }
     };
     s.stats.frames += 1;
@@ -983,6 +1093,7 @@ fn on_binary(
             bytes: bytes.len(),
         })
         .ok();
+    key.then_some((frame.header.scene_num, frame.header.seq))
 }
 
 fn on_json_frame(s: &mut Shared, frame: FrameJson, len: usize, received: u64) -> Option<Event> {

@@ -12,9 +12,11 @@
 //! `Cache-Control: no-cache`: browsers keep it and revalidate (a 304 when unchanged), so a new
 //! server binary never leaves a stale script in use.
 
-use axum::extract::Path;
+use crate::state::AppState;
+use axum::extract::{Path, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
+use std::sync::Arc;
 
 /// The policy of a dashboard file served to a request whose `Host` header is `host`.
 ///
@@ -25,10 +27,21 @@ use axum::response::{IntoResponse, Response};
 /// injected script talk to any server. `HOST` is the request's `Host` if it is a plain
 /// `name[:port]` (the CSP host-source grammar); anything else (an IPv6 literal, which that
 /// grammar lacks, or text that could smuggle in other directives) gets `'self'` alone.
+///
+/// With a WebTransport endpoint (`quic_port`, `--quic-listen`) the policy also names
+/// `https://NAME:PORT`, the request host's name at the endpoint's UDP port: the page's client
+/// connects there first.
 #[must_use]
-pub fn content_security_policy(host: Option<&str>) -> String {
+pub fn content_security_policy(host: Option<&str>, quic_port: Option<u16>) -> String {
     let connect = match host.filter(|h| is_host_source(h)) {
-        Some(h) => format!("'self' ws://{h} wss://{h}"),
+        Some(h) => {
+            let mut sources = format!("'self' ws://{h} wss://{h}");
+            if let Some(port) = quic_port {
+                let name = h.split_once(':').map_or(h, |(name, _)| name);
+                sources.push_str(&format!(" https://{name}:{port}"));
+            }
+            sources
+        }
         None => "'self'".to_owned(),
     };
     format!(
@@ -141,6 +154,11 @@ const SDK: &[(&str, &str, &str)] = &[
     ("fk.js", JS, include_str!("../../sdk/fk.js")),
     ("math.js", JS, include_str!("../../sdk/math.js")),
     ("subset.js", JS, include_str!("../../sdk/subset.js")),
+    (
+        "webtransport.js",
+        JS,
+        include_str!("../../sdk/webtransport.js"),
+    ),
     ("three.js", JS, include_str!("../../sdk/three.js")),
     (
         "three.d.ts",
@@ -189,6 +207,7 @@ fn serve(
     files: &[(&str, &'static str, &'static str)],
     name: &str,
     request: &HeaderMap,
+    quic_port: Option<u16>,
 ) -> Response {
     let Some(&(_, content_type, body)) = files.iter().find(|(n, _, _)| *n == name) else {
         return (StatusCode::NOT_FOUND, format!("no file {name}")).into_response();
@@ -205,7 +224,7 @@ fn serve(
         headers.insert(header::ETAG, tag);
     }
     headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
-    let policy = content_security_policy(host);
+    let policy = content_security_policy(host, quic_port);
     headers.insert(
         header::CONTENT_SECURITY_POLICY,
         HeaderValue::from_str(&policy).unwrap_or(HeaderValue::from_static("default-src 'self'")),
@@ -223,19 +242,32 @@ fn serve(
     response
 }
 
+/// The WebTransport endpoint's UDP port, if the server has one.
+fn quic_port(state: &AppState) -> Option<u16> {
+    state.quic.get().map(|q| q.port)
+}
+
 /// `GET /`: the dashboard page.
-pub async fn index(headers: HeaderMap) -> Response {
-    serve(FILES, "index.html", &headers)
+pub async fn index(State(state): State<Arc<AppState>>, headers: HeaderMap) -> Response {
+    serve(FILES, "index.html", &headers, quic_port(&state))
 }
 
 /// `GET /dashboard/{file}`: the page's scripts and styles.
-pub async fn file(Path(name): Path<String>, headers: HeaderMap) -> Response {
-    serve(FILES, &name, &headers)
+pub async fn file(
+    State(state): State<Arc<AppState>>,
+    Path(name): Path<String>,
+    headers: HeaderMap,
+) -> Response {
+    serve(FILES, &name, &headers, quic_port(&state))
 }
 
 /// `GET /sdk/{file}`: the JavaScript client, readable from any origin.
-pub async fn sdk(Path(name): Path<String>, headers: HeaderMap) -> Response {
-    let mut response = serve(SDK, &name, &headers);
+pub async fn sdk(
+    State(state): State<Arc<AppState>>,
+    Path(name): Path<String>,
+    headers: HeaderMap,
+) -> Response {
+    let mut response = serve(SDK, &name, &headers, quic_port(&state));
     response.headers_mut().insert(
         header::ACCESS_CONTROL_ALLOW_ORIGIN,
         HeaderValue::from_static("*"),
@@ -257,7 +289,7 @@ mod tests {
     fn every_file_is_served_with_its_type_and_the_policy() {
         for files in [FILES, SDK] {
             for (name, content_type, _) in files {
-                let r = serve(files, name, &host("example.org:8080"));
+                let r = serve(files, name, &host("example.org:8080"), None);
                 assert_eq!(r.status(), StatusCode::OK);
                 assert_eq!(r.headers()[header::CONTENT_TYPE], *content_type);
                 assert!(r.headers().contains_key(header::CONTENT_SECURITY_POLICY));
@@ -265,11 +297,11 @@ mod tests {
             }
         }
         assert_eq!(
-            serve(FILES, "../Cargo.toml", &HeaderMap::new()).status(),
+            serve(FILES, "../Cargo.toml", &HeaderMap::new(), None).status(),
             StatusCode::NOT_FOUND
         );
         assert_eq!(
-            serve(SDK, "index.html", &HeaderMap::new()).status(),
+            serve(SDK, "index.html", &HeaderMap::new(), None).status(),
             StatusCode::NOT_FOUND
         );
     }
@@ -304,11 +336,11 @@ mod tests {
     /// A request naming the file's tag gets 304 without the body; another tag, the file.
     #[test]
     fn files_are_revalidated_by_their_tag() {
-        let r = serve(SDK, "posecast.js", &HeaderMap::new());
+        let r = serve(SDK, "posecast.js", &HeaderMap::new(), None);
         let tag = r.headers()[header::ETAG].to_str().unwrap().to_owned();
         assert_eq!(tag.len(), 18, "{tag}");
         // A different file has a different tag.
-        let other = serve(SDK, "frames.js", &HeaderMap::new());
+        let other = serve(SDK, "frames.js", &HeaderMap::new(), None);
         assert_ne!(other.headers()[header::ETAG], tag.as_str());
         for (sent, status) in [
             (tag.clone(), StatusCode::NOT_MODIFIED),
@@ -322,7 +354,7 @@ mod tests {
             let mut headers = HeaderMap::new();
             headers.insert(header::IF_NONE_MATCH, HeaderValue::from_str(&sent).unwrap());
             assert_eq!(
-                serve(SDK, "posecast.js", &headers).status(),
+                serve(SDK, "posecast.js", &headers, None).status(),
                 status,
                 "{sent}"
             );
@@ -372,7 +404,7 @@ mod tests {
     fn connect_src_names_only_the_requests_own_host() {
         for h in ["127.0.0.1:8080", "localhost", "pose-cast.example.org:443"] {
             assert_eq!(
-                connect_src(&content_security_policy(Some(h))),
+                connect_src(&content_security_policy(Some(h), None)),
                 [
                     "'self'".to_owned(),
                     format!("ws://{h}"),
@@ -391,10 +423,32 @@ mod tests {
             "*",
             "",
         ] {
-            let policy = content_security_policy(Some(h));
+            let policy = content_security_policy(Some(h), Some(4433));
             assert_eq!(connect_src(&policy), ["'self'"], "{h:?}");
             assert_eq!(policy.matches("script-src").count(), 1, "{h:?}");
         }
-        assert_eq!(connect_src(&content_security_policy(None)), ["'self'"]);
+        assert_eq!(
+            connect_src(&content_security_policy(None, None)),
+            ["'self'"]
+        );
+        // With a WebTransport endpoint: the host's name at its UDP port, https only.
+        assert_eq!(
+            connect_src(&content_security_policy(Some("127.0.0.1:8080"), Some(4433))),
+            [
+                "'self'",
+                "ws://127.0.0.1:8080",
+                "wss://127.0.0.1:8080",
+                "https://127.0.0.1:4433"
+            ]
+        );
+        assert_eq!(
+            connect_src(&content_security_policy(Some("example.org"), Some(443))),
+            [
+                "'self'",
+                "ws://example.org",
+                "wss://example.org",
+                "https://example.org:443"
+            ]
+        );
     }
 }

@@ -214,9 +214,10 @@ async fn ws_upgrade(
 /// `GET /api/quic`: the WebTransport endpoint, if this server has one (`--quic-listen`):
 /// `{available, port, cert_sha256, self_signed}` — a page connects to
 /// `https://<this host>:<port>/` with `serverCertificateHashes` set to `cert_sha256` when
-/// `self_signed`. Public, like the websocket's address.
-async fn quic_info(State(state): State<Arc<AppState>>) -> axum::Json<serde_json::Value> {
-    axum::Json(match state.quic.get() {
+/// `self_signed`. Public, like the websocket's address, and readable by pages of any origin
+/// (which load the client from `/sdk/` and connect from there).
+async fn quic_info(State(state): State<Arc<AppState>>) -> impl IntoResponse {
+    let info = axum::Json(match state.quic.get() {
         Some(q) => serde_json::json!({
             "available": true,
             "port": q.port,
@@ -224,7 +225,11 @@ async fn quic_info(State(state): State<Arc<AppState>>) -> axum::Json<serde_json:
             "self_signed": q.self_signed,
         }),
         None => serde_json::json!({ "available": false }),
-    })
+    });
+    (
+        [(axum::http::header::ACCESS_CONTROL_ALLOW_ORIGIN, "*")],
+        info,
+    )
 }
 
 /// `GET /metrics`: readable by whoever may read (anyone with open views; a view or control
