@@ -97,6 +97,8 @@ struct Seen {
     frames: Vec<(u64, BTreeMap<u32, AvatarPose>)>,
     names: HashMap<u32, String>,
     dropped: Vec<u64>,
+    /// The avatars of each datagram dropped, by tick.
+    dropped_avatars: Vec<(u64, Vec<u32>)>,
     undecodable: usize,
     keys: usize,
 }
@@ -168,7 +170,13 @@ async fn subscribe(
             i += 1;
             if drop(i) {
                 if let Ok((h, _)) = posecast_proto::frame::read_header(&bytes) {
-                    out.lock().unwrap().dropped.push(h.seq);
+                    let avatars = posecast_proto::frame::split_by_avatar(&bytes, usize::MAX)
+                        .unwrap()
+                        .remove(0)
+                        .1;
+                    let mut out = out.lock().unwrap();
+                    out.dropped.push(h.seq);
+                    out.dropped_avatars.push((h.seq, avatars));
                 }
                 continue;
             }
@@ -177,8 +185,10 @@ async fn subscribe(
                 continue;
             };
             if frame.header.kind == FrameKind::Key {
-                conn.send_datagram(wire::key_ack(frame.header.scene_num, frame.header.seq))
-                    .unwrap();
+                // Naming its avatars: a keyframe too large for a datagram comes in parts.
+                let avatars: Vec<u32> = frame.avatars.iter().map(|a| a.avatar_num).collect();
+                let ack = wire::key_ack_of(frame.header.scene_num, frame.header.seq, &avatars);
+                conn.send_datagram(ack).unwrap();
                 out.lock().unwrap().keys += 1;
             }
             let poses = frame
@@ -284,6 +294,84 @@ async fn datagram_frames_are_the_websocket_poses_and_a_lost_one_costs_its_tick_o
                 "{name}: {} dropped",
                 seen.dropped.len()
             );
+        }
+    }
+    server.stop().await;
+}
+
+/// Thirty-one avatars: a keyframe (about 5 kB) and a delta (about 2 kB) are larger than a
+/// datagram, so every frame goes cut by avatar into datagrams that each decode alone —
+/// nothing on the stream. Each part
+/// is, pose for pose, the websocket's; with datagrams dropped (every 7th, and five in a row),
+/// every part kept decodes (a keyframe counts as held only once every avatar of it is
+/// acknowledged) and each avatar misses only the ticks of its own lost parts.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_scene_too_big_for_a_datagram_goes_split_by_avatar() {
+    let server = quic_server(60.0, |_| {}).await;
+    common::add_extras(&server, 0..30).await;
+    let live = Watcher::start(server.addr, "default").await;
+    live.until("31 avatars", |frames| {
+        frames.last().is_some_and(|f| f.poses.len() == 31)
+    })
+    .await;
+    let whole = subscribe(server.addr, "default", |_| false).await;
+    let lossy = subscribe(server.addr, "default", |i| {
+        i % 7 == 0 || (40..45).contains(&i)
+    })
+    .await;
+    frames(&whole, 600).await;
+    frames(&lossy, 600).await;
+    live.stop();
+    let on_ws: HashMap<u64, BTreeMap<String, AvatarPose>> = live
+        .frames()
+        .into_iter()
+        .map(|s| (s.seq, s.poses))
+        .collect();
+    let addr = server.addr;
+    let split = common::metric(addr, "posecast_quic_split_frames_total").await;
+    assert!(split >= 300.0, "{split} frames split");
+    assert_eq!(
+        common::metric(addr, r#"posecast_quic_frames_total{via="stream"}"#).await,
+        0.0
+    );
+    for (name, seen) in [("whole", &whole), ("lossy", &lossy)] {
+        let seen = seen.lock().unwrap();
+        assert_eq!(
+            seen.undecodable, 0,
+            "{name}: a part referred to a keyframe part it lost"
+        );
+        let mut compared = 0;
+        // Ticks decoded, and ticks lost, per avatar.
+        let mut got: HashMap<u32, std::collections::BTreeSet<u64>> = HashMap::new();
+        for (seq, poses) in &seen.frames {
+            assert!(poses.len() < 31, "{name}: tick {seq} came whole");
+            for (num, pose) in poses {
+                got.entry(*num).or_default().insert(*seq);
+                if let Some(ws) = on_ws.get(seq).and_then(|w| w.get(&seen.names[num])) {
+                    assert_eq!(pose, ws, "{name}: tick {seq} avatar {num} differs");
+                    compared += 1;
+                }
+            }
+        }
+        assert!(compared >= 2000, "{name}: only {compared} poses compared");
+        assert_eq!(got.len(), 31, "{name}");
+        for (num, ticks) in &got {
+            let (first, last) = (*ticks.first().unwrap(), *ticks.last().unwrap());
+            let lost = |s: u64| {
+                seen.dropped_avatars
+                    .iter()
+                    .any(|(d, avatars)| *d == s && avatars.contains(num))
+            };
+            let missing: Vec<u64> = (first..=last)
+                .filter(|s| !ticks.contains(s) && !lost(*s))
+                .collect();
+            assert!(
+                missing.is_empty(),
+                "{name}: avatar {num} missing {missing:?}"
+            );
+        }
+        if name == "lossy" {
+            assert!(seen.dropped.len() >= 50, "{} dropped", seen.dropped.len());
         }
     }
     server.stop().await;

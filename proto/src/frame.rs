@@ -279,6 +279,93 @@ impl ChunkEncoder {
     }
 }
 
+/// The length in bytes of the avatar chunk at the start of `chunk` (of a frame of kind `kind`),
+/// and its avatar number.
+///
+/// # Errors
+/// The chunk is cut short, or a delta tag is invalid.
+pub fn chunk_len(chunk: &[u8], kind: FrameKind) -> Result<(usize, u32), FrameError> {
+    let mut r = Reader {
+        bytes: chunk,
+        at: 0,
+    };
+    let head = r.take(12)?;
+    let avatar = u32::from_le_bytes([head[0], head[1], head[2], head[3]]);
+    let joints = usize::from(r.u16()?);
+    let translations = usize::from(r.u16()?);
+    let scales_field = r.u16()?;
+    let scales = usize::from(scales_field & !PLACEMENT_FLAG);
+    match kind {
+        FrameKind::Key => {
+            r.take(joints * quant::BYTES)?;
+        }
+        FrameKind::Delta => {
+            let tags = r.take(joints.div_ceil(4))?;
+            let mut bytes = 0;
+            for joint in 0..joints {
+                bytes += match (tags[joint / 4] >> (2 * (joint % 4))) & 3 {
+                    0 => 0,
+                    1 => 3,
+                    2 => quant::BYTES,
+                    _ => return Err(FrameError::Tag { avatar, joint }),
+                };
+            }
+            r.take(bytes)?;
+        }
+    }
+    r.take((translations + scales) * 12)?;
+    if scales_field & PLACEMENT_FLAG != 0 {
+        r.take(7 * 4)?;
+    }
+    Ok((r.at, avatar))
+}
+
+/// A part of a frame cut by avatar: its bytes (a frame) and the avatar numbers it carries.
+pub type FramePart = (Vec<u8>, Vec<u32>);
+
+/// `frame` cut into frames of whole avatar chunks, each at most `max` bytes where it can be
+/// (a chunk larger than `max` less the header goes alone), each with `frame`'s header and its
+/// own chunk count, each decodable alone (a delta refers to its avatar's keyframe): how a
+/// frame too large for one datagram goes as several. Returns each part with the avatar
+/// numbers it carries. A frame that fits comes back whole.
+///
+/// # Errors
+/// The frame is malformed.
+pub fn split_by_avatar(frame: &[u8], max: usize) -> Result<Vec<FramePart>, FrameError> {
+    let (header, count) = read_header(frame)?;
+    let mut chunks = Vec::with_capacity(usize::from(count));
+    let mut at = HEADER_BYTES;
+    for _ in 0..count {
+        let (len, avatar) = chunk_len(&frame[at..], header.kind)?;
+        chunks.push((at..at + len, avatar));
+        at += len;
+    }
+    if at != frame.len() {
+        return Err(FrameError::Trailing(frame.len() - at));
+    }
+    let mut parts: Vec<FramePart> = Vec::new();
+    let mut open: Option<FramePart> = None;
+    for (range, avatar) in chunks {
+        if let Some((bytes, _)) = &open
+            && bytes.len() + range.len() > max
+        {
+            parts.extend(open.take());
+        }
+        let (bytes, avatars) =
+            open.get_or_insert_with(|| (frame[..HEADER_BYTES].to_vec(), Vec::new()));
+        bytes.extend_from_slice(&frame[range]);
+        avatars.push(avatar);
+    }
+    parts.extend(open);
+    for (bytes, avatars) in &mut parts {
+        bytes[2..4].copy_from_slice(&(avatars.len() as u16).to_le_bytes());
+    }
+    if parts.is_empty() {
+        parts.push((frame.to_vec(), Vec::new()));
+    }
+    Ok(parts)
+}
+
 /// Appends to `out` the chunk `chunk` (one avatar's, as [`ChunkEncoder::encode`] wrote it, of
 /// a frame of kind `kind`) cut down to the joints `selection` names ([`crate::subset`]): the
 /// selected rotations (keyframe: their 6 bytes; delta: their tags and bytes), translations
@@ -662,6 +749,121 @@ mod tests {
             placement: Placement::IDENTITY,
             weights: Vec::new(),
         }
+    }
+
+    /// A frame of many avatars (different joint counts, placements, deltas with every tag)
+    /// cut by avatar: every part within the bound, each decodable alone, together the whole
+    /// frame's poses; a part lost costs only its own avatars; a chunk over the bound goes alone.
+    #[test]
+    fn frames_split_by_avatar_decode_alone_and_together_as_the_whole() {
+        let avatars: Vec<AvatarPose> = (0..12u32)
+            .map(|i| {
+                let joints = 5 + 7 * i as usize;
+                AvatarPose {
+                    avatar_num: 100 + i,
+                    hash: u64::from(i) * 31,
+                    rotations: (0..joints)
+                        .map(|j| Quat::from_rotation_x(0.01 * (i as f32 + j as f32)))
+                        .collect(),
+                    translations: vec![Vec3::new(i as f32, 0.0, 0.0)],
+                    scales: vec![],
+                    placement: if i % 2 == 0 {
+                        Placement::IDENTITY
+                    } else {
+                        Placement {
+                            position: Vec3::new(1.0, 0.0, i as f32),
+                            rotation: Quat::IDENTITY,
+                        }
+                    },
+                    weights: Vec::new(),
+                }
+            })
+            .collect();
+        let mut encoders: Vec<ChunkEncoder> = avatars.iter().map(|_| ChunkEncoder::new()).collect();
+        let whole = |kind, seq, base, poses: &[AvatarPose], encoders: &mut [ChunkEncoder]| {
+            let mut out = Vec::new();
+            let h = FrameHeader {
+                kind,
+                scene_num: 3,
+                seq,
+                server_time_us: 99,
+                base_seq: base,
+            };
+            write_header(&h, poses.len() as u16, &mut out);
+            for (p, e) in poses.iter().zip(encoders) {
+                e.encode(p, kind, &mut out);
+            }
+            out
+        };
+        let key = whole(FrameKind::Key, 1, 1, &avatars, &mut encoders);
+        // Moved: small changes, large ones, and unchanged joints.
+        let moved: Vec<AvatarPose> = avatars
+            .iter()
+            .map(|a| AvatarPose {
+                rotations: a
+                    .rotations
+                    .iter()
+                    .enumerate()
+                    .map(|(j, q)| match j % 3 {
+                        0 => *q,
+                        1 => Quat::from_rotation_y(0.001) * *q,
+                        _ => Quat::from_rotation_z(1.0) * *q,
+                    })
+                    .collect(),
+                ..a.clone()
+            })
+            .collect();
+        let delta = whole(FrameKind::Delta, 2, 1, &moved, &mut encoders);
+        let max = 400;
+        let mut reference = FrameDecoder::new();
+        let mut split_decoder = FrameDecoder::new();
+        for frame in [&key, &delta] {
+            let want = reference.decode(frame).unwrap();
+            let parts = split_by_avatar(frame, max).unwrap();
+            assert!(parts.len() > 2, "{} parts", parts.len());
+            let mut got = Vec::new();
+            for (bytes, nums) in &parts {
+                // A chunk over the bound alone in its part.
+                assert!(
+                    bytes.len() <= max || nums.len() == 1,
+                    "{} bytes",
+                    bytes.len()
+                );
+                let part = split_decoder.decode(bytes).unwrap();
+                assert_eq!(part.header, want.header);
+                let decoded: Vec<u32> = part.avatars.iter().map(|a| a.avatar_num).collect();
+                assert_eq!(&decoded, nums);
+                got.extend(part.avatars);
+            }
+            assert_eq!(got, want.avatars);
+            // The keyframe's largest chunks do not fit the bound.
+            let alone = parts.iter().any(|(b, n)| b.len() > max && n.len() == 1);
+            assert_eq!(alone, frame == &key);
+        }
+        // A lost part of the keyframe: the delta's other parts still decode.
+        let mut lossy = FrameDecoder::new();
+        let key_parts = split_by_avatar(&key, max).unwrap();
+        for (bytes, _) in key_parts.iter().skip(1) {
+            lossy.decode(bytes).unwrap();
+        }
+        let lost = &key_parts[0].1;
+        for (bytes, nums) in split_by_avatar(&delta, max).unwrap() {
+            let result = lossy.decode(&bytes);
+            assert_eq!(
+                result.is_ok(),
+                !nums.iter().any(|n| lost.contains(n)),
+                "{nums:?}"
+            );
+        }
+        // A frame that fits comes back whole; malformed ones are refused.
+        assert_eq!(
+            split_by_avatar(&key, key.len()).unwrap(),
+            vec![(key.clone(), (100..112).collect())]
+        );
+        assert!(split_by_avatar(&key[..key.len() - 1], max).is_err());
+        let mut trailing = key.clone();
+        trailing.push(0);
+        assert!(split_by_avatar(&trailing, max).is_err());
     }
 
     #[test]

@@ -2,10 +2,13 @@
 //! the client opens one bidirectional stream, which carries the websocket protocol's messages
 //! in order — `hello`, commands, acks, descriptions, errors, live poses — each framed as
 //! [`STREAM_HEADER`] bytes (a kind, then the payload's length, `u32` little-endian) and its
-//! payload. Frames come as datagrams, one wire v1 frame each (a frame larger than a datagram
-//! comes on the stream, kind [`BINARY`]): a delta refers to a keyframe the client
-//! acknowledged, with a [`KEY_ACK`] datagram, so a lost datagram costs its own tick only; the
-//! server sends the newest keyframe again before each delta until it is acknowledged.
+//! payload. Frames come as datagrams, one wire v1 frame each: a frame larger than a datagram
+//! is cut by avatar into frames that each fit ([`crate::frame::split_by_avatar`]: same header,
+//! fewer chunks, each decodable alone), and one avatar's chunk too large for a datagram comes
+//! on the stream, kind [`BINARY`]. A delta refers to a keyframe the client acknowledged, with
+//! a [`KEY_ACK`] datagram naming the avatars it decoded, so a lost datagram costs its own tick
+//! only; the server sends the newest keyframe again before each delta until every avatar of it
+//! is acknowledged.
 
 /// Bytes before a message's payload on the stream: its kind and its length.
 pub const STREAM_HEADER: usize = 5;
@@ -21,8 +24,13 @@ pub const PONG: u8 = 4;
 /// A close: a `u16` code (little-endian) and a reason, as a websocket close frame.
 pub const CLOSE: u8 = 5;
 /// The first byte of a client's keyframe acknowledgement datagram, followed by the keyframe's
-/// scene number (`u32`) and tick (`u64`, both little-endian), from its header.
+/// scene number (`u32`) and tick (`u64`), from its header, and the numbers (`u32` each) of the
+/// avatars whose chunks it decoded — none: every avatar of that keyframe. All little-endian.
 pub const KEY_ACK: u8 = b'K';
+
+/// Most avatars one acknowledgement names (it stays within the smallest datagram QUIC allows,
+/// 1,200 bytes): a keyframe part with more avatars is acknowledged whole.
+pub const MAX_ACKED_AVATARS: usize = 256;
 
 /// `payload` framed as a message of `kind` on the stream.
 #[must_use]
@@ -51,16 +59,50 @@ pub fn key_ack(scene_num: u32, seq: u64) -> [u8; 13] {
     out
 }
 
-/// The scene number and tick a keyframe acknowledgement datagram names, if `datagram` is one.
+/// The datagram acknowledging the chunks of `avatars` in the keyframe of tick `seq` of scene
+/// number `scene_num` (a part of a keyframe cut by avatar); more than [`MAX_ACKED_AVATARS`]
+/// acknowledge the whole keyframe.
 #[must_use]
-pub fn read_key_ack(datagram: &[u8]) -> Option<(u32, u64)> {
-    match datagram {
-        [KEY_ACK, a, b, c, d, rest @ ..] => {
-            let seq = u64::from_le_bytes(rest.try_into().ok()?);
-            Some((u32::from_le_bytes([*a, *b, *c, *d]), seq))
+pub fn key_ack_of(scene_num: u32, seq: u64, avatars: &[u32]) -> Vec<u8> {
+    let mut out = key_ack(scene_num, seq).to_vec();
+    if avatars.len() <= MAX_ACKED_AVATARS {
+        for a in avatars {
+            out.extend_from_slice(&a.to_le_bytes());
         }
-        _ => None,
     }
+    out
+}
+
+/// A keyframe acknowledgement: its scene number, tick, and the avatars it names (empty: every
+/// avatar of the keyframe).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct KeyAck {
+    /// The keyframe's scene number.
+    pub scene_num: u32,
+    /// Its tick.
+    pub seq: u64,
+    /// The avatars whose chunks the client decoded; empty: all.
+    pub avatars: Vec<u32>,
+}
+
+/// The acknowledgement `datagram` is, if it is one.
+#[must_use]
+pub fn read_key_ack(datagram: &[u8]) -> Option<KeyAck> {
+    let [KEY_ACK, a, b, c, d, rest @ ..] = datagram else {
+        return None;
+    };
+    let (seq, avatars) = rest.split_at_checked(8)?;
+    if avatars.len() % 4 != 0 || avatars.len() / 4 > MAX_ACKED_AVATARS {
+        return None;
+    }
+    Some(KeyAck {
+        scene_num: u32::from_le_bytes([*a, *b, *c, *d]),
+        seq: u64::from_le_bytes(seq.try_into().ok()?),
+        avatars: avatars
+            .chunks_exact(4)
+            .map(|n| u32::from_le_bytes([n[0], n[1], n[2], n[3]]))
+            .collect(),
+    })
 }
 
 #[cfg(test)]
@@ -72,8 +114,28 @@ mod tests {
         let m = frame_message(TEXT, b"{}");
         let (kind, len) = read_header(m[..STREAM_HEADER].try_into().unwrap());
         assert_eq!((kind, len, &m[STREAM_HEADER..]), (TEXT, 2, &b"{}"[..]));
-        assert_eq!(read_key_ack(&key_ack(3, 1 << 40)), Some((3, 1 << 40)));
+        let whole = |scene_num, seq| {
+            Some(KeyAck {
+                scene_num,
+                seq,
+                avatars: Vec::new(),
+            })
+        };
+        assert_eq!(read_key_ack(&key_ack(3, 1 << 40)), whole(3, 1 << 40));
         assert_eq!(read_key_ack(&key_ack(3, 7)[..12]), None);
+        let named = key_ack_of(3, 7, &[1, 70_000]);
+        assert_eq!(named.len(), 13 + 8);
+        assert_eq!(
+            read_key_ack(&named),
+            Some(KeyAck {
+                scene_num: 3,
+                seq: 7,
+                avatars: vec![1, 70_000]
+            })
+        );
+        assert_eq!(read_key_ack(&named[..15]), None);
+        let many: Vec<u32> = (0..=MAX_ACKED_AVATARS as u32).collect();
+        assert_eq!(read_key_ack(&key_ack_of(3, 7, &many)), whole(3, 7));
         assert_eq!(read_key_ack(b"X123456789012"), None);
         assert_eq!(read_key_ack(&[]), None);
     }

@@ -720,7 +720,9 @@ export class Client {
       return;
     }
     // Over WebTransport, the server codes deltas only against keyframes acknowledged.
-    if (decoded.key && this.ws instanceof WebTransportSocket) this.ws.ackKey(decoded.scene_num, decoded.seq);
+    if (decoded.key && this.ws instanceof WebTransportSocket) {
+      this.ws.ackKey(decoded.scene_num, decoded.seq, decoded.avatars.map((a) => a.num));
+    }
     const scene = this.sceneNames.get(decoded.scene_num);
     if (scene === undefined) {
       this.stats.undecodable++;

@@ -15,6 +15,8 @@ const PING = 3;
 const PONG = 4;
 const CLOSE = 5;
 const KEY_ACK = 0x4b; // "K"
+/** Most avatars one acknowledgement names (more: the whole keyframe is acknowledged). */
+const MAX_ACKED_AVATARS = 256;
 /** The largest message the server's stream may carry (a websocket library's default bound). */
 const MAX_MESSAGE_BYTES = 64 << 20;
 
@@ -206,18 +208,23 @@ export class WebTransportSocket {
   }
 
   /**
-   * Acknowledges the keyframe of tick `seq` of scene number `sceneNum` (a 13-byte datagram:
-   * "K", the scene number as u32, the tick as u64, little-endian).
+   * Acknowledges the chunks of `avatars` in the keyframe of tick `seq` of scene number
+   * `sceneNum` (a keyframe too large for a datagram comes cut by avatar, and any part may be
+   * lost): a datagram of "K", the scene number as u32, the tick as u64 and each avatar number
+   * as u32, little-endian (none: the whole keyframe).
    * @param {number} sceneNum
    * @param {number} seq
+   * @param {number[]} avatars
    */
-  ackKey(sceneNum, seq) {
+  ackKey(sceneNum, seq, avatars) {
     if (this.closed) return;
-    const ack = new Uint8Array(13);
+    const named = avatars.length <= MAX_ACKED_AVATARS ? avatars : [];
+    const ack = new Uint8Array(13 + 4 * named.length);
     const view = new DataView(ack.buffer);
     view.setUint8(0, KEY_ACK);
     view.setUint32(1, sceneNum, true);
     view.setBigUint64(5, BigInt(seq), true);
+    named.forEach((num, i) => view.setUint32(13 + 4 * i, num, true));
     // A lost acknowledgement is made up for by the next keyframe's.
     this.datagrams.write(ack).catch(() => {});
   }

@@ -114,8 +114,24 @@ pub struct Outbox {
     /// ([`Outbox::key_acked`]), and sends wire v1 frames (whose deltas refer to the keyframe,
     /// never to the frame before, so a lost delta costs its own tick only).
     datagrams: std::sync::atomic::AtomicBool,
-    /// The newest keyframe tick the client acknowledged, by scene number.
-    acked_keys: Mutex<std::collections::HashMap<u32, u64>>,
+    /// The keyframes the client acknowledged, by scene number.
+    acked_keys: Mutex<std::collections::HashMap<u32, KeyAcks>>,
+}
+
+/// Split keyframes whose acknowledgements an outbox follows, per scene: older ones are
+/// forgotten (a client that lost their parts gets a newer keyframe anyway).
+const SPLIT_KEYS_KEPT: usize = 4;
+
+/// The keyframe acknowledgements of one scene of a datagram outbox.
+#[derive(Debug, Default)]
+struct KeyAcks {
+    /// The newest keyframe tick the client holds whole: every avatar it was sent with.
+    held: Option<u64>,
+    /// Keyframes sent cut by avatar into several datagrams, by tick: their avatars not
+    /// acknowledged yet (the newest [`SPLIT_KEYS_KEPT`]).
+    split: std::collections::BTreeMap<u64, std::collections::HashSet<u32>>,
+    /// The newest split keyframe forgotten: acknowledgements up to it are not taken as whole.
+    forgotten: Option<u64>,
 }
 
 /// What the writer should do next.
@@ -164,25 +180,62 @@ impl Outbox {
         self.datagrams.load(std::sync::atomic::Ordering::Relaxed)
     }
 
-    /// The client acknowledged the keyframe of tick `seq` of scene number `scene` (it
-    /// decoded it). A late acknowledgement of an older keyframe changes nothing.
-    pub fn ack_key(&self, scene: u32, seq: u64) {
-        let mut acked = self
-            .acked_keys
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        let newest = acked.entry(scene).or_insert(seq);
-        *newest = (*newest).max(seq);
-    }
-
-    /// The newest keyframe tick of scene number `scene` the client acknowledged, if any.
-    #[must_use]
-    pub fn key_acked(&self, scene: u32) -> Option<u64> {
+    fn key_acks(&self) -> std::sync::MutexGuard<'_, std::collections::HashMap<u32, KeyAcks>> {
         self.acked_keys
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
-            .get(&scene)
-            .copied()
+    }
+
+    /// The keyframe of tick `seq` of scene number `scene` went out cut by avatar into several
+    /// datagrams, with the chunks of `avatars`: the client holds it only once it acknowledged
+    /// every one of them (any part may be lost). Sent again (the same tick), the avatars
+    /// acknowledged already stay acknowledged.
+    pub fn sent_split_key(&self, scene: u32, seq: u64, avatars: &[u32]) {
+        let mut acks = self.key_acks();
+        let acks = acks.entry(scene).or_default();
+        if acks.held.is_some_and(|held| held >= seq) || acks.split.contains_key(&seq) {
+            return;
+        }
+        acks.split.insert(seq, avatars.iter().copied().collect());
+        while acks.split.len() > SPLIT_KEYS_KEPT {
+            if let Some((old, _)) = acks.split.pop_first() {
+                acks.forgotten = acks.forgotten.max(Some(old));
+            }
+        }
+    }
+
+    /// The client acknowledged the chunks of `avatars` (none: all) in the keyframe of tick
+    /// `seq` of scene number `scene` (it decoded them). A keyframe cut by avatar is held once
+    /// all its avatars are acknowledged; a late acknowledgement of an older keyframe changes
+    /// nothing.
+    pub fn ack_key(&self, scene: u32, seq: u64, avatars: &[u32]) {
+        let mut acks = self.key_acks();
+        let acks = acks.entry(scene).or_default();
+        let whole = match acks.split.get_mut(&seq) {
+            Some(missing) => {
+                if avatars.is_empty() {
+                    missing.clear();
+                } else {
+                    for a in avatars {
+                        missing.remove(a);
+                    }
+                }
+                missing.is_empty()
+            }
+            // A part of a split keyframe no longer followed: not known to be whole.
+            None => acks.forgotten.is_none_or(|f| seq > f),
+        };
+        if whole {
+            acks.held = acks.held.max(Some(seq));
+            acks.split.retain(|&s, _| s > seq);
+        }
+    }
+
+    /// The newest keyframe tick of scene number `scene` the client holds whole, as it
+    /// acknowledged, if any.
+    #[must_use]
+    pub fn key_acked(&self, scene: u32) -> Option<u64> {
+        self.key_acks().get(&scene).and_then(|a| a.held)
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, State> {
@@ -486,6 +539,44 @@ fn take_control(s: &mut State) -> Vec<Message> {
 mod tests {
     use super::*;
     use bytes::Bytes;
+
+    /// A keyframe sent whole is held once acknowledged; one cut by avatar once every avatar
+    /// of it is (by names, or by a whole acknowledgement), not before; a part acknowledged
+    /// again after a resend stays acknowledged; an old split keyframe forgotten is not taken
+    /// as whole; a late acknowledgement of an older keyframe changes nothing.
+    #[test]
+    fn a_split_keyframe_is_held_once_every_avatar_of_it_is_acknowledged() {
+        let o = Outbox::for_datagrams();
+        assert_eq!(o.key_acked(1), None);
+        o.ack_key(1, 10, &[]);
+        assert_eq!(o.key_acked(1), Some(10));
+        o.sent_split_key(1, 20, &[1, 2, 3]);
+        o.ack_key(1, 20, &[1, 3]);
+        assert_eq!(
+            o.key_acked(1),
+            Some(10),
+            "avatar 2's part was not acknowledged"
+        );
+        // Sent again: the parts acknowledged stay so.
+        o.sent_split_key(1, 20, &[1, 2, 3]);
+        o.ack_key(1, 20, &[2]);
+        assert_eq!(o.key_acked(1), Some(20));
+        o.ack_key(1, 15, &[]);
+        assert_eq!(o.key_acked(1), Some(20));
+        // Another scene is apart; a whole acknowledgement covers every part.
+        o.sent_split_key(2, 5, &[1, 2]);
+        assert_eq!(o.key_acked(2), None);
+        o.ack_key(2, 5, &[]);
+        assert_eq!(o.key_acked(2), Some(5));
+        // Split keyframes past the ones followed are forgotten, and their parts never count.
+        for seq in 30..30 + SPLIT_KEYS_KEPT as u64 + 1 {
+            o.sent_split_key(1, seq, &[1, 2]);
+        }
+        o.ack_key(1, 30, &[1]);
+        assert_eq!(o.key_acked(1), Some(20));
+        o.ack_key(1, 31, &[1, 2]);
+        assert_eq!(o.key_acked(1), Some(31));
+    }
 
     fn frame(byte: u8, key: bool) -> OutFrame {
         OutFrame {

@@ -685,11 +685,10 @@ async fn session(
                 let received = unix_micros();
                 match msg {
                     Message::Binary(bytes) => {
-                        if let Some((scene_num, seq)) = on_binary(shared, events, &mut decoder, &bytes, received) {
-                            link.acknowledge_key(scene_num, seq);
-                            if link.transport == Transport::WebTransport {
-                                lock(shared).stats.key_acks += 1;
-                            }
+                        if let Some((scene_num, seq, avatars)) = on_binary(shared, events, &mut decoder, &bytes, received)
+                            && link.acknowledge_key(scene_num, seq, &avatars)
+                        {
+                            lock(shared).stats.key_acks += 1;
                         }
                     }
                     Message::Text(text) => {
@@ -1022,15 +1021,15 @@ impl Decoders {
     }
 }
 
-/// Decodes a binary frame into the avatars' poses; returns its scene number and tick when it
-/// was a keyframe (which a WebTransport link acknowledges).
+/// Decodes a binary frame into the avatars' poses; returns its scene number, tick and avatar
+/// numbers when it was a keyframe (which a WebTransport link acknowledges).
 fn on_binary(
     shared: &Arc<Mutex<Shared>>,
     events: &broadcast::Sender<Event>,
     decoder: &mut Decoders,
     bytes: &[u8],
     received: u64,
-) -> Option<(u32, u64)> {
+) -> Option<(u32, u64, Vec<u32>)> {
     let mut s = lock(shared);
     let frame = match decoder.decode(bytes) {
         Ok(f) => f,
@@ -1093,7 +1092,10 @@ fn on_binary(
             bytes: bytes.len(),
         })
         .ok();
-    key.then_some((frame.header.scene_num, frame.header.seq))
+    key.then(|| {
+        let avatars = frame.avatars.iter().map(|a| a.avatar_num).collect();
+        (frame.header.scene_num, frame.header.seq, avatars)
+    })
 }
 
 fn on_json_frame(s: &mut Shared, frame: FrameJson, len: usize, received: u64) -> Option<Event> {

@@ -155,13 +155,18 @@ impl Link {
         self.quic.is_some()
     }
 
-    /// Acknowledges the keyframe of tick `seq` of scene number `scene_num`, which the client
-    /// decoded: over WebTransport the server codes deltas only against acknowledged keyframes
-    /// (a websocket delivers every frame, and needs none).
-    pub fn acknowledge_key(&self, scene_num: u32, seq: u64) {
-        if let Some((conn, _)) = &self.quic {
+    /// Acknowledges the chunks of `avatars` in the keyframe of tick `seq` of scene number
+    /// `scene_num`, which the client decoded: over WebTransport the server codes deltas only
+    /// against keyframes acknowledged for every avatar (a keyframe too large for a datagram
+    /// comes cut by avatar, and any part may be lost; a websocket delivers every frame, and
+    /// needs none). Returns whether an acknowledgement went.
+    pub fn acknowledge_key(&self, scene_num: u32, seq: u64, avatars: &[u32]) -> bool {
+        match &self.quic {
             // A lost acknowledgement is made up for by the next keyframe's.
-            conn.send_datagram(wire::key_ack(scene_num, seq)).ok();
+            Some((conn, _)) => conn
+                .send_datagram(wire::key_ack_of(scene_num, seq, avatars))
+                .is_ok(),
+            None => false,
         }
     }
 }

@@ -13,6 +13,8 @@ pub struct QuicCounters {
     /// Frames sent, by how: `datagram`, `stream` (larger than a datagram).
     frames: [Counter; 2],
     datagram_bytes: Counter,
+    /// Frames too large for one datagram, cut by avatar into several.
+    split: Counter,
     key_acks: Counter,
     /// Datagrams from clients that are not keyframe acknowledgements.
     junk: Counter,
@@ -36,6 +38,11 @@ impl QuicCounters {
                 r,
                 "quic_datagram_bytes",
                 "Bytes of frames sent as datagrams",
+            ),
+            split: counter(
+                r,
+                "quic_split_frames",
+                "Frames too large for one datagram, sent cut by avatar into several (each part counts as a datagram frame)",
             ),
             key_acks: counter(
                 r,
@@ -64,6 +71,11 @@ impl QuicCounters {
     pub fn datagram(&self, bytes: usize) {
         self.frames[0].inc();
         self.datagram_bytes.inc_by(bytes as u64);
+    }
+
+    /// A frame cut by avatar into several datagrams.
+    pub fn split(&self) {
+        self.split.inc();
     }
 
     /// A frame sent on the stream.

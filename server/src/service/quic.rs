@@ -6,10 +6,12 @@
 //!   by its hash (`serverCertificateHashes`) — whose SHA-256 `GET /api/quic` publishes.
 //! - **A session** is a websocket session ([`super::ws::serve_parts`]) over the client's first
 //!   bidirectional stream: every message framed as kind, length and payload, in order. Its
-//!   outbox is a datagram one: frames are wire v1, each in one datagram (a larger one goes on
-//!   the stream), and a delta goes out only against a keyframe the client acknowledged with a
-//!   datagram; until then the newest keyframe goes again before each delta. A lost datagram
-//!   costs its own tick, and QUIC's congestion control paces what is sent.
+//!   outbox is a datagram one: frames are wire v1, each in one datagram — a larger one cut by
+//!   avatar into frames that each fit and decode alone (an avatar's chunk larger than a
+//!   datagram goes on the stream) — and a delta goes out only against a keyframe the client
+//!   acknowledged, every avatar of it, with datagrams; until then the newest keyframe goes
+//!   again before each delta. A lost datagram costs its own tick, and QUIC's congestion
+//!   control paces what is sent.
 
 use super::ws;
 use crate::metrics::Metrics;
@@ -197,7 +199,12 @@ async fn session(state: Arc<AppState>, caps: Arc<Caps>, incoming: IncomingSessio
     ));
     // Fused: the session reads on after the end (its closing linger).
     let stream = Box::pin(received(recv).fuse());
-    let sink = Box::pin(sent(conn.clone(), send, state.metrics.clone()));
+    let sink = Box::pin(sent(
+        conn.clone(),
+        send,
+        outbox.clone(),
+        state.metrics.clone(),
+    ));
     ws::serve_parts(sink, stream, outbox, state, Some(peer), None, None).await;
     acks.abort();
     conn.close(0u32.into(), b"");
@@ -207,9 +214,9 @@ async fn session(state: Arc<AppState>, caps: Arc<Caps>, incoming: IncomingSessio
 async fn read_acks(conn: Connection, outbox: Arc<Outbox>, metrics: Arc<Metrics>) {
     while let Ok(datagram) = conn.receive_datagram().await {
         match wire::read_key_ack(&datagram.payload()) {
-            Some((scene, seq)) => {
+            Some(ack) => {
                 metrics.quic.key_ack();
-                outbox.ack_key(scene, seq);
+                outbox.ack_key(ack.scene_num, ack.seq, &ack.avatars);
             }
             None => metrics.quic.ignored(),
         }
@@ -248,23 +255,73 @@ fn received(recv: RecvStream) -> impl Stream<Item = Result<Message, axum::Error>
     })
 }
 
-/// Sends the session's messages: frames as datagrams when they fit, everything else (and a
-/// frame that does not fit) on the stream, in order.
-fn sent(conn: Connection, send: SendStream, metrics: Arc<Metrics>) -> impl Sink<Message> + Send {
+/// Sends a frame as datagrams: whole when it fits one, else cut by avatar into frames that
+/// each fit (a keyframe cut so is held by the client once it acknowledged every avatar of it).
+/// Returns what could not go as a datagram (a frame of a peer without datagrams, an avatar's
+/// chunk larger than a datagram, a malformed frame), for the stream.
+fn send_datagrams(
+    conn: &Connection,
+    outbox: &Outbox,
+    metrics: &Metrics,
+    frame: &[u8],
+) -> Vec<Vec<u8>> {
+    let Some(max) = conn.max_datagram_size() else {
+        return vec![frame.to_vec()];
+    };
+    if frame.len() <= max {
+        if conn.send_datagram(frame).is_ok() {
+            metrics.quic.datagram(frame.len());
+            return Vec::new();
+        }
+        return vec![frame.to_vec()];
+    }
+    let parts = match posecast_proto::frame::split_by_avatar(frame, max) {
+        Ok(parts) if parts.len() > 1 => parts,
+        _ => return vec![frame.to_vec()],
+    };
+    metrics.quic.split();
+    if let Ok((header, _)) = posecast_proto::frame::read_header(frame)
+        && header.kind == posecast_proto::frame::FrameKind::Key
+    {
+        let avatars: Vec<u32> = parts.iter().flat_map(|(_, a)| a.iter().copied()).collect();
+        outbox.sent_split_key(header.scene_num, header.seq, &avatars);
+    }
+    let mut rest = Vec::new();
+    for (part, _) in parts {
+        if part.len() <= max && conn.send_datagram(&part).is_ok() {
+            metrics.quic.datagram(part.len());
+        } else {
+            rest.push(part);
+        }
+    }
+    rest
+}
+
+/// Sends the session's messages: frames as datagrams ([`send_datagrams`]), everything else
+/// (and what does not fit a datagram) on the stream, in order.
+fn sent(
+    conn: Connection,
+    send: SendStream,
+    outbox: Arc<Outbox>,
+    metrics: Arc<Metrics>,
+) -> impl Sink<Message> + Send {
     futures_util::sink::unfold(
-        (conn, send, metrics),
-        |(conn, mut send, metrics), message: Message| async move {
+        (conn, send, outbox, metrics),
+        |(conn, mut send, outbox, metrics), message: Message| async move {
             let (kind, payload): (u8, Vec<u8>) = match message {
                 Message::Binary(frame) => {
-                    let fits = conn
-                        .max_datagram_size()
-                        .is_some_and(|max| frame.len() <= max);
-                    if fits && conn.send_datagram(&frame).is_ok() {
-                        metrics.quic.datagram(frame.len());
-                        return Ok((conn, send, metrics));
+                    let mut rest = send_datagrams(&conn, &outbox, &metrics, &frame);
+                    let Some(last) = rest.pop() else {
+                        return Ok((conn, send, outbox, metrics));
+                    };
+                    for part in rest {
+                        metrics.quic.on_stream();
+                        send.write_all(&wire::frame_message(wire::BINARY, &part))
+                            .await
+                            .map_err(|e| axum::Error::new(e.to_string()))?;
                     }
                     metrics.quic.on_stream();
-                    (wire::BINARY, frame.to_vec())
+                    (wire::BINARY, last)
                 }
                 Message::Text(text) => (wire::TEXT, text.as_bytes().to_vec()),
                 Message::Ping(p) => (wire::PING, p.to_vec()),
@@ -284,7 +341,7 @@ fn sent(conn: Connection, send: SendStream, metrics: Arc<Metrics>) -> impl Sink<
             if kind == wire::CLOSE {
                 send.finish().await.ok();
             }
-            Ok::<_, axum::Error>((conn, send, metrics))
+            Ok::<_, axum::Error>((conn, send, outbox, metrics))
         },
     )
 }
