@@ -144,6 +144,53 @@ async fn weights_set_by_name_reach_every_viewer_within_the_bound() {
     assert!((nonzero[0].1 - 0.25).abs() <= MAX_WEIGHT_ERROR, "{got:?}");
 }
 
+/// A viewer over WebTransport gets wire v1 frames as datagrams: their chunks carry the morph
+/// weights too (the kind's weights flag), so the face shows as on a websocket, within the
+/// wire's bound; a viewer that leaves them out gets none.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn weights_reach_a_webtransport_viewer() {
+    let server = common::kit_builder(30.0)
+        .configure(|c| c.quic_listen = Some("127.0.0.1:0".parse().unwrap()))
+        .start()
+        .await
+        .unwrap()
+        .into_server();
+    let addr = server.addr;
+    if !add_face(addr).await {
+        return;
+    }
+    let over_quic = |weights: bool| {
+        let mut options = ClientOptions::new(format!("ws://{addr}/ws"), "default");
+        options.reconnect = false;
+        options.quic_timeout = common::watch::PATIENCE;
+        options.morph_weights = weights;
+        Client::connect(options)
+    };
+    let quic = over_quic(true).await.unwrap();
+    let faceless = over_quic(false).await.unwrap();
+    for c in [&quic, &faceless] {
+        assert_eq!(
+            c.transport(),
+            Some(posecast_client::net::Transport::WebTransport)
+        );
+    }
+    ok(
+        addr,
+        json!({"op": "set_morph_weights", "avatar": "face",
+               "weights": {"mouthOpen": 0.5, "blink": 0.3}}),
+    )
+    .await;
+    let want = [("mouthOpen", 0.5), ("eyesClosed", 0.3)];
+    let got = weights_become(&quic, &want).await;
+    assert_eq!(got.iter().filter(|(_, w)| *w > 0.0).count(), 2, "{got:?}");
+    let latest = faceless.latest(&posecast_proto::msg::AvatarId("face".into()));
+    assert!(
+        latest.is_some_and(|p| p.weights.is_empty()),
+        "the faceless viewer got weights"
+    );
+    server.stop().await;
+}
+
 #[tokio::test]
 async fn bad_weights_are_refused_and_change_nothing() {
     let server = common::server(30.0).await;

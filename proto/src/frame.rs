@@ -5,7 +5,9 @@
 //!
 //! ```text
 //! header   0  u8   magic 0x50 ('P')
-//!          1  u8   kind: 1 = keyframe, 2 = delta
+//!          1  u8   kind: 1 = keyframe, 2 = delta; bit 7 (0x80, [`WEIGHTS_FLAG`]) set: every
+//!                  chunk ends with morph weights (WebTransport sessions of protocol version
+//!                  4 and later, which get wire v1)
 //!          2  u16  avatar chunk count
 //!          4  u32  scene number (from `subscribed`)
 //!          8  u64  seq: the scene's tick number
@@ -23,6 +25,8 @@
 //!                         2 = full 6-byte rotation; 3 is invalid.
 //!             T × 3 f32 translations, S × 3 f32 scales (joints listed in the description)
 //!             placement (when flagged): 3 f32 position, 4 f32 rotation [x, y, z, w]
+//!             weights (kind bit 7): u16 count W, W × u16 levels (crate::morph, 0–1023), one
+//!                  per channel of the description's `morph_targets`
 //! ```
 //!
 //! The placement ([`crate::placement`]) is in a keyframe chunk when it is not the identity,
@@ -50,6 +54,25 @@ pub const HEADER_BYTES: usize = 32;
 pub const PLACEMENT_FLAG: u16 = 0x8000;
 /// Most scaled joints a chunk can carry (the other bit of the field is [`PLACEMENT_FLAG`]).
 pub const MAX_SCALES: usize = 0x7fff;
+/// Bit of the header's kind byte saying every chunk ends with its morph weights.
+pub const WEIGHTS_FLAG: u8 = 0x80;
+
+/// Appends a chunk's morph weights (after the chunk, in a frame whose kind has
+/// [`WEIGHTS_FLAG`]): their count and each weight's level.
+pub fn write_weights(weights: &[f32], out: &mut Vec<u8>) {
+    let n = weights.len().min(usize::from(u16::MAX));
+    out.extend_from_slice(&(n as u16).to_le_bytes());
+    for &w in &weights[..n] {
+        out.extend_from_slice(&crate::morph::weight_level(w).to_le_bytes());
+    }
+}
+
+/// Sets [`WEIGHTS_FLAG`] in the header at the start of `frame`.
+pub fn flag_weights(frame: &mut [u8]) {
+    if let Some(kind) = frame.get_mut(1) {
+        *kind |= WEIGHTS_FLAG;
+    }
+}
 
 /// Keyframe or delta.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -284,7 +307,7 @@ impl ChunkEncoder {
 ///
 /// # Errors
 /// The chunk is cut short, or a delta tag is invalid.
-pub fn chunk_len(chunk: &[u8], kind: FrameKind) -> Result<(usize, u32), FrameError> {
+pub fn chunk_len(chunk: &[u8], kind: FrameKind, weights: bool) -> Result<(usize, u32), FrameError> {
     let mut r = Reader {
         bytes: chunk,
         at: 0,
@@ -317,6 +340,10 @@ pub fn chunk_len(chunk: &[u8], kind: FrameKind) -> Result<(usize, u32), FrameErr
     if scales_field & PLACEMENT_FLAG != 0 {
         r.take(7 * 4)?;
     }
+    if weights {
+        let n = usize::from(r.u16()?);
+        r.take(2 * n)?;
+    }
     Ok((r.at, avatar))
 }
 
@@ -332,11 +359,15 @@ pub type FramePart = (Vec<u8>, Vec<u32>);
 /// # Errors
 /// The frame is malformed.
 pub fn split_by_avatar(frame: &[u8], max: usize) -> Result<Vec<FramePart>, FrameError> {
-    let (header, count) = read_header(frame)?;
+    let mut r = Reader {
+        bytes: frame,
+        at: 0,
+    };
+    let (header, count, weights) = header(&mut r)?;
     let mut chunks = Vec::with_capacity(usize::from(count));
     let mut at = HEADER_BYTES;
     for _ in 0..count {
-        let (len, avatar) = chunk_len(&frame[at..], header.kind)?;
+        let (len, avatar) = chunk_len(&frame[at..], header.kind, weights)?;
         chunks.push((at..at + len, avatar));
         at += len;
     }
@@ -571,18 +602,20 @@ impl<'a> Reader<'a> {
 /// Truncated, bad magic or unknown kind.
 pub fn read_header(bytes: &[u8]) -> Result<(FrameHeader, u16), FrameError> {
     let mut r = Reader { bytes, at: 0 };
-    header(&mut r)
+    header(&mut r).map(|(h, count, _)| (h, count))
 }
 
-fn header(r: &mut Reader<'_>) -> Result<(FrameHeader, u16), FrameError> {
+/// The header, its chunk count, and whether its chunks carry morph weights.
+fn header(r: &mut Reader<'_>) -> Result<(FrameHeader, u16, bool), FrameError> {
     let magic = r.u8()?;
     if magic != MAGIC {
         return Err(FrameError::Magic(magic));
     }
-    let kind = match r.u8()? {
+    let raw = r.u8()?;
+    let kind = match raw & !WEIGHTS_FLAG {
         1 => FrameKind::Key,
         2 => FrameKind::Delta,
-        k => return Err(FrameError::Kind(k)),
+        _ => return Err(FrameError::Kind(raw)),
     };
     let count = r.u16()?;
     let scene_num = r.u32()?;
@@ -598,6 +631,7 @@ fn header(r: &mut Reader<'_>) -> Result<(FrameHeader, u16), FrameError> {
             base_seq,
         },
         count,
+        raw & WEIGHTS_FLAG != 0,
     ))
 }
 
@@ -615,7 +649,7 @@ impl FrameDecoder {
     /// Malformed bytes, or a delta whose keyframe this decoder does not hold.
     pub fn decode(&mut self, bytes: &[u8]) -> Result<Frame, FrameError> {
         let mut r = Reader { bytes, at: 0 };
-        let (header, count) = header(&mut r)?;
+        let (header, count, with_weights) = header(&mut r)?;
         let mut avatars = Vec::with_capacity(usize::from(count).min(bytes.len() / 16));
         let mut new_keys = Vec::new();
         for _ in 0..count {
@@ -696,6 +730,14 @@ impl FrameDecoder {
                     position,
                     rotation: Quat::from_array(q),
                 };
+            }
+            if with_weights {
+                let n = usize::from(r.u16()?);
+                let levels = r.take(2 * n)?;
+                pose.weights = levels
+                    .chunks_exact(2)
+                    .map(|l| crate::morph::weight_value(u16::from_le_bytes([l[0], l[1]])))
+                    .collect();
             }
             if header.kind == FrameKind::Key {
                 new_keys.push(((header.scene_num, avatar_num), bits, pose.placement));
@@ -864,6 +906,51 @@ mod tests {
         let mut trailing = key.clone();
         trailing.push(0);
         assert!(split_by_avatar(&trailing, max).is_err());
+    }
+
+    /// Chunks flagged to carry morph weights decode to the weights' levels (within the
+    /// wire's bound), whole and cut by avatar; a kind with the flag and an unknown kind is
+    /// refused, and weights cut short are a truncated frame.
+    #[test]
+    fn morph_weights_ride_in_flagged_v1_chunks() {
+        let mut out = Vec::new();
+        let h = FrameHeader {
+            kind: FrameKind::Key,
+            scene_num: 1,
+            seq: 5,
+            server_time_us: 0,
+            base_seq: 5,
+        };
+        write_header(&h, 3, &mut out);
+        flag_weights(&mut out);
+        let faces = [vec![0.25, 1.0, 0.0], vec![], vec![0.5; 40]];
+        for (i, w) in faces.iter().enumerate() {
+            let mut p = pose(vec![Quat::IDENTITY; 4]);
+            p.avatar_num = i as u32;
+            ChunkEncoder::new().encode(&p, FrameKind::Key, &mut out);
+            write_weights(w, &mut out);
+        }
+        let decoded = FrameDecoder::new().decode(&out).unwrap();
+        for (a, want) in decoded.avatars.iter().zip(&faces) {
+            assert_eq!(a.weights.len(), want.len());
+            for (g, w) in a.weights.iter().zip(want) {
+                assert!((g - w).abs() <= crate::morph::MAX_WEIGHT_ERROR, "{g} {w}");
+            }
+        }
+        let parts = split_by_avatar(&out, HEADER_BYTES + 100).unwrap();
+        assert_eq!(parts.len(), 3);
+        let mut dec = FrameDecoder::new();
+        for ((bytes, nums), want) in parts.iter().zip(&decoded.avatars) {
+            let part = dec.decode(bytes).unwrap();
+            assert_eq!((&part.avatars[0], nums), (want, &vec![want.avatar_num]));
+        }
+        assert!(FrameDecoder::new().decode(&out[..out.len() - 1]).is_err());
+        let mut unknown = out.clone();
+        unknown[1] = WEIGHTS_FLAG | 3;
+        assert_eq!(
+            FrameDecoder::new().decode(&unknown),
+            Err(FrameError::Kind(WEIGHTS_FLAG | 3))
+        );
     }
 
     #[test]

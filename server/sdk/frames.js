@@ -2,7 +2,8 @@
 // Binary pose frames (proto/PROTOCOL.md "Pose frames"; Rust: posecast-proto `frame.rs` and
 // `quant.rs`): a 32-byte header, then one chunk per avatar; keyframes carry every rotation as
 // 48-bit smallest-three, deltas a 2-bit tag per joint against the scene's last keyframe
-// (0 unchanged, 1 three i8 differences of the stored 15-bit levels, 2 a full rotation).
+// (0 unchanged, 1 three i8 differences of the stored 15-bit levels, 2 a full rotation); with
+// bit 7 of the kind set, every chunk ends with its morph weights (a u16 count, u16 levels).
 // A 48-bit rotation fits a JS number exactly (integers up to 2⁵³), so the bits are kept as
 // numbers.
 
@@ -16,6 +17,9 @@ import { PosecastError } from "./errors.js";
 const MAGIC = 0x50;
 const HEADER_BYTES = 32;
 const PLACEMENT_FLAG = 0x8000;
+const WEIGHTS_FLAG = 0x80;
+// Morph weight levels (morph.rs: `WEIGHT_LEVELS`).
+const WEIGHT_LEVELS = 1023;
 const LEVEL_MASK = 0x7fff;
 // 2¹⁵ − 2 steps over [−1/√2, 1/√2] (quant.rs: an even count, so zero is exact).
 const LEVELS = 32766;
@@ -153,8 +157,11 @@ export class FrameDecoder {
     if (view.byteLength < HEADER_BYTES) throw new PosecastError("bad_message", `binary frame of ${view.byteLength} bytes, shorter than its header`);
     const magic = r.u8();
     if (magic !== MAGIC) throw new PosecastError("bad_message", `binary frame magic ${magic}, expected ${MAGIC}`);
-    const kind = r.u8();
-    if (kind !== 1 && kind !== 2) throw new PosecastError("bad_message", `binary frame kind ${kind}`);
+    const rawKind = r.u8();
+    // Bit 7: every chunk ends with its morph weights (WebTransport sessions, version ≥ 4).
+    const withWeights = (rawKind & WEIGHTS_FLAG) !== 0;
+    const kind = rawKind & ~WEIGHTS_FLAG;
+    if (kind !== 1 && kind !== 2) throw new PosecastError("bad_message", `binary frame kind ${rawKind}`);
     const key = kind === 1;
     const count = r.u16();
     const sceneNum = r.u32();
@@ -205,8 +212,14 @@ export class FrameDecoder {
       if (scalesField & PLACEMENT_FLAG) {
         placement = { position: r.vec3(), rotation: [r.f32(), r.f32(), r.f32(), r.f32()] };
       }
+      /** @type {number[]} */
+      const weights = [];
+      if (withWeights) {
+        const n = r.u16();
+        for (let i = 0; i < n; i++) weights.push(Math.min(r.u16(), WEIGHT_LEVELS) / WEIGHT_LEVELS);
+      }
       if (key) newKeys.push([slot, { seq, bits, placement }]);
-      avatars.push({ num, hash, rotations: bits.map(decodeQuat), translations: ts, scales: ss, placement, weights: [] });
+      avatars.push({ num, hash, rotations: bits.map(decodeQuat), translations: ts, scales: ss, placement, weights });
     }
     if (r.at !== view.byteLength) {
       throw new PosecastError("bad_message", `binary frame has ${view.byteLength - r.at} bytes after its last chunk`);

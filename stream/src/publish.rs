@@ -249,7 +249,9 @@ impl Published {
     }
 
     /// The frame as one websocket message, with only the avatars `filter` names (all when
-    /// `None`) and of each only the joints of `joints` (all when `None`).
+    /// `None`) and of each only the joints of `joints` (all when `None`); with `weights`, each
+    /// avatar's morph weights too (a binary frame: the v1 chunks flagged as carrying them,
+    /// which only WebTransport sessions of protocol version 4 and later get).
     pub(super) fn message(
         &self,
         scene: &SceneId,
@@ -275,6 +277,9 @@ impl Published {
                             }
                         }
                     }
+                    if weights {
+                        posecast_proto::frame::write_weights(&p.pose.weights, &mut body);
+                    }
                     count += 1;
                 }
                 let mut out = Vec::with_capacity(HEADER_BYTES + body.len());
@@ -283,6 +288,9 @@ impl Published {
                     count.min(usize::from(u16::MAX)) as u16,
                     &mut out,
                 );
+                if weights {
+                    posecast_proto::frame::flag_weights(&mut out);
+                }
                 out.extend_from_slice(&body);
                 Message::Binary(Bytes::from(out))
             }
