@@ -1,5 +1,6 @@
 //! Link emulation in the test process: a TCP proxy that impairs the connections through it the
-//! way a real network path does to an application on top of TCP.
+//! way a real network path does to an application on top of TCP, and a UDP proxy ([`udp`])
+//! that drops, delays and reorders datagrams for real (QUIC, WebTransport).
 //!
 //! ```text
 //! client ──► Proxy (listens on 127.0.0.1:0) ──► upstream (the server)
@@ -38,6 +39,10 @@
 //! stays in the sender's socket instead of in loopback's megabyte buffers.
 
 #![warn(missing_docs)]
+
+pub mod udp;
+pub use udp::{UdpProxy, UdpStats};
+
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use std::fmt;

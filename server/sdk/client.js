@@ -786,6 +786,11 @@ export class Client {
         if (pose.weights) expanded.weights = pose.weights;
         pose = expanded;
       }
+      // Not older than the newest pose (within 120 ticks: a restarted server counts from 0):
+      // over WebTransport a keyframe comes again before each delta until acknowledged, and
+      // datagrams may be overtaken.
+      const newest = view.latest?.seq;
+      if (newest !== undefined && frame.seq <= newest && newest - frame.seq <= 120) continue;
       view.latest = { ...pose, seq: frame.seq, server_time_us: frame.server_time_us, received_us: frame.received_us };
       view.jitter.push(frame.server_time_us, frame.received_us, pose);
       fresh.push(pose);

@@ -81,6 +81,11 @@ pub struct ClientOptions {
     /// may each take before the client falls back to the websocket (default 5 s): UDP blocked
     /// on the way looks like a handshake that never completes.
     pub quic_timeout: Duration,
+    /// Where to reach the WebTransport endpoint instead of the host and port `/api/quic`
+    /// gives (e.g. `https://edge.example.org:443/`, a UDP load balancer in front of the
+    /// server, or a link emulator); `/api/quic` is still asked whether the server offers it,
+    /// and for the hash of a self-signed certificate. `None`: where `/api/quic` says.
+    pub webtransport_url: Option<String>,
 }
 
 impl ClientOptions {
@@ -103,6 +108,7 @@ impl ClientOptions {
             version: 5,
             transport: TransportChoice::Auto,
             quic_timeout: Duration::from_secs(5),
+            webtransport_url: None,
         }
     }
 }
@@ -741,7 +747,12 @@ async fn connect(
     let mut failure = None;
     if options.transport != TransportChoice::WebSocket {
         let offer = match transport::discover(url, options.quic_timeout).await {
-            Ok(Some(offer)) => Some(offer),
+            Ok(Some(mut offer)) => {
+                if let Some(url) = &options.webtransport_url {
+                    offer.url.clone_from(url);
+                }
+                Some(offer)
+            }
             Ok(None) => None,
             // A server that cannot be asked: the websocket says why below.
             Err(e) => {
@@ -912,7 +923,25 @@ fn on_server_msg(
     Ok(())
 }
 
+/// Ticks back a pose may be and still be an old one (a keyframe sent again, a datagram
+/// overtaken) rather than a new stream's (a server restarted: its ticks count from 0).
+const OLD_POSE_TICKS: u64 = 120;
+
+/// Whether a pose of tick `seq` is older than (or the same as) the avatar's newest, of tick
+/// `newest`, which it must not replace: over WebTransport a keyframe comes again before each
+/// delta until it is acknowledged, and datagrams may be overtaken.
+fn is_old(newest: Option<u64>, seq: u64) -> bool {
+    newest.is_some_and(|n| seq <= n && n - seq <= OLD_POSE_TICKS)
+}
+
 fn record(s: &mut Shared, id: &AvatarId, sample: PoseSample) {
+    let newest = s
+        .avatars
+        .get(id)
+        .and_then(|a| a.latest.as_ref().map(|l| l.seq));
+    if is_old(newest, sample.seq) {
+        return;
+    }
     let (server_time_us, received) = (sample.server_time_us, sample.received_us);
     // Latency needs the clock offset: frames that arrive before the first pong are not
     // counted (they would mix two clocks). An avatar's first pose is the join keyframe, which
@@ -1164,4 +1193,20 @@ fn on_json_frame(s: &mut Shared, frame: FrameJson, len: usize, received: u64) ->
         key: true,
         bytes: len,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A keyframe sent again (an older tick) or the same tick twice does not replace the
+    /// newest pose; a newer tick does, and so does a restarted server's tick 0.
+    #[test]
+    fn an_older_pose_never_replaces_the_newest() {
+        assert!(!is_old(None, 5));
+        assert!(is_old(Some(100), 97));
+        assert!(is_old(Some(100), 100));
+        assert!(!is_old(Some(100), 101));
+        assert!(!is_old(Some(10_000), 0));
+    }
 }

@@ -533,6 +533,7 @@ posecast_cluster_takes_fetched_total 0
 posecast_quic_sessions_total 0
 posecast_quic_frames_total{via="datagram"} 0
 posecast_quic_frames_total{via="stream"} 0
+posecast_quic_frames_total{via="superseded"} 0
 posecast_quic_datagram_bytes_total 0
 posecast_quic_split_frames_total 0
 posecast_quic_key_acks_total 0

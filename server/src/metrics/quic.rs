@@ -10,8 +10,9 @@ use prometheus_client::registry::Registry;
 #[derive(Debug)]
 pub struct QuicCounters {
     sessions: Counter,
-    /// Frames sent, by how: `datagram`, `stream` (larger than a datagram).
-    frames: [Counter; 2],
+    /// Frames sent, by how: `datagram`, `stream` (larger than a datagram), and those not sent
+    /// (`superseded`: QUIC's congestion control held frames already).
+    frames: [Counter; 3],
     datagram_bytes: Counter,
     /// Frames too large for one datagram, cut by avatar into several.
     split: Counter,
@@ -30,9 +31,9 @@ impl QuicCounters {
             frames: labelled_counters(
                 r,
                 "quic_frames",
-                "Frames sent over WebTransport: as datagrams, or on the stream (too large for one)",
+                "Frames over WebTransport: sent as datagrams, on the stream (too large for one), or superseded (QUIC's congestion control held frames already)",
                 "via",
-                ["datagram", "stream"],
+                ["datagram", "stream", "superseded"],
             ),
             datagram_bytes: counter(
                 r,
@@ -76,6 +77,11 @@ impl QuicCounters {
     /// A frame cut by avatar into several datagrams.
     pub fn split(&self) {
         self.split.inc();
+    }
+
+    /// A frame not sent: QUIC held frames already.
+    pub fn superseded(&self) {
+        self.frames[2].inc();
     }
 
     /// A frame sent on the stream.

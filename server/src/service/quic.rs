@@ -30,6 +30,15 @@ use wtransport::endpoint::IncomingSession;
 use wtransport::tls::Sha256DigestFmt;
 use wtransport::{Connection, Endpoint, Identity, RecvStream, SendStream, ServerConfig};
 
+/// QUIC's datagram send buffer (quinn's default, set explicitly: [`send_datagrams`] reads
+/// what waits in it from the space left).
+const DATAGRAM_BUFFER: usize = 1 << 20;
+
+/// Datagrams (of the largest size) waiting in QUIC's send buffer past which a new frame is
+/// superseded rather than queued: a burst (a keyframe and its parts, a joiner's frames) fits,
+/// a path that cannot keep up does not build a backlog.
+const SUPERSEDED_AT: usize = 8;
+
 /// How long a client may take to complete the QUIC and WebTransport handshakes.
 const HANDSHAKE: Duration = Duration::from_secs(10);
 
@@ -133,9 +142,11 @@ pub async fn start(state: &Arc<AppState>) -> std::io::Result<Option<JoinHandle<(
         .first()
         .map(|c| c.hash().fmt(Sha256DigestFmt::DottedHex).replace(':', ""))
         .ok_or_else(|| io_error("the certificate chain is empty".into()))?;
+    let mut transport = wtransport::config::QuicTransportConfig::default();
+    transport.datagram_send_buffer_size(DATAGRAM_BUFFER);
     let config = ServerConfig::builder()
         .with_bind_address(addr)
-        .with_identity(identity)
+        .with_custom_transport(identity, transport)
         .keep_alive_interval(Some(Duration::from_secs(3)))
         .max_idle_timeout(Some(state.config.net.ws_idle_timeout))
         .map_err(|e| io_error(format!("idle timeout: {e}")))?
@@ -268,6 +279,15 @@ fn send_datagrams(
     let Some(max) = conn.max_datagram_size() else {
         return vec![frame.to_vec()];
     };
+    // Newest frame wins, as in a websocket's outbox: when QUIC's congestion control holds
+    // more than a frame or two waiting, the path is full and this frame is superseded before
+    // it could leave (a lost keyframe is sent again before the next delta).
+    let quic = conn.quic_connection();
+    let waiting = DATAGRAM_BUFFER.saturating_sub(quic.datagram_send_buffer_space());
+    if waiting > SUPERSEDED_AT * max {
+        metrics.quic.superseded();
+        return Vec::new();
+    }
     if frame.len() <= max {
         if conn.send_datagram(frame).is_ok() {
             metrics.quic.datagram(frame.len());

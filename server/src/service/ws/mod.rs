@@ -430,6 +430,12 @@ impl Session {
     /// by their trend, so a reader that is only late to answer is not cut
     /// (`posecast_stream::pace`).
     fn probe(&self) {
+        // Datagrams (WebTransport) are paced by QUIC's congestion control, and a lost one
+        // costs its own tick: round trips over a lossy path (pongs on the stream wait for its
+        // retransmissions) are not a queue to cut the rate for.
+        if self.outbox.datagrams() {
+            return;
+        }
         let pace = self.outbox.pace();
         if let Some(figures) = self.tcp.as_ref().and_then(SocketInfo::figures) {
             let change = pace.socket(Instant::now(), figures);
