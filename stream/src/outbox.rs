@@ -122,6 +122,11 @@ pub struct Outbox {
 /// forgotten (a client that lost their parts gets a newer keyframe anyway).
 const SPLIT_KEYS_KEPT: usize = 4;
 
+/// Scenes whose acknowledgements an outbox keeps: a client naming more scene numbers than any
+/// connection subscribes to (a flood of made-up acknowledgements) is ignored past it, so it
+/// cannot grow the server's memory.
+const ACKED_SCENES_KEPT: usize = 1024;
+
 /// The keyframe acknowledgements of one scene of a datagram outbox.
 #[derive(Debug, Default)]
 struct KeyAcks {
@@ -132,6 +137,18 @@ struct KeyAcks {
     split: std::collections::BTreeMap<u64, std::collections::HashSet<u32>>,
     /// The newest split keyframe forgotten: acknowledgements up to it are not taken as whole.
     forgotten: Option<u64>,
+}
+
+/// The acknowledgements of scene number `scene`, made if fewer than [`ACKED_SCENES_KEPT`]
+/// scenes have any.
+fn scene_acks(
+    acks: &mut std::collections::HashMap<u32, KeyAcks>,
+    scene: u32,
+) -> Option<&mut KeyAcks> {
+    if !acks.contains_key(&scene) && acks.len() >= ACKED_SCENES_KEPT {
+        return None;
+    }
+    Some(acks.entry(scene).or_default())
 }
 
 /// What the writer should do next.
@@ -192,7 +209,9 @@ impl Outbox {
     /// acknowledged already stay acknowledged.
     pub fn sent_split_key(&self, scene: u32, seq: u64, avatars: &[u32]) {
         let mut acks = self.key_acks();
-        let acks = acks.entry(scene).or_default();
+        let Some(acks) = scene_acks(&mut acks, scene) else {
+            return;
+        };
         if acks.held.is_some_and(|held| held >= seq) || acks.split.contains_key(&seq) {
             return;
         }
@@ -210,7 +229,9 @@ impl Outbox {
     /// nothing.
     pub fn ack_key(&self, scene: u32, seq: u64, avatars: &[u32]) {
         let mut acks = self.key_acks();
-        let acks = acks.entry(scene).or_default();
+        let Some(acks) = scene_acks(&mut acks, scene) else {
+            return;
+        };
         let whole = match acks.split.get_mut(&seq) {
             Some(missing) => {
                 if avatars.is_empty() {
@@ -576,6 +597,13 @@ mod tests {
         assert_eq!(o.key_acked(1), Some(20));
         o.ack_key(1, 31, &[1, 2]);
         assert_eq!(o.key_acked(1), Some(31));
+        // A flood of made-up scene numbers is held to a bound; known scenes still count.
+        for scene in 100..100 + 2 * ACKED_SCENES_KEPT as u32 {
+            o.ack_key(scene, 1, &[]);
+        }
+        assert_eq!(o.key_acks().len(), ACKED_SCENES_KEPT);
+        o.ack_key(1, 40, &[]);
+        assert_eq!(o.key_acked(1), Some(40));
     }
 
     fn frame(byte: u8, key: bool) -> OutFrame {
