@@ -58,6 +58,11 @@ struct Args {
     /// The WebTransport certificate's private key (PEM), with --quic-cert.
     #[arg(long, env = "POSECAST_QUIC_KEY", requires = "quic_cert")]
     quic_key: Option<PathBuf>,
+    /// The congestion controller of the WebTransport endpoint's connections: `bbr` (paces at
+    /// the path's measured bandwidth; random loss does not cut the frame rate) or the
+    /// loss-driven `cubic` and `new-reno`.
+    #[arg(long, env = "POSECAST_QUIC_CONGESTION", value_enum, default_value_t = Congestion::Bbr)]
+    quic_congestion: Congestion,
     /// Folders whose assets (.glb, .vrm, .gltf, .bvh, .skel) are loaded at start (repeatable).
     #[arg(long = "assets", env = "POSECAST_ASSETS", value_delimiter = ',')]
     assets: Vec<PathBuf>,
@@ -346,6 +351,24 @@ fn seconds(text: &str) -> Result<Duration, String> {
     }
 }
 
+/// `--quic-congestion`'s values ([`posecast_server::config::QuicCongestion`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum Congestion {
+    Bbr,
+    Cubic,
+    NewReno,
+}
+
+impl From<Congestion> for posecast_server::config::QuicCongestion {
+    fn from(c: Congestion) -> Self {
+        match c {
+            Congestion::Bbr => Self::Bbr,
+            Congestion::Cubic => Self::Cubic,
+            Congestion::NewReno => Self::NewReno,
+        }
+    }
+}
+
 /// How log lines are written (`--log-format`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 enum LogFormat {
@@ -495,6 +518,7 @@ async fn main() -> anyhow::Result<()> {
         lease_ttl: args.lease,
         quic_listen: args.quic_listen,
         quic_identity: args.quic_cert.zip(args.quic_key),
+        quic_congestion: args.quic_congestion.into(),
     };
     raise_open_files_limit();
     // Registered before the server listens: a SIGTERM that arrives during start-up (as soon as

@@ -359,21 +359,7 @@ pub type FramePart = (Vec<u8>, Vec<u32>);
 /// # Errors
 /// The frame is malformed.
 pub fn split_by_avatar(frame: &[u8], max: usize) -> Result<Vec<FramePart>, FrameError> {
-    let mut r = Reader {
-        bytes: frame,
-        at: 0,
-    };
-    let (header, count, weights) = header(&mut r)?;
-    let mut chunks = Vec::with_capacity(usize::from(count));
-    let mut at = HEADER_BYTES;
-    for _ in 0..count {
-        let (len, avatar) = chunk_len(&frame[at..], header.kind, weights)?;
-        chunks.push((at..at + len, avatar));
-        at += len;
-    }
-    if at != frame.len() {
-        return Err(FrameError::Trailing(frame.len() - at));
-    }
+    let (_, chunks) = chunks(frame)?;
     let mut parts: Vec<FramePart> = Vec::new();
     let mut open: Option<FramePart> = None;
     for (range, avatar) in chunks {
@@ -395,6 +381,44 @@ pub fn split_by_avatar(frame: &[u8], max: usize) -> Result<Vec<FramePart>, Frame
         parts.push((frame.to_vec(), Vec::new()));
     }
     Ok(parts)
+}
+
+/// Where an avatar chunk lies in its frame, and its avatar number.
+type ChunkAt = (std::ops::Range<usize>, u32);
+
+/// The header of `frame` and where each of its avatar chunks lies, with its avatar number:
+/// the walk [`split_by_avatar`] and [`avatars_of`] share.
+fn chunks(frame: &[u8]) -> Result<(FrameHeader, Vec<ChunkAt>), FrameError> {
+    let mut r = Reader {
+        bytes: frame,
+        at: 0,
+    };
+    let (header, count, weights) = header(&mut r)?;
+    let mut chunks = Vec::with_capacity(usize::from(count));
+    let mut at = HEADER_BYTES;
+    for _ in 0..count {
+        let (len, avatar) = chunk_len(&frame[at..], header.kind, weights)?;
+        chunks.push((at..at + len, avatar));
+        at += len;
+    }
+    if at != frame.len() {
+        return Err(FrameError::Trailing(frame.len() - at));
+    }
+    Ok((header, chunks))
+}
+
+/// The header of `frame` and the numbers of the avatars it carries, in order, without
+/// decoding a rotation: what a client acknowledging a keyframe (or a part of one cut by
+/// avatar) names.
+///
+/// # Errors
+/// The frame is malformed.
+pub fn avatars_of(frame: &[u8]) -> Result<(FrameHeader, Vec<u32>), FrameError> {
+    let (header, chunks) = chunks(frame)?;
+    Ok((
+        header,
+        chunks.into_iter().map(|(_, avatar)| avatar).collect(),
+    ))
 }
 
 /// Appends to `out` the chunk `chunk` (one avatar's, as [`ChunkEncoder::encode`] wrote it, of
@@ -875,6 +899,8 @@ mod tests {
                 assert_eq!(part.header, want.header);
                 let decoded: Vec<u32> = part.avatars.iter().map(|a| a.avatar_num).collect();
                 assert_eq!(&decoded, nums);
+                // What an acknowledgement names, read without decoding.
+                assert_eq!(avatars_of(bytes).unwrap(), (want.header, decoded));
                 got.extend(part.avatars);
             }
             assert_eq!(got, want.avatars);
@@ -906,6 +932,8 @@ mod tests {
         let mut trailing = key.clone();
         trailing.push(0);
         assert!(split_by_avatar(&trailing, max).is_err());
+        assert!(avatars_of(&trailing).is_err());
+        assert!(avatars_of(&key[..key.len() - 1]).is_err());
     }
 
     /// Chunks flagged to carry morph weights decode to the weights' levels (within the

@@ -79,6 +79,23 @@ pub struct Config {
     /// a self-signed certificate made at start, valid 14 days (what browsers accept by hash),
     /// whose SHA-256 `GET /api/quic` publishes.
     pub quic_identity: Option<(PathBuf, PathBuf)>,
+    /// The congestion controller of every QUIC connection (`--quic-congestion`).
+    pub quic_congestion: QuicCongestion,
+}
+
+/// The congestion controller QUIC connections use: it paces the frames' datagrams.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum QuicCongestion {
+    /// BBR (quinn's, after Chromium's BBRv1): paces at the path's measured bandwidth and round
+    /// trip, and does not take random loss for congestion. Frames are small, steady and
+    /// disposable, so a lost datagram should cost its tick, not the sending rate.
+    #[default]
+    Bbr,
+    /// CUBIC (RFC 9438, quinn's default): halves its window on loss; on a path that loses at
+    /// random (a radio link) it falls to its minimum window and frames queue behind it.
+    Cubic,
+    /// NewReno (RFC 9002's reference): as loss-driven as CUBIC.
+    NewReno,
 }
 
 /// Default [`Config::lease_ttl`]: 3 s (a scene whose owner died is ticked again within it).
@@ -118,6 +135,7 @@ impl Default for Config {
             lease_ttl: DEFAULT_LEASE_TTL,
             quic_listen: None,
             quic_identity: None,
+            quic_congestion: QuicCongestion::default(),
         }
     }
 }

@@ -10,10 +10,12 @@
 //!   avatar into frames that each fit and decode alone (an avatar's chunk larger than a
 //!   datagram goes on the stream) — and a delta goes out only against a keyframe the client
 //!   acknowledged, every avatar of it, with datagrams; until then the newest keyframe goes
-//!   again before each delta. A lost datagram costs its own tick, and QUIC's congestion
-//!   control paces what is sent.
+//!   again before each delta. A lost datagram costs its own tick. QUIC's congestion
+//!   control (BBR unless `--quic-congestion` says otherwise) paces what is sent, and the
+//!   session's adaptive rate follows QUIC's own figures of the connection ([`figures`]).
 
 use super::ws;
+use crate::config::QuicCongestion;
 use crate::metrics::Metrics;
 use crate::state::{AppState, QuicInfo};
 use axum::extract::ws::Message;
@@ -22,6 +24,7 @@ use futures_util::{Sink, Stream, StreamExt};
 use posecast_proto::msg::MAX_CLIENT_MESSAGE_BYTES;
 use posecast_proto::quic as wire;
 use posecast_stream::outbox::Outbox;
+use posecast_stream::pace::SocketFigures;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::task::JoinHandle;
@@ -34,10 +37,12 @@ use wtransport::{Connection, Endpoint, Identity, RecvStream, SendStream, ServerC
 /// what waits in it from the space left).
 const DATAGRAM_BUFFER: usize = 1 << 20;
 
-/// Datagrams (of the largest size) waiting in QUIC's send buffer past which a new frame is
-/// superseded rather than queued: a burst (a keyframe and its parts, a joiner's frames) fits,
-/// a path that cannot keep up does not build a backlog.
-const SUPERSEDED_AT: usize = 8;
+/// A frame finds datagrams of an earlier write still waiting in QUIC's send buffer when the
+/// earlier write was at least this long ago: the path (QUIC's pacing and congestion window)
+/// did not take a tick's datagrams within it, and the new frame is superseded rather than
+/// queued behind them. What one write of the session's writer puts (a keyframe sent again, its
+/// parts and the delta after it) goes together.
+const SUPERSEDED_AFTER: Duration = Duration::from_millis(4);
 
 /// How long a client may take to complete the QUIC and WebTransport handshakes.
 const HANDSHAKE: Duration = Duration::from_secs(10);
@@ -45,6 +50,18 @@ const HANDSHAKE: Duration = Duration::from_secs(10);
 /// Days the self-signed certificate is valid: browsers accept a certificate by its hash only
 /// when it is valid for at most 14 days.
 const SELF_SIGNED_DAYS: u32 = 14;
+
+/// The controller factory of `choice`.
+fn congestion(
+    choice: QuicCongestion,
+) -> Arc<dyn wtransport::quinn::congestion::ControllerFactory + Send + Sync> {
+    use wtransport::quinn::congestion::{BbrConfig, CubicConfig, NewRenoConfig};
+    match choice {
+        QuicCongestion::Bbr => Arc::new(BbrConfig::default()),
+        QuicCongestion::Cubic => Arc::new(CubicConfig::default()),
+        QuicCongestion::NewReno => Arc::new(NewRenoConfig::default()),
+    }
+}
 
 /// Sessions held, in all and per address, under the websocket's caps (`--max-connections`,
 /// `--max-connections-per-address`), counted apart from the websockets: a session over a cap
@@ -144,6 +161,7 @@ pub async fn start(state: &Arc<AppState>) -> std::io::Result<Option<JoinHandle<(
         .ok_or_else(|| io_error("the certificate chain is empty".into()))?;
     let mut transport = wtransport::config::QuicTransportConfig::default();
     transport.datagram_send_buffer_size(DATAGRAM_BUFFER);
+    transport.congestion_controller_factory(congestion(state.config.quic_congestion));
     let config = ServerConfig::builder()
         .with_bind_address(addr)
         .with_custom_transport(identity, transport)
@@ -216,9 +234,39 @@ async fn session(state: Arc<AppState>, caps: Arc<Caps>, incoming: IncomingSessio
         outbox.clone(),
         state.metrics.clone(),
     ));
-    ws::serve_parts(sink, stream, outbox, state, Some(peer), None, None).await;
+    let figures = ws::Figures::Quic(Box::new({
+        let conn = conn.clone();
+        move || figures(&conn)
+    }));
+    ws::serve_parts(sink, stream, outbox, state, Some(peer), None, figures).await;
     acks.abort();
     conn.close(0u32.into(), b"");
+}
+
+/// Bytes of datagrams waiting in `conn`'s send buffer (quinn also counts one datagram's
+/// bookkeeping when it is empty: less than [`BOOKKEEPING`]).
+fn datagrams_waiting(conn: &Connection) -> usize {
+    let space = conn.quic_connection().datagram_send_buffer_space();
+    DATAGRAM_BUFFER
+        .saturating_sub(space)
+        .saturating_sub(BOOKKEEPING)
+}
+
+/// More than quinn's bookkeeping of one datagram in its send buffer.
+const BOOKKEEPING: usize = 64;
+
+/// QUIC's figures of `conn` for the adaptive rate: its smoothed and smallest round trips
+/// (acknowledged packets only, so a loss does not raise them), the datagram bytes waiting to
+/// leave, and the bytes sent less those declared lost.
+fn figures(conn: &Connection) -> SocketFigures {
+    let quic = conn.quic_connection();
+    let stats = quic.stats();
+    SocketFigures {
+        acked: stats.udp_tx.bytes.saturating_sub(stats.path.lost_bytes),
+        unsent: datagrams_waiting(conn) as u64,
+        rtt: stats.path.rtt,
+        min_rtt: stats.path.min_rtt,
+    }
 }
 
 /// Keyframe acknowledgements the client sends as datagrams; anything else is ignored.
@@ -275,19 +323,22 @@ fn send_datagrams(
     outbox: &Outbox,
     metrics: &Metrics,
     frame: &[u8],
+    last_queued: &mut Option<std::time::Instant>,
 ) -> Vec<Vec<u8>> {
     let Some(max) = conn.max_datagram_size() else {
         return vec![frame.to_vec()];
     };
-    // Newest frame wins, as in a websocket's outbox: when QUIC's congestion control holds
-    // more than a frame or two waiting, the path is full and this frame is superseded before
-    // it could leave (a lost keyframe is sent again before the next delta).
-    let quic = conn.quic_connection();
-    let waiting = DATAGRAM_BUFFER.saturating_sub(quic.datagram_send_buffer_space());
-    if waiting > SUPERSEDED_AT * max {
+    // Newest frame wins, as in a websocket's outbox: while an earlier write's datagrams still
+    // wait for QUIC's pacing, the path is full and this frame is superseded before it could
+    // leave (a lost keyframe is sent again before the next delta). The adaptive rate follows
+    // the path's share from QUIC's figures (`figures`).
+    let waiting = datagrams_waiting(conn);
+    let now = std::time::Instant::now();
+    if waiting > 0 && last_queued.is_some_and(|at| now - at >= SUPERSEDED_AFTER) {
         metrics.quic.superseded();
         return Vec::new();
     }
+    *last_queued = Some(now);
     if frame.len() <= max {
         if conn.send_datagram(frame).is_ok() {
             metrics.quic.datagram(frame.len());
@@ -326,13 +377,14 @@ fn sent(
     metrics: Arc<Metrics>,
 ) -> impl Sink<Message> + Send {
     futures_util::sink::unfold(
-        (conn, send, outbox, metrics),
-        |(conn, mut send, outbox, metrics), message: Message| async move {
+        (conn, send, outbox, metrics, None),
+        |(conn, mut send, outbox, metrics, mut last_queued), message: Message| async move {
             let (kind, payload): (u8, Vec<u8>) = match message {
                 Message::Binary(frame) => {
-                    let mut rest = send_datagrams(&conn, &outbox, &metrics, &frame);
+                    let mut rest =
+                        send_datagrams(&conn, &outbox, &metrics, &frame, &mut last_queued);
                     let Some(last) = rest.pop() else {
-                        return Ok((conn, send, outbox, metrics));
+                        return Ok((conn, send, outbox, metrics, last_queued));
                     };
                     for part in rest {
                         metrics.quic.on_stream();
@@ -361,7 +413,7 @@ fn sent(
             if kind == wire::CLOSE {
                 send.finish().await.ok();
             }
-            Ok::<_, axum::Error>((conn, send, outbox, metrics))
+            Ok::<_, axum::Error>((conn, send, outbox, metrics, last_queued))
         },
     )
 }

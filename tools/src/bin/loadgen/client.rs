@@ -2,9 +2,15 @@
 //! frames, 2 and 3 wire v2 ones), subscribe, then read frames and keep only the header's `seq`
 //! and `server_time_us` (no pose decoding: the point is the server's fan-out, and a full decode
 //! per frame would make this process the bottleneck sooner).
-
+//!
+//! A client speaks over a websocket or over WebTransport ([`Endpoint`]), through the client
+//! library's [`Link`]. Over WebTransport frames come as datagrams in wire v1 whatever the
+//! version, and the client does what the client library does there: it answers the server's
+//! pings and acknowledges every keyframe (or part of one) it receives, naming its avatars
+//! from the chunks' heads, so the server sends deltas against it.
 use anyhow::{Context, Result, bail};
 use futures_util::{SinkExt, StreamExt};
+use posecast_client::net::transport::{Link, QuicOffer};
 use posecast_proto::frame::{FrameHeader, FrameKind};
 use posecast_proto::frame2;
 use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, SceneId, ServerMsg};
@@ -121,10 +127,40 @@ impl ClientStats {
     }
 }
 
+/// Where a client connects, and over which transport.
+#[derive(Debug, Clone)]
+pub enum Endpoint {
+    /// A websocket URL, `ws://host:port/ws`.
+    WebSocket(String),
+    /// A WebTransport endpoint (its `https://` URL and certificate hash).
+    WebTransport(QuicOffer),
+}
+
+impl Endpoint {
+    /// The transport's name, as tables print it.
+    pub fn transport(&self) -> &'static str {
+        match self {
+            Self::WebSocket(_) => "websocket",
+            Self::WebTransport(_) => "webtransport",
+        }
+    }
+
+    async fn open(&self) -> Result<Link> {
+        match self {
+            Self::WebSocket(url) => Link::websocket(url)
+                .await
+                .map_err(|e| anyhow::anyhow!("connect to {url}: {e}")),
+            Self::WebTransport(offer) => Link::webtransport(offer)
+                .await
+                .map_err(|e| anyhow::anyhow!("connect to {}: {e}", offer.url)),
+        }
+    }
+}
+
 /// Connects, subscribes to `scene` and reads until the run is done.
 pub async fn run(
     index: usize,
-    url: &str,
+    endpoint: &Endpoint,
     scene: &str,
     rate: Option<f32>,
     shared: &Shared,
@@ -133,7 +169,7 @@ pub async fn run(
     let connected = {
         // The permit bounds handshakes in flight (the server's accept backlog is finite).
         let _permit = shared.connecting.acquire().await;
-        connect(index, url, scene, rate, shared.version).await
+        connect(index, endpoint, scene, rate, shared.version).await
     };
     let mut ws = match connected {
         Ok(ws) => ws,
@@ -147,7 +183,7 @@ pub async fn run(
     let mut last_seq: Option<u64> = None;
     loop {
         let message = tokio::select! {
-            m = ws.next() => m,
+            m = ws.stream.next() => m,
             _ = done.wait_for(|d| *d) => break,
         };
         match message {
@@ -157,6 +193,13 @@ pub async fn run(
                     stats.failure = Some("a binary message is not a pose frame".into());
                     break;
                 };
+                if header.kind == FrameKind::Key
+                    && ws.answers_pings()
+                    && let Ok((_, avatars)) = posecast_proto::frame::avatars_of(&bytes)
+                {
+                    // A lost acknowledgement is made up for by the next keyframe's.
+                    ws.acknowledge_key(header.scene_num, header.seq, &avatars);
+                }
                 let measuring = shared.measuring();
                 match last_seq {
                     Some(prev) if header.seq <= prev => {
@@ -190,6 +233,12 @@ pub async fn run(
                     stats.failure = Some(format!("server error: {e}"));
                 }
             }
+            Some(Ok(Message::Ping(payload))) if ws.answers_pings() => {
+                if ws.sink.send(Message::Pong(payload)).await.is_err() {
+                    stats.closed_early = true;
+                    break;
+                }
+            }
             Some(Ok(Message::Close(_))) | None => {
                 stats.closed_early = true;
                 break;
@@ -203,7 +252,7 @@ pub async fn run(
         }
     }
     // The run is over: a close that fails (the server went first) changes nothing measured.
-    ws.close(None).await.ok();
+    ws.sink.send(Message::Close(None)).await.ok();
     stats
 }
 
@@ -218,16 +267,15 @@ pub fn frame_header(bytes: &[u8]) -> Option<FrameHeader> {
     }
 }
 
-/// A client websocket.
-pub type Ws =
-    tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
-
-/// Opens a websocket and says hello (binary encoding, protocol `version`); returns once
-/// `welcome` arrived.
-async fn hello(url: &str, name: String, token: Option<&str>, version: u32) -> Result<Ws> {
-    let (mut ws, _) = tokio_tungstenite::connect_async(url)
-        .await
-        .with_context(|| format!("connect to {url}"))?;
+/// Opens a connection at `endpoint` and says hello (binary encoding, protocol `version`);
+/// returns once `welcome` arrived.
+async fn hello(
+    endpoint: &Endpoint,
+    name: String,
+    token: Option<&str>,
+    version: u32,
+) -> Result<Link> {
+    let mut ws = endpoint.open().await?;
     let hello = ClientMsg::Hello {
         version,
         encoding: Encoding::Binary,
@@ -240,20 +288,26 @@ async fn hello(url: &str, name: String, token: Option<&str>, version: u32) -> Re
 }
 
 /// A connection for commands (hello with the control token, no subscription).
-pub async fn connect_control(url: &str, token: &str) -> Result<Ws> {
-    hello(url, "loadgen-control".into(), Some(token), PROTOCOL_VERSION).await
+pub async fn connect_control(url: &str, token: &str) -> Result<Link> {
+    hello(
+        &Endpoint::WebSocket(url.to_owned()),
+        "loadgen-control".into(),
+        Some(token),
+        PROTOCOL_VERSION,
+    )
+    .await
 }
 
-/// Opens a websocket, says hello in protocol `version` and subscribes (at `rate` frames per
+/// Opens a connection, says hello in protocol `version` and subscribes (at `rate` frames per
 /// second, or every tick); returns once `subscribed` arrived.
 pub async fn connect(
     index: usize,
-    url: &str,
+    endpoint: &Endpoint,
     scene: &str,
     rate: Option<f32>,
     version: u32,
-) -> Result<Ws> {
-    let mut ws = hello(url, format!("loadgen-{index}"), None, version).await?;
+) -> Result<Link> {
+    let mut ws = hello(endpoint, format!("loadgen-{index}"), None, version).await?;
     send(
         &mut ws,
         &ClientMsg::Subscribe {
@@ -271,15 +325,18 @@ pub async fn connect(
 }
 
 /// Sends a client message as JSON text.
-pub async fn send(ws: &mut Ws, msg: &ClientMsg) -> Result<()> {
+pub async fn send(ws: &mut Link, msg: &ClientMsg) -> Result<()> {
     let text = serde_json::to_string(msg)?;
-    ws.send(Message::text(text)).await.context("send")
+    ws.sink
+        .send(Message::text(text))
+        .await
+        .map_err(|e| anyhow::anyhow!("send: {e}"))
 }
 
 /// Reads text messages until one satisfies `want`; a server error fails.
-pub async fn expect(ws: &mut Ws, want: impl Fn(&ServerMsg) -> bool) -> Result<ServerMsg> {
+pub async fn expect(ws: &mut Link, want: impl Fn(&ServerMsg) -> bool) -> Result<ServerMsg> {
     loop {
-        let message = tokio::time::timeout(std::time::Duration::from_secs(20), ws.next())
+        let message = tokio::time::timeout(std::time::Duration::from_secs(20), ws.stream.next())
             .await
             .context("no answer within 20 s")?;
         match message {

@@ -156,10 +156,10 @@ async fn measure(args: &Args, servers: &[Spawned], token: &str) -> Result<()> {
         let node_tasks: Vec<_> = (0..args.clients)
             .map(|i| {
                 let shared = shared.clone();
-                let url = url.clone();
+                let endpoint = client::Endpoint::WebSocket(url.clone());
                 let scene = scene.clone();
                 let rate = args.rate;
-                tokio::spawn(async move { client::run(i, &url, &scene, rate, &shared).await })
+                tokio::spawn(async move { client::run(i, &endpoint, &scene, rate, &shared).await })
             })
             .collect();
         tasks.push(node_tasks);

@@ -28,6 +28,8 @@ pub const SUITE: [&str; 6] = [
 pub struct Row {
     /// The link description.
     pub link: String,
+    /// The clients' transport.
+    pub transport: &'static str,
     /// Clients that delivered figures.
     pub clients: usize,
     /// Shown frames per second per client: the least and the mean.
@@ -53,6 +55,12 @@ const TOGETHER_US: u64 = 2_000;
 fn shown(arrivals: &[Arrival]) -> Vec<Arrival> {
     let mut out: Vec<Arrival> = Vec::with_capacity(arrivals.len());
     for a in arrivals {
+        // Over datagrams: a tick older than the one shown (a keyframe sent again before a
+        // delta, a datagram overtaken on the way) is not shown, and a scene's other parts of
+        // a tick already shown complete it rather than show anything new.
+        if out.last().is_some_and(|last| a.seq <= last.seq) {
+            continue;
+        }
         if !a.key
             && let Some(last) = out.last()
             && last.key
@@ -109,7 +117,13 @@ fn playout(frames: &[Arrival], tick_rate: f32) -> [u64; 3] {
 }
 
 /// The figures of one condition from the clients' records over `seconds`.
-pub fn row(link: &str, stats: &[ClientStats], seconds: f64, tick_rate: f32) -> Row {
+pub fn row(
+    link: &str,
+    transport: &'static str,
+    stats: &[ClientStats],
+    seconds: f64,
+    tick_rate: f32,
+) -> Row {
     let mut rates = Vec::new();
     let mut ages = Vec::new();
     let mut worst_freeze = 0.0f64;
@@ -133,6 +147,7 @@ pub fn row(link: &str, stats: &[ClientStats], seconds: f64, tick_rate: f32) -> R
     let displayed = counts.iter().sum::<u64>().max(1) as f64;
     Row {
         link: link.to_owned(),
+        transport,
         clients: rates.len(),
         fps_min: rates.iter().copied().fold(f64::INFINITY, f64::min),
         fps_mean: rates.iter().sum::<f64>() / rates.len().max(1) as f64,
@@ -147,13 +162,14 @@ pub fn row(link: &str, stats: &[ClientStats], seconds: f64, tick_rate: f32) -> R
 /// Prints the table (Markdown, as `docs/src/concepts/adaptive-rate.md` has it).
 pub fn print(rows: &[Row]) {
     println!(
-        "| link | clients | frames/s per client, min / mean | frame age p50 / p99 | worst freeze | interpolated | held |"
+        "| link | transport | clients | frames/s per client, min / mean | frame age p50 / p99 | worst freeze | interpolated | held |"
     );
-    println!("|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|");
     for r in rows {
         println!(
-            "| {} | {} | {:.1} / {:.1} | {:.0} / {:.0} ms | {:.0} ms | {:.1} % | {:.1} % |",
+            "| {} | {} | {} | {:.1} / {:.1} | {:.0} / {:.0} ms | {:.0} ms | {:.1} % | {:.1} % |",
             r.link,
+            r.transport,
             r.clients,
             r.fps_min,
             r.fps_mean,
@@ -194,6 +210,24 @@ mod tests {
         assert_eq!(seqs, [60, 72, 122, 134]);
     }
 
+    /// Over datagrams: a keyframe sent again before a delta (an older tick), a datagram
+    /// overtaken on the way, and a scene's second part of a tick are not shown.
+    #[test]
+    fn older_ticks_and_other_parts_of_a_shown_tick_are_not_shown() {
+        let frames = [
+            frame(60, 60, 1_000),
+            frame(60, 60, 1_001), // the keyframe's second part
+            frame(61, 60, 1_017),
+            frame(60, 60, 1_030), // the keyframe again, before the next delta
+            frame(62, 60, 1_034),
+            frame(64, 60, 1_067),
+            frame(63, 60, 1_070), // overtaken
+            frame(65, 60, 1_084),
+        ];
+        let seqs: Vec<u64> = shown(&frames).iter().map(|f| f.seq).collect();
+        assert_eq!(seqs, [60, 61, 62, 64, 65]);
+    }
+
     #[test]
     fn steady_frames_on_a_steady_link_are_all_interpolated() {
         // 60 Hz, 30 ms in transit each: rendering 30 ms + a tick behind finds two frames
@@ -212,6 +246,7 @@ mod tests {
         assert_eq!((extrapolated, held), (0, 0));
         let r = row(
             "x",
+            "websocket",
             &[ClientStats {
                 arrivals: frames,
                 ..ClientStats::default()

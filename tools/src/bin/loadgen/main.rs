@@ -15,7 +15,9 @@
 //! the server (`posecast-linkemu`: delay, jitter, loss, a rate shared by every client — e.g.
 //! `--link delay=25ms,jitter=10ms,loss=1%,rate=2mbit`) and print, per condition, what viewers
 //! got: frames/s per client, frame age p50/p99, worst freeze, interpolated share of displayed
-//! poses (see `link.rs`):
+//! poses (see `link.rs`). Each condition runs once per transport (`--transport both`, the
+//! default): the websocket through a TCP proxy, WebTransport through a UDP proxy that impairs
+//! alike (a spawned server gets a QUIC endpoint):
 //!
 //! ```text
 //! loadgen --spawn-server --avatars 10 --clients 50 --seconds 10 --link-suite
@@ -127,6 +129,16 @@ pub struct Args {
     /// same outside CPU contention (at most 64).
     #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u64).range(0..=64))]
     busy: u64,
+    /// With --link/--link-suite: the transport the clients use — the websocket,
+    /// WebTransport (a spawned server gets a QUIC endpoint; `--url` needs a server that
+    /// offers one at `/api/quic`), or both, each condition run once per transport (the
+    /// default).
+    #[arg(long, value_enum, default_value_t = Transports::Both)]
+    transport: Transports,
+    /// With --spawn-server and WebTransport: the spawned server's `--quic-congestion`
+    /// (`bbr`, its default; `cubic`; `new-reno`).
+    #[arg(long)]
+    quic_congestion: Option<String>,
     /// With --spawn-server: this many servers joined through a spawned `nats-server -js`,
     /// `--clients` on each; the first owns the scene, the others relay it.
     #[arg(long, requires = "spawn_server", conflicts_with_all = ["link", "link_suite", "server"])]
@@ -139,6 +151,26 @@ enum Which {
     Posecast,
     Reference,
     Both,
+}
+
+/// The transports of a `--link` run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum Transports {
+    #[value(name = "websocket")]
+    WebSocket,
+    #[value(name = "webtransport")]
+    WebTransport,
+    Both,
+}
+
+impl Transports {
+    fn websocket(self) -> bool {
+        self != Self::WebTransport
+    }
+
+    fn webtransport(self) -> bool {
+        self != Self::WebSocket
+    }
 }
 
 /// Microseconds since the Unix epoch, the clock of the frames' `server_time_us`.
@@ -242,8 +274,9 @@ async fn run(args: Args, fd_limit: u64) -> Result<()> {
     Ok(())
 }
 
-/// `--link`/`--link-suite`: one measurement per link condition, through a proxy in this
-/// process, against one server (spawned, or `--url`); then the table.
+/// `--link`/`--link-suite`: one measurement per link condition and transport, through a
+/// proxy in this process (TCP for the websocket, UDP for WebTransport; both impair alike),
+/// against one server (spawned, or `--url`); then the table.
 async fn run_links(args: &Args, fd_limit: u64) -> Result<()> {
     let specs: Vec<String> = if args.link_suite {
         link::SUITE.iter().map(|s| (*s).to_owned()).collect()
@@ -263,9 +296,21 @@ async fn run_links(args: &Args, fd_limit: u64) -> Result<()> {
         .unwrap_or_else(|| format!("loadgen-{:032x}", rand::random::<u128>()));
     let scene = args.scene.clone().unwrap_or_else(|| "default".into());
     let (child, url) = if args.spawn_server {
-        let child =
-            server::Spawned::start(args.server_bin.as_deref(), args.tick_rate, fd_limit, &token)
-                .await?;
+        let mut quic = Vec::new();
+        if args.transport.webtransport() {
+            quic.extend(["--quic-listen".into(), "127.0.0.1:0".into()]);
+            if let Some(c) = &args.quic_congestion {
+                quic.extend(["--quic-congestion".into(), c.clone()]);
+            }
+        }
+        let child = server::Spawned::start_with(
+            args.server_bin.as_deref(),
+            args.tick_rate,
+            fd_limit,
+            &token,
+            quic,
+        )
+        .await?;
         let url = child.ws_url();
         if let Err(e) = server::create_scene(&url, &token, &scene, args.avatars, &args.clips).await
         {
@@ -276,54 +321,96 @@ async fn run_links(args: &Args, fd_limit: u64) -> Result<()> {
     } else {
         (None, args.url.clone().context("--url or --spawn-server")?)
     };
-    let upstream: std::net::SocketAddr = authority(&url)?
+    let result = link_rows(args, &specs, configs, &url, &scene).await;
+    if let Some(child) = child {
+        child.stop().await;
+    }
+    link::print(&result?);
+    Ok(())
+}
+
+/// The rows of a `--link` run against the server at `url`.
+async fn link_rows(
+    args: &Args,
+    specs: &[String],
+    configs: Vec<posecast_linkemu::LinkConfig>,
+    url: &str,
+    scene: &str,
+) -> Result<Vec<link::Row>> {
+    let upstream: std::net::SocketAddr = authority(url)?
         .parse()
         .with_context(|| format!("{url}: --link needs an IP address and port"))?;
+    let offer = if args.transport.webtransport() {
+        let offer = posecast_client::net::transport::discover(url, Duration::from_secs(10))
+            .await
+            .map_err(|e| anyhow::anyhow!("{e}"))?
+            .with_context(|| format!("{url} offers no WebTransport endpoint (/api/quic)"))?;
+        Some(offer)
+    } else {
+        None
+    };
     let mut rows = Vec::new();
-    let mut result = Ok(());
     for (spec, config) in specs.iter().zip(configs) {
-        eprintln!("— link {config} —");
-        let limited = config.rate_bps.is_some();
-        let proxy =
-            match posecast_linkemu::Proxy::start(upstream, posecast_linkemu::Link::new(config))
-                .await
-            {
-                Ok(p) => p,
-                Err(e) => {
-                    result = Err(e.into());
-                    break;
-                }
-            };
-        let through = format!("ws://{}/ws", proxy.addr());
         // On a rate-limited link every client's join (its descriptions) crosses it first.
-        let mut run_args = Args::parse_from(["loadgen", "--url", &through]);
+        let mut run_args = Args::parse_from(["loadgen", "--url", url]);
         run_args.clients = args.clients;
         run_args.seconds = args.seconds;
-        run_args.warmup = if limited {
+        run_args.warmup = if config.rate_bps.is_some() {
             args.warmup.max(25.0)
         } else {
             args.warmup
         };
         run_args.connect_parallel = args.connect_parallel;
         run_args.rate = args.rate;
-        match measure_stats(&run_args, &through, &scene, true).await {
-            Ok((stats, wall)) => {
-                let row = link::row(spec, &stats, wall, args.tick_rate);
-                eprintln!("{row:?}");
-                rows.push(row);
-            }
-            Err(e) => {
-                result = Err(e);
-                break;
-            }
+        run_args.protocol = args.protocol;
+        if args.transport.websocket() {
+            eprintln!("— link {config}, websocket —");
+            let proxy = posecast_linkemu::Proxy::start(
+                upstream,
+                posecast_linkemu::Link::new(config.clone()),
+            )
+            .await?;
+            let through = client::Endpoint::WebSocket(format!("ws://{}/ws", proxy.addr()));
+            let (stats, wall) = measure_stats(&run_args, &through, scene, true).await?;
+            rows.push(link::row(
+                spec,
+                through.transport(),
+                &stats,
+                wall,
+                args.tick_rate,
+            ));
+            eprintln!("{:?}", rows.last());
+        }
+        if let Some(offer) = &offer {
+            eprintln!("— link {config}, webtransport —");
+            let quic_port = offer
+                .url
+                .rsplit(':')
+                .next()
+                .and_then(|p| p.trim_end_matches('/').parse::<u16>().ok())
+                .with_context(|| format!("no port in {}", offer.url))?;
+            let proxy = posecast_linkemu::UdpProxy::start(
+                std::net::SocketAddr::new(upstream.ip(), quic_port),
+                config.clone(),
+            )
+            .await?;
+            let through =
+                client::Endpoint::WebTransport(posecast_client::net::transport::QuicOffer {
+                    url: format!("https://{}/", proxy.addr),
+                    cert_sha256: offer.cert_sha256,
+                });
+            let (stats, wall) = measure_stats(&run_args, &through, scene, true).await?;
+            rows.push(link::row(
+                spec,
+                through.transport(),
+                &stats,
+                wall,
+                args.tick_rate,
+            ));
+            eprintln!("{:?}; datagrams down {:?}", rows.last(), proxy.down());
         }
     }
-    if let Some(child) = child {
-        child.stop().await;
-    }
-    result?;
-    link::print(&rows);
-    Ok(())
+    Ok(rows)
 }
 
 /// Starts posecast, fills its scene, measures, stops it.
@@ -349,7 +436,7 @@ async fn spawn_and_measure(args: &Args, fd_limit: u64) -> Result<report::Summary
 /// wall time measured. `record`: keep every frame's arrival.
 async fn measure_stats(
     args: &Args,
-    url: &str,
+    endpoint: &client::Endpoint,
     scene: &str,
     record: bool,
 ) -> Result<(Vec<ClientStats>, f64)> {
@@ -358,10 +445,10 @@ async fn measure_stats(
     let tasks: Vec<_> = (0..args.clients)
         .map(|i| {
             let shared = shared.clone();
-            let url = url.to_owned();
+            let endpoint = endpoint.clone();
             let scene = scene.to_owned();
             let rate = args.rate;
-            tokio::spawn(async move { client::run(i, &url, &scene, rate, &shared).await })
+            tokio::spawn(async move { client::run(i, &endpoint, &scene, rate, &shared).await })
         })
         .collect();
     let deadline = Instant::now() + Duration::from_secs(30 + args.clients as u64 / 20);
@@ -393,6 +480,11 @@ async fn measure_stats(
             Err(_) => stats.push(ClientStats::failed("did not stop within 10 s")),
         }
     }
+    let mut failures: Vec<&str> = stats.iter().filter_map(|s| s.failure.as_deref()).collect();
+    failures.dedup();
+    for why in failures.iter().take(3) {
+        eprintln!("a client failed: {why}");
+    }
     Ok((stats, wall))
 }
 
@@ -400,13 +492,14 @@ async fn measure(args: &Args, url: &str, scene: &str, pid: Option<u32>) -> Resul
     let shared =
         Arc::new(client::Shared::new(args.connect_parallel, false).with_version(args.protocol));
     let connect_began = Instant::now();
+    let endpoint = client::Endpoint::WebSocket(url.to_owned());
     let tasks: Vec<_> = (0..args.clients)
         .map(|i| {
             let shared = shared.clone();
-            let url = url.to_owned();
+            let endpoint = endpoint.clone();
             let scene = scene.to_owned();
             let rate = args.rate;
-            tokio::spawn(async move { client::run(i, &url, &scene, rate, &shared).await })
+            tokio::spawn(async move { client::run(i, &endpoint, &scene, rate, &shared).await })
         })
         .collect();
     // Every client subscribed or failed, within a generous bound.

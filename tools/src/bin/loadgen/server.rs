@@ -1,8 +1,10 @@
 //! The server side of a run: the spawned `posecast` child, the scene set up over a command
 //! connection, `/metrics` scrapes and process CPU from `/proc`.
 
-use crate::client::{self, Ws};
+use crate::client;
 use anyhow::{Context, Result, bail};
+use futures_util::SinkExt;
+use posecast_client::net::transport::Link;
 use posecast_proto::command::Command;
 use posecast_proto::msg::{AvatarId, ClientMsg, SceneId, ServerMsg};
 use std::collections::HashMap;
@@ -259,7 +261,7 @@ fn sibling(name: &str) -> Result<PathBuf> {
     Ok(path)
 }
 
-async fn command(ws: &mut Ws, id: u64, command: Command) -> Result<()> {
+async fn command(ws: &mut Link, id: u64, command: Command) -> Result<()> {
     client::send(
         ws,
         &ClientMsg::Command {
@@ -321,7 +323,10 @@ pub async fn create_scene(
         .with_context(|| format!("add avatar {i}"))?;
     }
     // Done with commands; a failed close leaves nothing behind that matters.
-    ws.close(None).await.ok();
+    ws.sink
+        .send(tokio_tungstenite::tungstenite::Message::Close(None))
+        .await
+        .ok();
     eprintln!("scene {scene}: {avatars} avatars");
     Ok(())
 }
