@@ -336,15 +336,29 @@ impl Path {
 /// The [`Path`]s of the server's connections, by client address.
 #[derive(Debug, Default)]
 pub struct Paths {
-    by_address: Mutex<HashMap<IpAddr, Weak<Path>>>,
+    /// By address, and whether the connections are QUIC ones.
+    by_address: Mutex<HashMap<(IpAddr, bool), Weak<Path>>>,
 }
 
 impl Paths {
     /// The path of a connection from `address` (its own when the address is unknown).
     pub fn join(&self, address: Option<IpAddr>) -> Arc<Path> {
+        self.join_kind(address, false)
+    }
+
+    /// The path of a QUIC connection from `address`: shared with the other QUIC connections
+    /// from it only, since QUIC's round trips ([`Pace::quic`]) are not pings' (an
+    /// application's answer over a websocket) and may not even cross the same route (a UDP
+    /// port behind another balancer).
+    pub fn join_quic(&self, address: Option<IpAddr>) -> Arc<Path> {
+        self.join_kind(address, true)
+    }
+
+    fn join_kind(&self, address: Option<IpAddr>, quic: bool) -> Arc<Path> {
         let Some(address) = address else {
             return Arc::new(Path::new());
         };
+        let address = (address, quic);
         let mut map = self
             .by_address
             .lock()
@@ -713,9 +727,20 @@ impl Pace {
     /// lost packet does not raise (only acknowledged packets are timed), `unsent` the
     /// datagram bytes waiting to leave, `acked` the bytes sent less those declared lost. They
     /// decide alone, both ways: a queue that stood through the last [`SOCKET_WINDOW`] above
-    /// [`QUEUE_TARGET`] cuts, a whole probing wait at or below half of it raises.
-    pub fn quic(&self, now: Instant, figures: SocketFigures) -> Option<Change> {
+    /// [`QUEUE_TARGET`] cuts, a whole probing wait at or below half of it raises. The
+    /// smallest round trip is the path's ([`Paths`]). Losses are not read: the share QUIC
+    /// declares lost on a path losing 5 % at random (with reordering) reached what a thin
+    /// link's tail drop loses, and cut connections that had no queue.
+    pub fn quic(&self, now: Instant, mut figures: SocketFigures) -> Option<Change> {
         let mut c = self.lock();
+        // The path's base: a connection that joined a queued link never saw its empty round
+        // trip (as with pings: `Paths`).
+        if let Some(path) = c.path.clone() {
+            path.observe(now, figures.min_rtt);
+            if let Some(base) = path.base(now) {
+                figures.min_rtt = figures.min_rtt.min(base);
+            }
+        }
         c.socket.push_back((now, figures));
         while c.socket.len() > 2 && now - c.socket[1].0 >= SOCKET_WINDOW {
             c.socket.pop_front();
@@ -1092,6 +1117,34 @@ mod tests {
             },
         );
         assert_eq!(jitter.rate(), 60);
+    }
+
+    /// A connection that joined a queued path takes the path's smallest round trip, not its
+    /// own, for the base: its 150 ms of queue cut it.
+    #[test]
+    fn over_quic_a_latecomer_on_a_queued_path_takes_the_paths_base() {
+        let start = Instant::now();
+        let paths = Paths::default();
+        let address = Some(IpAddr::from([192, 0, 2, 1]));
+        let early = Pace::new(16);
+        early.set_path(paths.join_quic(address));
+        run_quic(&early, start, (0.0, 1.0), |_| Duration::ZERO, |_| 0);
+        let late = Pace::new(17);
+        late.set_path(paths.join_quic(address));
+        let mut t = 1.0;
+        while t < 4.0 {
+            late.quic(
+                start + Duration::from_secs_f64(t),
+                SocketFigures {
+                    acked: (t * 50_000.0) as u64,
+                    rtt: 180 * MS,
+                    min_rtt: 175 * MS,
+                    ..SocketFigures::default()
+                },
+            );
+            t += 0.2;
+        }
+        assert!(late.rate() <= 30, "{}", late.rate());
     }
 
     #[test]

@@ -129,9 +129,11 @@ pub(super) async fn serve_parts<Si, St>(
     Si: Sink<Message> + Unpin + Send + 'static,
     St: Stream<Item = Result<Message, axum::Error>> + Unpin + Send,
 {
-    outbox
-        .pace()
-        .set_path(state.paths.join(peer.map(|p| p.ip())));
+    let address = peer.map(|p| p.ip());
+    outbox.pace().set_path(match figures {
+        Figures::Quic(_) => state.paths.join_quic(address),
+        Figures::Tcp(_) => state.paths.join(address),
+    });
     let conn = state.register_connection(&outbox);
     let peer = peer.map_or_else(|| "-".to_owned(), |p| p.to_string());
     let span = info_span!("ws", conn, peer = %peer, caller = tracing::field::Empty);

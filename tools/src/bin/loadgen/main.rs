@@ -163,16 +163,6 @@ enum Transports {
     Both,
 }
 
-impl Transports {
-    fn websocket(self) -> bool {
-        self != Self::WebTransport
-    }
-
-    fn webtransport(self) -> bool {
-        self != Self::WebSocket
-    }
-}
-
 /// Microseconds since the Unix epoch, the clock of the frames' `server_time_us`.
 fn unix_micros() -> u64 {
     std::time::SystemTime::now()
@@ -276,7 +266,9 @@ async fn run(args: Args, fd_limit: u64) -> Result<()> {
 
 /// `--link`/`--link-suite`: one measurement per link condition and transport, through a
 /// proxy in this process (TCP for the websocket, UDP for WebTransport; both impair alike),
-/// against one server (spawned, or `--url`); then the table.
+/// each against a server of its own when spawned (a server remembers a path's round trips
+/// for 10–20 s: a condition measured right after another would inherit its base), or the one
+/// at `--url`; then the table.
 async fn run_links(args: &Args, fd_limit: u64) -> Result<()> {
     let specs: Vec<String> = if args.link_suite {
         link::SUITE.iter().map(|s| (*s).to_owned()).collect()
@@ -295,122 +287,120 @@ async fn run_links(args: &Args, fd_limit: u64) -> Result<()> {
         .clone()
         .unwrap_or_else(|| format!("loadgen-{:032x}", rand::random::<u128>()));
     let scene = args.scene.clone().unwrap_or_else(|| "default".into());
-    let (child, url) = if args.spawn_server {
-        let mut quic = Vec::new();
-        if args.transport.webtransport() {
-            quic.extend(["--quic-listen".into(), "127.0.0.1:0".into()]);
-            if let Some(c) = &args.quic_congestion {
-                quic.extend(["--quic-congestion".into(), c.clone()]);
+    let transports = [Transports::WebSocket, Transports::WebTransport]
+        .into_iter()
+        .filter(|t| args.transport == Transports::Both || args.transport == *t);
+    let mut rows = Vec::new();
+    for (spec, config) in specs.iter().zip(configs) {
+        for transport in transports.clone() {
+            eprintln!("— link {config}, {transport:?} —");
+            let child = if args.spawn_server {
+                let mut more = Vec::new();
+                if transport == Transports::WebTransport {
+                    more.extend(["--quic-listen".into(), "127.0.0.1:0".into()]);
+                    if let Some(c) = &args.quic_congestion {
+                        more.extend(["--quic-congestion".into(), c.clone()]);
+                    }
+                }
+                let child = server::Spawned::start_with(
+                    args.server_bin.as_deref(),
+                    args.tick_rate,
+                    fd_limit,
+                    &token,
+                    more,
+                )
+                .await?;
+                server::create_scene(&child.ws_url(), &token, &scene, args.avatars, &args.clips)
+                    .await?;
+                Some(child)
+            } else {
+                None
+            };
+            let url = match &child {
+                Some(c) => c.ws_url(),
+                None => args.url.clone().context("--url or --spawn-server")?,
+            };
+            let row = link_row(args, spec, &config, transport, &url, &scene).await;
+            if let Some(child) = child {
+                child.stop().await;
             }
+            rows.push(row?);
         }
-        let child = server::Spawned::start_with(
-            args.server_bin.as_deref(),
-            args.tick_rate,
-            fd_limit,
-            &token,
-            quic,
-        )
-        .await?;
-        let url = child.ws_url();
-        if let Err(e) = server::create_scene(&url, &token, &scene, args.avatars, &args.clips).await
-        {
-            child.stop().await;
-            return Err(e);
-        }
-        (Some(child), url)
-    } else {
-        (None, args.url.clone().context("--url or --spawn-server")?)
-    };
-    let result = link_rows(args, &specs, configs, &url, &scene).await;
-    if let Some(child) = child {
-        child.stop().await;
     }
-    link::print(&result?);
+    link::print(&rows);
     Ok(())
 }
 
-/// The rows of a `--link` run against the server at `url`.
-async fn link_rows(
+/// One row of a `--link` run: `transport`'s clients through `config` to the server at `url`.
+async fn link_row(
     args: &Args,
-    specs: &[String],
-    configs: Vec<posecast_linkemu::LinkConfig>,
+    spec: &str,
+    config: &posecast_linkemu::LinkConfig,
+    transport: Transports,
     url: &str,
     scene: &str,
-) -> Result<Vec<link::Row>> {
+) -> Result<link::Row> {
     let upstream: std::net::SocketAddr = authority(url)?
         .parse()
         .with_context(|| format!("{url}: --link needs an IP address and port"))?;
-    let offer = if args.transport.webtransport() {
-        let offer = posecast_client::net::transport::discover(url, Duration::from_secs(10))
-            .await
-            .map_err(|e| anyhow::anyhow!("{e}"))?
-            .with_context(|| format!("{url} offers no WebTransport endpoint (/api/quic)"))?;
-        Some(offer)
+    // On a rate-limited link every client's join (its descriptions) crosses it first.
+    let mut run_args = Args::parse_from(["loadgen", "--url", url]);
+    run_args.clients = args.clients;
+    run_args.seconds = args.seconds;
+    run_args.warmup = if config.rate_bps.is_some() {
+        args.warmup.max(25.0)
     } else {
-        None
+        args.warmup
     };
-    let mut rows = Vec::new();
-    for (spec, config) in specs.iter().zip(configs) {
-        // On a rate-limited link every client's join (its descriptions) crosses it first.
-        let mut run_args = Args::parse_from(["loadgen", "--url", url]);
-        run_args.clients = args.clients;
-        run_args.seconds = args.seconds;
-        run_args.warmup = if config.rate_bps.is_some() {
-            args.warmup.max(25.0)
-        } else {
-            args.warmup
-        };
-        run_args.connect_parallel = args.connect_parallel;
-        run_args.rate = args.rate;
-        run_args.protocol = args.protocol;
-        if args.transport.websocket() {
-            eprintln!("— link {config}, websocket —");
-            let proxy = posecast_linkemu::Proxy::start(
-                upstream,
-                posecast_linkemu::Link::new(config.clone()),
-            )
-            .await?;
-            let through = client::Endpoint::WebSocket(format!("ws://{}/ws", proxy.addr()));
-            let (stats, wall) = measure_stats(&run_args, &through, scene, true).await?;
-            rows.push(link::row(
-                spec,
-                through.transport(),
-                &stats,
-                wall,
-                args.tick_rate,
-            ));
-            eprintln!("{:?}", rows.last());
-        }
-        if let Some(offer) = &offer {
-            eprintln!("— link {config}, webtransport —");
-            let quic_port = offer
-                .url
-                .rsplit(':')
-                .next()
-                .and_then(|p| p.trim_end_matches('/').parse::<u16>().ok())
-                .with_context(|| format!("no port in {}", offer.url))?;
-            let proxy = posecast_linkemu::UdpProxy::start(
-                std::net::SocketAddr::new(upstream.ip(), quic_port),
-                config.clone(),
-            )
-            .await?;
-            let through =
-                client::Endpoint::WebTransport(posecast_client::net::transport::QuicOffer {
-                    url: format!("https://{}/", proxy.addr),
-                    cert_sha256: offer.cert_sha256,
-                });
-            let (stats, wall) = measure_stats(&run_args, &through, scene, true).await?;
-            rows.push(link::row(
-                spec,
-                through.transport(),
-                &stats,
-                wall,
-                args.tick_rate,
-            ));
-            eprintln!("{:?}; datagrams down {:?}", rows.last(), proxy.down());
-        }
+    run_args.connect_parallel = args.connect_parallel;
+    run_args.rate = args.rate;
+    run_args.protocol = args.protocol;
+    if transport == Transports::WebSocket {
+        let proxy =
+            posecast_linkemu::Proxy::start(upstream, posecast_linkemu::Link::new(config.clone()))
+                .await?;
+        let through = client::Endpoint::WebSocket(format!("ws://{}/ws", proxy.addr()));
+        let (stats, wall) = measure_stats(&run_args, &through, scene, true).await?;
+        let row = link::row(spec, through.transport(), &stats, wall, args.tick_rate);
+        eprintln!("{row:?}");
+        return Ok(row);
     }
-    Ok(rows)
+    let offer = posecast_client::net::transport::discover(url, Duration::from_secs(10))
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?
+        .with_context(|| format!("{url} offers no WebTransport endpoint (/api/quic)"))?;
+    let quic_port = offer
+        .url
+        .rsplit(':')
+        .next()
+        .and_then(|p| p.trim_end_matches('/').parse::<u16>().ok())
+        .with_context(|| format!("no port in {}", offer.url))?;
+    let proxy = posecast_linkemu::UdpProxy::start(
+        std::net::SocketAddr::new(upstream.ip(), quic_port),
+        config.clone(),
+    )
+    .await?;
+    let through = client::Endpoint::WebTransport(posecast_client::net::transport::QuicOffer {
+        url: format!("https://{}/", proxy.addr),
+        cert_sha256: offer.cert_sha256,
+    });
+    let (stats, wall) = measure_stats(&run_args, &through, scene, true).await?;
+    let row = link::row(spec, through.transport(), &stats, wall, args.tick_rate);
+    eprintln!("{row:?}; datagrams down {:?}", proxy.down());
+    if let Ok(m) = server::scrape_metrics(&authority(url)?).await {
+        let mut lines: Vec<String> = m
+            .iter()
+            .filter(|(k, v)| {
+                **v != 0.0
+                    && (k.starts_with("posecast_quic_frames")
+                        || k.starts_with("posecast_rate_changes"))
+            })
+            .map(|(k, v)| format!("{k} {v}"))
+            .collect();
+        lines.sort();
+        eprintln!("the server's counts: {}", lines.join(", "));
+    }
+    Ok(row)
 }
 
 /// Starts posecast, fills its scene, measures, stops it.
