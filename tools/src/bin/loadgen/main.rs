@@ -119,10 +119,11 @@ pub struct Args {
     /// 2 Mbit/s shared by every client.
     #[arg(long, conflicts_with = "link")]
     link_suite: bool,
-    /// The protocol version the clients say hello with: 3 (default, what posecast's own
-    /// clients speak) and 2 get wire v2 frames, 1 v1 frames. The reference server sends the
-    /// same wire.
-    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=3))]
+    /// The protocol version the clients say hello with: 2 to 5 get wire v2 frames (4 with
+    /// morph weights, 5 with precision per subscription; 3 is the default), 1 v1 frames.
+    /// The reference server sends the same wire. Over WebTransport every version gets wire
+    /// v1 datagrams.
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=5))]
     protocol: u32,
     /// Load the machine as a busy host would be: this many busy-loop processes run beside the
     /// servers for the whole run (e.g. one per core), so both servers are measured under the
@@ -549,4 +550,32 @@ async fn measure(args: &Args, url: &str, scene: &str, pid: Option<u32>) -> Resul
         metrics_before.as_ref().zip(metrics_after.as_ref()),
     );
     Ok(summary)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// loadgen speaks every protocol version the server accepts, and no other.
+    #[test]
+    fn every_supported_protocol_version_is_accepted() {
+        let parse = |v: u32| {
+            Args::try_parse_from([
+                "loadgen",
+                "--url",
+                "ws://127.0.0.1:1/ws",
+                "--protocol",
+                &v.to_string(),
+            ])
+        };
+        for v in posecast_proto::msg::SUPPORTED_VERSIONS {
+            assert!(parse(v).is_ok(), "protocol {v}");
+        }
+        let newest = posecast_proto::msg::SUPPORTED_VERSIONS
+            .iter()
+            .max()
+            .unwrap();
+        assert!(parse(newest + 1).is_err());
+        assert!(parse(0).is_err());
+    }
 }
