@@ -150,8 +150,7 @@ const SOCKET_SAMPLES: usize = 4;
 /// The kernel's figures of a connection's socket (Linux: `getsockopt(TCP_INFO)` on the
 /// accepted socket), read every probe beside the ping ([`Pace::socket`]). They show the queues
 /// that stand, which a reader's lateness cannot fake: a reader starved of CPU answers pings
-/// late without any queue, but its kernel still acknowledges at once. A QUIC connection
-/// (WebTransport) has the same figures of its own ([`Pace::quic`]).
+/// late without any queue, but its kernel still acknowledges at once.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct SocketFigures {
     /// Bytes the peer acknowledged since the connection opened (`tcpi_bytes_acked`).
@@ -336,29 +335,15 @@ impl Path {
 /// The [`Path`]s of the server's connections, by client address.
 #[derive(Debug, Default)]
 pub struct Paths {
-    /// By address, and whether the connections are QUIC ones.
-    by_address: Mutex<HashMap<(IpAddr, bool), Weak<Path>>>,
+    by_address: Mutex<HashMap<IpAddr, Weak<Path>>>,
 }
 
 impl Paths {
     /// The path of a connection from `address` (its own when the address is unknown).
     pub fn join(&self, address: Option<IpAddr>) -> Arc<Path> {
-        self.join_kind(address, false)
-    }
-
-    /// The path of a QUIC connection from `address`: shared with the other QUIC connections
-    /// from it only, since QUIC's round trips ([`Pace::quic`]) are not pings' (an
-    /// application's answer over a websocket) and may not even cross the same route (a UDP
-    /// port behind another balancer).
-    pub fn join_quic(&self, address: Option<IpAddr>) -> Arc<Path> {
-        self.join_kind(address, true)
-    }
-
-    fn join_kind(&self, address: Option<IpAddr>, quic: bool) -> Arc<Path> {
         let Some(address) = address else {
             return Arc::new(Path::new());
         };
-        let address = (address, quic);
         let mut map = self
             .by_address
             .lock()
@@ -721,36 +706,6 @@ impl Pace {
         self.apply(change)
     }
 
-    /// QUIC's own figures of a WebTransport connection at `now` (every probe; no pings: a
-    /// pong on a QUIC stream waits for the stream's retransmissions on a lossy path, which is
-    /// no queue): `rtt` and `min_rtt` are QUIC's smoothed and smallest round trips, which a
-    /// lost packet does not raise (only acknowledged packets are timed), `unsent` the
-    /// datagram bytes waiting to leave, `acked` the bytes sent less those declared lost. They
-    /// decide alone, both ways: a queue that stood through the last [`SOCKET_WINDOW`] above
-    /// [`QUEUE_TARGET`] cuts, a whole probing wait at or below half of it raises. The
-    /// smallest round trip is the path's ([`Paths`]). Losses are not read: the share QUIC
-    /// declares lost on a path losing 5 % at random (with reordering) reached what a thin
-    /// link's tail drop loses, and cut connections that had no queue.
-    pub fn quic(&self, now: Instant, mut figures: SocketFigures) -> Option<Change> {
-        let mut c = self.lock();
-        // The path's base: a connection that joined a queued link never saw its empty round
-        // trip (as with pings: `Paths`).
-        if let Some(path) = c.path.clone() {
-            path.observe(now, figures.min_rtt);
-            if let Some(base) = path.base(now) {
-                figures.min_rtt = figures.min_rtt.min(base);
-            }
-        }
-        c.socket.push_back((now, figures));
-        while c.socket.len() > 2 && now - c.socket[1].0 >= SOCKET_WINDOW {
-            c.socket.pop_front();
-        }
-        let queueing = c.socket_queueing();
-        let change = queueing.and_then(|q| c.decide(now, Some(q), 0));
-        drop(c);
-        self.apply(change)
-    }
-
     /// A pong arrived at `now` for a ping sent `rtt` ago.
     pub fn answered(&self, now: Instant, rtt: Duration) -> Option<Change> {
         let mut c = self.lock();
@@ -1060,91 +1015,6 @@ mod tests {
         run(&without, start, 0.0, 30.0, late_reader(7));
         assert_eq!(with.rate(), 60);
         assert!(without.rate() <= 30, "{}", without.rate());
-    }
-
-    /// QUIC's figures every probe from `from` to `to` s: `queued(t)` above a 30 ms path,
-    /// `unsent(t)` datagram bytes waiting, 50 KB/s delivered.
-    fn run_quic(
-        pace: &Pace,
-        start: Instant,
-        (from, to): (f64, f64),
-        queued: impl Fn(f64) -> Duration,
-        unsent: impl Fn(f64) -> u64,
-    ) {
-        let mut t = from;
-        while t < to {
-            pace.quic(
-                start + Duration::from_secs_f64(t),
-                SocketFigures {
-                    acked: (t * 50_000.0) as u64,
-                    unsent: unsent(t),
-                    rtt: 30 * MS + queued(t),
-                    min_rtt: 30 * MS,
-                },
-            );
-            t += 0.2;
-        }
-    }
-
-    /// Over QUIC the figures decide both ways: a round trip standing 150 ms above the path's
-    /// (a thin link's queue) or datagrams standing unsent cut; the queue gone, the rate comes
-    /// back; a round trip that only wavers (jitter, losses: QUIC times acknowledged packets
-    /// only) keeps the full rate.
-    #[test]
-    fn quic_figures_cut_a_standing_queue_raise_after_it_and_ignore_jitter() {
-        let start = Instant::now();
-        let queue = Pace::new(11);
-        run_quic(&queue, start, (0.0, 3.0), |_| 150 * MS, |_| 0);
-        let cut = queue.rate();
-        assert!(cut <= 30, "{cut}");
-        run_quic(&queue, start, (3.0, 60.0), |_| 5 * MS, |_| 0);
-        assert_eq!(queue.rate(), 60);
-        let unsent = Pace::new(12);
-        run_quic(&unsent, start, (0.0, 3.0), |_| Duration::ZERO, |_| 2_400);
-        assert!(unsent.rate() <= 30, "{}", unsent.rate());
-        let jitter = Pace::new(13);
-        run_quic(
-            &jitter,
-            start,
-            (0.0, 30.0),
-            |t| Duration::from_secs_f64(0.02 * (1.0 + (t * 7.0).sin())),
-            |t| {
-                if ((t * 5.0).round() as u64).is_multiple_of(3) {
-                    1_200
-                } else {
-                    0
-                }
-            },
-        );
-        assert_eq!(jitter.rate(), 60);
-    }
-
-    /// A connection that joined a queued path takes the path's smallest round trip, not its
-    /// own, for the base: its 150 ms of queue cut it.
-    #[test]
-    fn over_quic_a_latecomer_on_a_queued_path_takes_the_paths_base() {
-        let start = Instant::now();
-        let paths = Paths::default();
-        let address = Some(IpAddr::from([192, 0, 2, 1]));
-        let early = Pace::new(16);
-        early.set_path(paths.join_quic(address));
-        run_quic(&early, start, (0.0, 1.0), |_| Duration::ZERO, |_| 0);
-        let late = Pace::new(17);
-        late.set_path(paths.join_quic(address));
-        let mut t = 1.0;
-        while t < 4.0 {
-            late.quic(
-                start + Duration::from_secs_f64(t),
-                SocketFigures {
-                    acked: (t * 50_000.0) as u64,
-                    rtt: 180 * MS,
-                    min_rtt: 175 * MS,
-                    ..SocketFigures::default()
-                },
-            );
-            t += 0.2;
-        }
-        assert!(late.rate() <= 30, "{}", late.rate());
     }
 
     #[test]

@@ -11,8 +11,7 @@
 //!   datagram goes on the stream) — and a delta goes out only against a keyframe the client
 //!   acknowledged, every avatar of it, with datagrams; until then the newest keyframe goes
 //!   again before each delta. A lost datagram costs its own tick. QUIC's congestion
-//!   control (BBR unless `--quic-congestion` says otherwise) paces what is sent, and the
-//!   session's adaptive rate follows QUIC's own figures of the connection ([`figures`]).
+//!   control (BBR unless `--quic-congestion` says otherwise) paces what is sent.
 
 use super::ws;
 use crate::config::QuicCongestion;
@@ -24,7 +23,6 @@ use futures_util::{Sink, Stream, StreamExt};
 use posecast_proto::msg::MAX_CLIENT_MESSAGE_BYTES;
 use posecast_proto::quic as wire;
 use posecast_stream::outbox::Outbox;
-use posecast_stream::pace::SocketFigures;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::task::JoinHandle;
@@ -37,12 +35,12 @@ use wtransport::{Connection, Endpoint, Identity, RecvStream, SendStream, ServerC
 /// what waits in it from the space left).
 const DATAGRAM_BUFFER: usize = 1 << 20;
 
-/// A frame finds datagrams of an earlier write still waiting in QUIC's send buffer when the
-/// earlier write was at least this long ago: the path (QUIC's pacing and congestion window)
-/// did not take a tick's datagrams within it, and the new frame is superseded rather than
-/// queued behind them. What one write of the session's writer puts (a keyframe sent again, its
-/// parts and the delta after it) goes together.
-const SUPERSEDED_AFTER: Duration = Duration::from_millis(4);
+/// Datagrams (of the largest size) waiting in QUIC's send buffer past which a new frame is
+/// superseded rather than queued: a burst (a keyframe and its parts, a joiner's frames) fits,
+/// a path that cannot keep up does not build a backlog. (Superseding a frame as soon as an
+/// earlier write's datagrams waited 4 ms lost deltas on a machine under CPU load, where one
+/// write's datagrams can be that far apart.)
+const SUPERSEDED_AT: usize = 8;
 
 /// How long a client may take to complete the QUIC and WebTransport handshakes.
 const HANDSHAKE: Duration = Duration::from_secs(10);
@@ -234,11 +232,7 @@ async fn session(state: Arc<AppState>, caps: Arc<Caps>, incoming: IncomingSessio
         outbox.clone(),
         state.metrics.clone(),
     ));
-    let figures = ws::Figures::Quic(Box::new({
-        let conn = conn.clone();
-        move || figures(&conn)
-    }));
-    ws::serve_parts(sink, stream, outbox, state, Some(peer), None, figures).await;
+    ws::serve_parts(sink, stream, outbox, state, Some(peer), None, None).await;
     acks.abort();
     conn.close(0u32.into(), b"");
 }
@@ -254,20 +248,6 @@ fn datagrams_waiting(conn: &Connection) -> usize {
 
 /// More than quinn's bookkeeping of one datagram in its send buffer.
 const BOOKKEEPING: usize = 64;
-
-/// QUIC's figures of `conn` for the adaptive rate: its smoothed and smallest round trips
-/// (acknowledged packets only, so a loss does not raise them), the datagram bytes waiting to
-/// leave, and the bytes sent less those declared lost.
-fn figures(conn: &Connection) -> SocketFigures {
-    let quic = conn.quic_connection();
-    let stats = quic.stats();
-    SocketFigures {
-        acked: stats.udp_tx.bytes.saturating_sub(stats.path.lost_bytes),
-        unsent: datagrams_waiting(conn) as u64,
-        rtt: stats.path.rtt,
-        min_rtt: stats.path.min_rtt,
-    }
-}
 
 /// Keyframe acknowledgements the client sends as datagrams; anything else is ignored.
 async fn read_acks(conn: Connection, outbox: Arc<Outbox>, metrics: Arc<Metrics>) {
@@ -323,22 +303,17 @@ fn send_datagrams(
     outbox: &Outbox,
     metrics: &Metrics,
     frame: &[u8],
-    last_queued: &mut Option<std::time::Instant>,
 ) -> Vec<Vec<u8>> {
     let Some(max) = conn.max_datagram_size() else {
         return vec![frame.to_vec()];
     };
-    // Newest frame wins, as in a websocket's outbox: while an earlier write's datagrams still
-    // wait for QUIC's pacing, the path is full and this frame is superseded before it could
-    // leave (a lost keyframe is sent again before the next delta). The adaptive rate follows
-    // the path's share from QUIC's figures (`figures`).
-    let waiting = datagrams_waiting(conn);
-    let now = std::time::Instant::now();
-    if waiting > 0 && last_queued.is_some_and(|at| now - at >= SUPERSEDED_AFTER) {
+    // Newest frame wins, as in a websocket's outbox: when QUIC's congestion control holds
+    // more than a frame or two waiting, the path is full and this frame is superseded before
+    // it could leave (a lost keyframe is sent again before the next delta).
+    if datagrams_waiting(conn) > SUPERSEDED_AT * max {
         metrics.quic.superseded();
         return Vec::new();
     }
-    *last_queued = Some(now);
     if frame.len() <= max {
         if conn.send_datagram(frame).is_ok() {
             metrics.quic.datagram(frame.len());
@@ -377,14 +352,13 @@ fn sent(
     metrics: Arc<Metrics>,
 ) -> impl Sink<Message> + Send {
     futures_util::sink::unfold(
-        (conn, send, outbox, metrics, None),
-        |(conn, mut send, outbox, metrics, mut last_queued), message: Message| async move {
+        (conn, send, outbox, metrics),
+        |(conn, mut send, outbox, metrics), message: Message| async move {
             let (kind, payload): (u8, Vec<u8>) = match message {
                 Message::Binary(frame) => {
-                    let mut rest =
-                        send_datagrams(&conn, &outbox, &metrics, &frame, &mut last_queued);
+                    let mut rest = send_datagrams(&conn, &outbox, &metrics, &frame);
                     let Some(last) = rest.pop() else {
-                        return Ok((conn, send, outbox, metrics, last_queued));
+                        return Ok((conn, send, outbox, metrics));
                     };
                     for part in rest {
                         metrics.quic.on_stream();
@@ -413,7 +387,7 @@ fn sent(
             if kind == wire::CLOSE {
                 send.finish().await.ok();
             }
-            Ok::<_, axum::Error>((conn, send, outbox, metrics, last_queued))
+            Ok::<_, axum::Error>((conn, send, outbox, metrics))
         },
     )
 }

@@ -30,7 +30,7 @@ use posecast_proto::msg::{
 use posecast_proto::subset::JointSet;
 use posecast_stream::feed::{Subscriber, text};
 use posecast_stream::outbox::Outbox;
-use posecast_stream::pace::{Change, SocketFigures};
+use posecast_stream::pace::Change;
 use posecast_stream::writer::run_writer;
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -63,7 +63,7 @@ pub async fn serve(
     greeter: Option<Greeter>,
     tcp: Option<SocketInfo>,
 ) {
-    serve_paced(socket, state, peer, greeter, Figures::Tcp(tcp)).await;
+    serve_paced(socket, state, peer, greeter, tcp).await;
 }
 
 /// [`serve`] over any websocket-shaped transport: a stream of received messages and a sink for
@@ -79,16 +79,16 @@ pub async fn serve_on<S>(
 ) where
     S: Stream<Item = Result<Message, axum::Error>> + Sink<Message> + Send + 'static,
 {
-    serve_paced(socket, state, peer, greeter, Figures::Tcp(None)).await;
+    serve_paced(socket, state, peer, greeter, None).await;
 }
 
-/// [`serve_on`], with the transport's figures that pace the frames.
+/// [`serve_on`], with the accepted socket whose kernel figures pace the frames, if known.
 async fn serve_paced<S>(
     socket: S,
     state: Arc<AppState>,
     peer: Option<SocketAddr>,
     greeter: Option<Greeter>,
-    figures: Figures,
+    tcp: Option<SocketInfo>,
 ) where
     S: Stream<Item = Result<Message, axum::Error>> + Sink<Message> + Send + 'static,
 {
@@ -100,18 +100,9 @@ async fn serve_paced<S>(
         state,
         peer,
         greeter,
-        figures,
+        tcp,
     )
     .await;
-}
-
-/// What the adaptive rate (`posecast_stream::pace`) reads of a session's transport.
-pub(super) enum Figures {
-    /// A websocket: round trips of pings, and its accepted socket's kernel figures when known.
-    Tcp(Option<SocketInfo>),
-    /// WebTransport: QUIC's own figures of the connection, which decide alone
-    /// ([`posecast_stream::pace::Pace::quic`]).
-    Quic(Box<dyn Fn() -> SocketFigures + Send + Sync>),
 }
 
 /// A session of the protocol over a sink of sent messages and a stream of received ones
@@ -124,16 +115,14 @@ pub(super) async fn serve_parts<Si, St>(
     state: Arc<AppState>,
     peer: Option<SocketAddr>,
     greeter: Option<Greeter>,
-    figures: Figures,
+    tcp: Option<SocketInfo>,
 ) where
     Si: Sink<Message> + Unpin + Send + 'static,
     St: Stream<Item = Result<Message, axum::Error>> + Unpin + Send,
 {
-    let address = peer.map(|p| p.ip());
-    outbox.pace().set_path(match figures {
-        Figures::Quic(_) => state.paths.join_quic(address),
-        Figures::Tcp(_) => state.paths.join(address),
-    });
+    outbox
+        .pace()
+        .set_path(state.paths.join(peer.map(|p| p.ip())));
     let conn = state.register_connection(&outbox);
     let peer = peer.map_or_else(|| "-".to_owned(), |p| p.to_string());
     let span = info_span!("ws", conn, peer = %peer, caller = tracing::field::Empty);
@@ -156,7 +145,7 @@ pub(super) async fn serve_parts<Si, St>(
             commands: TokenBucket::new(state.config.command_rate),
             drives: Drives::new(conn),
             greeter,
-            figures,
+            tcp,
         };
         let mut writer_done = false;
         let mut client_closed = false;
@@ -392,8 +381,8 @@ struct Session {
     drives: Drives,
     /// The connection's slot under the caps, told of the hello.
     greeter: Option<Greeter>,
-    /// The transport's figures (the adaptive rate's signals).
-    figures: Figures,
+    /// The accepted socket, for the kernel's figures (the adaptive rate's signals).
+    tcp: Option<SocketInfo>,
 }
 
 impl Session {
@@ -441,18 +430,14 @@ impl Session {
     /// by their trend, so a reader that is only late to answer is not cut
     /// (`posecast_stream::pace`).
     fn probe(&self) {
+        // Datagrams (WebTransport) are paced by QUIC's congestion control, and a lost one
+        // costs its own tick: round trips over a lossy path (pongs on the stream wait for its
+        // retransmissions) are not a queue to cut the rate for.
+        if self.outbox.datagrams() {
+            return;
+        }
         let pace = self.outbox.pace();
-        let tcp = match &self.figures {
-            Figures::Quic(read) => {
-                // A lost datagram costs its own tick: round trips of pings over a lossy path
-                // (pongs on the stream wait for its retransmissions) are not a queue.
-                let change = pace.quic(Instant::now(), read());
-                self.rate_changed(change);
-                return;
-            }
-            Figures::Tcp(tcp) => tcp,
-        };
-        if let Some(figures) = tcp.as_ref().and_then(SocketInfo::figures) {
+        if let Some(figures) = self.tcp.as_ref().and_then(SocketInfo::figures) {
             let change = pace.socket(Instant::now(), figures);
             self.rate_changed(change);
         }
