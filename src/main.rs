@@ -58,10 +58,10 @@ struct Args {
     /// The WebTransport certificate's private key (PEM), with --quic-cert.
     #[arg(long, env = "POSECAST_QUIC_KEY", requires = "quic_cert")]
     quic_key: Option<PathBuf>,
-    /// The congestion controller of the WebTransport endpoint's connections: `bbr` (paces at
-    /// the path's measured bandwidth; random loss does not cut the frame rate) or the
-    /// loss-driven `cubic` and `new-reno`.
-    #[arg(long, env = "POSECAST_QUIC_CONGESTION", value_enum, default_value_t = Congestion::Bbr)]
+    /// The congestion controller of the WebTransport endpoint's connections: the loss-driven
+    /// `cubic` (default) and `new-reno`, or `bbr` (paces at the path's measured bandwidth:
+    /// fresher frames on a path that loses at random; quinn marks it experimental).
+    #[arg(long, env = "POSECAST_QUIC_CONGESTION", value_enum, default_value_t = Congestion::Cubic)]
     quic_congestion: Congestion,
     /// Folders whose assets (.glb, .vrm, .gltf, .bvh, .skel) are loaded at start (repeatable).
     #[arg(long = "assets", env = "POSECAST_ASSETS", value_delimiter = ',')]

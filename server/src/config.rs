@@ -86,13 +86,15 @@ pub struct Config {
 /// The congestion controller QUIC connections use: it paces the frames' datagrams.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum QuicCongestion {
-    /// BBR (quinn's, after Chromium's BBRv1): paces at the path's measured bandwidth and round
-    /// trip, and does not take random loss for congestion. Frames are small, steady and
-    /// disposable, so a lost datagram should cost its tick, not the sending rate.
-    #[default]
+    /// BBR (quinn's, after Chromium's BBRv1, marked experimental): paces at the path's
+    /// measured bandwidth and round trip, and does not take random loss for congestion:
+    /// fresher frames on a path that loses at random. Not the default: with the server's
+    /// machine under CPU load, its pacing held datagrams past the point where new frames are
+    /// superseded (ticks missing on loopback).
     Bbr,
-    /// CUBIC (RFC 9438, quinn's default): halves its window on loss; on a path that loses at
+    /// CUBIC (RFC 9438, quinn's default): cuts its window on loss; on a path that loses at
     /// random (a radio link) it falls to its minimum window and frames queue behind it.
+    #[default]
     Cubic,
     /// NewReno (RFC 9002's reference): as loss-driven as CUBIC.
     NewReno,

@@ -11,7 +11,7 @@
 //!   datagram goes on the stream) — and a delta goes out only against a keyframe the client
 //!   acknowledged, every avatar of it, with datagrams; until then the newest keyframe goes
 //!   again before each delta. A lost datagram costs its own tick. QUIC's congestion
-//!   control (BBR unless `--quic-congestion` says otherwise) paces what is sent.
+//!   control (`--quic-congestion`: CUBIC, or BBR) paces what is sent.
 
 use super::ws;
 use crate::config::QuicCongestion;
