@@ -160,6 +160,12 @@ pub async fn start(state: &Arc<AppState>) -> std::io::Result<Option<JoinHandle<(
     let mut transport = wtransport::config::QuicTransportConfig::default();
     transport.datagram_send_buffer_size(DATAGRAM_BUFFER);
     transport.congestion_controller_factory(congestion(state.config.quic_congestion));
+    // Datagrams stay within the path's initial MTU (1,200 bytes, which every QUIC path
+    // carries): with path MTU discovery on, a frame cut at a larger size found later is
+    // dropped by quinn, unsent, when it suspects a black hole (a few packets declared lost, as
+    // on a busy host) and falls back — one avatar's tick lost without the network losing
+    // anything.
+    transport.mtu_discovery_config(None);
     let config = ServerConfig::builder()
         .with_bind_address(addr)
         .with_custom_transport(identity, transport)
