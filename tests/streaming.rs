@@ -280,9 +280,13 @@ async fn a_stalled_subscriber_loses_frames_not_memory_and_delays_no_one() {
         .unwrap();
     let stalled = Arc::new(Outbox::new());
     let reading = Arc::new(Outbox::new());
+    // A writer that never gets to run (a busy host): its frames replace each other too, but
+    // no socket held it.
+    let late = Arc::new(Outbox::new());
     for (conn, outbox, encoding) in [
         (1, &stalled, Encoding::Json),
         (2, &reading, Encoding::Binary),
+        (3, &late, Encoding::Binary),
     ] {
         scene
             .subscribe(Subscriber::new(conn, outbox.clone(), encoding, None, 1))
@@ -318,6 +322,16 @@ async fn a_stalled_subscriber_loses_frames_not_memory_and_delays_no_one() {
         max_pending <= 1 + MAX_PENDING_DELTAS,
         "the stalled outbox held {max_pending} frames"
     );
+    // Those count as the link's backpressure (the adaptive rate's signal); the late writer's
+    // as much lost, but not the link's doing.
+    assert!(
+        stalled.dropped_while_held() >= ticks - 3 - MAX_PENDING_DELTAS as u64,
+        "only {} of {} dropped while the socket held the writer",
+        stalled.dropped_while_held(),
+        stalled.dropped_frames()
+    );
+    assert!(late.dropped_frames() >= ticks - 3 - MAX_PENDING_DELTAS as u64);
+    assert_eq!(late.dropped_while_held(), 0);
     assert!(
         !stalled.overflowed(),
         "600 kB of answers is under the bound"

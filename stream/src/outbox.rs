@@ -107,6 +107,12 @@ pub struct Outbox {
     state: Mutex<State>,
     notify: Notify,
     dropped: AtomicU64,
+    /// Whether the writer is held by the socket: its last write or flush found the socket's
+    /// buffer full and waits for room ([`Outbox::set_socket_full`]).
+    socket_full: std::sync::atomic::AtomicBool,
+    /// Frames replaced while the socket held the writer: the link's backpressure, not the
+    /// writer's own lateness (a writer not scheduled in time on a busy host).
+    dropped_held: AtomicU64,
     /// The connection's adaptive frame rate (its subscriptions' frames follow it).
     pace: Pace,
     /// Frames go out as datagrams, which may be lost (a WebTransport session): the feed then
@@ -351,7 +357,7 @@ impl Outbox {
         }
         drop(s);
         if replaced > 0 {
-            self.dropped.fetch_add(replaced, Ordering::Relaxed);
+            self.count_dropped(replaced);
         }
         self.notify.notify_one();
     }
@@ -410,7 +416,7 @@ impl Outbox {
             slot.chain.insert(0, seq);
             slot.chain.truncate(posecast_proto::frame2::MAX_DEPTH);
             drop(s);
-            self.dropped.fetch_add(1, Ordering::Relaxed);
+            self.count_dropped(1);
             self.notify.notify_one();
             return;
         }
@@ -470,10 +476,35 @@ impl Outbox {
         &self.pace
     }
 
-    /// Frames replaced before the writer could send them (the client read too slowly).
+    /// Frames replaced before the writer could send them (the client read too slowly, or the
+    /// writer ran late).
     #[must_use]
     pub fn dropped_frames(&self) -> u64 {
         self.dropped.load(Ordering::Relaxed)
+    }
+
+    /// Of [`Outbox::dropped_frames`], those replaced while the socket held the writer (its
+    /// buffer full: the link or the reader does not keep up). The adaptive rate counts only
+    /// these: a writer that was merely not scheduled in time (the server's host is busy) loses
+    /// frames to the next ones without the link being at fault, and cutting the rate would
+    /// not bring them back (issue 38: on a busy host that cut 45 % of the frames of 2,000
+    /// viewers whose links had room).
+    #[must_use]
+    pub fn dropped_while_held(&self) -> u64 {
+        self.dropped_held.load(Ordering::Relaxed)
+    }
+
+    /// The writer tells whether the socket holds it: `true` when a write or flush found the
+    /// socket's buffer full (it waits for room), `false` once one went through.
+    pub fn set_socket_full(&self, full: bool) {
+        self.socket_full.store(full, Ordering::Relaxed);
+    }
+
+    fn count_dropped(&self, replaced: u64) {
+        self.dropped.fetch_add(replaced, Ordering::Relaxed);
+        if self.socket_full.load(Ordering::Relaxed) {
+            self.dropped_held.fetch_add(replaced, Ordering::Relaxed);
+        }
     }
 
     /// Whether the outbox closed because the client stopped reading.

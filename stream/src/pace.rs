@@ -27,7 +27,19 @@
 //! - *an unanswered ping* older than the base round trip plus [`UNANSWERED_LATE`] counts as a
 //!   sample of its age (a queue so long no answer comes back yet); the first ping goes right
 //!   after the welcome, before a subscription's descriptions, so the base is known early;
-//! - *frames superseded in the outbox* (the writer could not hand them to the socket in time).
+//! - *frames superseded in the outbox while the socket held the writer* (its buffer full: the
+//!   link or the reader does not keep up). Frames superseded because the writer itself ran
+//!   late (not scheduled in time on a busy host) are not the link's doing and do not count
+//!   ([`crate::outbox::Outbox::dropped_while_held`]).
+//!
+//! **Probing where it informs a decision.** A connection at full rate whose last
+//! [`SETTLED_AFTER`] round trips were calm and whose socket shows no standing queue is
+//! *settled*: its pings would only confirm that, so it pings once every [`SETTLED_PING_EVERY`]
+//! probes (the socket's figures are still read every probe, and frames superseded still count).
+//! The first round trip that is not calm, a late ping, a standing queue in the socket or a cut
+//! ends the spell, and it probes every [`PROBE_INTERVAL`] again. Without the socket's figures a
+//! connection never settles. (At 2,000 viewers on one host the pings were 10,000 writes, reads
+//! and wake-ups a second, a tenth of the server's messages.)
 //!
 //! **What the reader can read** (issue 28). A reader starved of CPU (a client on a loaded
 //! machine) answers pings when it runs: hundreds of milliseconds late with no queue anywhere —
@@ -95,6 +107,18 @@ pub fn sends(rate: u32, seq: u64, phase: u64) -> bool {
 
 /// How often a subscribed connection's round trip is sampled.
 pub const PROBE_INTERVAL: Duration = Duration::from_millis(200);
+
+/// A *settled* connection ([`Pace::probe`]) pings on every this many probes instead of every one:
+/// once a second, while the socket's figures are still read every probe.
+pub const SETTLED_PING_EVERY: u32 = 5;
+
+/// Consecutive calm round trips (none more than [`QUEUE_TARGET`] above the base and the jitter
+/// allowance: none that would show a queue on its own) before a connection at full rate counts as settled: 2 s of
+/// them at the full probing pace, so a link that queues from the start is never settled.
+pub const SETTLED_AFTER: u32 = 10;
+
+/// Time after a lowering before a connection may settle again.
+pub const SETTLED_NOT_BEFORE: Duration = Duration::from_secs(10);
 
 /// Queueing delay past which the rate goes down.
 pub const QUEUE_TARGET: Duration = Duration::from_millis(40);
@@ -389,6 +413,10 @@ struct Control {
     this_wait: Duration,
     /// The oldest unanswered probe (one in flight at a time).
     outstanding: Option<Instant>,
+    /// Consecutive round trips that were calm (see [`SETTLED_AFTER`]).
+    calm_streak: u32,
+    /// Probes passed without a ping since the last one (a settled connection's).
+    quiet_probes: u32,
     seed: u64,
     /// Shared with the other connections from the same address.
     path: Option<Arc<Path>>,
@@ -414,6 +442,8 @@ impl Control {
             calm_since: now,
             this_wait: PROBE_WAIT,
             outstanding: None,
+            calm_streak: 0,
+            quiet_probes: 0,
             seed: seed | 1,
             path: None,
             seen_event: None,
@@ -448,6 +478,22 @@ impl Control {
             .min()
             .unwrap_or_default();
         Some(backlog.max(network))
+    }
+
+    /// Whether the connection is *settled* at `now`: at full rate, not lowered in the last
+    /// [`SETTLED_NOT_BEFORE`], its last [`SETTLED_AFTER`] round trips calm and the socket's
+    /// figures (which still come every probe) showing no standing queue. Its pings then inform
+    /// no decision often enough to be worth one every probe (issue 38: they were 10,000 a
+    /// second at 2,000 viewers, each a write, a read and two wake-ups): one every
+    /// [`SETTLED_PING_EVERY`] probes keeps the trend of the round trips, and the first one
+    /// that is not calm ends it.
+    fn settled(&self, now: Instant) -> bool {
+        self.level == 0
+            && self.calm_streak >= SETTLED_AFTER
+            && self
+                .last_lowered
+                .is_none_or(|t| now - t >= SETTLED_NOT_BEFORE)
+            && self.socket_queueing().is_some_and(|q| q <= QUEUE_TARGET)
     }
 
     /// A new jittered wait: the probing wait × 0.75–1.25.
@@ -528,6 +574,7 @@ impl Control {
             .unwrap_or(STEPS.len() - 1);
         self.last_lowered = Some(now);
         self.calm_since = now;
+        self.calm_streak = 0;
         // Judge the new rate by its own round trips.
         self.recent.clear();
         self.rejitter();
@@ -648,7 +695,19 @@ impl Pace {
         let new_superseded = superseded.saturating_sub(c.superseded);
         c.superseded = superseded;
         match c.outstanding {
+            None if c.settled(now) && c.quiet_probes + 1 < SETTLED_PING_EVERY => {
+                c.quiet_probes += 1;
+                let change = if new_superseded >= 2 {
+                    c.calm_streak = 0;
+                    c.decide(now, None, new_superseded)
+                } else {
+                    None
+                };
+                drop(c);
+                (false, self.apply(change))
+            }
             None => {
+                c.quiet_probes = 0;
                 c.outstanding = Some(now);
                 let change = if new_superseded >= 2 {
                     c.decide(now, None, new_superseded)
@@ -673,6 +732,9 @@ impl Pace {
                 // Past a retransmission stall: one lost segment (TCP's 200 ms minimum RTO)
                 // is not a queue.
                 let late = queueing.filter(|q| *q > UNANSWERED_LATE);
+                if late.is_some() {
+                    c.calm_streak = 0;
+                }
                 let change = if late.is_some() || new_superseded >= 2 {
                     c.decide(now, late, new_superseded)
                 } else {
@@ -739,9 +801,19 @@ impl Pace {
         }
         // Above the base and the jitter allowance: a queue of this connection's own (or of
         // its path).
-        let queueing = match (c.current(), c.base(now)) {
+        let base = c.base(now);
+        let queueing = match (c.current(), base) {
             (Some(m), Some(b)) => Some(m.saturating_sub(b).saturating_sub(allowance)),
             _ => None,
+        };
+        // This round trip alone, judged alike: one that would show a queue ends a settled
+        // spell.
+        let calm =
+            base.is_some_and(|b| rtt.saturating_sub(b).saturating_sub(allowance) <= QUEUE_TARGET);
+        c.calm_streak = if calm {
+            c.calm_streak.saturating_add(1)
+        } else {
+            0
         };
         let change = c.decide(now, queueing, 0);
         drop(c);
@@ -1068,5 +1140,69 @@ mod tests {
         assert_eq!(pace.rate(), 60);
         run_with_socket(&pace, start, 5.0, 8.0, growing, |_| (0, Duration::ZERO));
         assert!(pace.rate() <= 45, "{}", pace.rate());
+    }
+
+    /// Pings `pace` sends from `from_s` to `to_s` at probes 200 ms apart, round trips `rtt(t)`,
+    /// the socket's figures every probe when `socket` (an empty socket), none otherwise.
+    fn pings(
+        pace: &Pace,
+        start: Instant,
+        from_s: f64,
+        to_s: f64,
+        rtt: impl Fn(f64) -> Duration,
+        socket: bool,
+    ) -> usize {
+        let mut t = from_s;
+        let mut sent = 0;
+        while t < to_s - 1e-9 {
+            let now = start + Duration::from_secs_f64(t);
+            if socket {
+                pace.socket(
+                    now,
+                    SocketFigures {
+                        acked: (t * 50_000.0) as u64,
+                        unsent: 0,
+                        rtt: MS,
+                        min_rtt: MS,
+                    },
+                );
+            }
+            let (send, _) = pace.probe(now, 0);
+            if send {
+                sent += 1;
+                let r = rtt(t);
+                pace.answered(now + r, r);
+            }
+            t += 0.2;
+        }
+        sent
+    }
+
+    /// A calm connection at full rate with the socket's figures settles after
+    /// `SETTLED_AFTER` calm round trips and pings once a second instead of five times; the
+    /// first round trip that is not calm brings back every probe's ping, and the queue it shows
+    /// still lowers the rate. Without the figures (round trips are all it has) it never settles.
+    #[test]
+    fn a_settled_connection_pings_once_a_second_until_a_round_trip_is_not_calm() {
+        let start = Instant::now();
+        let pace = Pace::new(12);
+        let calm = |_| 20 * MS;
+        // The first 2 s: every probe (10), then settled: one ping a second.
+        assert_eq!(pings(&pace, start, 0.0, 2.0, calm, true), 10);
+        let settled = pings(&pace, start, 2.0, 12.0, calm, true);
+        assert!(
+            (10..=11).contains(&settled),
+            "{settled} pings in 10 s settled"
+        );
+        assert_eq!(pace.rate(), 60);
+        // A queue grows past the socket (a proxy's): 150 ms more from 12 s on.
+        let queued = |t: f64| if t >= 12.0 { 170 * MS } else { 20 * MS };
+        // The next ping (within a second) finds it; every probe pings from then on.
+        let after = pings(&pace, start, 12.0, 14.0, queued, true);
+        assert!(after >= 6, "{after} pings in the 2 s after the rise");
+        assert!(pace.rate() < 60, "{}", pace.rate());
+        // Without the socket's figures: every probe, however calm.
+        let bare = Pace::new(13);
+        assert_eq!(pings(&bare, start, 0.0, 12.0, calm, false), 60);
     }
 }

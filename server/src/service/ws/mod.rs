@@ -441,7 +441,7 @@ impl Session {
             let change = pace.socket(Instant::now(), figures);
             self.rate_changed(change);
         }
-        let (send, change) = pace.probe(Instant::now(), self.outbox.dropped_frames());
+        let (send, change) = pace.probe(Instant::now(), self.outbox.dropped_while_held());
         self.rate_changed(change);
         if send {
             let payload = unix_micros().to_le_bytes().to_vec();
