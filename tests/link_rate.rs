@@ -128,6 +128,28 @@ async fn fifty_viewers_share_two_megabits_fairly_and_a_newcomer_joins() {
         .map(|l| l.rsplit_once(' ').unwrap().1.parse::<u64>().unwrap())
         .sum();
     assert_eq!(counted, 51, "{metrics}");
+    // Every cut is counted under what it answered, and the probes' pings are counted.
+    let sum = |prefix: &str| -> f64 {
+        metrics
+            .lines()
+            .filter(|l| l.starts_with(prefix))
+            .map(|l| l.rsplit_once(' ').unwrap().1.parse::<f64>().unwrap())
+            .sum()
+    };
+    let cuts = sum("posecast_rate_cuts_total{");
+    let down = sum(r#"posecast_rate_changes_total{way="down"}"#);
+    eprintln!(
+        "cuts by cause: {:?}",
+        metrics
+            .lines()
+            .filter(|l| l.starts_with("posecast_rate_cuts_total{"))
+            .collect::<Vec<_>>()
+    );
+    assert!(
+        cuts > 0.0 && cuts == down,
+        "{cuts} cuts by cause, {down} down"
+    );
+    assert!(sum("posecast_probe_pings_total") >= 51.0, "{metrics}");
     // No viewer starves: each keeps at least the lowest step (1 frame/s). (5 frames/s each
     // does not fit: a frame of these 10 avatars is 872 bytes, the keyframe a paced viewer
     // needs once a second 1,712 — 5 × 872 + 1,712 = 6.1 KB/s a viewer, 303 KB/s for 50,

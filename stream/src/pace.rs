@@ -390,6 +390,49 @@ pub struct Change {
     pub from: usize,
     /// The step after.
     pub to: usize,
+    /// What a cut answered (`None`: a raise).
+    pub cause: Option<Cause>,
+}
+
+/// What a cut of the rate answered, for operators (`posecast_rate_cuts_total{cause}`): a
+/// rate cut for the wrong reason — a busy host read as a slow link — shows there.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Cause {
+    /// Round trips standing above the base: a queue past the socket (a proxy's, a receive
+    /// buffer filling), or any queue when the kernel's figures are not known.
+    RoundTrips,
+    /// The socket's kernel figures: unsent bytes that stood, or the kernel's round trip above
+    /// its smallest.
+    Socket,
+    /// A ping unanswered past the base round trip and [`UNANSWERED_LATE`].
+    Unanswered,
+    /// Frames superseded while the socket held the writer.
+    Superseded,
+    /// The cut of every connection of the client's address (its path floor rose).
+    Path,
+}
+
+impl Cause {
+    /// Every cause, in the order of [`Cause::label`]'s labels.
+    pub const ALL: [Self; 5] = [
+        Self::RoundTrips,
+        Self::Socket,
+        Self::Unanswered,
+        Self::Superseded,
+        Self::Path,
+    ];
+
+    /// Its metric label.
+    #[must_use]
+    pub fn label(self) -> &'static str {
+        match self {
+            Self::RoundTrips => "round_trips",
+            Self::Socket => "socket",
+            Self::Unanswered => "unanswered",
+            Self::Superseded => "superseded",
+            Self::Path => "path",
+        }
+    }
 }
 
 #[derive(Debug)]
@@ -587,6 +630,7 @@ impl Control {
         now: Instant,
         queueing: Option<Duration>,
         superseded: u64,
+        source: Cause,
     ) -> Option<Change> {
         let from = self.level;
         let may_lower = self.last_lowered.is_none_or(|t| now - t >= HOLD);
@@ -602,10 +646,12 @@ impl Control {
                 return Some(Change {
                     from,
                     to: self.level,
+                    cause: Some(Cause::Path),
                 });
             }
         }
-        let congested = superseded >= 2 || queueing.is_some_and(|q| q > QUEUE_TARGET);
+        let queued = queueing.is_some_and(|q| q > QUEUE_TARGET);
+        let congested = superseded >= 2 || queued;
         if congested {
             self.calm_since = now;
             if may_lower && self.level + 1 < STEPS.len() {
@@ -627,6 +673,7 @@ impl Control {
         (self.level != from).then_some(Change {
             from,
             to: self.level,
+            cause: (self.level > from).then_some(if queued { source } else { Cause::Superseded }),
         })
     }
 }
@@ -699,7 +746,7 @@ impl Pace {
                 c.quiet_probes += 1;
                 let change = if new_superseded >= 2 {
                     c.calm_streak = 0;
-                    c.decide(now, None, new_superseded)
+                    c.decide(now, None, new_superseded, Cause::Superseded)
                 } else {
                     None
                 };
@@ -710,7 +757,7 @@ impl Pace {
                 c.quiet_probes = 0;
                 c.outstanding = Some(now);
                 let change = if new_superseded >= 2 {
-                    c.decide(now, None, new_superseded)
+                    c.decide(now, None, new_superseded, Cause::Superseded)
                 } else {
                     None
                 };
@@ -736,7 +783,7 @@ impl Pace {
                     c.calm_streak = 0;
                 }
                 let change = if late.is_some() || new_superseded >= 2 {
-                    c.decide(now, late, new_superseded)
+                    c.decide(now, late, new_superseded, Cause::Unanswered)
                 } else {
                     None
                 };
@@ -760,7 +807,7 @@ impl Pace {
         }
         let queueing = c.socket_queueing()?;
         let change = if queueing > QUEUE_TARGET {
-            c.decide(now, Some(queueing), 0)
+            c.decide(now, Some(queueing), 0, Cause::Socket)
         } else {
             None
         };
@@ -815,7 +862,7 @@ impl Pace {
         } else {
             0
         };
-        let change = c.decide(now, queueing, 0);
+        let change = c.decide(now, queueing, 0, Cause::RoundTrips);
         drop(c);
         self.apply(change)
     }
@@ -1032,7 +1079,14 @@ mod tests {
         assert_eq!(pace.probe(start + 2200 * MS, 0), (false, None));
         let (send, change) = pace.probe(start + 2400 * MS, 0);
         assert!(!send, "one ping in flight at a time");
-        assert_eq!(change, Some(Change { from: 0, to: 2 }));
+        assert_eq!(
+            change,
+            Some(Change {
+                from: 0,
+                to: 2,
+                cause: Some(Cause::Unanswered)
+            })
+        );
         assert_eq!(pace.rate(), 30);
     }
 
@@ -1204,5 +1258,70 @@ mod tests {
         // Without the socket's figures: every probe, however calm.
         let bare = Pace::new(13);
         assert_eq!(pings(&bare, start, 0.0, 12.0, calm, false), 60);
+    }
+
+    /// Each cut names what it answered: the socket's backlog, round trips that rose, frames
+    /// superseded; a raise names nothing.
+    #[test]
+    fn every_cut_names_its_cause() {
+        let start = Instant::now();
+        let at = |t: f64| start + Duration::from_secs_f64(t);
+        let figures = |t: f64, unsent| SocketFigures {
+            acked: (t * 50_000.0) as u64,
+            unsent,
+            rtt: MS,
+            min_rtt: MS,
+        };
+        // 20 KB standing unsent, prompt round trips: the socket's doing.
+        let socket = Pace::new(21);
+        let mut causes = Vec::new();
+        for k in 0..15 {
+            let t = f64::from(k) * 0.2;
+            causes.extend(socket.socket(at(t), figures(t, 20_000)));
+            let (send, change) = socket.probe(at(t), 0);
+            causes.extend(change);
+            if send {
+                causes.extend(socket.answered(at(t) + 2 * MS, 2 * MS));
+            }
+        }
+        assert!(!causes.is_empty());
+        assert!(
+            causes.iter().all(|c| c.cause == Some(Cause::Socket)),
+            "{causes:?}"
+        );
+        // Round trips 150 ms above their base, no figures: round trips.
+        let rtts = Pace::new(22);
+        let mut causes = Vec::new();
+        for k in 0..40 {
+            let t = f64::from(k) * 0.2;
+            let r = if t < 4.0 { 20 * MS } else { 170 * MS };
+            let (send, change) = rtts.probe(at(t), 0);
+            causes.extend(change);
+            if send {
+                causes.extend(rtts.answered(at(t) + r, r));
+            }
+        }
+        assert!(!causes.is_empty());
+        assert!(
+            causes.iter().all(|c| c.cause == Some(Cause::RoundTrips)),
+            "{causes:?}"
+        );
+        // Frames superseded, calm round trips: superseded; back up later with no cause.
+        let superseded = Pace::new(23);
+        let (send, change) = superseded.probe(at(0.0), 5);
+        assert_eq!(change.map(|c| c.cause), Some(Some(Cause::Superseded)));
+        assert!(send);
+        assert_eq!(superseded.answered(at(0.02), 20 * MS), None);
+        let mut raised = Vec::new();
+        for k in 1..100 {
+            let t = f64::from(k) * 0.2;
+            let (send, change) = superseded.probe(at(t), 5);
+            raised.extend(change);
+            if send {
+                raised.extend(superseded.answered(at(t) + 20 * MS, 20 * MS));
+            }
+        }
+        assert_eq!(superseded.rate(), 60);
+        assert!(raised.iter().all(|c| c.to < c.from && c.cause.is_none()));
     }
 }

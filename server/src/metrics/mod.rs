@@ -511,6 +511,12 @@ posecast_connection_rate{per_60_ticks="2"} 0
 posecast_connection_rate{per_60_ticks="1"} 0
 posecast_rate_changes_total{way="down"} 0
 posecast_rate_changes_total{way="up"} 0
+posecast_rate_cuts_total{cause="round_trips"} 0
+posecast_rate_cuts_total{cause="socket"} 0
+posecast_rate_cuts_total{cause="unanswered"} 0
+posecast_rate_cuts_total{cause="superseded"} 0
+posecast_rate_cuts_total{cause="path"} 0
+posecast_probe_pings_total 0
 posecast_cluster_scenes_owned 0
 posecast_cluster_scenes_relayed 0
 posecast_nats_published_total 0

@@ -9,6 +9,7 @@ use prometheus_client::registry::Registry;
 
 /// The adaptive rate's steps, frames per 60 ticks (the stream layer's, one list).
 pub use posecast_stream::pace::STEPS;
+use posecast_stream::pace::{Cause, Change};
 
 /// Labels of [`STEPS`].
 const RATES: [&str; STEPS.len()] = [
@@ -22,6 +23,10 @@ pub struct PaceCounters {
     at: [GaugeU64; STEPS.len()],
     lowered: Counter,
     raised: Counter,
+    /// Cuts by cause (in the order of [`Cause::ALL`]).
+    cuts: [Counter; Cause::ALL.len()],
+    /// Round-trip pings sent.
+    pings: Counter,
 }
 
 impl PaceCounters {
@@ -41,10 +46,25 @@ impl PaceCounters {
             "way",
             ["down", "up"],
         );
+        let cuts = labelled_counters(
+            registry,
+            "rate_cuts",
+            "Adaptive frame rate cuts by what they answered: round_trips (a queue past the socket), socket (the kernel's figures), unanswered (a late ping), superseded (frames replaced while the socket held the writer), path (a cut shared by the client address's connections)",
+            "cause",
+            Cause::ALL.map(Cause::label),
+        );
+        let pings = Counter::default();
+        registry.register(
+            "probe_pings",
+            "Round-trip pings sent to subscribed websocket connections (the adaptive rate's probes; a settled connection pings once a second)",
+            pings.clone(),
+        );
         Self {
             at,
             lowered,
             raised,
+            cuts,
+            pings,
         }
     }
 
@@ -60,8 +80,14 @@ impl PaceCounters {
         }
     }
 
-    /// A connection moved from step `from` to step `to`.
-    pub fn changed(&self, from: usize, to: usize) {
+    /// A connection's rate changed.
+    pub fn changed(&self, change: Change) {
+        let Change { from, to, cause } = change;
+        if let Some(cause) = cause
+            && let Some(i) = Cause::ALL.iter().position(|c| *c == cause)
+        {
+            self.cuts[i].inc();
+        }
         if let (Some(a), Some(b)) = (self.at.get(from), self.at.get(to)) {
             a.dec();
             b.inc();
@@ -71,6 +97,11 @@ impl PaceCounters {
         } else {
             self.raised.inc();
         }
+    }
+
+    /// A probe's ping went out.
+    pub fn pinged(&self) {
+        self.pings.inc();
     }
 
     /// Connections at step `level` now.

@@ -446,6 +446,7 @@ impl Session {
         if send {
             let payload = unix_micros().to_le_bytes().to_vec();
             self.outbox.push_control(Message::Ping(payload.into()));
+            self.state.metrics.pace.pinged();
         }
     }
 
@@ -467,7 +468,7 @@ impl Session {
 
     fn rate_changed(&self, change: Option<Change>) {
         if let Some(c) = change {
-            self.state.metrics.pace.changed(c.from, c.to);
+            self.state.metrics.pace.changed(c);
             debug!(
                 per_60_ticks = posecast_stream::pace::STEPS[c.to],
                 "adaptive frame rate changed"
