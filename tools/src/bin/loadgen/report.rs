@@ -39,6 +39,9 @@ struct ServerCounters {
     offered: f64,
     sent: f64,
     late_max_ms: f64,
+    /// The adaptive rate's pings, and its cuts by cause (those that happened).
+    pings: f64,
+    cuts: Vec<(String, f64)>,
 }
 
 type Metrics = HashMap<String, f64>;
@@ -58,6 +61,21 @@ impl ServerCounters {
             ticks_missed: d("posecast_ticks_missed_total"),
             offered: d("posecast_frames_offered_total"),
             sent: d("posecast_messages_sent_total"),
+            pings: d("posecast_probe_pings_total"),
+            cuts: {
+                let mut cuts: Vec<(String, f64)> = after
+                    .keys()
+                    .filter_map(|k| {
+                        let cause = k
+                            .strip_prefix("posecast_rate_cuts_total{cause=\"")?
+                            .strip_suffix("\"}")?;
+                        Some((cause.to_owned(), d(k)))
+                    })
+                    .filter(|(_, n)| *n > 0.0)
+                    .collect();
+                cuts.sort_by(|a, b| a.0.cmp(&b.0));
+                cuts
+            },
             late_max_ms: after
                 .get("posecast_tick_late_seconds_max_micros")
                 .copied()
@@ -206,6 +224,16 @@ impl Summary {
                 s.late_max_ms,
                 s.offered / self.wall,
                 s.sent / self.wall,
+            );
+            let cuts: Vec<String> = s.cuts.iter().map(|(c, n)| format!("{c} {n:.0}")).collect();
+            println!(
+                "adaptive rate     {:.0} pings/s; cuts by cause: {}",
+                s.pings / self.wall,
+                if cuts.is_empty() {
+                    "none".to_owned()
+                } else {
+                    cuts.join(", ")
+                }
             );
         }
         println!(
