@@ -55,6 +55,18 @@ async fn a_reader_late_by_its_scheduling_keeps_its_rate_and_a_slow_one_is_cut_to
         quantile(&mut slow_ages, 0.5),
         p99(&mut slow_ages)
     );
+    // What the adaptive rate did, for a failure's reading.
+    let metrics = server.state.metrics.render(&[], 0).unwrap();
+    eprintln!(
+        "{}",
+        metrics
+            .lines()
+            .filter(
+                |l| l.starts_with("posecast_rate_") || l.starts_with("posecast_probe_pings_total")
+            )
+            .collect::<Vec<_>>()
+            .join("; ")
+    );
     assert!(prompt_rate >= 55.0, "{prompt_rate}");
     // The late reader keeps (nearly) the full rate: its lateness is not a queue.
     assert!(

@@ -172,6 +172,9 @@ impl Watcher {
                 Some(Got::Closed(why)) => {
                     panic!("closed after {} descriptions: {why}", described.len())
                 }
+                // Who watches the scene: sent as the other subscribers come, in any order
+                // with this one's descriptions.
+                Some(Got::Other(ServerMsg::Viewers { .. })) => {}
                 Some(Got::Other(other)) => panic!("unexpected {other:?}"),
                 None => panic!(
                     "no frame within {secs} s ({} descriptions)",

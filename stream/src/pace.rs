@@ -744,6 +744,13 @@ impl Pace {
         match c.outstanding {
             None if c.settled(now) && c.quiet_probes + 1 < SETTLED_PING_EVERY => {
                 c.quiet_probes += 1;
+                // Its calm round trip still counts towards its path's floor: a settled
+                // connection pinging less must not leave the floor to the late and slow
+                // readers of its address, whose round trips would read as the path's queue
+                // and cut every connection on it.
+                if let (Some(path), Some(rtt)) = (c.path.clone(), c.last_rtt) {
+                    path.observe(now, rtt);
+                }
                 let change = if new_superseded >= 2 {
                     c.calm_streak = 0;
                     c.decide(now, None, new_superseded, Cause::Superseded)
