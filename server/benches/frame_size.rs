@@ -75,7 +75,12 @@ struct V2Measured {
 /// Plays `clip` looping for 60 s at 60 Hz through `frame2::StreamEncoder` and
 /// `Frame2Decoder` (a receiver that gets every frame): a keyframe every `key_every` ticks
 /// (`None`: the first only). Checks every decoded level against the encoder's.
-fn measure_v2(rig: &Rig, clip: &Clip, key_every: Option<usize>) -> Result<V2Measured> {
+fn measure_v2(
+    rig: &Rig,
+    streamed: &AvatarDescription,
+    clip: &Clip,
+    key_every: Option<usize>,
+) -> Result<V2Measured> {
     let skeleton = rig.skeleton();
     let rest = skeleton.rest();
     let mut locals: Vec<Transform> = rest.to_vec();
@@ -92,13 +97,13 @@ fn measure_v2(rig: &Rig, clip: &Clip, key_every: Option<usize>) -> Result<V2Meas
             avatar_num: 0,
             hash: 0x5eed,
             rotations: locals.iter().map(|l| l.rotation).collect(),
-            translations: rig
-                .translated
+            translations: streamed
+                .translated_joints
                 .iter()
                 .map(|&j| locals[usize::from(j)].translation)
                 .collect(),
-            scales: rig
-                .scaled
+            scales: streamed
+                .scaled_joints
                 .iter()
                 .map(|&j| locals[usize::from(j)].scale)
                 .collect(),
@@ -278,9 +283,9 @@ fn measure(name: &str, rig: &Rig, clip: &Clip) -> Result<Row> {
         });
         row.json_frame.push(serde_json::to_string(&message)?.len());
     }
-    row.v2 = estimate_v2(rig, clip);
-    row.v2_keyed = measure_v2(rig, clip, Some(KEY_INTERVAL))?;
-    row.v2_unkeyed = measure_v2(rig, clip, None)?;
+    row.v2 = estimate_v2(rig, &description, clip);
+    row.v2_keyed = measure_v2(rig, &description, clip, Some(KEY_INTERVAL))?;
+    row.v2_unkeyed = measure_v2(rig, &description, clip, None)?;
     Ok(row)
 }
 
@@ -339,11 +344,16 @@ impl Adaptive {
     }
 }
 
-fn estimate_v2(rig: &Rig, clip: &Clip) -> V2Estimate {
+fn estimate_v2(rig: &Rig, streamed: &AvatarDescription, clip: &Clip) -> V2Estimate {
     let skeleton = rig.skeleton();
     let rest = skeleton.rest();
     let joints = skeleton.len();
-    let translated: Vec<usize> = rig.translated.iter().map(|&j| usize::from(j)).collect();
+    // The joints whose translations frames carry (the description's, as the server streams).
+    let translated: Vec<usize> = streamed
+        .translated_joints
+        .iter()
+        .map(|&j| usize::from(j))
+        .collect();
     let mut locals: Vec<Transform> = rest.to_vec();
     let frames = (60.0 * RATE) as usize;
     let levels = |bits: u64| {
