@@ -5,9 +5,11 @@
 //! frames and the joints they carried. Nothing is modelled: these are the bytes the websocket
 //! delivered.
 //!
-//! Clients of protocol version 5 ask for a precision each (`subscribe … precision`): a worst
-//! angle, or a world-space bound at 3 cm from every joint. A second table gives, for each
-//! precision and the same served rig and clip, what the coding costs in accuracy and time:
+//! Clients of protocol versions 5 and 6 ask for a precision each (`subscribe … precision`): a
+//! worst angle, or a world-space bound at 3 cm from every joint; version 6's frames use
+//! near-axis steps (`posecast_proto::precision::Steps::near`), as the second table's do. A
+//! second table gives, for each precision and the same served rig and clip, what the coding
+//! costs in accuracy and time:
 //! the clip sampled at 60 Hz for a minute as the server samples it, coded and decoded with the
 //! wire's own `StreamEncoder` / `Frame2Decoder` at that precision's steps, against the source
 //! poses — the worst angle of any joint, the world-space error of ACL's metric (virtual
@@ -31,12 +33,14 @@ use posecast_proto::precision::Precision;
 use posecast_proto::quant;
 use posecast_proto::subset::JointSet;
 use posecast_server::rig::Rig;
+use posecast_server::stream::feed::V2_KEY_SECONDS;
 use posecast_testkit::{TestClient, TestServer};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-/// Seconds measured per row, after the clients' first frames and a second of settling.
-const SECONDS: f64 = 6.0;
+/// Seconds measured per row, after the clients' first frames and a second of settling (as
+/// long as a wire v2 subscriber's keyframe interval, so a row holds its share of them).
+const SECONDS: f64 = 10.0;
 
 /// One scene to measure: `avatars` avatars of rig `asset` playing `clip`, the i-th started
 /// `i × stagger` seconds into it.
@@ -56,7 +60,8 @@ fn subscriptions() -> Vec<(String, u32, Option<u16>, Option<Precision>)> {
         ("v2, depth ≤ 3".to_owned(), 3, Some(3), None),
     ];
     for (label, p) in precisions().into_iter().skip(1) {
-        out.push((format!("v2 at {label}"), 5, None, Some(p)));
+        out.push((format!("v2 at {label}, v5"), 5, None, Some(p)));
+        out.push((format!("v2 at {label}, v6"), 6, None, Some(p)));
     }
     out
 }
@@ -181,9 +186,12 @@ fn errors(
     let rest = skeleton.rest();
     let n = skeleton.len();
     let frames = (60.0 * RATE) as usize;
+    // A keyframe as often as the server sends one to a wire v2 subscriber that keeps up.
+    let key_every = (f64::from(RATE) * V2_KEY_SECONDS).ceil() as usize;
     let duration = clip.duration().max(1e-3);
     for (label, precision) in precisions() {
-        let steps = Arc::new(precision.resolve(description));
+        // As a protocol version 6 subscriber gets them (near-axis steps).
+        let steps = Arc::new(precision.resolve_with(description, true));
         let mut encoder = StreamEncoder::new();
         encoder.set_steps(0, steps.clone());
         let mut decoder = Frame2Decoder::new();
@@ -199,13 +207,15 @@ fn errors(
                 avatar_num: 0,
                 hash: description.hash_u64(),
                 rotations: locals.iter().map(|l| l.rotation).collect(),
-                translations: rig
-                    .translated
+                // The joints the server streams translations and scales of (the description's
+                // lists, roots included).
+                translations: description
+                    .translated_joints
                     .iter()
                     .map(|&j| locals[usize::from(j)].translation)
                     .collect(),
-                scales: rig
-                    .scaled
+                scales: description
+                    .scaled_joints
                     .iter()
                     .map(|&j| locals[usize::from(j)].scale)
                     .collect(),
@@ -219,7 +229,7 @@ fn errors(
                 seq,
                 seq * 16_667,
                 std::slice::from_ref(&pose),
-                i % 60 == 0,
+                i % key_every == 0,
             );
             encode_ns += started.elapsed().as_nanos();
             bytes += out.len();
@@ -232,8 +242,8 @@ fn errors(
                     ..locals[j]
                 };
             }
-            for (k, &j) in rig.translated.iter().enumerate() {
-                decoded_locals[usize::from(j)].translation = back.translations[k];
+            for (&j, &t) in description.translated_joints.iter().zip(&back.translations) {
+                decoded_locals[usize::from(j)].translation = t;
             }
             forward_kinematics(skeleton, &locals, &mut world);
             forward_kinematics(skeleton, &decoded_locals, &mut decoded_world);
@@ -287,7 +297,7 @@ async fn main() -> anyhow::Result<()> {
         None
     };
     println!(
-        "Bytes per joint per frame as subscribers receive them, 60 Hz, {SECONDS} s a row (whole frames: header, every avatar, keyframes once a second)\n"
+        "Bytes per joint per frame as subscribers receive them, 60 Hz, {SECONDS} s a row (whole frames: header, every avatar, keyframes: v1 once a second, v2 every {V2_KEY_SECONDS} s)\n"
     );
     println!(
         "| clip | avatars | wire | joints sent | frames | B/frame | B/joint/frame | undecodable |"
@@ -333,7 +343,7 @@ async fn main() -> anyhow::Result<()> {
         accuracy.extend(measure(&server, case).await?);
     }
     println!(
-        "\nAccuracy and encode time per precision: the served rig's clip, 60 s at 60 Hz, one avatar, keyframe every second, coded and decoded by the wire's StreamEncoder / Frame2Decoder\n"
+        "\nAccuracy and encode time per precision: the served rig's clip, 60 s at 60 Hz, one avatar, a keyframe every {V2_KEY_SECONDS} s (as the server sends a v2 subscriber that keeps up), coded and decoded by the wire's StreamEncoder / Frame2Decoder\n"
     );
     println!(
         "| clip | precision | rotation steps | B/joint/frame (one stream) | worst angle | worst error at 3 cm, mm | p99, mm | encode µs/avatar-frame |"

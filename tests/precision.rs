@@ -1,4 +1,4 @@
-//! Precision per subscription (protocol version 5): subscribers of one scene at different
+//! Precision per subscription (protocol versions 5 and 6): subscribers of one scene at different
 //! precisions, rates and joint sets, each decoding every rotation within its joint's bound of
 //! the pose the server streamed, with fewer bytes the coarser it asked; a world-space bound
 //! held at the virtual vertices it names; and the refusals (out of range, JSON, an earlier
@@ -88,16 +88,23 @@ async fn subscribers_at_different_precisions_each_decode_within_their_bound() {
     };
     let subset = JointSet::Depth(4);
     let selection = subset.select(&description);
-    let cases: [(Precision, u32, Option<JointSet>); 6] = [
-        (Precision::FINEST, 1, None),
-        (degrees(0.1), 1, None),
-        (degrees(0.1), 1, None),
-        (degrees(0.25), 2, Some(subset.clone())),
-        (world, 1, None),
-        (degrees(0.01), 1, None),
+    // (precision, every, joints, protocol version): the last two are version 6 readers of
+    // the same precisions as two version 5 ones, coded with near-axis steps.
+    let cases: [(Precision, u32, Option<JointSet>, u32); 8] = [
+        (Precision::FINEST, 1, None, 5),
+        (degrees(0.1), 1, None, 5),
+        (degrees(0.1), 1, None, 5),
+        (degrees(0.25), 2, Some(subset.clone()), 5),
+        (world, 1, None, 5),
+        (degrees(0.01), 1, None, 5),
+        (degrees(0.1), 1, None, 6),
+        (world, 1, None, 6),
     ];
+    const N: usize = 8;
     let outboxes: Vec<Arc<Outbox>> = cases.iter().map(|_| Arc::new(Outbox::new())).collect();
-    for (conn, ((precision, every, joints), outbox)) in cases.iter().zip(&outboxes).enumerate() {
+    for (conn, ((precision, every, joints, version), outbox)) in
+        cases.iter().zip(&outboxes).enumerate()
+    {
         scene
             .subscribe(
                 Subscriber::new(
@@ -107,7 +114,7 @@ async fn subscribers_at_different_precisions_each_decode_within_their_bound() {
                     None,
                     *every,
                 )
-                .with_version(5)
+                .with_version(*version)
                 .with_joints(joints.clone())
                 .with_precision(Some(*precision)),
             )
@@ -115,8 +122,9 @@ async fn subscribers_at_different_precisions_each_decode_within_their_bound() {
     }
     let steps: Vec<_> = cases
         .iter()
-        .map(|(p, _, _)| p.resolve(&description))
+        .map(|(p, _, _, version)| p.resolve_with(&description, *version >= 6))
         .collect();
+    assert!(steps[6].tiered() && steps[7].tiered() && !steps[1].tiered());
     assert!(steps[0].is_finest() && steps[5].is_finest());
     assert!(
         steps[1].rotations.iter().all(|&m| m == 11),
@@ -131,14 +139,16 @@ async fn subscribers_at_different_precisions_each_decode_within_their_bound() {
         steps[4].rotations
     );
     let mut decoders: Vec<Frame2Decoder> = cases.iter().map(|_| Frame2Decoder::new()).collect();
-    let mut bytes = [0usize; 6];
-    let mut frames = [0usize; 6];
+    let mut bytes = [0usize; N];
+    let mut frames = [0usize; N];
+    // Rotations the version 6 readers got on a near grid, and on the joint's own.
+    let mut tiers = [0usize; 2];
     let mut source: HashMap<u64, Vec<AvatarPose>> = HashMap::new();
     let skeleton = rig.skeleton();
     let mut rng = 0x2545_f491_4f6c_dd1du64;
     let (mut worst_mm, mut finest_mm) = (0f32, 0f32);
-    let per_frame = |bytes: &[usize; 6], frames: &[usize; 6]| -> Vec<f64> {
-        (0..6)
+    let per_frame = |bytes: &[usize; N], frames: &[usize; N]| -> Vec<f64> {
+        (0..N)
             .map(|k| bytes[k] as f64 / frames[k].max(1) as f64)
             .collect()
     };
@@ -162,15 +172,27 @@ async fn subscribers_at_different_precisions_each_decode_within_their_bound() {
             seq.is_multiple_of(2),
             true,
             true,
+            true,
+            true,
         ];
         for (k, outbox) in outboxes.iter().enumerate() {
             if !reads[k] {
                 continue;
             }
             for b in common::feed::binary_frames(outbox).await {
-                let f: Frame = decoders[k]
-                    .decode(&b)
+                let levels = decoders[k]
+                    .decode_levels(&b)
                     .unwrap_or_else(|e| panic!("reader {k}, tick {seq}: {e}"));
+                for a in &levels.avatars {
+                    let tiered = a.levels.steps.as_ref().is_some_and(|s| s.tiered());
+                    assert_eq!(tiered, k >= 6, "reader {k}: {:?}", a.levels.steps);
+                    if tiered {
+                        for &bits in &a.levels.rotations {
+                            tiers[usize::from(bits >> 47 & 1 == 0)] += 1;
+                        }
+                    }
+                }
+                let f: Frame = levels.to_frame();
                 bytes[k] += b.len();
                 frames[k] += 1;
                 let src = &source[&f.header.seq];
@@ -211,6 +233,12 @@ async fn subscribers_at_different_precisions_each_decode_within_their_bound() {
     assert!(per_frame[1] < 0.8 * per_frame[0], "{per_frame:?}");
     assert!(per_frame[4] < 0.85 * per_frame[0], "{per_frame:?}");
     assert!((per_frame[5] - per_frame[0]).abs() < 1e-9, "{per_frame:?}");
+    // Version 6: within the same bounds (checked above), most of a walk's rotations on the
+    // near grids, and no more bytes than version 5 (motion capture's savings are measured by
+    // `cargo bench --bench subscriber_bytes`; this walk's residuals are small either way).
+    assert!(tiers[0] > 2 * tiers[1], "near / own grid: {tiers:?}");
+    assert!(per_frame[6] <= per_frame[1], "{per_frame:?}");
+    assert!(per_frame[7] <= per_frame[4], "{per_frame:?}");
     assert!(frames[2] > 20 && frames[3] >= 150, "{frames:?}");
 }
 

@@ -222,8 +222,8 @@ async fn the_native_client_speaks_v2_and_sees_what_a_v1_client_sees() {
     );
 }
 
-/// A server of before protocol version 2 refuses `hello {version: 5}`, … `{version: 2}` with
-/// `unsupported_version` and closes: the native client, asking for 5 by default, says hello
+/// A server of before protocol version 2 refuses `hello {version: 6}`, … `{version: 2}` with
+/// `unsupported_version` and closes: the native client, asking for 6 by default, says hello
 /// again with the version before until it is welcomed with 1 — it works with the old server
 /// out of the box.
 #[tokio::test]
@@ -236,8 +236,8 @@ async fn the_native_client_falls_back_to_version_1_for_an_older_server() {
         .await
         .expect("welcomed after falling back");
     assert!(client.is_connected());
-    assert_eq!(*hellos.lock().unwrap(), vec![5, 4, 3, 2, 1]);
-    assert_eq!(SUPPORTED_VERSIONS, [1, 2, 3, 4, 5]);
+    assert_eq!(*hellos.lock().unwrap(), vec![6, 5, 4, 3, 2, 1]);
+    assert_eq!(SUPPORTED_VERSIONS, [1, 2, 3, 4, 5, 6]);
     // Any refused version above 1 falls back the same way.
     let mut options = posecast_client::net::ClientOptions::new(format!("ws://{addr}/ws"), "x");
     options.version = 2;
@@ -247,7 +247,7 @@ async fn the_native_client_falls_back_to_version_1_for_an_older_server() {
         refused.is_ok(),
         "2 is refused, then 1 welcomed: {refused:?}"
     );
-    assert_eq!(*hellos.lock().unwrap(), vec![5, 4, 3, 2, 1, 2, 1]);
+    assert_eq!(*hellos.lock().unwrap(), vec![6, 5, 4, 3, 2, 1, 2, 1]);
 }
 
 /// A v2 reader that falls behind — its writer takes what is pending only every fifth tick, so
@@ -305,4 +305,94 @@ async fn a_reader_that_falls_behind_gets_deltas_not_a_keyframe_a_tick() {
         deltas >= 2 * (ticks as usize / 5) - keys,
         "{keys} keyframes, {deltas} deltas"
     );
+}
+
+/// A v2 reader that keeps up gets the scene's keyframes only every `V2_KEY_SECONDS`: between
+/// them its chain of deltas continues through the scene's once-a-second keyframes (which a v1
+/// reader of the same scene gets), and every frame decodes to the v1 reader's poses. A second
+/// avatar added mid-way reaches it as a keyframe (its chain cannot continue without one). A
+/// reader at half the rate, whose ticks never fall on the scene's keyframe ticks, gets its own
+/// a second later.
+#[tokio::test]
+async fn a_v2_reader_that_keeps_up_gets_a_keyframe_every_ten_seconds_not_every_second() {
+    let scene = Scene::new(SceneId("s".into()), 1, Arc::new(Metrics::new()), 60.0);
+    let rig = Arc::new(posecast_server::builtin::rig().unwrap());
+    scene
+        .add_avatar(common::feed::walking(&rig, "a", 1, 0.0))
+        .unwrap();
+    let v1 = Arc::new(Outbox::new());
+    let v2 = Arc::new(Outbox::new());
+    let half = Arc::new(Outbox::new());
+    for (conn, outbox, version, every) in [(1, &v1, 1, 1), (2, &v2, 5, 1), (3, &half, 6, 2)] {
+        scene
+            .subscribe(
+                Subscriber::new(conn, outbox.clone(), Encoding::Binary, None, every)
+                    .with_version(version),
+            )
+            .unwrap();
+    }
+    let (mut d1, mut d2, mut dh) = (
+        FrameDecoder::new(),
+        Frame2Decoder::new(),
+        Frame2Decoder::new(),
+    );
+    let (mut v1_keys, mut v2_keys, mut half_keys) = (Vec::new(), Vec::new(), Vec::new());
+    let mut by_seq: HashMap<u64, Frame> = HashMap::new();
+    let ticks = 1500u64;
+    let added = 900u64;
+    for seq in 1..=ticks {
+        if seq == added {
+            scene
+                .add_avatar(common::feed::walking(&rig, "b", 2, 0.3))
+                .unwrap();
+        }
+        scene.tick(seq, seq as f64 / 60.0, seq * 16_667, 60);
+        for bytes in common::feed::binary_frames(&v1).await {
+            let f = d1.decode(&bytes).unwrap();
+            if f.header.kind == FrameKind::Key {
+                v1_keys.push(f.header.seq);
+            }
+            by_seq.insert(f.header.seq, f);
+        }
+        for bytes in common::feed::binary_frames(&v2).await {
+            let f = d2
+                .decode(&bytes)
+                .unwrap_or_else(|e| panic!("tick {seq}: {e}"));
+            assert_same_pose(&by_seq[&f.header.seq], &f);
+            if f.header.kind == FrameKind::Key {
+                v2_keys.push(f.header.seq);
+            }
+        }
+        // It holds frames on the ticks it is due (even ones), and its first at once.
+        if seq != 1 && !seq.is_multiple_of(2) {
+            continue;
+        }
+        for bytes in common::feed::binary_frames(&half).await {
+            let f = dh
+                .decode(&bytes)
+                .unwrap_or_else(|e| panic!("tick {seq}: {e}"));
+            // (Its first frame, made when it subscribed before the first tick, is of tick 0.)
+            if f.header.seq == 0 {
+                continue;
+            }
+            assert_same_pose(&by_seq[&f.header.seq], &f);
+            if f.header.kind == FrameKind::Key {
+                half_keys.push(f.header.seq);
+            }
+        }
+    }
+    // Until the added avatar the scene's keyframe ticks are odd (1, 61, …) and the half-rate
+    // reader's ticks even: its second keyframe comes 11 s after its first. From the added
+    // avatar's keyframe (900) on they are even, and its next one comes 10 s after.
+    assert!(v1_keys[..15].iter().all(|k| k % 2 == 1), "{v1_keys:?}");
+    assert_eq!(half_keys.len(), 4, "half-rate keyframes at {half_keys:?}");
+    assert_eq!(half_keys[1] - half_keys[0], 660, "{half_keys:?}");
+    assert_eq!(half_keys[2], added, "{half_keys:?}");
+    assert_eq!(half_keys[3] - half_keys[2], 600, "{half_keys:?}");
+    assert!(v1_keys.len() >= 25, "v1 keyframes at {v1_keys:?}");
+    // The first, one ten seconds after it, the added avatar's, one ten seconds after that.
+    assert_eq!(v2_keys.len(), 4, "v2 keyframes at {v2_keys:?}");
+    assert_eq!(v2_keys[1] - v2_keys[0], 600, "v2 keyframes at {v2_keys:?}");
+    assert_eq!(v2_keys[2], added, "v2 keyframes at {v2_keys:?}");
+    assert_eq!(v2_keys[3] - v2_keys[2], 600, "v2 keyframes at {v2_keys:?}");
 }

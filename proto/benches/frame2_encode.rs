@@ -67,6 +67,7 @@ fn bench(c: &mut Criterion) {
             Some(Arc::new(Steps {
                 rotations: vec![precision::rotation_step_for(0.1); JOINTS],
                 translation: 1,
+                near: Vec::new(),
             })),
         ),
     ] {

@@ -39,6 +39,13 @@
 //!
 //! **Escape.** A joint whose dropped component differs from `h₀`'s is sent in full; the chunk
 //! then carries one escape bit per joint.
+//!
+//! **Grids** (protocol versions 5 and 6, [`crate::precision`]). A keyframe chunk with flag 16
+//! carries grid steps and its levels are grid values; with flag 32 as well (version 6) each
+//! joint also has a near-axis step, and each rotation's bit 47 (its *tier*) says which of the
+//! two grids it is on. A rotation's dropped component and tier form its *tag*: its history runs
+//! while the tag is `h₀`'s, and a joint whose tag changed goes escaped, in 48 bits on such a
+//! grid (47 otherwise).
 
 use crate::frame::{AvatarPose, Frame, FrameHeader, FrameKind};
 use crate::placement::Placement;
@@ -73,6 +80,9 @@ const FLAG_WEIGHTS: u8 = 8;
 /// Keyframe chunk flag (protocol version 5): the grid steps follow the flags byte
 /// ([`crate::precision`]); the chunk's levels and the deltas after it are on that grid.
 const FLAG_STEPS: u8 = 16;
+/// Keyframe chunk flag (protocol version 6, with [`FLAG_STEPS`]): each joint's near-axis step
+/// follows the steps ([`Steps::near`]); rotations carry a tier bit, escaped joints 48 bits.
+const FLAG_NEAR: u8 = 32;
 /// Bits of a streamed morph weight level ([`crate::morph::WEIGHT_LEVELS`] = 2¹⁰ − 1).
 pub const WEIGHT_BITS: u32 = 10;
 const LEVEL_MAX: i64 = (1 << 15) - 2;
@@ -226,11 +236,19 @@ impl QuantPose {
         let rotations = self
             .rotations
             .iter()
-            .zip(steps.rotations.iter().chain(std::iter::repeat(&1)))
-            .map(|(&bits, &m)| {
-                let mut out = bits & !((1u64 << 45) - 1);
-                for c in 0..3 {
-                    let l = precision::coarse_rotation_level(level(bits, c), m);
+            .enumerate()
+            .map(|(j, &bits)| {
+                let levels = [0, 1, 2].map(|c| level(bits, c));
+                let m = steps.rotations.get(j).copied().unwrap_or(1);
+                // A rotation near an axis goes on its joint's near grid when that is coarser
+                // (tier bit 47 set).
+                let (m, tier) = match steps.near.get(j) {
+                    Some(&near) if near != m && precision::near_axis(levels) => (near, 1u64 << 47),
+                    _ => (m, 0),
+                };
+                let mut out = (bits & (3u64 << 45)) | tier;
+                for (c, l) in levels.into_iter().enumerate() {
+                    let l = precision::coarse_rotation_level(l, m);
                     out |= (l as u64) << (15 * (2 - c));
                 }
                 out
@@ -253,14 +271,11 @@ impl QuantPose {
     #[must_use]
     pub fn fine_rotation(&self, j: usize) -> u64 {
         let bits = self.rotations[j];
-        let Some(m) = self
-            .steps
-            .as_ref()
-            .and_then(|s| s.rotations.get(j))
-            .copied()
-        else {
+        let Some(steps) = self.steps.as_ref() else {
             return bits;
         };
+        let m = steps.rotation_step(j, bits);
+        let bits = bits & !(1u64 << 47);
         if m == 1 {
             return bits;
         }
@@ -337,6 +352,11 @@ impl QuantPose {
                         selection.joint_indices(),
                     ),
                     translation: s.translation,
+                    near: if s.tiered() {
+                        crate::subset::Selection::pick(&s.near, selection.joint_indices())
+                    } else {
+                        Vec::new()
+                    },
                 })
             }),
         }
@@ -403,10 +423,16 @@ pub fn encode_key(avatar_num: u32, hash: u64, pose: &QuantPose, out: &mut Vec<u8
     if steps.is_some() {
         flags |= FLAG_STEPS;
     }
+    if steps.is_some_and(|s| s.tiered()) {
+        flags |= FLAG_NEAR;
+    }
     out.push(flags);
     if let Some(steps) = steps {
         varint(u64::from(steps.translation), out);
         out.extend((0..pose.rotations.len()).map(|j| steps.rotations.get(j).copied().unwrap_or(1)));
+        if steps.tiered() {
+            out.extend((0..pose.rotations.len()).map(|j| steps.near.get(j).copied().unwrap_or(1)));
+        }
     }
     for bits in &pose.rotations {
         out.extend_from_slice(&bits.to_le_bytes()[..quant::BYTES]);
@@ -476,7 +502,8 @@ pub fn encode_delta(
         .rotations
         .iter()
         .zip(&base.rotations)
-        .any(|(a, b)| index(*a) != index(*b));
+        .any(|(a, b)| tag(*a) != tag(*b));
+    let full = full_bits(pose);
     let scales = pose.scales != base.scales;
     let placement = pose.placement != base.placement;
     // Compared element by element: equal slices of `u16` compile to a call of `memcmp`, whose
@@ -498,7 +525,7 @@ pub fn encode_delta(
     let mut w = BitWriter::new(out);
     if escapes {
         for (a, b) in pose.rotations.iter().zip(&base.rotations) {
-            w.put(u64::from(index(*a) != index(*b)), 1);
+            w.put(u64::from(tag(*a) != tag(*b)), 1);
         }
     }
     let mut h = [0i64; MAX_DEPTH];
@@ -512,8 +539,8 @@ pub fn encode_delta(
     {
         let p = predict_rotations(&frames[..depth], block * LANES);
         for (l, (&bits, &base_bits)) in now.iter().zip(was).enumerate() {
-            if index(bits) != index(base_bits) {
-                w.put(bits & ((1 << 47) - 1), 47);
+            if tag(bits) != tag(base_bits) {
+                w.put(bits & ((1 << full) - 1), full);
                 continue;
             }
             for c in 0..3 {
@@ -548,8 +575,20 @@ pub fn encode_delta(
     true
 }
 
-fn index(bits: u64) -> u64 {
-    (bits >> 45) & 3
+/// A rotation's dropped component (bits 45–46) and grid tier (bit 47, protocol version 6):
+/// a joint's history runs while its tag is the newest frame's; a change goes escaped.
+fn tag(bits: u64) -> u64 {
+    (bits >> 45) & 7
+}
+
+/// Bits of an escaped joint: 47 (tier, then dropped component and levels: 48) when the
+/// avatar's grid has near-axis steps.
+fn full_bits(pose: &QuantPose) -> u32 {
+    if pose.steps.as_ref().is_some_and(|s| s.tiered()) {
+        48
+    } else {
+        47
+    }
 }
 
 fn level(bits: u64, c: usize) -> i64 {
@@ -627,7 +666,7 @@ fn predict_rotations(frames: &[&[u64]], j0: usize) -> RotationPredictions {
             h[0][f][l] = ((lo >> 30) | ((hi & 0x1fff) << 2)) as i32;
             h[1][f][l] = ((lo >> 15) & 0x7fff) as i32;
             h[2][f][l] = (lo & 0x7fff) as i32;
-            dropped[l] = ((hi >> 13) & 3) as i32;
+            dropped[l] = ((hi >> 13) & 7) as i32;
         }
     }
     // Per frame −1 while the joint's history runs (its dropped component that of frame 0, in
@@ -1106,6 +1145,7 @@ impl Frame2Decoder {
         }
         let mut b = BitReader { r, acc: 0, bits: 0 };
         let joints = base.rotations.len();
+        let full = full_bits(base);
         let mut escaped = vec![false; joints];
         if flags & FLAG_ESCAPES != 0 {
             for e in &mut escaped {
@@ -1121,10 +1161,10 @@ impl Frame2Decoder {
                 p = predict_rotations(&frames, j);
             }
             if esc {
-                pose.rotations.push(b.get(47)?);
+                pose.rotations.push(b.get(full)?);
                 continue;
             }
-            let mut bits = index(base.rotations[j]);
+            let mut bits = tag(base.rotations[j]);
             for c in 0..3 {
                 let value = i64::from(p.pred[c][l]) + unzigzag(b.rice(p.k[c][l])?);
                 if !(0..=LEVEL_MASK as i64).contains(&value) {
@@ -1188,7 +1228,9 @@ fn key_chunk(r: &mut Reader<'_>) -> Result<DecodedAvatar, Frame2Error> {
     let translations = r.count(avatar)?;
     let scales = r.count(avatar)?;
     let flags = r.u8()?;
-    if flags & !(FLAG_PLACEMENT | FLAG_WEIGHTS | FLAG_STEPS) != 0 {
+    if flags & !(FLAG_PLACEMENT | FLAG_WEIGHTS | FLAG_STEPS | FLAG_NEAR) != 0
+        || (flags & FLAG_NEAR != 0 && flags & FLAG_STEPS == 0)
+    {
         return Err(Frame2Error::Flags { avatar, flags });
     }
     let steps = if flags & FLAG_STEPS != 0 {
@@ -1202,9 +1244,19 @@ fn key_chunk(r: &mut Reader<'_>) -> Result<DecodedAvatar, Frame2Error> {
         if rotations.contains(&0) {
             return Err(Frame2Error::Number { at });
         }
+        let at = r.at;
+        let near = if flags & FLAG_NEAR != 0 {
+            r.take(joints)?.to_vec()
+        } else {
+            Vec::new()
+        };
+        if near.contains(&0) {
+            return Err(Frame2Error::Number { at });
+        }
         Some(Arc::new(Steps {
             rotations,
             translation,
+            near,
         }))
     } else {
         None
@@ -1222,10 +1274,17 @@ fn key_chunk(r: &mut Reader<'_>) -> Result<DecodedAvatar, Frame2Error> {
         weights: Vec::new(),
         steps,
     };
+    // Bit 47 is a tier only on a grid with near-axis steps; elsewhere it is not part of a
+    // rotation and is dropped.
+    let kept = if pose.steps.as_ref().is_some_and(|s| s.tiered()) {
+        u64::MAX
+    } else {
+        !(1u64 << 47)
+    };
     for _ in 0..joints {
         let mut b = [0u8; 8];
         b[..quant::BYTES].copy_from_slice(r.take(quant::BYTES)?);
-        pose.rotations.push(u64::from_le_bytes(b));
+        pose.rotations.push(u64::from_le_bytes(b) & kept);
     }
     for _ in 0..translations {
         let mut v = [0i32; 3];

@@ -20,9 +20,10 @@ pub const PROTOCOL_VERSION: u32 = 1;
 /// command results in `ack` ([`ServerMsg::Ack`]) and joint subsets served as v2 frames (v1
 /// frames on version 2); version 4 is version 3 with morph weights in v2 frames (chunk flag
 /// 8, `proto/PROTOCOL.md`); version 5 is version 4 with precision per subscription
-/// (`subscribe`'s `precision`, keyframe chunk flag 16: [`crate::precision`]). Every other
-/// message is the same.
-pub const SUPPORTED_VERSIONS: [u32; 5] = [1, 2, 3, 4, 5];
+/// (`subscribe`'s `precision`, keyframe chunk flag 16: [`crate::precision`]); version 6 is
+/// version 5 with near-axis grid steps in a precision's frames (keyframe chunk flag 32, a
+/// tier bit per rotation: [`crate::precision::Steps::near`]). Every other message is the same.
+pub const SUPPORTED_VERSIONS: [u32; 6] = [1, 2, 3, 4, 5, 6];
 
 /// Largest message the server accepts from a client, in bytes (hello, subscribe, commands).
 /// Uploads of assets go through HTTP, not the websocket.

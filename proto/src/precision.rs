@@ -30,6 +30,15 @@
 //! off by `e`, the rotation moves by at most `|Δq| ≤ 2√3 · e` (the dropped component, at least
 //! ½, follows as `√(1 − Σ)`; the worst case is `q = (½, ½, ½, ½)`), an angle of at most
 //! `4√3 · e` radians: [`rotation_bound_degrees`].
+//!
+//! **Near an axis** (protocol version 6, [`Steps::near`]). With the largest component `d`, the
+//! rotation moves by at most `|Δq| ≤ √3 · e / d`, an angle of `2√3 · e / d`: the worst case above
+//! is `d = ½`. A rotation whose levels are [`near_axis`] (`d ≥` [`NEAR_AXIS`]) goes on its
+//! joint's near grid, whose step is the coarsest within the same angle at `d = 0.849`
+//! ([`near_rotation_bound_degrees`]): about 1.7 times the step, about 0.8 bits a component
+//! fewer. The encoder chooses the grid and marks it in the rotation's bit 47 (its *tier*), so a
+//! decoder only reads it; the choice is a function of the tick's levels alone, so frames at one
+//! precision stay shareable between subscribers.
 
 use crate::description::AvatarDescription;
 use crate::frame2::TRANSLATION_STEP;
@@ -76,6 +85,43 @@ pub struct Precision {
 /// made at that precision.
 pub type PrecisionKey = [u32; 4];
 
+/// What a subscriber's frames are coded at: its precision, and whether its decoder takes
+/// near-axis steps ([`Steps::near`], protocol version 6). Subscribers of one precision and
+/// versions on either side of 6 get frames made apart.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Grid {
+    /// The precision asked for.
+    pub precision: Precision,
+    /// Whether rotations near an axis may go on coarser steps.
+    pub near: bool,
+}
+
+/// A hashable identity of a [`Grid`].
+pub type GridKey = (PrecisionKey, bool);
+
+impl Grid {
+    /// The grid of a subscriber of protocol `version` asking for `precision`.
+    #[must_use]
+    pub fn for_version(precision: Precision, version: u32) -> Self {
+        Self {
+            precision,
+            near: version >= 6,
+        }
+    }
+
+    /// The cache identity of this grid.
+    #[must_use]
+    pub fn key(&self) -> GridKey {
+        (self.precision.key(), self.near)
+    }
+
+    /// The steps of an avatar of rig `d` on this grid ([`Precision::resolve_with`]).
+    #[must_use]
+    pub fn resolve(&self, d: &AvatarDescription) -> Steps {
+        self.precision.resolve_with(d, self.near)
+    }
+}
+
 /// How one avatar's frames are coded: a grid step per joint's rotation and one for its
 /// translations ([`Precision::resolve`]). Sent in keyframe chunks (flag 16).
 #[derive(Debug, Clone, PartialEq, Eq, Hash)]
@@ -84,14 +130,54 @@ pub struct Steps {
     pub rotations: Vec<u8>,
     /// Levels per grid step of the translations (1: the finest).
     pub translation: u16,
+    /// Protocol version 6: each joint's step for a rotation *near an axis* (its largest
+    /// component at least [`NEAR_AXIS`] in magnitude), coarser than `rotations` for the same
+    /// bound (see the module docs, "Near an axis"). Empty: no joint has one (a frame's
+    /// rotations are all on `rotations`' grid).
+    pub near: Vec<u8>,
 }
 
 impl Steps {
     /// Whether every step is 1 (the frames are coded as without a precision).
     #[must_use]
     pub fn is_finest(&self) -> bool {
-        self.translation == 1 && self.rotations.iter().all(|&s| s == 1)
+        self.translation == 1
+            && self.rotations.iter().all(|&s| s == 1)
+            && self.near.iter().all(|&s| s == 1)
     }
+
+    /// Whether rotations near an axis have steps of their own (keyframe chunk flag 32): the
+    /// frames' rotations then carry a tier bit (bit 47) and escaped joints go in 48 bits.
+    #[must_use]
+    pub fn tiered(&self) -> bool {
+        !self.near.is_empty()
+    }
+
+    /// The step of joint `j`'s rotation `bits` (its tier bit says which grid it is on).
+    #[must_use]
+    pub fn rotation_step(&self, j: usize, bits: u64) -> u8 {
+        let grid = if bits >> 47 & 1 == 1 {
+            &self.near
+        } else {
+            &self.rotations
+        };
+        grid.get(j).copied().unwrap_or(1)
+    }
+}
+
+/// How large a rotation's largest component must be for its joint's near-axis step
+/// ([`Steps::near`]) to apply: 0.85, a rotation within 63.6° of the identity (or of a half
+/// turn about an axis). Motion capture's joints spend nearly all of their time there.
+pub const NEAR_AXIS: f64 = 0.85;
+
+/// Whether the rotation of smallest-three levels `levels` (as [`crate::quant::encode`] gives
+/// them) is near an axis: `Σ (lᵢ − Z)² ≤ (1 − NEAR_AXIS²) / Δ²`, in integers (the encoder's
+/// choice; a decoder reads it from the tier bit).
+#[must_use]
+pub fn near_axis(levels: [i64; 3]) -> bool {
+    /// `⌊(1 − 0.85²) / Δ²⌋` with `1 / Δ² = 32766² / 2`.
+    const LIMIT: i64 = 148_963_492;
+    levels.iter().map(|l| (l - ZERO_LEVEL).pow(2)).sum::<i64>() <= LIMIT
 }
 
 /// Why a precision was refused.
@@ -157,8 +243,34 @@ fn level_step() -> f64 {
 /// terms and 0.00002° for the decoder's `f32` arithmetic.
 #[must_use]
 pub fn rotation_bound_degrees(step: u8) -> f64 {
+    bound_degrees(step, 0.5)
+}
+
+/// The guaranteed worst angle, degrees, of a rotation near an axis ([`NEAR_AXIS`]) coded with
+/// grid step `step`: `2√3 · e / d` with `d` the smallest largest component a near rotation
+/// has (less 0.001 for the quantisation of the levels the choice is made on), with the same
+/// margins as [`rotation_bound_degrees`].
+#[must_use]
+pub fn near_rotation_bound_degrees(step: u8) -> f64 {
+    bound_degrees(step, NEAR_AXIS - 0.001)
+}
+
+/// `2√3 · e / d` degrees with margins: the worst angle of a rotation whose largest component
+/// is at least `d` and whose three others are each off by at most `e = (⌊m/2⌋ + ½) Δ`.
+fn bound_degrees(step: u8, d: f64) -> f64 {
     let e = (f64::from(step / 2) + 0.5) * level_step();
-    (4.0 * 3f64.sqrt() * e).to_degrees() * 1.01 + 2e-5
+    (2.0 * 3f64.sqrt() * e / d).to_degrees() * 1.01 + 2e-5
+}
+
+/// The coarsest near-axis step whose bound ([`near_rotation_bound_degrees`]) is within
+/// `degrees` (1 when none is coarser).
+#[must_use]
+pub fn near_rotation_step_for(degrees: f64) -> u8 {
+    (0..=MAX_ROTATION_STEP / 2)
+        .rev()
+        .map(|half| 2 * half + 1)
+        .find(|&m| near_rotation_bound_degrees(m) <= degrees)
+        .unwrap_or(1)
 }
 
 /// The finest worst angle a subscription can ask for, degrees.
@@ -313,34 +425,54 @@ impl Precision {
         Ok(())
     }
 
-    /// The steps of an avatar of rig `d` at this precision (see the module docs). Rest
-    /// positions come from the description's rest transforms.
+    /// The steps of an avatar of rig `d` at this precision (see the module docs), for a
+    /// receiver of protocol version 5 (no near-axis steps). Rest positions come from the
+    /// description's rest transforms.
     #[must_use]
     pub fn resolve(&self, d: &AvatarDescription) -> Steps {
+        self.resolve_with(d, false)
+    }
+
+    /// The steps of an avatar of rig `d` at this precision; with `near` (a receiver of
+    /// protocol version 6) each joint also gets a step for rotations near an axis, within the
+    /// same bound ([`Steps::near`]).
+    #[must_use]
+    pub fn resolve_with(&self, d: &AvatarDescription, near: bool) -> Steps {
         let n = d.joint_names.len();
-        let flat = self.degrees.map(|v| rotation_step_for(f64::from(v)));
-        let rotations = match self.millimetres {
-            None => vec![flat.unwrap_or(1); n],
+        // Each joint's worst angle, degrees (`None`: the finest).
+        let angles: Vec<Option<f64>> = match self.millimetres {
+            None => vec![self.degrees.map(f64::from); n],
             Some(mm) => {
                 let shell = f64::from(self.shell.unwrap_or(DEFAULT_SHELL));
                 let reach = reaches(d);
                 let longest = longest_paths(d);
                 (0..n)
                     .map(|j| {
-                        let angle = f64::from(mm)
+                        let angle = (f64::from(mm)
                             / 1000.0
-                            / ((reach[j] + shell).max(1e-6) * longest[j] as f64);
-                        let step = rotation_step_for(angle.to_degrees());
-                        flat.map_or(step, |f| f.min(step))
+                            / ((reach[j] + shell).max(1e-6) * longest[j] as f64))
+                            .to_degrees();
+                        Some(self.degrees.map_or(angle, |f| f64::from(f).min(angle)))
                     })
                     .collect()
             }
         };
+        let rotations: Vec<u8> = angles
+            .iter()
+            .map(|a| a.map_or(1, rotation_step_for))
+            .collect();
+        let near_steps: Vec<u8> = angles
+            .iter()
+            .zip(&rotations)
+            .map(|(a, &m)| a.map_or(1, near_rotation_step_for).max(m))
+            .collect();
+        let near = near && near_steps != rotations;
         Steps {
             rotations,
             translation: self
                 .translation
                 .map_or(1, |t| translation_step_for(f64::from(t))),
+            near: if near { near_steps } else { Vec::new() },
         }
     }
 }
@@ -496,6 +628,85 @@ mod tests {
         }
     }
 
+    /// Near an axis the bound holds for the near step: random rotations whose levels are near
+    /// an axis (by [`near_axis`], as the encoder chooses), the worst case at the threshold
+    /// (every small component equal, the largest just at 0.85), coded on the near grid. The
+    /// near step is coarser than the general one for the same bound, and the integer
+    /// threshold is `(1 − 0.85²) / Δ²`.
+    #[test]
+    fn near_axis_rotations_stay_within_the_near_bound() {
+        assert_eq!(
+            ((1.0 - NEAR_AXIS * NEAR_AXIS) / (level_step() * level_step())).floor(),
+            148_963_492.0
+        );
+        let mut seed = 0x2545_f491_4f6c_dd1du64;
+        let mut rnd = move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 11) as f32 / (1u64 << 53) as f32 * 2.0 - 1.0
+        };
+        let levels = |bits: u64| [0, 1, 2].map(|c| ((bits >> (15 * (2 - c))) & 0x7fff) as i64);
+        for m in [1u8, 3, 5, 9, 19, 51, 101, 255] {
+            let bound = near_rotation_bound_degrees(m);
+            let mut qs: Vec<Quat> = Vec::new();
+            while qs.len() < 50_000 {
+                // Rotations up to about 70° from the identity or a half turn, so that both
+                // sides of the threshold are drawn.
+                let s = rnd().abs() * 0.6;
+                let axis = Vec3::new(rnd(), rnd(), rnd()).normalize_or(Vec3::X);
+                let v = axis * s;
+                let big = (1.0 - s * s).max(0.0).sqrt();
+                let q = match qs.len() % 4 {
+                    0 => Quat::from_xyzw(v.x, v.y, v.z, big),
+                    1 => Quat::from_xyzw(big, v.x, v.y, v.z),
+                    2 => Quat::from_xyzw(v.x, big, v.y, v.z),
+                    _ => Quat::from_xyzw(v.x, v.y, big, v.z),
+                };
+                qs.push(q.normalize());
+            }
+            // At the threshold: small components equal, pushed the way that grows the error.
+            let t = ((1.0 - NEAR_AXIS * NEAR_AXIS) / 3.0).sqrt() as f32;
+            for k in 0..2000 {
+                let e = k as f32 * 1e-6;
+                qs.push(Quat::from_xyzw(t - e, t - e, t - e, 0.85 + 3.0 * e).normalize());
+            }
+            let (mut worst, mut near) = (0.0f64, 0usize);
+            for q in qs {
+                let bits = quant::encode(q);
+                if !near_axis(levels(bits)) {
+                    continue;
+                }
+                near += 1;
+                let mut coded = bits & !((1u64 << 45) - 1);
+                for (c, l) in levels(bits).into_iter().enumerate() {
+                    let back = fine_rotation_level(coarse_rotation_level(l, m), m);
+                    coded |= (back as u64) << (15 * (2 - c));
+                }
+                worst = worst.max(quant::angle_between_degrees(q, quant::decode(coded)));
+            }
+            assert!(near > 20_000, "m {m}: {near} rotations near an axis");
+            assert!(
+                worst <= bound,
+                "m {m}: worst {worst}° > near bound {bound}°"
+            );
+            assert!(
+                worst >= bound / 2.5,
+                "m {m}: worst {worst}° for near bound {bound}°"
+            );
+        }
+        for deg in [0.02, 0.05, 0.1, 0.25, 1.0] {
+            let (m, near) = (rotation_step_for(deg), near_rotation_step_for(deg));
+            assert!(near_rotation_bound_degrees(near) <= deg, "{deg}");
+            assert!(near_rotation_bound_degrees(near + 2) > deg, "{deg}");
+            // About 1.7× coarser: 0.85 / 0.5.
+            assert!(
+                f64::from(near) >= 1.5 * f64::from(m),
+                "{deg}: {near} against {m}"
+            );
+        }
+    }
+
     #[test]
     fn steps_are_the_coarsest_within_the_bound() {
         assert_eq!(rotation_step_for(0.0086), 1);
@@ -512,6 +723,8 @@ mod tests {
         }
         assert_eq!(rotation_step_for(0.05), 5);
         assert_eq!(rotation_step_for(0.1), 11);
+        assert_eq!(near_rotation_step_for(0.05), 9);
+        assert_eq!(near_rotation_step_for(0.1), 19);
         assert_eq!(translation_step_for(0.001), 15);
         assert!(translation_bound(15) <= 0.001 && translation_bound(17) > 0.001);
     }

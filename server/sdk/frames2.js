@@ -9,6 +9,9 @@
 // precision per subscription (keyframe chunk flag bit 4): grid steps per joint and for the
 // translations follow the flags, and the chunk's levels (and the deltas after it) are grid
 // values that integer arithmetic turns back into levels (Rust: `posecast_proto::precision`).
+// Protocol version 6 adds near-axis steps (keyframe chunk flag bit 5, after the steps): each
+// rotation's bit 47 says which of its joint's two grids it is on; a joint's history runs while
+// its dropped component and tier stay the same, and an escaped joint goes in 48 bits.
 //
 // Numbers: rotations (≤ 48 bits), levels and Rice sums (< 2⁴⁴) are exact JS numbers. Varints
 // are read as BigInt (up to 64 bits, as the Rust reader); the header's seq and server time must
@@ -40,6 +43,8 @@ const FLAG_ESCAPES = 4;
 const FLAG_WEIGHTS = 8;
 /** Keyframe chunk flag (protocol version 5): grid steps follow the flags byte. */
 const FLAG_STEPS = 16;
+/** Keyframe chunk flag (protocol version 6, with FLAG_STEPS): near-axis steps follow. */
+const FLAG_NEAR = 32;
 /** The level of a zero rotation component. */
 const ZERO_LEVEL = 16383;
 /** Bits of a streamed morph weight level; levels run 0…WEIGHT_LEVELS (weight = level / 1023). */
@@ -51,6 +56,7 @@ const CAP = 2 ** 40;
 const TWO_15 = 2 ** 15;
 const TWO_32 = 2 ** 32;
 const TWO_45 = 2 ** 45;
+const TWO_47 = 2 ** 47;
 const I32_MIN = -(2 ** 31);
 const I32_MAX = 2 ** 31 - 1;
 const U32_MAX = 2n ** 32n - 1n;
@@ -63,8 +69,9 @@ const SAFE = BigInt(Number.MAX_SAFE_INTEGER);
 
 /**
  * Grid steps of a subscription's precision (`precision::Steps`): levels per grid step of each
- * joint's rotation components, and of the translations.
- * @typedef {{rotations: number[], translation: number}} Steps
+ * joint's rotation components, and of the translations; from protocol version 6 each joint's
+ * step for a rotation near an axis (`near`, empty when the grid has none).
+ * @typedef {{rotations: number[], translation: number, near: number[]}} Steps
  */
 
 /**
@@ -73,8 +80,10 @@ const SAFE = BigInt(Number.MAX_SAFE_INTEGER);
  * @param {number} j
  */
 function fineRotation(levels, j) {
-  const bits = levels.rotations[j];
-  const m = levels.steps ? levels.steps.rotations[j] : 1;
+  const tiered = levels.rotations[j];
+  const near = tiered >= TWO_47;
+  const bits = near ? tiered - TWO_47 : tiered;
+  const m = levels.steps ? (near ? levels.steps.near[j] : levels.steps.rotations[j]) : 1;
   if (m === 1) return bits;
   const zm = Math.floor((ZERO_LEVEL + m - 1) / m);
   let out = Math.floor(bits / TWO_45);
@@ -99,7 +108,8 @@ function fineTranslation(levels, l) {
 function sameSteps(a, b) {
   if (a === b) return true;
   if (!a || !b) return false;
-  return a.translation === b.translation && a.rotations.length === b.rotations.length && a.rotations.every((m, j) => m === b.rotations[j]);
+  const same = (/** @type {number[]} */ x, /** @type {number[]} */ y) => x.length === y.length && x.every((m, j) => m === y[j]);
+  return a.translation === b.translation && same(a.rotations, b.rotations) && same(a.near, b.near);
 }
 
 /** @param {string} message */
@@ -117,9 +127,9 @@ function unzigzag(u) {
   return u % 2 === 0 ? u / 2 : -(u + 1) / 2;
 }
 
-/** The dropped component's index (bits 45–46). @param {number} bits */
-function index(bits) {
-  return Math.floor(bits / TWO_45) % 4;
+/** The dropped component's index (bits 45–46) and grid tier (bit 47). @param {number} bits */
+function tag(bits) {
+  return Math.floor(bits / TWO_45) % 8;
 }
 
 /** The stored level `c` (0: bits 30–44, 1: 15–29, 2: 0–14). @param {number} bits @param {number} c */
@@ -315,7 +325,9 @@ function keyChunk(r) {
   const translations = r.count(num);
   const scales = r.count(num);
   const flags = r.u8();
-  if (flags & ~(FLAG_PLACEMENT | FLAG_WEIGHTS | FLAG_STEPS)) throw bad(`avatar ${num}: invalid chunk flags ${flags}`);
+  if (flags & ~(FLAG_PLACEMENT | FLAG_WEIGHTS | FLAG_STEPS | FLAG_NEAR) || (flags & FLAG_NEAR && !(flags & FLAG_STEPS))) {
+    throw bad(`avatar ${num}: invalid chunk flags ${flags}`);
+  }
   /** @type {Steps | null} */
   let steps = null;
   if (flags & FLAG_STEPS) {
@@ -328,14 +340,25 @@ function keyChunk(r) {
       if (m === 0) throw bad(`number out of range at byte ${r.at - 1}`);
       rotations.push(m);
     }
-    steps = { rotations, translation: Number(translation) };
+    const near = [];
+    if (flags & FLAG_NEAR) {
+      for (let j = 0; j < joints; j++) {
+        const m = r.u8();
+        if (m === 0) throw bad(`number out of range at byte ${r.at - 1}`);
+        near.push(m);
+      }
+    }
+    steps = { rotations, translation: Number(translation), near };
   }
+  // Bit 47 is a tier only on a grid with near-axis steps; elsewhere it is dropped.
+  const tiered = steps !== null && steps.near.length > 0;
   if (r.view.byteLength - r.at < joints * 6 + translations * 3 + scales * 12) throw bad(`truncated at byte ${r.view.byteLength}`);
   /** @type {QuantPose} */
   const levels = { rotations: [], translations: [], scales: [], placement: identityPlacement(), weights: [], steps };
   for (let j = 0; j < joints; j++) {
     const at = r.need(6);
-    levels.rotations.push(r.view.getUint16(at + 4, true) * TWO_32 + r.view.getUint32(at, true));
+    const bits = r.view.getUint16(at + 4, true) * TWO_32 + r.view.getUint32(at, true);
+    levels.rotations.push(tiered || bits < TWO_47 ? bits : bits - TWO_47);
   }
   for (let t = 0; t < translations; t++) {
     /** @type {[number, number, number]} */
@@ -467,15 +490,17 @@ export class Frame2Decoder {
     const b = new BitReader(r);
     const joints = base.rotations.length;
     const escaped = new Array(joints).fill(false);
+    // An escaped joint's bits: with near-axis steps, its tier too.
+    const full = base.steps && base.steps.near.length > 0 ? 48 : 47;
     if (flags & FLAG_ESCAPES) for (let j = 0; j < joints; j++) escaped[j] = b.get(1) === 1;
     for (let j = 0; j < joints; j++) {
       if (escaped[j]) {
-        pose.rotations.push(b.get(47));
+        pose.rotations.push(b.get(full));
         continue;
       }
-      const i = index(base.rotations[j]);
+      const i = tag(base.rotations[j]);
       let n = 0;
-      while (n < history.length && index(history[n].rotations[j]) === i) n++;
+      while (n < history.length && tag(history[n].rotations[j]) === i) n++;
       let bits = i;
       for (let c = 0; c < 3; c++) {
         const h = history.slice(0, n).map((f) => level(f.rotations[j], c));

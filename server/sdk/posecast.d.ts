@@ -1,8 +1,8 @@
 // Type declarations of posecast's JavaScript client, served at /sdk/posecast.d.ts beside the
 // module it describes (/sdk/posecast.js). This file is the API reference; proto/PROTOCOL.md is
 // the reference of the messages, protocol.d.ts their types (generated from the server's). SDK
-// version 1.7 speaks protocol version 5 (wire v2 binary frames with morph weights and a precision
-// per subscription, results tagged with their kind) by default, and 4, 3, 2 or 1 when asked
+// version 1.9 speaks protocol version 6 (wire v2 binary frames with morph weights and a precision
+// per subscription, results tagged with their kind) by default, and 5, 4, 3, 2 or 1 when asked
 // (`ClientOptions.version`) or refused by an older server.
 //
 //   import { Client } from "/sdk/posecast.js";
@@ -15,7 +15,7 @@
 /** The SDK's version. */
 export declare const SDK_VERSION: string;
 /** The protocol version the SDK speaks (the `hello`'s `version`). */
-export declare const PROTOCOL_VERSION: 5;
+export declare const PROTOCOL_VERSION: 6;
 
 export type Vec3 = [number, number, number];
 /** The `result` of an `ack`, by the `kind` the server tags it with (protocol.d.ts). */
@@ -213,14 +213,15 @@ export interface ClientOptions {
   /** Frame encoding; default `"binary"` (several times smaller than JSON). */
   encoding?: Encoding;
   /**
-   * Protocol version asked for in the hello: 5 (default: 4 with a `precision` per
+   * Protocol version asked for in the hello: 6 (default: 5 with a precision's frames coded
+   * on coarser steps near an axis, the same bound), 5 (4 with a `precision` per
    * subscription), 4 (3 with each pose's morph `weights` in binary frames too), 3 or 2 — binary frames in wire v2,
    * deltas against the previous frame, about half the bytes of v1; 3 also tags every `ack`'s
    * result with its `kind` and serves a subscription with `joints` v2 frames cut to them (2
    * gets those as v1 frames) — or 1 (v1 frames); the client decodes both. A server that refuses the version (`unsupported_version`:
    * one that predates it) gets a hello with the version before, and `Client.version` follows.
    */
-  version?: 1 | 2 | 3 | 4 | 5;
+  version?: 1 | 2 | 3 | 4 | 5 | 6;
   /** The `client` name in the hello; default `"posecast-js"`. */
   name?: string;
   /** Reconnect when the connection drops (default true), resubscribing. */
@@ -318,7 +319,7 @@ export declare class Client {
   readonly url: string;
   readonly encoding: Encoding;
   /** The protocol version said in the hello (lower after a server refused one; `welcome.version` says the one in use). */
-  readonly version: 1 | 2 | 3 | 4 | 5;
+  readonly version: 1 | 2 | 3 | 4 | 5 | 6;
   readonly state: ConnectionState;
   /** Why the state is what it is ("connection lost", a refusal's reason…). */
   readonly detail: string;

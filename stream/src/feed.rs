@@ -21,11 +21,17 @@ use posecast_core::error::Error;
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::{ChunkEncoder, FrameHeader, FrameKind};
 use posecast_proto::msg::{AvatarId, Encoding, SceneId, ServerMsg};
-use posecast_proto::precision::{Precision, PrecisionKey};
+use posecast_proto::precision::{Grid, GridKey, Precision};
 use posecast_proto::subset::JointSet;
 use posecast_sim::avatar::Avatar;
 use std::collections::HashMap;
 use std::sync::Arc;
+
+/// Seconds between the keyframes of a wire v2 subscriber whose chain of deltas continues
+/// (every frame decoded exactly as the server holds it). Not a repair of drift, which the
+/// integer coding does not have, but a bound on how long a receiver that lost its place (a
+/// client's own fault) waits for a frame it can decode.
+pub const V2_KEY_SECONDS: f64 = 10.0;
 
 /// A connection subscribed to a scene.
 #[derive(Debug)]
@@ -43,8 +49,9 @@ pub struct Subscriber {
     pub every: u32,
     /// Only these joints of every avatar, or all.
     pub joints: Option<JointSet>,
-    /// The tick of the last keyframe it was sent: a subscriber that skips ticks may skip a
-    /// keyframe, and then gets it before its next delta.
+    /// The tick of the last keyframe it was sent: a wire v1 subscriber that skips ticks may
+    /// skip a keyframe, and then gets it before its next delta; a wire v2 one gets the next
+    /// keyframe [`V2_KEY_SECONDS`] after it.
     key_sent: Option<u64>,
     /// The protocol version of its connection: binary subscribers of version 2 get wire v2
     /// frames ([`wire2`]).
@@ -88,6 +95,13 @@ impl Subscriber {
     pub fn with_precision(mut self, precision: Option<Precision>) -> Self {
         self.precision = precision.filter(|p| !p.is_finest());
         self
+    }
+
+    /// The grid its wire v2 frames are coded on: its precision, with near-axis steps from
+    /// protocol version 6 (`None`: the finest).
+    fn grid(&self) -> Option<Grid> {
+        self.precision
+            .map(|precision| Grid::for_version(precision, self.version))
     }
 
     /// The same subscription with or without morph weights in its frames.
@@ -842,7 +856,7 @@ impl Feed {
                 filter,
                 joints,
                 sub.weights(),
-                sub.precision.as_ref(),
+                sub.grid().as_ref(),
             ) {
                 sub.outbox.push_chained(
                     self.num,
@@ -880,7 +894,7 @@ impl Feed {
             filter,
             joints,
             sub.weights(),
-            sub.precision.as_ref(),
+            sub.grid().as_ref(),
         ) {
             sub.outbox
                 .push_frame(self.num, OutFrame { message, key: true });
@@ -1002,9 +1016,12 @@ impl Feed {
             Option<&'a [AvatarId]>,
             Option<&'a JointSet>,
             bool,
-            Option<PrecisionKey>,
+            Option<GridKey>,
         );
         let mut v2_cache: HashMap<V2Key<'_>, Option<Message>> = HashMap::new();
+        // Ticks between a wire v2 chain's keyframes.
+        let v2_refresh = (f64::from(self.tick_rate) * V2_KEY_SECONDS).ceil().max(1.0) as u64;
+        let v2_late = f64::from(self.tick_rate).ceil().max(1.0) as u64;
         for sub in &mut self.subscribers {
             // The connection's adaptive rate may be lower than the subscription's; paced
             // connections are staggered by their id, so they do not all send on one tick.
@@ -1021,15 +1038,24 @@ impl Feed {
             let joints = sub.joints.as_ref();
             let weights = sub.weights();
             if sub.v2() {
-                let precision = sub.precision.as_ref();
-                let grid = precision.map(Precision::key);
+                let on = sub.grid();
+                let precision = on.as_ref();
+                let grid = precision.map(Grid::key);
                 let Some(levels) = &levels else { continue };
                 let ring = &self.ring;
                 // A delta continues the frames the subscriber will hold (without the pending
                 // delta it replaces, for a client that does not keep up); none (it just
-                // joined, the rate changed the ticks it got: anything not in the ring) or a
-                // keyframe tick: the tick's shared keyframe.
-                let chain = (!key).then(|| sub.outbox.chain(self.num)).flatten();
+                // joined, the rate changed the ticks it got: anything not in the ring, a new
+                // avatar or rig) or a keyframe tick [`V2_KEY_SECONDS`] after its last
+                // keyframe: the tick's shared keyframe. The scene's other keyframes (once a
+                // second, for wire v1 and joiners) are not sent to a chain that continues:
+                // its receiver decodes exactly the levels the server holds, so a keyframe
+                // would repair nothing and cost 5 % of the stream.
+                // (A reader at a lower rate whose ticks miss the scene's keyframe ticks gets
+                // its own a second later.)
+                let age = sub.key_sent.map_or(u64::MAX, |k| at.seq.saturating_sub(k));
+                let refresh = (key && age >= v2_refresh) || age >= v2_refresh + v2_late;
+                let chain = (!refresh).then(|| sub.outbox.chain(self.num)).flatten();
                 let replacing = chain.as_ref().and_then(|c| c.replacing);
                 let delta = chain.and_then(|chain| {
                     v2_cache
@@ -1067,6 +1093,7 @@ impl Feed {
                         else {
                             continue;
                         };
+                        sub.key_sent = Some(at.seq);
                         (OutFrame { message, key: true }, None)
                     }
                 };

@@ -14,7 +14,7 @@ use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::{FrameHeader, FrameKind};
 use posecast_proto::frame2::{self, QuantPose};
 use posecast_proto::msg::AvatarId;
-use posecast_proto::precision::{Precision, PrecisionKey, Steps};
+use posecast_proto::precision::{Grid, GridKey, Steps};
 use posecast_proto::subset::{JointSet, Selection};
 use std::borrow::Cow;
 use std::collections::{HashMap, VecDeque};
@@ -86,7 +86,7 @@ impl Hasher for NumHasher {
 type NumMap<K, V> = HashMap<K, V, BuildHasherDefault<NumHasher>>;
 
 /// Levels on a precision's grid by (tick, avatar number, precision).
-type CoarseCache = NumMap<(u64, u32, PrecisionKey), Arc<QuantPose>>;
+type CoarseCache = NumMap<(u64, u32, GridKey), Arc<QuantPose>>;
 
 /// Most rigs × precisions whose steps are kept (a bound on what many distinct subscriptions
 /// can make the ring hold; past it the cache starts again).
@@ -100,7 +100,7 @@ pub(super) struct Ring {
     /// subscriber holding that precision. Only ticks still in the ring.
     coarse: Mutex<CoarseCache>,
     /// Grid steps by (description hash, precision).
-    steps: Mutex<HashMap<(u64, PrecisionKey), Arc<Steps>>>,
+    steps: Mutex<HashMap<(u64, GridKey), Arc<Steps>>>,
     /// The length of the last frame made, to allocate the next one at once.
     last_len: AtomicUsize,
 }
@@ -133,20 +133,15 @@ impl Ring {
     }
 
     /// The steps of rig `d` (of description hash `hash`) at `precision` (`None`: the finest, frames coded as without one).
-    fn steps_of(
-        &self,
-        d: &AvatarDescription,
-        hash: u64,
-        precision: &Precision,
-    ) -> Option<Arc<Steps>> {
-        let key = (hash, precision.key());
+    fn steps_of(&self, d: &AvatarDescription, hash: u64, grid: &Grid) -> Option<Arc<Steps>> {
+        let key = (hash, grid.key());
         let mut cache = self.steps.lock().unwrap_or_else(PoisonError::into_inner);
         if cache.len() >= MAX_STEPS_CACHED && !cache.contains_key(&key) {
             cache.clear();
         }
         let steps = cache
             .entry(key)
-            .or_insert_with(|| Arc::new(precision.resolve(d)))
+            .or_insert_with(|| Arc::new(grid.resolve(d)))
             .clone();
         (!steps.is_finest()).then_some(steps)
     }
@@ -155,7 +150,7 @@ impl Ring {
     /// or as they are without a grid. `cache` is the locked [`Ring::coarse`], when there is a grid.
     fn on_grid<'l>(
         cache: &mut Option<MutexGuard<'_, CoarseCache>>,
-        grid: Option<&(Arc<Steps>, PrecisionKey)>,
+        grid: Option<&(Arc<Steps>, GridKey)>,
         seq: u64,
         num: u32,
         levels: &'l QuantPose,
@@ -224,7 +219,7 @@ impl Ring {
         filter: Option<&[AvatarId]>,
         joints: Option<&JointSet>,
         weights: bool,
-        precision: Option<&Precision>,
+        precision: Option<&Grid>,
     ) -> Option<Message> {
         let pieces = publish::select(&published.pieces, filter, joints);
         let seq = published.header.seq;

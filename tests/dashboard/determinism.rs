@@ -18,7 +18,9 @@ use glam::{Quat, Vec3};
 use posecast_proto::frame::{AvatarPose, FrameHeader, FrameKind};
 use posecast_proto::frame2::{self, Frame2Decoder, QuantPose};
 use posecast_proto::placement::Placement;
-use posecast_proto::precision::{Steps, rotation_bound_degrees, translation_bound};
+use posecast_proto::precision::{
+    Steps, near_rotation_step_for, rotation_bound_degrees, translation_bound,
+};
 use posecast_proto::quant::{MAX_ERROR_DEGREES, angle_between_degrees};
 use std::path::Path;
 use std::sync::Arc;
@@ -183,18 +185,24 @@ struct Stream {
 fn stream(seed: u64) -> Stream {
     let mut rng = Rng(seed);
     let mut avatars = [Motion::new(&mut rng, 1, 23), Motion::new(&mut rng, 2, 31)];
-    // The second avatar on a subscription's grid: per-joint steps from the finest to the
-    // coarsest, a coarse translation step.
+    // The second avatar on a subscription's grid (protocol version 6): per-joint steps from
+    // the finest to the coarsest, each joint's coarser step near an axis for the same bound
+    // (rotations cross between the two grids as they move), a coarse translation step.
+    let rotations: Vec<u8> = (0..31)
+        .map(|j| {
+            if j % 5 == 0 {
+                1
+            } else {
+                1 + rng.below(255) as u8
+            }
+        })
+        .collect();
     let steps = Arc::new(Steps {
-        rotations: (0..31)
-            .map(|j| {
-                if j % 5 == 0 {
-                    1
-                } else {
-                    1 + rng.below(255) as u8
-                }
-            })
+        near: rotations
+            .iter()
+            .map(|&m| near_rotation_step_for(rotation_bound_degrees(m)).max(m))
             .collect(),
+        rotations,
         translation: 37,
     });
     let bound = |a: usize, j: usize| {

@@ -360,7 +360,7 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
     let (binary_bytes, json_bytes) = (sizes[0].as_f64().unwrap(), sizes[1].as_f64().unwrap());
     let (arm_bytes, v1_bytes) = (sizes[2].as_f64().unwrap(), sizes[4].as_f64().unwrap());
     assert_eq!(sizes[3], json!(0), "arm-only frames all decoded");
-    assert_eq!(sizes[5], json!([5, 1, 5]), "protocol versions welcomed");
+    assert_eq!(sizes[5], json!([6, 1, 6]), "protocol versions welcomed");
     assert_eq!(sizes[9], json!(0), "0.1° frames all decoded");
     let coarse_bytes = sizes[8].as_f64().unwrap();
     assert!(
@@ -619,8 +619,8 @@ window.client = client;
     server.stop().await;
 }
 
-/// Against a server of before protocol version 2 (it refuses `hello {version: 5}` down to `2`
-/// with `unsupported_version`), the client — asking for 5 by default — says hello again
+/// Against a server of before protocol version 2 (it refuses `hello {version: 6}` down to `2`
+/// with `unsupported_version`), the client — asking for 6 by default — says hello again
 /// with the version before until it comes online with 1.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_client_falls_back_to_version_1_for_an_older_server() {
@@ -647,6 +647,6 @@ client.connect();
          && window.client.welcome.version === 1",
     )
     .await;
-    assert_eq!(*hellos.lock().unwrap(), vec![5, 4, 3, 2, 1]);
+    assert_eq!(*hellos.lock().unwrap(), vec![6, 5, 4, 3, 2, 1]);
     server.stop().await;
 }

@@ -304,8 +304,9 @@ fn frame2_vectors(rng: &mut Lcg) -> Value {
     let velocity = rng.vec3() * 0.02;
     let mut stream = StreamEncoder::new();
     // The fast stream codes the second avatar at a subscription's precision (protocol version
-    // 5): grid steps from the finest to the coarsest per joint, and a coarse translation step.
-    let steps = (0..joints[1])
+    // 6): grid steps from the finest to the coarsest per joint, each joint's coarser step near
+    // an axis for the same bound, and a coarse translation step.
+    let steps: Vec<u8> = (0..joints[1])
         .map(|j| {
             if j % 4 == 0 {
                 1
@@ -317,6 +318,7 @@ fn frame2_vectors(rng: &mut Lcg) -> Value {
     stream.set_steps(
         2,
         std::sync::Arc::new(posecast_proto::precision::Steps {
+            near: near_steps(&steps),
             rotations: steps,
             translation: 37,
         }),
@@ -772,4 +774,14 @@ fn the_clients_decoder_jitter_buffer_and_clock_match_the_rust_ones() {
         );
     }
     println!("JavaScript stream parts vs Rust: {report}");
+}
+
+/// Each joint's near-axis step for the bound of its step `m` (as `Precision::resolve_with`
+/// gives a protocol version 6 subscriber).
+fn near_steps(steps: &[u8]) -> Vec<u8> {
+    use posecast_proto::precision::{near_rotation_step_for, rotation_bound_degrees};
+    steps
+        .iter()
+        .map(|&m| near_rotation_step_for(rotation_bound_degrees(m)).max(m))
+        .collect()
 }
