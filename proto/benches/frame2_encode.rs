@@ -1,7 +1,8 @@
 //! Wire v2's cost per avatar-frame: quantising a pose into levels, coding a delta against the
 //! receiver's last 8 frames, and decoding it — for a 31-joint rig (CMU 01_01's size) moving
 //! like motion capture (every joint turning at a slowly wandering angular velocity, the root
-//! walking), at the finest precision and on a 0.1° grid.
+//! walking), at the finest precision and on a 0.1° grid (protocol 5, and 6 with near-axis
+//! steps), and putting a pose's levels on that grid.
 //!
 //! `cargo bench -p posecast-proto --bench frame2_encode`
 
@@ -70,7 +71,25 @@ fn bench(c: &mut Criterion) {
                 near: Vec::new(),
             })),
         ),
+        (
+            "0.1°, near-axis steps (protocol 6)",
+            Some(Arc::new(Steps {
+                rotations: vec![precision::rotation_step_for(0.1); JOINTS],
+                translation: 1,
+                near: vec![precision::near_rotation_step_for(0.1); JOINTS],
+            })),
+        ),
     ] {
+        if let Some(s) = &steps {
+            // Putting a tick's levels on the grid: once per tick, avatar and precision.
+            c.bench_function(&format!("grid values of a 31-joint pose, {label}"), |b| {
+                let mut i = 0;
+                b.iter(|| {
+                    i = (i + 1) % levels.len();
+                    black_box(levels[i].coarsen(black_box(s)))
+                })
+            });
+        }
         let levels: Vec<QuantPose> = match &steps {
             Some(s) => levels.iter().map(|l| l.coarsen(s)).collect(),
             None => levels.clone(),
