@@ -44,8 +44,9 @@
 //! carries grid steps and its levels are grid values; with flag 32 as well (version 6) each
 //! joint also has a near-axis step, and each rotation's bit 47 (its *tier*) says which of the
 //! two grids it is on. A rotation's dropped component and tier form its *tag*: its history runs
-//! while the tag is `h₀`'s, and a joint whose tag changed goes escaped, in 48 bits on such a
-//! grid (47 otherwise).
+//! while the tag is `h₀`'s, and a joint whose tag changed goes escaped: on such a grid a bit
+//! follows its escape, 1 when only its tier changed (its residuals then follow, predicted from
+//! its history put on the new grid), 0 before its 48 bits; 47 bits otherwise.
 
 use crate::frame::{AvatarPose, Frame, FrameHeader, FrameKind};
 use crate::placement::Placement;
@@ -504,6 +505,7 @@ pub fn encode_delta(
         .zip(&base.rotations)
         .any(|(a, b)| tag(*a) != tag(*b));
     let full = full_bits(pose);
+    let tiered = pose.steps.as_deref().filter(|s| s.tiered());
     let scales = pose.scales != base.scales;
     let placement = pose.placement != base.placement;
     // Compared element by element: equal slices of `u16` compile to a call of `memcmp`, whose
@@ -540,6 +542,22 @@ pub fn encode_delta(
         let p = predict_rotations(&frames[..depth], block * LANES);
         for (l, (&bits, &base_bits)) in now.iter().zip(was).enumerate() {
             if tag(bits) != tag(base_bits) {
+                // On a tiered grid a joint that only changed tier is coded against its history
+                // put on its new grid (bit 1); anything else goes in full (bit 0, 48 bits).
+                if let Some(steps) = tiered
+                    && index(bits) == index(base_bits)
+                {
+                    w.put(1, 1);
+                    for c in 0..3 {
+                        let (pred, k) =
+                            regridded(&frames[..depth], block * LANES + l, bits, steps, c);
+                        w.rice(zigzag(level(bits, c) - pred), k);
+                    }
+                    continue;
+                }
+                if tiered.is_some() {
+                    w.put(0, 1);
+                }
                 w.put(bits & ((1 << full) - 1), full);
                 continue;
             }
@@ -579,6 +597,32 @@ pub fn encode_delta(
 /// a joint's history runs while its tag is the newest frame's; a change goes escaped.
 fn tag(bits: u64) -> u64 {
     (bits >> 45) & 7
+}
+
+/// A rotation's dropped component (bits 45–46).
+fn index(bits: u64) -> u64 {
+    (bits >> 45) & 3
+}
+
+/// The prediction and Rice parameter of component `c` of joint `j` whose rotation `now` changed
+/// tier since the newest frame (its dropped component the same): [`predict`] over the leading
+/// frames whose dropped component is the newest's, each level put on the grid of `now`'s tier
+/// (`coarse(fine(l, its step), the new step)`).
+fn regridded(frames: &[&[u64]], j: usize, now: u64, steps: &Steps, c: usize) -> (i64, u32) {
+    let to = steps.rotation_step(j, now);
+    let dropped = index(frames[0][j]);
+    let mut h = [0i64; MAX_DEPTH];
+    let mut n = 0;
+    for (slot, f) in h.iter_mut().zip(frames) {
+        let bits = f[j];
+        if index(bits) != dropped {
+            break;
+        }
+        let fine = precision::fine_rotation_level(level(bits, c), steps.rotation_step(j, bits));
+        *slot = precision::coarse_rotation_level(fine, to);
+        n += 1;
+    }
+    predict(&h[..n], true)
 }
 
 /// Bits of an escaped joint: 47 (tier, then dropped component and levels: 48) when the
@@ -1146,6 +1190,8 @@ impl Frame2Decoder {
         let mut b = BitReader { r, acc: 0, bits: 0 };
         let joints = base.rotations.len();
         let full = full_bits(base);
+        let steps = base.steps.clone();
+        let tiered = steps.as_deref().filter(|s| s.tiered());
         let mut escaped = vec![false; joints];
         if flags & FLAG_ESCAPES != 0 {
             for e in &mut escaped {
@@ -1161,6 +1207,23 @@ impl Frame2Decoder {
                 p = predict_rotations(&frames, j);
             }
             if esc {
+                if let Some(steps) = tiered
+                    && b.get(1)? == 1
+                {
+                    // The tier changed, the dropped component did not.
+                    let flipped = base.rotations[j] ^ (1 << 47);
+                    let mut bits = tag(flipped);
+                    for c in 0..3 {
+                        let (pred, k) = regridded(&frames, j, flipped, steps, c);
+                        let value = pred + unzigzag(b.rice(k)?);
+                        if !(0..=LEVEL_MASK as i64).contains(&value) {
+                            return Err(Frame2Error::Number { at: b.r.at });
+                        }
+                        bits = bits << 15 | value as u64;
+                    }
+                    pose.rotations.push(bits);
+                    continue;
+                }
                 pose.rotations.push(b.get(full)?);
                 continue;
             }

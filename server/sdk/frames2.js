@@ -132,6 +132,30 @@ function tag(bits) {
   return Math.floor(bits / TWO_45) % 8;
 }
 
+/** The dropped component's index (bits 45–46). @param {number} bits */
+function index(bits) {
+  return Math.floor(bits / TWO_45) % 4;
+}
+
+/** The step of joint `j`'s rotation `bits` (its tier, bit 47, names the grid). @param {Steps} steps @param {number} j @param {number} bits */
+function rotationStep(steps, j, bits) {
+  return bits >= TWO_47 ? steps.near[j] : steps.rotations[j];
+}
+
+/** The level a grid value `c` of step `m` stands for (`precision::fine_rotation_level`). @param {number} c @param {number} m */
+function fineLevel(c, m) {
+  const zm = Math.floor((ZERO_LEVEL + m - 1) / m);
+  return Math.min(Math.max(ZERO_LEVEL + (c - zm) * m, 0), 2 * ZERO_LEVEL);
+}
+
+/** A level `l` on the grid of step `m` (`precision::coarse_rotation_level`). @param {number} l @param {number} m */
+function coarseLevel(l, m) {
+  const zm = Math.floor((ZERO_LEVEL + m - 1) / m);
+  const d = l - ZERO_LEVEL;
+  const q = Math.floor((Math.abs(d) + Math.floor(m / 2)) / m);
+  return Math.min(Math.max(Math.sign(d) * q + zm, 0), 2 * zm);
+}
+
 /** The stored level `c` (0: bits 30–44, 1: 15–29, 2: 0–14). @param {number} bits @param {number} c */
 function level(bits, c) {
   return Math.floor(bits / TWO_15 ** (2 - c)) % TWO_15;
@@ -491,10 +515,33 @@ export class Frame2Decoder {
     const joints = base.rotations.length;
     const escaped = new Array(joints).fill(false);
     // An escaped joint's bits: with near-axis steps, its tier too.
-    const full = base.steps && base.steps.near.length > 0 ? 48 : 47;
+    const steps = base.steps && base.steps.near.length > 0 ? base.steps : null;
+    const full = steps ? 48 : 47;
     if (flags & FLAG_ESCAPES) for (let j = 0; j < joints; j++) escaped[j] = b.get(1) === 1;
     for (let j = 0; j < joints; j++) {
       if (escaped[j]) {
+        if (steps && b.get(1) === 1) {
+          // Only the tier changed: residuals against the history put on the new grid.
+          const was = base.rotations[j];
+          const flipped = was >= TWO_47 ? was - TWO_47 : was + TWO_47;
+          const i = index(was);
+          let n = 0;
+          while (n < history.length && index(history[n].rotations[j]) === i) n++;
+          const to = rotationStep(steps, j, flipped);
+          let bits = tag(flipped);
+          for (let c = 0; c < 3; c++) {
+            const h = history.slice(0, n).map((f) => {
+              const from = f.rotations[j];
+              return coarseLevel(fineLevel(level(from, c), rotationStep(steps, j, from)), to);
+            });
+            const [pred, k] = predict(h, true);
+            const value = pred + unzigzag(b.rice(k));
+            if (!(value >= 0 && value <= LEVEL_MASK)) throw bad(`avatar ${num}: rotation level out of range at byte ${r.at}`);
+            bits = bits * TWO_15 + value;
+          }
+          pose.rotations.push(bits);
+          continue;
+        }
         pose.rotations.push(b.get(full));
         continue;
       }

@@ -673,6 +673,39 @@ fn reference_delta(avatar_num: u32, pose: &QuantPose, history: &[&QuantPose]) ->
     }
     for (j, &now) in pose.rotations.iter().enumerate() {
         if escaped[j] {
+            let steps = pose.steps.as_ref().filter(|s| !s.near.is_empty());
+            if let Some(steps) = steps {
+                let dropped = base.rotations[j] >> 45 & 3;
+                if now >> 45 & 3 == dropped {
+                    // Only the tier changed: residuals against the history on the new grid.
+                    put(&mut bits, 1, 1);
+                    let step = |b: u64| {
+                        if b >> 47 & 1 == 1 {
+                            steps.near[j]
+                        } else {
+                            steps.rotations[j]
+                        }
+                    };
+                    let same: Vec<u64> = history
+                        .iter()
+                        .map(|f| f.rotations[j])
+                        .take_while(|b| b >> 45 & 3 == dropped)
+                        .collect();
+                    for c in 0..3 {
+                        let h: Vec<i64> = same
+                            .iter()
+                            .map(|&b| {
+                                let fine = precision::fine_rotation_level(level(b, c), step(b));
+                                precision::coarse_rotation_level(fine, step(now))
+                            })
+                            .collect();
+                        let (pred, k) = predict(&h, true);
+                        rice(&mut bits, zigzag(level(now, c) - pred), k);
+                    }
+                    continue;
+                }
+                put(&mut bits, 0, 1);
+            }
             put(&mut bits, now, full);
             continue;
         }
