@@ -312,7 +312,8 @@ async fn a_reader_that_falls_behind_gets_deltas_not_a_keyframe_a_tick() {
 /// reader of the same scene gets), and every frame decodes to the v1 reader's poses. A second
 /// avatar added mid-way reaches it as a keyframe (its chain cannot continue without one). A
 /// reader at half the rate, whose ticks never fall on the scene's keyframe ticks, gets its own
-/// a second later.
+/// a second later. A reader joining mid-way starts its chain from its first keyframe (the
+/// newest cached frame): its next frames are deltas.
 #[tokio::test]
 async fn a_v2_reader_that_keeps_up_gets_a_keyframe_every_ten_seconds_not_every_second() {
     let scene = Scene::new(SceneId("s".into()), 1, Arc::new(Metrics::new()), 60.0);
@@ -338,12 +339,23 @@ async fn a_v2_reader_that_keeps_up_gets_a_keyframe_every_ten_seconds_not_every_s
     );
     let (mut v1_keys, mut v2_keys, mut half_keys) = (Vec::new(), Vec::new(), Vec::new());
     let mut by_seq: HashMap<u64, Frame> = HashMap::new();
+    let late = Arc::new(Outbox::new());
+    let mut dl = Frame2Decoder::new();
+    let mut late_keys = Vec::new();
+    let joins = 300u64;
     let ticks = 1500u64;
     let added = 900u64;
     for seq in 1..=ticks {
         if seq == added {
             scene
                 .add_avatar(common::feed::walking(&rig, "b", 2, 0.3))
+                .unwrap();
+        }
+        if seq == joins {
+            scene
+                .subscribe(
+                    Subscriber::new(4, late.clone(), Encoding::Binary, None, 1).with_version(6),
+                )
                 .unwrap();
         }
         scene.tick(seq, seq as f64 / 60.0, seq * 16_667, 60);
@@ -361,6 +373,17 @@ async fn a_v2_reader_that_keeps_up_gets_a_keyframe_every_ten_seconds_not_every_s
             assert_same_pose(&by_seq[&f.header.seq], &f);
             if f.header.kind == FrameKind::Key {
                 v2_keys.push(f.header.seq);
+            }
+        }
+        if seq >= joins {
+            for bytes in common::feed::binary_frames(&late).await {
+                let f = dl
+                    .decode(&bytes)
+                    .unwrap_or_else(|e| panic!("tick {seq}: {e}"));
+                assert_same_pose(&by_seq[&f.header.seq], &f);
+                if f.header.kind == FrameKind::Key {
+                    late_keys.push(f.header.seq);
+                }
             }
         }
         // It holds frames on the ticks it is due (even ones), and its first at once.
@@ -389,6 +412,13 @@ async fn a_v2_reader_that_keeps_up_gets_a_keyframe_every_ten_seconds_not_every_s
     assert_eq!(half_keys[1] - half_keys[0], 660, "{half_keys:?}");
     assert_eq!(half_keys[2], added, "{half_keys:?}");
     assert_eq!(half_keys[3] - half_keys[2], 600, "{half_keys:?}");
+    // The late joiner: the newest cached frame as its keyframe, then deltas until the added
+    // avatar's keyframe, and one 10 s after that.
+    assert_eq!(
+        late_keys,
+        vec![joins - 1, added, added + 600],
+        "late joiner"
+    );
     assert!(v1_keys.len() >= 25, "v1 keyframes at {v1_keys:?}");
     // The first, one ten seconds after it, the added avatar's, one ten seconds after that.
     assert_eq!(v2_keys.len(), 4, "v2 keyframes at {v2_keys:?}");

@@ -759,8 +759,7 @@ impl Feed {
         let filter = sub.filter.as_deref();
         let joints = sub.joints.as_ref();
         if sub.v2() {
-            self.first_frames_v2(avatars, described, last, sub);
-            return None;
+            return self.first_frames_v2(avatars, described, last, sub);
         }
         let json = sub.encoding == Encoding::Json;
         let key = self.last_key.as_mut()?;
@@ -828,14 +827,15 @@ impl Feed {
     /// [`Feed::first_frames`] for a wire v2 subscriber: a v2 keyframe of the newest cached
     /// frame, which starts its chain (later deltas refer to it), or, when the cache predates a
     /// change of avatars, of the current poses, labelled `last`, after which its next frame is
-    /// a keyframe (the scene's frames do not continue from those poses).
+    /// a keyframe (the scene's frames do not continue from those poses). Returns the tick of
+    /// the keyframe that starts its chain, if one does.
     fn first_frames_v2(
         &mut self,
         avatars: &mut [Avatar],
         described: &[Arc<AvatarDescription>],
         last: TickStamp,
         sub: &Subscriber,
-    ) {
+    ) -> Option<u64> {
         let filter = sub.filter.as_deref();
         let joints = sub.joints.as_ref();
         let wanted = described.iter().filter(|d| sub.wants(&d.id));
@@ -845,9 +845,7 @@ impl Feed {
                 .as_ref()
                 .is_some_and(|k| k.covers(wanted, |id| sub.wants(id)));
         if covered {
-            let Some(newest) = self.last_delta.as_ref().or(self.last_key.as_ref()) else {
-                return;
-            };
+            let newest = self.last_delta.as_ref().or(self.last_key.as_ref())?;
             let now = self.ring.record(newest);
             if let Some(message) = self.ring.message(
                 newest,
@@ -864,12 +862,13 @@ impl Feed {
                     newest.header.seq,
                     None,
                 );
+                return Some(newest.header.seq);
             }
-            return;
+            return None;
         }
         if self.relay.is_some() {
             // The owner's next frame is a keyframe; until then there are no poses here.
-            return;
+            return None;
         }
         let pieces: Vec<Piece> = avatars
             .iter_mut()
@@ -900,6 +899,7 @@ impl Feed {
                 .push_frame(self.num, OutFrame { message, key: true });
         }
         sub.outbox.break_chain(self.num);
+        None
     }
 
     /// Ends a connection's subscription. Returns whether it had one.
