@@ -423,6 +423,33 @@ proptest! {
         body.extend_from_slice(&bytes);
         let _ = dec.decode(&frame_bytes(FrameKind::Delta, 4, 3, &body, 1));
     }
+
+    /// The same against frames on a grid with near-axis steps (protocol version 6), whose
+    /// escapes carry a tier flag and a tier change is predicted from a converted history.
+    #[test]
+    fn garbage_deltas_against_a_tiered_frame_never_panic(
+        bytes in prop::collection::vec(any::<u8>(), 0..200),
+        depth in 0u8..16,
+    ) {
+        let rotations = vec![
+            Quat::from_rotation_x(0.4),
+            Quat::from_rotation_y(1.9),
+            Quat::from_xyzw(0.5, 0.5, 0.5, 0.5),
+            Quat::IDENTITY,
+            Quat::from_rotation_z(-0.8),
+        ];
+        let p = pose(1, rotations, vec![Vec3::ONE], vec![Vec3::ONE]);
+        let steps = Arc::new(Steps { rotations: vec![5; 5], translation: 3, near: vec![9, 9, 1, 255, 9] });
+        let mut stream = StreamEncoder::new();
+        stream.set_steps(1, steps);
+        let mut dec = Frame2Decoder::new();
+        for seq in 1..4 {
+            dec.decode(&stream.encode(4, seq, 0, std::slice::from_ref(&p), false).0).unwrap();
+        }
+        let mut body = vec![1, depth << 4 | (bytes.first().copied().unwrap_or(0) & 7)];
+        body.extend_from_slice(&bytes);
+        let _ = dec.decode(&frame_bytes(FrameKind::Delta, 4, 3, &body, 1));
+    }
 }
 
 #[test]
