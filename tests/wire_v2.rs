@@ -25,6 +25,8 @@ use std::time::Duration;
 
 fn assert_same_pose(v1: &Frame, v2: &Frame) {
     assert_eq!(v1.header.seq, v2.header.seq);
+    // The server time too (a packed delta's is read from its base frame's).
+    assert_eq!(v1.header.server_time_us, v2.header.server_time_us);
     assert_eq!(v1.avatars.len(), v2.avatars.len());
     for (a, b) in v1.avatars.iter().zip(&v2.avatars) {
         assert_eq!(a.avatar_num, b.avatar_num);
@@ -79,13 +81,17 @@ async fn v1_and_v2_subscribers_decode_the_same_poses_even_when_slow() {
     let half = Arc::new(Outbox::new());
     let subset_slow = Arc::new(Outbox::new());
     let subset_half = Arc::new(Outbox::new());
+    let packed = Arc::new(Outbox::new());
+    // Readers of protocol version 7 (the slow one, the half-rate subset and `packed`) get
+    // packed deltas (frame kind 3), the others kind 2.
     for (conn, outbox, every, version, joints) in [
         (1, &v1, 1, 1, None),
         (2, &v2, 1, 2, None),
-        (3, &slow, 1, 2, None),
+        (3, &slow, 1, 7, None),
         (4, &half, 2, 2, None),
         (5, &subset_slow, 1, 3, Some(sets[0].clone())),
-        (6, &subset_half, 2, 3, Some(sets[1].clone())),
+        (6, &subset_half, 2, 7, Some(sets[1].clone())),
+        (7, &packed, 1, 7, None),
     ] {
         scene
             .subscribe(
@@ -102,10 +108,11 @@ async fn v1_and_v2_subscribers_decode_the_same_poses_even_when_slow() {
         Frame2Decoder::new(),
         Frame2Decoder::new(),
         Frame2Decoder::new(),
+        Frame2Decoder::new(),
     ];
     let mut by_seq: HashMap<u64, Frame> = HashMap::new();
-    let mut kinds = [[0usize; 2]; 5];
-    let (mut v1_bytes, mut v2_bytes) = (0usize, 0usize);
+    let mut kinds = [[0usize; 2]; 6];
+    let (mut v1_bytes, mut v2_bytes, mut packed_bytes) = (0usize, 0usize, 0usize);
     // The slow reader reads at irregular ticks: in between, the outbox replaces its frames.
     let mut rng = 0x2545_f491_4f6c_dd1du64;
     let ticks = 360u64;
@@ -126,8 +133,9 @@ async fn v1_and_v2_subscribers_decode_the_same_poses_even_when_slow() {
             seq.is_multiple_of(2),
             (rng >> 8).is_multiple_of(3),
             seq.is_multiple_of(2),
+            true,
         ];
-        let readers = [&v2, &slow, &half, &subset_slow, &subset_half];
+        let readers = [&v2, &slow, &half, &subset_slow, &subset_half, &packed];
         for (k, outbox) in readers.into_iter().enumerate() {
             if !reads[k] {
                 continue;
@@ -138,13 +146,23 @@ async fn v1_and_v2_subscribers_decode_the_same_poses_even_when_slow() {
                     .decode(&bytes)
                     .unwrap_or_else(|e| panic!("reader {k}, tick {seq}: {e}"));
                 kinds[k][usize::from(f.header.kind == FrameKind::Delta)] += 1;
+                let packs = [1, 4, 5].contains(&k);
+                let kind = match f.header.kind {
+                    FrameKind::Key => 1,
+                    FrameKind::Delta if packs => 3,
+                    FrameKind::Delta => 2,
+                };
+                assert_eq!(bytes[1], kind, "reader {k}, tick {seq}");
                 if k == 0 {
                     v2_bytes += bytes.len();
                 }
+                if k == 5 {
+                    packed_bytes += bytes.len();
+                }
                 let reference = by_seq.get(&f.header.seq).unwrap();
-                match k.checked_sub(3) {
-                    None => assert_same_pose(reference, &f),
-                    Some(s) => assert_same_pose(&cut(reference, &selections[s]), &f),
+                match k {
+                    3 | 4 => assert_same_pose(&cut(reference, &selections[k - 3]), &f),
+                    _ => assert_same_pose(reference, &f),
                 }
             }
         }
@@ -162,6 +180,14 @@ async fn v1_and_v2_subscribers_decode_the_same_poses_even_when_slow() {
     assert!(
         (v2_bytes as f64) < 0.6 * v1_bytes as f64,
         "v2 {v2_bytes} B vs v1 {v1_bytes} B"
+    );
+    // The same frames packed: 2.6 bytes a frame less for two avatars (two numbers and flags
+    // bytes and a padding, against a first number and two heads in bits; the times here are
+    // small, so the header's is not shorter).
+    assert_eq!(kinds[5], kinds[0]);
+    assert!(
+        (v2_bytes - packed_bytes) as f64 >= 2.4 * ticks as f64,
+        "packed {packed_bytes} B vs kind 2 {v2_bytes} B"
     );
 }
 
@@ -222,8 +248,8 @@ async fn the_native_client_speaks_v2_and_sees_what_a_v1_client_sees() {
     );
 }
 
-/// A server of before protocol version 2 refuses `hello {version: 6}`, … `{version: 2}` with
-/// `unsupported_version` and closes: the native client, asking for 6 by default, says hello
+/// A server of before protocol version 2 refuses `hello {version: 7}`, … `{version: 2}` with
+/// `unsupported_version` and closes: the native client, asking for 7 by default, says hello
 /// again with the version before until it is welcomed with 1 — it works with the old server
 /// out of the box.
 #[tokio::test]
@@ -236,8 +262,8 @@ async fn the_native_client_falls_back_to_version_1_for_an_older_server() {
         .await
         .expect("welcomed after falling back");
     assert!(client.is_connected());
-    assert_eq!(*hellos.lock().unwrap(), vec![6, 5, 4, 3, 2, 1]);
-    assert_eq!(SUPPORTED_VERSIONS, [1, 2, 3, 4, 5, 6]);
+    assert_eq!(*hellos.lock().unwrap(), vec![7, 6, 5, 4, 3, 2, 1]);
+    assert_eq!(SUPPORTED_VERSIONS, [1, 2, 3, 4, 5, 6, 7]);
     // Any refused version above 1 falls back the same way.
     let mut options = posecast_client::net::ClientOptions::new(format!("ws://{addr}/ws"), "x");
     options.version = 2;
@@ -247,7 +273,7 @@ async fn the_native_client_falls_back_to_version_1_for_an_older_server() {
         refused.is_ok(),
         "2 is refused, then 1 welcomed: {refused:?}"
     );
-    assert_eq!(*hellos.lock().unwrap(), vec![6, 5, 4, 3, 2, 1, 2, 1]);
+    assert_eq!(*hellos.lock().unwrap(), vec![7, 6, 5, 4, 3, 2, 1, 2, 1]);
 }
 
 /// A v2 reader that falls behind — its writer takes what is pending only every fifth tick, so

@@ -21,6 +21,13 @@
 //!              translation; then [S × 3 f32 scales], [placement]
 //! ```
 //!
+//! **Packed deltas** (kind 3, protocol version 7, [`PackedDeltas`]): the header gives
+//! `seq − base_seq` and then the time as `zigzag(time − the base frame's time)`
+//! ([`FrameClock`]), and every chunk goes into one bit stream padded once: its avatar number
+//! (1 bit when it is the previous chunk's + 1, else 5 bits `n − 1` and `n` bits), a head (1 bit
+//! for depth 8 without flags, else 0, 3 bits depth − 1 and the 4 flag bits), the same bits as a
+//! kind 2 chunk's stream, the scales and placement as 32-bit floats, and the weights' bits.
+//!
 //! **Prediction.** A delta chunk of depth `d` refers to the receiver's last `d` decoded frames
 //! of the avatar, newest first: `h₀` (at `base_seq`), `h₁`, … For each component (a rotation
 //! level of a joint whose dropped component is the same in `h₀…`, or a translation level), the
@@ -84,6 +91,9 @@ const FLAG_STEPS: u8 = 16;
 /// Keyframe chunk flag (protocol version 6, with [`FLAG_STEPS`]): each joint's near-axis step
 /// follows the steps ([`Steps::near`]); rotations carry a tier bit, escaped joints 48 bits.
 const FLAG_NEAR: u8 = 32;
+/// Frame kind byte of a packed delta (protocol version 7): every chunk in one bit stream, the
+/// time a difference from the base frame's.
+const KIND_PACKED: u8 = 3;
 /// Bits of a streamed morph weight level ([`crate::morph::WEIGHT_LEVELS`] = 2¹⁰ − 1).
 pub const WEIGHT_BITS: u32 = 10;
 const LEVEL_MAX: i64 = (1 << 15) - 2;
@@ -141,6 +151,18 @@ pub enum Frame2Error {
         base_seq: u64,
         /// Frames it refers to.
         depth: usize,
+    },
+    /// A packed delta (protocol version 7) whose base frame is not the last frame the reader
+    /// took of its scene: its time (a difference from the base frame's) cannot be read. Wait
+    /// for the next keyframe.
+    #[error(
+        "scene {scene}: packed delta against frame {base_seq}, which this reader does not hold"
+    )]
+    BaseTime {
+        /// The scene.
+        scene: u32,
+        /// The frame the delta needs.
+        base_seq: u64,
     },
     /// A delta chunk of depth 0 or a reserved flag bit set.
     #[error("avatar {avatar}: invalid chunk flags {flags:#04x}")]
@@ -476,56 +498,213 @@ fn write_scales_placement(pose: &QuantPose, scales: bool, placement: bool, out: 
 }
 
 /// Appends a delta chunk of `pose` against `history` (the receiver's last decoded frames of
-/// the avatar, newest first; at most [`MAX_DEPTH`] are used). Returns `false`, writing
-/// nothing, when there is no history or the newest differs in its joint, translation or scale
-/// counts (send a keyframe then).
+/// the avatar, newest first; at most [`MAX_DEPTH`] are used), in a frame of kind 2 (each
+/// chunk byte-aligned). Returns `false`, writing nothing, when there is no history or the
+/// newest differs in its joint, translation or scale counts (send a keyframe then).
 pub fn encode_delta(
     avatar_num: u32,
     pose: &QuantPose,
     history: &[&QuantPose],
     out: &mut Vec<u8>,
 ) -> bool {
-    let Some(base) = history.first() else {
+    let Some(plan) = DeltaPlan::of(pose, history) else {
         return false;
     };
-    if !pose.same_shape(base) {
-        return false;
-    }
-    // Older frames of another shape cannot be predicted from: the depth stops before them.
-    let depth = history
-        .iter()
-        .take(MAX_DEPTH)
-        .take_while(|h| h.same_shape(base))
-        .count();
-    let history = &history[..depth];
     varint(u64::from(avatar_num), out);
-    let escapes = pose
-        .rotations
-        .iter()
-        .zip(&base.rotations)
-        .any(|(a, b)| tag(*a) != tag(*b));
-    let full = full_bits(pose);
-    let tiered = pose.steps.as_deref().filter(|s| s.tiered());
-    let scales = pose.scales != base.scales;
-    let placement = pose.placement != base.placement;
-    // Compared element by element: equal slices of `u16` compile to a call of `memcmp`, whose
-    // cost showed in the tick's profile although most rigs have no weights.
-    let weights = pose.weights.len() != base.weights.len()
-        || pose.weights.iter().zip(&base.weights).any(|(a, b)| a != b);
-    let mut flags = ((depth - 1) as u8) << 4;
-    for (set, bit) in [
-        (placement, FLAG_PLACEMENT),
-        (scales, FLAG_SCALES),
-        (escapes, FLAG_ESCAPES),
-        (weights, FLAG_WEIGHTS),
-    ] {
-        if set {
-            flags |= bit;
+    out.push(plan.flags());
+    let mut w = BitWriter::new(out);
+    delta_body(&mut w, pose, &plan, &history[..plan.depth]);
+    w.finish();
+    write_scales_placement(pose, plan.scales, plan.placement, out);
+    if plan.weights {
+        let mut w = BitWriter::new(out);
+        changed_weights(&mut w, pose, history[0]);
+        w.finish();
+    }
+    true
+}
+
+/// Writes the header of a packed delta (kind 3, protocol version 7) of `avatar_count` chunks:
+/// `header`'s time as a difference from `base_time_us`, its base frame's.
+pub fn write_packed_header(
+    header: &FrameHeader,
+    base_time_us: u64,
+    avatar_count: usize,
+    out: &mut Vec<u8>,
+) {
+    out.push(MAGIC);
+    out.push(KIND_PACKED);
+    varint(avatar_count as u64, out);
+    varint(u64::from(header.scene_num), out);
+    varint(header.seq, out);
+    varint(header.seq.saturating_sub(header.base_seq), out);
+    varint(
+        zigzag(header.server_time_us.wrapping_sub(base_time_us) as i64),
+        out,
+    );
+}
+
+/// Writes a packed delta frame (kind 3, protocol version 7): the header, then every avatar's
+/// chunk in one bit stream. Made by [`PackedDeltas::new`], filled by [`PackedDeltas::push`],
+/// ended by [`PackedDeltas::finish`].
+#[derive(Debug)]
+pub struct PackedDeltas<'a> {
+    w: BitWriter<'a>,
+    /// The previous chunk's avatar number.
+    prev: Option<u32>,
+}
+
+impl<'a> PackedDeltas<'a> {
+    /// Starts a packed delta frame of `avatar_count` chunks in `out`: `header` is the frame's
+    /// (a delta) and `base_time_us` the server time of its base frame (`header.base_seq`), from
+    /// which its own time is sent as a difference.
+    pub fn new(
+        header: &FrameHeader,
+        base_time_us: u64,
+        avatar_count: usize,
+        out: &'a mut Vec<u8>,
+    ) -> Self {
+        write_packed_header(header, base_time_us, avatar_count, out);
+        Self {
+            w: BitWriter::new(out),
+            prev: None,
         }
     }
-    out.push(flags);
-    let mut w = BitWriter::new(out);
-    if escapes {
+
+    /// Appends avatar `avatar_num`'s chunk: `pose` against `history` (as [`encode_delta`]).
+    /// Returns `false`, writing nothing, when it cannot be coded against `history`.
+    pub fn push(&mut self, avatar_num: u32, pose: &QuantPose, history: &[&QuantPose]) -> bool {
+        let Some(plan) = DeltaPlan::of(pose, history) else {
+            return false;
+        };
+        let w = &mut self.w;
+        match self.prev {
+            Some(p) if p.checked_add(1) == Some(avatar_num) => w.put(1, 1),
+            prev => {
+                if prev.is_some() {
+                    w.put(0, 1);
+                }
+                let n = (32 - avatar_num.leading_zeros()).max(1);
+                w.put(u64::from(n - 1), 5);
+                w.put(u64::from(avatar_num), n);
+            }
+        }
+        self.prev = Some(avatar_num);
+        let flags = plan.flags();
+        if plan.depth == MAX_DEPTH && flags & 0x0f == 0 {
+            w.put(1, 1);
+        } else {
+            w.put(0, 1);
+            w.put(u64::from(flags >> 4), 3);
+            w.put(u64::from(flags & 0x0f), 4);
+        }
+        delta_body(w, pose, &plan, &history[..plan.depth]);
+        if plan.scales {
+            for s in &pose.scales {
+                for c in s.to_array() {
+                    w.put(u64::from(c.to_bits()), 32);
+                }
+            }
+        }
+        if plan.placement {
+            let p = &pose.placement;
+            for c in p
+                .position
+                .to_array()
+                .into_iter()
+                .chain(p.rotation.to_array())
+            {
+                w.put(u64::from(c.to_bits()), 32);
+            }
+        }
+        if plan.weights {
+            changed_weights(w, pose, history[0]);
+        }
+        true
+    }
+
+    /// Ends the frame: the bits waiting, padded with zeros to a whole byte.
+    pub fn finish(self) {
+        self.w.finish();
+    }
+}
+
+/// What a delta chunk of a pose against its history holds: its depth and what changed.
+struct DeltaPlan {
+    depth: usize,
+    escapes: bool,
+    scales: bool,
+    placement: bool,
+    weights: bool,
+}
+
+impl DeltaPlan {
+    /// `None` when there is no history or the newest differs in shape.
+    fn of(pose: &QuantPose, history: &[&QuantPose]) -> Option<Self> {
+        let base = history.first()?;
+        if !pose.same_shape(base) {
+            return None;
+        }
+        // Older frames of another shape cannot be predicted from: the depth stops before them.
+        let depth = history
+            .iter()
+            .take(MAX_DEPTH)
+            .take_while(|h| h.same_shape(base))
+            .count();
+        Some(Self {
+            depth,
+            escapes: pose
+                .rotations
+                .iter()
+                .zip(&base.rotations)
+                .any(|(a, b)| tag(*a) != tag(*b)),
+            scales: pose.scales != base.scales,
+            placement: pose.placement != base.placement,
+            // Compared element by element: equal slices of `u16` compile to a call of
+            // `memcmp`, whose cost showed in the tick's profile although most rigs have no
+            // weights.
+            weights: pose.weights.len() != base.weights.len()
+                || pose.weights.iter().zip(&base.weights).any(|(a, b)| a != b),
+        })
+    }
+
+    /// The chunk's flags byte: what changed in the low bits, depth − 1 in bits 4–6.
+    fn flags(&self) -> u8 {
+        let mut flags = ((self.depth - 1) as u8) << 4;
+        for (set, bit) in [
+            (self.placement, FLAG_PLACEMENT),
+            (self.scales, FLAG_SCALES),
+            (self.escapes, FLAG_ESCAPES),
+            (self.weights, FLAG_WEIGHTS),
+        ] {
+            if set {
+                flags |= bit;
+            }
+        }
+        flags
+    }
+}
+
+/// A weight change mask over the channels, then the new level of each changed one.
+fn changed_weights(w: &mut BitWriter<'_>, pose: &QuantPose, base: &QuantPose) {
+    for (a, b) in pose.weights.iter().zip(&base.weights) {
+        w.put(u64::from(a != b), 1);
+    }
+    for (a, b) in pose.weights.iter().zip(&base.weights) {
+        if a != b {
+            w.put(u64::from(*a), WEIGHT_BITS);
+        }
+    }
+}
+
+/// A delta chunk's bits: the escape mask, each joint's residuals (or full bits) and each
+/// translation's residuals, against `history` (already cut to the plan's depth).
+fn delta_body(w: &mut BitWriter<'_>, pose: &QuantPose, plan: &DeltaPlan, history: &[&QuantPose]) {
+    let depth = plan.depth;
+    let base = history[0];
+    let full = full_bits(pose);
+    let tiered = pose.steps.as_deref().filter(|s| s.tiered());
+    if plan.escapes {
         for (a, b) in pose.rotations.iter().zip(&base.rotations) {
             w.put(u64::from(tag(*a) != tag(*b)), 1);
         }
@@ -575,22 +754,6 @@ pub fn encode_delta(
             w.rice(zigzag(i64::from(value) - pred), k);
         }
     }
-    w.finish();
-    write_scales_placement(pose, scales, placement, out);
-    if weights {
-        // A change mask over the channels, then the new level of each changed one.
-        let mut w = BitWriter::new(out);
-        for (a, b) in pose.weights.iter().zip(&base.weights) {
-            w.put(u64::from(a != b), 1);
-        }
-        for (a, b) in pose.weights.iter().zip(&base.weights) {
-            if a != b {
-                w.put(u64::from(*a), WEIGHT_BITS);
-            }
-        }
-        w.finish();
-    }
-    true
 }
 
 /// A rotation's dropped component (bits 45–46) and grid tier (bit 47, protocol version 6):
@@ -798,6 +961,7 @@ fn div_small(x: u64, d: u64) -> u64 {
     }
 }
 
+#[derive(Debug)]
 struct BitWriter<'a> {
     out: &'a mut Vec<u8>,
     acc: u64,
@@ -1038,52 +1202,131 @@ struct AvatarHistory {
 #[derive(Debug, Default)]
 pub struct Frame2Decoder {
     history: HashMap<(u32, u32), AvatarHistory>,
+    clock: FrameClock,
 }
 
-/// Reads a v2 frame's header and chunk count.
+/// Reads a v2 frame's header and chunk count, for a keyframe or a delta of kind 2. A packed
+/// delta (kind 3) gives its time as a difference from its base frame's: read it with a
+/// [`FrameClock`] that saw the frames before it.
 ///
 /// # Errors
-/// Truncated, bad magic, unknown kind, a bad number.
+/// Truncated, bad magic, unknown kind, a bad number; [`Frame2Error::BaseTime`] for a packed
+/// delta.
 pub fn read_header(bytes: &[u8]) -> Result<(FrameHeader, usize), Frame2Error> {
-    let mut r = Reader { bytes, at: 0 };
-    header(&mut r)
+    FrameClock::default().read(bytes)
 }
 
-fn header(r: &mut Reader<'_>) -> Result<(FrameHeader, usize), Frame2Error> {
-    let magic = r.u8()?;
-    if magic != MAGIC {
-        return Err(Frame2Error::Magic(magic));
+/// The server time of each scene's last frame a reader took, from which a packed delta's
+/// (protocol version 7) is read. A reader of headers alone (a load generator) keeps one; a
+/// [`Frame2Decoder`] keeps its own.
+#[derive(Debug, Default, Clone)]
+pub struct FrameClock {
+    /// (seq, server time) of the last frame recorded, by scene number.
+    last: HashMap<u32, (u64, u64)>,
+}
+
+impl FrameClock {
+    /// Reads a v2 frame's header and chunk count, a packed delta's time from its base
+    /// frame's (which must be the scene's last frame recorded). Records nothing.
+    ///
+    /// # Errors
+    /// As [`read_header`]; [`Frame2Error::BaseTime`] for a packed delta whose base frame is
+    /// not the last one recorded of its scene.
+    pub fn read(&self, bytes: &[u8]) -> Result<(FrameHeader, usize), Frame2Error> {
+        let mut r = Reader { bytes, at: 0 };
+        self.header(&mut r).map(|(h, count, _)| (h, count))
     }
-    let kind = match r.u8()? {
-        1 => FrameKind::Key,
-        2 => FrameKind::Delta,
-        k => return Err(Frame2Error::Kind(k)),
-    };
-    let at = r.at;
-    let count = usize::try_from(r.varint()?).map_err(|_| Frame2Error::Number { at })?;
-    let scene_num = r.varint_u32()?;
-    let seq = r.varint()?;
-    let server_time_us = r.varint()?;
-    let base_seq = match kind {
-        FrameKind::Key => seq,
-        FrameKind::Delta => {
-            let gap = r.varint()?;
-            if gap == 0 || gap > seq {
-                return Err(Frame2Error::BaseGap { seq, gap });
+
+    /// As [`FrameClock::read`], but a packed delta whose base frame is not the last one
+    /// recorded is read too, with `server_time_us` 0: the header and whether its time is
+    /// known (a reader counting frames it cannot time, such as a load generator joining a
+    /// broadcast between keyframes).
+    ///
+    /// # Errors
+    /// As [`read_header`], except [`Frame2Error::BaseTime`].
+    pub fn read_untimed(&self, bytes: &[u8]) -> Result<(FrameHeader, usize, bool), Frame2Error> {
+        match self.read(bytes) {
+            Ok((header, count)) => Ok((header, count, true)),
+            Err(Frame2Error::BaseTime { scene, base_seq }) => {
+                // Read it against a clock that holds its base frame at time 0.
+                let mut clock = Self::default();
+                clock.last.insert(scene, (base_seq, 0));
+                let (mut header, count) = clock.read(bytes)?;
+                header.server_time_us = 0;
+                Ok((header, count, false))
             }
-            seq - gap
+            Err(e) => Err(e),
         }
-    };
-    Ok((
-        FrameHeader {
+    }
+
+    /// Takes `header` (of a frame read whole) as its scene's last frame.
+    pub fn record(&mut self, header: &FrameHeader) {
+        self.last
+            .insert(header.scene_num, (header.seq, header.server_time_us));
+    }
+
+    /// The server time of frame `seq` of scene `scene_num`, when it is the last one recorded.
+    #[must_use]
+    pub fn time_of(&self, scene_num: u32, seq: u64) -> Option<u64> {
+        self.last
+            .get(&scene_num)
+            .filter(|(s, _)| *s == seq)
+            .map(|(_, t)| *t)
+    }
+
+    /// Forgets a scene's frames.
+    pub fn forget(&mut self, scene_num: u32) {
+        self.last.remove(&scene_num);
+    }
+
+    /// The header, the chunk count, and whether the chunks are packed (kind 3).
+    fn header(&self, r: &mut Reader<'_>) -> Result<(FrameHeader, usize, bool), Frame2Error> {
+        let magic = r.u8()?;
+        if magic != MAGIC {
+            return Err(Frame2Error::Magic(magic));
+        }
+        let (kind, packed) = match r.u8()? {
+            1 => (FrameKind::Key, false),
+            2 => (FrameKind::Delta, false),
+            KIND_PACKED => (FrameKind::Delta, true),
+            k => return Err(Frame2Error::Kind(k)),
+        };
+        let at = r.at;
+        let count = usize::try_from(r.varint()?).map_err(|_| Frame2Error::Number { at })?;
+        let scene_num = r.varint_u32()?;
+        let seq = r.varint()?;
+        let server_time_us = if packed { 0 } else { r.varint()? };
+        let mut header = FrameHeader {
             kind,
             scene_num,
             seq,
             server_time_us,
-            base_seq,
-        },
-        count,
-    ))
+            base_seq: seq,
+        };
+        if kind == FrameKind::Delta {
+            let gap = r.varint()?;
+            if gap == 0 || gap > seq {
+                return Err(Frame2Error::BaseGap { seq, gap });
+            }
+            header.base_seq = seq - gap;
+        }
+        if packed {
+            let since = unzigzag(r.varint()?);
+            let base_seq = header.base_seq;
+            match self.last.get(&scene_num) {
+                Some(&(last, time)) if last == base_seq => {
+                    header.server_time_us = time.wrapping_add(since as u64);
+                }
+                _ => {
+                    return Err(Frame2Error::BaseTime {
+                        scene: scene_num,
+                        base_seq,
+                    });
+                }
+            }
+        }
+        Ok((header, count, packed))
+    }
 }
 
 impl Frame2Decoder {
@@ -1108,17 +1351,34 @@ impl Frame2Decoder {
     /// Malformed bytes, or a delta whose base this decoder does not hold.
     pub fn decode_levels(&mut self, bytes: &[u8]) -> Result<LevelFrame, Frame2Error> {
         let mut r = Reader { bytes, at: 0 };
-        let (header, count) = header(&mut r)?;
+        let (header, count, packed) = self.clock.header(&mut r)?;
         let mut avatars: Vec<DecodedAvatar> = Vec::with_capacity(count.min(bytes.len() / 2));
-        for _ in 0..count {
-            let a = match header.kind {
-                FrameKind::Key => key_chunk(&mut r)?,
-                FrameKind::Delta => self.delta_chunk(&mut r, &header)?,
-            };
+        let mut push = |a: DecodedAvatar| {
             if avatars.iter().any(|b| b.avatar_num == a.avatar_num) {
                 return Err(Frame2Error::Duplicate(a.avatar_num));
             }
             avatars.push(a);
+            Ok(())
+        };
+        if packed {
+            let mut b = BitReader {
+                r: &mut r,
+                acc: 0,
+                bits: 0,
+            };
+            let mut prev = None;
+            for _ in 0..count {
+                let a = self.packed_chunk(&mut b, &header, prev)?;
+                prev = Some(a.avatar_num);
+                push(a)?;
+            }
+        } else {
+            for _ in 0..count {
+                push(match header.kind {
+                    FrameKind::Key => key_chunk(&mut r)?,
+                    FrameKind::Delta => self.delta_chunk(&mut r, &header)?,
+                })?;
+            }
         }
         if r.at != bytes.len() {
             return Err(Frame2Error::Trailing(bytes.len() - r.at));
@@ -1135,12 +1395,14 @@ impl Frame2Decoder {
             h.frames.push_front((header.seq, a.levels.clone()));
             h.frames.truncate(MAX_DEPTH);
         }
+        self.clock.record(&header);
         Ok(LevelFrame { header, avatars })
     }
 
     /// Forgets a scene's frames (the client left it).
     pub fn forget_scene(&mut self, scene_num: u32) {
         self.history.retain(|(s, _), _| *s != scene_num);
+        self.clock.forget(scene_num);
     }
 
     /// Forgets one avatar's frames (it left the scene), so a long-lived decoder holds only
@@ -1149,6 +1411,7 @@ impl Frame2Decoder {
         self.history.remove(&(scene_num, avatar_num));
     }
 
+    /// A delta chunk of a frame of kind 2 (byte-aligned).
     fn delta_chunk(
         &self,
         r: &mut Reader<'_>,
@@ -1156,6 +1419,83 @@ impl Frame2Decoder {
     ) -> Result<DecodedAvatar, Frame2Error> {
         let avatar = r.varint_u32()?;
         let flags = r.u8()?;
+        let (hash, history) = self.history_for(header, avatar, flags)?;
+        let mut pose = {
+            let mut b = BitReader { r, acc: 0, bits: 0 };
+            delta_levels(&mut b, &history, flags)?
+        };
+        if flags & FLAG_SCALES != 0 {
+            for s in &mut pose.scales {
+                *s = r.vec3()?;
+            }
+        }
+        if flags & FLAG_PLACEMENT != 0 {
+            pose.placement = r.placement()?;
+        }
+        if flags & FLAG_WEIGHTS != 0 {
+            let mut b = BitReader { r, acc: 0, bits: 0 };
+            read_weights(&mut b, &mut pose.weights)?;
+        }
+        Ok(DecodedAvatar {
+            avatar_num: avatar,
+            hash,
+            levels: Arc::new(pose),
+        })
+    }
+
+    /// A chunk of a packed delta (kind 3), read from the frame's one bit stream; `prev` is
+    /// the previous chunk's avatar number.
+    fn packed_chunk(
+        &self,
+        b: &mut BitReader<'_, '_>,
+        header: &FrameHeader,
+        prev: Option<u32>,
+    ) -> Result<DecodedAvatar, Frame2Error> {
+        let at = b.r.at;
+        let avatar = match prev {
+            Some(p) if b.get(1)? == 1 => p.checked_add(1).ok_or(Frame2Error::Number { at })?,
+            _ => {
+                let n = b.get(5)? as u32 + 1;
+                u32::try_from(b.get(n)?).map_err(|_| Frame2Error::Number { at })?
+            }
+        };
+        let flags = if b.get(1)? == 1 {
+            ((MAX_DEPTH - 1) as u8) << 4
+        } else {
+            let depth = b.get(3)? as u8;
+            depth << 4 | b.get(4)? as u8
+        };
+        let (hash, history) = self.history_for(header, avatar, flags)?;
+        let mut pose = delta_levels(b, &history, flags)?;
+        let mut f32 = || b.get(32).map(|v| f32::from_bits(v as u32));
+        if flags & FLAG_SCALES != 0 {
+            for s in &mut pose.scales {
+                *s = Vec3::new(f32()?, f32()?, f32()?);
+            }
+        }
+        if flags & FLAG_PLACEMENT != 0 {
+            let position = Vec3::new(f32()?, f32()?, f32()?);
+            let rotation = Quat::from_array([f32()?, f32()?, f32()?, f32()?]);
+            pose.placement = Placement { position, rotation };
+        }
+        if flags & FLAG_WEIGHTS != 0 {
+            read_weights(b, &mut pose.weights)?;
+        }
+        Ok(DecodedAvatar {
+            avatar_num: avatar,
+            hash,
+            levels: Arc::new(pose),
+        })
+    }
+
+    /// The description hash and the frames (newest first, `depth` of them from `flags`) a
+    /// delta chunk of `avatar` refers to, checked against what this decoder holds.
+    fn history_for(
+        &self,
+        header: &FrameHeader,
+        avatar: u32,
+        flags: u8,
+    ) -> Result<(u64, Vec<&QuantPose>), Frame2Error> {
         let depth = usize::from(flags >> 4) + 1;
         let missing = Frame2Error::MissingBase {
             avatar,
@@ -1176,103 +1516,105 @@ impl Frame2Decoder {
         if history.iter().any(|h| !h.same_shape(base)) {
             return Err(missing);
         }
-        let mut pose = QuantPose {
-            rotations: Vec::with_capacity(base.rotations.len()),
-            translations: Vec::with_capacity(base.translations.len()),
-            scales: base.scales.clone(),
-            placement: base.placement,
-            weights: base.weights.clone(),
-            steps: base.steps.clone(),
-        };
         if flags & FLAG_WEIGHTS != 0 && base.weights.is_empty() {
             return Err(Frame2Error::Flags { avatar, flags });
         }
-        let mut b = BitReader { r, acc: 0, bits: 0 };
-        let joints = base.rotations.len();
-        let full = full_bits(base);
-        let steps = base.steps.clone();
-        let tiered = steps.as_deref().filter(|s| s.tiered());
-        let mut escaped = vec![false; joints];
-        if flags & FLAG_ESCAPES != 0 {
-            for e in &mut escaped {
-                *e = b.get(1)? == 1;
-            }
+        Ok((held.hash, history))
+    }
+}
+
+/// The changed morph weights of a delta chunk: a change mask over `weights`' channels, then
+/// a level for each changed one.
+fn read_weights(b: &mut BitReader<'_, '_>, weights: &mut [u16]) -> Result<(), Frame2Error> {
+    let mut changed = vec![false; weights.len()];
+    for c in &mut changed {
+        *c = b.get(1)? == 1;
+    }
+    for (w, _) in weights.iter_mut().zip(&changed).filter(|(_, c)| **c) {
+        *w = weight(b)?;
+    }
+    Ok(())
+}
+
+/// A delta chunk's escape mask, rotations and translations, read against `history` (newest
+/// first, the chunk's depth); scales, placement and weights are the base's.
+fn delta_levels(
+    b: &mut BitReader<'_, '_>,
+    history: &[&QuantPose],
+    flags: u8,
+) -> Result<QuantPose, Frame2Error> {
+    let depth = history.len();
+    let base = history[0];
+    let mut pose = QuantPose {
+        rotations: Vec::with_capacity(base.rotations.len()),
+        translations: Vec::with_capacity(base.translations.len()),
+        scales: base.scales.clone(),
+        placement: base.placement,
+        weights: base.weights.clone(),
+        steps: base.steps.clone(),
+    };
+    let joints = base.rotations.len();
+    let full = full_bits(base);
+    let steps = base.steps.clone();
+    let tiered = steps.as_deref().filter(|s| s.tiered());
+    let mut escaped = vec![false; joints];
+    if flags & FLAG_ESCAPES != 0 {
+        for e in &mut escaped {
+            *e = b.get(1)? == 1;
         }
-        let mut h = [0i64; MAX_DEPTH];
-        let frames: Vec<&[u64]> = history.iter().map(|f| &f.rotations[..]).collect();
-        let mut p = predict_rotations(&frames, 0);
-        for (j, &esc) in escaped.iter().enumerate() {
-            let l = j % LANES;
-            if l == 0 && j > 0 {
-                p = predict_rotations(&frames, j);
-            }
-            if esc {
-                if let Some(steps) = tiered
-                    && b.get(1)? == 1
-                {
-                    // The tier changed, the dropped component did not.
-                    let flipped = base.rotations[j] ^ (1 << 47);
-                    let mut bits = tag(flipped);
-                    for c in 0..3 {
-                        let (pred, k) = regridded(&frames, j, flipped, steps, c);
-                        let value = pred + unzigzag(b.rice(k)?);
-                        if !(0..=LEVEL_MASK as i64).contains(&value) {
-                            return Err(Frame2Error::Number { at: b.r.at });
-                        }
-                        bits = bits << 15 | value as u64;
+    }
+    let mut h = [0i64; MAX_DEPTH];
+    let frames: Vec<&[u64]> = history.iter().map(|f| &f.rotations[..]).collect();
+    let mut p = predict_rotations(&frames, 0);
+    for (j, &esc) in escaped.iter().enumerate() {
+        let l = j % LANES;
+        if l == 0 && j > 0 {
+            p = predict_rotations(&frames, j);
+        }
+        if esc {
+            if let Some(steps) = tiered
+                && b.get(1)? == 1
+            {
+                // The tier changed, the dropped component did not.
+                let flipped = base.rotations[j] ^ (1 << 47);
+                let mut bits = tag(flipped);
+                for c in 0..3 {
+                    let (pred, k) = regridded(&frames, j, flipped, steps, c);
+                    let value = pred + unzigzag(b.rice(k)?);
+                    if !(0..=LEVEL_MASK as i64).contains(&value) {
+                        return Err(Frame2Error::Number { at: b.r.at });
                     }
-                    pose.rotations.push(bits);
-                    continue;
+                    bits = bits << 15 | value as u64;
                 }
-                pose.rotations.push(b.get(full)?);
+                pose.rotations.push(bits);
                 continue;
             }
-            let mut bits = tag(base.rotations[j]);
-            for c in 0..3 {
-                let value = i64::from(p.pred[c][l]) + unzigzag(b.rice(p.k[c][l])?);
-                if !(0..=LEVEL_MASK as i64).contains(&value) {
-                    return Err(Frame2Error::Number { at: b.r.at });
-                }
-                bits = bits << 15 | value as u64;
-            }
-            pose.rotations.push(bits);
+            pose.rotations.push(b.get(full)?);
+            continue;
         }
-        for t in 0..base.translations.len() {
-            let mut v = [0i32; 3];
-            for (c, out) in v.iter_mut().enumerate() {
-                for (slot, f) in h.iter_mut().zip(&history) {
-                    *slot = i64::from(f.translations[t][c]);
-                }
-                let (pred, k) = predict(&h[..depth], false);
-                *out = i32::try_from(pred.wrapping_add(unzigzag(b.rice(k)?)))
-                    .map_err(|_| Frame2Error::Number { at: b.r.at })?;
+        let mut bits = tag(base.rotations[j]);
+        for c in 0..3 {
+            let value = i64::from(p.pred[c][l]) + unzigzag(b.rice(p.k[c][l])?);
+            if !(0..=LEVEL_MASK as i64).contains(&value) {
+                return Err(Frame2Error::Number { at: b.r.at });
             }
-            pose.translations.push(v);
+            bits = bits << 15 | value as u64;
         }
-        if flags & FLAG_SCALES != 0 {
-            for s in &mut pose.scales {
-                *s = r.vec3()?;
-            }
-        }
-        if flags & FLAG_PLACEMENT != 0 {
-            pose.placement = r.placement()?;
-        }
-        if flags & FLAG_WEIGHTS != 0 {
-            let mut b = BitReader { r, acc: 0, bits: 0 };
-            let mut changed = vec![false; pose.weights.len()];
-            for c in &mut changed {
-                *c = b.get(1)? == 1;
-            }
-            for (w, _) in pose.weights.iter_mut().zip(&changed).filter(|(_, c)| **c) {
-                *w = weight(&mut b)?;
-            }
-        }
-        Ok(DecodedAvatar {
-            avatar_num: avatar,
-            hash: held.hash,
-            levels: Arc::new(pose),
-        })
+        pose.rotations.push(bits);
     }
+    for t in 0..base.translations.len() {
+        let mut v = [0i32; 3];
+        for (c, out) in v.iter_mut().enumerate() {
+            for (slot, f) in h.iter_mut().zip(history) {
+                *slot = i64::from(f.translations[t][c]);
+            }
+            let (pred, k) = predict(&h[..depth], false);
+            *out = i32::try_from(pred.wrapping_add(unzigzag(b.rice(k)?)))
+                .map_err(|_| Frame2Error::Number { at: b.r.at })?;
+        }
+        pose.translations.push(v);
+    }
+    Ok(pose)
 }
 
 /// One weight level from the bit stream, checked against [`crate::morph::WEIGHT_LEVELS`].
@@ -1387,6 +1729,10 @@ fn key_chunk(r: &mut Reader<'_>) -> Result<DecodedAvatar, Frame2Error> {
 pub struct StreamEncoder {
     history: HashMap<u32, VecDeque<Arc<QuantPose>>>,
     last_seq: Option<u64>,
+    /// The last frame's server time.
+    last_time: u64,
+    /// Whether deltas are packed (kind 3, protocol version 7).
+    packed: bool,
     /// Grid steps by avatar number (a subscription's precision), else the finest.
     steps: HashMap<u32, Arc<Steps>>,
 }
@@ -1396,6 +1742,13 @@ impl StreamEncoder {
     #[must_use]
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// The same encoder, writing packed deltas (kind 3, protocol version 7) when `packed`.
+    #[must_use]
+    pub fn with_packing(mut self, packed: bool) -> Self {
+        self.packed = packed;
+        self
     }
 
     /// Codes avatar `avatar_num` on the grid of `steps` from now on (its next frame should be
@@ -1425,40 +1778,19 @@ impl StreamEncoder {
                 })
             })
             .collect();
-        let mut body = Vec::new();
-        let mut kind = FrameKind::Key;
+        let kind = FrameKind::Key;
         if !key && let Some(base_seq) = self.last_seq {
-            let mut ok = true;
-            for (p, q) in poses.iter().zip(&quantised) {
-                let h: Vec<&QuantPose> = self
-                    .history
-                    .get(&p.avatar_num)
-                    .map(|h| h.iter().map(|f| &**f).collect())
-                    .unwrap_or_default();
-                if !encode_delta(p.avatar_num, q, &h, &mut body) {
-                    ok = false;
-                    break;
-                }
+            let header = FrameHeader {
+                kind: FrameKind::Delta,
+                scene_num,
+                seq,
+                server_time_us,
+                base_seq,
+            };
+            if let Some(out) = self.delta(&header, poses, &quantised) {
+                self.remember(poses, quantised, seq, server_time_us, false);
+                return (out, FrameKind::Delta);
             }
-            if ok {
-                kind = FrameKind::Delta;
-                let mut out = Vec::with_capacity(body.len() + 24);
-                write_header(
-                    &FrameHeader {
-                        kind,
-                        scene_num,
-                        seq,
-                        server_time_us,
-                        base_seq,
-                    },
-                    poses.len(),
-                    &mut out,
-                );
-                out.extend_from_slice(&body);
-                self.remember(poses, quantised, seq, false);
-                return (out, kind);
-            }
-            body.clear();
         }
         let mut out = Vec::new();
         write_header(
@@ -1475,11 +1807,52 @@ impl StreamEncoder {
         for (p, q) in poses.iter().zip(&quantised) {
             encode_key(p.avatar_num, p.hash, q, &mut out);
         }
-        self.remember(poses, quantised, seq, true);
+        self.remember(poses, quantised, seq, server_time_us, true);
         (out, kind)
     }
 
-    fn remember(&mut self, poses: &[AvatarPose], q: Vec<Arc<QuantPose>>, seq: u64, key: bool) {
+    /// A delta frame of `quantised` against the frames remembered, `None` when some avatar
+    /// cannot be coded against them.
+    fn delta(
+        &self,
+        header: &FrameHeader,
+        poses: &[AvatarPose],
+        quantised: &[Arc<QuantPose>],
+    ) -> Option<Vec<u8>> {
+        let history = |num: u32| -> Vec<&QuantPose> {
+            self.history
+                .get(&num)
+                .map(|h| h.iter().map(|f| &**f).collect())
+                .unwrap_or_default()
+        };
+        let mut out = Vec::new();
+        if self.packed {
+            let mut packed = PackedDeltas::new(header, self.last_time, poses.len(), &mut out);
+            for (p, q) in poses.iter().zip(quantised) {
+                if !packed.push(p.avatar_num, q, &history(p.avatar_num)) {
+                    return None;
+                }
+            }
+            packed.finish();
+        } else {
+            write_header(header, poses.len(), &mut out);
+            for (p, q) in poses.iter().zip(quantised) {
+                if !encode_delta(p.avatar_num, q, &history(p.avatar_num), &mut out) {
+                    return None;
+                }
+            }
+        }
+        Some(out)
+    }
+
+    fn remember(
+        &mut self,
+        poses: &[AvatarPose],
+        q: Vec<Arc<QuantPose>>,
+        seq: u64,
+        time: u64,
+        key: bool,
+    ) {
         if key {
             self.history.clear();
         }
@@ -1489,6 +1862,7 @@ impl StreamEncoder {
             h.truncate(MAX_DEPTH);
         }
         self.last_seq = Some(seq);
+        self.last_time = time;
     }
 }
 

@@ -22,8 +22,10 @@ pub const PROTOCOL_VERSION: u32 = 1;
 /// 8, `proto/PROTOCOL.md`); version 5 is version 4 with precision per subscription
 /// (`subscribe`'s `precision`, keyframe chunk flag 16: [`crate::precision`]); version 6 is
 /// version 5 with near-axis grid steps in a precision's frames (keyframe chunk flag 32, a
-/// tier bit per rotation: [`crate::precision::Steps::near`]). Every other message is the same.
-pub const SUPPORTED_VERSIONS: [u32; 6] = [1, 2, 3, 4, 5, 6];
+/// tier bit per rotation: [`crate::precision::Steps::near`]); version 7 is version 6 with
+/// packed deltas (frame kind 3: every avatar's chunk in one bit stream, the time since the base
+/// frame's, [`crate::frame2::PackedDeltas`]). Every other message is the same.
+pub const SUPPORTED_VERSIONS: [u32; 7] = [1, 2, 3, 4, 5, 6, 7];
 
 /// Largest message the server accepts from a client, in bytes (hello, subscribe, commands).
 /// Uploads of assets go through HTTP, not the websocket.

@@ -153,6 +153,11 @@ impl Subscriber {
 
     /// Whether its frames carry morph weights: v2 frames from protocol version 4, JSON ones
     /// always — unless the subscription left them out.
+    /// Whether its wire v2 deltas are packed (protocol version 7).
+    fn packed(&self) -> bool {
+        self.version >= 7
+    }
+
     fn weights(&self) -> bool {
         self.morph_weights && (self.encoding == Encoding::Json || self.version >= 4)
     }
@@ -855,6 +860,7 @@ impl Feed {
                 joints,
                 sub.weights(),
                 sub.grid().as_ref(),
+                sub.packed(),
             ) {
                 sub.outbox.push_chained(
                     self.num,
@@ -894,6 +900,7 @@ impl Feed {
             joints,
             sub.weights(),
             sub.grid().as_ref(),
+            false,
         ) {
             sub.outbox
                 .push_frame(self.num, OutFrame { message, key: true });
@@ -1010,13 +1017,14 @@ impl Feed {
             self.ring.clear();
             None
         };
-        // (chain, avatar filter, joint subset, with morph weights, precision)
+        // (chain, avatar filter, joint subset, with morph weights, precision, packed)
         type V2Key<'a> = (
             Option<Vec<u64>>,
             Option<&'a [AvatarId]>,
             Option<&'a JointSet>,
             bool,
             Option<GridKey>,
+            bool,
         );
         let mut v2_cache: HashMap<V2Key<'_>, Option<Message>> = HashMap::new();
         // Ticks between a wire v2 chain's keyframes.
@@ -1041,6 +1049,7 @@ impl Feed {
                 let on = sub.grid();
                 let precision = on.as_ref();
                 let grid = precision.map(Grid::key);
+                let packed = sub.packed();
                 let Some(levels) = &levels else { continue };
                 let ring = &self.ring;
                 // A delta continues the frames the subscriber will hold (without the pending
@@ -1059,7 +1068,14 @@ impl Feed {
                 let replacing = chain.as_ref().and_then(|c| c.replacing);
                 let delta = chain.and_then(|chain| {
                     v2_cache
-                        .entry((Some(chain.ticks.clone()), filter, joints, weights, grid))
+                        .entry((
+                            Some(chain.ticks.clone()),
+                            filter,
+                            joints,
+                            weights,
+                            grid,
+                            packed,
+                        ))
                         .or_insert_with(|| {
                             ring.message(
                                 &published,
@@ -1069,6 +1085,7 @@ impl Feed {
                                 joints,
                                 weights,
                                 precision,
+                                packed,
                             )
                         })
                         .clone()
@@ -1083,10 +1100,12 @@ impl Feed {
                     ),
                     None => {
                         let Some(message) = v2_cache
-                            .entry((None, filter, joints, weights, grid))
+                            // A keyframe is the same whether deltas are packed or not.
+                            .entry((None, filter, joints, weights, grid, false))
                             .or_insert_with(|| {
                                 ring.message(
                                     &published, levels, None, filter, joints, weights, precision,
+                                    false,
                                 )
                             })
                             .clone()

@@ -12,7 +12,7 @@ use axum::extract::ws::Message;
 use bytes::Bytes;
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::{FrameHeader, FrameKind};
-use posecast_proto::frame2::{self, QuantPose};
+use posecast_proto::frame2::{self, PackedDeltas, QuantPose};
 use posecast_proto::msg::AvatarId;
 use posecast_proto::precision::{Grid, GridKey, Steps};
 use posecast_proto::subset::{JointSet, Selection};
@@ -43,6 +43,8 @@ pub(super) struct AvatarLevels {
 /// in order from each tick, not through a hash lookup per avatar and tick.
 #[derive(Debug, Default)]
 pub(super) struct TickLevels {
+    /// The tick's server time (a packed delta's is sent as a difference from its base's).
+    time_us: u64,
     avatars: Vec<AvatarLevels>,
     by_num: HashMap<u32, usize, BuildHasherDefault<NumHasher>>,
 }
@@ -209,7 +211,8 @@ impl Ring {
     /// of `joints` (levels and history cut alike, so a subset's deltas predict from the
     /// subset's own frames). `None` when some avatar cannot be coded against the chain (it is
     /// new, changed rig, or its frames left the ring): the subscriber needs a keyframe.
-    /// With a `precision`, every avatar's levels (now and in the chain) are on its grid.
+    /// With a `precision`, every avatar's levels (now and in the chain) are on its grid; when
+    /// `packed` (protocol version 7), a delta is a packed one (kind 3).
     #[allow(clippy::too_many_arguments)]
     pub(super) fn message(
         &self,
@@ -220,6 +223,7 @@ impl Ring {
         joints: Option<&JointSet>,
         weights: bool,
         precision: Option<&Grid>,
+        packed: bool,
     ) -> Option<Message> {
         let pieces = publish::select(&published.pieces, filter, joints);
         let seq = published.header.seq;
@@ -234,8 +238,23 @@ impl Ring {
         };
         // The header first and the chunks after it, in the message's own buffer.
         let mut out = Vec::with_capacity(self.last_len.load(Ordering::Relaxed).max(64));
-        frame2::write_header(&header, pieces.len(), &mut out);
         let ticks = chain.map(|c| self.ticks_of(c)).unwrap_or_default();
+        let mut chunks = match chain {
+            Some(chain) if packed => {
+                // The base frame's time, which the delta's is sent against.
+                let base = ticks.first().filter(|(s, _)| Some(s) == chain.first())?;
+                Chunks::Packed(PackedDeltas::new(
+                    &header,
+                    base.1.time_us,
+                    pieces.len(),
+                    &mut out,
+                ))
+            }
+            _ => {
+                frame2::write_header(&header, pieces.len(), &mut out);
+                Chunks::Bytes(&mut out)
+            }
+        };
         // Locked once for the frame rather than once per avatar and tick.
         let mut coarse =
             precision.map(|_| self.coarse.lock().unwrap_or_else(PoisonError::into_inner));
@@ -282,7 +301,7 @@ impl Ring {
                     }
                 }
                 if plain {
-                    if !frame2::encode_delta(num, &a.levels, &history[..depth], &mut out) {
+                    if !chunks.delta(num, &a.levels, &history[..depth]) {
                         return None;
                     }
                     continue;
@@ -291,7 +310,7 @@ impl Ring {
             let levels = Self::on_grid(&mut coarse, grid, seq, num, &a.levels);
             let levels = cut(&levels, selection, weights);
             if chain.is_none() {
-                frame2::encode_key(num, hash, &levels, &mut out);
+                chunks.key(num, hash, &levels);
                 continue;
             }
             // The avatar's frames in the chain, newest first, while they are of its rig.
@@ -306,12 +325,39 @@ impl Ring {
             let history: Vec<Cow<'_, QuantPose>> =
                 held.iter().map(|h| cut(h, selection, weights)).collect();
             let history: Vec<&QuantPose> = history.iter().map(|h| &**h).collect();
-            if !frame2::encode_delta(num, &levels, &history, &mut out) {
+            if !chunks.delta(num, &levels, &history) {
                 return None;
             }
         }
+        if let Chunks::Packed(packed) = chunks {
+            packed.finish();
+        }
         self.last_len.store(out.len(), Ordering::Relaxed);
         Some(Message::Binary(Bytes::from(out)))
+    }
+}
+
+/// Where a frame's chunks go: after its header, each byte-aligned (keyframes and deltas of
+/// kind 2), or into a packed delta's one bit stream.
+enum Chunks<'o> {
+    Bytes(&'o mut Vec<u8>),
+    Packed(PackedDeltas<'o>),
+}
+
+impl Chunks<'_> {
+    /// Appends avatar `num`'s delta chunk; `false` when it cannot be coded against `history`.
+    fn delta(&mut self, num: u32, levels: &QuantPose, history: &[&QuantPose]) -> bool {
+        match self {
+            Chunks::Bytes(out) => frame2::encode_delta(num, levels, history, out),
+            Chunks::Packed(packed) => packed.push(num, levels, history),
+        }
+    }
+
+    /// Appends avatar `num`'s keyframe chunk (a keyframe's chunks are never packed).
+    fn key(&mut self, num: u32, hash: u64, levels: &QuantPose) {
+        if let Chunks::Bytes(out) = self {
+            frame2::encode_key(num, hash, levels, out);
+        }
     }
 }
 
@@ -352,7 +398,11 @@ pub(super) fn levels(published: &Published) -> TickLevels {
         .enumerate()
         .map(|(i, a)| (a.num, i))
         .collect();
-    TickLevels { avatars, by_num }
+    TickLevels {
+        time_us: published.header.server_time_us,
+        avatars,
+        by_num,
+    }
 }
 
 #[cfg(test)]
@@ -425,7 +475,8 @@ mod tests {
             let p = published(&order, seq, kind);
             let now = ring.record(&p);
             let held = (!chain.is_empty()).then_some(&chain[..]);
-            let Some(Message::Binary(bytes)) = ring.message(&p, &now, held, None, None, true, None)
+            let Some(Message::Binary(bytes)) =
+                ring.message(&p, &now, held, None, None, true, None, false)
             else {
                 panic!("no frame at tick {seq}");
             };

@@ -65,12 +65,13 @@ pub struct ClientOptions {
     /// bound. `None`: the finest. JSON frames, and a connection that stepped down below
     /// version 5, do not ask for it (their frames are then the finest).
     pub precision: Option<posecast_proto::precision::Precision>,
-    /// Protocol version asked for in hello (default 6): 2 to 6 get wire v2 binary frames
+    /// Protocol version asked for in hello (default 7): 2 to 7 get wire v2 binary frames
     /// ([`posecast_proto::frame2`], about half of v1's bytes), 1 the v1 frames
     /// ([`posecast_proto::frame`]); 3 and later also get command results tagged with their
     /// kind (1 and 2 bare values, read by their shape: [`CommandResult::from_bare`]); 4 and
     /// later also get morph weights in frames; 5 may ask for a `precision`; 6 gets a precision's
-    /// frames with coarser steps near an axis (fewer bytes, the same bound). A server that refuses
+    /// frames with coarser steps near an axis (fewer bytes, the same bound); 7 gets packed
+    /// deltas (every avatar's in one bit stream, less framing). A server that refuses
     /// the version (`unsupported_version`: one that predates it) gets a hello with the version
     /// before, down to 1.
     pub version: u32,
@@ -106,7 +107,7 @@ impl ClientOptions {
             joints: None,
             morph_weights: true,
             precision: None,
-            version: 6,
+            version: 7,
             transport: TransportChoice::Auto,
             quic_timeout: Duration::from_secs(5),
             webtransport_url: None,

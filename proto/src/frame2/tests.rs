@@ -275,10 +275,12 @@ proptest! {
         b in arb_motion(),
         drops in prop::collection::vec(any::<bool>(), 60),
         key_after_gap in prop::collection::vec(any::<bool>(), 60),
+        packed in any::<bool>(),
     ) {
         let mut fast = Frame2Decoder::new();
         let mut slow = Frame2Decoder::new();
-        let mut stream = StreamEncoder::new();
+        // The fast reader's deltas packed (protocol version 7) or not.
+        let mut stream = StreamEncoder::new().with_packing(packed);
         // The sender's ring of quantised poses by tick, and the slow reader's decoded seqs.
         let mut ring: Vec<Vec<Arc<QuantPose>>> = Vec::new();
         let mut slow_seqs: Vec<u64> = Vec::new();
@@ -286,9 +288,12 @@ proptest! {
             let seq = tick as u64 + 1;
             let poses = [a.at(tick, 1), b.at(tick, 9)];
             let q: Vec<Arc<QuantPose>> = poses.iter().map(|p| Arc::new(QuantPose::from_pose(p))).collect();
-            let (bytes, _) = stream.encode(4, seq, 7, &poses, tick == 0);
+            let time = 1_750_000_000_000_000 + seq * 16_667 - (seq % 3) * 5_000;
+            let (bytes, _) = stream.encode(4, seq, time, &poses, tick == 0);
+            prop_assert_eq!(bytes[1] == 3, packed && tick > 0);
             let got = fast.decode_levels(&bytes).unwrap();
             prop_assert_eq!(got.header.seq, seq);
+            prop_assert_eq!(got.header.server_time_us, time);
             for ((p, q), g) in poses.iter().zip(&q).zip(&got.avatars) {
                 assert_decoded(p, q, g);
             }
@@ -402,7 +407,7 @@ proptest! {
     fn garbage_never_panics(bytes in prop::collection::vec(any::<u8>(), 0..400)) {
         let mut dec = Frame2Decoder::new();
         let _ = dec.decode(&bytes);
-        for kind in [1u8, 2] {
+        for kind in [1u8, 2, 3] {
             let mut framed = vec![MAGIC, kind];
             framed.extend_from_slice(&bytes);
             let _ = dec.decode(&framed);
@@ -422,6 +427,29 @@ proptest! {
         let mut body = vec![1, depth << 4 | (bytes.first().copied().unwrap_or(0) & 7)];
         body.extend_from_slice(&bytes);
         let _ = dec.decode(&frame_bytes(FrameKind::Delta, 4, 3, &body, 1));
+    }
+
+    /// Random bits as the chunks of a packed delta (protocol version 7) against held frames
+    /// of three avatars: the avatar numbers, heads, residuals and floats all from garbage.
+    #[test]
+    fn garbage_packed_deltas_never_panic(bytes in prop::collection::vec(any::<u8>(), 0..200), count in 0u8..5) {
+        let poses: Vec<AvatarPose> = (1..4)
+            .map(|num| {
+                let mut p = pose(num, vec![Quat::from_rotation_x(0.4); 5], vec![Vec3::ONE], vec![Vec3::ONE]);
+                p.weights = vec![0.5; 3];
+                p
+            })
+            .collect();
+        let mut stream = StreamEncoder::new();
+        let mut dec = Frame2Decoder::new();
+        for seq in 1..4 {
+            dec.decode(&stream.encode(4, seq, 100, &poses, false).0).unwrap();
+        }
+        let mut framed = vec![MAGIC, 3, count, 4, 4, 1, 2];
+        framed.extend_from_slice(&bytes);
+        if let Ok(frame) = dec.decode(&framed) {
+            prop_assert_eq!(frame.header.server_time_us, 101);
+        }
     }
 
     /// The same against frames on a grid with near-axis steps (protocol version 6), whose
@@ -511,6 +539,56 @@ fn a_delta_against_a_frame_not_held_is_refused() {
     let (_, count) = read_header(&delta3).unwrap();
     assert_eq!(count, 1);
     assert!(delta3.ends_with(&[1, 1 << 4, 0, 0]));
+}
+
+/// A packed delta (protocol version 7) of ten unchanged 3-joint avatars numbered in a run:
+/// 24 bytes where kind 2 takes 49, the numbers and heads costing 2 bits an avatar; its time
+/// reads only against its base frame (the reader's last of the scene), and a reader without
+/// that frame refuses it and changes nothing.
+#[test]
+fn a_packed_delta_costs_two_bits_an_avatar_and_reads_its_time_from_its_base() {
+    let poses: Vec<AvatarPose> = (5..15)
+        .map(|n| pose(n, vec![Quat::from_rotation_y(0.2); 3], vec![], vec![]))
+        .collect();
+    let mut plain = StreamEncoder::new();
+    let mut packed = StreamEncoder::new().with_packing(true);
+    let mut frames = Vec::new();
+    let mut last_plain = Vec::new();
+    for seq in 1..=10u64 {
+        let time = 1_000_000 + seq * 16_667;
+        last_plain = plain.encode(4, seq, time, &poses, false).0;
+        frames.push(packed.encode(4, seq, time, &poses, false).0);
+    }
+    assert_eq!(frames[0][1], 1, "a keyframe first");
+    assert_eq!(frames[9][1], 3);
+    // Header 9 bytes (the time since the base frame, 33,334 zigzagged, in 3); then 8 + 1 + 9
+    // bits for the first avatar (its number in 5 + 3, the usual head, nine one-bit residuals)
+    // and 1 + 1 + 9 for each next one: 117 bits, 15 bytes.
+    assert_eq!(frames[9].len(), 24);
+    assert_eq!(last_plain.len(), 49);
+    // A reader that skipped frame 9 cannot read 10's time.
+    let mut dec = Frame2Decoder::new();
+    for f in &frames[..8] {
+        dec.decode(f).unwrap();
+    }
+    let missing = Frame2Error::BaseTime {
+        scene: 4,
+        base_seq: 9,
+    };
+    assert_eq!(dec.decode(&frames[9]), Err(missing.clone()));
+    assert_eq!(read_header(&frames[9]), Err(missing));
+    dec.decode(&frames[8]).unwrap();
+    let got = dec.decode(&frames[9]).unwrap();
+    assert_eq!(got.header.server_time_us, 1_000_000 + 10 * 16_667);
+    assert_eq!(got.avatars.len(), 10);
+    // A reader of headers alone keeps a clock.
+    let mut clock = FrameClock::default();
+    for f in &frames {
+        let (header, count) = clock.read(f).unwrap();
+        assert_eq!(count, 10);
+        assert_eq!(header.server_time_us, 1_000_000 + header.seq * 16_667);
+        clock.record(&header);
+    }
 }
 
 #[test]
@@ -631,10 +709,112 @@ fn malformed_weights_are_refused() {
     ));
 }
 
-/// A delta chunk written straight from the module docs, one bit at a time, with the i64
-/// reference predictor: what [`encode_delta`] must write byte for byte (decoders in Rust and
-/// JavaScript read these bytes; the encoder's shortcuts must not change one of them).
+/// A delta chunk as the module docs and PROTOCOL.md describe it, one bit at a time, with the
+/// i64 reference predictor: its flags byte, its bit stream (escape mask, rotations,
+/// translations), and the weights' bits (change mask and levels; empty when unchanged).
+struct ReferenceChunk {
+    flags: u8,
+    bits: Vec<bool>,
+    weights: Vec<bool>,
+    scales: bool,
+    placement: bool,
+}
+
+fn put_bits(bits: &mut Vec<bool>, v: u64, n: u32) {
+    bits.extend((0..n).map(|b| v >> b & 1 == 1));
+}
+
+/// `bits` as bytes, least significant bit first, the last byte padded with zeros.
+fn bytes_of(bits: &[bool]) -> Vec<u8> {
+    bits.chunks(8)
+        .map(|byte| {
+            byte.iter()
+                .rev()
+                .fold(0u8, |b, &bit| b << 1 | u8::from(bit))
+        })
+        .collect()
+}
+
+/// A kind 2 delta chunk from [`reference_chunk`]: what [`encode_delta`] must write byte for
+/// byte (decoders in Rust and JavaScript read these bytes; the encoder's shortcuts must not
+/// change one of them).
 fn reference_delta(avatar_num: u32, pose: &QuantPose, history: &[&QuantPose]) -> Option<Vec<u8>> {
+    let c = reference_chunk(pose, history)?;
+    let mut out = Vec::new();
+    varint(u64::from(avatar_num), &mut out);
+    out.push(c.flags);
+    out.extend(bytes_of(&c.bits));
+    write_scales_placement(pose, c.scales, c.placement, &mut out);
+    if !c.weights.is_empty() {
+        out.extend(bytes_of(&c.weights));
+    }
+    Some(out)
+}
+
+/// A packed delta frame (kind 3, protocol version 7) of `chunks` (avatar number, pose,
+/// history), written from PROTOCOL.md: the header with the time since `base_time`, then one bit
+/// stream of every chunk.
+fn reference_packed(
+    header: &FrameHeader,
+    base_time: u64,
+    chunks: &[(u32, &QuantPose, &[&QuantPose])],
+) -> Option<Vec<u8>> {
+    let mut out = vec![MAGIC, 3];
+    varint(chunks.len() as u64, &mut out);
+    varint(u64::from(header.scene_num), &mut out);
+    varint(header.seq, &mut out);
+    varint(header.seq - header.base_seq, &mut out);
+    let since = header.server_time_us as i64 - base_time as i64;
+    varint(
+        if since >= 0 {
+            2 * since as u64
+        } else {
+            (-2 * since - 1) as u64
+        },
+        &mut out,
+    );
+    let mut bits = Vec::new();
+    let mut prev: Option<u32> = None;
+    for &(num, pose, history) in chunks {
+        let c = reference_chunk(pose, history)?;
+        if prev.is_some() {
+            let next = prev == num.checked_sub(1);
+            put_bits(&mut bits, u64::from(next), 1);
+        }
+        if prev.is_none() || prev != num.checked_sub(1) {
+            let n = if num == 0 {
+                1
+            } else {
+                32 - num.leading_zeros()
+            };
+            put_bits(&mut bits, u64::from(n - 1), 5);
+            put_bits(&mut bits, u64::from(num), n);
+        }
+        prev = Some(num);
+        if c.flags == 7 << 4 {
+            put_bits(&mut bits, 1, 1);
+        } else {
+            put_bits(&mut bits, 0, 1);
+            put_bits(&mut bits, u64::from(c.flags >> 4), 3);
+            put_bits(&mut bits, u64::from(c.flags & 15), 4);
+        }
+        bits.extend(&c.bits);
+        let mut floats = Vec::new();
+        write_scales_placement(pose, c.scales, c.placement, &mut floats);
+        for f in floats.chunks(4) {
+            put_bits(
+                &mut bits,
+                u64::from(u32::from_le_bytes(f.try_into().unwrap())),
+                32,
+            );
+        }
+        bits.extend(&c.weights);
+    }
+    out.extend(bytes_of(&bits));
+    Some(out)
+}
+
+fn reference_chunk(pose: &QuantPose, history: &[&QuantPose]) -> Option<ReferenceChunk> {
     let base = *history.first()?;
     if !pose.same_shape(base) {
         return None;
@@ -645,8 +825,6 @@ fn reference_delta(avatar_num: u32, pose: &QuantPose, history: &[&QuantPose]) ->
         .take_while(|h| h.same_shape(base))
         .copied()
         .collect();
-    let mut out = Vec::new();
-    varint(u64::from(avatar_num), &mut out);
     let escaped: Vec<bool> = (0..pose.rotations.len())
         .map(|j| pose.rotations[j] >> 45 & 7 != base.rotations[j] >> 45 & 7)
         .collect();
@@ -660,13 +838,11 @@ fn reference_delta(avatar_num: u32, pose: &QuantPose, history: &[&QuantPose]) ->
     let scales = pose.scales != base.scales;
     let placement = pose.placement != base.placement;
     let weights = pose.weights != base.weights;
-    out.push(
-        ((history.len() - 1) as u8) << 4
-            | u8::from(placement)
-            | u8::from(scales) << 1
-            | u8::from(escapes) << 2
-            | u8::from(weights) << 3,
-    );
+    let flags = ((history.len() - 1) as u8) << 4
+        | u8::from(placement)
+        | u8::from(scales) << 1
+        | u8::from(escapes) << 2
+        | u8::from(weights) << 3;
     // The bit stream, LSB first.
     let mut bits: Vec<bool> = Vec::new();
     let put = |bits: &mut Vec<bool>, v: u64, n: u32| bits.extend((0..n).map(|b| v >> b & 1 == 1));
@@ -682,16 +858,6 @@ fn reference_delta(avatar_num: u32, pose: &QuantPose, history: &[&QuantPose]) ->
             put(bits, u64::from(n - 1), 6);
             put(bits, u, n);
         }
-    };
-    let flush = |bits: &mut Vec<bool>, out: &mut Vec<u8>| {
-        for byte in bits.chunks(8) {
-            out.push(
-                byte.iter()
-                    .rev()
-                    .fold(0u8, |b, &bit| b << 1 | u8::from(bit)),
-            );
-        }
-        bits.clear();
     };
     if escapes {
         for &e in &escaped {
@@ -757,20 +923,24 @@ fn reference_delta(avatar_num: u32, pose: &QuantPose, history: &[&QuantPose]) ->
             rice(&mut bits, zigzag(i64::from(value) - pred), k);
         }
     }
-    flush(&mut bits, &mut out);
-    write_scales_placement(pose, scales, placement, &mut out);
+    let mut weight_bits = Vec::new();
     if weights {
         for (a, b) in pose.weights.iter().zip(&base.weights) {
-            put(&mut bits, u64::from(a != b), 1);
+            put(&mut weight_bits, u64::from(a != b), 1);
         }
         for (a, b) in pose.weights.iter().zip(&base.weights) {
             if a != b {
-                put(&mut bits, u64::from(*a), WEIGHT_BITS);
+                put(&mut weight_bits, u64::from(*a), WEIGHT_BITS);
             }
         }
-        flush(&mut bits, &mut out);
     }
-    Some(out)
+    Some(ReferenceChunk {
+        flags,
+        bits,
+        weights: weight_bits,
+        scales,
+        placement,
+    })
 }
 
 proptest! {
@@ -813,6 +983,99 @@ proptest! {
             prop_assert_eq!(written, expected.is_some());
             let expected = expected.unwrap_or_default();
             prop_assert_eq!(&out[1..], expected.as_slice());
+        }
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+
+    /// A packed delta frame (protocol version 7) is exactly the reference's bytes: three
+    /// avatars (numbers in a run, apart, and 0 and `u32::MAX`) with noise, jumps, placements,
+    /// scales and weights, against histories of every depth, with the time going forwards and
+    /// backwards; and a decoder that took the base frame reads back the time and the levels.
+    #[test]
+    fn packed_deltas_are_the_reference_bytes(
+        a in arb_motion(),
+        b in arb_motion(),
+        nums in prop_oneof![Just([4u32, 5, 6]), Just([9, 3, 4]), Just([0, 1, u32::MAX]), Just([u32::MAX, 0, 7])],
+        skips in prop::collection::vec(0usize..3, 40),
+        times in prop::collection::vec(-20_000i64..40_000, 40),
+        weights in 0usize..4,
+        rotation_step in prop_oneof![Just(1u8), 1u8..=40],
+        near in any::<bool>(),
+    ) {
+        let motions = [&a, &b, &a];
+        // On the finest grid or a coarse one, with near-axis steps (protocol version 6) or not.
+        let grid = |joints: usize| {
+            Arc::new(Steps {
+                rotations: vec![rotation_step; joints],
+                translation: u16::from(rotation_step),
+                near: if near { vec![rotation_step.saturating_mul(2) | 1; joints] } else { Vec::new() },
+            })
+        };
+        let mut levels: Vec<Vec<QuantPose>> = Vec::new();
+        for tick in 0..40usize {
+            levels.push(
+                motions
+                    .iter()
+                    .zip(nums)
+                    .map(|(m, num)| {
+                        let mut q = QuantPose::from_pose(&m.at(tick + num as usize % 7, num))
+                            .coarsen(&grid(m.start.len()));
+                        q.weights = (0..weights).map(|w| ((tick / (w + 1)) * 37 % 1024) as u16).collect();
+                        q
+                    })
+                    .collect(),
+            );
+        }
+        let time = |tick: usize| (1_750_000_000_000_000i64 + tick as i64 * 16_667 + times[tick]) as u64;
+        for (now, skip) in (1..40usize).zip(&skips) {
+            let ticks: Vec<usize> = (0..now).rev().step_by(skip + 1).take(MAX_DEPTH + 1).collect();
+            let histories: Vec<Vec<&QuantPose>> =
+                (0..3).map(|k| ticks.iter().map(|&t| &levels[t][k]).collect()).collect();
+            let header = FrameHeader {
+                kind: FrameKind::Delta,
+                scene_num: 4,
+                seq: now as u64 + 1,
+                server_time_us: time(now),
+                base_seq: ticks[0] as u64 + 1,
+            };
+            let mut out = Vec::new();
+            let mut packed = PackedDeltas::new(&header, time(ticks[0]), 3, &mut out);
+            for k in 0..3 {
+                prop_assert!(packed.push(nums[k], &levels[now][k], &histories[k]));
+            }
+            packed.finish();
+            let chunks: Vec<(u32, &QuantPose, &[&QuantPose])> =
+                (0..3).map(|k| (nums[k], &levels[now][k], &histories[k][..])).collect();
+            let expected = reference_packed(&header, time(ticks[0]), &chunks).unwrap();
+            prop_assert_eq!(&out, &expected);
+            // A decoder holding the history (oldest first) reads it back.
+            let mut dec = Frame2Decoder::new();
+            let held: Vec<usize> = ticks.iter().take(MAX_DEPTH).rev().copied().collect();
+            for (i, &t) in held.iter().enumerate() {
+                let mut frame = Vec::new();
+                let kind = if i == 0 { FrameKind::Key } else { FrameKind::Delta };
+                let base_seq = if i == 0 { t } else { held[i - 1] } as u64 + 1;
+                let h = FrameHeader { kind, scene_num: 4, seq: t as u64 + 1, server_time_us: time(t), base_seq };
+                write_header(&h, 3, &mut frame);
+                for k in 0..3 {
+                    if i == 0 {
+                        encode_key(nums[k], 77, &levels[t][k], &mut frame);
+                    } else {
+                        let history: Vec<&QuantPose> = held[..i].iter().rev().map(|&t| &levels[t][k]).collect();
+                        prop_assert!(encode_delta(nums[k], &levels[t][k], &history, &mut frame));
+                    }
+                }
+                dec.decode(&frame).unwrap();
+            }
+            let got = dec.decode_levels(&out).unwrap();
+            prop_assert_eq!(got.header, header);
+            for k in 0..3 {
+                prop_assert_eq!(got.avatars[k].avatar_num, nums[k]);
+                prop_assert_eq!(&*got.avatars[k].levels, &levels[now][k]);
+            }
         }
     }
 }
