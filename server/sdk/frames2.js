@@ -12,13 +12,22 @@
 // Protocol version 6 adds near-axis steps (keyframe chunk flag bit 5, after the steps): each
 // rotation's bit 47 says which of its joint's two grids it is on; a joint's history runs while
 // its dropped component and tier stay the same, and an escaped joint goes in 48 bits.
+// Protocol version 7 adds packed deltas (frame kind 3; Rust: `PackedDeltas`, `FrameClock`):
+// every chunk in one bit stream padded once at the end — an avatar number as 1 bit "the
+// previous + 1" or 5 bits n − 1 and n bits, a head bit for the usual depth 8 without flags
+// (else 3 bits depth − 1 and 4 flag bits), kind 2's body, scales and placement as raw f32
+// bits, kind 2's weights — and the server time as a zigzag difference from the base frame's,
+// which must be the scene's last decoded frame (this decoder keeps each scene's last seq and
+// time; a packed delta against another frame is refused).
 //
 // Numbers: rotations (≤ 48 bits), levels and Rice sums (< 2⁴⁴) are exact JS numbers. Varints
 // are read as BigInt (up to 64 bits, as the Rust reader); the header's seq and server time must
 // also fit a JS number exactly (< 2⁵³ — 4.7 million years of 60 Hz ticks, µs until the year
 // 2255): a frame beyond that is refused (`bad_message`) rather than decoded with a rounded seq.
-// A Rice residual of 53 bits or more cannot give a level in range (its magnitude is ≥ 2⁵²), so
-// it is refused as the Rust decoder refuses it, without BigInt.
+// A packed delta's time is summed in BigInt (base time + the signed difference) and refused
+// likewise when the sum is negative or beyond 2⁵³. A Rice residual of 53 bits or more cannot
+// give a level in range (its magnitude is ≥ 2⁵²), so it is refused as the Rust decoder refuses
+// it, without BigInt.
 
 import { PosecastError } from "./errors.js";
 import { decodeQuat } from "./frames.js";
@@ -29,6 +38,8 @@ import { decodeQuat } from "./frames.js";
 
 /** First byte of every v2 frame (v1's is 0x50). */
 export const MAGIC2 = 0x51;
+/** Frame kind of a packed delta (protocol version 7). */
+const KIND_PACKED = 3;
 /** Most frames a delta chunk may refer to. */
 export const MAX_DEPTH = 8;
 /** Translation quantisation step, metres. */
@@ -60,7 +71,16 @@ const TWO_47 = 2 ** 47;
 const I32_MIN = -(2 ** 31);
 const I32_MAX = 2 ** 31 - 1;
 const U32_MAX = 2n ** 32n - 1n;
+const U32_MAX_NUMBER = 2 ** 32 - 1;
 const SAFE = BigInt(Number.MAX_SAFE_INTEGER);
+/** Scratch space turning a packed delta's 32 bits into an f32. */
+const F32 = new DataView(new ArrayBuffer(4));
+
+/** An f32 from its bits (a packed delta's scales and placement). @param {number} bits */
+function f32FromBits(bits) {
+  F32.setUint32(0, bits);
+  return F32.getFloat32(0);
+}
 
 /**
  * One avatar's pose as levels: what v2 codes losslessly (`frame2::QuantPose`).
@@ -408,13 +428,16 @@ function keyChunk(r) {
 }
 
 /**
- * Decodes v2 frames, keeping each (scene, avatar)'s last 8 decoded frames — the JavaScript
- * twin of posecast-proto's `Frame2Decoder`. One decoder per connection.
+ * Decodes v2 frames, keeping each (scene, avatar)'s last 8 decoded frames and each scene's last
+ * (seq, server time) — the JavaScript twin of posecast-proto's `Frame2Decoder`. One decoder per
+ * connection.
  */
 export class Frame2Decoder {
   constructor() {
     /** @type {Map<string, {hash: string, frames: {seq: number, levels: QuantPose}[]}>} "scene:avatar" → newest first. */
     this.history = new Map();
+    /** @type {Map<number, {seq: number, time: number}>} Scene number → its last decoded frame's seq and server time (`FrameClock`). */
+    this.clock = new Map();
   }
 
   /**
@@ -431,25 +454,53 @@ export class Frame2Decoder {
     const magic = r.u8();
     if (magic !== MAGIC2) throw bad(`bad magic byte ${magic} (a v2 frame starts with ${MAGIC2})`);
     const kind = r.u8();
-    if (kind !== 1 && kind !== 2) throw bad(`unknown frame kind ${kind}`);
+    if (kind !== 1 && kind !== 2 && kind !== KIND_PACKED) throw bad(`unknown frame kind ${kind}`);
     const key = kind === 1;
+    const packed = kind === KIND_PACKED;
     const count = r.varint();
     const sceneNum = r.varintU32();
     const seq = r.varintSafe("seq");
-    const serverTimeUs = r.varintSafe("server time");
+    // A packed delta's time comes after its base gap, as a difference from its base frame's.
+    let serverTimeUs = packed ? 0 : r.varintSafe("server time");
     let baseSeq = seq;
     if (!key) {
       const gap = r.varint();
       if (gap === 0n || gap > BigInt(seq)) throw bad(`delta base gap ${gap} invalid for seq ${seq}`);
       baseSeq = seq - Number(gap);
     }
+    if (packed) {
+      const at = r.at;
+      const u = r.varint();
+      const last = this.clock.get(sceneNum);
+      if (!last || last.seq !== baseSeq) {
+        throw bad(`scene ${sceneNum}: packed delta against frame ${baseSeq}, which this decoder does not hold`);
+      }
+      // Exact in BigInt: the base time (< 2⁵³) plus the signed difference.
+      const time = BigInt(last.time) + ((u >> 1n) ^ -(u & 1n));
+      if (time < 0n || time > SAFE) throw bad(`server time ${time} at byte ${at} is negative or beyond 2^53, which this client cannot hold exactly`);
+      serverTimeUs = Number(time);
+    }
     /** @type {{num: number, hash: string, levels: QuantPose}[]} */
     const decoded = [];
-    // Every chunk takes at least 2 bytes, so a count beyond the bytes fails on them first.
-    for (let c = 0n; c < count; c++) {
-      const a = key ? keyChunk(r) : this.deltaChunk(r, sceneNum, baseSeq);
+    /** @param {{num: number, hash: string, levels: QuantPose}} a */
+    const push = (a) => {
       if (decoded.some((b) => b.num === a.num)) throw bad(`avatar ${a.num} appears twice in one frame`);
       decoded.push(a);
+    };
+    if (packed) {
+      // One bit stream for every chunk (each takes at least 2 bits, so a count beyond the
+      // bytes fails on them first).
+      const b = new BitReader(r);
+      /** @type {number | null} */
+      let prev = null;
+      for (let c = 0n; c < count; c++) {
+        const a = this.packedChunk(b, sceneNum, baseSeq, prev);
+        prev = a.num;
+        push(a);
+      }
+    } else {
+      // Every chunk takes at least 2 bytes, so a count beyond the bytes fails on them first.
+      for (let c = 0n; c < count; c++) push(key ? keyChunk(r) : this.deltaChunk(r, sceneNum, baseSeq));
     }
     if (r.at !== view.byteLength) throw bad(`${view.byteLength - r.at} trailing bytes after the last avatar chunk`);
     for (const a of decoded) {
@@ -463,6 +514,7 @@ export class Frame2Decoder {
       h.frames.unshift({ seq, levels: a.levels });
       if (h.frames.length > MAX_DEPTH) h.frames.length = MAX_DEPTH;
     }
+    this.clock.set(sceneNum, { seq, time: serverTimeUs });
     return {
       key,
       scene_num: sceneNum,
@@ -484,23 +536,24 @@ export class Frame2Decoder {
   }
 
   /**
-   * Forgets a scene's frames (the client left it).
+   * Forgets a scene's frames and its last (seq, time) (the client left it).
    * @param {number} sceneNum
    */
   forgetScene(sceneNum) {
     for (const slot of [...this.history.keys()]) if (slot.startsWith(`${sceneNum}:`)) this.history.delete(slot);
+    this.clock.delete(sceneNum);
   }
 
   /**
-   * A delta chunk against the held frames of its avatar.
-   * @param {Reader} r
+   * The description hash and the frames (newest first, the depth in `flags`) a delta chunk of
+   * avatar `num` refers to, checked against what this decoder holds (`history_for`).
    * @param {number} sceneNum
+   * @param {number} num
    * @param {number} baseSeq
-   * @returns {{num: number, hash: string, levels: QuantPose}}
+   * @param {number} flags
+   * @returns {{hash: string, history: QuantPose[]}}
    */
-  deltaChunk(r, sceneNum, baseSeq) {
-    const num = r.varintU32();
-    const flags = r.u8();
+  historyFor(sceneNum, num, baseSeq, flags) {
     const depth = (flags >> 4) + 1;
     const held = this.history.get(`${sceneNum}:${num}`);
     const missing = () => bad(`avatar ${num}: delta against frame ${baseSeq} (depth ${depth}), which this decoder does not hold`);
@@ -509,77 +562,153 @@ export class Frame2Decoder {
     const base = history[0];
     if (history.some((h) => !sameShape(h, base))) throw missing();
     if (flags & FLAG_WEIGHTS && base.weights.length === 0) throw bad(`avatar ${num}: invalid chunk flags ${flags}`);
-    /** @type {QuantPose} */
-    const pose = { rotations: [], translations: [], scales: base.scales, placement: base.placement, weights: base.weights, steps: base.steps };
-    const b = new BitReader(r);
-    const joints = base.rotations.length;
-    const escaped = new Array(joints).fill(false);
-    // An escaped joint's bits: with near-axis steps, its tier too.
-    const steps = base.steps && base.steps.near.length > 0 ? base.steps : null;
-    const full = steps ? 48 : 47;
-    if (flags & FLAG_ESCAPES) for (let j = 0; j < joints; j++) escaped[j] = b.get(1) === 1;
-    for (let j = 0; j < joints; j++) {
-      if (escaped[j]) {
-        if (steps && b.get(1) === 1) {
-          // Only the tier changed: residuals against the history put on the new grid.
-          const was = base.rotations[j];
-          const flipped = was >= TWO_47 ? was - TWO_47 : was + TWO_47;
-          const i = index(was);
-          let n = 0;
-          while (n < history.length && index(history[n].rotations[j]) === i) n++;
-          const to = rotationStep(steps, j, flipped);
-          let bits = tag(flipped);
-          for (let c = 0; c < 3; c++) {
-            const h = history.slice(0, n).map((f) => {
-              const from = f.rotations[j];
-              return coarseLevel(fineLevel(level(from, c), rotationStep(steps, j, from)), to);
-            });
-            const [pred, k] = predict(h, true);
-            const value = pred + unzigzag(b.rice(k));
-            if (!(value >= 0 && value <= LEVEL_MASK)) throw bad(`avatar ${num}: rotation level out of range at byte ${r.at}`);
-            bits = bits * TWO_15 + value;
-          }
-          pose.rotations.push(bits);
-          continue;
+    return { hash: held.hash, history };
+  }
+
+  /**
+   * A delta chunk of a frame of kind 2 (byte-aligned) against the held frames of its avatar.
+   * @param {Reader} r
+   * @param {number} sceneNum
+   * @param {number} baseSeq
+   * @returns {{num: number, hash: string, levels: QuantPose}}
+   */
+  deltaChunk(r, sceneNum, baseSeq) {
+    const num = r.varintU32();
+    const flags = r.u8();
+    const { hash, history } = this.historyFor(sceneNum, num, baseSeq, flags);
+    const pose = deltaLevels(new BitReader(r), history, flags, num);
+    if (flags & FLAG_SCALES) pose.scales = history[0].scales.map(() => r.vec3());
+    if (flags & FLAG_PLACEMENT) pose.placement = r.placement();
+    if (flags & FLAG_WEIGHTS) pose.weights = readWeights(new BitReader(r), history[0].weights, num);
+    return { num, hash, levels: pose };
+  }
+
+  /**
+   * A chunk of a packed delta (kind 3), read from the frame's one bit stream; `prev` is the
+   * previous chunk's avatar number (`packed_chunk`).
+   * @param {BitReader} b
+   * @param {number} sceneNum
+   * @param {number} baseSeq
+   * @param {number | null} prev
+   * @returns {{num: number, hash: string, levels: QuantPose}}
+   */
+  packedChunk(b, sceneNum, baseSeq, prev) {
+    const at = b.r.at;
+    let num;
+    if (prev !== null && b.get(1) === 1) {
+      // The previous chunk's number + 1.
+      if (prev >= U32_MAX_NUMBER) throw bad(`number out of range at byte ${at}`);
+      num = prev + 1;
+    } else {
+      const n = b.get(5) + 1;
+      num = b.get(n);
+    }
+    // 1: depth 8 and no flag (a steady stream's usual chunk); 0: depth − 1 and the flags.
+    let flags = (MAX_DEPTH - 1) << 4;
+    if (b.get(1) === 0) {
+      const depth = b.get(3);
+      flags = (depth << 4) | b.get(4);
+    }
+    const { hash, history } = this.historyFor(sceneNum, num, baseSeq, flags);
+    const pose = deltaLevels(b, history, flags, num);
+    /** @returns {Vec3} */
+    const vec3 = () => [f32FromBits(b.get(32)), f32FromBits(b.get(32)), f32FromBits(b.get(32))];
+    if (flags & FLAG_SCALES) pose.scales = history[0].scales.map(() => vec3());
+    if (flags & FLAG_PLACEMENT) {
+      const position = vec3();
+      pose.placement = { position, rotation: [...vec3(), f32FromBits(b.get(32))] };
+    }
+    if (flags & FLAG_WEIGHTS) pose.weights = readWeights(b, history[0].weights, num);
+    return { num, hash, levels: pose };
+  }
+}
+
+/**
+ * The changed morph weights of a delta chunk: a change mask over `base`'s channels, then the
+ * new level of each changed one (`read_weights`).
+ * @param {BitReader} b
+ * @param {number[]} base
+ * @param {number} num
+ * @returns {number[]}
+ */
+function readWeights(b, base, num) {
+  const changed = base.map(() => b.get(1) === 1);
+  return base.map((l, c) => (changed[c] ? weightLevel(b, num) : l));
+}
+
+/**
+ * A delta chunk's escape mask, rotations and translations, read against `history` (newest
+ * first, the chunk's depth); scales, placement and weights are the base's (`delta_levels`).
+ * @param {BitReader} b
+ * @param {QuantPose[]} history
+ * @param {number} flags
+ * @param {number} num
+ * @returns {QuantPose}
+ */
+function deltaLevels(b, history, flags, num) {
+  const r = b.r;
+  const base = history[0];
+  /** @type {QuantPose} */
+  const pose = { rotations: [], translations: [], scales: base.scales, placement: base.placement, weights: base.weights, steps: base.steps };
+  const joints = base.rotations.length;
+  const escaped = new Array(joints).fill(false);
+  // An escaped joint's bits: with near-axis steps, its tier too.
+  const steps = base.steps && base.steps.near.length > 0 ? base.steps : null;
+  const full = steps ? 48 : 47;
+  if (flags & FLAG_ESCAPES) for (let j = 0; j < joints; j++) escaped[j] = b.get(1) === 1;
+  for (let j = 0; j < joints; j++) {
+    if (escaped[j]) {
+      if (steps && b.get(1) === 1) {
+        // Only the tier changed: residuals against the history put on the new grid.
+        const was = base.rotations[j];
+        const flipped = was >= TWO_47 ? was - TWO_47 : was + TWO_47;
+        const i = index(was);
+        let n = 0;
+        while (n < history.length && index(history[n].rotations[j]) === i) n++;
+        const to = rotationStep(steps, j, flipped);
+        let bits = tag(flipped);
+        for (let c = 0; c < 3; c++) {
+          const h = history.slice(0, n).map((f) => {
+            const from = f.rotations[j];
+            return coarseLevel(fineLevel(level(from, c), rotationStep(steps, j, from)), to);
+          });
+          const [pred, k] = predict(h, true);
+          const value = pred + unzigzag(b.rice(k));
+          if (!(value >= 0 && value <= LEVEL_MASK)) throw bad(`avatar ${num}: rotation level out of range at byte ${r.at}`);
+          bits = bits * TWO_15 + value;
         }
-        pose.rotations.push(b.get(full));
+        pose.rotations.push(bits);
         continue;
       }
-      const i = tag(base.rotations[j]);
-      let n = 0;
-      while (n < history.length && tag(history[n].rotations[j]) === i) n++;
-      let bits = i;
-      for (let c = 0; c < 3; c++) {
-        const h = history.slice(0, n).map((f) => level(f.rotations[j], c));
-        const [pred, k] = predict(h, true);
-        const value = pred + unzigzag(b.rice(k));
-        if (!(value >= 0 && value <= LEVEL_MASK)) throw bad(`avatar ${num}: rotation level out of range at byte ${r.at}`);
-        bits = bits * TWO_15 + value;
-      }
-      pose.rotations.push(bits);
+      pose.rotations.push(b.get(full));
+      continue;
     }
-    for (let t = 0; t < base.translations.length; t++) {
-      /** @type {[number, number, number]} */
-      const v = [0, 0, 0];
-      for (let c = 0; c < 3; c++) {
-        const [pred, k] = predict(
-          history.map((f) => f.translations[t][c]),
-          false,
-        );
-        const value = pred + unzigzag(b.rice(k));
-        if (!(value >= I32_MIN && value <= I32_MAX)) throw bad(`avatar ${num}: translation level out of range at byte ${r.at}`);
-        v[c] = value;
-      }
-      pose.translations.push(v);
+    const i = tag(base.rotations[j]);
+    let n = 0;
+    while (n < history.length && tag(history[n].rotations[j]) === i) n++;
+    let bits = i;
+    for (let c = 0; c < 3; c++) {
+      const h = history.slice(0, n).map((f) => level(f.rotations[j], c));
+      const [pred, k] = predict(h, true);
+      const value = pred + unzigzag(b.rice(k));
+      if (!(value >= 0 && value <= LEVEL_MASK)) throw bad(`avatar ${num}: rotation level out of range at byte ${r.at}`);
+      bits = bits * TWO_15 + value;
     }
-    if (flags & FLAG_SCALES) pose.scales = base.scales.map(() => r.vec3());
-    if (flags & FLAG_PLACEMENT) pose.placement = r.placement();
-    if (flags & FLAG_WEIGHTS) {
-      // A change mask over the channels, then the new level of each changed one.
-      const w = new BitReader(r);
-      const changed = base.weights.map(() => w.get(1) === 1);
-      pose.weights = base.weights.map((l, c) => (changed[c] ? weightLevel(w, num) : l));
-    }
-    return { num, hash: held.hash, levels: pose };
+    pose.rotations.push(bits);
   }
+  for (let t = 0; t < base.translations.length; t++) {
+    /** @type {[number, number, number]} */
+    const v = [0, 0, 0];
+    for (let c = 0; c < 3; c++) {
+      const [pred, k] = predict(
+        history.map((f) => f.translations[t][c]),
+        false,
+      );
+      const value = pred + unzigzag(b.rice(k));
+      if (!(value >= I32_MIN && value <= I32_MAX)) throw bad(`avatar ${num}: translation level out of range at byte ${r.at}`);
+      v[c] = value;
+    }
+    pose.translations.push(v);
+  }
+  return pose;
 }

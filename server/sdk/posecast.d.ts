@@ -1,9 +1,9 @@
 // Type declarations of posecast's JavaScript client, served at /sdk/posecast.d.ts beside the
 // module it describes (/sdk/posecast.js). This file is the API reference; proto/PROTOCOL.md is
 // the reference of the messages, protocol.d.ts their types (generated from the server's). SDK
-// version 1.9 speaks protocol version 6 (wire v2 binary frames with morph weights and a precision
-// per subscription, results tagged with their kind) by default, and 5, 4, 3, 2 or 1 when asked
-// (`ClientOptions.version`) or refused by an older server.
+// version 1.10 speaks protocol version 7 (wire v2 binary frames with morph weights, a precision
+// per subscription and packed deltas, results tagged with their kind) by default, and 6, 5, 4,
+// 3, 2 or 1 when asked (`ClientOptions.version`) or refused by an older server.
 //
 //   import { Client } from "/sdk/posecast.js";
 //   const client = new Client({ token: "…" });          // ws(s)://this host/ws, binary frames
@@ -15,7 +15,7 @@
 /** The SDK's version. */
 export declare const SDK_VERSION: string;
 /** The protocol version the SDK speaks (the `hello`'s `version`). */
-export declare const PROTOCOL_VERSION: 6;
+export declare const PROTOCOL_VERSION: 7;
 
 export type Vec3 = [number, number, number];
 /** The `result` of an `ack`, by the `kind` the server tags it with (protocol.d.ts). */
@@ -213,15 +213,16 @@ export interface ClientOptions {
   /** Frame encoding; default `"binary"` (several times smaller than JSON). */
   encoding?: Encoding;
   /**
-   * Protocol version asked for in the hello: 6 (default: 5 with a precision's frames coded
-   * on coarser steps near an axis, the same bound), 5 (4 with a `precision` per
+   * Protocol version asked for in the hello: 7 (default: 6 with deltas packed into one bit
+   * stream, frame kind 3), 6 (5 with a precision's frames coded on coarser steps near an
+   * axis, the same bound), 5 (4 with a `precision` per
    * subscription), 4 (3 with each pose's morph `weights` in binary frames too), 3 or 2 — binary frames in wire v2,
    * deltas against the previous frame, about half the bytes of v1; 3 also tags every `ack`'s
    * result with its `kind` and serves a subscription with `joints` v2 frames cut to them (2
    * gets those as v1 frames) — or 1 (v1 frames); the client decodes both. A server that refuses the version (`unsupported_version`:
    * one that predates it) gets a hello with the version before, and `Client.version` follows.
    */
-  version?: 1 | 2 | 3 | 4 | 5 | 6;
+  version?: 1 | 2 | 3 | 4 | 5 | 6 | 7;
   /** The `client` name in the hello; default `"posecast-js"`. */
   name?: string;
   /** Reconnect when the connection drops (default true), resubscribing. */
@@ -319,7 +320,7 @@ export declare class Client {
   readonly url: string;
   readonly encoding: Encoding;
   /** The protocol version said in the hello (lower after a server refused one; `welcome.version` says the one in use). */
-  readonly version: 1 | 2 | 3 | 4 | 5 | 6;
+  readonly version: 1 | 2 | 3 | 4 | 5 | 6 | 7;
   readonly state: ConnectionState;
   /** Why the state is what it is ("connection lost", a refusal's reason…). */
   readonly detail: string;
@@ -471,17 +472,21 @@ export interface BinaryFrame {
 }
 /**
  * Decodes wire v2 frames (first byte 0x51; proto/PROTOCOL.md "Pose frames, wire v2"), keeping
- * each (scene, avatar)'s last 8 decoded frames for the deltas that refer to them — the twin of
- * posecast-proto's `Frame2Decoder`. One decoder per connection.
+ * each (scene, avatar)'s last 8 decoded frames for the deltas that refer to them, and each
+ * scene's last (seq, server time) for the packed deltas (protocol version 7, frame kind 3) whose
+ * time is a difference from it — the twin of posecast-proto's `Frame2Decoder`. One decoder per
+ * connection.
  */
 export declare class Frame2Decoder {
   constructor();
   /**
-   * Decodes one v2 frame; throws a {@link PosecastError} `bad_message` on malformed bytes or a
-   * delta whose base frames are not held (and changes nothing).
+   * Decodes one v2 frame (a keyframe, a delta or a packed delta); throws a
+   * {@link PosecastError} `bad_message` on malformed bytes, a delta whose base frames are not
+   * held or a packed delta whose base is not the scene's last decoded frame (and changes
+   * nothing).
    */
   decode(bytes: ArrayBuffer | Uint8Array): BinaryFrame;
-  /** Forgets a scene's frames (the client left it). */
+  /** Forgets a scene's frames and its last (seq, time) (the client left it). */
   forgetScene(sceneNum: number): void;
 }
 /** Decodes a 48-bit smallest-three rotation. */

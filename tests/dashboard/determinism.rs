@@ -1,10 +1,13 @@
 //! Issue 28 goal 3: the wire v2 decoders reconstruct identical values forever. Ten minutes of
-//! random motion (60 Hz, 36,000 ticks) of two avatars — one at the finest precision, one on a
-//! subscription's coarse per-joint grid — sent to a reader with random drop patterns (single
-//! frames, bursts, gaps of seconds; after a gap a keyframe or a delta against the last frame it
-//! decoded, up to depth 8; deltas whose base it lacks, which it refuses) are decoded by
-//! `posecast_proto::frame2::Frame2Decoder` here and by the JavaScript client's
-//! `server/sdk/frames2.js` in headless Chromium, frame by frame.
+//! random motion (60 Hz, 36,000 ticks) of three avatars (numbers 1, 2 and 40) — two at the
+//! finest precision, one on a subscription's coarse per-joint grid — sent to a reader with
+//! random drop patterns (single frames, bursts, gaps of seconds; after a gap a keyframe or a
+//! delta against the last frame it decoded, up to depth 8; deltas whose base it lacks, which it
+//! refuses) are decoded by `posecast_proto::frame2::Frame2Decoder` here and by the JavaScript
+//! client's `server/sdk/frames2.js` in headless Chromium, frame by frame. The deltas are packed
+//! (protocol version 7, frame kind 3: every chunk in one bit stream, the server time a
+//! difference from the base frame's), a few of kind 2 among them; server times jitter and now
+//! and then go back, and the page must read each frame's seq and server time exactly.
 //!
 //! The coder predicts from decoded integer levels (closed loop in integers: the grid, the
 //! prediction and the Rice codes use no floating point), so the two decoders hold the same
@@ -16,7 +19,7 @@
 use crate::browser::*;
 use glam::{Quat, Vec3};
 use posecast_proto::frame::{AvatarPose, FrameHeader, FrameKind};
-use posecast_proto::frame2::{self, Frame2Decoder, QuantPose};
+use posecast_proto::frame2::{self, Frame2Decoder, PackedDeltas, QuantPose};
 use posecast_proto::placement::Placement;
 use posecast_proto::precision::{
     Steps, near_rotation_step_for, rotation_bound_degrees, translation_bound,
@@ -157,34 +160,94 @@ impl Drops {
     }
 }
 
-fn frame_bytes(kind: FrameKind, seq: u64, base_seq: u64, body: &[u8], avatars: usize) -> Vec<u8> {
-    let mut out = Vec::new();
-    let header = FrameHeader {
+/// Each tick's server time (index: seq): 60 Hz with up to ±0.5 ms of jitter, now and then a
+/// step back of up to 2 ms (a clock corrected).
+fn server_times(seed: u64) -> Vec<u64> {
+    let mut rng = Rng(seed);
+    let mut t = 1_764_000_000_000_000u64;
+    (0..=TICKS)
+        .map(|_| {
+            t = if rng.next() < 0.002 {
+                t - 1 - rng.below(2_000)
+            } else {
+                t + 16_667 - 500 + rng.below(1_000)
+            };
+            t
+        })
+        .collect()
+}
+
+fn header(kind: FrameKind, seq: u64, base_seq: u64, times: &[u64]) -> FrameHeader {
+    FrameHeader {
         kind,
         scene_num: 3,
         seq,
-        server_time_us: 1_764_000_000_000_000 + seq * 16_667,
+        server_time_us: times[seq as usize],
         base_seq,
-    };
-    frame2::write_header(&header, avatars, &mut out);
+    }
+}
+
+/// A keyframe or a delta of kind 2 with these chunks.
+fn frame_bytes(header: &FrameHeader, body: &[u8], avatars: usize) -> Vec<u8> {
+    let mut out = Vec::new();
+    frame2::write_header(header, avatars, &mut out);
     out.extend_from_slice(body);
     out
 }
 
+/// A delta of `now` against `history` (newest first, each with its seq), packed (kind 3) or
+/// of kind 2.
+fn delta_bytes(
+    avatars: &[Motion],
+    now: &[QuantPose],
+    history: &[(u64, &[QuantPose])],
+    seq: u64,
+    times: &[u64],
+    packed: bool,
+) -> Vec<u8> {
+    let base_seq = history[0].0;
+    let header = header(FrameKind::Delta, seq, base_seq, times);
+    let mut out = Vec::new();
+    if packed {
+        let mut p = PackedDeltas::new(&header, times[base_seq as usize], avatars.len(), &mut out);
+        for (a, (m, q)) in avatars.iter().zip(now).enumerate() {
+            let h: Vec<&QuantPose> = history.iter().map(|(_, f)| &f[a]).collect();
+            assert!(p.push(m.pose.avatar_num, q, &h));
+        }
+        p.finish();
+    } else {
+        frame2::write_header(&header, avatars.len(), &mut out);
+        for (a, (m, q)) in avatars.iter().zip(now).enumerate() {
+            let h: Vec<&QuantPose> = history.iter().map(|(_, f)| &f[a]).collect();
+            assert!(frame2::encode_delta(m.pose.avatar_num, q, &h, &mut out));
+        }
+    }
+    out
+}
+
 /// The stream as the reader received it (`[ok u8][length u32 LE][bytes]` each: `ok` 0 for a
-/// delta it must refuse) and what the Rust decoder made of each frame it accepted (every
-/// rotation's x, y, z, w, then every translation's x, y, z, as f32 LE), with the counts.
+/// delta it must refuse), what the Rust decoder made of each frame it accepted (every
+/// rotation's x, y, z, w, then every translation's x, y, z, as f32 LE; and its seq and server
+/// time, u64 LE), with the counts.
 struct Stream {
     frames: Vec<u8>,
     expected: Vec<u8>,
+    times: Vec<u8>,
     decoded: u64,
+    packed: u64,
     refused: u64,
     keyframes: u64,
+    backwards: u64,
 }
 
 fn stream(seed: u64) -> Stream {
     let mut rng = Rng(seed);
-    let mut avatars = [Motion::new(&mut rng, 1, 23), Motion::new(&mut rng, 2, 31)];
+    let mut avatars = [
+        Motion::new(&mut rng, 1, 23),
+        Motion::new(&mut rng, 2, 31),
+        Motion::new(&mut rng, 40, 9),
+    ];
+    let times = server_times(seed ^ 0x7137);
     // The second avatar on a subscription's grid (protocol version 6): per-joint steps from
     // the finest to the coarsest, each joint's coarser step near an axis for the same bound
     // (rotations cross between the two grids as they move), a coarse translation step.
@@ -206,10 +269,10 @@ fn stream(seed: u64) -> Stream {
         translation: 37,
     });
     let bound = |a: usize, j: usize| {
-        if a == 0 {
-            MAX_ERROR_DEGREES
-        } else {
+        if a == 1 {
             rotation_bound_degrees(steps.rotations[j])
+        } else {
+            MAX_ERROR_DEGREES
         }
     };
     let mut decoder = Frame2Decoder::new();
@@ -219,9 +282,12 @@ fn stream(seed: u64) -> Stream {
     let mut out = Stream {
         frames: Vec::new(),
         expected: Vec::new(),
+        times: Vec::new(),
         decoded: 0,
+        packed: 0,
         refused: 0,
         keyframes: 0,
+        backwards: 0,
     };
     let mut previous: Option<Vec<QuantPose>> = None;
     for seq in 1..=TICKS {
@@ -240,47 +306,59 @@ fn stream(seed: u64) -> Stream {
         if drops.misses(&mut rng) {
             continue;
         }
-        let mut body = Vec::new();
         let newest = history.first().map(|(s, _)| *s);
         // Now and then the stream's own delta against the tick before, which this reader
-        // lacks after a miss: refused, and nothing changes.
+        // lacks after a miss: refused (a packed one because the reader's last frame is not
+        // its base, whose time it needs), and nothing changes.
         if let (Some(last), Some(newest)) = (&last, newest)
             && newest + 1 != seq
             && rng.next() < 0.2
         {
-            for (p, (q, l)) in avatars.iter().zip(now.iter().zip(last)) {
-                assert!(frame2::encode_delta(p.pose.avatar_num, q, &[l], &mut body));
-            }
-            let bytes = frame_bytes(FrameKind::Delta, seq, seq - 1, &body, 2);
+            let packed = rng.next() < 0.8;
+            let bytes = delta_bytes(&avatars, &now, &[(seq - 1, last)], seq, &times, packed);
             assert!(decoder.decode(&bytes).is_err(), "tick {seq}");
             out.frames.push(0);
             out.frames
                 .extend_from_slice(&(bytes.len() as u32).to_le_bytes());
             out.frames.extend_from_slice(&bytes);
             out.refused += 1;
-            body.clear();
         }
         let gap = newest.is_some_and(|s| s + 1 != seq);
         let key = history.is_empty() || seq % 1200 == 0 || gap && rng.next() < 0.3;
         let bytes = if key {
+            let mut body = Vec::new();
             for (p, q) in avatars.iter().zip(&now) {
                 frame2::encode_key(p.pose.avatar_num, p.pose.hash, q, &mut body);
             }
             history.clear();
             out.keyframes += 1;
-            frame_bytes(FrameKind::Key, seq, seq, &body, 2)
+            frame_bytes(
+                &header(FrameKind::Key, seq, seq, &times),
+                &body,
+                avatars.len(),
+            )
         } else {
-            // Against the newest frame it decoded, predicting from up to depth 8 of them.
+            // Against the newest frame it decoded, predicting from up to depth 8 of them;
+            // packed but for about one in ten.
             let depth = 1 + rng.below(history.len() as u64) as usize;
-            for (a, (p, q)) in avatars.iter().zip(&now).enumerate() {
-                let h: Vec<&QuantPose> = history[..depth].iter().map(|(_, f)| &f[a]).collect();
-                assert!(frame2::encode_delta(p.pose.avatar_num, q, &h, &mut body));
+            let held: Vec<(u64, &[QuantPose])> = history[..depth]
+                .iter()
+                .map(|(s, f)| (*s, f.as_slice()))
+                .collect();
+            let packed = rng.next() < 0.9;
+            out.packed += u64::from(packed);
+            if packed && times[seq as usize] < times[held[0].0 as usize] {
+                out.backwards += 1;
             }
-            frame_bytes(FrameKind::Delta, seq, history[0].0, &body, 2)
+            delta_bytes(&avatars, &now, &held, seq, &times, packed)
         };
         let frame = decoder
             .decode(&bytes)
             .unwrap_or_else(|e| panic!("tick {seq}: {e}"));
+        assert_eq!(frame.header.server_time_us, times[seq as usize]);
+        out.times.extend_from_slice(&seq.to_le_bytes());
+        out.times
+            .extend_from_slice(&frame.header.server_time_us.to_le_bytes());
         out.frames.push(1);
         out.frames
             .extend_from_slice(&(bytes.len() as u32).to_le_bytes());
@@ -297,7 +375,7 @@ fn stream(seed: u64) -> Stream {
                     out.expected.extend_from_slice(&c.to_le_bytes());
                 }
             }
-            let t_bound = translation_bound(if a == 0 { 1 } else { steps.translation });
+            let t_bound = translation_bound(if a == 1 { steps.translation } else { 1 });
             for (t, source) in got.translations.iter().zip(&m.pose.translations) {
                 // (f32 holds a position 50 m out to about 4 µm.)
                 let error = f64::from((*t - *source).abs().max_element());
@@ -329,11 +407,13 @@ addEventListener("unhandledrejection", (e) => { window.result = { error: String(
 import { Frame2Decoder } from "/node_modules/frames2.js";
 import { quatAngleDegrees } from "/node_modules/math.js";
 const load = async (path) => new Uint8Array(await (await fetch(path)).arrayBuffer());
-const [frames, expectedBytes] = await Promise.all([load("/frames.bin"), load("/expected.bin")]);
+const [frames, expectedBytes, timeBytes] = await Promise.all([load("/frames.bin"), load("/expected.bin"), load("/times.bin")]);
 const expected = new Float32Array(expectedBytes.buffer, expectedBytes.byteOffset, expectedBytes.byteLength / 4);
+// Each accepted frame's seq and server time (exact: compared as BigInt).
+const times = new BigUint64Array(timeBytes.buffer, timeBytes.byteOffset, timeBytes.byteLength / 8);
 const view = new DataView(frames.buffer, frames.byteOffset, frames.byteLength);
 const decoder = new Frame2Decoder();
-let at = 0, e = 0, decoded = 0, refused = 0, worst = 0, worstTranslation = 0, failures = 0;
+let at = 0, e = 0, decoded = 0, packed = 0, refused = 0, worst = 0, worstTranslation = 0, failures = 0;
 const first = [];
 const fail = (what) => { failures++; if (first.length < 10) first.push(what); };
 while (at < frames.byteLength) {
@@ -349,6 +429,11 @@ while (at < frames.byteLength) {
     continue;
   }
   if (!ok) { fail(`seq ${frame.seq}: a delta without its base was accepted`); continue; }
+  if (bytes[1] === 3) packed++;
+  const [seq, time] = [times[2 * decoded], times[2 * decoded + 1]];
+  if (BigInt(frame.seq) !== seq || BigInt(frame.server_time_us) !== time) {
+    fail(`frame ${decoded}: seq ${frame.seq} at ${frame.server_time_us} µs, expected ${seq} at ${time} µs`);
+  }
   for (const a of frame.avatars) {
     for (const q of a.rotations) {
       const d = quatAngleDegrees(q, [expected[e], expected[e + 1], expected[e + 2], expected[e + 3]]);
@@ -366,7 +451,7 @@ while (at < frames.byteLength) {
   }
   decoded++;
 }
-window.result = { decoded, refused, worst, worstTranslation, failures, first, consumed: e === expected.length };
+window.result = { decoded, packed, refused, worst, worstTranslation, failures, first, consumed: e === expected.length && 2 * decoded === times.length };
 </script>"#;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -379,10 +464,20 @@ async fn ten_minutes_of_random_motion_and_drops_decode_identically_in_rust_and_i
         s.decoded,
         s.refused
     );
+    // Most deltas packed, some of kind 2; some packed ones going back in time.
+    assert!(
+        s.packed > s.decoded * 3 / 4 && s.packed < s.decoded - s.keyframes && s.backwards > 5,
+        "{} packed, {} going back",
+        s.packed,
+        s.backwards
+    );
     eprintln!(
-        "{TICKS} ticks: the reader decoded {} frames ({} keyframes), refused {}; {} bytes",
+        "{TICKS} ticks: the reader decoded {} frames ({} keyframes, {} packed deltas, {} of them \
+         back in time), refused {}; {} bytes",
         s.decoded,
         s.keyframes,
+        s.packed,
+        s.backwards,
         s.refused,
         s.frames.len()
     );
@@ -390,7 +485,11 @@ async fn ten_minutes_of_random_motion_and_drops_decode_identically_in_rust_and_i
     let page = serve_origin(
         PAGE.replace("SAME", &SAME_BITS_DEGREES.to_string()),
         Some(sdk),
-        vec![("/frames.bin", s.frames), ("/expected.bin", s.expected)],
+        vec![
+            ("/frames.bin", s.frames),
+            ("/expected.bin", s.expected),
+            ("/times.bin", s.times),
+        ],
     )
     .await;
     let (_driver, b) = browser().await;
@@ -400,6 +499,7 @@ async fn ten_minutes_of_random_motion_and_drops_decode_identically_in_rust_and_i
     assert!(result.get("error").is_none(), "{result}");
     assert_eq!(result["failures"], 0, "{result}");
     assert_eq!(result["decoded"], s.decoded, "{result}");
+    assert_eq!(result["packed"], s.packed, "{result}");
     assert_eq!(result["refused"], s.refused, "{result}");
     assert_eq!(result["consumed"], true, "{result}");
     b.close().await.unwrap();

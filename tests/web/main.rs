@@ -9,8 +9,9 @@
 //!   on random skeletons and the built-in rig with random poses and placements;
 //! - the client's binary decoders, jitter buffer and clock estimator (`server/sdk/frames.js`,
 //!   `frames2.js`, `jitter.js`, `clock.js`, through `server/web/check/stream.mjs`) match
-//!   posecast-proto's `FrameDecoder` and `Frame2Decoder` and posecast-client's `JitterBuffer`
-//!   and `ClockEstimator` on shared vectors;
+//!   posecast-proto's `FrameDecoder` and `Frame2Decoder` (packed deltas, protocol version 7,
+//!   too: levels and server times exactly) and posecast-client's `JitterBuffer` and
+//!   `ClockEstimator` on shared vectors;
 //! - the client's modules type-check against its declarations (`server/sdk/posecast.d.ts`),
 //!   and a TypeScript user's file (`server/sdk/check/usage.ts`) against the declarations alone.
 //!

@@ -11,6 +11,14 @@
 //!   refuses (cut short, trailing, magic, kind, bases not held, reserved flags, zero gaps,
 //!   duplicates, counts, long varints) without changing its state, and agrees with it on random
 //!   delta bit streams;
+//! - the same decoder reads packed deltas (protocol version 7, frame kind 3: a packing
+//!   `StreamEncoder`'s and hand-made `PackedDeltas`) to exactly the levels and server times
+//!   `Frame2Decoder` reads (avatar numbers consecutive or not, up to 2³² − 1; precision grids
+//!   with tiers; placements, scales and morph weights; times jittering, going back, up to
+//!   2⁵³ − 1 and past it, which it refuses), and refuses what it refuses: a packed delta whose
+//!   base is not the scene's last decoded frame (its time cannot be read), one whose avatar's
+//!   base is not held, one after the scene was forgotten, a lagging reader's after a miss,
+//!   malformed ones; random packed bit streams decoded or refused alike;
 //! - `server/sdk/jitter.js` gives the playout delay and sampled poses (and how each was made)
 //!   of posecast-client's `JitterBuffer` on an irregular stream with late and lost frames;
 //! - `server/sdk/clock.js` gives `ClockEstimator`'s offset and round trip;
@@ -241,7 +249,8 @@ fn v2_refused(bytes: &[u8], decoder: &mut Frame2Decoder, rng: &mut Lcg) -> Vec<V
     magic[0] = posecast_proto::frame::MAGIC;
     bad.push(magic);
     let mut kind = bytes.to_vec();
-    kind[1] = 3;
+    // (3 is a packed delta, protocol version 7.)
+    kind[1] = 4;
     bad.push(kind);
     if header.kind == FrameKind::Delta {
         bad.push(v2_rehead(bytes, header.seq, header.base_seq - 1));
@@ -784,4 +793,618 @@ fn near_steps(steps: &[u8]) -> Vec<u8> {
         .iter()
         .map(|&m| near_rotation_step_for(rotation_bound_degrees(m)).max(m))
         .collect()
+}
+
+// Packed deltas (protocol version 7, frame kind 3).
+
+/// A LEB128 varint.
+fn put_varint(mut v: u64, out: &mut Vec<u8>) {
+    while v >= 0x80 {
+        out.push(v as u8 | 0x80);
+        v >>= 7;
+    }
+    out.push(v as u8);
+}
+
+fn zigzag(r: i64) -> u64 {
+    ((r << 1) ^ (r >> 63)) as u64
+}
+
+/// Bits written least significant first, as a v2 bit stream (padded with 0 by `bytes`).
+#[derive(Default)]
+struct Bits(Vec<bool>);
+
+impl Bits {
+    fn put(&mut self, v: u64, n: u32) {
+        self.0.extend((0..n).map(|i| v >> i & 1 == 1));
+    }
+
+    fn bytes(&self) -> Vec<u8> {
+        self.0
+            .chunks(8)
+            .map(|c| c.iter().rev().fold(0u8, |b, &bit| b << 1 | u8::from(bit)))
+            .collect()
+    }
+}
+
+/// A packed delta's header fields: (count, scene, seq, gap, zigzagged time difference), and
+/// where its bit stream starts.
+fn packed_header(bytes: &[u8]) -> ([u64; 5], usize) {
+    assert_eq!(bytes[..2], [frame2::MAGIC, 3]);
+    let mut at = 2;
+    let mut fields = [0u64; 5];
+    for f in &mut fields {
+        let mut shift = 0;
+        loop {
+            let b = bytes[at];
+            at += 1;
+            *f |= u64::from(b & 0x7f) << shift;
+            shift += 7;
+            if b & 0x80 == 0 {
+                break;
+            }
+        }
+    }
+    (fields, at)
+}
+
+/// A packed delta with its header fields replaced, its bit stream kept.
+fn packed_rehead(bytes: &[u8], fields: [u64; 5]) -> Vec<u8> {
+    let (_, at) = packed_header(bytes);
+    let mut out = vec![frame2::MAGIC, 3];
+    for f in fields {
+        put_varint(f, &mut out);
+    }
+    out.extend_from_slice(&bytes[at..]);
+    out
+}
+
+/// A decoded frame's levels (what `QuantPose` holds: exactly what the JavaScript decoder must
+/// hold too), beside its poses.
+fn levels_json(q: &QuantPose) -> Value {
+    json!({
+        "rotations": q.rotations,
+        "translations": q.translations,
+        "scales": q.scales.iter().map(|s| s.to_array()).collect::<Vec<_>>(),
+        "placement": {
+            "position": q.placement.position.to_array(),
+            "rotation": q.placement.rotation.to_array(),
+        },
+        "weights": q.weights,
+        "steps": q.steps.as_deref().map(|s| json!({
+            "rotations": s.rotations, "translation": s.translation, "near": s.near,
+        })),
+    })
+}
+
+/// What `decoder` makes of `bytes` (decoded: the frame, its levels; refused: `null`), as a
+/// vector; `beyond_js` when it decodes a server time or seq beyond 2⁵³, which the JavaScript
+/// decoder refuses.
+fn packed_step(decoder: &mut Frame2Decoder, bytes: Vec<u8>) -> Value {
+    let expect = decoder.decode_levels(&bytes).ok().map(|f| {
+        let mut v = frame_json(&f.to_frame());
+        v["levels"] = f.avatars.iter().map(|a| levels_json(&a.levels)).collect();
+        v
+    });
+    let beyond_js = expect.as_ref().is_some_and(|f| {
+        f["server_time_us"].as_u64() > Some((1 << 53) - 1)
+            || f["seq"].as_u64() > Some((1 << 53) - 1)
+    });
+    json!({"bytes": bytes, "expect": expect, "beyond_js": beyond_js})
+}
+
+/// A still avatar, or one whose joints turn (now and then jump), whose root walks, whose
+/// placement, scales and morph weights change now and then.
+fn packed_move(pose: &mut AvatarPose, rng: &mut Lcg) {
+    for q in &mut pose.rotations {
+        let r = rng.next();
+        if r < 0.03 {
+            *q = rng.quat();
+        } else if r < 0.9 {
+            *q = (Quat::from_scaled_axis(rng.vec3() * 0.01) * *q).normalize();
+        }
+    }
+    for t in &mut pose.translations {
+        *t += rng.vec3() * 0.01;
+    }
+    if rng.next() < 0.1 {
+        pose.placement =
+            Placement::try_new((rng.vec3() * 5.0).to_array(), rng.quat().to_array()).unwrap();
+    }
+    if rng.next() < 0.1 {
+        for s in &mut pose.scales {
+            *s = rng.vec3();
+        }
+    }
+    for w in &mut pose.weights {
+        if rng.next() < 0.2 {
+            *w = rng.next();
+        }
+    }
+}
+
+fn packed_pose(
+    rng: &mut Lcg,
+    num: u32,
+    joints: usize,
+    scales: usize,
+    weights: usize,
+) -> AvatarPose {
+    AvatarPose {
+        avatar_num: num,
+        hash: 0x7ac0_0000_0000_0000 + u64::from(num),
+        rotations: (0..joints).map(|_| rng.quat()).collect(),
+        translations: vec![rng.vec3()],
+        scales: (0..scales).map(|_| rng.vec3()).collect(),
+        placement: Placement::IDENTITY,
+        weights: (0..weights).map(|_| rng.next()).collect(),
+    }
+}
+
+/// Packed delta streams and what `Frame2Decoder` makes of each frame, in order:
+/// - `main`, through one decoder: scene 6, nine avatars (numbers 0, 1, 2, 9, 5, 6, 70,000,
+///   2³² − 2, 2³² − 1: runs of consecutive numbers, jumps up and down, the largest) coded by a
+///   packing `StreamEncoder` — three on a precision's tiered grid, two with morph weights, two
+///   with scales, two still (the usual chunk head) — for 160 ticks with a keyframe every 40,
+///   server times jittering by some hundred µs and once going back 250 µs; interleaved with
+///   scene 7, whose times run up to 2⁵³ − 1 (exact in JavaScript) and then past it (the Rust
+///   decoder takes that frame, the JavaScript one refuses it), and scene 8, hand-made frames
+///   checking the scene clock (a packed delta whose avatar's base is held but which is not the
+///   scene's last frame; one after a kind 2 delta, going back in time; one with an avatar
+///   whose base is not held; one without avatars; one after the scene was forgotten). Refused variants of scene
+///   6's packed deltas (cut short, a byte too many, a base other than the last frame, v1's
+///   magic, an unknown kind) between the good ones: `null`, and they change nothing.
+/// - `lagging`: scene 6's frames to a reader that starts late and misses some (a keyframe
+///   too): the packed deltas after a miss refused until the next keyframe.
+/// - `odd`: after a short packed stream of two avatars, each through a fresh decoder: its next
+///   packed delta with a bit or two flipped, and packed deltas whose first chunk is an avatar
+///   held, a random head and random bits — decoded or refused, as the Rust decoder does.
+fn packed_vectors(rng: &mut Lcg) -> Value {
+    let mut main = Vec::new();
+    let mut decoder = Frame2Decoder::new();
+    let mut lag = Frame2Decoder::new();
+    let mut lagging = Vec::new();
+    let nums = [0u32, 1, 2, 9, 5, 6, 70_000, u32::MAX - 1, u32::MAX];
+    let joints = [4usize, 7, 5, 6, 3, 8, 5, 4, 6];
+    let mut poses: Vec<AvatarPose> = nums
+        .iter()
+        .zip(joints)
+        .enumerate()
+        .map(|(i, (&num, j))| {
+            let scales = if i == 2 || i == 6 { 2 } else { 0 };
+            let weights = if i == 3 || i == 7 { 6 } else { 0 };
+            packed_pose(rng, num, j, scales, weights)
+        })
+        .collect();
+    let still = [5usize, 8];
+    let mut stream = StreamEncoder::new().with_packing(true);
+    for i in [1usize, 4, 7] {
+        let steps: Vec<u8> = (0..joints[i])
+            .map(|_| (rng.next() * 40.0) as u8 + 1)
+            .collect();
+        stream.set_steps(
+            nums[i],
+            std::sync::Arc::new(posecast_proto::precision::Steps {
+                near: near_steps(&steps),
+                rotations: steps,
+                translation: 11,
+            }),
+        );
+    }
+    // Scene 7: two avatars, times up to 2⁵³ − 1, then one beyond.
+    let mut near_end = StreamEncoder::new().with_packing(true);
+    let mut pair = vec![packed_pose(rng, 3, 5, 0, 0), packed_pose(rng, 4, 5, 1, 0)];
+    let mut near_seq = 0u64;
+    let (first, ticks) = (1000u64, 160u64);
+    let mut time = 1_763_891_000_000_000u64;
+    let mut backwards = 0;
+    for seq in first..first + ticks {
+        for (i, p) in poses.iter_mut().enumerate() {
+            if !still.contains(&i) {
+                packed_move(p, rng);
+            }
+        }
+        let before = time;
+        time += 16_667;
+        time = time + (rng.next() * 800.0) as u64 - 400;
+        if seq == first + 77 {
+            time = before - 250;
+        }
+        let (bytes, kind) = stream.encode(6, seq, time, &poses, seq % 40 == 0);
+        if kind == FrameKind::Delta {
+            assert_eq!(bytes[1], 3, "a packing stream's deltas are packed");
+            backwards += usize::from(time < before);
+        }
+        if kind == FrameKind::Delta && seq % 7 == 3 {
+            let (fields, _) = packed_header(&bytes);
+            let [count, scene, s, gap, since] = fields;
+            let mut bad = vec![
+                bytes[..bytes.len() - 1].to_vec(),
+                bytes[..(rng.next() * bytes.len() as f32) as usize].to_vec(),
+                [&bytes[..], &[0]].concat(),
+                packed_rehead(&bytes, [count, scene, s, gap + 1, since]),
+                packed_rehead(&bytes, [count, scene, s + 1, gap, since]),
+            ];
+            let mut magic = bytes.clone();
+            magic[0] = posecast_proto::frame::MAGIC;
+            bad.push(magic);
+            let mut kind = bytes.clone();
+            kind[1] = 4;
+            bad.push(kind);
+            for b in bad {
+                assert!(decoder.decode(&b).is_err(), "{b:?}");
+                main.push(json!({"bytes": b, "expect": null, "beyond_js": false}));
+            }
+        }
+        main.push(packed_step(&mut decoder, bytes.clone()));
+        // The lagging reader starts late, misses a frame after each keyframe and misses a
+        // keyframe.
+        if seq >= first + 5 && seq % 40 != 25 && seq != first + 80 {
+            lagging.push(packed_step(&mut lag, bytes));
+        }
+        if seq % 5 == 1 && near_seq <= 30 {
+            near_seq += 1;
+            for p in &mut pair {
+                packed_move(p, rng);
+            }
+            let t = if near_seq <= 30 {
+                (1u64 << 53) - 1 - (30 - near_seq) * 16_667
+            } else {
+                (1 << 53) + 2
+            };
+            let (bytes, _) = near_end.encode(7, near_seq, t, &pair, near_seq == 1);
+            main.push(packed_step(&mut decoder, bytes));
+        }
+        if seq == first + 50 {
+            main.extend(clock_vectors_packed(rng, &mut decoder));
+        }
+    }
+    assert!(backwards >= 1);
+    json!({"main": main, "lagging": lagging, "odd": packed_odd_vectors(rng)})
+}
+
+/// Scene 8, hand-made: the scene clock a packed delta's time is read from (see
+/// [`packed_vectors`]), through `decoder`; `{"forget": 8}` forgets the scene.
+fn clock_vectors_packed(rng: &mut Lcg, decoder: &mut Frame2Decoder) -> Vec<Value> {
+    use posecast_proto::frame2::{Frame2Error, PackedDeltas};
+    let mut a = packed_pose(rng, 3, 5, 0, 0);
+    let mut b = packed_pose(rng, 4, 6, 1, 2);
+    // Levels of A and B at seqs 10 to 17.
+    let mut qa = std::collections::BTreeMap::new();
+    let mut qb = std::collections::BTreeMap::new();
+    for seq in 10u64..19 {
+        packed_move(&mut a, rng);
+        packed_move(&mut b, rng);
+        qa.insert(seq, QuantPose::from_pose(&a));
+        qb.insert(seq, QuantPose::from_pose(&b));
+    }
+    let t = |seq: u64| {
+        let t = 1_700_000_000_000_000 + seq * 20_000;
+        if seq == 12 { t - 20_300 } else { t }
+    };
+    let header = |kind, seq, base_seq| FrameHeader {
+        kind,
+        scene_num: 8,
+        seq,
+        server_time_us: t(seq),
+        base_seq,
+    };
+    let key = |seq| {
+        let mut out = Vec::new();
+        frame2::write_header(&header(FrameKind::Key, seq, seq), 2, &mut out);
+        frame2::encode_key(3, a.hash, &qa[&seq], &mut out);
+        frame2::encode_key(4, b.hash, &qb[&seq], &mut out);
+        out
+    };
+    // Chunks (avatar, seq, history seqs newest first) of a packed delta of `seq` on `base`.
+    let packed = |seq, base, chunks: &[(u32, &[u64])]| {
+        let mut out = Vec::new();
+        let mut p = PackedDeltas::new(
+            &header(FrameKind::Delta, seq, base),
+            t(base),
+            chunks.len(),
+            &mut out,
+        );
+        for &(num, held) in chunks {
+            let q = if num == 3 { &qa } else { &qb };
+            let h: Vec<&QuantPose> = held.iter().map(|s| &q[s]).collect();
+            assert!(p.push(num, &q[&seq], &h));
+        }
+        p.finish();
+        out
+    };
+    // A kind 2 delta of A alone.
+    let mut d11 = Vec::new();
+    frame2::write_header(&header(FrameKind::Delta, 11, 10), 1, &mut d11);
+    assert!(frame2::encode_delta(3, &qa[&11], &[&qa[&10]], &mut d11));
+    // Each frame and why the decoder refuses it, if it does; `None`: the scene forgotten.
+    let plan = [
+        Some((key(10), None)),
+        Some((d11, None)),
+        // B's base (10) is held, but the scene's last frame is 11: its time cannot be read.
+        Some((packed(12, 10, &[(4, &[10])]), Some("clock"))),
+        // A against 11, its time 300 µs before 11's.
+        Some((packed(12, 11, &[(3, &[11, 10])]), None)),
+        // B's last frame is 10, not 12: refused whole, A's chunk too.
+        Some((
+            packed(13, 12, &[(3, &[12, 11, 10]), (4, &[10])]),
+            Some("base"),
+        )),
+        Some((packed(13, 12, &[(3, &[12, 11, 10])]), None)),
+        // No avatar: only the time, from 13's.
+        Some((packed(14, 13, &[]), None)),
+        None,
+        // The scene forgotten, its clock too: the time of an empty packed delta cannot be
+        // read, nor A's levels.
+        Some((packed(15, 14, &[]), Some("clock"))),
+        Some((packed(15, 14, &[(3, &[13, 12])]), Some("clock"))),
+        Some((key(16), None)),
+        Some((packed(17, 16, &[(3, &[16]), (4, &[16])]), None)),
+        // B before A: both numbers in full.
+        Some((packed(18, 17, &[(4, &[17, 16]), (3, &[17, 16])]), None)),
+    ];
+    let mut out = Vec::new();
+    for step in plan {
+        match step {
+            None => {
+                decoder.forget_scene(8);
+                out.push(json!({"forget": 8}));
+            }
+            Some((bytes, Some(why))) => {
+                let e = decoder.decode(&bytes).unwrap_err();
+                let ok = match e {
+                    Frame2Error::BaseTime { .. } => why == "clock",
+                    Frame2Error::MissingBase { .. } => why == "base",
+                    _ => false,
+                };
+                assert!(ok, "{why}: {e}");
+                out.push(json!({"bytes": bytes, "expect": null, "beyond_js": false}));
+            }
+            Some((bytes, None)) => out.push(packed_step(decoder, bytes)),
+        }
+    }
+    out
+}
+
+/// See [`packed_vectors`]: odd packed deltas after a short packed stream, each for a fresh
+/// decoder.
+fn packed_odd_vectors(rng: &mut Lcg) -> Vec<Value> {
+    let mut poses = vec![packed_pose(rng, 1, 5, 1, 3), packed_pose(rng, 2, 4, 0, 0)];
+    let time = |seq: u64| 5_000_000 + seq * 16_667;
+    let mut stream = StreamEncoder::new().with_packing(true);
+    let mut prefix = Vec::new();
+    for seq in 1..5 {
+        for p in &mut poses {
+            packed_move(p, rng);
+        }
+        prefix.push(stream.encode(4, seq, time(seq), &poses, false).0);
+    }
+    let primed = || {
+        let mut dec = Frame2Decoder::new();
+        for p in &prefix {
+            dec.decode(p).unwrap();
+        }
+        dec
+    };
+    for p in &mut poses {
+        packed_move(p, rng);
+    }
+    poses[0].placement = Placement::try_new([1.0, 2.0, 3.0], rng.quat().to_array()).unwrap();
+    poses[0].weights[1] = 0.5;
+    let next = stream.encode(4, 5, time(5) - 40, &poses, false).0;
+    assert_eq!(next[1], 3);
+    let mut odd: Vec<Vec<u8>> = Vec::new();
+    for case in 0..80 {
+        let mut b = next.clone();
+        for _ in 0..1 + case % 2 {
+            let at = (rng.next() * b.len() as f32) as usize;
+            b[at] ^= 1 << (rng.next() * 8.0) as u32;
+        }
+        odd.push(b);
+    }
+    odd.push(next);
+    for case in 0..150 {
+        let mut bytes = vec![frame2::MAGIC, 3];
+        for f in [
+            1 + case % 2,
+            4,
+            5,
+            1,
+            zigzag((rng.next() * 2000.0) as i64 - 1000),
+        ] {
+            put_varint(f, &mut bytes);
+        }
+        let mut bits = Bits::default();
+        // Avatar 1 or 2 (n = 1 or 2), then a random head and random bits.
+        let num = 1 + u64::from(rng.next() < 0.5);
+        let n = if num == 1 { 1 } else { 2 };
+        bits.put(n - 1, 5);
+        bits.put(num, n as u32);
+        if rng.next() < 0.2 {
+            bits.put(1, 1);
+        } else {
+            bits.put(0, 1);
+            bits.put((rng.next() * 4.0) as u64, 3);
+            bits.put((rng.next() * 16.0) as u64, 4);
+        }
+        let ones = case % 3 == 0;
+        for _ in 0..(rng.next() * 400.0) as usize {
+            bits.put(u64::from(rng.next() < if ones { 0.8 } else { 0.5 }), 1);
+        }
+        bytes.extend(bits.bytes());
+        let start = bytes.len() - bits.bytes().len();
+        // Every other case cut where the Rust decoder takes it whole, if anywhere.
+        let fits = (start..=bytes.len()).find(|&n| primed().decode(&bytes[..n]).is_ok());
+        match fits {
+            Some(n) if case % 2 == 0 => odd.push(bytes[..n].to_vec()),
+            _ => odd.push(bytes),
+        }
+    }
+    odd.into_iter()
+        .map(|b| {
+            let mut v = packed_step(&mut primed(), b);
+            v["prefix"] = json!(prefix);
+            v
+        })
+        .collect()
+}
+
+/// Runs by node: decodes the packed vectors with `server/sdk/frames2.js` and compares, frame
+/// by frame, the header (server time exactly), each avatar's number and hash, the levels it
+/// keeps (exactly) and the poses; then random bytes after a packed delta's kind byte, which
+/// must decode or throw `bad_message`. Prints a report; exits 1 on a mismatch.
+const PACKED_CHECK: &str = r#"
+import { readFileSync } from "node:fs";
+import { pathToFileURL } from "node:url";
+const sdk = process.env.POSECAST_SDK;
+const { Frame2Decoder } = await import(pathToFileURL(`${sdk}/frames2.js`).href);
+const { quatAngleDegrees } = await import(pathToFileURL(`${sdk}/math.js`).href);
+const vectors = JSON.parse(readFileSync(process.env.POSECAST_VECTORS, "utf8"));
+const failures = [];
+const fail = (m) => failures.push(m);
+const levels = (l) => JSON.stringify({
+  rotations: l.rotations, translations: l.translations, scales: l.scales,
+  placement: { position: l.placement.position, rotation: l.placement.rotation }, weights: l.weights,
+  steps: l.steps && { rotations: l.steps.rotations, translation: l.steps.translation, near: l.steps.near },
+});
+const last = new Map();
+function check(d, f, label, counts) {
+  if (f.forget !== undefined) { d.forgetScene(f.forget); last.delete(f.forget); return; }
+  const packed = f.bytes[1] === 3;
+  let got;
+  try {
+    got = d.decode(new Uint8Array(f.bytes));
+  } catch (e) {
+    if (e?.code !== "bad_message") return fail(`${label}: threw ${e}`);
+    if (f.beyond_js) counts.beyond++;
+    else if (f.expect === null) counts.refused++;
+    else fail(`${label}: refused (${e.message}), the Rust decoder decodes it`);
+    return;
+  }
+  if (f.expect === null || f.beyond_js) return fail(`${label}: decoded (seq ${got.seq}), the Rust decoder refuses it`);
+  const w = f.expect;
+  const before = failures.length;
+  for (const k of ["key", "scene_num", "seq", "server_time_us", "base_seq"]) {
+    if (got[k] !== w[k]) fail(`${label} ${k}: ${got[k]} vs ${w[k]}`);
+  }
+  if (got.avatars.length !== w.avatars.length) return fail(`${label}: ${got.avatars.length} avatars, expected ${w.avatars.length}`);
+  got.avatars.forEach((a, i) => {
+    const want = w.avatars[i];
+    const what = `${label} (scene ${w.scene_num} seq ${w.seq}) avatar ${want.num}`;
+    if (a.num !== want.num || a.hash !== want.hash) fail(`${what}: num/hash ${a.num} ${a.hash} vs ${want.num} ${want.hash}`);
+    const held = d.history.get(`${got.scene_num}:${a.num}`);
+    const mine = held && held.frames[0].seq === got.seq ? levels(held.frames[0].levels) : "nothing";
+    const theirs = levels(w.levels[i]);
+    if (mine !== theirs) fail(`${what}: levels ${mine} vs ${theirs}`);
+    a.rotations.forEach((q, j) => {
+      const x = quatAngleDegrees(q, want.rotations[j]);
+      if (!(x <= 5e-4)) fail(`${what} joint ${j}: ${q} vs ${want.rotations[j]} (${x}°)`);
+    });
+    for (const k of ["translations", "scales", "placement", "weights"]) {
+      if (JSON.stringify(a[k]) !== JSON.stringify(want[k])) fail(`${what} ${k}: ${JSON.stringify(a[k])} vs ${JSON.stringify(want[k])}`);
+    }
+  });
+  if (failures.length !== before) return;
+  counts.frames++;
+  if (packed) counts.packed++;
+  if (packed && got.server_time_us < last.get(got.scene_num)) counts.backwards++;
+  last.set(got.scene_num, got.server_time_us);
+}
+const main = { frames: 0, packed: 0, refused: 0, beyond: 0, backwards: 0 };
+const d = new Frame2Decoder();
+vectors.main.forEach((f, i) => check(d, f, `main ${i}`, main));
+const lagging = { frames: 0, packed: 0, refused: 0, beyond: 0, backwards: 0 };
+last.clear();
+const slow = new Frame2Decoder();
+vectors.lagging.forEach((f, i) => check(slow, f, `lagging ${i}`, lagging));
+// A fresh decoder that took `prefix` (good frames: each must decode).
+const primed = (prefix, label) => {
+  const dec = new Frame2Decoder();
+  prefix.forEach((p, k) => {
+    try {
+      dec.decode(new Uint8Array(p));
+    } catch (e) {
+      fail(`${label}: prefix frame ${k} refused: ${e}`);
+    }
+  });
+  return dec;
+};
+const odd = { frames: 0, packed: 0, refused: 0, beyond: 0, backwards: 0 };
+vectors.odd.forEach((c, i) => {
+  const fresh = primed(c.prefix, `odd ${i}`);
+  last.clear();
+  check(fresh, c, `odd ${i}`, odd);
+});
+// Random bytes after a packed delta's kind: decoded or bad_message, never another exception.
+let seed = 0x51a3;
+const random = () => { seed ^= seed << 13; seed ^= seed >>> 17; seed ^= seed << 5; return (seed >>> 0) / 2 ** 32; };
+const fuzzed = primed(vectors.odd[0].prefix, "random bytes");
+let fuzz = 0;
+for (let i = 0; i < 3000; i++) {
+  const bytes = new Uint8Array(2 + Math.floor(random() * 200));
+  for (let k = 2; k < bytes.length; k++) bytes[k] = random() * 256;
+  [bytes[0], bytes[1]] = [0x51, 3];
+  // Mostly a header naming scene 4 and its next seq, so the chunks are read too.
+  if (i % 4 !== 0 && bytes.length > 6) bytes.set([1 + (i % 3), 4, 5, 1], 2);
+  try {
+    fuzzed.decode(bytes);
+  } catch (e) {
+    if (e?.code !== "bad_message") fail(`random bytes ${i}: threw ${e}`);
+  }
+  fuzz++;
+}
+console.log(JSON.stringify({ main, lagging, odd, fuzz, failures: failures.slice(0, 20) }));
+process.exit(failures.length ? 1 : 0);
+"#;
+
+/// Packed deltas (protocol version 7) made by `posecast_proto::frame2` (`StreamEncoder` with
+/// packing, `PackedDeltas`) decode in the JavaScript client's `server/sdk/frames2.js` to the
+/// levels and server times `Frame2Decoder` decodes, and are refused where it refuses them
+/// (a base other than the scene's last frame, not held, forgotten; malformed) without a change.
+#[test]
+fn the_clients_decoder_reads_packed_deltas_as_the_rust_one() {
+    let mut rng = Lcg(0x7_9ac3);
+    let vectors = packed_vectors(&mut rng);
+    let file = std::env::temp_dir().join(format!("posecast-packed-{}.json", std::process::id()));
+    std::fs::write(&file, serde_json::to_vec(&vectors).unwrap()).unwrap();
+    let out = match Process::new("node")
+        .args(["--input-type=module", "-e", PACKED_CHECK])
+        .env("POSECAST_SDK", root().join("server/sdk"))
+        .env("POSECAST_VECTORS", &file)
+        .output()
+    {
+        Ok(out) => out,
+        Err(e) => {
+            skip(&format!(
+                "node is not installed ({e}): the JavaScript decoder's packed deltas are not checked"
+            ));
+            return;
+        }
+    };
+    std::fs::remove_file(&file).ok();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "packed deltas in JavaScript: {stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: Value = serde_json::from_str(stdout.trim()).unwrap();
+    let n = |path: &[&str]| {
+        path.iter()
+            .fold(&report, |v, k| &v[*k])
+            .as_u64()
+            .unwrap_or_else(|| panic!("{path:?}: {report}"))
+    };
+    // Scene 6's 160 frames, scene 7's 30 (the 31st is beyond 2⁵³), scene 8's 8.
+    assert_eq!(n(&["main", "frames"]), 160 + 30 + 8, "{report}");
+    assert!(n(&["main", "packed"]) >= 150 + 25 + 4, "{report}");
+    assert_eq!(n(&["main", "beyond"]), 1, "{report}");
+    assert!(n(&["main", "backwards"]) >= 2, "{report}");
+    assert!(n(&["main", "refused"]) >= 100, "{report}");
+    assert!(n(&["lagging", "packed"]) >= 40, "{report}");
+    assert!(n(&["lagging", "refused"]) >= 40, "{report}");
+    assert!(n(&["odd", "frames"]) >= 10, "{report}");
+    assert!(n(&["odd", "refused"]) >= 80, "{report}");
+    assert_eq!(n(&["fuzz"]), 3000, "{report}");
+    println!("JavaScript packed deltas vs Rust: {report}");
 }
