@@ -5,9 +5,10 @@
 //! frames and the joints they carried. Nothing is modelled: these are the bytes the websocket
 //! delivered.
 //!
-//! Clients of protocol versions 5 and 6 ask for a precision each (`subscribe … precision`): a
+//! Clients of protocol versions 5 to 7 ask for a precision each (`subscribe … precision`): a
 //! worst angle, or a world-space bound at 3 cm from every joint; version 6's frames use
-//! near-axis steps (`posecast_proto::precision::Steps::near`), as the second table's do. A
+//! near-axis steps (`posecast_proto::precision::Steps::near`), as the second table's do, and
+//! version 7's deltas are packed (`posecast_proto::frame2::PackedDeltas`). A
 //! second table gives, for each precision and the same served rig and clip, what the coding
 //! costs in accuracy and time:
 //! the clip sampled at 60 Hz for a minute as the server samples it, coded and decoded with the
@@ -57,11 +58,13 @@ fn subscriptions() -> Vec<(String, u32, Option<u16>, Option<Precision>)> {
     let mut out = vec![
         ("v1".to_owned(), 1, None, None),
         ("v2".to_owned(), 3, None, None),
+        ("v2, v7".to_owned(), 7, None, None),
         ("v2, depth ≤ 3".to_owned(), 3, Some(3), None),
     ];
     for (label, p) in precisions().into_iter().skip(1) {
         out.push((format!("v2 at {label}, v5"), 5, None, Some(p)));
         out.push((format!("v2 at {label}, v6"), 6, None, Some(p)));
+        out.push((format!("v2 at {label}, v7"), 7, None, Some(p)));
     }
     out
 }
@@ -190,9 +193,9 @@ fn errors(
     let key_every = (f64::from(RATE) * V2_KEY_SECONDS).ceil() as usize;
     let duration = clip.duration().max(1e-3);
     for (label, precision) in precisions() {
-        // As a protocol version 6 subscriber gets them (near-axis steps).
+        // As a protocol version 7 subscriber gets them (near-axis steps, packed deltas).
         let steps = Arc::new(precision.resolve_with(description, true));
-        let mut encoder = StreamEncoder::new();
+        let mut encoder = StreamEncoder::new().with_packing(true);
         encoder.set_steps(0, steps.clone());
         let mut decoder = Frame2Decoder::new();
         let mut locals: Vec<Transform> = rest.to_vec();

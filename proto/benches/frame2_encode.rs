@@ -2,14 +2,15 @@
 //! receiver's last 8 frames, and decoding it — for a 31-joint rig (CMU 01_01's size) moving
 //! like motion capture (every joint turning at a slowly wandering angular velocity, the root
 //! walking), at the finest precision and on a 0.1° grid (protocol 5, and 6 with near-axis
-//! steps), and putting a pose's levels on that grid.
+//! steps), as a chunk of a kind 2 delta and of a packed one (protocol 7), and putting a pose's
+//! levels on that grid.
 //!
 //! `cargo bench -p posecast-proto --bench frame2_encode`
 
 use criterion::{Criterion, black_box, criterion_group, criterion_main};
 use glam::{Quat, Vec3};
-use posecast_proto::frame::AvatarPose;
-use posecast_proto::frame2::{self, Frame2Decoder, QuantPose, StreamEncoder};
+use posecast_proto::frame::{AvatarPose, FrameHeader, FrameKind};
+use posecast_proto::frame2::{self, Frame2Decoder, PackedDeltas, QuantPose, StreamEncoder};
 use posecast_proto::placement::Placement;
 use posecast_proto::precision::{self, Steps};
 use std::sync::Arc;
@@ -104,6 +105,30 @@ fn bench(c: &mut Criterion) {
                 black_box(out.len())
             })
         });
+        // The same as one chunk of a packed delta (protocol 7), its header included.
+        c.bench_function(
+            &format!("packed delta of depth 8, 31 joints, {label}"),
+            |b| {
+                let mut i = 8;
+                b.iter(|| {
+                    i = if i + 1 >= levels.len() { 8 } else { i + 1 };
+                    let history: [&QuantPose; 8] = std::array::from_fn(|k| &levels[i - 1 - k]);
+                    out.clear();
+                    let header = FrameHeader {
+                        kind: FrameKind::Delta,
+                        scene_num: 1,
+                        seq: i as u64 + 1,
+                        server_time_us: 1_750_000_000_000_000 + i as u64 * 16_667,
+                        base_seq: i as u64,
+                    };
+                    let base_time = header.server_time_us - 16_667;
+                    let mut packed = PackedDeltas::new(&header, base_time, 1, &mut out);
+                    packed.push(1, black_box(&levels[i]), &history);
+                    packed.finish();
+                    black_box(out.len())
+                })
+            },
+        );
         let mut encoder = StreamEncoder::new();
         if let Some(s) = &steps {
             encoder.set_steps(1, s.clone());

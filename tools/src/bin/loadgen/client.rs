@@ -12,7 +12,7 @@ use anyhow::{Context, Result, bail};
 use futures_util::{SinkExt, StreamExt};
 use posecast_client::net::transport::{Link, QuicOffer};
 use posecast_proto::frame::{FrameHeader, FrameKind};
-use posecast_proto::frame2;
+use posecast_proto::frame2::{self, FrameClock};
 use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, SceneId, ServerMsg};
 use std::sync::atomic::{AtomicU8, AtomicUsize, Ordering};
 use tokio::sync::{Semaphore, watch};
@@ -90,6 +90,9 @@ pub struct ClientStats {
     pub keys: u64,
     /// Tick→receive latency of each frame, µs.
     pub latencies_us: Vec<u32>,
+    /// Frames whose time could not be read (packed deltas before the first keyframe, from
+    /// the reference server): counted, without a latency.
+    pub untimed: u64,
     /// Ticks missing between consecutive frames (`seq` gaps).
     pub missed: u64,
     /// Frames whose `seq` was not above the previous one.
@@ -181,6 +184,7 @@ pub async fn run(
     shared.ready.fetch_add(1, Ordering::Relaxed);
     let mut stats = ClientStats::default();
     let mut last_seq: Option<u64> = None;
+    let mut clock = FrameClock::default();
     loop {
         let message = tokio::select! {
             m = ws.stream.next() => m,
@@ -189,7 +193,7 @@ pub async fn run(
         match message {
             Some(Ok(Message::Binary(bytes))) => {
                 let now = crate::unix_micros();
-                let Some(header) = frame_header(&bytes) else {
+                let Some((header, timed)) = frame_header(&bytes, &mut clock) else {
                     stats.failure = Some("a binary message is not a pose frame".into());
                     break;
                 };
@@ -213,6 +217,10 @@ pub async fn run(
                     stats.frames += 1;
                     stats.bytes += bytes.len() as u64;
                     stats.keys += u64::from(header.kind == FrameKind::Key);
+                    if !timed {
+                        stats.untimed += 1;
+                        continue;
+                    }
                     let latency = now.saturating_sub(header.server_time_us);
                     stats
                         .latencies_us
@@ -256,14 +264,21 @@ pub async fn run(
     stats
 }
 
-/// The header of a v1 or a v2 frame (told apart by the first byte).
-pub fn frame_header(bytes: &[u8]) -> Option<FrameHeader> {
+/// The header of a v1 or a v2 frame (told apart by the first byte), and whether its time is
+/// known; `clock` holds the v2 frames read before (a packed delta's time is read against its
+/// base frame's, which a client of the reference server that joined between keyframes lacks:
+/// such frames count, untimed, until the next keyframe).
+pub fn frame_header(bytes: &[u8], clock: &mut FrameClock) -> Option<(FrameHeader, bool)> {
     if bytes.first() == Some(&frame2::MAGIC) {
-        frame2::read_header(bytes).ok().map(|(h, _)| h)
+        let (header, _, timed) = clock.read_untimed(bytes).ok()?;
+        if timed {
+            clock.record(&header);
+        }
+        Some((header, timed))
     } else {
         posecast_proto::frame::read_header(bytes)
             .ok()
-            .map(|(h, _)| h)
+            .map(|(h, _)| (h, true))
     }
 }
 

@@ -119,12 +119,12 @@ pub struct Args {
     /// 2 Mbit/s shared by every client.
     #[arg(long, conflicts_with = "link")]
     link_suite: bool,
-    /// The protocol version the clients say hello with: 2 to 6 get wire v2 frames (4 with
-    /// morph weights, 5 with precision per subscription, 6 with near-axis steps; 3 is the
-    /// default), 1 v1 frames.
+    /// The protocol version the clients say hello with: 2 to 7 get wire v2 frames (4 with
+    /// morph weights, 5 with precision per subscription, 6 with near-axis steps, 7 with packed
+    /// deltas; 3 is the default), 1 v1 frames.
     /// The reference server sends the same wire. Over WebTransport every version gets wire
     /// v1 datagrams.
-    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=6))]
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=7))]
     protocol: u32,
     /// Load the machine as a busy host would be: this many busy-loop processes run beside the
     /// servers for the whole run (e.g. one per core), so both servers are measured under the

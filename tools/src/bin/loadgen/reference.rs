@@ -22,7 +22,7 @@ use bytes::Bytes;
 use futures_util::{SinkExt, StreamExt};
 use posecast_proto::command::Command;
 use posecast_proto::frame::{self, FrameHeader, HEADER_BYTES};
-use posecast_proto::frame2;
+use posecast_proto::frame2::{self, FrameClock};
 use posecast_proto::msg::{Access, AvatarId, ClientMsg, Encoding, SceneId, ServerMsg};
 use posecast_server::builtin::{BUILTIN_ASSET, rig};
 use posecast_server::metrics::Metrics;
@@ -30,6 +30,7 @@ use posecast_server::quota::Quotas;
 use posecast_server::stream::feed::Subscriber;
 use posecast_server::stream::outbox::{Next, Outbox};
 use posecast_server::world::{World, command};
+use std::collections::VecDeque;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
@@ -40,10 +41,13 @@ use tokio_tungstenite::tungstenite::Message;
 /// about a second at 60 Hz.
 const LAG_FRAMES: usize = 64;
 
-/// Seconds of posecast's frames replayed (three keyframe intervals), recorded after
-/// [`SETTLE_SECONDS`] (the join keyframe and the clips' first moments are not typical).
+/// Seconds of posecast's frames replayed, recorded from a subscription made
+/// [`SETTLE_SECONDS`] after the clips started (their first moments are not typical): its
+/// keyframe, then what a subscriber gets (on wire v2, deltas: a v2 reader that keeps up gets a
+/// keyframe every 10 s, so the loop's one keyframe a replay is where a client that joined
+/// between keyframes can start reading packed deltas' times).
 pub const RECORD_SECONDS: f64 = 3.0;
-/// Seconds of frames dropped before recording.
+/// Seconds the clips play before the recording subscribes.
 pub const SETTLE_SECONDS: f64 = 1.0;
 
 /// Serves on `listen` until the process is killed: `avatars` built-in avatars playing `clips`
@@ -83,21 +87,32 @@ struct Recorded {
     avatars: usize,
     body: Bytes,
     v2: bool,
+    /// A packed delta (protocol version 7), whose time is sent against its base frame's.
+    packed: bool,
 }
 
 impl Recorded {
-    /// A v1 or v2 frame's header and body; `None` for anything else.
-    fn parse(bytes: &Bytes) -> Option<Self> {
+    /// A v1 or v2 frame's header and body; `None` for anything else. `clock` holds the frames
+    /// read before (a packed delta's time is read against its base frame's).
+    fn parse(bytes: &Bytes, clock: &mut FrameClock) -> Option<Self> {
         if bytes.first() == Some(&frame2::MAGIC) {
-            let (header, avatars) = frame2::read_header(bytes).ok()?;
+            let base_time = |h: &FrameHeader| clock.time_of(h.scene_num, h.base_seq);
+            let (header, avatars) = clock.read(bytes).ok()?;
+            let packed = bytes.get(1) == Some(&3);
             // v2 headers are varints: the body starts where the same header, written, ends.
             let mut head = Vec::new();
-            frame2::write_header(&header, avatars, &mut head);
+            if packed {
+                frame2::write_packed_header(&header, base_time(&header)?, avatars, &mut head);
+            } else {
+                frame2::write_header(&header, avatars, &mut head);
+            }
+            clock.record(&header);
             bytes.starts_with(&head).then(|| Self {
                 header,
                 avatars,
                 body: bytes.slice(head.len()..),
                 v2: true,
+                packed,
             })
         } else {
             let (header, avatars) = frame::read_header(bytes).ok()?;
@@ -106,12 +121,14 @@ impl Recorded {
                 avatars: usize::from(avatars),
                 body: bytes.slice(HEADER_BYTES..),
                 v2: false,
+                packed: false,
             })
         }
     }
 
-    /// The frame as tick `seq` at `server_time_us`, referring as far back as it did.
-    fn stamped(&self, seq: u64, server_time_us: u64) -> Bytes {
+    /// The frame as tick `seq` at `server_time_us`, referring as far back as it did; a packed
+    /// delta's base frame was sent at `base_time_us`.
+    fn stamped(&self, seq: u64, server_time_us: u64, base_time_us: u64) -> Bytes {
         let back = self.header.seq.saturating_sub(self.header.base_seq);
         let header = FrameHeader {
             seq,
@@ -120,7 +137,9 @@ impl Recorded {
             ..self.header
         };
         let mut out = Vec::with_capacity(HEADER_BYTES + self.body.len());
-        if self.v2 {
+        if self.packed {
+            frame2::write_packed_header(&header, base_time_us, self.avatars, &mut out);
+        } else if self.v2 {
             frame2::write_header(&header, self.avatars, &mut out);
         } else {
             let count = u16::try_from(self.avatars).unwrap_or(u16::MAX);
@@ -161,16 +180,17 @@ async fn record(
             )?;
         }
     }
+    tokio::time::sleep(Duration::from_secs_f64(SETTLE_SECONDS)).await;
     let outbox = Arc::new(Outbox::new());
     handle.subscribe(
         Subscriber::new(0, outbox.clone(), Encoding::Binary, None, 1).with_version(protocol),
     )?;
     let per_second = f64::from(tick_rate);
     let wanted = (RECORD_SECONDS * per_second).ceil().max(1.0) as usize;
-    let settle = (SETTLE_SECONDS * per_second).ceil() as usize;
-    // Enough to find a keyframe after settling and a whole run of `wanted` from it.
-    let total = settle + 2 * wanted;
+    // Enough to find the first keyframe and a whole run of `wanted` from it.
+    let total = 2 * wanted;
     let mut recorded: Vec<Recorded> = Vec::with_capacity(total);
+    let mut clock = FrameClock::default();
     // Read as the frames come (every tick, in order): a reader this prompt gets every one.
     let deadline = tokio::time::Instant::now()
         + Duration::from_secs_f64(4.0 * (SETTLE_SECONDS + 2.0 * RECORD_SECONDS));
@@ -184,18 +204,18 @@ async fn record(
         };
         for m in messages {
             if let axum::extract::ws::Message::Binary(bytes) = m
-                && let Some(frame) = Recorded::parse(&bytes)
+                && let Some(frame) = Recorded::parse(&bytes, &mut clock)
             {
                 recorded.push(frame);
             }
         }
     }
-    // Start the loop on the first keyframe after settling, as the scene's own stream does.
+    // Start the loop on the first keyframe (the subscription's own), as a subscriber's
+    // stream does.
     let first_key = recorded
         .iter()
-        .skip(settle)
         .position(|r| r.header.seq == r.header.base_seq)
-        .map_or(settle, |k| settle + k)
+        .unwrap_or(0)
         .min(recorded.len() - wanted);
     Ok(recorded.drain(first_key..first_key + wanted).collect())
 }
@@ -205,10 +225,21 @@ async fn record(
 async fn replay(recorded: Vec<Recorded>, tick_rate: f32, frames: broadcast::Sender<Bytes>) {
     let mut ticks = tokio::time::interval(Duration::from_secs_f64(1.0 / f64::from(tick_rate)));
     ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    // The times of the frames sent, newest first, for packed deltas' base frames.
+    let mut sent: VecDeque<(u64, u64)> = VecDeque::with_capacity(RING);
+    const RING: usize = 64;
     for seq in 1u64.. {
         ticks.tick().await;
         let frame = &recorded[(seq as usize - 1) % recorded.len()];
-        frames.send(frame.stamped(seq, crate::unix_micros())).ok();
+        let now = crate::unix_micros();
+        let back = frame.header.seq.saturating_sub(frame.header.base_seq);
+        let base_time = sent
+            .iter()
+            .find(|(s, _)| *s == seq.saturating_sub(back))
+            .map_or(now, |(_, t)| *t);
+        frames.send(frame.stamped(seq, now, base_time)).ok();
+        sent.push_front((seq, now));
+        sent.truncate(RING);
     }
 }
 

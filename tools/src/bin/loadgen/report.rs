@@ -20,6 +20,8 @@ pub struct Summary {
     keys: u64,
     per_client_fps: (f64, f64, f64),
     latency_ms: [f64; 5],
+    /// Frames without a latency (packed deltas whose base frame a client lacked).
+    untimed: u64,
     missed: u64,
     out_of_order: u64,
     failures: usize,
@@ -146,6 +148,7 @@ impl Summary {
             keys: stats.iter().map(|s| s.keys).sum(),
             per_client_fps: (if fps.is_empty() { 0.0 } else { lo }, mean, hi),
             latency_ms: [ms(0.5), ms(0.9), ms(0.99), ms(0.999), ms(1.0)],
+            untimed: stats.iter().map(|s| s.untimed).sum(),
             missed: stats.iter().map(|s| s.missed).sum(),
             out_of_order: stats.iter().map(|s| s.out_of_order).sum(),
             failures: stats.iter().filter(|s| s.failure.is_some()).count(),
@@ -184,6 +187,12 @@ impl Summary {
         println!(
             "tick→receive      p50 {p50:.2} · p90 {p90:.2} · p99 {p99:.2} · p99.9 {p999:.2} · max {max:.2} ms"
         );
+        if self.untimed > 0 {
+            println!(
+                "                  ({} frames untimed: packed deltas whose base frame their client lacked)",
+                self.untimed
+            );
+        }
         println!(
             "frames missed     {} ({:.2} % of expected; {} out of order)",
             self.missed,
