@@ -849,14 +849,29 @@ async fn an_owner_whose_lease_was_taken_keeps_its_subscribers() {
     let on_a = on_a.spawn(ws);
     tokio::time::sleep(Duration::from_millis(500)).await;
 
-    // "x" takes the lease, as a server would whose clock ran past A's lease.
+    // "x" takes the lease, as a server would whose clock ran past A's lease, and keeps it
+    // (as a live server renews it) until A has given the scene up: a lease put once lapses
+    // after the lease time (1 s), and A, late on a busy machine, would find it lapsed and
+    // take it back before anyone saw "x" own it.
     let client = async_nats::connect(nats.url()).await.unwrap();
     let leases = async_nats::jetstream::new(client)
         .get_key_value("posecast_leases")
         .await
         .unwrap();
     let key: String = "stage".bytes().map(|b| format!("{b:02x}")).collect();
-    leases.put(&key, "x".into()).await.unwrap();
+    let (stop, mut stopped) = tokio::sync::oneshot::channel::<()>();
+    let renewer = {
+        let (leases, key) = (leases.clone(), key.clone());
+        tokio::spawn(async move {
+            loop {
+                leases.put(&key, "x".into()).await.unwrap();
+                tokio::select! {
+                    _ = &mut stopped => return,
+                    () = tokio::time::sleep(Duration::from_millis(200)) => {}
+                }
+            }
+        })
+    };
     let taken = Instant::now();
     let deadline = taken + Duration::from_secs(30);
     while owner_seen_by(a.addr, "stage").await != "x" {
@@ -864,6 +879,8 @@ async fn an_owner_whose_lease_was_taken_keeps_its_subscribers() {
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
     // "x" is no server: nothing ticks the scene until its lease lapses and A takes it back.
+    stop.send(()).unwrap();
+    renewer.await.unwrap();
     let given_up = Instant::now();
     leases.purge(&key).await.unwrap();
     let deadline = given_up + Duration::from_secs(30);
