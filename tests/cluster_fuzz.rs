@@ -70,6 +70,8 @@ async fn run(seed: u64, steps: u64) {
     let Some(mut nats) = Nats::start() else {
         return;
     };
+    // Printed first, so a run that fails anywhere can be repeated (`POSECAST_FUZZ_SEED`).
+    eprintln!("seed {seed}");
     let url = nats.url();
     let names = ["a", "b", "c"];
     let mut servers: Vec<Option<Posecast>> = names.iter().map(|n| Some(node_at(&url, n))).collect();
@@ -182,6 +184,7 @@ async fn run(seed: u64, steps: u64) {
                 tokio::time::sleep(quiet).await;
             }
         }
+        eprintln!("step: {}", schedule.last().map_or("", String::as_str));
         tokio::time::sleep(rng.millis(0, 500)).await;
     }
     stop.store(true, Ordering::Relaxed);

@@ -143,7 +143,15 @@ pub async fn settled(nodes: &[&Posecast], names: &[&str]) -> (usize, BTreeSet<St
         {
             return (i, avatars);
         }
-        assert!(Instant::now() < deadline, "no settled owner: {seen:?}");
+        if Instant::now() >= deadline {
+            // What each server said last, for the one that would not settle.
+            for (n, name) in nodes.iter().zip(names) {
+                let output = n.output();
+                let tail = &output[output.len().saturating_sub(25)..];
+                eprintln!("--- {name}'s last lines:\n{}", tail.join("\n"));
+            }
+            panic!("no settled owner: {seen:?}");
+        }
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
 }
