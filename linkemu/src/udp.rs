@@ -378,7 +378,17 @@ mod tests {
         // 10 KiB of queue: ten datagrams wait, an eleventh is being sent. More pass when the
         // sends themselves take time (a busy machine: the queue drains meanwhile), never all.
         assert!((10..100).contains(&got), "{got} passed");
-        assert_eq!(proxy.up().queue_drops, 100 - got);
+        // What did not pass was dropped at the queue, or (a proxy starved of CPU while the
+        // burst arrived: 100 kB and the kernel's per-datagram overhead overflow a default
+        // receive buffer) by the kernel before the proxy saw it: 83 at the queue and 7 never
+        // read in one CI run. Never more than that, and the queue did drop.
+        let up = proxy.up();
+        assert_eq!(up.delivered, got);
+        assert!(
+            up.queue_drops > 0 && up.queue_drops <= 100 - got,
+            "{} dropped at the queue, {got} passed",
+            up.queue_drops
+        );
         // Each takes 8 ms at 1 Mbit/s.
         let spread = last - first.unwrap();
         let want = Duration::from_millis(8 * (got - 1));

@@ -7,8 +7,8 @@
 //! subscribers share the same encoded bytes). The tick runs exactly as the scene's ticker runs
 //! it (`Scene::tick`: a keyframe every 60 ticks, deltas between), on this thread. Also with a
 //! JSON subscriber added, which costs the JSON encoding the binary-only scene does not do; and
-//! with one wire-v2 subscriber (protocol version 2) instead, whose frames are coded against the
-//! previous frame (its outbox emptied every tick, as a writer keeping up would); and while a
+//! with one wire-v2 subscriber (protocol version 2, or 7 with packed deltas) instead, whose
+//! frames are coded against the previous frame (its outbox emptied every tick, as a writer keeping up would); and while a
 //! take of the scene is recorded (`+ take`: each frame's bytes handed to the take's writer
 //! thread, whose own time is not the tick's).
 //!
@@ -178,9 +178,12 @@ fn main() -> Result<()> {
         let joints = rig.skeleton().len();
         let v1 = (Encoding::Binary, 1);
         let v2 = (Encoding::Binary, 2);
+        // Protocol version 7: wire v2 with packed deltas.
+        let v7 = (Encoding::Binary, 7);
         let json = (Encoding::Json, 1);
         let label = |(e, v): &Sub| match (e, v) {
             (Encoding::Binary, 2) => "binary v2".to_owned(),
+            (Encoding::Binary, 7) => "binary v2 packed (protocol 7)".to_owned(),
             (e, _) => format!("{e:?}").to_lowercase(),
         };
         for (n, subs, take) in [
@@ -190,7 +193,9 @@ fn main() -> Result<()> {
             (4000, vec![v1], false),
             (100, vec![v1, json], false),
             (100, vec![v2], false),
+            (100, vec![v7], false),
             (4000, vec![v2], false),
+            (4000, vec![v7], false),
             (100, vec![v1; 500], false),
             (100, vec![v2; 500], false),
         ] {
