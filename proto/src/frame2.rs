@@ -477,24 +477,29 @@ pub fn encode_key(avatar_num: u32, hash: u64, pose: &QuantPose, out: &mut Vec<u8
 }
 
 fn write_scales_placement(pose: &QuantPose, scales: bool, placement: bool, out: &mut Vec<u8>) {
-    if scales {
-        for s in &pose.scales {
-            for c in s.to_array() {
-                out.extend_from_slice(&c.to_le_bytes());
-            }
-        }
+    for c in scale_placement_floats(pose, scales, placement) {
+        out.extend_from_slice(&c.to_le_bytes());
     }
-    if placement {
-        let p = &pose.placement;
-        for c in p
-            .position
+}
+
+/// The floats a chunk sends after its levels, in order: every scale's x, y, z when `scales`,
+/// then the placement's position and rotation (x, y, z, w) when `placement`.
+fn scale_placement_floats(
+    pose: &QuantPose,
+    scales: bool,
+    placement: bool,
+) -> impl Iterator<Item = f32> + '_ {
+    let p = &pose.placement;
+    let scales = pose.scales.iter().filter(move |_| scales);
+    let placement = placement.then(|| {
+        p.position
             .to_array()
             .into_iter()
             .chain(p.rotation.to_array())
-        {
-            out.extend_from_slice(&c.to_le_bytes());
-        }
-    }
+    });
+    scales
+        .flat_map(|s| s.to_array())
+        .chain(placement.into_iter().flatten())
 }
 
 /// Appends a delta chunk of `pose` against `history` (the receiver's last decoded frames of
@@ -599,23 +604,8 @@ impl<'a> PackedDeltas<'a> {
             w.put(u64::from(flags & 0x0f), 4);
         }
         delta_body(w, pose, &plan, &history[..plan.depth]);
-        if plan.scales {
-            for s in &pose.scales {
-                for c in s.to_array() {
-                    w.put(u64::from(c.to_bits()), 32);
-                }
-            }
-        }
-        if plan.placement {
-            let p = &pose.placement;
-            for c in p
-                .position
-                .to_array()
-                .into_iter()
-                .chain(p.rotation.to_array())
-            {
-                w.put(u64::from(c.to_bits()), 32);
-            }
+        for c in scale_placement_floats(pose, plan.scales, plan.placement) {
+            w.put(u64::from(c.to_bits()), 32);
         }
         if plan.weights {
             changed_weights(w, pose, history[0]);
