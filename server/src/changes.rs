@@ -14,11 +14,15 @@
 //! set of overridden joints changes. Each message is bounded like every control message (a
 //! connection that does not read is closed, [`posecast_stream::outbox::MAX_CONTROL_BYTES`]).
 //!
+//! What a command announces is its handler's declaration ([`command::Handler::announce`],
+//! [`command::Handler::scene_change`]).
+//!
 //! Pushes to one scene's watchers and subscribers happen under the scene's lock, so two
 //! changes of one avatar reach every connection in the order they were made.
 
 use crate::scene::Scene;
 use crate::state::AppState;
+use crate::world::command::{self, Announce, SceneChange};
 use posecast_proto::command::{AvatarState, Command, CommandResult};
 use posecast_proto::msg::{AvatarId, ServerMsg};
 use posecast_stream::feed::text;
@@ -58,8 +62,16 @@ impl Often {
 /// Notes what [`after`] compares with. Read-only commands note nothing.
 #[must_use]
 pub fn before(state: &AppState, command: &Command) -> Before {
+    let notes = matches!(
+        command::handler(command).announce(),
+        Announce::Removed
+            | Announce::State
+            | Announce::Overrides
+            | Announce::Goals
+            | Announce::Faces
+    );
     let avatar = match command.avatar() {
-        Some(id) if !command.is_read_only() && !matches!(command, Command::AddAvatar { .. }) => {
+        Some(id) if notes && !command.is_read_only() => {
             state.world.find_avatar(id).ok().and_then(|scene| {
                 let often = scene
                     .lock()
@@ -78,8 +90,9 @@ pub fn before(state: &AppState, command: &Command) -> Before {
 /// Tells subscribers and watchers what `command` (which succeeded with `result`) changed.
 pub fn after(state: &AppState, command: &Command, before: Before, result: &CommandResult) {
     let access = &state.config.access;
-    match (command, result) {
-        (Command::CreateScene { scene } | Command::Replay { scene, .. }, _) => {
+    let handler = command::handler(command);
+    match (handler.scene_change(), command.scene()) {
+        (SceneChange::Creates, Some(scene)) => {
             let msg = text(&ServerMsg::SceneCreated {
                 scene: scene.clone(),
             });
@@ -92,20 +105,27 @@ pub fn after(state: &AppState, command: &Command, before: Before, result: &Comma
                     announce(state, &scene, &id, |_| true);
                 }
             }
+            return;
         }
-        (Command::DeleteScene { scene }, _) => {
+        (SceneChange::Deletes, Some(scene)) => {
             let msg = text(&ServerMsg::SceneDeleted {
                 scene: scene.clone(),
             });
             state.watchers.push(access, scene, &msg, &[]);
+            return;
         }
-        (Command::AddAvatar { scene, .. }, CommandResult::AvatarAdded { avatar }) => {
-            if let Ok(scene) = state.world.scene(scene) {
+        _ => {}
+    }
+    match (handler.announce(), result) {
+        (Announce::Nothing, _) => {}
+        (Announce::Added, CommandResult::AvatarAdded { avatar }) => {
+            if let Some(scene) = command.scene().and_then(|s| state.world.scene(s).ok()) {
                 announce(state, &scene, avatar, |_| true);
             }
         }
-        (Command::RemoveAvatar { avatar }, _) => {
-            let Some((scene, _)) = before.avatar else {
+        (Announce::Added, _) => {}
+        (Announce::Removed, _) => {
+            let (Some(avatar), Some((scene, _))) = (command.avatar(), before.avatar) else {
                 return;
             };
             // The feed told the subscribers covering it; the watchers among them are told.
@@ -116,56 +136,24 @@ pub fn after(state: &AppState, command: &Command, before: Before, result: &Comma
             });
             state.watchers.push(access, &scene.id, &msg, &told);
         }
-        _ => {
+        (which, _) => {
             let (Some(id), Some((scene, often))) = (command.avatar(), before.avatar) else {
                 return;
             };
-            if overrides_only(command) {
-                announce(state, &scene, id, |now| now.overrides != often.overrides);
-            } else if goals_only(command) {
-                announce(state, &scene, id, |now| {
+            match which {
+                Announce::Overrides => {
+                    announce(state, &scene, id, |now| now.overrides != often.overrides);
+                }
+                Announce::Goals => announce(state, &scene, id, |now| {
                     (&now.ik_goals, now.looking) != (&often.goals.0, often.goals.1)
-                });
-            } else if faces_only(command) {
-                announce(state, &scene, id, |now| {
+                }),
+                Announce::Faces => announce(state, &scene, id, |now| {
                     !now.morph_weights.keys().eq(often.morphs.iter())
-                });
-            } else {
-                announce(state, &scene, id, |_| true);
+                }),
+                _ => announce(state, &scene, id, |_| true),
             }
         }
     }
-}
-
-/// Commands that change only joint overrides: announced when the set of overridden joints
-/// changes, not for every new angle.
-fn overrides_only(command: &Command) -> bool {
-    matches!(
-        command,
-        Command::SetJointRotation { .. }
-            | Command::SetJointDofs { .. }
-            | Command::RotateJointLocal { .. }
-            | Command::RotateJointWorld { .. }
-            | Command::Release { .. }
-    )
-}
-
-/// Commands that change only morph weights: announced when the set of channels above 0
-/// changes, not for every new weight (the stream carries the weights).
-fn faces_only(command: &Command) -> bool {
-    matches!(
-        command,
-        Command::SetMorphWeights { .. } | Command::SetExpression { .. }
-    )
-}
-
-/// Commands that change only IK goals: announced when the set of goals (or the gaze's
-/// presence) changes, not for every new target.
-fn goals_only(command: &Command) -> bool {
-    matches!(
-        command,
-        Command::SetIkGoal { .. } | Command::ClearIkGoal { .. } | Command::LookAt { .. }
-    )
 }
 
 /// Tells subscribers and watchers the state of avatar `id` of `scene` now: for changes not made

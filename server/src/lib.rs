@@ -11,7 +11,8 @@
 //! (`scripts/check-layers` fails CI otherwise):
 //!
 //! 1. **World** — [`scene`] (avatars and their feed under one lock, the tick task),
-//!    [`world`] (every scene, ids, quotas; [`world::command`]: a command applied to it).
+//!    [`world`] (every scene, ids, quotas; [`world::command`]: one handler per command —
+//!    what it needs, where it runs, what it announces, its change to the world).
 //! 2. **Services** — [`auth`] (tokens), [`store`] (the data folder), [`config`], [`state`]
 //!    (the world plus connections, store and start-up progress), [`control`] (commands for
 //!    clients: counted, and acknowledged once stored), [`ingest`] (uploads imported,

@@ -17,9 +17,9 @@
 //! Missing, unknown, expired or revoked token: `unauthorized` (HTTP 401). A valid token
 //! without the right: `forbidden` (HTTP 403).
 
-use crate::world::World;
+use crate::world::command::Needs;
 use posecast_core::error::Error;
-use posecast_proto::command::{Command, CommandResult};
+use posecast_proto::command::CommandResult;
 use posecast_proto::msg::{Access, AvatarId, SceneId};
 use posecast_proto::tokens::{Right, TokenInfo};
 use serde::Deserialize;
@@ -399,102 +399,78 @@ impl AccessConfig {
         }
     }
 
-    /// May `caller` run `command`? The avatar's scene is looked up in `world` for tokens
-    /// limited to scenes.
+    /// May `caller` run a command with these `facts`? The control layer finds them
+    /// (`crate::control::authorize`); a [`Grant::Limited`] command also passes its handler's
+    /// rule for limited tokens there.
     ///
     /// # Errors
     /// Unauthorized / Forbidden as described in the module documentation.
-    pub fn authorize(
-        &self,
-        caller: &Caller,
-        world: &World,
-        command: &Command,
-    ) -> Result<(), Error> {
+    pub fn authorize(&self, caller: &Caller, facts: &CommandFacts<'_>) -> Result<Grant, Error> {
         self.still_valid(caller)?;
-        if command.is_read_only() {
-            return match command.avatar() {
-                Some(a) => match world.find_avatar(a) {
-                    Ok(scene) => self.authorize_view(caller, &scene.id),
-                    // Unknown avatars are reported by the command itself.
-                    Err(_) => self.authorize_read(caller),
-                },
+        if facts.read_only {
+            return match facts.scene {
+                Some(scene) => self.authorize_view(caller, scene),
+                // Unknown avatars are reported by the command itself.
                 None => self.authorize_read(caller),
-            };
+            }
+            .map(|()| Grant::Full);
         }
-        let (needs, what) = needs(command);
-        let t = token_with(caller, needs, what)?;
-        if let Command::DeleteClip { .. } | Command::DeleteAsset { .. } = command {
+        let (rights, what) = rights(facts.needs);
+        let t = token_with(caller, rights, what)?;
+        if facts.needs == Needs::DeleteOwned {
             // Who made the object decides ([`AccessConfig::authorize_delete`], where it runs).
-            return Ok(());
+            return Ok(Grant::Full);
         }
         if t.unlimited() {
-            return Ok(());
+            return Ok(Grant::Full);
         }
-        let scene_ok = match (command.scene(), command.avatar()) {
-            (Some(scene), _) => t.allows_scene(scene),
-            (None, Some(avatar)) => world
-                .find_avatar(avatar)
-                .is_ok_and(|scene| t.allows_scene(&scene.id)),
-            (None, None) => false,
-        };
-        // A scene-level command (create/delete scene) is not an avatar's to run, except adding
-        // the token's own avatar.
-        let avatar_ok = match command {
-            Command::CreateScene { .. } | Command::DeleteScene { .. } => false,
-            _ => command.avatar().is_some_and(|a| t.allows_avatar(a)),
-        };
+        let scene_ok = facts.scene.is_some_and(|scene| t.allows_scene(scene));
+        let avatar_ok = facts.avatar.is_some_and(|avatar| t.allows_avatar(avatar));
         if scene_ok || avatar_ok {
-            limited_rig_size(world, command)
+            Ok(Grant::Limited)
         } else {
             Err(forbidden(format!(
                 "token {} may not {}",
                 t.name,
-                describe(command)
+                describe(facts)
             )))
         }
     }
 }
 
-/// A limited token places only rigs of at most [`posecast_core::quota::Quotas::limited_max_joints`]
-/// joints: one user's avatar cannot make every viewer of the scene download a huge rig.
-fn limited_rig_size(world: &World, command: &Command) -> Result<(), Error> {
-    let Command::AddAvatar { asset, .. } = command else {
-        return Ok(());
-    };
-    let max = world.quotas().limited_max_joints;
-    match world.library.get(asset) {
-        Some(rig) if rig.skeleton().len() > max => Err(world.metrics.refuse_quota(
-            posecast_core::quota::Quota::LimitedJoints,
-            format!(
-                "rig {asset} has {} joints; a limited token may place rigs of up to",
-                rig.skeleton().len()
-            ),
-            max,
-        )),
-        // An unknown asset is reported by the command itself.
-        _ => Ok(()),
-    }
+/// What the access rules need to know of a command, found by the control layer
+/// (`crate::control::authorize`): the rules read neither the command nor the world.
+#[derive(Debug, Clone, Copy)]
+pub struct CommandFacts<'a> {
+    /// It only reads (`Command::is_read_only`): any token that may view its scene.
+    pub read_only: bool,
+    /// The right it needs when it changes something (its handler's).
+    pub needs: Needs,
+    /// The scene it names; else the scene of the avatar it names, when that avatar exists.
+    pub scene: Option<&'a SceneId>,
+    /// The avatar it names.
+    pub avatar: Option<&'a AvatarId>,
+}
+
+/// How far [`AccessConfig::authorize`] allows a command.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Grant {
+    /// Without limits (or a read).
+    Full,
+    /// Through a token limited to scenes or avatars that covers it: the command's handler may
+    /// refuse it still (`add_avatar` of a huge rig).
+    Limited,
 }
 
 /// The rights of which a command needs one, and what it is called in errors.
-fn needs(command: &Command) -> (&'static [Right], &'static str) {
-    match command {
-        Command::Drive { .. }
-        | Command::CalibrateTrackers { .. }
-        | Command::ReleaseDrive { .. }
-        | Command::SetIkGoal { .. }
-        | Command::ClearIkGoal { .. }
-        | Command::LookAt { .. }
-        | Command::SetMorphWeights { .. }
-        | Command::SetExpression { .. } => (&[Right::Drive], "drive commands"),
-        Command::Record { .. }
-        | Command::StopRecording { .. }
-        | Command::RecordScene { .. }
-        | Command::StopRecordingScene { .. } => (&[Right::Record], "recording commands"),
-        Command::DeleteClip { .. } | Command::DeleteAsset { .. } | Command::DeleteTake { .. } => {
+fn rights(needs: Needs) -> (&'static [Right], &'static str) {
+    match needs {
+        Needs::Control => (&[Right::Control], "commands"),
+        Needs::Drive => (&[Right::Drive], "drive commands"),
+        Needs::Record => (&[Right::Record], "recording commands"),
+        Needs::DeleteOwned | Needs::Delete => {
             (&[Right::Control, Right::Upload, Right::Record], "deletes")
         }
-        _ => (&[Right::Control], "commands"),
     }
 }
 
@@ -523,8 +499,8 @@ fn token_with<'a>(
     }
 }
 
-fn describe(command: &Command) -> String {
-    match (command.scene(), command.avatar()) {
+fn describe(facts: &CommandFacts<'_>) -> String {
+    match (facts.scene, facts.avatar) {
         (_, Some(a)) => format!("command avatar {a}"),
         (Some(s), None) => format!("change scene {s}"),
         (None, None) => "run this command".into(),

@@ -31,6 +31,7 @@ use super::{Cluster, key, lock, relay_subject, unavailable};
 use crate::scene::answers::{Recent, answered, op_of, remember};
 use crate::state::{AppState, RunError};
 use crate::store::snapshot::{self, SceneFile};
+use crate::world::command::SceneChange;
 use async_nats::jetstream::kv;
 use bytes::Bytes;
 use futures_util::future::BoxFuture;
@@ -145,14 +146,19 @@ impl Cluster {
         let slot = self.slot(id);
         let mut recent = slot.lock().await;
         let op = op_of(command);
-        if let Command::CreateScene { .. } | Command::Replay { .. } = command {
+        let change = crate::world::command::handler(command).scene_change();
+        if change == SceneChange::Creates {
             if let Some(again) = key.and_then(|k| answered(&recent, k, &op)) {
                 return again;
             }
             let result = self.create(state, id, key, op, run, &mut recent).await?;
-            if let Command::Replay { .. } = command {
-                // The claim stored the empty scene: now the replay and its avatars, so a
-                // server taking the scene over resumes it.
+            let filled = state.world.scene(id).is_ok_and(|s| {
+                let s = s.lock();
+                s.replay.is_some() || !s.avatars.is_empty()
+            });
+            if filled {
+                // The claim stored the empty scene: now what it was made with (a replay and
+                // its avatars), so a server taking the scene over resumes it.
                 if let Written::Failed { error, .. } = self.write_snapshot(state, id, &recent).await
                 {
                     warn!(scene = %id, %error, "the new replay's snapshot is not stored yet: the next change stores it");
@@ -166,7 +172,7 @@ impl Cluster {
         if let Some(again) = key.and_then(|k| answered(&recent, k, &op)) {
             return again;
         }
-        if let Command::DeleteScene { .. } = command {
+        if change == SceneChange::Deletes {
             return self.delete(state, id, expected, run).await;
         }
         let scene = state.world.scene(id)?;

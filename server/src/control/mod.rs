@@ -6,11 +6,11 @@
 mod objects;
 pub mod takes;
 
-use crate::auth::Caller;
+use crate::auth::{Caller, CommandFacts, Grant};
 use crate::changes;
 use crate::scene::{Scene, answers};
 use crate::state::{AppState, RunError};
-use crate::world::command;
+use crate::world::command::{self, Runs};
 use posecast_core::error::Error;
 use posecast_proto::command::{Command, CommandResult, RecordingInfo};
 
@@ -28,6 +28,58 @@ pub fn execute(state: &AppState, command: &Command) -> Result<CommandResult, Err
         changes::after(state, command, before, r);
     }
     result
+}
+
+/// May `caller` run `command`? The access rules ([`crate::auth`]) are handed the facts —
+/// the right its handler needs, the scene it names or its avatar is in, the avatar — and a
+/// command a limited token may run passes its handler's rule for limited tokens
+/// ([`command::Handler::limited`]).
+///
+/// # Errors
+/// `unauthorized`, `forbidden`, or the handler's refusal (`quota_exceeded`).
+pub fn authorize(state: &AppState, caller: &Caller, command: &Command) -> Result<(), Error> {
+    let handler = command::handler(command);
+    let avatar_scene = match command.scene() {
+        Some(_) => None,
+        None => command
+            .avatar()
+            .and_then(|a| state.world.find_avatar(a).ok()),
+    };
+    let facts = CommandFacts {
+        read_only: command.is_read_only(),
+        needs: handler.needs(),
+        scene: command.scene().or(avatar_scene.as_ref().map(|s| &s.id)),
+        avatar: command.avatar(),
+    };
+    match state.config.access.authorize(caller, &facts)? {
+        Grant::Full => Ok(()),
+        Grant::Limited => handler.limited(&state.world, command),
+    }
+}
+
+/// Runs a command whose work is files ([`Runs::Files`]): uploads, recordings and takes,
+/// each stored before its answer.
+async fn run_files(
+    state: &AppState,
+    caller: &Caller,
+    command: &Command,
+    key: Option<&str>,
+) -> Result<CommandResult, Error> {
+    match command {
+        Command::DeleteClip { asset, clip } => objects::delete_clip(state, caller, asset, clip)
+            .await
+            .map(|()| CommandResult::Done),
+        Command::DeleteAsset { asset } => objects::delete_asset(state, caller, asset)
+            .await
+            .map(|()| CommandResult::Done),
+        // Stored (meta.json) before the answer, like an upload.
+        Command::ConfigureAsset { asset, options } => {
+            crate::ingest::configure(state, asset, options.clone())
+                .await
+                .map(CommandResult::Assets)
+        }
+        _ => takes::run(state, caller, command, key).await,
+    }
 }
 
 /// [`execute`], then — for a command that changed something — waits until the scene it
@@ -132,35 +184,17 @@ async fn execute_unkeyed(
     command: &Command,
     key: Option<&str>,
 ) -> Result<CommandResult, Error> {
-    match command {
-        Command::DeleteClip { asset, clip } => {
-            let result = objects::delete_clip(state, caller, asset, clip).await;
-            state.metrics.command(result.is_ok());
-            return result.map(|()| CommandResult::Done);
-        }
-        Command::DeleteAsset { asset } => {
-            let result = objects::delete_asset(state, caller, asset).await;
-            state.metrics.command(result.is_ok());
-            return result.map(|()| CommandResult::Done);
-        }
-        _ => {}
-    }
-    if let Some(result) = takes::run(state, caller, command, key).await {
+    let handler = command::handler(command);
+    if handler.runs() == Runs::Files {
+        let result = run_files(state, caller, command, key).await;
+        state.metrics.command(result.is_ok());
         if let Ok(r) = &result {
-            // Take commands name no avatar: noting what comes before costs nothing.
+            // These name no avatar: noting what comes before costs nothing.
             changes::after(state, command, changes::before(state, command), r);
         }
         return result;
     }
-    if let Command::ConfigureAsset { asset, options } = command {
-        // Stored (meta.json) before the answer, like an upload.
-        let result = crate::ingest::configure(state, asset, options.clone())
-            .await
-            .map(CommandResult::Assets);
-        state.metrics.command(result.is_ok());
-        return result;
-    }
-    if let Err(e) = prepare(state, command).await {
+    if let Err(e) = prepare(state, handler, command).await {
         state.metrics.command(false);
         return Err(e);
     }
@@ -301,29 +335,21 @@ pub fn audit(caller: &str, command: &Command, result: &Result<CommandResult, Err
 }
 
 /// The slow part of a command, done before it takes any scene lock and off the async
-/// workers: `play … from_asset` bakes the retargeted clip ([`posecast_sim::bake`]), so applying the
-/// command is a cache lookup and no other scene's tick waits for the bake.
-async fn prepare(state: &AppState, command: &Command) -> Result<(), Error> {
-    let (avatar, clip, source) = match command {
-        Command::Play {
-            avatar,
-            clip,
-            from_asset: Some(source),
-            ..
-        }
-        | Command::PlayLayer {
-            avatar,
-            clip,
-            from_asset: Some(source),
-            ..
-        }
-        | Command::SamplePose {
-            avatar,
-            clip: Some(clip),
-            from_asset: Some(source),
-            ..
-        } => (avatar, clip, source),
-        _ => return Ok(()),
+/// workers: `play … from_asset` bakes the retargeted clip ([`posecast_sim::bake`],
+/// [`command::Handler::bake`]), so applying the command is a cache lookup and no other
+/// scene's tick waits for the bake.
+async fn prepare(
+    state: &AppState,
+    handler: &dyn command::Handler,
+    command: &Command,
+) -> Result<(), Error> {
+    let Some(command::Bake {
+        avatar,
+        clip,
+        source,
+    }) = handler.bake(command)
+    else {
+        return Ok(());
     };
     let source = state.world.library.require(source)?;
     let target = {

@@ -18,15 +18,15 @@ pub const MIN_ROOM: u64 = 64 << 10;
 /// The longest take, seconds of scene time (`record_scene`'s `max_seconds` at most).
 pub const MAX_TAKE_SECONDS: f32 = 4.0 * 3600.0;
 
-/// Runs a take command; `None` for any other command. `key`: the command's idempotency key
-/// (a replay in a cluster is answered again from it, as `create_scene` is).
+/// Runs a take command (`internal` for any other command). `key`: the command's idempotency
+/// key (a replay in a cluster is answered again from it, as `create_scene` is).
 pub(super) async fn run(
     state: &AppState,
     caller: &Caller,
     command: &Command,
     key: Option<&str>,
-) -> Option<Result<CommandResult, Error>> {
-    let result = match command {
+) -> Result<CommandResult, Error> {
+    match command {
         Command::RecordScene {
             scene,
             take,
@@ -76,10 +76,8 @@ pub(super) async fn run(
                 Err(e) => Err(e),
             }
         }
-        _ => return None,
-    };
-    state.metrics.command(result.is_ok());
-    Some(result)
+        other => Err(Error::Internal(format!("{other:?} is not a take command"))),
+    }
 }
 
 /// The takes: on a server of a cluster the cluster's, with those being recorded (or not yet

@@ -321,7 +321,10 @@ impl Drives {
             .find(|(id, _, _)| id == avatar)
             .ok_or_else(|| not_driving(avatar))?;
         let named = |a: &Avatar| {
-            crate::world::morph::resolve_weights(a, weights.iter().map(|(n, w)| (n.as_str(), *w)))
+            crate::world::command::face::resolve_weights(
+                a,
+                weights.iter().map(|(n, w)| (n.as_str(), *w)),
+            )
         };
         self.with_live(scene, avatar, named, |live| {
             if let Some(names) = live.trackers.as_ref().map(Trackers::names) {

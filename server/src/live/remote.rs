@@ -156,7 +156,7 @@ impl RemoteDrive {
                 })?;
             out.rotations.push((j, rotation(name, *q)?));
         }
-        // As `world::morph::resolve_weights` on the owner: per name, known first, then valued.
+        // As `world::command::face::resolve_weights` on the owner: per name, known first, then valued.
         for (name, &w) in pose.weights {
             let slot = self.slot(name).ok_or_else(|| Error::UnknownExpression {
                 owner: format!("avatar {}", self.avatar),

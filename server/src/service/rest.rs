@@ -156,11 +156,7 @@ pub async fn command(
     let command: Command = serde_json::from_slice(&body).map_err(|e| {
         ProtocolError::new(ErrorCode::BadMessage, format!("not a valid command: {e}"))
     })?;
-    let result = match state
-        .config
-        .access
-        .authorize(&caller, &state.world, &command)
-    {
+    let result = match control::authorize(&state, &caller, &command) {
         Ok(()) => control::execute_as(&state, &caller, &command, key.as_deref()).await,
         Err(e) => Err(e),
     };
@@ -206,7 +202,7 @@ async fn run(
     caller: &Caller,
     command: &Command,
 ) -> Result<Json<Value>, AppError> {
-    let result = match state.config.access.authorize(caller, &state.world, command) {
+    let result = match control::authorize(state, caller, command) {
         Ok(()) => control::execute_as(state, caller, command, None).await,
         Err(e) => Err(e),
     };

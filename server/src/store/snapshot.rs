@@ -523,12 +523,12 @@ pub fn restore_into(world: &World, file: &SceneFile, now_us: u64) {
     }
     // Goals once every avatar is back: one relative to another avatar needs it there.
     for goal in file.avatars.iter().flat_map(|rec| &rec.goals) {
-        if let Some(Err(e)) = crate::world::ik::apply(world, goal) {
+        if let Err(e) = command::apply(world, goal) {
             warn!(scene = %file.scene, avatar = ?goal.avatar(), error = %e, "IK goal not restored");
         }
     }
     for layer in file.avatars.iter().flat_map(|rec| &rec.layers) {
-        if let Some(Err(e)) = crate::world::layers::apply(world, layer) {
+        if let Err(e) = command::apply(world, layer) {
             warn!(scene = %file.scene, avatar = ?layer.avatar(), error = %e, "clip layer not restored");
         }
     }

@@ -2,16 +2,14 @@
 //!
 //! - this module: [`World`] — scenes by id, the rig [`Library`], the retargeting cache, unique
 //!   scene numbers and avatar ids, and the scene and avatar quotas.
-//! - [`command`]: a control command applied to the world (the same code behind REST, the
-//!   websocket and restoring stored scenes).
+//! - [`command`]: the control commands, one handler each — what each needs, where it runs,
+//!   what it announces, and its change to the world (the same code behind REST, the websocket
+//!   and restoring stored scenes).
 //!
 //! The world knows nothing of connections, tokens or the data folder: those are services
 //! built on it ([`crate::auth`], [`crate::store`], [`crate::state`]).
 
 pub mod command;
-pub mod ik;
-pub mod layers;
-pub mod morph;
 pub mod replays;
 
 use crate::metrics::Metrics;

@@ -801,11 +801,7 @@ impl Session {
                     self.error(rate_limited(wait).for_command(id));
                     return true;
                 }
-                let authorized =
-                    self.state
-                        .config
-                        .access
-                        .authorize(&self.caller, &self.state.world, &command);
+                let authorized = control::authorize(&self.state, &self.caller, &command);
                 let result = match authorized {
                     Ok(()) => match self.drives.command_remote(&self.state, &command).await {
                         Some(result) => result,

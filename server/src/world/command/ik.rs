@@ -1,11 +1,11 @@
-//! The IK commands (`set_ik_goal`, `clear_ik_goal`, `look_at`, seed 002) applied to the world:
+//! The IK commands (`set_ik_goal`, `clear_ik_goal`, `look_at`, seed 002):
 //! checked in full before anything changes, then set on the avatar under its scene's lock and
 //! the pose re-evaluated at once. The goals themselves and their solve are the avatar's
 //! ([`posecast_sim::avatar::goals`]); the scene keeps frames relative to other avatars' joints
 //! current every tick ([`crate::scene`]).
 
-use super::World;
-use super::command::{joint_index, quat};
+use super::{Announce, Handler, Needs, fields, joint_index, quat, with_avatar};
+use crate::world::World;
 use glam::Mat4;
 use posecast_core::error::Error;
 use posecast_proto::command::{Command, CommandResult, JointRef};
@@ -14,19 +14,35 @@ use posecast_sim::avatar::Avatar;
 use posecast_sim::avatar::goals::{self, GazeGoal, GoalError, IkGoal};
 use posecast_sim::avatar::playback::DEFAULT_FADE;
 
-/// Applies an IK command; `None` for any other command.
-pub fn apply(world: &World, command: &Command) -> Option<Result<CommandResult, Error>> {
-    Some(match command {
-        Command::SetIkGoal {
-            avatar,
-            effector,
-            position,
-            rotation,
-            weight,
-            pole,
-            relative_to,
-            chain,
-        } => set_goal(
+/// `set_ik_goal`: an effector reaching for a point (and a rotation), in the world or
+/// relative to a joint.
+#[derive(Debug)]
+pub struct SetIkGoal;
+
+impl Handler for SetIkGoal {
+    fn needs(&self) -> Needs {
+        Needs::Drive
+    }
+
+    fn announce(&self) -> Announce {
+        Announce::Goals
+    }
+
+    fn apply(&self, world: &World, command: &Command) -> Result<CommandResult, Error> {
+        fields!(
+            command,
+            SetIkGoal {
+                avatar,
+                effector,
+                position,
+                rotation,
+                weight,
+                pole,
+                relative_to,
+                chain,
+            }
+        );
+        set_goal(
             world,
             avatar,
             |a| {
@@ -48,13 +64,34 @@ pub fn apply(world: &World, command: &Command) -> Option<Result<CommandResult, E
                 }))
             },
             relative_to.as_ref(),
-        ),
-        Command::LookAt {
-            avatar,
-            target,
-            weight,
-            relative_to,
-        } => set_goal(
+        )
+    }
+}
+
+/// `look_at`: the head and eyes turned to a target; weight 0 ends the gaze.
+#[derive(Debug)]
+pub struct LookAt;
+
+impl Handler for LookAt {
+    fn needs(&self) -> Needs {
+        Needs::Drive
+    }
+
+    fn announce(&self) -> Announce {
+        Announce::Goals
+    }
+
+    fn apply(&self, world: &World, command: &Command) -> Result<CommandResult, Error> {
+        fields!(
+            command,
+            LookAt {
+                avatar,
+                target,
+                weight,
+                relative_to,
+            }
+        );
+        set_goal(
             world,
             avatar,
             |a| {
@@ -72,35 +109,44 @@ pub fn apply(world: &World, command: &Command) -> Option<Result<CommandResult, E
                 }))
             },
             relative_to.as_ref(),
-        ),
-        Command::ClearIkGoal {
-            avatar,
-            effector,
-            fade,
-        } => {
-            let fade = fade.unwrap_or(DEFAULT_FADE);
-            if !(fade.is_finite() && fade >= 0.0) {
-                return Some(Err(Error::invalid("fade must be finite and ≥ 0")));
+        )
+    }
+}
+
+/// `clear_ik_goal`: one effector's goal, or every goal, faded out.
+#[derive(Debug)]
+pub struct ClearIkGoal;
+
+impl Handler for ClearIkGoal {
+    fn needs(&self) -> Needs {
+        Needs::Drive
+    }
+
+    fn announce(&self) -> Announce {
+        Announce::Goals
+    }
+
+    fn apply(&self, world: &World, command: &Command) -> Result<CommandResult, Error> {
+        fields!(
+            command,
+            ClearIkGoal {
+                avatar,
+                effector,
+                fade,
             }
-            let scene = match world.find_avatar(avatar) {
-                Ok(s) => s,
-                Err(e) => return Some(Err(e)),
-            };
-            let mut s = scene.lock();
-            let Some(a) = s.avatar_mut(avatar) else {
-                return Some(Err(Error::UnknownAvatar(avatar.clone())));
-            };
-            let joint = match effector.as_deref().map(|e| joint_index(a, e)).transpose() {
-                Ok(j) => j,
-                Err(e) => return Some(Err(e)),
-            };
+        );
+        let fade = fade.unwrap_or(DEFAULT_FADE);
+        if !(fade.is_finite() && fade >= 0.0) {
+            return Err(Error::invalid("fade must be finite and ≥ 0"));
+        }
+        with_avatar(world, avatar, |a| {
+            let joint = effector.as_deref().map(|e| joint_index(a, e)).transpose()?;
             let clock = a.player.clock();
             a.goals.release(joint, clock, fade);
             a.evaluate();
             Ok(CommandResult::Done)
-        }
-        _ => return None,
-    })
+        })
+    }
 }
 
 /// What a checked command sets.
