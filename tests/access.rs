@@ -387,7 +387,7 @@ async fn the_binary_generates_and_prints_a_control_token_when_none_is_given() {
     );
     let pause = br#"{"op":"pause","avatar":"avatar"}"#;
     let post = |token: Option<String>| async move {
-        let (status, _) = common::http_raw(
+        let (status, _) = common::http_request(
             server.addr,
             token.as_deref(),
             "POST",

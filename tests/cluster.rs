@@ -450,7 +450,7 @@ async fn commands_through_any_server_reach_the_owner() {
     );
 
     // Refused at C: no token.
-    let (status, body) = common::http_raw(
+    let (status, body) = common::http_request(
         c.addr,
         None,
         "POST",

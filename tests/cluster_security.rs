@@ -360,7 +360,7 @@ async fn nats_over_tls_with_client_certificates() {
 /// `name`'s value in `addr`'s `/metrics` (0 when absent).
 async fn metric(addr: std::net::SocketAddr, name: &str) -> f64 {
     let (status, text) =
-        common::http_raw(addr, Some(CONTROL), "GET", "/metrics", "text/plain", b"").await;
+        common::http_request(addr, Some(CONTROL), "GET", "/metrics", "text/plain", b"").await;
     assert_eq!(status, 200);
     text.lines()
         .find_map(|l| l.strip_prefix(name)?.trim().parse().ok())

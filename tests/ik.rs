@@ -366,7 +366,7 @@ async fn bad_goals_are_refused_and_change_nothing() {
     );
 
     // A token limited to another avatar may not set goals on this one.
-    let (status, body) = common::http_raw(
+    let (status, body) = common::http_request(
         addr,
         Some(LIMITED),
         "POST",

@@ -345,7 +345,7 @@ fn start_binary(data: &std::path::Path, access: &std::path::Path) -> common::chi
 
 /// A command to `addr` as `token`: status and body.
 async fn command_at(addr: std::net::SocketAddr, token: &str, json: &str) -> (u16, Value) {
-    let (s, b) = common::http_raw(
+    let (s, b) = common::http_request(
         addr,
         Some(token),
         "POST",
@@ -414,7 +414,7 @@ async fn a_tokens_quota_holds_across_a_restart_and_deletes_free_it() {
     let (s, b) = take_as(addr, ALICE, "a4").await;
     assert_quota(s, &b, "token_objects");
     // Not hers to delete.
-    let (s, b) = common::http_raw(
+    let (s, b) = common::http_request(
         addr,
         Some(ALICE),
         "DELETE",
@@ -440,7 +440,7 @@ async fn a_tokens_quota_holds_across_a_restart_and_deletes_free_it() {
     .await;
     assert_eq!((s, b["code"].as_str()), (409, Some("conflict")), "{b}");
     // Hers: deleted, and her quota has room again.
-    let (s, b) = common::http_raw(
+    let (s, b) = common::http_request(
         addr,
         Some(ALICE),
         "DELETE",

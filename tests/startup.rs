@@ -309,7 +309,7 @@ async fn operational_logs_name_connections_commands_and_refusals_as_json() {
     )
     .await;
     assert_eq!(status, 200);
-    let (status, _) = common::http_raw(
+    let (status, _) = common::http_request(
         server.addr,
         Some("wrong-token"),
         "POST",

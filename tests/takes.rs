@@ -754,7 +754,7 @@ async fn a_take_shows_only_to_who_may_watch_its_scene() {
     }
     ok(addr, r#"{"op":"stop_recording_scene","scene":"default"}"#).await;
     let as_lobby = |method: &'static str, path: String, body: Option<&'static str>| async move {
-        let (status, body) = common::http_raw(
+        let (status, body) = common::http_request(
             addr,
             Some(LOBBY),
             method,

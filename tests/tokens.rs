@@ -6,7 +6,7 @@
 
 mod common;
 
-use common::{CONTROL, http_as, http_raw, next_text, raw_as, server_with, test_access};
+use common::{CONTROL, http_as, http_request, next_text, raw_as, server_with, test_access};
 use futures_util::{SinkExt, StreamExt};
 use posecast_proto::msg::{ClientMsg, Encoding, ErrorCode, ServerMsg};
 use posecast_proto::tokens::{MintedToken, Right, TokenInfo};
@@ -189,7 +189,7 @@ async fn only_an_admin_mints_and_a_minted_token_does_what_its_rights_say() {
         200
     );
     // No upload right.
-    let (status, _) = http_raw(
+    let (status, _) = http_request(
         server.addr,
         Some(&alice.token),
         "POST",
@@ -465,7 +465,7 @@ async fn a_cluster_accepts_a_minted_token_everywhere_and_revokes_it_everywhere()
     };
     let (a, b) = (node("a"), node("b"));
     let body = json!({"name": "hana", "rights": ["view", "drive"], "ttl_s": 600}).to_string();
-    let (status, answer) = http_raw(
+    let (status, answer) = http_request(
         a.addr,
         Some(CONTROL),
         "POST",
@@ -483,7 +483,7 @@ async fn a_cluster_accepts_a_minted_token_everywhere_and_revokes_it_everywhere()
 
     let path = format!("/api/tokens/{}", hana.info.id);
     assert_eq!(
-        http_raw(
+        http_request(
             a.addr,
             Some(CONTROL),
             "DELETE",
@@ -498,7 +498,7 @@ async fn a_cluster_accepts_a_minted_token_everywhere_and_revokes_it_everywhere()
     let (errors, reason) = until_closed(&mut on_b).await;
     assert!(errors.contains(&ErrorCode::Unauthorized), "{errors:?}");
     assert_eq!(reason, "token no longer valid");
-    let (status, body) = http_raw(
+    let (status, body) = http_request(
         b.addr,
         Some(&hana.token),
         "GET",
@@ -511,7 +511,7 @@ async fn a_cluster_accepts_a_minted_token_everywhere_and_revokes_it_everywhere()
 
     // A server that joins afterwards learns the revocation from the cluster's bucket.
     let c = node("c");
-    let (status, body) = http_raw(
+    let (status, body) = http_request(
         c.addr,
         Some(&hana.token),
         "GET",

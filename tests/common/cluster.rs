@@ -47,35 +47,25 @@ pub async fn try_post(
     json: &str,
     key: Option<&str>,
 ) -> std::io::Result<(u16, serde_json::Value)> {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let key = key.map_or(String::new(), |k| format!("Idempotency-Key: {k}\r\n"));
-    let mut stream = tokio::net::TcpStream::connect(addr).await?;
-    let request = format!(
-        "POST /api/commands HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nAuthorization: Bearer {CONTROL}\r\n{key}Content-Type: application/json\r\nContent-Length: {}\r\n\r\n{json}",
-        json.len()
-    );
-    stream.write_all(request.as_bytes()).await?;
-    let mut response = Vec::new();
-    stream.read_to_end(&mut response).await?;
-    let response = String::from_utf8_lossy(&response);
-    let status = response
-        .split(' ')
-        .nth(1)
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(0);
-    let body = response.split_once("\r\n\r\n").map_or("", |(_, b)| b);
-    // A chunked body: the JSON is the line that parses.
-    let value = body
-        .lines()
-        .find_map(|l| serde_json::from_str(l.trim()).ok())
-        .unwrap_or(serde_json::Value::Null);
-    Ok((status, value))
+    let auth = format!("Bearer {CONTROL}");
+    let mut headers = vec![
+        ("Authorization", auth.as_str()),
+        ("Content-Type", "application/json"),
+    ];
+    if let Some(key) = key {
+        headers.push(("Idempotency-Key", key));
+    }
+    let response = super::http::request(addr, "POST", "/api/commands", &headers, json.into())
+        .await
+        .map_err(std::io::Error::other)?;
+    let value = serde_json::from_slice(&response.body).unwrap_or(serde_json::Value::Null);
+    Ok((response.status, value))
 }
 
 /// `posecast_cluster_takeovers_total` of `addr`.
 pub async fn takeovers(addr: SocketAddr) -> f64 {
     let (status, text) =
-        super::http_raw(addr, Some(CONTROL), "GET", "/metrics", "text/plain", b"").await;
+        super::http_request(addr, Some(CONTROL), "GET", "/metrics", "text/plain", b"").await;
     assert_eq!(status, 200);
     text.lines()
         .find_map(|l| {

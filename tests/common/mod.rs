@@ -8,6 +8,7 @@
 pub mod child;
 pub mod cluster;
 pub mod feed;
+pub mod http;
 pub mod link;
 pub mod nats;
 pub mod vmc;
@@ -60,7 +61,8 @@ pub async fn hello_and_subscribe<S>(
 /// The value of metric `name` (a line `name value`) in `addr`'s `/metrics`, read with the
 /// control token.
 pub async fn metric(addr: std::net::SocketAddr, name: &str) -> f64 {
-    let (status, text) = http_raw(addr, Some(CONTROL), "GET", "/metrics", "text/plain", b"").await;
+    let (status, text) =
+        http_request(addr, Some(CONTROL), "GET", "/metrics", "text/plain", b"").await;
     assert_eq!(status, 200);
     text.lines()
         .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.trim().parse().ok())
@@ -180,8 +182,7 @@ pub async fn wait_for(secs: f32, mut f: impl FnMut() -> bool) -> bool {
     f()
 }
 
-/// A minimal HTTP/1.1 request with the control token (Connection: close); returns status
-/// and body.
+/// An HTTP request with the control token; returns status and body.
 pub async fn http(server: &Server, method: &str, path: &str, body: Option<&str>) -> (u16, String) {
     http_as(server, Some(CONTROL), method, path, body).await
 }
@@ -194,7 +195,7 @@ pub async fn http_as(
     path: &str,
     body: Option<&str>,
 ) -> (u16, String) {
-    http_raw(
+    http_request(
         server.addr,
         token,
         method,
@@ -205,10 +206,7 @@ pub async fn http_as(
     .await
 }
 
-/// An HTTP/1.1 request with any body and the control token to `addr` (Connection: close);
-/// returns status and body.
-/// The body is written while the answer is read, so a server that answers early (413) and
-/// closes is still heard.
+/// An HTTP request with any body and the control token to `addr`; returns status and body.
 pub async fn http_to(
     addr: std::net::SocketAddr,
     method: &str,
@@ -216,11 +214,11 @@ pub async fn http_to(
     content_type: &str,
     body: &[u8],
 ) -> (u16, String) {
-    http_raw(addr, Some(CONTROL), method, path, content_type, body).await
+    http_request(addr, Some(CONTROL), method, path, content_type, body).await
 }
 
 /// [`http_to`] with `token` as bearer token (or none).
-pub async fn http_raw(
+pub async fn http_request(
     addr: std::net::SocketAddr,
     token: Option<&str>,
     method: &str,
@@ -228,52 +226,15 @@ pub async fn http_raw(
     content_type: &str,
     body: &[u8],
 ) -> (u16, String) {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let auth = token.map_or(String::new(), |t| format!("Authorization: Bearer {t}\r\n"));
-    let stream = tokio::net::TcpStream::connect(addr).await.unwrap();
-    let (mut read, mut write) = stream.into_split();
-    let mut request = format!(
-        "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n{auth}Content-Type: {content_type}\r\nContent-Length: {}\r\n\r\n",
-        body.len()
-    )
-    .into_bytes();
-    request.extend_from_slice(body);
-    let writer = tokio::spawn(async move {
-        // The server may close before reading everything (an early 413): that is fine.
-        write.write_all(&request).await.ok();
-        write
-    });
-    let mut response = Vec::new();
-    let mut buf = [0u8; 8192];
-    loop {
-        match read.read(&mut buf).await {
-            Ok(0) | Err(_) => break,
-            Ok(n) => response.extend_from_slice(&buf[..n]),
-        }
+    let auth = token.map(|t| format!("Bearer {t}"));
+    let mut headers = vec![("Content-Type", content_type)];
+    if let Some(auth) = &auth {
+        headers.push(("Authorization", auth));
     }
-    writer.abort();
-    let text = String::from_utf8_lossy(&response).to_string();
-    let status = text
-        .split(' ')
-        .nth(1)
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(0);
-    let body = text
-        .split_once("\r\n\r\n")
-        .map(|(_, b)| b.to_string())
-        .unwrap_or_default();
-    let body = if text
-        .to_ascii_lowercase()
-        .contains("transfer-encoding: chunked")
-    {
-        body.lines()
-            .filter(|l| !l.chars().all(|c| c.is_ascii_hexdigit()) || l.is_empty())
-            .collect::<Vec<_>>()
-            .join("\n")
-    } else {
-        body
-    };
-    (status, body)
+    let response = http::request(addr, method, path, &headers, body.to_vec())
+        .await
+        .unwrap_or_else(|e| panic!("{e}"));
+    (response.status, response.text())
 }
 
 /// A `multipart/form-data` body with one file part per `(file name, bytes)`; returns the
@@ -384,9 +345,8 @@ pub fn list_tree(dir: &std::path::Path) -> Vec<String> {
     out
 }
 
-/// An HTTP/1.1 request to `addr` with exactly these extra header lines (`Host` is `addr`
-/// unless given; Connection: close); returns status, the response head (status line and
-/// headers) and body.
+/// An HTTP/1.1 request to `addr` with these headers (`Host` is `addr` unless given);
+/// returns status, the response head (status line and headers) and body.
 pub async fn http_with_headers(
     addr: std::net::SocketAddr,
     method: &str,
@@ -394,29 +354,10 @@ pub async fn http_with_headers(
     headers: &[(&str, &str)],
     body: &[u8],
 ) -> (u16, String, String) {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let mut stream = tokio::net::TcpStream::connect(addr).await.unwrap();
-    let mut request = format!("{method} {path} HTTP/1.1\r\nConnection: close\r\n");
-    if !headers.iter().any(|(k, _)| k.eq_ignore_ascii_case("host")) {
-        request.push_str(&format!("Host: {addr}\r\n"));
-    }
-    for (k, v) in headers {
-        request.push_str(&format!("{k}: {v}\r\n"));
-    }
-    request.push_str(&format!("Content-Length: {}\r\n\r\n", body.len()));
-    let mut bytes = request.into_bytes();
-    bytes.extend_from_slice(body);
-    stream.write_all(&bytes).await.unwrap();
-    let mut response = Vec::new();
-    stream.read_to_end(&mut response).await.ok();
-    let text = String::from_utf8_lossy(&response).to_string();
-    let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
-    let status = head
-        .split(' ')
-        .nth(1)
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(0);
-    (status, head.to_owned(), body.to_owned())
+    let response = http::request(addr, method, path, headers, body.to_vec())
+        .await
+        .unwrap_or_else(|e| panic!("{e}"));
+    (response.status, response.head(), response.text())
 }
 
 /// The value of header `name` in a response head from [`http_with_headers`].
@@ -430,33 +371,13 @@ pub fn header_value(head: &str, name: &str) -> Option<String> {
 }
 
 /// `GET path` from `addr` with the control token; returns status and the body's bytes (for
-/// binary answers such as `.glb`; the server sends them with a `Content-Length`).
+/// binary answers such as `.glb`).
 pub async fn get_bytes(addr: std::net::SocketAddr, path: &str) -> (u16, Vec<u8>) {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let mut stream = tokio::net::TcpStream::connect(addr).await.unwrap();
-    let request = format!(
-        "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nAuthorization: Bearer {CONTROL}\r\n\r\n"
-    );
-    stream.write_all(request.as_bytes()).await.unwrap();
-    let mut response = Vec::new();
-    stream.read_to_end(&mut response).await.unwrap();
-    let end = response
-        .windows(4)
-        .position(|w| w == b"\r\n\r\n")
-        .expect("an HTTP response head");
-    let head = String::from_utf8_lossy(&response[..end]).to_string();
-    let status = head
-        .split(' ')
-        .nth(1)
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(0);
-    assert!(
-        !head
-            .to_ascii_lowercase()
-            .contains("transfer-encoding: chunked"),
-        "get_bytes reads Content-Length bodies only: {head}"
-    );
-    (status, response[end + 4..].to_vec())
+    let auth = format!("Bearer {CONTROL}");
+    let response = http::request(addr, "GET", path, &[("Authorization", &auth)], Vec::new())
+        .await
+        .unwrap_or_else(|e| panic!("{e}"));
+    (response.status, response.body)
 }
 
 /// A websocket server as one of before protocol version 2 behaves: it welcomes a hello of
