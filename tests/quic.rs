@@ -578,6 +578,94 @@ async fn sessions_past_the_per_address_cap_are_refused() {
     server.stop().await;
 }
 
+/// Says hello with `token` and reads the stream until the welcome.
+async fn greet(send: &mut SendStream, recv: &mut RecvStream, token: Option<&str>) {
+    send_text(
+        send,
+        &ClientMsg::Hello {
+            version: PROTOCOL_VERSION,
+            encoding: Encoding::Binary,
+            token: token.map(str::to_owned),
+            client: Some("quic cap test".into()),
+        },
+    )
+    .await;
+    loop {
+        let (kind, payload) = next_message(recv).await.expect("a welcome");
+        if kind == wire::TEXT
+            && matches!(
+                serde_json::from_slice::<ServerMsg>(&payload),
+                Ok(ServerMsg::Welcome { .. })
+            )
+        {
+            return;
+        }
+    }
+}
+
+/// At the global cap (`--max-connections`, counted for WebTransport sessions apart from the
+/// websockets) a newcomer is admitted in place of the anonymous session idle longest, which is
+/// closed saying why; sessions with a token are never evicted, so a cap full of them refuses
+/// the newcomer (429), as for websockets.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn at_the_cap_an_idle_anonymous_session_makes_way_and_an_authenticated_one_does_not() {
+    let server = quic_server(30.0, |c| c.net.max_connections = 2).await;
+    let (first, mut send, mut recv) = connect(server.addr).await;
+    greet(&mut send, &mut recv, None).await;
+    let (_second, mut send2, mut recv2) = connect(server.addr).await;
+    greet(&mut send2, &mut recv2, None).await;
+    // Both say nothing more: idle once the eviction's idle time has passed (a lower bound,
+    // so a busy machine only makes them idler).
+    tokio::time::sleep(posecast_server::service::IDLE_BEFORE_EVICTION).await;
+    let newcomer = try_connect(server.addr).await;
+    assert!(newcomer.is_ok(), "the newcomer was refused: {newcomer:?}");
+    // The first, heard from least recently, made way.
+    let closed = tokio::time::timeout(PATIENCE, first.closed()).await;
+    match closed.expect("the idle anonymous session was not closed") {
+        wtransport::error::ConnectionError::ApplicationClosed(close) => {
+            assert_eq!(close.code().into_inner(), 1013, "{close}");
+            assert!(
+                String::from_utf8_lossy(close.reason()).contains("evicted"),
+                "{close}"
+            );
+        }
+        other => panic!("the evicted session ended otherwise: {other:?}"),
+    }
+    assert_eq!(
+        common::metric(
+            server.addr,
+            "posecast_quic_sessions_evicted_total{stage=\"anonymous\"}"
+        )
+        .await,
+        1.0
+    );
+    drop((newcomer, _second, send2, recv2));
+    server.stop().await;
+
+    // A cap full of sessions with a token: the newcomer is refused, nobody is evicted.
+    let server = quic_server(30.0, |c| c.net.max_connections = 2).await;
+    let mut held = Vec::new();
+    for _ in 0..2 {
+        let (conn, mut send, mut recv) = connect(server.addr).await;
+        greet(&mut send, &mut recv, Some(common::CONTROL)).await;
+        held.push((conn, send, recv));
+    }
+    tokio::time::sleep(posecast_server::service::IDLE_BEFORE_EVICTION).await;
+    assert!(
+        try_connect(server.addr).await.is_err(),
+        "a session with a token was evicted"
+    );
+    assert_eq!(
+        common::metric(server.addr, "posecast_quic_refused_total").await,
+        1.0
+    );
+    assert_eq!(
+        common::metric(server.addr, "posecast_quic_sessions_open").await,
+        2.0
+    );
+    server.stop().await;
+}
+
 /// A tick's pose as a [`Client`] decoded it.
 struct Decoded {
     rotations: Vec<glam::Quat>,

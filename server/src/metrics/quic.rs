@@ -2,7 +2,7 @@
 //! datagrams and on the stream, keyframe acknowledgements. Kept apart (`Metrics::quic`) like
 //! the cluster and VMC counters; all zero without `--quic-listen`.
 
-use crate::metrics::{counter, labelled_counters};
+use crate::metrics::{GaugeU64, counter, gauge, labelled_counters};
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::registry::Registry;
 
@@ -20,6 +20,9 @@ pub struct QuicCounters {
     /// Datagrams from clients that are not keyframe acknowledgements.
     junk: Counter,
     refused: Counter,
+    open: GaugeU64,
+    /// Unproven, anonymous.
+    evicted: [Counter; 2],
 }
 
 impl QuicCounters {
@@ -58,7 +61,19 @@ impl QuicCounters {
             refused: counter(
                 r,
                 "quic_refused",
-                "WebTransport sessions refused over a connection cap (429)",
+                "WebTransport sessions refused over a connection cap (429), or an anonymous hello past the authenticated clients' headroom",
+            ),
+            open: gauge(
+                r,
+                "quic_sessions_open",
+                "WebTransport sessions holding a place under the connection caps",
+            ),
+            evicted: labelled_counters(
+                r,
+                "quic_sessions_evicted",
+                "WebTransport sessions closed at the global cap to admit a newcomer (stage: no hello yet, or an idle anonymous session)",
+                "stage",
+                ["unproven", "anonymous"],
             ),
         }
     }
@@ -97,6 +112,23 @@ impl QuicCounters {
     /// A session refused over a cap.
     pub fn refused(&self) {
         self.refused.inc();
+    }
+
+    /// A session took a place under the caps.
+    pub fn admitted(&self) {
+        self.open.inc();
+    }
+
+    /// A session gave its place back.
+    pub fn released(&self) {
+        self.open.dec();
+    }
+
+    /// A session was evicted at the global cap; `stage` is `"unproven"` or `"anonymous"`.
+    pub fn evicted(&self, stage: &str) {
+        if let Some(c) = self.evicted.get(usize::from(stage == "anonymous")) {
+            c.inc();
+        }
     }
 
     /// A datagram that is not one.

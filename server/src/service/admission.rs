@@ -28,9 +28,19 @@ pub const IDLE_BEFORE_EVICTION: Duration = Duration::from_secs(2);
 /// their hello) may hold all slots but this twentieth (none under a cap of 20).
 pub const AUTHENTICATED_HEADROOM_DIVISOR: usize = 20;
 
+/// Which counters of [`Metrics`] an admission keeps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Counted {
+    /// TCP connections (HTTP and websockets): `metrics.net`.
+    Tcp,
+    /// WebTransport sessions (`super::quic`): `metrics.quic`.
+    Quic,
+}
+
 /// The connection counts (shared by the accept loop and every permit).
 #[derive(Debug)]
 pub struct Admission {
+    counted: Counted,
     max_total: usize,
     max_per_address: usize,
     /// Slots anonymous websockets may hold at most (`max_total` less the headroom).
@@ -143,8 +153,26 @@ impl Admission {
     /// admissions, refusals, evictions and releases are counted in `metrics.net`.
     #[must_use]
     pub fn new(max_total: usize, max_per_address: usize, metrics: Arc<Metrics>) -> Arc<Self> {
+        Self::counted(Counted::Tcp, max_total, max_per_address, metrics)
+    }
+
+    /// [`Admission::new`] for WebTransport sessions: the same rules under caps of their own,
+    /// counted in `metrics.quic`. A session holds its place from its request to its end;
+    /// [`Greeter::heard`] marks it heard, and [`Greeter::evicted`] ends when it is evicted.
+    #[must_use]
+    pub fn for_quic(max_total: usize, max_per_address: usize, metrics: Arc<Metrics>) -> Arc<Self> {
+        Self::counted(Counted::Quic, max_total, max_per_address, metrics)
+    }
+
+    fn counted(
+        counted: Counted,
+        max_total: usize,
+        max_per_address: usize,
+        metrics: Arc<Metrics>,
+    ) -> Arc<Self> {
         let max_total = max_total.max(1);
         Arc::new(Self {
+            counted,
             max_total,
             max_per_address: max_per_address.max(1),
             max_anonymous: max_total - max_total / AUTHENTICATED_HEADROOM_DIVISOR,
@@ -193,7 +221,7 @@ impl Admission {
         };
         if let Some(why) = refused {
             drop(counts);
-            self.metrics.net.refused(why);
+            self.count_refused(why);
             return Err(why);
         }
         let id = counts.next_id;
@@ -215,10 +243,16 @@ impl Admission {
         drop(counts);
         if let Some(stage) = evicted {
             // The evicted connection's slot went to the newcomer: one release, one admission.
-            self.metrics.net.evicted(stage.label());
-            self.metrics.net.released();
+            match self.counted {
+                Counted::Tcp => self.metrics.net.evicted(stage.label()),
+                Counted::Quic => self.metrics.quic.evicted(stage.label()),
+            }
+            self.count_released();
         }
-        self.metrics.net.admitted();
+        match self.counted {
+            Counted::Tcp => self.metrics.net.admitted(),
+            Counted::Quic => self.metrics.quic.admitted(),
+        }
         Ok(Permit {
             admission: self.clone(),
             slot,
@@ -297,7 +331,7 @@ impl Admission {
         }
         if counts.anonymous >= self.max_anonymous {
             drop(counts);
-            self.metrics.net.refused(Refusal::Global);
+            self.count_refused(Refusal::Global);
             return Err(Refusal::Global);
         }
         counts.anonymous += 1;
@@ -319,7 +353,21 @@ impl Admission {
         }
         Self::give_back(&mut counts, slot);
         drop(counts);
-        self.metrics.net.released();
+        self.count_released();
+    }
+
+    fn count_refused(&self, why: Refusal) {
+        match self.counted {
+            Counted::Tcp => self.metrics.net.refused(why),
+            Counted::Quic => self.metrics.quic.refused(),
+        }
+    }
+
+    fn count_released(&self) {
+        match self.counted {
+            Counted::Tcp => self.metrics.net.released(),
+            Counted::Quic => self.metrics.quic.released(),
+        }
     }
 }
 
@@ -362,6 +410,27 @@ impl Greeter {
     /// No slot for one more anonymous websocket.
     pub fn greet(&self, authenticated: bool) -> Result<(), Refusal> {
         self.admission.greet(&self.slot, authenticated)
+    }
+
+    /// The peer sent something: it is not idle (a TCP connection's reads mark this
+    /// themselves, [`Admitted`]; a WebTransport session's stream and datagrams call it).
+    pub fn heard(&self) {
+        self.slot.heard();
+    }
+
+    /// Ends once the connection is evicted to admit a newcomer (for a WebTransport session,
+    /// which has no socket to fail: it closes its connection then). Only one task of a
+    /// connection may wait on this: it shares the waker a TCP connection's reads use.
+    pub async fn evicted(&self) {
+        std::future::poll_fn(|cx| {
+            self.slot.reader.register(cx.waker());
+            if self.slot.evicted() {
+                Poll::Ready(())
+            } else {
+                Poll::Pending
+            }
+        })
+        .await;
     }
 }
 

@@ -20,6 +20,7 @@
 //! hyper's answers to a head it cannot parse (400, 414, 431): see `head_errors`.
 
 mod admission;
+pub use admission::IDLE_BEFORE_EVICTION;
 mod body_deadline;
 mod dashboard;
 mod head_errors;

@@ -13,6 +13,7 @@
 //!   again before each delta. A lost datagram costs its own tick. QUIC's congestion
 //!   control (`--quic-congestion`: CUBIC, or BBR) paces what is sent.
 
+use super::admission::{Admission, Greeter};
 use super::ws;
 use crate::config::QuicCongestion;
 use crate::metrics::Metrics;
@@ -45,6 +46,10 @@ const SUPERSEDED_AT: usize = 8;
 /// How long a client may take to complete the QUIC and WebTransport handshakes.
 const HANDSHAKE: Duration = Duration::from_secs(10);
 
+/// The QUIC application close code of a session evicted at the connection cap: the
+/// websocket's close code for it, 1013 (try again later).
+const EVICTED: u32 = 1013;
+
 /// Days the self-signed certificate is valid: browsers accept a certificate by its hash only
 /// when it is valid for at most 14 days.
 const SELF_SIGNED_DAYS: u32 = 14;
@@ -58,54 +63,6 @@ fn congestion(
         QuicCongestion::Bbr => Arc::new(BbrConfig::default()),
         QuicCongestion::Cubic => Arc::new(CubicConfig::default()),
         QuicCongestion::NewReno => Arc::new(NewRenoConfig::default()),
-    }
-}
-
-/// Sessions held, in all and per address, under the websocket's caps (`--max-connections`,
-/// `--max-connections-per-address`), counted apart from the websockets: a session over a cap
-/// is answered `429 Too Many Requests` before it is established.
-#[derive(Debug, Default)]
-struct Caps {
-    held: std::sync::Mutex<(usize, std::collections::HashMap<std::net::IpAddr, usize>)>,
-}
-
-/// A session's place under the caps, given back on drop.
-struct Held<'a> {
-    caps: &'a Caps,
-    ip: std::net::IpAddr,
-}
-
-impl Caps {
-    fn take(&self, ip: std::net::IpAddr, total: usize, per_address: usize) -> Option<Held<'_>> {
-        let ip = super::admission::address_key(ip);
-        let mut held = self
-            .held
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        let here = held.1.get(&ip).copied().unwrap_or(0);
-        if held.0 >= total || here >= per_address {
-            return None;
-        }
-        held.0 += 1;
-        *held.1.entry(ip).or_default() += 1;
-        Some(Held { caps: self, ip })
-    }
-}
-
-impl Drop for Held<'_> {
-    fn drop(&mut self) {
-        let mut held = self
-            .caps
-            .held
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        held.0 = held.0.saturating_sub(1);
-        if let Some(n) = held.1.get_mut(&self.ip) {
-            *n -= 1;
-            if *n == 0 {
-                held.1.remove(&self.ip);
-            }
-        }
     }
 }
 
@@ -186,33 +143,37 @@ pub async fn start(state: &Arc<AppState>) -> std::io::Result<Option<JoinHandle<(
         })
         .ok();
     let state = state.clone();
-    let caps = Arc::new(Caps::default());
+    // Sessions count under the websocket's caps (`--max-connections`,
+    // `--max-connections-per-address`), apart from the websockets, by the same rules: past a
+    // cap a session is answered `429 Too Many Requests` before it is established, unless one
+    // that has not said hello, or an anonymous one idle for a while, can make way.
+    let net = &state.config.net;
+    let admission = Admission::for_quic(
+        net.max_connections,
+        net.max_connections_per_address,
+        state.metrics.clone(),
+    );
     Ok(Some(tokio::spawn(async move {
         loop {
             let incoming = endpoint.accept().await;
-            tokio::spawn(session(state.clone(), caps.clone(), incoming));
+            tokio::spawn(session(state.clone(), admission.clone(), incoming));
         }
     })))
 }
 
 /// One WebTransport session, from its handshake to its end.
-async fn session(state: Arc<AppState>, caps: Arc<Caps>, incoming: IncomingSession) {
+async fn session(state: Arc<AppState>, admission: Arc<Admission>, incoming: IncomingSession) {
     let Ok(Ok(request)) = tokio::time::timeout(HANDSHAKE, incoming).await else {
         debug!("a QUIC handshake failed or timed out");
         return;
     };
     let peer = request.remote_address();
-    let net = &state.config.net;
-    let Some(_held) = caps.take(
-        peer.ip(),
-        net.max_connections,
-        net.max_connections_per_address,
-    ) else {
-        state.metrics.quic.refused();
+    let Ok(permit) = admission.try_admit(peer.ip()) else {
         debug!(%peer, "a WebTransport session over a connection cap: refused");
         request.too_many_requests().await;
         return;
     };
+    let greeter = permit.greeter();
     let Ok(Ok(conn)) = tokio::time::timeout(HANDSHAKE, request.accept()).await else {
         debug!(%peer, "a WebTransport session was not established");
         return;
@@ -229,17 +190,33 @@ async fn session(state: Arc<AppState>, caps: Arc<Caps>, incoming: IncomingSessio
         conn.clone(),
         outbox.clone(),
         state.metrics.clone(),
+        greeter.clone(),
     ));
+    // Evicted to admit a newcomer: the connection closes, which ends the session's reads and
+    // writes wherever they are.
+    let eviction = {
+        let (conn, greeter) = (conn.clone(), greeter.clone());
+        tokio::spawn(async move {
+            greeter.evicted().await;
+            debug!(%peer, "a WebTransport session evicted at the connection cap");
+            conn.close(
+                EVICTED.into(),
+                b"evicted: the server is at its connection cap",
+            );
+        })
+    };
     // Fused: the session reads on after the end (its closing linger).
-    let stream = Box::pin(received(recv).fuse());
+    let stream = Box::pin(received(recv, greeter.clone()).fuse());
     let sink = Box::pin(sent(
         conn.clone(),
         send,
         outbox.clone(),
         state.metrics.clone(),
     ));
-    ws::serve_parts(sink, stream, outbox, state, Some(peer), None, None).await;
+    ws::serve_parts(sink, stream, outbox, state, Some(peer), Some(greeter), None).await;
+    eviction.abort();
     acks.abort();
+    drop(permit);
     conn.close(0u32.into(), b"");
 }
 
@@ -256,10 +233,11 @@ fn datagrams_waiting(conn: &Connection) -> usize {
 const BOOKKEEPING: usize = 64;
 
 /// Keyframe acknowledgements the client sends as datagrams; anything else is ignored.
-async fn read_acks(conn: Connection, outbox: Arc<Outbox>, metrics: Arc<Metrics>) {
+async fn read_acks(conn: Connection, outbox: Arc<Outbox>, metrics: Arc<Metrics>, greeter: Greeter) {
     while let Ok(datagram) = conn.receive_datagram().await {
         match wire::read_key_ack(&datagram.payload()) {
             Some(ack) => {
+                greeter.heard();
                 metrics.quic.key_ack();
                 outbox.ack_key(ack.scene_num, ack.seq, &ack.avatars);
             }
@@ -270,33 +248,41 @@ async fn read_acks(conn: Connection, outbox: Arc<Outbox>, metrics: Arc<Metrics>)
 
 /// The messages of the client's stream, until it ends. A message that breaks the framing
 /// ends it with the error a websocket would give (too large, not UTF-8, an unknown kind).
-fn received(recv: RecvStream) -> impl Stream<Item = Result<Message, axum::Error>> + Send {
-    futures_util::stream::unfold(Some(recv), |recv| async move {
-        let mut recv = recv?;
-        let mut header = [0u8; wire::STREAM_HEADER];
-        recv.read_exact(&mut header).await.ok()?;
-        let (kind, len) = wire::read_header(header);
-        let fail = |e: WsError| Some((Err(axum::Error::new(e)), None));
-        if len > MAX_CLIENT_MESSAGE_BYTES {
-            return fail(WsError::Capacity(CapacityError::MessageTooLong {
-                size: len,
-                max_size: MAX_CLIENT_MESSAGE_BYTES,
-            }));
+/// Each message marks the session heard (`greeter`: it is not idle).
+fn received(
+    recv: RecvStream,
+    greeter: Greeter,
+) -> impl Stream<Item = Result<Message, axum::Error>> + Send {
+    futures_util::stream::unfold(Some(recv), move |recv| {
+        let greeter = greeter.clone();
+        async move {
+            let mut recv = recv?;
+            let mut header = [0u8; wire::STREAM_HEADER];
+            recv.read_exact(&mut header).await.ok()?;
+            greeter.heard();
+            let (kind, len) = wire::read_header(header);
+            let fail = |e: WsError| Some((Err(axum::Error::new(e)), None));
+            if len > MAX_CLIENT_MESSAGE_BYTES {
+                return fail(WsError::Capacity(CapacityError::MessageTooLong {
+                    size: len,
+                    max_size: MAX_CLIENT_MESSAGE_BYTES,
+                }));
+            }
+            let mut payload = vec![0u8; len];
+            recv.read_exact(&mut payload).await.ok()?;
+            let message = match kind {
+                wire::TEXT => match String::from_utf8(payload) {
+                    Ok(text) => Message::Text(text.into()),
+                    Err(e) => return fail(WsError::Utf8(e.to_string())),
+                },
+                wire::BINARY => Message::Binary(payload.into()),
+                wire::PING => Message::Ping(payload.into()),
+                wire::PONG => Message::Pong(payload.into()),
+                wire::CLOSE => Message::Close(None),
+                other => return fail(WsError::Protocol(WsProtocol::InvalidOpcode(other))),
+            };
+            Some((Ok(message), Some(recv)))
         }
-        let mut payload = vec![0u8; len];
-        recv.read_exact(&mut payload).await.ok()?;
-        let message = match kind {
-            wire::TEXT => match String::from_utf8(payload) {
-                Ok(text) => Message::Text(text.into()),
-                Err(e) => return fail(WsError::Utf8(e.to_string())),
-            },
-            wire::BINARY => Message::Binary(payload.into()),
-            wire::PING => Message::Ping(payload.into()),
-            wire::PONG => Message::Pong(payload.into()),
-            wire::CLOSE => Message::Close(None),
-            other => return fail(WsError::Protocol(WsProtocol::InvalidOpcode(other))),
-        };
-        Some((Ok(message), Some(recv)))
     })
 }
 
