@@ -76,8 +76,13 @@
 //! connections saw in the last [`FLOOR_WINDOW`] (after its last cut), more than
 //! [`QUEUE_TARGET`] above the base — a queue the path shares delays every packet on it, even
 //! the luckiest; one connection's stall or a jittery sample delays only its own. Then every
-//! connection of the path cuts by the same factor, at most every [`PATH_HOLD`].
-//! Simultaneous multiplicative cuts and additive raises make their rates converge. (Until
+//! connection of the path moves to one equal share, at most every [`PATH_HOLD`]: the cut's
+//! factor times the mean rate of the path's connections (the path keeps their sum). The path's
+//! total falls by the factor as before, but the faster give up more and the slower may gain,
+//! so the additive raises between cuts start from equal rates. (Cutting each connection by
+//! the factor of its own rate, as before, kept the gaps the raises' jitter had opened: the
+//! slowest tenth of 50 viewers on one 2 Mbit/s link got 0.42–0.61 of the fastest tenth's
+//! frame rate; with equal shares 0.76–0.82, `tests/link_rate.rs`.) (Until
 //! issue 37 any two connections cutting within a second made the whole path cut: with 50
 //! connections and jittery round trips, some two always did, and all 50 fell to 3–4 frames/s
 //! where each alone kept 59.) Every connection keeps at least the lowest step (1 Hz) — no
@@ -195,8 +200,8 @@ fn hz(level: usize) -> f64 {
 }
 
 /// The multiplicative decrease for a queue of `queueing`: the further behind, the bigger the
-/// cut (connections sharing a link all cut by the same factor, so the faster ones give up
-/// more; with the additive increase their rates converge).
+/// cut (of a connection's own rate; a path's shared cut gives each of its connections this
+/// factor of their mean rate, [`Path::judge`]).
 fn cut_factor(queueing: Duration) -> f64 {
     if queueing > FAR_BEHIND {
         0.25
@@ -217,8 +222,12 @@ pub struct Path {
     /// The path floor: (bucket start, smallest round trip, samples) over [`FLOOR_WINDOW`],
     /// since the last cut.
     floor: Mutex<VecDeque<(Instant, Duration, u32)>>,
-    /// The last cut of the path: when, and by what factor.
+    /// The last cut of the path: when, and the rate (frames per second at 60 Hz) it gives
+    /// every connection on it.
     congestion: Mutex<Option<(Instant, f64)>>,
+    /// The rates of the connections on the path (frames per second at 60 Hz): their sum and
+    /// how many, for the share a cut gives each.
+    rates: Mutex<(f64, u32)>,
     /// The smallest round trip of each [`FLOOR_BUCKET`] over the last [`TREND_WINDOW`].
     recent: Mutex<VecDeque<(Instant, Duration)>>,
 }
@@ -229,6 +238,7 @@ impl Path {
             windows: Mutex::new((Instant::now(), None, None)),
             floor: Mutex::new(VecDeque::new()),
             congestion: Mutex::new(None),
+            rates: Mutex::new((0.0, 0)),
             recent: Mutex::new(VecDeque::new()),
         }
     }
@@ -236,8 +246,10 @@ impl Path {
     /// Judges the path floor at `now` against the path's `base`: when every round trip of the
     /// last [`FLOOR_WINDOW`] (at least [`CURRENT_OF`] of them) stood more than
     /// [`QUEUE_TARGET`] above it, the queue is the path's: a cut for every connection on it,
-    /// by the factor of that queue, unless the last was less than [`PATH_HOLD`] ago (one
-    /// queue, one cut: it takes a while to drain after everyone cut). Returns the cut.
+    /// to the factor of that queue times their mean rate — one equal share each, so the
+    /// faster give up more and the slower may gain, and the path's total still falls by the
+    /// factor — unless the last was less than [`PATH_HOLD`] ago (one queue, one cut: it takes
+    /// a while to drain after everyone cut). Returns the cut: when, and the share.
     fn judge(&self, now: Instant, base: Duration) -> Option<(Instant, f64)> {
         let queueing = self.floor_above(now, base)?;
         if queueing <= QUEUE_TARGET {
@@ -250,7 +262,13 @@ impl Path {
         if c.is_some_and(|(at, _)| now - at < PATH_HOLD) {
             return None;
         }
-        let cut = (now, cut_factor(queueing));
+        let (sum, count) = *self.rates_lock();
+        let mean = if count == 0 {
+            hz(0)
+        } else {
+            sum / f64::from(count)
+        };
+        let cut = (now, mean * cut_factor(queueing));
         *c = Some(cut);
         // Judge the next cut by the round trips after this one.
         self.floor_lock().clear();
@@ -280,6 +298,30 @@ impl Path {
         self.floor
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    fn rates_lock(&self) -> std::sync::MutexGuard<'_, (f64, u32)> {
+        self.rates
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// A connection's rate moved from `from` to `to` frames per second (`None`: it joined or
+    /// left the path).
+    fn moved(&self, from: Option<f64>, to: Option<f64>) {
+        let mut r = self.rates_lock();
+        if let Some(f) = from {
+            r.0 -= f;
+            r.1 = r.1.saturating_sub(1);
+        }
+        if let Some(t) = to {
+            r.0 += t;
+            r.1 += 1;
+        }
+        if r.1 == 0 {
+            // No drift from float sums left over.
+            r.0 = 0.0;
+        }
     }
 
     fn congestion(&self) -> Option<(Instant, f64)> {
@@ -609,12 +651,37 @@ impl Control {
         (self.jitter * 2).min(most)
     }
 
+    /// Moves to step `level`, and tells the path.
+    fn set_level(&mut self, level: usize) {
+        if level != self.level
+            && let Some(path) = &self.path
+        {
+            path.moved(Some(hz(self.level)), Some(hz(level)));
+        }
+        self.level = level;
+    }
+
+    /// Joins `path` (leaving the one it was on).
+    fn join(&mut self, path: Arc<Path>) {
+        if let Some(old) = &self.path {
+            old.moved(Some(hz(self.level)), None);
+        }
+        path.moved(None, Some(hz(self.level)));
+        self.path = Some(path);
+    }
+
     /// Cuts the rate to the step at or below `factor` of it.
     fn lower(&mut self, now: Instant, factor: f64) {
-        let target = hz(self.level) * factor;
-        self.level = (self.level + 1..STEPS.len())
+        self.lower_to(now, hz(self.level) * factor);
+    }
+
+    /// Moves to the step at or below `target` frames per second (down, or up to it after a
+    /// path's cut to equal shares) and judges the new rate from there.
+    fn lower_to(&mut self, now: Instant, target: f64) {
+        let level = (0..STEPS.len())
             .find(|&l| hz(l) <= target)
             .unwrap_or(STEPS.len() - 1);
+        self.set_level(level);
         self.last_lowered = Some(now);
         self.calm_since = now;
         self.calm_streak = 0;
@@ -637,16 +704,16 @@ impl Control {
         // The path's floor rose: the queue is shared, so every connection on it cuts (the cuts
         // of one path are simultaneous, which is what makes AIMD converge to fair rates).
         let event = self.path.as_ref().and_then(|p| p.congestion());
-        if let Some((at, factor)) = event
+        if let Some((at, share)) = event
             && self.seen_event.is_none_or(|seen| at > seen)
         {
             self.seen_event = Some(at);
-            if may_lower && self.level + 1 < STEPS.len() {
-                self.lower(now, factor);
-                return Some(Change {
+            if may_lower {
+                self.lower_to(now, share);
+                return (self.level != from).then_some(Change {
                     from,
                     to: self.level,
-                    cause: Some(Cause::Path),
+                    cause: (self.level > from).then_some(Cause::Path),
                 });
             }
         }
@@ -665,7 +732,7 @@ impl Control {
                 .this_wait
                 .mul_f64((hz(self.level.saturating_sub(1)) - hz(self.level)).clamp(1.0, 4.0));
             if self.level > 0 && now - self.calm_since >= wait {
-                self.level -= 1;
+                self.set_level(self.level - 1);
                 self.calm_since = now;
                 self.rejitter();
             }
@@ -675,6 +742,15 @@ impl Control {
             to: self.level,
             cause: (self.level > from).then_some(if queued { source } else { Cause::Superseded }),
         })
+    }
+}
+
+impl Drop for Control {
+    /// The connection leaves its path's rates.
+    fn drop(&mut self) {
+        if let Some(path) = &self.path {
+            path.moved(Some(hz(self.level)), None);
+        }
     }
 }
 
@@ -718,7 +794,7 @@ impl Pace {
 
     /// Shares the base round trip with the other connections on `path`.
     pub fn set_path(&self, path: Arc<Path>) {
-        self.lock().path = Some(path);
+        self.lock().join(path);
     }
 
     /// The current step (index into [`STEPS`]).
@@ -1063,6 +1139,45 @@ mod tests {
         );
         assert!(mean >= 0.95 * alone_mean, "{shared:?} vs alone {alone:?}");
         assert!(min >= alone_min - 5.0, "{shared:?} vs alone {alone:?}");
+    }
+
+    #[test]
+    fn a_shared_cut_gives_every_connection_of_the_path_one_equal_share() {
+        let paths = Paths::default();
+        let path = paths.join(Some(IpAddr::from([192, 0, 2, 9])));
+        let paces: Vec<Pace> = [0usize, 2, 5, 9]
+            .iter()
+            .map(|&level| {
+                let p = Pace::new(level as u64 + 1);
+                p.set_path(path.clone());
+                p.lock().set_level(level);
+                p
+            })
+            .collect();
+        // 60, 30, 15 and 6 frames/s.
+        let mean = (60.0 + 30.0 + 15.0 + 6.0) / 4.0;
+        assert_eq!(*path.rates_lock(), (111.0, 4));
+        // Every round trip of the last half second 110 ms above the base of 20 ms: a queue
+        // past a quarter of FAR_BEHIND, so the path's rate halves.
+        let start = Instant::now();
+        for ms in (0..=500).step_by(20) {
+            path.observe(start + Duration::from_millis(ms), 130 * MS);
+        }
+        let now = start + Duration::from_millis(500);
+        let (_, share) = path.judge(now, 20 * MS).expect("a shared cut");
+        assert!((share - mean * 0.5).abs() < 1e-9, "{share}");
+        for p in &paces {
+            let change = p.lock().decide(now, None, 0, Cause::RoundTrips);
+            p.apply(change);
+        }
+        // Half the mean, 13.9 frames/s, each: all at the step below, 12 — the fastest down
+        // from 60, the slowest up from 6; the path's total falls from 111 to 48.
+        let rates: Vec<u32> = paces.iter().map(Pace::rate).collect();
+        assert_eq!(rates, [12, 12, 12, 12]);
+        assert_eq!(*path.rates_lock(), (48.0, 4));
+        // Connections that end leave the path's rates.
+        drop(paces);
+        assert_eq!(*path.rates_lock(), (0.0, 0));
     }
 
     #[test]
