@@ -120,9 +120,13 @@ pub(super) async fn serve_parts<Si, St>(
     Si: Sink<Message> + Unpin + Send + 'static,
     St: Stream<Item = Result<Message, axum::Error>> + Unpin + Send,
 {
-    outbox
-        .pace()
-        .set_path(state.paths.join(peer.map(|p| p.ip())));
+    // A WebTransport session is paced by QUIC, not by the adaptive rate: it stays off the
+    // paths, whose shared cuts give equal shares of their connections' mean rate.
+    if !outbox.datagrams() {
+        outbox
+            .pace()
+            .set_path(state.paths.join(peer.map(|p| p.ip())));
+    }
     let conn = state.register_connection(&outbox);
     let peer = peer.map_or_else(|| "-".to_owned(), |p| p.to_string());
     let span = info_span!("ws", conn, peer = %peer, caller = tracing::field::Empty);
