@@ -262,6 +262,34 @@ async fn scenario(server: &Server, surface: &Surface<'_>, tag: &str) {
         .await
         .unwrap_err();
     assert_eq!(e.code, ErrorCode::InvalidValue);
+    assert_eq!(e.details, None, "{tag}: an invalid value is its message");
+    // What the server could not find comes as fields too (`details`), on both surfaces.
+    let e = surface
+        .run(play(&id, "no_such_clip", 0.0, 1.0))
+        .await
+        .unwrap_err();
+    assert_eq!(e.code, ErrorCode::UnknownClip);
+    let d = e
+        .details
+        .unwrap_or_else(|| panic!("{tag}: no details in {}", e.message));
+    assert_eq!(
+        (d.asset.as_deref(), d.clip.as_deref(), d.avatar),
+        (Some("avatar"), Some("no_such_clip"), None),
+        "{tag}"
+    );
+    let e = surface
+        .run(Command::GetJoint {
+            avatar: id.clone(),
+            joint: "no_such_joint".into(),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code, ErrorCode::UnknownJoint);
+    assert_eq!(
+        e.details.and_then(|d| d.joint).as_deref(),
+        Some("no_such_joint"),
+        "{tag}"
+    );
     let err = worst_degrees(&after_ack(&watcher, &id).await, &walk);
     assert!(
         err <= MAX_ERROR_DEGREES,
@@ -294,6 +322,7 @@ async fn scenario(server: &Server, surface: &Surface<'_>, tag: &str) {
         .await
         .unwrap_err();
     assert_eq!(e.code, ErrorCode::UnknownAvatar);
+    assert_eq!(e.details.and_then(|d| d.avatar), Some(id), "{tag}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -4,7 +4,7 @@
 //! The transport (`service`) also builds a few wire errors of its own — a message that is not
 //! JSON, a missing hello — that have no meaning below it.
 
-use posecast_proto::msg::{AvatarId, ErrorCode, ProtocolError, SceneId};
+use posecast_proto::msg::{AvatarId, ErrorCode, ErrorDetails, ProtocolError, SceneId};
 
 /// A failed request, command or import step. Nothing was changed by whatever returned it.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -51,8 +51,13 @@ pub enum Error {
         clip: String,
     },
     /// No take (`record_scene`) of that name, or none that can be read.
-    #[error("{0}")]
-    UnknownTake(String),
+    #[error("{}", match unreadable { Some(why) => format!("take {take} cannot be read: {why}"), None => format!("no take {take}") })]
+    UnknownTake {
+        /// The take asked for.
+        take: String,
+        /// Why a take of that name cannot be read, if it exists.
+        unreadable: Option<String>,
+    },
     /// No rig (asset) of that name is loaded.
     #[error("no rig (asset) named {0}")]
     UnknownAsset(String),
@@ -136,7 +141,7 @@ impl Error {
             Self::UnknownExpression { .. } => ErrorCode::UnknownExpression,
             Self::UnknownClip { .. } => ErrorCode::UnknownClip,
             Self::UnknownAsset(_) => ErrorCode::UnknownAsset,
-            Self::UnknownTake(_) => ErrorCode::UnknownTake,
+            Self::UnknownTake { .. } => ErrorCode::UnknownTake,
             Self::Invalid(_) => ErrorCode::InvalidValue,
             Self::Conflict(_) => ErrorCode::Conflict,
             Self::NotAllowedNow(_) => ErrorCode::NotAllowedNow,
@@ -196,12 +201,65 @@ pub fn is_storage_full(e: &std::io::Error) -> bool {
     )
 }
 
+impl Error {
+    /// What the error is about, for the wire ([`ErrorDetails`]); `None` when its message is
+    /// all there is.
+    #[must_use]
+    pub fn details(&self) -> Option<ErrorDetails> {
+        let d = ErrorDetails::default();
+        Some(match self {
+            Self::UnknownScene(scene) => ErrorDetails {
+                scene: Some(scene.clone()),
+                ..d
+            },
+            Self::UnknownAvatar(avatar) => ErrorDetails {
+                avatar: Some(avatar.clone()),
+                ..d
+            },
+            Self::NotInScene { scene, avatar } => ErrorDetails {
+                scene: Some(scene.clone()),
+                avatar: Some(avatar.clone()),
+                ..d
+            },
+            Self::UnknownJoint { joint, .. } => ErrorDetails {
+                joint: Some(joint.clone()),
+                ..d
+            },
+            Self::UnknownExpression { name, .. } => ErrorDetails {
+                expression: Some(name.clone()),
+                ..d
+            },
+            Self::UnknownClip { rig, clip } => ErrorDetails {
+                asset: Some(rig.clone()),
+                clip: Some(clip.clone()),
+                ..d
+            },
+            Self::UnknownAsset(asset) | Self::NoMesh(asset) => ErrorDetails {
+                asset: Some(asset.clone()),
+                ..d
+            },
+            Self::UnknownTake { take, .. } => ErrorDetails {
+                take: Some(take.clone()),
+                ..d
+            },
+            Self::Quota { quota, limit, .. } => ErrorDetails {
+                quota: Some((*quota).to_owned()),
+                limit: Some(limit.clone()),
+                ..d
+            },
+            Self::Remote(wire) => return wire.details.as_deref().cloned(),
+            _ => return None,
+        })
+    }
+}
+
 impl From<Error> for ProtocolError {
     fn from(e: Error) -> Self {
         if let Error::Remote(wire) = e {
             return wire;
         }
         let mut wire = Self::new(e.code(), e.to_string());
+        wire.details = e.details().map(Box::new);
         if let Error::RateLimited { retry_after_ms, .. } = e {
             wire.retry_after_ms = Some(retry_after_ms);
         }
@@ -215,6 +273,50 @@ pub type Result<T, E = Error> = std::result::Result<T, E>;
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The wire error names its subject in `details` where the error has one, and the
+    /// take errors keep their messages.
+    #[test]
+    fn the_wire_error_names_its_subject() {
+        let take = |unreadable: Option<&str>| Error::UnknownTake {
+            take: "t1".into(),
+            unreadable: unreadable.map(str::to_owned),
+        };
+        assert_eq!(take(None).to_string(), "no take t1");
+        assert_eq!(
+            take(Some("not a take")).to_string(),
+            "take t1 cannot be read: not a take"
+        );
+        let wire = ProtocolError::from(take(None));
+        assert_eq!(
+            (wire.code, wire.details.and_then(|d| d.take)),
+            (ErrorCode::UnknownTake, Some("t1".to_owned()))
+        );
+        let wire = ProtocolError::from(Error::NotInScene {
+            scene: SceneId("s".into()),
+            avatar: AvatarId("a".into()),
+        });
+        let d = wire.details.unwrap();
+        assert_eq!(
+            (d.scene, d.avatar),
+            (Some(SceneId("s".into())), Some(AvatarId("a".into())))
+        );
+        let wire = ProtocolError::from(Error::Quota {
+            quota: "scenes",
+            detail: "scene s would be scene 3".into(),
+            limit: "2".into(),
+        });
+        let d = wire.details.unwrap();
+        assert_eq!(
+            (d.quota.as_deref(), d.limit.as_deref()),
+            (Some("scenes"), Some("2"))
+        );
+        assert_eq!(ProtocolError::from(Error::invalid("x")).details, None);
+        // A forwarded error keeps what its server said.
+        let remote = ProtocolError::from(Error::UnknownAsset("r".into()));
+        assert_eq!(ProtocolError::from(Error::Remote(remote.clone())), remote);
+        assert_eq!(remote.details.unwrap().asset.as_deref(), Some("r"));
+    }
 
     /// Every variant keeps the code and message clients had before the enum existed.
     #[test]

@@ -381,6 +381,45 @@ pub struct ProtocolError {
     /// With `rate_limited`: milliseconds until a command would be accepted again.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub retry_after_ms: Option<u64>,
+    /// What the error is about, in fields a client can act on (the scene, avatar, rig, clip,
+    /// joint, expression or take it could not find; the quota that refused): absent when the
+    /// message is all there is.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub details: Option<Box<ErrorDetails>>,
+}
+
+/// The subject of an error ([`ProtocolError::details`]): each field present only when the
+/// error is about it.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
+pub struct ErrorDetails {
+    /// The scene (`unknown_scene`; `unknown_avatar` for an avatar not in it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scene: Option<SceneId>,
+    /// The avatar (`unknown_avatar`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub avatar: Option<AvatarId>,
+    /// The rig (asset): `unknown_asset`, `no_mesh`, and the rig of `unknown_clip`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub asset: Option<String>,
+    /// The clip (`unknown_clip`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub clip: Option<String>,
+    /// The joint asked for (`unknown_joint`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub joint: Option<String>,
+    /// The morph target or expression asked for (`unknown_expression`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub expression: Option<String>,
+    /// The take (`unknown_take`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub take: Option<String>,
+    /// The limit that refused (`quota_exceeded`): its name, as in `/metrics`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub quota: Option<String>,
+    /// That limit's value, as people read it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub limit: Option<String>,
 }
 
 impl ProtocolError {
@@ -392,6 +431,7 @@ impl ProtocolError {
             message: message.into(),
             id: None,
             retry_after_ms: None,
+            details: None,
         }
     }
 

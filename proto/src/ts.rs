@@ -13,8 +13,8 @@ use crate::command::{
 use crate::description::AvatarDescription;
 use crate::expressions::{Expression, ExpressionBind, Override};
 use crate::msg::{
-    Access, AvatarId, AvatarPoseJson, ClientMsg, Encoding, ErrorCode, FrameJson, ProtocolError,
-    SceneId, ServerMsg,
+    Access, AvatarId, AvatarPoseJson, ClientMsg, Encoding, ErrorCode, ErrorDetails, FrameJson,
+    ProtocolError, SceneId, ServerMsg,
 };
 use crate::placement::Placement;
 use crate::precision::Precision;
@@ -55,6 +55,7 @@ pub fn declarations() -> String {
         Command,
         CommandResult,
         ProtocolError,
+        ErrorDetails,
         ErrorCode,
         Encoding,
         Precision,

@@ -72,6 +72,10 @@ function errorOf(msg) {
   return new PosecastError(code, message, {
     id: typeof msg.id === "number" ? msg.id : undefined,
     retryAfterMs: typeof msg.retry_after_ms === "number" ? msg.retry_after_ms : undefined,
+    details:
+      msg.details !== null && typeof msg.details === "object"
+        ? /** @type {import("./protocol").ErrorDetails} */ (msg.details)
+        : undefined,
   });
 }
 

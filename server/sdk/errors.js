@@ -2,6 +2,7 @@
 // The SDK's one error type: a refused or failed command, a refused hello, a malformed frame.
 
 /** @typedef {import("./posecast.js").ErrorCode} ErrorCode */
+/** @typedef {import("./protocol").ErrorDetails} ErrorDetails */
 
 /**
  * A refusal or failure with the protocol's error code (`unauthorized`, `forbidden`,
@@ -11,7 +12,7 @@ export class PosecastError extends Error {
   /**
    * @param {ErrorCode} code
    * @param {string} message
-   * @param {{id?: number, retryAfterMs?: number}} [options]
+   * @param {{id?: number, retryAfterMs?: number, details?: ErrorDetails}} [options]
    */
   constructor(code, message, options = {}) {
     super(message);
@@ -22,5 +23,8 @@ export class PosecastError extends Error {
     this.id = options.id;
     /** @type {number | undefined} With `rate_limited`: when to try again. */
     this.retryAfterMs = options.retryAfterMs;
+    /** @type {ErrorDetails | undefined} What the error is about, as fields (the scene, avatar,
+     * rig, clip, joint, expression or take not found; the quota that refused). */
+    this.details = options.details;
   }
 }

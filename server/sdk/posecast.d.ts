@@ -73,6 +73,7 @@ export type {
   DofInfo,
   DriveInfo,
   Encoding,
+  ErrorDetails,
   FadeState,
   JointInfo,
   JointSet,
@@ -99,6 +100,7 @@ import type {
   Command,
   Encoding,
   ErrorCode as WireErrorCode,
+  ErrorDetails,
   JointSet,
   Legs,
   LocomotionClip,
@@ -168,7 +170,11 @@ export type ErrorCode = WireErrorCode | "offline" | (string & {});
 
 /** A refused or failed command (or request): the protocol's error code and message. */
 export declare class PosecastError extends Error {
-  constructor(code: ErrorCode, message: string, options?: { id?: number; retryAfterMs?: number });
+  constructor(
+    code: ErrorCode,
+    message: string,
+    options?: { id?: number; retryAfterMs?: number; details?: ErrorDetails },
+  );
   /** `"PosecastError"`. */
   readonly name: string;
   readonly code: ErrorCode;
@@ -176,6 +182,10 @@ export declare class PosecastError extends Error {
   readonly id: number | undefined;
   /** With `rate_limited`: when to try again. */
   readonly retryAfterMs: number | undefined;
+  /** What the error is about, as fields (the scene, avatar, rig, clip, joint, expression or
+   * take the server could not find; the quota that refused); undefined when the message is
+   * all there is. */
+  readonly details: ErrorDetails | undefined;
 }
 
 export type TokenKind = "control" | "view";

@@ -807,7 +807,55 @@ id?: number | null,
 /**
  * With `rate_limited`: milliseconds until a command would be accepted again.
  */
-retry_after_ms?: number | null, };
+retry_after_ms?: number | null, 
+/**
+ * What the error is about, in fields a client can act on (the scene, avatar, rig, clip,
+ * joint, expression or take it could not find; the quota that refused): absent when the
+ * message is all there is.
+ */
+details?: ErrorDetails | null, };
+
+/**
+ * The subject of an error (`ProtocolError::details`): each field present only when the
+ * error is about it.
+ */
+export type ErrorDetails = { 
+/**
+ * The scene (`unknown_scene`; `unknown_avatar` for an avatar not in it).
+ */
+scene?: SceneId | null, 
+/**
+ * The avatar (`unknown_avatar`).
+ */
+avatar?: AvatarId | null, 
+/**
+ * The rig (asset): `unknown_asset`, `no_mesh`, and the rig of `unknown_clip`.
+ */
+asset?: string | null, 
+/**
+ * The clip (`unknown_clip`).
+ */
+clip?: string | null, 
+/**
+ * The joint asked for (`unknown_joint`).
+ */
+joint?: string | null, 
+/**
+ * The morph target or expression asked for (`unknown_expression`).
+ */
+expression?: string | null, 
+/**
+ * The take (`unknown_take`).
+ */
+take?: string | null, 
+/**
+ * The limit that refused (`quota_exceeded`): its name, as in `/metrics`.
+ */
+quota?: string | null, 
+/**
+ * That limit's value, as people read it.
+ */
+limit?: string | null, };
 
 /**
  * Stable error codes. New codes may be added in later versions; clients treat an unknown code

@@ -113,7 +113,7 @@ impl KitError {
     /// use posecast_testkit::KitError;
     /// let e = KitError::Refused {
     ///     op: "play".into(),
-    ///     error: ProtocolError { code: ErrorCode::UnknownClip, message: "no clip".into(), id: None, retry_after_ms: None },
+    ///     error: ProtocolError { code: ErrorCode::UnknownClip, message: "no clip".into(), id: None, retry_after_ms: None, details: None },
     /// };
     /// assert_eq!(e.code(), Some(ErrorCode::UnknownClip));
     /// ```

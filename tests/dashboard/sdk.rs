@@ -436,7 +436,7 @@ async fn command_promises_reject_with_the_typed_error() {
     try {{
       return {{ resolved: await c.command(command) }};
     }} catch (e) {{
-      return {{ typed: e instanceof PosecastError, name: e.name, code: e.code, message: e.message, id: e.id ?? null }};
+      return {{ typed: e instanceof PosecastError, name: e.name, code: e.code, message: e.message, id: e.id ?? null, details: e.details ?? null }};
     }}
   }};
   const viewer = await online(new Client({{ url: window.url, reconnect: false }}));
@@ -463,6 +463,12 @@ async fn command_promises_reject_with_the_typed_error() {
     );
     assert_eq!(out["unknown"]["typed"], json!(true), "{out}");
     assert_eq!(out["unknown"]["code"], "unknown_avatar", "{out}");
+    assert_eq!(
+        out["unknown"]["details"],
+        json!({"avatar": "nobody"}),
+        "the error names what was not found: {out}"
+    );
+    assert_eq!(out["play"]["details"], json!(null), "{out}");
     assert_eq!(
         out["known"]["resolved"]["clip"], "idle",
         "a command that succeeds resolves with its result: {out}"

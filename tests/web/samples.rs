@@ -289,6 +289,22 @@ fn samples() -> Vec<(&'static str, &'static str, Value)> {
                 message: "too many commands: try again in 5 ms".into(),
                 id: Some(12),
                 retry_after_ms: Some(5),
+                details: None,
+            })),
+        ),
+        (
+            "error_details",
+            "ErrorMsg",
+            v!(ServerMsg::Error(ProtocolError {
+                code: ErrorCode::UnknownClip,
+                message: "rig avatar has no clip jump".into(),
+                id: Some(13),
+                retry_after_ms: None,
+                details: Some(Box::new(posecast_proto::msg::ErrorDetails {
+                    asset: Some("avatar".into()),
+                    clip: Some("jump".into()),
+                    ..Default::default()
+                })),
             })),
         ),
         (

@@ -95,9 +95,13 @@ impl Cluster {
         let bucket = &self.conn.takes.0;
         let put = match state.takes.file(take) {
             Some(path) => {
-                let mut file = tokio::fs::File::open(&path)
-                    .await
-                    .map_err(|_| Error::UnknownTake(format!("no take {take}")))?;
+                let mut file =
+                    tokio::fs::File::open(&path)
+                        .await
+                        .map_err(|_| Error::UnknownTake {
+                            take: take.to_string(),
+                            unreadable: None,
+                        })?;
                 bucket.put(meta, &mut file).await
             }
             None => {

@@ -223,7 +223,7 @@ async fn delete_take(state: &AppState, take: &str) -> Result<CommandResult, Erro
     let take = take.to_owned();
     match blocking(state, move |s| s.delete(&take)).await {
         Ok(_) => Ok(CommandResult::Done),
-        Err(Error::UnknownTake(_)) if shared => Ok(CommandResult::Done),
+        Err(Error::UnknownTake { .. }) if shared => Ok(CommandResult::Done),
         Err(e) => Err(e),
     }
 }

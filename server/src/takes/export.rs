@@ -86,9 +86,10 @@ pub fn clips(
     let mut gathered = 0usize;
     for i in start..=end {
         let t = (index.frames[i].seq - first_seq) as f64 / rate;
-        let poses = reader
-            .poses(i)
-            .map_err(|e| Error::UnknownTake(format!("take {take} cannot be read on: {e}")))?;
+        let poses = reader.poses(i).map_err(|e| Error::UnknownTake {
+            take: take.to_owned(),
+            unreadable: Some(e.to_string()),
+        })?;
         for p in poses {
             if only.is_some_and(|id| id != &p.description.id) {
                 continue;

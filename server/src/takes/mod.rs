@@ -558,8 +558,14 @@ impl Takes {
     /// # Errors
     /// `unknown_take`: no such take, or one that cannot be read (why).
     pub fn index(&self, take: &str) -> Result<Arc<TakeIndex>, Error> {
-        check_id("take", take).map_err(|_| Error::UnknownTake(format!("no take {take}")))?;
-        let unknown = || Error::UnknownTake(format!("no take {take}"));
+        check_id("take", take).map_err(|_| Error::UnknownTake {
+            take: take.to_owned(),
+            unreadable: None,
+        })?;
+        let unknown = || Error::UnknownTake {
+            take: take.to_owned(),
+            unreadable: None,
+        };
         let size = match self.path(take) {
             Some(p) => std::fs::metadata(&p).map_err(|_| unknown())?.len(),
             None => {
@@ -582,7 +588,10 @@ impl Takes {
                 TakeIndex::from_bytes(&bytes)
             }
         }
-        .map_err(|e| Error::UnknownTake(format!("take {take} cannot be read: {e}")))?;
+        .map_err(|e| Error::UnknownTake {
+            take: take.to_owned(),
+            unreadable: Some(e.to_string()),
+        })?;
         let index = Arc::new(index);
         self.lock()
             .read
@@ -595,7 +604,10 @@ impl Takes {
     /// # Errors
     /// `unknown_take`.
     pub fn source(&self, take: &str) -> Result<crate::scene::replay::TakeSource, Error> {
-        let unknown = || Error::UnknownTake(format!("no take {take}"));
+        let unknown = || Error::UnknownTake {
+            take: take.to_owned(),
+            unreadable: None,
+        };
         match self.path(take) {
             Some(p) => std::fs::File::open(p)
                 .map(crate::scene::replay::TakeSource::File)
@@ -667,7 +679,10 @@ impl Takes {
     /// # Errors
     /// `unknown_take`, `conflict` (being recorded), `internal`/`storage_full`.
     pub fn delete(&self, take: &str) -> Result<u64, Error> {
-        check_id("take", take).map_err(|_| Error::UnknownTake(format!("no take {take}")))?;
+        check_id("take", take).map_err(|_| Error::UnknownTake {
+            take: take.to_owned(),
+            unreadable: None,
+        })?;
         if self.is_recording(take) {
             return Err(Error::Conflict(format!(
                 "take {take} is being recorded: stop_recording_scene first"
@@ -680,7 +695,10 @@ impl Takes {
         match self.path(take) {
             Some(p) => {
                 let bytes = std::fs::metadata(&p)
-                    .map_err(|_| Error::UnknownTake(format!("no take {take}")))?
+                    .map_err(|_| Error::UnknownTake {
+                        take: take.to_owned(),
+                        unreadable: None,
+                    })?
                     .len();
                 // The mark first: a take file without one is a take to share.
                 std::fs::remove_file(p.with_extension(SHARED)).ok();
@@ -694,7 +712,10 @@ impl Takes {
                     .memory
                     .remove(take)
                     .map(|m| memory_len(&m))
-                    .ok_or_else(|| Error::UnknownTake(format!("no take {take}")))?;
+                    .ok_or_else(|| Error::UnknownTake {
+                        take: take.to_owned(),
+                        unreadable: None,
+                    })?;
                 self.release(bytes);
                 Ok(bytes)
             }
@@ -750,7 +771,10 @@ impl Takes {
     /// # Errors
     /// `unknown_take`.
     pub fn bytes(&self, take: &str) -> Result<Vec<u8>, Error> {
-        let unknown = || Error::UnknownTake(format!("no take {take}"));
+        let unknown = || Error::UnknownTake {
+            take: take.to_owned(),
+            unreadable: None,
+        };
         check_id("take", take).map_err(|_| unknown())?;
         match self.path(take) {
             Some(p) => std::fs::read(p).map_err(|_| unknown()),

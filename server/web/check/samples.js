@@ -392,6 +392,17 @@ export const error = /** @satisfies {import("../protocol.js").ErrorMsg} */ ({
   "type": "error"
 });
 
+export const error_details = /** @satisfies {import("../protocol.js").ErrorMsg} */ ({
+  "code": "unknown_clip",
+  "details": {
+    "asset": "avatar",
+    "clip": "jump"
+  },
+  "id": 13,
+  "message": "rig avatar has no clip jump",
+  "type": "error"
+});
+
 export const assets = /** @satisfies {import("../protocol.js").AssetInfo[]} */ ([
   {
     "clips": [
