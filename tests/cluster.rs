@@ -1268,6 +1268,39 @@ async fn relayed_scenes_count_toward_max_scenes() {
     ok(b.addr, r#"{"op":"create_scene","scene":"third"}"#).await;
 }
 
+/// A scene deleted and made again at once under the same name is relayed again by the other
+/// servers: the relay that ended with the deletion does not stay registered and hide the new
+/// one (`cluster_fuzz` once saw a server that never listed such a scene).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_scene_made_again_after_its_deletion_is_relayed_again() {
+    let Some(nats) = Nats::start() else { return };
+    let a = node(&nats, "a", "1");
+    let b = node(&nats, "b", "1");
+    for round in 0..3 {
+        ok(a.addr, r#"{"op":"create_scene","scene":"again"}"#).await;
+        assert_eq!(owner_seen_by(b.addr, "again").await, "a", "round {round}");
+        ok(a.addr, r#"{"op":"delete_scene","scene":"again"}"#).await;
+        // B hears of the deletion; A makes the scene again at once.
+        let deadline = Instant::now() + Duration::from_secs(10);
+        loop {
+            let body = ok(b.addr, r#"{"op":"list_scenes"}"#).await;
+            let listed = body["result"]
+                .as_array()
+                .is_some_and(|scenes| scenes.iter().any(|s| s["scene"] == "again"));
+            if !listed {
+                break;
+            }
+            assert!(
+                Instant::now() < deadline,
+                "B kept the deleted scene: {body}"
+            );
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    }
+    ok(a.addr, r#"{"op":"create_scene","scene":"again"}"#).await;
+    assert_eq!(owner_seen_by(b.addr, "again").await, "a");
+}
+
 /// A JSON connection to `addr` holding the control token that sent `drive` for `avatar` (as
 /// command `id`), and the `drive` command's ack.
 async fn driving(

@@ -616,12 +616,16 @@ impl Cluster {
             if lock(&self.owned).contains_key(id) || lock(&self.claims).contains(id) {
                 continue;
             }
-            let lease = self
-                .conn
-                .leases
-                .entry(key(id))
-                .await
-                .map_err(|e| unavailable("cannot read a lease", &e))?;
+            // One lease that cannot be read is skipped (the next scan tries again), not the
+            // rest of the scan: the other scenes are relayed or taken over, and those gone are
+            // dropped, all the same.
+            let lease = match self.conn.leases.entry(key(id)).await {
+                Ok(lease) => lease,
+                Err(e) => {
+                    warn!(scene = %id, error = %e, "cannot read a lease");
+                    continue;
+                }
+            };
             match lease {
                 Some(entry) if entry.operation == kv::Operation::Put => {
                     let owner = String::from_utf8_lossy(&entry.value).into_owned();

@@ -88,10 +88,22 @@ impl Cluster {
             owner: owner.clone(),
             revision,
         };
-        if let Some(r) = lock(&self.relays).get_mut(id) {
-            r.owner = owner;
-            *lock(&r.view) = view;
-            return;
+        let missing = state.world.scene(id).is_err();
+        {
+            let mut relays = lock(&self.relays);
+            if let Some(r) = relays.get_mut(id) {
+                if !missing {
+                    r.owner = owner;
+                    *lock(&r.view) = view;
+                    return;
+                }
+                // Registered, but its scene went meanwhile (deleted here while the cluster
+                // kept it): relayed afresh below, or the scene would be missing here for good.
+                warn!(scene = %id, "a relayed scene was missing here: relaying it again");
+                if let Some(stale) = relays.remove(id) {
+                    stale.stop();
+                }
+            }
         }
         let scene = match state.world.scene(id) {
             Ok(scene) if scene.is_relay() => scene,
