@@ -544,7 +544,10 @@ posecast_quic_datagram_bytes_total 0
 posecast_quic_split_frames_total 0
 posecast_quic_key_acks_total 0
 posecast_quic_datagrams_ignored_total 0
-posecast_quic_refused_total 0"#;
+posecast_quic_refused_total 0
+posecast_quic_sessions_open 0
+posecast_quic_sessions_evicted_total{stage="unproven"} 0
+posecast_quic_sessions_evicted_total{stage="anonymous"} 0"#;
 
     /// Sample lines with their values parsed, so `0` and `0.0` compare equal.
     fn samples(text: &str) -> BTreeSet<(String, u64)> {
