@@ -21,7 +21,7 @@
 //! changes of one avatar reach every connection in the order they were made.
 
 use crate::scene::Scene;
-use crate::state::AppState;
+use crate::state::Services;
 use crate::world::command::{self, Announce, SceneChange};
 use posecast_proto::command::{AvatarState, Command, CommandResult};
 use posecast_proto::msg::{AvatarId, ServerMsg};
@@ -61,7 +61,7 @@ impl Often {
 
 /// Notes what [`after`] compares with. Read-only commands note nothing.
 #[must_use]
-pub fn before(state: &AppState, command: &Command) -> Before {
+pub fn before(state: &Services, command: &Command) -> Before {
     let notes = matches!(
         command::handler(command).announce(),
         Announce::Removed
@@ -88,7 +88,7 @@ pub fn before(state: &AppState, command: &Command) -> Before {
 }
 
 /// Tells subscribers and watchers what `command` (which succeeded with `result`) changed.
-pub fn after(state: &AppState, command: &Command, before: Before, result: &CommandResult) {
+pub fn after(state: &Services, command: &Command, before: Before, result: &CommandResult) {
     let access = &state.config.access;
     let handler = command::handler(command);
     match (handler.scene_change(), command.scene()) {
@@ -158,14 +158,14 @@ pub fn after(state: &AppState, command: &Command, before: Before, result: &Comma
 
 /// Tells subscribers and watchers the state of avatar `id` of `scene` now: for changes not made
 /// by a command (a live driver that left).
-pub fn avatar_changed(state: &AppState, scene: &Scene, id: &AvatarId) {
+pub fn avatar_changed(state: &Services, scene: &Scene, id: &AvatarId) {
     announce(state, scene, id, |_| true);
 }
 
 /// Sends `avatar_changed` with the avatar's state now, if `changed` says so, to the scene's
 /// subscribers covering it and to its watchers — under the scene's lock (see the module docs).
 fn announce(
-    state: &AppState,
+    state: &Services,
     scene: &Scene,
     id: &AvatarId,
     changed: impl FnOnce(&AvatarState) -> bool,
@@ -194,7 +194,7 @@ fn announce(
 /// false or the pose held with no driver), as a driver that disconnects is announced; a
 /// replay's avatar that came on stage (`avatar_changed`) or went off (`avatar_removed` to the
 /// watchers; the feed told the subscribers). Runs until the server's world is gone.
-pub async fn announce_tick_changes(state: std::sync::Weak<AppState>) {
+pub async fn announce_tick_changes(state: std::sync::Weak<Services>) {
     let Some(mut changes) = state.upgrade().and_then(|s| s.world.take_tick_changes()) else {
         return;
     };
@@ -227,7 +227,7 @@ pub const VIEWERS_COALESCE: std::time::Duration = std::time::Duration::from_secs
 /// A connection subscribed to or left `scene`: its subscribers and watchers hear who watches
 /// it now, in one `viewers` message per scene and [`VIEWERS_COALESCE`] however many joined or
 /// left (a crowd joining does not make each dashboard a message per viewer).
-pub fn viewers_changed(state: &Arc<AppState>, scene: &Arc<Scene>) {
+pub fn viewers_changed(state: &Arc<Services>, scene: &Arc<Scene>) {
     if scene
         .viewers_pending
         .swap(true, std::sync::atomic::Ordering::SeqCst)

@@ -10,7 +10,7 @@
 //! Uploads come over REST only (`service::upload`); the websocket keeps its 64 KiB message
 //! bound, which is what lets a connection's reader stay small and never buffer a model.
 
-use crate::state::AppState;
+use crate::state::Services;
 use crate::store::assets::{self, AssetMeta};
 use posecast_core::error::Error;
 use posecast_proto::command::AssetInfo;
@@ -20,7 +20,7 @@ use posecast_rigs::rig::{PipelineOptions, Rig};
 use std::sync::Arc;
 
 /// Whether `name` is taken: a loaded rig `name` or `name#…`, an upload, or a stored folder.
-fn taken(state: &AppState, name: &str) -> bool {
+fn taken(state: &Services, name: &str) -> bool {
     let prefix = format!("{name}#");
     state.world.library.get(name).is_some()
         || state
@@ -41,7 +41,7 @@ fn conflict(name: &str) -> Error {
 }
 
 /// The rig quotas ([`posecast_rigs::rig::Rig::check_quotas`]), counted in the metrics when refused.
-fn check_rig(state: &AppState, rig: &Rig) -> Result<(), Error> {
+fn check_rig(state: &Services, rig: &Rig) -> Result<(), Error> {
     rig.check_quotas(&state.config.quotas)
         .map_err(|(quota, e)| {
             state.metrics.quota_refused(quota);
@@ -50,7 +50,7 @@ fn check_rig(state: &AppState, rig: &Rig) -> Result<(), Error> {
 }
 
 /// Refuses a file set larger than [`posecast_core::quota::Quotas::max_asset_bytes`].
-fn check_asset_bytes(state: &AppState, name: &str, bytes: u64) -> Result<(), Error> {
+fn check_asset_bytes(state: &Services, name: &str, bytes: u64) -> Result<(), Error> {
     let max = state.config.quotas.max_asset_bytes;
     if bytes > max {
         return Err(state.metrics.refuse_quota(
@@ -64,7 +64,7 @@ fn check_asset_bytes(state: &AppState, name: &str, bytes: u64) -> Result<(), Err
 
 /// Refuses `more` bytes past [`posecast_core::quota::Quotas::max_upload_total_bytes`] (called under
 /// the assets lock, so concurrent uploads cannot overshoot together).
-fn check_total_bytes(state: &AppState, name: &str, more: u64) -> Result<(), Error> {
+fn check_total_bytes(state: &Services, name: &str, more: u64) -> Result<(), Error> {
     let max = state.config.quotas.max_upload_total_bytes;
     let now = state.store.upload_bytes() + state.takes.held_bytes();
     if now.saturating_add(more) > max {
@@ -83,7 +83,7 @@ fn check_total_bytes(state: &AppState, name: &str, more: u64) -> Result<(), Erro
 /// # Errors
 /// `quota_exceeded` naming the quota.
 pub fn check_room(
-    state: &AppState,
+    state: &Services,
     caller: &crate::auth::Caller,
     what: &str,
     bytes: u64,
@@ -134,7 +134,7 @@ pub fn check_room(
 /// A bad name, `conflict` when it is taken, `import_failed`,
 /// `internal` when storing fails. Nothing changes on error.
 pub async fn upload(
-    state: &Arc<AppState>,
+    state: &Arc<Services>,
     caller: &crate::auth::Caller,
     name: &str,
     set: FileSet,
@@ -216,7 +216,7 @@ pub async fn upload(
 /// with `from_asset` retargeting), a clip name that exists (`conflict`), or an
 /// import failure. Nothing changes on error.
 pub async fn add_clips(
-    state: &Arc<AppState>,
+    state: &Arc<Services>,
     name: &str,
     clips: FileSet,
 ) -> Result<AssetInfo, Error> {
@@ -334,7 +334,7 @@ pub async fn add_clips(
 /// joint the rig lacks, a bad orientation); `internal` when storing fails. Nothing changes on
 /// error.
 pub async fn configure(
-    state: &AppState,
+    state: &Services,
     name: &str,
     options: PipelineOptions,
 ) -> Result<Vec<AssetInfo>, Error> {
@@ -411,7 +411,7 @@ pub async fn configure(
 
 /// Upload `name`'s files as the cluster stores them (its servers other than the one it was
 /// uploaded to keep no copy of their own).
-async fn shared_files(state: &AppState, name: &str) -> Result<FileSet, Error> {
+async fn shared_files(state: &Services, name: &str) -> Result<FileSet, Error> {
     let Some(cluster) = state.cluster() else {
         return Err(Error::internal("no cluster", &name));
     };
@@ -432,7 +432,7 @@ async fn shared_files(state: &AppState, name: &str) -> Result<FileSet, Error> {
 /// A bad name; `conflict` when a rig of that name was loaded here otherwise (built in,
 /// `--assets`); a quota; `import_failed`. Nothing changes on error.
 pub async fn adopt_shared(
-    state: &AppState,
+    state: &Services,
     name: &str,
     set: FileSet,
     options: PipelineOptions,
@@ -485,7 +485,7 @@ pub async fn adopt_shared(
 /// `forbidden` (another token's), `conflict` (an avatar is made of or plays one of its
 /// rigs), `internal`/`storage_full` (the files could not be removed: nothing changed).
 pub async fn delete(
-    state: &AppState,
+    state: &Services,
     caller: &crate::auth::Caller,
     name: &str,
 ) -> Result<(), Error> {
@@ -594,7 +594,7 @@ mod tests {
     #[tokio::test]
     async fn upload_bytes_stay_in_memory_only_without_a_data_folder() {
         let dir = tempfile::tempdir().unwrap();
-        let on_disk = AppState::new(Config {
+        let on_disk = Services::new(Config {
             data_dir: Some(dir.path().to_owned()),
             ..Config::default()
         });
@@ -616,7 +616,7 @@ mod tests {
         assert!(on_disk.store.uploads()["r"].files.is_none());
         assert!(dir.path().join("assets/r/wave.anim").is_file());
 
-        let in_memory = AppState::new(Config::default());
+        let in_memory = Services::new(Config::default());
         upload(
             &in_memory,
             &crate::auth::Caller::Anonymous,

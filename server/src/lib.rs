@@ -14,7 +14,9 @@
 //!    [`world`] (every scene, ids, quotas; [`world::command`]: one handler per command —
 //!    what it needs, where it runs, what it announces, its change to the world).
 //! 2. **Services** — [`auth`] (tokens), [`store`] (the data folder), [`config`], [`state`]
-//!    (the world plus connections, store and start-up progress), [`control`] (commands for
+//!    ([`state::Services`], what the services share: the world, the store, takes, start-up
+//!    progress, watchers, counters, the cluster; [`state::AppState`], the transport's: the
+//!    services plus the connections), [`control`] (commands for
 //!    clients: counted, and acknowledged once stored), [`ingest`] (uploads imported,
 //!    normalised and stored; an upload normalised again with new options), [`changes`] (what
 //!    commands changed, pushed to subscribers and scene-list watchers), live drivers of a

@@ -8,7 +8,7 @@
 //! process asked to stop during a long start must be able to exit — the runtime waits for
 //! its blocking-pool tasks when it shuts down, never for this thread.
 
-use crate::state::AppState;
+use crate::state::Services;
 use posecast_proto::msg::{AvatarId, SceneId};
 use posecast_rigs::builtin::BUILTIN_ASSET;
 use posecast_rigs::import;
@@ -46,7 +46,7 @@ impl Plan {
     /// Lists what `state`'s configuration and data folder hold. `first_start`: the data folder
     /// is new (or there is none), so the default scene is created once the rest is loaded.
     #[must_use]
-    pub fn new(state: &AppState, first_start: bool) -> Self {
+    pub fn new(state: &Services, first_start: bool) -> Self {
         let mut sources = Vec::new();
         if state.config.builtin {
             sources.push(Source::Builtin);
@@ -73,7 +73,7 @@ impl Plan {
 ///
 /// # Errors
 /// The thread cannot be started.
-pub fn spawn(state: Arc<AppState>, plan: Plan) -> std::io::Result<()> {
+pub fn spawn(state: Arc<Services>, plan: Plan) -> std::io::Result<()> {
     let runtime = tokio::runtime::Handle::current();
     std::thread::Builder::new()
         .name("posecast-restore".into())
@@ -103,14 +103,14 @@ pub fn spawn(state: Arc<AppState>, plan: Plan) -> std::io::Result<()> {
 }
 
 /// Loads the plan in order; gives up between steps when the server shuts down.
-fn run(state: &AppState, plan: Plan) -> std::io::Result<()> {
+fn run(state: &Services, plan: Plan) -> std::io::Result<()> {
     for source in plan.sources {
         if state.readiness.stopped() {
             return Ok(());
         }
         match source {
-            Source::Builtin => load_builtin(state),
-            Source::File(path) => load_file(state, &path),
+            Source::Builtin => load_builtin(&state.world),
+            Source::File(path) => load_file(&state.world, &path),
             Source::Upload(dir) => state.store.restore_upload(&state.world, &dir),
         }
         state.readiness.source_done();
@@ -144,10 +144,10 @@ fn run(state: &AppState, plan: Plan) -> std::io::Result<()> {
     Ok(())
 }
 
-fn load_builtin(state: &AppState) {
+fn load_builtin(world: &crate::world::World) {
     match posecast_rigs::builtin::rig() {
         Ok(rig) => {
-            state.world.library.insert(rig);
+            world.library.insert(rig);
         }
         Err(e) => warn!(error = %e, "the built-in avatar failed to load"),
     }
@@ -155,7 +155,7 @@ fn load_builtin(state: &AppState) {
 
 /// Scene `default` with the built-in avatar playing `idle` (first start only: later, the data
 /// folder says which scenes exist). Kept when a stored scene of that name was restored.
-fn create_default_scene(state: &AppState) {
+fn create_default_scene(state: &Services) {
     let scene = SceneId(DEFAULT_SCENE.into());
     if state.world.library.get(BUILTIN_ASSET).is_none() || state.world.scene(&scene).is_ok() {
         return;
@@ -208,7 +208,7 @@ fn importable_files(dir: &Path) -> Vec<PathBuf> {
 }
 
 /// Loads one file of an `--assets` folder; failures are logged and skipped.
-fn load_file(state: &AppState, path: &Path) {
+fn load_file(world: &crate::world::World, path: &Path) {
     match import::load_path(path) {
         Ok(assets) => {
             for asset in assets {
@@ -216,7 +216,7 @@ fn load_file(state: &AppState, path: &Path) {
                 match posecast_rigs::rig::Rig::from_asset(asset, &PipelineOptions::default()) {
                     Ok(rig) => {
                         info!(asset = %name, joints = rig.skeleton().len(), steps = ?rig.pipeline, "loaded");
-                        state.world.library.insert(rig);
+                        world.library.insert(rig);
                     }
                     Err(e) => warn!(asset = %name, error = %e, "skipped: normalisation failed"),
                 }
@@ -227,7 +227,7 @@ fn load_file(state: &AppState, path: &Path) {
 }
 
 /// `e` with the data folder named: the bare OS error ("Not a directory") does not say which.
-pub(crate) fn data_folder_error(state: &AppState, e: &std::io::Error) -> std::io::Error {
+pub(crate) fn data_folder_error(state: &Services, e: &std::io::Error) -> std::io::Error {
     let folder = state
         .store
         .root()

@@ -49,7 +49,7 @@ impl Server {
             .clone();
         let state = AppState::new(config.clone());
         tokio::spawn(crate::changes::announce_tick_changes(Arc::downgrade(
-            &state,
+            &state.services,
         )));
         // The address first: a busy port is reported as such, and the data folder (maybe
         // another server's) is not touched.
@@ -71,7 +71,7 @@ impl Server {
             state.world.number_from_ids();
             Some(crate::cluster::connect(&config, addr.port()).await?)
         };
-        let vmc = crate::vmc::start(&state).await?;
+        let vmc = crate::vmc::start(&state.services).await?;
         let quic = match crate::service::quic::start(&state).await {
             Ok(q) => q,
             Err(e) => {
@@ -114,14 +114,14 @@ impl Server {
         let (tx, rx) = oneshot::channel::<()>();
         let router = app(state.clone());
         let task = tokio::spawn(serve(listener, router, state.clone(), rx));
-        if let Err(e) = restore::spawn(state.clone(), plan) {
+        if let Err(e) = restore::spawn(state.services.clone(), plan) {
             task.abort();
             vmc.abort();
             abort_quic();
             return Err(e);
         }
         if let Some(conn) = cluster {
-            crate::cluster::start(&state, conn);
+            crate::cluster::start(&state.services, conn);
         }
         Ok(Self {
             addr,

@@ -1,5 +1,13 @@
-//! The server's shared state: configuration, the [`World`], the data folder, the open
-//! connections and those watching the scene list, counters.
+//! The server's shared state, in two parts with two audiences:
+//!
+//! - [`Services`]: what the services that run commands share — configuration, the [`World`],
+//!   the data folder, takes, start-up progress, the scene-list watchers, counters and the
+//!   cluster. `control`, `ingest`, `changes`, `live`, `vmc`, `restore` and `cluster` take it
+//!   (or less: a function that reads only the world takes the [`World`]); none of them sees a
+//!   socket, a path's pacing or the connection table.
+//! - [`AppState`]: the transport's state — the [`Services`] plus the open connections, the
+//!   paths' round trips, the probe clock and the WebTransport endpoint. Only `service` and
+//!   `startup` take it.
 
 use crate::auth::{AccessConfig, Caller};
 use crate::config::Config;
@@ -28,19 +36,18 @@ use tokio::sync::Notify;
 pub const CLOSE_GOING_AWAY: u16 = 1001;
 const GOING_AWAY_REASON: &str = "server shutting down";
 
-/// Shared by every task of the server.
+/// What the services that run commands share (the module doc says who takes it).
 #[derive(Debug)]
-pub struct AppState {
+pub struct Services {
     /// How the server runs.
     pub config: Config,
     /// The scenes and rigs (the domain every command acts on).
     pub world: World,
     /// Counters (shared with the world).
     pub metrics: Arc<Metrics>,
-    next_conn: AtomicU64,
-    connections: Mutex<Connections>,
-    /// Notified whenever a connection is unregistered (a shutdown waits on it).
-    connection_closed: Notify,
+    /// Connection and live-driver ids: one space, so a VMC input's driver id is never a
+    /// connection's.
+    next_id: AtomicU64,
     /// The data folder (or none) and the lock ordering writes to it.
     pub store: Store,
     /// Takes of whole scenes, stored and being recorded ([`crate::takes`]).
@@ -49,16 +56,33 @@ pub struct AppState {
     pub readiness: Readiness,
     /// The connections watching the scene list ([`crate::changes`]).
     pub watchers: Watchers,
+    /// The cluster this server is part of (`--nats`), once joined.
+    cluster: OnceLock<Arc<dyn Cluster>>,
+}
+
+/// The transport's state: the [`Services`] (reached through `Deref`) plus what only sockets
+/// need.
+#[derive(Debug)]
+pub struct AppState {
+    /// What the services share; handed to them on their own (`&state.services`).
+    pub services: Arc<Services>,
+    connections: Mutex<Connections>,
+    /// Notified whenever a connection is unregistered (a shutdown waits on it).
+    connection_closed: Notify,
     /// Round trips shared by connections from one address (the adaptive rate's base).
     pub paths: Paths,
     /// The clock every subscribed connection's round-trip probes follow (no timer each).
     pub probes: std::sync::Arc<posecast_stream::probes::ProbeClock>,
-    /// The cluster this server is part of (`--nats`), once joined.
-    cluster: OnceLock<Arc<dyn Cluster>>,
     /// The WebTransport endpoint (`--quic-listen`), once bound: what `GET /api/quic` tells.
     pub quic: OnceLock<QuicInfo>,
 }
 
+impl std::ops::Deref for AppState {
+    type Target = Services;
+    fn deref(&self) -> &Services {
+        &self.services
+    }
+}
 /// Where the WebTransport endpoint listens and how a client trusts it.
 #[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
 pub struct QuicInfo {
@@ -91,7 +115,7 @@ impl RunError {
 }
 
 /// What a cluster of servers (scale-out through NATS, `crate::cluster`) does for the services
-/// that run commands: set once the server has joined ([`AppState::join_cluster`]).
+/// that run commands: set once the server has joined ([`Services::join_cluster`]).
 pub trait Cluster: Send + Sync + std::fmt::Debug {
     /// `Some` when `command` acts on a scene ticked by another server: the future sends it
     /// there (with the client's idempotency `key`) and answers with that server's answer.
@@ -217,8 +241,8 @@ struct Connections {
     closing: bool,
 }
 
-impl AppState {
-    /// Empty state: no rigs, no scenes.
+impl Services {
+    /// Empty services: no rigs, no scenes.
     #[must_use]
     pub fn new(config: Config) -> Arc<Self> {
         let metrics = Arc::new(Metrics::new());
@@ -229,17 +253,12 @@ impl AppState {
         Arc::new(Self {
             world: World::new(config.tick_rate, config.quotas.clone(), metrics.clone()),
             metrics,
-            next_conn: AtomicU64::new(1),
-            connections: Mutex::new(Connections::default()),
-            connection_closed: Notify::new(),
+            next_id: AtomicU64::new(1),
             store: Store::new(config.data_dir.clone()),
             takes,
             readiness: Readiness::default(),
             watchers: Watchers::default(),
-            paths: Paths::default(),
-            probes: posecast_stream::probes::ProbeClock::new(),
             cluster: OnceLock::new(),
-            quic: OnceLock::new(),
             config,
         })
     }
@@ -255,21 +274,36 @@ impl AppState {
         self.cluster.set(cluster).is_ok()
     }
 
+    /// A new live-driver id that no connection has (VMC inputs drive avatars with one).
+    pub fn new_driver_id(&self) -> u64 {
+        self.next_id.fetch_add(1, Ordering::Relaxed)
+    }
+}
+
+impl AppState {
+    /// Empty state: no rigs, no scenes.
+    #[must_use]
+    pub fn new(config: Config) -> Arc<Self> {
+        Arc::new(Self {
+            services: Services::new(config),
+            connections: Mutex::new(Connections::default()),
+            connection_closed: Notify::new(),
+            paths: Paths::default(),
+            probes: posecast_stream::probes::ProbeClock::new(),
+            quic: OnceLock::new(),
+        })
+    }
+
     /// Registers a connection's outbox; returns its id. A connection whose upgrade completes
     /// while the server shuts down is closed at once (1001).
     pub fn register_connection(&self, outbox: &Arc<Outbox>) -> u64 {
-        let id = self.next_conn.fetch_add(1, Ordering::Relaxed);
+        let id = self.services.new_driver_id();
         let mut connections = self.connections_lock();
         connections.open.insert(id, Arc::downgrade(outbox));
         if connections.closing {
             outbox.close_with(CLOSE_GOING_AWAY, GOING_AWAY_REASON);
         }
         id
-    }
-
-    /// A new live-driver id that no connection has (VMC inputs drive avatars with one).
-    pub fn new_driver_id(&self) -> u64 {
-        self.next_conn.fetch_add(1, Ordering::Relaxed)
     }
 
     /// Forgets a closed connection.

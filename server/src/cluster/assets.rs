@@ -15,7 +15,7 @@
 //! one put, so a reader sees every file of one version or the previous version, never a mix.
 
 use super::{Cluster, lock, unavailable};
-use crate::state::AppState;
+use crate::state::Services;
 use crate::store::snapshot::SceneFile;
 use async_nats::jetstream::object_store::{self, ObjectMetadata};
 use futures_util::StreamExt;
@@ -179,7 +179,7 @@ enum Unloaded {
 
 impl Cluster {
     /// The largest bundle this server reads: its asset quota and the header's bound.
-    fn max_bundle(state: &AppState) -> u64 {
+    fn max_bundle(state: &Services) -> u64 {
         state
             .config
             .quotas
@@ -255,7 +255,7 @@ impl Cluster {
     /// Upload `name`'s bundle as the bucket holds it now (`None`: not there).
     async fn fetch(
         &self,
-        state: &AppState,
+        state: &Services,
         name: &str,
     ) -> Result<Option<(String, FileSet, PipelineOptions)>, Unloaded> {
         match self.fetch_bytes(state, name).await? {
@@ -265,7 +265,7 @@ impl Cluster {
     }
 
     /// Object `name`'s bytes (`None`: not there), bounded by the asset quota.
-    async fn fetch_bytes(&self, state: &AppState, name: &str) -> Result<Option<Vec<u8>>, Unloaded> {
+    async fn fetch_bytes(&self, state: &Services, name: &str) -> Result<Option<Vec<u8>>, Unloaded> {
         let mut object = match self.conn.assets.0.get(name).await {
             Ok(object) => object,
             Err(e) if e.kind() == object_store::GetErrorKind::NotFound => return Ok(None),
@@ -296,7 +296,7 @@ impl Cluster {
 
     /// Puts recording object `name` (`recording:<rig>/<clip>`) on its rig. `Ok(false)`: its
     /// rig is not loaded here (yet: it may be an upload still to come).
-    async fn load_recording(&self, state: &AppState, name: &str) -> Result<bool, Unloaded> {
+    async fn load_recording(&self, state: &Services, name: &str) -> Result<bool, Unloaded> {
         let (rig_name, clip) = name
             .strip_prefix(RECORDING)
             .and_then(|rest| rest.rsplit_once('/'))
@@ -339,7 +339,7 @@ impl Cluster {
     /// ones, and new versions (clips added, options changed) of the others. One that cannot
     /// be used (malformed, over a quota, refused by the importer, or named as a rig this
     /// server loaded itself) is logged once per version and changes nothing here.
-    pub(super) async fn sync_assets(&self, state: &AppState) -> Result<(), Error> {
+    pub(super) async fn sync_assets(&self, state: &Services) -> Result<(), Error> {
         // One request when nothing was put since the last complete look (the usual case),
         // rather than a consumer over every object's metadata.
         let last = self
@@ -436,7 +436,10 @@ impl Cluster {
     /// The assets a scene's snapshot names (its avatars' rigs and the rigs their clips are
     /// retargeted from) that this server has not loaded, and the clips they play that those
     /// rigs lack here (`rig/clip`: a recording not loaded yet).
-    pub(super) fn missing_assets(state: &AppState, file: &SceneFile) -> BTreeSet<String> {
+    pub(super) fn missing_assets(
+        world: &crate::world::World,
+        file: &SceneFile,
+    ) -> BTreeSet<String> {
         let mut missing = BTreeSet::new();
         for a in &file.avatars {
             let source = a
@@ -445,11 +448,11 @@ impl Cluster {
                 .and_then(|p| p.from_asset.clone())
                 .unwrap_or_else(|| a.asset.clone());
             for name in [&a.asset, &source] {
-                if state.world.library.get(name).is_none() {
+                if world.library.get(name).is_none() {
                     missing.insert(name.clone());
                 }
             }
-            if let (Some(p), Some(rig)) = (&a.playback, state.world.library.get(&source))
+            if let (Some(p), Some(rig)) = (&a.playback, world.library.get(&source))
                 && rig.clip(&p.clip).is_none()
             {
                 missing.insert(format!("{source}/{}", p.clip));

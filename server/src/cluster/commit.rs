@@ -29,7 +29,7 @@
 
 use super::{Cluster, key, lock, relay_subject, unavailable};
 use crate::scene::answers::{Recent, answered, op_of, remember};
-use crate::state::{AppState, RunError};
+use crate::state::{RunError, Services};
 use crate::store::snapshot::{self, SceneFile};
 use crate::world::command::SceneChange;
 use async_nats::jetstream::kv;
@@ -137,7 +137,7 @@ impl Cluster {
     /// [`crate::state::Cluster::commit`].
     pub(super) async fn commit_command(
         &self,
-        state: &Arc<AppState>,
+        state: &Arc<Services>,
         command: &Command,
         id: &SceneId,
         key: Option<&str>,
@@ -159,7 +159,8 @@ impl Cluster {
             if filled {
                 // The claim stored the empty scene: now what it was made with (a replay and
                 // its avatars), so a server taking the scene over resumes it.
-                if let Written::Failed { error, .. } = self.write_snapshot(state, id, &recent).await
+                if let Written::Failed { error, .. } =
+                    self.write_snapshot(&state.world, id, &recent).await
                 {
                     warn!(scene = %id, %error, "the new replay's snapshot is not stored yet: the next change stores it");
                 }
@@ -196,7 +197,7 @@ impl Cluster {
         if let Some(k) = key {
             remember(&mut recent, k, op, &result);
         }
-        match self.write_snapshot(state, id, &recent).await {
+        match self.write_snapshot(&state.world, id, &recent).await {
             Written::Stored => Ok(result),
             outcome => {
                 if key.is_some() {
@@ -211,7 +212,7 @@ impl Cluster {
                 match outcome {
                     Written::Fenced => {
                         warn!(scene = %id, "another server took the scene over: giving it up, the command undone");
-                        self.give_up(state, id);
+                        self.give_up(&state.world, id);
                         Err(fenced(id))
                     }
                     Written::Failed { error, unknown } => Err(not_stored(&error, unknown)),
@@ -226,7 +227,7 @@ impl Cluster {
     /// claim), then the scene made here.
     async fn create(
         &self,
-        state: &Arc<AppState>,
+        state: &Arc<Services>,
         id: &SceneId,
         key: Option<&str>,
         op: String,
@@ -266,7 +267,7 @@ impl Cluster {
     /// stale owner's delete fails and changes nothing), then the scene here.
     async fn delete(
         &self,
-        state: &Arc<AppState>,
+        state: &Arc<Services>,
         id: &SceneId,
         expected: u64,
         run: BoxFuture<'_, Result<CommandResult, RunError>>,
@@ -280,7 +281,7 @@ impl Cluster {
             Ok(()) => {}
             Err(e) if e.kind() == kv::DeleteErrorKind::WrongLastRevision => {
                 warn!(scene = %id, "another server took the scene over: giving it up, not deleted");
-                self.give_up(state, id);
+                self.give_up(&state.world, id);
                 return Err(fenced(id));
             }
             Err(e) => return Err(not_stored(&e.to_string(), false)),
@@ -368,7 +369,7 @@ impl Cluster {
     /// this server last wrote: the caller holds the scene's slot.
     pub(super) async fn write_snapshot(
         &self,
-        state: &AppState,
+        world: &crate::world::World,
         id: &SceneId,
         recent: &Recent,
     ) -> Written {
@@ -378,7 +379,7 @@ impl Cluster {
         else {
             return Written::Fenced;
         };
-        let Ok(scene) = state.world.scene(id) else {
+        let Ok(scene) = world.scene(id) else {
             return Written::Fenced;
         };
         let mut file = snapshot::snapshot(&scene, crate::scene::ticker::unix_micros());
@@ -453,7 +454,7 @@ impl Cluster {
 
     /// Scenes ticked here with a write of unknown outcome: written again as they are (the lease
     /// loop, once NATS answers), so an undone command's write that did land is overwritten.
-    pub(super) async fn repair(&self, state: &Arc<AppState>) {
+    pub(super) async fn repair(&self, state: &Arc<Services>) {
         let unsure: Vec<SceneId> = lock(&self.owned)
             .iter()
             .filter(|(_, o)| o.unsure.is_some())
@@ -462,13 +463,13 @@ impl Cluster {
         for id in unsure {
             let slot = self.slot(&id);
             let recent = slot.lock().await;
-            match self.write_snapshot(state, &id, &recent).await {
+            match self.write_snapshot(&state.world, &id, &recent).await {
                 Written::Stored => {
                     info!(scene = %id, "stored again after a write of unknown outcome")
                 }
                 Written::Fenced => {
                     warn!(scene = %id, "another server took the scene over: giving it up");
-                    self.give_up(state, &id);
+                    self.give_up(&state.world, &id);
                 }
                 Written::Failed { .. } => {}
             }
@@ -480,12 +481,12 @@ impl Cluster {
     /// previous owner wrote in between (the takeover must start again from the new snapshot).
     pub(super) async fn fence(
         &self,
-        state: &AppState,
+        world: &crate::world::World,
         id: &SceneId,
         restored: u64,
         recent: &Recent,
     ) -> Result<u64, String> {
-        let scene = state.world.scene(id).map_err(|e| e.to_string())?;
+        let scene = world.scene(id).map_err(|e| e.to_string())?;
         let mut file = snapshot::snapshot(&scene, crate::scene::ticker::unix_micros());
         file.recent = recent.iter().cloned().collect();
         let bytes = serde_json::to_vec(&file).map_err(|e| e.to_string())?;
@@ -508,7 +509,7 @@ mod tests {
     #[tokio::test]
     async fn a_rolled_back_command_leaves_the_scene_as_it_was_stored() {
         use posecast_rigs::builtin::BUILTIN_ASSET;
-        let state = AppState::new(crate::config::Config::default());
+        let state = Services::new(crate::config::Config::default());
         state
             .world
             .library

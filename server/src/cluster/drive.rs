@@ -22,7 +22,7 @@
 use super::{Cluster, KIND, Reply, key, lock, request_subject, unavailable};
 use crate::live::Drives;
 use crate::metrics::Metrics;
-use crate::state::AppState;
+use crate::state::Services;
 use bytes::Bytes;
 use futures_util::StreamExt;
 use posecast_core::error::Error;
@@ -121,7 +121,7 @@ pub(super) async fn serve_poses(
     client: async_nats::Client,
     id: SceneId,
     drivers: Drivers,
-    state: Weak<AppState>,
+    state: Weak<Services>,
 ) {
     let mut poses = match client.subscribe(pose_subject(&id)).await {
         Ok(s) => s,
@@ -168,7 +168,7 @@ pub(super) async fn serve_poses(
 
 /// Answers a `drive` request: runs it for the driver standing for the requesting connection.
 pub(super) fn answer_drive(
-    state: &AppState,
+    state: &Services,
     drivers: &Drivers,
     driver: String,
     payload: &[u8],
@@ -332,7 +332,7 @@ impl Cluster {
         kind: &'static str,
         driver: String,
         payload: Bytes,
-        state: &AppState,
+        state: &Services,
     ) {
         if self
             .poses

@@ -38,7 +38,7 @@ mod takes;
 use crate::config::Config;
 use crate::control;
 use crate::restore::{DEFAULT_AVATAR, DEFAULT_SCENE};
-use crate::state::AppState;
+use crate::state::Services;
 use crate::store::snapshot;
 use async_nats::jetstream::{self, kv};
 use bytes::Bytes;
@@ -280,7 +280,7 @@ fn tagged_or_bare<'de, D: serde::Deserializer<'de>>(d: D) -> Result<CommandResul
 #[derive(Debug)]
 pub struct Cluster {
     conn: Connection,
-    state: Weak<AppState>,
+    state: Weak<Services>,
     /// Scenes ticked here: their lease revisions and tasks.
     owned: Mutex<HashMap<SceneId, owner::Owned>>,
     /// Scenes relayed here: their owners and relay tasks.
@@ -358,7 +358,7 @@ fn revoked_until(entry: &kv::Entry) -> Option<u64> {
     std::str::from_utf8(&entry.value).ok()?.parse().ok()
 }
 
-fn revoke_here(state: &AppState, id: &str, until: u64) {
+fn revoke_here(state: &Services, id: &str, until: u64) {
     if let Some(minter) = &state.config.access.mint
         && let Err(e) = minter.revoke_until(id, until)
     {
@@ -368,7 +368,7 @@ fn revoke_here(state: &AppState, id: &str, until: u64) {
 
 /// Applies the revocations made after revision `seen` of the cluster's bucket until the
 /// server stops (a broken watch is opened again from where it stopped).
-async fn watch_revocations(bucket: kv::Store, mut seen: u64, state: Weak<AppState>) {
+async fn watch_revocations(bucket: kv::Store, mut seen: u64, state: Weak<Services>) {
     use futures_util::StreamExt;
     loop {
         match bucket.watch_all_from_revision(seen + 1).await {
@@ -393,7 +393,7 @@ async fn watch_revocations(bucket: kv::Store, mut seen: u64, state: Weak<AppStat
 /// Joins the cluster once the server is ready (everything loaded): from then on, scenes are
 /// created cluster-wide, commands reach their scene's owner, and scenes are owned and relayed
 /// (the lease loop runs until the server stops).
-pub fn start(state: &Arc<AppState>, mut conn: Connection) -> Arc<Cluster> {
+pub fn start(state: &Arc<Services>, mut conn: Connection) -> Arc<Cluster> {
     let (poses, queued) = tokio::sync::mpsc::channel(drive::POSE_QUEUE);
     let publisher = tokio::spawn(drive::publish(
         conn.client.clone(),
@@ -449,7 +449,7 @@ pub fn start(state: &Arc<AppState>, mut conn: Connection) -> Arc<Cluster> {
 }
 
 impl Cluster {
-    fn state(&self) -> Option<Arc<AppState>> {
+    fn state(&self) -> Option<Arc<Services>> {
         self.state.upgrade()
     }
 
@@ -457,7 +457,7 @@ impl Cluster {
     /// playing `idle`, as a server on its own does on a new data folder (a key `initialised`
     /// in the scenes bucket — not a scene id's hex — records that it was done, so a deleted
     /// `default` stays deleted).
-    async fn first_start(&self, state: &Arc<AppState>) {
+    async fn first_start(&self, state: &Arc<Services>) {
         if !state.config.builtin || state.world.library.get(BUILTIN_ASSET).is_none() {
             return;
         }
@@ -525,7 +525,7 @@ impl Cluster {
     }
 
     /// Renews every lease held; a scene whose lease another server took is given up.
-    async fn renew(&self, state: &Arc<AppState>) {
+    async fn renew(&self, state: &Arc<Services>) {
         let held: Vec<(SceneId, u64)> = lock(&self.owned)
             .iter()
             .map(|(id, o)| (id.clone(), o.lease_revision))
@@ -548,7 +548,7 @@ impl Cluster {
                         Ok(next) => self.retake(state, &id, next).await,
                         Err(_) => {
                             warn!(scene = %id, "lease taken by another server: giving the scene up");
-                            self.give_up(state, &id);
+                            self.give_up(&state.world, &id);
                         }
                     }
                 }
@@ -562,7 +562,7 @@ impl Cluster {
     /// changed the scene meanwhile (its snapshot is the one written here), it goes on here
     /// under a new epoch (relays that saw a newer owner's epoch would ignore the old one);
     /// otherwise another server owned it in between, and the scene restarts from the bucket.
-    async fn retake(&self, state: &Arc<AppState>, id: &SceneId, revision: u64) {
+    async fn retake(&self, state: &Arc<Services>, id: &SceneId, revision: u64) {
         let ours = lock(&self.owned).get(id).map(|o| o.snapshot_revision);
         let stored = self.conn.scenes.entry(key(id)).await.ok().flatten();
         match (ours, stored, state.world.scene(id)) {
@@ -575,7 +575,7 @@ impl Cluster {
             }
             _ => {
                 warn!(scene = %id, "the scene changed elsewhere while its lease had lapsed: restarting it from the cluster's copy");
-                self.give_up(state, id);
+                self.give_up(&state.world, id);
                 self.conn.leases.delete(key(id)).await.ok();
             }
         }
@@ -584,21 +584,21 @@ impl Cluster {
     /// Stops ticking a scene another server now owns: it becomes a relayed scene here (the
     /// next look relays it), and its subscribers here stay subscribed and get the new owner's
     /// frames, from a keyframe.
-    fn give_up(&self, state: &AppState, id: &SceneId) {
+    fn give_up(&self, world: &crate::world::World, id: &SceneId) {
         if let Some(o) = lock(&self.owned).remove(id) {
             o.stop();
         }
         lock(&self.slots).remove(id);
-        if let Ok(scene) = state.world.scene(id) {
+        if let Ok(scene) = world.scene(id) {
             scene.set_tap(None);
         }
-        if state.world.demote(id).is_err() {
-            state.world.delete_scene(id).ok();
+        if world.demote(id).is_err() {
+            world.delete_scene(id).ok();
         }
     }
 
     /// Every scene of the cluster: take over those without a lease, relay the others.
-    async fn scan(self: &Arc<Self>, state: &Arc<AppState>) -> Result<(), Error> {
+    async fn scan(self: &Arc<Self>, state: &Arc<Services>) -> Result<(), Error> {
         let mut keys = self
             .conn
             .scenes
@@ -661,7 +661,7 @@ impl Cluster {
     }
 
     /// A scene without a lease, now ours: restored from its snapshot and ticked here.
-    async fn take_over(self: &Arc<Self>, state: &Arc<AppState>, id: &SceneId, revision: u64) {
+    async fn take_over(self: &Arc<Self>, state: &Arc<Services>, id: &SceneId, revision: u64) {
         let mut snapshot_revision = 0;
         let file = match self.conn.scenes.entry(key(id)).await {
             Ok(Some(entry)) if entry.operation == kv::Operation::Put => {
@@ -688,7 +688,7 @@ impl Cluster {
         };
         // Restoring without an avatar's rig would drop the avatar, and the next snapshot
         // written here would lose it for good: the scene waits for a server that has them.
-        let missing = Self::missing_assets(state, &file);
+        let missing = Self::missing_assets(&state.world, &file);
         if !missing.is_empty() {
             let again = lock(&self.short_of_assets).insert(id.clone(), missing.clone());
             if again.as_ref() != Some(&missing) {
@@ -736,7 +736,10 @@ impl Cluster {
                 let recent: crate::scene::answers::Recent = file.recent.iter().cloned().collect();
                 let slot = self.slot(id);
                 let mut table = slot.lock().await;
-                match self.fence(state, id, snapshot_revision, &recent).await {
+                match self
+                    .fence(&state.world, id, snapshot_revision, &recent)
+                    .await
+                {
                     Ok(fenced) => {
                         *table = recent;
                         state.metrics.cluster.takeover();
@@ -748,7 +751,7 @@ impl Cluster {
                         // The previous owner wrote meanwhile: the next look starts again
                         // from its newer snapshot.
                         info!(scene = %id, error = %e, "the scene changed while being taken over: trying again at the next look");
-                        self.give_up(state, id);
+                        self.give_up(&state.world, id);
                         self.conn.leases.delete(key(id)).await.ok();
                     }
                 }

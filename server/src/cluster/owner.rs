@@ -9,7 +9,7 @@ use super::{Cluster, IDEMPOTENCY_KEY, KIND, Reply, Task, lock, relay_subject, re
 use crate::control;
 use crate::metrics::Metrics;
 use crate::scene::Scene;
-use crate::state::AppState;
+use crate::state::Services;
 use axum::extract::ws::Message;
 use bytes::{BufMut, Bytes, BytesMut};
 use futures_util::StreamExt;
@@ -108,7 +108,7 @@ impl Cluster {
     /// from the next tick on and its requests answered.
     pub(super) fn adopt(
         &self,
-        state: &Arc<AppState>,
+        state: &Arc<Services>,
         scene: &Arc<Scene>,
         revision: u64,
         snapshot: u64,
@@ -219,7 +219,7 @@ async fn answer(
     client: async_nats::Client,
     id: SceneId,
     epoch: u64,
-    state: Weak<AppState>,
+    state: Weak<Services>,
     drivers: super::drive::Drivers,
 ) {
     let mut requests = match client.subscribe(request_subject(&id)).await {

@@ -24,7 +24,7 @@ use super::owner::{Change, decode_sync};
 use super::{Cluster, KIND, REQUEST_TIMEOUT, Task, key, lock, relay_subject, request_subject};
 use crate::metrics::Metrics;
 use crate::scene::Scene;
-use crate::state::AppState;
+use crate::state::Services;
 use async_nats::jetstream::kv;
 use axum::extract::ws::{Message, Utf8Bytes};
 use bytes::Bytes;
@@ -83,7 +83,7 @@ impl Relayed {
 impl Cluster {
     /// Relays scene `id`, owned by `owner`, to this server's subscribers (from now on, if it
     /// is not relayed yet).
-    pub(super) fn relay(&self, state: &Arc<AppState>, id: &SceneId, owner: String, revision: u64) {
+    pub(super) fn relay(&self, state: &Arc<Services>, id: &SceneId, owner: String, revision: u64) {
         let view = LeaseView {
             owner: owner.clone(),
             revision,
@@ -109,7 +109,7 @@ impl Cluster {
             Ok(scene) if scene.is_relay() => scene,
             Ok(_) => {
                 warn!(scene = %id, owner, "scene ticked here is leased to another server: giving it up");
-                self.give_up(state, id);
+                self.give_up(&state.world, id);
                 return;
             }
             Err(_) => match state.world.insert_relay(id.clone()) {
@@ -149,7 +149,7 @@ impl Cluster {
     }
 
     /// Stops relaying a scene the cluster no longer has, and removes it here.
-    pub(super) fn drop_relay(&self, state: &AppState, id: &SceneId) {
+    pub(super) fn drop_relay(&self, state: &Services, id: &SceneId) {
         if let Some(r) = lock(&self.relays).remove(id) {
             r.stop();
             if state.world.delete_scene(id).is_ok() {
@@ -160,14 +160,14 @@ impl Cluster {
 }
 
 /// Tells this server's scene-list watchers that a relayed scene is gone.
-fn deleted(state: &AppState, id: &SceneId) {
+fn deleted(state: &Services, id: &SceneId) {
     let msg = text(&ServerMsg::SceneDeleted { scene: id.clone() });
     state.watchers.push(&state.config.access, id, &msg, &[]);
 }
 
 /// Tells this server's scene-list watchers that avatars of a relayed scene left (those
 /// subscribed to it were told by its feed).
-fn removed(state: &Weak<AppState>, id: &SceneId, gone: Vec<(AvatarId, Vec<u64>)>) {
+fn removed(state: &Weak<Services>, id: &SceneId, gone: Vec<(AvatarId, Vec<u64>)>) {
     let Some(state) = state.upgrade() else { return };
     for (avatar, told) in gone {
         let msg = text(&ServerMsg::AvatarRemoved {
@@ -243,7 +243,7 @@ async fn run(
     client: async_nats::Client,
     scene: Arc<Scene>,
     metrics: Arc<Metrics>,
-    state: Weak<AppState>,
+    state: Weak<Services>,
     trust: Trust,
 ) {
     let mut live = match client.subscribe(relay_subject(&scene.id)).await {

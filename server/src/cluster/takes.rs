@@ -17,7 +17,7 @@
 
 use super::{Cluster, unavailable};
 use crate::scene::Scene;
-use crate::state::AppState;
+use crate::state::Services;
 use crate::store::snapshot::{ReplayRecord, SceneFile};
 use crate::world::replays::ReplayStart;
 use async_nats::jetstream::object_store::{self, ObjectMetadata};
@@ -77,7 +77,7 @@ impl Cluster {
     }
 
     /// Puts take `take`, kept here, into the bucket and marks it as that object's copy.
-    pub(super) async fn put_take(&self, state: &AppState, take: &str) -> Result<(), Error> {
+    pub(super) async fn put_take(&self, state: &Services, take: &str) -> Result<(), Error> {
         let name = take.to_owned();
         let takes = state.takes.clone();
         let described = tokio::task::spawn_blocking(move || takes.describe(&name))
@@ -123,7 +123,7 @@ impl Cluster {
     /// Makes the copy of take `take` kept here the bucket's current one: read when missing
     /// or older, deleted when the bucket no longer has it. A take recorded here and not
     /// shared yet is left as it is. Returns whether the bucket has the take.
-    pub(super) async fn fetch_take(&self, state: &AppState, take: &str) -> Result<bool, Error> {
+    pub(super) async fn fetch_take(&self, state: &Services, take: &str) -> Result<bool, Error> {
         let object = self.take_object(take).await?;
         let copy = state.takes.shared_as(take);
         let nuid = match object {
@@ -210,7 +210,7 @@ impl Cluster {
 
     /// A look at takes: those recorded here that ended are put into the
     /// bucket; copies of takes the bucket no longer has are deleted (not while replayed here).
-    pub(super) async fn sync_takes(&self, state: &Arc<AppState>) -> Result<(), Error> {
+    pub(super) async fn sync_takes(&self, state: &Arc<Services>) -> Result<(), Error> {
         let takes = state.takes.clone();
         let (unshared, copies) = tokio::task::spawn_blocking(move || {
             let copies: Vec<String> = takes
@@ -259,7 +259,7 @@ impl Cluster {
     /// later (NATS, a rig the take needs is missing here).
     pub(super) async fn prepare_resume(
         &self,
-        state: &AppState,
+        state: &Services,
         file: &mut SceneFile,
     ) -> Result<Option<Resumable>, String> {
         let Some(record) = file.replay.clone() else {
@@ -296,7 +296,7 @@ impl Cluster {
     /// would be now had it run on.
     pub(super) async fn resume(
         &self,
-        state: &AppState,
+        state: &Services,
         scene: &Arc<Scene>,
         resumable: Resumable,
         saved_us: u64,

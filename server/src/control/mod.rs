@@ -9,7 +9,7 @@ pub mod takes;
 use crate::auth::{Caller, CommandFacts, Grant};
 use crate::changes;
 use crate::scene::{Scene, answers};
-use crate::state::{AppState, RunError};
+use crate::state::{RunError, Services};
 use crate::world::command::{self, Runs};
 use posecast_core::error::Error;
 use posecast_proto::command::{Command, CommandResult, RecordingInfo};
@@ -20,7 +20,7 @@ use posecast_proto::command::{Command, CommandResult, RecordingInfo};
 ///
 /// # Errors
 /// A typed error; nothing is changed (and nothing announced) when a command fails.
-pub fn execute(state: &AppState, command: &Command) -> Result<CommandResult, Error> {
+pub fn execute(state: &Services, command: &Command) -> Result<CommandResult, Error> {
     let before = changes::before(state, command);
     let result = command::apply(&state.world, command);
     state.metrics.command(result.is_ok());
@@ -37,7 +37,7 @@ pub fn execute(state: &AppState, command: &Command) -> Result<CommandResult, Err
 ///
 /// # Errors
 /// `unauthorized`, `forbidden`, or the handler's refusal (`quota_exceeded`).
-pub fn authorize(state: &AppState, caller: &Caller, command: &Command) -> Result<(), Error> {
+pub fn authorize(state: &Services, caller: &Caller, command: &Command) -> Result<(), Error> {
     let handler = command::handler(command);
     let avatar_scene = match command.scene() {
         Some(_) => None,
@@ -57,10 +57,10 @@ pub fn authorize(state: &AppState, caller: &Caller, command: &Command) -> Result
     }
 }
 
-/// Runs a command whose work is files ([`Runs::Files`]): uploads, recordings and takes,
-/// each stored before its answer.
+/// Runs a command whose work is files ([`Runs::Files`], [`Runs::FilesThenScene`]): uploads,
+/// recordings and takes, each file stored before its answer.
 async fn run_files(
-    state: &AppState,
+    state: &Services,
     caller: &Caller,
     command: &Command,
     key: Option<&str>,
@@ -72,6 +72,7 @@ async fn run_files(
         Command::DeleteAsset { asset } => objects::delete_asset(state, caller, asset)
             .await
             .map(|()| CommandResult::Done),
+        Command::StopRecording { avatar } => objects::stop_recording(state, caller, avatar).await,
         // Stored (meta.json) before the answer, like an upload.
         Command::ConfigureAsset { asset, options } => {
             crate::ingest::configure(state, asset, options.clone())
@@ -90,7 +91,7 @@ async fn run_files(
 /// As [`execute`]; or `internal` when storing failed, in which case the change
 /// *is* in effect in memory but not on disk (on a server of a cluster it is undone:
 /// [`crate::state::Cluster::commit`]).
-pub async fn execute_durable(state: &AppState, command: &Command) -> Result<CommandResult, Error> {
+pub async fn execute_durable(state: &Services, command: &Command) -> Result<CommandResult, Error> {
     execute_as(state, &Caller::Anonymous, command, None).await
 }
 
@@ -104,7 +105,7 @@ pub async fn execute_durable(state: &AppState, command: &Command) -> Result<Comm
 /// # Errors
 /// As [`execute_durable`].
 pub async fn execute_as(
-    state: &AppState,
+    state: &Services,
     caller: &Caller,
     command: &Command,
     key: Option<&str>,
@@ -125,7 +126,7 @@ pub async fn execute_as(
 /// # Errors
 /// As [`execute_durable`]; `unavailable` for a scene that another server ticks.
 pub async fn execute_here(
-    state: &AppState,
+    state: &Services,
     command: &Command,
     key: Option<&str>,
 ) -> Result<CommandResult, Error> {
@@ -135,7 +136,7 @@ pub async fn execute_here(
 }
 
 async fn execute_here_as(
-    state: &AppState,
+    state: &Services,
     caller: &Caller,
     command: &Command,
     key: Option<&str>,
@@ -145,7 +146,7 @@ async fn execute_here_as(
     // lock is held until the answer is remembered and stored.
     let keyed = match key {
         Some(k) if state.cluster().is_none() && !command.is_read_only() => {
-            target_scene(state, command).map(|scene| (k, scene))
+            target_scene(&state.world, command).map(|scene| (k, scene))
         }
         _ => None,
     };
@@ -171,15 +172,15 @@ async fn execute_here_as(
 
 /// The scene a command acts on, when it exists (looked up before executing: after
 /// `remove_avatar` the avatar is gone).
-fn target_scene(state: &AppState, command: &Command) -> Option<std::sync::Arc<Scene>> {
+fn target_scene(world: &crate::world::World, command: &Command) -> Option<std::sync::Arc<Scene>> {
     match command.scene() {
-        Some(id) => state.world.scene(id).ok(),
-        None => state.world.find_avatar(command.avatar()?).ok(),
+        Some(id) => world.scene(id).ok(),
+        None => world.find_avatar(command.avatar()?).ok(),
     }
 }
 
 async fn execute_unkeyed(
-    state: &AppState,
+    state: &Services,
     caller: &Caller,
     command: &Command,
     key: Option<&str>,
@@ -194,7 +195,7 @@ async fn execute_unkeyed(
         }
         return result;
     }
-    if let Err(e) = prepare(state, handler, command).await {
+    if let Err(e) = prepare(&state.world, handler, command).await {
         state.metrics.command(false);
         return Err(e);
     }
@@ -207,16 +208,19 @@ async fn execute_unkeyed(
             other => Ok(other),
         };
     }
-    if let Command::StopRecording { avatar } = command
-        && state.store.root().is_none()
-        && cluster.is_none()
-    {
-        let result = objects::stop_recording(state, caller, avatar).await;
-        state.metrics.command(result.is_ok());
-        return result;
-    }
+    // Applies the command here: a world command under the scene's lock; `stop_recording`'s
+    // file off the tick path, stored before its clip joins the rig ([`Runs::FilesThenScene`]).
+    let apply = || async move {
+        if handler.runs() == Runs::FilesThenScene {
+            let result = run_files(state, caller, command, key).await;
+            state.metrics.command(result.is_ok());
+            result
+        } else {
+            execute(state, command)
+        }
+    };
     if command.is_read_only() || (state.store.root().is_none() && cluster.is_none()) {
-        return execute(state, command);
+        return apply().await;
     }
     // The scene is looked up before executing: after `remove_avatar` the avatar is gone.
     let scene = match command.scene() {
@@ -235,18 +239,6 @@ async fn execute_unkeyed(
             "scene {id} is ticked by another server now: try again"
         )));
     }
-    // Applies the command here: `stop_recording` off the tick path, stored before its clip
-    // joins the rig ([`objects::stop_recording`]).
-    let apply = || async move {
-        match command {
-            Command::StopRecording { avatar } => {
-                let result = objects::stop_recording(state, caller, avatar).await;
-                state.metrics.command(result.is_ok());
-                result
-            }
-            _ => execute(state, command),
-        }
-    };
     let result = match (cluster, &scene) {
         (Some(cluster), Some(id)) => {
             let run = Box::pin(async move {
@@ -281,7 +273,7 @@ async fn execute_unkeyed(
     if let CommandResult::Recorded(info) = &result
         && let Some(cluster) = cluster
     {
-        share_recording(state, cluster.as_ref(), info).await?;
+        share_recording(&state.world, cluster.as_ref(), info).await?;
     }
     Ok(result)
 }
@@ -291,11 +283,11 @@ async fn execute_unkeyed(
 /// # Errors
 /// `internal` or `unavailable`: the clip is then playable here only.
 async fn share_recording(
-    state: &AppState,
+    world: &crate::world::World,
     cluster: &dyn crate::state::Cluster,
     info: &RecordingInfo,
 ) -> Result<(), Error> {
-    let rig = state.world.library.require(&info.asset)?;
+    let rig = world.library.require(&info.asset)?;
     let clip = rig
         .clip(&info.clip)
         .cloned()
@@ -339,7 +331,7 @@ pub fn audit(caller: &str, command: &Command, result: &Result<CommandResult, Err
 /// [`command::Handler::bake`]), so applying the command is a cache lookup and no other
 /// scene's tick waits for the bake.
 async fn prepare(
-    state: &AppState,
+    world: &crate::world::World,
     handler: &dyn command::Handler,
     command: &Command,
 ) -> Result<(), Error> {
@@ -351,9 +343,9 @@ async fn prepare(
     else {
         return Ok(());
     };
-    let source = state.world.library.require(source)?;
+    let source = world.library.require(source)?;
     let target = {
-        let scene = state.world.find_avatar(avatar)?;
+        let scene = world.find_avatar(avatar)?;
         let s = scene.lock();
         s.avatars
             .iter()
@@ -362,7 +354,7 @@ async fn prepare(
             .ok_or_else(|| Error::UnknownAvatar(avatar.clone()))?
     };
     if source.name != target.name {
-        state.world.retargets.bake(source, clip, target).await?;
+        world.retargets.bake(source, clip, target).await?;
     }
     Ok(())
 }

@@ -11,7 +11,7 @@
 
 use crate::auth::Caller;
 use crate::changes;
-use crate::state::AppState;
+use crate::state::Services;
 use crate::store::recordings::{self, StoredRecording};
 use crate::world::command::take_recording;
 use posecast_core::error::Error;
@@ -24,7 +24,7 @@ use posecast_proto::msg::AvatarId;
 /// `unknown_avatar`, `not_allowed_now` (not recording), `invalid_value` (nothing recorded),
 /// `conflict`, `quota_exceeded`, `storage_full` or `internal`; the take is then discarded.
 pub(super) async fn stop_recording(
-    state: &AppState,
+    state: &Services,
     caller: &Caller,
     avatar: &AvatarId,
 ) -> Result<CommandResult, Error> {
@@ -113,7 +113,7 @@ pub(super) async fn stop_recording(
 /// Removes stored recording `clip` of `rig` from the data folder and the counts (best
 /// effort: a file left behind is restored at the next start, which is what was acknowledged
 /// last).
-async fn forget_recording(state: &AppState, rig: &str, clip: &str) {
+async fn forget_recording(state: &Services, rig: &str, clip: &str) {
     let Some(stored) = state
         .store
         .recordings()
@@ -143,7 +143,7 @@ async fn forget_recording(state: &AppState, rig: &str, clip: &str) {
 /// `conflict` (an avatar plays it), `internal`/`storage_full` (the files could not be removed:
 /// the clip stays).
 pub(super) async fn delete_clip(
-    state: &AppState,
+    state: &Services,
     caller: &Caller,
     rig: &str,
     clip: &str,
@@ -199,7 +199,7 @@ pub(super) async fn delete_clip(
 /// `unknown_asset` (not an upload), `forbidden`, `conflict` (an avatar uses it), or
 /// `internal`.
 pub(super) async fn delete_asset(
-    state: &AppState,
+    state: &Services,
     caller: &Caller,
     name: &str,
 ) -> Result<(), Error> {

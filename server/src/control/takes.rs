@@ -4,7 +4,7 @@
 //! pool; the scene's feed only gains or loses its sink under its lock.
 
 use crate::auth::Caller;
-use crate::state::{AppState, RunError};
+use crate::state::{RunError, Services};
 use crate::takes::{TakeLimits, Takes};
 use crate::world::replays::ReplayStart;
 use posecast_core::error::Error;
@@ -21,7 +21,7 @@ pub const MAX_TAKE_SECONDS: f32 = 4.0 * 3600.0;
 /// Runs a take command (`internal` for any other command). `key`: the command's idempotency
 /// key (a replay in a cluster is answered again from it, as `create_scene` is).
 pub(super) async fn run(
-    state: &AppState,
+    state: &Services,
     caller: &Caller,
     command: &Command,
     key: Option<&str>,
@@ -82,7 +82,7 @@ pub(super) async fn run(
 
 /// The takes: on a server of a cluster the cluster's, with those being recorded (or not yet
 /// shared) here.
-async fn list_takes(state: &AppState) -> Result<Vec<TakeInfo>, Error> {
+async fn list_takes(state: &Services) -> Result<Vec<TakeInfo>, Error> {
     let Some(cluster) = state.cluster() else {
         return blocking(state, |s| Ok(s.list())).await;
     };
@@ -106,7 +106,7 @@ async fn list_takes(state: &AppState) -> Result<Vec<TakeInfo>, Error> {
 
 /// Runs `f` with the takes on the blocking pool (it reads or writes files).
 async fn blocking<T: Send + 'static>(
-    state: &AppState,
+    state: &Services,
     f: impl FnOnce(&Takes) -> Result<T, Error> + Send + 'static,
 ) -> Result<T, Error> {
     let takes = state.takes.clone();
@@ -121,7 +121,7 @@ async fn blocking<T: Send + 'static>(
 /// # Errors
 /// `unknown_take`; `forbidden`/`unauthorized` as for watching its scene.
 pub async fn describe(
-    state: &AppState,
+    state: &Services,
     caller: &Caller,
     take: &str,
 ) -> Result<posecast_proto::command::TakeInfo, Error> {
@@ -136,7 +136,7 @@ pub async fn describe(
 }
 
 async fn record_scene(
-    state: &AppState,
+    state: &Services,
     caller: &Caller,
     scene: &SceneId,
     take: &str,
@@ -180,7 +180,7 @@ async fn record_scene(
         .map(|t| CommandResult::Take(Box::new(t)))
 }
 
-async fn stop_recording_scene(state: &AppState, scene: &SceneId) -> Result<CommandResult, Error> {
+async fn stop_recording_scene(state: &Services, scene: &SceneId) -> Result<CommandResult, Error> {
     let s = state.world.scene(scene)?;
     if state.takes.recording_of(scene).is_none() {
         return Err(Error::NotAllowedNow(format!(
@@ -208,7 +208,7 @@ async fn stop_recording_scene(state: &AppState, scene: &SceneId) -> Result<Comma
     Ok(CommandResult::Take(Box::new(info)))
 }
 
-async fn delete_take(state: &AppState, take: &str) -> Result<CommandResult, Error> {
+async fn delete_take(state: &Services, take: &str) -> Result<CommandResult, Error> {
     if state.world.replayed_takes().iter().any(|t| t == take) {
         return Err(Error::Conflict(format!(
             "take {take} is being replayed: delete its replay scenes first"
@@ -229,7 +229,7 @@ async fn delete_take(state: &AppState, take: &str) -> Result<CommandResult, Erro
 }
 
 async fn replay(
-    state: &AppState,
+    state: &Services,
     take: &str,
     scene: &SceneId,
     start: ReplayStart,

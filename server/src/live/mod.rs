@@ -22,7 +22,7 @@ use crate::changes;
 use crate::scene::Scene;
 use posecast_core::error::Error;
 
-use crate::state::AppState;
+use crate::state::Services;
 use glam::{Quat, Vec3};
 use posecast_core::quota::{CommandRate, TokenBucket};
 use posecast_proto::command::{Command, CommandResult, DriveInfo, DriveVia, Driver, OnRelease};
@@ -114,7 +114,7 @@ impl Drives {
     /// the command is not a `drive` of such an avatar. Authorisation is the caller's.
     pub async fn command_remote(
         &mut self,
-        state: &AppState,
+        state: &Services,
         command: &Command,
     ) -> Option<Result<CommandResult, Error>> {
         let Command::Drive { avatar, .. } = command else {
@@ -141,7 +141,7 @@ impl Drives {
     /// returns `None` for every other command. Authorisation is the caller's.
     pub fn command(
         &mut self,
-        state: &AppState,
+        state: &Services,
         command: &Command,
     ) -> Option<Result<CommandResult, Error>> {
         let Command::Drive {
@@ -191,7 +191,7 @@ impl Drives {
 
     fn drive(
         &mut self,
-        state: &AppState,
+        state: &Services,
         avatar: &AvatarId,
         source: Option<&str>,
         on_release: OnRelease,
@@ -301,7 +301,7 @@ impl Drives {
     /// See the module documentation; nothing changes on error.
     pub fn json_pose(
         &mut self,
-        state: &AppState,
+        state: &Services,
         avatar: &AvatarId,
         pose: &JsonPose<'_>,
     ) -> Result<(), Error> {
@@ -365,7 +365,7 @@ impl Drives {
     ///
     /// # Errors
     /// `unexpected_binary` when the bytes are not a pose; otherwise as [`Drives::json_pose`].
-    pub fn binary_pose(&mut self, state: &AppState, bytes: &[u8]) -> Result<(), Error> {
+    pub fn binary_pose(&mut self, state: &Services, bytes: &[u8]) -> Result<(), Error> {
         let msg = BinaryPose::decode(bytes).map_err(|e| Error::UnexpectedBinary(e.to_string()))?;
         if let Some(r) = self.remote.iter_mut().find(|r| r.num == msg.avatar_num) {
             return r.binary_pose(state, self.conn, msg);
@@ -499,7 +499,7 @@ impl Drives {
 
     /// The connection left: each avatar it still drives returns to its clip or holds its last
     /// pose, as its `drive` asked.
-    pub fn leave(&mut self, state: &AppState) {
+    pub fn leave(&mut self, state: &Services) {
         if let Some(cluster) = state.cluster() {
             let mut scenes: Vec<&SceneId> = self.remote.iter().map(|r| &r.scene).collect();
             scenes.dedup();

@@ -21,7 +21,7 @@ use super::{
     trackers_to_rotations, unknown_tracker,
 };
 use crate::scene::Scene;
-use crate::state::AppState;
+use crate::state::Services;
 use glam::Vec3;
 use posecast_core::error::Error;
 use posecast_core::quota::TokenBucket;
@@ -79,7 +79,7 @@ impl RemoteDrive {
     /// A binary pose: checked (joints, values, weights' channels) and passed on.
     pub(super) fn binary_pose(
         &mut self,
-        state: &AppState,
+        state: &Services,
         conn: u64,
         pose: BinaryPose,
     ) -> Result<(), Error> {
@@ -104,7 +104,7 @@ impl RemoteDrive {
     /// checked and passed on.
     pub(super) fn json_pose(
         &mut self,
-        state: &AppState,
+        state: &Services,
         conn: u64,
         pose: &JsonPose<'_>,
     ) -> Result<(), Error> {
@@ -210,7 +210,7 @@ impl RemoteDrive {
         Ok(())
     }
 
-    fn send(&self, state: &AppState, conn: u64, pose: &BinaryPose) -> Result<(), Error> {
+    fn send(&self, state: &Services, conn: u64, pose: &BinaryPose) -> Result<(), Error> {
         let cluster = state
             .cluster()
             .ok_or_else(|| Error::Unavailable("not in a cluster".into()))?;

@@ -616,12 +616,12 @@ mod tests {
     use super::*;
     use crate::config::Config;
     use crate::control::execute_durable;
-    use crate::state::AppState;
+    use crate::state::Services;
     use posecast_proto::command::Command;
 
     /// A state storing into `dir`, with the built-in rig.
-    fn state_on(dir: &Path) -> std::sync::Arc<AppState> {
-        let state = AppState::new(Config {
+    fn state_on(dir: &Path) -> std::sync::Arc<Services> {
+        let state = Services::new(Config {
             data_dir: Some(dir.to_owned()),
             ..Config::default()
         });

@@ -8,7 +8,7 @@
 #[cfg(test)]
 use super::*;
 use crate::config::Config;
-use crate::state::AppState;
+use crate::state::Services;
 use posecast_proto::msg::{AvatarId, check_id};
 use proptest::prelude::*;
 
@@ -48,8 +48,8 @@ fn name() -> impl Strategy<Value = String> {
 }
 
 /// A state storing into `dir` with the built-in rig, as a start after restore sees it.
-fn state_on(dir: &Path) -> std::sync::Arc<AppState> {
-    let state = AppState::new(Config {
+fn state_on(dir: &Path) -> std::sync::Arc<Services> {
+    let state = Services::new(Config {
         data_dir: Some(dir.to_owned()),
         ..Config::default()
     });

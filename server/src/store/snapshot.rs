@@ -580,10 +580,10 @@ fn restore_playback(world: &World, avatar: &AvatarId, p: &PlaybackRecord, elapse
 mod tests {
     use super::*;
     use crate::config::Config;
-    use crate::state::AppState;
+    use crate::state::Services;
     use posecast_rigs::builtin::BUILTIN_ASSET;
 
-    fn cmd(state: &AppState, json: &str) -> serde_json::Value {
+    fn cmd(state: &Services, json: &str) -> serde_json::Value {
         crate::control::execute(state, &serde_json::from_str(json).unwrap())
             .unwrap()
             .to_value()
@@ -591,7 +591,7 @@ mod tests {
 
     #[tokio::test]
     async fn snapshot_round_trips_through_json_and_restore() {
-        let state = AppState::new(Config::default());
+        let state = Services::new(Config::default());
         state
             .world
             .library
@@ -650,7 +650,7 @@ mod tests {
         assert_eq!(a.overrides["l_knee"].to_vec(), knee);
 
         // Restore into a fresh state 2 s later: a's clock moved 1 s (speed 0.5), b's did not.
-        let fresh = AppState::new(Config::default());
+        let fresh = Services::new(Config::default());
         fresh
             .world
             .library
@@ -684,7 +684,7 @@ mod tests {
 
     #[tokio::test]
     async fn restore_skips_what_no_longer_exists() {
-        let state = AppState::new(Config::default());
+        let state = Services::new(Config::default());
         state
             .world
             .library
@@ -710,7 +710,7 @@ mod tests {
     /// drives): a snapshot keeps the avatar's own layers, not it.
     #[tokio::test]
     async fn snapshots_leave_out_the_locomotion_layer() {
-        let state = AppState::new(Config::default());
+        let state = Services::new(Config::default());
         state
             .world
             .library

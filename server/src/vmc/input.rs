@@ -48,7 +48,7 @@ use super::unity::{BONES, LEG_BONES, LEG_LENGTH, mirror_position, mirror_rotatio
 use crate::config::VmcIn;
 use crate::metrics::vmc::{MessageReject, PacketDrop, PoseRefusal};
 use crate::scene::Scene;
-use crate::state::AppState;
+use crate::state::Services;
 use posecast_core::quota::{CommandRate, TokenBucket};
 use posecast_proto::trackers::{Legs, REQUIRED, STANDARD};
 use posecast_sim::avatar::live::{LivePose, ValidPose};
@@ -557,7 +557,7 @@ enum Drive {
 
 /// Reads `socket` until the server stops, driving `input.avatar` as driver `driver`.
 pub async fn run(
-    state: Arc<AppState>,
+    state: Arc<Services>,
     input: VmcIn,
     socket: UdpSocket,
     vmc: Arc<VmcRig>,
@@ -716,7 +716,7 @@ fn log_standing(addr: SocketAddr, avatar: &AvatarId, standing: Standing) {
 /// pose is only held), stores the pose when this input drives it. A drive of the other kind
 /// (bones, tracked devices) by this input is replaced; returns whether it was.
 fn apply(
-    state: &AppState,
+    state: &Services,
     avatar: &AvatarId,
     (driver, who): (u64, &posecast_proto::command::Driver),
     vmc: &VmcRig,

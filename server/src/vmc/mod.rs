@@ -65,7 +65,7 @@ use tokio::task::JoinHandle;
 pub use crate::config::{Cidr, VmcIn, VmcInputs, VmcOut};
 use rig::VmcRig;
 
-use crate::state::AppState;
+use crate::state::Services;
 
 /// The running VMC tasks: the addresses the inputs listen on (in the order configured) and
 /// the tasks, to stop with the server.
@@ -122,7 +122,7 @@ pub fn performer_rig() -> Result<Arc<VmcRig>, posecast_rigs::rig::RigError> {
 /// # Errors
 /// A socket cannot be bound (the error names the address), or — never with the built-in bone
 /// table — the T-pose rig cannot be normalised.
-pub async fn start(state: &Arc<AppState>) -> std::io::Result<Running> {
+pub async fn start(state: &Arc<Services>) -> std::io::Result<Running> {
     let mut running = Running::default();
     let (inputs, outputs) = (&state.config.vmc_in, &state.config.vmc_out);
     if inputs.is_empty() && outputs.is_empty() {

@@ -30,7 +30,7 @@ use tracing::debug;
 use super::rig::VmcRig;
 use super::unity::{BONES, mirror_position, mirror_rotation};
 use crate::config::VmcOut;
-use crate::state::AppState;
+use crate::state::Services;
 use posecast_rigs::rig::Rig;
 use posecast_rigs::rig::retarget::{PoseRetargeter, PoseScratch};
 use posecast_sim::avatar::Avatar;
@@ -217,7 +217,7 @@ fn pose_message(addr: &str, name: &str, p: Vec3, q: Quat) -> OscPacket {
 
 /// Sends `out.avatar`'s pose to `out.addr` after every tick of its scene, until the server
 /// stops. Waits (checking once a second) while the avatar does not exist.
-pub async fn run(state: Arc<AppState>, out: VmcOut, socket: UdpSocket, vmc: Arc<VmcRig>) {
+pub async fn run(state: Arc<Services>, out: VmcOut, socket: UdpSocket, vmc: Arc<VmcRig>) {
     let started = std::time::Instant::now();
     let mut encoder: Option<Encoder> = None;
     loop {

@@ -209,7 +209,7 @@ pub async fn upload(
         state.config.access.authorize_upload(&caller)?;
         posecast_rigs::library::check_name(&name)?;
         let (set, options) = file_set(&state, &name, request).await?;
-        Ok::<_, AppError>(ingest::upload(&state, &caller, &name, set, options).await?)
+        Ok::<_, AppError>(ingest::upload(&state.services, &caller, &name, set, options).await?)
     }
     .await;
     audit_upload("upload", &name, &caller, result.as_ref().map(|_| ()));
@@ -240,7 +240,7 @@ pub async fn add_clips(
                 "clips take no pipeline options: change the asset's with configure_asset",
             )));
         }
-        Ok::<_, AppError>(ingest::add_clips(&state, &name, set).await?)
+        Ok::<_, AppError>(ingest::add_clips(&state.services, &name, set).await?)
     }
     .await;
     audit_upload("add_clips", &name, &caller, result.as_ref().map(|_| ()));

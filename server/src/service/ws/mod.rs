@@ -682,7 +682,7 @@ impl Session {
                     })
                     .and_then(|()| self.state.world.scene(&scene))
                     .and_then(|s| {
-                        crate::changes::viewers_changed(&self.state, &s);
+                        crate::changes::viewers_changed(&self.state.services, &s);
                         s.subscribe(
                             Subscriber::new(
                                 self.conn,
@@ -712,7 +712,7 @@ impl Session {
                 let had = self.state.world.scene(&scene).is_ok_and(|s| {
                     let had = s.unsubscribe(self.conn);
                     if had {
-                        crate::changes::viewers_changed(&self.state, &s);
+                        crate::changes::viewers_changed(&self.state.services, &s);
                     }
                     had
                 });
@@ -843,7 +843,7 @@ impl Session {
             if let Ok(s) = self.state.world.scene(&scene)
                 && s.unsubscribe(self.conn)
             {
-                crate::changes::viewers_changed(&self.state, &s);
+                crate::changes::viewers_changed(&self.state.services, &s);
             }
         }
     }

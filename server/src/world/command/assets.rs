@@ -1,8 +1,8 @@
 //! The commands on assets: `list_assets`, `get_asset`, and the ones that touch the files of
-//! uploads and recordings, which the services run ([`Runs::Files`]): `configure_asset`,
-//! `delete_clip`, `delete_asset`.
+//! uploads and recordings, which the services run ([`Runs::Files`]): `configure_asset` and
+//! `delete_asset` ([`InServices`] declarations), `delete_clip`.
 
-use super::{Announce, Handler, Needs, Runs, fields};
+use super::{Announce, Handler, InServices, Needs, Runs, SceneChange, fields};
 use crate::world::World;
 use posecast_core::error::Error;
 use posecast_proto::command::{Command, CommandResult};
@@ -42,25 +42,12 @@ impl Handler for GetAsset {
 
 /// `configure_asset`: the upload's files imported again with new options, stored before the
 /// answer (`crate::ingest::configure`).
-#[derive(Debug)]
-pub struct ConfigureAsset;
-
-impl Handler for ConfigureAsset {
-    fn runs(&self) -> Runs {
-        Runs::Files
-    }
-
-    fn announce(&self) -> Announce {
-        Announce::Nothing
-    }
-
-    fn apply(&self, _world: &World, _command: &Command) -> Result<CommandResult, Error> {
-        // It re-imports the upload's files, which the world does not hold.
-        Err(Error::NotAllowedNow(
-            "configure_asset is run by the service layer (REST or websocket)".into(),
-        ))
-    }
-}
+pub static CONFIGURE_ASSET: InServices = InServices {
+    op: "configure_asset",
+    needs: Needs::Control,
+    scene_change: SceneChange::None,
+    files: "an upload's files, which the world does not hold",
+};
 
 /// `delete_clip`: a recorded clip, its file and its bytes in the quotas
 /// (`crate::control`'s objects).
@@ -89,25 +76,9 @@ impl Handler for DeleteClip {
 }
 
 /// `delete_asset`: an upload, its files and its bytes in the quotas.
-#[derive(Debug)]
-pub struct DeleteAsset;
-
-impl Handler for DeleteAsset {
-    fn needs(&self) -> Needs {
-        Needs::DeleteOwned
-    }
-
-    fn runs(&self) -> Runs {
-        Runs::Files
-    }
-
-    fn announce(&self) -> Announce {
-        Announce::Nothing
-    }
-
-    fn apply(&self, _world: &World, _command: &Command) -> Result<CommandResult, Error> {
-        Err(Error::NotAllowedNow(
-            "delete_asset runs through the store (uploads are files)".into(),
-        ))
-    }
-}
+pub static DELETE_ASSET: InServices = InServices {
+    op: "delete_asset",
+    needs: Needs::DeleteOwned,
+    scene_change: SceneChange::None,
+    files: "an upload's files, which the world does not hold",
+};

@@ -78,6 +78,12 @@ pub enum Runs {
     /// In the services, because it reads or writes files (uploads, recordings, takes):
     /// `crate::control` runs it, and it stores what it makes itself. Its `apply` refuses.
     Files,
+    /// In the services, because it writes a file, and then — with a data folder or a
+    /// cluster — stored with its scene before the answer, like [`Runs::World`]
+    /// (`stop_recording`: its clip is written off the scene's lock, and the avatar no longer
+    /// records). Its `apply` does the whole change in memory, for callers without a data
+    /// folder.
+    FilesThenScene,
     /// In the websocket session that sends it (`drive`: poses stream over that connection).
     /// Its `apply` refuses.
     Connection,
@@ -172,6 +178,46 @@ pub trait Handler: Sync + std::fmt::Debug {
     fn apply(&self, world: &World, command: &Command) -> Result<CommandResult, Error>;
 }
 
+/// The handler of a command whose work is all files ([`Runs::Files`]: uploads, takes), which
+/// the services run: its declarations are its whole handler, and the world refuses it.
+#[derive(Debug)]
+pub struct InServices {
+    /// The command's `op`.
+    pub op: &'static str,
+    /// The right it needs when it changes something.
+    pub needs: Needs,
+    /// The scene it makes (`replay`) or none.
+    pub scene_change: SceneChange,
+    /// Why the world refuses it: what it works on.
+    pub files: &'static str,
+}
+
+impl Handler for InServices {
+    fn needs(&self) -> Needs {
+        self.needs
+    }
+
+    fn runs(&self) -> Runs {
+        Runs::Files
+    }
+
+    fn scene_change(&self) -> SceneChange {
+        self.scene_change
+    }
+
+    /// What it changes is files; the connections following an avatar hear nothing of it.
+    fn announce(&self) -> Announce {
+        Announce::Nothing
+    }
+
+    fn apply(&self, _world: &World, _command: &Command) -> Result<CommandResult, Error> {
+        Err(Error::NotAllowedNow(format!(
+            "{} runs in the server's services, not in the world: it works on {}",
+            self.op, self.files
+        )))
+    }
+}
+
 /// The handler of `command`: the registration, one line per command.
 #[must_use]
 pub fn handler(command: &Command) -> &'static dyn Handler {
@@ -182,9 +228,9 @@ pub fn handler(command: &Command) -> &'static dyn Handler {
         C::DeleteScene { .. } => &scenes::DeleteScene,
         C::ListAssets => &assets::ListAssets,
         C::GetAsset { .. } => &assets::GetAsset,
-        C::ConfigureAsset { .. } => &assets::ConfigureAsset,
+        C::ConfigureAsset { .. } => &assets::CONFIGURE_ASSET,
         C::DeleteClip { .. } => &assets::DeleteClip,
-        C::DeleteAsset { .. } => &assets::DeleteAsset,
+        C::DeleteAsset { .. } => &assets::DELETE_ASSET,
         C::GetAvatar { .. } => &avatars::GetAvatar,
         C::AddAvatar { .. } => &avatars::AddAvatar,
         C::RemoveAvatar { .. } => &avatars::RemoveAvatar,
@@ -214,12 +260,12 @@ pub fn handler(command: &Command) -> &'static dyn Handler {
         C::ReleaseDrive { .. } => &drive::ReleaseDrive,
         C::Record { .. } => &recording::Record,
         C::StopRecording { .. } => &recording::StopRecording,
-        C::RecordScene { .. } => &takes::RecordScene,
-        C::StopRecordingScene { .. } => &takes::StopRecordingScene,
-        C::ListTakes => &takes::ListTakes,
-        C::GetTake { .. } => &takes::GetTake,
-        C::DeleteTake { .. } => &takes::DeleteTake,
-        C::Replay { .. } => &takes::Replay,
+        C::RecordScene { .. } => &takes::RECORD_SCENE,
+        C::StopRecordingScene { .. } => &takes::STOP_RECORDING_SCENE,
+        C::ListTakes => &takes::LIST_TAKES,
+        C::GetTake { .. } => &takes::GET_TAKE,
+        C::DeleteTake { .. } => &takes::DELETE_TAKE,
+        C::Replay { .. } => &takes::REPLAY,
         C::ControlReplay { .. } => &takes::ControlReplay,
     }
 }
@@ -427,7 +473,13 @@ mod tests {
                 assert_eq!(h.announce(), Announce::Nothing, "{op} only reads");
                 assert_eq!(h.scene_change(), SceneChange::None, "{op} only reads");
             }
-            if h.runs() != Runs::World {
+            // A handler that is only declarations names its command in its refusal.
+            if let Err(Error::NotAllowedNow(m)) = h.apply(&world, &command)
+                && let Some((named, _)) = m.split_once(" runs in the server's services")
+            {
+                assert_eq!(named, op, "{op} is registered to {named}'s declarations");
+            }
+            if matches!(h.runs(), Runs::Files | Runs::Connection) {
                 assert!(
                     matches!(h.apply(&world, &command), Err(Error::NotAllowedNow(_)))
                         || op == "delete_clip",

@@ -1,9 +1,9 @@
 //! Recording an avatar (issue 16): `record`, `stop_recording`. A server stops a recording off
-//! the scene's tick path and stores the clip before it joins the rig (`crate::control`'s
-//! objects, with [`take_recording`]); [`StopRecording`]'s `apply` does both halves in place,
-//! for in-memory callers.
+//! the scene's tick path and stores the clip before it joins the rig ([`Runs::FilesThenScene`]:
+//! `crate::control`'s objects, with [`take_recording`]); [`StopRecording`]'s `apply` does both
+//! halves in place, for in-memory callers.
 
-use super::{Handler, Needs, fields, with_avatar};
+use super::{Handler, Needs, Runs, fields, with_avatar};
 use crate::world::World;
 use posecast_core::error::Error;
 use posecast_proto::command::{Command, CommandResult, RecordingInfo};
@@ -63,6 +63,10 @@ pub struct StopRecording;
 impl Handler for StopRecording {
     fn needs(&self) -> Needs {
         Needs::Record
+    }
+
+    fn runs(&self) -> Runs {
+        Runs::FilesThenScene
     }
 
     fn apply(&self, world: &World, command: &Command) -> Result<CommandResult, Error> {
