@@ -285,10 +285,11 @@ async fn scenario(server: &Server, surface: &Surface<'_>, tag: &str) {
         .await
         .unwrap_err();
     assert_eq!(e.code, ErrorCode::UnknownJoint);
+    let d = e.details.unwrap_or_default();
     assert_eq!(
-        e.details.and_then(|d| d.joint).as_deref(),
-        Some("no_such_joint"),
-        "{tag}"
+        (d.joint.as_deref(), d.avatar.as_ref()),
+        (Some("no_such_joint"), Some(&id)),
+        "{tag}: the joint and whose"
     );
     let err = worst_degrees(&after_ack(&watcher, &id).await, &walk);
     assert!(

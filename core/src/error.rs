@@ -6,6 +6,102 @@
 
 use posecast_proto::msg::{AvatarId, ErrorCode, ErrorDetails, ProtocolError, SceneId};
 
+/// Whose joint (or tracker) or expression an error names: the avatar or rig a client can act
+/// on travels in the wire error's `details` (`avatar`, `asset`), and the message reads as
+/// before ("avatar a has no joint x").
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Owner {
+    /// An avatar's rig: "avatar a".
+    Avatar(AvatarId),
+    /// A rig by name (a live driver's source): "rig r".
+    Rig(String),
+    /// A rig by name, addressed by joint index: "rig r (of n joints)".
+    RigOfJoints {
+        /// The rig.
+        rig: String,
+        /// How many joints it has.
+        joints: usize,
+    },
+    /// The rig whose poses drive an avatar, as a server relaying them knows it: "the rig
+    /// driving a".
+    DriverOf(AvatarId),
+    /// The same, addressed by joint index: "the driven rig (of n joints)".
+    DriverOfJoints {
+        /// The avatar driven.
+        avatar: AvatarId,
+        /// How many joints the driving rig has.
+        joints: usize,
+    },
+    /// An avatar's weight channels, addressed by index: "avatar a (of c morph channels and e
+    /// expressions)".
+    Channels {
+        /// The avatar.
+        avatar: AvatarId,
+        /// Its morph targets.
+        channels: usize,
+        /// Its expressions addressable after them (0: none).
+        expressions: usize,
+    },
+    /// A tracker drive of an avatar: "the tracker drive of avatar a (trackers t1, t2)".
+    Trackers {
+        /// The avatar driven.
+        avatar: AvatarId,
+        /// Its trackers, in the drive's order.
+        trackers: Vec<String>,
+    },
+}
+
+impl Owner {
+    /// The avatar it belongs to, if any.
+    #[must_use]
+    pub fn avatar(&self) -> Option<&AvatarId> {
+        match self {
+            Self::Avatar(a) | Self::DriverOf(a) => Some(a),
+            Self::DriverOfJoints { avatar, .. }
+            | Self::Channels { avatar, .. }
+            | Self::Trackers { avatar, .. } => Some(avatar),
+            Self::Rig(_) | Self::RigOfJoints { .. } => None,
+        }
+    }
+
+    /// The rig (asset) it is, if named.
+    #[must_use]
+    pub fn rig(&self) -> Option<&str> {
+        match self {
+            Self::Rig(r) | Self::RigOfJoints { rig: r, .. } => Some(r),
+            _ => None,
+        }
+    }
+}
+
+impl std::fmt::Display for Owner {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Avatar(a) => write!(f, "avatar {a}"),
+            Self::Rig(r) => write!(f, "rig {r}"),
+            Self::RigOfJoints { rig, joints } => write!(f, "rig {rig} (of {joints} joints)"),
+            Self::DriverOf(a) => write!(f, "the rig driving {a}"),
+            Self::DriverOfJoints { joints, .. } => write!(f, "the driven rig (of {joints} joints)"),
+            Self::Channels {
+                avatar,
+                channels,
+                expressions,
+            } => {
+                write!(f, "avatar {avatar} (of {channels} morph channels")?;
+                if *expressions > 0 {
+                    write!(f, " and {expressions} expressions")?;
+                }
+                write!(f, ")")
+            }
+            Self::Trackers { avatar, trackers } => write!(
+                f,
+                "the tracker drive of avatar {avatar} (trackers {})",
+                trackers.join(", ")
+            ),
+        }
+    }
+}
+
 /// A failed request, command or import step. Nothing was changed by whatever returned it.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum Error {
@@ -26,8 +122,8 @@ pub enum Error {
     /// A rig (an avatar's, or a live driver's source) has no such joint.
     #[error("{owner} has no joint {joint}")]
     UnknownJoint {
-        /// Whose joint: "avatar a", "rig r".
-        owner: String,
+        /// Whose joint.
+        owner: Owner,
         /// The joint asked for (a name, or an index).
         joint: String,
     },
@@ -35,8 +131,8 @@ pub enum Error {
     /// targets at all.
     #[error("{owner} has no morph target or expression {name}{}", if *.has_targets { "" } else { " (it has no morph targets)" })]
     UnknownExpression {
-        /// Whose: "avatar a".
-        owner: String,
+        /// Whose.
+        owner: Owner,
         /// The name asked for.
         name: String,
         /// Whether the avatar has any morph targets.
@@ -221,12 +317,16 @@ impl Error {
                 avatar: Some(avatar.clone()),
                 ..d
             },
-            Self::UnknownJoint { joint, .. } => ErrorDetails {
+            Self::UnknownJoint { owner, joint } => ErrorDetails {
                 joint: Some(joint.clone()),
+                avatar: owner.avatar().cloned(),
+                asset: owner.rig().map(str::to_owned),
                 ..d
             },
-            Self::UnknownExpression { name, .. } => ErrorDetails {
+            Self::UnknownExpression { owner, name, .. } => ErrorDetails {
                 expression: Some(name.clone()),
+                avatar: owner.avatar().cloned(),
+                asset: owner.rig().map(str::to_owned),
                 ..d
             },
             Self::UnknownClip { rig, clip } => ErrorDetails {
@@ -311,6 +411,32 @@ mod tests {
             (d.quota.as_deref(), d.limit.as_deref()),
             (Some("scenes"), Some("2"))
         );
+        // Whose joint or expression: the avatar, or the rig.
+        let d = ProtocolError::from(Error::UnknownExpression {
+            owner: Owner::Channels {
+                avatar: AvatarId("a".into()),
+                channels: 1,
+                expressions: 0,
+            },
+            name: "channel 4".into(),
+            has_targets: true,
+        })
+        .details
+        .unwrap();
+        assert_eq!(
+            (d.avatar, d.asset, d.expression.as_deref()),
+            (Some(AvatarId("a".into())), None, Some("channel 4"))
+        );
+        let d = ProtocolError::from(Error::UnknownJoint {
+            owner: Owner::Rig("src".into()),
+            joint: "tail".into(),
+        })
+        .details
+        .unwrap();
+        assert_eq!(
+            (d.avatar, d.asset.as_deref(), d.joint.as_deref()),
+            (None, Some("src"), Some("tail"))
+        );
         assert_eq!(ProtocolError::from(Error::invalid("x")).details, None);
         // A forwarded error keeps what its server said.
         let remote = ProtocolError::from(Error::UnknownAsset("r".into()));
@@ -329,11 +455,55 @@ mod tests {
             ),
             (
                 Error::UnknownJoint {
-                    owner: "avatar a".into(),
+                    owner: Owner::Avatar(AvatarId("a".into())),
                     joint: "knee".into(),
                 },
                 ErrorCode::UnknownJoint,
                 "avatar a has no joint knee",
+            ),
+            (
+                Error::UnknownJoint {
+                    owner: Owner::RigOfJoints {
+                        rig: "r".into(),
+                        joints: 23,
+                    },
+                    joint: "index 40".into(),
+                },
+                ErrorCode::UnknownJoint,
+                "rig r (of 23 joints) has no joint index 40",
+            ),
+            (
+                Error::UnknownJoint {
+                    owner: Owner::Trackers {
+                        avatar: AvatarId("a".into()),
+                        trackers: vec!["head".into(), "left_hand".into()],
+                    },
+                    joint: "for tracker hip".into(),
+                },
+                ErrorCode::UnknownJoint,
+                "the tracker drive of avatar a (trackers head, left_hand) has no joint for tracker hip",
+            ),
+            (
+                Error::UnknownExpression {
+                    owner: Owner::Channels {
+                        avatar: AvatarId("a".into()),
+                        channels: 3,
+                        expressions: 2,
+                    },
+                    name: "channel 9".into(),
+                    has_targets: true,
+                },
+                ErrorCode::UnknownExpression,
+                "avatar a (of 3 morph channels and 2 expressions) has no morph target or expression channel 9",
+            ),
+            (
+                Error::UnknownExpression {
+                    owner: Owner::Avatar(AvatarId("a".into())),
+                    name: "smile".into(),
+                    has_targets: false,
+                },
+                ErrorCode::UnknownExpression,
+                "avatar a has no morph target or expression smile (it has no morph targets)",
             ),
             (
                 Error::Quota {

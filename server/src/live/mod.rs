@@ -20,7 +20,7 @@
 
 use crate::changes;
 use crate::scene::Scene;
-use posecast_core::error::Error;
+use posecast_core::error::{Error, Owner};
 
 use crate::state::Services;
 use glam::{Quat, Vec3};
@@ -352,7 +352,7 @@ impl Drives {
             };
             for (name, q) in rotations {
                 let j = skeleton.find(name).ok_or_else(|| Error::UnknownJoint {
-                    owner: format!("rig {}", live.source.name),
+                    owner: Owner::Rig(live.source.name.clone()),
                     joint: name.clone(),
                 })?;
                 pose.rotations.push((j, rotation(name, *q)?));
@@ -408,13 +408,12 @@ impl Drives {
                     if usize::from(c) < channels + defined {
                         Ok((usize::from(c), posecast_proto::morph::weight_value(level)))
                     } else {
-                        let and = if defined > 0 {
-                            format!(" and {defined} expressions")
-                        } else {
-                            String::new()
-                        };
                         Err(Error::UnknownExpression {
-                            owner: format!("avatar {} (of {channels} morph channels{and})", a.id),
+                            owner: Owner::Channels {
+                                avatar: a.id.clone(),
+                                channels,
+                                expressions: defined,
+                            },
                             name: format!("channel {c}"),
                             has_targets: channels > 0,
                         })
@@ -454,7 +453,10 @@ impl Drives {
                 let j = usize::from(j);
                 if j >= n {
                     return Err(Error::UnknownJoint {
-                        owner: format!("rig {} (of {n} joints)", live.source.name),
+                        owner: Owner::RigOfJoints {
+                            rig: live.source.name.clone(),
+                            joints: n,
+                        },
                         joint: format!("index {j}"),
                     });
                 }
@@ -568,12 +570,12 @@ fn tracker_sample(name: &str, position: [f32; 3], q: [f32; 4]) -> Result<Tracker
 }
 
 /// A tracker (a name, or `index N`) the drive of `avatar` (trackers `names`) does not have.
-fn unknown_tracker(avatar: impl std::fmt::Display, names: &[String], tracker: &str) -> Error {
+fn unknown_tracker(avatar: &AvatarId, names: &[String], tracker: &str) -> Error {
     Error::UnknownJoint {
-        owner: format!(
-            "the tracker drive of avatar {avatar} (trackers {})",
-            names.join(", ")
-        ),
+        owner: Owner::Trackers {
+            avatar: avatar.clone(),
+            trackers: names.to_vec(),
+        },
         joint: format!("for tracker {tracker}"),
     }
 }

@@ -23,7 +23,7 @@ use super::{
 use crate::scene::Scene;
 use crate::state::Services;
 use glam::Vec3;
-use posecast_core::error::Error;
+use posecast_core::error::{Error, Owner};
 use posecast_core::quota::TokenBucket;
 use posecast_proto::command::DriveInfo;
 use posecast_proto::expressions::{Expression, find_expression, resolve};
@@ -92,7 +92,11 @@ impl RemoteDrive {
             .find(|(c, _)| usize::from(*c) >= channels)
         {
             return Err(Error::UnknownExpression {
-                owner: format!("avatar {} (of {channels} morph channels)", self.avatar),
+                owner: Owner::Channels {
+                    avatar: self.avatar.clone(),
+                    channels,
+                    expressions: 0,
+                },
                 name: format!("channel {c}"),
                 has_targets: channels > 0,
             });
@@ -151,7 +155,7 @@ impl RemoteDrive {
                 .position(|n| n == name)
                 .and_then(|j| u16::try_from(j).ok())
                 .ok_or_else(|| Error::UnknownJoint {
-                    owner: format!("the rig driving {}", self.avatar),
+                    owner: Owner::DriverOf(self.avatar.clone()),
                     joint: name.clone(),
                 })?;
             out.rotations.push((j, rotation(name, *q)?));
@@ -159,7 +163,7 @@ impl RemoteDrive {
         // As `world::command::face::resolve_weights` on the owner: per name, known first, then valued.
         for (name, &w) in pose.weights {
             let slot = self.slot(name).ok_or_else(|| Error::UnknownExpression {
-                owner: format!("avatar {}", self.avatar),
+                owner: Owner::Avatar(self.avatar.clone()),
                 name: name.clone(),
                 has_targets: !self.morph_targets.is_empty(),
             })?;
@@ -201,7 +205,10 @@ impl RemoteDrive {
         for &(j, q) in &pose.rotations {
             if usize::from(j) >= self.joints.len() {
                 return Err(Error::UnknownJoint {
-                    owner: format!("the driven rig (of {} joints)", self.joints.len()),
+                    owner: Owner::DriverOfJoints {
+                        avatar: self.avatar.clone(),
+                        joints: self.joints.len(),
+                    },
                     joint: format!("index {j}"),
                 });
             }

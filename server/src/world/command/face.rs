@@ -5,7 +5,7 @@
 
 use super::{Announce, Handler, Needs, fields, with_avatar};
 use crate::world::World;
-use posecast_core::error::Error;
+use posecast_core::error::{Error, Owner};
 use posecast_proto::command::{Command, CommandResult};
 use posecast_proto::morph;
 use posecast_proto::msg::AvatarId;
@@ -105,7 +105,7 @@ pub fn resolve_weights<'n>(
             let channel = a
                 .morph_channel(name)
                 .ok_or_else(|| Error::UnknownExpression {
-                    owner: format!("avatar {}", a.id),
+                    owner: Owner::Avatar(a.id.clone()),
                     name: name.to_owned(),
                     has_targets: !a.description.morph_targets.is_empty(),
                 })?;

@@ -7,7 +7,7 @@
 use super::{Announce, Handler, Needs, fields, joint_index, quat, with_avatar};
 use crate::world::World;
 use glam::Mat4;
-use posecast_core::error::Error;
+use posecast_core::error::{Error, Owner};
 use posecast_proto::command::{Command, CommandResult, JointRef};
 use posecast_proto::msg::AvatarId;
 use posecast_sim::avatar::Avatar;
@@ -210,7 +210,7 @@ fn joint_ref(r: JointRef) -> goals::JointRef {
 fn error(avatar: &Avatar, e: GoalError) -> Error {
     match e {
         GoalError::UnknownJoint(joint) => Error::UnknownJoint {
-            owner: format!("avatar {}", avatar.id),
+            owner: Owner::Avatar(avatar.id.clone()),
             joint,
         },
         other => Error::invalid(other.to_string()),

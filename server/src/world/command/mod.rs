@@ -44,7 +44,7 @@ pub use recording::{finish_recording, take_recording};
 
 use super::World;
 use glam::Quat;
-use posecast_core::error::Error;
+use posecast_core::error::{Error, Owner};
 use posecast_proto::command::{Command, CommandResult};
 use posecast_proto::msg::AvatarId;
 use posecast_proto::placement::Placement;
@@ -318,7 +318,7 @@ fn finite(name: &str, v: f32) -> Result<f32, Error> {
 
 fn joint_index(avatar: &Avatar, joint: &str) -> Result<usize, Error> {
     avatar.rig.joint(joint).ok_or_else(|| Error::UnknownJoint {
-        owner: format!("avatar {}", avatar.id),
+        owner: Owner::Avatar(avatar.id.clone()),
         joint: joint.to_owned(),
     })
 }
