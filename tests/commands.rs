@@ -263,6 +263,21 @@ async fn scenario(server: &Server, surface: &Surface<'_>, tag: &str) {
         .unwrap_err();
     assert_eq!(e.code, ErrorCode::InvalidValue);
     assert_eq!(e.details, None, "{tag}: an invalid value is its message");
+    // A refused value of one field names the field.
+    let e = surface
+        .run(Command::SetJointRotation {
+            avatar: id.clone(),
+            joint: "l_elbow".into(),
+            rotation: [0.0; 4],
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(
+        (e.code, e.details.and_then(|d| d.field).as_deref()),
+        (ErrorCode::InvalidValue, Some("rotation")),
+        "{tag}: {}",
+        e.message
+    );
     // What the server could not find comes as fields too (`details`), on both surfaces.
     let e = surface
         .run(play(&id, "no_such_clip", 0.0, 1.0))

@@ -155,11 +155,22 @@ pub enum Error {
         unreadable: Option<String>,
     },
     /// No rig (asset) of that name is loaded.
-    #[error("no rig (asset) named {0}")]
-    UnknownAsset(String),
+    #[error("no rig (asset) named {asset}{}", needed_by.as_ref().map(|n| format!(" ({n} was made of it)")).unwrap_or_default())]
+    UnknownAsset {
+        /// The rig asked for.
+        asset: String,
+        /// What needed it, when that is not the request itself (a take's avatar).
+        needed_by: Option<String>,
+    },
     /// A value out of range, not finite, or not allowed here.
-    #[error("{0}")]
-    Invalid(String),
+    #[error("{message}")]
+    Invalid {
+        /// The request's field whose value is refused (`speed`, `weight`, `scene`), when one
+        /// is: the wire error's `details.field`.
+        field: Option<&'static str>,
+        /// What is wrong with it.
+        message: String,
+    },
     /// The thing exists already, or another client holds it.
     #[error("{0}")]
     Conflict(String),
@@ -236,9 +247,9 @@ impl Error {
             Self::UnknownJoint { .. } => ErrorCode::UnknownJoint,
             Self::UnknownExpression { .. } => ErrorCode::UnknownExpression,
             Self::UnknownClip { .. } => ErrorCode::UnknownClip,
-            Self::UnknownAsset(_) => ErrorCode::UnknownAsset,
+            Self::UnknownAsset { .. } => ErrorCode::UnknownAsset,
             Self::UnknownTake { .. } => ErrorCode::UnknownTake,
-            Self::Invalid(_) => ErrorCode::InvalidValue,
+            Self::Invalid { .. } => ErrorCode::InvalidValue,
             Self::Conflict(_) => ErrorCode::Conflict,
             Self::NotAllowedNow(_) => ErrorCode::NotAllowedNow,
             Self::ImportFailed(_) => ErrorCode::ImportFailed,
@@ -258,9 +269,28 @@ impl Error {
         }
     }
 
-    /// An [`Error::Invalid`].
+    /// An [`Error::UnknownAsset`] asked for by the request itself.
+    pub fn unknown_asset(asset: impl Into<String>) -> Self {
+        Self::UnknownAsset {
+            asset: asset.into(),
+            needed_by: None,
+        }
+    }
+
+    /// An [`Error::Invalid`] that names no field.
     pub fn invalid(message: impl Into<String>) -> Self {
-        Self::Invalid(message.into())
+        Self::Invalid {
+            field: None,
+            message: message.into(),
+        }
+    }
+
+    /// An [`Error::Invalid`] about the request's field `field`.
+    pub fn invalid_field(field: &'static str, message: impl Into<String>) -> Self {
+        Self::Invalid {
+            field: Some(field),
+            message: message.into(),
+        }
     }
 
     /// The wire error answering command `id`.
@@ -334,7 +364,7 @@ impl Error {
                 clip: Some(clip.clone()),
                 ..d
             },
-            Self::UnknownAsset(asset) | Self::NoMesh(asset) => ErrorDetails {
+            Self::UnknownAsset { asset, .. } | Self::NoMesh(asset) => ErrorDetails {
                 asset: Some(asset.clone()),
                 ..d
             },
@@ -345,6 +375,12 @@ impl Error {
             Self::Quota { quota, limit, .. } => ErrorDetails {
                 quota: Some((*quota).to_owned()),
                 limit: Some(limit.clone()),
+                ..d
+            },
+            Self::Invalid {
+                field: Some(field), ..
+            } => ErrorDetails {
+                field: Some((*field).to_owned()),
                 ..d
             },
             Self::Remote(wire) => return wire.details.as_deref().cloned(),
@@ -437,9 +473,36 @@ mod tests {
             (d.avatar, d.asset.as_deref(), d.joint.as_deref()),
             (None, Some("src"), Some("tail"))
         );
+        // A rig a take's avatar was made of: the name, and the message says who needed it.
+        let e = Error::UnknownAsset {
+            asset: "robot".into(),
+            needed_by: Some("avatar a of take t".into()),
+        };
+        assert_eq!(
+            e.to_string(),
+            "no rig (asset) named robot (avatar a of take t was made of it)"
+        );
+        assert_eq!(
+            ProtocolError::from(e).details.unwrap().asset.as_deref(),
+            Some("robot")
+        );
+        // An invalid value names its field when it has one.
+        let wire = ProtocolError::from(Error::invalid_field("speed", "speed must be finite"));
+        assert_eq!(
+            (
+                wire.code,
+                wire.message.as_str(),
+                wire.details.unwrap().field
+            ),
+            (
+                ErrorCode::InvalidValue,
+                "speed must be finite",
+                Some("speed".to_owned())
+            )
+        );
         assert_eq!(ProtocolError::from(Error::invalid("x")).details, None);
         // A forwarded error keeps what its server said.
-        let remote = ProtocolError::from(Error::UnknownAsset("r".into()));
+        let remote = ProtocolError::from(Error::unknown_asset("r"));
         assert_eq!(ProtocolError::from(Error::Remote(remote.clone())), remote);
         assert_eq!(remote.details.unwrap().asset.as_deref(), Some("r"));
     }

@@ -414,6 +414,10 @@ pub struct ErrorDetails {
     /// The take (`unknown_take`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub take: Option<String>,
+    /// The command's field whose value is refused (`invalid_value`), when the refusal is
+    /// about one: its name in the command (`speed`, `weight`, `time`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub field: Option<String>,
     /// The limit that refused (`quota_exceeded`): its name, as in `/metrics`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub quota: Option<String>,

@@ -54,9 +54,7 @@ impl Library {
             .rigs
             .write()
             .unwrap_or_else(std::sync::PoisonError::into_inner);
-        let rig = rigs
-            .get(name)
-            .ok_or_else(|| Error::UnknownAsset(name.to_owned()))?;
+        let rig = rigs.get(name).ok_or_else(|| Error::unknown_asset(name))?;
         let mut seen = std::collections::BTreeSet::new();
         for clip in &clips {
             if rig.clip(clip.name()).is_some() || !seen.insert(clip.name()) {
@@ -81,9 +79,7 @@ impl Library {
             .rigs
             .write()
             .unwrap_or_else(std::sync::PoisonError::into_inner);
-        let rig = rigs
-            .get(name)
-            .ok_or_else(|| Error::UnknownAsset(name.to_owned()))?;
+        let rig = rigs.get(name).ok_or_else(|| Error::unknown_asset(name))?;
         let rig = Arc::new(rig.without_clip(clip).ok_or_else(|| Error::UnknownClip {
             rig: name.to_owned(),
             clip: clip.to_owned(),
@@ -105,8 +101,7 @@ impl Library {
     /// # Errors
     /// `unknown_asset`.
     pub fn require(&self, name: &str) -> Result<Arc<Rig>, Error> {
-        self.get(name)
-            .ok_or_else(|| Error::UnknownAsset(name.to_owned()))
+        self.get(name).ok_or_else(|| Error::unknown_asset(name))
     }
 
     /// A rig by name.
@@ -141,10 +136,11 @@ fn import_failed(e: &ImportError) -> Error {
 /// # Errors
 /// `invalid_value`.
 pub fn check_name(name: &str) -> Result<(), Error> {
-    check_id("asset", name).map_err(|e| Error::Invalid(e.message))?;
+    check_id("asset", name).map_err(|e| Error::invalid_field("asset", e.message))?;
     if name.starts_with('.') || name.contains(".corrupt") {
-        return Err(Error::Invalid(
-            "asset names must not start with '.' or contain '.corrupt'".into(),
+        return Err(Error::invalid_field(
+            "asset",
+            "asset names must not start with '.' or contain '.corrupt'",
         ));
     }
     Ok(())

@@ -849,6 +849,11 @@ expression?: string | null,
  */
 take?: string | null, 
 /**
+ * The command's field whose value is refused (`invalid_value`), when the refusal is
+ * about one: its name in the command (`speed`, `weight`, `time`).
+ */
+field?: string | null, 
+/**
  * The limit that refused (`quota_exceeded`): its name, as in `/metrics`.
  */
 quota?: string | null, 

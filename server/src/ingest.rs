@@ -221,18 +221,18 @@ pub async fn add_clips(
     clips: FileSet,
 ) -> Result<AssetInfo, Error> {
     if clips.is_empty() {
-        return Err(Error::Invalid("no clip files in the request".into()));
+        return Err(Error::invalid("no clip files in the request"));
     }
     for (file, _) in clips.iter() {
         match files::extension(file).as_str() {
             "anim" => {}
             "bvh" => {
-                return Err(Error::Invalid(format!(
+                return Err(Error::invalid(format!(
                     "{file}: a .bvh has its own skeleton; upload it as an asset and play its clip with from_asset (retargeting)"
                 )));
             }
             _ => {
-                return Err(Error::Invalid(format!(
+                return Err(Error::invalid(format!(
                     "{file}: clips are added as .anim files"
                 )));
             }
@@ -241,12 +241,12 @@ pub async fn add_clips(
     let _guard = state.store.assets_lock().await;
     let rig = state.world.library.require(name)?;
     let upload = state.store.uploads().get(name).cloned().ok_or_else(|| {
-        Error::Invalid(format!(
+        Error::invalid(format!(
             "{name} was not uploaded: clips can be added to uploaded assets only"
         ))
     })?;
     if files::extension(&upload.main) != "skel" {
-        return Err(Error::Invalid(format!(
+        return Err(Error::invalid(format!(
             "{name} is not a .skel asset: .anim clips need a CSE169 skeleton"
         )));
     }
@@ -348,7 +348,7 @@ pub async fn configure(
                     "{name} was not uploaded (built-in or --assets): only uploads can be configured"
                 ),
             }),
-            None => Error::UnknownAsset(name.to_owned()),
+            None => Error::unknown_asset(name),
         });
     };
     let files = match (upload.files, state.store.assets_dir()) {
@@ -380,7 +380,7 @@ pub async fn configure(
     .map_err(|e| Error::internal("import task failed", &e))?;
     // The files imported before, so a failure now is the options'.
     let rigs = rigs.map_err(|e| match e {
-        Error::ImportFailed(m) => Error::Invalid(m),
+        Error::ImportFailed(m) => Error::invalid(m),
         e => e,
     })?;
     for rig in &rigs {
@@ -496,7 +496,7 @@ pub async fn delete(
                 "asset {name} is not an upload (built in or from --assets): it cannot be deleted"
             ))
         } else {
-            Error::UnknownAsset(name.to_owned())
+            Error::unknown_asset(name)
         });
     };
     state

@@ -191,7 +191,7 @@ impl RigError {
         let message = format!("{context}: {self}");
         match self {
             Self::HumanoidMismatch { .. } => posecast_core::error::Error::NotHumanoid(message),
-            _ => posecast_core::error::Error::Invalid(message),
+            _ => posecast_core::error::Error::invalid(message),
         }
     }
 }

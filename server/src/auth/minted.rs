@@ -206,7 +206,7 @@ impl Minter {
         };
         let token = self.sign(&info)?;
         if token.len() > MAX_TOKEN_CHARS {
-            return Err(Error::Invalid(format!(
+            return Err(Error::invalid(format!(
                 "the token would be {} characters, more than the {MAX_TOKEN_CHARS} a server \
                  accepts: list fewer or shorter scenes and avatars",
                 token.len()
@@ -296,7 +296,7 @@ impl Minter {
     /// file cannot be written (the token is refused from now on all the same).
     pub fn revoke(&self, id: &str) -> Result<Option<TokenInfo>, Error> {
         if id.len() != 24 || !id.bytes().all(|b| b.is_ascii_hexdigit()) {
-            return Err(Error::Invalid(format!(
+            return Err(Error::invalid(format!(
                 "{id:?} is not a token id (24 hexadecimal digits)"
             )));
         }
@@ -369,7 +369,7 @@ impl Minter {
 }
 
 fn validate(request: &MintRequest, configured: &impl Fn(&str) -> bool) -> Result<(), Error> {
-    let invalid = |m: String| Err(Error::Invalid(m));
+    let invalid = |m: String| Err(Error::invalid(m));
     let chars = request.name.chars().count();
     if chars == 0 || chars > MAX_NAME_CHARS || request.name.chars().any(char::is_control) {
         return invalid(format!(

@@ -291,7 +291,7 @@ mod tests {
             "{e}"
         );
         let far = BTreeMap::from([("head".to_owned(), at(1e30))]);
-        assert!(matches!(r.resolve(&pose(&far)), Err(Error::Invalid(_))));
+        assert!(matches!(r.resolve(&pose(&far)), Err(Error::Invalid { .. })));
         let mut past = out.clone();
         past.trackers.push((3, Vec3::ZERO, glam::Quat::IDENTITY));
         assert!(matches!(
@@ -300,17 +300,23 @@ mod tests {
         ));
         let mut nan = out.clone();
         nan.trackers[0].1.x = f32::NAN;
-        assert!(matches!(r.check_joints(&nan), Err(Error::Invalid(_))));
+        assert!(matches!(r.check_joints(&nan), Err(Error::Invalid { .. })));
         let mut rotated = out.clone();
         rotated.rotations.push((0, glam::Quat::IDENTITY));
-        assert!(matches!(r.check_joints(&rotated), Err(Error::Invalid(_))));
+        assert!(matches!(
+            r.check_joints(&rotated),
+            Err(Error::Invalid { .. })
+        ));
         // A drive by rotations takes no trackers.
         let plain = drive();
         assert!(matches!(
             plain.resolve(&pose(&named)),
-            Err(Error::Invalid(_))
+            Err(Error::Invalid { .. })
         ));
-        assert!(matches!(plain.check_joints(&out), Err(Error::Invalid(_))));
+        assert!(matches!(
+            plain.check_joints(&out),
+            Err(Error::Invalid { .. })
+        ));
     }
 
     /// Names resolve in the owner's order: file-defined expressions, channels, standard names.

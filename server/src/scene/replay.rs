@@ -98,7 +98,10 @@ impl Replay {
     ) -> Result<Self, Error> {
         check_speed(speed)?;
         if !from.is_finite() {
-            return Err(Error::invalid("from must be a finite number of seconds"));
+            return Err(Error::invalid_field(
+                "from",
+                "from must be a finite number of seconds",
+            ));
         }
         let reader = TakeReader::new(source, index.clone());
         let mut replay = Self {
@@ -202,7 +205,10 @@ impl Replay {
             check_speed(s)?;
         }
         if time.is_some_and(|t| !t.is_finite()) {
-            return Err(Error::invalid("time must be a finite number of seconds"));
+            return Err(Error::invalid_field(
+                "time",
+                "time must be a finite number of seconds",
+            ));
         }
         let now = self.time_at(clock);
         self.anchor_clock = clock;

@@ -144,11 +144,9 @@ pub fn clips(
 /// # Errors
 /// `unknown_asset`, `conflict`.
 pub fn rig_of(take: &str, library: &Library, d: &AvatarDescription) -> Result<Arc<Rig>, Error> {
-    let rig = library.get(&d.name).ok_or_else(|| {
-        Error::UnknownAsset(format!(
-            "{} (avatar {} of take {take} was made of it)",
-            d.name, d.id
-        ))
+    let rig = library.get(&d.name).ok_or_else(|| Error::UnknownAsset {
+        asset: d.name.clone(),
+        needed_by: Some(format!("avatar {} of take {take}", d.id)),
     })?;
     let names = rig.skeleton().names();
     if names.len() != d.joint_names.len() || names.iter().zip(&d.joint_names).any(|(a, b)| a != b) {

@@ -401,7 +401,7 @@ impl Takes {
         tick_rate: f32,
         limits: TakeLimits,
     ) -> Result<Sink, Error> {
-        check_id("take", take).map_err(|e| Error::invalid(e.message))?;
+        check_id("take", take).map_err(|e| Error::invalid_field("take", e.message))?;
         let mut inner = self.lock();
         // A take that ended by itself (a limit; its scene deleted) and was not stopped.
         inner.recording.retain(|_, a| a.writing());
@@ -789,7 +789,7 @@ impl Takes {
     /// `invalid_value` (a bad name), `conflict` (a take of that name is recorded here),
     /// `internal`/`storage_full`.
     pub fn install(&self, take: &str, nuid: &str, bytes: &[u8]) -> Result<(), Error> {
-        check_id("take", take).map_err(|e| Error::invalid(e.message))?;
+        check_id("take", take).map_err(|e| Error::invalid_field("take", e.message))?;
         if self.is_recording(take) {
             return Err(Error::Conflict(format!(
                 "take {take} is being recorded on this server"

@@ -216,7 +216,7 @@ impl World {
     }
 
     fn insert(&self, id: SceneId, quota: bool, ticked: bool) -> Result<Arc<Scene>, Error> {
-        check_id("scene", &id.0).map_err(|e| Error::Invalid(e.message))?;
+        check_id("scene", &id.0).map_err(|e| Error::invalid_field("scene", e.message))?;
         let mut scenes = self
             .scenes
             .write()
@@ -335,7 +335,7 @@ impl World {
         let rig = self.library.require(asset)?;
         let seq = self.next_avatar_num.fetch_add(1, Ordering::Relaxed);
         let id = id.unwrap_or_else(|| AvatarId(format!("{}-{seq}", rig.name)));
-        check_id("avatar", &id.0).map_err(|e| Error::Invalid(e.message))?;
+        check_id("avatar", &id.0).map_err(|e| Error::invalid_field("avatar", e.message))?;
         let by_id = self.numbers_from_ids.load(Ordering::SeqCst);
         let num = if by_id { number_of(&id.0) } else { seq };
         let mut avatar = Avatar::new(id.clone(), num, rig);

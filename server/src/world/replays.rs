@@ -122,12 +122,13 @@ impl World {
             if skip(&id) {
                 continue;
             }
-            let rig = self.library.get(&d.name).ok_or_else(|| {
-                Error::UnknownAsset(format!(
-                    "{} (avatar {} of take {take} was made of it)",
-                    d.name, d.id
-                ))
-            })?;
+            let rig = self
+                .library
+                .get(&d.name)
+                .ok_or_else(|| Error::UnknownAsset {
+                    asset: d.name.clone(),
+                    needed_by: Some(format!("avatar {} of take {take}", d.id)),
+                })?;
             check_id("avatar", &id.0).map_err(|e| {
                 Error::invalid(format!(
                     "replay avatar {id}: {} (choose a shorter scene id)",

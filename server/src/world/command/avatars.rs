@@ -131,7 +131,10 @@ impl Handler for PlaceAvatar {
         let to = placement(*position, *rotation)?;
         let duration = duration.unwrap_or(0.0);
         if !(duration.is_finite() && duration >= 0.0) {
-            return Err(Error::invalid("duration must be finite and ≥ 0"));
+            return Err(Error::invalid_field(
+                "duration",
+                "duration must be finite and ≥ 0",
+            ));
         }
         let scene = world.find_avatar(avatar)?;
         let mut s = scene.lock();

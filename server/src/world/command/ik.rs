@@ -137,7 +137,7 @@ impl Handler for ClearIkGoal {
         );
         let fade = fade.unwrap_or(DEFAULT_FADE);
         if !(fade.is_finite() && fade >= 0.0) {
-            return Err(Error::invalid("fade must be finite and ≥ 0"));
+            return Err(Error::invalid_field("fade", "fade must be finite and ≥ 0"));
         }
         with_avatar(world, avatar, |a| {
             let joint = effector.as_deref().map(|e| joint_index(a, e)).transpose()?;

@@ -85,7 +85,7 @@ impl Handler for SetJointDofs {
                 )));
             }
             for (i, &v) in values.iter().enumerate() {
-                dofs.set(i, finite("DOF value", v)?)
+                dofs.set(i, finite("dofs", v)?)
                     .map_err(|e| Error::invalid(e.to_string()))?;
             }
             let q =

@@ -48,13 +48,17 @@ impl Handler for PlayLayer {
                 fade,
             }
         );
-        posecast_proto::msg::check_id("layer", layer).map_err(|e| Error::Invalid(e.message))?;
+        posecast_proto::msg::check_id("layer", layer)
+            .map_err(|e| Error::invalid_field("layer", e.message))?;
         let speed = finite("speed", speed.unwrap_or(1.0))?;
         let start = finite("start", start.unwrap_or(0.0))?;
         let fade = finite("fade", fade.unwrap_or(DEFAULT_FADE))?.max(0.0);
         let weight = finite("weight", weight.unwrap_or(1.0))?;
         if !(0.0..=1.0).contains(&weight) {
-            return Err(Error::invalid(format!("weight {weight} is outside [0, 1]")));
+            return Err(Error::invalid_field(
+                "weight",
+                format!("weight {weight} is outside [0, 1]"),
+            ));
         }
         let source = from_asset
             .as_ref()
@@ -111,7 +115,9 @@ impl Handler for StopLayer {
                 .layers
                 .iter_mut()
                 .find(|l| l.name == *layer)
-                .ok_or_else(|| Error::invalid(format!("avatar {} has no layer {layer:?}", a.id)))?;
+                .ok_or_else(|| {
+                    Error::invalid_field("layer", format!("avatar {} has no layer {layer:?}", a.id))
+                })?;
             l.stop(fade);
             a.layers.retain(|l| !l.finished());
             a.evaluate();

@@ -299,20 +299,26 @@ macro_rules! fields {
 use fields;
 
 /// A finite, non-zero quaternion, normalised (in f64, so huge finite components cannot
-/// overflow into a zero or NaN rotation that would then be acknowledged and stored).
+/// overflow into a zero or NaN rotation that would then be acknowledged and stored): the
+/// command's `rotation`.
 fn quat(q: [f32; 4]) -> Result<Quat, Error> {
     posecast_proto::unit_quat(q).ok_or_else(|| {
-        Error::invalid(format!(
-            "rotation {q:?} is not a finite non-zero quaternion"
-        ))
+        Error::invalid_field(
+            "rotation",
+            format!("rotation {q:?} is not a finite non-zero quaternion"),
+        )
     })
 }
 
-fn finite(name: &str, v: f32) -> Result<f32, Error> {
+/// `v`, the command's field `field`, when finite.
+fn finite(field: &'static str, v: f32) -> Result<f32, Error> {
     if v.is_finite() {
         Ok(v)
     } else {
-        Err(Error::invalid(format!("{name} must be finite")))
+        Err(Error::invalid_field(
+            field,
+            format!("{field} must be finite"),
+        ))
     }
 }
 

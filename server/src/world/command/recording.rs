@@ -28,11 +28,14 @@ impl Handler for Record {
                 max_seconds,
             }
         );
-        check_id("clip", clip).map_err(|e| Error::Invalid(e.message))?;
+        check_id("clip", clip).map_err(|e| Error::invalid_field("clip", e.message))?;
         let mut limits = RecordLimits::DEFAULT;
         if let Some(s) = max_seconds {
             if !(s.is_finite() && *s > 0.0) {
-                return Err(Error::invalid("max_seconds must be finite and > 0"));
+                return Err(Error::invalid_field(
+                    "max_seconds",
+                    "max_seconds must be finite and > 0",
+                ));
             }
             limits.max_seconds = limits.max_seconds.min(f64::from(*s));
         }
