@@ -1,7 +1,7 @@
 //! Minted tokens (issue 39): what an app asks for when a user joins (`POST /api/tokens`), and
 //! what it gets back — a signed token limited to rights, scenes, avatars and a lifetime.
 //!
-//! The server's side (signing, checking, revoking) is `server/src/auth/minted.rs`;
+//! The server's side (signing, checking, revoking) is `services/src/auth/minted.rs`;
 //! `docs/src/reference/access-control.md` describes the rules.
 
 use crate::msg::{AvatarId, SceneId};

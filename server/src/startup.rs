@@ -1,10 +1,10 @@
 //! Starting and stopping a server: bind and serve at once, load rigs and restore scenes in
 //! the background (`restore`).
 
+use crate::app::AppState;
 use crate::config::Config;
 use crate::restore::{self, data_folder_error};
 use crate::service::{app, listener};
-use crate::state::AppState;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use tokio::sync::oneshot;

@@ -11,7 +11,7 @@ use posecast_proto::msg::SceneId;
 use posecast_server::config::Config;
 use posecast_server::control;
 use posecast_server::import::files::FileSet;
-use posecast_server::state::AppState;
+use posecast_server::state::Services;
 
 const SKEL: &str = "balljoint root { offset 0 1 0 \
     balljoint elbow { offset 0.3 0 0 rotxlimit -1 1 rotylimit -0.66 -0.66 rotzlimit 0 0.2 } }";
@@ -31,7 +31,7 @@ fn anim() -> String {
 
 #[tokio::test]
 async fn clip_values_are_clamped_to_dof_limits() {
-    let state = AppState::new(Config::default());
+    let state = Services::new(Config::default());
     let mut set = FileSet::new();
     set.insert("arm.skel", SKEL.as_bytes().to_vec()).unwrap();
     set.insert("bend.anim", anim().into_bytes()).unwrap();

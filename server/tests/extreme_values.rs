@@ -16,7 +16,7 @@ use posecast_proto::testing::finite_f32s;
 use posecast_server::config::Config;
 use posecast_server::control;
 use posecast_server::import::files::FileSet;
-use posecast_server::state::AppState;
+use posecast_server::state::Services;
 use posecast_server::store::snapshot;
 use proptest::prelude::*;
 use std::sync::Arc;
@@ -26,14 +26,14 @@ const SKEL: &str = "balljoint root { offset 0 1 0 \
     balljoint knee { offset 0 -0.5 0 rotxlimit -2 0 rotylimit 0 0 rotzlimit -0.5 0.5 } \
     balljoint free { offset 0.2 0 0 } }";
 
-fn world() -> (tokio::runtime::Runtime, Arc<AppState>) {
+fn world() -> (tokio::runtime::Runtime, Arc<Services>) {
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
         .unwrap();
     let state = {
         let _enter = rt.enter();
-        let state = AppState::new(Config::default());
+        let state = Services::new(Config::default());
         state
             .world
             .library
@@ -148,7 +148,7 @@ fn command(op: &Op) -> Option<Command> {
 }
 
 /// Every avatar's pose and state is finite and every rotation a unit quaternion.
-fn assert_finite(state: &AppState, after: &Op) {
+fn assert_finite(state: &Services, after: &Op) {
     let scene = state.world.scene(&SceneId("s".into())).unwrap();
     let info = scene.info();
     for a in &info.avatars {

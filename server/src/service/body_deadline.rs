@@ -8,8 +8,8 @@
 //! The connection closes after that answer: the rest of the body was never read.
 
 use super::rest::AppError;
+use crate::app::AppState;
 use crate::metrics::net::Timeout;
-use crate::state::AppState;
 use axum::body::{Body, Bytes};
 use axum::extract::{Request, State};
 use axum::http::{HeaderValue, header};

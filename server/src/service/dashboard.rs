@@ -12,7 +12,7 @@
 //! `Cache-Control: no-cache`: browsers keep it and revalidate (a 304 when unchanged), so a new
 //! server binary never leaves a stale script in use.
 
-use crate::state::AppState;
+use crate::app::AppState;
 use axum::extract::{Path, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};

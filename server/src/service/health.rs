@@ -2,8 +2,8 @@
 //! ([`crate::readiness`]).
 
 use super::rest::AppError;
+use crate::app::AppState;
 use crate::readiness::Phase;
-use crate::state::AppState;
 use axum::Json;
 use axum::extract::{Request, State};
 use axum::http::{StatusCode, header};

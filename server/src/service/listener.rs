@@ -45,7 +45,7 @@ const ACCEPT_WARN_EVERY: Duration = Duration::from_secs(60);
 /// Serves `router` on `listener` until `signal` resolves; then stops accepting, lets every
 /// HTTP connection finish its request in flight (idle ones close at once) and returns when
 /// they are all gone. Upgraded websockets are not waited for here: they are the
-/// [`crate::state::AppState`]'s connections.
+/// [`crate::app::AppState`]'s connections.
 ///
 /// # Errors
 /// None today: accept failures are retried with back-off, never returned.

@@ -36,7 +36,7 @@ mod upload;
 mod ws;
 mod ws_liveness;
 
-use crate::state::AppState;
+use crate::app::AppState;
 use axum::Router;
 use axum::extract::{State, WebSocketUpgrade};
 use axum::http::{Method, StatusCode, Uri, header};
@@ -238,7 +238,7 @@ async fn quic_info(State(state): State<Arc<AppState>>) -> impl IntoResponse {
 /// callers get the total subscriber count only, a scene-limited token its own scenes.
 async fn metrics(
     State(state): State<Arc<AppState>>,
-    caller: crate::auth::Caller,
+    rest::Bearer(caller): rest::Bearer,
 ) -> Result<impl IntoResponse, rest::AppError> {
     let access = &state.config.access;
     access.authorize_read(&caller)?;

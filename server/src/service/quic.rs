@@ -15,9 +15,9 @@
 
 use super::admission::{Admission, Greeter};
 use super::ws;
+use crate::app::{AppState, QuicInfo};
 use crate::config::QuicCongestion;
 use crate::metrics::Metrics;
-use crate::state::{AppState, QuicInfo};
 use axum::extract::ws::Message;
 use axum_tungstenite::error::{CapacityError, Error as WsError, ProtocolError as WsProtocol};
 use futures_util::{Sink, Stream, StreamExt};

@@ -9,9 +9,9 @@
 //! Every request may carry `Authorization: Bearer <token>` ([`crate::auth`]); refusals are
 //! 401 (with `WWW-Authenticate: Bearer`) or 403 with the typed error as body.
 
+use crate::app::AppState;
 use crate::auth::Caller;
 use crate::control;
-use crate::state::AppState;
 use axum::Json;
 use axum::extract::FromRequestParts;
 use axum::extract::{Path, Query, State};
@@ -81,7 +81,10 @@ impl IntoResponse for AppError {
 /// The caller of a request, from its `Authorization: Bearer <token>` header (none:
 /// anonymous; the scheme is case-insensitive, RFC 7235 §2.1). A header that is not a bearer
 /// token, or an unknown token, is refused with 401.
-impl FromRequestParts<Arc<AppState>> for Caller {
+#[derive(Debug, Clone)]
+pub struct Bearer(pub Caller);
+
+impl FromRequestParts<Arc<AppState>> for Bearer {
     type Rejection = AppError;
 
     async fn from_request_parts(
@@ -89,7 +92,7 @@ impl FromRequestParts<Arc<AppState>> for Caller {
         state: &Arc<AppState>,
     ) -> Result<Self, Self::Rejection> {
         let Some(value) = parts.headers.get(header::AUTHORIZATION) else {
-            return Ok(Self::Anonymous);
+            return Ok(Self(Caller::Anonymous));
         };
         let identified = value
             .to_str()
@@ -114,7 +117,7 @@ impl FromRequestParts<Arc<AppState>> for Caller {
                 "refused"
             );
         }
-        Ok(identified?)
+        Ok(Self(identified?))
     }
 }
 
@@ -131,7 +134,7 @@ const MAX_IDEMPOTENCY_KEY: usize = 128;
 /// `POST /api/commands`.
 pub async fn command(
     State(state): State<Arc<AppState>>,
-    caller: Caller,
+    Bearer(caller): Bearer,
     headers: axum::http::HeaderMap,
     body: Bytes,
 ) -> Result<Json<Value>, AppError> {
@@ -168,7 +171,7 @@ pub async fn command(
 /// `DELETE /api/assets/{name}`: the `delete_asset` command.
 pub async fn delete_asset(
     State(state): State<Arc<AppState>>,
-    caller: Caller,
+    Bearer(caller): Bearer,
     Path(name): Path<String>,
 ) -> Result<Json<Value>, AppError> {
     run(&state, &caller, &Command::DeleteAsset { asset: name }).await
@@ -178,7 +181,7 @@ pub async fn delete_asset(
 /// or `{clip}.glb` as `GET` serves it).
 pub async fn delete_clip(
     State(state): State<Arc<AppState>>,
-    caller: Caller,
+    Bearer(caller): Bearer,
     Path((name, clip)): Path<(String, String)>,
 ) -> Result<Json<Value>, AppError> {
     let clip = match clip.strip_suffix(".glb") {
@@ -213,7 +216,7 @@ async fn run(
 /// `GET /api/scenes`.
 pub async fn scenes(
     State(state): State<Arc<AppState>>,
-    caller: Caller,
+    Bearer(caller): Bearer,
 ) -> Result<Json<Value>, AppError> {
     state.config.access.authorize_read(&caller)?;
     let scenes = control::execute_durable(&state, &Command::ListScenes).await?;
@@ -226,7 +229,7 @@ pub async fn scenes(
 /// description's inverse binds).
 pub async fn mesh(
     State(state): State<Arc<AppState>>,
-    caller: Caller,
+    Bearer(caller): Bearer,
     Path(name): Path<String>,
 ) -> Result<Response, AppError> {
     state.config.access.authorize_read(&caller)?;
@@ -253,7 +256,7 @@ pub async fn mesh(
 /// rig, recorded ones included. Written on the blocking pool (a long clip takes a while).
 pub async fn clip_file(
     State(state): State<Arc<AppState>>,
-    caller: Caller,
+    Bearer(caller): Bearer,
     Path((name, file)): Path<(String, String)>,
 ) -> Result<Response, AppError> {
     state.config.access.authorize_read(&caller)?;
@@ -309,7 +312,7 @@ pub async fn clip_file(
 /// `GET /api/takes`: the `list_takes` result.
 pub async fn takes(
     State(state): State<Arc<AppState>>,
-    caller: Caller,
+    Bearer(caller): Bearer,
 ) -> Result<Json<Value>, AppError> {
     state.config.access.authorize_read(&caller)?;
     Ok(Json(
@@ -324,7 +327,7 @@ pub async fn takes(
 /// moving them all ([`crate::takes::export`]).
 pub async fn take(
     State(state): State<Arc<AppState>>,
-    caller: Caller,
+    Bearer(caller): Bearer,
     Path(name): Path<String>,
     Query(range): Query<crate::takes::export::Range>,
 ) -> Result<Response, AppError> {
@@ -365,7 +368,7 @@ pub async fn take(
 /// seconds) as BVH motion of its rig, its root in scene space.
 pub async fn take_avatar(
     State(state): State<Arc<AppState>>,
-    caller: Caller,
+    Bearer(caller): Bearer,
     Path((take, file)): Path<(String, String)>,
     Query(range): Query<crate::takes::export::Range>,
 ) -> Result<Response, AppError> {
@@ -410,7 +413,7 @@ pub async fn take_avatar(
 /// `DELETE /api/takes/{take}`: the `delete_take` command.
 pub async fn delete_take(
     State(state): State<Arc<AppState>>,
-    caller: Caller,
+    Bearer(caller): Bearer,
     Path(take): Path<String>,
 ) -> Result<Json<Value>, AppError> {
     run(&state, &caller, &Command::DeleteTake { take }).await
@@ -434,7 +437,7 @@ fn attachment(content_type: &str, file: &str, bytes: Vec<u8>) -> Response {
 /// `GET /api/assets`.
 pub async fn assets(
     State(state): State<Arc<AppState>>,
-    caller: Caller,
+    Bearer(caller): Bearer,
 ) -> Result<Json<Value>, AppError> {
     state.config.access.authorize_read(&caller)?;
     Ok(Json(

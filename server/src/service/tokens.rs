@@ -2,9 +2,9 @@
 //! [`crate::auth::minted`]). Every route needs an admin token
 //! ([`crate::auth::AccessConfig::authorize_admin`]).
 
+use crate::app::AppState;
 use crate::auth::{Caller, Minter};
-use crate::service::rest::AppError;
-use crate::state::AppState;
+use crate::service::rest::{AppError, Bearer};
 use axum::Json;
 use axum::body::Bytes;
 use axum::extract::{Path, State};
@@ -17,7 +17,7 @@ use std::sync::Arc;
 /// `POST /api/tokens`: mints a token ([`MintRequest`] → 201 [`MintedToken`]).
 pub async fn mint(
     State(state): State<Arc<AppState>>,
-    caller: Caller,
+    Bearer(caller): Bearer,
     body: Bytes,
 ) -> Result<(StatusCode, Json<MintedToken>), AppError> {
     let minter = admin(&state, &caller, "mint")?;
@@ -36,7 +36,7 @@ pub async fn mint(
 /// `GET /api/tokens`: the tokens this server minted that are neither expired nor revoked.
 pub async fn list(
     State(state): State<Arc<AppState>>,
-    caller: Caller,
+    Bearer(caller): Bearer,
 ) -> Result<Json<Vec<TokenInfo>>, AppError> {
     let minter = admin(&state, &caller, "list")?;
     Ok(Json(minter.list()))
@@ -45,7 +45,7 @@ pub async fn list(
 /// `DELETE /api/tokens/{id}`: revokes a token (204). Connections holding it are closed.
 pub async fn revoke(
     State(state): State<Arc<AppState>>,
-    caller: Caller,
+    Bearer(caller): Bearer,
     Path(id): Path<String>,
 ) -> Result<StatusCode, AppError> {
     let minter = admin(&state, &caller, "revoke")?;

@@ -17,11 +17,11 @@
 //! `import_failed` (422) with the importer's message, `invalid_value` (400) for a bad name or
 //! body, `conflict` (409) for a name in use.
 
-use super::rest::AppError;
+use super::rest::{AppError, Bearer};
 use crate::auth::Caller;
 
+use crate::app::AppState;
 use crate::ingest;
-use crate::state::AppState;
 use axum::Json;
 use axum::body::Bytes;
 use axum::extract::{FromRequest, Multipart, Path, Request, State};
@@ -201,7 +201,7 @@ async fn file_set(
 /// `POST /api/assets/{name}`.
 pub async fn upload(
     State(state): State<Arc<AppState>>,
-    caller: Caller,
+    Bearer(caller): Bearer,
     Path(name): Path<String>,
     request: Request,
 ) -> Result<Json<Value>, AppError> {
@@ -228,7 +228,7 @@ fn audit_upload(op: &str, name: &str, caller: &Caller, result: Result<(), &AppEr
 /// `POST /api/assets/{name}/clips`.
 pub async fn add_clips(
     State(state): State<Arc<AppState>>,
-    caller: Caller,
+    Bearer(caller): Bearer,
     Path(name): Path<String>,
     request: Request,
 ) -> Result<Json<Value>, AppError> {

@@ -9,15 +9,15 @@
 //! [`super::admission::Admission::greet`]). Nothing a client sends can affect another
 //! connection.
 
+use crate::app::AppState;
 use crate::auth::Caller;
 use crate::control;
 use crate::live::{Drives, JsonPose};
 use crate::metrics::net::Timeout;
-use crate::scene::ticker::unix_micros;
+use crate::scene::unix_micros;
 use crate::service::admission::Greeter;
 use crate::service::listener::{CLOSE_TRY_AGAIN_LATER, SocketInfo};
 use crate::service::ws_liveness::{Due, Liveness};
-use crate::state::AppState;
 use axum::extract::ws::{Message, WebSocket, close_code};
 use futures_util::{Sink, Stream, StreamExt};
 use posecast_core::error::Error;

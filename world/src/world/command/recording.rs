@@ -97,7 +97,7 @@ pub fn take_recording(world: &World, avatar: &AvatarId) -> Result<(String, Recor
 
 /// `stop_recording`'s slow half, with no scene lock held: the samples become a clip (tens
 /// of milliseconds for a 64 MiB take) that joins rig `rig`. Callers run it off the async
-/// workers ([`crate::control`]), so no scene's tick waits for it.
+/// workers (`posecast_services::control`), so no scene's tick waits for it.
 ///
 /// # Errors
 /// `invalid_value` when nothing was recorded; `conflict` when the rig got a clip of that

@@ -1,4 +1,4 @@
-//! Counters of the VMC gateway ([`crate::vmc`]): datagrams in and what was refused, poses
+//! Counters of the VMC gateway (`posecast_services::vmc`): datagrams in and what was refused, poses
 //! applied, bundles sent. Kept apart (`Metrics::vmc`) like the network counters.
 
 use crate::metrics::{counter, labelled_counters};
@@ -10,9 +10,9 @@ use prometheus_client::registry::Registry;
 pub enum PacketDrop {
     /// Not OSC: truncated, a bad type tag, bytes left over, not UTF-8.
     Malformed,
-    /// Bundles nested deeper than [`crate::vmc::packet::MAX_BUNDLE_DEPTH`].
+    /// Bundles nested deeper than `posecast_services::vmc::packet::MAX_BUNDLE_DEPTH`.
     TooDeep,
-    /// Over the input's datagram rate ([`crate::vmc::input::MAX_PACKETS_PER_SECOND`]): not
+    /// Over the input's datagram rate (`posecast_services::vmc::input::MAX_PACKETS_PER_SECOND`): not
     /// even decoded.
     Flood,
     /// From a sender outside the input's allow-list (`--vmc-in …,from=CIDR`): not decoded.
@@ -47,7 +47,7 @@ pub enum MessageReject {
     /// A blend shape past the input's limit of names, or a name too long.
     BlendShapeLimit,
     /// A tracked device (`/VMC/Ext/{Hmd,Con,Tra}/Pos`) past the input's limit of serials
-    /// ([`crate::vmc::input::MAX_DEVICES`]), or a serial too long.
+    /// (`posecast_services::vmc::input::MAX_DEVICES`), or a serial too long.
     DeviceLimit,
 }
 

@@ -1,7 +1,7 @@
 //! The answers of a scene's latest commands that carried an idempotency key (PROTOCOL.md,
 //! "Idempotency"): a retry of an acknowledged command is answered with the first answer and
 //! not applied again; the same key used for another op is a `conflict`. The table lives with
-//! the scene and in its snapshot ([`crate::store::snapshot::SceneFile::recent`]), so a retry
+//! the scene and in its snapshot (`posecast_services::store::snapshot::SceneFile::recent`), so a retry
 //! after a restart — or, in a cluster, after another server took the scene over — is answered
 //! too. A server on its own keeps it in [`super::Scene`] (its keyed commands on one scene run
 //! one at a time, [`super::Scene::keyed`]); a cluster's owner keeps it beside its commit lock

@@ -314,7 +314,7 @@ impl Cluster {
                 return;
             }
         };
-        let elapsed = crate::scene::ticker::unix_micros().saturating_sub(saved_us) as f64 / 1e6;
+        let elapsed = crate::scene::unix_micros().saturating_sub(saved_us) as f64 / 1e6;
         let from = if record.paused {
             record.time
         } else {

@@ -45,7 +45,7 @@ pub struct Config {
     /// How long a live driver may stay silent before its avatar returns to its clip (or holds
     /// its last pose, as the `drive` asked).
     pub drive_timeout: Duration,
-    /// Network timeouts and connection caps ([`crate::service::limits`]).
+    /// Network timeouts and connection caps (`posecast_server::service::limits`).
     pub net: NetLimits,
 
     // --- VMC gateway (issue 17) ---

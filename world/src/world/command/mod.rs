@@ -8,9 +8,9 @@
 //! shows it). [`handler`] is the registration: one line per command.
 //!
 //! The services read a handler's declarations instead of matching commands themselves:
-//! access control ([`crate::auth`], handed the facts by [`crate::control::authorize`]), the
-//! control layer ([`crate::control`]: bake, run, count, persist), announcements
-//! ([`crate::changes`]) and a cluster's scene claims ([`crate::cluster`]). Adding a command is
+//! access control (`posecast_services::auth`, handed the facts by `posecast_services::control::authorize`), the
+//! control layer (`posecast_services::control`: bake, run, count, persist), announcements
+//! (`posecast_services::changes`) and a cluster's scene claims (`posecast_services::cluster`). Adding a command is
 //! its variant in `posecast_proto::command`, a handler in the file of its family here, and its
 //! line in [`handler`].
 //!
@@ -102,7 +102,7 @@ pub enum SceneChange {
 }
 
 /// What the connections that follow an avatar hear when a command on it succeeds
-/// (`avatar_changed`, `avatar_removed`; [`crate::changes`]).
+/// (`avatar_changed`, `avatar_removed`; `posecast_services::changes`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Announce {
     /// Nothing (reads, and commands on no avatar).

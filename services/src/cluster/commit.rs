@@ -177,7 +177,7 @@ impl Cluster {
             return self.delete(state, id, expected, run).await;
         }
         let scene = state.world.scene(id)?;
-        let now = crate::scene::ticker::unix_micros();
+        let now = crate::scene::unix_micros();
         let before = snapshot::snapshot(&scene, now);
         let result = match run.await {
             Ok(result) => result,
@@ -207,7 +207,7 @@ impl Cluster {
                     &state.world,
                     &before,
                     &touched(command, &before, &after),
-                    crate::scene::ticker::unix_micros(),
+                    crate::scene::unix_micros(),
                 );
                 match outcome {
                     Written::Fenced => {
@@ -320,7 +320,7 @@ impl Cluster {
         let empty = SceneFile {
             format: snapshot::SCENE_FORMAT,
             scene: id.clone(),
-            saved_us: crate::scene::ticker::unix_micros(),
+            saved_us: crate::scene::unix_micros(),
             avatars: Vec::new(),
             recent: recent.iter().cloned().collect(),
             replay: None,
@@ -382,7 +382,7 @@ impl Cluster {
         let Ok(scene) = world.scene(id) else {
             return Written::Fenced;
         };
-        let mut file = snapshot::snapshot(&scene, crate::scene::ticker::unix_micros());
+        let mut file = snapshot::snapshot(&scene, crate::scene::unix_micros());
         file.recent = recent.iter().cloned().collect();
         let bytes = match serde_json::to_vec(&file) {
             Ok(b) => Bytes::from(b),
@@ -487,7 +487,7 @@ impl Cluster {
         recent: &Recent,
     ) -> Result<u64, String> {
         let scene = world.scene(id).map_err(|e| e.to_string())?;
-        let mut file = snapshot::snapshot(&scene, crate::scene::ticker::unix_micros());
+        let mut file = snapshot::snapshot(&scene, crate::scene::unix_micros());
         file.recent = recent.iter().cloned().collect();
         let bytes = serde_json::to_vec(&file).map_err(|e| e.to_string())?;
         self.conn

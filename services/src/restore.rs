@@ -66,6 +66,13 @@ impl Plan {
     pub fn len(&self) -> usize {
         self.sources.len()
     }
+
+    /// Whether it holds no asset source (scenes and the built-in avatar are loaded all the
+    /// same).
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.sources.is_empty()
+    }
 }
 
 /// Loads `plan` on a thread of its own and marks `state` ready (or failed) when done. Scenes
@@ -227,7 +234,7 @@ fn load_file(world: &crate::world::World, path: &Path) {
 }
 
 /// `e` with the data folder named: the bare OS error ("Not a directory") does not say which.
-pub(crate) fn data_folder_error(state: &Services, e: &std::io::Error) -> std::io::Error {
+pub fn data_folder_error(state: &Services, e: &std::io::Error) -> std::io::Error {
     let folder = state
         .store
         .root()

@@ -52,7 +52,7 @@ pub mod owners;
 pub mod recordings;
 pub mod snapshot;
 
-use crate::scene::ticker::unix_micros;
+use crate::scene::unix_micros;
 use crate::world::World;
 use posecast_core::error::Error;
 use posecast_proto::msg::SceneId;

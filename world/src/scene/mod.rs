@@ -10,6 +10,7 @@
 pub mod answers;
 pub mod replay;
 pub(crate) mod ticker;
+pub use ticker::unix_micros;
 
 // Two locks, always taken in this order: the scene's (`Scene::lock`: avatars, clock), then the
 // feed's (`Scene::feed`: subscribers, cached frames, encoders). A tick takes the feed's before
@@ -86,7 +87,7 @@ pub struct Scene {
     pub keyed: tokio::sync::Mutex<()>,
     /// The answers of its latest keyed commands ([`answers`]), in its snapshot.
     answers: Mutex<answers::Recent>,
-    /// A `viewers` message to its watchers is on its way ([`crate::changes::viewers_changed`]).
+    /// A `viewers` message to its watchers is on its way (`posecast_services::changes::viewers_changed`).
     pub viewers_pending: AtomicBool,
     /// Where its ticks report avatars they changed by themselves ([`Scene::report_tick_changes`]).
     tick_changes: std::sync::OnceLock<TickChanges>,

@@ -1,9 +1,9 @@
 //! Live avatars (issue 16): a websocket connection drives an avatar with a stream of poses.
 //!
-//! - [`pose`]: the per-avatar driver state ([`LivePose`]) the avatar evaluates between its clip
-//!   and its joint overrides.
-//! - [`recording`]: a [`recording::Recorder`] turns the poses an avatar streams, tick by tick,
-//!   into a clip on its rig.
+//! - `posecast_sim::avatar::live`: the per-avatar driver state (`LivePose`) the avatar
+//!   evaluates between its clip and its joint overrides.
+//! - `posecast_sim::avatar::recording`: a `Recorder` turns the poses an avatar streams, tick by
+//!   tick, into a clip on its rig.
 //! - this module: the connection's side — `drive` / `release_drive`, validating pose messages
 //!   (JSON and binary), and releasing what it drives when it leaves.
 //! - `remote`: an avatar of a scene another server of the cluster ticks, driven through that

@@ -707,7 +707,7 @@ impl Cluster {
             }
         };
         lock(&self.short_of_assets).remove(id);
-        let now = crate::scene::ticker::unix_micros();
+        let now = crate::scene::unix_micros();
         let scene = if state.world.scene(id).is_ok_and(|s| s.is_relay()) {
             match state.world.promote(id) {
                 Ok(scene) => {

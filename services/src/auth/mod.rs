@@ -198,7 +198,7 @@ pub struct AccessConfig {
     /// Every accepted token.
     pub tokens: Vec<Arc<TokenRule>>,
     /// Mints and checks minted tokens; `None`: none are accepted (the server sets one up at
-    /// start, [`crate::startup::Server::start`]).
+    /// start, `posecast_server::startup::Server::start`).
     pub mint: Option<Arc<Minter>>,
 }
 

@@ -1,6 +1,6 @@
 //! Whether the server has finished what it loads at start, and how far it has got.
 //!
-//! A server listens before it loads anything ([`crate::startup::Server::start`]); rigs and
+//! A server listens before it loads anything (`posecast_server::startup::Server::start`); rigs and
 //! stored scenes are restored in the background (`restore`). Until then `GET
 //! /healthz` answers 503 with the progress, and every request that reads or changes scenes or
 //! assets waits here (see the guide, `docs/src/reference/persistence.md`).
@@ -65,7 +65,7 @@ impl Readiness {
     }
 
     /// Start-up begins with `total` asset sources to load.
-    pub(crate) fn begin(&self, total: usize) {
+    pub fn begin(&self, total: usize) {
         self.loaded.store(0, Ordering::Relaxed);
         self.total.store(total, Ordering::Relaxed);
         self.phase.send_replace(Phase::Starting);
@@ -78,7 +78,7 @@ impl Readiness {
 
     /// Start-up ended: ready, or failed with the reason. A server already stopped stays
     /// stopped.
-    pub(crate) fn finish(&self, result: Result<(), String>) {
+    pub fn finish(&self, result: Result<(), String>) {
         self.phase.send_if_modified(|p| {
             if *p != Phase::Starting {
                 return false;
@@ -93,7 +93,7 @@ impl Readiness {
 
     /// The server shuts down: a start-up still in progress stops (the loader gives up at its
     /// next step) and whoever waits for it is answered.
-    pub(crate) fn stop(&self) {
+    pub fn stop(&self) {
         self.phase.send_if_modified(|p| {
             let starting = *p == Phase::Starting;
             if starting {

@@ -7,7 +7,7 @@
 //!   and restoring stored scenes).
 //!
 //! The world knows nothing of connections, tokens or the data folder: those are services
-//! built on it ([`crate::auth`], [`crate::store`], [`crate::state`]).
+//! built on it (`posecast_services::auth`, `posecast_services::store`, `posecast_services::state`).
 
 pub mod command;
 pub mod replays;
@@ -90,7 +90,7 @@ impl World {
     }
 
     /// The avatars scenes' ticks change by themselves (once: the server's
-    /// announcer takes it at start, [`crate::changes::announce_tick_changes`]; later calls get
+    /// announcer takes it at start, `posecast_services::changes::announce_tick_changes`; later calls get
     /// `None`).
     pub fn take_tick_changes(&self) -> Option<TickChangesRx> {
         self.tick_changes_rx

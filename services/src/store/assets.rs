@@ -5,7 +5,7 @@
 
 use super::atomic::{self, sync_dir};
 use super::{Store, UPLOAD_TMP_PREFIX, Unusable, set_aside};
-use crate::scene::ticker::unix_micros;
+use crate::scene::unix_micros;
 use crate::world::World;
 use posecast_rigs::import::files::FileSet;
 use posecast_rigs::rig::PipelineOptions;

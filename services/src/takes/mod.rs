@@ -415,7 +415,7 @@ impl Takes {
             take: take.to_owned(),
             scene: scene.0.clone(),
             tick_rate,
-            started_us: crate::scene::ticker::unix_micros(),
+            started_us: crate::scene::unix_micros(),
         };
         let mut start = Vec::new();
         take::write_start(&header, &mut start);
