@@ -63,6 +63,11 @@ struct Args {
     /// fresher frames on a path that loses at random; quinn marks it experimental).
     #[arg(long, env = "POSECAST_QUIC_CONGESTION", value_enum, default_value_t = Congestion::Cubic)]
     quic_congestion: Congestion,
+    /// When a new WebTransport client must prove its address with a QUIC Retry (one round
+    /// trip) before the server sends its handshake: `under-load` (default: once 64 handshakes
+    /// are in progress, a flood of Initials), `always`, or `never`.
+    #[arg(long, env = "POSECAST_QUIC_RETRY", value_enum, default_value_t = Retry::UnderLoad)]
+    quic_retry: Retry,
     /// Folders whose assets (.glb, .vrm, .gltf, .bvh, .skel) are loaded at start (repeatable).
     #[arg(long = "assets", env = "POSECAST_ASSETS", value_delimiter = ',')]
     assets: Vec<PathBuf>,
@@ -369,6 +374,24 @@ impl From<Congestion> for posecast_server::config::QuicCongestion {
     }
 }
 
+/// `--quic-retry`'s values ([`posecast_server::config::QuicRetry`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum Retry {
+    Never,
+    UnderLoad,
+    Always,
+}
+
+impl From<Retry> for posecast_server::config::QuicRetry {
+    fn from(r: Retry) -> Self {
+        match r {
+            Retry::Never => Self::Never,
+            Retry::UnderLoad => Self::UnderLoad,
+            Retry::Always => Self::Always,
+        }
+    }
+}
+
 /// How log lines are written (`--log-format`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 enum LogFormat {
@@ -519,6 +542,7 @@ async fn main() -> anyhow::Result<()> {
         quic_listen: args.quic_listen,
         quic_identity: args.quic_cert.zip(args.quic_key),
         quic_congestion: args.quic_congestion.into(),
+        quic_retry: args.quic_retry.into(),
     };
     raise_open_files_limit();
     // Registered before the server listens: a SIGTERM that arrives during start-up (as soon as

@@ -845,3 +845,159 @@ async fn through_a_lossy_udp_path_only_lost_ticks_are_missing() {
     assert!(p99 <= 60_000, "frame age p99 {p99} µs");
     server.stop().await;
 }
+
+/// What the server sent an address that never proved itself: the bytes it was sent (a
+/// client's first flight), the bytes of the server's datagrams, and the datagrams.
+struct Unvalidated {
+    sent: u64,
+    received: u64,
+    answers: Vec<Vec<u8>>,
+}
+
+/// A real client's first flight is passed on to the server at `upstream` from another socket,
+/// and nothing the server answers goes back, so the address is never validated (the client
+/// never sees the server's answer); everything the server sends that socket, retransmissions
+/// included, is collected until it has been quiet past its retransmission backoff. Asserts,
+/// datagram by datagram, that the server started each datagram within the budget (3× what
+/// it had received): quinn lets the last one run over, by less than one datagram.
+async fn unvalidated_exchange(server: &posecast_server::startup::Server) -> Unvalidated {
+    let port = server.state.quic.get().unwrap().port;
+    let upstream = SocketAddr::from(([127, 0, 0, 1], port));
+    let front = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let spoofed = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let front_port = front.local_addr().unwrap().port();
+    let (_, body) = common::get_bytes(server.addr, "/api/quic").await;
+    let info: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    let hex = info["cert_sha256"].as_str().unwrap().to_owned();
+    let client = tokio::spawn(async move {
+        let hash: Vec<u8> = (0..hex.len())
+            .step_by(2)
+            .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap())
+            .collect();
+        let config = ClientConfig::builder()
+            .with_bind_default()
+            .with_server_certificate_hashes([Sha256Digest::new(hash.try_into().unwrap())])
+            .build();
+        let endpoint = Endpoint::client(config).unwrap();
+        endpoint
+            .connect(format!("https://127.0.0.1:{front_port}/"))
+            .await
+    });
+    let mut seen = Unvalidated {
+        sent: 0,
+        received: 0,
+        answers: Vec::new(),
+    };
+    let (mut up, mut down) = (vec![0u8; 65_536], vec![0u8; 65_536]);
+    // The first datagram may take a while on a busy machine; after it, the count stops once
+    // neither side has sent anything for longer than the server's retransmission backoff.
+    let quiet = std::time::Duration::from_secs(6);
+    let mut wait = PATIENCE;
+    loop {
+        tokio::select! {
+            r = front.recv_from(&mut up) => {
+                // The client's first flight, until the server answers it; its retransmissions
+                // after that are dropped, so the server's budget stays what the first flight
+                // gave it while it retransmits its own.
+                let (n, _) = r.unwrap();
+                if seen.answers.is_empty() {
+                    spoofed.send_to(&up[..n], upstream).await.unwrap();
+                    seen.sent += n as u64;
+                    wait = quiet;
+                }
+            }
+            r = spoofed.recv_from(&mut down) => {
+                let (n, from) = r.unwrap();
+                assert_eq!(from, upstream);
+                assert!(
+                    seen.received < 3 * seen.sent,
+                    "the server began a datagram with {} B sent to an address that sent {} B",
+                    seen.received,
+                    seen.sent
+                );
+                seen.received += n as u64;
+                seen.answers.push(down[..n].to_vec());
+                wait = quiet;
+            }
+            () = tokio::time::sleep(wait) => break,
+        }
+    }
+    client.abort();
+    assert!(
+        seen.sent >= 1200,
+        "the client's Initial is padded to 1200 B: {}",
+        seen.sent
+    );
+    assert!(
+        !seen.answers.is_empty(),
+        "the server never answered the client's Initial"
+    );
+    seen
+}
+
+/// Whether `datagram` is a QUIC v1 Retry packet (RFC 9000 §17.2.5: a long header of type 3).
+fn is_retry(datagram: &[u8]) -> bool {
+    datagram.first().is_some_and(|b| b & 0xf0 == 0xf0)
+        && datagram.get(1..5) == Some(&[0, 0, 0, 1][..])
+}
+
+/// Amplification (RFC 9000 §8.1): until an address is validated, the server sends it about
+/// three times what it received from it at most, so a spoofed source cannot turn the server
+/// into an amplifier. With the handshake at once (`--quic-retry never`, and the default when
+/// few handshakes are under way), quinn starts each datagram within 3× and may finish the last
+/// one over it: the total stays under 3× plus one datagram. With `--quic-retry always`, an
+/// unproven address gets nothing but Retry packets — far under 3× — and a real client still
+/// connects (it answers the Retry). Red with the datagram check at 1×, and with Retry off in
+/// the second server (a handshake's datagrams are not Retry packets).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_unvalidated_address_gets_at_most_three_times_what_it_sent() {
+    let server = quic_server(30.0, |c| {
+        c.quic_retry = posecast_server::config::QuicRetry::Never;
+    })
+    .await;
+    let seen = unvalidated_exchange(&server).await;
+    let largest = seen.answers.iter().map(Vec::len).max().unwrap() as u64;
+    eprintln!(
+        "handshake at once: sent {} B, answered with {} B in {} datagrams ({:.2}×)",
+        seen.sent,
+        seen.received,
+        seen.answers.len(),
+        seen.received as f64 / seen.sent as f64
+    );
+    assert!(seen.received < 3 * seen.sent + largest);
+    assert!(!seen.answers.iter().any(|d| is_retry(d)));
+    server.stop().await;
+
+    let server = quic_server(30.0, |c| {
+        c.quic_retry = posecast_server::config::QuicRetry::Always;
+    })
+    .await;
+    let seen = unvalidated_exchange(&server).await;
+    eprintln!(
+        "retry always: sent {} B, answered with {} B in {} datagrams ({:.2}×)",
+        seen.sent,
+        seen.received,
+        seen.answers.len(),
+        seen.received as f64 / seen.sent as f64
+    );
+    assert!(
+        seen.answers.iter().all(|d| is_retry(d)),
+        "only Retry packets"
+    );
+    assert!(seen.received <= 3 * seen.sent);
+    // An honest client answers the Retry and gets its session.
+    let addr = server.addr;
+    let (conn, mut send, mut recv) = connect(addr).await;
+    greet(&mut send, &mut recv, None).await;
+    drop(conn);
+    let (_, metrics) = common::get_bytes(addr, "/metrics").await;
+    let metrics = String::from_utf8(metrics).unwrap();
+    let retries: u64 = metrics
+        .lines()
+        .find_map(|l| l.strip_prefix("posecast_quic_retries_total "))
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(retries >= 2, "{retries} retries counted");
+    server.stop().await;
+}

@@ -81,6 +81,8 @@ pub struct Config {
     pub quic_identity: Option<(PathBuf, PathBuf)>,
     /// The congestion controller of every QUIC connection (`--quic-congestion`).
     pub quic_congestion: QuicCongestion,
+    /// When a client's address is proven by a Retry before its handshake (`--quic-retry`).
+    pub quic_retry: QuicRetry,
 }
 
 /// The congestion controller QUIC connections use: it paces the frames' datagrams.
@@ -99,6 +101,27 @@ pub enum QuicCongestion {
     /// NewReno (RFC 9002's reference): as loss-driven as CUBIC.
     NewReno,
 }
+
+/// When the WebTransport endpoint answers a new client with a QUIC Retry (RFC 9000 §8.1.2):
+/// a token the client must echo from its address, proving the address before the server
+/// sends its handshake. Until an address is proven, QUIC limits what a server sends it to 3×
+/// what it received — but quinn lets the last datagram overshoot (up to one datagram more);
+/// a Retry answers a spoofed 1,200-byte Initial with one small packet and nothing else. It
+/// costs an honest client one round trip.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum QuicRetry {
+    /// Never: the handshake starts at once (the 3× limit, as quinn keeps it).
+    Never,
+    /// When at least [`QUIC_RETRY_LOAD`] handshakes are in progress (a flood of Initials,
+    /// spoofed or not): the default.
+    #[default]
+    UnderLoad,
+    /// Always: every new client's address is proven first.
+    Always,
+}
+
+/// Handshakes in progress from which [`QuicRetry::UnderLoad`] answers new clients with a Retry.
+pub const QUIC_RETRY_LOAD: usize = 64;
 
 /// Default [`Config::lease_ttl`]: 3 s (a scene whose owner died is ticked again within it).
 pub const DEFAULT_LEASE_TTL: Duration = Duration::from_secs(3);
@@ -138,6 +161,7 @@ impl Default for Config {
             quic_listen: None,
             quic_identity: None,
             quic_congestion: QuicCongestion::default(),
+            quic_retry: QuicRetry::default(),
         }
     }
 }

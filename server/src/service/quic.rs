@@ -16,7 +16,7 @@
 use super::admission::{Admission, Greeter};
 use super::ws;
 use crate::app::{AppState, QuicInfo};
-use crate::config::QuicCongestion;
+use crate::config::{QUIC_RETRY_LOAD, QuicCongestion, QuicRetry};
 use crate::metrics::Metrics;
 use axum::extract::ws::Message;
 use axum_tungstenite::error::{CapacityError, Error as WsError, ProtocolError as WsProtocol};
@@ -25,6 +25,7 @@ use posecast_proto::msg::MAX_CLIENT_MESSAGE_BYTES;
 use posecast_proto::quic as wire;
 use posecast_stream::outbox::Outbox;
 use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Duration;
 use tokio::task::JoinHandle;
 use tracing::{debug, info};
@@ -153,20 +154,69 @@ pub async fn start(state: &Arc<AppState>) -> std::io::Result<Option<JoinHandle<(
         net.max_connections_per_address,
         state.metrics.clone(),
     );
+    let handshakes = Arc::new(AtomicUsize::new(0));
     Ok(Some(tokio::spawn(async move {
         loop {
             let incoming = endpoint.accept().await;
-            tokio::spawn(session(state.clone(), admission.clone(), incoming));
+            if needs_retry(
+                state.config.quic_retry,
+                handshakes.load(Ordering::Relaxed),
+                incoming.remote_address_validated(),
+            ) {
+                state.metrics.quic.retried();
+                incoming.retry();
+                continue;
+            }
+            let handshake = Handshake::begin(&handshakes);
+            tokio::spawn(session(
+                state.clone(),
+                admission.clone(),
+                incoming,
+                handshake,
+            ));
         }
     })))
 }
 
+/// Whether a new client whose address is (or is not) `validated` gets a Retry with
+/// `in_progress` handshakes under way (`--quic-retry`).
+fn needs_retry(policy: QuicRetry, in_progress: usize, validated: bool) -> bool {
+    !validated
+        && match policy {
+            QuicRetry::Never => false,
+            QuicRetry::UnderLoad => in_progress >= QUIC_RETRY_LOAD,
+            QuicRetry::Always => true,
+        }
+}
+
+/// A handshake in progress, counted until it ends either way (dropped).
+struct Handshake(Arc<AtomicUsize>);
+
+impl Handshake {
+    fn begin(count: &Arc<AtomicUsize>) -> Self {
+        count.fetch_add(1, Ordering::Relaxed);
+        Self(count.clone())
+    }
+}
+
+impl Drop for Handshake {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::Relaxed);
+    }
+}
+
 /// One WebTransport session, from its handshake to its end.
-async fn session(state: Arc<AppState>, admission: Arc<Admission>, incoming: IncomingSession) {
+async fn session(
+    state: Arc<AppState>,
+    admission: Arc<Admission>,
+    incoming: IncomingSession,
+    handshake: Handshake,
+) {
     let Ok(Ok(request)) = tokio::time::timeout(HANDSHAKE, incoming).await else {
         debug!("a QUIC handshake failed or timed out");
         return;
     };
+    drop(handshake);
     let peer = request.remote_address();
     let Ok(permit) = admission.try_admit(peer.ip()) else {
         debug!(%peer, "a WebTransport session over a connection cap: refused");
@@ -382,4 +432,30 @@ fn sent(
             Ok::<_, axum::Error>((conn, send, outbox, metrics))
         },
     )
+}
+
+#[cfg(test)]
+mod retry_tests {
+    use super::*;
+
+    /// `--quic-retry`: never, from the load threshold on, or always — and never for an
+    /// address already proven (a client answering a Retry).
+    #[test]
+    fn a_retry_is_asked_by_policy_and_load_of_unproven_addresses_only() {
+        let busy = QUIC_RETRY_LOAD;
+        assert!(!needs_retry(QuicRetry::Never, busy * 10, false));
+        assert!(!needs_retry(QuicRetry::UnderLoad, busy - 1, false));
+        assert!(needs_retry(QuicRetry::UnderLoad, busy, false));
+        assert!(needs_retry(QuicRetry::Always, 0, false));
+        for policy in [QuicRetry::Never, QuicRetry::UnderLoad, QuicRetry::Always] {
+            assert!(!needs_retry(policy, busy * 10, true), "{policy:?}");
+        }
+        // The count follows handshakes begun and ended.
+        let count = Arc::new(AtomicUsize::new(0));
+        let (a, b) = (Handshake::begin(&count), Handshake::begin(&count));
+        assert_eq!(count.load(Ordering::Relaxed), 2);
+        drop(a);
+        drop(b);
+        assert_eq!(count.load(Ordering::Relaxed), 0);
+    }
 }

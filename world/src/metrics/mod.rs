@@ -547,7 +547,8 @@ posecast_quic_datagrams_ignored_total 0
 posecast_quic_refused_total 0
 posecast_quic_sessions_open 0
 posecast_quic_sessions_evicted_total{stage="unproven"} 0
-posecast_quic_sessions_evicted_total{stage="anonymous"} 0"#;
+posecast_quic_sessions_evicted_total{stage="anonymous"} 0
+posecast_quic_retries_total 0"#;
 
     /// Sample lines with their values parsed, so `0` and `0.0` compare equal.
     fn samples(text: &str) -> BTreeSet<(String, u64)> {

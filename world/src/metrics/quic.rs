@@ -23,6 +23,7 @@ pub struct QuicCounters {
     open: GaugeU64,
     /// Unproven, anonymous.
     evicted: [Counter; 2],
+    retries: Counter,
 }
 
 impl QuicCounters {
@@ -74,6 +75,11 @@ impl QuicCounters {
                 "WebTransport sessions closed at the global cap to admit a newcomer (stage: no hello yet, or an idle anonymous session)",
                 "stage",
                 ["unproven", "anonymous"],
+            ),
+            retries: counter(
+                r,
+                "quic_retries",
+                "New WebTransport clients answered with a QUIC Retry (their address proven before the handshake: --quic-retry)",
             ),
         }
     }
@@ -129,6 +135,11 @@ impl QuicCounters {
         if let Some(c) = self.evicted.get(usize::from(stage == "anonymous")) {
             c.inc();
         }
+    }
+
+    /// A new client was answered with a Retry.
+    pub fn retried(&self) {
+        self.retries.inc();
     }
 
     /// A datagram that is not one.
