@@ -1001,3 +1001,89 @@ async fn an_unvalidated_address_gets_at_most_three_times_what_it_sent() {
     assert!(retries >= 2, "{retries} retries counted");
     server.stop().await;
 }
+
+/// A flood of Initials (`--quic-retry under-load`, the default): 80 real clients' first
+/// flights reach the server each from an address of its own that never answers, so their
+/// handshakes stay under way; from the 64th on, new clients are answered with a Retry
+/// instead of a handshake, and an honest client connecting during the flood still gets its
+/// session (it answers the Retry). Red with the threshold never reached (no Retry).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_flood_of_initials_is_answered_with_retries() {
+    const FLOOD: usize = 80;
+    let server = quic_server(30.0, |_| {}).await;
+    let port = server.state.quic.get().unwrap().port;
+    let upstream = SocketAddr::from(([127, 0, 0, 1], port));
+    let front = Arc::new(tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap());
+    let front_port = front.local_addr().unwrap().port();
+    let (_, body) = common::get_bytes(server.addr, "/api/quic").await;
+    let info: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    let hex = info["cert_sha256"].as_str().unwrap().to_owned();
+    let hash: Vec<u8> = (0..hex.len())
+        .step_by(2)
+        .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap())
+        .collect();
+    let hash: [u8; 32] = hash.try_into().unwrap();
+    let mut clients = Vec::new();
+    for _ in 0..FLOOD {
+        clients.push(tokio::spawn(async move {
+            let config = ClientConfig::builder()
+                .with_bind_default()
+                .with_server_certificate_hashes([Sha256Digest::new(hash)])
+                .build();
+            let endpoint = Endpoint::client(config).unwrap();
+            endpoint
+                .connect(format!("https://127.0.0.1:{front_port}/"))
+                .await
+        }));
+    }
+    // Each client's datagrams go on from a socket of its own; what the server answers is
+    // looked at (a Retry or not) and never passed back.
+    let (answers, mut answered) = tokio::sync::mpsc::unbounded_channel::<bool>();
+    let mut relays: HashMap<SocketAddr, Arc<tokio::net::UdpSocket>> = HashMap::new();
+    let mut up = vec![0u8; 65_536];
+    let (mut retries, mut handshakes) = (0usize, 0usize);
+    while retries == 0 || relays.len() < FLOOD {
+        tokio::select! {
+            r = front.recv_from(&mut up) => {
+                let (n, from) = r.unwrap();
+                let relay = match relays.get(&from) {
+                    Some(r) => r.clone(),
+                    None => {
+                        let relay = Arc::new(tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap());
+                        let (socket, answers) = (relay.clone(), answers.clone());
+                        tokio::spawn(async move {
+                            let mut down = vec![0u8; 65_536];
+                            while let Ok(n) = socket.recv(&mut down).await {
+                                if answers.send(is_retry(&down[..n])).is_err() {
+                                    break;
+                                }
+                            }
+                        });
+                        relays.insert(from, relay.clone());
+                        relay
+                    }
+                };
+                relay.send_to(&up[..n], upstream).await.unwrap();
+            }
+            Some(retry) = answered.recv() => {
+                if retry { retries += 1 } else { handshakes += 1 }
+            }
+            () = tokio::time::sleep(PATIENCE) => panic!(
+                "{} clients sent, {retries} retries, {handshakes} handshake datagrams",
+                relays.len()
+            ),
+        }
+    }
+    eprintln!(
+        "{} clients flooding: {retries} Retry packets, {handshakes} handshake datagrams so far",
+        relays.len()
+    );
+    // An honest client during the flood.
+    let (conn, mut send, mut recv) = connect(server.addr).await;
+    greet(&mut send, &mut recv, None).await;
+    drop(conn);
+    for c in clients {
+        c.abort();
+    }
+    server.stop().await;
+}
