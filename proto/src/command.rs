@@ -2,7 +2,7 @@
 //! ([`crate::msg::ClientMsg::Command`]). Every command is acknowledged with a JSON result or a
 //! typed error.
 
-use crate::msg::{AvatarId, SceneId};
+use crate::ids::{AvatarId, SceneId};
 use crate::rig_options::PipelineOptions;
 use serde::{Deserialize, Serialize};
 

@@ -1,7 +1,7 @@
 //! The avatar description: the rig as a client needs it to rebuild world and skinning matrices
 //! from streamed local rotations, with a hash that every pose frame carries.
 
-use crate::msg::AvatarId;
+use crate::ids::AvatarId;
 use crate::skeleton::{Skeleton, SkeletonError};
 use crate::transform::Transform;
 use glam::{Mat4, Quat, Vec3};

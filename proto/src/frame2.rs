@@ -67,8 +67,7 @@ use std::sync::Arc;
 pub const MAGIC: u8 = 0x51;
 /// Most frames a delta chunk may refer to (its depth).
 pub const MAX_DEPTH: usize = 8;
-/// Translation quantisation step, metres.
-pub const TRANSLATION_STEP: f64 = 1.0 / 8192.0;
+pub use crate::precision::TRANSLATION_STEP;
 /// Bound on a translation's error after quantisation, metres (half a step), for
 /// |x| < 2³¹ · [`TRANSLATION_STEP`] (262,144 m; larger values are clamped).
 pub const MAX_TRANSLATION_ERROR: f64 = TRANSLATION_STEP / 2.0;

@@ -67,6 +67,7 @@ pub mod expressions;
 pub mod fk;
 pub mod frame;
 pub mod frame2;
+pub mod ids;
 pub mod live;
 pub mod morph;
 pub mod msg;

@@ -7,10 +7,8 @@
 //! `mouthOpen`, and one weight opens all three). Weights are in `[0, 1]` on every path in
 //! (commands, live poses, VMC) and on the wire, quantised to [`WEIGHT_LEVELS`] steps.
 
+use crate::skinning::SkinnedMesh;
 use glam::Vec3;
-use serde::{Deserialize, Serialize};
-
-use crate::skinning::{MeshError, SkinnedMesh};
 
 /// Quantisation levels of a streamed weight: `level = round(w · 1023)`, so a decoded weight is
 /// within [`MAX_WEIGHT_ERROR`] of the one sent.
@@ -18,56 +16,7 @@ pub const WEIGHT_LEVELS: u16 = 1023;
 /// The largest difference between a weight and its streamed value: half a level.
 pub const MAX_WEIGHT_ERROR: f32 = 0.5 / WEIGHT_LEVELS as f32;
 
-/// One morph target of a mesh: per-vertex displacements of positions and normals.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct MorphTarget {
-    /// The target's name (glTF `mesh.extras.targetNames`, else `target<k>`).
-    pub name: String,
-    /// Position displacement of every vertex, model (bind) space, metres.
-    pub positions: Vec<Vec3>,
-    /// Normal displacement of every vertex; empty when the target leaves normals alone.
-    #[serde(default)]
-    pub normals: Vec<Vec3>,
-}
-
-impl MorphTarget {
-    /// Checks the target against a mesh of `vertices` vertices.
-    ///
-    /// # Errors
-    /// A list of the wrong length, or a non-finite displacement.
-    pub fn check(&self, vertices: usize) -> Result<(), MeshError> {
-        if self.positions.len() != vertices {
-            return Err(MeshError::Length {
-                what: "morph target positions",
-                expected: vertices,
-                actual: self.positions.len(),
-            });
-        }
-        if !self.normals.is_empty() && self.normals.len() != vertices {
-            return Err(MeshError::Length {
-                what: "morph target normals",
-                expected: vertices,
-                actual: self.normals.len(),
-            });
-        }
-        for (what, list) in [
-            ("morph position", &self.positions),
-            ("morph normal", &self.normals),
-        ] {
-            if let Some(vertex) = list.iter().position(|d| !d.is_finite()) {
-                return Err(MeshError::NotFinite { vertex, what });
-            }
-        }
-        Ok(())
-    }
-
-    /// Whether the target displaces no vertex at all.
-    #[must_use]
-    pub fn is_empty(&self) -> bool {
-        self.positions.iter().all(|d| *d == Vec3::ZERO)
-            && self.normals.iter().all(|d| *d == Vec3::ZERO)
-    }
-}
+pub use crate::skinning::MorphTarget;
 
 /// Why a weight was refused.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
@@ -179,6 +128,7 @@ pub fn morph_cpu(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::skinning::MeshError;
 
     fn quad() -> SkinnedMesh {
         let p = vec![Vec3::ZERO, Vec3::X, Vec3::Y, Vec3::new(1.0, 1.0, 0.0)];

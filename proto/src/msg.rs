@@ -9,7 +9,6 @@
 use crate::command::{AvatarState, SceneInfo};
 use crate::description::AvatarDescription;
 use serde::{Deserialize, Serialize};
-use std::fmt;
 
 /// The protocol version clients speak unless they ask for another ([`SUPPORTED_VERSIONS`]).
 pub const PROTOCOL_VERSION: u32 = 1;
@@ -31,29 +30,7 @@ pub const SUPPORTED_VERSIONS: [u32; 7] = [1, 2, 3, 4, 5, 6, 7];
 /// Uploads of assets go through HTTP, not the websocket.
 pub const MAX_CLIENT_MESSAGE_BYTES: usize = 64 * 1024;
 
-/// A scene's id, chosen by whoever creates the scene (`"default"` for the built-in one).
-#[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
-#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
-#[serde(transparent)]
-pub struct SceneId(pub String);
-
-/// An avatar's id, unique on the server.
-#[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
-#[cfg_attr(feature = "ts", derive(ts_rs::TS))]
-#[serde(transparent)]
-pub struct AvatarId(pub String);
-
-impl fmt::Display for SceneId {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(&self.0)
-    }
-}
-
-impl fmt::Display for AvatarId {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(&self.0)
-    }
-}
+pub use crate::ids::{AvatarId, SceneId};
 
 /// How pose frames reach a client.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]

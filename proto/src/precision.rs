@@ -41,7 +41,6 @@
 //! precision stay shareable between subscribers.
 
 use crate::description::AvatarDescription;
-use crate::frame2::TRANSLATION_STEP;
 use glam::{Affine3A, Quat, Vec3};
 use serde::{Deserialize, Serialize};
 
@@ -51,6 +50,10 @@ pub const ZERO_LEVEL: i64 = 16383;
 pub const MAX_ROTATION_STEP: u8 = 255;
 /// Largest translation step.
 pub const MAX_TRANSLATION_STEP: u16 = u16::MAX;
+
+/// Translation quantisation step of wire v2, metres: the finest grid (re-exported by
+/// [`crate::frame2`]).
+pub const TRANSLATION_STEP: f64 = 1.0 / 8192.0;
 /// Default shell distance for `millimetres`, metres (ACL's default virtual vertex distance).
 pub const DEFAULT_SHELL: f32 = 0.03;
 

@@ -5,8 +5,6 @@
 use glam::{Mat3, Mat4, Vec3};
 use serde::{Deserialize, Serialize};
 
-use crate::morph::MorphTarget;
-
 /// Why mesh data was refused.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum MeshError {
@@ -381,6 +379,57 @@ pub fn skin_cpu(
         positions[v] = m.transform_point3(mesh.positions[v]);
         let linear = Mat3::from_mat4(m);
         normals[v] = (linear.inverse().transpose() * mesh.normals[v]).normalize_or_zero();
+    }
+}
+
+/// One morph target of a mesh (re-exported by [`crate::morph`], which weighs them): per-vertex displacements of positions and normals.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MorphTarget {
+    /// The target's name (glTF `mesh.extras.targetNames`, else `target<k>`).
+    pub name: String,
+    /// Position displacement of every vertex, model (bind) space, metres.
+    pub positions: Vec<Vec3>,
+    /// Normal displacement of every vertex; empty when the target leaves normals alone.
+    #[serde(default)]
+    pub normals: Vec<Vec3>,
+}
+
+impl MorphTarget {
+    /// Checks the target against a mesh of `vertices` vertices.
+    ///
+    /// # Errors
+    /// A list of the wrong length, or a non-finite displacement.
+    pub fn check(&self, vertices: usize) -> Result<(), MeshError> {
+        if self.positions.len() != vertices {
+            return Err(MeshError::Length {
+                what: "morph target positions",
+                expected: vertices,
+                actual: self.positions.len(),
+            });
+        }
+        if !self.normals.is_empty() && self.normals.len() != vertices {
+            return Err(MeshError::Length {
+                what: "morph target normals",
+                expected: vertices,
+                actual: self.normals.len(),
+            });
+        }
+        for (what, list) in [
+            ("morph position", &self.positions),
+            ("morph normal", &self.normals),
+        ] {
+            if let Some(vertex) = list.iter().position(|d| !d.is_finite()) {
+                return Err(MeshError::NotFinite { vertex, what });
+            }
+        }
+        Ok(())
+    }
+
+    /// Whether the target displaces no vertex at all.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.positions.iter().all(|d| *d == Vec3::ZERO)
+            && self.normals.iter().all(|d| *d == Vec3::ZERO)
     }
 }
 

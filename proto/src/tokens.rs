@@ -4,7 +4,7 @@
 //! The server's side (signing, checking, revoking) is `services/src/auth/minted.rs`;
 //! `docs/src/reference/access-control.md` describes the rules.
 
-use crate::msg::{AvatarId, SceneId};
+use crate::ids::{AvatarId, SceneId};
 use serde::{Deserialize, Serialize};
 
 /// One thing a token may do.

@@ -103,7 +103,7 @@ pub enum CalibrationPose {
 #[cfg_attr(feature = "ts", derive(ts_rs::TS))]
 pub struct CalibrationInfo {
     /// The avatar.
-    pub avatar: crate::msg::AvatarId,
+    pub avatar: crate::ids::AvatarId,
     /// The user's head (tracker) height above the scene's floor, metres.
     pub user_height: f32,
     /// The avatar's over the user's size: tracker positions are scaled by it about the user's
