@@ -46,8 +46,9 @@ async fn connect(addr: SocketAddr) -> (Connection, SendStream, RecvStream) {
     (conn, send, recv)
 }
 
-/// A WebTransport session with `addr`'s endpoint, or why there is none.
-async fn try_connect(addr: SocketAddr) -> Result<Connection, wtransport::error::ConnectingError> {
+/// What `GET /api/quic` of `addr` says: the endpoint's port and its self-signed
+/// certificate's SHA-256.
+async fn quic_info(addr: SocketAddr) -> (u16, [u8; 32]) {
     let (status, body) = common::get_bytes(addr, "/api/quic").await;
     assert_eq!(status, 200);
     let info: serde_json::Value = serde_json::from_slice(&body).unwrap();
@@ -58,13 +59,28 @@ async fn try_connect(addr: SocketAddr) -> Result<Connection, wtransport::error::
         .step_by(2)
         .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap())
         .collect();
+    let port = u16::try_from(info["port"].as_u64().unwrap()).unwrap();
+    (port, hash.try_into().unwrap())
+}
+
+/// A WebTransport handshake with port `port` of 127.0.0.1, trusting the certificate of
+/// SHA-256 `hash`.
+async fn handshake(
+    port: u16,
+    hash: [u8; 32],
+) -> Result<Connection, wtransport::error::ConnectingError> {
     let config = ClientConfig::builder()
         .with_bind_default()
-        .with_server_certificate_hashes([Sha256Digest::new(hash.try_into().unwrap())])
+        .with_server_certificate_hashes([Sha256Digest::new(hash)])
         .build();
     let endpoint = Endpoint::client(config).unwrap();
-    let port = info["port"].as_u64().unwrap();
     endpoint.connect(format!("https://127.0.0.1:{port}/")).await
+}
+
+/// A WebTransport session with `addr`'s endpoint, or why there is none.
+async fn try_connect(addr: SocketAddr) -> Result<Connection, wtransport::error::ConnectingError> {
+    let (port, hash) = quic_info(addr).await;
+    handshake(port, hash).await
 }
 
 async fn send_text(send: &mut SendStream, msg: &ClientMsg) {
@@ -866,23 +882,8 @@ async fn unvalidated_exchange(server: &posecast_server::startup::Server) -> Unva
     let front = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
     let spoofed = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
     let front_port = front.local_addr().unwrap().port();
-    let (_, body) = common::get_bytes(server.addr, "/api/quic").await;
-    let info: serde_json::Value = serde_json::from_slice(&body).unwrap();
-    let hex = info["cert_sha256"].as_str().unwrap().to_owned();
-    let client = tokio::spawn(async move {
-        let hash: Vec<u8> = (0..hex.len())
-            .step_by(2)
-            .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap())
-            .collect();
-        let config = ClientConfig::builder()
-            .with_bind_default()
-            .with_server_certificate_hashes([Sha256Digest::new(hash.try_into().unwrap())])
-            .build();
-        let endpoint = Endpoint::client(config).unwrap();
-        endpoint
-            .connect(format!("https://127.0.0.1:{front_port}/"))
-            .await
-    });
+    let (_, hash) = quic_info(server.addr).await;
+    let client = tokio::spawn(handshake(front_port, hash));
     let mut seen = Unvalidated {
         sent: 0,
         received: 0,
@@ -1015,27 +1016,10 @@ async fn a_flood_of_initials_is_answered_with_retries() {
     let upstream = SocketAddr::from(([127, 0, 0, 1], port));
     let front = Arc::new(tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap());
     let front_port = front.local_addr().unwrap().port();
-    let (_, body) = common::get_bytes(server.addr, "/api/quic").await;
-    let info: serde_json::Value = serde_json::from_slice(&body).unwrap();
-    let hex = info["cert_sha256"].as_str().unwrap().to_owned();
-    let hash: Vec<u8> = (0..hex.len())
-        .step_by(2)
-        .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap())
+    let (_, hash) = quic_info(server.addr).await;
+    let clients: Vec<_> = (0..FLOOD)
+        .map(|_| tokio::spawn(handshake(front_port, hash)))
         .collect();
-    let hash: [u8; 32] = hash.try_into().unwrap();
-    let mut clients = Vec::new();
-    for _ in 0..FLOOD {
-        clients.push(tokio::spawn(async move {
-            let config = ClientConfig::builder()
-                .with_bind_default()
-                .with_server_certificate_hashes([Sha256Digest::new(hash)])
-                .build();
-            let endpoint = Endpoint::client(config).unwrap();
-            endpoint
-                .connect(format!("https://127.0.0.1:{front_port}/"))
-                .await
-        }));
-    }
     // Each client's datagrams go on from a socket of its own; what the server answers is
     // looked at (a Retry or not) and never passed back.
     let (answers, mut answered) = tokio::sync::mpsc::unbounded_channel::<bool>();
