@@ -1264,6 +1264,15 @@ async fn relayed_scenes_count_toward_max_scenes() {
     let (status, body) = command_to(a.addr, r#"{"op":"create_scene","scene":"third"}"#).await;
     assert_eq!(status, 429, "{body}");
     assert_eq!(body["code"], "quota_exceeded", "{body}");
+    // Refused before the name was claimed: the other servers never saw it (a claim given back
+    // leaves its deletion in the bucket, and B, had it scanned meanwhile, would relay it).
+    let scenes = async_nats::jetstream::new(async_nats::connect(nats.url()).await.unwrap())
+        .get_key_value("posecast_scenes")
+        .await
+        .unwrap();
+    let key: String = "third".bytes().map(|b| format!("{b:02x}")).collect();
+    let entry = scenes.entry(&key).await.unwrap();
+    assert!(entry.is_none(), "A claimed the refused scene: {entry:?}");
     // Nothing changed anywhere: B (no limit of its own) can still make it.
     ok(b.addr, r#"{"op":"create_scene","scene":"third"}"#).await;
 }

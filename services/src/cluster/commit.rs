@@ -234,6 +234,9 @@ impl Cluster {
         run: BoxFuture<'_, Result<CommandResult, RunError>>,
         recent: &mut Recent,
     ) -> Result<CommandResult, Error> {
+        // What this server would refuse (a quota, a scene of that name here) is refused before
+        // the id is claimed: a claim is seen by the other servers, which relay it.
+        state.world.room_for_scene(id)?;
         let mut table = Recent::new();
         if let Some(k) = key {
             remember(
@@ -294,8 +297,14 @@ impl Cluster {
         }
         lock(&self.slots).remove(id);
         self.conn.leases.delete(key(id)).await.ok();
-        // Named and signed like the scene's other relay messages: relays believe it only from
-        // the lease holder, once the scene is gone from the bucket (`relay.rs`).
+        self.announce_deleted(id, epoch).await?;
+        result
+    }
+
+    /// Tells the relays of scene `id` that it is gone. Named and signed like the scene's other
+    /// relay messages: relays believe it only from the lease holder, once the scene is gone
+    /// from the bucket (`relay.rs`).
+    async fn announce_deleted(&self, id: &SceneId, epoch: u64) -> Result<(), Error> {
         let claim = super::identity::Claim {
             kind: "deleted".into(),
             epoch,
@@ -307,8 +316,7 @@ impl Cluster {
             .client
             .publish_with_headers(subject, headers, Bytes::new())
             .await
-            .map_err(|e| unavailable("cannot tell the cluster", &e))?;
-        result
+            .map_err(|e| unavailable("cannot tell the cluster", &e))
     }
 
     /// Claims scene id `id` cluster-wide: creates its key (holding the empty scene and
@@ -358,11 +366,17 @@ impl Cluster {
         }
     }
 
-    /// Gives a claim back (the scene could not be created here after all).
+    /// Gives a claim back (the scene could not be created here after all). The scene's key
+    /// goes before its lease (a key without a lease would be taken over), and the servers that
+    /// began relaying the claimed scene are told it is gone, as after `delete_scene`, so the
+    /// name is free everywhere at once.
     async fn unclaim(&self, id: &SceneId) {
         lock(&self.claims).remove(id);
-        self.conn.leases.delete(key(id)).await.ok();
         self.conn.scenes.delete(key(id)).await.ok();
+        if let Err(e) = self.announce_deleted(id, 0).await {
+            warn!(scene = %id, error = %e, "cannot tell the cluster a claim was given back: its relays drop it at their next scan");
+        }
+        self.conn.leases.delete(key(id)).await.ok();
     }
 
     /// Writes scene `id`'s snapshot (with `recent`) to the cluster's bucket at the revision

@@ -215,13 +215,28 @@ impl World {
         self.insert(id, quota, true)
     }
 
-    fn insert(&self, id: SceneId, quota: bool, ticked: bool) -> Result<Arc<Scene>, Error> {
-        check_id("scene", &id.0).map_err(|e| Error::invalid_field("scene", e.message))?;
-        let mut scenes = self
+    /// Whether scene `id` could be created here now: what [`World::create_scene`] would refuse
+    /// before making anything. A cluster asks before it claims the id cluster-wide, so that a
+    /// refusal here is never seen by the other servers.
+    ///
+    /// # Errors
+    /// As [`World::create_scene`].
+    pub fn room_for_scene(&self, id: &SceneId) -> Result<(), Error> {
+        let scenes = self
             .scenes
-            .write()
+            .read()
             .unwrap_or_else(std::sync::PoisonError::into_inner);
-        if scenes.contains_key(&id) {
+        self.check_new_scene(&scenes, id, true)
+    }
+
+    fn check_new_scene(
+        &self,
+        scenes: &BTreeMap<SceneId, Arc<Scene>>,
+        id: &SceneId,
+        quota: bool,
+    ) -> Result<(), Error> {
+        check_id("scene", &id.0).map_err(|e| Error::invalid_field("scene", e.message))?;
+        if scenes.contains_key(id) {
             return Err(Error::Conflict(format!("scene {id} exists")));
         }
         let max = self.quotas.max_scenes;
@@ -232,6 +247,15 @@ impl World {
                 max,
             ));
         }
+        Ok(())
+    }
+
+    fn insert(&self, id: SceneId, quota: bool, ticked: bool) -> Result<Arc<Scene>, Error> {
+        let mut scenes = self
+            .scenes
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        self.check_new_scene(&scenes, &id, quota)?;
         let num = if self.numbers_from_ids.load(Ordering::SeqCst) {
             let num = number_of(&id.0);
             if let Some(other) = scenes.values().find(|s| s.num == num) {
