@@ -277,6 +277,73 @@ fn resident_memory_does_not_hold_stored_upload_bytes() {
     );
 }
 
+/// Resident bytes of the binary's own mappings of process `pid` (its code and data pages,
+/// from `/proc/<pid>/smaps`).
+#[cfg(target_os = "linux")]
+fn resident_binary_bytes(pid: u32, binary: &str) -> u64 {
+    let smaps = std::fs::read_to_string(format!("/proc/{pid}/smaps")).unwrap();
+    let mut ours = false;
+    let mut kib = 0;
+    for line in smaps.lines() {
+        if let Some(rss) = line.strip_prefix("Rss:") {
+            if ours {
+                kib += rss
+                    .trim()
+                    .trim_end_matches("kB")
+                    .trim()
+                    .parse::<u64>()
+                    .unwrap();
+            }
+        } else if line.split_whitespace().next().is_some_and(|f| {
+            f.split_once('-').is_some_and(|(a, b)| {
+                u64::from_str_radix(a, 16).is_ok() && u64::from_str_radix(b, 16).is_ok()
+            })
+        }) {
+            // A mapping's header: `start-end perms offset dev inode [path]`.
+            ours = line.ends_with(&format!(" {binary}"));
+        }
+    }
+    kib * 1024
+}
+
+/// Once ready and idle, the binary gives back the pages of its code the start touched and an
+/// idle server never runs again: the binary's resident pages shrink to under half (in this
+/// debug build, from ~40 MiB), and the server goes on answering, its code mapped back as it
+/// runs.
+#[cfg(target_os = "linux")]
+#[test]
+fn the_start_up_code_is_given_back_once_ready() {
+    let binary = env!("CARGO_BIN_EXE_posecast");
+    let server = Posecast::start(&["--no-persist"], &[]);
+    let before = resident_binary_bytes(server.pid(), binary);
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while !server
+        .output()
+        .iter()
+        .any(|l| l.contains("start-up code unmapped"))
+    {
+        assert!(
+            Instant::now() < deadline,
+            "never gave its start-up code back: {:?}",
+            server.output()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let after = resident_binary_bytes(server.pid(), binary);
+    eprintln!(
+        "the binary's resident pages: {:.1} MiB once ready, {:.1} MiB after giving back",
+        before as f64 / 1048576.0,
+        after as f64 / 1048576.0
+    );
+    assert!(before > 0, "no resident pages of {binary} found");
+    assert!(
+        after < before / 2,
+        "resident pages of the binary: {before} B once ready, {after} B after giving back"
+    );
+    assert_eq!(server.health(), Some((200, "ok".to_owned())));
+    server.kill();
+}
+
 /// A missing `--assets` folder stops the start with its name; a `RUST_LOG` that does not
 /// parse is reported (and the server runs at `info`).
 #[test]
