@@ -144,9 +144,9 @@ async fn weights_set_by_name_reach_every_viewer_within_the_bound() {
     assert!((nonzero[0].1 - 0.25).abs() <= MAX_WEIGHT_ERROR, "{got:?}");
 }
 
-/// A viewer over WebTransport gets wire v1 frames as datagrams: their chunks carry the morph
-/// weights too (the kind's weights flag), so the face shows as on a websocket, within the
-/// wire's bound; a viewer that leaves them out gets none.
+/// A viewer over WebTransport gets frames as datagrams — wire v2 (protocol version 8), or
+/// wire v1 before — whose chunks carry the morph weights too, so the face shows as on a
+/// websocket, within the wire's bound; a viewer that leaves them out gets none.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn weights_reach_a_webtransport_viewer() {
     let server = common::kit_builder(30.0)
@@ -159,16 +159,18 @@ async fn weights_reach_a_webtransport_viewer() {
     if !add_face(addr).await {
         return;
     }
-    let over_quic = |weights: bool| {
+    let over_quic = |weights: bool, version: u32| {
         let mut options = ClientOptions::new(format!("ws://{addr}/ws"), "default");
         options.reconnect = false;
         options.quic_timeout = common::watch::PATIENCE;
         options.morph_weights = weights;
+        options.version = version;
         Client::connect(options)
     };
-    let quic = over_quic(true).await.unwrap();
-    let faceless = over_quic(false).await.unwrap();
-    for c in [&quic, &faceless] {
+    let quic = over_quic(true, 8).await.unwrap();
+    let v1 = over_quic(true, 7).await.unwrap();
+    let faceless = over_quic(false, 8).await.unwrap();
+    for c in [&quic, &v1, &faceless] {
         assert_eq!(
             c.transport(),
             Some(posecast_client::net::Transport::WebTransport)
@@ -181,8 +183,13 @@ async fn weights_reach_a_webtransport_viewer() {
     )
     .await;
     let want = [("mouthOpen", 0.5), ("eyesClosed", 0.3)];
-    let got = weights_become(&quic, &want).await;
-    assert_eq!(got.iter().filter(|(_, w)| *w > 0.0).count(), 2, "{got:?}");
+    for viewer in [&quic, &v1] {
+        let got = weights_become(viewer, &want).await;
+        assert_eq!(got.iter().filter(|(_, w)| *w > 0.0).count(), 2, "{got:?}");
+    }
+    // Version 8 acknowledges every frame, version 7 its keyframes.
+    let (q, v) = (quic.stats(), v1.stats());
+    assert!(q.acks >= q.frames && v.acks <= v.keyframes, "{q:?} {v:?}");
     let latest = faceless.latest(&posecast_proto::msg::AvatarId("face".into()));
     assert!(
         latest.is_some_and(|p| p.weights.is_empty()),

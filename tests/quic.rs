@@ -14,6 +14,7 @@ use posecast_proto::msg::AvatarId;
 
 const PATIENCE: std::time::Duration = std::time::Duration::from_secs(15);
 use posecast_proto::frame::{AvatarPose, FrameDecoder, FrameKind};
+use posecast_proto::frame2::{self, Frame2Decoder};
 use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, SceneId, ServerMsg};
 use posecast_proto::quic as wire;
 use std::collections::{BTreeMap, HashMap};
@@ -92,10 +93,14 @@ async fn send_text(send: &mut SendStream, msg: &ClientMsg) {
 
 /// Says hello: this protocol version, binary frames.
 async fn hello(send: &mut SendStream) {
+    hello_as(send, PROTOCOL_VERSION).await;
+}
+
+async fn hello_as(send: &mut SendStream, version: u32) {
     send_text(
         send,
         &ClientMsg::Hello {
-            version: PROTOCOL_VERSION,
+            version,
             encoding: Encoding::Binary,
             token: None,
             client: Some("quic test".into()),
@@ -152,8 +157,31 @@ async fn subscribe(
     scene: &str,
     drop: impl Fn(usize) -> bool + Send + 'static,
 ) -> Arc<Mutex<Seen>> {
+    subscribe_as(addr, scene, PROTOCOL_VERSION, drop).await
+}
+
+/// The wire of a datagram, whichever it is (wire v1, or v2 from protocol version 8).
+fn datagram_header(bytes: &[u8]) -> Option<(u64, bool, Vec<u32>)> {
+    if bytes.first() == Some(&frame2::MAGIC) {
+        let (h, _) = frame2::read_header(bytes).ok()?;
+        let mut parts = frame2::split_by_avatar(bytes, usize::MAX).ok()?;
+        return Some((h.seq, h.kind == FrameKind::Key, parts.remove(0).1));
+    }
+    let (h, _) = posecast_proto::frame::read_header(bytes).ok()?;
+    let mut parts = posecast_proto::frame::split_by_avatar(bytes, usize::MAX).ok()?;
+    Some((h.seq, h.kind == FrameKind::Key, parts.remove(0).1))
+}
+
+/// [`subscribe`] saying hello in protocol `version`: from 8, frames come as wire v2 (deltas
+/// naming the frames they refer to), and it acknowledges every frame it decodes.
+async fn subscribe_as(
+    addr: SocketAddr,
+    scene: &str,
+    version: u32,
+    drop: impl Fn(usize) -> bool + Send + 'static,
+) -> Arc<Mutex<Seen>> {
     let (conn, mut send, mut recv) = connect(addr).await;
-    hello(&mut send).await;
+    hello_as(&mut send, version).await;
     send_text(
         &mut send,
         &ClientMsg::Subscribe {
@@ -207,52 +235,53 @@ async fn subscribe(
     let out = seen.clone();
     tokio::spawn(async move {
         let mut decoder = FrameDecoder::new();
+        let mut v2 = Frame2Decoder::for_datagrams();
         let mut i = 0;
         while let Ok(datagram) = conn.receive_datagram().await {
             let bytes = datagram.payload();
             i += 1;
-            if let (Ok((h, _)), Ok(mut parts)) = (
-                posecast_proto::frame::read_header(&bytes),
-                posecast_proto::frame::split_by_avatar(&bytes, usize::MAX),
-            ) {
-                out.lock().unwrap().arrivals.push((
-                    h.seq,
-                    h.kind == FrameKind::Key,
-                    parts.remove(0).1,
-                    drop(i),
-                ));
+            let header = datagram_header(&bytes);
+            if let Some((seq, key, avatars)) = header.clone() {
+                out.lock()
+                    .unwrap()
+                    .arrivals
+                    .push((seq, key, avatars, drop(i)));
             }
             if drop(i) {
-                if let Ok((h, _)) = posecast_proto::frame::read_header(&bytes) {
-                    let avatars = posecast_proto::frame::split_by_avatar(&bytes, usize::MAX)
-                        .unwrap()
-                        .remove(0)
-                        .1;
+                if let Some((seq, key, avatars)) = header {
                     let mut out = out.lock().unwrap();
-                    out.dropped.push(h.seq);
-                    out.dropped_avatars.push((h.seq, avatars));
-                    out.dropped_keys += usize::from(h.kind == FrameKind::Key);
+                    out.dropped.push(seq);
+                    out.dropped_avatars.push((seq, avatars));
+                    out.dropped_keys += usize::from(key);
                 }
                 continue;
             }
-            let Ok(frame) = decoder.decode(&bytes) else {
+            let is_v2 = bytes.first() == Some(&frame2::MAGIC);
+            let decoded = if is_v2 {
+                v2.decode(&bytes).ok()
+            } else {
+                decoder.decode(&bytes).ok()
+            };
+            let Some(frame) = decoded else {
                 let mut out = out.lock().unwrap();
                 out.undecodable += 1;
-                if let (Ok((h, _)), Ok(mut parts)) = (
-                    posecast_proto::frame::read_header(&bytes),
-                    posecast_proto::frame::split_by_avatar(&bytes, usize::MAX),
-                ) {
-                    out.undecodable_parts.push((h.seq, parts.remove(0).1));
+                if let Some((seq, _, avatars)) = header {
+                    out.undecodable_parts.push((seq, avatars));
                 }
                 continue;
             };
-            if frame.header.kind == FrameKind::Key {
-                // Naming its avatars: a keyframe too large for a datagram comes in parts.
+            let key = frame.header.kind == FrameKind::Key;
+            if key || is_v2 {
+                // Naming its avatars: a frame too large for a datagram comes in parts.
                 let avatars: Vec<u32> = frame.avatars.iter().map(|a| a.avatar_num).collect();
-                let ack = wire::key_ack_of(frame.header.scene_num, frame.header.seq, &avatars);
+                let ack = if is_v2 {
+                    wire::frame_ack_of(frame.header.scene_num, frame.header.seq, &avatars)
+                } else {
+                    wire::key_ack_of(frame.header.scene_num, frame.header.seq, &avatars)
+                };
                 conn.send_datagram(ack).unwrap();
-                out.lock().unwrap().keys += 1;
             }
+            out.lock().unwrap().keys += usize::from(key);
             let poses = frame
                 .avatars
                 .into_iter()
@@ -384,6 +413,159 @@ async fn datagram_frames_are_the_websocket_poses_and_a_lost_one_costs_its_tick_o
         }
     }
     server.stop().await;
+}
+
+/// A wire v2 pose (protocol version 8) is a websocket's wire v1 pose of the same tick: the
+/// same rotation levels, translations within v2's quantisation.
+fn same_v2(v2: &AvatarPose, v1: &AvatarPose) -> bool {
+    v2.rotations == v1.rotations
+        && v2.translations.len() == v1.translations.len()
+        && v2.translations.iter().zip(&v1.translations).all(|(a, b)| {
+            (*a - *b).abs().max_element() as f64 <= frame2::MAX_TRANSLATION_ERROR + 1e-6
+        })
+        && v2.scales == v1.scales
+        && v2.placement == v1.placement
+        && v2.weights == v1.weights
+}
+
+/// Protocol version 8: wire v2 frames as datagrams, each delta naming frames the client
+/// acknowledged. With datagrams dropped (the first, every 10th, five in a row) **every**
+/// datagram that comes decodes — none refers to a lost one — to the websocket's poses of its
+/// tick, nothing but the dropped ticks is missing, and after the first keyframe the frames
+/// are deltas.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn v2_datagrams_all_decode_and_a_lost_one_costs_its_tick_only() {
+    let server = quic_server(60.0, |_| {}).await;
+    let live = Watcher::start(server.addr, "default").await;
+    let whole = subscribe_as(server.addr, "default", 8, |_| false).await;
+    let lossy = subscribe_as(server.addr, "default", 8, |i| {
+        i == 1 || i % 10 == 0 || (50..55).contains(&i)
+    })
+    .await;
+    frames(&whole, 240).await;
+    frames(&lossy, 240).await;
+    live.stop();
+    let on_ws: HashMap<u64, BTreeMap<String, AvatarPose>> = live
+        .frames()
+        .into_iter()
+        .map(|s| (s.seq, s.poses))
+        .collect();
+    let addr = server.addr;
+    let acks = common::metric(addr, "posecast_quic_frame_acks_total").await;
+    assert!(acks >= 400.0, "{acks} frame acknowledgements");
+    assert_eq!(
+        common::metric(addr, "posecast_quic_key_acks_total").await,
+        0.0
+    );
+    assert_eq!(
+        common::metric(addr, r#"posecast_quic_frames_total{via="stream"}"#).await,
+        0.0
+    );
+    for (name, seen) in [("whole", &whole), ("lossy", &lossy)] {
+        let seen = seen.lock().unwrap();
+        assert_eq!(
+            seen.undecodable, 0,
+            "{name}: parts that did not decode {:?}",
+            seen.undecodable_parts
+        );
+        let v2 = seen.arrivals.len();
+        assert!(
+            seen.keys * 10 <= v2,
+            "{name}: {} keyframes of {v2} frames",
+            seen.keys
+        );
+        let mut compared = 0;
+        for (seq, poses) in &seen.frames {
+            if let Some(ws) = on_ws.get(seq) {
+                assert_eq!(poses.len(), ws.len(), "{name}: tick {seq}");
+                for (num, pose) in poses {
+                    assert!(
+                        same_v2(pose, &ws[&seen.names[num]]),
+                        "{name}: tick {seq} avatar {num} differs"
+                    );
+                }
+                compared += 1;
+            }
+        }
+        assert!(compared >= 200, "{name}: only {compared} ticks in common");
+        let got: std::collections::BTreeSet<u64> = seen.frames.iter().map(|f| f.0).collect();
+        let (first, last) = (*got.first().unwrap(), *got.last().unwrap());
+        let missing: Vec<u64> = (first..=last)
+            .filter(|s| !got.contains(s) && !seen.dropped.contains(s))
+            .collect();
+        assert!(
+            missing.len() <= superseded_budget(first, last),
+            "{name}: ticks missing {missing:?}; {}",
+            seen.figures()
+        );
+        if name == "lossy" {
+            assert!(seen.dropped.len() >= 25, "{} dropped", seen.dropped.len());
+        }
+    }
+    server.stop().await;
+}
+
+/// Protocol version 8 with 31 avatars: v2 keyframes are larger than a datagram and go cut by
+/// avatar (a frame counts as acknowledged once every part is), and with datagrams dropped
+/// (every 7th, five in a row) every part that comes decodes and each avatar misses only the
+/// ticks of its own lost parts.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn v2_datagrams_of_a_big_scene_go_split_and_every_part_decodes() {
+    let server = quic_server(60.0, |_| {}).await;
+    common::add_extras(&server, 0..30).await;
+    let live = Watcher::start(server.addr, "default").await;
+    live.until("31 avatars", |frames| {
+        frames.last().is_some_and(|f| f.poses.len() == 31)
+    })
+    .await;
+    let lossy = subscribe_as(server.addr, "default", 8, |i| {
+        i % 7 == 0 || (40..45).contains(&i)
+    })
+    .await;
+    frames(&lossy, 300).await;
+    live.stop();
+    let addr = server.addr;
+    let split = common::metric(addr, "posecast_quic_split_frames_total").await;
+    assert!(split >= 1.0, "{split} frames split");
+    check_split_parts(&lossy.lock().unwrap());
+    server.stop().await;
+}
+
+/// Every part of a lossy subscriber's frames that came decoded, and each avatar missed only
+/// the ticks of its own lost parts.
+fn check_split_parts(seen: &Seen) {
+    assert_eq!(
+        seen.undecodable, 0,
+        "parts that did not decode {:?}",
+        seen.undecodable_parts
+    );
+    let mut got: HashMap<u32, std::collections::BTreeSet<u64>> = HashMap::new();
+    for (seq, poses) in &seen.frames {
+        for num in poses.keys() {
+            got.entry(*num).or_default().insert(*seq);
+        }
+    }
+    assert_eq!(got.len(), 31);
+    let arrived: std::collections::BTreeSet<u64> = seen.arrivals.iter().map(|a| a.0).collect();
+    let (first, last) = (*arrived.first().unwrap(), *arrived.last().unwrap());
+    let absent: Vec<u64> = (first..=last).filter(|s| !arrived.contains(s)).collect();
+    assert!(
+        absent.len() <= superseded_budget(first, last),
+        "ticks never sent {absent:?}"
+    );
+    for (num, ticks) in &got {
+        let (first, last) = (*ticks.first().unwrap(), *ticks.last().unwrap());
+        let lost = |s: u64| {
+            seen.dropped_avatars
+                .iter()
+                .any(|(d, avatars)| *d == s && avatars.contains(num))
+        };
+        let missing: Vec<u64> = (first..=last)
+            .filter(|s| !ticks.contains(s) && !lost(*s) && !absent.contains(s))
+            .collect();
+        assert!(missing.is_empty(), "avatar {num} missing {missing:?}");
+    }
+    assert!(seen.dropped.len() >= 30, "{} dropped", seen.dropped.len());
 }
 
 /// Thirty-one avatars: a keyframe (about 5 kB) and a delta (about 2 kB) are larger than a
@@ -717,8 +899,8 @@ async fn client_poses(client: &Client, avatar: &str, n: usize) -> BTreeMap<u64, 
 }
 
 /// The Rust client asks `/api/quic`, connects over WebTransport, answers pings, acknowledges
-/// keyframes, and decodes from the datagrams the poses a websocket subscriber of the same
-/// scene decodes, tick for tick.
+/// every frame (protocol version 8: wire v2 datagrams), and decodes from the datagrams the
+/// poses a websocket subscriber of the same scene decodes, tick for tick.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_rust_client_prefers_webtransport_and_gets_the_websockets_poses() {
     let server = quic_server(60.0, |_| {}).await;
@@ -733,9 +915,9 @@ async fn the_rust_client_prefers_webtransport_and_gets_the_websockets_poses() {
     live.stop();
     let stats = client.stats();
     assert_eq!(stats.webtransport_failure, None);
-    assert!(stats.keyframes >= 1 && stats.key_acks >= stats.keyframes.min(1));
-    let acks = common::metric(server.addr, "posecast_quic_key_acks_total").await;
-    assert!(acks >= 1.0, "{acks} acknowledgements");
+    assert!(stats.keyframes >= 1 && stats.acks >= 100, "{stats:?}");
+    let acks = common::metric(server.addr, "posecast_quic_frame_acks_total").await;
+    assert!(acks >= 100.0, "{acks} acknowledgements");
     let datagrams =
         common::metric(server.addr, r#"posecast_quic_frames_total{via="datagram"}"#).await;
     assert!(datagrams >= 120.0, "{datagrams} datagrams");

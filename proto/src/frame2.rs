@@ -93,6 +93,9 @@ const FLAG_NEAR: u8 = 32;
 /// Frame kind byte of a packed delta (protocol version 7): every chunk in one bit stream, the
 /// time a difference from the base frame's.
 const KIND_PACKED: u8 = 3;
+/// Frame kind byte of a delta naming the frames it refers to (protocol version 8, over
+/// datagrams): [`write_referenced_header`].
+const KIND_REFERENCED: u8 = 4;
 /// Bits of a streamed morph weight level ([`crate::morph::WEIGHT_LEVELS`] = 2¹⁰ − 1).
 pub const WEIGHT_BITS: u32 = 10;
 const LEVEL_MAX: i64 = (1 << 15) - 2;
@@ -409,6 +412,41 @@ pub fn write_header(header: &FrameHeader, avatar_count: usize, out: &mut Vec<u8>
     }
 }
 
+/// Writes the header of a delta that names the frames it refers to (kind 4, protocol version
+/// 8: frames sent as datagrams, any of which may be lost): `header` as a kind 2 delta's, with
+/// its `base_seq` the first of `refs`, then the number of `refs` and each one's distance from
+/// `seq`. `refs` are the ticks of frames the receiver acknowledged, newest first (at most
+/// [`MAX_DEPTH`], each older than `seq` and than the one before it); a chunk of depth `d`
+/// refers to the first `d`, wherever they are among the frames the receiver holds.
+///
+/// # Panics
+/// `refs` is empty, longer than [`MAX_DEPTH`], or not strictly decreasing below `seq`.
+pub fn write_referenced_header(
+    header: &FrameHeader,
+    refs: &[u64],
+    avatar_count: usize,
+    out: &mut Vec<u8>,
+) {
+    assert!(
+        !refs.is_empty()
+            && refs.len() <= MAX_DEPTH
+            && refs[0] < header.seq
+            && refs.windows(2).all(|w| w[1] < w[0]),
+        "references {refs:?} of frame {}",
+        header.seq
+    );
+    out.push(MAGIC);
+    out.push(KIND_REFERENCED);
+    varint(avatar_count as u64, out);
+    varint(u64::from(header.scene_num), out);
+    varint(header.seq, out);
+    varint(header.server_time_us, out);
+    varint(refs.len() as u64, out);
+    for r in refs {
+        varint(header.seq - r, out);
+    }
+}
+
 fn varint(mut v: u64, out: &mut Vec<u8>) {
     while v >= 0x80 {
         out.push((v as u8) | 0x80);
@@ -526,6 +564,109 @@ pub fn encode_delta(
         w.finish();
     }
     true
+}
+
+/// Appends a delta chunk of `pose` against `history` (the frames the header names, newest
+/// first) in a frame of kind 4: its length in bytes (a varint), then the chunk as in a frame of
+/// kind 2 — so a sender can cut the frame by avatar without decoding it
+/// ([`split_by_avatar`]). Returns `false`, writing nothing, as [`encode_delta`] does.
+pub fn encode_referenced_delta(
+    avatar_num: u32,
+    pose: &QuantPose,
+    history: &[&QuantPose],
+    out: &mut Vec<u8>,
+) -> bool {
+    let mut chunk = Vec::with_capacity(16 + 4 * pose.rotations.len());
+    if !encode_delta(avatar_num, pose, history, &mut chunk) {
+        return false;
+    }
+    varint(chunk.len() as u64, out);
+    out.extend_from_slice(&chunk);
+    true
+}
+
+/// A part of a frame cut by avatar ([`split_by_avatar`]): its bytes, and the avatars it holds.
+pub type Part = (Vec<u8>, Vec<u32>);
+
+/// Most avatars in one part of a frame cut by avatar ([`split_by_avatar`]): an
+/// acknowledgement names at most this many ([`crate::quic::MAX_ACKED_AVATARS`]).
+pub const MAX_PART_AVATARS: usize = 256;
+
+/// A keyframe (kind 1) or a delta of kind 4 cut by avatar into frames of at most `max` bytes
+/// and [`MAX_PART_AVATARS`] avatars (as few as it takes, each with the same header but for its
+/// chunk count, each decodable alone), with the avatar numbers each holds. A frame that fits
+/// is one part. An avatar's chunk too large for `max` with the header is a part of its own,
+/// larger than `max`.
+///
+/// # Errors
+/// Malformed bytes, or a frame of another kind (2 or 3: their chunks cannot be told apart
+/// without the frames they refer to).
+pub fn split_by_avatar(frame: &[u8], max: usize) -> Result<Vec<Part>, Frame2Error> {
+    let mut r = Reader {
+        bytes: frame,
+        at: 0,
+    };
+    let (header, count, layout) = FrameClock::default().header(&mut r)?;
+    let referenced = match (header.kind, layout) {
+        (FrameKind::Key, _) => None,
+        (FrameKind::Delta, Layout::Referenced(refs)) => Some(refs),
+        (FrameKind::Delta, _) => return Err(Frame2Error::Kind(frame[1])),
+    };
+    // Each chunk's bytes (with a kind 4 chunk's length) and avatar number.
+    let mut chunks: Vec<(&[u8], u32)> = Vec::with_capacity(count.min(frame.len()));
+    for _ in 0..count {
+        let start = r.at;
+        let avatar = match referenced {
+            None => key_chunk(&mut r)?.avatar_num,
+            Some(_) => {
+                let len =
+                    usize::try_from(r.varint()?).map_err(|_| Frame2Error::Number { at: start })?;
+                let chunk = r.take(len)?;
+                Reader {
+                    bytes: chunk,
+                    at: 0,
+                }
+                .varint_u32()?
+            }
+        };
+        chunks.push((&frame[start..r.at], avatar));
+    }
+    if r.at != frame.len() {
+        return Err(Frame2Error::Trailing(frame.len() - r.at));
+    }
+    let write_header = |n: usize, out: &mut Vec<u8>| match referenced {
+        None => self::write_header(&header, n, out),
+        Some(refs) => write_referenced_header(&header, refs.as_slice(), n, out),
+    };
+    let mut whole = Vec::new();
+    write_header(count, &mut whole);
+    let header_len = whole.len();
+    if frame.len() <= max && chunks.len() <= MAX_PART_AVATARS {
+        return Ok(vec![(frame.to_vec(), chunks.iter().map(|c| c.1).collect())]);
+    }
+    let mut parts = Vec::new();
+    let mut i = 0;
+    while i < chunks.len() {
+        let mut bytes = header_len + 2;
+        let mut n = 0;
+        while i + n < chunks.len()
+            && n < MAX_PART_AVATARS
+            && (n == 0 || bytes + chunks[i + n].0.len() <= max)
+        {
+            bytes += chunks[i + n].0.len();
+            n += 1;
+        }
+        let mut out = Vec::with_capacity(bytes);
+        write_header(n, &mut out);
+        let mut avatars = Vec::with_capacity(n);
+        for (chunk, avatar) in &chunks[i..i + n] {
+            out.extend_from_slice(chunk);
+            avatars.push(*avatar);
+        }
+        parts.push((out, avatars));
+        i += n;
+    }
+    Ok(parts)
 }
 
 /// Writes the header of a packed delta (kind 3, protocol version 7) of `avatar_count` chunks:
@@ -1187,12 +1328,23 @@ struct AvatarHistory {
     frames: VecDeque<(u64, Arc<QuantPose>)>,
 }
 
-/// Decodes v2 frames, keeping each (scene, avatar)'s last [`MAX_DEPTH`] decoded frames.
+/// Decodes v2 frames, keeping each (scene, avatar)'s last [`MAX_DEPTH`] decoded frames
+/// ([`DATAGRAM_RETENTION`] for [`Frame2Decoder::for_datagrams`]).
 #[derive(Debug, Default)]
 pub struct Frame2Decoder {
     history: HashMap<(u32, u32), AvatarHistory>,
     clock: FrameClock,
+    /// Frames come as datagrams ([`Frame2Decoder::for_datagrams`]).
+    datagrams: bool,
 }
+
+/// How recent the frames a kind 4 delta names are: of the sender's last this many ticks.
+pub const DATAGRAM_REFERENCE_TICKS: u64 = 6 * MAX_DEPTH as u64;
+
+/// Frames a receiver of datagrams keeps per avatar ([`Frame2Decoder::for_datagrams`]): every
+/// frame a kind 4 delta may name ([`DATAGRAM_REFERENCE_TICKS`], one frame a tick at most) and
+/// [`MAX_DEPTH`] × 2 more, of older ticks that came late, out of order.
+pub const DATAGRAM_RETENTION: usize = DATAGRAM_REFERENCE_TICKS as usize + 2 * MAX_DEPTH;
 
 /// Reads a v2 frame's header and chunk count, for a keyframe or a delta of kind 2. A packed
 /// delta (kind 3) gives its time as a difference from its base frame's: read it with a
@@ -1268,18 +1420,20 @@ impl FrameClock {
         self.last.remove(&scene_num);
     }
 
-    /// The header, the chunk count, and whether the chunks are packed (kind 3).
-    fn header(&self, r: &mut Reader<'_>) -> Result<(FrameHeader, usize, bool), Frame2Error> {
+    /// The header, the chunk count, and how the chunks are laid out.
+    fn header(&self, r: &mut Reader<'_>) -> Result<(FrameHeader, usize, Layout), Frame2Error> {
         let magic = r.u8()?;
         if magic != MAGIC {
             return Err(Frame2Error::Magic(magic));
         }
-        let (kind, packed) = match r.u8()? {
-            1 => (FrameKind::Key, false),
-            2 => (FrameKind::Delta, false),
-            KIND_PACKED => (FrameKind::Delta, true),
+        let (kind, mut layout) = match r.u8()? {
+            1 => (FrameKind::Key, Layout::Chunks),
+            2 => (FrameKind::Delta, Layout::Chunks),
+            KIND_PACKED => (FrameKind::Delta, Layout::Packed),
+            KIND_REFERENCED => (FrameKind::Delta, Layout::Referenced(Refs::default())),
             k => return Err(Frame2Error::Kind(k)),
         };
+        let packed = layout == Layout::Packed;
         let at = r.at;
         let count = usize::try_from(r.varint()?).map_err(|_| Frame2Error::Number { at })?;
         let scene_num = r.varint_u32()?;
@@ -1292,7 +1446,24 @@ impl FrameClock {
             server_time_us,
             base_seq: seq,
         };
-        if kind == FrameKind::Delta {
+        if let Layout::Referenced(refs) = &mut layout {
+            let at = r.at;
+            let n = r.varint()?;
+            if n == 0 || n > MAX_DEPTH as u64 {
+                return Err(Frame2Error::Number { at });
+            }
+            let mut last_gap = 0;
+            for slot in refs.ticks.iter_mut().take(n as usize) {
+                let gap = r.varint()?;
+                if gap <= last_gap || gap > seq {
+                    return Err(Frame2Error::BaseGap { seq, gap });
+                }
+                last_gap = gap;
+                *slot = seq - gap;
+            }
+            refs.len = n as usize;
+            header.base_seq = refs.ticks[0];
+        } else if kind == FrameKind::Delta {
             let gap = r.varint()?;
             if gap == 0 || gap > seq {
                 return Err(Frame2Error::BaseGap { seq, gap });
@@ -1314,7 +1485,32 @@ impl FrameClock {
                 }
             }
         }
-        Ok((header, count, packed))
+        Ok((header, count, layout))
+    }
+}
+
+/// How a frame's chunks are laid out, from its kind.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Layout {
+    /// Each chunk byte-aligned (kinds 1 and 2): a delta chunk refers to the receiver's newest
+    /// frames of the avatar, the first of them its `base_seq`.
+    Chunks,
+    /// Every chunk in one bit stream (kind 3).
+    Packed,
+    /// Byte-aligned delta chunks referring to the frames the header names (kind 4).
+    Referenced(Refs),
+}
+
+/// The ticks a kind 4 delta refers to, newest first.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+struct Refs {
+    ticks: [u64; MAX_DEPTH],
+    len: usize,
+}
+
+impl Refs {
+    fn as_slice(&self) -> &[u64] {
+        &self.ticks[..self.len]
     }
 }
 
@@ -1323,6 +1519,19 @@ impl Frame2Decoder {
     #[must_use]
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// A decoder of frames that come as datagrams (protocol version 8 over WebTransport), any
+    /// of which may be lost or come out of order. Its deltas are of kind 4, naming the frames
+    /// they refer to, so it keeps each avatar's last [`DATAGRAM_RETENTION`] frames in the
+    /// order they came, and a keyframe of the rig it holds does not drop the frames before it
+    /// (a keyframe that comes late must not drop the newer frames a delta names).
+    #[must_use]
+    pub fn for_datagrams() -> Self {
+        Self {
+            datagrams: true,
+            ..Self::default()
+        }
     }
 
     /// Decodes one v2 frame into poses. On error nothing is changed.
@@ -1340,7 +1549,11 @@ impl Frame2Decoder {
     /// Malformed bytes, or a delta whose base this decoder does not hold.
     pub fn decode_levels(&mut self, bytes: &[u8]) -> Result<LevelFrame, Frame2Error> {
         let mut r = Reader { bytes, at: 0 };
-        let (header, count, packed) = self.clock.header(&mut r)?;
+        let (header, count, layout) = self.clock.header(&mut r)?;
+        let refs = match &layout {
+            Layout::Referenced(refs) => Some(refs.as_slice()),
+            _ => None,
+        };
         let mut avatars: Vec<DecodedAvatar> = Vec::with_capacity(count.min(bytes.len() / 2));
         let mut push = |a: DecodedAvatar| {
             if avatars.iter().any(|b| b.avatar_num == a.avatar_num) {
@@ -1349,7 +1562,7 @@ impl Frame2Decoder {
             avatars.push(a);
             Ok(())
         };
-        if packed {
+        if layout == Layout::Packed {
             let mut b = BitReader {
                 r: &mut r,
                 acc: 0,
@@ -1363,26 +1576,53 @@ impl Frame2Decoder {
             }
         } else {
             for _ in 0..count {
-                push(match header.kind {
-                    FrameKind::Key => key_chunk(&mut r)?,
-                    FrameKind::Delta => self.delta_chunk(&mut r, &header)?,
+                push(match (header.kind, refs) {
+                    (FrameKind::Key, _) => key_chunk(&mut r)?,
+                    (FrameKind::Delta, None) => self.delta_chunk(&mut r, &header, None)?,
+                    (FrameKind::Delta, Some(refs)) => {
+                        // Its length, then a chunk of exactly that many bytes.
+                        let at = r.at;
+                        let len =
+                            usize::try_from(r.varint()?).map_err(|_| Frame2Error::Number { at })?;
+                        let base = r.at;
+                        r.take(len)?;
+                        // Read within its bytes, at their offsets in the frame.
+                        let mut chunk = Reader {
+                            bytes: &bytes[..r.at],
+                            at: base,
+                        };
+                        let a = self.delta_chunk(&mut chunk, &header, Some(refs))?;
+                        if chunk.at != r.at {
+                            return Err(Frame2Error::Trailing(r.at - chunk.at));
+                        }
+                        a
+                    }
                 })?;
             }
         }
         if r.at != bytes.len() {
             return Err(Frame2Error::Trailing(bytes.len() - r.at));
         }
+        let retained = if self.datagrams {
+            DATAGRAM_RETENTION
+        } else {
+            MAX_DEPTH
+        };
         for a in &avatars {
             let h = self
                 .history
                 .entry((header.scene_num, a.avatar_num))
                 .or_default();
-            if header.kind == FrameKind::Key {
+            let new_rig = h.frames.is_empty() || h.hash != a.hash;
+            if header.kind == FrameKind::Key && (new_rig || !self.datagrams) {
                 h.frames.clear();
                 h.hash = a.hash;
             }
+            // In the order frames came: a kind 4 delta finds the frames it names by tick
+            // (the newest that came of each, should a new source of frames count its ticks
+            // again), and those are among the last `retained` that came.
             h.frames.push_front((header.seq, a.levels.clone()));
-            h.frames.truncate(MAX_DEPTH);
+            h.frames.truncate(retained);
         }
         self.clock.record(&header);
         Ok(LevelFrame { header, avatars })
@@ -1400,15 +1640,17 @@ impl Frame2Decoder {
         self.history.remove(&(scene_num, avatar_num));
     }
 
-    /// A delta chunk of a frame of kind 2 (byte-aligned).
+    /// A delta chunk of a frame of kind 2 or 4 (byte-aligned; `refs`: the frames a kind 4
+    /// delta names).
     fn delta_chunk(
         &self,
         r: &mut Reader<'_>,
         header: &FrameHeader,
+        refs: Option<&[u64]>,
     ) -> Result<DecodedAvatar, Frame2Error> {
         let avatar = r.varint_u32()?;
         let flags = r.u8()?;
-        let (hash, history) = self.history_for(header, avatar, flags)?;
+        let (hash, history) = self.history_for(header, refs, avatar, flags)?;
         let mut pose = {
             let mut b = BitReader { r, acc: 0, bits: 0 };
             delta_levels(&mut b, &history, flags)?
@@ -1454,7 +1696,7 @@ impl Frame2Decoder {
             let depth = b.get(3)? as u8;
             depth << 4 | b.get(4)? as u8
         };
-        let (hash, history) = self.history_for(header, avatar, flags)?;
+        let (hash, history) = self.history_for(header, None, avatar, flags)?;
         let mut pose = delta_levels(b, &history, flags)?;
         let mut f32 = || b.get(32).map(|v| f32::from_bits(v as u32));
         if flags & FLAG_SCALES != 0 {
@@ -1478,10 +1720,12 @@ impl Frame2Decoder {
     }
 
     /// The description hash and the frames (newest first, `depth` of them from `flags`) a
-    /// delta chunk of `avatar` refers to, checked against what this decoder holds.
+    /// delta chunk of `avatar` refers to, checked against what this decoder holds: its newest
+    /// frames, or those of `refs` (a kind 4 delta), wherever they are among those it holds.
     fn history_for(
         &self,
         header: &FrameHeader,
+        refs: Option<&[u64]>,
         avatar: u32,
         flags: u8,
     ) -> Result<(u64, Vec<&QuantPose>), Frame2Error> {
@@ -1494,13 +1738,30 @@ impl Frame2Decoder {
         let Some(held) = self.history.get(&(header.scene_num, avatar)) else {
             return Err(missing);
         };
-        if depth > MAX_DEPTH
-            || held.frames.len() < depth
-            || held.frames.front().map(|f| f.0) != Some(header.base_seq)
-        {
-            return Err(missing);
-        }
-        let history: Vec<&QuantPose> = held.frames.iter().take(depth).map(|f| &*f.1).collect();
+        let history: Vec<&QuantPose> = match refs {
+            Some(refs) => {
+                if depth > refs.len() {
+                    return Err(Frame2Error::Flags { avatar, flags });
+                }
+                let mut history = Vec::with_capacity(depth);
+                for seq in &refs[..depth] {
+                    let Some((_, f)) = held.frames.iter().find(|(s, _)| s == seq) else {
+                        return Err(missing);
+                    };
+                    history.push(&**f);
+                }
+                history
+            }
+            None => {
+                if depth > MAX_DEPTH
+                    || held.frames.len() < depth
+                    || held.frames.front().map(|f| f.0) != Some(header.base_seq)
+                {
+                    return Err(missing);
+                }
+                held.frames.iter().take(depth).map(|f| &*f.1).collect()
+            }
+        };
         let base = history[0];
         if history.iter().any(|h| !h.same_shape(base)) {
             return Err(missing);

@@ -23,8 +23,11 @@ pub const PROTOCOL_VERSION: u32 = 1;
 /// version 5 with near-axis grid steps in a precision's frames (keyframe chunk flag 32, a
 /// tier bit per rotation: [`crate::precision::Steps::near`]); version 7 is version 6 with
 /// packed deltas (frame kind 3: every avatar's chunk in one bit stream, the time since the base
-/// frame's, [`crate::frame2::PackedDeltas`]). Every other message is the same.
-pub const SUPPORTED_VERSIONS: [u32; 7] = [1, 2, 3, 4, 5, 6, 7];
+/// frame's, [`crate::frame2::PackedDeltas`]); version 8 is version 7 with, over WebTransport,
+/// wire v2 frames as datagrams: deltas of kind 4 naming the frames they refer to, every frame
+/// acknowledged ([`crate::quic`]; on a websocket version 8 is version 7). Every other message
+/// is the same.
+pub const SUPPORTED_VERSIONS: [u32; 8] = [1, 2, 3, 4, 5, 6, 7, 8];
 
 /// Largest message the server accepts from a client, in bytes (hello, subscribe, commands).
 /// Uploads of assets go through HTTP, not the websocket.

@@ -28,9 +28,15 @@ pub const CLOSE: u8 = 5;
 /// avatars whose chunks it decoded — none: every avatar of that keyframe. All little-endian.
 pub const KEY_ACK: u8 = b'K';
 
+/// The first byte of a client's frame acknowledgement datagram (protocol version 8): the
+/// frame's scene number (`u32`), tick (`u64`) and the numbers (`u32` each) of the avatars it
+/// decoded — none: every avatar of the frame. All little-endian, as a [`KEY_ACK`].
+pub const FRAME_ACK: u8 = b'A';
+
 /// Most avatars one acknowledgement names (it stays within the smallest datagram QUIC allows,
-/// 1,200 bytes): a keyframe part with more avatars is acknowledged whole.
-pub const MAX_ACKED_AVATARS: usize = 256;
+/// 1,200 bytes): a v1 keyframe part with more avatars is acknowledged whole; a wire v2 frame
+/// is cut into parts of at most this many ([`crate::frame2::MAX_PART_AVATARS`]).
+pub const MAX_ACKED_AVATARS: usize = crate::frame2::MAX_PART_AVATARS;
 
 /// `payload` framed as a message of `kind` on the stream.
 #[must_use]
@@ -73,6 +79,16 @@ pub fn key_ack_of(scene_num: u32, seq: u64, avatars: &[u32]) -> Vec<u8> {
     out
 }
 
+/// The datagram acknowledging the chunks of `avatars` in the frame of tick `seq` of scene
+/// number `scene_num` (protocol version 8); more than [`MAX_ACKED_AVATARS`] acknowledge the
+/// whole frame.
+#[must_use]
+pub fn frame_ack_of(scene_num: u32, seq: u64, avatars: &[u32]) -> Vec<u8> {
+    let mut out = key_ack_of(scene_num, seq, avatars);
+    out[0] = FRAME_ACK;
+    out
+}
+
 /// A keyframe acknowledgement: its scene number, tick, and the avatars it names (empty: every
 /// avatar of the keyframe).
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -85,10 +101,26 @@ pub struct KeyAck {
     pub avatars: Vec<u32>,
 }
 
-/// The acknowledgement `datagram` is, if it is one.
+/// The keyframe acknowledgement `datagram` is, if it is one.
 #[must_use]
 pub fn read_key_ack(datagram: &[u8]) -> Option<KeyAck> {
-    let [KEY_ACK, a, b, c, d, rest @ ..] = datagram else {
+    match datagram.first() {
+        Some(&KEY_ACK) => read_ack(datagram),
+        _ => None,
+    }
+}
+
+/// The frame acknowledgement (protocol version 8) `datagram` is, if it is one.
+#[must_use]
+pub fn read_frame_ack(datagram: &[u8]) -> Option<KeyAck> {
+    match datagram.first() {
+        Some(&FRAME_ACK) => read_ack(datagram),
+        _ => None,
+    }
+}
+
+fn read_ack(datagram: &[u8]) -> Option<KeyAck> {
+    let [_, a, b, c, d, rest @ ..] = datagram else {
         return None;
     };
     let (seq, avatars) = rest.split_at_checked(8)?;
@@ -137,6 +169,15 @@ mod tests {
         let many: Vec<u32> = (0..=MAX_ACKED_AVATARS as u32).collect();
         assert_eq!(read_key_ack(&key_ack_of(3, 7, &many)), whole(3, 7));
         assert_eq!(read_key_ack(b"X123456789012"), None);
+        // A frame acknowledgement is laid out alike, and is not a keyframe's.
+        let frame = frame_ack_of(3, 7, &[1, 70_000]);
+        assert_eq!((frame[0], &frame[1..]), (FRAME_ACK, &named[1..]));
+        assert_eq!(read_key_ack(&frame), None);
+        assert_eq!(read_frame_ack(&named), None);
+        assert_eq!(
+            read_frame_ack(&frame).map(|a| (a.seq, a.avatars)),
+            Some((7, vec![1, 70_000]))
+        );
         assert_eq!(read_key_ack(&[]), None);
     }
 }

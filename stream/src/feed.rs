@@ -13,7 +13,7 @@ use super::pace;
 use super::publish::{Piece, Published, Snapshot};
 use super::relay::{self, RelayError, RelayFrame};
 use super::take;
-use super::wire2::{self, Ring};
+use super::wire2::{self, DeltaLayout, Ring};
 use crate::Counters;
 use axum::extract::ws::{Message, Utf8Bytes};
 use bytes::Bytes;
@@ -137,8 +137,20 @@ impl Subscriber {
     /// and still does).
     fn v2(&self) -> bool {
         self.encoding == Encoding::Binary
-            && !self.outbox.datagrams()
+            && (!self.outbox.datagrams() || self.version >= 8)
             && (self.version >= 3 || (self.version == 2 && self.joints.is_none()))
+    }
+
+    /// How its wire v2 deltas are laid out: naming the frames they refer to over datagrams
+    /// (protocol version 8), packed from protocol version 7, else byte-aligned chunks.
+    fn layout(&self) -> DeltaLayout {
+        if self.outbox.datagrams() {
+            DeltaLayout::Referenced
+        } else if self.version >= 7 {
+            DeltaLayout::Packed
+        } else {
+            DeltaLayout::Chunks
+        }
     }
 
     /// The keyframe tick its deltas may refer to: the last one sent, or over datagrams the
@@ -153,11 +165,6 @@ impl Subscriber {
 
     /// Whether its frames carry morph weights: v2 frames from protocol version 4, JSON ones
     /// always — unless the subscription left them out.
-    /// Whether its wire v2 deltas are packed (protocol version 7).
-    fn packed(&self) -> bool {
-        self.version >= 7
-    }
-
     fn weights(&self) -> bool {
         self.morph_weights && (self.encoding == Encoding::Json || self.version >= 4)
     }
@@ -860,7 +867,7 @@ impl Feed {
                 joints,
                 sub.weights(),
                 sub.grid().as_ref(),
-                sub.packed(),
+                sub.layout(),
             ) {
                 sub.outbox.push_chained(
                     self.num,
@@ -872,8 +879,12 @@ impl Feed {
             }
             return None;
         }
-        if self.relay.is_some() {
-            // The owner's next frame is a keyframe; until then there are no poses here.
+        if self.relay.is_some() || sub.outbox.datagrams() {
+            // The owner's next frame is a keyframe; until then there are no poses here. Over
+            // datagrams the next tick's keyframe is the first frame: a fresh one, labelled
+            // with a tick whose levels it does not have, would be acknowledged, and a delta
+            // naming it would not decode to the scene's poses.
+            sub.outbox.break_chain(self.num);
             return None;
         }
         let pieces: Vec<Piece> = avatars
@@ -900,7 +911,7 @@ impl Feed {
             joints,
             sub.weights(),
             sub.grid().as_ref(),
-            false,
+            DeltaLayout::Chunks,
         ) {
             sub.outbox
                 .push_frame(self.num, OutFrame { message, key: true });
@@ -1017,14 +1028,14 @@ impl Feed {
             self.ring.clear();
             None
         };
-        // (chain, avatar filter, joint subset, with morph weights, precision, packed)
+        // (chain, avatar filter, joint subset, with morph weights, precision, delta layout)
         type V2Key<'a> = (
             Option<Vec<u64>>,
             Option<&'a [AvatarId]>,
             Option<&'a JointSet>,
             bool,
             Option<GridKey>,
-            bool,
+            DeltaLayout,
         );
         let mut v2_cache: HashMap<V2Key<'_>, Option<Message>> = HashMap::new();
         // Ticks between a wire v2 chain's keyframes.
@@ -1049,9 +1060,68 @@ impl Feed {
                 let on = sub.grid();
                 let precision = on.as_ref();
                 let grid = precision.map(Grid::key);
-                let packed = sub.packed();
+                let layout = sub.layout();
                 let Some(levels) = &levels else { continue };
                 let ring = &self.ring;
+                if layout == DeltaLayout::Referenced {
+                    // Over datagrams (protocol version 8) a delta names the newest frames the
+                    // client acknowledged whole, so a lost datagram costs its own tick; with
+                    // none (it just joined, nothing came back for a while, a new avatar or
+                    // rig) the tick's keyframe goes — unless one is on its way.
+                    let refs = sub.outbox.datagram_refs(self.num, at.seq);
+                    let delta = (!refs.is_empty())
+                        .then(|| {
+                            v2_cache
+                                .entry((Some(refs.clone()), filter, joints, weights, grid, layout))
+                                .or_insert_with(|| {
+                                    ring.message(
+                                        &published,
+                                        levels,
+                                        Some(&refs),
+                                        filter,
+                                        joints,
+                                        weights,
+                                        precision,
+                                        layout,
+                                    )
+                                })
+                                .clone()
+                        })
+                        .flatten();
+                    let frame = match delta {
+                        Some(message) => OutFrame {
+                            message,
+                            key: false,
+                        },
+                        None if sub.outbox.datagram_key_due(self.num) => {
+                            let Some(message) = v2_cache
+                                .entry((None, filter, joints, weights, grid, DeltaLayout::Chunks))
+                                .or_insert_with(|| {
+                                    ring.message(
+                                        &published,
+                                        levels,
+                                        None,
+                                        filter,
+                                        joints,
+                                        weights,
+                                        precision,
+                                        DeltaLayout::Chunks,
+                                    )
+                                })
+                                .clone()
+                            else {
+                                continue;
+                            };
+                            sub.key_sent = Some(at.seq);
+                            OutFrame { message, key: true }
+                        }
+                        None => continue,
+                    };
+                    bytes_out += message_len(&frame.message) as u64;
+                    sub.outbox.push_frame(self.num, frame);
+                    offered += 1;
+                    continue;
+                }
                 // A delta continues the frames the subscriber will hold (without the pending
                 // delta it replaces, for a client that does not keep up); none (it just
                 // joined, the rate changed the ticks it got: anything not in the ring, a new
@@ -1074,7 +1144,7 @@ impl Feed {
                             joints,
                             weights,
                             grid,
-                            packed,
+                            layout,
                         ))
                         .or_insert_with(|| {
                             ring.message(
@@ -1085,7 +1155,7 @@ impl Feed {
                                 joints,
                                 weights,
                                 precision,
-                                packed,
+                                layout,
                             )
                         })
                         .clone()
@@ -1100,12 +1170,18 @@ impl Feed {
                     ),
                     None => {
                         let Some(message) = v2_cache
-                            // A keyframe is the same whether deltas are packed or not.
-                            .entry((None, filter, joints, weights, grid, false))
+                            // A keyframe is the same whatever the deltas' layout.
+                            .entry((None, filter, joints, weights, grid, DeltaLayout::Chunks))
                             .or_insert_with(|| {
                                 ring.message(
-                                    &published, levels, None, filter, joints, weights, precision,
-                                    false,
+                                    &published,
+                                    levels,
+                                    None,
+                                    filter,
+                                    joints,
+                                    weights,
+                                    precision,
+                                    DeltaLayout::Chunks,
                                 )
                             })
                             .clone()

@@ -18,6 +18,7 @@
 
 use super::pace::Pace;
 use axum::extract::ws::{CloseFrame, Message};
+use posecast_proto::frame2;
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -122,7 +123,22 @@ pub struct Outbox {
     datagrams: std::sync::atomic::AtomicBool,
     /// The keyframes the client acknowledged, by scene number.
     acked_keys: Mutex<std::collections::HashMap<u32, KeyAcks>>,
+    /// Protocol version 8: the smoothed time from sending a frame to its acknowledgement, µs
+    /// (0: none measured yet).
+    frame_rtt_us: AtomicU64,
+    /// Protocol version 8: the least time from sending a frame to its acknowledgement since
+    /// [`Outbox::take_frame_rtt_floor`] last took it, µs (0: none since).
+    frame_rtt_floor_us: AtomicU64,
 }
+
+/// How long a keyframe sent as datagrams (protocol version 8) waits for its acknowledgement,
+/// in round trips from sending a frame to its acknowledgement, before another goes.
+const KEY_RETRY_RTTS: u32 = 2;
+
+/// The least a keyframe sent as datagrams waits for its acknowledgement, and what it waits
+/// before a round trip is measured.
+const KEY_RETRY_MIN: std::time::Duration = std::time::Duration::from_millis(50);
+const KEY_RETRY_UNMEASURED: std::time::Duration = std::time::Duration::from_millis(250);
 
 /// Split keyframes whose acknowledgements an outbox follows, per scene: older ones are
 /// forgotten (a client that lost their parts gets a newer keyframe anyway).
@@ -143,6 +159,22 @@ struct KeyAcks {
     split: std::collections::BTreeMap<u64, std::collections::HashSet<u32>>,
     /// The newest split keyframe forgotten: acknowledgements up to it are not taken as whole.
     forgotten: Option<u64>,
+    /// Protocol version 8: wire v2 frames sent and not yet acknowledged for every avatar, by
+    /// tick (of the last [`frame2::DATAGRAM_REFERENCE_TICKS`] ticks).
+    sent: std::collections::BTreeMap<u64, SentFrame>,
+    /// Protocol version 8: the ticks of the newest frames acknowledged whole, newest first
+    /// (at most [`frame2::MAX_DEPTH`]): what a delta may name.
+    acked: Vec<u64>,
+}
+
+/// A wire v2 frame sent as datagrams (protocol version 8), until it is acknowledged.
+#[derive(Debug)]
+struct SentFrame {
+    at: std::time::Instant,
+    key: bool,
+    /// Its avatars not acknowledged yet, when it went cut by avatar into several datagrams;
+    /// `None`: it went whole, and any acknowledgement of it is of all of it.
+    missing: Option<std::collections::HashSet<u32>>,
 }
 
 /// The acknowledgements of scene number `scene`, made if fewer than [`ACKED_SCENES_KEPT`]
@@ -263,6 +295,150 @@ impl Outbox {
     #[must_use]
     pub fn key_acked(&self, scene: u32) -> Option<u64> {
         self.key_acks().get(&scene).and_then(|a| a.held)
+    }
+
+    /// Protocol version 8: the wire v2 frame of tick `seq` of scene number `scene` (a keyframe
+    /// when `key`) is going out as datagrams — whole (`parts` `None`), or cut by avatar with
+    /// the avatars of every part. Frames older than [`frame2::DATAGRAM_REFERENCE_TICKS`] are
+    /// forgotten (a delta never names them).
+    pub fn datagram_frame_sent(&self, scene: u32, seq: u64, key: bool, parts: Option<&[u32]>) {
+        let mut acks = self.key_acks();
+        let Some(acks) = scene_acks(&mut acks, scene) else {
+            return;
+        };
+        let frame = acks.sent.entry(seq).or_insert(SentFrame {
+            at: std::time::Instant::now(),
+            key,
+            missing: None,
+        });
+        frame.missing = parts.map(|avatars| avatars.iter().copied().collect());
+        let oldest = seq.saturating_sub(frame2::DATAGRAM_REFERENCE_TICKS);
+        while acks
+            .sent
+            .first_key_value()
+            .is_some_and(|(&s, _)| s < oldest)
+        {
+            acks.sent.pop_first();
+        }
+    }
+
+    /// Protocol version 8: the client decoded the chunks of `avatars` (none: all, of a frame
+    /// that went whole) in the frame of tick `seq` of scene number `scene`. Once every avatar it was sent with is
+    /// acknowledged, a delta may name it. An acknowledgement of a frame not sent (or
+    /// forgotten) changes nothing.
+    pub fn ack_frame(&self, scene: u32, seq: u64, avatars: &[u32]) {
+        let mut acks = self.key_acks();
+        let Some(acks) = acks.get_mut(&scene) else {
+            return;
+        };
+        let Some(frame) = acks.sent.get_mut(&seq) else {
+            return;
+        };
+        let whole = match &mut frame.missing {
+            // A part names its avatars (at most `frame2::MAX_PART_AVATARS`): one naming none
+            // says nothing of which part came.
+            Some(missing) => {
+                for a in avatars {
+                    missing.remove(a);
+                }
+                missing.is_empty()
+            }
+            None => true,
+        };
+        if !whole {
+            return;
+        }
+        let rtt = frame.at.elapsed().as_micros().min(u128::from(u32::MAX)) as u64;
+        acks.sent.remove(&seq);
+        let at = acks.acked.partition_point(|&s| s > seq);
+        if acks.acked.get(at) != Some(&seq) {
+            acks.acked.insert(at, seq);
+            acks.acked.truncate(frame2::MAX_DEPTH);
+        }
+        // RFC 6298's smoothing, ⅛ of each sample.
+        let rtt = rtt.max(1);
+        let old = self.frame_rtt_us.load(Ordering::Relaxed);
+        let new = if old == 0 {
+            rtt
+        } else {
+            old - old / 8 + rtt / 8
+        };
+        self.frame_rtt_us.store(new.max(1), Ordering::Relaxed);
+        self.frame_rtt_floor_us
+            .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |f| {
+                Some(if f == 0 { rtt } else { f.min(rtt) })
+            })
+            .ok();
+    }
+
+    /// Protocol version 8: the least time from sending a frame as datagrams to its
+    /// acknowledgement since the last call, if any came — the adaptive rate's round trip over
+    /// datagrams: it rises with a queue on the path, and a lost datagram (never acknowledged)
+    /// or a lost acknowledgement does not delay it, as a retransmission delays a pong on a
+    /// stream.
+    #[must_use]
+    pub fn take_frame_rtt_floor(&self) -> Option<std::time::Duration> {
+        match self.frame_rtt_floor_us.swap(0, Ordering::Relaxed) {
+            0 => None,
+            us => Some(std::time::Duration::from_micros(us)),
+        }
+    }
+
+    /// Protocol version 8: whether a frame sent as datagrams awaits its acknowledgement.
+    #[must_use]
+    pub fn frames_in_flight(&self) -> bool {
+        self.key_acks().values().any(|a| !a.sent.is_empty())
+    }
+
+    /// Protocol version 8: the ticks a delta of tick `seq` of scene number `scene` may name —
+    /// the newest frames acknowledged whole, newest first, of the last
+    /// [`frame2::DATAGRAM_REFERENCE_TICKS`] ticks. Empty: it needs a keyframe.
+    #[must_use]
+    pub fn datagram_refs(&self, scene: u32, seq: u64) -> Vec<u64> {
+        self.key_acks().get(&scene).map_or_else(Vec::new, |a| {
+            a.acked
+                .iter()
+                .copied()
+                .filter(|&r| r < seq && seq - r < frame2::DATAGRAM_REFERENCE_TICKS)
+                .collect()
+        })
+    }
+
+    /// Protocol version 8: whether a keyframe of scene number `scene` may go now — none is on
+    /// its way, unacknowledged, sent less than [`KEY_RETRY_RTTS`] round trips ago (at least
+    /// [`KEY_RETRY_MIN`]). A lost keyframe goes again then; one on its way is not doubled
+    /// each tick (a thin link would carry nothing else).
+    #[must_use]
+    pub fn datagram_key_due(&self, scene: u32) -> bool {
+        let rtt = self.frame_rtt();
+        let wait = rtt.map_or(KEY_RETRY_UNMEASURED, |r| {
+            (r * KEY_RETRY_RTTS).max(KEY_RETRY_MIN)
+        });
+        self.key_acks().get(&scene).is_none_or(|a| {
+            a.sent
+                .values()
+                .filter(|f| f.key)
+                .all(|f| f.at.elapsed() >= wait)
+        })
+    }
+
+    /// Protocol version 8: the smoothed time from sending a frame as datagrams to its
+    /// acknowledgement, once one was measured.
+    #[must_use]
+    pub fn frame_rtt(&self) -> Option<std::time::Duration> {
+        match self.frame_rtt_us.load(Ordering::Relaxed) {
+            0 => None,
+            us => Some(std::time::Duration::from_micros(us)),
+        }
+    }
+
+    /// Forgets what scene number `scene`'s frames sent as datagrams were and which were
+    /// acknowledged (protocol version 8): its next frame is a keyframe.
+    fn forget_datagram_frames(&self, scene: u32) {
+        if let Some(a) = self.key_acks().get_mut(&scene) {
+            a.sent.clear();
+            a.acked.clear();
+        }
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, State> {
@@ -437,6 +613,7 @@ impl Outbox {
         if let Some(slot) = self.lock().frames.get_mut(&scene_num) {
             slot.chain.clear();
         }
+        self.forget_datagram_frames(scene_num);
     }
 
     /// Forgets what is pending for a scene: its frames and its unsent subscription snapshot
@@ -445,6 +622,8 @@ impl Outbox {
         let mut s = self.lock();
         s.frames.remove(&scene_num);
         s.drop_snapshot(scene_num);
+        drop(s);
+        self.forget_datagram_frames(scene_num);
     }
 
     /// Frames waiting to be sent (at most `1 + MAX_PENDING_DELTAS` per subscribed scene,
@@ -498,6 +677,15 @@ impl Outbox {
     /// socket's buffer full (it waits for room), `false` once one went through.
     pub fn set_socket_full(&self, full: bool) {
         self.socket_full.store(full, Ordering::Relaxed);
+    }
+
+    /// A frame the link could not take: the transport held frames already (QUIC's congestion
+    /// control), so this one was dropped unsent. It counts as superseded while the socket
+    /// held the writer ([`Outbox::dropped_while_held`]): the link's backpressure, which the
+    /// adaptive rate reads.
+    pub fn dropped_by_link(&self) {
+        self.dropped.fetch_add(1, Ordering::Relaxed);
+        self.dropped_held.fetch_add(1, Ordering::Relaxed);
     }
 
     fn count_dropped(&self, replaced: u64) {

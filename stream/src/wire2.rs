@@ -211,8 +211,8 @@ impl Ring {
     /// of `joints` (levels and history cut alike, so a subset's deltas predict from the
     /// subset's own frames). `None` when some avatar cannot be coded against the chain (it is
     /// new, changed rig, or its frames left the ring): the subscriber needs a keyframe.
-    /// With a `precision`, every avatar's levels (now and in the chain) are on its grid; when
-    /// `packed` (protocol version 7), a delta is a packed one (kind 3).
+    /// With a `precision`, every avatar's levels (now and in the chain) are on its grid;
+    /// `layout` says how a delta is laid out (a keyframe's is always the same).
     #[allow(clippy::too_many_arguments)]
     pub(super) fn message(
         &self,
@@ -223,7 +223,7 @@ impl Ring {
         joints: Option<&JointSet>,
         weights: bool,
         precision: Option<&Grid>,
-        packed: bool,
+        layout: DeltaLayout,
     ) -> Option<Message> {
         let pieces = publish::select(&published.pieces, filter, joints);
         let seq = published.header.seq;
@@ -240,7 +240,16 @@ impl Ring {
         let mut out = Vec::with_capacity(self.last_len.load(Ordering::Relaxed).max(64));
         let ticks = chain.map(|c| self.ticks_of(c)).unwrap_or_default();
         let mut chunks = match chain {
-            Some(chain) if packed => {
+            Some(_) if layout == DeltaLayout::Referenced => {
+                // It names the ticks still kept (a delta codes against no others).
+                let refs: Vec<u64> = ticks.iter().map(|(s, _)| *s).collect();
+                if refs.is_empty() {
+                    return None;
+                }
+                frame2::write_referenced_header(&header, &refs, pieces.len(), &mut out);
+                Chunks::Referenced(&mut out)
+            }
+            Some(chain) if layout == DeltaLayout::Packed => {
                 // The base frame's time, which the delta's is sent against.
                 let base = ticks.first().filter(|(s, _)| Some(s) == chain.first())?;
                 Chunks::Packed(PackedDeltas::new(
@@ -337,10 +346,23 @@ impl Ring {
     }
 }
 
+/// How a wire v2 delta is laid out, by what its receiver speaks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub(super) enum DeltaLayout {
+    /// Kind 2: each chunk byte-aligned, against the receiver's newest frames.
+    Chunks,
+    /// Kind 3 (protocol version 7): every chunk in one bit stream.
+    Packed,
+    /// Kind 4 (protocol version 8, frames as datagrams): naming the frames it refers to,
+    /// each chunk with its length.
+    Referenced,
+}
+
 /// Where a frame's chunks go: after its header, each byte-aligned (keyframes and deltas of
-/// kind 2), or into a packed delta's one bit stream.
+/// kind 2), with its length (kind 4), or into a packed delta's one bit stream.
 enum Chunks<'o> {
     Bytes(&'o mut Vec<u8>),
+    Referenced(&'o mut Vec<u8>),
     Packed(PackedDeltas<'o>),
 }
 
@@ -349,6 +371,7 @@ impl Chunks<'_> {
     fn delta(&mut self, num: u32, levels: &QuantPose, history: &[&QuantPose]) -> bool {
         match self {
             Chunks::Bytes(out) => frame2::encode_delta(num, levels, history, out),
+            Chunks::Referenced(out) => frame2::encode_referenced_delta(num, levels, history, out),
             Chunks::Packed(packed) => packed.push(num, levels, history),
         }
     }
@@ -476,7 +499,7 @@ mod tests {
             let now = ring.record(&p);
             let held = (!chain.is_empty()).then_some(&chain[..]);
             let Some(Message::Binary(bytes)) =
-                ring.message(&p, &now, held, None, None, true, None, false)
+                ring.message(&p, &now, held, None, None, true, None, DeltaLayout::Chunks)
             else {
                 panic!("no frame at tick {seq}");
             };

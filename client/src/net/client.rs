@@ -2,7 +2,7 @@
 
 use super::clock::ClockEstimator;
 use super::jitter::JitterBuffer;
-use super::transport::{self, Link, Transport, TransportChoice};
+use super::transport::{self, Ack, Link, Transport, TransportChoice};
 use futures_util::{SinkExt, StreamExt};
 use posecast_proto::command::{Command, CommandResult};
 use posecast_proto::description::AvatarDescription;
@@ -71,7 +71,8 @@ pub struct ClientOptions {
     /// kind (1 and 2 bare values, read by their shape: [`CommandResult::from_bare`]); 4 and
     /// later also get morph weights in frames; 5 may ask for a `precision`; 6 gets a precision's
     /// frames with coarser steps near an axis (fewer bytes, the same bound); 7 gets packed
-    /// deltas (every avatar's in one bit stream, less framing). A server that refuses
+    /// deltas (every avatar's in one bit stream, less framing); 8 gets, over WebTransport, v2
+    /// frames as datagrams (v1 frames before; on a websocket 8 is 7). A server that refuses
     /// the version (`unsupported_version`: one that predates it) gets a hello with the version
     /// before, down to 1.
     pub version: u32,
@@ -107,7 +108,7 @@ impl ClientOptions {
             joints: None,
             morph_weights: true,
             precision: None,
-            version: 7,
+            version: 8,
             transport: TransportChoice::Auto,
             quic_timeout: Duration::from_secs(5),
             webtransport_url: None,
@@ -276,8 +277,9 @@ pub struct Stats {
     /// Why the newest connection did not use WebTransport although the server offered it
     /// (the QUIC handshake failed or timed out: UDP blocked on the way?).
     pub webtransport_failure: Option<String>,
-    /// Keyframes acknowledged to the server (WebTransport).
-    pub key_acks: u64,
+    /// Acknowledgements sent to the server (WebTransport): of v1 keyframes, or in protocol
+    /// version 8 of every v2 frame.
+    pub acks: u64,
 }
 
 #[derive(Default)]
@@ -682,7 +684,12 @@ async fn session(
             .await
             .map_err(|e| connect_err(&e))?;
     }
+    // Over WebTransport v2 frames come as datagrams (protocol version 8): lost, out of order,
+    // their deltas naming the frames they refer to.
     let mut decoder = Decoders::default();
+    if link.answers_pings() {
+        decoder.v2 = Frame2Decoder::for_datagrams();
+    }
     let mut ping = tokio::time::interval(options.ping_interval);
     let mut ping_id = 0u32;
     loop {
@@ -693,10 +700,10 @@ async fn session(
                 let received = unix_micros();
                 match msg {
                     Message::Binary(bytes) => {
-                        if let Some((scene_num, seq, avatars)) = on_binary(shared, events, &mut decoder, &bytes, received)
-                            && link.acknowledge_key(scene_num, seq, &avatars)
+                        if let Some(ack) = on_binary(shared, events, &mut decoder, &bytes, received)
+                            && link.acknowledge(&ack)
                         {
-                            lock(shared).stats.key_acks += 1;
+                            lock(shared).stats.acks += 1;
                         }
                     }
                     Message::Text(text) => {
@@ -1052,15 +1059,15 @@ impl Decoders {
     }
 }
 
-/// Decodes a binary frame into the avatars' poses; returns its scene number, tick and avatar
-/// numbers when it was a keyframe (which a WebTransport link acknowledges).
+/// Decodes a binary frame into the avatars' poses; returns what a WebTransport link
+/// acknowledges of it: a v1 keyframe, every v2 frame (protocol version 8).
 fn on_binary(
     shared: &Arc<Mutex<Shared>>,
     events: &broadcast::Sender<Event>,
     decoder: &mut Decoders,
     bytes: &[u8],
     received: u64,
-) -> Option<(u32, u64, Vec<u32>)> {
+) -> Option<Ack> {
     let mut s = lock(shared);
     let frame = match decoder.decode(bytes) {
         Ok(f) => f,
@@ -1123,9 +1130,12 @@ fn on_binary(
             bytes: bytes.len(),
         })
         .ok();
-    key.then(|| {
-        let avatars = frame.avatars.iter().map(|a| a.avatar_num).collect();
-        (frame.header.scene_num, frame.header.seq, avatars)
+    let v2 = bytes.first() == Some(&frame2::MAGIC);
+    (key || v2).then(|| Ack {
+        whole_frame: v2,
+        scene_num: frame.header.scene_num,
+        seq: frame.header.seq,
+        avatars: frame.avatars.iter().map(|a| a.avatar_num).collect(),
     })
 }
 

@@ -10,8 +10,9 @@
 //!
 //! Over WebTransport the [`Link`] does what a websocket library does by itself — it answers
 //! the server's pings — and what datagrams need: it acknowledges every keyframe the client
-//! decodes ([`Link::acknowledge_key`]), so the server codes deltas against a keyframe the
-//! client holds and a lost datagram costs its own tick only.
+//! decodes, and in protocol version 8 every wire v2 frame ([`Link::acknowledge`]), so the
+//! server codes deltas against frames the client holds and a lost datagram costs its own tick
+//! only.
 
 use futures_util::{Sink, SinkExt, Stream, StreamExt};
 use posecast_proto::quic as wire;
@@ -21,6 +22,19 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_tungstenite::tungstenite::Message;
 use tokio_tungstenite::tungstenite::protocol::CloseFrame;
 use tokio_tungstenite::tungstenite::protocol::frame::coding::CloseCode;
+
+/// What a client acknowledges of a frame it decoded ([`Link::acknowledge`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Ack {
+    /// A wire v2 frame (protocol version 8: every frame is acknowledged), else a v1 keyframe.
+    pub whole_frame: bool,
+    /// Its scene number.
+    pub scene_num: u32,
+    /// Its tick.
+    pub seq: u64,
+    /// The avatars it carried.
+    pub avatars: Vec<u32>,
+}
 
 /// The transport a connection uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -155,17 +169,20 @@ impl Link {
         self.quic.is_some()
     }
 
-    /// Acknowledges the chunks of `avatars` in the keyframe of tick `seq` of scene number
-    /// `scene_num`, which the client decoded: over WebTransport the server codes deltas only
-    /// against keyframes acknowledged for every avatar (a keyframe too large for a datagram
-    /// comes cut by avatar, and any part may be lost; a websocket delivers every frame, and
-    /// needs none). Returns whether an acknowledgement went.
-    pub fn acknowledge_key(&self, scene_num: u32, seq: u64, avatars: &[u32]) -> bool {
+    /// Acknowledges what the client decoded: over WebTransport the server codes deltas only
+    /// against frames acknowledged for every avatar — v1 keyframes, or (protocol version 8)
+    /// any v2 frame; a frame too large for a datagram comes cut by avatar, and any part may
+    /// be lost. A websocket delivers every frame, and needs none. Returns whether an
+    /// acknowledgement went.
+    pub fn acknowledge(&self, ack: &Ack) -> bool {
+        let datagram = if ack.whole_frame {
+            wire::frame_ack_of(ack.scene_num, ack.seq, &ack.avatars)
+        } else {
+            wire::key_ack_of(ack.scene_num, ack.seq, &ack.avatars)
+        };
         match &self.quic {
-            // A lost acknowledgement is made up for by the next keyframe's.
-            Some((conn, _)) => conn
-                .send_datagram(wire::key_ack_of(scene_num, seq, avatars))
-                .is_ok(),
+            // A lost acknowledgement is made up for by the next frame's.
+            Some((conn, _)) => conn.send_datagram(datagram).is_ok(),
             None => false,
         }
     }

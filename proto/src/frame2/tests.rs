@@ -328,6 +328,122 @@ proptest! {
         }
     }
 
+    /// Frames as datagrams (protocol version 8): each tick's frame is a keyframe until the
+    /// reader acknowledged one, then a kind 4 delta naming the newest frames it acknowledged,
+    /// whole or cut into one part per avatar. Datagrams are lost, come up to 3 ticks late (out
+    /// of order); acknowledgements name the part's avatars, take 1 to 6 ticks and are lost
+    /// too; a frame counts as acknowledged once every part is. The reader decodes every part
+    /// that comes, to exactly the encoder's levels, a late keyframe included.
+    #[test]
+    fn a_datagram_reader_decodes_every_frame_that_comes(
+        a in arb_motion(),
+        b in arb_motion(),
+        lost in prop::collection::vec(0u8..10, 240),
+        late in prop::collection::vec(0u64..4, 240),
+        ack_after in prop::collection::vec(1u64..7, 240),
+        cut in prop::collection::vec(any::<bool>(), 120),
+    ) {
+        let mut reader = Frame2Decoder::for_datagrams();
+        let mut ring: Vec<Vec<Arc<QuantPose>>> = Vec::new();
+        let mut poses_of: Vec<[AvatarPose; 2]> = Vec::new();
+        // (arrival tick, seq, bytes) in flight; (arrival tick, seq, avatars) acknowledgements
+        // in flight; the avatars of each frame not acknowledged yet.
+        let mut in_flight: Vec<(u64, u64, Vec<u8>)> = Vec::new();
+        let mut acks: Vec<(u64, u64, Vec<u32>)> = Vec::new();
+        let mut missing: HashMap<u64, Vec<u32>> = HashMap::new();
+        let mut acked: Vec<u64> = Vec::new();
+        let (mut decoded, mut deltas, mut parts_sent) = (0, 0, 0);
+        let mut dice = 0usize;
+        for tick in 0..140u64 {
+            let seq = tick + 1;
+            // What reaches each side this tick.
+            acks.retain(|(at, s, avatars)| {
+                if *at <= tick
+                    && let Some(m) = missing.get_mut(s)
+                {
+                    m.retain(|n| !avatars.contains(n));
+                    if m.is_empty() {
+                        acked.push(*s);
+                    }
+                }
+                *at > tick
+            });
+            acked.sort_unstable_by(|x, y| y.cmp(x));
+            acked.dedup();
+            let mut arrived: Vec<(u64, u64, Vec<u8>)> = Vec::new();
+            in_flight.retain(|f| {
+                if f.0 <= tick {
+                    arrived.push(f.clone());
+                }
+                f.0 > tick
+            });
+            // Late ones in the order they come (a later tick first when it came first).
+            arrived.sort_by_key(|f| (f.0, std::cmp::Reverse(f.1)));
+            for (_, s, bytes) in arrived {
+                let got = reader.decode_levels(&bytes).unwrap();
+                prop_assert_eq!(got.header.seq, s);
+                let nums: Vec<u32> = got.avatars.iter().map(|g| g.avatar_num).collect();
+                for g in &got.avatars {
+                    let k = usize::from(g.avatar_num != 1);
+                    assert_decoded(&poses_of[s as usize - 1][k], &ring[s as usize - 1][k], g);
+                }
+                decoded += 1;
+                dice += 1;
+                if lost[dice % 240] != 0 {
+                    acks.push((tick + ack_after[dice % 240], s, nums));
+                }
+            }
+            if tick >= 120 {
+                continue;
+            }
+            let poses = [a.at(tick as usize, 1), b.at(tick as usize, 9)];
+            let q: Vec<Arc<QuantPose>> = poses.iter().map(|p| Arc::new(QuantPose::from_pose(p))).collect();
+            let refs: Vec<u64> = acked
+                .iter()
+                .copied()
+                .filter(|&r| seq - r < DATAGRAM_REFERENCE_TICKS)
+                .take(MAX_DEPTH)
+                .collect();
+            let header = FrameHeader {
+                kind: if refs.is_empty() { FrameKind::Key } else { FrameKind::Delta },
+                scene_num: 4,
+                seq,
+                server_time_us: 1_750_000_000_000_000 + seq * 16_667,
+                base_seq: refs.first().copied().unwrap_or(seq),
+            };
+            let mut bytes = Vec::new();
+            if refs.is_empty() {
+                write_header(&header, 2, &mut bytes);
+                for (p, now) in poses.iter().zip(&q) {
+                    encode_key(p.avatar_num, p.hash, now, &mut bytes);
+                }
+            } else {
+                deltas += 1;
+                write_referenced_header(&header, &refs, 2, &mut bytes);
+                for (k, (p, now)) in poses.iter().zip(&q).enumerate() {
+                    let h: Vec<&QuantPose> = refs.iter().map(|&r| &*ring[r as usize - 1][k]).collect();
+                    prop_assert!(encode_referenced_delta(p.avatar_num, now, &h, &mut bytes));
+                }
+            }
+            ring.push(q);
+            poses_of.push(poses);
+            missing.insert(seq, vec![1, 9]);
+            let parts = split_by_avatar(&bytes, if cut[tick as usize] { 1 } else { bytes.len() }).unwrap();
+            if cut[tick as usize] {
+                prop_assert_eq!(parts.iter().map(|p| p.1.clone()).collect::<Vec<_>>(), vec![vec![1], vec![9]]);
+            } else {
+                prop_assert_eq!(&parts[0].0, &bytes);
+            }
+            for (part, _) in parts {
+                parts_sent += 1;
+                if lost[(tick as usize * 2 + parts_sent) % 240] >= 2 {
+                    in_flight.push((tick + late[(tick as usize + parts_sent) % 240], seq, part));
+                }
+            }
+        }
+        prop_assert!(decoded > 60 && deltas > 0, "{} decoded, {} deltas", decoded, deltas);
+    }
+
     /// A stream coded on a coarser grid (random steps per joint and for translations, as a
     /// subscription's precision gives): the reader decodes exactly the encoder's grid values,
     /// and every rotation is within its joint's bound of the source, every translation within
@@ -407,7 +523,7 @@ proptest! {
     fn garbage_never_panics(bytes in prop::collection::vec(any::<u8>(), 0..400)) {
         let mut dec = Frame2Decoder::new();
         let _ = dec.decode(&bytes);
-        for kind in [1u8, 2, 3] {
+        for kind in [1u8, 2, 3, 4] {
             let mut framed = vec![MAGIC, kind];
             framed.extend_from_slice(&bytes);
             let _ = dec.decode(&framed);
@@ -427,6 +543,27 @@ proptest! {
         let mut body = vec![1, depth << 4 | (bytes.first().copied().unwrap_or(0) & 7)];
         body.extend_from_slice(&bytes);
         let _ = dec.decode(&frame_bytes(FrameKind::Delta, 4, 3, &body, 1));
+    }
+
+    /// Random bytes as the chunks of a kind 4 delta naming held frames (protocol version 8),
+    /// with a length that may disagree with them: refused or decoded, never a panic; the
+    /// splitter takes the same bytes without panicking either.
+    #[test]
+    fn garbage_referenced_deltas_never_panic(bytes in prop::collection::vec(any::<u8>(), 0..200), depth in 0u8..16, len in 0u8..255) {
+        let p = pose(1, vec![Quat::from_rotation_x(0.4); 5], vec![Vec3::ONE], vec![Vec3::ONE]);
+        let mut stream = StreamEncoder::new();
+        let mut dec = Frame2Decoder::for_datagrams();
+        for seq in 1..4 {
+            dec.decode(&stream.encode(4, seq, 0, std::slice::from_ref(&p), false).0).unwrap();
+        }
+        let header = FrameHeader { kind: FrameKind::Delta, scene_num: 4, seq: 5, server_time_us: 0, base_seq: 3 };
+        let mut frame = Vec::new();
+        write_referenced_header(&header, &[3, 1], 1, &mut frame);
+        frame.push(len);
+        frame.extend_from_slice(&[1, depth << 4 | (bytes.first().copied().unwrap_or(0) & 7)]);
+        frame.extend_from_slice(&bytes);
+        let _ = dec.decode(&frame);
+        let _ = split_by_avatar(&frame, 40);
     }
 
     /// Random bits as the chunks of a packed delta (protocol version 7) against held frames

@@ -21,6 +21,7 @@ use crate::metrics::Metrics;
 use axum::extract::ws::Message;
 use axum_tungstenite::error::{CapacityError, Error as WsError, ProtocolError as WsProtocol};
 use futures_util::{Sink, Stream, StreamExt};
+use posecast_proto::frame2;
 use posecast_proto::msg::MAX_CLIENT_MESSAGE_BYTES;
 use posecast_proto::quic as wire;
 use posecast_stream::outbox::Outbox;
@@ -43,6 +44,10 @@ const DATAGRAM_BUFFER: usize = 1 << 20;
 /// earlier write's datagrams waited 4 ms lost deltas on a machine under CPU load, where one
 /// write's datagrams can be that far apart.)
 const SUPERSEDED_AT: usize = 8;
+
+/// Wire v2 frames (protocol version 8) of the size of this one waiting in QUIC's send buffer
+/// past which it is superseded (see [`SUPERSEDED_AT`]).
+const V2_SUPERSEDED_AT: usize = 2;
 
 /// How long a client may take to complete the QUIC and WebTransport handshakes.
 const HANDSHAKE: Duration = Duration::from_secs(10);
@@ -282,16 +287,21 @@ fn datagrams_waiting(conn: &Connection) -> usize {
 /// More than quinn's bookkeeping of one datagram in its send buffer.
 const BOOKKEEPING: usize = 64;
 
-/// Keyframe acknowledgements the client sends as datagrams; anything else is ignored.
+/// Keyframe and frame acknowledgements the client sends as datagrams; anything else is
+/// ignored.
 async fn read_acks(conn: Connection, outbox: Arc<Outbox>, metrics: Arc<Metrics>, greeter: Greeter) {
     while let Ok(datagram) = conn.receive_datagram().await {
-        match wire::read_key_ack(&datagram.payload()) {
-            Some(ack) => {
-                greeter.heard();
-                metrics.quic.key_ack();
-                outbox.ack_key(ack.scene_num, ack.seq, &ack.avatars);
-            }
-            None => metrics.quic.ignored(),
+        let payload = datagram.payload();
+        if let Some(ack) = wire::read_key_ack(&payload) {
+            greeter.heard();
+            metrics.quic.key_ack();
+            outbox.ack_key(ack.scene_num, ack.seq, &ack.avatars);
+        } else if let Some(ack) = wire::read_frame_ack(&payload) {
+            greeter.heard();
+            metrics.quic.frame_ack();
+            outbox.ack_frame(ack.scene_num, ack.seq, &ack.avatars);
+        } else {
+            metrics.quic.ignored();
         }
     }
 }
@@ -351,10 +361,22 @@ fn send_datagrams(
     };
     // Newest frame wins, as in a websocket's outbox: when QUIC's congestion control holds
     // more than a frame or two waiting, the path is full and this frame is superseded before
-    // it could leave (a lost keyframe is sent again before the next delta).
-    if datagrams_waiting(conn) > SUPERSEDED_AT * max {
+    // it could leave (a lost keyframe is sent again before the next delta). Wire v2 frames
+    // (protocol version 8) are a few hundred bytes: two of them waiting is a full path, where
+    // [`SUPERSEDED_AT`] datagrams of the largest size would be a second of them queued.
+    let waiting = datagrams_waiting(conn);
+    let full = if frame.first() == Some(&frame2::MAGIC) {
+        waiting > V2_SUPERSEDED_AT * frame.len().min(max)
+    } else {
+        waiting > SUPERSEDED_AT * max
+    };
+    if full {
         metrics.quic.superseded();
+        outbox.dropped_by_link();
         return Vec::new();
+    }
+    if frame.first() == Some(&frame2::MAGIC) {
+        return send_v2_datagrams(conn, outbox, metrics, frame, max);
     }
     if frame.len() <= max {
         if conn.send_datagram(frame).is_ok() {
@@ -373,6 +395,41 @@ fn send_datagrams(
     {
         let avatars: Vec<u32> = parts.iter().flat_map(|(_, a)| a.iter().copied()).collect();
         outbox.sent_split_key(header.scene_num, header.seq, &avatars);
+    }
+    let mut rest = Vec::new();
+    for (part, _) in parts {
+        if part.len() <= max && conn.send_datagram(&part).is_ok() {
+            metrics.quic.datagram(part.len());
+        } else {
+            rest.push(part);
+        }
+    }
+    rest
+}
+
+/// [`send_datagrams`] for a wire v2 frame (protocol version 8: a keyframe or a delta naming
+/// the frames it refers to), whole or cut by avatar, recorded as sent so that its
+/// acknowledgements make it a frame later deltas may name.
+fn send_v2_datagrams(
+    conn: &Connection,
+    outbox: &Outbox,
+    metrics: &Metrics,
+    frame: &[u8],
+    max: usize,
+) -> Vec<Vec<u8>> {
+    let (Ok((header, _)), Ok(parts)) = (
+        frame2::read_header(frame),
+        frame2::split_by_avatar(frame, max),
+    ) else {
+        return vec![frame.to_vec()];
+    };
+    let key = header.kind == posecast_proto::frame::FrameKind::Key;
+    if parts.len() > 1 {
+        metrics.quic.split();
+        let avatars: Vec<u32> = parts.iter().flat_map(|(_, a)| a.iter().copied()).collect();
+        outbox.datagram_frame_sent(header.scene_num, header.seq, key, Some(&avatars));
+    } else {
+        outbox.datagram_frame_sent(header.scene_num, header.seq, key, None);
     }
     let mut rest = Vec::new();
     for (part, _) in parts {

@@ -17,7 +17,9 @@ pub struct QuicCounters {
     /// Frames too large for one datagram, cut by avatar into several.
     split: Counter,
     key_acks: Counter,
-    /// Datagrams from clients that are not keyframe acknowledgements.
+    /// Frame acknowledgements (protocol version 8).
+    frame_acks: Counter,
+    /// Datagrams from clients that are not acknowledgements.
     junk: Counter,
     refused: Counter,
     open: GaugeU64,
@@ -54,10 +56,15 @@ impl QuicCounters {
                 "quic_key_acks",
                 "Keyframe acknowledgements received from WebTransport clients",
             ),
+            frame_acks: counter(
+                r,
+                "quic_frame_acks",
+                "Frame acknowledgements received from WebTransport clients of protocol version 8 (one per frame, or part of a frame, decoded)",
+            ),
             junk: counter(
                 r,
                 "quic_datagrams_ignored",
-                "Datagrams from WebTransport clients that are not keyframe acknowledgements",
+                "Datagrams from WebTransport clients that are not acknowledgements",
             ),
             refused: counter(
                 r,
@@ -113,6 +120,11 @@ impl QuicCounters {
     /// A keyframe acknowledgement received.
     pub fn key_ack(&self) {
         self.key_acks.inc();
+    }
+
+    /// A frame acknowledgement received (protocol version 8).
+    pub fn frame_ack(&self) {
+        self.frame_acks.inc();
     }
 
     /// A session refused over a cap.

@@ -434,13 +434,11 @@ impl Session {
     /// by their trend, so a reader that is only late to answer is not cut
     /// (`posecast_stream::pace`).
     fn probe(&self) {
-        // Datagrams (WebTransport) are paced by QUIC's congestion control, and a lost one
-        // costs its own tick: round trips over a lossy path (pongs on the stream wait for its
-        // retransmissions) are not a queue to cut the rate for.
+        let pace = self.outbox.pace();
         if self.outbox.datagrams() {
+            self.probe_datagrams();
             return;
         }
-        let pace = self.outbox.pace();
         if let Some(figures) = self.tcp.as_ref().and_then(SocketInfo::figures) {
             let change = pace.socket(Instant::now(), figures);
             self.rate_changed(change);
@@ -451,6 +449,28 @@ impl Session {
             let payload = unix_micros().to_le_bytes().to_vec();
             self.outbox.push_control(Message::Ping(payload.into()));
             self.state.metrics.pace.pinged();
+        }
+    }
+
+    /// [`Self::probe`] over datagrams (WebTransport). Round trips over a lossy path are not
+    /// pongs on the stream (they wait for its retransmissions: not a queue to cut the rate
+    /// for). In protocol version 8 the client acknowledges every frame, and the least time
+    /// from sending one to its acknowledgement since the last probe is the round trip: a
+    /// queue raises it, a lost datagram or acknowledgement does not. Frames awaiting their
+    /// acknowledgement stand for an unanswered ping (none coming back for long counts as
+    /// late), and frames the link could not take (QUIC's congestion control held frames
+    /// already) as superseded ones. Before version 8 (acknowledged keyframes only) QUIC's
+    /// congestion control alone paces.
+    fn probe_datagrams(&self) {
+        let pace = self.outbox.pace();
+        let now = Instant::now();
+        if let Some(rtt) = self.outbox.take_frame_rtt_floor() {
+            let change = pace.answered(now, rtt);
+            self.rate_changed(change);
+        }
+        if self.outbox.frames_in_flight() {
+            let (_, change) = pace.probe(now, self.outbox.dropped_while_held());
+            self.rate_changed(change);
         }
     }
 

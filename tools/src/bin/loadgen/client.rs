@@ -4,13 +4,15 @@
 //! per frame would make this process the bottleneck sooner).
 //!
 //! A client speaks over a websocket or over WebTransport ([`Endpoint`]), through the client
-//! library's [`Link`]. Over WebTransport frames come as datagrams in wire v1 whatever the
-//! version, and the client does what the client library does there: it answers the server's
-//! pings and acknowledges every keyframe (or part of one) it receives, naming its avatars
-//! from the chunks' heads, so the server sends deltas against it.
+//! library's [`Link`]. Over WebTransport frames come as datagrams — wire v1 before protocol
+//! version 8, wire v2 from it — and the client does what the client library does there: it
+//! answers the server's pings and acknowledges every v1 keyframe, or from version 8 every
+//! frame (or part of one) it receives, naming its avatars from the chunks' heads, so the server
+//! sends deltas against it. (It does not decode: a version 8 frame that comes always decodes,
+//! as its deltas name only frames acknowledged.)
 use anyhow::{Context, Result, bail};
 use futures_util::{SinkExt, StreamExt};
-use posecast_client::net::transport::{Link, QuicOffer};
+use posecast_client::net::transport::{Ack, Link, QuicOffer};
 use posecast_proto::frame::{FrameHeader, FrameKind};
 use posecast_proto::frame2::{self, FrameClock};
 use posecast_proto::msg::{ClientMsg, Encoding, PROTOCOL_VERSION, SceneId, ServerMsg};
@@ -197,12 +199,31 @@ pub async fn run(
                     stats.failure = Some("a binary message is not a pose frame".into());
                     break;
                 };
-                if header.kind == FrameKind::Key
-                    && ws.answers_pings()
-                    && let Ok((_, avatars)) = posecast_proto::frame::avatars_of(&bytes)
-                {
-                    // A lost acknowledgement is made up for by the next keyframe's.
-                    ws.acknowledge_key(header.scene_num, header.seq, &avatars);
+                if ws.answers_pings() {
+                    // Over WebTransport: a v1 keyframe, or (protocol version 8) every v2 frame,
+                    // naming the avatars of its chunks. A lost acknowledgement is made up for
+                    // by the next frame's.
+                    let v2 = bytes.first() == Some(&frame2::MAGIC);
+                    let avatars = if v2 {
+                        frame2::split_by_avatar(&bytes, usize::MAX)
+                            .ok()
+                            .and_then(|mut parts| parts.pop())
+                            .map(|(_, avatars)| avatars)
+                    } else if header.kind == FrameKind::Key {
+                        posecast_proto::frame::avatars_of(&bytes)
+                            .ok()
+                            .map(|(_, avatars)| avatars)
+                    } else {
+                        None
+                    };
+                    if let Some(avatars) = avatars {
+                        ws.acknowledge(&Ack {
+                            whole_frame: v2,
+                            scene_num: header.scene_num,
+                            seq: header.seq,
+                            avatars,
+                        });
+                    }
                 }
                 let measuring = shared.measuring();
                 match last_seq {

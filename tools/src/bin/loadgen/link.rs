@@ -46,6 +46,11 @@ pub struct Row {
     pub interpolated: f64,
     /// Share held (a repeated received pose).
     pub held: f64,
+    /// Mean bytes of a frame received (a part of one over datagrams), and the share of them
+    /// that were keyframes.
+    pub frame_bytes: f64,
+    /// See `frame_bytes`.
+    pub key_share: f64,
 }
 
 /// Frames this close arrived together (one write of the server's).
@@ -128,7 +133,11 @@ pub fn row(
     let mut ages = Vec::new();
     let mut worst_freeze = 0.0f64;
     let mut counts = [0u64; 3];
+    let (mut frames_in, mut bytes_in, mut keys_in) = (0u64, 0u64, 0u64);
     for s in stats.iter().filter(|s| s.failure.is_none()) {
+        frames_in += s.frames;
+        bytes_in += s.bytes;
+        keys_in += s.keys;
         let frames = shown(&s.arrivals);
         rates.push(frames.len() as f64 / seconds);
         ages.extend(
@@ -156,18 +165,20 @@ pub fn row(
         worst_freeze,
         interpolated: counts[0] as f64 / displayed,
         held: counts[2] as f64 / displayed,
+        frame_bytes: bytes_in as f64 / frames_in.max(1) as f64,
+        key_share: keys_in as f64 / frames_in.max(1) as f64,
     }
 }
 
 /// Prints the table (Markdown, as `docs/src/concepts/adaptive-rate.md` has it).
 pub fn print(rows: &[Row]) {
     println!(
-        "| link | transport | clients | frames/s per client, min / mean | frame age p50 / p99 | worst freeze | interpolated | held |"
+        "| link | transport | clients | frames/s per client, min / mean | frame age p50 / p99 | worst freeze | interpolated | held | bytes a frame (keyframes) |"
     );
-    println!("|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|");
     for r in rows {
         println!(
-            "| {} | {} | {} | {:.1} / {:.1} | {:.0} / {:.0} ms | {:.0} ms | {:.1} % | {:.1} % |",
+            "| {} | {} | {} | {:.1} / {:.1} | {:.0} / {:.0} ms | {:.0} ms | {:.1} % | {:.1} % | {:.0} B ({:.1} %) |",
             r.link,
             r.transport,
             r.clients,
@@ -177,7 +188,9 @@ pub fn print(rows: &[Row]) {
             r.age_p99,
             r.worst_freeze,
             100.0 * r.interpolated,
-            100.0 * r.held
+            100.0 * r.held,
+            r.frame_bytes,
+            100.0 * r.key_share
         );
     }
 }

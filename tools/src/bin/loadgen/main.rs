@@ -122,9 +122,10 @@ pub struct Args {
     /// The protocol version the clients say hello with: 2 to 7 get wire v2 frames (4 with
     /// morph weights, 5 with precision per subscription, 6 with near-axis steps, 7 with packed
     /// deltas; 3 is the default), 1 v1 frames.
-    /// The reference server sends the same wire. Over WebTransport every version gets wire
-    /// v1 datagrams.
-    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=7))]
+    /// The reference server sends the same wire. Over WebTransport versions 1 to 7 get wire
+    /// v1 datagrams, 8 wire v2 datagrams (deltas naming acknowledged frames); on a websocket 8
+    /// is 7.
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=8))]
     protocol: u32,
     /// Load the machine as a busy host would be: this many busy-loop processes run beside the
     /// servers for the whole run (e.g. one per core), so both servers are measured under the
