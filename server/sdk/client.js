@@ -42,13 +42,15 @@ import { WebTransportSocket, discoverWebTransport } from "./webtransport.js";
 /** @typedef {import("./posecast.js").Vec3} Vec3 */
 
 /**
- * The protocol version a client asks for unless told otherwise: 7, wire v2 binary frames with
+ * The protocol version a client asks for unless told otherwise: 8, wire v2 binary frames with
  * morph weights (each pose's `weights`, by channel name), a precision per subscription (coded
  * with coarser steps near an axis, the same bound), deltas packed into one bit stream (frame
- * kind 3, the time a difference from the base frame's), and command results tagged with their
- * kind. A server that predates it is asked again with the version before.
+ * kind 3, the time a difference from the base frame's), command results tagged with their
+ * kind, and over WebTransport wire v2 frames as datagrams (deltas of kind 4 naming the frames
+ * they refer to; every frame decoded is acknowledged). A server that predates it is asked
+ * again with the version before.
  */
-export const PROTOCOL_VERSION = 7;
+export const PROTOCOL_VERSION = 8;
 
 /** @returns {number} The wall clock in µs since the Unix epoch. */
 export function nowMicros() {
@@ -85,7 +87,7 @@ export class Client {
     this.url = options.url ?? defaultUrl();
     /** @type {Encoding} */
     this.encoding = options.encoding ?? "binary";
-    /** The protocol version asked for in the hello: 7 (6 with packed deltas), 6 (5 with near-axis steps in a precision's frames), 5 (wire v2 frames with morph weights and a precision per subscription), 4 (with morph weights), 3 or 2 (wire v2 frames) or 1 (v1 frames). */
+    /** The protocol version asked for in the hello: 8 (7 with wire v2 frames as datagrams over WebTransport), 7 (6 with packed deltas), 6 (5 with near-axis steps in a precision's frames), 5 (wire v2 frames with morph weights and a precision per subscription), 4 (with morph weights), 3 or 2 (wire v2 frames) or 1 (v1 frames). */
     this.version = options.version ?? PROTOCOL_VERSION;
     const tokens = options.tokens ?? (options.token ? [{ kind: /** @type {const} */ ("control"), value: options.token }] : []);
     /** @type {() => Token[]} */
@@ -372,9 +374,11 @@ export class Client {
     this.access = access;
     this.tickRate = msg.tick_rate > 0 ? msg.tick_rate : 60;
     this.backoff = this.initialBackoffMs;
-    // A new connection: its own scene numbers and keyframes.
+    // A new connection: its own scene numbers and keyframes. Over WebTransport v2 frames come
+    // as datagrams (protocol version 8): lost, out of order, their deltas naming the frames
+    // they refer to.
     this.decoder = new FrameDecoder();
-    this.decoder2 = new Frame2Decoder();
+    this.decoder2 = this.ws instanceof WebTransportSocket ? Frame2Decoder.forDatagrams() : new Frame2Decoder();
     this.sceneNames.clear();
     this.stats.connects++;
     this.setState("online");
@@ -681,6 +685,9 @@ export class Client {
       }
       case "avatar_removed": {
         const avatar = String(msg.avatar);
+        const view = this.avatars.get(avatar);
+        // Its v2 frames too (a decoder for datagrams keeps 64 an avatar).
+        for (const [num, name] of this.sceneNames) if (view && name === view.scene) this.decoder2.forgetAvatar(num, view.num);
         this.avatars.delete(avatar);
         this.emit("removed", { scene: String(msg.scene), avatar });
         break;
@@ -715,18 +722,21 @@ export class Client {
    */
   onBinary(data, received) {
     let decoded;
+    // The first byte says which wire a frame is (a server of before version 3 sends a v2
+    // connection v1 frames for a subscription with a joint subset).
+    const v2 = data.byteLength > 0 && new Uint8Array(data, 0, 1)[0] === MAGIC2;
     try {
-      // The first byte says which wire a frame is (a server of before version 3 sends a v2
-      // connection v1 frames for a subscription with a joint subset).
-      const first = data.byteLength > 0 ? new Uint8Array(data, 0, 1)[0] : 0;
-      decoded = first === MAGIC2 ? this.decoder2.decode(data) : this.decoder.decode(data);
+      decoded = v2 ? this.decoder2.decode(data) : this.decoder.decode(data);
     } catch {
       this.stats.undecodable++;
       return;
     }
-    // Over WebTransport, the server codes deltas only against keyframes acknowledged.
-    if (decoded.key && this.ws instanceof WebTransportSocket) {
-      this.ws.ackKey(decoded.scene_num, decoded.seq, decoded.avatars.map((a) => a.num));
+    // Over WebTransport, the server codes deltas only against frames acknowledged: every v2
+    // frame (or part) decoded (protocol version 8), a v1 keyframe (versions 1 to 7).
+    if (this.ws instanceof WebTransportSocket && (v2 || decoded.key)) {
+      const avatars = decoded.avatars.map((a) => a.num);
+      if (v2) this.ws.ackFrame(decoded.scene_num, decoded.seq, avatars);
+      else this.ws.ackKey(decoded.scene_num, decoded.seq, avatars);
     }
     const scene = this.sceneNames.get(decoded.scene_num);
     if (scene === undefined) {

@@ -19,6 +19,14 @@
 // bits, kind 2's weights — and the server time as a zigzag difference from the base frame's,
 // which must be the scene's last decoded frame (this decoder keeps each scene's last seq and
 // time; a packed delta against another frame is refused).
+// Protocol version 8 sends v2 frames over WebTransport as datagrams, any of which may be lost
+// or come out of order (Rust: `write_referenced_header`, `encode_referenced_delta`,
+// `Frame2Decoder::for_datagrams`): deltas of kind 4 name the frames they refer to — after the
+// server time, d (1…8) and d distances seq − refᵢ, strictly increasing; each chunk is its
+// length in bytes and a kind 2 chunk of exactly that length, whose depth k ≤ d refers to
+// ref₀ … refₖ₋₁. A decoder for datagrams (`Frame2Decoder.forDatagrams()`) keeps each avatar's
+// last 64 frames in the order they came, finds a named frame by its tick (the newest that came
+// of it), and a keyframe of the rig an avatar has does not drop the frames before it.
 //
 // Numbers: rotations (≤ 48 bits), levels and Rice sums (< 2⁴⁴) are exact JS numbers. Varints
 // are read as BigInt (up to 64 bits, as the Rust reader); the header's seq and server time must
@@ -40,8 +48,15 @@ import { decodeQuat } from "./frames.js";
 export const MAGIC2 = 0x51;
 /** Frame kind of a packed delta (protocol version 7). */
 const KIND_PACKED = 3;
+/** Frame kind of a delta naming the frames it refers to (protocol version 8, datagrams). */
+const KIND_REFERENCED = 4;
 /** Most frames a delta chunk may refer to. */
 export const MAX_DEPTH = 8;
+/**
+ * Frames a decoder for datagrams keeps per avatar (`frame2::DATAGRAM_RETENTION`): the 48
+ * ticks a kind 4 delta may name and 16 more of older ticks that came late.
+ */
+export const DATAGRAM_RETENTION = 64;
 /** Translation quantisation step, metres. */
 export const TRANSLATION_STEP = 1 / 8192;
 const K_WITHOUT_HISTORY = 5;
@@ -428,16 +443,35 @@ function keyChunk(r) {
 }
 
 /**
- * Decodes v2 frames, keeping each (scene, avatar)'s last 8 decoded frames and each scene's last
- * (seq, server time) — the JavaScript twin of posecast-proto's `Frame2Decoder`. One decoder per
- * connection.
+ * Decodes v2 frames, keeping each (scene, avatar)'s last 8 decoded frames (64 for datagrams)
+ * and each scene's last (seq, server time) — the JavaScript twin of posecast-proto's
+ * `Frame2Decoder`. One decoder per connection.
  */
 export class Frame2Decoder {
-  constructor() {
-    /** @type {Map<string, {hash: string, frames: {seq: number, levels: QuantPose}[]}>} "scene:avatar" → newest first. */
+  /**
+   * @param {{datagrams?: boolean}} [options] `datagrams`: frames come as datagrams (protocol
+   * version 8 over WebTransport), as {@link Frame2Decoder.forDatagrams}.
+   */
+  constructor(options = {}) {
+    /** @type {Map<string, {hash: string, frames: {seq: number, levels: QuantPose}[]}>} "scene:avatar" → newest first (for datagrams: in the order they came, the last first). */
     this.history = new Map();
     /** @type {Map<number, {seq: number, time: number}>} Scene number → its last decoded frame's seq and server time (`FrameClock`). */
     this.clock = new Map();
+    /** Frames come as datagrams: each avatar's last {@link DATAGRAM_RETENTION} frames are kept, and a keyframe of its rig keeps them. */
+    this.datagrams = options.datagrams === true;
+  }
+
+  /**
+   * A decoder of frames that come as datagrams (protocol version 8 over WebTransport), any of
+   * which may be lost or come out of order (`Frame2Decoder::for_datagrams`): its deltas (kind
+   * 4) name the frames they refer to, so it keeps each avatar's last
+   * {@link DATAGRAM_RETENTION} frames in the order they came, and a keyframe of the rig it
+   * holds does not drop the frames before it (a keyframe that comes late must not drop the
+   * newer frames a delta names).
+   * @returns {Frame2Decoder}
+   */
+  static forDatagrams() {
+    return new Frame2Decoder({ datagrams: true });
   }
 
   /**
@@ -454,16 +488,32 @@ export class Frame2Decoder {
     const magic = r.u8();
     if (magic !== MAGIC2) throw bad(`bad magic byte ${magic} (a v2 frame starts with ${MAGIC2})`);
     const kind = r.u8();
-    if (kind !== 1 && kind !== 2 && kind !== KIND_PACKED) throw bad(`unknown frame kind ${kind}`);
+    if (kind !== 1 && kind !== 2 && kind !== KIND_PACKED && kind !== KIND_REFERENCED) throw bad(`unknown frame kind ${kind}`);
     const key = kind === 1;
     const packed = kind === KIND_PACKED;
+    const referenced = kind === KIND_REFERENCED;
     const count = r.varint();
     const sceneNum = r.varintU32();
     const seq = r.varintSafe("seq");
     // A packed delta's time comes after its base gap, as a difference from its base frame's.
     let serverTimeUs = packed ? 0 : r.varintSafe("server time");
     let baseSeq = seq;
-    if (!key) {
+    /** @type {number[] | null} The ticks a kind 4 delta names, newest first. */
+    let refs = null;
+    if (referenced) {
+      const at = r.at;
+      const n = r.varint();
+      if (n === 0n || n > BigInt(MAX_DEPTH)) throw bad(`number out of range at byte ${at}`);
+      refs = [];
+      let lastGap = 0n;
+      for (let i = 0n; i < n; i++) {
+        const gap = r.varint();
+        if (gap <= lastGap || gap > BigInt(seq)) throw bad(`delta reference gap ${gap} invalid for seq ${seq}`);
+        lastGap = gap;
+        refs.push(seq - Number(gap));
+      }
+      baseSeq = refs[0];
+    } else if (!key) {
       const gap = r.varint();
       if (gap === 0n || gap > BigInt(seq)) throw bad(`delta base gap ${gap} invalid for seq ${seq}`);
       baseSeq = seq - Number(gap);
@@ -498,21 +548,42 @@ export class Frame2Decoder {
         prev = a.num;
         push(a);
       }
+    } else if (refs) {
+      // Each chunk its length, then a kind 2 chunk of exactly that many bytes (at least 1 byte
+      // each, so a count beyond the bytes fails on them first).
+      for (let c = 0n; c < count; c++) {
+        const at = r.at;
+        const len = r.varint();
+        if (len > BigInt(view.byteLength - r.at)) throw bad(`truncated at byte ${at}`);
+        const end = r.at + Number(len);
+        // Read within its bytes, at their offsets in the frame.
+        const chunk = new Reader(new DataView(view.buffer, view.byteOffset, end));
+        chunk.at = r.at;
+        push(this.deltaChunk(chunk, sceneNum, baseSeq, refs));
+        if (chunk.at !== end) throw bad(`${end - chunk.at} trailing bytes in avatar chunk at byte ${at}`);
+        r.at = end;
+      }
     } else {
       // Every chunk takes at least 2 bytes, so a count beyond the bytes fails on them first.
       for (let c = 0n; c < count; c++) push(key ? keyChunk(r) : this.deltaChunk(r, sceneNum, baseSeq));
     }
     if (r.at !== view.byteLength) throw bad(`${view.byteLength - r.at} trailing bytes after the last avatar chunk`);
+    const retained = this.datagrams ? DATAGRAM_RETENTION : MAX_DEPTH;
     for (const a of decoded) {
       const slot = `${sceneNum}:${a.num}`;
       let h = this.history.get(slot);
       if (!h) this.history.set(slot, (h = { hash: a.hash, frames: [] }));
-      if (key) {
+      // Over datagrams a keyframe of the rig held keeps the frames before it: one that comes
+      // late must not drop newer frames a delta names.
+      const newRig = h.frames.length === 0 || h.hash !== a.hash;
+      if (key && (newRig || !this.datagrams)) {
         h.frames = [];
         h.hash = a.hash;
       }
+      // In the order frames came: a kind 4 delta finds the frames it names by tick (the
+      // newest that came of each).
       h.frames.unshift({ seq, levels: a.levels });
-      if (h.frames.length > MAX_DEPTH) h.frames.length = MAX_DEPTH;
+      if (h.frames.length > retained) h.frames.length = retained;
     }
     this.clock.set(sceneNum, { seq, time: serverTimeUs });
     return {
@@ -545,20 +616,45 @@ export class Frame2Decoder {
   }
 
   /**
+   * Forgets one avatar's frames (it left the scene), so a long-lived decoder holds only
+   * avatars still there.
+   * @param {number} sceneNum
+   * @param {number} avatarNum
+   */
+  forgetAvatar(sceneNum, avatarNum) {
+    this.history.delete(`${sceneNum}:${avatarNum}`);
+  }
+
+  /**
    * The description hash and the frames (newest first, the depth in `flags`) a delta chunk of
-   * avatar `num` refers to, checked against what this decoder holds (`history_for`).
+   * avatar `num` refers to, checked against what this decoder holds (`history_for`): its
+   * newest frames, or those of `refs` (a kind 4 delta), wherever they are among those it holds.
    * @param {number} sceneNum
    * @param {number} num
    * @param {number} baseSeq
    * @param {number} flags
+   * @param {number[] | null} [refs]
    * @returns {{hash: string, history: QuantPose[]}}
    */
-  historyFor(sceneNum, num, baseSeq, flags) {
+  historyFor(sceneNum, num, baseSeq, flags, refs = null) {
     const depth = (flags >> 4) + 1;
     const held = this.history.get(`${sceneNum}:${num}`);
     const missing = () => bad(`avatar ${num}: delta against frame ${baseSeq} (depth ${depth}), which this decoder does not hold`);
-    if (!held || depth > MAX_DEPTH || held.frames.length < depth || held.frames[0].seq !== baseSeq) throw missing();
-    const history = held.frames.slice(0, depth).map((f) => f.levels);
+    /** @type {QuantPose[]} */
+    let history;
+    if (refs) {
+      if (!held) throw missing();
+      if (depth > refs.length) throw bad(`avatar ${num}: invalid chunk flags ${flags}`);
+      history = refs.slice(0, depth).map((seq) => {
+        // The newest frame that came of that tick.
+        const f = held.frames.find((f) => f.seq === seq);
+        if (!f) throw missing();
+        return f.levels;
+      });
+    } else {
+      if (!held || depth > MAX_DEPTH || held.frames.length < depth || held.frames[0].seq !== baseSeq) throw missing();
+      history = held.frames.slice(0, depth).map((f) => f.levels);
+    }
     const base = history[0];
     if (history.some((h) => !sameShape(h, base))) throw missing();
     if (flags & FLAG_WEIGHTS && base.weights.length === 0) throw bad(`avatar ${num}: invalid chunk flags ${flags}`);
@@ -566,16 +662,18 @@ export class Frame2Decoder {
   }
 
   /**
-   * A delta chunk of a frame of kind 2 (byte-aligned) against the held frames of its avatar.
+   * A delta chunk of a frame of kind 2 or 4 (byte-aligned) against the held frames of its
+   * avatar (`refs`: those a kind 4 delta names).
    * @param {Reader} r
    * @param {number} sceneNum
    * @param {number} baseSeq
+   * @param {number[] | null} [refs]
    * @returns {{num: number, hash: string, levels: QuantPose}}
    */
-  deltaChunk(r, sceneNum, baseSeq) {
+  deltaChunk(r, sceneNum, baseSeq, refs = null) {
     const num = r.varintU32();
     const flags = r.u8();
-    const { hash, history } = this.historyFor(sceneNum, num, baseSeq, flags);
+    const { hash, history } = this.historyFor(sceneNum, num, baseSeq, flags, refs);
     const pose = deltaLevels(new BitReader(r), history, flags, num);
     if (flags & FLAG_SCALES) pose.scales = history[0].scales.map(() => r.vec3());
     if (flags & FLAG_PLACEMENT) pose.placement = r.placement();

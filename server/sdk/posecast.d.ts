@@ -1,9 +1,10 @@
 // Type declarations of posecast's JavaScript client, served at /sdk/posecast.d.ts beside the
 // module it describes (/sdk/posecast.js). This file is the API reference; proto/PROTOCOL.md is
-// the reference of the messages, protocol.d.ts their types (generated from the server's). SDK
-// version 1.10 speaks protocol version 7 (wire v2 binary frames with morph weights, a precision
-// per subscription and packed deltas, results tagged with their kind) by default, and 6, 5, 4,
-// 3, 2 or 1 when asked (`ClientOptions.version`) or refused by an older server.
+// the reference of the messages, protocol.d.ts their types (generated from the server's). The
+// SDK speaks protocol version 8 (wire v2 binary frames with morph weights, a precision per
+// subscription and packed deltas, results tagged with their kind; over WebTransport, wire v2
+// frames as datagrams) by default, and 7, 6, 5, 4, 3, 2 or 1 when asked
+// (`ClientOptions.version`) or refused by an older server.
 //
 //   import { Client } from "/sdk/posecast.js";
 //   const client = new Client({ token: "…" });          // ws(s)://this host/ws, binary frames
@@ -15,7 +16,7 @@
 /** The SDK's version. */
 export declare const SDK_VERSION: string;
 /** The protocol version the SDK speaks (the `hello`'s `version`). */
-export declare const PROTOCOL_VERSION: 7;
+export declare const PROTOCOL_VERSION: 8;
 
 export type Vec3 = [number, number, number];
 /** The `result` of an `ack`, by the `kind` the server tags it with (protocol.d.ts). */
@@ -223,8 +224,10 @@ export interface ClientOptions {
   /** Frame encoding; default `"binary"` (several times smaller than JSON). */
   encoding?: Encoding;
   /**
-   * Protocol version asked for in the hello: 7 (default: 6 with deltas packed into one bit
-   * stream, frame kind 3), 6 (5 with a precision's frames coded on coarser steps near an
+   * Protocol version asked for in the hello: 8 (default: 7 with wire v2 frames as datagrams
+   * over WebTransport — deltas of kind 4 naming the frames they refer to, every frame decoded
+   * acknowledged; on a websocket, 8 is 7), 7 (6 with deltas packed into one bit stream, frame
+   * kind 3; over WebTransport, wire v1 frames), 6 (5 with a precision's frames coded on coarser steps near an
    * axis, the same bound), 5 (4 with a `precision` per
    * subscription), 4 (3 with each pose's morph `weights` in binary frames too), 3 or 2 — binary frames in wire v2,
    * deltas against the previous frame, about half the bytes of v1; 3 also tags every `ack`'s
@@ -232,7 +235,7 @@ export interface ClientOptions {
    * gets those as v1 frames) — or 1 (v1 frames); the client decodes both. A server that refuses the version (`unsupported_version`:
    * one that predates it) gets a hello with the version before, and `Client.version` follows.
    */
-  version?: 1 | 2 | 3 | 4 | 5 | 6 | 7;
+  version?: 1 | 2 | 3 | 4 | 5 | 6 | 7 | 8;
   /** The `client` name in the hello; default `"posecast-js"`. */
   name?: string;
   /** Reconnect when the connection drops (default true), resubscribing. */
@@ -330,7 +333,7 @@ export declare class Client {
   readonly url: string;
   readonly encoding: Encoding;
   /** The protocol version said in the hello (lower after a server refused one; `welcome.version` says the one in use). */
-  readonly version: 1 | 2 | 3 | 4 | 5 | 6 | 7;
+  readonly version: 1 | 2 | 3 | 4 | 5 | 6 | 7 | 8;
   readonly state: ConnectionState;
   /** Why the state is what it is ("connection lost", a refusal's reason…). */
   readonly detail: string;
@@ -488,16 +491,26 @@ export interface BinaryFrame {
  * connection.
  */
 export declare class Frame2Decoder {
-  constructor();
+  /** `datagrams`: as {@link Frame2Decoder.forDatagrams}. */
+  constructor(options?: { datagrams?: boolean });
   /**
-   * Decodes one v2 frame (a keyframe, a delta or a packed delta); throws a
-   * {@link PosecastError} `bad_message` on malformed bytes, a delta whose base frames are not
-   * held or a packed delta whose base is not the scene's last decoded frame (and changes
-   * nothing).
+   * A decoder of frames that come as datagrams (protocol version 8 over WebTransport), any of
+   * which may be lost or come out of order: it keeps each avatar's last 64 frames in the order
+   * they came for the deltas of kind 4, which name the frames they refer to, and a keyframe of
+   * the rig an avatar has does not drop them (`Frame2Decoder::for_datagrams`).
+   */
+  static forDatagrams(): Frame2Decoder;
+  /**
+   * Decodes one v2 frame (a keyframe, a delta, a packed delta or a delta naming its frames);
+   * throws a {@link PosecastError} `bad_message` on malformed bytes, a delta whose base frames
+   * are not held or a packed delta whose base is not the scene's last decoded frame (and
+   * changes nothing). A delta naming its frames has `base_seq` the newest it names.
    */
   decode(bytes: ArrayBuffer | Uint8Array): BinaryFrame;
   /** Forgets a scene's frames and its last (seq, time) (the client left it). */
   forgetScene(sceneNum: number): void;
+  /** Forgets one avatar's frames (it left the scene). */
+  forgetAvatar(sceneNum: number, avatarNum: number): void;
 }
 /** Decodes a 48-bit smallest-three rotation. */
 export declare function decodeQuat(bits: number): Quat;

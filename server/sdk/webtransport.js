@@ -4,8 +4,10 @@
 // client uses, so the connection code is the same for both: one bidirectional stream carries
 // every message framed as a kind (1 text, 2 binary, 3 ping, 4 pong, 5 close), a little-endian
 // u32 length and the payload; frames come as datagrams. This socket answers the server's pings
-// itself (a browser's WebSocket does) and acknowledges keyframes (`ackKey`), so the server codes
-// deltas only against keyframes the client holds and a lost datagram costs its own tick.
+// itself (a browser's WebSocket does) and sends the client's acknowledgements: of wire v1
+// keyframes (`ackKey`, protocol versions 1 to 7), and of every wire v2 frame decoded
+// (`ackFrame`, protocol version 8), so the server codes deltas only against frames the client
+// holds and a lost datagram costs its own tick.
 
 import { httpBase } from "./tokens.js";
 
@@ -15,7 +17,8 @@ const PING = 3;
 const PONG = 4;
 const CLOSE = 5;
 const KEY_ACK = 0x4b; // "K"
-/** Most avatars one acknowledgement names (more: the whole keyframe is acknowledged). */
+const FRAME_ACK = 0x41; // "A"
+/** Most avatars one acknowledgement names (more: the whole frame is acknowledged). */
 const MAX_ACKED_AVATARS = 256;
 /** The largest message the server's stream may carry (a websocket library's default bound). */
 const MAX_MESSAGE_BYTES = 64 << 20;
@@ -217,15 +220,42 @@ export class WebTransportSocket {
    * @param {number[]} avatars
    */
   ackKey(sceneNum, seq, avatars) {
+    // A lost acknowledgement is made up for by the next keyframe's.
+    this.acknowledge(KEY_ACK, sceneNum, seq, avatars);
+  }
+
+  /**
+   * Acknowledges the chunks of `avatars` in the wire v2 frame (protocol version 8: a keyframe
+   * or a delta) of tick `seq` of scene number `sceneNum`, as the client decoded them (a frame
+   * too large for a datagram comes cut by avatar, and any part may be lost): a datagram laid
+   * out as {@link ackKey}'s, of first byte "A". The server's deltas name only frames
+   * acknowledged for every avatar they were sent with.
+   * @param {number} sceneNum
+   * @param {number} seq
+   * @param {number[]} avatars
+   */
+  ackFrame(sceneNum, seq, avatars) {
+    // A lost acknowledgement costs the frame its use as a reference; the next one's makes up.
+    this.acknowledge(FRAME_ACK, sceneNum, seq, avatars);
+  }
+
+  /**
+   * An acknowledgement datagram: `kind`, the scene number as u32, the tick as u64 and each
+   * avatar number as u32, little-endian (none, or more than 256: the whole frame).
+   * @param {number} kind
+   * @param {number} sceneNum
+   * @param {number} seq
+   * @param {number[]} avatars
+   */
+  acknowledge(kind, sceneNum, seq, avatars) {
     if (this.closed) return;
     const named = avatars.length <= MAX_ACKED_AVATARS ? avatars : [];
     const ack = new Uint8Array(13 + 4 * named.length);
     const view = new DataView(ack.buffer);
-    view.setUint8(0, KEY_ACK);
+    view.setUint8(0, kind);
     view.setUint32(1, sceneNum, true);
     view.setBigUint64(5, BigInt(seq), true);
     named.forEach((num, i) => view.setUint32(13 + 4 * i, num, true));
-    // A lost acknowledgement is made up for by the next keyframe's.
     this.datagrams.write(ack).catch(() => {});
   }
 

@@ -133,12 +133,14 @@ pub struct Outbox {
 
 /// How long a keyframe sent as datagrams (protocol version 8) waits for its acknowledgement,
 /// in round trips from sending a frame to its acknowledgement, before another goes.
-const KEY_RETRY_RTTS: u32 = 2;
+pub const KEY_RETRY_RTTS: u32 = 2;
 
-/// The least a keyframe sent as datagrams waits for its acknowledgement, and what it waits
-/// before a round trip is measured.
-const KEY_RETRY_MIN: std::time::Duration = std::time::Duration::from_millis(50);
-const KEY_RETRY_UNMEASURED: std::time::Duration = std::time::Duration::from_millis(250);
+/// The least a keyframe sent as datagrams waits for its acknowledgement.
+pub const KEY_RETRY_MIN: std::time::Duration = std::time::Duration::from_millis(50);
+
+/// What a keyframe sent as datagrams waits for its acknowledgement before a round trip is
+/// measured.
+pub const KEY_RETRY_UNMEASURED: std::time::Duration = std::time::Duration::from_millis(250);
 
 /// Split keyframes whose acknowledgements an outbox follows, per scene: older ones are
 /// forgotten (a client that lost their parts gets a newer keyframe anyway).
@@ -680,12 +682,9 @@ impl Outbox {
     }
 
     /// A frame the link could not take: the transport held frames already (QUIC's congestion
-    /// control), so this one was dropped unsent. It counts as superseded while the socket
-    /// held the writer ([`Outbox::dropped_while_held`]): the link's backpressure, which the
-    /// adaptive rate reads.
+    /// control), so this one was dropped unsent ([`Outbox::dropped_frames`] counts it).
     pub fn dropped_by_link(&self) {
         self.dropped.fetch_add(1, Ordering::Relaxed);
-        self.dropped_held.fetch_add(1, Ordering::Relaxed);
     }
 
     fn count_dropped(&self, replaced: u64) {
@@ -823,6 +822,43 @@ mod tests {
         assert_eq!(o.key_acks().len(), ACKED_SCENES_KEPT);
         o.ack_key(1, 40, &[]);
         assert_eq!(o.key_acked(1), Some(40));
+    }
+
+    /// Protocol version 8: a delta names only frames acknowledged for every avatar they went
+    /// with, of the last [`frame2::DATAGRAM_REFERENCE_TICKS`] ticks; a keyframe on its way is
+    /// not doubled; an acknowledgement of a frame never sent changes nothing; a cleared scene
+    /// starts over.
+    #[test]
+    fn datagram_deltas_name_only_frames_acknowledged_whole_and_recent() {
+        let o = Outbox::for_datagrams();
+        o.datagram_frame_sent(1, 10, true, None);
+        assert!(!o.datagram_key_due(1), "a keyframe on its way");
+        assert!(o.datagram_refs(1, 11).is_empty());
+        assert!(o.frames_in_flight());
+        o.ack_frame(1, 10, &[]);
+        assert_eq!(o.datagram_refs(1, 11), vec![10]);
+        assert!(o.datagram_key_due(1) && !o.frames_in_flight());
+        assert!(o.frame_rtt().is_some() && o.take_frame_rtt_floor().is_some());
+        assert_eq!(o.take_frame_rtt_floor(), None, "taken");
+        // Cut in two parts: held once both are acknowledged; one naming no avatar says
+        // nothing of which part came.
+        o.datagram_frame_sent(1, 11, false, Some(&[1, 2]));
+        o.ack_frame(1, 11, &[1]);
+        o.ack_frame(1, 11, &[]);
+        assert_eq!(o.datagram_refs(1, 12), vec![10]);
+        o.ack_frame(1, 11, &[2]);
+        assert_eq!(o.datagram_refs(1, 12), vec![11, 10]);
+        // Made up, or of another scene: nothing.
+        o.ack_frame(1, 99, &[]);
+        o.ack_frame(2, 12, &[]);
+        assert_eq!(o.datagram_refs(1, 100), Vec::<u64>::new());
+        assert_eq!(o.datagram_refs(1, 12), vec![11, 10]);
+        // Only the last 48 ticks.
+        let window = frame2::DATAGRAM_REFERENCE_TICKS;
+        assert_eq!(o.datagram_refs(1, 10 + window), vec![11]);
+        assert!(o.datagram_refs(1, 11 + window).is_empty());
+        o.clear_scene(1);
+        assert!(o.datagram_refs(1, 12).is_empty());
     }
 
     fn frame(byte: u8, key: bool) -> OutFrame {

@@ -12,6 +12,10 @@
 //!   posecast-proto's `FrameDecoder` and `Frame2Decoder` (packed deltas, protocol version 7,
 //!   too: levels and server times exactly) and posecast-client's `JitterBuffer` and
 //!   `ClockEstimator` on shared vectors;
+//! - the client's decoder for datagrams (protocol version 8: deltas of kind 4 naming the frames
+//!   they refer to, `Frame2Decoder.forDatagrams()`) reads a lossy, reordered, cut stream and
+//!   hand-made frames to exactly the levels `Frame2Decoder::for_datagrams` reads
+//!   (`datagrams.rs`);
 //! - the client's modules type-check against its declarations (`server/sdk/posecast.d.ts`),
 //!   and a TypeScript user's file (`server/sdk/check/usage.ts`) against the declarations alone.
 //!
@@ -24,6 +28,7 @@ use posecast_proto::testing::skip;
 use std::path::Path;
 use std::process::Command as Process;
 
+mod datagrams;
 mod fk;
 mod samples;
 mod stream;

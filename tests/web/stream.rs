@@ -43,10 +43,10 @@ use serde_json::{Value, json};
 use std::process::Command as Process;
 
 /// A small deterministic generator (the vectors must not change from run to run).
-struct Lcg(u64);
+pub(crate) struct Lcg(pub(crate) u64);
 
 impl Lcg {
-    fn next(&mut self) -> f32 {
+    pub(crate) fn next(&mut self) -> f32 {
         self.0 = self
             .0
             .wrapping_mul(6_364_136_223_846_793_005)
@@ -58,7 +58,7 @@ impl Lcg {
         lo + (hi - lo) * self.next()
     }
 
-    fn vec3(&mut self) -> Vec3 {
+    pub(crate) fn vec3(&mut self) -> Vec3 {
         Vec3::new(
             self.range(-1.0, 1.0),
             self.range(-1.0, 1.0),
@@ -66,7 +66,7 @@ impl Lcg {
         )
     }
 
-    fn quat(&mut self) -> Quat {
+    pub(crate) fn quat(&mut self) -> Quat {
         loop {
             let q = Quat::from_xyzw(
                 self.range(-1.0, 1.0),
@@ -205,7 +205,7 @@ fn frame_vectors(rng: &mut Lcg) -> Vec<Value> {
 }
 
 /// The expected decoding of a frame (as both decoders report it).
-fn frame_json(frame: &Frame) -> Value {
+pub(crate) fn frame_json(frame: &Frame) -> Value {
     json!({
         "key": frame.header.kind == FrameKind::Key,
         "scene_num": frame.header.scene_num,
@@ -787,7 +787,7 @@ fn the_clients_decoder_jitter_buffer_and_clock_match_the_rust_ones() {
 
 /// Each joint's near-axis step for the bound of its step `m` (as `Precision::resolve_with`
 /// gives a protocol version 6 subscriber).
-fn near_steps(steps: &[u8]) -> Vec<u8> {
+pub(crate) fn near_steps(steps: &[u8]) -> Vec<u8> {
     use posecast_proto::precision::{near_rotation_step_for, rotation_bound_degrees};
     steps
         .iter()
@@ -798,7 +798,7 @@ fn near_steps(steps: &[u8]) -> Vec<u8> {
 // Packed deltas (protocol version 7, frame kind 3).
 
 /// A LEB128 varint.
-fn put_varint(mut v: u64, out: &mut Vec<u8>) {
+pub(crate) fn put_varint(mut v: u64, out: &mut Vec<u8>) {
     while v >= 0x80 {
         out.push(v as u8 | 0x80);
         v >>= 7;
@@ -861,7 +861,7 @@ fn packed_rehead(bytes: &[u8], fields: [u64; 5]) -> Vec<u8> {
 
 /// A decoded frame's levels (what `QuantPose` holds: exactly what the JavaScript decoder must
 /// hold too), beside its poses.
-fn levels_json(q: &QuantPose) -> Value {
+pub(crate) fn levels_json(q: &QuantPose) -> Value {
     json!({
         "rotations": q.rotations,
         "translations": q.translations,
@@ -895,7 +895,7 @@ fn packed_step(decoder: &mut Frame2Decoder, bytes: Vec<u8>) -> Value {
 
 /// A still avatar, or one whose joints turn (now and then jump), whose root walks, whose
 /// placement, scales and morph weights change now and then.
-fn packed_move(pose: &mut AvatarPose, rng: &mut Lcg) {
+pub(crate) fn packed_move(pose: &mut AvatarPose, rng: &mut Lcg) {
     for q in &mut pose.rotations {
         let r = rng.next();
         if r < 0.03 {
@@ -923,7 +923,7 @@ fn packed_move(pose: &mut AvatarPose, rng: &mut Lcg) {
     }
 }
 
-fn packed_pose(
+pub(crate) fn packed_pose(
     rng: &mut Lcg,
     num: u32,
     joints: usize,

@@ -469,7 +469,7 @@ impl Session {
             self.rate_changed(change);
         }
         if self.outbox.frames_in_flight() {
-            let (_, change) = pace.probe(now, self.outbox.dropped_while_held());
+            let (_, change) = pace.probe(now, 0);
             self.rate_changed(change);
         }
     }
