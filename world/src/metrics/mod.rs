@@ -543,6 +543,7 @@ posecast_quic_frames_total{via="superseded"} 0
 posecast_quic_datagram_bytes_total 0
 posecast_quic_split_frames_total 0
 posecast_quic_key_acks_total 0
+posecast_quic_frame_acks_total 0
 posecast_quic_datagrams_ignored_total 0
 posecast_quic_refused_total 0
 posecast_quic_sessions_open 0
