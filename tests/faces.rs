@@ -144,8 +144,8 @@ async fn weights_set_by_name_reach_every_viewer_within_the_bound() {
     assert!((nonzero[0].1 - 0.25).abs() <= MAX_WEIGHT_ERROR, "{got:?}");
 }
 
-/// A viewer over WebTransport gets frames as datagrams — wire v2 (protocol version 8), or
-/// wire v1 before — whose chunks carry the morph weights too, so the face shows as on a
+/// A viewer over WebTransport gets frames as datagrams — wire v2 (protocol versions 9 and 8),
+/// or wire v1 before — whose chunks carry the morph weights too, so the face shows as on a
 /// websocket, within the wire's bound; a viewer that leaves them out gets none.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn weights_reach_a_webtransport_viewer() {
@@ -167,7 +167,7 @@ async fn weights_reach_a_webtransport_viewer() {
         options.version = version;
         Client::connect(options)
     };
-    let quic = over_quic(true, 8).await.unwrap();
+    let quic = over_quic(true, 9).await.unwrap();
     let v1 = over_quic(true, 7).await.unwrap();
     let faceless = over_quic(false, 8).await.unwrap();
     for c in [&quic, &v1, &faceless] {
@@ -187,7 +187,7 @@ async fn weights_reach_a_webtransport_viewer() {
         let got = weights_become(viewer, &want).await;
         assert_eq!(got.iter().filter(|(_, w)| *w > 0.0).count(), 2, "{got:?}");
     }
-    // Version 8 acknowledges every frame, version 7 its keyframes.
+    // Version 9 acknowledges every frame, version 7 its keyframes.
     let (q, v) = (quic.stats(), v1.stats());
     assert!(q.acks >= q.frames && v.acks <= v.keyframes, "{q:?} {v:?}");
     let latest = faceless.latest(&posecast_proto::msg::AvatarId("face".into()));

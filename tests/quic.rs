@@ -131,6 +131,8 @@ struct Seen {
     /// Every datagram in order of arrival: its tick, whether a keyframe, its avatars and
     /// whether it was dropped on purpose (for a failure's message).
     arrivals: Vec<(u64, bool, Vec<u32>, bool)>,
+    /// The kind byte of every wire v2 datagram that came.
+    kinds: std::collections::BTreeSet<u8>,
 }
 
 impl Seen {
@@ -257,6 +259,9 @@ async fn subscribe_as(
                 continue;
             }
             let is_v2 = bytes.first() == Some(&frame2::MAGIC);
+            if is_v2 && let Some(&kind) = bytes.get(1) {
+                out.lock().unwrap().kinds.insert(kind);
+            }
             let decoded = if is_v2 {
                 v2.decode(&bytes).ok()
             } else {
@@ -428,8 +433,9 @@ fn same_v2(v2: &AvatarPose, v1: &AvatarPose) -> bool {
         && v2.weights == v1.weights
 }
 
-/// Protocol version 8: wire v2 frames as datagrams, each delta naming frames the client
-/// acknowledged. With datagrams dropped (the first, every 10th, five in a row) **every**
+/// Protocol versions 9 and 8: wire v2 frames as datagrams, each delta naming frames the
+/// client acknowledged (kind 5, predicted over the ticks between, for version 9; kind 4 for
+/// version 8). With datagrams dropped (the first, every 10th, five in a row) **every**
 /// datagram that comes decodes — none refers to a lost one — to the websocket's poses of its
 /// tick, nothing but the dropped ticks is missing, and after the first keyframe the frames
 /// are deltas.
@@ -437,13 +443,13 @@ fn same_v2(v2: &AvatarPose, v1: &AvatarPose) -> bool {
 async fn v2_datagrams_all_decode_and_a_lost_one_costs_its_tick_only() {
     let server = quic_server(60.0, |_| {}).await;
     let live = Watcher::start(server.addr, "default").await;
-    let whole = subscribe_as(server.addr, "default", 8, |_| false).await;
-    let lossy = subscribe_as(server.addr, "default", 8, |i| {
-        i == 1 || i % 10 == 0 || (50..55).contains(&i)
-    })
-    .await;
+    let whole = subscribe_as(server.addr, "default", 9, |_| false).await;
+    let dropping = |i: usize| i == 1 || i.is_multiple_of(10) || (50..55).contains(&i);
+    let lossy = subscribe_as(server.addr, "default", 9, dropping).await;
+    let lossy_v8 = subscribe_as(server.addr, "default", 8, dropping).await;
     frames(&whole, 240).await;
     frames(&lossy, 240).await;
+    frames(&lossy_v8, 240).await;
     live.stop();
     let on_ws: HashMap<u64, BTreeMap<String, AvatarPose>> = live
         .frames()
@@ -452,7 +458,7 @@ async fn v2_datagrams_all_decode_and_a_lost_one_costs_its_tick_only() {
         .collect();
     let addr = server.addr;
     let acks = common::metric(addr, "posecast_quic_frame_acks_total").await;
-    assert!(acks >= 400.0, "{acks} frame acknowledgements");
+    assert!(acks >= 600.0, "{acks} frame acknowledgements");
     assert_eq!(
         common::metric(addr, "posecast_quic_key_acks_total").await,
         0.0
@@ -461,8 +467,17 @@ async fn v2_datagrams_all_decode_and_a_lost_one_costs_its_tick_only() {
         common::metric(addr, r#"posecast_quic_frames_total{via="stream"}"#).await,
         0.0
     );
-    for (name, seen) in [("whole", &whole), ("lossy", &lossy)] {
+    for (name, seen, delta_kind) in [
+        ("whole", &whole, 5),
+        ("lossy", &lossy, 5),
+        ("lossy v8", &lossy_v8, 4),
+    ] {
         let seen = seen.lock().unwrap();
+        assert_eq!(
+            seen.kinds,
+            [1, delta_kind].into(),
+            "{name}: keyframes and deltas of kind {delta_kind}"
+        );
         assert_eq!(
             seen.undecodable, 0,
             "{name}: parts that did not decode {:?}",
@@ -498,7 +513,7 @@ async fn v2_datagrams_all_decode_and_a_lost_one_costs_its_tick_only() {
             "{name}: ticks missing {missing:?}; {}",
             seen.figures()
         );
-        if name == "lossy" {
+        if name != "whole" {
             assert!(seen.dropped.len() >= 25, "{} dropped", seen.dropped.len());
         }
     }
@@ -518,7 +533,7 @@ async fn v2_datagrams_of_a_big_scene_go_split_and_every_part_decodes() {
         frames.last().is_some_and(|f| f.poses.len() == 31)
     })
     .await;
-    let lossy = subscribe_as(server.addr, "default", 8, |i| {
+    let lossy = subscribe_as(server.addr, "default", 9, |i| {
         i % 7 == 0 || (40..45).contains(&i)
     })
     .await;

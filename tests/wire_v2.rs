@@ -248,8 +248,8 @@ async fn the_native_client_speaks_v2_and_sees_what_a_v1_client_sees() {
     );
 }
 
-/// A server of before protocol version 2 refuses `hello {version: 8}`, … `{version: 2}` with
-/// `unsupported_version` and closes: the native client, asking for 8 by default, says hello
+/// A server of before protocol version 2 refuses `hello {version: 9}`, … `{version: 2}` with
+/// `unsupported_version` and closes: the native client, asking for 9 by default, says hello
 /// again with the version before until it is welcomed with 1 — it works with the old server
 /// out of the box.
 #[tokio::test]
@@ -262,8 +262,8 @@ async fn the_native_client_falls_back_to_version_1_for_an_older_server() {
         .await
         .expect("welcomed after falling back");
     assert!(client.is_connected());
-    assert_eq!(*hellos.lock().unwrap(), vec![8, 7, 6, 5, 4, 3, 2, 1]);
-    assert_eq!(SUPPORTED_VERSIONS, [1, 2, 3, 4, 5, 6, 7, 8]);
+    assert_eq!(*hellos.lock().unwrap(), vec![9, 8, 7, 6, 5, 4, 3, 2, 1]);
+    assert_eq!(SUPPORTED_VERSIONS, [1, 2, 3, 4, 5, 6, 7, 8, 9]);
     // Any refused version above 1 falls back the same way.
     let mut options = posecast_client::net::ClientOptions::new(format!("ws://{addr}/ws"), "x");
     options.version = 2;
@@ -273,7 +273,10 @@ async fn the_native_client_falls_back_to_version_1_for_an_older_server() {
         refused.is_ok(),
         "2 is refused, then 1 welcomed: {refused:?}"
     );
-    assert_eq!(*hellos.lock().unwrap(), vec![8, 7, 6, 5, 4, 3, 2, 1, 2, 1]);
+    assert_eq!(
+        *hellos.lock().unwrap(),
+        vec![9, 8, 7, 6, 5, 4, 3, 2, 1, 2, 1]
+    );
 }
 
 /// A v2 reader that falls behind — its writer takes what is pending only every fifth tick, so

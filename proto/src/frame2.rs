@@ -36,9 +36,11 @@
 //! `vᵢ = hᵢ − 2hᵢ₊₁ + hᵢ₊₂`. With `n ≥ 3` and `mean zigzag(v) < mean zigzag(s)` the prediction is
 //! `2h₀ − h₁` (constant velocity), otherwise `h₀`; the Rice parameter is
 //! `k = ⌊log₂(m + 1)⌋` of the chosen mean `m` (integer division), [`K_WITHOUT_HISTORY`] when
-//! `n = 1`. Rotation predictions are clamped to the level range. The encoder and the decoder
-//! compute this from the same decoded levels, so nothing about it is sent, and a frame's
-//! state is a function of the frames it refers to alone (any receiver holding them decodes it).
+//! `n = 1`. A kind 4 delta carries the motion over the ticks from its newest named frame and
+//! widens `k` to match ([`Spacing`]). Rotation predictions are clamped to the level range.
+//! The encoder and the decoder compute this from the same decoded levels, so nothing about it
+//! is sent, and a frame's state is a function of the frames it refers to alone (any receiver
+//! holding them decodes it).
 //!
 //! **Residuals.** `u = zigzag(level − prediction)`; Rice code of parameter `k`: `q = u >> k`
 //! one-bits, a zero, then the low `k` bits of `u`; when `q ≥` [`RICE_ESCAPE`]: that many
@@ -93,9 +95,50 @@ const FLAG_NEAR: u8 = 32;
 /// Frame kind byte of a packed delta (protocol version 7): every chunk in one bit stream, the
 /// time a difference from the base frame's.
 const KIND_PACKED: u8 = 3;
-/// Frame kind byte of a delta naming the frames it refers to (protocol version 8, over
-/// datagrams): [`write_referenced_header`].
+/// Frame kind byte of a delta naming the frames it refers to, predicted a frame at a time
+/// (protocol version 8, over datagrams): [`write_referenced_header`].
 const KIND_REFERENCED: u8 = 4;
+/// Frame kind byte of a delta naming the frames it refers to, predicted over the ticks between
+/// them (protocol version 9): [`ReferencedKind::Ticks`].
+const KIND_SPACED: u8 = 5;
+
+/// How a delta naming the frames it refers to (over datagrams) predicts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum ReferencedKind {
+    /// Kind 4 (protocol version 8): as a delta of kind 2, as if its frame were a tick after
+    /// the newest it names.
+    Frames,
+    /// Kind 5 (protocol version 9): over the ticks from the frames it names to its frame
+    /// ([`Spacing::of`]).
+    #[default]
+    Ticks,
+}
+
+impl ReferencedKind {
+    /// The kind a receiver speaking protocol `version` reads (5 from version 9, else 4).
+    pub fn for_version(version: u32) -> Self {
+        if version >= 9 {
+            Self::Ticks
+        } else {
+            Self::Frames
+        }
+    }
+
+    /// The spacing a delta of this kind at tick `seq` naming `refs` predicts with.
+    pub fn spacing(self, seq: u64, refs: &[u64]) -> Spacing {
+        match self {
+            Self::Frames => Spacing::UNIT,
+            Self::Ticks => Spacing::of(seq, refs),
+        }
+    }
+
+    fn byte(self) -> u8 {
+        match self {
+            Self::Frames => KIND_REFERENCED,
+            Self::Ticks => KIND_SPACED,
+        }
+    }
+}
 /// Bits of a streamed morph weight level ([`crate::morph::WEIGHT_LEVELS`] = 2¹⁰ − 1).
 pub const WEIGHT_BITS: u32 = 10;
 const LEVEL_MAX: i64 = (1 << 15) - 2;
@@ -423,6 +466,7 @@ pub fn write_header(header: &FrameHeader, avatar_count: usize, out: &mut Vec<u8>
 /// `refs` is empty, longer than [`MAX_DEPTH`], or not strictly decreasing below `seq`.
 pub fn write_referenced_header(
     header: &FrameHeader,
+    kind: ReferencedKind,
     refs: &[u64],
     avatar_count: usize,
     out: &mut Vec<u8>,
@@ -436,7 +480,7 @@ pub fn write_referenced_header(
         header.seq
     );
     out.push(MAGIC);
-    out.push(KIND_REFERENCED);
+    out.push(kind.byte());
     varint(avatar_count as u64, out);
     varint(u64::from(header.scene_num), out);
     varint(header.seq, out);
@@ -549,13 +593,24 @@ pub fn encode_delta(
     history: &[&QuantPose],
     out: &mut Vec<u8>,
 ) -> bool {
+    delta_chunk(avatar_num, pose, history, Spacing::UNIT, out)
+}
+
+/// [`encode_delta`] of a chunk whose frame is `spacing` from the frames it refers to.
+fn delta_chunk(
+    avatar_num: u32,
+    pose: &QuantPose,
+    history: &[&QuantPose],
+    spacing: Spacing,
+    out: &mut Vec<u8>,
+) -> bool {
     let Some(plan) = DeltaPlan::of(pose, history) else {
         return false;
     };
     varint(u64::from(avatar_num), out);
     out.push(plan.flags());
     let mut w = BitWriter::new(out);
-    delta_body(&mut w, pose, &plan, &history[..plan.depth]);
+    delta_body(&mut w, pose, &plan, &history[..plan.depth], spacing);
     w.finish();
     write_scales_placement(pose, plan.scales, plan.placement, out);
     if plan.weights {
@@ -569,15 +624,18 @@ pub fn encode_delta(
 /// Appends a delta chunk of `pose` against `history` (the frames the header names, newest
 /// first) in a frame of kind 4: its length in bytes (a varint), then the chunk as in a frame of
 /// kind 2 — so a sender can cut the frame by avatar without decoding it
-/// ([`split_by_avatar`]). Returns `false`, writing nothing, as [`encode_delta`] does.
+/// ([`split_by_avatar`]) — but predicted over the ticks between the frames ([`Spacing::of`]
+/// the header's tick and references). Returns `false`, writing nothing, as [`encode_delta`]
+/// does.
 pub fn encode_referenced_delta(
     avatar_num: u32,
     pose: &QuantPose,
     history: &[&QuantPose],
+    spacing: Spacing,
     out: &mut Vec<u8>,
 ) -> bool {
     let mut chunk = Vec::with_capacity(16 + 4 * pose.rotations.len());
-    if !encode_delta(avatar_num, pose, history, &mut chunk) {
+    if !delta_chunk(avatar_num, pose, history, spacing, &mut chunk) {
         return false;
     }
     varint(chunk.len() as u64, out);
@@ -636,7 +694,7 @@ pub fn split_by_avatar(frame: &[u8], max: usize) -> Result<Vec<Part>, Frame2Erro
     }
     let write_header = |n: usize, out: &mut Vec<u8>| match referenced {
         None => self::write_header(&header, n, out),
-        Some(refs) => write_referenced_header(&header, refs.as_slice(), n, out),
+        Some(refs) => write_referenced_header(&header, refs.kind, refs.as_slice(), n, out),
     };
     let mut whole = Vec::new();
     write_header(count, &mut whole);
@@ -743,7 +801,7 @@ impl<'a> PackedDeltas<'a> {
             w.put(u64::from(flags >> 4), 3);
             w.put(u64::from(flags & 0x0f), 4);
         }
-        delta_body(w, pose, &plan, &history[..plan.depth]);
+        delta_body(w, pose, &plan, &history[..plan.depth], Spacing::UNIT);
         for c in scale_placement_floats(pose, plan.scales, plan.placement) {
             w.put(u64::from(c.to_bits()), 32);
         }
@@ -829,7 +887,13 @@ fn changed_weights(w: &mut BitWriter<'_>, pose: &QuantPose, base: &QuantPose) {
 
 /// A delta chunk's bits: the escape mask, each joint's residuals (or full bits) and each
 /// translation's residuals, against `history` (already cut to the plan's depth).
-fn delta_body(w: &mut BitWriter<'_>, pose: &QuantPose, plan: &DeltaPlan, history: &[&QuantPose]) {
+fn delta_body(
+    w: &mut BitWriter<'_>,
+    pose: &QuantPose,
+    plan: &DeltaPlan,
+    history: &[&QuantPose],
+    spacing: Spacing,
+) {
     let depth = plan.depth;
     let base = history[0];
     let full = full_bits(pose);
@@ -848,7 +912,7 @@ fn delta_body(w: &mut BitWriter<'_>, pose: &QuantPose, plan: &DeltaPlan, history
         .zip(base.rotations.chunks(LANES))
         .enumerate()
     {
-        let p = predict_rotations(&frames[..depth], block * LANES);
+        let p = predict_rotations(&frames[..depth], block * LANES, spacing);
         for (l, (&bits, &base_bits)) in now.iter().zip(was).enumerate() {
             if tag(bits) != tag(base_bits) {
                 // On a tiered grid a joint that only changed tier is coded against its history
@@ -859,7 +923,7 @@ fn delta_body(w: &mut BitWriter<'_>, pose: &QuantPose, plan: &DeltaPlan, history
                     w.put(1, 1);
                     for c in 0..3 {
                         let (pred, k) =
-                            regridded(&frames[..depth], block * LANES + l, bits, steps, c);
+                            regridded(&frames[..depth], block * LANES + l, bits, steps, c, spacing);
                         w.rice(zigzag(level(bits, c) - pred), k);
                     }
                     continue;
@@ -880,7 +944,7 @@ fn delta_body(w: &mut BitWriter<'_>, pose: &QuantPose, plan: &DeltaPlan, history
             for (slot, f) in h.iter_mut().zip(history) {
                 *slot = i64::from(f.translations[t][c]);
             }
-            let (pred, k) = predict(&h[..depth], false);
+            let (pred, k) = predict(&h[..depth], false, spacing);
             w.rice(zigzag(i64::from(value) - pred), k);
         }
     }
@@ -901,7 +965,14 @@ fn index(bits: u64) -> u64 {
 /// tier since the newest frame (its dropped component the same): [`predict`] over the leading
 /// frames whose dropped component is the newest's, each level put on the grid of `now`'s tier
 /// (`coarse(fine(l, its step), the new step)`).
-fn regridded(frames: &[&[u64]], j: usize, now: u64, steps: &Steps, c: usize) -> (i64, u32) {
+fn regridded(
+    frames: &[&[u64]],
+    j: usize,
+    now: u64,
+    steps: &Steps,
+    c: usize,
+    spacing: Spacing,
+) -> (i64, u32) {
     let to = steps.rotation_step(j, now);
     let dropped = index(frames[0][j]);
     let mut h = [0i64; MAX_DEPTH];
@@ -915,7 +986,7 @@ fn regridded(frames: &[&[u64]], j: usize, now: u64, steps: &Steps, c: usize) -> 
         *slot = precision::coarse_rotation_level(fine, to);
         n += 1;
     }
-    predict(&h[..n], true)
+    predict(&h[..n], true, spacing)
 }
 
 /// Bits of an escaped joint: 47 (tier, then dropped component and levels: 48) when the
@@ -934,7 +1005,7 @@ fn level(bits: u64, c: usize) -> i64 {
 
 /// The prediction and Rice parameter of a component from its history `h` (newest first, at
 /// least one value); see the module docs.
-fn predict(h: &[i64], rotation: bool) -> (i64, u32) {
+fn predict(h: &[i64], rotation: bool, spacing: Spacing) -> (i64, u32) {
     let n = h.len();
     if n < 2 {
         return (h[0], K_WITHOUT_HISTORY);
@@ -945,8 +1016,12 @@ fn predict(h: &[i64], rotation: bool) -> (i64, u32) {
     let velocity: u64 = (0..n.saturating_sub(2))
         .map(|i| zigzag(h[i] - 2 * h[i + 1] + h[i + 2]))
         .sum();
-    let (pred, mean) = if n >= 3 && velocity * (n as u64 - 1) < still * (n as u64 - 2) {
-        (2 * h[0] - h[1], div_small(velocity, n as u64 - 2))
+    let moving = n >= 3 && velocity * (n as u64 - 1) < still * (n as u64 - 2);
+    let (pred, mean) = if moving {
+        (
+            h[0] + spacing.step(h[0] - h[1]),
+            div_small(velocity, n as u64 - 2),
+        )
     } else {
         (h[0], div_small(still, n as u64 - 1))
     };
@@ -955,7 +1030,7 @@ fn predict(h: &[i64], rotation: bool) -> (i64, u32) {
     } else {
         pred
     };
-    (pred, (mean + 1).ilog2())
+    (pred, spacing.rice((mean + 1).ilog2(), moving))
 }
 
 /// Joints whose rotations [`predict_rotations`] predicts at once.
@@ -981,7 +1056,7 @@ struct RotationPredictions {
 /// `Σv · (n − 1) < Σs · (n − 2)`, in f32 (exact: both products are below 2²⁴), which is false
 /// by itself for `n < 3` (the right side is ≤ 0); the parameter is [`rice_parameter`].
 #[inline]
-fn predict_rotations(frames: &[&[u64]], j0: usize) -> RotationPredictions {
+fn predict_rotations(frames: &[&[u64]], j0: usize, spacing: Spacing) -> RotationPredictions {
     // The joints' levels (per component and frame) and dropped components (per frame), split
     // from each rotation's two 32-bit halves (index in bits 13–14 of the high half, level 0 across both).
     let mut h = [[[0i32; LANES]; MAX_DEPTH]; 3];
@@ -1049,20 +1124,97 @@ fn predict_rotations(frames: &[&[u64]], j0: usize) -> RotationPredictions {
             }
         }
         // Per lane, without branches (so as vector operations): masks of −1 or 0 select.
+        let mut moving = [0i32; LANES];
         for l in 0..LANES {
             let nf = n[l] as f32;
-            let moving =
+            moving[l] =
                 -i32::from((velocity[l] as f32) * (nf - 1.0) < (still[l] as f32) * (nf - 2.0));
             let based = -i32::from(n[l] < 2);
             let (h0, h1) = (h[0][l], h[1][l]);
-            let pred = (h0 + (moving & (h0 - h1))).clamp(0, LEVEL_MAX as i32);
+            let pred = (h0 + (moving[l] & (h0 - h1))).clamp(0, LEVEL_MAX as i32);
             pred_out[l] = (based & h0) | (!based & pred);
-            let sum = still[l] ^ ((still[l] ^ velocity[l]) & moving);
-            let k = rice_parameter(sum, n[l] - 1 + moving) as i32;
+            let sum = still[l] ^ ((still[l] ^ velocity[l]) & moving[l]);
+            let k = rice_parameter(sum, n[l] - 1 + moving[l]) as i32;
             k_out[l] = ((based & K_WITHOUT_HISTORY as i32) | (!based & k)) as u32;
+        }
+        if spacing != Spacing::UNIT {
+            // A kind 4 delta: the step and the parameter over the ticks between the frames
+            // (scalar: only datagram receivers pay for it).
+            for l in 0..LANES {
+                if n[l] < 2 {
+                    continue;
+                }
+                let moving = moving[l] != 0;
+                if moving {
+                    let (h0, h1) = (h[0][l], h[1][l]);
+                    let step = spacing.step(i64::from(h0 - h1));
+                    pred_out[l] = (i64::from(h0) + step).clamp(0, LEVEL_MAX) as i32;
+                }
+                k_out[l] = spacing.rice(k_out[l], moving);
+            }
         }
     }
     out
+}
+
+/// How far apart in ticks a kind 4 delta's frame and the two newest frames it names are
+/// (protocol version 8): its prediction extrapolates the newest frames' motion over the ticks
+/// to the frame, and widens its Rice parameter by how much further that reaches.
+/// [`Spacing::UNIT`] (a frame a tick after its base, its base a tick after the one before)
+/// predicts exactly as a delta of kind 2 or 3 does.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Spacing {
+    /// Ticks from the newest named frame to the frame, 1 … [`MAX_SPACING`].
+    ahead: i64,
+    /// Ticks between the two newest named frames, 1 … [`MAX_SPACING`].
+    apart: i64,
+}
+
+/// The most ticks a [`Spacing`] counts: gaps beyond it count as this many.
+pub const MAX_SPACING: u64 = 255;
+
+impl Spacing {
+    /// A frame one tick after its base, its base one tick after the frame before.
+    pub const UNIT: Spacing = Spacing { ahead: 1, apart: 1 };
+
+    /// The spacing of a kind 4 delta of tick `seq` naming `refs` (newest first): `ahead` is
+    /// `seq − refs[0]`, `apart` is `refs[0] − refs[1]` (`ahead` when it names one frame), each
+    /// clamped to 1 … [`MAX_SPACING`].
+    pub fn of(seq: u64, refs: &[u64]) -> Self {
+        let clamp = |d: u64| d.clamp(1, MAX_SPACING) as i64;
+        let ahead = clamp(seq.saturating_sub(refs.first().copied().unwrap_or(seq)));
+        let apart = match refs {
+            [a, b, ..] => clamp(a.saturating_sub(*b)),
+            _ => ahead,
+        };
+        Spacing { ahead, apart }
+    }
+
+    /// The motion `d = h₀ − h₁` of the two newest frames carried on to the frame:
+    /// `⌊(2 · d · ahead + apart) / (2 · apart)⌋` (`d · ahead / apart` rounded half up), `d`
+    /// itself for [`Spacing::UNIT`].
+    fn step(self, d: i64) -> i64 {
+        if self.ahead == self.apart {
+            return d;
+        }
+        (2 * d * self.ahead + self.apart).div_euclid(2 * self.apart)
+    }
+
+    /// A Rice parameter `k` of the history's residuals widened for the frame's distance: by
+    /// `⌊log₂ max(1, ⌊ahead / apart⌋)⌋` bits predicting the newest frame (a still residual
+    /// grows with the time it spans), by `⌊log₂ max(1, ⌊ahead · (ahead + apart) / (2 ·
+    /// apart²)⌋)⌋` bits predicting motion (so does an acceleration's, with its square); at
+    /// most 32 (or `k`, when larger).
+    fn rice(self, k: u32, moving: bool) -> u32 {
+        let (a, b) = (self.ahead, self.apart);
+        let ratio = if moving {
+            a * (a + b) / (2 * b * b)
+        } else {
+            a / b
+        };
+        let widen = ratio.max(1).ilog2();
+        (k + widen).min(k.max(32))
+    }
 }
 
 /// `⌊log₂(⌊sum / d⌋ + 1)⌋` for `0 ≤ sum < 2²¹` and `1 ≤ d <` [`MAX_DEPTH`] (a rotation
@@ -1430,7 +1582,14 @@ impl FrameClock {
             1 => (FrameKind::Key, Layout::Chunks),
             2 => (FrameKind::Delta, Layout::Chunks),
             KIND_PACKED => (FrameKind::Delta, Layout::Packed),
-            KIND_REFERENCED => (FrameKind::Delta, Layout::Referenced(Refs::default())),
+            KIND_REFERENCED => (
+                FrameKind::Delta,
+                Layout::Referenced(Refs {
+                    kind: ReferencedKind::Frames,
+                    ..Refs::default()
+                }),
+            ),
+            KIND_SPACED => (FrameKind::Delta, Layout::Referenced(Refs::default())),
             k => return Err(Frame2Error::Kind(k)),
         };
         let packed = layout == Layout::Packed;
@@ -1501,11 +1660,12 @@ enum Layout {
     Referenced(Refs),
 }
 
-/// The ticks a kind 4 delta refers to, newest first.
+/// The ticks a kind 4 or 5 delta refers to, newest first, and its kind.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 struct Refs {
     ticks: [u64; MAX_DEPTH],
     len: usize,
+    kind: ReferencedKind,
 }
 
 impl Refs {
@@ -1551,7 +1711,7 @@ impl Frame2Decoder {
         let mut r = Reader { bytes, at: 0 };
         let (header, count, layout) = self.clock.header(&mut r)?;
         let refs = match &layout {
-            Layout::Referenced(refs) => Some(refs.as_slice()),
+            Layout::Referenced(refs) => Some(refs),
             _ => None,
         };
         let mut avatars: Vec<DecodedAvatar> = Vec::with_capacity(count.min(bytes.len() / 2));
@@ -1640,20 +1800,23 @@ impl Frame2Decoder {
         self.history.remove(&(scene_num, avatar_num));
     }
 
-    /// A delta chunk of a frame of kind 2 or 4 (byte-aligned; `refs`: the frames a kind 4
-    /// delta names).
+    /// A delta chunk of a frame of kind 2, 4 or 5 (byte-aligned; `refs`: the frames a kind 4
+    /// or 5 delta names).
     fn delta_chunk(
         &self,
         r: &mut Reader<'_>,
         header: &FrameHeader,
-        refs: Option<&[u64]>,
+        refs: Option<&Refs>,
     ) -> Result<DecodedAvatar, Frame2Error> {
         let avatar = r.varint_u32()?;
         let flags = r.u8()?;
-        let (hash, history) = self.history_for(header, refs, avatar, flags)?;
+        let (hash, history) = self.history_for(header, refs.map(Refs::as_slice), avatar, flags)?;
         let mut pose = {
             let mut b = BitReader { r, acc: 0, bits: 0 };
-            delta_levels(&mut b, &history, flags)?
+            let spacing = refs.map_or(Spacing::UNIT, |refs| {
+                refs.kind.spacing(header.seq, refs.as_slice())
+            });
+            delta_levels(&mut b, &history, flags, spacing)?
         };
         if flags & FLAG_SCALES != 0 {
             for s in &mut pose.scales {
@@ -1697,7 +1860,7 @@ impl Frame2Decoder {
             depth << 4 | b.get(4)? as u8
         };
         let (hash, history) = self.history_for(header, None, avatar, flags)?;
-        let mut pose = delta_levels(b, &history, flags)?;
+        let mut pose = delta_levels(b, &history, flags, Spacing::UNIT)?;
         let mut f32 = || b.get(32).map(|v| f32::from_bits(v as u32));
         if flags & FLAG_SCALES != 0 {
             for s in &mut pose.scales {
@@ -1792,6 +1955,7 @@ fn delta_levels(
     b: &mut BitReader<'_, '_>,
     history: &[&QuantPose],
     flags: u8,
+    spacing: Spacing,
 ) -> Result<QuantPose, Frame2Error> {
     let depth = history.len();
     let base = history[0];
@@ -1815,11 +1979,11 @@ fn delta_levels(
     }
     let mut h = [0i64; MAX_DEPTH];
     let frames: Vec<&[u64]> = history.iter().map(|f| &f.rotations[..]).collect();
-    let mut p = predict_rotations(&frames, 0);
+    let mut p = predict_rotations(&frames, 0, spacing);
     for (j, &esc) in escaped.iter().enumerate() {
         let l = j % LANES;
         if l == 0 && j > 0 {
-            p = predict_rotations(&frames, j);
+            p = predict_rotations(&frames, j, spacing);
         }
         if esc {
             if let Some(steps) = tiered
@@ -1829,7 +1993,7 @@ fn delta_levels(
                 let flipped = base.rotations[j] ^ (1 << 47);
                 let mut bits = tag(flipped);
                 for c in 0..3 {
-                    let (pred, k) = regridded(&frames, j, flipped, steps, c);
+                    let (pred, k) = regridded(&frames, j, flipped, steps, c, spacing);
                     let value = pred + unzigzag(b.rice(k)?);
                     if !(0..=LEVEL_MASK as i64).contains(&value) {
                         return Err(Frame2Error::Number { at: b.r.at });
@@ -1858,7 +2022,7 @@ fn delta_levels(
             for (slot, f) in h.iter_mut().zip(history) {
                 *slot = i64::from(f.translations[t][c]);
             }
-            let (pred, k) = predict(&h[..depth], false);
+            let (pred, k) = predict(&h[..depth], false, spacing);
             *out = i32::try_from(pred.wrapping_add(unzigzag(b.rice(k)?)))
                 .map_err(|_| Frame2Error::Number { at: b.r.at })?;
         }

@@ -25,9 +25,11 @@ pub const PROTOCOL_VERSION: u32 = 1;
 /// packed deltas (frame kind 3: every avatar's chunk in one bit stream, the time since the base
 /// frame's, [`crate::frame2::PackedDeltas`]); version 8 is version 7 with, over WebTransport,
 /// wire v2 frames as datagrams: deltas of kind 4 naming the frames they refer to, every frame
-/// acknowledged ([`crate::quic`]; on a websocket version 8 is version 7). Every other message
-/// is the same.
-pub const SUPPORTED_VERSIONS: [u32; 8] = [1, 2, 3, 4, 5, 6, 7, 8];
+/// acknowledged ([`crate::quic`]; on a websocket version 8 is version 7); version 9 is
+/// version 8 with deltas of kind 5 over datagrams, predicted over the ticks between the frames
+/// they name and their own ([`crate::frame2::ReferencedKind`]). Every other message is the
+/// same.
+pub const SUPPORTED_VERSIONS: [u32; 9] = [1, 2, 3, 4, 5, 6, 7, 8, 9];
 
 /// Largest message the server accepts from a client, in bytes (hello, subscribe, commands).
 /// Uploads of assets go through HTTP, not the websocket.

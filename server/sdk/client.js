@@ -42,15 +42,15 @@ import { WebTransportSocket, discoverWebTransport } from "./webtransport.js";
 /** @typedef {import("./posecast.js").Vec3} Vec3 */
 
 /**
- * The protocol version a client asks for unless told otherwise: 8, wire v2 binary frames with
+ * The protocol version a client asks for unless told otherwise: 9, wire v2 binary frames with
  * morph weights (each pose's `weights`, by channel name), a precision per subscription (coded
  * with coarser steps near an axis, the same bound), deltas packed into one bit stream (frame
  * kind 3, the time a difference from the base frame's), command results tagged with their
- * kind, and over WebTransport wire v2 frames as datagrams (deltas of kind 4 naming the frames
- * they refer to; every frame decoded is acknowledged). A server that predates it is asked
+ * kind, and over WebTransport wire v2 frames as datagrams (deltas of kind 5 naming the frames
+ * they refer to, predicted over the ticks between; every frame decoded is acknowledged). A server that predates it is asked
  * again with the version before.
  */
-export const PROTOCOL_VERSION = 8;
+export const PROTOCOL_VERSION = 9;
 
 /** @returns {number} The wall clock in µs since the Unix epoch. */
 export function nowMicros() {
@@ -87,7 +87,7 @@ export class Client {
     this.url = options.url ?? defaultUrl();
     /** @type {Encoding} */
     this.encoding = options.encoding ?? "binary";
-    /** The protocol version asked for in the hello: 8 (7 with wire v2 frames as datagrams over WebTransport), 7 (6 with packed deltas), 6 (5 with near-axis steps in a precision's frames), 5 (wire v2 frames with morph weights and a precision per subscription), 4 (with morph weights), 3 or 2 (wire v2 frames) or 1 (v1 frames). */
+    /** The protocol version asked for in the hello: 9 (8 with datagram deltas predicted over the ticks between), 8 (7 with wire v2 frames as datagrams over WebTransport), 7 (6 with packed deltas), 6 (5 with near-axis steps in a precision's frames), 5 (wire v2 frames with morph weights and a precision per subscription), 4 (with morph weights), 3 or 2 (wire v2 frames) or 1 (v1 frames). */
     this.version = options.version ?? PROTOCOL_VERSION;
     const tokens = options.tokens ?? (options.token ? [{ kind: /** @type {const} */ ("control"), value: options.token }] : []);
     /** @type {() => Token[]} */

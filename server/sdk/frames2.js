@@ -27,6 +27,9 @@
 // ref₀ … refₖ₋₁. A decoder for datagrams (`Frame2Decoder.forDatagrams()`) keeps each avatar's
 // last 64 frames in the order they came, finds a named frame by its tick (the newest that came
 // of it), and a keyframe of the rig an avatar has does not drop the frames before it.
+// Protocol version 9's deltas of kind 5 are kind 4's, but each chunk predicts motion over the
+// ticks from its newest named frame, `ahead = seq − ref₀`, at the pace of `apart = ref₀ − ref₁`
+// ticks, and widens its Rice parameters to match (`spacingOf`, `predict`).
 //
 // Numbers: rotations (≤ 48 bits), levels and Rice sums (< 2⁴⁴) are exact JS numbers. Varints
 // are read as BigInt (up to 64 bits, as the Rust reader); the header's seq and server time must
@@ -50,6 +53,8 @@ export const MAGIC2 = 0x51;
 const KIND_PACKED = 3;
 /** Frame kind of a delta naming the frames it refers to (protocol version 8, datagrams). */
 const KIND_REFERENCED = 4;
+/** Frame kind of a delta naming the frames it refers to, predicted over the ticks between (protocol version 9). */
+const KIND_SPACED = 5;
 /** Most frames a delta chunk may refer to. */
 export const MAX_DEPTH = 8;
 /**
@@ -203,14 +208,65 @@ function ilog2(x) {
   return k;
 }
 
+/** The most ticks a spacing counts (`frame2.rs`'s `MAX_SPACING`). */
+const MAX_SPACING = 255;
+
+/**
+ * @typedef {{ahead: number, apart: number}} Spacing How far apart in ticks a kind 4 delta's
+ * frame and the two newest frames it names are (`frame2.rs`'s `Spacing`).
+ */
+
+/** @type {Spacing} A frame a tick after its base, as every delta of kind 2 or 3. */
+const UNIT = { ahead: 1, apart: 1 };
+
+/**
+ * The spacing of a kind 4 delta of tick `seq` naming `refs` (newest first): `seq − refs[0]`
+ * and `refs[0] − refs[1]` (the first again when it names one frame), each clamped to
+ * 1 … 255.
+ * @param {number} seq
+ * @param {number[]} refs
+ * @returns {Spacing}
+ */
+export function spacingOf(seq, refs) {
+  /** @param {number} d */
+  const clamp = (d) => Math.min(MAX_SPACING, Math.max(1, d));
+  const ahead = clamp(seq - refs[0]);
+  return { ahead, apart: refs.length >= 2 ? clamp(refs[0] - refs[1]) : ahead };
+}
+
+/**
+ * The motion `d = h₀ − h₁` carried on to the frame: `⌊(2·d·ahead + apart) / (2·apart)⌋`.
+ * Exact in doubles: |2·d·ahead| < 2⁴³ and a quotient that is not whole is at least 1/510
+ * from the next whole number, far more than its rounding error.
+ * @param {Spacing} s
+ * @param {number} d
+ */
+function spacingStep(s, d) {
+  if (s.ahead === s.apart) return d;
+  return Math.floor((2 * d * s.ahead + s.apart) / (2 * s.apart));
+}
+
+/**
+ * A Rice parameter widened for the frame's distance (`Spacing::rice`).
+ * @param {Spacing} s
+ * @param {number} k
+ * @param {boolean} moving
+ */
+function spacingRice(s, k, moving) {
+  const { ahead: a, apart: b } = s;
+  const ratio = moving ? Math.floor((a * (a + b)) / (2 * b * b)) : Math.floor(a / b);
+  return Math.min(k + ilog2(Math.max(1, ratio)), Math.max(k, 32));
+}
+
 /**
  * The prediction and Rice parameter of a component from its history `h` (newest first, at
- * least one value) — as `frame2.rs`'s `predict`.
+ * least one value) — as `frame2.rs`'s `predict`; `spacing` is a kind 4 delta's.
  * @param {number[]} h
  * @param {boolean} rotation
+ * @param {Spacing} [spacing]
  * @returns {[number, number]}
  */
-export function predict(h, rotation) {
+export function predict(h, rotation, spacing = UNIT) {
   const n = h.length;
   if (n < 2) return [h[0], K_WITHOUT_HISTORY];
   let still = 0;
@@ -219,15 +275,16 @@ export function predict(h, rotation) {
   for (let i = 0; i + 2 < n; i++) velocity += Math.min(zigzag(h[i] - 2 * h[i + 1] + h[i + 2]), CAP);
   let pred;
   let mean;
-  if (n >= 3 && velocity * (n - 1) < still * (n - 2)) {
-    pred = 2 * h[0] - h[1];
+  const moving = n >= 3 && velocity * (n - 1) < still * (n - 2);
+  if (moving) {
+    pred = h[0] + spacingStep(spacing, h[0] - h[1]);
     mean = Math.floor(velocity / (n - 2));
   } else {
     pred = h[0];
     mean = Math.floor(still / (n - 1));
   }
   if (rotation) pred = Math.min(LEVEL_MAX, Math.max(0, pred));
-  return [pred, ilog2(mean + 1)];
+  return [pred, spacingRice(spacing, ilog2(mean + 1), moving)];
 }
 
 /** A bounds-checked little-endian reader: running past the end is a `bad_message`. */
@@ -488,17 +545,17 @@ export class Frame2Decoder {
     const magic = r.u8();
     if (magic !== MAGIC2) throw bad(`bad magic byte ${magic} (a v2 frame starts with ${MAGIC2})`);
     const kind = r.u8();
-    if (kind !== 1 && kind !== 2 && kind !== KIND_PACKED && kind !== KIND_REFERENCED) throw bad(`unknown frame kind ${kind}`);
+    if (kind < 1 || kind > KIND_SPACED) throw bad(`unknown frame kind ${kind}`);
     const key = kind === 1;
     const packed = kind === KIND_PACKED;
-    const referenced = kind === KIND_REFERENCED;
+    const referenced = kind === KIND_REFERENCED || kind === KIND_SPACED;
     const count = r.varint();
     const sceneNum = r.varintU32();
     const seq = r.varintSafe("seq");
     // A packed delta's time comes after its base gap, as a difference from its base frame's.
     let serverTimeUs = packed ? 0 : r.varintSafe("server time");
     let baseSeq = seq;
-    /** @type {number[] | null} The ticks a kind 4 delta names, newest first. */
+    /** @type {number[] | null} The ticks a kind 4 or 5 delta names, newest first. */
     let refs = null;
     if (referenced) {
       const at = r.at;
@@ -559,7 +616,7 @@ export class Frame2Decoder {
         // Read within its bytes, at their offsets in the frame.
         const chunk = new Reader(new DataView(view.buffer, view.byteOffset, end));
         chunk.at = r.at;
-        push(this.deltaChunk(chunk, sceneNum, baseSeq, refs));
+        push(this.deltaChunk(chunk, sceneNum, baseSeq, refs, kind === KIND_SPACED ? seq : null));
         if (chunk.at !== end) throw bad(`${end - chunk.at} trailing bytes in avatar chunk at byte ${at}`);
         r.at = end;
       }
@@ -668,13 +725,15 @@ export class Frame2Decoder {
    * @param {number} sceneNum
    * @param {number} baseSeq
    * @param {number[] | null} [refs]
+   * @param {number | null} [seq] a kind 5 delta's tick (it predicts over the ticks to it)
    * @returns {{num: number, hash: string, levels: QuantPose}}
    */
-  deltaChunk(r, sceneNum, baseSeq, refs = null) {
+  deltaChunk(r, sceneNum, baseSeq, refs = null, seq = null) {
     const num = r.varintU32();
     const flags = r.u8();
     const { hash, history } = this.historyFor(sceneNum, num, baseSeq, flags, refs);
-    const pose = deltaLevels(new BitReader(r), history, flags, num);
+    const spacing = refs && seq !== null ? spacingOf(seq, refs) : UNIT;
+    const pose = deltaLevels(new BitReader(r), history, flags, num, spacing);
     if (flags & FLAG_SCALES) pose.scales = history[0].scales.map(() => r.vec3());
     if (flags & FLAG_PLACEMENT) pose.placement = r.placement();
     if (flags & FLAG_WEIGHTS) pose.weights = readWeights(new BitReader(r), history[0].weights, num);
@@ -741,9 +800,10 @@ function readWeights(b, base, num) {
  * @param {QuantPose[]} history
  * @param {number} flags
  * @param {number} num
+ * @param {Spacing} [spacing] a kind 4 delta's
  * @returns {QuantPose}
  */
-function deltaLevels(b, history, flags, num) {
+function deltaLevels(b, history, flags, num, spacing = UNIT) {
   const r = b.r;
   const base = history[0];
   /** @type {QuantPose} */
@@ -770,7 +830,7 @@ function deltaLevels(b, history, flags, num) {
             const from = f.rotations[j];
             return coarseLevel(fineLevel(level(from, c), rotationStep(steps, j, from)), to);
           });
-          const [pred, k] = predict(h, true);
+          const [pred, k] = predict(h, true, spacing);
           const value = pred + unzigzag(b.rice(k));
           if (!(value >= 0 && value <= LEVEL_MASK)) throw bad(`avatar ${num}: rotation level out of range at byte ${r.at}`);
           bits = bits * TWO_15 + value;
@@ -787,7 +847,7 @@ function deltaLevels(b, history, flags, num) {
     let bits = i;
     for (let c = 0; c < 3; c++) {
       const h = history.slice(0, n).map((f) => level(f.rotations[j], c));
-      const [pred, k] = predict(h, true);
+      const [pred, k] = predict(h, true, spacing);
       const value = pred + unzigzag(b.rice(k));
       if (!(value >= 0 && value <= LEVEL_MASK)) throw bad(`avatar ${num}: rotation level out of range at byte ${r.at}`);
       bits = bits * TWO_15 + value;
@@ -801,6 +861,7 @@ function deltaLevels(b, history, flags, num) {
       const [pred, k] = predict(
         history.map((f) => f.translations[t][c]),
         false,
+        spacing,
       );
       const value = pred + unzigzag(b.rice(k));
       if (!(value >= I32_MIN && value <= I32_MAX)) throw bad(`avatar ${num}: translation level out of range at byte ${r.at}`);

@@ -1,9 +1,9 @@
 // Type declarations of posecast's JavaScript client, served at /sdk/posecast.d.ts beside the
 // module it describes (/sdk/posecast.js). This file is the API reference; proto/PROTOCOL.md is
 // the reference of the messages, protocol.d.ts their types (generated from the server's). The
-// SDK speaks protocol version 8 (wire v2 binary frames with morph weights, a precision per
+// SDK speaks protocol version 9 (wire v2 binary frames with morph weights, a precision per
 // subscription and packed deltas, results tagged with their kind; over WebTransport, wire v2
-// frames as datagrams) by default, and 7, 6, 5, 4, 3, 2 or 1 when asked
+// frames as datagrams) by default, and 8, 7, 6, 5, 4, 3, 2 or 1 when asked
 // (`ClientOptions.version`) or refused by an older server.
 //
 //   import { Client } from "/sdk/posecast.js";
@@ -16,7 +16,7 @@
 /** The SDK's version. */
 export declare const SDK_VERSION: string;
 /** The protocol version the SDK speaks (the `hello`'s `version`). */
-export declare const PROTOCOL_VERSION: 8;
+export declare const PROTOCOL_VERSION: 9;
 
 export type Vec3 = [number, number, number];
 /** The `result` of an `ack`, by the `kind` the server tags it with (protocol.d.ts). */
@@ -224,9 +224,10 @@ export interface ClientOptions {
   /** Frame encoding; default `"binary"` (several times smaller than JSON). */
   encoding?: Encoding;
   /**
-   * Protocol version asked for in the hello: 8 (default: 7 with wire v2 frames as datagrams
-   * over WebTransport — deltas of kind 4 naming the frames they refer to, every frame decoded
-   * acknowledged; on a websocket, 8 is 7), 7 (6 with deltas packed into one bit stream, frame
+   * Protocol version asked for in the hello: 9 (default: 8 with datagram deltas of kind 5,
+   * predicted over the ticks between the frames they name and their own), 8 (7 with wire v2
+   * frames as datagrams over WebTransport — deltas of kind 4 naming the frames they refer to,
+   * every frame decoded acknowledged; on a websocket, 9 and 8 are 7), 7 (6 with deltas packed into one bit stream, frame
    * kind 3; over WebTransport, wire v1 frames), 6 (5 with a precision's frames coded on coarser steps near an
    * axis, the same bound), 5 (4 with a `precision` per
    * subscription), 4 (3 with each pose's morph `weights` in binary frames too), 3 or 2 — binary frames in wire v2,
@@ -235,7 +236,7 @@ export interface ClientOptions {
    * gets those as v1 frames) — or 1 (v1 frames); the client decodes both. A server that refuses the version (`unsupported_version`:
    * one that predates it) gets a hello with the version before, and `Client.version` follows.
    */
-  version?: 1 | 2 | 3 | 4 | 5 | 6 | 7 | 8;
+  version?: 1 | 2 | 3 | 4 | 5 | 6 | 7 | 8 | 9;
   /** The `client` name in the hello; default `"posecast-js"`. */
   name?: string;
   /** Reconnect when the connection drops (default true), resubscribing. */
@@ -333,7 +334,7 @@ export declare class Client {
   readonly url: string;
   readonly encoding: Encoding;
   /** The protocol version said in the hello (lower after a server refused one; `welcome.version` says the one in use). */
-  readonly version: 1 | 2 | 3 | 4 | 5 | 6 | 7 | 8;
+  readonly version: 1 | 2 | 3 | 4 | 5 | 6 | 7 | 8 | 9;
   readonly state: ConnectionState;
   /** Why the state is what it is ("connection lost", a refusal's reason…). */
   readonly detail: string;

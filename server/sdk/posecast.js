@@ -22,7 +22,7 @@
 // - tokens.js: minting and revoking tokens for an app's users (its back end, with an admin token);
 // - errors.js: PosecastError, with the protocol's error code.
 
-export const SDK_VERSION = "1.13.0";
+export const SDK_VERSION = "1.14.0";
 export { Client, PROTOCOL_VERSION, nowMicros } from "./client.js";
 export { PosecastError } from "./errors.js";
 export { WebTransportSocket, discoverWebTransport } from "./webtransport.js";

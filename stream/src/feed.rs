@@ -20,6 +20,7 @@ use bytes::Bytes;
 use posecast_core::error::Error;
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::{ChunkEncoder, FrameHeader, FrameKind};
+use posecast_proto::frame2::ReferencedKind;
 use posecast_proto::msg::{AvatarId, Encoding, SceneId, ServerMsg};
 use posecast_proto::precision::{Grid, GridKey, Precision};
 use posecast_proto::subset::JointSet;
@@ -142,10 +143,11 @@ impl Subscriber {
     }
 
     /// How its wire v2 deltas are laid out: naming the frames they refer to over datagrams
-    /// (protocol version 8), packed from protocol version 7, else byte-aligned chunks.
+    /// (protocol version 8; predicted over the ticks between from version 9), packed from
+    /// protocol version 7, else byte-aligned chunks.
     fn layout(&self) -> DeltaLayout {
         if self.outbox.datagrams() {
-            DeltaLayout::Referenced
+            DeltaLayout::Referenced(ReferencedKind::for_version(self.version))
         } else if self.version >= 7 {
             DeltaLayout::Packed
         } else {
@@ -1063,7 +1065,7 @@ impl Feed {
                 let layout = sub.layout();
                 let Some(levels) = &levels else { continue };
                 let ring = &self.ring;
-                if layout == DeltaLayout::Referenced {
+                if matches!(layout, DeltaLayout::Referenced(_)) {
                     // Over datagrams (protocol version 8) a delta names the newest frames the
                     // client acknowledged whole, so a lost datagram costs its own tick; with
                     // none (it just joined, nothing came back for a while, a new avatar or

@@ -12,7 +12,7 @@ use axum::extract::ws::Message;
 use bytes::Bytes;
 use posecast_proto::description::AvatarDescription;
 use posecast_proto::frame::{FrameHeader, FrameKind};
-use posecast_proto::frame2::{self, PackedDeltas, QuantPose};
+use posecast_proto::frame2::{self, PackedDeltas, QuantPose, ReferencedKind, Spacing};
 use posecast_proto::msg::AvatarId;
 use posecast_proto::precision::{Grid, GridKey, Steps};
 use posecast_proto::subset::{JointSet, Selection};
@@ -240,14 +240,14 @@ impl Ring {
         let mut out = Vec::with_capacity(self.last_len.load(Ordering::Relaxed).max(64));
         let ticks = chain.map(|c| self.ticks_of(c)).unwrap_or_default();
         let mut chunks = match chain {
-            Some(_) if layout == DeltaLayout::Referenced => {
+            Some(_) if let DeltaLayout::Referenced(kind) = layout => {
                 // It names the ticks still kept (a delta codes against no others).
                 let refs: Vec<u64> = ticks.iter().map(|(s, _)| *s).collect();
                 if refs.is_empty() {
                     return None;
                 }
-                frame2::write_referenced_header(&header, &refs, pieces.len(), &mut out);
-                Chunks::Referenced(&mut out)
+                frame2::write_referenced_header(&header, kind, &refs, pieces.len(), &mut out);
+                Chunks::Referenced(&mut out, kind.spacing(header.seq, &refs))
             }
             Some(chain) if layout == DeltaLayout::Packed => {
                 // The base frame's time, which the delta's is sent against.
@@ -353,16 +353,16 @@ pub(super) enum DeltaLayout {
     Chunks,
     /// Kind 3 (protocol version 7): every chunk in one bit stream.
     Packed,
-    /// Kind 4 (protocol version 8, frames as datagrams): naming the frames it refers to,
-    /// each chunk with its length.
-    Referenced,
+    /// Kind 4 or 5 (protocol versions 8 and 9, frames as datagrams): naming the frames it
+    /// refers to, each chunk with its length.
+    Referenced(ReferencedKind),
 }
 
 /// Where a frame's chunks go: after its header, each byte-aligned (keyframes and deltas of
 /// kind 2), with its length (kind 4), or into a packed delta's one bit stream.
 enum Chunks<'o> {
     Bytes(&'o mut Vec<u8>),
-    Referenced(&'o mut Vec<u8>),
+    Referenced(&'o mut Vec<u8>, Spacing),
     Packed(PackedDeltas<'o>),
 }
 
@@ -371,7 +371,9 @@ impl Chunks<'_> {
     fn delta(&mut self, num: u32, levels: &QuantPose, history: &[&QuantPose]) -> bool {
         match self {
             Chunks::Bytes(out) => frame2::encode_delta(num, levels, history, out),
-            Chunks::Referenced(out) => frame2::encode_referenced_delta(num, levels, history, out),
+            Chunks::Referenced(out, spacing) => {
+                frame2::encode_referenced_delta(num, levels, history, *spacing, out)
+            }
             Chunks::Packed(packed) => packed.push(num, levels, history),
         }
     }

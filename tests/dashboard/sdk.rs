@@ -19,7 +19,7 @@ async fn serve_page(html: String) -> String {
 
 /// A page that imports only the client and records, per tick, the decoded rotations and
 /// placement of `avatar` (and whether the frame was a keyframe): its default client (protocol
-/// version 8, on a websocket version 7's wire v2 frames with packed deltas), one asking for
+/// version 9, on a websocket version 7's wire v2 frames with packed deltas), one asking for
 /// version 1, one for JSON and one for a joint subset (v1 frames on a version-2 connection).
 fn recording_page(addr: std::net::SocketAddr) -> String {
     format!(
@@ -360,7 +360,7 @@ async fn the_javascript_client_decodes_binary_frames_as_the_rust_client_does() {
     let (binary_bytes, json_bytes) = (sizes[0].as_f64().unwrap(), sizes[1].as_f64().unwrap());
     let (arm_bytes, v1_bytes) = (sizes[2].as_f64().unwrap(), sizes[4].as_f64().unwrap());
     assert_eq!(sizes[3], json!(0), "arm-only frames all decoded");
-    assert_eq!(sizes[5], json!([8, 1, 8]), "protocol versions welcomed");
+    assert_eq!(sizes[5], json!([9, 1, 9]), "protocol versions welcomed");
     assert_eq!(sizes[9], json!(0), "0.1° frames all decoded");
     let coarse_bytes = sizes[8].as_f64().unwrap();
     assert!(
@@ -625,8 +625,8 @@ window.client = client;
     server.stop().await;
 }
 
-/// Against a server of before protocol version 2 (it refuses `hello {version: 8}` down to `2`
-/// with `unsupported_version`), the client — asking for 8 by default — says hello again
+/// Against a server of before protocol version 2 (it refuses `hello {version: 9}` down to `2`
+/// with `unsupported_version`), the client — asking for 9 by default — says hello again
 /// with the version before until it comes online with 1.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_client_falls_back_to_version_1_for_an_older_server() {
@@ -653,6 +653,6 @@ client.connect();
          && window.client.welcome.version === 1",
     )
     .await;
-    assert_eq!(*hellos.lock().unwrap(), vec![8, 7, 6, 5, 4, 3, 2, 1]);
+    assert_eq!(*hellos.lock().unwrap(), vec![9, 8, 7, 6, 5, 4, 3, 2, 1]);
     server.stop().await;
 }

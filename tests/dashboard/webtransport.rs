@@ -1,6 +1,6 @@
 //! The JavaScript client and the dashboard over WebTransport in headless Chromium (issue 31):
 //! a page on another origin asks `/api/quic`, trusts the self-signed certificate by its hash,
-//! gets frames as datagrams — wire v2 in protocol version 8 (the default), every frame
+//! gets frames as datagrams — wire v2 in protocol version 9 (the default), every frame
 //! acknowledged; wire v1 in version 7, keyframes acknowledged — and decodes the poses a
 //! websocket client of the same page decodes, tick for tick; with the server's UDP port out of
 //! reach it falls back to the websocket and says why; the dashboard shows the transport.
@@ -21,8 +21,8 @@ async fn quic_server(quic: &str) -> posecast_server::startup::Server {
 }
 
 /// A page recording, per tick, the avatar's rotations from its default client (`auto`:
-/// protocol version 8, over WebTransport wire v2 frames as datagrams), from a websocket-only
-/// client (`ws`: version 8, which on a websocket is 7: wire v2) and from a WebTransport-only
+/// protocol version 9, over WebTransport wire v2 frames as datagrams), from a websocket-only
+/// client (`ws`: version 9, which on a websocket is 7: wire v2) and from a WebTransport-only
 /// client asking for version 7 (`wt7`: wire v1 datagrams), with the clients' transports, and
 /// how often a client showed a pose not newer than the one before (`backwards`).
 fn page(addr: std::net::SocketAddr, quic_timeout_ms: u32) -> String {
@@ -85,10 +85,10 @@ async fn the_page_client_streams_over_webtransport_and_decodes_the_websockets_po
         serde_json::json!([
             ["webtransport", "websocket", "webtransport"],
             null,
-            [8, 8, 7]
+            [9, 9, 7]
         ])
     );
-    // The frames came as datagrams; the page acknowledged every v2 frame (version 8) and the
+    // The frames came as datagrams; the page acknowledged every v2 frame (version 9) and the
     // v1 keyframes (version 7).
     let addr = server.addr;
     let datagrams = common::metric(addr, r#"posecast_quic_frames_total{via="datagram"}"#).await;
@@ -97,7 +97,7 @@ async fn the_page_client_streams_over_webtransport_and_decodes_the_websockets_po
     assert!(frame_acks >= 120.0, "{frame_acks} frame acknowledgements");
     let acks = common::metric(addr, "posecast_quic_key_acks_total").await;
     assert!(acks >= 1.0, "{acks} keyframe acknowledgements");
-    // Version 8: mostly deltas (the server names only frames the page acknowledged: without
+    // Version 9: mostly deltas (the server names only frames the page acknowledged: without
     // them every frame is a keyframe sent again), decoded as datagrams (their decoder keeps
     // 64 frames an avatar in the order they came); no client showed an older pose after a
     // newer one. (A frame that comes before `subscribed`, on the stream, shows nothing.)

@@ -43,7 +43,8 @@ fn time(seq: u64) -> u64 {
 /// Levels of an avatar (number, description hash, levels).
 type Levels = (u32, u64, Arc<QuantPose>);
 
-/// A frame of tick `seq`: a keyframe when `refs` is empty, else a kind 4 delta naming `refs`,
+/// A frame of tick `seq`: a keyframe when `refs` is empty, else a delta naming `refs` (kind 5
+/// at even ticks, 4 at odd ones),
 /// each avatar's chunk coded against its levels of those ticks (`held`).
 fn frame(
     scene_num: u32,
@@ -68,11 +69,21 @@ fn frame(
     } else {
         header.kind = FrameKind::Delta;
         header.base_seq = refs[0];
-        frame2::write_referenced_header(&header, refs, avatars.len(), &mut out);
+        // Kind 5 (protocol version 9) at even ticks, kind 4 (version 8) at odd ones: the client
+        // decodes both.
+        let kind = if seq.is_multiple_of(2) {
+            frame2::ReferencedKind::Ticks
+        } else {
+            frame2::ReferencedKind::Frames
+        };
+        frame2::write_referenced_header(&header, kind, refs, avatars.len(), &mut out);
         for (num, _, q) in avatars {
             let history: Vec<Arc<QuantPose>> = refs.iter().map(|&r| held(*num, r)).collect();
             let h: Vec<&QuantPose> = history.iter().map(|h| &**h).collect();
-            assert!(frame2::encode_referenced_delta(*num, q, &h, &mut out));
+            let spacing = kind.spacing(seq, refs);
+            assert!(frame2::encode_referenced_delta(
+                *num, q, &h, spacing, &mut out
+            ));
         }
     }
     out
@@ -322,10 +333,24 @@ fn parse_referenced(bytes: &[u8]) -> ([u64; 4], Vec<u64>, Vec<Vec<u8>>) {
     (fields, gaps, chunks)
 }
 
-/// A kind 4 frame of these fields, `d` said (whatever the distances' count), each chunk after
-/// the length given.
+/// A frame of kind 4 (or `SPACED_KIND`, 5) of these fields, `d` said (whatever the distances'
+/// count), each chunk after the length given.
 fn build_referenced(fields: [u64; 4], d: u64, gaps: &[u64], chunks: &[(u64, &[u8])]) -> Vec<u8> {
-    let mut out = vec![frame2::MAGIC, 4];
+    build_kind(4, fields, d, gaps, chunks)
+}
+
+/// The kind byte of a delta predicted over the ticks between (protocol version 9).
+const SPACED_KIND: u8 = 5;
+
+/// [`build_referenced`] of frame kind `kind`.
+fn build_kind(
+    kind: u8,
+    fields: [u64; 4],
+    d: u64,
+    gaps: &[u64],
+    chunks: &[(u64, &[u8])],
+) -> Vec<u8> {
+    let mut out = vec![frame2::MAGIC, kind];
     for f in fields.into_iter().chain([d]).chain(gaps.iter().copied()) {
         put_varint(f, &mut out);
     }
@@ -580,7 +605,9 @@ fn odd_vectors(rng: &mut Lcg) -> Vec<Value> {
         let bytes = |bodies: &[Vec<u8>]| {
             let chunks: Vec<(u64, &[u8])> =
                 bodies.iter().map(|b| (b.len() as u64, &b[..])).collect();
-            build_referenced(fields, d, &gaps, &chunks)
+            // Half the cases kind 5: its residuals predicted over the ticks between.
+            let kind = if case % 4 < 2 { SPACED_KIND } else { 4 };
+            build_kind(kind, fields, d, &gaps, &chunks)
         };
         // Every other case with the last chunk cut where the Rust decoder takes it, if anywhere.
         let last = bodies.len() - 1;
@@ -623,7 +650,7 @@ const levels = (l) => JSON.stringify({
   placement: { position: l.placement.position, rotation: l.placement.rotation }, weights: l.weights,
   steps: l.steps && { rotations: l.steps.rotations, translation: l.steps.translation, near: l.steps.near },
 });
-const counts = () => ({ frames: 0, referenced: 0, keys: 0, late: 0, late_keys: 0, parts: 0, refused: 0, held_most: 0, newest: new Map() });
+const counts = () => ({ frames: 0, referenced: 0, spaced: 0, keys: 0, late: 0, late_keys: 0, parts: 0, refused: 0, held_most: 0, newest: new Map() });
 function check(d, f, label, c) {
   if (f.forget_avatar !== undefined) return d.forgetAvatar(...f.forget_avatar);
   let got;
@@ -660,7 +687,8 @@ function check(d, f, label, c) {
   });
   if (failures.length !== before) return;
   c.frames++;
-  if (f.bytes[1] === 4) c.referenced++;
+  if (f.bytes[1] === 4 || f.bytes[1] === 5) c.referenced++;
+  if (f.bytes[1] === 5) c.spaced++;
   if (got.key) c.keys++;
   if (f.part) c.parts++;
   const newest = c.newest.get(got.scene_num) ?? -1;
@@ -765,6 +793,7 @@ fn the_clients_decoder_reads_datagrams_as_the_rust_one() {
     assert!(lossy_refused <= 10, "{lossy_refused} refused");
     assert!(n(&["main", "frames"]) >= 550, "{report}");
     assert!(n(&["main", "referenced"]) >= 500, "{report}");
+    assert!(n(&["main", "spaced"]) >= 200, "{report}");
     assert!(n(&["main", "keys"]) >= 10, "{report}");
     assert!(n(&["main", "late"]) >= 100, "{report}");
     assert!(n(&["main", "late_keys"]) >= 2, "{report}");

@@ -72,7 +72,9 @@ pub struct ClientOptions {
     /// later also get morph weights in frames; 5 may ask for a `precision`; 6 gets a precision's
     /// frames with coarser steps near an axis (fewer bytes, the same bound); 7 gets packed
     /// deltas (every avatar's in one bit stream, less framing); 8 gets, over WebTransport, v2
-    /// frames as datagrams (v1 frames before; on a websocket 8 is 7). A server that refuses
+    /// frames as datagrams (v1 frames before; on a websocket 8 is 7); 9 gets their deltas
+    /// predicted over the ticks between the frames they name and their own (kind 5: fewer
+    /// bytes than kind 4 while frames are in flight). A server that refuses
     /// the version (`unsupported_version`: one that predates it) gets a hello with the version
     /// before, down to 1.
     pub version: u32,
@@ -108,7 +110,7 @@ impl ClientOptions {
             joints: None,
             morph_weights: true,
             precision: None,
-            version: 8,
+            version: 9,
             transport: TransportChoice::Auto,
             quic_timeout: Duration::from_secs(5),
             webtransport_url: None,

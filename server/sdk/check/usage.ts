@@ -80,7 +80,7 @@ const offset: number = clock.offsetUs();
 const frame = new FrameDecoder().decode(new Uint8Array(32));
 const frame2 = new Frame2Decoder().decode(new Uint8Array([0x51, 1, 0, 0, 1, 0]));
 const v1 = new Client({ version: 1 });
-const asked: 1 | 2 | 3 | 4 | 5 | 6 | 7 | 8 = v1.version;
+const asked: 1 | 2 | 3 | 4 | 5 | 6 | 7 | 8 | 9 = v1.version;
 client.subscribe("crowd", { precision: { degrees: 0.1 } });
 client.subscribe("stage", { precision: { millimetres: 2, shell: 0.03, translation: 0.001 } });
 const q = quatSlerp([0, 0, 0, 1], [0, 1, 0, 0], 0.5);
@@ -97,8 +97,8 @@ void wrongResult;
 client.on("frames", () => {});
 // @ts-expect-error — encodings are "binary" or "json".
 void new Client({ encoding: "msgpack" });
-// @ts-expect-error — protocol versions are 1 to 8.
-void new Client({ version: 9 });
+// @ts-expect-error — protocol versions are 1 to 9.
+void new Client({ version: 10 });
 // @ts-expect-error — a precision names its bounds (degrees, millimetres, shell, translation).
 client.subscribe("crowd", { precision: { degree: 0.1 } });
 // @ts-expect-error — subscribe takes a scene name.

@@ -123,9 +123,9 @@ pub struct Args {
     /// morph weights, 5 with precision per subscription, 6 with near-axis steps, 7 with packed
     /// deltas; 3 is the default), 1 v1 frames.
     /// The reference server sends the same wire. Over WebTransport versions 1 to 7 get wire
-    /// v1 datagrams, 8 wire v2 datagrams (deltas naming acknowledged frames); on a websocket 8
-    /// is 7.
-    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=8))]
+    /// v1 datagrams, 8 wire v2 datagrams (deltas naming acknowledged frames), 9 the same with
+    /// deltas predicted over the ticks between; on a websocket 8 and 9 are 7.
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=9))]
     protocol: u32,
     /// Load the machine as a busy host would be: this many busy-loop processes run beside the
     /// servers for the whole run (e.g. one per core), so both servers are measured under the
