@@ -1,8 +1,10 @@
 //! `--link`: the clients reach the server through an emulated link (`posecast-linkemu`, in this
 //! process), one run per condition, and a table of what viewers got: delivered frames per
 //! second per client (min and mean), frame age p50/p99, the worst freeze (longest time
-//! without a new frame), and the share of displayed poses the client library's jitter buffer
-//! (`client/src/net/jitter.rs`, rendering at 60 Hz) interpolates between two received frames.
+//! without a new frame), the share of displayed poses the client library's jitter buffer
+//! (`client/src/net/jitter.rs`, rendering at 60 Hz) interpolates between two received frames,
+//! and the worst *displayed* freeze: the longest the rendering showed one pose (held, where
+//! the buffer had nothing to interpolate between and had extrapolated its 100 ms).
 //!
 //! Frame ages are arrival − the frame's `server_time_us` (one machine, one clock) of the
 //! frames a viewer would show: a keyframe that arrives (within 2 ms) together with the delta
@@ -42,6 +44,9 @@ pub struct Row {
     pub age_p99: f64,
     /// Longest time any client went without a new frame, ms.
     pub worst_freeze: f64,
+    /// Longest time any client's 60 Hz rendering held one pose (consecutive held samples ×
+    /// the render interval), ms: 0 when every shown pose was interpolated or extrapolated.
+    pub displayed_freeze: f64,
     /// Share of the displayed poses that were interpolated (the rest extrapolated or held).
     pub interpolated: f64,
     /// Share held (a repeated received pose).
@@ -88,14 +93,23 @@ fn quantile(v: &mut [f64], q: f64) -> f64 {
     v[rank - 1]
 }
 
+/// What a client's 60 Hz rendering showed ([`playout`]).
+#[derive(Debug, Default, PartialEq)]
+struct Played {
+    /// Samples interpolated, extrapolated and held.
+    counts: [u64; 3],
+    /// The most held samples in a row.
+    longest_hold: u64,
+}
+
 /// Plays one client's frames out through a jitter buffer, rendering at 60 Hz from 2 s after
-/// its first frame (the buffer learns the link meanwhile) to its last: counts of
-/// (interpolated, extrapolated, held).
-fn playout(frames: &[Arrival], tick_rate: f32) -> [u64; 3] {
-    let mut counts = [0u64; 3];
+/// its first frame (the buffer learns the link meanwhile) to its last.
+fn playout(frames: &[Arrival], tick_rate: f32) -> Played {
+    let mut played = Played::default();
     let (Some(first), Some(last)) = (frames.first(), frames.last()) else {
-        return counts;
+        return played;
     };
+    let mut holding = 0;
     let mut buffer = JitterBuffer::new(tick_rate);
     let step = 1e6 / 60.0;
     let start = first.arrival_us as f64 + 2e6;
@@ -110,16 +124,25 @@ fn playout(frames: &[Arrival], tick_rate: f32) -> [u64; 3] {
         if now >= start
             && let Some((_, kind)) = buffer.sample_with_kind(buffer.playout_time(now as u64))
         {
-            counts[match kind {
+            played.counts[match kind {
                 Sampled::Interpolated => 0,
                 Sampled::Extrapolated => 1,
                 Sampled::Held => 2,
             }] += 1;
+            holding = if kind == Sampled::Held {
+                holding + 1
+            } else {
+                0
+            };
+            played.longest_hold = played.longest_hold.max(holding);
         }
         now += step;
     }
-    counts
+    played
 }
+
+/// The render interval of [`playout`], ms.
+const RENDER_INTERVAL_MS: f64 = 1e3 / 60.0;
 
 /// The figures of one condition from the clients' records over `seconds`.
 pub fn row(
@@ -132,6 +155,7 @@ pub fn row(
     let mut rates = Vec::new();
     let mut ages = Vec::new();
     let mut worst_freeze = 0.0f64;
+    let mut longest_hold = 0;
     let mut counts = [0u64; 3];
     let (mut frames_in, mut bytes_in, mut keys_in) = (0u64, 0u64, 0u64);
     for s in stats.iter().filter(|s| s.failure.is_none()) {
@@ -148,10 +172,11 @@ pub fn row(
         for w in frames.windows(2) {
             worst_freeze = worst_freeze.max((w[1].arrival_us - w[0].arrival_us) as f64 / 1e3);
         }
-        let c = playout(&frames, tick_rate);
-        for (total, n) in counts.iter_mut().zip(c) {
+        let played = playout(&frames, tick_rate);
+        for (total, n) in counts.iter_mut().zip(played.counts) {
             *total += n;
         }
+        longest_hold = longest_hold.max(played.longest_hold);
     }
     let displayed = counts.iter().sum::<u64>().max(1) as f64;
     Row {
@@ -163,6 +188,7 @@ pub fn row(
         age_p50: quantile(&mut ages, 0.5),
         age_p99: quantile(&mut ages, 0.99),
         worst_freeze,
+        displayed_freeze: longest_hold as f64 * RENDER_INTERVAL_MS,
         interpolated: counts[0] as f64 / displayed,
         held: counts[2] as f64 / displayed,
         frame_bytes: bytes_in as f64 / frames_in.max(1) as f64,
@@ -173,12 +199,12 @@ pub fn row(
 /// Prints the table (Markdown, as `docs/src/concepts/adaptive-rate.md` has it).
 pub fn print(rows: &[Row]) {
     println!(
-        "| link | transport | clients | frames/s per client, min / mean | frame age p50 / p99 | worst freeze | interpolated | held | bytes a frame (keyframes) |"
+        "| link | transport | clients | frames/s per client, min / mean | frame age p50 / p99 | worst freeze | worst displayed freeze | interpolated | held | bytes a frame (keyframes) |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
     for r in rows {
         println!(
-            "| {} | {} | {} | {:.1} / {:.1} | {:.0} / {:.0} ms | {:.0} ms | {:.1} % | {:.1} % | {:.0} B ({:.1} %) |",
+            "| {} | {} | {} | {:.1} / {:.1} | {:.0} / {:.0} ms | {:.0} ms | {:.0} ms | {:.1} % | {:.1} % | {:.0} B ({:.1} %) |",
             r.link,
             r.transport,
             r.clients,
@@ -187,6 +213,7 @@ pub fn print(rows: &[Row]) {
             r.age_p50,
             r.age_p99,
             r.worst_freeze,
+            r.displayed_freeze,
             100.0 * r.interpolated,
             100.0 * r.held,
             r.frame_bytes,
@@ -254,9 +281,10 @@ mod tests {
                 key: i % 60 == 0,
             })
             .collect();
-        let [interpolated, extrapolated, held] = playout(&frames, 60.0);
+        let played = playout(&frames, 60.0);
+        let [interpolated, extrapolated, held] = played.counts;
         assert!(interpolated > 400, "{interpolated}");
-        assert_eq!((extrapolated, held), (0, 0));
+        assert_eq!((extrapolated, held, played.longest_hold), (0, 0, 0));
         let r = row(
             "x",
             "websocket",
@@ -270,5 +298,54 @@ mod tests {
         assert!((r.fps_mean - 60.0).abs() < 0.1, "{r:?}");
         assert!((r.age_p50 - 30.0).abs() < 0.01, "{r:?}");
         assert!((r.worst_freeze - 16.667).abs() < 0.01, "{r:?}");
+        assert_eq!(r.displayed_freeze, 0.0, "{r:?}");
+    }
+
+    /// A lost frame is interpolated across; a stall of 300 ms (a TCP retransmission timeout)
+    /// is extrapolated for 100 ms and then held until frames come again: a displayed freeze of
+    /// about 300 − 100 − 17 ms (the playout delay, 30 ms of transit and a frame interval,
+    /// absorbs none of it: the buffer renders 47 ms behind, the stall ends 300 ms later).
+    #[test]
+    fn a_stall_is_a_displayed_freeze_and_a_lost_frame_is_not() {
+        let steady = |i: u64| Arrival {
+            arrival_us: i * 16_667 + 30_000,
+            stamp_us: i * 16_667,
+            seq: i,
+            base_seq: 0,
+            key: i == 0,
+        };
+        // Every 50th frame lost.
+        let lossy: Vec<Arrival> = (0..600u64).filter(|i| i % 50 != 7).map(steady).collect();
+        let played = playout(&lossy, 60.0);
+        assert_eq!(
+            (played.counts[2], played.longest_hold),
+            (0, 0),
+            "{played:?}"
+        );
+        // Frames 300–317 held back by 300 ms, then all at once.
+        let stalled: Vec<Arrival> = (0..600u64)
+            .map(|i| {
+                let mut a = steady(i);
+                if (300..318).contains(&i) {
+                    a.arrival_us = steady(318).arrival_us;
+                }
+                a
+            })
+            .collect();
+        let r = row(
+            "x",
+            "websocket",
+            &[ClientStats {
+                arrivals: stalled,
+                ..ClientStats::default()
+            }],
+            10.0,
+            60.0,
+        );
+        assert!(
+            (150.0..=250.0).contains(&r.displayed_freeze),
+            "{} ms: {r:?}",
+            r.displayed_freeze
+        );
     }
 }
