@@ -36,8 +36,8 @@
 //! `vᵢ = hᵢ − 2hᵢ₊₁ + hᵢ₊₂`. With `n ≥ 3` and `mean zigzag(v) < mean zigzag(s)` the prediction is
 //! `2h₀ − h₁` (constant velocity), otherwise `h₀`; the Rice parameter is
 //! `k = ⌊log₂(m + 1)⌋` of the chosen mean `m` (integer division), [`K_WITHOUT_HISTORY`] when
-//! `n = 1`. A kind 4 delta carries the motion over the ticks from its newest named frame and
-//! widens `k` to match ([`Spacing`]). Rotation predictions are clamped to the level range.
+//! `n = 1`. A kind 5 delta predicts over the ticks from its newest named frame instead
+//! ([`Spacing::predict`]). Rotation predictions are clamped to the level range.
 //! The encoder and the decoder compute this from the same decoded levels, so nothing about it
 //! is sent, and a frame's state is a function of the frames it refers to alone (any receiver
 //! holding them decodes it).
@@ -124,11 +124,12 @@ impl ReferencedKind {
         }
     }
 
-    /// The spacing a delta of this kind at tick `seq` naming `refs` predicts with.
-    pub fn spacing(self, seq: u64, refs: &[u64]) -> Spacing {
+    /// How a delta of this kind at tick `seq` naming `refs` predicts: over its [`Spacing`]
+    /// (kind 5), or a frame at a time as a delta of kind 2 (`None`: kind 4).
+    pub fn spacing(self, seq: u64, refs: &[u64]) -> Option<Spacing> {
         match self {
-            Self::Frames => Spacing::UNIT,
-            Self::Ticks => Spacing::of(seq, refs),
+            Self::Frames => None,
+            Self::Ticks => Some(Spacing::of(seq, refs)),
         }
     }
 
@@ -593,15 +594,15 @@ pub fn encode_delta(
     history: &[&QuantPose],
     out: &mut Vec<u8>,
 ) -> bool {
-    delta_chunk(avatar_num, pose, history, Spacing::UNIT, out)
+    delta_chunk(avatar_num, pose, history, None, out)
 }
 
-/// [`encode_delta`] of a chunk whose frame is `spacing` from the frames it refers to.
+/// [`encode_delta`] of a chunk predicted over `spacing` (kind 5), or a frame at a time.
 fn delta_chunk(
     avatar_num: u32,
     pose: &QuantPose,
     history: &[&QuantPose],
-    spacing: Spacing,
+    spacing: Option<Spacing>,
     out: &mut Vec<u8>,
 ) -> bool {
     let Some(plan) = DeltaPlan::of(pose, history) else {
@@ -624,14 +625,14 @@ fn delta_chunk(
 /// Appends a delta chunk of `pose` against `history` (the frames the header names, newest
 /// first) in a frame of kind 4: its length in bytes (a varint), then the chunk as in a frame of
 /// kind 2 — so a sender can cut the frame by avatar without decoding it
-/// ([`split_by_avatar`]) — but predicted over the ticks between the frames ([`Spacing::of`]
-/// the header's tick and references). Returns `false`, writing nothing, as [`encode_delta`]
-/// does.
+/// ([`split_by_avatar`]). `spacing` is [`ReferencedKind::spacing`] of the header's kind, tick
+/// and references: predicted over the ticks between the frames (kind 5), or a frame at a time
+/// (kind 4). Returns `false`, writing nothing, as [`encode_delta`] does.
 pub fn encode_referenced_delta(
     avatar_num: u32,
     pose: &QuantPose,
     history: &[&QuantPose],
-    spacing: Spacing,
+    spacing: Option<Spacing>,
     out: &mut Vec<u8>,
 ) -> bool {
     let mut chunk = Vec::with_capacity(16 + 4 * pose.rotations.len());
@@ -801,7 +802,7 @@ impl<'a> PackedDeltas<'a> {
             w.put(u64::from(flags >> 4), 3);
             w.put(u64::from(flags & 0x0f), 4);
         }
-        delta_body(w, pose, &plan, &history[..plan.depth], Spacing::UNIT);
+        delta_body(w, pose, &plan, &history[..plan.depth], None);
         for c in scale_placement_floats(pose, plan.scales, plan.placement) {
             w.put(u64::from(c.to_bits()), 32);
         }
@@ -892,7 +893,7 @@ fn delta_body(
     pose: &QuantPose,
     plan: &DeltaPlan,
     history: &[&QuantPose],
-    spacing: Spacing,
+    spacing: Option<Spacing>,
 ) {
     let depth = plan.depth;
     let base = history[0];
@@ -971,7 +972,7 @@ fn regridded(
     now: u64,
     steps: &Steps,
     c: usize,
-    spacing: Spacing,
+    spacing: Option<Spacing>,
 ) -> (i64, u32) {
     let to = steps.rotation_step(j, now);
     let dropped = index(frames[0][j]);
@@ -1005,7 +1006,10 @@ fn level(bits: u64, c: usize) -> i64 {
 
 /// The prediction and Rice parameter of a component from its history `h` (newest first, at
 /// least one value); see the module docs.
-fn predict(h: &[i64], rotation: bool, spacing: Spacing) -> (i64, u32) {
+fn predict(h: &[i64], rotation: bool, spacing: Option<Spacing>) -> (i64, u32) {
+    if let Some(spacing) = spacing {
+        return spacing.predict(h, rotation);
+    }
     let n = h.len();
     if n < 2 {
         return (h[0], K_WITHOUT_HISTORY);
@@ -1016,12 +1020,8 @@ fn predict(h: &[i64], rotation: bool, spacing: Spacing) -> (i64, u32) {
     let velocity: u64 = (0..n.saturating_sub(2))
         .map(|i| zigzag(h[i] - 2 * h[i + 1] + h[i + 2]))
         .sum();
-    let moving = n >= 3 && velocity * (n as u64 - 1) < still * (n as u64 - 2);
-    let (pred, mean) = if moving {
-        (
-            h[0] + spacing.step(h[0] - h[1]),
-            div_small(velocity, n as u64 - 2),
-        )
+    let (pred, mean) = if n >= 3 && velocity * (n as u64 - 1) < still * (n as u64 - 2) {
+        (2 * h[0] - h[1], div_small(velocity, n as u64 - 2))
     } else {
         (h[0], div_small(still, n as u64 - 1))
     };
@@ -1030,7 +1030,7 @@ fn predict(h: &[i64], rotation: bool, spacing: Spacing) -> (i64, u32) {
     } else {
         pred
     };
-    (pred, spacing.rice((mean + 1).ilog2(), moving))
+    (pred, (mean + 1).ilog2())
 }
 
 /// Joints whose rotations [`predict_rotations`] predicts at once.
@@ -1056,7 +1056,11 @@ struct RotationPredictions {
 /// `Σv · (n − 1) < Σs · (n − 2)`, in f32 (exact: both products are below 2²⁴), which is false
 /// by itself for `n < 3` (the right side is ≤ 0); the parameter is [`rice_parameter`].
 #[inline]
-fn predict_rotations(frames: &[&[u64]], j0: usize, spacing: Spacing) -> RotationPredictions {
+fn predict_rotations(
+    frames: &[&[u64]],
+    j0: usize,
+    spacing: Option<Spacing>,
+) -> RotationPredictions {
     // The joints' levels (per component and frame) and dropped components (per frame), split
     // from each rotation's two 32-bit halves (index in bits 13–14 of the high half, level 0 across both).
     let mut h = [[[0i32; LANES]; MAX_DEPTH]; 3];
@@ -1124,44 +1128,39 @@ fn predict_rotations(frames: &[&[u64]], j0: usize, spacing: Spacing) -> Rotation
             }
         }
         // Per lane, without branches (so as vector operations): masks of −1 or 0 select.
-        let mut moving = [0i32; LANES];
+        if let Some(spacing) = spacing {
+            // A kind 5 delta: over the ticks between the frames (scalar: only datagram
+            // receivers pay for it).
+            for l in 0..LANES {
+                let n = n[l].max(1) as usize;
+                let mut hl = [0i64; MAX_DEPTH];
+                for (f, slot) in hl.iter_mut().enumerate().take(n) {
+                    *slot = i64::from(h[f][l]);
+                }
+                let (p, k) = spacing.predict(&hl[..n], true);
+                pred_out[l] = p as i32;
+                k_out[l] = k;
+            }
+            continue;
+        }
         for l in 0..LANES {
             let nf = n[l] as f32;
-            moving[l] =
+            let moving =
                 -i32::from((velocity[l] as f32) * (nf - 1.0) < (still[l] as f32) * (nf - 2.0));
             let based = -i32::from(n[l] < 2);
             let (h0, h1) = (h[0][l], h[1][l]);
-            let pred = (h0 + (moving[l] & (h0 - h1))).clamp(0, LEVEL_MAX as i32);
+            let pred = (h0 + (moving & (h0 - h1))).clamp(0, LEVEL_MAX as i32);
             pred_out[l] = (based & h0) | (!based & pred);
-            let sum = still[l] ^ ((still[l] ^ velocity[l]) & moving[l]);
-            let k = rice_parameter(sum, n[l] - 1 + moving[l]) as i32;
+            let sum = still[l] ^ ((still[l] ^ velocity[l]) & moving);
+            let k = rice_parameter(sum, n[l] - 1 + moving) as i32;
             k_out[l] = ((based & K_WITHOUT_HISTORY as i32) | (!based & k)) as u32;
-        }
-        if spacing != Spacing::UNIT {
-            // A kind 4 delta: the step and the parameter over the ticks between the frames
-            // (scalar: only datagram receivers pay for it).
-            for l in 0..LANES {
-                if n[l] < 2 {
-                    continue;
-                }
-                let moving = moving[l] != 0;
-                if moving {
-                    let (h0, h1) = (h[0][l], h[1][l]);
-                    let step = spacing.step(i64::from(h0 - h1));
-                    pred_out[l] = (i64::from(h0) + step).clamp(0, LEVEL_MAX) as i32;
-                }
-                k_out[l] = spacing.rice(k_out[l], moving);
-            }
         }
     }
     out
 }
 
-/// How far apart in ticks a kind 4 delta's frame and the two newest frames it names are
-/// (protocol version 8): its prediction extrapolates the newest frames' motion over the ticks
-/// to the frame, and widens its Rice parameter by how much further that reaches.
-/// [`Spacing::UNIT`] (a frame a tick after its base, its base a tick after the one before)
-/// predicts exactly as a delta of kind 2 or 3 does.
+/// How far apart in ticks a kind 5 delta's frame and the two newest frames it names are
+/// (protocol version 9), and how it predicts over them ([`Spacing::predict`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Spacing {
     /// Ticks from the newest named frame to the frame, 1 … [`MAX_SPACING`].
@@ -1174,10 +1173,7 @@ pub struct Spacing {
 pub const MAX_SPACING: u64 = 255;
 
 impl Spacing {
-    /// A frame one tick after its base, its base one tick after the frame before.
-    pub const UNIT: Spacing = Spacing { ahead: 1, apart: 1 };
-
-    /// The spacing of a kind 4 delta of tick `seq` naming `refs` (newest first): `ahead` is
+    /// The spacing of a kind 5 delta of tick `seq` naming `refs` (newest first): `ahead` is
     /// `seq − refs[0]`, `apart` is `refs[0] − refs[1]` (`ahead` when it names one frame), each
     /// clamped to 1 … [`MAX_SPACING`].
     pub fn of(seq: u64, refs: &[u64]) -> Self {
@@ -1190,30 +1186,66 @@ impl Spacing {
         Spacing { ahead, apart }
     }
 
-    /// The motion `d = h₀ − h₁` of the two newest frames carried on to the frame:
-    /// `⌊(2 · d · ahead + apart) / (2 · apart)⌋` (`d · ahead / apart` rounded half up), `d`
-    /// itself for [`Spacing::UNIT`].
-    fn step(self, d: i64) -> i64 {
-        if self.ahead == self.apart {
-            return d;
+    /// The prediction and Rice parameter of a component of a kind 5 chunk from its history
+    /// `h` (newest first, at least one value), `g = ahead / apart` history steps past `h₀`.
+    ///
+    /// With `dᵢ = hᵢ − hᵢ₊₁`, the history's residuals of holding still (`dᵢ`), of constant
+    /// velocity (`dᵢ − dᵢ₊₁`, from 3 values) and of constant acceleration
+    /// (`dᵢ − 2dᵢ₊₁ + dᵢ₊₂`, from 4) are one step's errors of each model; over `g` steps they
+    /// grow by `g`, `g(g + 1)/2` and `g(g + 1)(g + 2)/6`. Each model's expected error is the
+    /// mean zigzag of its residuals times its growth, in f64 and in this order:
+    /// `(Σ / count) · (a / b)`, `(Σ / count) · (a(a + b) / (2b²))`,
+    /// `(Σ / count) · (a(a + b)(a + 2b) / (6b³))` (`a` ahead, `b` apart; each product of
+    /// integers exact). The least wins, the simpler on a tie. It predicts `h₀`,
+    /// `h₀ + ⌊(2·d₀·a + b) / (2b)⌋` or `h₀ + ⌊(2·d₀·a·b + (d₀ − d₁)·a·(a + b) + b²) / (2b²)⌋`
+    /// (the motion carried over `g` steps, rounded half up), rotations clamped to the level
+    /// range; the Rice parameter is `min(⌊log₂(⌊e⌋ + 1)⌋, 32)` of the winner's expected
+    /// error `e`; with one value, `h₀` and [`K_WITHOUT_HISTORY`].
+    pub fn predict(self, h: &[i64], rotation: bool) -> (i64, u32) {
+        let n = h.len();
+        if n < 2 {
+            return (h[0], K_WITHOUT_HISTORY);
         }
-        (2 * d * self.ahead + self.apart).div_euclid(2 * self.apart)
-    }
-
-    /// A Rice parameter `k` of the history's residuals widened for the frame's distance: by
-    /// `⌊log₂ max(1, ⌊ahead / apart⌋)⌋` bits predicting the newest frame (a still residual
-    /// grows with the time it spans), by `⌊log₂ max(1, ⌊ahead · (ahead + apart) / (2 ·
-    /// apart²)⌋)⌋` bits predicting motion (so does an acceleration's, with its square); at
-    /// most 32 (or `k`, when larger).
-    fn rice(self, k: u32, moving: bool) -> u32 {
         let (a, b) = (self.ahead, self.apart);
-        let ratio = if moving {
-            a * (a + b) / (2 * b * b)
-        } else {
-            a / b
+        let d = |i: usize| h[i] - h[i + 1];
+        let still: u64 = (0..n - 1).map(|i| zigzag(d(i))).sum();
+        let velocity: u64 = (0..n.saturating_sub(2))
+            .map(|i| zigzag(d(i) - d(i + 1)))
+            .sum();
+        let acceleration: u64 = (0..n.saturating_sub(3))
+            .map(|i| zigzag(d(i) - 2 * d(i + 1) + d(i + 2)))
+            .sum();
+        let (af, bf) = (a as f64, b as f64);
+        let mut best = (0, (still as f64 / (n - 1) as f64) * (af / bf));
+        if n >= 3 {
+            let e = (velocity as f64 / (n - 2) as f64) * (af * (af + bf) / (2.0 * bf * bf));
+            if e < best.1 {
+                best = (1, e);
+            }
+        }
+        if n >= 4 {
+            let e = (acceleration as f64 / (n - 3) as f64)
+                * (af * (af + bf) * (af + 2.0 * bf) / (6.0 * bf * bf * bf));
+            if e < best.1 {
+                best = (2, e);
+            }
+        }
+        let d0 = d(0);
+        let pred = match best.0 {
+            0 => h[0],
+            1 => h[0] + (2 * d0 * a + b).div_euclid(2 * b),
+            _ => {
+                let d2 = d0 - d(1);
+                h[0] + (2 * d0 * a * b + d2 * a * (a + b) + b * b).div_euclid(2 * b * b)
+            }
         };
-        let widen = ratio.max(1).ilog2();
-        (k + widen).min(k.max(32))
+        let pred = if rotation {
+            pred.clamp(0, LEVEL_MAX)
+        } else {
+            pred
+        };
+        // `as` floors the error (saturating far above 2³², where the parameter stops anyway).
+        (pred, ((best.1 as u64) + 1).ilog2().min(32))
     }
 }
 
@@ -1813,9 +1845,7 @@ impl Frame2Decoder {
         let (hash, history) = self.history_for(header, refs.map(Refs::as_slice), avatar, flags)?;
         let mut pose = {
             let mut b = BitReader { r, acc: 0, bits: 0 };
-            let spacing = refs.map_or(Spacing::UNIT, |refs| {
-                refs.kind.spacing(header.seq, refs.as_slice())
-            });
+            let spacing = refs.and_then(|refs| refs.kind.spacing(header.seq, refs.as_slice()));
             delta_levels(&mut b, &history, flags, spacing)?
         };
         if flags & FLAG_SCALES != 0 {
@@ -1860,7 +1890,7 @@ impl Frame2Decoder {
             depth << 4 | b.get(4)? as u8
         };
         let (hash, history) = self.history_for(header, None, avatar, flags)?;
-        let mut pose = delta_levels(b, &history, flags, Spacing::UNIT)?;
+        let mut pose = delta_levels(b, &history, flags, None)?;
         let mut f32 = || b.get(32).map(|v| f32::from_bits(v as u32));
         if flags & FLAG_SCALES != 0 {
             for s in &mut pose.scales {
@@ -1955,7 +1985,7 @@ fn delta_levels(
     b: &mut BitReader<'_, '_>,
     history: &[&QuantPose],
     flags: u8,
-    spacing: Spacing,
+    spacing: Option<Spacing>,
 ) -> Result<QuantPose, Frame2Error> {
     let depth = history.len();
     let base = history[0];

@@ -27,9 +27,10 @@
 // ref₀ … refₖ₋₁. A decoder for datagrams (`Frame2Decoder.forDatagrams()`) keeps each avatar's
 // last 64 frames in the order they came, finds a named frame by its tick (the newest that came
 // of it), and a keyframe of the rig an avatar has does not drop the frames before it.
-// Protocol version 9's deltas of kind 5 are kind 4's, but each chunk predicts motion over the
-// ticks from its newest named frame, `ahead = seq − ref₀`, at the pace of `apart = ref₀ − ref₁`
-// ticks, and widens its Rice parameters to match (`spacingOf`, `predict`).
+// Protocol version 9's deltas of kind 5 are kind 4's, but each chunk predicts over the ticks
+// from its newest named frame, `ahead = seq − ref₀`, at the pace of `apart = ref₀ − ref₁` ticks:
+// still, constant velocity or constant acceleration, whichever its history says errs least
+// that far ahead (`spacingOf`, `predictSpaced`).
 //
 // Numbers: rotations (≤ 48 bits), levels and Rice sums (< 2⁴⁴) are exact JS numbers. Varints
 // are read as BigInt (up to 64 bits, as the Rust reader); the header's seq and server time must
@@ -212,15 +213,12 @@ function ilog2(x) {
 const MAX_SPACING = 255;
 
 /**
- * @typedef {{ahead: number, apart: number}} Spacing How far apart in ticks a kind 4 delta's
+ * @typedef {{ahead: number, apart: number}} Spacing How far apart in ticks a kind 5 delta's
  * frame and the two newest frames it names are (`frame2.rs`'s `Spacing`).
  */
 
-/** @type {Spacing} A frame a tick after its base, as every delta of kind 2 or 3. */
-const UNIT = { ahead: 1, apart: 1 };
-
 /**
- * The spacing of a kind 4 delta of tick `seq` naming `refs` (newest first): `seq − refs[0]`
+ * The spacing of a kind 5 delta of tick `seq` naming `refs` (newest first): `seq − refs[0]`
  * and `refs[0] − refs[1]` (the first again when it names one frame), each clamped to
  * 1 … 255.
  * @param {number} seq
@@ -235,38 +233,58 @@ export function spacingOf(seq, refs) {
 }
 
 /**
- * The motion `d = h₀ − h₁` carried on to the frame: `⌊(2·d·ahead + apart) / (2·apart)⌋`.
- * Exact in doubles: |2·d·ahead| < 2⁴³ and a quotient that is not whole is at least 1/510
- * from the next whole number, far more than its rounding error.
+ * The prediction and Rice parameter of a component of a kind 5 chunk over the ticks to its
+ * frame (`Spacing::predict`): of holding still, constant velocity and constant acceleration,
+ * the model of least expected error (its history residuals' mean zigzag times its growth over
+ * `ahead / apart` steps, in doubles in the Rust order), its motion carried over those steps.
+ * Exact in doubles: every numerator is an integer below 2⁵¹ (levels are 15-bit or i32), so
+ * `Math.floor` of the quotient is the integer floor.
+ * @param {number[]} h
+ * @param {boolean} rotation
  * @param {Spacing} s
- * @param {number} d
+ * @returns {[number, number]}
  */
-function spacingStep(s, d) {
-  if (s.ahead === s.apart) return d;
-  return Math.floor((2 * d * s.ahead + s.apart) / (2 * s.apart));
-}
-
-/**
- * A Rice parameter widened for the frame's distance (`Spacing::rice`).
- * @param {Spacing} s
- * @param {number} k
- * @param {boolean} moving
- */
-function spacingRice(s, k, moving) {
+function predictSpaced(h, rotation, s) {
+  const n = h.length;
+  if (n < 2) return [h[0], K_WITHOUT_HISTORY];
   const { ahead: a, apart: b } = s;
-  const ratio = moving ? Math.floor((a * (a + b)) / (2 * b * b)) : Math.floor(a / b);
-  return Math.min(k + ilog2(Math.max(1, ratio)), Math.max(k, 32));
+  /** @param {number} i */
+  const d = (i) => h[i] - h[i + 1];
+  let still = 0;
+  for (let i = 0; i < n - 1; i++) still += Math.min(zigzag(d(i)), CAP);
+  let velocity = 0;
+  for (let i = 0; i + 2 < n; i++) velocity += Math.min(zigzag(d(i) - d(i + 1)), CAP);
+  let acceleration = 0;
+  for (let i = 0; i + 3 < n; i++) acceleration += Math.min(zigzag(d(i) - 2 * d(i + 1) + d(i + 2)), CAP);
+  let model = 0;
+  let error = (still / (n - 1)) * (a / b);
+  if (n >= 3) {
+    const e = (velocity / (n - 2)) * ((a * (a + b)) / (2 * b * b));
+    if (e < error) [model, error] = [1, e];
+  }
+  if (n >= 4) {
+    const e = (acceleration / (n - 3)) * ((a * (a + b) * (a + 2 * b)) / (6 * b * b * b));
+    if (e < error) [model, error] = [2, e];
+  }
+  const d0 = d(0);
+  let pred = h[0];
+  if (model === 1) pred += Math.floor((2 * d0 * a + b) / (2 * b));
+  if (model === 2) pred += Math.floor((2 * d0 * a * b + (d0 - d(1)) * a * (a + b) + b * b) / (2 * b * b));
+  if (rotation) pred = Math.min(LEVEL_MAX, Math.max(0, pred));
+  return [pred, Math.min(ilog2(Math.floor(error) + 1), 32)];
 }
 
 /**
  * The prediction and Rice parameter of a component from its history `h` (newest first, at
- * least one value) — as `frame2.rs`'s `predict`; `spacing` is a kind 4 delta's.
+ * least one value) — as `frame2.rs`'s `predict`; `spacing` is a kind 5 delta's (`null`:
+ * a frame at a time, kinds 2 to 4).
  * @param {number[]} h
  * @param {boolean} rotation
- * @param {Spacing} [spacing]
+ * @param {Spacing | null} [spacing]
  * @returns {[number, number]}
  */
-export function predict(h, rotation, spacing = UNIT) {
+export function predict(h, rotation, spacing = null) {
+  if (spacing) return predictSpaced(h, rotation, spacing);
   const n = h.length;
   if (n < 2) return [h[0], K_WITHOUT_HISTORY];
   let still = 0;
@@ -275,16 +293,15 @@ export function predict(h, rotation, spacing = UNIT) {
   for (let i = 0; i + 2 < n; i++) velocity += Math.min(zigzag(h[i] - 2 * h[i + 1] + h[i + 2]), CAP);
   let pred;
   let mean;
-  const moving = n >= 3 && velocity * (n - 1) < still * (n - 2);
-  if (moving) {
-    pred = h[0] + spacingStep(spacing, h[0] - h[1]);
+  if (n >= 3 && velocity * (n - 1) < still * (n - 2)) {
+    pred = 2 * h[0] - h[1];
     mean = Math.floor(velocity / (n - 2));
   } else {
     pred = h[0];
     mean = Math.floor(still / (n - 1));
   }
   if (rotation) pred = Math.min(LEVEL_MAX, Math.max(0, pred));
-  return [pred, spacingRice(spacing, ilog2(mean + 1), moving)];
+  return [pred, ilog2(mean + 1)];
 }
 
 /** A bounds-checked little-endian reader: running past the end is a `bad_message`. */
@@ -732,7 +749,7 @@ export class Frame2Decoder {
     const num = r.varintU32();
     const flags = r.u8();
     const { hash, history } = this.historyFor(sceneNum, num, baseSeq, flags, refs);
-    const spacing = refs && seq !== null ? spacingOf(seq, refs) : UNIT;
+    const spacing = refs && seq !== null ? spacingOf(seq, refs) : null;
     const pose = deltaLevels(new BitReader(r), history, flags, num, spacing);
     if (flags & FLAG_SCALES) pose.scales = history[0].scales.map(() => r.vec3());
     if (flags & FLAG_PLACEMENT) pose.placement = r.placement();
@@ -800,10 +817,10 @@ function readWeights(b, base, num) {
  * @param {QuantPose[]} history
  * @param {number} flags
  * @param {number} num
- * @param {Spacing} [spacing] a kind 4 delta's
+ * @param {Spacing | null} [spacing] a kind 5 delta's
  * @returns {QuantPose}
  */
-function deltaLevels(b, history, flags, num, spacing = UNIT) {
+function deltaLevels(b, history, flags, num, spacing = null) {
   const r = b.r;
   const base = history[0];
   /** @type {QuantPose} */

@@ -362,7 +362,7 @@ pub(super) enum DeltaLayout {
 /// kind 2), with its length (kind 4), or into a packed delta's one bit stream.
 enum Chunks<'o> {
     Bytes(&'o mut Vec<u8>),
-    Referenced(&'o mut Vec<u8>, Spacing),
+    Referenced(&'o mut Vec<u8>, Option<Spacing>),
     Packed(PackedDeltas<'o>),
 }
 

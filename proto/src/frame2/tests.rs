@@ -100,12 +100,15 @@ fn the_rotation_predictor_matches_the_reference() {
             }
         }
         let slices: Vec<&[u64]> = frames.iter().map(|f| &f[..]).collect();
-        // Every third case a kind 4 delta's spacing, of up to 300 ticks (past the clamp).
+        // Two cases in three a kind 5 delta's spacing, of up to 300 ticks (past the clamp).
         let spacing = if case % 3 == 0 {
-            Spacing::UNIT
+            None
         } else {
             let ahead = next() % 300;
-            Spacing::of(1000, &[1000 - ahead, 1000 - ahead - next() % 300])
+            Some(Spacing::of(
+                1000,
+                &[1000 - ahead, 1000 - ahead - next() % 300],
+            ))
         };
         for j0 in (0..joints).step_by(LANES) {
             let p = predict_rotations(&slices, j0, spacing);
@@ -141,7 +144,7 @@ fn the_rice_parameter_is_exact() {
 
 #[test]
 fn predict_picks_still_for_noise_and_velocity_for_motion() {
-    let unit = Spacing::UNIT;
+    let unit = None;
     assert_eq!(predict(&[7], true, unit), (7, K_WITHOUT_HISTORY));
     // Alternating noise: still residuals ±1 beat velocity residuals ±2.
     assert_eq!(predict(&[5, 4, 5, 4], false, unit).0, 5);
@@ -151,21 +154,28 @@ fn predict_picks_still_for_noise_and_velocity_for_motion() {
     assert_eq!(predict(&[32766, 32700, 32634], false, unit).0, 32832);
 }
 
-/// A kind 4 delta's prediction carries the motion over the ticks to its frame, by hand: frames
-/// at ticks 20, 19, 18 moving 10 levels a tick predict tick 24 at 100 + 4 · 10; named two
-/// ticks apart, half as much a tick. The parameter widens by `⌊log₂ ⌊4 · 5 / 2⌋⌋ = 3` bits for
-/// motion, `⌊log₂ 4⌋ = 2` for a still prediction.
+/// A kind 5 delta's prediction over the ticks to its frame, by hand. Frames at ticks 20, 19,
+/// 18, 17, frame at 24 (`g = 4`; growths 4, 10 and 20):
+/// - constant velocity 10: still `20 · 4 = 80`, velocity `0 · 10`, acceleration `0 · 20`; the
+///   tie goes to velocity: `100 + ⌊(2·10·4 + 1) / 2⌋ = 140`, `k = 0`;
+/// - steps 8, 10, 12 (accelerating): velocity `4 · 10 = 40`, acceleration 0 wins:
+///   `100 + ⌊(2·12·4 + 2·4·5 + 1) / 2⌋ = 168` (= 100 + 14 + 16 + 18 + 20), `k = 0`;
+/// - noise 5, 4, 5, 4: still `(5 / 3) · 4 = 6.67` beats velocity `3.5 · 10` and acceleration
+///   `8 · 20`: `5`, `k = ⌊log₂ 7⌋ = 2`.
 #[test]
 fn a_referenced_delta_predicts_over_the_ticks_between_its_frames() {
-    let four_ahead = Spacing::of(24, &[20, 19, 18]);
+    let four_ahead = Spacing::of(24, &[20, 19, 18, 17]);
     assert_eq!(four_ahead, Spacing { ahead: 4, apart: 1 });
-    assert_eq!(predict(&[100, 90, 80, 70], false, four_ahead), (140, 3));
-    assert_eq!(predict(&[100, 90, 80, 70], true, four_ahead), (140, 3));
-    // Noise predicts the newest: the mean still residual ⌊5 / 3⌋ gives 1 bit, 2 more.
-    assert_eq!(predict(&[5, 4, 5, 4], false, four_ahead), (5, 3));
+    let on = Some(four_ahead);
+    assert_eq!(predict(&[100, 90, 80, 70], false, on), (140, 0));
+    assert_eq!(predict(&[100, 90, 80, 70], true, on), (140, 0));
+    assert_eq!(predict(&[100, 88, 78, 70], false, on), (168, 0));
+    assert_eq!(predict(&[5, 4, 5, 4], false, on), (5, 2));
+    // Kind 4 predicts a tick on, whatever the ticks between.
+    assert_eq!(predict(&[100, 88, 78, 70], false, None).0, 112);
     // Two ticks apart, three ahead: 10 · 3 / 2 = 15; 9 · 3 / 2 = 13.5 rounds up to 14,
     // −9 · 3 / 2 = −13.5 up to −13.
-    let apart = Spacing::of(13, &[10, 8]);
+    let apart = Some(Spacing::of(13, &[10, 8]));
     assert_eq!(predict(&[100, 90, 80], false, apart).0, 115);
     assert_eq!(predict(&[100, 91, 82], false, apart).0, 114);
     assert_eq!(predict(&[100, 109, 118], false, apart).0, 87);
@@ -178,11 +188,14 @@ fn a_referenced_delta_predicts_over_the_ticks_between_its_frames() {
             apart: 255
         }
     );
-    assert_eq!(Spacing::of(3, &[2, 1]), Spacing::UNIT);
-    // The widened parameter stops at 32, clamped rotations stay in range.
-    assert_eq!(Spacing::of(300, &[45, 44]).rice(30, true), 32);
-    assert_eq!(Spacing::of(300, &[45, 44]).rice(34, true), 34);
-    assert_eq!(predict(&[32000, 31000, 30000], true, four_ahead).0, 32766);
+    assert_eq!(Spacing::of(3, &[2, 1]), Spacing { ahead: 1, apart: 1 });
+    // 255 ticks on: 1999 · 255 = 509,745 gives 18 bits; 3,999,999,999 · 255 stops at 32.
+    let far = Some(Spacing::of(300, &[45, 44]));
+    assert_eq!(predict(&[0, 1000], false, far), (0, 18));
+    assert_eq!(predict(&[0, 2_000_000_000], false, far), (0, 32));
+    // Clamped rotations stay in range; one value predicts itself.
+    assert_eq!(predict(&[32000, 31000, 30000], true, on).0, 32766);
+    assert_eq!(predict(&[7], true, on), (7, K_WITHOUT_HISTORY));
 }
 
 #[test]
@@ -1076,7 +1089,7 @@ fn reference_chunk(pose: &QuantPose, history: &[&QuantPose]) -> Option<Reference
                                 precision::coarse_rotation_level(fine, step(now))
                             })
                             .collect();
-                        let (pred, k) = predict(&h, true, Spacing::UNIT);
+                        let (pred, k) = predict(&h, true, None);
                         rice(&mut bits, zigzag(level(now, c) - pred), k);
                     }
                     continue;
@@ -1093,7 +1106,7 @@ fn reference_chunk(pose: &QuantPose, history: &[&QuantPose]) -> Option<Reference
             .collect();
         for c in 0..3 {
             let h: Vec<i64> = same.iter().map(|&b| level(b, c)).collect();
-            let (pred, k) = predict(&h, true, Spacing::UNIT);
+            let (pred, k) = predict(&h, true, None);
             rice(&mut bits, zigzag(level(now, c) - pred), k);
         }
     }
@@ -1103,7 +1116,7 @@ fn reference_chunk(pose: &QuantPose, history: &[&QuantPose]) -> Option<Reference
                 .iter()
                 .map(|f| i64::from(f.translations[t][c]))
                 .collect();
-            let (pred, k) = predict(&h, false, Spacing::UNIT);
+            let (pred, k) = predict(&h, false, None);
             rice(&mut bits, zigzag(i64::from(value) - pred), k);
         }
     }
@@ -1338,7 +1351,7 @@ fn near_axis_grids_code_joints_near_rest_in_fewer_bytes_within_the_bound() {
 
 /// Bytes of a kind 4 delta of 20 spinning joints and two translations at tick `seq` against
 /// ticks `refs` (the motion's frames there), predicted with `spacing`.
-fn referenced_bytes(seq: u64, refs: &[u64], spacing: Spacing) -> usize {
+fn referenced_bytes(seq: u64, refs: &[u64], spacing: Option<Spacing>) -> usize {
     let motion = Motion {
         start: (0..20)
             .map(|j| Quat::from_rotation_y(j as f32 * 0.3) * Quat::from_rotation_x(0.2))
@@ -1360,16 +1373,16 @@ fn referenced_bytes(seq: u64, refs: &[u64], spacing: Spacing) -> usize {
 }
 
 /// Smooth motion four ticks past the newest frame named (a datagram's round trip at 60 Hz),
-/// predicted over the ticks between, costs at most 2.5 times a delta one tick on (its Rice
-/// parameters are 3 bits wider); predicted as one tick on, it costs over 6 times as much as
-/// that (514–574 bytes a frame of ten avatars in the link suite's 25 ms runs, against the
+/// predicted over the ticks between (kind 5), costs at most 2.5 times a delta one tick on
+/// (39 against 21 bytes here); predicted as one tick on (kind 4), over 6 times as much as that
+/// (290 bytes; 514–574 bytes a frame of ten avatars in the link suite's 25 ms runs, against the
 /// websocket's 169).
 #[test]
 fn a_referenced_delta_four_ticks_on_costs_near_a_one_tick_delta() {
     let refs: Vec<u64> = (23..=30).rev().collect();
-    let one_tick = referenced_bytes(31, &refs, Spacing::of(31, &refs));
-    let spaced = referenced_bytes(34, &refs, Spacing::of(34, &refs));
-    let unspaced = referenced_bytes(34, &refs, Spacing::UNIT);
+    let one_tick = referenced_bytes(31, &refs, Some(Spacing::of(31, &refs)));
+    let spaced = referenced_bytes(34, &refs, Some(Spacing::of(34, &refs)));
+    let unspaced = referenced_bytes(34, &refs, None);
     eprintln!("one tick on {one_tick} B, four ticks on {spaced} B, as one tick {unspaced} B");
     assert!(
         spaced * 10 <= one_tick * 25,
@@ -1378,8 +1391,8 @@ fn a_referenced_delta_four_ticks_on_costs_near_a_one_tick_delta() {
     assert!(spaced * 6 <= unspaced, "{spaced} B against {unspaced} B");
     // Frames named two ticks apart, three ahead.
     let apart: Vec<u64> = (0..8).map(|i| 30 - 2 * i).collect();
-    let spaced = referenced_bytes(33, &apart, Spacing::of(33, &apart));
-    let unspaced = referenced_bytes(33, &apart, Spacing::UNIT);
+    let spaced = referenced_bytes(33, &apart, Some(Spacing::of(33, &apart)));
+    let unspaced = referenced_bytes(33, &apart, None);
     eprintln!("two apart, three on: {spaced} B, as one tick {unspaced} B");
     assert!(spaced * 6 <= unspaced, "{spaced} B against {unspaced} B");
 }
