@@ -17,7 +17,7 @@ pub struct QuicCounters {
     /// Frames too large for one datagram, cut by avatar into several.
     split: Counter,
     key_acks: Counter,
-    /// Frame acknowledgements (protocol version 8).
+    /// Frame acknowledgements (protocol versions 8 and 9).
     frame_acks: Counter,
     /// Datagrams from clients that are not acknowledgements.
     junk: Counter,
@@ -59,7 +59,7 @@ impl QuicCounters {
             frame_acks: counter(
                 r,
                 "quic_frame_acks",
-                "Frame acknowledgements received from WebTransport clients of protocol version 8 (one per frame, or part of a frame, decoded)",
+                "Frame acknowledgements received from WebTransport clients of protocol version 8 or later (one per frame, or part of a frame, decoded)",
             ),
             junk: counter(
                 r,
@@ -122,7 +122,7 @@ impl QuicCounters {
         self.key_acks.inc();
     }
 
-    /// A frame acknowledgement received (protocol version 8).
+    /// A frame acknowledgement received (protocol versions 8 and 9).
     pub fn frame_ack(&self) {
         self.frame_acks.inc();
     }
