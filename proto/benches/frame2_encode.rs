@@ -2,8 +2,9 @@
 //! receiver's last 8 frames, and decoding it — for a 31-joint rig (CMU 01_01's size) moving
 //! like motion capture (every joint turning at a slowly wandering angular velocity, the root
 //! walking), at the finest precision and on a 0.1° grid (protocol 5, and 6 with near-axis
-//! steps), as a chunk of a kind 2 delta and of a packed one (protocol 7), and putting a pose's
-//! levels on that grid.
+//! steps), as a chunk of a kind 2 delta and of a packed one (protocol 7), over datagrams 4
+//! ticks past the frames named (kinds 4 and 5, protocols 8 and 9), and putting a pose's levels
+//! on that grid.
 //!
 //! `cargo bench -p posecast-proto --bench frame2_encode`
 
@@ -62,6 +63,54 @@ fn bench(c: &mut Criterion) {
         })
     });
     let mut out = Vec::with_capacity(256);
+    // Over datagrams (protocols 8 and 9): a delta 4 ticks past the newest of the 8 frames it
+    // names (a round trip at 25 ms each way), predicted a tick on (kind 4) or over the ticks
+    // between (kind 5).
+    for kind in [
+        frame2::ReferencedKind::Frames,
+        frame2::ReferencedKind::Ticks,
+    ] {
+        let label = match kind {
+            frame2::ReferencedKind::Frames => "kind 4",
+            frame2::ReferencedKind::Ticks => "kind 5",
+        };
+        let bytes: usize = (12..levels.len())
+            .map(|i| {
+                let refs: Vec<u64> = (0..8).map(|k| (i - 4 - k) as u64).collect();
+                let history: Vec<&QuantPose> = refs.iter().map(|&r| &levels[r as usize]).collect();
+                out.clear();
+                let spacing = kind.spacing(i as u64, &refs);
+                frame2::encode_referenced_delta(1, &levels[i], &history, spacing, &mut out);
+                out.len()
+            })
+            .sum();
+        println!(
+            "{label}, 4 ticks on: {:.2} B/joint/frame",
+            bytes as f64 / (levels.len() - 12) as f64 / JOINTS as f64
+        );
+        c.bench_function(
+            &format!("{label} delta 4 ticks on, depth 8, 31 joints"),
+            |b| {
+                let mut i = 12;
+                b.iter(|| {
+                    i = if i + 1 >= levels.len() { 12 } else { i + 1 };
+                    let refs: [u64; 8] = std::array::from_fn(|k| (i - 4 - k) as u64);
+                    let history: [&QuantPose; 8] =
+                        std::array::from_fn(|k| &levels[refs[k] as usize]);
+                    out.clear();
+                    let spacing = kind.spacing(i as u64, &refs);
+                    frame2::encode_referenced_delta(
+                        1,
+                        black_box(&levels[i]),
+                        &history,
+                        spacing,
+                        &mut out,
+                    );
+                    black_box(out.len())
+                })
+            },
+        );
+    }
     for (label, steps) in [
         ("finest", None),
         (
