@@ -396,7 +396,8 @@ async fn link_row(
             .filter(|(k, v)| {
                 **v != 0.0
                     && (k.starts_with("posecast_quic_frames")
-                        || k.starts_with("posecast_rate_changes"))
+                        || k.starts_with("posecast_rate_changes")
+                        || k.starts_with("posecast_rate_cuts"))
             })
             .map(|(k, v)| format!("{k} {v}"))
             .collect();
