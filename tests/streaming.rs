@@ -71,6 +71,46 @@ async fn pause_at(c: &posecast_client::net::Client, avatar: &AvatarId, time: f32
     );
 }
 
+/// Issue 38 (`--ws-direct-writes`): a reading client's frames go into its socket from the
+/// tick's fan-out, with no task woken per frame. A writer task wakes only for a full socket or a close; a loopback
+/// client that reads never fills its socket, so over hundreds of frames to four clients the
+/// writers wake almost never (a writer woken per frame, or per batch as the websocket's
+/// writer once was, would wake about once a frame).
+#[tokio::test]
+async fn frames_reach_reading_clients_without_a_writer_woken_per_frame() {
+    let server = common::kit_builder(60.0)
+        .configure(|c| c.net.ws_direct_writes = true)
+        .start()
+        .await
+        .unwrap();
+    let mut clients = Vec::new();
+    for _ in 0..4 {
+        let c = server.client().await.unwrap();
+        c.first_pose(AVATAR, DEFAULT_TIMEOUT).await.unwrap();
+        clients.push(c);
+    }
+    let (start_sent, start_wakes) = (
+        common::metric(server.addr, "posecast_messages_sent_total").await,
+        common::metric(server.addr, "posecast_writer_wakes_total").await,
+    );
+    let mut sent = start_sent;
+    while sent < start_sent + 480.0 {
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        sent = common::metric(server.addr, "posecast_messages_sent_total").await;
+    }
+    let wakes = common::metric(server.addr, "posecast_writer_wakes_total").await - start_wakes;
+    // Every client still decodes the stream (the bytes written are whole frames in order).
+    for c in &clients {
+        let seq = c.latest(&avatar()).unwrap().seq;
+        assert!(wait_for(10.0, || c.latest(&avatar()).is_some_and(|p| p.seq > seq)).await);
+    }
+    assert!(
+        wakes * 20.0 <= sent - start_sent,
+        "{wakes} writer wake-ups for {} messages",
+        sent - start_sent
+    );
+}
+
 #[tokio::test]
 async fn built_in_avatar_streams_the_clip_it_plays() {
     let server = common::kit_server(60.0).await;

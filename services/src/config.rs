@@ -201,6 +201,12 @@ pub struct NetLimits {
     /// where a newer frame replaces an older one — not in the kernel, where it would only go
     /// stale. `0` leaves the kernel's default (no bound).
     pub tcp_notsent_lowat: u32,
+    /// A websocket's frames are written into its socket by the tick's fan-out itself (no
+    /// task woken per frame: `server/src/service/ws/direct.rs`) rather than by the
+    /// connection's writer task. Off by default until it delivers as much as the writer
+    /// tasks at 2,000 viewers and on a busy host (issue 38: it takes less CPU a frame, but the
+    /// writes' shares hold up the ticker there).
+    pub ws_direct_writes: bool,
 }
 
 /// Default [`NetLimits::tcp_notsent_lowat`]: 16 KiB, about one JSON frame of 10 avatars (a
@@ -233,6 +239,7 @@ impl Default for NetLimits {
             max_connections: DEFAULT_MAX_CONNECTIONS,
             max_connections_per_address: DEFAULT_MAX_CONNECTIONS_PER_ADDRESS,
             tcp_notsent_lowat: DEFAULT_TCP_NOTSENT_LOWAT,
+            ws_direct_writes: false,
         }
     }
 }

@@ -8,7 +8,7 @@
 //! scene's last keyframe and delta for joiners. The poses themselves are the scene's (the
 //! server's `scene` module): the feed reads them and never changes what an avatar does.
 
-use super::outbox::{OutFrame, Outbox, message_len};
+use super::outbox::{OutFrame, Outbox, flush_all, message_len};
 use super::pace;
 use super::publish::{Piece, Published, Snapshot};
 use super::relay::{self, RelayError, RelayFrame};
@@ -1022,6 +1022,7 @@ impl Feed {
         let mut key_cache: HashMap<Cut<'_>, Message> = HashMap::new();
         let mut bytes_out = 0u64;
         let mut offered = 0u64;
+        let mut pushed: Vec<Arc<Outbox>> = Vec::with_capacity(self.subscribers.len());
         // Wire v2: the tick's levels, and its frames by the chain they continue (`None`: the
         // keyframe), filter and joint set — each made at most once.
         let levels = if self.subscribers.iter().any(Subscriber::v2) {
@@ -1120,7 +1121,8 @@ impl Feed {
                         None => continue,
                     };
                     bytes_out += message_len(&frame.message) as u64;
-                    sub.outbox.push_frame(self.num, frame);
+                    sub.outbox.push_frame_later(self.num, frame);
+                    pushed.push(sub.outbox.clone());
                     offered += 1;
                     continue;
                 }
@@ -1195,7 +1197,9 @@ impl Feed {
                     }
                 };
                 bytes_out += message_len(&frame.message) as u64;
-                sub.outbox.push_chained(self.num, frame, at.seq, replacing);
+                sub.outbox
+                    .push_chained_later(self.num, frame, at.seq, replacing);
+                pushed.push(sub.outbox.clone());
                 offered += 1;
                 continue;
             }
@@ -1214,7 +1218,7 @@ impl Feed {
                     .clone();
                 bytes_out += message_len(&message) as u64;
                 sub.outbox
-                    .push_frame(self.num, OutFrame { message, key: true });
+                    .push_frame_later(self.num, OutFrame { message, key: true });
                 sub.key_sent = self.last_key_seq;
             }
             let message = cache
@@ -1224,13 +1228,18 @@ impl Feed {
                 })
                 .clone();
             bytes_out += message_len(&message) as u64;
-            sub.outbox.push_frame(self.num, OutFrame { message, key });
+            sub.outbox
+                .push_frame_later(self.num, OutFrame { message, key });
+            pushed.push(sub.outbox.clone());
             if key {
                 sub.key_sent = Some(at.seq);
             }
             offered += 1;
         }
         self.metrics.frames_offered(offered, bytes_out);
+        // The tick's writes into sockets the outboxes write themselves, over the runtime's
+        // threads (queued above, so no connection's write waits for another's encoding).
+        flush_all(pushed);
         if key {
             self.last_key = Some(published);
             self.last_delta = None;

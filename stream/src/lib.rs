@@ -12,6 +12,8 @@
 //!   copied under the scene lock ([`Snapshot`]).
 //! - [`outbox`]: the bounded per-connection queue (newest frame wins).
 //! - [`writer`]: the task that drains an outbox into its websocket.
+//! - [`direct`]: an outbox that writes into its socket itself, from whatever queued the
+//!   message (the tick's fan-out), with websocket frames built once per message.
 //! - [`pace`]: a connection's adaptive frame rate (lowered until its link keeps up).
 //! - [`probes`]: the one clock every connection's round-trip probes follow.
 //! - [`relay`]: a published frame as bytes for another server (scale-out), and back.
@@ -21,6 +23,7 @@
 //!   frames.
 
 #![warn(missing_docs)]
+pub mod direct;
 pub mod feed;
 pub mod outbox;
 pub mod pace;
@@ -41,4 +44,7 @@ pub trait Counters: Send + Sync + std::fmt::Debug {
     fn json_encoded(&self, poses: u64);
     /// A writer sent `messages` websocket messages, `bytes` of them.
     fn sent(&self, messages: u64, bytes: u64);
+    /// A writer task woke to write: [`writer::run_writer`] for each batch it takes, and
+    /// [`direct::run_direct`] when its socket was full or the connection closed.
+    fn writer_woke(&self) {}
 }

@@ -25,6 +25,7 @@ where
     loop {
         match outbox.next().await {
             Next::Send(messages) => {
+                metrics.writer_woke();
                 let count = messages.len() as u64;
                 let mut bytes = 0u64;
                 for m in messages {

@@ -477,6 +477,91 @@ impl Admitted<Permit> {
     }
 }
 
+impl Admitted<Permit> {
+    /// The socket, to be shared by a websocket's reader and the writes its outbox makes
+    /// directly (`super::ws::direct`), and the admission it holds: its slot, eviction and
+    /// lingering close, which [`Shared`] keeps.
+    pub fn into_shared(mut self) -> Option<(Arc<TcpStream>, Shared)> {
+        let stream = Arc::new(self.stream.take()?);
+        let shared = Shared {
+            stream: Some(stream.clone()),
+            slot: self.slot.take(),
+            tracked: self.tracked.take(),
+        };
+        Some((stream, shared))
+    }
+}
+
+/// An admitted socket shared by several handles ([`Admitted::into_shared`]): when this one
+/// goes, the socket closes as [`Admitted`]'s does (lingering when input is unread) if no other
+/// handle still holds it.
+#[derive(Debug)]
+pub struct Shared {
+    /// `None` only while being dropped.
+    stream: Option<Arc<TcpStream>>,
+    slot: Option<Permit>,
+    tracked: Option<Arc<Slot>>,
+}
+
+impl Shared {
+    /// Whether the connection was evicted (its reads and writes must fail).
+    pub fn evicted(&self) -> bool {
+        self.tracked.as_ref().is_some_and(|t| t.evicted())
+    }
+
+    /// The eviction state, for a writer holding the socket apart from this handle.
+    pub fn eviction(&self) -> Option<Arc<Slot>> {
+        self.tracked.clone()
+    }
+
+    /// Before a read: registers the reader to be woken by an eviction, and fails once evicted.
+    ///
+    /// # Errors
+    /// The connection was evicted.
+    pub fn before_read(&self, waker: &std::task::Waker) -> std::io::Result<()> {
+        if let Some(t) = &self.tracked {
+            t.reader.register(waker);
+            if t.evicted() {
+                return Err(evicted_error());
+            }
+        }
+        Ok(())
+    }
+
+    /// Bytes were read: the connection was heard.
+    pub fn heard(&self) {
+        if let Some(t) = &self.tracked {
+            t.heard();
+        }
+    }
+}
+
+impl Slot {
+    /// Fails once the connection was evicted (for writes made apart from its reader).
+    ///
+    /// # Errors
+    /// The connection was evicted.
+    pub fn check(&self) -> std::io::Result<()> {
+        if self.evicted() {
+            return Err(evicted_error());
+        }
+        Ok(())
+    }
+}
+
+impl Drop for Shared {
+    fn drop(&mut self) {
+        if self.evicted() {
+            return;
+        }
+        if let (Some(stream), Some(slot)) = (self.stream.take(), self.slot.take())
+            && let Ok(stream) = Arc::try_unwrap(stream)
+        {
+            super::linger::close(stream, slot);
+        }
+    }
+}
+
 fn evicted_error() -> std::io::Error {
     std::io::Error::new(
         std::io::ErrorKind::ConnectionAborted,

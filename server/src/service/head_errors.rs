@@ -30,6 +30,11 @@ impl<S> TypedHeadErrors<S> {
             pending: None,
         }
     }
+
+    /// The connection (after an upgrade: no answer of hyper's is being replaced then).
+    pub fn into_inner(self) -> S {
+        self.inner
+    }
 }
 
 /// The typed error for one of hyper's own answers.

@@ -196,15 +196,31 @@ pub async fn typed_errors(method: Method, uri: Uri, response: Response) -> Respo
 }
 
 async fn ws_upgrade(
-    ws: WebSocketUpgrade,
     State(state): State<Arc<AppState>>,
-    peer: Option<axum::Extension<axum::extract::ConnectInfo<std::net::SocketAddr>>>,
-    greeter: Option<axum::Extension<admission::Greeter>>,
-    socket: Option<axum::Extension<listener::SocketInfo>>,
+    request: axum::extract::Request,
 ) -> Response {
-    let peer = peer.map(|axum::Extension(axum::extract::ConnectInfo(addr))| addr);
-    let greeter = greeter.map(|axum::Extension(g)| g);
-    let socket = socket.map(|axum::Extension(s)| s);
+    use axum::extract::FromRequestParts;
+    let (mut parts, _body) = request.into_parts();
+    let peer = parts
+        .extensions
+        .get::<axum::extract::ConnectInfo<std::net::SocketAddr>>()
+        .map(|c| c.0);
+    let greeter = parts.extensions.get::<admission::Greeter>().cloned();
+    let socket = parts.extensions.get::<listener::SocketInfo>().copied();
+    // The listener's own connections keep their socket (`ws::direct`); axum's checks of the
+    // request and its rejections stand either way.
+    let on_upgrade = parts.extensions.get::<hyper::upgrade::OnUpgrade>().cloned();
+    let ws = match WebSocketUpgrade::from_request_parts(&mut parts, &state).await {
+        Ok(ws) => ws,
+        Err(rejection) => return rejection.into_response(),
+    };
+    let key = parts.headers.get(axum::http::header::SEC_WEBSOCKET_KEY);
+    if let (true, Some(on_upgrade), Some(key), Some(_)) =
+        (state.config.net.ws_direct_writes, on_upgrade, key, socket)
+    {
+        drop(ws);
+        return ws::direct::accept(on_upgrade, key, state, peer, greeter, socket);
+    }
     ws.max_message_size(MAX_CLIENT_MESSAGE_BYTES)
         .max_frame_size(MAX_CLIENT_MESSAGE_BYTES)
         .read_buffer_size(ws::READ_BUFFER_BYTES)

@@ -268,7 +268,17 @@ async fn session(
         outbox.clone(),
         state.metrics.clone(),
     ));
-    ws::serve_parts(sink, stream, outbox, state, Some(peer), Some(greeter), None).await;
+    let writer = ws::sink_writer(&outbox, sink, &state);
+    ws::serve_parts(
+        writer,
+        stream,
+        outbox,
+        state,
+        Some(peer),
+        Some(greeter),
+        None,
+    )
+    .await;
     eviction.abort();
     acks.abort();
     drop(permit);

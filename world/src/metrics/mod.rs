@@ -55,6 +55,7 @@ pub struct Metrics {
     json_poses: Counter,
     messages_sent: Counter,
     bytes_sent: Counter,
+    writer_wakes: Counter,
     frames_dropped: Counter,
     ticks_missed: Counter,
     tick_seconds: Histogram,
@@ -119,6 +120,11 @@ impl Metrics {
         );
         let messages_sent = counter(r, "messages_sent", "Websocket messages written");
         let bytes_sent = counter(r, "bytes_sent", "Websocket payload bytes written");
+        let writer_wakes = counter(
+            r,
+            "writer_wakes",
+            "Times a connection's writer task woke to write: a websocket's when its socket was full or it closed (a socket with room is written by whatever queued the message), a WebTransport session's for each batch",
+        );
         let frames_dropped = counter(
             r,
             "frames_dropped",
@@ -183,6 +189,7 @@ impl Metrics {
             json_poses,
             messages_sent,
             bytes_sent,
+            writer_wakes,
             frames_dropped,
             ticks_missed,
             tick_seconds,
@@ -238,6 +245,17 @@ impl Metrics {
     pub fn sent(&self, messages: u64, bytes: u64) {
         self.messages_sent.inc_by(messages);
         self.bytes_sent.inc_by(bytes);
+    }
+
+    /// A websocket's writer task woke (its socket was full, or the connection closed).
+    pub fn writer_woke(&self) {
+        self.writer_wakes.inc();
+    }
+
+    /// Wake-ups of websocket writer tasks so far.
+    #[must_use]
+    pub fn writer_wakes(&self) -> u64 {
+        self.writer_wakes.get()
     }
 
     /// `n` ticks were skipped because the tick task ran late.
@@ -400,6 +418,10 @@ impl posecast_stream::Counters for Metrics {
     fn sent(&self, messages: u64, bytes: u64) {
         Metrics::sent(self, messages, bytes);
     }
+
+    fn writer_woke(&self) {
+        Metrics::writer_woke(self);
+    }
 }
 
 #[cfg(test)]
@@ -416,6 +438,7 @@ posecast_frame_bytes_offered_total 0
 posecast_json_poses_encoded_total 0
 posecast_messages_sent_total 0
 posecast_bytes_sent_total 0
+posecast_writer_wakes_total 0
 posecast_frames_dropped_total 0
 posecast_ticks_missed_total 0
 posecast_tick_late_seconds_max_micros 0

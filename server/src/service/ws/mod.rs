@@ -38,6 +38,8 @@ use std::time::Duration;
 use tokio::time::Instant;
 use tracing::{Instrument, debug, info, info_span};
 
+pub mod direct;
+
 /// How long the reader waits for the client's answering close frame once the writer has sent
 /// the server's. The closing handshake is polite, but a client that never answers must not
 /// keep its session (and a server shutdown) waiting.
@@ -93,23 +95,29 @@ async fn serve_paced<S>(
     S: Stream<Item = Result<Message, axum::Error>> + Sink<Message> + Send + 'static,
 {
     let (sink, stream) = socket.split();
-    serve_parts(
-        sink,
-        stream,
-        Arc::new(Outbox::new()),
-        state,
-        peer,
-        greeter,
-        tcp,
-    )
-    .await;
+    let outbox = Arc::new(Outbox::new());
+    let writer = sink_writer(&outbox, sink, &state);
+    serve_parts(writer, stream, outbox, state, peer, greeter, tcp).await;
 }
 
-/// A session of the protocol over a sink of sent messages and a stream of received ones
-/// (halves of a websocket, or a WebTransport session's stream and datagrams: `super::quic`),
-/// whose writer drains `outbox`.
-pub(super) async fn serve_parts<Si, St>(
-    sink: Si,
+/// A connection's writer task: drains `outbox` into `sink` ([`run_writer`]).
+pub(super) fn sink_writer<Si>(outbox: &Arc<Outbox>, sink: Si, state: &AppState) -> Writer
+where
+    Si: Sink<Message> + Unpin + Send + 'static,
+{
+    let outbox = outbox.clone();
+    let metrics = state.metrics.clone();
+    Box::pin(async move { run_writer(&outbox, sink, &*metrics).await })
+}
+
+/// The task that writes a connection's outbox out (spawned by [`serve_parts`]).
+pub(super) type Writer = std::pin::Pin<Box<dyn Future<Output = ()> + Send>>;
+
+/// A session of the protocol over a stream of received messages and a `writer` that sends
+/// what `outbox` holds (a websocket's halves, its socket written directly: [`direct`], or a
+/// WebTransport session's stream and datagrams: `super::quic`).
+pub(super) async fn serve_parts<St>(
+    writer: Writer,
     mut stream: St,
     outbox: Arc<Outbox>,
     state: Arc<AppState>,
@@ -117,7 +125,6 @@ pub(super) async fn serve_parts<Si, St>(
     greeter: Option<Greeter>,
     tcp: Option<SocketInfo>,
 ) where
-    Si: Sink<Message> + Unpin + Send + 'static,
     St: Stream<Item = Result<Message, axum::Error>> + Unpin + Send,
 {
     // A WebTransport session is paced by QUIC, not by the adaptive rate: it stays off the
@@ -133,11 +140,7 @@ pub(super) async fn serve_parts<Si, St>(
     async move {
         state.metrics.connection_opened();
         info!("websocket opened");
-        let mut writer = {
-            let outbox = outbox.clone();
-            let metrics = state.metrics.clone();
-            tokio::spawn(async move { run_writer(&outbox, sink, &*metrics).await })
-        };
+        let mut writer = tokio::spawn(writer);
         let mut session = Session {
             conn,
             state: state.clone(),
@@ -253,6 +256,7 @@ pub(super) async fn serve_parts<Si, St>(
                 }
             }
         }
+        outbox.detach_direct();
         state.unregister_connection(conn);
         state.metrics.connection_closed(outbox.dropped_frames());
         state.metrics.pace.closed(outbox.pace().level());
