@@ -105,7 +105,20 @@ impl Nats {
     fn wait_listening(&self) {
         let addr = SocketAddr::from(([127, 0, 0, 1], self.port));
         let deadline = Instant::now() + Duration::from_secs(20);
-        while TcpStream::connect_timeout(&addr, Duration::from_millis(200)).is_err() {
+        // A connection is not proof enough: while nothing listens on the port, a connect can
+        // pick the same port as its own source and reach itself (TCP simultaneous open), and
+        // a CI run then started posecast against a server that was not there yet. nats-server
+        // greets every client with `INFO`.
+        let greets = || {
+            use std::io::Read;
+            let Ok(mut s) = TcpStream::connect_timeout(&addr, Duration::from_millis(200)) else {
+                return false;
+            };
+            s.set_read_timeout(Some(Duration::from_secs(1))).ok();
+            let mut head = [0u8; 4];
+            s.read_exact(&mut head).is_ok() && &head == b"INFO"
+        };
+        while !greets() {
             assert!(
                 Instant::now() < deadline,
                 "nats-server did not listen on {addr}"
