@@ -3,6 +3,8 @@
 //! checked against its buffer view and buffer before a byte is read, so a malformed file
 //! gives an error naming the accessor, never an out-of-bounds index.
 
+use std::borrow::Cow;
+
 use gltf::accessor::{DataType, Dimensions};
 
 use super::ImportError;
@@ -13,7 +15,8 @@ const MAX_VIEWLESS: usize = 1 << 22;
 
 pub(crate) struct Buffers<'a> {
     pub file: &'a str,
-    pub data: Vec<Vec<u8>>,
+    /// Each buffer's bytes; a GLB's binary chunk borrowed from the file.
+    pub data: Vec<Cow<'a, [u8]>>,
 }
 
 impl Buffers<'_> {
@@ -78,15 +81,24 @@ impl Buffers<'_> {
                     return Err(self.err(index, format!("byte stride {stride} < element {elem}")));
                 }
                 let bytes = self.slice(index, &view, accessor.offset(), count, elem, stride)?;
-                let mut out = Vec::with_capacity(count * dims);
-                for i in 0..count {
-                    let at = i * stride;
-                    for c in 0..dims {
-                        let p = at + c * size;
-                        out.push(component(&bytes[p..p + size], ty, normalized));
+                if ty == DataType::F32 && stride == elem {
+                    // Tightly packed floats, most of a mesh: one pass the compiler vectorises
+                    // (the general loop below was a fifth of importing the built-in avatar).
+                    bytes
+                        .chunks_exact(4)
+                        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                        .collect()
+                } else {
+                    let mut out = Vec::with_capacity(count * dims);
+                    for i in 0..count {
+                        let at = i * stride;
+                        for c in 0..dims {
+                            let p = at + c * size;
+                            out.push(component(&bytes[p..p + size], ty, normalized));
+                        }
                     }
+                    out
                 }
-                out
             }
             None => {
                 if count > MAX_VIEWLESS {
@@ -215,5 +227,53 @@ fn component(bytes: &[u8], ty: DataType, normalized: bool) -> f32 {
             if normalized { v / u32::MAX as f32 } else { v }
         }
         DataType::F32 => f32::from_le_bytes([b(0), b(1), b(2), b(3)]),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The same two points read packed and interleaved with a normal (byte stride 24, the
+    /// normals at offset 12): the packed floats take a path of their own.
+    #[test]
+    fn packed_and_interleaved_floats_read_the_same() {
+        let floats: [f32; 18] = [
+            1.0, 2.0, 3.0, 4.0, 5.0, 6.0, // packed points
+            1.0, 2.0, 3.0, 7.0, 8.0, 9.0, // point 0, normal 0
+            4.0, 5.0, 6.0, 10.0, 11.0, 12.0, // point 1, normal 1
+        ];
+        let bytes: Vec<u8> = floats.iter().flat_map(|f| f.to_le_bytes()).collect();
+        let json = serde_json::json!({
+            "asset": {"version": "2.0"},
+            "buffers": [{"byteLength": 72}],
+            "bufferViews": [
+                {"buffer": 0, "byteOffset": 0, "byteLength": 24},
+                {"buffer": 0, "byteOffset": 24, "byteLength": 48, "byteStride": 24}
+            ],
+            "accessors": [
+                {"bufferView": 0, "componentType": 5126, "count": 2, "type": "VEC3"},
+                {"bufferView": 1, "componentType": 5126, "count": 2, "type": "VEC3"},
+                {"bufferView": 1, "byteOffset": 12, "componentType": 5126, "count": 2,
+                 "type": "VEC3"}
+            ]
+        });
+        let gltf =
+            gltf::Gltf::from_slice_without_validation(json.to_string().as_bytes()).expect("parses");
+        let buffers = Buffers {
+            file: "test.gltf",
+            data: vec![Cow::Owned(bytes)],
+        };
+        let read: Vec<Vec<f32>> = gltf
+            .accessors()
+            .map(|a| {
+                buffers
+                    .read_as(&a, Dimensions::Vec3, "test")
+                    .expect("reads")
+            })
+            .collect();
+        assert_eq!(read[0], [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]);
+        assert_eq!(read[1], read[0]);
+        assert_eq!(read[2], [7.0, 8.0, 9.0, 10.0, 11.0, 12.0]);
     }
 }

@@ -38,6 +38,7 @@ pub mod vrm_expressions;
 pub mod vrma;
 mod vrma_rig;
 
+use std::borrow::Cow;
 use std::collections::HashMap;
 use std::path::Path;
 
@@ -88,26 +89,39 @@ fn import_slice(
     base: Option<External<'_>>,
     with_meshes: bool,
 ) -> Result<Vec<Asset>, ImportError> {
-    let gltf =
-        gltf::Gltf::from_slice_without_validation(bytes).map_err(|source| ImportError::Gltf {
-            file: name.to_owned(),
-            source,
-        })?;
-    let doc = &gltf.document;
+    let (document, blob) = parse(bytes).map_err(|source| ImportError::Gltf {
+        file: name.to_owned(),
+        source,
+    })?;
+    let doc = &document;
     validate(name, doc)?;
     check_channel_targets(name, doc)?;
-    // The gltf crate's accessors index the document with `unwrap` after its validation; a
-    // gap in that validation must not take the server down, so a panic in it becomes an
-    // error here (the explicit checks above and in `accessor` cover every case we know of).
-    let vrm = vrm::humanoid(bytes);
-    let expressions = vrm::json_chunk(bytes)
-        .and_then(|j| serde_json::from_slice::<serde_json::Value>(j).ok())
-        .and_then(|doc| vrm_expressions::read(&doc));
+    // The JSON once more, for the VRM extensions the gltf crate drops: once, and only when the
+    // root has `extensions`, where each of them hangs (a plain glTF, like the built-in avatar,
+    // is not read again). Each parse cost as much as the gltf crate's own: 0.1–0.25 ms for
+    // the built-in avatar's 13 kB, which a server's start waits for.
+    let json = doc
+        .as_json()
+        .extensions
+        .is_some()
+        .then(|| vrm::json_chunk(bytes))
+        .flatten();
+    let value = json.and_then(|j| serde_json::from_slice::<serde_json::Value>(j).ok());
+    let vrm = value.as_ref().and_then(vrm::humanoid_of);
+    let expressions = value.as_ref().and_then(vrm_expressions::read);
     let vrma_err = |source| ImportError::VrmAnimation {
         file: name.to_owned(),
         source,
     };
-    let animation = match vrm::json_chunk(bytes).map(vrma::read).transpose() {
+    // `vrma::read` parses again, keeping what `Value` would merge (duplicate bone keys are an
+    // error there): only when the extension is there, which `Value` tells exactly (both keep
+    // the last of duplicate keys on the way to it).
+    let maybe_vrma = value.as_ref().is_none_or(|v| {
+        v.get("extensions")
+            .and_then(|e| e.get(vrma::EXTENSION))
+            .is_some()
+    });
+    let animation = match json.filter(|_| maybe_vrma).map(vrma::read).transpose() {
         Ok(a) => a.flatten(),
         Err(e) => return Err(vrma_err(e)),
     };
@@ -124,8 +138,11 @@ fn import_slice(
             .as_ref()
             .filter(|_| is_vrma || doc.skins().len() == 0),
     };
+    // The gltf crate's accessors index the document with `unwrap` after its validation; a
+    // gap in that validation must not take the server down, so a panic in it becomes an
+    // error here (the explicit checks above and in `accessor` cover every case we know of).
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        import_document(name, doc, gltf.blob.clone(), base, source, with_meshes)
+        import_document(name, doc, blob, base, source, with_meshes)
     }))
     .unwrap_or_else(|_| {
         Err(ImportError::Unsupported {
@@ -133,6 +150,21 @@ fn import_slice(
             message: "the glTF parser failed on malformed input".to_owned(),
         })
     })
+}
+
+/// A glTF's document and a GLB's binary chunk, borrowed from the file.
+type Parsed<'a> = (gltf::Document, Option<Cow<'a, [u8]>>);
+
+/// `gltf::Gltf::from_slice_without_validation` less its copy of the binary chunk (all of a
+/// mesh's data: 250 kB for the built-in avatar).
+fn parse(bytes: &[u8]) -> Result<Parsed<'_>, gltf::Error> {
+    let (json, blob) = if bytes.starts_with(b"glTF") {
+        let glb = gltf::binary::Glb::from_slice(bytes)?;
+        (gltf::json::deserialize::from_slice(&glb.json)?, glb.bin)
+    } else {
+        (gltf::json::deserialize::from_slice(bytes)?, None)
+    };
+    Ok((gltf::Document::from_json_without_validation(json), blob))
 }
 
 /// The `gltf` crate's validation less the one rule glTF 2.0 does not have: gltf-json 1.4
@@ -205,7 +237,7 @@ struct Source<'a> {
 fn import_document(
     name: &str,
     doc: &gltf::Document,
-    blob: Option<Vec<u8>>,
+    blob: Option<Cow<'_, [u8]>>,
     base: Option<External<'_>>,
     source: Source<'_>,
     with_meshes: bool,
@@ -264,12 +296,12 @@ fn import_document(
         .collect()
 }
 
-fn load_buffers(
+fn load_buffers<'a>(
     file: &str,
     doc: &gltf::Document,
-    mut blob: Option<Vec<u8>>,
+    mut blob: Option<Cow<'a, [u8]>>,
     base: Option<External<'_>>,
-) -> Result<Vec<Vec<u8>>, ImportError> {
+) -> Result<Vec<Cow<'a, [u8]>>, ImportError> {
     let err = |buffer: usize, message: String| ImportError::Buffer {
         file: file.to_owned(),
         buffer,
@@ -287,9 +319,11 @@ fn load_buffers(
                     let (_, data) = rest
                         .split_once(";base64,")
                         .ok_or_else(|| err(i, "data URI is not base64".into()))?;
-                    base64::engine::general_purpose::STANDARD
-                        .decode(data)
-                        .map_err(|e| err(i, format!("bad base64: {e}")))?
+                    Cow::Owned(
+                        base64::engine::general_purpose::STANDARD
+                            .decode(data)
+                            .map_err(|e| err(i, format!("bad base64: {e}")))?,
+                    )
                 } else if let Some(base) = base {
                     let relative = Path::new(uri);
                     let safe = !uri.contains(':')
@@ -302,7 +336,7 @@ fn load_buffers(
                     if !safe {
                         return Err(err(i, format!("URI {uri:?} is not a plain relative path")));
                     }
-                    base(&uri.replace("%20", " "))?
+                    Cow::Owned(base(&uri.replace("%20", " "))?)
                 } else {
                     return Err(err(
                         i,

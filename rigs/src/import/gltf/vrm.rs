@@ -42,6 +42,12 @@ pub fn json_chunk(bytes: &[u8]) -> Option<&[u8]> {
 #[must_use]
 pub fn humanoid(bytes: &[u8]) -> Option<Humanoid> {
     let doc: Value = serde_json::from_slice(json_chunk(bytes)?).ok()?;
+    humanoid_of(&doc)
+}
+
+/// [`humanoid`] of the document's JSON, already parsed.
+#[must_use]
+pub fn humanoid_of(doc: &Value) -> Option<Humanoid> {
     let ext = doc.get("extensions")?;
     let (version, pairs): (Version, Vec<(String, usize)>) =
         if let Some(bones) = ext.pointer("/VRMC_vrm/humanoid/humanBones") {
