@@ -2,8 +2,10 @@
 //! after its start `/healthz` answers `ok` — posecast (the release binary, the built-in avatar,
 //! no data folder) against a plain broadcast server of the same stack.
 //!
-//! `cargo bench -p posecast --bench footprint` — each server is started [`RUNS`] times, in turn
-//! (this machine is noisy: the ratio is of one run), as its own process. The plain server is
+//! `cargo bench -p posecast --bench footprint` — for memory each server is started [`RUNS`]
+//! times, in turn, as its own process; for the start time [`STARTS`] more times each, in turn
+//! again and stopped once `/healthz` said `ok` (a start takes a few milliseconds and this
+//! machine is noisy: medians of many interleaved starts, the ratio of one run). The plain server is
 //! this bench binary started again with [`PLAIN`] set: tokio and axum, `/healthz` answering
 //! `ok`, a websocket route that forwards one `tokio::sync::broadcast` of 221-byte frames ticked
 //! at 60 Hz — the fan-out yardstick's design (`loadgen --server reference`) with nothing else.
@@ -19,8 +21,10 @@ use std::time::{Duration, Instant};
 
 /// Set to the address to serve on: this process is the plain server.
 const PLAIN: &str = "POSECAST_FOOTPRINT_PLAIN";
-/// Starts of each server measured.
+/// Starts of each server whose memory is measured.
 const RUNS: usize = 5;
+/// Starts of each server whose start time alone is measured.
+const STARTS: usize = 40;
 /// Time from `/healthz`'s first `ok` to the first reading of resident memory.
 const SETTLED: Duration = Duration::from_secs(2);
 /// Time from `/healthz`'s first `ok` to the idle reading: past the 5 s after which posecast
@@ -38,19 +42,26 @@ fn main() -> anyhow::Result<()> {
     }
     let posecast = env!("CARGO_BIN_EXE_posecast");
     let me = std::env::current_exe()?;
+    let ours_command = |addr: SocketAddr| {
+        let mut c = Command::new(posecast);
+        c.args(["--listen", &addr.to_string(), "--no-persist"]);
+        c
+    };
+    let theirs_command = |addr: SocketAddr| {
+        let mut c = Command::new(&me);
+        c.env(PLAIN, addr.to_string());
+        c
+    };
     let mut ours = Vec::new();
     let mut theirs = Vec::new();
     for _ in 0..RUNS {
-        ours.push(measure(|addr| {
-            let mut c = Command::new(posecast);
-            c.args(["--listen", &addr.to_string(), "--no-persist"]);
-            c
-        })?);
-        theirs.push(measure(|addr| {
-            let mut c = Command::new(&me);
-            c.env(PLAIN, addr.to_string());
-            c
-        })?);
+        ours.push(measure(ours_command, true)?);
+        theirs.push(measure(theirs_command, true)?);
+    }
+    let (mut ours_ready, mut theirs_ready) = (Vec::new(), Vec::new());
+    for _ in 0..STARTS {
+        ours_ready.push(measure(ours_command, false)?.ready);
+        theirs_ready.push(measure(theirs_command, false)?.ready);
     }
     let (ours, theirs) = (Summary::of(&ours), Summary::of(&theirs));
     println!("idle footprint, median of {RUNS} starts each (release build, no client connected):");
@@ -69,13 +80,42 @@ fn main() -> anyhow::Result<()> {
             o.rss as f64 / t.rss as f64
         );
     }
+    let (ours_ready, theirs_ready) = (Quartiles::of(ours_ready), Quartiles::of(theirs_ready));
     println!(
-        "  /healthz ok after start: posecast {:.1} ms, plain server {:.1} ms: {:.2}x",
-        ours.ready.as_secs_f64() * 1e3,
-        theirs.ready.as_secs_f64() * 1e3,
-        ours.ready.as_secs_f64() / theirs.ready.as_secs_f64()
+        "  /healthz ok after start, median (quartiles) of {STARTS} starts each: posecast {ours_ready}, plain server {theirs_ready}: {:.2}x",
+        ours_ready.median / theirs_ready.median
     );
     Ok(())
+}
+
+/// Milliseconds: the median and the quartiles of a set of start times.
+#[derive(Clone, Copy)]
+struct Quartiles {
+    low: f64,
+    median: f64,
+    high: f64,
+}
+
+impl Quartiles {
+    fn of(mut times: Vec<Duration>) -> Self {
+        times.sort_unstable();
+        let at = |q: usize| times[(times.len() - 1) * q / 4].as_secs_f64() * 1e3;
+        Self {
+            low: at(1),
+            median: at(2),
+            high: at(3),
+        }
+    }
+}
+
+impl std::fmt::Display for Quartiles {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{:.2} ms ({:.2}–{:.2})",
+            self.median, self.low, self.high
+        )
+    }
 }
 
 fn mb(bytes: u64) -> f64 {
@@ -123,26 +163,24 @@ fn median<T: Copy + Ord>(mut v: Vec<T>) -> T {
     v[v.len() / 2]
 }
 
-/// One start: how long until `/healthz` said `ok`, and the memory after.
+/// One start: how long until `/healthz` said `ok`, and the memory after (if measured).
 struct Sample {
     ready: Duration,
-    settled: Memory,
-    idle: Memory,
+    memory: Option<(Memory, Memory)>,
 }
 
-/// Medians of each figure.
+/// Medians of each memory figure.
 struct Summary {
-    ready: Duration,
     settled: Memory,
     idle: Memory,
 }
 
 impl Summary {
     fn of(samples: &[Sample]) -> Self {
+        let memory = samples.iter().filter_map(|s| s.memory);
         Self {
-            ready: median(samples.iter().map(|s| s.ready).collect()),
-            settled: Memory::median(samples.iter().map(|s| s.settled)),
-            idle: Memory::median(samples.iter().map(|s| s.idle)),
+            settled: Memory::median(memory.clone().map(|(settled, _)| settled)),
+            idle: Memory::median(memory.map(|(_, idle)| idle)),
         }
     }
 }
@@ -157,7 +195,9 @@ impl Drop for Killed {
     }
 }
 
-fn measure(command: impl Fn(SocketAddr) -> Command) -> anyhow::Result<Sample> {
+/// Starts a server, waits for `/healthz` to say `ok` and, with `memory`, reads its resident
+/// memory [`SETTLED`] and [`IDLE`] after that; stops it.
+fn measure(command: impl Fn(SocketAddr) -> Command, memory: bool) -> anyhow::Result<Sample> {
     let addr = TcpListener::bind("127.0.0.1:0")?.local_addr()?;
     let mut command = command(addr);
     command.stdout(Stdio::null()).stderr(Stdio::null());
@@ -173,6 +213,12 @@ fn measure(command: impl Fn(SocketAddr) -> Command) -> anyhow::Result<Sample> {
         std::thread::sleep(Duration::from_micros(200));
     }
     let ready = start.elapsed();
+    if !memory {
+        return Ok(Sample {
+            ready,
+            memory: None,
+        });
+    }
     let pid = child.0.id();
     std::thread::sleep(SETTLED);
     let settled = Memory::of(pid)?;
@@ -180,8 +226,7 @@ fn measure(command: impl Fn(SocketAddr) -> Command) -> anyhow::Result<Sample> {
     let idle = Memory::of(pid)?;
     Ok(Sample {
         ready,
-        settled,
-        idle,
+        memory: Some((settled, idle)),
     })
 }
 

@@ -503,11 +503,25 @@ fn access(args: &Args) -> anyhow::Result<(AccessConfig, Option<Secret>)> {
     Ok((access, generated))
 }
 
-#[tokio::main]
-async fn main() -> anyhow::Result<()> {
+fn main() -> anyhow::Result<()> {
     let started = std::time::Instant::now();
+    // First of all, before the flags are read: the loading thread, whose import of the
+    // built-in avatar (the longest step of the start) then runs beside everything up to the
+    // bind (`startup::prepare`).
+    let prepared = posecast_server::startup::prepare();
     let args = Args::parse();
     init_logging(args.log_format);
+    if let Err(e) = prepared {
+        tracing::warn!(error = %e, "cannot start loading ahead; loading once listening");
+    }
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?
+        .block_on(run(args, started))
+}
+
+/// The server, from its arguments to its end; `started` is when the process began.
+async fn run(args: Args, started: std::time::Instant) -> anyhow::Result<()> {
     anyhow::ensure!(
         args.tick_rate.is_finite() && args.tick_rate > 0.0 && args.tick_rate <= 1000.0,
         "--tick-rate must be in (0, 1000]"

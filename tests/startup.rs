@@ -226,6 +226,36 @@ fn a_sigterm_during_start_up_exits_without_finishing_the_load() {
     );
 }
 
+/// The binary imports the built-in avatar ahead, before it has read its flags
+/// (`startup::prepare`): it is in the library, with its scene, when the flags ask for it, and
+/// that import is dropped, not added, when they do not (`--no-builtin`).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_avatar_imported_ahead_is_kept_only_when_the_flags_ask_for_it() {
+    let env = [("POSECAST_CONTROL_TOKEN", common::CONTROL)];
+    let names = |listing: &str| -> Vec<String> {
+        let value: Value = serde_json::from_str(listing).unwrap();
+        let list = value.as_array().expect("an asset list");
+        list.iter()
+            .map(|a| a["name"].as_str().unwrap().to_owned())
+            .collect()
+    };
+    let with = Posecast::start(&["--no-persist"], &env);
+    let (status, listing) = http_to(with.addr, "GET", "/api/assets", "", b"").await;
+    assert_eq!(status, 200, "{listing}");
+    assert_eq!(names(&listing), ["avatar"], "{listing}");
+    let (_, scenes) = http_to(with.addr, "GET", "/api/scenes", "", b"").await;
+    assert!(scenes.contains("\"scene\":\"default\""), "{scenes}");
+    with.kill();
+
+    let without = Posecast::start(&["--no-persist", "--no-builtin"], &env);
+    let (status, listing) = http_to(without.addr, "GET", "/api/assets", "", b"").await;
+    assert_eq!(status, 200, "{listing}");
+    assert!(names(&listing).is_empty(), "{listing}");
+    let (_, scenes) = http_to(without.addr, "GET", "/api/scenes", "", b"").await;
+    assert!(!scenes.contains("\"scene\":\"default\""), "{scenes}");
+    without.kill();
+}
+
 /// The resident memory of process `pid`, bytes (`VmRSS` of `/proc/<pid>/status`).
 #[cfg(target_os = "linux")]
 fn resident_bytes(pid: u32) -> u64 {

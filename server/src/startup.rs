@@ -14,6 +14,18 @@ use tracing::warn;
 
 pub use crate::restore::{DEFAULT_AVATAR, DEFAULT_SCENE};
 
+/// Starts the thread that loads what a server loads at start ahead of [`Server::start`], which
+/// then hands it the rest of its work: the built-in avatar, the longest step of a start, is
+/// imported while the runtime starts and the server binds instead of after that. A binary
+/// calls this first thing; the import is wasted (and dropped) if the server is configured
+/// without the built-in avatar.
+///
+/// # Errors
+/// The thread cannot be started (then [`Server::start`] starts one, as without this).
+pub fn prepare() -> std::io::Result<()> {
+    restore::prepare()
+}
+
 /// A running server.
 #[derive(Debug)]
 pub struct Server {
@@ -111,15 +123,16 @@ impl Server {
         }
         let plan = restore::Plan::new(&state, first_start);
         state.readiness.begin(plan.len());
-        let (tx, rx) = oneshot::channel::<()>();
-        let router = app(state.clone());
-        let task = tokio::spawn(serve(listener, router, state.clone(), rx));
+        // Loading first: it is what `/healthz` waits for, and it goes on while the router is
+        // built (until the accept loop runs, a connection waits in the listen backlog).
         if let Err(e) = restore::spawn(state.services.clone(), plan) {
-            task.abort();
             vmc.abort();
             abort_quic();
             return Err(e);
         }
+        let (tx, rx) = oneshot::channel::<()>();
+        let router = app(state.clone());
+        let task = tokio::spawn(serve(listener, router, state.clone(), rx));
         if let Some(conn) = cluster {
             crate::cluster::start(&state.services, conn);
         }

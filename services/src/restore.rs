@@ -6,16 +6,18 @@
 //! Loading runs on a thread of its own rather than tokio's blocking pool: importing is
 //! CPU-bound (seconds for gigabytes of uploads) and must not hold an async worker, and a
 //! process asked to stop during a long start must be able to exit — the runtime waits for
-//! its blocking-pool tasks when it shuts down, never for this thread.
+//! its blocking-pool tasks when it shuts down, never for this thread. A binary may start that
+//! thread first thing ([`prepare`]): it imports the built-in avatar while the server starts,
+//! then takes the plan.
 
 use crate::state::Services;
 use posecast_proto::msg::{AvatarId, SceneId};
-use posecast_rigs::builtin::BUILTIN_ASSET;
+use posecast_rigs::builtin::{BUILTIN_ASSET, BuiltinError};
 use posecast_rigs::import;
-use posecast_rigs::rig::PipelineOptions;
+use posecast_rigs::rig::{PipelineOptions, Rig};
 use posecast_sim::avatar::playback::Layer;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, PoisonError, mpsc};
 use tracing::{info, warn};
 
 /// The scene created at start.
@@ -75,48 +77,112 @@ impl Plan {
     }
 }
 
-/// Loads `plan` on a thread of its own and marks `state` ready (or failed) when done. Scenes
-/// restored there start their tick tasks on the current tokio runtime.
+/// Loads `plan` on a thread of its own and marks `state` ready (or failed) when done: the
+/// thread [`prepare`] started, if there is one, else a new one. Scenes restored there start
+/// their tick tasks on the current tokio runtime.
 ///
 /// # Errors
 /// The thread cannot be started.
 pub fn spawn(state: Arc<Services>, plan: Plan) -> std::io::Result<()> {
-    let runtime = tokio::runtime::Handle::current();
+    let mut job = Job {
+        state,
+        plan,
+        runtime: tokio::runtime::Handle::current(),
+    };
+    let prepared = PREPARED
+        .lock()
+        .unwrap_or_else(PoisonError::into_inner)
+        .take();
+    if let Some(prepared) = prepared {
+        match prepared.send(job) {
+            Ok(()) => return Ok(()),
+            // The prepared thread has ended (it never should): a new one does the job.
+            Err(mpsc::SendError(back)) => job = back,
+        }
+    }
     std::thread::Builder::new()
-        .name("posecast-restore".into())
-        .spawn(move || {
-            let _runtime = runtime.enter();
-            let began = std::time::Instant::now();
-            // A panic while loading must not leave requests waiting for ever.
-            let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                run(&state, plan).map_err(|e| e.to_string())
-            }))
-            .unwrap_or_else(|_| Err("loading panicked (see the log)".to_owned()));
-            match &result {
-                Ok(()) if state.readiness.stopped() => {
-                    info!("start-up loading stopped: the server is shutting down");
-                }
-                Ok(()) => info!(
-                    rigs = state.world.library.all().len(),
-                    scenes = state.world.scenes().len(),
-                    seconds = began.elapsed().as_secs_f64(),
-                    "ready"
-                ),
-                Err(e) => warn!(error = %e, "start-up failed"),
-            }
-            state.readiness.finish(result);
-        })
+        .name(THREAD_NAME.into())
+        .spawn(move || load(job, None))
         .map(|_| ())
 }
 
-/// Loads the plan in order; gives up between steps when the server shuts down.
-fn run(state: &Services, plan: Plan) -> std::io::Result<()> {
+/// Starts the loading thread ahead of the server, before its runtime, its state and its
+/// listener exist, so that the built-in avatar's import — the longest step of a start
+/// (1–2 ms, all of it cold code and fresh memory) — runs beside all that instead of after
+/// it; the next [`spawn`] hands this thread the rest of its work instead of starting one.
+/// The `posecast` binary calls it first thing. The import is wasted when the configuration
+/// turns out not to load the built-in avatar (`--no-builtin`), and dropped.
+///
+/// # Errors
+/// The thread cannot be started (then [`spawn`] starts one, as without this).
+pub fn prepare() -> std::io::Result<()> {
+    let (jobs, job) = mpsc::sync_channel::<Job>(1);
+    std::thread::Builder::new()
+        .name(THREAD_NAME.into())
+        .spawn(move || {
+            let builtin = std::panic::catch_unwind(posecast_rigs::builtin::rig);
+            // No job: the server did not start (the process is ending).
+            if let Ok(job) = job.recv() {
+                load(job, Some(builtin));
+            }
+        })?;
+    *PREPARED.lock().unwrap_or_else(PoisonError::into_inner) = Some(jobs);
+    Ok(())
+}
+
+const THREAD_NAME: &str = "posecast-restore";
+
+/// The way to the thread [`prepare`] started, until [`spawn`] hands it its job.
+static PREPARED: Mutex<Option<mpsc::SyncSender<Job>>> = Mutex::new(None);
+
+/// A loading thread's work.
+struct Job {
+    state: Arc<Services>,
+    plan: Plan,
+    runtime: tokio::runtime::Handle,
+}
+
+/// The built-in avatar as [`prepare`] imported it, panic included.
+type Imported = std::thread::Result<Result<Rig, BuiltinError>>;
+
+/// Runs `job` on this thread and marks its server ready (or failed).
+fn load(job: Job, builtin: Option<Imported>) {
+    let Job {
+        state,
+        plan,
+        runtime,
+    } = job;
+    let _runtime = runtime.enter();
+    let began = std::time::Instant::now();
+    // A panic while loading must not leave requests waiting for ever.
+    let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        run(&state, plan, builtin).map_err(|e| e.to_string())
+    }))
+    .unwrap_or_else(|_| Err("loading panicked (see the log)".to_owned()));
+    match &result {
+        Ok(()) if state.readiness.stopped() => {
+            info!("start-up loading stopped: the server is shutting down");
+        }
+        Ok(()) => info!(
+            rigs = state.world.library.all().len(),
+            scenes = state.world.scenes().len(),
+            seconds = began.elapsed().as_secs_f64(),
+            "ready"
+        ),
+        Err(e) => warn!(error = %e, "start-up failed"),
+    }
+    state.readiness.finish(result);
+}
+
+/// Loads the plan in order; gives up between steps when the server shuts down. `builtin`:
+/// the built-in avatar imported already ([`prepare`]).
+fn run(state: &Services, plan: Plan, mut builtin: Option<Imported>) -> std::io::Result<()> {
     for source in plan.sources {
         if state.readiness.stopped() {
             return Ok(());
         }
         match source {
-            Source::Builtin => load_builtin(&state.world),
+            Source::Builtin => load_builtin(&state.world, builtin.take()),
             Source::File(path) => load_file(&state.world, &path),
             Source::Upload(dir) => state.store.restore_upload(&state.world, &dir),
         }
@@ -151,8 +217,14 @@ fn run(state: &Services, plan: Plan) -> std::io::Result<()> {
     Ok(())
 }
 
-fn load_builtin(world: &crate::world::World) {
-    match posecast_rigs::builtin::rig() {
+fn load_builtin(world: &crate::world::World, imported: Option<Imported>) {
+    let rig = match imported {
+        Some(Ok(rig)) => rig,
+        // Its panic, here where loading catches it.
+        Some(Err(panic)) => std::panic::resume_unwind(panic),
+        None => posecast_rigs::builtin::rig(),
+    };
+    match rig {
         Ok(rig) => {
             world.library.insert(rig);
         }
