@@ -520,6 +520,32 @@ async fn v2_datagrams_all_decode_and_a_lost_one_costs_its_tick_only() {
     server.stop().await;
 }
 
+/// A joiner whose first keyframes are lost (the first three datagrams: the keyframe sent
+/// again each time, and no round trip measured yet) is silent long enough to be cut, blind:
+/// nothing says yet whether a queue or a loss held its frames. The calm round trips after
+/// it bring the rate back within a second or two (a step each), not a step per seconds:
+/// its last second of frames is every tick again. Red with the additive raise after a blind
+/// cut (the session that got 10.7–20.8 frames a second in the 5 % loss row).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn keyframes_lost_at_the_join_cost_the_rate_a_moment_only() {
+    let server = quic_server(60.0, |_| {}).await;
+    let seen = subscribe_as(server.addr, "default", 9, |i| i <= 3).await;
+    frames(&seen, 240).await;
+    {
+        let s = seen.lock().unwrap();
+        assert_eq!(s.dropped_keys, 3, "{:?}", s.arrivals);
+        // The last second: every tick (one a writer running late on a busy host superseded
+        // is allowed per 50), not one in two.
+        let last: Vec<u64> = s.frames.iter().rev().take(60).map(|f| f.0).collect();
+        let span = last.first().unwrap() - last.last().unwrap() + 1;
+        assert!(
+            span <= 60 + superseded_budget(last[59], last[0]) as u64 + 1,
+            "60 frames over {span} ticks"
+        );
+    }
+    server.stop().await;
+}
+
 /// Protocol version 8 with 31 avatars: v2 keyframes are larger than a datagram and go cut by
 /// avatar (a frame counts as acknowledged once every part is), and with datagrams dropped
 /// (every 7th, five in a row) every part that comes decodes and each avatar misses only the

@@ -26,6 +26,9 @@ pub struct AppState {
     connection_closed: Notify,
     /// Round trips shared by connections from one address (the adaptive rate's base).
     pub paths: Paths,
+    /// The base round trip shared by datagram sessions from one address (nothing else of
+    /// theirs is: QUIC paces them).
+    pub datagram_paths: Paths,
     /// The clock every subscribed connection's round-trip probes follow (no timer each).
     pub probes: std::sync::Arc<posecast_stream::probes::ProbeClock>,
     /// The WebTransport endpoint (`--quic-listen`), once bound: what `GET /api/quic` tells.
@@ -67,6 +70,7 @@ impl AppState {
             connections: Mutex::new(Connections::default()),
             connection_closed: Notify::new(),
             paths: Paths::default(),
+            datagram_paths: Paths::default(),
             probes: posecast_stream::probes::ProbeClock::new(),
             quic: OnceLock::new(),
         })

@@ -381,6 +381,17 @@ impl Outbox {
         let Some(frame) = acks.sent.get_mut(&seq) else {
             return;
         };
+        // Any acknowledgement, of a part too, is a round trip of the path.
+        let rtt = frame
+            .at
+            .elapsed()
+            .as_micros()
+            .clamp(1, u128::from(u32::MAX)) as u64;
+        self.frame_rtt_floor_us
+            .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |f| {
+                Some(if f == 0 { rtt } else { f.min(rtt) })
+            })
+            .ok();
         let whole = match &mut frame.missing {
             // A part names its avatars (at most `frame2::MAX_PART_AVATARS`): one naming none
             // says nothing of which part came.
@@ -395,7 +406,6 @@ impl Outbox {
         if !whole {
             return;
         }
-        let rtt = frame.at.elapsed().as_micros().min(u128::from(u32::MAX)) as u64;
         acks.sent.remove(&seq);
         let at = acks.acked.partition_point(|&s| s > seq);
         if acks.acked.get(at) != Some(&seq) {
@@ -403,7 +413,6 @@ impl Outbox {
             acks.acked.truncate(frame2::MAX_DEPTH);
         }
         // RFC 6298's smoothing, ⅛ of each sample.
-        let rtt = rtt.max(1);
         let old = self.frame_rtt_us.load(Ordering::Relaxed);
         let new = if old == 0 {
             rtt
@@ -411,11 +420,6 @@ impl Outbox {
             old - old / 8 + rtt / 8
         };
         self.frame_rtt_us.store(new.max(1), Ordering::Relaxed);
-        self.frame_rtt_floor_us
-            .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |f| {
-                Some(if f == 0 { rtt } else { f.min(rtt) })
-            })
-            .ok();
     }
 
     /// Protocol version 8: the least time from sending a frame as datagrams to its
@@ -1263,6 +1267,31 @@ mod tests {
         assert_eq!(o.key_acks().len(), ACKED_SCENES_KEPT);
         o.ack_key(1, 40, &[]);
         assert_eq!(o.key_acked(1), Some(40));
+    }
+
+    /// Protocol version 8: any acknowledgement of a frame sent — of one part of a split
+    /// frame too — is a round trip; one of a frame never sent is not.
+    #[test]
+    fn a_part_acknowledged_is_a_round_trip() {
+        let o = Outbox::for_datagrams();
+        o.datagram_frame_sent(1, 10, true, Some(&[1, 2]));
+        o.ack_frame(1, 99, &[]);
+        assert_eq!(
+            o.take_frame_rtt_floor(),
+            None,
+            "an acknowledgement of nothing sent"
+        );
+        assert_eq!(o.frame_rtt(), None);
+        o.ack_frame(1, 10, &[2]);
+        assert!(
+            o.take_frame_rtt_floor().is_some(),
+            "a part's acknowledgement"
+        );
+        assert!(
+            o.datagram_refs(1, 11).is_empty(),
+            "part of a frame is not a reference"
+        );
+        assert!(o.frames_in_flight());
     }
 
     /// Protocol version 8: a delta names only frames acknowledged for every avatar they went

@@ -68,6 +68,13 @@
 //! been unlucky would then fall behind the others for good.) The hysteresis is in the
 //! thresholds: lowered above [`QUEUE_TARGET`], raised only after a whole wait below half of it.
 //!
+//! **A blind cut** is one for a silence judged against [`UNKNOWN_BASE`], before any round
+//! trip was measured (a joiner whose first frames were lost, or that joined a full queue). It
+//! drains what queue there is; then the calm round trips raise the rate a step each (as TCP's
+//! slow start after a timeout), until a cut judged against a measured base. (Raised a step per
+//! seconds, a joiner at 5 % loss whose first keyframes were lost spent its session at 20–30
+//! frames a second.)
+//!
 //! **Fairness.** Connections sharing a bottleneck see the same queueing delay. A connection
 //! that joined while the link was already queued never saw its empty round trip, would take
 //! the queue for its base and crowd out the others: connections from one address share their
@@ -88,6 +95,11 @@
 //! where each alone kept 59.) Every connection keeps at least the lowest step (1 Hz) — no
 //! connection starves while others stream — and, staggered by connection, paced subscribers
 //! do not all send on the same tick.
+//!
+//! Datagram sessions (QUIC paces them) share only their base with the other datagram sessions
+//! of their address ([`Pace::share_base`]): fifty of them joining a 2 Mbit/s link at once
+//! filled its queue with handshakes and keyframes before the first acknowledgement, each took
+//! the queue for its base, and it stood (3 runs of 7).
 
 use std::collections::{HashMap, VecDeque};
 use std::net::IpAddr;
@@ -346,11 +358,7 @@ impl Path {
     }
 
     fn observe(&self, now: Instant, rtt: Duration) {
-        {
-            let mut w = self.lock();
-            Self::roll(&mut w, now);
-            w.1 = Some(w.1.map_or(rtt, |m| m.min(rtt)));
-        }
+        self.seed(now, rtt);
         {
             let mut recent = self
                 .recent
@@ -375,6 +383,13 @@ impl Path {
             }
             _ => floor.push_back((now, rtt, 1)),
         }
+    }
+
+    /// A round trip for the base only, not the floor (a session sharing only its base).
+    fn seed(&self, now: Instant, rtt: Duration) {
+        let mut w = self.lock();
+        Self::roll(&mut w, now);
+        w.1 = Some(w.1.map_or(rtt, |m| m.min(rtt)));
     }
 
     /// The smallest round trip of the path over the last [`TREND_WINDOW`].
@@ -510,6 +525,13 @@ struct Control {
     /// The socket's kernel figures over the last [`SOCKET_WINDOW`] (and one before it); once
     /// any came, round trips are judged by their trend ([`TREND_WINDOW`]).
     socket: VecDeque<(Instant, SocketFigures)>,
+    /// The last cut was taken blind: a silence judged against [`UNKNOWN_BASE`] before any
+    /// round trip was measured. Until a cut judged against a measured base (or the full rate
+    /// again), every calm judgement raises a step ([`Control::decide`]).
+    blind: bool,
+    /// Shared with the other datagram sessions from the same address for the base round trip
+    /// only ([`Pace::share_base`]).
+    base_path: Option<Arc<Path>>,
 }
 
 impl Control {
@@ -533,6 +555,8 @@ impl Control {
             path: None,
             seen_event: None,
             socket: VecDeque::new(),
+            blind: false,
+            base_path: None,
         };
         c.rejitter();
         c
@@ -602,7 +626,8 @@ impl Control {
                 .min();
         }
         let own = self.rtts.iter().map(|(_, r)| *r).min();
-        match (own, self.path.as_ref().and_then(|p| p.base(now))) {
+        let shared = self.path.as_ref().or(self.base_path.as_ref());
+        match (own, shared.and_then(|p| p.base(now))) {
             (Some(a), Some(b)) => Some(a.min(b)),
             (a, b) => a.or(b),
         }
@@ -683,6 +708,7 @@ impl Control {
             .unwrap_or(STEPS.len() - 1);
         self.set_level(level);
         self.last_lowered = Some(now);
+        self.blind = false;
         self.calm_since = now;
         self.calm_streak = 0;
         // Judge the new rate by its own round trips.
@@ -727,15 +753,21 @@ impl Control {
             }
         } else if queueing.is_some_and(|q| q <= QUEUE_TARGET / 2) {
             // Additive increase: the wait grows with the step (1 s per frame/s, at most 4 s),
-            // so every connection gains frames per second at about the same pace.
-            let wait = self
-                .this_wait
-                .mul_f64((hz(self.level.saturating_sub(1)) - hz(self.level)).clamp(1.0, 4.0));
+            // so every connection gains frames per second at about the same pace. After a
+            // blind cut, none: a step each calm judgement (as TCP's slow start after a
+            // timeout), back to where a measured base shows a queue or to the full rate.
+            let wait = if self.blind {
+                Duration::ZERO
+            } else {
+                self.this_wait
+                    .mul_f64((hz(self.level.saturating_sub(1)) - hz(self.level)).clamp(1.0, 4.0))
+            };
             if self.level > 0 && now - self.calm_since >= wait {
                 self.set_level(self.level - 1);
                 self.calm_since = now;
                 self.rejitter();
             }
+            self.blind &= self.level > 0;
         }
         (self.level != from).then_some(Change {
             from,
@@ -797,6 +829,15 @@ impl Pace {
         self.lock().join(path);
     }
 
+    /// Shares the base round trip with the other connections on `path`, and nothing else:
+    /// not its floor, not its cuts. For datagram sessions (QUIC paces them, and their round
+    /// trips are the acknowledgements of frames): fifty viewers joining a thin link at once
+    /// fill its queue with their keyframes before anyone's first answer, and a session that
+    /// never saw it drained would take the queue for its base — one that did is enough.
+    pub fn share_base(&self, path: Arc<Path>) {
+        self.lock().base_path = Some(path);
+    }
+
     /// The current step (index into [`STEPS`]).
     #[must_use]
     pub fn level(&self) -> usize {
@@ -851,7 +892,8 @@ impl Pace {
                 let age = now - sent;
                 // Before the first answer the path's round trip is unknown: take it as
                 // UNKNOWN_BASE (a long path), so a first ping stuck behind a queue still counts.
-                let base = c.base(now).unwrap_or(UNKNOWN_BASE);
+                let known = c.base(now);
+                let base = known.unwrap_or(UNKNOWN_BASE);
                 // With the socket's figures, less the reader's spread (its scheduling).
                 let spread = if c.socket.is_empty() {
                     Duration::ZERO
@@ -870,6 +912,16 @@ impl Pace {
                 } else {
                     None
                 };
+                // Cut for a silence with no round trip measured: on a lossy path a joiner
+                // whose first frames were lost (its keyframe goes again every 250 ms until
+                // one is acknowledged) is silent that long with no queue anywhere; behind a
+                // thin link the joiners' first frames fill its queue. Either way the cut
+                // drains what there is, and the round trips after it are judged against a
+                // measured base: they bring the rate back fast (slow start), not a step per
+                // seconds.
+                if known.is_none() && change.is_some_and(|ch| ch.to > ch.from) {
+                    c.blind = true;
+                }
                 drop(c);
                 (false, self.apply(change))
             }
@@ -928,6 +980,8 @@ impl Pace {
             path.judge(now, base);
         } else if let Some(path) = &c.path {
             path.observe(now, rtt);
+        } else if let Some(path) = &c.base_path {
+            path.seed(now, rtt);
         }
         // Above the base and the jitter allowance: a queue of this connection's own (or of
         // its path).
@@ -1210,6 +1264,66 @@ mod tests {
             })
         );
         assert_eq!(pace.rate(), 30);
+    }
+
+    /// A silence before any round trip (a joiner's lost keyframes) is cut blind, against
+    /// the assumed base; the calm round trips after it bring the rate back a step each (slow
+    /// start), where a cut judged against a measured base comes back a step per seconds.
+    #[test]
+    fn after_a_blind_cut_calm_round_trips_bring_the_rate_back_fast() {
+        let start = Instant::now();
+        let blind = Pace::new(5);
+        assert!(blind.probe(start, 0).0);
+        let (_, change) = blind.probe(start + 600 * MS, 0);
+        assert_eq!(change.and_then(|c| c.cause), Some(Cause::Unanswered));
+        assert_eq!(blind.rate(), 30);
+        blind.answered(start + 650 * MS, 50 * MS);
+        run(&blind, start, 0.8, 2.6, |_| 50 * MS);
+        assert_eq!(
+            blind.rate(),
+            60,
+            "back within two seconds of calm round trips"
+        );
+
+        let measured = Pace::new(5);
+        run(&measured, start, 0.0, 2.0, |_| 50 * MS);
+        assert!(measured.probe(start + 2000 * MS, 0).0);
+        measured.probe(start + 2400 * MS, 0);
+        let cut = measured.level();
+        assert!(cut > 0);
+        measured.answered(start + 2450 * MS, 50 * MS);
+        run(&measured, start, 2.6, 4.4, |_| 50 * MS);
+        assert!(
+            measured.level() + 1 >= cut,
+            "{} from {cut}",
+            measured.level()
+        );
+    }
+
+    /// Datagram sessions of one address share their base and nothing else: one that only
+    /// ever saw the queue its neighbours' keyframes filled judges it against the round trip
+    /// another measured before — and a neighbour's queued round trips cut no one else.
+    #[test]
+    fn a_shared_base_shows_a_queue_a_latecomer_never_saw_drained() {
+        let start = Instant::now();
+        let queued = |_: f64| 130 * MS;
+        let alone = Pace::new(6);
+        run(&alone, start, 0.0, 3.0, queued);
+        assert_eq!(
+            alone.rate(),
+            60,
+            "no base but the queue: nothing to judge it by"
+        );
+
+        let paths = Paths::default();
+        let address = Some(IpAddr::from([10, 0, 0, 1]));
+        let (early, late) = (Pace::new(7), Pace::new(8));
+        early.share_base(paths.join(address));
+        late.share_base(paths.join(address));
+        run(&early, start, 0.0, 1.0, |_| 5 * MS);
+        run(&late, start, 1.0, 4.0, queued);
+        assert!(late.rate() <= 30, "{}", late.rate());
+        assert_eq!(early.rate(), 60, "no shared cut");
     }
 
     /// [`run`] with the socket's figures every probe: `socket(t)` gives the unsent bytes and

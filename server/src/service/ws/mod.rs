@@ -129,7 +129,13 @@ pub(super) async fn serve_parts<St>(
 {
     // A WebTransport session is paced by QUIC, not by the adaptive rate: it stays off the
     // paths, whose shared cuts give equal shares of their connections' mean rate.
-    if !outbox.datagrams() {
+    if outbox.datagrams() {
+        // Its base round trip is shared with the other sessions of its address, though:
+        // their frames' acknowledgements, a path of their own.
+        outbox
+            .pace()
+            .share_base(state.datagram_paths.join(peer.map(|p| p.ip())));
+    } else {
         outbox
             .pace()
             .set_path(state.paths.join(peer.map(|p| p.ip())));
