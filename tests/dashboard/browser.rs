@@ -41,12 +41,26 @@ impl Drop for Driver {
     }
 }
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
+/// A free port for chromedriver *below* the kernel's ephemeral range
+/// (`ip_local_port_range`): a port taken from that range and let go (bind to port 0, close)
+/// can be handed to a test server binding port 0 before chromedriver binds it, and then the
+/// session request reached that server (a CI run failed so: "NotW3C", with a test page for
+/// an answer). Ports below the range are never handed out that way.
+fn driver_port() -> u16 {
+    let ephemeral = std::fs::read_to_string("/proc/sys/net/ipv4/ip_local_port_range")
+        .ok()
+        .and_then(|s| s.split_whitespace().next()?.parse::<u16>().ok())
+        .unwrap_or(32768);
+    let (low, high) = (10_000u16, ephemeral.max(11_000));
+    let seed = u64::from(std::process::id())
+        ^ std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| u64::from(d.subsec_nanos()));
+    let span = u64::from(high - low);
+    (0..span)
+        .map(|i| low + ((seed + i * 7919) % span) as u16)
+        .find(|&p| std::net::TcpListener::bind(("127.0.0.1", p)).is_ok())
+        .expect("a free port below the ephemeral range")
 }
 
 /// Starts chromedriver and a headless Chromium session at 1280×800.
@@ -56,7 +70,7 @@ pub async fn browser() -> (Driver, Browser) {
         Path::new(CHROMEDRIVER).exists() && Path::new(CHROMIUM).exists(),
         "chromium and chromedriver are needed (scripts/test installs them)"
     );
-    let port = free_port();
+    let port = driver_port();
     let child = Command::new(CHROMEDRIVER)
         .arg(format!("--port={port}"))
         .process_group(0)
