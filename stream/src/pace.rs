@@ -358,7 +358,7 @@ impl Path {
     }
 
     fn observe(&self, now: Instant, rtt: Duration) {
-        self.seed(now, rtt);
+        self.observe_base(now, rtt);
         {
             let mut recent = self
                 .recent
@@ -386,7 +386,7 @@ impl Path {
     }
 
     /// A round trip for the base only, not the floor (a session sharing only its base).
-    fn seed(&self, now: Instant, rtt: Duration) {
+    fn observe_base(&self, now: Instant, rtt: Duration) {
         let mut w = self.lock();
         Self::roll(&mut w, now);
         w.1 = Some(w.1.map_or(rtt, |m| m.min(rtt)));
@@ -981,7 +981,7 @@ impl Pace {
         } else if let Some(path) = &c.path {
             path.observe(now, rtt);
         } else if let Some(path) = &c.base_path {
-            path.seed(now, rtt);
+            path.observe_base(now, rtt);
         }
         // Above the base and the jitter allowance: a queue of this connection's own (or of
         // its path).
